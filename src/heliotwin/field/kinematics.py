@@ -1,0 +1,244 @@
+"""Rigid-body two-axis heliostat kinematics (PAINT / Jülich model): forward and inverse.
+
+Forward: motor steps -> joint angles (actuators) -> ``R_world_heliostat`` and concentrator position.
+Inverse: aim point + sun -> mirror normal (bisector) -> joint angles (analytic, exact for any tilts) inside
+a fixed-point loop over the concentrator position (which moves with the angles) -> motor steps.
+
+The chain and every parameter are documented on :class:`heliotwin.field.plant.Kinematics`. All
+parameters are plain tensors, so any of them may require grad; nothing here knows what is learned.
+Shapes broadcast: kinematics fields are ``[H, ...]``, steps ``[..., H, 2]``.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from ..errors import OutOfRangeError
+from .actuators import angle_to_steps, steps_to_angle
+from .plant import Kinematics
+
+
+def rot_e(a: torch.Tensor) -> torch.Tensor:
+    """Rotation about east (x) by ``a`` [rad], right-handed; shape (..., 3, 3)."""
+    c, s, o, z = torch.cos(a), torch.sin(a), torch.ones_like(a), torch.zeros_like(a)
+    return torch.stack((torch.stack((o, z, z), -1), torch.stack((z, c, -s), -1), torch.stack((z, s, c), -1)), -2)
+
+
+def rot_n(a: torch.Tensor) -> torch.Tensor:
+    """Rotation about north (y) by ``a`` [rad], right-handed; shape (..., 3, 3)."""
+    c, s, o, z = torch.cos(a), torch.sin(a), torch.ones_like(a), torch.zeros_like(a)
+    return torch.stack((torch.stack((c, z, s), -1), torch.stack((z, o, z), -1), torch.stack((-s, z, c), -1)), -2)
+
+
+def rot_u(a: torch.Tensor) -> torch.Tensor:
+    """Rotation about up (z) by ``a`` [rad], right-handed; shape (..., 3, 3)."""
+    c, s, o, z = torch.cos(a), torch.sin(a), torch.ones_like(a), torch.zeros_like(a)
+    return torch.stack((torch.stack((c, -s, z), -1), torch.stack((s, c, z), -1), torch.stack((z, z, o), -1)), -2)
+
+
+def _actuator_kwargs(kin: Kinematics) -> dict:
+    return dict(increment=kin.increment, offset=kin.offset, pivot_radius=kin.pivot_radius,
+                initial_angle=kin.initial_angle, initial_stroke_length=kin.initial_stroke_length,
+                clockwise=kin.clockwise, linear=kin.linear)
+
+
+def joint_angles(kin: Kinematics, motor_steps) -> torch.Tensor:
+    """Joint angles from motor steps.
+
+    Parameters
+    ----------
+    kin : Kinematics
+        H heliostats.
+    motor_steps : tensor-like, shape (..., H, 2)
+        Axis-1 and axis-2 motor positions [steps].
+
+    Returns
+    -------
+    torch.Tensor, shape (..., H, 2)
+        ``(theta1, theta2)`` [rad] in PAINT's convention (``theta1`` before the -pi/2 shift).
+    """
+    return steps_to_angle(torch.as_tensor(motor_steps), **_actuator_kwargs(kin))
+
+
+def _tilts(kin: Kinematics):
+    t1 = rot_u(kin.joint_tilt[..., 0, 2]) @ rot_n(kin.joint_tilt[..., 0, 1])
+    t2 = rot_e(kin.joint_tilt[..., 1, 0]) @ rot_n(kin.joint_tilt[..., 1, 1])
+    t3 = rot_e(kin.concentrator_tilt[..., 0]) @ rot_n(kin.concentrator_tilt[..., 1]) @ rot_u(kin.concentrator_tilt[..., 2])
+    return t1, t2, t3
+
+
+def _mount(kin: Kinematics) -> torch.Tensor:
+    """``R3 R_E(pi/2)``: concentrator tilt times the heliostat-frame alignment, shape (H, 3, 3)."""
+    _, _, t3 = _tilts(kin)
+    quarter = torch.full_like(kin.concentrator_tilt[..., 0], math.pi / 2)
+    return t3 @ rot_e(quarter)
+
+
+def pose_from_angles(kin: Kinematics, angles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Heliostat pose from joint angles.
+
+    Parameters
+    ----------
+    kin : Kinematics
+        H heliostats.
+    angles : torch.Tensor, shape (..., H, 2)
+        ``(theta1, theta2)`` [rad], PAINT convention.
+
+    Returns
+    -------
+    R_world_heliostat : torch.Tensor, shape (..., H, 3, 3)
+        Maps heliostat-frame vectors to ENU; the mirror normal is its third column.
+    concentrator : torch.Tensor, shape (..., H, 3)
+        Concentrator position, ENU [m].
+    """
+    t1, t2, _ = _tilts(kin)
+    r1 = t1 @ rot_e(angles[..., 0] - math.pi / 2)
+    r2 = t2 @ rot_u(angles[..., 1])
+    tj = kin.joint_translation
+    inner = tj[..., 1, :] + (r2 @ kin.concentrator_translation.unsqueeze(-1)).squeeze(-1)
+    concentrator = kin.position + tj[..., 0, :] + (r1 @ inner.unsqueeze(-1)).squeeze(-1)
+    return r1 @ r2 @ _mount(kin), concentrator
+
+
+def forward(kin: Kinematics, motor_steps) -> tuple[torch.Tensor, torch.Tensor]:
+    """Motor steps -> heliostat pose (see :func:`pose_from_angles`).
+
+    Parameters
+    ----------
+    motor_steps : tensor-like, shape (..., H, 2)
+        [steps].
+
+    Returns
+    -------
+    R_world_heliostat : torch.Tensor, shape (..., H, 3, 3)
+    concentrator : torch.Tensor, shape (..., H, 3), ENU [m]
+    """
+    return pose_from_angles(kin, joint_angles(kin, motor_steps))
+
+
+def mirror_normal(R_world_heliostat: torch.Tensor) -> torch.Tensor:
+    """The mirror normal (heliostat-frame e_z in ENU), shape (..., 3)."""
+    return R_world_heliostat[..., :, 2]
+
+
+def _unit(v: torch.Tensor) -> torch.Tensor:
+    return v / torch.linalg.norm(v, dim=-1, keepdim=True).clamp_min(1e-300)
+
+
+def bisector_normal(sun_direction: torch.Tensor, concentrator: torch.Tensor, aim_point: torch.Tensor) -> torch.Tensor:
+    """Mirror normal that reflects the sun from ``concentrator`` onto ``aim_point``.
+
+    Parameters
+    ----------
+    sun_direction : torch.Tensor, shape (..., 3)
+        Unit vector towards the sun.
+    concentrator, aim_point : torch.Tensor, shape (..., 3)
+        ENU [m].
+
+    Returns
+    -------
+    torch.Tensor, shape (..., 3)
+        Unit normal, the bisector of the sun direction and the direction to the aim point.
+    """
+    return _unit(sun_direction + _unit(aim_point - concentrator))
+
+
+def angles_for_normal(kin: Kinematics, normal: torch.Tensor, reference_angles: torch.Tensor | None = None) -> torch.Tensor:
+    """Joint angles that turn the mirror normal to ``normal`` — analytic, exact for any tilts.
+
+    With ``m = R3 R_E(pi/2) e_z``, the model normal is ``T1 R_E(a) T2 R_U(theta2) m`` (``a = theta1 - pi/2``).
+    ``R_E(a)`` keeps the east component, so ``e . (T2 R_U(theta2) m) = e . (T1^T normal)`` is a sinusoid in
+    ``theta2`` (``A cos + B sin = D``), solved in closed form on the branch continuous with the nominal
+    heliostat (|theta2| < pi/2); ``a`` then follows from the angle in the north-up plane.
+
+    Parameters
+    ----------
+    normal : torch.Tensor, shape (..., H, 3)
+        Desired unit normal, ENU.
+    reference_angles : unused, reserved.
+
+    Returns
+    -------
+    torch.Tensor, shape (..., H, 2)
+        ``(theta1, theta2)`` [rad].
+    """
+    t1, t2, _ = _tilts(kin)
+    m = (_mount(kin) @ normal.new_tensor([0.0, 0.0, 1.0]))  # (H, 3)
+    target = (t1.transpose(-1, -2) @ normal.unsqueeze(-1)).squeeze(-1)
+    row = t2[..., 0, :]  # east row of T2
+    a_coef = row[..., 0] * m[..., 0] + row[..., 1] * m[..., 1]
+    b_coef = row[..., 1] * m[..., 0] - row[..., 0] * m[..., 1]
+    d = target[..., 0] - row[..., 2] * m[..., 2]
+    amp = torch.sqrt(a_coef * a_coef + b_coef * b_coef)
+    theta2 = torch.atan2(b_coef, a_coef) - torch.acos((d / amp).clamp(-1.0, 1.0))
+    theta2 = torch.remainder(theta2 + math.pi, 2 * math.pi) - math.pi
+    w = (t2 @ (rot_u(theta2) @ m.unsqueeze(-1))).squeeze(-1)
+    alpha = torch.atan2(target[..., 2], target[..., 1]) - torch.atan2(w[..., 2], w[..., 1])
+    theta1 = torch.remainder(alpha + math.pi / 2 + math.pi, 2 * math.pi) - math.pi
+    return torch.stack((theta1, theta2), dim=-1)
+
+
+def inverse(kin: Kinematics, aim_point, sun_direction, *, iterations: int = 20, tolerance: float = 1e-12,
+            strict: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    """Motor steps that reflect the sun onto an aim point.
+
+    The concentrator moves with the joint angles, so the bisector is re-evaluated at the concentrator
+    of the last solution until the angles change by less than ``tolerance`` [rad] (fixed point; the lever
+    arm of a few decimetres against ~100 m slant range makes it contract fast).
+
+    Parameters
+    ----------
+    kin : Kinematics
+        H heliostats (float64 recommended).
+    aim_point : tensor-like, shape (..., H, 3)
+        ENU [m].
+    sun_direction : tensor-like, shape (..., H, 3) or (..., 1, 3)
+        Unit vector towards the sun.
+    iterations : int
+        Maximum fixed-point iterations.
+    strict : bool
+        Raise :class:`~heliotwin.errors.OutOfRangeError` when any solution is outside the motor range or
+        not realisable by the actuator; otherwise report it in ``reachable``.
+
+    Returns
+    -------
+    motor_steps : torch.Tensor, shape (..., H, 2)
+        [steps] (real-valued).
+    reachable : torch.Tensor of bool, shape (..., H)
+        Within ``[min_steps, max_steps]`` on both axes and realisable.
+    """
+    dtype = kin.position.dtype
+    aim = torch.as_tensor(aim_point, dtype=dtype)
+    sun = torch.as_tensor(sun_direction, dtype=dtype)
+    shape = torch.broadcast_shapes(aim.shape, sun.shape, kin.position.shape)
+    aim, sun = aim.expand(shape), sun.expand(shape)
+    concentrator = kin.position.expand(shape)
+    angles = None
+    for _ in range(iterations):
+        new = angles_for_normal(kin, bisector_normal(sun, concentrator, aim))
+        _, concentrator = pose_from_angles(kin, new)
+        done = angles is not None and float((new - angles).abs().max()) < tolerance
+        angles = new
+        if done:
+            break
+    steps, valid = angle_to_steps(angles, **_actuator_kwargs(kin))
+    in_range = (steps >= kin.min_steps) & (steps <= kin.max_steps) & valid
+    reachable = in_range.all(-1)
+    if strict and not bool(reachable.all()):
+        bad = (~reachable).nonzero()[0].tolist()
+        raise OutOfRangeError(f"aim point not reachable for heliostat index {bad[-1]} (sample {bad[:-1]}): "
+                              f"motor steps {steps[tuple(bad)].tolist()} outside "
+                              f"[{kin.min_steps[bad[-1]].tolist()}, {kin.max_steps[bad[-1]].tolist()}]")
+    return steps, reachable
+
+
+def check_motor_range(kin: Kinematics, motor_steps, *, where: str = "motor steps") -> None:
+    """Raise :class:`~heliotwin.errors.OutOfRangeError` if any steps (..., H, 2) are outside the range."""
+    steps = torch.as_tensor(motor_steps, dtype=kin.min_steps.dtype)
+    bad = (steps < kin.min_steps) | (steps > kin.max_steps)
+    if bool(bad.any()):
+        idx = bad.nonzero()[0].tolist()
+        raise OutOfRangeError(f"{where}: axis {idx[-1] + 1} value {steps[tuple(idx)].item():.0f} outside actuator "
+                              f"range [{kin.min_steps[..., idx[-1]].flatten()[0].item():.0f}, "
+                              f"{kin.max_steps[..., idx[-1]].flatten()[0].item():.0f}]")

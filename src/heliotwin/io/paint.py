@@ -1,0 +1,411 @@
+"""Reader for a local PAINT download (the layout a user's download has), with validation.
+
+Layout::
+
+    <root>/WRI1030197-tower-measurements.json      (any ``*-tower-measurements.json``)
+    <root>/metadata/calibration-metadata.csv        (optional: DateTime per record)
+    <root>/metadata/calibration-weather.csv         (optional)
+    <root>/<HID>/Properties/<HID>-heliostat-properties.json
+    <root>/<HID>/Calibration/<id>-calibration-properties.json
+    <root>/<HID>/Calibration/<id>-flux.png, <id>-flux-centered.png   (optional)
+
+Every problem raises :class:`~heliotwin.errors.InputFileError` with the file and the JSON field.
+Geodetic coordinates are lat-first WGS84 and become ENU about the plant reference (float64).
+"""
+from __future__ import annotations
+
+import csv
+import glob
+import json
+import math
+import os
+import re
+from dataclasses import dataclass, field
+
+import torch
+
+from ..errors import InputFileError
+from ..field.plant import Facets, Field, Kinematics, Plant, Site, SunSettings, Surfaces
+from ..field.targets import CylinderTarget, PlanarTarget
+from ..site import wgs84_to_enu
+
+HELIOSTAT_DIR = re.compile(r"^[A-Z]{2}[0-9]{2}$")
+FOCAL_SPOT_SOURCES = ("HeliOS", "UTIS")
+
+
+def read_json(path) -> dict:
+    """Parse a JSON file; one-line :class:`InputFileError` when it is missing or malformed."""
+    try:
+        with open(path, encoding="utf-8") as fh:
+            data = json.load(fh)
+    except FileNotFoundError:
+        raise InputFileError(path, "file not found") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputFileError(path, f"malformed JSON ({exc})") from None
+    except OSError as exc:
+        raise InputFileError(path, f"cannot read ({exc.strerror})") from None
+    if not isinstance(data, dict):
+        raise InputFileError(path, "expected a JSON object at top level")
+    return data
+
+
+def _get(d: dict, key: str, path, prefix: str = ""):
+    if not isinstance(d, dict) or key not in d:
+        raise InputFileError(path, "missing key", field=f"{prefix}{key}")
+    return d[key]
+
+
+def _number(d: dict, key: str, path, prefix: str = "", *, positive: bool = False) -> float:
+    v = _get(d, key, path, prefix)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+        raise InputFileError(path, f"expected a finite number, got {v!r}", field=f"{prefix}{key}")
+    if positive and float(v) <= 0:
+        raise InputFileError(path, f"expected a positive number, got {v!r}", field=f"{prefix}{key}")
+    return float(v)
+
+
+def _vector(d: dict, key: str, path, prefix: str = "", n: int = 3) -> list[float]:
+    v = _get(d, key, path, prefix)
+    if (not isinstance(v, (list, tuple)) or len(v) != n
+            or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(float(x)) for x in v)):
+        raise InputFileError(path, f"expected a list of {n} finite numbers, got {v!r}", field=f"{prefix}{key}")
+    return [float(x) for x in v]
+
+
+def _geodetic(d: dict, key: str, path, prefix: str = "") -> list[float]:
+    v = _vector(d, key, path, prefix)
+    if not (-90.0 <= v[0] <= 90.0 and -180.0 <= v[1] <= 180.0):
+        raise InputFileError(path, f"not a [latitude, longitude, altitude] (lat-first WGS84): {v}", field=f"{prefix}{key}")
+    return v
+
+
+# ----------------------------------------------------------------------------------------------- tower
+def find_tower_file(root) -> str:
+    """The ``*-tower-measurements.json`` of a PAINT folder."""
+    hits = sorted(glob.glob(os.path.join(str(root), "*tower-measurements.json")))
+    if not hits:
+        raise InputFileError(root, "no '*-tower-measurements.json' in this PAINT folder")
+    return hits[0]
+
+
+def read_tower(path) -> tuple[Site, dict]:
+    """Read the tower file: plant reference and targets.
+
+    Returns
+    -------
+    site : Site
+        ENU origin = ``power_plant_properties.coordinates``.
+    targets : dict of str -> PlanarTarget | CylinderTarget
+        ENU geometry (float64).
+    """
+    data = read_json(path)
+    plant = _get(data, "power_plant_properties", path)
+    ref = _geodetic(plant, "coordinates", path, "power_plant_properties.")
+    site = Site(ref[0], ref[1], ref[2], str(plant.get("ID", "")))
+    targets = {}
+    for name, spec in data.items():
+        if name == "power_plant_properties":
+            continue
+        pre = f"{name}."
+        kind = _get(spec, "type", path, pre)
+        coords = _get(spec, "coordinates", path, pre)
+        normal = _vector(spec, "normal_vector", path, pre)
+        if kind == "planar":
+            corners = {k: wgs84_to_enu(_geodetic(coords, k, path, pre + "coordinates."), site.reference)
+                       for k in ("upper_left", "upper_right", "lower_left", "lower_right")}
+            center = wgs84_to_enu(_geodetic(coords, "center", path, pre + "coordinates."), site.reference)
+            targets[name] = PlanarTarget.from_corners(name, corners, normal, center)
+        elif kind == "convex_cylinder":
+            radius = _number(spec, "radius", path, pre, positive=True)
+            opening = math.radians(_number(spec, "opening_angle", path, pre, positive=True))
+            corners = {k: wgs84_to_enu(_geodetic(coords, f"receiver_outer_{k}", path, pre + "coordinates."), site.reference)
+                       for k in ("upper_left", "upper_right", "lower_left", "lower_right")}
+            targets[name] = CylinderTarget.from_outer_corners(name, corners, normal, radius, opening)
+        else:
+            raise InputFileError(path, f"unknown target type {kind!r} (known: planar, convex_cylinder)", field=pre + "type")
+    return site, targets
+
+
+# ------------------------------------------------------------------------------------------ heliostat
+@dataclass
+class HeliostatProperties:
+    """One heliostat's properties file, as tensors with a leading heliostat axis of size 1."""
+
+    heliostat_id: str
+    kinematics: Kinematics
+    facets: Facets
+    width: float
+    height: float
+    renovation: str
+    path: str
+
+
+_ACTUATOR_KEYS = ("increment", "offset", "pivot_radius", "initial_angle", "initial_stroke_length")
+
+
+def read_heliostat_properties(path, site: Site, heliostat_id: str | None = None) -> HeliostatProperties:
+    """Read ``<HID>-heliostat-properties.json``.
+
+    Accepts both ``kinematics_properties`` and the older ``kinematic_properties`` key.
+    """
+    data = read_json(path)
+    hid = heliostat_id or os.path.basename(str(path)).split("-")[0]
+    position = wgs84_to_enu(_geodetic(data, "heliostat_position", path), site.reference)
+    key = "kinematics_properties" if "kinematics_properties" in data else "kinematic_properties"
+    kin = _get(data, key, path)
+    pre = key + "."
+    acts = _get(kin, "actuators", path, pre)
+    if not isinstance(acts, list) or len(acts) != 2:
+        raise InputFileError(path, "expected a list of 2 actuators", field=pre + "actuators")
+    per_axis = {k: [] for k in _ACTUATOR_KEYS + ("min_increment", "max_increment", "min_movement_angle", "max_movement_angle")}
+    clockwise, linear = [], []
+    for i, act in enumerate(acts):
+        ap = f"{pre}actuators[{i}]."
+        kind = _get(act, "type_axis", path, ap)
+        if kind not in ("linear", "ideal"):
+            raise InputFileError(path, f"unknown actuator type {kind!r} (known: linear, ideal)", field=ap + "type_axis")
+        for k in per_axis:
+            if k in ("min_movement_angle", "max_movement_angle") and k not in act:
+                per_axis[k].append(float("nan"))
+                continue
+            per_axis[k].append(_number(act, k, path, ap, positive=(k == "increment")))
+        cw = _get(act, "clockwise_axis_movement", path, ap)
+        if cw not in (0, 1, True, False):
+            raise InputFileError(path, f"expected 0 or 1, got {cw!r}", field=ap + "clockwise_axis_movement")
+        clockwise.append(bool(cw))
+        linear.append(kind == "linear")
+        if kind == "linear":
+            for k in ("offset", "pivot_radius"):
+                if per_axis[k][-1] <= 0:
+                    raise InputFileError(path, f"must be positive for a linear actuator, got {per_axis[k][-1]}", field=ap + k)
+        if per_axis["max_increment"][-1] < per_axis["min_increment"][-1]:
+            raise InputFileError(path, "max_increment < min_increment", field=ap + "max_increment")
+
+    def num(k):
+        return _number(kin, k, path, pre) if k in kin else 0.0
+
+    t = lambda v: torch.tensor(v, dtype=torch.float64)  # noqa: E731
+    joint_translation = t([[[num(f"joint_translation_{a}_{j}") for a in "enu"] for j in (1, 2)]])
+    kinematics = Kinematics(
+        position=position.reshape(1, 3),
+        joint_translation=joint_translation,
+        concentrator_translation=t([[num(f"concentrator_translation_{a}") for a in "enu"]]),
+        joint_tilt=torch.zeros(1, 2, 3, dtype=torch.float64),
+        concentrator_tilt=torch.zeros(1, 3, dtype=torch.float64),
+        **{k: t([per_axis[k]]) for k in _ACTUATOR_KEYS},
+        clockwise=torch.tensor([clockwise]), linear=torch.tensor([linear]),
+        min_steps=t([per_axis["min_increment"]]), max_steps=t([per_axis["max_increment"]]),
+        min_angle=t([per_axis["min_movement_angle"]]), max_angle=t([per_axis["max_movement_angle"]]),
+    )
+    fp = _get(data, "facet_properties", path)
+    facets = _get(fp, "facets", path, "facet_properties.")
+    if not isinstance(facets, list) or not facets:
+        raise InputFileError(path, "expected a non-empty list of facets", field="facet_properties.facets")
+    tr, ce, cn = [], [], []
+    for i, f in enumerate(facets):
+        fpre = f"facet_properties.facets[{i}]."
+        tr.append(_vector(f, "translation_vector", path, fpre))
+        ce.append(_vector(f, "canting_e", path, fpre))
+        cn.append(_vector(f, "canting_n", path, fpre))
+        if math.hypot(*ce[-1]) == 0 or math.hypot(*cn[-1]) == 0:
+            raise InputFileError(path, "zero-length canting span vector", field=fpre + "canting_e")
+    fac = Facets(t([tr]), t([ce]), t([cn]))
+    width = _number(data, "width", path, positive=True) if "width" in data else float("nan")
+    height = _number(data, "height", path, positive=True) if "height" in data else float("nan")
+    return HeliostatProperties(hid, kinematics, fac, width, height, str(data.get("renovation", "")), str(path))
+
+
+# ---------------------------------------------------------------------------------------- calibration
+@dataclass
+class CalibrationRecord:
+    """One camera-target calibration record.
+
+    Attributes
+    ----------
+    record_id : int
+    heliostat_id : str
+    sun_azimuth, sun_elevation : float
+        [rad], PAINT convention (azimuth 0 = south, +pi/2 = east).
+    motor_steps : tuple of 2 float
+        [steps].
+    target : str
+        Target name.
+    focal_spot : dict of str -> torch.Tensor (3,)
+        ENU [m] per source present (``"HeliOS"``, ``"UTIS"``).
+    focal_spot_wgs84 : dict of str -> list of 3 float
+    flux_png, flux_centered_png : str or None
+        Image paths when present.
+    datetime : str or None
+        UTC ISO time from the metadata CSV.
+    weather : dict or None
+    path : str
+    """
+
+    record_id: int
+    heliostat_id: str
+    sun_azimuth: float
+    sun_elevation: float
+    motor_steps: tuple[float, float]
+    target: str
+    focal_spot: dict
+    focal_spot_wgs84: dict
+    path: str
+    flux_png: str | None = None
+    flux_centered_png: str | None = None
+    datetime: str | None = None
+    weather: dict | None = None
+
+    def spot(self, prefer: str = "HeliOS") -> torch.Tensor:
+        """Focal spot ENU (3,) from ``prefer``, falling back to the other source."""
+        if prefer in self.focal_spot:
+            return self.focal_spot[prefer]
+        for s in FOCAL_SPOT_SOURCES:
+            if s in self.focal_spot:
+                return self.focal_spot[s]
+        raise InputFileError(self.path, "no focal spot", field="focal_spot")
+
+
+def read_calibration_record(path, site: Site, heliostat_id: str, known_targets=None) -> CalibrationRecord:
+    """Read ``<id>-calibration-properties.json``; validates every field it uses."""
+    data = read_json(path)
+    base = os.path.basename(str(path))
+    try:
+        rid = int(base.split("-")[0])
+    except ValueError:
+        raise InputFileError(path, "file name does not start with a numeric record id") from None
+    mp = _get(data, "motor_position", path)
+    steps = (_number(mp, "axis_1_motor_position", path, "motor_position."),
+             _number(mp, "axis_2_motor_position", path, "motor_position."))
+    target = _get(data, "target_name", path)
+    if not isinstance(target, str):
+        raise InputFileError(path, f"expected a string, got {target!r}", field="target_name")
+    if known_targets is not None and target not in known_targets:
+        raise InputFileError(path, f"unknown target {target!r}; known: {', '.join(sorted(known_targets))}", field="target_name")
+    spots = _get(data, "focal_spot", path)
+    if not isinstance(spots, dict):
+        raise InputFileError(path, "expected an object", field="focal_spot")
+    enu, lla = {}, {}
+    for src in FOCAL_SPOT_SOURCES:
+        if spots.get(src) is not None:
+            lla[src] = _geodetic(spots, src, path, "focal_spot.")
+            enu[src] = wgs84_to_enu(lla[src], site.reference)
+    if not enu:
+        raise InputFileError(path, "neither a HeliOS nor a UTIS centroid", field="focal_spot")
+    az = _number(data, "sun_azimuth", path)
+    el = _number(data, "sun_elevation", path)
+    if not -90.0 < el <= 90.0:
+        raise InputFileError(path, f"sun elevation {el} deg is at or below the horizon", field="sun_elevation")
+    folder = os.path.dirname(str(path))
+    png = os.path.join(folder, f"{rid}-flux.png")
+    cpng = os.path.join(folder, f"{rid}-flux-centered.png")
+    return CalibrationRecord(rid, heliostat_id, math.radians(az), math.radians(el), steps, target, enu, lla, str(path),
+                             png if os.path.exists(png) else None, cpng if os.path.exists(cpng) else None)
+
+
+def read_metadata(root) -> tuple[dict, dict]:
+    """DateTime and weather per record id from ``metadata/*.csv`` (empty dicts when absent)."""
+    times, weather = {}, {}
+    meta = os.path.join(str(root), "metadata", "calibration-metadata.csv")
+    if os.path.exists(meta):
+        with open(meta, newline="", encoding="utf-8") as fh:
+            reader = csv.DictReader(fh)
+            if "Id" not in (reader.fieldnames or []) or "DateTime" not in (reader.fieldnames or []):
+                raise InputFileError(meta, "needs columns Id and DateTime", field="header")
+            for line, row in enumerate(reader, start=2):
+                try:
+                    times[int(row["Id"])] = row["DateTime"] or None
+                except (TypeError, ValueError):
+                    raise InputFileError(meta, f"line {line}: bad Id {row.get('Id')!r}", field="Id") from None
+    wpath = os.path.join(str(root), "metadata", "calibration-weather.csv")
+    if os.path.exists(wpath):
+        with open(wpath, newline="", encoding="utf-8") as fh:
+            for line, row in enumerate(csv.DictReader(fh), start=2):
+                try:
+                    rid = int(row["Id"])
+                    weather[rid] = {k: float(v) for k, v in row.items()
+                                    if k not in ("Id", "HeliostatId", "DateTime") and v not in (None, "")}
+                except (KeyError, TypeError, ValueError) as exc:
+                    raise InputFileError(wpath, f"line {line}: {exc}", field="Id") from None
+    return times, weather
+
+
+# ------------------------------------------------------------------------------------------- dataset
+@dataclass
+class PaintDataset:
+    """A PAINT folder read into a plant and its calibration records."""
+
+    root: str
+    plant: Plant
+    records: list[CalibrationRecord] = field(default_factory=list)
+    properties: dict = field(default_factory=dict)
+
+    def records_of(self, heliostat_id: str) -> list[CalibrationRecord]:
+        """Records of one heliostat, sorted by id."""
+        return [r for r in self.records if r.heliostat_id == heliostat_id]
+
+    def record(self, record_id: int) -> CalibrationRecord:
+        for r in self.records:
+            if r.record_id == int(record_id):
+                return r
+        raise KeyError(f"record {record_id} not found in {self.root}")
+
+
+def list_heliostats(root) -> list[str]:
+    """Heliostat folders (``AA39``-style names with a Properties file) of a PAINT download, sorted."""
+    root = str(root)
+    if not os.path.isdir(root):
+        raise InputFileError(root, "PAINT folder not found")
+    return sorted(d for d in os.listdir(root) if HELIOSTAT_DIR.match(d)
+                  and os.path.exists(os.path.join(root, d, "Properties", f"{d}-heliostat-properties.json")))
+
+
+def load_paint(root, heliostats=None, *, surface_control_points=(4, 4), surface_degree=(2, 2),
+               with_records: bool = True) -> PaintDataset:
+    """Read a PAINT folder into a :class:`Plant` (ideal flat canted surfaces) and its records.
+
+    Parameters
+    ----------
+    root : path
+        The PAINT download folder.
+    heliostats : list of str, optional
+        Heliostat ids to read (default: all with a properties file). Unknown ids raise.
+    surface_control_points, surface_degree : (int, int)
+        NURBS resolution of the ideal facets.
+    with_records : bool
+        Also read every calibration record.
+    """
+    from ..field import facets as facet_ops
+
+    root = str(root)
+    site, targets = read_tower(find_tower_file(root))
+    available = list_heliostats(root)
+    ids = available if heliostats is None else list(heliostats)
+    missing = [h for h in ids if h not in available]
+    if missing:
+        raise InputFileError(root, f"heliostat(s) {', '.join(missing)} not found; available: {', '.join(available)}",
+                             field="heliostats")
+    if not ids:
+        raise InputFileError(root, "no heliostats with a properties file")
+    props = {h: read_heliostat_properties(os.path.join(root, h, "Properties", f"{h}-heliostat-properties.json"), site, h)
+             for h in ids}
+    nfac = {p.facets.translation.shape[1] for p in props.values()}
+    if len(nfac) != 1:
+        raise InputFileError(root, f"heliostats have different facet counts {sorted(nfac)}; load them separately",
+                             field="facet_properties.number_of_facets")
+    kin = Kinematics.concatenate([props[h].kinematics for h in ids])
+    fac = Facets(*(torch.cat([getattr(props[h].facets, a) for h in ids]) for a in ("translation", "canting_e", "canting_n")))
+    surfaces = facet_ops.ideal_surfaces(fac, num_control_points=surface_control_points, degree=surface_degree)
+    fld = Field(ids, kin, fac, surfaces, torch.tensor([props[h].width for h in ids], dtype=torch.float64),
+                torch.tensor([props[h].height for h in ids], dtype=torch.float64), [props[h].renovation for h in ids])
+    plant = Plant(site, targets, fld, SunSettings())
+    records = []
+    if with_records:
+        times, weather = read_metadata(root)
+        for h in ids:
+            files = glob.glob(os.path.join(root, h, "Calibration", "*-calibration-properties.json"))
+            for f in sorted(files, key=lambda p: int(os.path.basename(p).split("-")[0]) if os.path.basename(p).split("-")[0].isdigit() else -1):
+                r = read_calibration_record(f, site, h, known_targets=targets)
+                r.datetime = times.get(r.record_id)
+                r.weather = weather.get(r.record_id)
+                records.append(r)
+    return PaintDataset(root, plant, records, props)
