@@ -1,0 +1,61 @@
+"""Plots people would rather look at than read (matplotlib, Agg backend; files are written atomically)."""
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from .io.report import atomic_path  # noqa: E402
+
+
+def _save(fig, path) -> None:
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
+    plt.close(fig)
+
+
+def _imshow_flux(ax, flux, title):
+    ext = flux.extent[0].tolist()
+    im = ax.imshow(flux.bitmap[0].detach().cpu().numpy() / 1e3, extent=(ext[0], ext[1], ext[2], ext[3]), cmap="inferno")
+    ax.set_title(title)
+    ax.set_xlabel("x along target 'right' [m] (left = east)")
+    ax.set_ylabel("y up [m]")
+    plt.colorbar(im, ax=ax, label="flux [kW/m²]")
+
+
+def plot_demo(plant, per_heliostat, receiver_flux, spot, path) -> None:
+    """Field layout coloured by cosine efficiency, receiver flux and one calibration spot."""
+    fig, axes = plt.subplots(1, 3, figsize=(17, 5))
+    xs = [p["position_enu_m"][0] for p in per_heliostat]
+    ys = [p["position_enu_m"][1] for p in per_heliostat]
+    cs = [p["cosine_efficiency"] for p in per_heliostat]
+    sc = axes[0].scatter(xs, ys, c=cs, cmap="viridis", s=30)
+    axes[0].plot([0], [0], "k^", ms=10, label="tower")
+    axes[0].set_aspect("equal")
+    axes[0].set_xlabel("east [m]")
+    axes[0].set_ylabel("north [m]")
+    axes[0].set_title("heliostat field")
+    axes[0].legend()
+    plt.colorbar(sc, ax=axes[0], label="cosine efficiency")
+    _imshow_flux(axes[1], receiver_flux, "receiver (unrolled cylinder)")
+    _imshow_flux(axes[2], spot, f"focal spot on {spot.target.name}")
+    _save(fig, path)
+
+
+def plot_validation(report: dict, path) -> None:
+    """Per-heliostat median pointing error and spot distance of a validation report."""
+    hs = report["heliostats"]
+    ids = list(hs)
+    fig, axes = plt.subplots(2, 1, figsize=(max(8, 0.35 * len(ids)), 7), sharex=True)
+    axes[0].bar(ids, [hs[h]["median_pointing_error_mrad"] for h in ids], color="tab:blue")
+    axes[0].set_yscale("log")
+    axes[0].set_ylabel("median pointing error [mrad]")
+    axes[0].axhline(report["overall"]["median_pointing_error_mrad"], color="k", ls="--", lw=1, label="median over heliostats")
+    axes[0].legend()
+    axes[1].bar(ids, [hs[h]["median_distance_m"] for h in ids], color="tab:orange")
+    axes[1].set_yscale("log")
+    axes[1].set_ylabel("median spot distance [m]")
+    axes[1].tick_params(axis="x", rotation=90)
+    fig.suptitle("nominal kinematics vs measured focal spots")
+    _save(fig, path)

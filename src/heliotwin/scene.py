@@ -1,0 +1,146 @@
+"""Plant-level composition: kinematics + mirror surfaces -> world-frame mirror samples -> tracer.
+
+The scene (a :class:`~heliotwin.field.plant.Plant`) is plain data; the integrators in
+:mod:`heliotwin.raytrace` are separate and never mutate it. This module only glues the steps:
+
+    motor steps --kinematics.forward--> (R_world_heliostat, concentrator)
+    control points --facets.surface_points--> heliostat-frame points, normals, areas
+    --> world points, normals (ENU) --> raytrace.montecarlo / raytrace.analytic --> FluxImage
+
+Shapes: B samples (a sample is one heliostat under one sun position; a heliostat may appear in many),
+P surface points per heliostat.
+"""
+from __future__ import annotations
+
+import torch
+
+from .field import facets as facet_ops
+from .field import kinematics as kin_ops
+from .field.plant import Kinematics, Surfaces
+
+
+def heliostat_frame_surface(surfaces: Surfaces, samples: tuple[int, int] = (32, 32)):
+    """Mirror samples of every heliostat in its own frame.
+
+    Returns
+    -------
+    points, normals : torch.Tensor, [H, F*P, 3]
+        Heliostat frame [m] / unit.
+    areas : torch.Tensor, [H, F*P]
+        [m²] per sample.
+    """
+    return facet_ops.surface_points(surfaces, samples)
+
+
+def to_world(R_world_heliostat: torch.Tensor, concentrator: torch.Tensor, points: torch.Tensor,
+             normals: torch.Tensor, dtype=torch.float32):
+    """Heliostat-frame samples -> ENU.
+
+    Parameters
+    ----------
+    R_world_heliostat : torch.Tensor, [B, 3, 3]
+    concentrator : torch.Tensor, [B, 3]
+        ENU [m].
+    points, normals : torch.Tensor, [B, P, 3]
+        Heliostat frame.
+    dtype : torch.dtype
+        Output dtype (rays are float32; the rotation itself is done in the inputs' precision).
+
+    Returns
+    -------
+    points, normals : torch.Tensor, [B, P, 3]
+        ENU [m] / unit.
+    """
+    R = R_world_heliostat.to(points.dtype)
+    pw = concentrator.to(points.dtype).unsqueeze(-2) + points @ R.transpose(-1, -2)
+    nw = normals @ R.transpose(-1, -2)
+    return pw.to(dtype), nw.to(dtype)
+
+
+def world_surface(kinematics: Kinematics, surfaces: Surfaces, heliostat_index, motor_steps,
+                  samples: tuple[int, int] = (32, 32), dtype=torch.float32):
+    """World-frame mirror samples for B (heliostat, motor steps) samples.
+
+    Parameters
+    ----------
+    kinematics : Kinematics
+        H heliostats.
+    surfaces : Surfaces
+        H heliostats' facets.
+    heliostat_index : tensor-like of int, [B]
+        Which heliostat each sample is.
+    motor_steps : tensor-like, [B, 2]
+        [steps].
+    samples : (int, int)
+        Surface samples per facet and direction.
+
+    Returns
+    -------
+    points, normals : torch.Tensor, [B, F*P, 3]
+        ENU [m] / unit, ``dtype``.
+    areas : torch.Tensor, [B, F*P]
+        [m²].
+    R_world_heliostat : torch.Tensor, [B, 3, 3]
+    concentrator : torch.Tensor, [B, 3]
+    """
+    idx = torch.as_tensor(heliostat_index, dtype=torch.long).reshape(-1)
+    kin = kinematics.index(idx)
+    R, c = kin_ops.forward(kin, torch.as_tensor(motor_steps, dtype=kin.position.dtype).reshape(-1, 2))
+    pts, nrm, area = heliostat_frame_surface(surfaces, samples)
+    pw, nw = to_world(R, c, pts[idx], nrm[idx], dtype)
+    return pw, nw, area[idx].to(dtype), R, c
+
+
+def trace(points, normals, areas, sun_direction, target, *, integrator: str = "analytic", resolution=(256, 256),
+          sun=None, window=None, rays_per_point: int = 100, generator: torch.Generator | None = None, **kwargs):
+    """Dispatch to an integrator: ``"mc"`` (Monte-Carlo) or ``"analytic"`` (Gaussian footprints).
+
+    Parameters are those of :func:`heliotwin.raytrace.trace_mc` / :func:`heliotwin.raytrace.trace_analytic`;
+    ``rays_per_point`` and ``generator`` are used by ``"mc"`` only.
+
+    Returns
+    -------
+    FluxImage
+    """
+    from .errors import HeliotwinError
+
+    if integrator == "mc":
+        from .raytrace import montecarlo
+
+        if generator is None:
+            raise HeliotwinError("the Monte-Carlo integrator needs a torch.Generator (pass a seed)")
+        return montecarlo.trace_mc(points, normals, areas, sun_direction, target, resolution=resolution, sun=sun,
+                                   window=window, rays_per_point=rays_per_point, generator=generator, **kwargs)
+    if integrator == "analytic":
+        from .raytrace import analytic
+
+        return analytic.trace_analytic(points, normals, areas, sun_direction, target, resolution=resolution, sun=sun,
+                                       window=window, **kwargs)
+    raise HeliotwinError(f"unknown integrator {integrator!r}; expected 'mc' or 'analytic'")
+
+
+def central_ray_spot(R_world_heliostat: torch.Tensor, concentrator: torch.Tensor, sun_direction: torch.Tensor, target):
+    """Where the ray reflected at the concentrator by the mirror normal meets the target plane.
+
+    Parameters
+    ----------
+    R_world_heliostat : torch.Tensor, [B, 3, 3]
+    concentrator : torch.Tensor, [B, 3]
+        ENU [m].
+    sun_direction : torch.Tensor, [B, 3]
+        Unit, towards the sun.
+    target : PlanarTarget
+
+    Returns
+    -------
+    torch.Tensor, [B, 3]
+        ENU [m] (float64). Rays parallel to or leaving the plane give NaN (no intersection).
+    """
+    n = kin_ops.mirror_normal(R_world_heliostat).to(torch.float64)
+    s = sun_direction.to(torch.float64)
+    r = 2 * (n * s).sum(-1, keepdim=True) * n - s  # reflect(-s, n)
+    tn = target.normal.to(r)
+    denom = r @ tn
+    t = ((target.center.to(r) - concentrator.to(r)) @ tn) / torch.where(denom < 0, denom, torch.full_like(denom, -1.0))
+    hit = concentrator.to(r) + t.unsqueeze(-1) * r
+    return torch.where((denom < 0).unsqueeze(-1), hit, torch.full_like(hit, float("nan")))
