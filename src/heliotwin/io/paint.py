@@ -55,9 +55,19 @@ def _get(d: dict, key: str, path, prefix: str = ""):
     return d[key]
 
 
+def _finite_number(x) -> bool:
+    """An int/float (not bool) that is finite as a float; huge JSON integers (float() overflows) are not."""
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        return False
+    try:
+        return math.isfinite(float(x))
+    except OverflowError:
+        return False
+
+
 def _number(d: dict, key: str, path, prefix: str = "", *, positive: bool = False) -> float:
     v = _get(d, key, path, prefix)
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+    if not _finite_number(v):
         raise InputFileError(path, f"expected a finite number, got {v!r}", field=f"{prefix}{key}")
     if positive and float(v) <= 0:
         raise InputFileError(path, f"expected a positive number, got {v!r}", field=f"{prefix}{key}")
@@ -67,7 +77,7 @@ def _number(d: dict, key: str, path, prefix: str = "", *, positive: bool = False
 def _vector(d: dict, key: str, path, prefix: str = "", n: int = 3) -> list[float]:
     v = _get(d, key, path, prefix)
     if (not isinstance(v, (list, tuple)) or len(v) != n
-            or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(float(x)) for x in v)):
+            or not all(_finite_number(x) for x in v)):
         raise InputFileError(path, f"expected a list of {n} finite numbers, got {v!r}", field=f"{prefix}{key}")
     return [float(x) for x in v]
 
@@ -293,7 +303,7 @@ def read_calibration_record(path, site: Site, heliostat_id: str, known_targets=N
         raise InputFileError(path, "neither a HeliOS nor a UTIS centroid", field="focal_spot")
     az = _number(data, "sun_azimuth", path)
     el = _number(data, "sun_elevation", path)
-    if not -90.0 < el <= 90.0:
+    if not 0.0 < el <= 90.0:
         raise InputFileError(path, f"sun elevation {el} deg is at or below the horizon", field="sun_elevation")
     folder = os.path.dirname(str(path))
     png = os.path.join(folder, f"{rid}-flux.png")

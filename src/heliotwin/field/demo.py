@@ -1,0 +1,230 @@
+"""An embedded demo plant: a Jülich-like solar tower and a generated heliostat field, no files needed.
+
+The tower is PAINT's Jülich tower (plant WRI1030197): the four targets are built from the surveyed corner
+points of PAINT's ``WRI1030197-tower-measurements.json``, converted to ENU about the plant reference and
+rounded to the millimetre, with the same constructors the PAINT reader uses
+(:meth:`PlanarTarget.from_corners`, :meth:`CylinderTarget.from_outer_corners`). A demo plant and a plant
+read from a PAINT download therefore share their targets to about a millimetre.
+
+The field is generated: Jülich-style east-west rows north of the tower, staggered by half a column,
+heliostats 4.4 m apart within a row, rows from 22 m to about 150 m north with the row spacing growing
+from 4.6 m, within +/-60 m east-west. ``num_heliostats`` of these slots are drawn at random (a seeded
+generator, so the plant is a pure function of its arguments), and each heliostat gets small Jülich-like
+manufacturing/survey variations (height, actuator zero points, motor ranges). Heliostat ids follow
+PAINT's ``<row letters><column>`` pattern (``AA36`` is the first row's slot on the tower's meridian).
+
+Every heliostat is a PAINT/Jülich heliostat: 4 facets of 1.605 m x 1.275 m at
+``(+/-0.8075, +/-0.6425, 0.0402)`` m, receiver-canted (each facet tilted like a paraboloid focusing at
+the heliostat's slant range to the receiver), two linear actuators with PAINT's values, the concentrator
+0.175 m north of joint 2, and ideal (flat, canted) NURBS surfaces.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from ..errors import HeliotwinError
+from ..site import Site
+from .actuators import steps_to_angle
+from .facets import ideal_surfaces
+from .plant import Facets, Field, Kinematics, Plant, SunSettings
+from .targets import CylinderTarget, PlanarTarget
+
+# ---------------------------------------------------------------------------------------------- tower
+#: PAINT tower corners, ENU [m] about the Jülich reference (rounded to mm).
+_PLANAR_TARGETS = {
+    "solar_tower_juelich_upper": dict(
+        center=(-0.0135, -3.2358, 43.0977),
+        corners=dict(upper_left=(4.306, -3.244, 46.684), upper_right=(-4.323, -3.227, 46.719),
+                     lower_left=(4.311, -3.255, 39.476), lower_right=(-4.310, -3.222, 39.506))),
+    "solar_tower_juelich_lower": dict(
+        center=(-0.0135, -3.2358, 35.8815),
+        corners=dict(upper_left=(4.311, -3.255, 39.476), upper_right=(-4.310, -3.222, 39.506),
+                     lower_left=(4.310, -3.258, 32.268), lower_right=(-4.328, -3.202, 32.279))),
+    "multi_focus_tower": dict(
+        center=(-17.6049, -2.7447, 51.9797),
+        corners=dict(upper_left=(-14.894, -2.763, 55.175), upper_right=(-20.306, -2.726, 55.172),
+                     lower_left=(-14.904, -2.757, 48.789), lower_right=(-20.316, -2.733, 48.783))),
+}
+_RECEIVER = dict(
+    corners=dict(upper_left=(2.258, 0.684, 57.805), upper_right=(-2.295, 0.736, 57.820),
+                 lower_left=(2.218, -1.741, 52.596), lower_right=(-2.286, -1.715, 52.592)),
+    normal=(0.0, 0.90630779, -0.42261826), radius=4.14, opening_angle_deg=60.0)
+
+
+def demo_targets() -> dict:
+    """The Jülich tower's targets (PAINT geometry), float64.
+
+    Returns
+    -------
+    dict of str -> PlanarTarget | CylinderTarget
+        ``solar_tower_juelich_upper`` (centre ~(0, -3.24, 43.1) m, 8.6 m x 7.2 m),
+        ``solar_tower_juelich_lower`` (~(0, -3.24, 35.9) m), ``multi_focus_tower`` (~(-17.6, -2.75, 52.0) m,
+        5.4 m x 6.4 m), all facing north (normal (0, 1, 0)); and the cylindrical ``receiver`` (radius
+        4.14 m, 60 deg opening, aperture normal (0, 0.906, -0.423), apex ~(0, 0, 55.0) m).
+    """
+    out = {}
+    for name, spec in _PLANAR_TARGETS.items():
+        out[name] = PlanarTarget.from_corners(name, spec["corners"], (0.0, 1.0, 0.0), spec["center"])
+    r = _RECEIVER
+    out["receiver"] = CylinderTarget.from_outer_corners("receiver", r["corners"], r["normal"], r["radius"],
+                                                        math.radians(r["opening_angle_deg"]))
+    return out
+
+
+# ------------------------------------------------------------------------------------------ heliostat
+#: PAINT / Jülich facet layout (heliostat frame [m]); PAINT order (-e,+n), (+e,+n), (-e,-n), (+e,-n).
+FACET_TRANSLATIONS = ((-0.8075, 0.6425, 0.0402), (0.8075, 0.6425, 0.0402),
+                      (-0.8075, -0.6425, 0.0402), (0.8075, -0.6425, 0.0402))
+FACET_HALF_WIDTH = 0.8025  #: [m] half-span along east (PAINT ``|canting_e|``)
+FACET_HALF_HEIGHT = 0.6375  #: [m] half-span along north (PAINT ``|canting_n|``)
+HELIOSTAT_WIDTH, HELIOSTAT_HEIGHT = 3.22, 2.56  #: [m] PAINT ``width`` / ``height``
+
+#: Nominal PAINT/Jülich linear actuators, per axis.
+ACTUATOR_NOMINAL = dict(increment=(154166.6667, 154166.6667), offset=(0.335308, 0.340771),
+                        pivot_radius=(0.338095, 0.3191), initial_angle=(0.039009536, 0.943922248),
+                        initial_stroke_length=(0.077412795, 0.077522286))
+CONCENTRATOR_TRANSLATION = (0.0, 0.175, 0.0)  #: [m] joint 2 -> concentrator, heliostat frame
+
+# Field layout
+_ROW0_NORTH, _ROW_SPACING0, _ROW_SPACING_GROWTH = 22.0, 4.6, 0.04  # [m], [m], [m/m]
+_COLUMN_SPACING, _HALF_WIDTH, _FIELD_DEPTH = 4.4, 60.0, 150.0  # [m]
+_CENTRE_COLUMN = 36  # PAINT-like column number of the slot on the tower meridian
+
+
+def receiver_canting(translation: torch.Tensor, half_width: float, half_height: float,
+                     focal_length: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Canting span vectors of facets tilted to focus at ``focal_length`` (on-axis "receiver canting").
+
+    Each flat facet's normal is set to the normal of the paraboloid ``z = (x^2 + y^2) / (4 f)`` at the
+    facet centre, ``normalize(-t_x / (2 f), -t_y / (2 f), 1)``, by the rotation ``R_N(beta) R_E(alpha)``
+    (PAINT's construction: ``canting_e`` keeps a zero north component).
+
+    Parameters
+    ----------
+    translation : torch.Tensor, [..., F, 3]
+        Facet centres, heliostat frame [m].
+    half_width, half_height : float
+        Half-spans along east / north [m].
+    focal_length : torch.Tensor, [...]
+        Focal distance per heliostat [m].
+
+    Returns
+    -------
+    canting_e, canting_n : torch.Tensor, [..., F, 3]
+        Half-span vectors [m] (lengths ``half_width`` / ``half_height``).
+    """
+    f = focal_length[..., None]
+    n = torch.stack((-translation[..., 0] / (2 * f), -translation[..., 1] / (2 * f),
+                     torch.ones_like(translation[..., 0])), dim=-1)
+    n = n / torch.linalg.vector_norm(n, dim=-1, keepdim=True)
+    sin_a = -n[..., 1]
+    cos_a = torch.sqrt(1.0 - sin_a * sin_a)
+    beta = torch.atan2(n[..., 0], n[..., 2])
+    sin_b, cos_b = torch.sin(beta), torch.cos(beta)
+    zero = torch.zeros_like(sin_a)
+    e = torch.stack((cos_b, zero, -sin_b), dim=-1)  # R_N(beta) R_E(alpha) e_x
+    nn = torch.stack((sin_b * sin_a, cos_a, cos_b * sin_a), dim=-1)  # R_N(beta) R_E(alpha) e_y
+    return half_width * e, half_height * nn
+
+
+def _row_letters(k: int) -> str:
+    return chr(ord("A") + k // 26) + chr(ord("A") + k % 26)
+
+
+def _slots(num_heliostats: int) -> list[tuple[int, int, float, float]]:
+    """Candidate slots ``(row, column, east, north)``: all rows up to ~150 m north, more if needed."""
+    slots, row, north = [], 0, _ROW0_NORTH
+    while north <= _FIELD_DEPTH or len(slots) < num_heliostats:
+        if row >= 26 * 26:
+            raise HeliotwinError(f"demo_plant: num_heliostats={num_heliostats} does not fit the demo field layout")
+        shift = 0.5 * _COLUMN_SPACING if row % 2 else 0.0
+        cmax = int(math.floor((_HALF_WIDTH - shift) / _COLUMN_SPACING))
+        cmin = -int(math.floor((_HALF_WIDTH + shift) / _COLUMN_SPACING))
+        for c in range(cmin, cmax + 1):
+            slots.append((row, c + _CENTRE_COLUMN, c * _COLUMN_SPACING + shift, north))
+        north += _ROW_SPACING0 + _ROW_SPACING_GROWTH * (north - _ROW0_NORTH)
+        row += 1
+    return slots
+
+
+def demo_plant(num_heliostats: int = 32, seed: int = 0, *, num_control_points: tuple[int, int] = (4, 4),
+               degree: tuple[int, int] = (2, 2)) -> Plant:
+    """A Jülich-like plant generated in code (deterministic in ``seed``; no global RNG is touched).
+
+    Parameters
+    ----------
+    num_heliostats : int
+        H >= 1. Slots are drawn from the ~500 of the 22-150 m x +/-60 m field (rows beyond 150 m are
+        added when H is larger).
+    seed : int
+        Seed of the private ``numpy.random.Generator`` that picks slots and per-heliostat variations.
+    num_control_points, degree : (int, int)
+        NURBS resolution of the ideal facet surfaces.
+
+    Returns
+    -------
+    Plant
+        Site = Jülich reference; targets from :func:`demo_targets`; field of H heliostats sorted by id
+        with float64 kinematics/facets ([H, 2], [H, 4, 3]) and ideal surfaces [H, 4, nu, nv, 3];
+        default :class:`SunSettings`.
+
+    Notes
+    -----
+    Per-heliostat variations (uniform): pivot height 1.45-1.80 m above the reference, 3 cm (std) survey
+    jitter in east/north, initial joint angles +/-10 mrad and initial strokes +/-2 mm about PAINT's
+    values, motor ranges 0 to 68400-69600 (axis 1) and 74400-76100 (axis 2) steps. ``min_angle`` /
+    ``max_angle`` are the joint angles at the ends of the motor range. Facets are canted to the slant
+    range from the pivot to the receiver apex.
+    """
+    if isinstance(num_heliostats, bool) or not isinstance(num_heliostats, (int, np.integer)) or num_heliostats < 1:
+        raise HeliotwinError(f"demo_plant: num_heliostats must be a positive int, got {num_heliostats!r}")
+    h = int(num_heliostats)
+    rng = np.random.default_rng(seed)
+    slots = _slots(h)
+    pick = np.sort(rng.choice(len(slots), size=h, replace=False))
+    chosen = [slots[i] for i in pick]
+    ids = [f"{_row_letters(r)}{c:02d}" for r, c, _, _ in chosen]
+
+    f64 = dict(dtype=torch.float64)
+    east = np.array([s[2] for s in chosen]) + rng.normal(0.0, 0.03, h)
+    north = np.array([s[3] for s in chosen]) + rng.normal(0.0, 0.03, h)
+    up = rng.uniform(1.45, 1.80, h)
+    position = torch.tensor(np.stack((east, north, up), axis=-1), **f64)
+
+    def per_axis(nominal, spread):
+        return torch.tensor(np.asarray(nominal)[None, :] + rng.uniform(-spread, spread, (h, 2)), **f64)
+
+    def constant(nominal):
+        return torch.tensor(nominal, **f64).expand(h, len(nominal)).clone()
+
+    initial_angle = per_axis(ACTUATOR_NOMINAL["initial_angle"], 0.010)
+    initial_stroke = per_axis(ACTUATOR_NOMINAL["initial_stroke_length"], 0.002)
+    max_steps = torch.tensor(np.stack((rng.integers(68400, 69601, h), rng.integers(74400, 76101, h)), axis=-1), **f64)
+    min_steps = torch.zeros(h, 2, **f64)
+    clockwise = torch.tensor([[False, True]]).expand(h, 2).clone()
+    linear = torch.ones(h, 2, dtype=torch.bool)
+    act = dict(increment=constant(ACTUATOR_NOMINAL["increment"]), offset=constant(ACTUATOR_NOMINAL["offset"]),
+               pivot_radius=constant(ACTUATOR_NOMINAL["pivot_radius"]), initial_angle=initial_angle,
+               initial_stroke_length=initial_stroke)
+    ends = torch.stack([steps_to_angle(s, clockwise=clockwise, linear=linear, **act) for s in (min_steps, max_steps)])
+    kinematics = Kinematics(
+        position=position,
+        joint_translation=torch.zeros(h, 2, 3, **f64),
+        concentrator_translation=constant(CONCENTRATOR_TRANSLATION),
+        joint_tilt=torch.zeros(h, 2, 3, **f64),
+        concentrator_tilt=torch.zeros(h, 3, **f64),
+        clockwise=clockwise, linear=linear, min_steps=min_steps, max_steps=max_steps,
+        min_angle=ends.amin(0), max_angle=ends.amax(0), **act)
+
+    targets = demo_targets()
+    slant = torch.linalg.vector_norm(targets["receiver"].center - position, dim=-1)
+    translation = torch.tensor(FACET_TRANSLATIONS, **f64).expand(h, -1, -1).clone()
+    canting_e, canting_n = receiver_canting(translation, FACET_HALF_WIDTH, FACET_HALF_HEIGHT, slant)
+    facets = Facets(translation, canting_e, canting_n)
+    surfaces = ideal_surfaces(facets, num_control_points=num_control_points, degree=degree)
+    field = Field(ids, kinematics, facets, surfaces, torch.full((h,), HELIOSTAT_WIDTH, **f64),
+                  torch.full((h,), HELIOSTAT_HEIGHT, **f64), [""] * h)
+    return Plant(Site(), targets, field, SunSettings())

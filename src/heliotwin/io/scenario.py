@@ -1,0 +1,598 @@
+"""Scenario files: a whole :class:`~heliotwin.field.plant.Plant` (plus extras) in one versioned HDF5 file.
+
+A scenario is what a study starts from and what a calibration writes back: the site, the tower targets,
+the heliostat field (kinematics, facets, NURBS surfaces), the sun/optics settings, free-form ``extras``
+(e.g. learned calibration parameters) and ``metadata`` (who wrote it, from which PAINT folder).
+
+Layout (format ``"heliotwin-scenario"``, version 1)::
+
+    /                       attrs: format = "heliotwin-scenario", version = 1
+    /metadata               attrs: one per metadata key (str, int, float, bool stored natively; lists,
+                            dicts and None as JSON text, their keys listed in the attr "_json_keys")
+    /site                   attrs: latitude_deg, longitude_deg, altitude_m, name
+    /targets/<name>         one group per target, in insertion order; attrs: kind ("planar" |
+                            "cylinder"), name, width, height (planar) or radius, height, opening_angle
+                            (cylinder); datasets center, normal, right, up, shape (3,) float64
+    /field                  datasets: ids [H] (UTF-8), width [H], height [H], renovation [H or 0] (UTF-8)
+    /field/kinematics       one dataset per Kinematics attribute, [H, ...]; bool ones stay bool
+    /field/facets           translation, canting_e, canting_n, [H, F, 3]
+    /field/surfaces         control_points [H, F, nu, nv, 3], optional weights [H, F, nu, nv];
+                            attrs degree_u, degree_v
+    /sun                    attrs: one per SunSettings attribute
+    /extras                 optional: one dataset per entry (attr "type": "torch", "numpy", "scalar",
+                            "str"); nested dicts become sub-groups
+
+Every array keeps its dtype (float64 stays float64, bit for bit; bool stays bool). Writing is atomic: the
+file is written to a temporary file in the destination folder and moved into place with
+:func:`os.replace`, so an error never leaves a half-written scenario (an existing file is kept intact).
+Reading validates everything and raises :class:`~heliotwin.errors.InputFileError` (or
+:class:`~heliotwin.errors.ScenarioVersionError` for another format or version) with a one-line message
+naming the file and the HDF5 object (``/field/kinematics/position``, ``/site@latitude_deg``).
+
+Changing the layout means bumping :data:`VERSION` and teaching :func:`load_scenario` to read (migrate)
+the older versions it still supports.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import datetime as _dt
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+import torch
+
+from ..errors import HeliotwinError, InputFileError, ScenarioVersionError
+from ..field.plant import Facets, Field, Kinematics, Plant, SunSettings, Surfaces
+from ..field.targets import CylinderTarget, PlanarTarget
+from ..site import Site
+
+#: Root attribute ``format`` of every scenario file.
+FORMAT = "heliotwin-scenario"
+#: Layout version written by this heliotwin (and the only one it reads).
+VERSION = 1
+
+_TARGET_CLASSES = {"planar": PlanarTarget, "cylinder": CylinderTarget}
+#: Trailing shapes of the Kinematics tensors (after the heliostat axis); unlisted ones are not checked.
+_KINEMATICS_TRAILING = {"position": (3,), "joint_translation": (2, 3), "concentrator_translation": (3,),
+                        "joint_tilt": (2, 3), "concentrator_tilt": (3,)}
+_KINEMATICS_BOOL = ("clockwise", "linear")
+_STR = h5py.string_dtype("utf-8")
+
+
+@dataclass
+class Scenario:
+    """What :func:`load_scenario` returns; unpacks as ``plant, extras, metadata = load_scenario(path)``.
+
+    Attributes
+    ----------
+    plant : Plant
+        Tensors on the CPU, dtypes as stored.
+    extras : dict
+        Name -> torch.Tensor / numpy.ndarray / Python scalar / str / nested dict, as saved.
+    metadata : dict
+        Name -> str / int / float / bool / JSON value; always has ``created_by`` and ``created_utc``.
+    version : int
+        Format version of the file.
+    path : str
+    """
+
+    plant: Plant
+    extras: dict = field(default_factory=dict)
+    metadata: dict = field(default_factory=dict)
+    version: int = VERSION
+    path: str = ""
+
+    def __iter__(self):
+        return iter((self.plant, self.extras, self.metadata))
+
+
+# ============================================================================================ writing
+def _one_line(text) -> str:
+    return " ".join(str(text).split())
+
+
+def _fail_write(path, name: str, message: str):
+    raise HeliotwinError(f"{path} [{name}]: {message}")
+
+
+def _to_numpy(t, path, name: str) -> np.ndarray:
+    if isinstance(t, torch.Tensor):
+        try:
+            return t.detach().cpu().resolve_conj().resolve_neg().numpy()
+        except (TypeError, RuntimeError):
+            _fail_write(path, name, f"dtype {t.dtype} has no numpy/HDF5 equivalent; convert it first")
+    if isinstance(t, np.ndarray):
+        if t.dtype.kind not in "biufc":
+            _fail_write(path, name, f"numpy dtype {t.dtype} is not numeric/bool")
+        return t
+    _fail_write(path, name, f"expected a tensor, got {type(t).__name__}")
+
+
+def _check_name(path, where: str, name) -> str:
+    if not isinstance(name, str) or not name or "/" in name or name in (".", ".."):
+        _fail_write(path, where, f"name {name!r} must be a non-empty string without '/'")
+    return name
+
+
+def _is_tensor_field(f: dataclasses.Field) -> bool:
+    return "Tensor" in str(f.type)
+
+
+def _write_dataclass(group: h5py.Group, obj, path, where: str) -> None:
+    """Tensor attributes -> datasets, str/int/float/bool -> attrs, None -> omitted."""
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        name = f"{where}/{f.name}"
+        if v is None:
+            continue
+        if _is_tensor_field(f) or isinstance(v, (torch.Tensor, np.ndarray)):
+            group.create_dataset(f.name, data=_to_numpy(v, path, name))
+        elif isinstance(v, (bool, int, float, str, np.generic)):
+            group.attrs[f.name] = v
+        else:
+            _fail_write(path, name, f"cannot store a {type(v).__name__}")
+
+
+def _write_metadata(group: h5py.Group, metadata: dict, path) -> None:
+    json_keys = []
+    for key, value in metadata.items():
+        _check_name(path, "/metadata", key)
+        if key == "_json_keys":
+            _fail_write(path, "/metadata", "the key '_json_keys' is reserved")
+        if isinstance(value, os.PathLike):
+            value = os.fspath(value)
+        if isinstance(value, (str, bool, int, float, np.bool_, np.integer, np.floating)):
+            group.attrs[key] = value
+        else:
+            try:
+                group.attrs[key] = json.dumps(value)
+            except (TypeError, ValueError) as exc:
+                _fail_write(path, f"/metadata@{key}", f"not a str/number/bool or JSON value ({_one_line(exc)})")
+            json_keys.append(key)
+    group.attrs["_json_keys"] = json.dumps(json_keys)
+
+
+def _write_extras(group: h5py.Group, extras: dict, path, where: str) -> None:
+    if not isinstance(extras, dict):
+        _fail_write(path, where, f"extras must be a dict, got {type(extras).__name__}")
+    for key, value in extras.items():
+        _check_name(path, where, key)
+        name = f"{where}/{key}"
+        if isinstance(value, dict):
+            _write_extras(group.create_group(key, track_order=True), value, path, name)
+            continue
+        if isinstance(value, torch.Tensor):
+            ds, kind = group.create_dataset(key, data=_to_numpy(value, path, name)), "torch"
+        elif isinstance(value, np.ndarray):
+            ds, kind = group.create_dataset(key, data=_to_numpy(value, path, name)), "numpy"
+        elif isinstance(value, (bool, int, float, np.bool_, np.integer, np.floating)):
+            ds, kind = group.create_dataset(key, data=np.asarray(value)), "scalar"
+        elif isinstance(value, str):
+            ds, kind = group.create_dataset(key, data=value, dtype=_STR), "str"
+        else:
+            _fail_write(path, name, f"extras values must be tensors, arrays, numbers, str or dicts, got "
+                                    f"{type(value).__name__}")
+        ds.attrs["type"] = kind
+
+
+def _write_plant(h5: h5py.File, plant: Plant, path) -> None:
+    s = plant.site
+    g = h5.create_group("site")
+    g.attrs.update({"latitude_deg": float(s.latitude_deg), "longitude_deg": float(s.longitude_deg),
+                    "altitude_m": float(s.altitude_m), "name": str(s.name)})
+
+    tg = h5.create_group("targets", track_order=True)
+    for key, target in plant.targets.items():
+        _check_name(path, "/targets", key)
+        if target.kind not in _TARGET_CLASSES or not isinstance(target, _TARGET_CLASSES[target.kind]):
+            _fail_write(path, f"/targets/{key}", f"unknown target type {type(target).__name__} (kind {target.kind!r})")
+        if target.name != key:
+            _fail_write(path, f"/targets/{key}", f"target is stored under {key!r} but named {target.name!r}")
+        _write_dataclass(tg.create_group(key), target, path, f"/targets/{key}")
+
+    fl = plant.field
+    fg = h5.create_group("field")
+    fg.create_dataset("ids", data=np.array(list(fl.ids), dtype=object), dtype=_STR)
+    fg.create_dataset("width", data=_to_numpy(fl.width, path, "/field/width"))
+    fg.create_dataset("height", data=_to_numpy(fl.height, path, "/field/height"))
+    fg.create_dataset("renovation", data=np.array(list(fl.renovation), dtype=object), dtype=_STR)
+    _write_dataclass(fg.create_group("kinematics"), fl.kinematics, path, "/field/kinematics")
+    _write_dataclass(fg.create_group("facets"), fl.facets, path, "/field/facets")
+    sg = fg.create_group("surfaces")
+    sg.create_dataset("control_points",
+                      data=_to_numpy(fl.surfaces.control_points, path, "/field/surfaces/control_points"))
+    if fl.surfaces.weights is not None:
+        sg.create_dataset("weights", data=_to_numpy(fl.surfaces.weights, path, "/field/surfaces/weights"))
+    sg.attrs["degree_u"] = int(fl.surfaces.degree_u)
+    sg.attrs["degree_v"] = int(fl.surfaces.degree_v)
+
+    _write_dataclass(h5.create_group("sun"), plant.sun, path, "/sun")
+
+
+def _file_mode(path: Path) -> int:
+    try:
+        return os.stat(path).st_mode & 0o7777
+    except OSError:
+        return 0o644
+
+
+def save_scenario(plant: Plant, path, extras: dict | None = None, metadata: dict | None = None) -> Path:
+    """Write a plant (and extras, metadata) to a scenario file, atomically.
+
+    Parameters
+    ----------
+    plant : Plant
+        Any dtypes/devices; tensors are detached and copied to the CPU. Shapes must be consistent
+        (``[H, ...]`` kinematics, ``[H, F, 3]`` facets, ``[H, F, nu, nv, 3]`` control points).
+    path : str or Path
+        Destination (conventionally ``*.h5``); an existing file is replaced only once the new one is
+        complete.
+    extras : dict, optional
+        Name -> torch.Tensor, numpy.ndarray, Python/numpy scalar, str or nested dict of those (names
+        without ``/``). Read back as the same types (tensors as CPU tensors without grad).
+    metadata : dict, optional
+        Name -> str / int / float / bool, or anything JSON-serialisable. ``created_by`` (heliotwin
+        version) and ``created_utc`` (ISO time) are added unless given; e.g. ``{"source": paint_dir}``.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Raises
+    ------
+    HeliotwinError
+        Inconsistent plant, unsupported extras/metadata (names the field); no file is written.
+    InputFileError
+        The destination cannot be written (missing folder, permissions, disk full).
+    """
+    from .. import __version__
+
+    path = Path(path)
+    _validate_plant(plant, path, writing=True)
+    meta = {"created_by": f"heliotwin {__version__}",
+            "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
+    meta.update(metadata or {})
+    folder = path.parent if str(path.parent) else Path(".")
+    mode = _file_mode(path)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+    except OSError as exc:
+        raise InputFileError(path, f"cannot write ({_one_line(exc.strerror or exc)})") from None
+    os.close(fd)
+    try:
+        with h5py.File(tmp, "w") as h5:
+            h5.attrs["format"] = FORMAT
+            h5.attrs["version"] = VERSION
+            _write_metadata(h5.create_group("metadata"), meta, path)
+            _write_plant(h5, plant, path)
+            if extras:
+                _write_extras(h5.create_group("extras", track_order=True), extras, path, "/extras")
+        with open(tmp, "rb") as fh:
+            os.fsync(fh.fileno())
+        os.chmod(tmp, mode)
+        os.replace(tmp, path)
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        if isinstance(exc, OSError):
+            raise InputFileError(path, f"cannot write ({_one_line(exc)})") from None
+        raise
+    return path
+
+
+# ============================================================================================ reading
+class _Reader:
+    """Validating accessors that raise one-line :class:`InputFileError` naming the HDF5 object."""
+
+    def __init__(self, path):
+        self.path = str(path)
+
+    def fail(self, where: str, message: str, cls=InputFileError):
+        raise cls(self.path, message, field=where)
+
+    def group(self, parent: h5py.Group, name: str) -> h5py.Group:
+        where = f"{parent.name.rstrip('/')}/{name}"
+        if name not in parent:
+            self.fail(where, "missing group (not a complete heliotwin scenario)")
+        obj = parent[name]
+        if not isinstance(obj, h5py.Group):
+            self.fail(where, "expected a group, found a dataset")
+        return obj
+
+    def array(self, parent: h5py.Group, name: str) -> np.ndarray:
+        where = f"{parent.name.rstrip('/')}/{name}"
+        if name not in parent:
+            self.fail(where, "missing dataset")
+        obj = parent[name]
+        if not isinstance(obj, h5py.Dataset):
+            self.fail(where, "expected a dataset, found a group")
+        if h5py.check_string_dtype(obj.dtype) is not None:
+            self.fail(where, "expected a numeric dataset, found text")
+        data = np.asarray(obj[()])
+        if data.dtype.kind not in "biufc":
+            self.fail(where, f"expected a numeric array, found dtype {obj.dtype}")
+        return data
+
+    def tensor(self, parent: h5py.Group, name: str) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(self.array(parent, name)))
+
+    def strings(self, parent: h5py.Group, name: str) -> list[str]:
+        where = f"{parent.name.rstrip('/')}/{name}"
+        if name not in parent:
+            self.fail(where, "missing dataset")
+        obj = parent[name]
+        if not isinstance(obj, h5py.Dataset) or h5py.check_string_dtype(obj.dtype) is None or obj.ndim != 1:
+            self.fail(where, "expected a 1-D dataset of strings")
+        return [str(s) for s in obj.asstr()[()]]
+
+    def attr(self, obj, name: str, kind: type):
+        where = f"{obj.name}@{name}" if obj.name != "/" else f"/@{name}"
+        if name not in obj.attrs:
+            self.fail(where, "missing attribute")
+        v = _py(obj.attrs[name])
+        if kind is float and isinstance(v, int) and not isinstance(v, bool):
+            v = float(v)
+        if kind is int and isinstance(v, float) and v.is_integer():
+            v = int(v)
+        if not isinstance(v, kind) or (kind is not bool and isinstance(v, bool)):
+            self.fail(where, f"expected {kind.__name__}, got {v!r}")
+        return v
+
+
+def _py(v):
+    """numpy / bytes attribute value -> plain Python."""
+    if isinstance(v, bytes):
+        return v.decode("utf-8", "replace")
+    if isinstance(v, np.bool_):
+        return bool(v)
+    if isinstance(v, np.integer):
+        return int(v)
+    if isinstance(v, np.floating):
+        return float(v)
+    if isinstance(v, np.ndarray) and v.ndim == 0:
+        return _py(v[()])
+    return v
+
+
+def _scalar_kind(f: dataclasses.Field) -> type:
+    t = str(f.type)
+    return {"float": float, "int": int, "str": str, "bool": bool}.get(t.split("|")[0].strip(), object)
+
+
+def _read_dataclass(r: _Reader, group: h5py.Group, cls, optional=()):
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if _is_tensor_field(f):
+            if f.name in optional and f.name not in group:
+                kwargs[f.name] = None
+            else:
+                kwargs[f.name] = r.tensor(group, f.name)
+        else:
+            kwargs[f.name] = r.attr(group, f.name, _scalar_kind(f))
+    return cls(**kwargs)
+
+
+def _read_metadata(r: _Reader, group: h5py.Group) -> dict:
+    json_keys = set(json.loads(r.attr(group, "_json_keys", str))) if "_json_keys" in group.attrs else set()
+    out = {}
+    for key, value in group.attrs.items():
+        if key == "_json_keys":
+            continue
+        value = _py(value)
+        if key in json_keys:
+            try:
+                value = json.loads(value)
+            except (TypeError, ValueError):
+                r.fail(f"/metadata@{key}", "malformed JSON value")
+        elif isinstance(value, np.ndarray):
+            value = value.tolist()
+        out[key] = value
+    return out
+
+
+def _read_extras(r: _Reader, group: h5py.Group) -> dict:
+    out = {}
+    for key, obj in group.items():
+        where = obj.name
+        if isinstance(obj, h5py.Group):
+            out[key] = _read_extras(r, obj)
+            continue
+        kind = _py(obj.attrs.get("type", "numpy"))
+        if kind == "str":
+            if h5py.check_string_dtype(obj.dtype) is None:
+                r.fail(where, "expected a string dataset")
+            out[key] = obj.asstr()[()]
+            continue
+        data = r.array(group, key)
+        if kind == "torch":
+            out[key] = torch.from_numpy(np.ascontiguousarray(data))
+        elif kind == "numpy":
+            out[key] = data
+        elif kind == "scalar":
+            out[key] = _py(data)
+        else:
+            r.fail(where, f"unknown extras type {kind!r} (known: torch, numpy, scalar, str)")
+    return out
+
+
+def _read_plant(r: _Reader, h5: h5py.File) -> Plant:
+    sg = r.group(h5, "site")
+    site = Site(r.attr(sg, "latitude_deg", float), r.attr(sg, "longitude_deg", float),
+                r.attr(sg, "altitude_m", float), r.attr(sg, "name", str))
+
+    targets = {}
+    for key, tg in r.group(h5, "targets").items():
+        if not isinstance(tg, h5py.Group):
+            r.fail(tg.name, "expected a target group, found a dataset")
+        kind = r.attr(tg, "kind", str)
+        if kind not in _TARGET_CLASSES:
+            r.fail(f"{tg.name}@kind", f"unknown target kind {kind!r} (known: {', '.join(_TARGET_CLASSES)})")
+        targets[key] = _read_dataclass(r, tg, _TARGET_CLASSES[kind])
+
+    fg = r.group(h5, "field")
+    sfg = r.group(fg, "surfaces")
+    surfaces = Surfaces(r.tensor(sfg, "control_points"), r.attr(sfg, "degree_u", int), r.attr(sfg, "degree_v", int),
+                        r.tensor(sfg, "weights") if "weights" in sfg else None)
+    fld = Field(ids=r.strings(fg, "ids"),
+                kinematics=_read_dataclass(r, r.group(fg, "kinematics"), Kinematics),
+                facets=_read_dataclass(r, r.group(fg, "facets"), Facets),
+                surfaces=surfaces,
+                width=r.tensor(fg, "width"), height=r.tensor(fg, "height"),
+                renovation=r.strings(fg, "renovation"))
+    sun = _read_dataclass(r, r.group(h5, "sun"), SunSettings)
+    return Plant(site, targets, fld, sun)
+
+
+def _check_version(r: _Reader, h5: h5py.File) -> int:
+    fmt = _py(h5.attrs.get("format"))
+    if fmt != FORMAT:
+        what = "no 'format' attribute" if fmt is None else f"format {fmt!r}"
+        r.fail("/@format", f"not a heliotwin scenario ({what}; expected {FORMAT!r})", ScenarioVersionError)
+    version = _py(h5.attrs.get("version"))
+    if isinstance(version, bool) or not isinstance(version, int):
+        r.fail("/@version", f"missing or non-integer format version {version!r}", ScenarioVersionError)
+    if version > VERSION:
+        r.fail("/@version", f"written by a newer heliotwin (format version {version}; this heliotwin reads "
+                            f"version {VERSION}); upgrade heliotwin", ScenarioVersionError)
+    if version < VERSION:
+        r.fail("/@version", f"format version {version} is older than the supported version {VERSION} and has "
+                            f"no migration; re-create the scenario", ScenarioVersionError)
+    return version
+
+
+def load_scenario(path) -> Scenario:
+    """Read a scenario file written by :func:`save_scenario`.
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    Scenario
+        ``plant``, ``extras``, ``metadata`` (unpackable as a 3-tuple), ``version``, ``path``.
+
+    Raises
+    ------
+    InputFileError
+        Missing file, not HDF5, missing/mistyped group, dataset or attribute, inconsistent shapes.
+    ScenarioVersionError
+        Another format, or an older/newer format version.
+    """
+    path = Path(path)
+    r = _Reader(path)
+    if not path.exists():
+        raise InputFileError(path, "file not found")
+    if path.is_dir():
+        raise InputFileError(path, "is a folder, expected a scenario file (.h5)")
+    try:
+        is_hdf5 = h5py.is_hdf5(path)
+    except OSError as exc:
+        raise InputFileError(path, f"cannot read ({_one_line(exc)})") from None
+    if not is_hdf5:
+        raise InputFileError(path, "not an HDF5 file (expected a heliotwin scenario)")
+    try:
+        with h5py.File(path, "r") as h5:
+            version = _check_version(r, h5)
+            metadata = _read_metadata(r, r.group(h5, "metadata"))
+            plant = _read_plant(r, h5)
+            extras = _read_extras(r, r.group(h5, "extras")) if "extras" in h5 else {}
+    except (OSError, KeyError, RuntimeError) as exc:  # h5py's low-level failures (corrupt/truncated file)
+        raise InputFileError(path, f"cannot read HDF5 ({_one_line(exc)})") from None
+    _validate_plant(plant, path)
+    return Scenario(plant, extras, metadata, version, str(path))
+
+
+# ========================================================================================= validation
+def _validate_plant(plant: Plant, path, *, writing: bool = False) -> None:
+    """Shape/dtype consistency of a plant; raises naming the HDF5 object the problem maps to."""
+
+    def fail(where: str, message: str):
+        if writing:
+            _fail_write(path, where, message)
+        raise InputFileError(path, message, field=where)
+
+    def tensor(where: str, t, shape: tuple, *, floating: bool = True):
+        if not isinstance(t, torch.Tensor):
+            fail(where, f"expected a tensor, got {type(t).__name__}")
+        ok = t.dim() == len(shape) and all(s is None or s == n for s, n in zip(shape, t.shape))
+        if not ok:
+            want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
+            fail(where, f"expected shape {want}, got {list(t.shape)}")
+        if floating and not t.dtype.is_floating_point:
+            fail(where, f"expected a floating-point tensor, got {t.dtype}")
+
+    if not isinstance(plant, Plant):
+        fail("/", f"expected a Plant, got {type(plant).__name__}")
+    s = plant.site
+    for name in ("latitude_deg", "longitude_deg", "altitude_m"):
+        v = getattr(s, name)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+            fail(f"/site@{name}", f"expected a finite number, got {v!r}")
+    for key, t in plant.targets.items():
+        for name in ("center", "normal", "right", "up"):
+            tensor(f"/targets/{key}/{name}", getattr(t, name), (3,))
+
+    fl = plant.field
+    if not isinstance(fl.ids, (list, tuple)) or not all(isinstance(i, str) for i in fl.ids):
+        fail("/field/ids", "expected a list of str")
+    if len(set(fl.ids)) != len(fl.ids):
+        fail("/field/ids", "duplicate heliostat ids")
+    h = len(fl.ids)
+    tensor("/field/width", fl.width, (h,))
+    tensor("/field/height", fl.height, (h,))
+    if len(fl.renovation) not in (0, h) or not all(isinstance(x, str) for x in fl.renovation):
+        fail("/field/renovation", f"expected 0 or {h} strings, got {len(fl.renovation)} entries")
+    kin = fl.kinematics
+    for f in dataclasses.fields(Kinematics):
+        t = getattr(kin, f.name)
+        where = f"/field/kinematics/{f.name}"
+        trailing = _KINEMATICS_TRAILING.get(f.name, (2,))
+        tensor(where, t, (h, *trailing), floating=f.name not in _KINEMATICS_BOOL)
+        if f.name in _KINEMATICS_BOOL and t.dtype != torch.bool:
+            fail(where, f"expected a bool tensor, got {t.dtype}")
+    fac = fl.facets
+    tensor("/field/facets/translation", fac.translation, (h, None, 3))
+    nf = fac.translation.shape[1]
+    tensor("/field/facets/canting_e", fac.canting_e, (h, nf, 3))
+    tensor("/field/facets/canting_n", fac.canting_n, (h, nf, 3))
+    sf = fl.surfaces
+    tensor("/field/surfaces/control_points", sf.control_points, (h, nf, None, None, 3))
+    cp = sf.control_points.shape
+    for name, n in (("degree_u", cp[2]), ("degree_v", cp[3])):
+        d = getattr(sf, name)
+        if isinstance(d, bool) or not isinstance(d, int) or not 1 <= d < n:
+            fail(f"/field/surfaces@{name}", f"expected an int in [1, {n - 1}] for {n} control points, got {d!r}")
+    if sf.weights is not None:
+        tensor("/field/surfaces/weights", sf.weights, tuple(cp[:-1]))
+
+
+# ======================================================================================= from PAINT
+def scenario_from_paint(paint_dir, heliostats=None, **kwargs) -> Plant:
+    """A plant from a PAINT download (no calibration records), ready for :func:`save_scenario`.
+
+    Parameters
+    ----------
+    paint_dir : path
+        The PAINT folder (tower file + ``<HID>/Properties``).
+    heliostats : list of str, optional
+        Heliostat ids (default: all).
+    **kwargs
+        ``surface_control_points``, ``surface_degree`` for :func:`heliotwin.io.paint.load_paint`.
+
+    Returns
+    -------
+    Plant
+        Ideal (flat, canted) surfaces; float64 geometry.
+    """
+    from .paint import load_paint
+
+    return load_paint(paint_dir, heliostats, with_records=False, **kwargs).plant
