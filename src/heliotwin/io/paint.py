@@ -120,6 +120,8 @@ def read_tower(path) -> tuple[Site, dict]:
         kind = _get(spec, "type", path, pre)
         coords = _get(spec, "coordinates", path, pre)
         normal = _vector(spec, "normal_vector", path, pre)
+        if math.hypot(*normal) < 1e-9:
+            raise InputFileError(path, "zero-length normal vector", field=pre + "normal_vector")
         if kind == "planar":
             corners = {k: wgs84_to_enu(_geodetic(coords, k, path, pre + "coordinates."), site.reference)
                        for k in ("upper_left", "upper_right", "lower_left", "lower_right")}
@@ -127,7 +129,10 @@ def read_tower(path) -> tuple[Site, dict]:
             targets[name] = PlanarTarget.from_corners(name, corners, normal, center)
         elif kind == "convex_cylinder":
             radius = _number(spec, "radius", path, pre, positive=True)
-            opening = math.radians(_number(spec, "opening_angle", path, pre, positive=True))
+            opening_deg = _number(spec, "opening_angle", path, pre, positive=True)
+            if opening_deg >= 360.0:
+                raise InputFileError(path, f"opening angle must be below 360 deg, got {opening_deg}", field=pre + "opening_angle")
+            opening = math.radians(opening_deg)
             corners = {k: wgs84_to_enu(_geodetic(coords, f"receiver_outer_{k}", path, pre + "coordinates."), site.reference)
                        for k in ("upper_left", "upper_right", "lower_left", "lower_right")}
             targets[name] = CylinderTarget.from_outer_corners(name, corners, normal, radius, opening)

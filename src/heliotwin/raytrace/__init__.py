@@ -1,0 +1,28 @@
+"""Ray tracing: Monte-Carlo and analytic flux integrators, splatting, flux images.
+
+Entry points
+------------
+:func:`trace_mc`
+    Monte-Carlo tracer (projective fast path for planar targets, generic path for the cylinder).
+:func:`trace_analytic`
+    Noise-free Gaussian-footprint integrator (cost independent of ray count).
+:class:`FluxImage`
+    The result: bitmap [B, rows, cols] in W/m^2 (PAINT orientation) plus target, extent and powers.
+"""
+from .flux import FluxImage, centered_crop, cross_correlation, normalized_l1, read_png, target_extent, to_png
+from .montecarlo import trace_mc
+from .splat import projective_splat, splat_bilinear, splat_hard
+
+__all__ = [
+    "FluxImage",
+    "centered_crop",
+    "cross_correlation",
+    "normalized_l1",
+    "read_png",
+    "target_extent",
+    "to_png",
+    "trace_mc",
+    "projective_splat",
+    "splat_bilinear",
+    "splat_hard",
+]
