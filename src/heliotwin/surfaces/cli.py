@@ -1,0 +1,184 @@
+"""``reconstruct`` and ``predict`` subcommands (:func:`register` for the main CLI; :func:`main` stand-alone).
+
+Usage::
+
+    python -m heliotwin.surfaces.cli reconstruct --paint PAINT_DIR --heliostat AA39 --train-first 3 \\
+        -o learned.h5 --json report.json
+    python -m heliotwin.surfaces.cli predict --scenario learned.h5 --heliostat AA39 --year 2023 \\
+        --every 30min --json out.json
+
+Every user error prints one line (``error: ...``) to stderr and exits with status 2; nothing is written.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+
+__all__ = ["register", "main"]
+
+
+def _write_json(path, data) -> None:
+    path = os.fspath(path)
+    directory = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".json", dir=directory)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            json.dump(data, fh, indent=2)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _check_out_dir(path, what: str) -> None:
+    from ..errors import HeliotwinError
+
+    if path is None:
+        return
+    d = os.path.dirname(os.path.abspath(os.fspath(path)))
+    if not os.path.isdir(d):
+        raise HeliotwinError(f"{what}: output folder {d} does not exist")
+
+
+def cmd_reconstruct(args) -> int:
+    import torch
+
+    from ..errors import HeliotwinError
+    from .learning import parse_grid
+    from .plots import plot_flux_comparison, plot_normal_deviation
+    from .reconstruct import TrainSettings, reconstruct_paint
+    from .store import LearnedHeliostat, save_learned
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    _check_out_dir(args.json, "--json")
+    _check_out_dir(args.output, "-o")
+    if args.train_records and args.train_first is not None:
+        raise HeliotwinError("use either --train-records or --train-first, not both")
+    train_records = None
+    if args.train_records:
+        try:
+            train_records = [int(x) for x in args.train_records.split(",") if x.strip()]
+        except ValueError:
+            raise HeliotwinError(f"--train-records: expected comma-separated record ids, got {args.train_records!r}") from None
+    cp = parse_grid(args.control_points)
+    settings = TrainSettings(control_points=cp, degree=(args.degree, args.degree), integrator=args.integrator,
+                             loss=args.loss, steps=args.steps)
+    slope = None if args.slope_error == "auto" else float(args.slope_error) * 1e-3
+    report, model, ds, extras = reconstruct_paint(
+        args.paint, args.heliostat, train_records=train_records, train_first=args.train_first, settings=settings,
+        slope_error=slope, background=args.background, alignment=args.alignment, evaluate_mc=not args.no_mc,
+        progress=not args.quiet)
+    stem = os.path.splitext(os.fspath(args.json))[0]
+    plots = {"normal_deviation": stem + "-normal-deviation.png", "flux": stem + "-flux.png"}
+    learned = model.surfaces()
+    plot_normal_deviation(extras["facets"], learned.control_points, model.degree, plots["normal_deviation"],
+                          title=f"{args.heliostat}: learned normal deviation from ideal [mrad]")
+    plot_flux_comparison(extras["test"].images, extras["ideal_images"], extras["learned_images"],
+                         extras["test"].ids, plots["flux"], [r["l1_ideal"] for r in report["test"]],
+                         [r["l1_learned"] for r in report["test"]])
+    report["plots"] = plots
+    if args.output:
+        plant = ds.plant
+        save_learned(args.output, LearnedHeliostat(
+            args.heliostat, learned, model.displacement.detach(), extras["facets"], plant.field.kinematics.index(0),
+            plant.targets, (plant.site.latitude_deg, plant.site.longitude_deg, plant.site.altitude_m), extras["optics"],
+            {"train": report["train"], "settings": report["settings"],
+             "default_target": extras["test"].targets[0].name}))
+        report["output"] = os.fspath(args.output)
+    _write_json(args.json, report)
+    if not args.quiet:
+        print(f"{args.heliostat}: median test L1 ideal {report['median_l1_ideal']:.3f} -> learned "
+              f"{report['median_l1_learned']:.3f} (median IMP {100 * report['median_imp']:+.0f} %), "
+              f"{report['seconds']:.1f} s")
+    return 0
+
+
+def cmd_predict(args) -> int:
+    import torch
+
+    from ..errors import HeliotwinError
+    from ..field.facets import ideal_surfaces
+    from .predict import summarize, yearly_flux
+    from .store import load_learned
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    _check_out_dir(args.json, "--json")
+    item = load_learned(args.scenario)
+    if args.heliostat and args.heliostat != item.heliostat_id:
+        raise HeliotwinError(f"{args.scenario}: holds heliostat {item.heliostat_id}, not {args.heliostat}")
+    name = args.target or item.settings.get("default_target") or sorted(item.targets)[0]
+    if name not in item.targets:
+        raise HeliotwinError(f"unknown target {name!r}; stored: {', '.join(sorted(item.targets))}")
+    cp = item.surfaces.control_points
+    ideal = ideal_surfaces(item.facets, (cp.shape[2], cp.shape[3]), (item.surfaces.degree_u, item.surfaces.degree_v))
+    series = yearly_flux(item.kinematics, item.targets[name], item.site, item.surfaces, ideal, item.sun,
+                         year=args.year, every=args.every, progress=not args.quiet)
+    out = {"heliostat": item.heliostat_id, "target": name, "year": args.year, "every": args.every,
+           "instants": len(series["time"]), "statistics": summarize(series), "series": series,
+           "optics": {"sunshape": item.sun.sunshape, "slope_error_rad": item.sun.slope_error}}
+    _write_json(args.json, out)
+    if not args.quiet:
+        st = out["statistics"]["l1_ideal_vs_learned"]
+        print(f"{item.heliostat_id}: {out['instants']} instants; L1(ideal, learned) median {st['median']:.3f}")
+    return 0
+
+
+def register(subparsers) -> None:
+    """Add ``reconstruct`` and ``predict`` to an argparse subparsers object."""
+    p = subparsers.add_parser("reconstruct", help="learn a heliostat's mirror surface from PAINT flux images")
+    p.add_argument("--paint", required=True, help="PAINT download folder")
+    p.add_argument("--heliostat", required=True, help="heliostat id, e.g. AA39")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--train-records", help="comma-separated record ids to train on (rest with images: test)")
+    g.add_argument("--train-first", type=int, help="train on the K earliest records with centred images (default 3)")
+    p.add_argument("--control-points", default="7x7", help="control points per facet, e.g. 7x7")
+    p.add_argument("--degree", type=int, default=3, help="NURBS degree (both directions)")
+    p.add_argument("--integrator", choices=("analytic", "mc"), default="analytic")
+    p.add_argument("--loss", choices=("kl", "l1", "l2"), default="kl")
+    p.add_argument("--steps", type=int, default=200, help="maximum optimiser steps")
+    p.add_argument("--slope-error", default="auto", help="mirror slope error [mrad] or 'auto' (fit on training images)")
+    p.add_argument("--background", type=float, default=0.0, help="background to subtract, fraction of image max")
+    p.add_argument("--alignment", choices=("focal-spot", "motor"), default="focal-spot")
+    p.add_argument("--no-mc", action="store_true", help="skip the Monte-Carlo evaluation")
+    p.add_argument("-o", "--output", help="learned surface HDF5 to write")
+    p.add_argument("--json", required=True, help="report JSON to write")
+    p.add_argument("--threads", type=int, default=0, help="torch threads (0: leave as is)")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_reconstruct)
+
+    q = subparsers.add_parser("predict", help="yearly flux prediction of a learned heliostat")
+    q.add_argument("--scenario", required=True, help="learned surface HDF5 (from reconstruct -o)")
+    q.add_argument("--heliostat", help="heliostat id (checked against the file)")
+    q.add_argument("--year", type=int, default=2023)
+    q.add_argument("--every", default="30min", help="pandas frequency, e.g. 30min")
+    q.add_argument("--target", help="target name (default: the training images' target)")
+    q.add_argument("--json", required=True)
+    q.add_argument("--threads", type=int, default=0)
+    q.add_argument("--quiet", action="store_true")
+    q.set_defaults(func=cmd_predict)
+
+
+def main(argv=None) -> int:
+    """Stand-alone entry point; returns the exit status (0 ok, 2 user error)."""
+    from ..errors import HeliotwinError
+
+    parser = argparse.ArgumentParser(prog="heliotwin", description="heliotwin surface learning")
+    sub = parser.add_subparsers(dest="command", required=True)
+    register(sub)
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (HeliotwinError, KeyError, OSError) as exc:
+        msg = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
+        print(f"error: {msg.splitlines()[0] if msg else type(exc).__name__}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,160 @@
+"""In-silico study (the published protocol): known defective surfaces, synthetic images, recovery metrics.
+
+Ground truth. Per facet a smooth bump from the adjustment screws (a Gaussian dome at a random spot near the
+facet centre, scaled so that the mean |height| is ``bump_mm`` ≈ 2 mm) plus a sinusoidal waviness
+(``waviness_mm`` amplitude, ``wavelength_m``, random direction and phase), represented on a finer NURBS net
+(15x15, degree 3) than the learned one (7x7) so the model cannot copy the truth's parametrisation.
+
+Scene. AA39's facets and kinematics moved ``distance`` metres north of the target (the lower Jülich
+calibration target), aimed at its centre; sun positions drawn at random from the daylight hours of a year
+(elevation > 15 deg). Images: 6 m centred windows, 64x64, Buie sun + slope error, the truth rendered with
+denser mirror sampling than training uses.
+
+Metrics. Mean angle between learned and true normals [mrad]; height RMS [mm] after removing each facet's
+mean height difference (a facet piston does not change any image, so it is unobservable); test-image L1 of
+ideal and learned vs truth; ``IMP = L1(ideal) / L1(learned) - 1``.
+
+Every random draw takes a ``torch.Generator`` seeded from ``seed``.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, replace
+
+import torch
+
+from ..field.plant import Facets, Kinematics, SunSettings, Surfaces
+from ..field.targets import PlanarTarget
+from . import losses
+from .learning import LearnableSurface, heights_to_displacement, learnable_surfaces, normal_heights
+from .reconstruct import Observations, TrainSettings, predict_images, train_with_early_stopping
+from .render import aimed_pose
+
+__all__ = ["ground_truth_heights", "make_scene", "run_case", "surface_metrics", "InSilicoScene"]
+
+TRUTH_NET = (15, 15)
+TRUTH_DEGREE = (3, 3)
+
+
+def ground_truth_heights(num_facets: int, generator: torch.Generator, grid=(48, 48), bump_mm: float = 2.0,
+                         waviness_mm: float = 0.15, wavelength_m: float = 1.0, facet_size=(1.6, 1.28)
+                         ) -> torch.Tensor:
+    """Height fields [m] of defective facets on a midpoint grid.
+
+    Returns
+    -------
+    torch.Tensor, [F, su, sv], float64
+    """
+    su, sv = grid
+    u = (torch.arange(su, dtype=torch.float64) + 0.5) / su - 0.5
+    v = (torch.arange(sv, dtype=torch.float64) + 0.5) / sv - 0.5
+    x = u[:, None] * facet_size[0]
+    y = v[None, :] * facet_size[1]
+    out = []
+    for _ in range(num_facets):
+        r = torch.rand(6, generator=generator, dtype=torch.float64)
+        cx, cy = (r[0] - 0.5) * 0.3 * facet_size[0], (r[1] - 0.5) * 0.3 * facet_size[1]
+        width = 0.5 + 0.2 * r[2]  # [m]: a broad dome pulled by the central screw
+        bump = torch.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (2 * width ** 2))
+        bump = bump * (bump_mm * 1e-3 / bump.abs().mean())
+        ang, phase = r[3] * math.pi, r[4] * 2 * math.pi
+        wav = waviness_mm * 1e-3 * torch.sin(2 * math.pi * (x * math.cos(ang) + y * math.sin(ang)) / wavelength_m + phase)
+        out.append(bump + wav)
+    return torch.stack(out)
+
+
+@dataclass
+class InSilicoScene:
+    """A synthetic heliostat in front of a target."""
+
+    facets: Facets
+    kinematics: Kinematics
+    target: PlanarTarget
+    truth: Surfaces
+    sun: SunSettings
+
+
+def make_scene(plant, distance: float, generator: torch.Generator, sun: SunSettings | None = None,
+               target_name: str = "solar_tower_juelich_lower", **truth_kwargs) -> InSilicoScene:
+    """AA39-like heliostat ``distance`` m (horizontal) north of ``target_name`` with a defective truth surface."""
+    fld = plant.field
+    facets = Facets(*(getattr(fld.facets, a)[:1].to(torch.float64) for a in ("translation", "canting_e", "canting_n")))
+    target = plant.target(target_name)
+    kin = fld.kinematics.index(0)
+    pos = target.center.clone().reshape(1, 3).to(torch.float64)
+    pos[0, 1] = pos[0, 1] + distance * float(torch.sign(target.normal[1]) or 1.0)
+    pos[0, 2] = kin.position[0, 2]
+    kin = kin.replace(position=pos)
+    h = ground_truth_heights(facets.translation.shape[1], generator, **truth_kwargs)
+    d = heights_to_displacement(h, TRUTH_NET, TRUTH_DEGREE)
+    base = LearnableSurface(facets, TRUTH_NET, TRUTH_DEGREE).base
+    truth = learnable_surfaces(facets, base, d, TRUTH_DEGREE)
+    return InSilicoScene(facets, kin, target, truth, sun or SunSettings(sunshape="buie", slope_error=1.0e-3))
+
+
+def random_suns(site, n: int, generator: torch.Generator, year: int = 2023, min_elevation_deg: float = 15.0):
+    """``n`` random daylight sun directions of a year, [n, 3] (pvlib positions drawn with ``generator``)."""
+    from ..sun import daylight_times, direction_from_paint_angles
+
+    _, az, el = daylight_times(year, "60min", site.latitude_deg, site.longitude_deg, site.altitude_m,
+                               min_elevation_deg=min_elevation_deg)
+    idx = torch.randperm(az.numel(), generator=generator)[:n]
+    return direction_from_paint_angles(az[idx], el[idx])
+
+
+def observe(scene: InSilicoScene, suns: torch.Tensor, samples=(48, 48), ids=None) -> Observations:
+    """Synthetic centred images of the truth surface for sun directions [B, 3]."""
+    aim = scene.target.center.to(torch.float64).expand(suns.shape[0], 3)
+    rot, conc = aimed_pose(scene.kinematics, aim, suns)
+    obs = Observations(suns, rot, conc, [scene.target] * suns.shape[0], None, ids or [str(i) for i in range(len(suns))])
+    with torch.no_grad():
+        img, _, _ = predict_images(scene.truth, obs, scene.sun, samples=samples)
+    obs.images = img
+    return obs
+
+
+def surface_metrics(facets: Facets, learned: Surfaces, truth: Surfaces, grid=(48, 48)) -> dict:
+    """Mean normal deviation [mrad] and piston-free height RMS [mm] of ``learned`` vs ``truth``."""
+    hl, nl = normal_heights(facets, learned.control_points, (learned.degree_u, learned.degree_v), grid)
+    ht, nt = normal_heights(facets, truth.control_points, (truth.degree_u, truth.degree_v), grid)
+    ang = torch.atan2(torch.linalg.cross(nl, nt, dim=-1).norm(dim=-1), (nl * nt).sum(-1))
+    dh = hl - ht
+    dh = dh - dh.mean((-2, -1), keepdim=True)
+    return {"normal_deviation_mrad": float(ang.detach().mean() * 1e3), "height_rms_mm": float(dh.detach().pow(2).mean().sqrt() * 1e3)}
+
+
+def run_case(plant, distance: float, num_train: int, seed: int = 0, num_test: int = 5,
+             settings: TrainSettings | None = None, progress: bool = False) -> dict:
+    """One cell of the distance x image-count table.
+
+    Returns
+    -------
+    dict
+        distance, images, metrics of the learned and (for reference) the ideal surface, test L1s, IMP, seconds.
+    """
+    gen = torch.Generator().manual_seed(int(seed))
+    scene = make_scene(plant, distance, gen)
+    suns = random_suns(plant.site, num_train + num_test, gen)
+    train = observe(scene, suns[:num_train])
+    test = observe(scene, suns[num_train:])
+    s = settings or TrainSettings()
+    t0 = time.perf_counter()
+    model, info = train_with_early_stopping(scene.facets, train, scene.sun, s, progress=progress)
+    seconds = time.perf_counter() - t0
+    learned = model.surfaces()
+    ideal = LearnableSurface(scene.facets, s.control_points, s.degree).surfaces()
+    with torch.no_grad():
+        kw = dict(samples=s.samples, resolution=s.resolution, size_m=s.size_m)
+        pl, _, _ = predict_images(learned, test, scene.sun, **kw)
+        pi, _, _ = predict_images(ideal, test, scene.sun, **kw)
+        l1_l = losses.l1(pl, test.images).tolist()
+        l1_i = losses.l1(pi, test.images).tolist()
+    m = surface_metrics(scene.facets, learned, scene.truth)
+    m0 = surface_metrics(scene.facets, ideal, scene.truth)
+    mean_i, mean_l = sum(l1_i) / len(l1_i), sum(l1_l) / len(l1_l)
+    return {"distance_m": distance, "train_images": num_train, "seed": seed,
+            "normal_deviation_mrad": m["normal_deviation_mrad"], "height_rms_mm": m["height_rms_mm"],
+            "ideal_normal_deviation_mrad": m0["normal_deviation_mrad"], "ideal_height_rms_mm": m0["height_rms_mm"],
+            "test_l1_ideal": l1_i, "test_l1_learned": l1_l, "imp": mean_i / max(mean_l, 1e-12) - 1.0,
+            "seconds": seconds, "early_stopping_best_step": info["best_step"]}

@@ -1,0 +1,201 @@
+"""Learnable NURBS mirror surfaces: control-point displacements along each facet's normal.
+
+Parametrisation
+---------------
+Per facet, the control net is ``base + d * n_facet`` (:func:`heliotwin.field.facets.displace_along_normal`)
+with ``base`` the ideal flat canted net (or a loaded surface refitted to the chosen net size) and ``d`` the
+learned displacement [m]. In-plane control-point motion only re-parametrises a nearly flat facet, so the
+normal offset is the physically meaningful degree of freedom. Optional rational weights are learned as
+``exp(log_w)`` (positive, 1 at start). :meth:`LearnableSurface.refine` moves to a finer net during training
+(exact knot insertion where the knot vectors nest) and keeps the represented surface.
+
+The optimiser sees ``d`` in millimetres (``scale``): Adam's step is then a displacement in mm, which makes
+one learning rate work across heliostat sizes.
+
+Shapes: F facets, (nu, nv) control points per facet, P samples per facet.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from .. import nurbs
+from ..errors import HeliotwinError
+from ..field import facets as facet_ops
+from ..field.plant import Facets, Surfaces
+
+__all__ = ["learnable_surfaces", "LearnableSurface", "parse_grid", "normal_heights", "heights_to_displacement"]
+
+#: Metres per optimiser unit of displacement (the parameters are in mm).
+MM = 1e-3
+
+
+def parse_grid(text: str) -> tuple[int, int]:
+    """``"7x7"`` -> ``(7, 7)``; ``"9"`` -> ``(9, 9)``; raises :class:`HeliotwinError` otherwise."""
+    parts = str(text).lower().replace("×", "x").split("x")
+    try:
+        vals = tuple(int(p) for p in parts)
+    except ValueError:
+        raise HeliotwinError(f"bad control-point grid {text!r}; expected e.g. 7x7") from None
+    if len(vals) == 1:
+        vals = vals * 2
+    if len(vals) != 2 or min(vals) < 2:
+        raise HeliotwinError(f"bad control-point grid {text!r}; expected e.g. 7x7 with >= 2 per side")
+    return vals  # type: ignore[return-value]
+
+
+def learnable_surfaces(facets: Facets, base: torch.Tensor, displacement: torch.Tensor, degree: tuple[int, int],
+                       log_weights: torch.Tensor | None = None) -> Surfaces:
+    """Functional core: the surfaces for given displacements.
+
+    Parameters
+    ----------
+    facets : Facets
+        One heliostat's placement, ``[1, F, 3]`` tensors.
+    base : torch.Tensor, [1, F, nu, nv, 3]
+        Base control net [m] (heliostat frame).
+    displacement : torch.Tensor, [1, F, nu, nv]
+        Offsets along the facet normals [m].
+    degree : (int, int)
+    log_weights : torch.Tensor, [1, F, nu, nv], optional
+        Log of the rational weights (None: a B-spline).
+
+    Returns
+    -------
+    Surfaces
+        Differentiable w.r.t. ``displacement`` and ``log_weights``.
+    """
+    cp = facet_ops.displace_along_normal(base, displacement, facets)
+    weights = None if log_weights is None else torch.exp(log_weights)
+    return Surfaces(control_points=cp, degree_u=int(degree[0]), degree_v=int(degree[1]), weights=weights)
+
+
+def normal_heights(facets: Facets, control_points: torch.Tensor, degree: tuple[int, int],
+                   samples: tuple[int, int] = (32, 32), weights=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Height along the facet normal and unit normals of a surface, sampled on the facet's parameter grid.
+
+    Parameters
+    ----------
+    facets : Facets
+        ``[1, F, 3]``.
+    control_points : torch.Tensor, [1, F, nu, nv, 3]
+    degree : (int, int)
+    samples : (int, int)
+
+    Returns
+    -------
+    heights : torch.Tensor, [F, su, sv]
+        ``(S(u, v) - translation) . n_facet`` [m].
+    normals : torch.Tensor, [F, su, sv, 3]
+        Unit surface normals (heliostat frame).
+    """
+    su, sv = samples
+    surf = Surfaces(control_points, int(degree[0]), int(degree[1]), weights)
+    pts, nrm, _ = facet_ops.surface_points(surf, samples)
+    nf = control_points.shape[1]
+    pts = pts.reshape(nf, su, sv, 3)
+    nrm = nrm.reshape(nf, su, sv, 3)
+    fn = facet_ops.facet_normals(facets.canting_e, facets.canting_n)[0].to(pts)  # [F, 3]
+    tr = facets.translation[0].to(pts)
+    h = ((pts - tr[:, None, None, :]) * fn[:, None, None, :]).sum(-1)
+    return h, nrm
+
+
+def heights_to_displacement(heights: torch.Tensor, num_control_points, degree) -> torch.Tensor:
+    """Least-squares normal displacements whose surface has the given heights at cell midpoints.
+
+    Parameters
+    ----------
+    heights : torch.Tensor, [F, su, sv]
+        Heights along the facet normal [m] at ``u = (i + 0.5) / su``, ``v = (j + 0.5) / sv``.
+    num_control_points, degree : (int, int)
+
+    Returns
+    -------
+    torch.Tensor, [1, F, nu, nv]
+        [m]. The flat base has height 0 everywhere (linear precision), so heights are linear in the
+        displacements, ``h = B_u d B_v^T``, solved with pseudo-inverses.
+    """
+    h = heights
+    su, sv = h.shape[-2], h.shape[-1]
+    nu, nv = (int(x) for x in num_control_points)
+    p, q = (int(x) for x in degree)
+    u = (torch.arange(su, dtype=h.dtype) + 0.5) / su
+    v = (torch.arange(sv, dtype=h.dtype) + 0.5) / sv
+    bu, _ = nurbs.basis_functions(u, nurbs.clamped_knots(nu, p, dtype=h.dtype), p, nu)
+    bv, _ = nurbs.basis_functions(v, nurbs.clamped_knots(nv, q, dtype=h.dtype), q, nv)
+    d = torch.einsum("ai,fij,bj->fab", torch.linalg.pinv(bu), h, torch.linalg.pinv(bv))
+    return d.reshape(1, h.shape[0], nu, nv)
+
+
+class LearnableSurface(nn.Module):
+    """One heliostat's learnable facets (thin stateful wrapper around :func:`learnable_surfaces`).
+
+    Parameters
+    ----------
+    facets : Facets
+        ``[1, F, 3]`` placement (float64).
+    num_control_points : (int, int)
+        (nu, nv), e.g. (7, 7).
+    degree : (int, int)
+        (p, q), e.g. (3, 3).
+    learn_weights : bool
+        Also learn rational weights.
+    initial : torch.Tensor, [1, F, nu0, nv0, 3], optional
+        A loaded surface's control net (degree ``initial_degree``) to start from; it is refitted to the
+        chosen net and the residual normal offset becomes the initial displacement. Default: flat canted.
+    initial_degree : (int, int), optional
+    dtype : torch.dtype
+        Of the surface computations (float64 keeps the finite-difference checks clean).
+    """
+
+    def __init__(self, facets: Facets, num_control_points=(7, 7), degree=(3, 3), learn_weights: bool = False,
+                 initial: torch.Tensor | None = None, initial_degree=None, dtype=torch.float64):
+        super().__init__()
+        self.facets = Facets(*(t.to(dtype) for t in (facets.translation, facets.canting_e, facets.canting_n)))
+        if self.facets.translation.dim() != 3 or self.facets.translation.shape[0] != 1:
+            raise HeliotwinError("LearnableSurface holds exactly one heliostat ([1, F, 3] facets)")
+        self.num_control_points = tuple(int(x) for x in num_control_points)
+        self.degree = tuple(int(x) for x in degree)
+        for n, p in zip(self.num_control_points, self.degree):
+            if n < p + 1:
+                raise HeliotwinError(f"{n} control points cannot carry degree {p} (need >= {p + 1})")
+        base = facet_ops.flat_control_points(self.facets, self.num_control_points, self.degree)
+        self.register_buffer("base", base)
+        nf = base.shape[1]
+        disp = torch.zeros(1, nf, *self.num_control_points, dtype=dtype)
+        if initial is not None:
+            disp = self._displacement_of(initial.to(dtype), tuple(initial_degree or self.degree))
+        self.displacement_mm = nn.Parameter(disp / MM)
+        self.log_weights = nn.Parameter(torch.zeros_like(disp)) if learn_weights else None
+
+    def _displacement_of(self, control_points: torch.Tensor, degree) -> torch.Tensor:
+        # Least-squares normal offsets on this net reproducing the given surface's normal heights.
+        h, _ = normal_heights(self.facets, control_points, degree, (24, 24))
+        return heights_to_displacement(h, self.num_control_points, self.degree)
+
+    @property
+    def displacement(self) -> torch.Tensor:
+        """Displacements along the facet normals [m], ``[1, F, nu, nv]``."""
+        return self.displacement_mm * MM
+
+    def surfaces(self) -> Surfaces:
+        """Current surfaces (differentiable)."""
+        return learnable_surfaces(self.facets, self.base, self.displacement, self.degree, self.log_weights)
+
+    def forward(self) -> Surfaces:
+        return self.surfaces()
+
+    @torch.no_grad()
+    def refine(self, new_num: tuple[int, int]) -> None:
+        """Switch to a finer net representing the same surface (new parameters: rebuild the optimiser)."""
+        new_num = tuple(int(x) for x in new_num)
+        if self.log_weights is not None:
+            raise HeliotwinError("refinement of rational (weighted) surfaces is not supported")
+        # Displacements are a scalar B-spline field; refine them with the same linear transfer as points.
+        d = self.displacement_mm.detach()
+        d3 = torch.stack((d, torch.zeros_like(d), torch.zeros_like(d)), -1)
+        d_new = nurbs.refine(d3, self.degree[0], self.degree[1], new_num)[..., 0]
+        self.num_control_points = new_num
+        self.base = facet_ops.flat_control_points(self.facets, new_num, self.degree)
+        self.displacement_mm = nn.Parameter(d_new.contiguous())

@@ -1,0 +1,114 @@
+"""Scale-invariant image losses and surface regularisers (functional).
+
+Image losses
+------------
+PAINT flux PNGs are max-normalised (relative), so predicted and measured images are compared after
+normalising each to unit *sum* (:func:`normalize`): the losses then measure the spot's shape only, never its
+absolute power. ``l1 = sum |p - m|`` (in [0, 2]), ``l2 = R^2 sum (p - m)^2`` (the ``R^2`` makes it
+resolution-independent for a fixed window), ``kl = sum m log(m / p)``.
+
+Regularisers
+------------
+Ridge ``mean(d^2)``, lasso ``mean(|d|)`` and Laplacian smoothness ``mean((Lap d)^2)`` of the displacement
+field on each facet's control grid, with ``d`` in millimetres. Their weights are FIXED numbers: they are
+*added* to the data loss and never divided by it (a ratio like ``reg / data`` rescaled every step would make
+the total's gradient w.r.t. the regulariser vanish where it is needed).
+
+Shapes: images ``[B, rows, cols]``; displacements ``[..., F, nu, nv]``.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from ..errors import HeliotwinError
+
+__all__ = ["normalize", "image_loss", "l1", "l2", "kl", "ridge", "lasso", "laplacian", "IMAGE_LOSSES",
+           "threshold_background"]
+
+_EPS = 1e-12
+
+
+def normalize(images: torch.Tensor) -> torch.Tensor:
+    """Each image divided by its sum, ``[B, rows, cols]`` -> same (an empty image stays 0)."""
+    s = images.sum((-2, -1), keepdim=True)
+    return images / s.clamp_min(_EPS)
+
+
+def l1(pred: torch.Tensor, meas: torch.Tensor) -> torch.Tensor:
+    """``sum |p - m|`` of unit-sum images, per image ``[B]`` (0 identical, 2 disjoint)."""
+    return (normalize(pred) - normalize(meas)).abs().sum((-2, -1))
+
+
+def l2(pred: torch.Tensor, meas: torch.Tensor) -> torch.Tensor:
+    """``R C sum (p - m)^2`` of unit-sum images, per image ``[B]`` (pixel-count scaled)."""
+    n = pred.shape[-1] * pred.shape[-2]
+    return n * (normalize(pred) - normalize(meas)).pow(2).sum((-2, -1))
+
+
+def kl(pred: torch.Tensor, meas: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    """``KL(m || p) = sum m log(m / p)`` of unit-sum images, per image ``[B]``.
+
+    ``eps`` (relative to a uniform pixel's share) keeps ``log p`` finite where the prediction is dark.
+    """
+    n = pred.shape[-1] * pred.shape[-2]
+    p = normalize(pred) + eps / n
+    m = normalize(meas)
+    return (m * (torch.log(m + eps / n) - torch.log(p))).sum((-2, -1))
+
+
+IMAGE_LOSSES = {"l1": l1, "l2": l2, "kl": kl}
+
+
+def image_loss(name: str, pred: torch.Tensor, meas: torch.Tensor) -> torch.Tensor:
+    """Mean over images of the named loss (``l1``, ``l2``, ``kl``)."""
+    try:
+        fn = IMAGE_LOSSES[name.lower()]
+    except KeyError:
+        raise HeliotwinError(f"unknown image loss {name!r}; expected one of {', '.join(IMAGE_LOSSES)}") from None
+    return fn(pred, meas).mean()
+
+
+def ridge(d_mm: torch.Tensor) -> torch.Tensor:
+    """Mean squared displacement [mm^2]."""
+    return d_mm.pow(2).mean()
+
+
+def lasso(d_mm: torch.Tensor, smooth: float = 1e-3) -> torch.Tensor:
+    """Mean absolute displacement [mm] (``sqrt(d^2 + s^2) - s``: a subgradient that is defined at 0)."""
+    return (torch.sqrt(d_mm * d_mm + smooth * smooth) - smooth).mean()
+
+
+def laplacian(d_mm: torch.Tensor) -> torch.Tensor:
+    """Mean squared discrete Laplacian of the displacement on each facet's control grid [mm^2].
+
+    The grid is padded by linear extrapolation, so planes (facet tilts, pistons) cost nothing -- ridge
+    handles those -- while bumps and ripples do, including at the free edges.
+    """
+    shape = d_mm.shape
+    x = d_mm.reshape(-1, 1, shape[-2], shape[-1])
+    k = x.new_tensor([[0.0, 1.0, 0.0], [1.0, -4.0, 1.0], [0.0, 1.0, 0.0]]).reshape(1, 1, 3, 3)
+    # Linear extrapolation at the border makes planes (tilts) free: pad with 2 x edge - inner.
+    top = 2 * x[..., :1, :] - x[..., 1:2, :]
+    bottom = 2 * x[..., -1:, :] - x[..., -2:-1, :]
+    x = torch.cat((top, x, bottom), -2)
+    left = 2 * x[..., :, :1] - x[..., :, 1:2]
+    right = 2 * x[..., :, -1:] - x[..., :, -2:-1]
+    x = torch.cat((left, x, right), -1)
+    return F.conv2d(x, k).pow(2).mean()
+
+
+def threshold_background(image: torch.Tensor, level: float = 0.02) -> torch.Tensor:
+    """Measured-image preprocessing: subtract a background level (fraction of the max) and clip at 0.
+
+    Camera images carry a dark/background floor; the PAINT centred PNGs here are already 0 outside the
+    spot, so the default removes only the faint (< 2 % of max) halo of noise and quantisation.
+
+    Parameters
+    ----------
+    image : torch.Tensor, [..., rows, cols]
+    level : float
+        Fraction of each image's maximum.
+    """
+    m = image.amax((-2, -1), keepdim=True)
+    return (image - level * m).clamp_min(0.0)

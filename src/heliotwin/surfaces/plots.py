@@ -1,0 +1,110 @@
+"""Figures for surface learning (matplotlib, Agg; written atomically next to the report).
+
+* :func:`plot_normal_deviation` -- per facet, the angle [mrad] between the learned and the ideal
+  (flat canted) surface normal, as in the paper's Fig. 1d.
+* :func:`plot_flux_comparison` -- measured / ideal / learned centred flux side by side per test image.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+
+import torch
+
+from ..field.plant import Facets
+from .learning import normal_heights
+
+__all__ = ["normal_deviation_map", "plot_normal_deviation", "plot_flux_comparison"]
+
+
+def normal_deviation_map(facets: Facets, control_points: torch.Tensor, degree, reference: torch.Tensor | None = None,
+                         reference_degree=None, samples=(48, 48)) -> torch.Tensor:
+    """Angle between a surface's normals and the reference's (default: flat canted facet normal).
+
+    Returns
+    -------
+    torch.Tensor, [F, su, sv]
+        [mrad].
+    """
+    from ..field import facets as facet_ops
+
+    _, n = normal_heights(facets, control_points, degree, samples)
+    if reference is None:
+        ref = facet_ops.facet_normals(facets.canting_e, facets.canting_n)[0].to(n)[:, None, None, :].expand_as(n)
+    else:
+        _, ref = normal_heights(facets, reference, reference_degree or degree, samples)
+    cos = (n * ref).sum(-1).clamp(-1.0, 1.0)
+    cross = torch.linalg.cross(n, ref, dim=-1).norm(dim=-1)
+    return torch.atan2(cross, cos) * 1e3
+
+
+def _save(fig, path) -> None:
+    path = os.fspath(path)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".png", dir=os.path.dirname(os.path.abspath(path)))
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=110, format="png")
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def plot_normal_deviation(facets: Facets, control_points: torch.Tensor, degree, path, title: str = "") -> None:
+    """Per-facet map of the normal deviation [mrad] from the ideal facet, arranged like the heliostat.
+
+    Facets are placed by their centre (east right, north up, seen from above the mirror lying flat).
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    dev = normal_deviation_map(facets, control_points, degree).detach().cpu()
+    tr = facets.translation[0].detach().cpu()
+    ce = facets.canting_e[0].detach().cpu()
+    cn = facets.canting_n[0].detach().cpu()
+    vmax = float(dev.max()) if dev.numel() else 1.0
+    fig, ax = plt.subplots(figsize=(6, 5))
+    im = None
+    for f in range(dev.shape[0]):
+        hx, hy = float(ce[f].norm()), float(cn[f].norm())
+        x0, y0 = float(tr[f, 0]), float(tr[f, 1])
+        # u runs along canting_e (east), v along canting_n (north): transpose so rows = north.
+        im = ax.imshow(dev[f].T.flip(0), extent=(x0 - hx, x0 + hx, y0 - hy, y0 + hy), vmin=0.0, vmax=vmax,
+                       cmap="viridis")
+    ax.set_xlim(float((tr[:, 0] - ce.norm(dim=-1)).min()) - 0.05, float((tr[:, 0] + ce.norm(dim=-1)).max()) + 0.05)
+    ax.set_ylim(float((tr[:, 1] - cn.norm(dim=-1)).min()) - 0.05, float((tr[:, 1] + cn.norm(dim=-1)).max()) + 0.05)
+    ax.set_xlabel("east [m]")
+    ax.set_ylabel("north [m]")
+    ax.set_title(title or "surface normal deviation from ideal [mrad]")
+    fig.colorbar(im, ax=ax, label="mrad")
+    _save(fig, path)
+    plt.close(fig)
+
+
+def plot_flux_comparison(measured: torch.Tensor, ideal: torch.Tensor, learned: torch.Tensor, labels, path,
+                         l1_ideal=None, l1_learned=None) -> None:
+    """Rows = images; columns = measured / ideal / learned (each normalised to its max)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = measured.shape[0]
+    fig, axes = plt.subplots(n, 3, figsize=(7.5, 2.5 * n), squeeze=False)
+    for i in range(n):
+        for j, (name, img) in enumerate((("measured", measured), ("ideal", ideal), ("learned", learned))):
+            a = img[i].detach().cpu().float()
+            a = a / a.max().clamp_min(1e-30)
+            ax = axes[i, j]
+            ax.imshow(a, vmin=0, vmax=1, cmap="inferno")
+            text = f"{labels[i]} {name}"
+            if j == 1 and l1_ideal is not None:
+                text += f"\nL1 {l1_ideal[i]:.3f}"
+            if j == 2 and l1_learned is not None:
+                text += f"\nL1 {l1_learned[i]:.3f}"
+            ax.set_title(text, fontsize=8)
+            ax.set_xticks([])
+            ax.set_yticks([])
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)

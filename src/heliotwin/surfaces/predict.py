@@ -1,0 +1,108 @@
+"""Yearly flux prediction of one heliostat with a learned surface (sun every N minutes of daylight, pvlib).
+
+For every daylight instant of a year the heliostat is aimed at its target's centre
+(:func:`~heliotwin.surfaces.render.aimed_pose`) and its flux is computed with the learned and with the ideal
+surface (same optics, same centred 6 m window). Without measurements the per-instant quantities are the
+shape difference ``L1(ideal, learned)``, peak flux and power of both. When a ground-truth surface is known
+(in silico) the IMP ``L1(ideal, truth) / L1(learned, truth) - 1`` is reported per instant with its
+statistics over the year.
+
+Shapes: T instants; R window pixels per side.
+"""
+from __future__ import annotations
+
+import math
+import statistics
+
+import torch
+
+from ..errors import HeliotwinError
+from ..field.plant import Facets, Kinematics, SunSettings, Surfaces
+from ..field.targets import PlanarTarget
+from ..sun import daylight_times, direction_from_paint_angles
+from . import losses
+from .reconstruct import Observations, predict_images
+from .render import aimed_pose
+
+__all__ = ["yearly_flux", "summarize"]
+
+
+def yearly_flux(kinematics: Kinematics, target: PlanarTarget, site: tuple, learned: Surfaces, ideal: Surfaces,
+                sun: SunSettings, *, year: int = 2023, every: str = "30min", truth: Surfaces | None = None,
+                samples=(24, 24), resolution: int = 64, size_m: float = 6.0, chunk: int = 96,
+                min_elevation_deg: float = 5.0, progress: bool = True) -> dict:
+    """Flux of one heliostat on ``target`` over a year.
+
+    Parameters
+    ----------
+    kinematics : Kinematics
+        One heliostat.
+    target : PlanarTarget
+    site : (lat_deg, lon_deg, alt_m)
+    learned, ideal : Surfaces
+        ``[1, F, nu, nv, 3]``.
+    sun : SunSettings
+    year : int
+    every : str
+        pandas frequency, e.g. ``"30min"``.
+    truth : Surfaces, optional
+        Ground truth (in silico): enables IMP.
+    chunk : int
+        Instants rendered per batch.
+
+    Returns
+    -------
+    dict of lists (length T): ``time`` (ISO UTC), ``sun_azimuth_deg``, ``sun_elevation_deg``,
+    ``l1_ideal_vs_learned``, ``peak_learned_w_m2``, ``peak_ideal_w_m2``, ``power_w`` and, with ``truth``,
+    ``l1_ideal``, ``l1_learned``, ``imp``.
+    """
+    from tqdm.auto import tqdm
+
+    times, az, el = daylight_times(year, every, site[0], site[1], site[2], min_elevation_deg=min_elevation_deg)
+    if len(times) == 0:
+        raise HeliotwinError(f"no daylight instants in {year} every {every}")
+    sund = direction_from_paint_angles(az, el)
+    out = {k: [] for k in ("l1_ideal_vs_learned", "peak_learned_w_m2", "peak_ideal_w_m2", "power_w")}
+    if truth is not None:
+        out.update({"l1_ideal": [], "l1_learned": [], "imp": []})
+    kw = dict(samples=samples, resolution=resolution, size_m=size_m)
+    for start in tqdm(range(0, len(times), chunk), desc="year", disable=not progress, leave=False):
+        sl = slice(start, start + chunk)
+        s = sund[sl]
+        aim = target.center.to(torch.float64).expand(s.shape[0], 3)
+        rot, conc = aimed_pose(kinematics, aim, s)
+        obs = Observations(s, rot, conc, [target] * s.shape[0], None, [])
+        with torch.no_grad():
+            kernels: dict = {}
+            img_l, _, _ = predict_images(learned, obs, sun, kernels=kernels, **kw)
+            # Same kernels for every surface at an instant: the comparison isolates the shape.
+            img_i, _, _ = predict_images(ideal, obs, sun, kernels=kernels, **kw)
+            out["l1_ideal_vs_learned"] += losses.l1(img_i, img_l).tolist()
+            out["peak_learned_w_m2"] += img_l.amax((-2, -1)).tolist()
+            out["peak_ideal_w_m2"] += img_i.amax((-2, -1)).tolist()
+            pix = (size_m / resolution) ** 2
+            out["power_w"] += (img_l.sum((-2, -1)) * pix).tolist()
+            if truth is not None:
+                img_t, _, _ = predict_images(truth, obs, sun, kernels=kernels, **kw)
+                a, b = losses.l1(img_i, img_t), losses.l1(img_l, img_t)
+                out["l1_ideal"] += a.tolist()
+                out["l1_learned"] += b.tolist()
+                out["imp"] += (a / b.clamp_min(1e-12) - 1.0).tolist()
+    out["time"] = [t.isoformat() for t in times]
+    out["sun_azimuth_deg"] = [math.degrees(float(x)) for x in az]
+    out["sun_elevation_deg"] = [math.degrees(float(x)) for x in el]
+    return out
+
+
+def _stats(values) -> dict:
+    v = sorted(float(x) for x in values)
+    if not v:
+        return {}
+    q = lambda p: v[min(len(v) - 1, max(0, int(round(p * (len(v) - 1)))))]  # noqa: E731
+    return {"mean": statistics.fmean(v), "median": statistics.median(v), "p05": q(0.05), "p95": q(0.95),
+            "min": v[0], "max": v[-1]}
+
+
+def summarize(series: dict) -> dict:
+    """Statistics over the year of every numeric series in :func:`yearly_flux`'s output."""
+    return {k: _stats(v) for k, v in series.items() if k != "time" and v and isinstance(v[0], float)}
