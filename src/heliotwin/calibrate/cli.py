@@ -1,0 +1,245 @@
+"""Command line: ``calibrate``, ``split`` and ``aim``.
+
+``register(subparsers)`` adds the three subcommands to a parent ``heliotwin`` parser; ``main(argv)`` runs
+them stand-alone (``python -m heliotwin.calibrate.cli calibrate ...``). User errors
+(:class:`~heliotwin.errors.HeliotwinError`) print one line ``error: <message>`` to stderr and exit 2.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import math
+import os
+import sys
+import tempfile
+
+from ..errors import HeliotwinError
+
+METHOD_CHOICES = ("lm", "gradient", "hybrid", "mlp", "images")
+
+
+def _ids(text: str | None):
+    if not text:
+        return None
+    ids = [t.strip() for t in text.split(",") if t.strip()]
+    if not ids:
+        raise HeliotwinError("--heliostats needs a comma-separated list like AK32,BE36")
+    return ids
+
+
+def _add_common(p):
+    p.add_argument("--paint", required=True, help="PAINT download folder")
+    p.add_argument("--heliostats", help="comma-separated heliostat ids (default: every heliostat)")
+    p.add_argument("--min-records", type=int, default=50, help="skip heliostats with fewer usable records (default 50)")
+    p.add_argument("--split", "--type", dest="split", default="chrono",
+                   choices=("chrono", "isolation", "region", "azimuth", "solstice", "balanced", "high_variance"),
+                   help="split type (default chrono)")
+    p.add_argument("--train", type=int, default=30, help="records a method may see per heliostat, validation included")
+    p.add_argument("--validation", type=int, default=None,
+                   help="validation records carved out of --train (default 20%% of it, 0 below 8)")
+    p.add_argument("--test", type=int, default=None, help="test records per heliostat (default: every other record)")
+    p.add_argument("--focal-spot", default="HeliOS", help="centroid source: heliOS or utis (falls back to the other)")
+    p.add_argument("--seed", type=int, default=0, help="seed of every random choice")
+
+
+def register(subparsers) -> None:
+    """Add ``calibrate``, ``split`` and ``aim`` to an argparse subparsers object."""
+    p = subparsers.add_parser("calibrate", help="calibrate heliostat kinematics from PAINT calibration records",
+                              description="Calibrate heliostat kinematics from real calibration records and "
+                                          "report the pointing error on held-out records.")
+    _add_common(p)
+    p.add_argument("--method", default="lm", choices=METHOD_CHOICES, help="calibration method (default lm)")
+    p.add_argument("-o", "--output", help="write the calibrated model (HDF5, format heliotwin-calibration v1)")
+    p.add_argument("--json", help="write the JSON report (plots are written next to it)")
+    p.add_argument("--no-plots", action="store_true", help="do not write plots")
+    p.add_argument("--no-curve", action="store_true", help="skip the error-vs-training-size curve (lm refits)")
+    p.add_argument("--plane-tolerance", type=float, default=0.1,
+                   help="largest distance of a focal spot from its target plane [m] (default 0.1)")
+    p.add_argument("--keep-suspicious", action="store_true",
+                   help="report suspicious property values but never replace them")
+    p.add_argument("--progress", action="store_true", help="show progress bars")
+    p.set_defaults(func=cmd_calibrate)
+
+    p = subparsers.add_parser("split", help="write a train/validation/test split and its coverage metrics",
+                              description="Split every heliostat's records (as calibrate would) and report coverage.")
+    _add_common(p)
+    p.add_argument("--json", help="write the split and coverage metrics as JSON")
+    p.add_argument("--csv", help="write the split in PAINT's benchmark CSV format (Id,HeliostatId,Split)")
+    p.set_defaults(func=cmd_split)
+
+    p = subparsers.add_parser("aim", help="motor steps for a sun position and aim point from a calibrated model",
+                              description="Inverse kinematics with a calibrated model: motor steps that put the "
+                                          "reflection of the sun on an aim point.")
+    p.add_argument("--scenario", required=True, help="calibration file written by 'calibrate -o'")
+    p.add_argument("--heliostat", required=True, help="heliostat id")
+    p.add_argument("--sun-azimuth", type=float, required=True, help="sun azimuth [deg], 0 = south, +90 = east")
+    p.add_argument("--sun-elevation", type=float, required=True, help="sun elevation [deg]")
+    p.add_argument("--aim", required=True, help="aim point E,N,U [m] in the plant's ENU frame")
+    p.add_argument("--json", help="also write the answer as JSON")
+    p.set_defaults(func=cmd_aim)
+
+
+def _config(args, method="lm"):
+    from .pipeline import RunConfig
+
+    return RunConfig(paint=args.paint, method=method, split=args.split, train=args.train,
+                     validation=args.validation, test=args.test, heliostats=_ids(args.heliostats),
+                     min_records=args.min_records, focal_spot=args.focal_spot, seed=args.seed,
+                     plane_tolerance=getattr(args, "plane_tolerance", 0.1),
+                     correct_suspicious=not getattr(args, "keep_suspicious", False),
+                     progress=getattr(args, "progress", False))
+
+
+def _load(paint):
+    from ..io.paint import load_paint
+
+    if not os.path.isdir(paint):
+        raise HeliotwinError(f"{paint}: PAINT folder not found")
+    return load_paint(paint)
+
+
+def cmd_calibrate(args) -> int:
+    from dataclasses import replace
+
+    from .pipeline import run_calibration
+    from .report import write_json, write_plots
+    from .scenario import save_calibration
+
+    cfg = _config(args, args.method)
+    from .pipeline import validate_config
+
+    validate_config(cfg)
+    ds = _load(args.paint)
+    report, model, arrays = run_calibration(cfg, ds)
+    ov = report["overall"]
+    curves = None
+    if args.json and not args.no_plots and not args.no_curve and model is not None:
+        # Error vs training size from cheap lm refits on the same split rule and test set.
+        sizes = sorted({n for n in (5, 10, 20, 30, 40, 60, 100) if n < cfg.train} | {cfg.train})
+        pts = []
+        for n in sizes:
+            r, _, _ = run_calibration(replace(cfg, method="lm", train=n, validation=None, progress=False), ds)
+            pts.append((n, r["overall"]["median_test_mrad"]))
+        curves = {"lm (refits)": pts, cfg.method: [(cfg.train, ov["median_test_mrad"])]}
+    if args.json:
+        if not args.no_plots:
+            report["plots"] = [os.path.basename(p) for p in write_plots(args.json, report, arrays, curves)]
+        if curves:
+            report["training_size_curve"] = {k: [list(p) for p in v] for k, v in curves.items()}
+        write_json(args.json, report)
+    if args.output and model is not None:
+        save_calibration(args.output, model, split=cfg.split)
+    _print_table(report)
+    return 0
+
+
+def _fmt(x, nd=2):
+    return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{nd}f}"
+
+
+def _print_table(report: dict) -> None:
+    print(f"{'heliostat':10s} {'status':8s} {'train':>5s} {'val':>4s} {'test':>4s} {'nominal':>9s} {'calib':>8s}  note")
+    for hid, r in report["heliostats"].items():
+        s = r.get("split", {})
+        note = r.get("reason", "")
+        if r.get("suspicious", {}).get("note"):
+            note = (note + "; " if note else "") + r["suspicious"]["note"]
+        print(f"{hid:10s} {r['status']:8s} {s.get('train', 0):5d} {s.get('validation', 0):4d} {s.get('test', 0):4d} "
+              f"{_fmt(r.get('nominal_mean_test_mrad')):>9s} {_fmt(r.get('mean_test_mrad')):>8s}  {note}")
+    ov = report["overall"]
+    print(f"overall: median over heliostats of mean test error {_fmt(ov.get('median_test_mrad'))} mrad "
+          f"(nominal {_fmt(ov.get('nominal_median_test_mrad'))}), {ov.get('n_heliostats', 0)} heliostats, "
+          f"{_fmt(ov.get('seconds'), 1)} s; skipped records {ov.get('skipped_records', 0)}")
+
+
+def cmd_split(args) -> int:
+    import torch
+
+    from .pipeline import validate_config
+    from .records import prepare_records
+    from .report import write_json
+    from .splits import split_records
+
+    cfg = _config(args)
+    validate_config(cfg)
+    ds = _load(args.paint)
+    ids = cfg.heliostats or list(ds.plant.field.ids)
+    unknown = [h for h in ids if h not in ds.plant.field.ids]
+    if unknown:
+        raise HeliotwinError(f"heliostat(s) {', '.join(unknown)} not in {args.paint}")
+    batch, skipped = prepare_records(ds.plant, ds.records, ids, focal_spot=cfg.focal_spot)
+    counts = batch.counts()
+    keep = [h for h in range(len(ids)) if int(counts[h]) >= max(1, cfg.min_records)]
+    sub = batch.subset(torch.isin(batch.heliostat_index, torch.tensor(keep, dtype=torch.long)))
+    tr, va, te, info = split_records(sub, cfg.split, cfg.train, cfg.n_validation(), cfg.test, seed=cfg.seed)
+    label = {}
+    for name, idx in (("train", tr), ("validation", va), ("test", te)):
+        for i in idx.tolist():
+            label[i] = name
+    rows = [{"Id": int(sub.record_id[i]), "HeliostatId": ids[int(sub.heliostat_index[i])], "Split": label[i]}
+            for i in sorted(label)]
+    skipped_h = {ids[h]: f"too few usable records ({int(counts[h])} < --min-records {cfg.min_records})"
+                 for h in range(len(ids)) if h not in keep}
+    out = {"config": {k: v for k, v in cfg.__dict__.items() if k != "progress"},
+           "heliostats": {k: v for k, v in info.items() if k in [ids[h] for h in keep]},
+           "skipped_heliostats": skipped_h, "skipped_records": skipped, "split": rows}
+    out["config"]["validation"] = cfg.n_validation()
+    if args.json:
+        write_json(args.json, out)
+    if args.csv:
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, fieldnames=["Id", "HeliostatId", "Split"], lineterminator="\n")
+        w.writeheader()
+        w.writerows(rows)
+        folder = os.path.dirname(os.path.abspath(args.csv))
+        fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".csv", dir=folder)
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(buf.getvalue())
+        os.replace(tmp, args.csv)
+    for hid, s in out["heliostats"].items():
+        d = s.get("mean_train_test_distance_rad")
+        print(f"{hid}: train {s['train']} validation {s['validation']} test {s['test']} "
+              f"(dropped without time {s['dropped_no_time']}), mean train-test distance {_fmt(d, 3)} rad")
+    for hid, why in skipped_h.items():
+        print(f"{hid}: skipped, {why}")
+    return 0
+
+
+def cmd_aim(args) -> int:
+    from .report import write_json
+    from .scenario import aim, load_calibration
+
+    try:
+        point = [float(x) for x in args.aim.split(",")]
+    except ValueError:
+        raise HeliotwinError(f"--aim needs E,N,U in metres, got {args.aim!r}") from None
+    if len(point) != 3 or not all(math.isfinite(x) for x in point):
+        raise HeliotwinError(f"--aim needs three finite numbers E,N,U, got {args.aim!r}")
+    if not (0.0 < args.sun_elevation <= 90.0):
+        raise HeliotwinError(f"--sun-elevation {args.sun_elevation} deg: the sun must be above the horizon")
+    if not math.isfinite(args.sun_azimuth):
+        raise HeliotwinError("--sun-azimuth must be finite")
+    cal = load_calibration(args.scenario)
+    ans = aim(cal, args.heliostat, math.radians(args.sun_azimuth), math.radians(args.sun_elevation), point)
+    print(f"{ans['heliostat']}: motor steps axis 1 {ans['motor_steps'][0]:.0f}, axis 2 {ans['motor_steps'][1]:.0f}"
+          f"{'' if ans['reachable'] else '  (OUTSIDE the actuator range: not reachable)'} [{ans['method']}]")
+    if args.json:
+        write_json(args.json, ans)
+    return 0 if ans["reachable"] else 3
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="heliotwin-calibrate", description="heliotwin kinematic calibration")
+    sub = parser.add_subparsers(dest="command", required=True)
+    register(sub)
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (HeliotwinError, NotImplementedError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

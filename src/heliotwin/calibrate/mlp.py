@@ -1,0 +1,187 @@
+"""``mlp``: the thesis' per-axis MLP that maps (sun, aim offset) directly to motor steps.
+
+Per heliostat and axis one network (inputs: unit sun vector (3) and the aim point's east/up offset from
+the tower reference (the first planar target's centre) / 10 m; output: that axis' motor steps normalised
+to the actuator range); SELU, Huber loss, AdaMax. Training:
+
+1. *pretraining* on records simulated by the ``gradient``-fitted rigid body: sun positions over a year
+   (:func:`heliotwin.sun.daylight_times`, every ``every``) with aim points spread over the heliostat's
+   training targets, motor steps from the rigid body's inverse;
+2. *fine-tuning* on the real training records (aim = measured focal spot), early-stopped on validation.
+
+Pointing error of a record: the network predicts steps for the measured spot; the pointing error is the
+angle between the measured normal and the measured normal moved by the rigid body's normal change from
+the recorded to the predicted steps (first order in the step error; the rigid body supplies only the
+local Jacobian, not the answer).
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from . import metrics
+from .methods import MIN_TRAIN, fit_gradient_method
+from .model import Calibrated
+from .nets import BatchedMLP
+from .records import RecordBatch
+
+
+def _inputs(sun: torch.Tensor, aim: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+    off = (aim - reference) / 10.0
+    return torch.cat([sun, off[:, [0, 2]]], -1)
+
+
+class MLPModel(Calibrated):
+    """Calibrated MLP: predicted steps for (sun, spot); errors via the rigid body's local Jacobian."""
+
+    def predict_steps(self, batch: RecordBatch) -> torch.Tensor:
+        net, ref = self.extras["net"], self.extras["reference"]
+        k = self.nominal.index(batch.heliostat_index)
+        with torch.no_grad():
+            y = net(_inputs(batch.sun, batch.spot, ref), batch.heliostat_index)
+        return k.min_steps + y * (k.max_steps - k.min_steps)
+
+    def normals(self, batch: RecordBatch):
+        rigid = self.kinematics
+        with torch.no_grad():
+            n_rec, c = metrics.model_normals(rigid, batch)
+            pred = batch.subset(torch.arange(len(batch)))
+            pred.motor_steps = self.predict_steps(batch)
+            n_pred, _ = metrics.model_normals(rigid, pred)
+            measured = metrics.measured_normals(batch, c)
+            n = measured + (n_pred - n_rec)
+            n = n / torch.linalg.norm(n, dim=-1, keepdim=True)
+            # Heliostats whose MLP lost to the rigid body on validation use the rigid body (fallback).
+            use = self.extras.get("use_net")
+            if use is not None:
+                n = torch.where(use[batch.heliostat_index].unsqueeze(-1), n, n_rec)
+            return n, c
+
+
+def _simulate(rigid_model: Calibrated, train: RecordBatch, site, every: str, year: int, gen: torch.Generator):
+    """Simulated (sun, aim, steps) per heliostat from the rigid body over a year of sun positions."""
+    from ..field import kinematics as K
+    from ..sun import daylight_times, direction_from_paint_angles
+
+    _, az, el = daylight_times(year, every, site.latitude_deg, site.longitude_deg, site.altitude_m, min_elevation_deg=8.0)
+    sun = direction_from_paint_angles(az, el)
+    kin = rigid_model.kinematics
+    h = kin.num_heliostats
+    rows = []
+    for i in range(h):
+        m = train.heliostat_index == i
+        if not bool(m.any()):
+            continue
+        # Aim points: the heliostat's measured training spots, jittered by +-1 m in the target plane.
+        spots, right, up = train.spot[m], train.plane_right[m], train.plane_up[m]
+        pick = torch.randint(len(spots), (len(sun),), generator=gen)
+        jit = (torch.rand(len(sun), 2, generator=gen, dtype=torch.float64) - 0.5) * 2.0
+        aim = spots[pick] + jit[:, :1] * right[pick] + jit[:, 1:] * up[pick]
+        steps, ok = K.inverse(kin.index([i] * len(sun)), aim, sun, strict=False)
+        ok = ok & torch.isfinite(steps).all(-1)
+        rows.append((torch.full((int(ok.sum()),), i, dtype=torch.long), sun[ok], aim[ok], steps[ok]))
+    return [torch.cat(c) for c in zip(*rows)]
+
+
+def fit_mlp_method(nominal, train, validation, *, seed=0, progress=False, hidden=32, depth=2, every="6h",
+                   year=2023, pretrain_steps=500, finetune_steps=300, lr=1e-2, site=None) -> MLPModel:
+    from ..site import Site
+
+    h = nominal.num_heliostats
+    rigid = fit_gradient_method(nominal, train, validation, seed=seed, progress=progress)
+    ok = rigid.ok & (train.counts() >= MIN_TRAIN)
+    site = site or Site()
+    gen = torch.Generator().manual_seed(int(seed))
+    reference = train.plane_center[0] if len(train) else torch.zeros(3, dtype=torch.float64)
+    hidx, sun, aim, steps = _simulate(rigid, train, site, every, year, gen)
+    k_sim = nominal.index(hidx)
+    y_sim = (steps - k_sim.min_steps) / (k_sim.max_steps - k_sim.min_steps)
+    x_sim = _inputs(sun, aim, reference)
+    net = BatchedMLP(h, 5, 2, hidden, depth, gen)
+    opt = torch.optim.Adamax(net.parameters(), lr=lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, pretrain_steps)
+    huber = torch.nn.HuberLoss(delta=0.01)
+    it = range(pretrain_steps)
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, desc="mlp pretrain", leave=False)
+    for _ in it:
+        opt.zero_grad()
+        loss = huber(net(x_sim, hidx), y_sim)
+        loss.backward()
+        opt.step()
+        sched.step()
+    # Fine-tune on the real training records; early stopping on validation (state per heliostat).
+    k_tr = nominal.index(train.heliostat_index)
+    x_tr = _inputs(train.sun, train.spot, reference)
+    y_tr = (train.motor_steps - k_tr.min_steps) / (k_tr.max_steps - k_tr.min_steps)
+    model = MLPModel("mlp", list(train.heliostat_ids), nominal, rigid.names, rigid.delta, ok,
+                     corrections=rigid.corrections, extras={"net": net, "reference": reference})
+    best = BatchedMLP(h, 5, 2, hidden, depth, gen)
+    best.copy_rows(net, torch.ones(h, dtype=torch.bool))
+
+    def val_err():
+        if validation is None or not len(validation):
+            return torch.full((h,), math.inf, dtype=torch.float64)
+        e = model.pointing_error(validation)
+        s = torch.zeros(h, dtype=torch.float64).index_add_(0, validation.heliostat_index, e)
+        c = validation.counts()
+        return torch.where(c > 0, s / c.clamp_min(1), torch.full_like(s, math.inf))
+
+    best_err = val_err()
+    pretrain_err = best_err.clone()
+    opt = torch.optim.Adamax(net.parameters(), lr=lr / 5)
+    for step in range(finetune_steps):
+        opt.zero_grad()
+        loss = huber(net(x_tr, train.heliostat_index), y_tr)
+        loss.backward()
+        opt.step()
+        if (step + 1) % 10 == 0:
+            err = val_err()
+            better = err < best_err
+            best.copy_rows(net, better)
+            best_err = torch.where(better, err, best_err)
+    no_val = torch.isinf(best_err)
+    best.copy_rows(net, no_val)
+    model.extras["net"] = best
+    # Fallback: the rigid body wherever the MLP is not better on validation (the report tells which).
+    if validation is not None and len(validation):
+        e = rigid.pointing_error(validation)
+        s_ = torch.zeros(h, dtype=torch.float64).index_add_(0, validation.heliostat_index, e)
+        c_ = validation.counts()
+        rigid_val = torch.where(c_ > 0, s_ / c_.clamp_min(1), torch.full_like(s_, math.inf))
+    else:
+        rigid_val = torch.full((h,), math.inf, dtype=torch.float64)
+    use_net = best_err < rigid_val
+    model.extras["use_net"] = use_net
+    ids = list(train.heliostat_ids)
+    model.extras["per_heliostat"] = {hid: {"validation_after_pretraining_mrad": float(pretrain_err[i]) * 1e3
+                                           if math.isfinite(pretrain_err[i]) else None,
+                                           "validation_after_finetuning_mrad": float(best_err[i]) * 1e3
+                                           if math.isfinite(best_err[i]) else None,
+                                           "rigid_validation_mrad": float(rigid_val[i]) * 1e3
+                                           if math.isfinite(rigid_val[i]) else None,
+                                           "uses_network": bool(use_net[i])}
+                                     for i, hid in enumerate(ids) if bool(ok[i])}
+    model.extras["networks"] = {hid: {"config": dict(best.config, kind="mlp", reference=reference.tolist(),
+                                                     use_net=bool(use_net[i])),
+                                      "state": best.state_of(i)} for i, hid in enumerate(ids) if bool(ok[i])}
+    model.extras["summary"] = {"pretraining_samples": int(len(hidx)), "hidden": hidden, "depth": depth,
+                               "heliostats_using_network": int((use_net & ok).sum())}
+    return model
+
+
+def aim_mlp(net_entry: dict, kin, sun: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Motor steps straight from a stored MLP (one heliostat)."""
+    cfg = net_entry["config"]
+    if not cfg.get("use_net", True):
+        from ..field import kinematics as K
+
+        return K.inverse(kin, target, sun, strict=False)[0]
+    net = BatchedMLP.from_state(cfg, net_entry["state"])
+    ref = torch.tensor(cfg["reference"], dtype=torch.float64)
+    with torch.no_grad():
+        y = net(_inputs(sun.reshape(1, 3), target.reshape(1, 3), ref), torch.zeros(1, dtype=torch.long))
+    return kin.min_steps + y * (kin.max_steps - kin.min_steps)

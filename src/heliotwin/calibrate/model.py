@@ -1,0 +1,81 @@
+"""Calibrated models: what every method returns, and how a model is evaluated on records.
+
+A method returns a :class:`Calibrated` model over the H heliostats of a run. Rigid-body methods (``lm``,
+``gradient``) are fully described by deviations ``delta`` [H, P] added to the nominal kinematics; the
+hybrid adds a network per heliostat, the MLP replaces the model by a network that outputs motor steps.
+Every model answers :meth:`Calibrated.pointing_error` on a :class:`RecordBatch`, so the report treats all
+methods alike.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from ..field.plant import Kinematics
+from . import metrics
+from .params import apply_deviations
+from .records import RecordBatch
+
+
+@dataclass
+class Calibrated:
+    """A calibrated rigid body (deviations from nominal) for H heliostats.
+
+    Attributes
+    ----------
+    method : str
+    heliostat_ids : list of str, length H
+    nominal : Kinematics
+        H heliostats (after any correction of suspicious property values, see ``corrections``).
+    names : tuple of str, length P
+        Deviation parameters (see :mod:`heliotwin.calibrate.params`).
+    delta : torch.Tensor, [H, P]
+        Learned deviations (rad, m, relative for increments).
+    ok : torch.Tensor, [H], bool
+        False for heliostats that were not calibrated (then ``delta`` is zero and ``reasons`` says why).
+    reasons : dict of str -> str
+    corrections : dict of str -> dict
+        Property values replaced before fitting (suspicious entries), per heliostat.
+    extras : dict
+        Method-specific state (e.g. networks).
+    """
+
+    method: str
+    heliostat_ids: list
+    nominal: Kinematics
+    names: tuple
+    delta: torch.Tensor
+    ok: torch.Tensor
+    reasons: dict = field(default_factory=dict)
+    corrections: dict = field(default_factory=dict)
+    extras: dict = field(default_factory=dict)
+
+    @property
+    def kinematics(self) -> Kinematics:
+        """The calibrated static kinematics, H heliostats."""
+        return apply_deviations(self.nominal, self.delta.detach(), self.names)
+
+    def normals(self, batch: RecordBatch) -> tuple[torch.Tensor, torch.Tensor]:
+        """Model mirror normal [R, 3] and concentrator [R, 3] at the records' motor steps."""
+        return metrics.model_normals(self.kinematics, batch)
+
+    def pointing_error(self, batch: RecordBatch) -> torch.Tensor:
+        """Pointing error per record [rad], [R]."""
+        with torch.no_grad():
+            n, c = self.normals(batch)
+            return metrics.angle_between(n, metrics.measured_normals(batch, c))
+
+    def miss_distance(self, batch: RecordBatch) -> torch.Tensor:
+        """Miss distance on the target plane per record [m], [R]."""
+        with torch.no_grad():
+            n, c = self.normals(batch)
+            d = metrics.predicted_spot(n, c, batch) - batch.spot
+            return torch.sqrt((d * batch.plane_right).sum(-1) ** 2 + (d * batch.plane_up).sum(-1) ** 2)
+
+
+def nominal_model(heliostat_ids, kin: Kinematics) -> Calibrated:
+    """The uncalibrated model (zero deviations) in the same interface."""
+    h = kin.num_heliostats
+    return Calibrated("nominal", list(heliostat_ids), kin, (), torch.zeros(h, 0, dtype=torch.float64),
+                      torch.ones(h, dtype=torch.bool))

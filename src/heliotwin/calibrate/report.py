@@ -1,0 +1,171 @@
+"""JSON report (written atomically) and the plots a plant engineer reads at a glance.
+
+Report layout (``heliotwin calibrate --json report.json``)::
+
+    config              the run's options
+    overall             median_test_mrad (median over heliostats of each heliostat's MEAN test error),
+                        mean_test_mrad, nominal_median_test_mrad, nominal_mean_test_mrad,
+                        median_train_mrad, median_test_miss_m, mean_train_test_distance_rad,
+                        seconds, fit_seconds, skipped_heliostats, skipped_records, dropped_no_time
+    heliostats.<HID>    status ("ok"/"skipped"), reason, split (sizes, dropped_no_time, coverage,
+                        mean_train_test_distance_rad), train/validation/test/nominal_test
+                        ({n, median_mrad, mean_mrad, max_mrad, median_miss_m}), mean_test_mrad,
+                        median_test_mrad, nominal_mean_test_mrad, seconds, parameters, suspicious
+    skipped_records     [{record_id, heliostat_id, reason}]
+    plots               file names of the figures written next to the JSON
+
+Plots (matplotlib, Agg): ``<stem>-sky.png`` test error against sun azimuth and elevation,
+``<stem>-heliostats.png`` per-heliostat mean test error before/after, ``<stem>-training-size.png``
+test error against the number of training records.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+
+import numpy as np
+
+
+def _clean(obj):
+    """JSON-safe copy: numpy/torch scalars to Python, NaN/inf to None (a report never holds NaN)."""
+    import torch
+
+    if isinstance(obj, dict):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, torch.Tensor):
+        return _clean(obj.tolist())
+    if isinstance(obj, np.ndarray):
+        return _clean(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        f = float(obj)
+        return f if math.isfinite(f) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, (str, int, bool)) or obj is None:
+        return obj
+    return str(obj)
+
+
+def write_json(path, data) -> None:
+    """Write JSON atomically (temporary file in the same folder, then ``os.replace``)."""
+    path = os.fspath(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".json", dir=folder)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            json.dump(_clean(data), fh, indent=1, allow_nan=False)
+            fh.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path):
+    folder = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".png", dir=folder)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def plot_sky(path, arrays: dict, title: str = "") -> None:
+    """Per-record test error against sun azimuth and elevation (nominal faint, calibrated bold)."""
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    ids = arrays["heliostat_ids"]
+    cmap = plt.get_cmap("tab20")
+    for ax, key, label in ((axes[0], "test_azimuth", "sun azimuth [deg] (0 = south, +90 = east)"),
+                           (axes[1], "test_elevation", "sun elevation [deg]")):
+        x = np.degrees(arrays[key])
+        for h, hid in enumerate(ids):
+            m = arrays["test_heliostat"] == h
+            if m.any():
+                ax.scatter(x[m], arrays["test_error_mrad"][m], s=12, color=cmap(h % 20), label=hid)
+        ax.set_xlabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("calibrated test pointing error [mrad]")
+    axes[1].legend(fontsize=7, ncol=2, loc="upper right")
+    fig.suptitle(title or "test error against sun position")
+    _save(fig, path)
+    plt.close(fig)
+
+
+def plot_heliostats(path, report: dict, title: str = "") -> None:
+    """Per-heliostat mean test error, nominal vs calibrated (log scale)."""
+    plt = _plt()
+    rows = [(h, r) for h, r in report["heliostats"].items() if r.get("status") == "ok"]
+    fig, ax = plt.subplots(figsize=(max(5, 0.6 * len(rows) + 2), 4))
+    x = np.arange(len(rows))
+    nom = [r["nominal_mean_test_mrad"] or np.nan for _, r in rows]
+    cal = [r["mean_test_mrad"] or np.nan for _, r in rows]
+    ax.bar(x - 0.2, nom, 0.4, label="nominal", color="0.7")
+    ax.bar(x + 0.2, cal, 0.4, label=f"calibrated ({report['config'].get('method')})", color="tab:blue")
+    ax.set_xticks(x, [h for h, _ in rows], rotation=45)
+    ax.set_yscale("log")
+    ax.set_ylabel("mean test pointing error [mrad]")
+    ax.grid(alpha=0.3, axis="y")
+    ax.legend()
+    ax.set_title(title or "per-heliostat test error before/after calibration")
+    _save(fig, path)
+    plt.close(fig)
+
+
+def plot_training_size(path, curves: dict, title: str = "") -> None:
+    """Median over heliostats of the mean test error against the number of training records.
+
+    Parameters
+    ----------
+    curves : dict of label -> list of (n_train, median_test_mrad)
+    """
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for label, pts in curves.items():
+        pts = [(n, e) for n, e in pts if e is not None]
+        if pts:
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", label=label)
+    ax.set_xlabel("training records per heliostat (incl. validation)")
+    ax.set_ylabel("median over heliostats of mean test error [mrad]")
+    ax.set_yscale("log")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    ax.set_title(title or "test error vs number of training records")
+    _save(fig, path)
+    plt.close(fig)
+
+
+def write_plots(json_path, report: dict, arrays: dict, curves: dict | None = None) -> list[str]:
+    """Write the standard figures next to ``json_path``; returns their paths."""
+    stem = os.path.splitext(os.fspath(json_path))[0]
+    out = []
+    if arrays.get("heliostat_ids"):
+        p = f"{stem}-sky.png"
+        plot_sky(p, arrays)
+        out.append(p)
+        p = f"{stem}-heliostats.png"
+        plot_heliostats(p, report)
+        out.append(p)
+    if curves:
+        p = f"{stem}-training-size.png"
+        plot_training_size(p, curves)
+        out.append(p)
+    return out

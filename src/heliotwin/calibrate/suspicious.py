@@ -1,0 +1,162 @@
+"""Detect suspicious heliostat properties (and whether correcting them is supported by the records).
+
+A properties file can carry a wrong actuator value (PAINT's BF41: an initial stroke three times the
+field's, with matching odd initial angles). A calibration would then spend its parameters repairing a
+gross error and extrapolate badly, or fail outright. The check is two-fold:
+
+1. *Values*: each actuator value is compared with the field median over every heliostat of the plant
+   (relative deviation for lengths/increments, absolute for angles, thresholds :data:`THRESHOLDS`).
+2. *Records*: the flagged values are replaced by the field medians and the nominal pointing error on the
+   heliostat's TRAINING records is compared. The correction is adopted only when it reduces that error by
+   :data:`ACCEPT_FACTOR` or more; otherwise the values are reported as unusual but consistent with the
+   records (AK32's axis 2 is such a case) and kept.
+
+Also flagged: a nominal training error far above the field's (:data:`NOMINAL_FACTOR` x the median).
+"""
+from __future__ import annotations
+
+import torch
+
+from ..field.plant import ACTUATOR_FIELDS, Kinematics
+from . import metrics
+from .records import RecordBatch
+
+#: (kind of test, threshold): relative deviation from the field median for lengths/increment, absolute
+#: [rad] for the initial angle.
+THRESHOLDS = {"increment": ("relative", 0.25), "offset": ("relative", 0.25), "pivot_radius": ("relative", 0.25),
+              "initial_stroke_length": ("relative", 0.5), "initial_angle": ("absolute", 0.2)}
+ACCEPT_FACTOR = 3.0
+NOMINAL_FACTOR = 5.0
+MIN_FIELD = 5
+
+
+def field_medians(field_kin: Kinematics) -> dict:
+    """Median over heliostats of every actuator field, per axis ([2] each)."""
+    return {f: getattr(field_kin, f).median(0).values for f in ACTUATOR_FIELDS}
+
+
+def flag_values(kin: Kinematics, ids, medians: dict) -> dict:
+    """Actuator values far from the field median.
+
+    Returns
+    -------
+    dict of heliostat id -> list of dict(field, axis, value, field_median)
+    """
+    out = {}
+    for h, hid in enumerate(ids):
+        flags = []
+        for f, (mode, thr) in THRESHOLDS.items():
+            for a in range(2):
+                v, m = float(getattr(kin, f)[h, a]), float(medians[f][a])
+                if not bool(kin.linear[h, a]) and f != "initial_angle" and f != "increment":
+                    continue  # an ideal actuator has no triangle
+                dev = abs(v / m - 1.0) if (mode == "relative" and m != 0) else abs(v - m)
+                if dev > thr:
+                    flags.append({"field": f, "axis": a + 1, "value": v, "field_median": m})
+        if flags:
+            out[hid] = flags
+    return out
+
+
+def _map_cost(kin: Kinematics, batch: RecordBatch, fp) -> float:
+    """Posterior cost (data misfit + field prior, in rad^2) of the best Stone/Jülich fit of ONE heliostat."""
+    from .lm import fit_lm
+    from .params import STONE8
+    from .priors import LOOSE_SIGMA
+
+    _, info = fit_lm(kin, batch, names=STONE8, prior_sigma=LOOSE_SIGMA, prior_mean=fp[0].unsqueeze(0).clone(),
+                     prior_sigma_vector=fp[1])
+    return 2.0 * info["cost"]
+
+
+def check_and_correct(kin: Kinematics, ids, field_kin: Kinematics, train: RecordBatch) -> tuple[Kinematics, dict]:
+    """Flag suspicious properties and adopt a correction where the training records support it.
+
+    The decision compares, for a flagged heliostat, the original and the corrected properties by their
+    posterior cost under the field prior (:mod:`~heliotwin.calibrate.priors`, learned from the *other*,
+    unflagged heliostats' training records): the variant whose best fit needs the smaller, more
+    field-typical deviations for the same data wins. Without a field prior (too few heliostats), a
+    correction is adopted when it lowers the nominal training error :data:`ACCEPT_FACTOR`-fold.
+
+    Parameters
+    ----------
+    kin : Kinematics
+        The run's H heliostats (nominal, from the properties files).
+    ids : list of str
+    field_kin : Kinematics
+        Every heliostat of the plant (for the field medians).
+    train : RecordBatch
+        Training records only (validation/test are never looked at).
+
+    Returns
+    -------
+    kin : Kinematics
+        With adopted corrections.
+    findings : dict of heliostat id -> dict
+        ``flags`` (values), nominal training error before/after, ``corrected`` (bool), ``note``.
+    """
+    from .lm import fit_lm
+    from .methods import MIN_TRAIN
+    from .params import STONE8
+    from .priors import LOOSE_SIGMA, field_prior
+
+    findings: dict = {}
+    if field_kin.num_heliostats < MIN_FIELD or len(train) == 0:
+        return kin, findings
+    with torch.no_grad():
+        err = metrics.pointing_error(kin, train)
+    counts = train.counts()
+    per_h = [float(err[train.heliostat_index == h].median()) if int(counts[h]) else float("nan") for h in range(len(ids))]
+    finite = [e for e in per_h if e == e]
+    field_nominal = float(torch.tensor(finite).median()) if finite else float("nan")
+    medians = field_medians(field_kin)
+    flags = flag_values(kin, ids, medians)
+    fp = None
+    if flags:
+        usable = (counts >= MIN_TRAIN) & torch.tensor([hid not in flags for hid in ids])
+        loose, _ = fit_lm(kin, train.subset(usable[train.heliostat_index]), names=STONE8, prior_sigma=LOOSE_SIGMA)
+        fp = field_prior(loose, usable, STONE8)
+    changes = {f: getattr(kin, f).clone() for f in ACTUATOR_FIELDS}
+    for h, hid in enumerate(ids):
+        entry = {}
+        if hid in flags:
+            entry["flags"] = flags[hid]
+            trial = {f: getattr(kin, f)[h:h + 1].clone() for f in ACTUATOR_FIELDS}
+            for fl in flags[hid]:
+                trial[fl["field"]][0, fl["axis"] - 1] = medians[fl["field"]][fl["axis"] - 1]
+            m = train.heliostat_index == h
+            if int(m.sum()) >= MIN_TRAIN:
+                sub = train.subset(m)
+                sub.heliostat_index = torch.zeros(len(sub), dtype=torch.long)
+                k_orig = kin.index(h)
+                k_corr = k_orig.replace(**trial)
+                with torch.no_grad():
+                    after = float(metrics.pointing_error(k_corr, sub).median())
+                before = per_h[h]
+                entry["nominal_train_mrad_before"] = before * 1e3
+                entry["nominal_train_mrad_after_correction"] = after * 1e3
+                if fp is not None:
+                    c0, c1 = _map_cost(k_orig, sub, fp), _map_cost(k_corr, sub, fp)
+                    entry["posterior_cost_before"], entry["posterior_cost_after_correction"] = c0, c1
+                    accept = c1 < c0
+                    why = f"posterior cost under the field prior {c0:.3g} -> {c1:.3g}"
+                else:
+                    accept = after * ACCEPT_FACTOR <= before
+                    why = f"nominal training error {before * 1e3:.1f} -> {after * 1e3:.1f} mrad"
+                if accept:
+                    for fl in flags[hid]:
+                        changes[fl["field"]][h, fl["axis"] - 1] = medians[fl["field"]][fl["axis"] - 1]
+                    entry["corrected"] = True
+                    entry["note"] = f"suspicious actuator value(s) replaced by the field median ({why})"
+                else:
+                    entry["corrected"] = False
+                    entry["note"] = f"actuator value(s) far from the field median but the records prefer them ({why}); kept"
+            else:
+                entry["corrected"] = False
+                entry["note"] = "actuator value(s) far from the field median; too few training records to check"
+        if per_h[h] == per_h[h] and field_nominal == field_nominal and per_h[h] > NOMINAL_FACTOR * field_nominal:
+            entry["nominal_error_far_above_field"] = {"nominal_train_mrad": per_h[h] * 1e3,
+                                                      "field_median_mrad": field_nominal * 1e3}
+        if entry:
+            findings[hid] = entry
+    return kin.replace(**changes), findings
