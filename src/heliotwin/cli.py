@@ -249,6 +249,9 @@ def main(argv=None) -> int:
     except KeyError as exc:  # unknown heliostat / target names from the plant containers
         print(f"heliotwin: error: {exc.args[0] if exc.args else exc}", file=sys.stderr)
         return 2
+    except NotImplementedError as exc:
+        print(f"heliotwin: error: {exc}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("heliotwin: interrupted", file=sys.stderr)
         return 130

@@ -26,3 +26,6 @@ __all__ = [
     "splat_bilinear",
     "splat_hard",
 ]
+from .analytic import trace_analytic  # noqa: E402
+
+__all__.append("trace_analytic")
