@@ -99,7 +99,10 @@ def _validate_chunk(chunk, target, plant, kin, sun, index, samples, resolution, 
         pts, nrm, area, R, c = world_surface(kin, plant.field.surfaces, hidx, steps, samples)
         errors = {src: pointing_error_mrad(R, c, s, torch.stack([r.focal_spot.get(src, r.spot()) for r in chunk]))
                   for src in FOCAL_SPOT_SOURCES}
-        flux = trace(pts, nrm, area, s.to(pts), target, integrator="analytic", resolution=(resolution, resolution), sun=sun)
+        # One heliostat per sample: its points' footprints differ by a few per cent, so one convolution
+        # kernel per sample ("convolve" mode) is exact to second order and ~50x faster than per-point windows.
+        flux = trace(pts, nrm, area, s.to(pts), target, integrator="analytic", resolution=(resolution, resolution), sun=sun,
+                     mode="convolve")
         power = flux.total_power_w
         on_target = flux.intercepted_power_w > 0.5 * power
         pred_local = flux.centroid_local().to(torch.float64)
@@ -131,7 +134,11 @@ def _validate_chunk(chunk, target, plant, kin, sun, index, samples, resolution, 
 
 
 def _compare_images(chunk, target, pts, nrm, area, s, pred_local, sun, out) -> None:
-    """Predicted vs measured ``flux-centered`` images for the records that have one."""
+    """Predicted vs measured ``flux-centered`` images for the records that have one.
+
+    The predicted window is not clipped to the physical target: the comparison is of spot *shape*, and a
+    nominal model whose spot leaves the target must still be compared (the measured one was on it).
+    """
     have = [i for i, r in enumerate(chunk) if r.flux_centered_png]
     by_res = defaultdict(list)
     measured = {}
@@ -144,7 +151,7 @@ def _compare_images(chunk, target, pts, nrm, area, s, pred_local, sun, out) -> N
         half = CENTERED_WINDOW_M / 2
         window = torch.cat((pred_local[sel] - half, torch.full((len(idx), 2), CENTERED_WINDOW_M, dtype=torch.float64)), -1)
         pred = trace(pts[sel], nrm[sel], area[sel], s[sel].to(pts), target, integrator="analytic", resolution=res,
-                     sun=sun, window=window)
+                     sun=sun, window=window, mode="convolve", clip_to_target=False)
         for j, i in enumerate(idx):
             m = measured[i].to(torch.float64)
             p = pred.bitmap[j].to(torch.float64)
