@@ -15,26 +15,13 @@ import math
 import torch
 
 from ..errors import OutOfRangeError
+from ..geometry import rotation_e, rotation_n, rotation_u
 from .actuators import angle_to_steps, steps_to_angle
 from .plant import Kinematics
 
 
-def rot_e(a: torch.Tensor) -> torch.Tensor:
-    """Rotation about east (x) by ``a`` [rad], right-handed; shape (..., 3, 3)."""
-    c, s, o, z = torch.cos(a), torch.sin(a), torch.ones_like(a), torch.zeros_like(a)
-    return torch.stack((torch.stack((o, z, z), -1), torch.stack((z, c, -s), -1), torch.stack((z, s, c), -1)), -2)
-
-
-def rot_n(a: torch.Tensor) -> torch.Tensor:
-    """Rotation about north (y) by ``a`` [rad], right-handed; shape (..., 3, 3)."""
-    c, s, o, z = torch.cos(a), torch.sin(a), torch.ones_like(a), torch.zeros_like(a)
-    return torch.stack((torch.stack((c, z, s), -1), torch.stack((z, o, z), -1), torch.stack((-s, z, c), -1)), -2)
-
-
-def rot_u(a: torch.Tensor) -> torch.Tensor:
-    """Rotation about up (z) by ``a`` [rad], right-handed; shape (..., 3, 3)."""
-    c, s, o, z = torch.cos(a), torch.sin(a), torch.ones_like(a), torch.zeros_like(a)
-    return torch.stack((torch.stack((c, -s, z), -1), torch.stack((s, c, z), -1), torch.stack((z, z, o), -1)), -2)
+# The elementary rotations live in heliotwin.geometry; short aliases keep the chain formulas readable.
+rot_e, rot_n, rot_u = rotation_e, rotation_n, rotation_u
 
 
 def _actuator_kwargs(kin: Kinematics) -> dict:
