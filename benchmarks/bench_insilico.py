@@ -1,10 +1,13 @@
 """In-silico study: distance x training-image count table (the published protocol).
 
     python benchmarks/bench_insilico.py [--distances 25,50,100,200] [--images 1,2,4,8,16] [--seed 0] \
-        [--json insilico.json]
+        [--steps 1500] [--grid 3e-3,1e-2,3e-2] [--threads 2] [--json insilico.json] [--markdown insilico.md]
 
 Prints one row per cell: mean normal deviation [mrad], piston-free height RMS [mm], mean test L1 of the ideal
-and learned surfaces and IMP = L1(ideal)/L1(learned) - 1 (see heliotwin.surfaces.insilico).
+and learned surfaces and IMP = L1(ideal)/L1(learned) - 1 (see heliotwin.surfaces.insilico), the Laplacian
+weight chosen on the held-out latest training image, loss evaluations and seconds; then the same table as
+markdown. Settings: :func:`heliotwin.surfaces.insilico.insilico_settings` (L-BFGS + blur continuation, L1 loss,
+gauge-fixed), 7x7 degree-3 facets, 24x24 samples per facet, 64x64 px 6 m windows, 5 test images per cell.
 """
 from __future__ import annotations
 
@@ -12,14 +15,26 @@ import argparse
 import json
 import os
 import sys
+import time
 
 import torch
 
 from heliotwin.io.paint import load_paint
-from heliotwin.surfaces.insilico import run_case
-from heliotwin.surfaces.reconstruct import TrainSettings
+from heliotwin.surfaces.insilico import insilico_settings, run_case
 
 PAINT = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "paint")
+
+
+def markdown(rows) -> str:
+    out = ["| distance [m] | images | normal dev. [mrad] | height RMS [mm] | L1 ideal | L1 learned | IMP [%] | "
+           "Laplacian | evals | s |", "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        li = sum(r["test_l1_ideal"]) / len(r["test_l1_ideal"])
+        ll = sum(r["test_l1_learned"]) / len(r["test_l1_learned"])
+        out.append(f"| {r['distance_m']:.0f} | {r['train_images']} | {r['normal_deviation_mrad']:.3f} | "
+                   f"{r['height_rms_mm']:.3f} | {li:.3f} | {ll:.4f} | {100 * r['imp']:.0f} | {r['laplacian']:g} | "
+                   f"{r['loss_evaluations']} | {r['seconds']:.1f} |")
+    return "\n".join(out)
 
 
 def main(argv=None) -> int:
@@ -28,25 +43,37 @@ def main(argv=None) -> int:
     p.add_argument("--distances", default="25,50,100,200")
     p.add_argument("--images", default="1,2,4,8,16")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--steps", type=int, default=TrainSettings.steps)
+    p.add_argument("--steps", type=int, default=1500, help="cap on loss evaluations per fit")
+    p.add_argument("--grid", default="3e-3,1e-2,3e-2", help="Laplacian weights tried on the held-out training image")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--json")
+    p.add_argument("--markdown")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     plant = load_paint(a.paint, heliostats=["AA39"], with_records=False).plant
+    settings = insilico_settings(steps=a.steps, laplacian_grid=tuple(float(x) for x in a.grid.split(",") if x))
     rows = []
-    print(f"{'dist':>5} {'imgs':>4} {'n_dev mrad':>10} {'h_rms mm':>9} {'L1 ideal':>9} {'L1 learn':>9} {'IMP %':>8} {'s':>6}")
+    t0 = time.perf_counter()
+    print(f"{'dist':>5} {'imgs':>4} {'n_dev mrad':>10} {'h_rms mm':>9} {'L1 ideal':>9} {'L1 learn':>9} {'IMP %':>8} "
+          f"{'lap':>6} {'evals':>5} {'s':>6}")
     for d in (float(x) for x in a.distances.split(",")):
         for n in (int(x) for x in a.images.split(",")):
-            r = run_case(plant, d, n, seed=a.seed, settings=TrainSettings(steps=a.steps))
+            r = run_case(plant, d, n, seed=a.seed, settings=settings)
             rows.append(r)
             li = sum(r["test_l1_ideal"]) / len(r["test_l1_ideal"])
             ll = sum(r["test_l1_learned"]) / len(r["test_l1_learned"])
-            print(f"{d:5.0f} {n:4d} {r['normal_deviation_mrad']:10.3f} {r['height_rms_mm']:9.3f} {li:9.3f} {ll:9.3f} "
-                  f"{100 * r['imp']:8.0f} {r['seconds']:6.1f}", flush=True)
+            print(f"{d:5.0f} {n:4d} {r['normal_deviation_mrad']:10.3f} {r['height_rms_mm']:9.3f} {li:9.3f} {ll:9.4f} "
+                  f"{100 * r['imp']:8.0f} {r['laplacian']:6g} {r['loss_evaluations']:5d} {r['seconds']:6.1f}", flush=True)
+    table = markdown(rows)
+    print()
+    print(table)
+    print(f"\ntotal {time.perf_counter() - t0:.0f} s on {a.threads} thread(s); settings {settings.as_dict()}")
     if a.json:
         with open(a.json, "w", encoding="utf-8") as fh:
-            json.dump(rows, fh, indent=2)
+            json.dump({"settings": settings.as_dict(), "seed": a.seed, "rows": rows}, fh, indent=2)
+    if a.markdown:
+        with open(a.markdown, "w", encoding="utf-8") as fh:
+            fh.write(table + "\n")
     return 0
 
 

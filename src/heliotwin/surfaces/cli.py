@@ -4,6 +4,7 @@ Usage::
 
     python -m heliotwin.surfaces.cli reconstruct --paint PAINT_DIR --heliostat AA39 --train-first 3 \\
         -o learned.h5 --json report.json
+    python -m heliotwin.surfaces.cli reconstruct ... --deflectometry AA39-deflectometry.h5 [--start-from-deflectometry]
     python -m heliotwin.surfaces.cli predict --scenario learned.h5 --heliostat AA39 --year 2023 \\
         --every 30min --json out.json
 
@@ -65,6 +66,12 @@ def cmd_reconstruct(args) -> int:
             train_records = [int(x) for x in args.train_records.split(",") if x.strip()]
         except ValueError:
             raise HeliotwinError(f"--train-records: expected comma-separated record ids, got {args.train_records!r}") from None
+    if args.start_from_deflectometry and not args.deflectometry:
+        raise HeliotwinError("--start-from-deflectometry needs --deflectometry FILE")
+    if args.deflectometry:
+        from ..io.deflectometry import read_deflectometry
+
+        read_deflectometry(args.deflectometry)  # fail fast (one-line error naming the file) before training
     cp = parse_grid(args.control_points)
     settings = TrainSettings(control_points=cp, degree=(args.degree, args.degree), integrator=args.integrator,
                              loss=args.loss, steps=args.steps)
@@ -72,7 +79,7 @@ def cmd_reconstruct(args) -> int:
     report, model, ds, extras = reconstruct_paint(
         args.paint, args.heliostat, train_records=train_records, train_first=args.train_first, settings=settings,
         slope_error=slope, background=args.background, alignment=args.alignment, evaluate_mc=not args.no_mc,
-        progress=not args.quiet)
+        progress=not args.quiet, deflectometry=args.deflectometry, start_from_deflectometry=args.start_from_deflectometry)
     stem = os.path.splitext(os.fspath(args.json))[0]
     plots = {"normal_deviation": stem + "-normal-deviation.png", "flux": stem + "-flux.png"}
     learned = model.surfaces()
@@ -95,6 +102,11 @@ def cmd_reconstruct(args) -> int:
         print(f"{args.heliostat}: median test L1 ideal {report['median_l1_ideal']:.3f} -> learned "
               f"{report['median_l1_learned']:.3f} (median IMP {100 * report['median_imp']:+.0f} %), "
               f"{report['seconds']:.1f} s")
+        if "deflectometry" in report:
+            c = report["deflectometry"]["learned_vs_deflectometry"]
+            print(f"learned vs deflectometry: {c['normal_deviation_mrad']:.3f} mrad mean normal deviation, "
+                  f"{c['height_rms_mm']:.3f} mm height RMS; median test L1 deflectometry "
+                  f"{report['deflectometry']['median_l1_deflectometry']:.3f}")
     return 0
 
 
@@ -146,6 +158,10 @@ def register(subparsers) -> None:
     p.add_argument("--background", type=float, default=0.0, help="background to subtract, fraction of image max")
     p.add_argument("--alignment", choices=("focal-spot", "motor"), default="focal-spot")
     p.add_argument("--no-mc", action="store_true", help="skip the Monte-Carlo evaluation")
+    p.add_argument("--deflectometry", help="PAINT deflectometry HDF5: trace its NURBS fit on the test images and "
+                                          "compare the learned surface with it (mm, mrad)")
+    p.add_argument("--start-from-deflectometry", action="store_true",
+                   help="start the learning from the deflectometry surface instead of flat")
     p.add_argument("-o", "--output", help="learned surface HDF5 to write")
     p.add_argument("--json", required=True, help="report JSON to write")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: leave as is)")

@@ -24,7 +24,7 @@ from ..errors import HeliotwinError
 from ..field import facets as facet_ops
 from ..field.plant import Facets, Surfaces
 
-__all__ = ["learnable_surfaces", "LearnableSurface", "parse_grid", "normal_heights", "heights_to_displacement"]
+__all__ = ["learnable_surfaces", "LearnableSurface", "gauge_basis", "parse_grid", "normal_heights", "heights_to_displacement"]
 
 #: Metres per optimiser unit of displacement (the parameters are in mm).
 MM = 1e-3
@@ -128,6 +128,35 @@ def heights_to_displacement(heights: torch.Tensor, num_control_points, degree) -
     return d.reshape(1, h.shape[0], nu, nv)
 
 
+def gauge_basis(facets: Facets, num_control_points, degree, pistons: bool = True) -> torch.Tensor:
+    """Orthonormal basis of the displacement modes invisible in centred-window images.
+
+    A flat facet's control points sit at the Greville abscissae, so ``d_ij = a s_i |canting_e| +
+    b t_j |canting_n|`` (``s, t`` in [-1, 1]) is an exact planar tilt of slope ``(a, b)`` [mm/m]; the same
+    ``(a, b)`` on every facet is a rigid tilt of the whole mirror, which only translates the spot (removed
+    by centring the window). A facet piston (constant ``d``) does not change any normal.
+
+    Returns
+    -------
+    torch.Tensor, [F nu nv, K], float64
+        ``K = 2`` (+ F with ``pistons``) orthonormal columns.
+    """
+    nu, nv = (int(x) for x in num_control_points)
+    p, q = (int(x) for x in degree)
+    nf = facets.translation.shape[1]
+    s = 2.0 * nurbs.greville_abscissae(nu, p, dtype=torch.float64) - 1.0
+    t = 2.0 * nurbs.greville_abscissae(nv, q, dtype=torch.float64) - 1.0
+    le = facets.canting_e[0].to(torch.float64).norm(dim=-1)
+    ln = facets.canting_n[0].to(torch.float64).norm(dim=-1)
+    modes = [(le[:, None, None] * s[None, :, None]).expand(nf, nu, nv).reshape(-1),
+             (ln[:, None, None] * t[None, None, :]).expand(nf, nu, nv).reshape(-1)]
+    if pistons:
+        eye = torch.eye(nf, dtype=torch.float64)
+        modes += [eye[k][:, None, None].expand(nf, nu, nv).reshape(-1) for k in range(nf)]
+    basis, _ = torch.linalg.qr(torch.stack(modes, 1))
+    return basis
+
+
 class LearnableSurface(nn.Module):
     """One heliostat's learnable facets (thin stateful wrapper around :func:`learnable_surfaces`).
 
@@ -147,11 +176,18 @@ class LearnableSurface(nn.Module):
     initial_degree : (int, int), optional
     dtype : torch.dtype
         Of the surface computations (float64 keeps the finite-difference checks clean).
+    fix_gauge : bool
+        Project out the displacement modes that centred-window images cannot see (see
+        :func:`gauge_basis`): a common tilt of all facets (it only moves the whole spot, and the window
+        follows the spot) and each facet's piston. The represented surface then keeps the ideal mean
+        orientation and each facet's mean height; all other shapes are unaffected.
     """
 
     def __init__(self, facets: Facets, num_control_points=(7, 7), degree=(3, 3), learn_weights: bool = False,
-                 initial: torch.Tensor | None = None, initial_degree=None, dtype=torch.float64):
+                 initial: torch.Tensor | None = None, initial_degree=None, dtype=torch.float64,
+                 fix_gauge: bool = False):
         super().__init__()
+        self.fix_gauge = bool(fix_gauge)
         self.facets = Facets(*(t.to(dtype) for t in (facets.translation, facets.canting_e, facets.canting_n)))
         if self.facets.translation.dim() != 3 or self.facets.translation.shape[0] != 1:
             raise HeliotwinError("LearnableSurface holds exactly one heliostat ([1, F, 3] facets)")
@@ -167,6 +203,8 @@ class LearnableSurface(nn.Module):
         if initial is not None:
             disp = self._displacement_of(initial.to(dtype), tuple(initial_degree or self.degree))
         self.displacement_mm = nn.Parameter(disp / MM)
+        # Gauge projection acts on the change from the start, so a loaded surface is kept as it is.
+        self.register_buffer("start_mm", (disp / MM).clone())
         self.log_weights = nn.Parameter(torch.zeros_like(disp)) if learn_weights else None
 
     def _displacement_of(self, control_points: torch.Tensor, degree) -> torch.Tensor:
@@ -176,8 +214,13 @@ class LearnableSurface(nn.Module):
 
     @property
     def displacement(self) -> torch.Tensor:
-        """Displacements along the facet normals [m], ``[1, F, nu, nv]``."""
-        return self.displacement_mm * MM
+        """Displacements along the facet normals [m], ``[1, F, nu, nv]`` (gauge-projected if ``fix_gauge``)."""
+        d = self.displacement_mm
+        if self.fix_gauge:
+            q = gauge_basis(self.facets, self.num_control_points, self.degree).to(d)
+            change = (d - self.start_mm).reshape(-1)
+            d = self.start_mm + (change - q @ (q.T @ change)).reshape(d.shape)
+        return d * MM
 
     def surfaces(self) -> Surfaces:
         """Current surfaces (differentiable)."""
@@ -193,9 +236,12 @@ class LearnableSurface(nn.Module):
         if self.log_weights is not None:
             raise HeliotwinError("refinement of rational (weighted) surfaces is not supported")
         # Displacements are a scalar B-spline field; refine them with the same linear transfer as points.
-        d = self.displacement_mm.detach()
-        d3 = torch.stack((d, torch.zeros_like(d), torch.zeros_like(d)), -1)
-        d_new = nurbs.refine(d3, self.degree[0], self.degree[1], new_num)[..., 0]
+        def up(d):
+            d3 = torch.stack((d, torch.zeros_like(d), torch.zeros_like(d)), -1)
+            return nurbs.refine(d3, self.degree[0], self.degree[1], new_num)[..., 0].contiguous()
+
+        d_new, s_new = up((self.displacement / MM).detach()), up(self.start_mm)
         self.num_control_points = new_num
         self.base = facet_ops.flat_control_points(self.facets, new_num, self.degree)
-        self.displacement_mm = nn.Parameter(d_new.contiguous())
+        self.start_mm = s_new
+        self.displacement_mm = nn.Parameter(d_new)

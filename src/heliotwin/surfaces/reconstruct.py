@@ -103,6 +103,20 @@ class TrainSettings:
         Training integrator (``rays_per_point`` and ``seed`` for MC: one fresh draw per step).
     resolution, size_m : int, float
         Window pixels and side [m].
+    optimizer : {"adam", "lbfgs"}
+        ``lbfgs``: full-batch L-BFGS (strong-Wolfe line search) in rounds of ``lbfgs_round`` iterations
+        (history reset between rounds), preceded by a coarse-to-fine continuation: one round of
+        ``continuation_iters`` iterations per entry of ``continuation`` with both images blurred by a
+        Gaussian of that many pixels (a smoother loss landscape first: the flat start is otherwise caught
+        in a local minimum). Stops when a round improves the loss by less than ``tolerance`` (relative) or
+        after ``steps`` loss evaluations. ``adam``: ``steps`` Adam steps with exponential decay and early
+        stopping on validation images.
+    fix_gauge : bool
+        Project out the common tilt and facet pistons (invisible in centred windows, see
+        :func:`heliotwin.surfaces.learning.gauge_basis`).
+    laplacian_grid : tuple of float
+        If given (and >= 2 training images), :func:`train_with_early_stopping` chooses the Laplacian
+        weight among these by the L1 on the held-out latest training image (lbfgs mode).
     """
 
     control_points: tuple = (7, 7)
@@ -128,6 +142,13 @@ class TrainSettings:
     patience: int = 8
     resolution: int = 64
     size_m: float = 6.0
+    optimizer: str = "adam"
+    fix_gauge: bool = False
+    continuation: tuple = (3.0, 1.5)
+    continuation_iters: int = 60
+    lbfgs_round: int = 200
+    tolerance: float = 1e-3
+    laplacian_grid: tuple = ()
 
     def as_dict(self) -> dict:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
@@ -142,8 +163,8 @@ def _groups(targets: list) -> list[tuple[PlanarTarget, list[int]]]:
 
 def predict_images(surfaces: Surfaces, obs: Observations, sun: SunSettings, *, samples=(24, 24), resolution: int = 64,
                    size_m: float = 6.0, delta: torch.Tensor | None = None, kernels: dict | None = None,
-                   integrator: str = "analytic", generator: torch.Generator | None = None, rays_per_point: int = 32
-                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                   integrator: str = "analytic", generator: torch.Generator | None = None, rays_per_point: int = 32,
+                   kernel_supersample: int = 4) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Centred-window images of one heliostat for B poses (differentiable w.r.t. the surface and ``delta``).
 
     Parameters
@@ -188,15 +209,15 @@ def predict_images(surfaces: Surfaces, obs: Observations, sun: SunSettings, *, s
     misses = []
     for target, idx in _groups(obs.targets):
         kern = None
-        if kernels is not None and all(i in kernels for i in idx):
+        if kernels is not None:
+            if not all(i in kernels for i in idx):  # computed once, then reused (also by render_centered now)
+                kern_new = _kernels_for(pw[idx], nw[idx], ar[idx], sund[idx], target, sun, size_m / resolution,
+                                        2 * resolution, kernel_supersample)
+                for j, i in enumerate(idx):
+                    kernels[i] = kern_new[j]
             kern = torch.stack([kernels[i] for i in idx])
         res = render_centered(pw[idx], nw[idx], ar[idx], sund[idx], target, sun, size_m=size_m,
                               resolution=resolution, kernel=kern)
-        if kernels is not None and kern is None:
-            kern_new = _kernels_for(pw[idx], nw[idx], ar[idx], sund[idx], target, sun, size_m / resolution,
-                                    2 * resolution)
-            for j, i in enumerate(idx):
-                kernels[i] = kern_new[j]
         img = res.image
         if integrator == "mc":
             from ..raytrace.montecarlo import trace_mc
@@ -217,17 +238,17 @@ def predict_images(surfaces: Surfaces, obs: Observations, sun: SunSettings, *, s
 
 
 @torch.no_grad()
-def _kernels_for(pw, nw, ar, sund, target, sun, pixel, size):
+def _kernels_for(pw, nw, ar, sund, target, sun, pixel, size, supersample=4):
     _, refl, dist = reflect_to_plane(pw, nw, sund, target)
     w = ar * (nw * sund.unsqueeze(1)).sum(-1).clamp_min(0.0)
     ws = w.sum(-1).clamp_min(1e-12)
     ray = (w.unsqueeze(-1) * refl).sum(1) / ws.unsqueeze(-1)
     ray = ray / ray.norm(dim=-1, keepdim=True)
-    return footprint_kernel(sun, ray, (w * dist).sum(1) / ws, target, pixel, size)
+    return footprint_kernel(sun, ray, (w * dist).sum(1) / ws, target, pixel, size, supersample)
 
 
 def _regularisers(model: LearnableSurface, s: TrainSettings) -> torch.Tensor:
-    d = model.displacement_mm
+    d = model.displacement / 1e-3  # [mm], gauge-projected
     total = d.new_zeros(())
     if s.ridge:
         total = total + s.ridge * losses.ridge(d)
@@ -320,7 +341,12 @@ def fit_surface(facets: Facets, train: Observations, sun: SunSettings, settings:
     s = settings or TrainSettings()
     if train.images is None or len(train) == 0:
         raise HeliotwinError("fit_surface needs at least one training image")
-    model = LearnableSurface(facets, s.control_points, s.degree, s.learn_weights, initial, initial_degree)
+    model = LearnableSurface(facets, s.control_points, s.degree, s.learn_weights, initial, initial_degree,
+                             fix_gauge=s.fix_gauge)
+    if s.optimizer == "lbfgs":
+        return _fit_lbfgs(model, train, sun, s, log)
+    if s.optimizer != "adam":
+        raise HeliotwinError(f"unknown optimizer {s.optimizer!r}; expected adam or lbfgs")
     meas = losses.normalize(train.images.to(torch.float32))
     val_meas = None if validation is None or len(validation) == 0 else losses.normalize(validation.images.float())
     delta = torch.zeros(len(train), 2, dtype=torch.float64, requires_grad=True) if s.learn_orientation else None
@@ -379,7 +405,7 @@ def fit_surface(facets: Facets, train: Observations, sun: SunSettings, settings:
     if val_meas is not None and best[0] < math.inf:
         if best[2] != model.num_control_points:
             # The best state was on the coarse net: rebuild it, then load.
-            model = LearnableSurface(facets, best[2], s.degree, s.learn_weights)
+            model = LearnableSurface(facets, best[2], s.degree, s.learn_weights, fix_gauge=s.fix_gauge)
         model.load_state_dict(best[1])
     model.orientation_delta = None if delta is None else delta.detach()
     model.steps_run = step + 1
@@ -388,6 +414,70 @@ def fit_surface(facets: Facets, train: Observations, sun: SunSettings, settings:
         vals = [e for e in log if "val" in e]
         if vals:
             model.best_step = min(vals, key=lambda e: e["val"])["step"]
+    return model
+
+
+def blur_images(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
+    """Separable Gaussian blur of ``[B, R, C]`` images (zero padding); identity for ``sigma_px <= 0``."""
+    import torch.nn.functional as F
+
+    if sigma_px <= 0:
+        return images
+    k = int(math.ceil(3.0 * sigma_px))
+    x = torch.arange(-k, k + 1, dtype=images.dtype)
+    g = torch.exp(-0.5 * (x / sigma_px) ** 2)
+    g = g / g.sum()
+    y = F.conv2d(images[:, None], g.reshape(1, 1, -1, 1), padding=(k, 0))
+    return F.conv2d(y, g.reshape(1, 1, 1, -1), padding=(0, k))[:, 0]
+
+
+def _fit_lbfgs(model: LearnableSurface, train: Observations, sun: SunSettings, s: TrainSettings,
+               log: list | None) -> LearnableSurface:
+    """L-BFGS with blur continuation (see :class:`TrainSettings`); deterministic (analytic integrator)."""
+    if s.integrator != "analytic":
+        raise HeliotwinError("optimizer lbfgs needs the analytic integrator (noise-free loss)")
+    if s.refine_to is not None:
+        raise HeliotwinError("optimizer lbfgs does not support refine_to; use adam")
+    meas = losses.normalize(train.images.to(torch.float32))
+    kernels: dict = {}
+    evals = 0
+    params = [p for p in model.parameters() if p.requires_grad]
+
+    def objective(blur):
+        target = blur_images(meas, blur)
+
+        def closure():
+            nonlocal evals
+            opt.zero_grad(set_to_none=True)
+            pred, _, miss = predict_images(model.surfaces(), train, sun, samples=s.samples, resolution=s.resolution,
+                                           size_m=s.size_m, kernels=kernels)
+            data = losses.image_loss(s.loss, blur_images(losses.normalize(pred), blur), target)
+            total = data + _regularisers(model, s) + s.miss * miss
+            total.backward()
+            evals += 1
+            closure.data = float(data.detach())
+            return total
+        return closure
+
+    rounds = [(float(b), int(s.continuation_iters)) for b in s.continuation] + [(0.0, int(s.lbfgs_round))] * 1000
+    previous = math.inf
+    for blur, iters in rounds:
+        budget = int(s.steps) - evals
+        if budget <= 0:
+            break
+        opt = torch.optim.LBFGS(params, lr=1.0, max_iter=min(iters, budget), history_size=20,
+                                line_search_fn="strong_wolfe", tolerance_grad=1e-10, tolerance_change=1e-14)
+        closure = objective(blur)
+        value = float(opt.step(closure).detach())
+        if log is not None:
+            log.append({"step": evals, "train": getattr(closure, "data", value), "blur_px": blur, "total": value})
+        if blur == 0.0:
+            if previous - value <= s.tolerance * abs(value):
+                break
+            previous = value
+    model.orientation_delta = None
+    model.steps_run = evals
+    model.best_step = None
     return model
 
 
@@ -514,7 +604,7 @@ def dataclasses_replace(obj, **changes):
 
 
 def train_with_early_stopping(facets: Facets, train: Observations, sun: SunSettings, settings: TrainSettings,
-                              progress: bool = True) -> tuple[LearnableSurface, dict]:
+                              progress: bool = True, initial=None, initial_degree=None) -> tuple[LearnableSurface, dict]:
     """Early stopping on held-out *training* images, then a refit on all of them.
 
     With >= 3 training images the latest one is held out: phase 1 trains on the others and records the
@@ -522,23 +612,46 @@ def train_with_early_stopping(facets: Facets, train: Observations, sun: SunSetti
     the full step budget runs on all of them.
     """
     info: dict = {"holdout": None, "best_step": settings.steps}
+    if settings.optimizer == "lbfgs":
+        # L-BFGS runs to convergence; what is chosen on the held-out latest image is the smoothness weight.
+        if settings.laplacian_grid and len(train) >= 2:
+            head, held = train.subset(range(len(train) - 1)), train.subset([len(train) - 1])
+            scores = {}
+            for w in settings.laplacian_grid:
+                m1 = fit_surface(facets, head, sun, dataclasses_replace(settings, laplacian=float(w)), progress=False, initial=initial, initial_degree=initial_degree)
+                scores[float(w)] = float(torch.tensor(evaluate_images(
+                    m1.surfaces(), held, sun, samples=settings.samples, resolution=settings.resolution,
+                    size_m=settings.size_m)["l1"]).mean())
+            best = min(scores, key=scores.get)
+            settings = dataclasses_replace(settings, laplacian=best)
+            info.update(holdout=train.ids[-1], laplacian_scores=scores)
+        info["laplacian"] = settings.laplacian
+        model = fit_surface(facets, train, sun, settings, progress=progress, initial=initial, initial_degree=initial_degree)
+        info["best_step"] = model.steps_run
+        return model, info
     if len(train) >= 3:
         log: list = []
         m1 = fit_surface(facets, train.subset(range(len(train) - 1)), sun, settings,
-                         validation=train.subset([len(train) - 1]), progress=progress, log=log)
+                         validation=train.subset([len(train) - 1]), progress=progress, log=log,
+                         initial=initial, initial_degree=initial_degree)
         info["holdout"] = train.ids[-1]
         info["best_step"] = int(m1.best_step or settings.steps)
         info["holdout_curve"] = [(e["step"], round(e["val"], 5)) for e in log if "val" in e]
     s2 = dataclasses_replace(settings, steps=max(int(info["best_step"]), settings.eval_every))
-    model = fit_surface(facets, train, sun, s2, progress=progress)
+    model = fit_surface(facets, train, sun, s2, progress=progress, initial=initial, initial_degree=initial_degree)
     return model, info
 
 
 def reconstruct_paint(paint_dir, heliostat_id: str, *, train_records=None, train_first: int | None = None,
                       settings: TrainSettings | None = None, sun: SunSettings | None = None,
                       slope_error: float | None = None, background: float = 0.0, alignment: str = "focal-spot",
-                      evaluate_mc: bool = True, progress: bool = True) -> tuple[dict, LearnableSurface, object, dict]:
+                      evaluate_mc: bool = True, progress: bool = True, deflectometry=None,
+                      start_from_deflectometry: bool = False) -> tuple[dict, LearnableSurface, object, dict]:
     """Learn a heliostat's surface from its earliest centred images; evaluate on the others.
+
+    ``deflectometry`` (a PAINT deflectometry HDF5 path): its NURBS fit is traced on the test images like the
+    ideal and learned surfaces, and the learned surface is compared with it in mm and mrad (report key
+    ``deflectometry``); with ``start_from_deflectometry`` the learning starts from it instead of flat.
 
     Returns
     -------
@@ -562,6 +675,13 @@ def reconstruct_paint(paint_dir, heliostat_id: str, *, train_records=None, train
     train = observations_from_records(plant, 0, train_recs, s.resolution, background, alignment)
     test = observations_from_records(plant, 0, test_recs, s.resolution, background, alignment)
     facets = Facets(*(getattr(plant.field.facets, a)[:1] for a in ("translation", "canting_e", "canting_n")))
+    defl = defl_fit = None
+    if deflectometry is not None:
+        from .deflectometry import deflectometry_surface
+
+        defl, defl_fit = deflectometry_surface(deflectometry, Facets(*(t.to(torch.float64) for t in facets)))
+    elif start_from_deflectometry:
+        raise HeliotwinError("start_from_deflectometry needs a deflectometry file")
     base_sun = sun or SunSettings(sunshape="buie", csr=0.05)
     if slope_error is None:
         chosen, scores = choose_slope_error(facets, train, base_sun, s)
@@ -569,7 +689,9 @@ def reconstruct_paint(paint_dir, heliostat_id: str, *, train_records=None, train
         chosen, scores = float(slope_error), {}
     optics = dataclasses_replace(base_sun, slope_error=chosen)
     t_fit = time.perf_counter()
-    model, info = train_with_early_stopping(facets, train, optics, s, progress)
+    init = dict(initial=defl.control_points, initial_degree=(defl.degree_u, defl.degree_v)) \
+        if start_from_deflectometry else {}
+    model, info = train_with_early_stopping(facets, train, optics, s, progress, **init)
     fit_seconds = time.perf_counter() - t_fit
     ideal = LearnableSurface(facets, s.control_points, s.degree).surfaces()
     learned = model.surfaces()
@@ -626,6 +748,17 @@ def reconstruct_paint(paint_dir, heliostat_id: str, *, train_records=None, train
         "settings": s.as_dict(),
         "displacement_mm": {"max_abs": float(d_mm.abs().max()), "rms": float(d_mm.pow(2).mean().sqrt())},
     }
+    if defl is not None:
+        from .deflectometry import compare_surfaces
+
+        e_defl = evaluate_images(defl, test, optics, **kw)
+        for row, v in zip(rows, e_defl["l1"]):
+            row["l1_deflectometry"] = v
+        report["deflectometry"] = {
+            "file": str(deflectometry), "fit": defl_fit, "started_from": bool(start_from_deflectometry),
+            "learned_vs_deflectometry": compare_surfaces(facets, learned, defl),
+            "ideal_vs_deflectometry": compare_surfaces(facets, ideal, defl),
+            "median_l1_deflectometry": statistics.median(e_defl["l1"])}
     extras = {"train": train, "test": test, "ideal_images": e_ideal["images"], "learned_images": e_learn["images"],
               "optics": optics, "facets": facets, "ideal": ideal}
     return report, model, ds, extras
