@@ -1,19 +1,329 @@
-"""``images``: calibration through the ray tracer from flux images (stub until the ray tracer lands).
+"""``images``: kinematic calibration through the ray tracer from flux images.
 
-Planned (issue 3): for records with flux images, render each record's spot with the differentiable ray
-tracer (:mod:`heliotwin.raytrace`) from the calibrated kinematics and learn the deviations with the
-published loss (pixel term + alignment term + miss term), so that rotations invisible to a centroid (e.g.
-the mirror's rotation about its own normal, ``concentrator_tilt_n``) are learned too.
+For records with a flux image (PAINT ``<id>-flux.png``: the whole target, max-normalised, image left =
+east) each record's spot is rendered by the differentiable analytic tracer
+(:func:`heliotwin.raytrace.analytic.trace_analytic`) from the calibrated kinematics and the mirror surfaces,
+and the deviations are learned with the published three-term loss:
+
+* **pixel** -- normalised L1 distance between the rendered and the measured image (both scaled to unit
+  sum; in [0, 2]); it sees the *shape* and orientation of the spot, so rotations invisible to a centroid
+  (above all the mirror's rotation about its own normal, ``concentrator_tilt_n``: the concentrator tilt acts
+  before the heliostat-frame alignment ``R_E(pi/2)``, which maps the mirror normal onto north) are learned
+  too;
+* **alignment** -- distance between the rendered and the measured image centroid on the target, divided by
+  the slant range (an angle, weighed against the centroid noise like a centroid residual); it gives the
+  gradient that the pixel term lacks while the spots do not overlap;
+* **miss** -- fraction of the reflected power that misses the target (pushes a spot that left the target
+  back before the other two terms can see it).
+
+Records without an image contribute the ordinary centroid term (model minus measured mirror normal, as
+in ``gradient``); records with an image contribute their centroid term too. Pre-alignment: the
+Stone/Jülich LM fit with the field prior (:func:`~heliotwin.calibrate.methods.stone8_field_fit`), so the
+rendered spots start on their targets. Prior: field prior on the Stone/Jülich 8, the ``gradient`` nominal
+prior on the rest. Optimiser: Adam in natural units (mrad, mm, 0.1 %), early-stopped per heliostat on
+the validation loss (same three terms + centroid term) when there are validation records.
+
+The images and the mirror surfaces come from the pipeline (``images={record_id: path or bitmap}``,
+``surfaces=Surfaces`` of the run's heliostats, ``targets={name: PlanarTarget}``, ``sun=SunSettings``).
 """
 from __future__ import annotations
 
+import math
+
+import torch
+import torch.nn.functional as F
+
 from ..errors import HeliotwinError
+from . import metrics
+from .gradient import PRIOR_SIGMA as GRADIENT_SIGMA
+from .methods import FIT_FOCAL_SPOT, MIN_TRAIN, fit_spots, stone8_field_fit
+from .model import Calibrated
+from .params import STONE8, actuator_margin, apply_deviations, check_names, kinds, units
+from .records import RecordBatch
+
+#: Learned by default: the Stone/Jülich 8 plus the mirror's rotation about its own normal (invisible to
+#: centroids, visible in the image).
+IMAGE_PARAMETERS = STONE8 + ("concentrator_tilt_n",)
+
+#: Loss weights (per image record): the alignment term is an angle over ``noise`` squared like a centroid
+#: residual; the pixel term (normalised L1, ~0.3 for a good match) and miss term are dimensionless.
+PIXEL_WEIGHT = 100.0
+MISS_WEIGHT = 100.0
 
 
-def fit_images_method(nominal, train, validation, *, seed=0, progress=False, **options):
-    """Not available yet: needs the ray tracer (heliotwin.raytrace)."""
-    raise NotImplementedError("method 'images' needs the ray tracer (heliotwin.raytrace), which has not landed yet; "
-                              "use --method lm|gradient|hybrid|mlp")
+def load_image(entry, resolution) -> torch.Tensor:
+    """A measured image as a unit-sum bitmap [rows, cols] at the render resolution (area resampling)."""
+    from ..raytrace.flux import read_png
+
+    img = read_png(entry) if not isinstance(entry, torch.Tensor) else entry.detach().float()
+    img = torch.nan_to_num(img, nan=0.0).clamp_min(0.0)
+    rows, cols = resolution
+    if tuple(img.shape[-2:]) != (rows, cols):
+        img = F.adaptive_avg_pool2d(img.reshape(1, 1, *img.shape[-2:]), (rows, cols)).reshape(rows, cols)
+    s = img.sum()
+    if not bool(s > 0):
+        raise HeliotwinError("empty flux image (all pixels zero)")
+    return img / s
 
 
-__all__ = ["fit_images_method", "HeliotwinError"]
+class ImageTerms:
+    """Rendering and the three image terms for a fixed set of image records (grouped by target)."""
+
+    def __init__(self, batch: RecordBatch, images: dict, surfaces, targets: dict, sun, *, resolution=(64, 64),
+                 samples=(16, 16), mode: str = "convolve"):
+        from ..raytrace.flux import pixel_centers, target_extent
+
+        self.mode = mode  # one heliostat per sample: one mean footprint (FFT) is accurate and ~20x faster
+        self.resolution = tuple(resolution)
+        self.samples = tuple(samples)
+        self.surfaces, self.sun = surfaces, sun
+        self.skipped = {}
+        rows = []
+        meas = []
+        for r in range(len(batch)):
+            rid = int(batch.record_id[r])
+            if rid not in images:
+                continue
+            tname = batch.target[r]
+            t = targets.get(tname)
+            if t is None or getattr(t, "kind", "") != "planar":
+                self.skipped[rid] = f"target {tname!r} not planar/unknown"
+                continue
+            try:
+                meas.append(load_image(images[rid], self.resolution))
+            except (HeliotwinError, OSError) as exc:  # a broken image: the record keeps its centroid term
+                self.skipped[rid] = str(exc).splitlines()[0]
+                continue
+            rows.append(r)
+        self.index = torch.tensor(rows, dtype=torch.long)
+        self.batch = batch.subset(self.index) if rows else batch.subset([])
+        self.measured = torch.stack(meas) if meas else torch.zeros(0, *self.resolution)
+        self.groups = {}
+        for j, tname in enumerate(self.batch.target):
+            self.groups.setdefault(tname, []).append(j)
+        self.targets = {n: targets[n] for n in self.groups}
+        # measured centroids (local target coordinates, m)
+        cen = torch.zeros(len(rows), 2, dtype=torch.float64)
+        for tname, js in self.groups.items():
+            ext = target_extent(self.targets[tname], 1)
+            x, y = pixel_centers(ext, *self.resolution)
+            m = self.measured[js].double()
+            cen[js, 0] = (m.sum(-2) * x).sum(-1)
+            cen[js, 1] = (m.sum(-1) * y).sum(-1)
+        self.measured_centroid = cen
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def terms(self, kin) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Pixel [M], alignment [M] (rad) and miss [M] terms for calibrated kinematics ``kin`` (H heliostats)."""
+        from .. import scene
+        from ..raytrace.analytic import trace_analytic
+        from ..raytrace.flux import normalized_l1
+
+        m = len(self)
+        pix = torch.zeros(m, dtype=torch.float64)
+        ali = torch.zeros(m, dtype=torch.float64)
+        mis = torch.zeros(m, dtype=torch.float64)
+        b = self.batch
+        for tname, js in self.groups.items():
+            j = torch.tensor(js, dtype=torch.long)
+            t = self.targets[tname]
+            pw, nw, ar, _, conc = scene.world_surface(kin, self.surfaces, b.heliostat_index[j], b.motor_steps[j],
+                                                      samples=self.samples)
+            fl = trace_analytic(pw, nw, ar, b.sun[j].float(), t, resolution=self.resolution, sun=self.sun,
+                                mode=self.mode)
+            render = fl.bitmap
+            p = normalized_l1(render, self.measured[j].to(render)).double()
+            cen = fl.centroid_local().double()
+            slant = torch.linalg.norm(t.center.to(conc) - conc, dim=-1)
+            a = torch.linalg.norm(cen - self.measured_centroid[j], dim=-1) / slant
+            frac = (fl.intercepted_power_w.double() / fl.total_power_w.double().clamp_min(1e-30)).clamp(0, 1)
+            # an image with no flux on the target: pixel term is its maximum, alignment undefined -> miss only
+            landed = fl.intercepted_power_w.double() > 1e-9 * fl.total_power_w.double().clamp_min(1e-30)
+            pix = pix.index_copy(0, j, torch.where(landed, p, torch.full_like(p, 2.0)))
+            ali = ali.index_copy(0, j, torch.where(landed, a, torch.zeros_like(a)))
+            mis = mis.index_copy(0, j, 1.0 - frac)
+        return pix, ali, mis
+
+
+def image_loss_per_heliostat(terms: ImageTerms, kin, h: int, *, noise: float, pixel_weight: float,
+                             miss_weight: float) -> tuple[torch.Tensor, dict]:
+    """Sum of the image loss per heliostat [H] and the raw terms."""
+    if not len(terms):
+        z = torch.zeros(h, dtype=torch.float64)
+        return z, {}
+    pix, ali, mis = terms.terms(kin)
+    per = pixel_weight * pix + (ali / noise) ** 2 + miss_weight * mis
+    hidx = terms.batch.heliostat_index
+    return torch.zeros(h, dtype=torch.float64).index_add(0, hidx, per), {"pixel": pix, "alignment": ali, "miss": mis}
+
+
+def _centroid_loss_per_heliostat(kin_nominal, delta, names, batch: RecordBatch, h: int, noise: float) -> torch.Tensor:
+    if not len(batch):
+        return torch.zeros(h, dtype=torch.float64)
+    k = apply_deviations(kin_nominal.index(batch.heliostat_index), delta[batch.heliostat_index], names)
+    r = metrics.normal_residuals(k, batch, per_record=True)
+    return torch.zeros(h, dtype=torch.float64).index_add(0, batch.heliostat_index, (r * r).sum(-1) / noise ** 2)
+
+
+def fit_images(nominal, train: RecordBatch, validation: RecordBatch | None, images: dict, surfaces, targets: dict,
+               sun, *, names=IMAGE_PARAMETERS, init: torch.Tensor | None = None, prior_mean=None, prior_sigma=None,
+               noise: float = 1e-3, pixel_weight: float = PIXEL_WEIGHT, miss_weight: float = MISS_WEIGHT,
+               centroid_weight: float = 1.0, iterations: int = 15, lr: float = 1.0, resolution=(64, 64),
+               samples=(16, 16), check_every: int = 1, optimizer: str = "lbfgs", lbfgs_inner: int = 10,
+               progress: bool = False) -> tuple[torch.Tensor, dict]:
+    """Learn deviations from images (+ centroids) by LBFGS (or Adam); see the module docstring.
+
+    ``iterations`` counts LBFGS outer iterations (each up to ``lbfgs_inner`` evaluations) or Adam steps.
+
+    Returns
+    -------
+    delta : torch.Tensor, [H, P] (physical units)
+    info : dict
+        ``image_records`` (train, validation), ``loss_history``, per-term means before/after, ``skipped_images``.
+    """
+    from .gradient import BOUNDS, MIN_MARGIN
+
+    names = check_names(names)
+    h, p = nominal.num_heliostats, len(names)
+    unit = units(names)
+    kk = kinds(names)
+    if prior_sigma is None:
+        prior_sigma = GRADIENT_SIGMA
+    if isinstance(prior_sigma, dict):
+        sig = torch.tensor([float(prior_sigma.get(k, float("inf"))) for k in kk], dtype=torch.float64)
+    else:
+        sig = torch.as_tensor(prior_sigma, dtype=torch.float64)
+    sig = sig.expand(h, p)
+    inv_sig = torch.where(torch.isfinite(sig), 1.0 / sig, torch.zeros_like(sig))
+    mu = torch.zeros(h, p, dtype=torch.float64) if prior_mean is None else torch.as_tensor(prior_mean, dtype=torch.float64).expand(h, p)
+    bound = torch.tensor([BOUNDS[k] for k in kk], dtype=torch.float64) / unit
+    x = ((mu if init is None else init.detach().double()) / unit).clamp(-bound, bound).clone().requires_grad_(True)
+    tr_img = ImageTerms(train, images, surfaces, targets, sun, resolution=resolution, samples=samples)
+    has_val = validation is not None and len(validation) > 0
+    va_img = ImageTerms(validation, images, surfaces, targets, sun, resolution=resolution, samples=samples) if has_val else None
+    kw = dict(noise=noise, pixel_weight=pixel_weight, miss_weight=miss_weight)
+
+    def objective(xx):
+        delta = xx * unit
+        kin = apply_deviations(nominal, delta, names)
+        data = centroid_weight * _centroid_loss_per_heliostat(nominal, delta, names, train, h, noise).sum()
+        img, _ = image_loss_per_heliostat(tr_img, kin, h, **kw)
+        prior = (((delta - mu) * inv_sig) ** 2).sum()
+        barrier = (torch.relu(MIN_MARGIN - actuator_margin(kin)) / MIN_MARGIN).pow(2).sum() * 1e4
+        return data + img.sum() + prior + barrier
+
+    def val_loss():
+        with torch.no_grad():
+            if not has_val:
+                return torch.full((h,), math.inf, dtype=torch.float64)
+            delta = x.detach() * unit
+            kin = apply_deviations(nominal, delta, names)
+            v = centroid_weight * _centroid_loss_per_heliostat(nominal, delta, names, validation, h, noise)
+            vi, _ = image_loss_per_heliostat(va_img, kin, h, **kw)
+            c = validation.counts()
+            return torch.where(c > 0, (v + vi) / c.clamp_min(1), torch.full_like(v, math.inf))
+
+    def mean_terms():
+        if not len(tr_img):
+            return None
+        with torch.no_grad():
+            _, t = image_loss_per_heliostat(tr_img, apply_deviations(nominal, x.detach() * unit, names), h, **kw)
+        return {k: float(v.mean()) for k, v in t.items()}
+
+    before = mean_terms()
+    if optimizer == "lbfgs":
+        opt = torch.optim.LBFGS([x], lr=1.0, max_iter=lbfgs_inner, history_size=20, line_search_fn="strong_wolfe",
+                                tolerance_grad=1e-9, tolerance_change=1e-12)
+    elif optimizer == "adam":
+        opt = torch.optim.Adam([x], lr=lr)
+    else:
+        raise HeliotwinError(f"unknown optimizer {optimizer!r}; known: lbfgs, adam")
+
+    def closure():
+        opt.zero_grad()
+        loss = objective(x)
+        loss.backward()
+        return loss
+
+    best = x.detach().clone()
+    best_err = val_loss()
+    best_it = torch.zeros(h, dtype=torch.long)
+    history = []
+    it_range = range(1, iterations + 1)
+    if progress:
+        from tqdm import tqdm
+
+        it_range = tqdm(it_range, desc="images", leave=False)
+    last_valid = x.detach().clone()
+    for it in it_range:
+        loss = opt.step(closure)
+        with torch.no_grad():
+            x.data = torch.maximum(torch.minimum(x.data, bound), -bound)
+            ok = (actuator_margin(apply_deviations(nominal, x * unit, names)) > 0).all(-1) & torch.isfinite(x).all(-1)
+            x.data[~ok] = last_valid[~ok]
+            last_valid = x.detach().clone()
+        history.append(float(loss.detach()))
+        if has_val and (it % check_every == 0 or it == iterations):
+            err = val_loss()
+            better = err < best_err
+            best[better] = x.detach()[better]
+            best_err = torch.where(better, err, best_err)
+            best_it[better] = it
+    no_val = validation.counts() == 0 if has_val else torch.ones(h, dtype=torch.bool)
+    best[no_val] = x.detach()[no_val]
+    x.data = best.clone()
+    info = {"image_records_train": len(tr_img), "image_records_validation": len(va_img) if va_img is not None else 0,
+            "image_terms_before": before, "image_terms_after": mean_terms(), "loss_history": history,
+            "best_iteration": best_it.tolist(),
+            "skipped_images": {**tr_img.skipped, **(va_img.skipped if va_img is not None else {})}}
+    return best * unit, info
+
+
+def fit_images_method(nominal, train, validation, *, seed=0, progress=False, images=None, surfaces=None,
+                      targets=None, sun=None, names=IMAGE_PARAMETERS, field_prior=True, fit_focal_spot=FIT_FOCAL_SPOT,
+                      **options) -> Calibrated:
+    """``images``: Stone/Jülich pre-alignment on centroids, then image (+ centroid) loss through the tracer.
+
+    Heliostats without image records are fitted on their centroids alone (same loss without image terms).
+    """
+    if surfaces is None or targets is None:
+        raise HeliotwinError("method 'images' needs the mirror surfaces and targets (run it through "
+                             "heliotwin.calibrate.pipeline / `heliotwin calibrate`)")
+    from ..field.plant import SunSettings
+
+    images = dict(images or {})
+    sun = sun or SunSettings()
+    h = nominal.num_heliostats
+    ok = train.counts() >= MIN_TRAIN
+    tr = fit_spots(train.subset(ok[train.heliostat_index]), fit_focal_spot)  # centroid terms, as lm/gradient
+    va = validation.subset(ok[validation.heliostat_index]) if validation is not None else None
+    d8, fp = stone8_field_fit(nominal, tr, ok, field_prior=field_prior)
+    names = check_names(names)
+    p = len(names)
+    mu = torch.zeros(p, dtype=torch.float64)
+    sig = torch.tensor([GRADIENT_SIGMA[k] for k in kinds(names)], dtype=torch.float64)
+    init = torch.zeros(h, p, dtype=torch.float64)
+    for j, n in enumerate(STONE8):
+        if n in names:
+            i = names.index(n)
+            init[:, i] = d8[:, j]
+            if fp is not None:
+                mu[i], sig[i] = fp[0][j], fp[1][j]
+    delta, info = fit_images(nominal, tr, va, images, surfaces, targets, sun, names=names, init=init, prior_mean=mu,
+                             prior_sigma=sig, progress=progress, **options)
+    delta[~ok] = 0.0
+    counts_img = torch.zeros(h, dtype=torch.long)
+    for r in range(len(tr)):
+        if int(tr.record_id[r]) in images:
+            counts_img[int(tr.heliostat_index[r])] += 1
+    per_h = {hid: {"image_records_train": int(counts_img[i])} for i, hid in enumerate(train.heliostat_ids) if bool(ok[i])}
+    extras = {"per_heliostat": per_h,
+              "summary": {k: info[k] for k in ("image_records_train", "image_records_validation", "image_terms_before",
+                                               "image_terms_after", "skipped_images")},
+              "field_prior": None if fp is None else {"mean": fp[0].tolist(), "sigma": fp[1].tolist()}}
+    return Calibrated("images", list(train.heliostat_ids), nominal, names, delta, ok, extras=extras)
+
+
+__all__ = ["fit_images_method", "fit_images", "ImageTerms", "IMAGE_PARAMETERS", "load_image"]

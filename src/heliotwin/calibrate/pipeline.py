@@ -82,6 +82,18 @@ def _mean(xs):
     return float(np.mean(xs)) if xs else None
 
 
+def _image_context(ds, plant, all_ids, run_ids) -> dict:
+    """What the ``images`` method needs beyond records: flux-image paths, surfaces, targets, sun."""
+    from ..field.plant import Surfaces
+
+    srf = plant.field.surfaces
+    idx = torch.tensor([all_ids.index(h) for h in run_ids])
+    surfaces = Surfaces(control_points=srf.control_points[idx], degree_u=srf.degree_u, degree_v=srf.degree_v,
+                        weights=None if srf.weights is None else srf.weights[idx])
+    images = {int(r.record_id): r.flux_png for r in ds.records if r.heliostat_id in run_ids and r.flux_png}
+    return {"images": images, "surfaces": surfaces, "targets": plant.targets, "sun": plant.sun}
+
+
 def run_calibration(cfg: RunConfig, dataset=None) -> tuple[dict, Calibrated | None, dict]:
     """Run one calibration.
 
@@ -155,8 +167,11 @@ def run_calibration(cfg: RunConfig, dataset=None) -> tuple[dict, Calibrated | No
         nominal, findings = nominal_raw, {}
 
     fit = get_method(cfg.method)
+    options = dict(cfg.method_options)
+    if cfg.method == "images":
+        options.update(_image_context(ds, plant, all_ids, run_ids))
     t_fit = time.perf_counter()
-    model = fit(nominal, train, val, seed=cfg.seed, progress=cfg.progress, **cfg.method_options)
+    model = fit(nominal, train, val, seed=cfg.seed, progress=cfg.progress, **options)
     fit_seconds = time.perf_counter() - t_fit
     model.corrections = {h: f for h, f in findings.items() if f.get("corrected")}
 

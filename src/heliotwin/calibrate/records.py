@@ -73,6 +73,10 @@ class RecordBatch:
         Target name per record.
     source : list of str
         Focal-spot source used per record.
+    spot_other : torch.Tensor, [R, 3], optional
+        The centroid of the *other* source (UTIS when ``spot`` is HeliOS and vice versa), NaN where the
+        record has only one; ``None`` when not known (synthetic batches). Methods may fit on it (see
+        :func:`heliotwin.calibrate.methods.fit_spots`); the metric always uses ``spot``.
     """
 
     heliostat_ids: list
@@ -91,6 +95,7 @@ class RecordBatch:
     weather: torch.Tensor
     target: list = field(default_factory=list)
     source: list = field(default_factory=list)
+    spot_other: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.record_id.shape[0])
@@ -110,6 +115,8 @@ class RecordBatch:
             v = getattr(self, f.name)
             if f.name == "heliostat_ids":
                 out[f.name] = list(v)
+            elif v is None:
+                out[f.name] = None
             elif isinstance(v, list):
                 out[f.name] = [v[i] for i in idx.tolist()]
             else:
@@ -169,6 +176,8 @@ class RecordBatch:
             vs = [getattr(b, f.name) for b in items]
             if f.name == "heliostat_ids":
                 out[f.name] = list(vs[0])
+            elif f.name == "spot_other":
+                out[f.name] = None if any(v is None for v in vs) else torch.cat(vs)
             elif isinstance(vs[0], list):
                 out[f.name] = [x for v in vs for x in v]
             else:
@@ -207,7 +216,8 @@ def prepare_records(plant, records, heliostat_ids=None, *, focal_spot: str = "He
     ids = list(plant.field.ids if heliostat_ids is None else heliostat_ids)
     pos = {h: i for i, h in enumerate(ids)}
     kin = plant.field.kinematics
-    cols = {k: [] for k in ("hidx", "rid", "az", "el", "steps", "spot", "c", "n", "r", "u", "t", "w", "target", "source")}
+    cols = {k: [] for k in ("hidx", "rid", "az", "el", "steps", "spot", "other", "c", "n", "r", "u", "t", "w", "target",
+                            "source")}
     skipped = []
     for rec in records:
         if rec.heliostat_id not in pos:
@@ -254,6 +264,10 @@ def prepare_records(plant, records, heliostat_ids=None, *, focal_spot: str = "He
         cols["el"].append(rec.sun_elevation)
         cols["steps"].append(steps)
         cols["spot"].append(spot)
+        other = next((s for s in SOURCES if s != src and s in rec.focal_spot), None)
+        o = torch.as_tensor(rec.focal_spot[other], dtype=torch.float64) if other is not None else None
+        ok_other = o is not None and bool(torch.isfinite(o).all()) and abs(float(target.distance_to_plane(o))) <= plane_tolerance
+        cols["other"].append(o if ok_other else torch.full((3,), float("nan"), dtype=torch.float64))
         cols["c"].append(target.center)
         cols["n"].append(target.normal)
         cols["r"].append(target.right)
@@ -282,6 +296,6 @@ def prepare_records(plant, records, heliostat_ids=None, *, focal_spot: str = "He
         plane_right=stack3("r"), plane_up=stack3("u"),
         time=torch.tensor(cols["t"], **f64),
         weather=torch.tensor(cols["w"], **f64) if n else torch.zeros(0, len(WEATHER_KEYS), **f64),
-        target=cols["target"], source=cols["source"],
+        target=cols["target"], source=cols["source"], spot_other=stack3("other"),
     )
     return batch, skipped

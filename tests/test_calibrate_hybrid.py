@@ -1,0 +1,50 @@
+"""Hybrid features extrapolate sanely; the fallback needs a significant validation gain; fit-spot choice."""
+import math
+
+import torch
+
+import test_calibrate_synthetic as syn
+from heliotwin.calibrate.hybrid import SECONDS_PER_YEAR, features, fit_hybrid_method
+from heliotwin.calibrate.methods import fit_spots
+
+
+def _batch_with_times(n=24, seed=3):
+    kin = syn.jueliche_like(1)
+    b = syn.simulate(kin, n, seed, noise=1e-3)
+    b.time = torch.arange(n, dtype=torch.float64) * 86400.0 * 7 + 1.6e9
+    return kin, b
+
+
+def test_age_feature_is_clamped_to_the_training_range():
+    kin, b = _batch_with_times()
+    t0 = torch.tensor([float(b.time[0])], dtype=torch.float64)
+    span = torch.tensor([float(b.time[9] - b.time[0])], dtype=torch.float64)
+    x = features(b, kin, t0, span)
+    age = x[:, 4]
+    assert float(age[0]) == 0.0 and abs(float(age[9]) - 1.0) < 1e-12
+    assert float(age.max()) == 1.0 and float(age.min()) == 0.0  # years later: still the last training state
+    assert torch.isfinite(x).all() and float(x.abs().max()) <= 1.0 + 1e-12
+
+
+def test_hybrid_falls_back_without_a_significant_gain():
+    kin, b = _batch_with_times()
+    tr, va = b.subset(torch.arange(20)), b.subset(torch.arange(20, 23))  # 3 validation records < MIN_VALIDATION
+    model = fit_hybrid_method(kin, tr, va, steps=20, depth=2, field_prior=False)
+    info = model.extras["per_heliostat"]["S0"]
+    assert info["uses_network"] is False and "validation records" in info["fallback_reason"]
+    assert float(model.pointing_error(b).mean()) < 5e-3
+
+
+def test_fit_spots_prefers_utis_average_and_metric_source():
+    kin, b = _batch_with_times(6)
+    b.source = ["HeliOS"] * 6
+    other = b.spot + torch.tensor([0.0, 0.0, 0.1], dtype=torch.float64)
+    other[0] = float("nan")
+    b.spot_other = other
+    u = fit_spots(b, "utis")
+    assert torch.equal(u.spot[0], b.spot[0]) and torch.allclose(u.spot[1:], other[1:])
+    a = fit_spots(b, "average")
+    assert torch.allclose(a.spot[1:], b.spot[1:] + torch.tensor([0.0, 0.0, 0.05], dtype=torch.float64))
+    assert fit_spots(b, "HeliOS").spot.equal(b.spot) and fit_spots(b, None) is b
+    assert not math.isnan(float(u.spot.sum()))
+    assert SECONDS_PER_YEAR > 0

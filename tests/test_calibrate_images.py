@@ -1,0 +1,73 @@
+"""``images`` method: a rotation invisible to the centroid (mirror about its own normal) learned from images."""
+import torch
+
+from heliotwin import scene
+from heliotwin.calibrate.images import IMAGE_PARAMETERS, fit_images_method
+from heliotwin.calibrate.params import STONE8, apply_deviations
+from heliotwin.field.facets import ideal_surfaces
+from heliotwin.field.plant import Facets, SunSettings
+from heliotwin.field.targets import PlanarTarget
+from heliotwin.raytrace.analytic import trace_analytic
+
+import test_calibrate_synthetic as syn
+
+F64 = torch.float64
+TARGET = PlanarTarget.from_center_normal("synthetic_target", [0.0, -3.24, 20.0], [0.0, 1.0, 0.0], 8.0, 8.0)
+SUN = SunSettings(sigma=0.002, slope_error=0.0005)
+RES, SAMPLES = (32, 32), (6, 6)
+
+
+def _long_heliostat():
+    """Four facets in a row (6 m x 0.5 m): an elongated spot whose orientation shows the rotation."""
+    n = 4
+    tr = torch.tensor([[[-2.25 + 1.5 * i, 0.0, 0.0] for i in range(n)]], dtype=F64)
+    ce = torch.tensor([0.75, 0.0, 0.0], dtype=F64).expand(1, n, 3).clone()
+    cn = torch.tensor([0.0, 0.25, 0.0], dtype=F64).expand(1, n, 3).clone()
+    kin = syn.jueliche_like(1).replace(position=torch.tensor([[-3.0, 25.0, 1.5]], dtype=F64))
+    return kin, ideal_surfaces(Facets(tr, ce, cn))
+
+
+def test_images_learn_rotation_about_the_mirror_normal(monkeypatch):
+    torch.manual_seed(0)
+    kin, srf = _long_heliostat()
+    names = tuple(IMAGE_PARAMETERS)
+    assert names[-1] == "concentrator_tilt_n" and names[:8] == STONE8
+    truth = torch.tensor([[*syn.TRUE.values(), 0.03]], dtype=F64)
+    kin_true = apply_deviations(kin, truth, names)
+    monkeypatch.setattr(syn, "TARGET", TARGET)
+    batch = syn.simulate(kin_true, 10, 0)
+    # the tilt does not move the mirror normal: centroids cannot see it
+    n0 = apply_deviations(kin, truth[:, :8], STONE8)
+    from heliotwin.calibrate import metrics
+
+    assert float(metrics.pointing_error(n0, batch).max()) < 1e-9
+    pw, nw, ar, _, _ = scene.world_surface(kin_true, srf, batch.heliostat_index, batch.motor_steps, samples=SAMPLES)
+    flux = trace_analytic(pw, nw, ar, batch.sun.float(), TARGET, resolution=RES, sun=SUN, mode="convolve")
+    images = {int(batch.record_id[i]): flux.bitmap[i] for i in range(len(batch) - 2)}  # 2 records: centroid only
+    model = fit_images_method(kin, batch, None, images=images, surfaces=srf, targets={TARGET.name: TARGET}, sun=SUN,
+                              field_prior=False, iterations=8, resolution=RES, samples=SAMPLES)
+    est = dict(zip(model.names, model.delta[0].tolist()))
+    assert abs(est["concentrator_tilt_n"] - 0.03) < 3e-3
+    s = model.extras["summary"]
+    assert s["image_records_train"] == 8
+    assert s["image_terms_after"]["pixel"] < 0.3 * s["image_terms_before"]["pixel"]
+    assert float(model.pointing_error(batch).mean()) < 5e-4
+
+
+def test_images_method_needs_surfaces_and_skips_broken_images(tmp_path):
+    import pytest
+
+    from heliotwin.errors import HeliotwinError
+
+    kin, srf = _long_heliostat()
+    batch = syn.simulate(kin, 6, 1)
+    with pytest.raises(HeliotwinError):
+        fit_images_method(kin, batch, None, images={})
+    bad = tmp_path / "broken-flux.png"
+    bad.write_bytes(b"not a png")
+    model = fit_images_method(kin, batch, None, images={int(batch.record_id[0]): str(bad)}, surfaces=srf,
+                              targets={syn.TARGET.name: syn.TARGET}, sun=SUN, field_prior=False, iterations=2,
+                              resolution=RES, samples=SAMPLES)
+    assert model.extras["summary"]["image_records_train"] == 0
+    assert int(batch.record_id[0]) in model.extras["summary"]["skipped_images"]
+    assert torch.isfinite(model.delta).all()
