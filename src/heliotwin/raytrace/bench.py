@@ -1,0 +1,227 @@
+"""Forward / backward throughput and time-to-accuracy benchmark of the tracers (``heliotwin bench``).
+
+The scene is synthetic and self-contained: one focused square heliostat (``surface_points`` points on a
+4 m x 4 m paraboloid-like mirror, focal length = slant range) about 110 m north of an 8 m x 8 m
+north-facing target, traced with the default optics (Buie sun, 1 mrad slope error).
+"""
+from __future__ import annotations
+
+import math
+import os
+import platform
+import resource
+import time
+
+import torch
+
+from ..field.plant import SunSettings
+from ..field.targets import PlanarTarget
+from .analytic import trace_analytic
+from .flux import normalized_l1
+from .montecarlo import trace_mc
+
+__all__ = ["run_benchmark", "benchmark_scene"]
+
+
+def benchmark_scene(surface_points: int = 10000, dtype=torch.float32):
+    """A focused heliostat facing a planar target.
+
+    Parameters
+    ----------
+    surface_points : int
+        Approximate number of mirror points P (rounded to a square grid).
+    dtype : torch.dtype
+        Of the returned point/normal/area tensors.
+
+    Returns
+    -------
+    points : torch.Tensor, shape (1, P, 3)
+    normals : torch.Tensor, shape (1, P, 3)
+    areas : torch.Tensor, shape (1, P)
+    sun_direction : torch.Tensor, shape (1, 3), float64
+    target : PlanarTarget
+    """
+    d64 = torch.float64
+    target = PlanarTarget.from_center_normal("bench", [0.0, 0.0, 55.0], [0.0, 1.0, 0.0], 8.0, 8.0)
+    pos = torch.tensor([15.0, 100.0, 2.0], dtype=d64)
+    az, el = math.radians(170.0), math.radians(40.0)
+    sun = torch.tensor([math.sin(az) * math.cos(el), -math.cos(az) * math.cos(el), math.sin(el)], dtype=d64)
+    to_t = target.center - pos
+    slant = float(to_t.norm())
+    to_t = to_t / slant
+    n0 = (to_t + sun) / (to_t + sun).norm()
+    e1 = torch.linalg.cross(torch.tensor([0.0, 0.0, 1.0], dtype=d64), n0)
+    e1 = e1 / e1.norm()
+    e2 = torch.linalg.cross(n0, e1)
+    m = max(1, int(round(math.sqrt(surface_points))))
+    side = 4.0
+    g = (torch.arange(m, dtype=d64) + 0.5) / m * side - side / 2
+    a, b = torch.meshgrid(g, g, indexing="ij")
+    a, b = a.reshape(-1, 1), b.reshape(-1, 1)
+    f = slant  # focal length: on-axis focusing at the slant range
+    sag = (a * a + b * b) / (4 * f)
+    pts = pos + a * e1 + b * e2 + sag * n0
+    nrm = n0 - a / (2 * f) * e1 - b / (2 * f) * e2
+    nrm = nrm / nrm.norm(dim=-1, keepdim=True)
+    areas = torch.full((m * m,), (side / m) ** 2, dtype=d64)
+    return (pts.unsqueeze(0).to(dtype), nrm.unsqueeze(0).to(dtype), areas.unsqueeze(0).to(dtype),
+            sun.unsqueeze(0), target)
+
+
+def _best_time(fn, repeats: int, min_total: float = 0.0) -> float:
+    fn()  # warm-up
+    best = float("inf")
+    t_start = time.perf_counter()
+    i = 0
+    while i < repeats or (time.perf_counter() - t_start) < min_total:
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+        i += 1
+        if i >= 10 * max(1, repeats):
+            break
+    return best
+
+
+def _peak_rss_mb() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return r / 1024.0 if platform.system() != "Darwin" else r / 1024.0 ** 2
+
+
+def run_benchmark(surface_points: int = 10000, rays_per_point=(10, 100), resolution: int = 256, seed: int = 0,
+                  threads: int | None = 2, repeats: int = 7, time_to_accuracy: bool = True) -> dict:
+    """Measure the Monte-Carlo tracer's throughput and compare integrators at equal accuracy.
+
+    Parameters
+    ----------
+    surface_points : int
+        Mirror points P.
+    rays_per_point : int or sequence of int
+        K values to time.
+    resolution : int
+        Bitmap side (square bitmap).
+    seed : int
+        Generator seed.
+    threads : int or None
+        ``torch.set_num_threads`` during the run (restored afterwards); None keeps the current setting.
+    repeats : int
+        Timed repetitions per measurement (the best is reported: the least disturbed by other load).
+    time_to_accuracy : bool
+        Also run the reference / analytic / MC-convergence comparison.
+
+    Returns
+    -------
+    dict
+        ``mc.forward_rays_per_s`` and ``mc.forward_backward_rays_per_s`` (for the largest K), ``mc.per_k``
+        (per-K timings), ``peak_rss_mb``, and ``time_to_accuracy`` (reference rays, analytic time and L1,
+        Monte-Carlo rays/time needed to reach that L1).
+    """
+    old_threads = torch.get_num_threads()
+    if threads is not None:
+        torch.set_num_threads(int(threads))
+    try:
+        return _run(surface_points, rays_per_point, resolution, seed, repeats, time_to_accuracy)
+    finally:
+        torch.set_num_threads(old_threads)
+
+
+def _run(surface_points, rays_per_point, resolution, seed, repeats, time_to_accuracy):
+    ks = [int(rays_per_point)] if isinstance(rays_per_point, int) else [int(k) for k in rays_per_point]
+    pts, nrm, areas, sun_dir, target = benchmark_scene(surface_points)
+    p = pts.shape[1]
+    optics = SunSettings()
+    gen = torch.Generator().manual_seed(seed)
+    weights = torch.rand(1, resolution, resolution, generator=torch.Generator().manual_seed(seed + 1))
+    per_k = {}
+    for k in ks:
+        def fwd():
+            with torch.no_grad():
+                trace_mc(pts, nrm, areas, sun_dir, target, resolution=resolution, sun=optics, rays_per_point=k,
+                         generator=gen)
+
+        n_leaf = nrm.clone().requires_grad_(True)
+        p_leaf = pts.clone().requires_grad_(True)
+
+        def fwd_bwd():
+            n_leaf.grad = p_leaf.grad = None
+            f = trace_mc(p_leaf, n_leaf, areas, sun_dir, target, resolution=resolution, sun=optics,
+                         rays_per_point=k, generator=gen)
+            (f.bitmap * weights).sum().backward()
+
+        rays = p * k
+        t_f = _best_time(fwd, repeats, min_total=0.5)
+        t_fb = _best_time(fwd_bwd, repeats, min_total=0.5)
+        per_k[str(k)] = {
+            "rays": rays,
+            "forward_s": t_f,
+            "forward_backward_s": t_fb,
+            "forward_rays_per_s": rays / t_f,
+            "forward_backward_rays_per_s": rays / t_fb,
+        }
+    top = per_k[str(max(ks))]
+    result = {
+        "device": "cpu",
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+        "cpu_count": os.cpu_count(),
+        "surface_points": p,
+        "resolution": resolution,
+        "sunshape": optics.sunshape,
+        "mc": {
+            "rays_per_point": max(ks),
+            "forward_rays_per_s": top["forward_rays_per_s"],
+            "forward_backward_rays_per_s": top["forward_backward_rays_per_s"],
+            "per_k": per_k,
+        },
+    }
+    if time_to_accuracy:
+        result["time_to_accuracy"] = _time_to_accuracy(pts, nrm, areas, sun_dir, target, resolution, seed, repeats)
+    result["peak_rss_mb"] = _peak_rss_mb()
+    return result
+
+
+def _time_to_accuracy(pts, nrm, areas, sun_dir, target, resolution, seed, repeats):
+    """Gaussian sun (the analytic integrator's exact case): reference, analytic, MC convergence."""
+    optics = SunSettings(sunshape="gaussian", sigma=2.51e-3, slope_error=1e-3)
+    p = pts.shape[1]
+    ref_rays_per_point, ref_runs = 2000, 4
+    t0 = time.perf_counter()
+    ref = None
+    with torch.no_grad():
+        for i in range(ref_runs):
+            f = trace_mc(pts, nrm, areas, sun_dir, target, resolution=resolution, sun=optics,
+                         rays_per_point=ref_rays_per_point, generator=torch.Generator().manual_seed(10_000 + seed + i),
+                         stratified=True)
+            ref = f.bitmap if ref is None else ref + f.bitmap
+    t_ref = time.perf_counter() - t0
+    ref = ref / ref_runs
+
+    def analytic():
+        with torch.no_grad():
+            return trace_analytic(pts, nrm, areas, sun_dir, target, resolution=resolution, sun=optics)
+
+    t_an = _best_time(analytic, max(1, repeats // 2))
+    l1_an = float(normalized_l1(analytic().bitmap, ref)[0])
+    curve = []
+    reached = None
+    for k in (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000):
+        gen = torch.Generator().manual_seed(seed + 77)
+
+        def mc():
+            with torch.no_grad():
+                return trace_mc(pts, nrm, areas, sun_dir, target, resolution=resolution, sun=optics,
+                                rays_per_point=k, generator=gen)
+
+        t_mc = _best_time(mc, 3)
+        l1 = float(normalized_l1(mc().bitmap, ref)[0])
+        curve.append({"rays_per_point": k, "time_s": t_mc, "l1": l1})
+        if reached is None and l1 <= l1_an:
+            reached = {"rays_per_point": k, "rays": p * k, "time_s": t_mc, "l1": l1}
+            break
+    return {
+        "sunshape": "gaussian",
+        "reference": {"rays": p * ref_rays_per_point * ref_runs, "time_s": t_ref},
+        "analytic": {"time_s": t_an, "l1_vs_reference": l1_an},
+        "mc_to_same_l1": reached,
+        "mc_curve": curve,
+    }
