@@ -41,7 +41,8 @@ def main(argv=None) -> int:
     tta = res.get("time_to_accuracy")
     if tta:
         an = tta["analytic"]
-        print(f"  reference: {tta['reference']['rays'] / 1e6:.0f} M rays in {tta['reference']['time_s']:.2f} s")
+        print(f"  reference (gaussian sun): {tta['reference']['rays'] / 1e6:.0f} M rays in "
+              f"{tta['reference']['time_s']:.2f} s, noise L1 ~{tta['reference']['noise_l1']:.4f}")
         print(f"  analytic: {an['time_s'] * 1e3:.1f} ms, L1 vs reference {an['l1_vs_reference']:.4f}")
         reached = tta["mc_to_same_l1"]
         if reached:
@@ -50,6 +51,9 @@ def main(argv=None) -> int:
         else:
             last = tta["mc_curve"][-1]
             print(f"  MC did not reach it up to K={last['rays_per_point']} (L1 {last['l1']:.4f})")
+            est = tta.get("mc_to_same_l1_estimate")
+            if est:
+                print(f"  MC would need ~{est['rays'] / 1e6:.0f} M rays, ~{est['time_s']:.1f} s (extrapolated)")
     print(f"  peak RSS {res['peak_rss_mb']:.0f} MB")
     out = os.path.abspath(args.out)
     fd, tmp = tempfile.mkstemp(dir=os.path.dirname(out), suffix=".json")

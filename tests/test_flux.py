@@ -73,7 +73,8 @@ def test_centered_crop_identity_and_shift():
     # gradients flow to the bitmap and the centre
     im = img2.clone().requires_grad_(True)
     cen = torch.tensor([[0.3, 0.2]], requires_grad=True)
-    centered_crop(FluxImage(im, sq, target_extent(sq, 1)), None, cen, size_m=4.0, resolution=16).square().sum().backward()
+    crop = centered_crop(FluxImage(im, sq, target_extent(sq, 1)), None, cen, size_m=4.0, resolution=16)
+    crop.square().sum().backward()
     assert torch.isfinite(im.grad).all() and torch.isfinite(cen.grad).all() and float(cen.grad.abs().sum()) > 0
 
 

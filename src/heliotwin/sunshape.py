@@ -154,7 +154,8 @@ def buie_radial_cdf(theta: torch.Tensor, csr: float = 0.05) -> torch.Tensor:
     th = torch.as_tensor(theta, dtype=torch.float64).clamp(0.0, BUIE_AUREOLE_LIMIT)
     i = torch.searchsorted(tab_t, th.reshape(-1), right=True).clamp(1, tab_t.numel() - 1)
     t0, t1, c0, c1 = tab_t[i - 1], tab_t[i], tab_c[i - 1], tab_c[i]
-    w = torch.where(t1 > t0, (th.reshape(-1) - t0) / torch.where(t1 > t0, t1 - t0, torch.ones_like(t0)), torch.ones_like(t0))
+    span = torch.where(t1 > t0, t1 - t0, torch.ones_like(t0))
+    w = torch.where(t1 > t0, (th.reshape(-1) - t0) / span, torch.ones_like(t0))
     return (c0 + w * (c1 - c0)).reshape(th.shape)
 
 

@@ -9,12 +9,27 @@ the Gaussian with covariance ``Sigma = sigma^2 J J^T + s I`` [px^2], where ``s``
 the variance of the one-pixel tent kernel that the Monte-Carlo bilinear splat applies, so both integrators
 estimate the same image.
 
-The Gaussian is evaluated at the pixel centres of a square window of ``(2 h + 1)^2`` pixels around the
-nearest pixel of ``mu``; ``h = ceil(n_sigma * max sqrt(lambda_max(Sigma)))`` is chosen once per call
-(capped by ``max_half_window``) so all points batch together. Weights are normalised over the *full*
-window before pixels outside the bitmap (or the target) are dropped, so each point deposits exactly its
-power, however sharp its spot. Cost is independent of any ray count; the result is differentiable
-(plain autograd, chunks checkpointed to bound memory).
+Two evaluation modes (``mode=``):
+
+``window``
+    Each point's Gaussian is evaluated at the pixel centres of a square window of ``(2 h + 1)^2`` pixels
+    around the nearest pixel of ``mu``; ``h = ceil(n_sigma * max sqrt(lambda_max(Sigma)))`` is chosen once
+    per call (capped by ``max_half_window``) so all points batch together. Weights are normalised over
+    the *full* window before pixels outside the bitmap (or the target) are dropped, so each point
+    deposits exactly its power, however sharp its spot. Cost ~ P (2h+1)^2.
+``convolve``
+    The points' mean hits are splatted bilinearly (the tent kernel *is* the ``s = 1/6`` term) and each
+    sample's image is convolved (FFT) with the Gaussian of the power-weighted mean covariance. Exact when
+    all points of a sample share one covariance and accurate to second order in their spread otherwise
+    (one heliostat per sample); cost ~ P + pixels log(pixels), typically 100x cheaper.
+``auto`` (default) picks ``convolve`` when the covariance spread within every sample is below
+``convolve_tolerance``, else ``window``.
+
+Cost is independent of any ray count; the result is differentiable (plain autograd; window chunks are
+checkpointed to bound memory). Note that non-Gaussian sunshapes (Buie, pillbox) are represented by their
+Gaussian of equal second moment: the spot's core and tails differ from the Monte-Carlo image (for the
+default optics -- Buie CSR 0.05, 1 mrad slope error -- L1 ~ 0.15 between the two on a focused heliostat;
+pillbox ~ 0.02).
 
 For the cylindrical receiver the footprint lives in the tangent plane at the central ray's hit point
 (first-order accurate for spots small compared with the radius); the mean is the exact hit, in unrolled
@@ -48,7 +63,8 @@ def _projective_moments(coef: torch.Tensor):
     safe = torch.where(ok, d0, -torch.ones_like(d0))
     mu = coef[..., :2, 0] / safe.unsqueeze(-1)  # [..., 2]
     # J[i, j] = (N_i,j+1 D0 - N_i0 D_j+1) / D0^2, j over (a, b)
-    jac = (coef[..., :2, 1:] * safe[..., None, None] - coef[..., :2, :1] * coef[..., 2:3, 1:]) / (safe * safe)[..., None, None]
+    num = coef[..., :2, 1:] * safe[..., None, None] - coef[..., :2, :1] * coef[..., 2:3, 1:]
+    jac = num / (safe * safe)[..., None, None]
     return mu, jac, ok
 
 

@@ -272,7 +272,8 @@ def read_png(path) -> torch.Tensor:
     except FileNotFoundError:
         raise InputFileError(path, "file not found") from None
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
-        raise InputFileError(path, f"unreadable image ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+        detail = str(exc).splitlines()[0] if str(exc) else ""
+        raise InputFileError(path, f"unreadable image ({type(exc).__name__}: {detail})") from None
     return torch.from_numpy(np.ascontiguousarray(arr)).to(torch.float32)
 
 

@@ -23,11 +23,12 @@ Planar fast path
 ----------------
 For a plane the hit of ``r + a u + b v`` is *projective* in ``(a, b)``: the pixel coordinates are
 ``(N_x . q) / (D . q)`` and ``(N_y . q) / (D . q)`` with ``q = (1, a, b)`` and nine per-point
-coefficients (target origin, basis, pixel size and window folded in, computed in float64). Per chunk of
-rays that is one small GEMM plus two divisions, followed by the bilinear splat of
-:func:`heliotwin.raytrace.splat.projective_splat` (custom autograd: recompute-in-backward, no per-ray
-tensors are kept for the backward pass). Rays with ``D . q >= 0`` (parallel to or leaving the plane) and
-points behind the target get weight 0.
+coefficients (target origin, basis, pixel size and window folded in; the offsets of the points from the
+target are formed in float64, the rest in the ray precision). Per chunk of rays that is one small GEMM
+plus a multiplication by ``1 / (D . q)``, followed by the bilinear splat of
+:func:`heliotwin.raytrace.splat.projective_splat` (custom autograd: recompute-in-backward; only the int32
+landing index is kept per ray). Rays with ``D . q >= -1e-6`` (parallel to or leaving the plane) and points
+behind the target get weight 0.
 
 Generic path
 ------------
@@ -46,7 +47,7 @@ import torch
 from torch.utils.checkpoint import checkpoint
 
 from .. import sunshape as _sunshape
-from ..errors import HeliotwinError
+from ..errors import HeliotwinError, OutOfRangeError
 from ..field.plant import SunSettings
 from ..field.targets import CylinderTarget, PlanarTarget
 from ..geometry import orthonormal_frame, ray_cylinder, ray_plane, safe_normalize
@@ -57,6 +58,7 @@ from .splat import (DEFAULT_MAX_RAYS_PER_CHUNK, projective_splat, projective_spl
 __all__ = ["trace_mc", "offset_pattern", "planar_coefficients", "MirrorBatch", "prepare_mirror"]
 
 _F64 = torch.float64  # positions (only differences of them are taken in the ray precision)
+
 
 
 @dataclass
@@ -163,6 +165,7 @@ def offset_pattern(rays_per_point: int, generator: torch.Generator, sun: SunSett
 
 
 def _rotated_frames(reflected: torch.Tensor, generator: torch.Generator | None):
+    """Orthonormal frames (u, v) [..., 3] of the reflected rays, each turned by a random angle psi_p."""
     u, v = orthonormal_frame(reflected)
     if generator is None:
         return u, v
@@ -284,13 +287,16 @@ def trace_mc(points, normals, areas, sun_direction, target: PlanarTarget | Cylin
     stratified : bool
         Latin-hypercube stratification of the shared offset pattern.
     max_rays_per_chunk : int
-        Bound on rays processed at once (memory).
+        Bound on rays processed at once (memory: ~25 buffers of this many float32 per worker, plus the
+        int32 landing index of up to ``splat.INDEX_CACHE_RAYS`` rays kept for the backward pass).
     dtype : torch.dtype
         Ray / bitmap precision (float32 default, float64 for gradchecks).
     method : {"auto", "projective", "generic"}
         ``auto``: projective for planar targets, generic for the cylinder.
     workers : int, optional
-        Worker threads for the chunks (default ``torch.get_num_threads()``).
+        None (default): chunks run in the calling thread, ops use PyTorch's intra-op threads. ``n``: chunks
+        run on ``n`` worker threads with one intra-op thread each (more robust when other processes
+        compete for the cores).
 
     Returns
     -------
@@ -322,6 +328,8 @@ def trace_mc(points, normals, areas, sun_direction, target: PlanarTarget | Cylin
         coef, in_front = planar_coefficients(mirror.points, mirror.reflected, u, v, target, extent, rows, cols)
         weights = torch.where(in_front, weights, torch.zeros_like(weights))
         coef = coef.reshape(b * p, 3, 3).to(dtype)
+        if not bool(torch.isfinite(coef.detach()).all()):
+            raise OutOfRangeError("trace_mc: non-finite mirror points, normals or sun direction")
         bounds = _landing_bounds(target, extent, rows, cols, b, p) if (window is not None and clip_to_target) else None
         wflat = weights.reshape(b * p).to(dtype)
         if splat == "hard":

@@ -6,29 +6,32 @@ Pixel coordinates
 ``(r, c)`` covers ``px in [c - 0.5, c + 0.5)``, ``py in [r - 0.5, r + 0.5)``. The bitmap covers
 ``px in [-0.5, cols - 0.5]``, ``py in [-0.5, rows - 0.5]``; points outside get weight 0.
 
-Bilinear splat with clamped edges
----------------------------------
+Bilinear splat with folded edges
+--------------------------------
 A point's weight is shared between the four pixels around it (tent kernel: the image is the flux
-convolved with a one-pixel tent, sampled at pixel centres). In the half-pixel border the coordinate is
-clamped to the outermost pixel centre, so every point that lands on the bitmap deposits *all* of its
-weight in the bitmap: ``bitmap.sum() == sum of the weights of the points that landed``. The result is
-differentiable w.r.t. coordinates and weights (the derivative w.r.t. a coordinate is 0 in the clamped
-border; the landing test at the bitmap edge is a step, as in physics).
+convolved with a one-pixel tent, sampled at pixel centres). Splatting happens on the bitmap plus a
+one-pixel ring; the ring is then folded onto the edge pixels, so every point that lands on the bitmap
+deposits *all* of its weight in it: ``bitmap.sum() == sum of the weights of the points that landed``. The
+result is differentiable w.r.t. coordinates and weights (in the outer half-pixel the position derivative
+is 0 -- the weight stays in the edge pixel; the landing test at the bitmap edge is a step, as in physics).
 
 Implementation
 --------------
 The four corner weights ``w (1-fx)(1-fy), w fx (1-fy), w (1-fx) fy, w fx fy`` are linear combinations of
-the *moments* ``w, w fx, w fy, w fx fy`` deposited at the same (lower-left) pixel, so the forward pass is
-four ``scatter_add_`` calls sharing one index into moment accumulators, recombined once at the end from
-four shifted maps. The backward pass is the adjoint: four difference maps of the output gradient,
-gathered at the same index, with the forward quantities recomputed (nothing per ray is stored).
+the *moments* ``w, w fx, w fy, w fx fy`` deposited at the same (lower-left) pixel. The moments are packed
+as two complex numbers per ray, so the forward pass is a single ``index_add_`` of two complex rows
+(parallel over the rows, half the scattered elements) into moment accumulators, recombined once at the
+end. The backward pass is the adjoint: four difference maps of the output gradient (packed the same way)
+gathered at the same index. Rays that do not land get the index of an extra "trash" bin, which is
+discarded in the forward pass and has zero gradient maps in the backward pass, so no per-ray masking is
+needed and all gradients stay finite (no boolean indexing, no division by tiny numbers).
 
-Rays are processed in chunks of at most ``max_rays_per_chunk`` (default 32768 = PyTorch's intra-op grain
-size, so every elementwise op of a chunk runs single-threaded with its data in cache) in reusable buffers
-with in-place ops; chunks are distributed over ``workers`` Python threads (default
-``torch.get_num_threads()``), each with its own buffers and accumulators. This parallelises without
-OpenMP barriers, so throughput degrades gracefully when other processes share the cores. Rays that miss
-get weight 0 through arithmetic masks (no boolean indexing; clamped indices; finite gradients).
+Rays are processed in chunks of at most ``max_rays_per_chunk`` (default 2^17, ~25 reusable buffers of that
+size) with in-place ops. The backward pass recomputes the per-ray quantities from the per-point inputs;
+the forward pass only keeps the int32 landing index of up to :data:`INDEX_CACHE_RAYS` rays. By default the
+chunks run in the calling thread and each op uses PyTorch's intra-op threads; ``workers=n`` runs them on
+``n`` worker threads with one intra-op thread each instead (no OpenMP barriers: degrades more gracefully
+when other processes compete for the cores, but scales worse on an idle machine).
 
 :func:`projective_splat` computes the pixel coordinates of the rays inside each chunk from per-point
 projective coefficients and a shared offset pattern (the Monte-Carlo tracer's planar fast path);
@@ -45,8 +48,7 @@ import torch
 __all__ = ["splat_bilinear", "splat_hard", "projective_splat", "projective_splat_hard", "DEFAULT_MAX_RAYS_PER_CHUNK",
            "DEN_EPS"]
 
-#: Rays per chunk: PyTorch's intra-op grain size, so chunk ops stay single-threaded (parallelism comes
-#: from the worker threads). Larger values bound memory the same way but let ops use OpenMP.
+#: Rays per chunk (memory: ~25 float32 buffers of this size per worker; 2^17 measured fastest on 2 cores).
 DEFAULT_MAX_RAYS_PER_CHUNK = 2 ** 17
 
 #: Rays whose direction has ``d . n_target > -DEN_EPS`` (parallel or leaving the plane) are dropped.
@@ -54,6 +56,10 @@ DEN_EPS = 1e-6
 
 #: Moment accumulators of one block of samples are bounded by this many floats per worker.
 _ACC_BUDGET = 2 ** 23
+
+#: The forward pass keeps the int32 landing index of up to this many rays for the backward pass
+#: (4 bytes per ray; beyond the budget the index is recomputed).
+INDEX_CACHE_RAYS = 2 ** 25
 
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 _POOL_LOCK = threading.Lock()
@@ -111,28 +117,40 @@ def _run(tasks: list, workers: int) -> None:
 
 
 class _Workspace:
-    """Reusable scratch buffers of one worker (no fresh page faults for every temporary)."""
+    """Reusable scratch buffers of one worker (no fresh page faults for every temporary).
+
+    ``get`` returns a view of a per-name buffer; views are memoised by (name, shape, dtype), so the
+    per-chunk Python overhead stays small.
+    """
 
     def __init__(self):
         self._bufs: dict[tuple, torch.Tensor] = {}
+        self._views: dict[tuple, torch.Tensor] = {}
 
     def get(self, name: str, shape, dtype, device) -> torch.Tensor:
+        key = (name, tuple(shape), dtype)
+        view = self._views.get(key)
+        if view is not None:
+            return view
         numel = 1
         for s in shape:
             numel *= int(s)
-        key = (name, dtype, str(device))
-        buf = self._bufs.get(key)
+        bkey = (name, dtype)
+        buf = self._bufs.get(bkey)
         if buf is None or buf.numel() < numel:
             buf = torch.empty(max(numel, 1), dtype=dtype, device=device)
-            self._bufs[key] = buf
-        return buf[:numel].view(*shape)
+            self._bufs[bkey] = buf
+            self._views = {k: v for k, v in self._views.items() if (k[0], k[2]) != bkey}
+        view = buf[:numel].view(*shape)
+        self._views[key] = view
+        return view
 
 
 def _compose(acc: torch.Tensor, ns: int, rows: int, cols: int) -> torch.Tensor:
     """Bitmap [ns, rows, cols] from the complex moment accumulators acc [2, ns*(rows+2)*(cols+2)] =
     (S0 + i Sxy, Sy + i Sx) on the padded grid: bilinear recombination, then the one-pixel ring is folded
     onto the edge pixels."""
-    r = torch.view_as_real(acc)
+    r = torch.view_as_real(acc[:, :ns * (rows + 2) * (cols + 2)])  # the last element is the trash bin
     s0, sxy, sy, sx = (t.reshape(ns, rows + 2, cols + 2) for t in (r[0, :, 0], r[0, :, 1], r[1, :, 0], r[1, :, 1]))
     pad = s0 - sx - sy + sxy
     pad[:, :, 1:] += (sx - sxy)[:, :, :-1]
@@ -147,16 +165,18 @@ def _compose(acc: torch.Tensor, ns: int, rows: int, cols: int) -> torch.Tensor:
 
 
 def _grad_maps(g: torch.Tensor) -> torch.Tensor:
-    """Adjoint of :func:`_compose`: complex maps [2, ns*(rows+2)*(cols+2)] = (A + i D, Cy + i Bx) from the
-    grad [ns, rows, cols] (the fold's adjoint is replicate padding)."""
+    """Adjoint of :func:`_compose`: complex maps [2, ns*(rows+2)*(cols+2) + 1] = (A + i D, Cy + i Bx) from the
+    grad [ns, rows, cols] (the fold's adjoint is replicate padding); the trash bin at the end is 0."""
     ns, rows, cols = g.shape
+    m = ns * (rows + 2) * (cols + 2)
     gp = torch.nn.functional.pad(g.unsqueeze(1), (1, 1, 1, 1), mode="replicate").squeeze(1)
-    maps = g.new_zeros(2, ns, rows + 2, cols + 2, 2)
+    flat = g.new_zeros(2, m + 1, 2)
+    maps = flat[:, :m].view(2, ns, rows + 2, cols + 2, 2)
     maps[0, ..., 0] = gp  # A
     maps[0, :, :-1, :-1, 1] = gp[:, 1:, 1:] - gp[:, 1:, :-1] - gp[:, :-1, 1:] + gp[:, :-1, :-1]  # D
     maps[1, :, :-1, :, 0] = gp[:, 1:, :] - gp[:, :-1, :]  # Cy
     maps[1, :, :, :-1, 1] = gp[:, :, 1:] - gp[:, :, :-1]  # Bx
-    return torch.view_as_complex(maps).view(2, -1)
+    return torch.view_as_complex(flat)
 
 
 def _blocks(n_samples: int, rows: int, cols: int):
@@ -197,7 +217,7 @@ def _clamp2(q2, lo, hi, out):
     return torch.clamp(q2, lo_t, hi_t, out=out)
 
 
-def _project(ws, c3, pat):
+def _project(ws, c3, pat, with_bad=True):
     """Padded pixel coordinates of the rays ``q = pat[:, k] = (1, a_k, b_k)`` of points with coefficients
     c3 [3, n, 3] (rows N_row + D, N_col + D, D). One batched GEMM.
 
@@ -209,7 +229,7 @@ def _project(ws, c3, pat):
     o = ws.get("proj", (3, n, k), dt, dev)
     torch.bmm(c3, pat.expand(3, 3, k), out=o)
     den = o[2]
-    bad = torch.add(den, DEN_EPS, out=ws.get("bad", (n, k), dt, dev)).clamp_(min=0.0)
+    bad = torch.add(den, DEN_EPS, out=ws.get("bad", (n, k), dt, dev)).clamp_(min=0.0) if with_bad else None
     inv = den.clamp_(max=-DEN_EPS).reciprocal_()
     q2 = o[0:2]
     q2.mul_(inv)
@@ -226,8 +246,10 @@ def _bounds_check(ws, q2, bad, bounds):
     bad.addcmul_(t[0], t[0]).addcmul_(t[1], t[1])
 
 
-def _flat_index(ws, v2, width, offset):
-    """Fractions f2 = (fy, fx) and flat int64 index ``floor(vy) * width + floor(vx)`` of v2 >= 0 (consumed).
+def _flat_index(ws, v2, width, offset, bad, trash):
+    """Fractions f2 = (fy, fx) and flat int64 index ``floor(vy) * width + floor(vx)`` of v2 >= 0 (consumed);
+    rays with ``bad > 0`` get the index ``trash`` (a bin that is discarded / whose gradient maps are 0), so
+    no per-ray masking is needed anywhere else.
 
     The index is formed in floating point (exact below 2^24) and converted via int32 (much faster than a
     direct float -> int64 conversion).
@@ -238,46 +260,41 @@ def _flat_index(ws, v2, width, offset):
     flat = torch.add(v2[1], v2[0], alpha=width, out=ws.get("flat", shape, dt, dev))
     if offset is not None:
         flat.add_(offset)
+    flat.add_(bad.sign_(), alpha=float(trash) + 1.0).clamp_(max=float(trash))
     i32 = ws.get("i32", shape, torch.int32, dev).copy_(flat)
-    return f2, ws.get("i64", shape, torch.int64, dev).copy_(i32)
+    return f2, ws.get("i64", shape, torch.int64, dev).copy_(i32), i32
 
 
-def _land(ws, q2, bad, rows, cols, offset=None, keep=False):
-    """Landing test (adds to ``bad``) and padded-grid index/fractions of rays at q2 = (qy, qx).
+def _land(ws, q2, bad, rows, cols, trash, offset=None, keep=False):
+    """Landing test and padded-grid index/fractions of rays at q2 = (qy, qx) (``bad`` is consumed).
 
-    q2 is consumed unless ``keep``. Returns f2 = (fy, fx) [2, n, k] and the flat index [n, k] into the
-    padded (rows + 2) x (cols + 2) grid.
+    q2 is consumed unless ``keep``. Returns f2 = (fy, fx) [2, n, k], the flat int64 index [n, k] into the
+    padded (rows + 2) x (cols + 2) grid(s) (``trash`` for rays that do not land) and its int32 copy.
     """
     shape, dt, dev = q2.shape, q2.dtype, q2.device
     v = _clamp2(q2, (0.5, 0.5), (rows + 0.5, cols + 0.5), out=ws.get("v2", shape, dt, dev))
     d = torch.sub(q2, v, out=ws.get("t2", shape, dt, dev)) if keep else q2.sub_(v)
     bad.addcmul_(d[0], d[0]).addcmul_(d[1], d[1])  # 0 iff the ray lands on the bitmap
-    return _flat_index(ws, v, cols + 2, offset)
+    return _flat_index(ws, v, cols + 2, offset, bad, trash)
 
 
-def _land_hard(ws, q2, bad, rows, cols, offset=None):
-    """Nearest-pixel landing (q2 is consumed): flat index of the (unpadded) pixel containing each ray."""
+def _land_hard(ws, q2, bad, rows, cols, trash, offset=None):
+    """Nearest-pixel landing (q2, bad consumed): flat index of the (unpadded) pixel containing each ray."""
     v = _clamp2(q2, (0.5, 0.5), (rows + 0.5, cols + 0.5), out=ws.get("v2", q2.shape, q2.dtype, q2.device))
     d = q2.sub_(v)
     bad.addcmul_(d[0], d[0]).addcmul_(d[1], d[1])
     v.sub_(0.5)  # unpadded p + 0.5 in [0, size]; floor = containing pixel
     _clamp2(v, (0.0, 0.0), (rows - 0.5, cols - 0.5), out=v)
-    return _flat_index(ws, v, cols, offset)[1]
+    return _flat_index(ws, v, cols, offset, bad, trash)[1]  # noqa: RET504
 
 
-def _masked_weights(bad, negw, out=None):
-    """``w * (bad == 0)`` (bad >= 0 is consumed); negw = -w broadcastable; into ``out`` or ``bad``."""
-    bad.sign_().sub_(1.0)
-    return bad.mul_(negw) if out is None else torch.mul(bad, negw, out=out)
-
-
-def _moments(ws, bad, negw, f2):
-    """Moments of the landing rays packed as complex numbers [2, n*k]: (w + i w fx fy, w fy + i w fx)
-    (bad is consumed). Packing halves the scattered elements (a complex add is two float adds)."""
-    n, k = bad.shape
-    mom = ws.get("mom", (2, n, k, 2), bad.dtype, bad.device)
-    wm = _masked_weights(bad, negw, out=mom[0, ..., 0])
-    torch.mul(f2, wm, out=mom[1].permute(2, 0, 1))  # (w fy, w fx)
+def _moments(ws, w, f2):
+    """Moments packed as complex numbers [2, n*k]: (w + i w fx fy, w fy + i w fx) for weights w [n, 1] or
+    [n, k]. Packing halves the scattered elements (a complex add is two float adds)."""
+    n, k = f2.shape[1:]
+    mom = ws.get("mom", (2, n, k, 2), f2.dtype, f2.device)
+    mom[0, ..., 0] = w
+    torch.mul(f2, w, out=mom[1].permute(2, 0, 1))  # (w fy, w fx)
     torch.mul(mom[1, ..., 0], f2[1], out=mom[0, ..., 1])  # w fy fx
     return torch.view_as_complex(mom).view(2, n * k)
 
@@ -292,33 +309,33 @@ def _sample_offset(s, e, points_per_sample, b0, rows, cols, dtype, device):
     return (local * (rows * cols)).to(dtype).unsqueeze(1)
 
 
-def _backward_chunk(ws, maps, f2, idx, bad, negw, inv, q2, need_w, need_p):
-    """Shared backward step for a chunk [n, k]: returns (dw [n, k] or None, g3 [3, n, k]) where g3 holds
-    the gradients w.r.t. (N_row, N_col, D) for the projective chain (``inv`` given) or w.r.t. (py, px) in
-    its first two rows for explicit coordinates (``inv`` None)."""
-    dt, dev = bad.dtype, bad.device
-    n, k = bad.shape
+def _backward_chunk(ws, maps, f2, idx, w, inv, q2, need_w, need_p):
+    """Shared backward step for a chunk [n, k] (dropped rays gather zeros from the trash bin).
+
+    Returns (dw [n, k] or None, g3 [3, n, k]): d loss / d weight per ray, and the gradients w.r.t.
+    (N_row, N_col, D) for the projective chain (``inv`` given) or w.r.t. (py, px) in the first two rows of
+    g3 for explicit coordinates (``inv`` None).
+    """
+    dt, dev = f2.dtype, f2.device
+    n, k = f2.shape[1:]
     flat = idx.view(1, -1).expand(2, n * k)
     gc = torch.gather(maps, 1, flat, out=ws.get("gather", (2, n * k), maps.dtype, dev))
     g = torch.view_as_real(gc).view(2, n, k, 2)
-    g_a, g_d, g_cy, g_bx = g[0, ..., 0], g[0, ..., 1], g[1, ..., 0], g[1, ..., 1]
+    g_a, g_d, g_bx = g[0, ..., 0], g[0, ..., 1], g[1, ..., 1]
     g3 = ws.get("g3", (3, n, k), dt, dev)
     t2 = g3[0:2]
     torch.mul(g_d, f2[1], out=t2[0])
     torch.mul(g_d, f2[0], out=t2[1])
     t2.add_(g[1].permute(2, 0, 1))  # (Cy + D fx, Bx + D fy) = d out / d (fy, fx) per unit weight
-    bad.sign_()  # 1 where the ray is dropped
     dw = None
     if need_w:
         dw = torch.addcmul(g_a, t2[0], f2[0], out=ws.get("dw", (n, k), dt, dev)).addcmul_(g_bx, f2[1])
-        dw.addcmul_(dw, bad, value=-1.0)
     if need_p:
-        wm = bad.sub_(1.0).mul_(negw)
         if inv is not None:
-            wm.mul_(inv)
-        t2.mul_(wm)
-        if inv is not None:
+            t2.mul_(torch.mul(inv, w, out=ws.get("wi", (n, k), dt, dev)))
             torch.mul(t2[0], q2[0], out=g3[2]).addcmul_(t2[1], q2[1]).neg_()
+        else:
+            t2.mul_(w)
     return dw, g3
 
 
@@ -336,7 +353,8 @@ def _to_c3(coef):
     return c3
 
 
-def _proj_forward(c3, weights, pattern, bounds, rows, cols, n_samples, pps, max_rays, workers, hard=False):
+def _proj_forward(c3, weights, pattern, bounds, rows, cols, n_samples, pps, max_rays, workers, hard=False,
+                  cache=None):
     dt, dev = c3.dtype, c3.device
     k_total = pattern.shape[1]
     out = torch.zeros(n_samples, rows, cols, dtype=dt, device=dev)
@@ -344,16 +362,17 @@ def _proj_forward(c3, weights, pattern, bounds, rows, cols, n_samples, pps, max_
     for b0, b1 in _blocks(n_samples, rows, cols):
         ns = b1 - b0
         if hard:
-            accs = [torch.zeros(1, ns * rows * cols, dtype=dt, device=dev) for _ in range(nslots)]
+            trash = ns * rows * cols
+            accs = [torch.zeros(1, trash + 1, dtype=dt, device=dev) for _ in range(nslots)]
         else:
-            accs = [torch.zeros(2, ns * (rows + 2) * (cols + 2), dtype=dt.to_complex(), device=dev)
-                    for _ in range(nslots)]
+            trash = ns * (rows + 2) * (cols + 2)
+            accs = [torch.zeros(2, trash + 1, dtype=dt.to_complex(), device=dev) for _ in range(nslots)]
         wss = [_Workspace() for _ in range(nslots)]
         tasks = []
         for s, e in _point_chunks(b0 * pps, b1 * pps, k_total, max_rays):
             def task(j, s=s, e=e):
                 ws, acc = wss[j], accs[j]
-                c, negw = c3[:, s:e], weights[s:e].neg().unsqueeze(1)
+                c, w = c3[:, s:e], weights[s:e].unsqueeze(1)
                 bnd = None if bounds is None else bounds[s:e]
                 off = _sample_offset(s, e, pps, b0, rows + 2, cols + 2, dt, dev)
                 off_hard = _sample_offset(s, e, pps, b0, rows, cols, dt, dev)
@@ -362,17 +381,20 @@ def _proj_forward(c3, weights, pattern, bounds, rows, cols, n_samples, pps, max_
                     if bnd is not None:
                         _bounds_check(ws, q2, bad, bnd)
                     if hard:
-                        idx = _land_hard(ws, q2, bad, rows, cols, off_hard)
-                        acc[0].index_add_(0, idx.view(-1), _masked_weights(bad, negw).view(-1))
+                        idx = _land_hard(ws, q2, bad, rows, cols, trash, off_hard)
+                        acc[0].index_add_(0, idx.view(-1), w.expand(idx.shape).reshape(-1))
                         continue
-                    f2, idx = _land(ws, q2, bad, rows, cols, off)
-                    acc.index_add_(1, idx.view(-1), _moments(ws, bad, negw, f2))
+                    f2, idx, i32 = _land(ws, q2, bad, rows, cols, trash, off)
+                    acc.index_add_(1, idx.view(-1), _moments(ws, w, f2))
+                    if cache is not None and cache["left"] >= i32.numel():
+                        cache["left"] -= i32.numel()
+                        cache[(s, k0)] = i32.clone()
             tasks.append(task)
         _run(tasks, workers)
         acc = accs[0]
         for other in accs[1:]:
             acc += other
-        out[b0:b1] = acc[0].view(ns, rows, cols) if hard else _compose(acc, ns, rows, cols)
+        out[b0:b1] = acc[0, :trash].view(ns, rows, cols) if hard else _compose(acc, ns, rows, cols)
     return out
 
 
@@ -380,15 +402,19 @@ class _ProjectiveSplat(torch.autograd.Function):
     @staticmethod
     def forward(ctx, coef, weights, pattern, bounds, rows, cols, n_samples, pps, max_rays, workers):
         c3 = _to_c3(coef)
-        out = _proj_forward(c3, weights, pattern, bounds, rows, cols, n_samples, pps, max_rays, workers)
+        cache = {"left": INDEX_CACHE_RAYS} if any(ctx.needs_input_grad[:2]) else None
+        out = _proj_forward(c3, weights, pattern, bounds, rows, cols, n_samples, pps, max_rays, workers,
+                            cache=cache)
         ctx.save_for_backward(coef, weights, pattern, bounds)
         ctx.cfg = (rows, cols, n_samples, pps, max_rays, workers)
+        ctx.cache = cache
         return out
 
     @staticmethod
     def backward(ctx, grad_out):
         coef, weights, pattern, bounds = ctx.saved_tensors
         rows, cols, n_samples, pps, max_rays, workers = ctx.cfg
+        cache = ctx.cache or {}
         need_c, need_w = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
         if not (need_c or need_w):
             return (None,) * 10
@@ -401,22 +427,29 @@ class _ProjectiveSplat(torch.autograd.Function):
         nslots = max(1, workers)
         for b0, b1 in _blocks(n_samples, rows, cols):
             maps = _grad_maps(grad_out[b0:b1])
+            trash = maps.shape[1] - 1
             wss = [_Workspace() for _ in range(nslots)]
             tasks = []
             for s, e in _point_chunks(b0 * pps, b1 * pps, k_total, max_rays):
                 def task(j, s=s, e=e):
                     ws = wss[j]
-                    c, negw = c3[:, s:e], weights[s:e].neg().unsqueeze(1)
+                    c, w = c3[:, s:e], weights[s:e].unsqueeze(1)
                     bnd = None if bounds is None else bounds[s:e]
                     off = _sample_offset(s, e, pps, b0, rows + 2, cols + 2, dt, dev)
                     for k0, k1 in _k_slices(k_total, max_rays):
                         pat = pattern[:, k0:k1]
                         n, k = e - s, k1 - k0
-                        q2, inv, bad = _project(ws, c, pat)
-                        if bnd is not None:
-                            _bounds_check(ws, q2, bad, bnd)
-                        f2, idx = _land(ws, q2, bad, rows, cols, off, keep=True)
-                        dw, g3 = _backward_chunk(ws, maps, f2, idx, bad, negw, inv, q2, need_w, need_c)
+                        cached = cache.get((s, k0))
+                        if cached is not None:  # forward's index: landing rays have q2 = v2, f2 = frac(q2)
+                            q2, inv, _ = _project(ws, c, pat, with_bad=False)
+                            f2 = torch.frac(q2, out=ws.get("f2", q2.shape, dt, dev))
+                            idx = ws.get("i64", (n, k), torch.int64, dev).copy_(cached)
+                        else:
+                            q2, inv, bad = _project(ws, c, pat)
+                            if bnd is not None:
+                                _bounds_check(ws, q2, bad, bnd)
+                            f2, idx, _ = _land(ws, q2, bad, rows, cols, trash, off, keep=True)
+                        dw, g3 = _backward_chunk(ws, maps, f2, idx, w, inv, q2, need_w, need_c)
                         if need_w:
                             grad_w[s:e] += dw.sum(1)
                         if need_c:
@@ -530,8 +563,8 @@ class _BilinearSplat(torch.autograd.Function):
         nslots = max(1, workers)
         for b0, b1 in _blocks(n_samples, rows, cols):
             ns = b1 - b0
-            accs = [torch.zeros(2, ns * (rows + 2) * (cols + 2), dtype=dt.to_complex(), device=dev)
-                    for _ in range(nslots)]
+            trash = ns * (rows + 2) * (cols + 2)
+            accs = [torch.zeros(2, trash + 1, dtype=dt.to_complex(), device=dev) for _ in range(nslots)]
             wss = [_Workspace() for _ in range(nslots)]
             tasks = []
             for s, e in _explicit_chunks(ns * m, max_rays):
@@ -539,8 +572,9 @@ class _BilinearSplat(torch.autograd.Function):
                     ws = wss[j]
                     q2 = _load(ws, fpx, fpy, s, e)
                     bad = ws.get("bad", (e - s, 1), dt, dev).zero_()
-                    f2, idx = _land(ws, q2, bad, rows, cols, _sample_offset(s, e, m, b0, rows + 2, cols + 2, dt, dev))
-                    accs[j].index_add_(1, idx.view(-1), _moments(ws, bad, fw[s:e].neg(), f2))
+                    f2, idx, _ = _land(ws, q2, bad, rows, cols, trash,
+                                       _sample_offset(s, e, m, b0, rows + 2, cols + 2, dt, dev))
+                    accs[j].index_add_(1, idx.view(-1), _moments(ws, fw[s:e], f2))
                 tasks.append(task)
             _run(tasks, workers)
             acc = accs[0]
@@ -568,6 +602,7 @@ class _BilinearSplat(torch.autograd.Function):
         for b0, b1 in _blocks(n_samples, rows, cols):
             ns = b1 - b0
             maps = _grad_maps(grad_out[b0:b1])
+            trash = maps.shape[1] - 1
             wss = [_Workspace() for _ in range(nslots)]
             tasks = []
             for s, e in _explicit_chunks(ns * m, max_rays):
@@ -575,9 +610,9 @@ class _BilinearSplat(torch.autograd.Function):
                     ws = wss[j]
                     q2 = _load(ws, fpx, fpy, s, e)
                     bad = ws.get("bad", (e - s, 1), dt, dev).zero_()
-                    f2, idx = _land(ws, q2, bad, rows, cols, _sample_offset(s, e, m, b0, rows + 2, cols + 2, dt, dev),
-                                    keep=True)
-                    dw, g3 = _backward_chunk(ws, maps, f2, idx, bad, fw[s:e].neg(), None, q2, need_w, need_p)
+                    f2, idx, _ = _land(ws, q2, bad, rows, cols, trash,
+                                       _sample_offset(s, e, m, b0, rows + 2, cols + 2, dt, dev), keep=True)
+                    dw, g3 = _backward_chunk(ws, maps, f2, idx, fw[s:e], None, q2, need_w, need_p)
                     if need_w:
                         gw[s:e] = dw
                     if need_p:
@@ -647,10 +682,11 @@ def splat_hard(px: torch.Tensor, py: torch.Tensor, weights: torch.Tensor, rows: 
     ws = _Workspace()
     q2 = _load(ws, px.reshape(-1, 1).to(dt), py.reshape(-1, 1).to(dt), 0, b * m)
     bad = torch.zeros(b * m, 1, dtype=dt, device=px.device)
-    idx = _land_hard(ws, q2, bad, rows, cols)
-    if b > 1:  # integer offsets: the flat index of a large batch is not exact in float32
-        idx.add_((torch.arange(b * m, device=px.device) // m * (rows * cols)).unsqueeze(1))
-    wm = _masked_weights(bad, w.reshape(-1, 1).to(dt).neg())
-    out = torch.zeros(b * rows * cols, dtype=dt, device=px.device)
-    out.index_add_(0, idx.view(-1), wm.view(-1))
-    return out.view(b, rows, cols)
+    trash = rows * cols
+    idx = _land_hard(ws, q2, bad, rows, cols, trash)
+    if b > 1:  # integer sample offsets (a large batch's flat index is not exact in float32)
+        sample = (torch.arange(b * m, device=px.device) // m).unsqueeze(1)
+        idx.add_(torch.where(idx == trash, b * rows * cols - trash, sample * (rows * cols)))
+    out = torch.zeros(b * rows * cols + 1, dtype=dt, device=px.device)
+    out.index_add_(0, idx.view(-1), w.reshape(-1).to(dt))
+    return out[:-1].view(b, rows, cols)
