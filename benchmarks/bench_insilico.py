@@ -45,13 +45,22 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--steps", type=int, default=1500, help="cap on loss evaluations per fit")
     p.add_argument("--grid", default="3e-3,1e-2,3e-2", help="Laplacian weights tried on the held-out training image")
+    p.add_argument("--coarse", default="", help="coarse-to-fine: start on this net (e.g. 4x4), refine to 7x7")
+    p.add_argument("--cv", default="last", choices=("last", "loo"),
+                   help="Laplacian-weight validation: latest training image held out, or leave-one-out over all")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--json")
     p.add_argument("--markdown")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     plant = load_paint(a.paint, heliostats=["AA39"], with_records=False).plant
-    settings = insilico_settings(steps=a.steps, laplacian_grid=tuple(float(x) for x in a.grid.split(",") if x))
+    extra = {"laplacian_cv": a.cv}
+    if a.coarse:
+        from heliotwin.surfaces.learning import parse_grid
+
+        extra = dict(control_points=parse_grid(a.coarse), refine_to=(7, 7))
+    settings = insilico_settings(steps=a.steps, laplacian_grid=tuple(float(x) for x in a.grid.split(",") if x),
+                                 **extra)
     rows = []
     t0 = time.perf_counter()
     print(f"{'dist':>5} {'imgs':>4} {'n_dev mrad':>10} {'h_rms mm':>9} {'L1 ideal':>9} {'L1 learn':>9} {'IMP %':>8} "

@@ -37,3 +37,24 @@ def test_tiny_reconstruction_recovers_bump():
     m_ideal = surface_metrics(facets, ideal, truth)
     assert ll < 0.7 * li, (li, ll)
     assert m_learned["normal_deviation_mrad"] < 0.7 * m_ideal["normal_deviation_mrad"], (m_learned, m_ideal)
+
+
+def test_lbfgs_coarse_to_fine_and_leave_one_out_weight_choice():
+    from heliotwin.surfaces.reconstruct import train_with_early_stopping
+
+    facets, obs, _ = small_scene(distance=20.0, n=3)
+    sun = SunSettings(sunshape="buie", slope_error=0.5e-3)
+    u = torch.linspace(-1, 1, 5, dtype=torch.float64)
+    d_true = (1.5e-3 * (1 - u[:, None] ** 2) * (1 - u[None, :] ** 2)).expand(1, 4, 5, 5).clone()
+    truth = learnable_surfaces(facets, LearnableSurface(facets, (5, 5), (2, 2)).base, d_true, (2, 2))
+    with torch.no_grad():
+        obs.images, _, _ = predict_images(truth, obs, sun, samples=(12, 12), resolution=32)
+    s = TrainSettings(control_points=(3, 3), refine_to=(5, 5), degree=(2, 2), samples=(10, 10), resolution=32,
+                      loss="l1", optimizer="lbfgs", fix_gauge=True, continuation=(1.5,), continuation_iters=5,
+                      lbfgs_round=10, steps=30, laplacian_grid=(1e-3, 1e-2), laplacian_cv="loo")
+    model, info = train_with_early_stopping(facets, obs, sun, s, progress=False)
+    assert model.num_control_points == (5, 5)
+    assert info["laplacian_cv"] == "loo" and len(info["holdout"]) == 3 and set(info["laplacian_scores"]) == {1e-3, 1e-2}
+    ideal = LearnableSurface(facets, (5, 5), (2, 2)).surfaces()
+    assert surface_metrics(facets, model.surfaces(), truth)["normal_deviation_mrad"] < \
+        surface_metrics(facets, ideal, truth)["normal_deviation_mrad"]

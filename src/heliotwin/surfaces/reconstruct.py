@@ -117,6 +117,10 @@ class TrainSettings:
     laplacian_grid : tuple of float
         If given (and >= 2 training images), :func:`train_with_early_stopping` chooses the Laplacian
         weight among these by the L1 on the held-out latest training image (lbfgs mode).
+    laplacian_cv : {"last", "loo"}
+        How that weight is validated: ``"last"`` holds out the latest training image only; ``"loo"``
+        leave-one-out over all training images (each image held out once, mean held-out L1), a less
+        noisy choice that does not hinge on one sun position.
     """
 
     control_points: tuple = (7, 7)
@@ -149,6 +153,7 @@ class TrainSettings:
     lbfgs_round: int = 200
     tolerance: float = 1e-3
     laplacian_grid: tuple = ()
+    laplacian_cv: str = "last"
 
     def as_dict(self) -> dict:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
@@ -436,12 +441,9 @@ def _fit_lbfgs(model: LearnableSurface, train: Observations, sun: SunSettings, s
     """L-BFGS with blur continuation (see :class:`TrainSettings`); deterministic (analytic integrator)."""
     if s.integrator != "analytic":
         raise HeliotwinError("optimizer lbfgs needs the analytic integrator (noise-free loss)")
-    if s.refine_to is not None:
-        raise HeliotwinError("optimizer lbfgs does not support refine_to; use adam")
     meas = losses.normalize(train.images.to(torch.float32))
     kernels: dict = {}
     evals = 0
-    params = [p for p in model.parameters() if p.requires_grad]
 
     def objective(blur):
         target = blur_images(meas, blur)
@@ -459,19 +461,28 @@ def _fit_lbfgs(model: LearnableSurface, train: Observations, sun: SunSettings, s
             return total
         return closure
 
-    rounds = [(float(b), int(s.continuation_iters)) for b in s.continuation] + [(0.0, int(s.lbfgs_round))] * 1000
+    cont = [(float(b), int(s.continuation_iters)) for b in s.continuation]
+    rounds = cont + [(0.0, int(s.lbfgs_round))] * 1000
+    if s.refine_to is not None and tuple(s.refine_to) != tuple(model.num_control_points):
+        # Coarse-to-fine: the blur continuation and one sharp round on the coarse net, then refine (the
+        # represented surface is kept) and run the whole schedule again on the fine net.
+        rounds = cont + [(0.0, int(s.continuation_iters)), ("refine", 0)] + rounds
     previous = math.inf
     for blur, iters in rounds:
+        if blur == "refine":
+            model.refine(tuple(s.refine_to))
+            continue
         budget = int(s.steps) - evals
         if budget <= 0:
             break
+        params = [p for p in model.parameters() if p.requires_grad]
         opt = torch.optim.LBFGS(params, lr=1.0, max_iter=min(iters, budget), history_size=20,
                                 line_search_fn="strong_wolfe", tolerance_grad=1e-10, tolerance_change=1e-14)
         closure = objective(blur)
         value = float(opt.step(closure).detach())
         if log is not None:
             log.append({"step": evals, "train": getattr(closure, "data", value), "blur_px": blur, "total": value})
-        if blur == 0.0:
+        if blur == 0.0 and (s.refine_to is None or tuple(model.num_control_points) == tuple(s.refine_to)):
             if previous - value <= s.tolerance * abs(value):
                 break
             previous = value
@@ -615,16 +626,28 @@ def train_with_early_stopping(facets: Facets, train: Observations, sun: SunSetti
     if settings.optimizer == "lbfgs":
         # L-BFGS runs to convergence; what is chosen on the held-out latest image is the smoothness weight.
         if settings.laplacian_grid and len(train) >= 2:
-            head, held = train.subset(range(len(train) - 1)), train.subset([len(train) - 1])
+            n = len(train)
+            if settings.laplacian_cv == "loo":
+                folds = list(range(n))
+            elif settings.laplacian_cv == "last":
+                folds = [n - 1]
+            else:
+                raise HeliotwinError(f"unknown laplacian_cv {settings.laplacian_cv!r}; expected last or loo")
             scores = {}
             for w in settings.laplacian_grid:
-                m1 = fit_surface(facets, head, sun, dataclasses_replace(settings, laplacian=float(w)), progress=False, initial=initial, initial_degree=initial_degree)
-                scores[float(w)] = float(torch.tensor(evaluate_images(
-                    m1.surfaces(), held, sun, samples=settings.samples, resolution=settings.resolution,
-                    size_m=settings.size_m)["l1"]).mean())
+                fold_l1 = []
+                for k in folds:
+                    head, held = train.subset([i for i in range(n) if i != k]), train.subset([k])
+                    m1 = fit_surface(facets, head, sun, dataclasses_replace(settings, laplacian=float(w)),
+                                     progress=False, initial=initial, initial_degree=initial_degree)
+                    fold_l1.append(float(torch.tensor(evaluate_images(
+                        m1.surfaces(), held, sun, samples=settings.samples, resolution=settings.resolution,
+                        size_m=settings.size_m)["l1"]).mean()))
+                scores[float(w)] = sum(fold_l1) / len(fold_l1)
             best = min(scores, key=scores.get)
             settings = dataclasses_replace(settings, laplacian=best)
-            info.update(holdout=train.ids[-1], laplacian_scores=scores)
+            info.update(holdout=[train.ids[k] for k in folds] if len(folds) > 1 else train.ids[-1],
+                        laplacian_scores=scores, laplacian_cv=settings.laplacian_cv)
         info["laplacian"] = settings.laplacian
         model = fit_surface(facets, train, sun, settings, progress=progress, initial=initial, initial_degree=initial_degree)
         info["best_step"] = model.steps_run
