@@ -36,7 +36,7 @@ import torch.nn.functional as F
 from ..errors import HeliotwinError
 from . import metrics
 from .gradient import PRIOR_SIGMA as GRADIENT_SIGMA
-from .methods import FIT_FOCAL_SPOT, MIN_TRAIN, fit_spots, stone8_field_fit
+from .methods import FIT_FOCAL_SPOT, prealign
 from .model import Calibrated
 from .params import STONE8, actuator_margin, apply_deviations, check_names, kinds, units
 from .records import RecordBatch
@@ -296,21 +296,9 @@ def fit_images_method(nominal, train, validation, *, seed=0, progress=False, ima
     images = dict(images or {})
     sun = sun or SunSettings()
     h = nominal.num_heliostats
-    ok = train.counts() >= MIN_TRAIN
-    tr = fit_spots(train.subset(ok[train.heliostat_index]), fit_focal_spot)  # centroid terms, as lm/gradient
-    va = validation.subset(ok[validation.heliostat_index]) if validation is not None else None
-    d8, fp = stone8_field_fit(nominal, tr, ok, field_prior=field_prior)
     names = check_names(names)
-    p = len(names)
-    mu = torch.zeros(p, dtype=torch.float64)
-    sig = torch.tensor([GRADIENT_SIGMA[k] for k in kinds(names)], dtype=torch.float64)
-    init = torch.zeros(h, p, dtype=torch.float64)
-    for j, n in enumerate(STONE8):
-        if n in names:
-            i = names.index(n)
-            init[:, i] = d8[:, j]
-            if fp is not None:
-                mu[i], sig[i] = fp[0][j], fp[1][j]
+    # centroid terms and pre-alignment exactly as lm/gradient
+    ok, tr, va, init, mu, sig, fp = prealign(nominal, train, validation, names, fit_focal_spot, field_prior)
     delta, info = fit_images(nominal, tr, va, images, surfaces, targets, sun, names=names, init=init, prior_mean=mu,
                              prior_sigma=sig, progress=progress, **options)
     delta[~ok] = 0.0

@@ -117,7 +117,6 @@ def fit_lm_method(nominal, train, validation, *, seed=0, progress=False, field_p
     bootstrap resamples (bagging: with 10 records one outlier or one unlucky sun position otherwise
     decides the extrapolation).
     """
-    h = nominal.num_heliostats
     seen = RecordBatch.concatenate([train, validation]) if validation is not None and len(validation) else train
     ok = seen.counts() >= MIN_TRAIN
     fit_on = fit_spots(seen.subset(ok[seen.heliostat_index]), fit_focal_spot)
@@ -129,21 +128,32 @@ def fit_lm_method(nominal, train, validation, *, seed=0, progress=False, field_p
     return Calibrated("lm", list(train.heliostat_ids), nominal, STONE8, delta, ok, extras=extras)
 
 
-def fit_gradient_method(nominal, train, validation, *, seed=0, progress=False, field_prior=True,
-                        names=GRADIENT_PARAMETERS, optimizer="lbfgs", iterations=25, refit=True,
-                        fit_focal_spot=FIT_FOCAL_SPOT) -> Calibrated:
-    """``gradient``: all deviations of the chain, pre-aligned by the Stone/Jülich LM fit, then LBFGS.
+def prealign(nominal, train, validation, names, fit_focal_spot, field_prior):
+    """Shared start of the chain methods: Stone/Jülich LM pre-alignment and the prior of every parameter.
 
-    Prior: the field prior on the Stone/Jülich 8 (they carry the field-wide systematic deviations), the
-    nominal prior :data:`~heliotwin.calibrate.gradient.PRIOR_SIGMA` on the rest; early stopping on the
-    validation records restores each heliostat's best state.
+    Parameters
+    ----------
+    names : tuple of str
+        Parameters the method learns (see :mod:`heliotwin.calibrate.params`).
+
+    Returns
+    -------
+    ok : torch.Tensor of bool, [H]
+        Heliostats with enough training records.
+    train, validation : RecordBatch
+        Restricted to ``ok`` heliostats, training spots from ``fit_focal_spot``.
+    init : torch.Tensor, [H, P]
+        Initial deviations (the Stone/Jülich fit on its 8 parameters, 0 elsewhere) [parameter units].
+    prior_mean, prior_sigma : torch.Tensor, [P]
+        Field prior on the Stone/Jülich 8 where available, nominal prior on the rest.
+    field_prior_fit : tuple or None
+        The field prior (mean, sigma) of the Stone/Jülich 8, if one was fitted.
     """
     h = nominal.num_heliostats
     ok = train.counts() >= MIN_TRAIN
     tr = fit_spots(train.subset(ok[train.heliostat_index]), fit_focal_spot)
     va = validation.subset(ok[validation.heliostat_index]) if validation is not None else None
     d8, fp = stone8_field_fit(nominal, tr, ok, field_prior=field_prior)
-    names = tuple(names)
     p = len(names)
     mu = torch.zeros(p, dtype=torch.float64)
     sig = torch.tensor([GRADIENT_SIGMA[k] for k in kinds(names)], dtype=torch.float64)
@@ -154,6 +164,20 @@ def fit_gradient_method(nominal, train, validation, *, seed=0, progress=False, f
             init[:, i] = d8[:, j]
             if fp is not None:
                 mu[i], sig[i] = fp[0][j], fp[1][j]
+    return ok, tr, va, init, mu, sig, fp
+
+
+def fit_gradient_method(nominal, train, validation, *, seed=0, progress=False, field_prior=True,
+                        names=GRADIENT_PARAMETERS, optimizer="lbfgs", iterations=25, refit=True,
+                        fit_focal_spot=FIT_FOCAL_SPOT) -> Calibrated:
+    """``gradient``: all deviations of the chain, pre-aligned by the Stone/Jülich LM fit, then LBFGS.
+
+    Prior: the field prior on the Stone/Jülich 8 (they carry the field-wide systematic deviations), the
+    nominal prior :data:`~heliotwin.calibrate.gradient.PRIOR_SIGMA` on the rest; early stopping on the
+    validation records restores each heliostat's best state.
+    """
+    ok, tr, va, init, mu, sig, fp = prealign(nominal, train, validation, tuple(names), fit_focal_spot, field_prior)
+    names = tuple(names)
     delta, info = fit_gradient(nominal, tr, va, names=names, prior_mean=mu, prior_sigma=sig, init=init,
                                optimizer=optimizer, iterations=iterations, progress=progress)
     if refit and va is not None and len(va):
