@@ -1,7 +1,6 @@
 """Calibration on the real PAINT records (Jülich): lm/gradient improve drastically; bad input is reported."""
 import json
 import os
-import shutil
 from pathlib import Path
 
 import pytest

@@ -1,7 +1,6 @@
 """AA39 data reading for surface learning, and the CLI's handling of bad input."""
 from __future__ import annotations
 
-import json
 import math
 import subprocess
 import sys

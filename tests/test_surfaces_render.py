@@ -1,7 +1,6 @@
 """The surface-learning integrator (splat * exact sun-cone kernel) agrees with raytrace.trace_analytic."""
 from __future__ import annotations
 
-import torch
 
 from heliotwin.field import facets as facet_ops
 from heliotwin.field.plant import SunSettings

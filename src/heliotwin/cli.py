@@ -15,7 +15,7 @@ import time
 import torch
 
 from .errors import HeliotwinError
-from .io.report import atomic_path, write_json
+from .io.report import write_json
 
 
 def _csv(text: str | None) -> list[str] | None:

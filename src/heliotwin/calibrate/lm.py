@@ -9,7 +9,6 @@ keeps the ill-conditioned directions (axis tilts versus offsets) from fitting no
 """
 from __future__ import annotations
 
-import numpy as np
 import torch
 from scipy.optimize import least_squares
 

@@ -40,7 +40,6 @@ azimuth, solstice, balanced, high_variance
 """
 from __future__ import annotations
 
-import math
 from datetime import datetime, timezone
 
 import numpy as np

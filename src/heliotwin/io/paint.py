@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import torch
 
 from ..errors import InputFileError
-from ..field.plant import Facets, Field, Kinematics, Plant, Site, SunSettings, Surfaces
+from ..field.plant import Facets, Field, Kinematics, Plant, Site, SunSettings
 from ..field.targets import CylinderTarget, PlanarTarget
 from ..site import wgs84_to_enu
 

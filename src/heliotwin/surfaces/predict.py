@@ -17,7 +17,7 @@ import statistics
 import torch
 
 from ..errors import HeliotwinError
-from ..field.plant import Facets, Kinematics, SunSettings, Surfaces
+from ..field.plant import Kinematics, SunSettings, Surfaces
 from ..field.targets import PlanarTarget
 from ..sun import daylight_times, direction_from_paint_angles
 from . import losses
