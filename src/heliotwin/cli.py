@@ -238,23 +238,26 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv=None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+def run_command(args, prefix: str = "heliotwin: ") -> int:
+    """Run a parsed command; user errors become one line ``<prefix>error: ...`` on stderr and exit code 2.
+
+    Shared by the ``heliotwin`` command and the stand-alone module entry points of ``calibrate`` and
+    ``surfaces``, so every command reports errors the same way.
+    """
     try:
         return int(args.func(args) or 0)
-    except HeliotwinError as exc:
-        print(f"heliotwin: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyError as exc:  # unknown heliostat / target names from the plant containers
-        print(f"heliotwin: error: {exc.args[0] if exc.args else exc}", file=sys.stderr)
-        return 2
-    except NotImplementedError as exc:
-        print(f"heliotwin: error: {exc}", file=sys.stderr)
+    except (HeliotwinError, KeyError, NotImplementedError, OSError) as exc:
+        # KeyError: unknown heliostat / target names from the plant containers (its str() adds quotes).
+        msg = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
+        print(f"{prefix}error: {msg.splitlines()[0] if msg else type(exc).__name__}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("heliotwin: interrupted", file=sys.stderr)
+        print(f"{prefix}interrupted", file=sys.stderr)
         return 130
+
+
+def main(argv=None) -> int:
+    return run_command(build_parser().parse_args(argv))
 
 
 if __name__ == "__main__":

@@ -235,12 +235,9 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="heliotwin-calibrate", description="heliotwin kinematic calibration")
     sub = parser.add_subparsers(dest="command", required=True)
     register(sub)
-    args = parser.parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except (HeliotwinError, NotImplementedError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    from ..cli import run_command
+
+    return run_command(parser.parse_args(argv), prefix="")
 
 
 if __name__ == "__main__":

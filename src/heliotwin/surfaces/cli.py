@@ -182,18 +182,12 @@ def register(subparsers) -> None:
 
 def main(argv=None) -> int:
     """Stand-alone entry point; returns the exit status (0 ok, 2 user error)."""
-    from ..errors import HeliotwinError
+    from ..cli import run_command
 
     parser = argparse.ArgumentParser(prog="heliotwin", description="heliotwin surface learning")
     sub = parser.add_subparsers(dest="command", required=True)
     register(sub)
-    args = parser.parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except (HeliotwinError, KeyError, OSError) as exc:
-        msg = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
-        print(f"error: {msg.splitlines()[0] if msg else type(exc).__name__}", file=sys.stderr)
-        return 2
+    return run_command(parser.parse_args(argv), prefix="")
 
 
 if __name__ == "__main__":
