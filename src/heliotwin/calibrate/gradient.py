@@ -37,6 +37,46 @@ BOUNDS = {"angle": 0.5, "tilt": 0.2, "increment": 0.2, "translation": 0.5, "actu
 MIN_MARGIN = 1e-3
 
 
+def make_optimizer(x: torch.Tensor, objective, optimizer: str, lr: float, lbfgs_max_iter: int = 20):
+    """Optimiser over the deviation tensor ``x`` and the closure that evaluates ``objective(x)``.
+
+    Parameters
+    ----------
+    x : torch.Tensor, [H, P]
+        Leaf tensor of deviations (natural units), requires grad.
+    objective : callable
+        ``objective(x) -> scalar`` loss.
+    optimizer : {"lbfgs", "adam"}
+    lr : float
+        Adam step size (L-BFGS starts from a unit step with a strong-Wolfe line search).
+    lbfgs_max_iter : int
+        Function evaluations per L-BFGS ``step``.
+
+    Returns
+    -------
+    opt : torch.optim.Optimizer
+    closure : callable
+        For ``opt.step(closure)``.
+    """
+    if optimizer == "lbfgs":
+        opt = torch.optim.LBFGS([x], lr=1.0, max_iter=lbfgs_max_iter, history_size=20, line_search_fn="strong_wolfe",
+                                tolerance_grad=1e-9, tolerance_change=1e-12)
+    elif optimizer == "adam":
+        opt = torch.optim.Adam([x], lr=lr)
+    else:
+        from ..errors import HeliotwinError
+
+        raise HeliotwinError(f"unknown optimizer {optimizer!r}; known: lbfgs, adam")
+
+    def closure():
+        opt.zero_grad()
+        loss = objective(x)
+        loss.backward()
+        return loss
+
+    return opt, closure
+
+
 def fit_gradient(nominal: Kinematics, train: RecordBatch, validation: RecordBatch | None = None, *,
                  names=GRADIENT_PARAMETERS, prior_mean: torch.Tensor | None = None,
                  prior_sigma: torch.Tensor | dict | None = None, noise: float = 1e-3, optimizer: str = "lbfgs",
@@ -116,21 +156,7 @@ def fit_gradient(nominal: Kinematics, train: RecordBatch, validation: RecordBatc
             s = torch.zeros(h, dtype=torch.float64).index_add_(0, validation.heliostat_index, e)
             return torch.where(counts_val > 0, s / counts_val.clamp_min(1), torch.full_like(s, math.inf))
 
-    if optimizer == "lbfgs":
-        opt = torch.optim.LBFGS([x], lr=1.0, max_iter=20, history_size=20, line_search_fn="strong_wolfe",
-                                tolerance_grad=1e-9, tolerance_change=1e-12)
-    elif optimizer == "adam":
-        opt = torch.optim.Adam([x], lr=lr)
-    else:
-        from ..errors import HeliotwinError
-
-        raise HeliotwinError(f"unknown optimizer {optimizer!r}; known: lbfgs, adam")
-
-    def closure():
-        opt.zero_grad()
-        loss = objective(x)
-        loss.backward()
-        return loss
+    opt, closure = make_optimizer(x, objective, optimizer, lr)
 
     best = x.detach().clone()
     best_err = val_error()

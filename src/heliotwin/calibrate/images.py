@@ -36,6 +36,7 @@ import torch.nn.functional as F
 from ..errors import HeliotwinError
 from . import metrics
 from .gradient import PRIOR_SIGMA as GRADIENT_SIGMA
+from .gradient import make_optimizer
 from .methods import FIT_FOCAL_SPOT, prealign
 from .model import Calibrated
 from .params import STONE8, actuator_margin, apply_deviations, check_names, kinds, units
@@ -233,19 +234,7 @@ def fit_images(nominal, train: RecordBatch, validation: RecordBatch | None, imag
         return {k: float(v.mean()) for k, v in t.items()}
 
     before = mean_terms()
-    if optimizer == "lbfgs":
-        opt = torch.optim.LBFGS([x], lr=1.0, max_iter=lbfgs_inner, history_size=20, line_search_fn="strong_wolfe",
-                                tolerance_grad=1e-9, tolerance_change=1e-12)
-    elif optimizer == "adam":
-        opt = torch.optim.Adam([x], lr=lr)
-    else:
-        raise HeliotwinError(f"unknown optimizer {optimizer!r}; known: lbfgs, adam")
-
-    def closure():
-        opt.zero_grad()
-        loss = objective(x)
-        loss.backward()
-        return loss
+    opt, closure = make_optimizer(x, objective, optimizer, lr, lbfgs_max_iter=lbfgs_inner)
 
     best = x.detach().clone()
     best_err = val_loss()
