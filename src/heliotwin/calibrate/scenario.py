@@ -25,6 +25,7 @@ from datetime import datetime, timezone
 import torch
 
 from ..errors import InputFileError, ScenarioVersionError
+from ..io.hdf5 import open_for_reading
 from ..field.plant import Kinematics
 
 FORMAT = "heliotwin-calibration"
@@ -80,16 +81,8 @@ def load_calibration(path) -> dict:
         ``method``, ``heliostats``: dict of HID -> {"kinematics": Kinematics (1 heliostat),
         "deviations": dict name -> value, "network": {"config": dict, "state": dict} or None}.
     """
-    import h5py
-
     path = os.fspath(path)
-    if not os.path.exists(path):
-        raise InputFileError(path, "file not found")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise InputFileError(path, f"not an HDF5 file ({exc})") from None
-    with f:
+    with open_for_reading(path) as f:
         fmt = f.attrs.get("format")
         fmt = fmt.decode() if isinstance(fmt, bytes) else fmt
         if fmt != FORMAT:

@@ -33,6 +33,7 @@ import torch
 
 from .. import nurbs
 from ..errors import HeliotwinError, InputFileError
+from .hdf5 import open_for_reading
 from ..field.plant import Facets
 
 POINTS = "surface_points"
@@ -83,17 +84,9 @@ def read_deflectometry(path) -> list[tuple[torch.Tensor, torch.Tensor]]:
         missing dataset, a shape other than [N, 3] (or different N for points and normals), NaN/inf
         values, or zero-length normals. The message names the file and the dataset.
     """
-    import h5py  # local: keeps `import heliotwin` light
-
     path = Path(path)
-    if not path.is_file():
-        raise InputFileError(path, "file not found")
-    try:
-        handle = h5py.File(path, "r")
-    except OSError as exc:
-        raise InputFileError(path, f"not a readable HDF5 file ({exc.__class__.__name__})") from None
     out = []
-    with handle as f:
+    with open_for_reading(path) as f:
         numbers = sorted(int(m.group(1)) for key in f.keys() if (m := _FACET_GROUP.match(key)))
         if not numbers:
             raise InputFileError(path, "no facet groups (expected facet1, facet2, ...)", field="facet1")

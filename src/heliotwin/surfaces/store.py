@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from ..errors import HeliotwinError, InputFileError
+from ..io.hdf5 import open_for_reading
 from ..field.plant import Facets, Kinematics, SunSettings, Surfaces
 from ..field.targets import PlanarTarget
 
@@ -125,16 +126,8 @@ def save_learned(path, item: LearnedHeliostat) -> None:
 
 def load_learned(path) -> LearnedHeliostat:
     """Read a file written by :func:`save_learned`; one-line :class:`InputFileError` on any problem."""
-    import h5py
-
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise InputFileError(path, "file not found")
-    try:
-        h5 = h5py.File(path, "r")
-    except OSError as exc:
-        raise InputFileError(path, f"not an HDF5 file ({exc})") from None
-    with h5:
+    with open_for_reading(path) as h5:
         if h5.attrs.get("format") != FORMAT:
             raise InputFileError(path, f"not a learned-surface file (format {h5.attrs.get('format')!r})", field="format")
         if int(h5.attrs.get("version", -1)) != VERSION:
