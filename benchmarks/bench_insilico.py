@@ -1,13 +1,16 @@
 """In-silico study: distance x training-image count table (the published protocol).
 
-    python benchmarks/bench_insilico.py [--distances 25,50,100,200] [--images 1,2,4,8,16] [--seed 0] \
-        [--steps 1500] [--grid 3e-3,1e-2,3e-2] [--threads 2] [--json insilico.json] [--markdown insilico.md]
+    python benchmarks/bench_insilico.py [--distances 25,50,100,200] [--images 1,2,4,8,16] [--seeds 0] \
+        [--window aim|centred] [--steps 1500] [--grid 1e-5,3e-5,1e-4,3e-4] [--threads 2] \
+        [--json insilico.json] [--markdown insilico.md]
 
 Prints one row per cell: mean normal deviation [mrad], piston-free height RMS [mm], mean test L1 of the ideal
 and learned surfaces and IMP = L1(ideal)/L1(learned) - 1 (see heliotwin.surfaces.insilico), the Laplacian
 weight chosen on the held-out latest training image, loss evaluations and seconds; then the same table as
-markdown. Settings: :func:`heliotwin.surfaces.insilico.insilico_settings` (L-BFGS + blur continuation, L1 loss,
-gauge-fixed), 7x7 degree-3 facets, 24x24 samples per facet, 64x64 px 6 m windows, 5 test images per cell.
+markdown. Settings: :func:`heliotwin.surfaces.insilico.insilico_settings` (L-BFGS + blur continuation, L2 loss,
+gauge-fixed), 7x7 degree-3 facets, 32x32 samples per facet, 64x64 px 6 m windows fixed on the aim point (known
+kinematics; ``--window centred`` for spot-centred ones), 5 test images per cell. With several ``--seeds`` each
+cell is run per seed and the markdown table also gives the mean over seeds.
 """
 from __future__ import annotations
 
@@ -26,25 +29,43 @@ PAINT = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "p
 
 
 def markdown(rows) -> str:
-    out = ["| distance [m] | images | normal dev. [mrad] | height RMS [mm] | L1 ideal | L1 learned | IMP [%] | "
-           "Laplacian | evals | s |", "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    out = ["| distance [m] | images | seed | normal dev. [mrad] | height RMS [mm] | L1 ideal | L1 learned | IMP [%] | "
+           "Laplacian | evals | s |", "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         li = sum(r["test_l1_ideal"]) / len(r["test_l1_ideal"])
         ll = sum(r["test_l1_learned"]) / len(r["test_l1_learned"])
-        out.append(f"| {r['distance_m']:.0f} | {r['train_images']} | {r['normal_deviation_mrad']:.3f} | "
+        out.append(f"| {r['distance_m']:.0f} | {r['train_images']} | {r['seed']} | {r['normal_deviation_mrad']:.3f} | "
                    f"{r['height_rms_mm']:.3f} | {li:.3f} | {ll:.4f} | {100 * r['imp']:.0f} | {r['laplacian']:g} | "
                    f"{r['loss_evaluations']} | {r['seconds']:.1f} |")
     return "\n".join(out)
 
 
+def mean_over_seeds(rows) -> str:
+    """Markdown: per cell the mean over seeds of normal deviation, height RMS and IMP."""
+    cells: dict = {}
+    for r in rows:
+        cells.setdefault((r["distance_m"], r["train_images"]), []).append(r)
+    out = ["| distance [m] | images | seeds | mean normal dev. [mrad] | max | mean height RMS [mm] | min IMP [%] |",
+           "|---:|---:|---:|---:|---:|---:|---:|"]
+    for (d, n), rs in cells.items():
+        nd = [r["normal_deviation_mrad"] for r in rs]
+        out.append(f"| {d:.0f} | {n} | {len(rs)} | {sum(nd) / len(nd):.3f} | {max(nd):.3f} | "
+                   f"{sum(r['height_rms_mm'] for r in rs) / len(rs):.3f} | {100 * min(r['imp'] for r in rs):.0f} |")
+    return "\n".join(out)
+
+
 def main(argv=None) -> int:
+    default = insilico_settings()
     p = argparse.ArgumentParser()
     p.add_argument("--paint", default=PAINT)
     p.add_argument("--distances", default="25,50,100,200")
     p.add_argument("--images", default="1,2,4,8,16")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--steps", type=int, default=1500, help="cap on loss evaluations per fit")
-    p.add_argument("--grid", default="3e-3,1e-2,3e-2", help="Laplacian weights tried on the held-out training image")
+    p.add_argument("--seeds", default="0", help="comma-separated seeds (each cell is run once per seed)")
+    p.add_argument("--window", default="aim", choices=("aim", "centred"),
+                   help="windows fixed on the aim point (known kinematics) or centred on each spot")
+    p.add_argument("--steps", type=int, default=default.steps, help="cap on loss evaluations per fit")
+    p.add_argument("--grid", default=",".join(f"{w:g}" for w in default.laplacian_grid),
+                   help="Laplacian weights tried on the held-out training image")
     p.add_argument("--coarse", default="", help="coarse-to-fine: start on this net (e.g. 4x4), refine to 7x7")
     p.add_argument("--cv", default="last", choices=("last", "loo"),
                    help="Laplacian-weight validation: latest training image held out, or leave-one-out over all")
@@ -58,28 +79,31 @@ def main(argv=None) -> int:
     if a.coarse:
         from heliotwin.surfaces.learning import parse_grid
 
-        extra = dict(control_points=parse_grid(a.coarse), refine_to=(7, 7))
+        extra.update(control_points=parse_grid(a.coarse), refine_to=(7, 7))
     settings = insilico_settings(steps=a.steps, laplacian_grid=tuple(float(x) for x in a.grid.split(",") if x),
                                  **extra)
     rows = []
     t0 = time.perf_counter()
-    print(f"{'dist':>5} {'imgs':>4} {'n_dev mrad':>10} {'h_rms mm':>9} {'L1 ideal':>9} {'L1 learn':>9} {'IMP %':>8} "
-          f"{'lap':>6} {'evals':>5} {'s':>6}")
+    print(f"{'dist':>5} {'imgs':>4} {'seed':>4} {'n_dev mrad':>10} {'h_rms mm':>9} {'L1 ideal':>9} {'L1 learn':>9} "
+          f"{'IMP %':>8} {'lap':>6} {'evals':>5} {'s':>6}")
     for d in (float(x) for x in a.distances.split(",")):
         for n in (int(x) for x in a.images.split(",")):
-            r = run_case(plant, d, n, seed=a.seed, settings=settings)
-            rows.append(r)
-            li = sum(r["test_l1_ideal"]) / len(r["test_l1_ideal"])
-            ll = sum(r["test_l1_learned"]) / len(r["test_l1_learned"])
-            print(f"{d:5.0f} {n:4d} {r['normal_deviation_mrad']:10.3f} {r['height_rms_mm']:9.3f} {li:9.3f} {ll:9.4f} "
-                  f"{100 * r['imp']:8.0f} {r['laplacian']:6g} {r['loss_evaluations']:5d} {r['seconds']:6.1f}", flush=True)
-    table = markdown(rows)
+            for seed in (int(x) for x in a.seeds.split(",")):
+                r = run_case(plant, d, n, seed=seed, settings=settings, window=a.window)
+                rows.append(r)
+                li = sum(r["test_l1_ideal"]) / len(r["test_l1_ideal"])
+                ll = sum(r["test_l1_learned"]) / len(r["test_l1_learned"])
+                print(f"{d:5.0f} {n:4d} {seed:4d} {r['normal_deviation_mrad']:10.3f} {r['height_rms_mm']:9.3f} {li:9.3f} "
+                      f"{ll:9.4f} {100 * r['imp']:8.0f} {r['laplacian']:6g} {r['loss_evaluations']:5d} "
+                      f"{r['seconds']:6.1f}", flush=True)
+    table = markdown(rows) + "\n\n" + mean_over_seeds(rows)
     print()
     print(table)
-    print(f"\ntotal {time.perf_counter() - t0:.0f} s on {a.threads} thread(s); settings {settings.as_dict()}")
+    print(f"\ntotal {time.perf_counter() - t0:.0f} s on {a.threads} thread(s); window {a.window}; "
+          f"settings {settings.as_dict()}")
     if a.json:
         with open(a.json, "w", encoding="utf-8") as fh:
-            json.dump({"settings": settings.as_dict(), "seed": a.seed, "rows": rows}, fh, indent=2)
+            json.dump({"settings": settings.as_dict(), "seeds": a.seeds, "window": a.window, "rows": rows}, fh, indent=2)
     if a.markdown:
         with open(a.markdown, "w", encoding="utf-8") as fh:
             fh.write(table + "\n")

@@ -7,7 +7,7 @@ from heliotwin.field.plant import SunSettings
 from heliotwin.surfaces import losses
 from heliotwin.surfaces.insilico import surface_metrics
 from heliotwin.surfaces.learning import LearnableSurface, learnable_surfaces
-from heliotwin.surfaces.reconstruct import TrainSettings, fit_surface, predict_images
+from heliotwin.surfaces.reconstruct import Observations, TrainSettings, fit_surface, predict_images
 
 from test_surfaces_losses import small_scene
 
@@ -58,3 +58,43 @@ def test_lbfgs_coarse_to_fine_and_leave_one_out_weight_choice():
     ideal = LearnableSurface(facets, (5, 5), (2, 2)).surfaces()
     assert surface_metrics(facets, model.surfaces(), truth)["normal_deviation_mrad"] < \
         surface_metrics(facets, ideal, truth)["normal_deviation_mrad"]
+
+
+def test_common_tilt_is_learned_in_fixed_windows_and_invisible_in_centred_ones():
+    """A 1 mrad tilt of the whole mirror only moves the spot: centred windows cannot see it (and the gauge
+    keeps it out of the learned surface); windows fixed on the aim point (known kinematics) can."""
+    from heliotwin.surfaces.learning import gauge_basis
+
+    facets, obs, target = small_scene(distance=20.0, n=3)
+    sun = SunSettings(sunshape="buie", slope_error=0.5e-3)
+    net, deg = (4, 4), (2, 2)
+    tilt = gauge_basis(facets, net, deg, pistons=False)[:, 0]  # unit-norm common east-west tilt mode
+    # Scale to a 1 mrad slope: the mode is a * s * |canting_e| with s in [-1, 1] spanning 2 |canting_e|.
+    slope = (tilt.reshape(4, *net)[0, -1, 0] - tilt.reshape(4, *net)[0, 0, 0]) / (2 * 0.39)
+    d_true = (1e-3 * tilt / slope).reshape(1, 4, *net)
+    base = LearnableSurface(facets, net, deg).base
+    truth = learnable_surfaces(facets, base, d_true, deg)
+    ideal = LearnableSurface(facets, net, deg).surfaces()
+    m_ideal = surface_metrics(facets, ideal, truth)["normal_deviation_mrad"]
+    assert abs(m_ideal - 1.0) < 0.05, m_ideal
+    kw = dict(samples=(12, 12), resolution=32)
+    fixed = Observations(obs.sun, obs.rotation, obs.concentrator, obs.targets, None, obs.ids,
+                         target.to_local(target.center.expand(3, 3)))
+    with torch.no_grad():
+        obs.images, c_truth, _ = predict_images(truth, obs, sun, **kw)
+        fixed.images, _, _ = predict_images(truth, fixed, sun, **kw)
+        centred_ideal, c_ideal, _ = predict_images(ideal, obs, sun, **kw)
+        fixed_ideal, _, _ = predict_images(ideal, fixed, sun, **kw)
+    # The spot moves by ~2 * 1 mrad * 20 m = 4 cm; centred images barely differ, fixed ones do.
+    shift = float((c_truth - c_ideal).norm(dim=-1).mean())
+    assert 0.03 < shift < 0.05, shift
+    l1_centred = float(losses.l1(centred_ideal, obs.images).mean())
+    l1_fixed = float(losses.l1(fixed_ideal, fixed.images).mean())
+    assert l1_fixed > 5 * l1_centred, (l1_centred, l1_fixed)
+    s = TrainSettings(control_points=net, degree=deg, samples=(12, 12), resolution=32, loss="l1", optimizer="lbfgs",
+                      fix_gauge=True, continuation=(), lbfgs_round=40, steps=80, laplacian=1e-3)
+    learned_fixed = fit_surface(facets, fixed, sun, s, progress=False)
+    learned_centred = fit_surface(facets, obs, sun, s, progress=False)
+    assert not learned_fixed.gauge_tilt and learned_centred.gauge_tilt
+    assert surface_metrics(facets, learned_fixed.surfaces(), truth)["normal_deviation_mrad"] < 0.2
+    assert surface_metrics(facets, learned_centred.surfaces(), truth)["normal_deviation_mrad"] > 0.9

@@ -128,7 +128,8 @@ def heights_to_displacement(heights: torch.Tensor, num_control_points, degree) -
     return d.reshape(1, h.shape[0], nu, nv)
 
 
-def gauge_basis(facets: Facets, num_control_points, degree, pistons: bool = True) -> torch.Tensor:
+def gauge_basis(facets: Facets, num_control_points, degree, pistons: bool = True, common_tilt: bool = True
+                ) -> torch.Tensor:
     """Orthonormal basis of the displacement modes invisible in centred-window images.
 
     A flat facet's control points sit at the Greville abscissae, so ``d_ij = a s_i |canting_e| +
@@ -136,10 +137,12 @@ def gauge_basis(facets: Facets, num_control_points, degree, pistons: bool = True
     ``(a, b)`` on every facet is a rigid tilt of the whole mirror, which only translates the spot (removed
     by centring the window). A facet piston (constant ``d``) does not change any normal.
 
+    ``common_tilt=False`` leaves the rigid tilt out (images in fixed windows with known kinematics see it).
+
     Returns
     -------
     torch.Tensor, [F nu nv, K], float64
-        ``K = 2`` (+ F with ``pistons``) orthonormal columns.
+        ``K = 2`` (with ``common_tilt``) + F (with ``pistons``) orthonormal columns.
     """
     nu, nv = (int(x) for x in num_control_points)
     p, q = (int(x) for x in degree)
@@ -148,8 +151,10 @@ def gauge_basis(facets: Facets, num_control_points, degree, pistons: bool = True
     t = 2.0 * nurbs.greville_abscissae(nv, q, dtype=torch.float64) - 1.0
     le = facets.canting_e[0].to(torch.float64).norm(dim=-1)
     ln = facets.canting_n[0].to(torch.float64).norm(dim=-1)
-    modes = [(le[:, None, None] * s[None, :, None]).expand(nf, nu, nv).reshape(-1),
-             (ln[:, None, None] * t[None, None, :]).expand(nf, nu, nv).reshape(-1)]
+    modes = []
+    if common_tilt:
+        modes += [(le[:, None, None] * s[None, :, None]).expand(nf, nu, nv).reshape(-1),
+                  (ln[:, None, None] * t[None, None, :]).expand(nf, nu, nv).reshape(-1)]
     if pistons:
         eye = torch.eye(nf, dtype=torch.float64)
         modes += [eye[k][:, None, None].expand(nf, nu, nv).reshape(-1) for k in range(nf)]
@@ -181,13 +186,17 @@ class LearnableSurface(nn.Module):
         :func:`gauge_basis`): a common tilt of all facets (it only moves the whole spot, and the window
         follows the spot) and each facet's piston. The represented surface then keeps the ideal mean
         orientation and each facet's mean height; all other shapes are unaffected.
+    gauge_tilt : bool
+        Include the common tilt in that projection (default). False for images in fixed windows taken with
+        known kinematics, where the spot's position in the window shows the common tilt.
     """
 
     def __init__(self, facets: Facets, num_control_points=(7, 7), degree=(3, 3), learn_weights: bool = False,
                  initial: torch.Tensor | None = None, initial_degree=None, dtype=torch.float64,
-                 fix_gauge: bool = False):
+                 fix_gauge: bool = False, gauge_tilt: bool = True):
         super().__init__()
         self.fix_gauge = bool(fix_gauge)
+        self.gauge_tilt = bool(gauge_tilt)
         self.facets = Facets(*(t.to(dtype) for t in (facets.translation, facets.canting_e, facets.canting_n)))
         if self.facets.translation.dim() != 3 or self.facets.translation.shape[0] != 1:
             raise HeliotwinError("LearnableSurface holds exactly one heliostat ([1, F, 3] facets)")
@@ -217,7 +226,7 @@ class LearnableSurface(nn.Module):
         """Displacements along the facet normals [m], ``[1, F, nu, nv]`` (gauge-projected if ``fix_gauge``)."""
         d = self.displacement_mm
         if self.fix_gauge:
-            q = gauge_basis(self.facets, self.num_control_points, self.degree).to(d)
+            q = gauge_basis(self.facets, self.num_control_points, self.degree, common_tilt=self.gauge_tilt).to(d)
             change = (d - self.start_mm).reshape(-1)
             d = self.start_mm + (change - q @ (q.T @ change)).reshape(d.shape)
         return d * MM

@@ -56,6 +56,11 @@ class Observations:
         Measured centred images (any scale; they are normalised to unit sum where compared).
     ids : list of str
         Names (record ids) for reports.
+    centers : torch.Tensor, [B, 2], optional
+        Fixed window centres (target-local [m]) for images taken with *known* kinematics, e.g. the aim
+        point: the spot's position in the window then carries information (a common tilt of all facets
+        becomes observable). None (PAINT's ``flux-centered`` images): each window is centred on its own
+        spot centroid.
     """
 
     sun: torch.Tensor
@@ -64,6 +69,7 @@ class Observations:
     targets: list
     images: torch.Tensor | None = None
     ids: list = field(default_factory=list)
+    centers: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.sun.shape[0])
@@ -71,7 +77,8 @@ class Observations:
     def subset(self, idx) -> "Observations":
         idx = list(idx)
         return Observations(self.sun[idx], self.rotation[idx], self.concentrator[idx], [self.targets[i] for i in idx],
-                            None if self.images is None else self.images[idx], [self.ids[i] for i in idx])
+                            None if self.images is None else self.images[idx], [self.ids[i] for i in idx],
+                            None if self.centers is None else self.centers[idx])
 
 
 @dataclass
@@ -221,8 +228,9 @@ def predict_images(surfaces: Surfaces, obs: Observations, sun: SunSettings, *, s
                 for j, i in enumerate(idx):
                     kernels[i] = kern_new[j]
             kern = torch.stack([kernels[i] for i in idx])
+        fixed = None if obs.centers is None else obs.centers[idx].to(pw)
         res = render_centered(pw[idx], nw[idx], ar[idx], sund[idx], target, sun, size_m=size_m,
-                              resolution=resolution, kernel=kern)
+                              resolution=resolution, kernel=kern, center=fixed)
         img = res.image
         if integrator == "mc":
             from ..raytrace.montecarlo import trace_mc
@@ -285,8 +293,8 @@ def trace_mc_centered(surfaces: Surfaces, obs: Observations, sun: SunSettings, *
                       ) -> torch.Tensor:
     """Monte-Carlo images (:func:`heliotwin.raytrace.trace_mc`) in the same centred windows.
 
-    The window centre is the predicted centroid of the central-ray hits (as for the analytic images), so
-    both integrators are compared on identical windows.
+    The window centre is the one the analytic images use (the predicted centroid of the central-ray hits,
+    or ``obs.centers`` when fixed), so both integrators are compared on identical windows.
 
     Returns
     -------
@@ -346,8 +354,10 @@ def fit_surface(facets: Facets, train: Observations, sun: SunSettings, settings:
     s = settings or TrainSettings()
     if train.images is None or len(train) == 0:
         raise HeliotwinError("fit_surface needs at least one training image")
+    # With fixed windows (known kinematics) the common tilt is seen; only the facet pistons stay invisible.
+    gauge_tilt = train.centers is None
     model = LearnableSurface(facets, s.control_points, s.degree, s.learn_weights, initial, initial_degree,
-                             fix_gauge=s.fix_gauge)
+                             fix_gauge=s.fix_gauge, gauge_tilt=gauge_tilt)
     if s.optimizer == "lbfgs":
         return _fit_lbfgs(model, train, sun, s, log)
     if s.optimizer != "adam":
@@ -410,7 +420,8 @@ def fit_surface(facets: Facets, train: Observations, sun: SunSettings, settings:
     if val_meas is not None and best[0] < math.inf:
         if best[2] != model.num_control_points:
             # The best state was on the coarse net: rebuild it, then load.
-            model = LearnableSurface(facets, best[2], s.degree, s.learn_weights, fix_gauge=s.fix_gauge)
+            model = LearnableSurface(facets, best[2], s.degree, s.learn_weights, fix_gauge=s.fix_gauge,
+                                     gauge_tilt=gauge_tilt)
         model.load_state_dict(best[1])
     model.orientation_delta = None if delta is None else delta.detach()
     model.steps_run = step + 1
