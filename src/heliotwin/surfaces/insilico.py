@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ..errors import HeliotwinError
 from ..field.plant import Facets, Kinematics, SunSettings, Surfaces
 from ..field.targets import PlanarTarget
 from . import losses
@@ -132,7 +133,7 @@ def observe(scene: InSilicoScene, suns: torch.Tensor, samples=(48, 48), ids=None
     do when the kinematics are not trusted (then a common tilt of all facets is invisible).
     """
     if window not in ("aim", "centred"):
-        raise ValueError(f"window must be 'aim' or 'centred', got {window!r}")
+        raise HeliotwinError(f"window must be 'aim' or 'centred', got {window!r}")
     aim = scene.target.center.to(torch.float64).expand(suns.shape[0], 3)
     rot, conc = aimed_pose(scene.kinematics, aim, suns)
     centers = scene.target.to_local(aim) if window == "aim" else None
