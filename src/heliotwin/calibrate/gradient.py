@@ -77,6 +77,47 @@ def make_optimizer(x: torch.Tensor, objective, optimizer: str, lr: float, lbfgs_
     return opt, closure
 
 
+
+def prior_and_start(names, num_heliostats: int, prior_sigma, prior_mean=None, init=None):
+    """Scaled parameters of a bounded, prior-regularised fit (shared by ``gradient`` and ``images``).
+
+    Parameters
+    ----------
+    names : list of str
+        Deviation parameter names (checked).
+    num_heliostats : int
+        H.
+    prior_sigma : dict kind -> sigma, or tensor [P] / [H, P]
+        Prior standard deviations in physical units (``inf`` or a missing kind: no prior).
+    prior_mean, init : torch.Tensor, [H, P], optional
+        Prior mean (default 0) and start (default the prior mean), physical units.
+
+    Returns
+    -------
+    unit : torch.Tensor, [P]
+        Physical units per optimiser unit.
+    mu, inv_sig : torch.Tensor, [H, P]
+        Prior mean and inverse sigma (0 where there is no prior).
+    bound : torch.Tensor, [P]
+        Box bound in optimiser units.
+    x : torch.Tensor, [H, P]
+        The start in optimiser units, clamped into the box, a leaf that requires grad.
+    """
+    h, p = int(num_heliostats), len(names)
+    unit = units(names)
+    kk = kinds(names)
+    if isinstance(prior_sigma, dict):
+        sig = torch.tensor([float(prior_sigma.get(k, float("inf"))) for k in kk], dtype=torch.float64)
+    else:
+        sig = torch.as_tensor(prior_sigma, dtype=torch.float64)
+    sig = sig.expand(h, p)
+    inv_sig = torch.where(torch.isfinite(sig), 1.0 / sig, torch.zeros_like(sig))
+    mu = torch.zeros(h, p, dtype=torch.float64) if prior_mean is None else \
+        torch.as_tensor(prior_mean, dtype=torch.float64).expand(h, p)
+    bound = torch.tensor([BOUNDS[k] for k in kk], dtype=torch.float64) / unit
+    x = ((mu if init is None else init.detach().double()) / unit).clamp(-bound, bound).clone().requires_grad_(True)
+    return unit, mu, inv_sig, bound, x
+
 def fit_gradient(nominal: Kinematics, train: RecordBatch, validation: RecordBatch | None = None, *,
                  names=GRADIENT_PARAMETERS, prior_mean: torch.Tensor | None = None,
                  prior_sigma: torch.Tensor | dict | None = None, noise: float = 1e-3, optimizer: str = "lbfgs",
@@ -117,24 +158,11 @@ def fit_gradient(nominal: Kinematics, train: RecordBatch, validation: RecordBatc
         ``best_iteration`` [H], ``history`` of (iteration, median validation error [mrad]).
     """
     names = check_names(names)
-    h, p = nominal.num_heliostats, len(names)
-    unit = units(names)
-    kk = kinds(names)
-    if prior_sigma is None:
-        prior_sigma = PRIOR_SIGMA
-    if isinstance(prior_sigma, dict):
-        sig = torch.tensor([float(prior_sigma.get(k, float("inf"))) for k in kk], dtype=torch.float64)
-    else:
-        sig = torch.as_tensor(prior_sigma, dtype=torch.float64)
-    sig = sig.expand(h, p)
-    mu = torch.zeros(h, p, dtype=torch.float64) if prior_mean is None else torch.as_tensor(prior_mean, dtype=torch.float64).expand(h, p)
-    bound = torch.tensor([BOUNDS[k] for k in kk], dtype=torch.float64) / unit
-    start = (mu if init is None else init.detach().double()) / unit
-    x = start.clone().clamp(-bound, bound).requires_grad_(True)
+    h = nominal.num_heliostats
+    unit, mu, inv_sig, bound, x = prior_and_start(names, h, PRIOR_SIGMA if prior_sigma is None else prior_sigma,
+                                                  prior_mean, init)
     kin_tr = nominal.index(train.heliostat_index)
     hidx = train.heliostat_index
-    finite_prior = torch.isfinite(sig)
-    inv_sig = torch.where(finite_prior, 1.0 / sig, torch.zeros_like(sig))
     has_val = validation is not None and len(validation) > 0
     counts_val = validation.counts() if has_val else torch.zeros(h, dtype=torch.long)
 

@@ -39,7 +39,7 @@ from .gradient import PRIOR_SIGMA as GRADIENT_SIGMA
 from .gradient import make_optimizer
 from .methods import FIT_FOCAL_SPOT, prealign
 from .model import Calibrated
-from .params import STONE8, actuator_margin, apply_deviations, check_names, kinds, units
+from .params import STONE8, actuator_margin, apply_deviations, check_names
 from .records import RecordBatch
 
 #: Learned by default: the Stone/Jülich 8 plus the mirror's rotation about its own normal (invisible to
@@ -184,23 +184,12 @@ def fit_images(nominal, train: RecordBatch, validation: RecordBatch | None, imag
     info : dict
         ``image_records`` (train, validation), ``loss_history``, per-term means before/after, ``skipped_images``.
     """
-    from .gradient import BOUNDS, MIN_MARGIN
+    from .gradient import MIN_MARGIN, prior_and_start
 
     names = check_names(names)
-    h, p = nominal.num_heliostats, len(names)
-    unit = units(names)
-    kk = kinds(names)
-    if prior_sigma is None:
-        prior_sigma = GRADIENT_SIGMA
-    if isinstance(prior_sigma, dict):
-        sig = torch.tensor([float(prior_sigma.get(k, float("inf"))) for k in kk], dtype=torch.float64)
-    else:
-        sig = torch.as_tensor(prior_sigma, dtype=torch.float64)
-    sig = sig.expand(h, p)
-    inv_sig = torch.where(torch.isfinite(sig), 1.0 / sig, torch.zeros_like(sig))
-    mu = torch.zeros(h, p, dtype=torch.float64) if prior_mean is None else torch.as_tensor(prior_mean, dtype=torch.float64).expand(h, p)
-    bound = torch.tensor([BOUNDS[k] for k in kk], dtype=torch.float64) / unit
-    x = ((mu if init is None else init.detach().double()) / unit).clamp(-bound, bound).clone().requires_grad_(True)
+    h = nominal.num_heliostats
+    unit, mu, inv_sig, bound, x = prior_and_start(names, h, GRADIENT_SIGMA if prior_sigma is None else prior_sigma,
+                                                  prior_mean, init)
     tr_img = ImageTerms(train, images, surfaces, targets, sun, resolution=resolution, samples=samples)
     has_val = validation is not None and len(validation) > 0
     va_img = ImageTerms(validation, images, surfaces, targets, sun, resolution=resolution, samples=samples) if has_val else None
