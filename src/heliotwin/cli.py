@@ -256,6 +256,14 @@ def run_command(args, prefix: str = "heliotwin: ") -> int:
         return 130
 
 
+def run_module(register, prog: str, description: str, argv=None) -> int:
+    """Stand-alone entry point of a command group (``python -m heliotwin.calibrate.cli`` ...): a parser with
+    the group's subcommands from ``register(subparsers)``, run by :func:`run_command`."""
+    parser = argparse.ArgumentParser(prog=prog, description=description)
+    register(parser.add_subparsers(dest="command", required=True))
+    return run_command(parser.parse_args(argv), prefix="")
+
+
 def main(argv=None) -> int:
     return run_command(build_parser().parse_args(argv))
 

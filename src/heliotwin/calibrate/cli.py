@@ -6,7 +6,6 @@ them stand-alone (``python -m heliotwin.calibrate.cli calibrate ...``). User err
 """
 from __future__ import annotations
 
-import argparse
 import csv
 import io
 import math
@@ -232,12 +231,9 @@ def cmd_aim(args) -> int:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="heliotwin-calibrate", description="heliotwin kinematic calibration")
-    sub = parser.add_subparsers(dest="command", required=True)
-    register(sub)
-    from ..cli import run_command
+    from ..cli import run_module
 
-    return run_command(parser.parse_args(argv), prefix="")
+    return run_module(register, "heliotwin-calibrate", "heliotwin kinematic calibration", argv)
 
 
 if __name__ == "__main__":

@@ -12,7 +12,6 @@ Every user error prints one line (``error: ...``) to stderr and exits with statu
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
@@ -182,12 +181,9 @@ def register(subparsers) -> None:
 
 def main(argv=None) -> int:
     """Stand-alone entry point; returns the exit status (0 ok, 2 user error)."""
-    from ..cli import run_command
+    from ..cli import run_module
 
-    parser = argparse.ArgumentParser(prog="heliotwin", description="heliotwin surface learning")
-    sub = parser.add_subparsers(dest="command", required=True)
-    register(sub)
-    return run_command(parser.parse_args(argv), prefix="")
+    return run_module(register, "heliotwin", "heliotwin surface learning", argv)
 
 
 if __name__ == "__main__":
