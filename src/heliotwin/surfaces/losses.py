@@ -22,6 +22,7 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import HeliotwinError
+from ..raytrace.flux import normalized_l1
 
 __all__ = ["normalize", "image_loss", "l1", "l2", "kl", "ridge", "lasso", "laplacian", "IMAGE_LOSSES",
            "threshold_background"]
@@ -37,7 +38,7 @@ def normalize(images: torch.Tensor) -> torch.Tensor:
 
 def l1(pred: torch.Tensor, meas: torch.Tensor) -> torch.Tensor:
     """``sum |p - m|`` of unit-sum images, per image ``[B]`` (0 identical, 2 disjoint)."""
-    return (normalize(pred) - normalize(meas)).abs().sum((-2, -1))
+    return normalized_l1(pred, meas, eps=_EPS)
 
 
 def l2(pred: torch.Tensor, meas: torch.Tensor) -> torch.Tensor:
