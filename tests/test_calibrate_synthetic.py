@@ -8,7 +8,7 @@ from heliotwin.calibrate import metrics
 from heliotwin.calibrate.gradient import fit_gradient
 from heliotwin.calibrate.lm import fit_lm
 from heliotwin.calibrate.params import STONE8, actuator_margin, apply_deviations, read_deviations
-from heliotwin.calibrate.records import RecordBatch
+from heliotwin.io.records import RecordTable
 from heliotwin.field import kinematics as K
 from heliotwin.field.plant import Kinematics
 from heliotwin.field.targets import PlanarTarget
@@ -50,7 +50,7 @@ def simulate(kin_true, n, seed, noise=0.0):
     if noise:
         # Move the measured spot: a pointing noise of `noise` rad at ~60 m slant range.
         spot = spot + TARGET.to_world(torch.randn(h * n, 2, generator=g, dtype=torch.float64) * noise * 2 * 60) - TARGET.center
-    return RecordBatch.from_arrays([f"S{i}" for i in range(h)], hidx, az, el, steps, spot, TARGET)
+    return RecordTable.from_arrays([f"S{i}" for i in range(h)], hidx, az, el, steps, spot, TARGET)
 
 
 def test_angle_metric_uses_atan2_precision():

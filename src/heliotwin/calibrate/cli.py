@@ -158,7 +158,7 @@ def cmd_split(args) -> int:
     import torch
 
     from .pipeline import validate_config
-    from .records import prepare_records
+    from ..io.records import prepare_records
     from .report import write_json
     from .splits import split_records
 

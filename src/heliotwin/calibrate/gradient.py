@@ -22,7 +22,7 @@ import torch
 from ..field.plant import Kinematics
 from . import metrics
 from .params import ALL, REDUNDANT, actuator_margin, apply_deviations, check_names, kinds, units
-from .records import RecordBatch
+from ..io.records import RecordTable
 
 #: The learnable deviations of the chain (all but the two invisible ones).
 GRADIENT_PARAMETERS = tuple(n for n in ALL if n not in REDUNDANT)
@@ -118,7 +118,7 @@ def prior_and_start(names, num_heliostats: int, prior_sigma, prior_mean=None, in
     x = ((mu if init is None else init.detach().double()) / unit).clamp(-bound, bound).clone().requires_grad_(True)
     return unit, mu, inv_sig, bound, x
 
-def fit_gradient(nominal: Kinematics, train: RecordBatch, validation: RecordBatch | None = None, *,
+def fit_gradient(nominal: Kinematics, train: RecordTable, validation: RecordTable | None = None, *,
                  names=GRADIENT_PARAMETERS, prior_mean: torch.Tensor | None = None,
                  prior_sigma: torch.Tensor | dict | None = None, noise: float = 1e-3, optimizer: str = "lbfgs",
                  iterations: int = 60, lr: float = 0.05, check_every: int = 5, init: torch.Tensor | None = None,
@@ -129,7 +129,7 @@ def fit_gradient(nominal: Kinematics, train: RecordBatch, validation: RecordBatc
     ----------
     nominal : Kinematics
         H heliostats.
-    train, validation : RecordBatch
+    train, validation : RecordTable
         Records over the same H heliostats; ``validation`` may be None or empty (then the last state is kept).
     names : sequence of str
         Parameters to learn.

@@ -31,7 +31,7 @@ from .methods import FIT_FOCAL_SPOT, MIN_TRAIN, fit_spots, stone8_field_fit
 from .model import Calibrated
 from .nets import BatchedMLP
 from .params import STONE8, apply_deviations, kinds
-from .records import RecordBatch
+from ..io.records import RecordTable
 
 #: Physical size of one network output unit per kind (see module docstring).
 OUTPUT_SCALE = {"angle": 0.01, "tilt": 0.01, "translation": 1.0, "actuator_length": 1.0, "increment": 0.01}
@@ -42,7 +42,7 @@ MIN_VALIDATION = 4
 SIGNIFICANCE = 2.0
 
 
-def features(batch: RecordBatch, kin, t0: torch.Tensor, span: torch.Tensor | None = None) -> torch.Tensor:
+def features(batch: RecordTable, kin, t0: torch.Tensor, span: torch.Tensor | None = None) -> torch.Tensor:
     """Network inputs [R, 7] (see module docstring).
 
     ``t0`` [H] = first training time per heliostat [s]; ``span`` [H] = span of the training times [s] (age
@@ -62,7 +62,7 @@ def features(batch: RecordBatch, kin, t0: torch.Tensor, span: torch.Tensor | Non
     return torch.cat([enc, age.unsqueeze(-1), season], -1)
 
 
-def _per_h_mean(err: torch.Tensor, batch: RecordBatch, h: int) -> torch.Tensor:
+def _per_h_mean(err: torch.Tensor, batch: RecordTable, h: int) -> torch.Tensor:
     s = torch.zeros(h, dtype=torch.float64).index_add_(0, batch.heliostat_index, err)
     c = batch.counts()
     return torch.where(c > 0, s / c.clamp_min(1), torch.full_like(s, math.inf))
@@ -71,7 +71,7 @@ def _per_h_mean(err: torch.Tensor, batch: RecordBatch, h: int) -> torch.Tensor:
 class HybridModel(Calibrated):
     """Calibrated hybrid: static deviations plus network deviations per record."""
 
-    def normals(self, batch: RecordBatch):
+    def normals(self, batch: RecordTable):
         net, scale, t0 = self.extras["net"], self.extras["scale"], self.extras["t0"]
         use, span = self.extras["use_net"], self.extras.get("span")
         with torch.no_grad():
@@ -155,7 +155,7 @@ def fit_hybrid_method(nominal, train, validation, *, seed=0, progress=False, fie
             else:
                 use_net[i] = True
     # Fallback heliostats: the rigid body refitted on every record they may see (as lm does).
-    seen = RecordBatch.concatenate([tr, fit_spots(va, fit_focal_spot)]) if len(va) else tr
+    seen = RecordTable.concatenate([tr, fit_spots(va, fit_focal_spot)]) if len(va) else tr
     refit, _ = stone8_field_fit(nominal, seen, ok, field_prior=field_prior)
     static = torch.where(use_net.unsqueeze(-1), static, refit)
     static[~ok] = 0.0
@@ -180,7 +180,7 @@ def aim_hybrid(net_entry: dict, kin, sun: torch.Tensor, target: torch.Tensor) ->
     ``kin`` is the static calibrated kinematics (1 heliostat); network deviations are added on top.
     """
     from ..field import kinematics as K
-    from .records import RecordBatch
+    from ..io.records import RecordTable
 
     cfg = net_entry["config"]
     steps, _ = K.inverse(kin, target, sun, strict=False)
@@ -193,7 +193,7 @@ def aim_hybrid(net_entry: dict, kin, sun: torch.Tensor, target: torch.Tensor) ->
     now = time.time()
     z = torch.zeros(1, dtype=torch.float64)
     for _ in range(5):
-        b = RecordBatch(["h"], torch.zeros(1, dtype=torch.long), torch.zeros(1, dtype=torch.long), z, z, sun.reshape(1, 3),
+        b = RecordTable(["h"], torch.zeros(1, dtype=torch.long), torch.zeros(1, dtype=torch.long), z, z, sun.reshape(1, 3),
                         steps.reshape(1, 2), target.reshape(1, 3), target.reshape(1, 3), target.reshape(1, 3),
                         target.reshape(1, 3), target.reshape(1, 3), torch.tensor([now], dtype=torch.float64),
                         torch.zeros(1, 5, dtype=torch.float64))

@@ -40,7 +40,7 @@ from .gradient import make_optimizer
 from .methods import FIT_FOCAL_SPOT, prealign
 from .model import Calibrated
 from .params import STONE8, actuator_margin, apply_deviations, check_names
-from .records import RecordBatch
+from ..io.records import RecordTable
 
 #: Learned by default: the Stone/Jülich 8 plus the mirror's rotation about its own normal (invisible to
 #: centroids, visible in the image).
@@ -70,7 +70,7 @@ def load_image(entry, resolution) -> torch.Tensor:
 class ImageTerms:
     """Rendering and the three image terms for a fixed set of image records (grouped by target)."""
 
-    def __init__(self, batch: RecordBatch, images: dict, surfaces, targets: dict, sun, *, resolution=(64, 64),
+    def __init__(self, batch: RecordTable, images: dict, surfaces, targets: dict, sun, *, resolution=(64, 64),
                  samples=(16, 16), mode: str = "convolve"):
         from ..raytrace.flux import pixel_centers, target_extent
 
@@ -160,7 +160,7 @@ def image_loss_per_heliostat(terms: ImageTerms, kin, h: int, *, noise: float, pi
     return torch.zeros(h, dtype=torch.float64).index_add(0, hidx, per), {"pixel": pix, "alignment": ali, "miss": mis}
 
 
-def _centroid_loss_per_heliostat(kin_nominal, delta, names, batch: RecordBatch, h: int, noise: float) -> torch.Tensor:
+def _centroid_loss_per_heliostat(kin_nominal, delta, names, batch: RecordTable, h: int, noise: float) -> torch.Tensor:
     if not len(batch):
         return torch.zeros(h, dtype=torch.float64)
     k = apply_deviations(kin_nominal.index(batch.heliostat_index), delta[batch.heliostat_index], names)
@@ -168,7 +168,7 @@ def _centroid_loss_per_heliostat(kin_nominal, delta, names, batch: RecordBatch, 
     return torch.zeros(h, dtype=torch.float64).index_add(0, batch.heliostat_index, (r * r).sum(-1) / noise ** 2)
 
 
-def fit_images(nominal, train: RecordBatch, validation: RecordBatch | None, images: dict, surfaces, targets: dict,
+def fit_images(nominal, train: RecordTable, validation: RecordTable | None, images: dict, surfaces, targets: dict,
                sun, *, names=IMAGE_PARAMETERS, init: torch.Tensor | None = None, prior_mean=None, prior_sigma=None,
                noise: float = 1e-3, pixel_weight: float = PIXEL_WEIGHT, miss_weight: float = MISS_WEIGHT,
                centroid_weight: float = 1.0, iterations: int = 15, lr: float = 1.0, resolution=(64, 64),

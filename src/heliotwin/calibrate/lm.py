@@ -15,7 +15,7 @@ from scipy.optimize import least_squares
 from ..field.plant import Kinematics
 from . import metrics
 from .params import STONE8, apply_deviations, check_names, kinds, units
-from .records import RecordBatch
+from ..io.records import RecordTable
 
 #: Prior standard deviations per kind (physical units). Encoder offsets are unconstrained in practice
 #: (the nominal error is tens of mrad); tilts of a few mrad and gear errors of ~1 % are typical. Chosen by
@@ -27,7 +27,7 @@ PRIOR_SIGMA = {"angle": 0.2, "tilt": 3e-3, "increment": 5e-3, "translation": 0.0
 NOISE = 1e-3
 
 
-def record_jacobian(nominal_per_record: Kinematics, batch: RecordBatch, delta_rec: torch.Tensor, names):
+def record_jacobian(nominal_per_record: Kinematics, batch: RecordTable, delta_rec: torch.Tensor, names):
     """Residuals [R, 3] and their derivative w.r.t. each record's own parameters [R, 3, P].
 
     A record depends only on its heliostat's parameters, so three backward passes (one per residual
@@ -42,7 +42,7 @@ def record_jacobian(nominal_per_record: Kinematics, batch: RecordBatch, delta_re
     return r.detach(), torch.stack(jac, 1)
 
 
-def fit_lm(nominal: Kinematics, batch: RecordBatch, *, names=STONE8, prior_sigma: dict | None = None,
+def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma: dict | None = None,
            prior_mean: torch.Tensor | None = None, noise: float = NOISE, max_nfev: int = 200,
            loss: str = "linear", f_scale: float = 2e-3,
            prior_sigma_vector: torch.Tensor | None = None) -> tuple[torch.Tensor, dict]:
@@ -52,7 +52,7 @@ def fit_lm(nominal: Kinematics, batch: RecordBatch, *, names=STONE8, prior_sigma
     ----------
     nominal : Kinematics
         H heliostats (the batch's heliostat axis).
-    batch : RecordBatch
+    batch : RecordTable
         Training records (every heliostat with at least one record is fitted).
     names : sequence of str
         Parameters to fit (default the Stone/Jülich 8).

@@ -15,7 +15,7 @@ from .gradient import GRADIENT_PARAMETERS, PRIOR_SIGMA as GRADIENT_SIGMA, fit_gr
 from .lm import fit_lm
 from .model import Calibrated
 from .params import STONE8, kinds
-from .records import RecordBatch, normalise_source
+from ..io.records import RecordTable, normalise_source
 
 #: Fewest training records per heliostat a method accepts (below, the heliostat is skipped with a reason).
 MIN_TRAIN = 4
@@ -29,7 +29,7 @@ FIT_FOCAL_SPOT = "UTIS"
 LM_LOSS, LM_F_SCALE = "soft_l1", 1e-3
 
 
-def fit_spots(batch: RecordBatch, source: str | None = FIT_FOCAL_SPOT) -> RecordBatch:
+def fit_spots(batch: RecordTable, source: str | None = FIT_FOCAL_SPOT) -> RecordTable:
     """The batch with the centroids a fit trains on.
 
     Both camera systems measure the same spot; on the 11 PAINT heliostats, training on UTIS where a record
@@ -52,11 +52,11 @@ def fit_spots(batch: RecordBatch, source: str | None = FIT_FOCAL_SPOT) -> Record
     return out
 
 
-def _ok(train: RecordBatch, h: int) -> torch.Tensor:
+def _ok(train: RecordTable, h: int) -> torch.Tensor:
     return train.counts() >= MIN_TRAIN if h else torch.zeros(0, dtype=torch.bool)
 
 
-def stone8_field_fit(nominal: Kinematics, batch: RecordBatch, usable: torch.Tensor, *, field_prior: bool = True,
+def stone8_field_fit(nominal: Kinematics, batch: RecordTable, usable: torch.Tensor, *, field_prior: bool = True,
                      loss: str = LM_LOSS, f_scale: float = LM_F_SCALE):
     """LM on the Stone/Jülich 8 with the field prior (nominal prior when the run is too small for one).
 
@@ -86,7 +86,7 @@ def stone8_field_fit(nominal: Kinematics, batch: RecordBatch, usable: torch.Tens
 LM_BAGS = 10
 
 
-def bagged(fit_one, batch: RecordBatch, bags: int, seed: int):
+def bagged(fit_one, batch: RecordTable, bags: int, seed: int):
     """Average of ``fit_one(resampled batch)`` [H, P] over bootstrap resamples of every heliostat's records.
 
     Returns (mean delta, the first return value's extras of the full-data fit).
@@ -117,7 +117,7 @@ def fit_lm_method(nominal, train, validation, *, seed=0, progress=False, field_p
     bootstrap resamples (bagging: with 10 records one outlier or one unlucky sun position otherwise
     decides the extrapolation).
     """
-    seen = RecordBatch.concatenate([train, validation]) if validation is not None and len(validation) else train
+    seen = RecordTable.concatenate([train, validation]) if validation is not None and len(validation) else train
     ok = seen.counts() >= MIN_TRAIN
     fit_on = fit_spots(seen.subset(ok[seen.heliostat_index]), fit_focal_spot)
     delta, fp = bagged(lambda b: stone8_field_fit(nominal, b, ok, field_prior=field_prior, loss=loss, f_scale=f_scale),
@@ -140,7 +140,7 @@ def prealign(nominal, train, validation, names, fit_focal_spot, field_prior):
     -------
     ok : torch.Tensor of bool, [H]
         Heliostats with enough training records.
-    train, validation : RecordBatch
+    train, validation : RecordTable
         Restricted to ``ok`` heliostats, training spots from ``fit_focal_spot``.
     init : torch.Tensor, [H, P]
         Initial deviations (the Stone/Jülich fit on its 8 parameters, 0 elsewhere) [parameter units].
@@ -183,7 +183,7 @@ def fit_gradient_method(nominal, train, validation, *, seed=0, progress=False, f
     if refit and va is not None and len(va):
         # Early stopping found each heliostat's best iteration on validation; refit on every record it may
         # see (train + validation) and stop each heliostat there. With 10 records, 2 more matter.
-        seen = RecordBatch.concatenate([tr, fit_spots(va, fit_focal_spot)])
+        seen = RecordTable.concatenate([tr, fit_spots(va, fit_focal_spot)])
         d8, _ = stone8_field_fit(nominal, seen, ok, field_prior=field_prior)
         for j, n in enumerate(STONE8):
             if n in names:

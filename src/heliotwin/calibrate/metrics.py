@@ -11,7 +11,7 @@ import torch
 
 from ..field import kinematics as K
 from ..field.plant import Kinematics
-from .records import RecordBatch
+from ..io.records import RecordTable
 
 
 def angle_between(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -19,19 +19,19 @@ def angle_between(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.atan2(torch.linalg.norm(torch.linalg.cross(a, b, dim=-1), dim=-1), (a * b).sum(-1))
 
 
-def per_record_kinematics(kin: Kinematics, batch: RecordBatch) -> Kinematics:
+def per_record_kinematics(kin: Kinematics, batch: RecordTable) -> Kinematics:
     """Kinematics with one entry per record (``kin`` has the batch's H heliostats)."""
     return kin.index(batch.heliostat_index)
 
 
-def model_normals(kin: Kinematics, batch: RecordBatch, *, per_record: bool = False):
+def model_normals(kin: Kinematics, batch: RecordTable, *, per_record: bool = False):
     """Model mirror normal and concentrator at the recorded motor steps.
 
     Parameters
     ----------
     kin : Kinematics
         H heliostats (``per_record=False``) or R entries already indexed per record.
-    batch : RecordBatch
+    batch : RecordTable
         R records.
 
     Returns
@@ -46,24 +46,24 @@ def model_normals(kin: Kinematics, batch: RecordBatch, *, per_record: bool = Fal
     return K.mirror_normal(R), c
 
 
-def measured_normals(batch: RecordBatch, concentrator: torch.Tensor) -> torch.Tensor:
+def measured_normals(batch: RecordTable, concentrator: torch.Tensor) -> torch.Tensor:
     """Bisector of the sun direction and the direction concentrator -> measured focal spot, [R, 3]."""
     return K.bisector_normal(batch.sun, concentrator, batch.spot)
 
 
-def normal_residuals(kin: Kinematics, batch: RecordBatch, *, per_record: bool = False) -> torch.Tensor:
+def normal_residuals(kin: Kinematics, batch: RecordTable, *, per_record: bool = False) -> torch.Tensor:
     """Model minus measured normal, [R, 3]; its norm equals the pointing error to second order (rad)."""
     n, c = model_normals(kin, batch, per_record=per_record)
     return n - measured_normals(batch, c)
 
 
-def pointing_error(kin: Kinematics, batch: RecordBatch, *, per_record: bool = False) -> torch.Tensor:
+def pointing_error(kin: Kinematics, batch: RecordTable, *, per_record: bool = False) -> torch.Tensor:
     """Pointing error per record [rad], shape [R]."""
     n, c = model_normals(kin, batch, per_record=per_record)
     return angle_between(n, measured_normals(batch, c))
 
 
-def predicted_spot(normal: torch.Tensor, concentrator: torch.Tensor, batch: RecordBatch) -> torch.Tensor:
+def predicted_spot(normal: torch.Tensor, concentrator: torch.Tensor, batch: RecordTable) -> torch.Tensor:
     """Where the reflected central ray meets the record's target plane, ENU [R, 3].
 
     A ray parallel to the plane (never the case for a heliostat aiming at its target) gives inf/NaN; the
@@ -75,7 +75,7 @@ def predicted_spot(normal: torch.Tensor, concentrator: torch.Tensor, batch: Reco
     return concentrator + t.unsqueeze(-1) * reflected
 
 
-def miss_distance(kin: Kinematics, batch: RecordBatch, *, per_record: bool = False) -> torch.Tensor:
+def miss_distance(kin: Kinematics, batch: RecordTable, *, per_record: bool = False) -> torch.Tensor:
     """In-plane distance [m] between predicted and measured spot on the target plane, [R].
 
     The measured spot is compared in the plane's (right, up) coordinates, so a centroid a few cm behind

@@ -24,7 +24,7 @@ from . import metrics
 from .methods import MIN_TRAIN, fit_gradient_method
 from .model import Calibrated
 from .nets import BatchedMLP
-from .records import RecordBatch
+from ..io.records import RecordTable
 
 
 def _inputs(sun: torch.Tensor, aim: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
@@ -35,14 +35,14 @@ def _inputs(sun: torch.Tensor, aim: torch.Tensor, reference: torch.Tensor) -> to
 class MLPModel(Calibrated):
     """Calibrated MLP: predicted steps for (sun, spot); errors via the rigid body's local Jacobian."""
 
-    def predict_steps(self, batch: RecordBatch) -> torch.Tensor:
+    def predict_steps(self, batch: RecordTable) -> torch.Tensor:
         net, ref = self.extras["net"], self.extras["reference"]
         k = self.nominal.index(batch.heliostat_index)
         with torch.no_grad():
             y = net(_inputs(batch.sun, batch.spot, ref), batch.heliostat_index)
         return k.min_steps + y * (k.max_steps - k.min_steps)
 
-    def normals(self, batch: RecordBatch):
+    def normals(self, batch: RecordTable):
         rigid = self.kinematics
         with torch.no_grad():
             n_rec, c = metrics.model_normals(rigid, batch)
@@ -59,7 +59,7 @@ class MLPModel(Calibrated):
             return n, c
 
 
-def _simulate(rigid_model: Calibrated, train: RecordBatch, site, every: str, year: int, gen: torch.Generator):
+def _simulate(rigid_model: Calibrated, train: RecordTable, site, every: str, year: int, gen: torch.Generator):
     """Simulated (sun, aim, steps) per heliostat from the rigid body over a year of sun positions."""
     from ..field import kinematics as K
     from ..sun import daylight_times, direction_from_paint_angles

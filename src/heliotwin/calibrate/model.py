@@ -3,7 +3,7 @@
 A method returns a :class:`Calibrated` model over the H heliostats of a run. Rigid-body methods (``lm``,
 ``gradient``) are fully described by deviations ``delta`` [H, P] added to the nominal kinematics; the
 hybrid adds a network per heliostat, the MLP replaces the model by a network that outputs motor steps.
-Every model answers :meth:`Calibrated.pointing_error` on a :class:`RecordBatch`, so the report treats all
+Every model answers :meth:`Calibrated.pointing_error` on a :class:`RecordTable`, so the report treats all
 methods alike.
 """
 from __future__ import annotations
@@ -15,7 +15,7 @@ import torch
 from ..field.plant import Kinematics
 from . import metrics
 from .params import apply_deviations
-from .records import RecordBatch
+from ..io.records import RecordTable
 
 
 @dataclass
@@ -56,17 +56,17 @@ class Calibrated:
         """The calibrated static kinematics, H heliostats."""
         return apply_deviations(self.nominal, self.delta.detach(), self.names)
 
-    def normals(self, batch: RecordBatch) -> tuple[torch.Tensor, torch.Tensor]:
+    def normals(self, batch: RecordTable) -> tuple[torch.Tensor, torch.Tensor]:
         """Model mirror normal [R, 3] and concentrator [R, 3] at the records' motor steps."""
         return metrics.model_normals(self.kinematics, batch)
 
-    def pointing_error(self, batch: RecordBatch) -> torch.Tensor:
+    def pointing_error(self, batch: RecordTable) -> torch.Tensor:
         """Pointing error per record [rad], [R]."""
         with torch.no_grad():
             n, c = self.normals(batch)
             return metrics.angle_between(n, metrics.measured_normals(batch, c))
 
-    def miss_distance(self, batch: RecordBatch) -> torch.Tensor:
+    def miss_distance(self, batch: RecordTable) -> torch.Tensor:
         """Miss distance on the target plane per record [m], [R]."""
         with torch.no_grad():
             n, c = self.normals(batch)

@@ -17,7 +17,7 @@ from ..io.paint import load_paint
 from . import metrics
 from .methods import MIN_TRAIN, get_method
 from .model import Calibrated, nominal_model
-from .records import RecordBatch, normalise_source, prepare_records
+from ..io.records import RecordTable, normalise_source, prepare_records
 from .splits import SPLIT_TYPES, split_records
 from .suspicious import check_and_correct
 
@@ -64,7 +64,7 @@ def validate_config(cfg: RunConfig) -> None:
         raise HeliotwinError(f"--min-records must be >= 0, got {cfg.min_records}")
 
 
-def _per_heliostat(values: torch.Tensor, batch: RecordBatch, h: int) -> torch.Tensor:
+def _per_heliostat(values: torch.Tensor, batch: RecordTable, h: int) -> torch.Tensor:
     return values[batch.heliostat_index == h]
 
 
@@ -159,7 +159,7 @@ def run_calibration(cfg: RunConfig, dataset=None) -> tuple[dict, Calibrated | No
 
     tr_idx, va_idx, te_idx, split_info = split_records(batch, cfg.split, cfg.train, cfg.n_validation(), cfg.test, seed=cfg.seed)
     train, val, test = batch.subset(tr_idx), batch.subset(va_idx), batch.subset(te_idx)
-    seen = RecordBatch.concatenate([train, val])
+    seen = RecordTable.concatenate([train, val])
 
     if cfg.correct_suspicious:
         nominal, findings = check_and_correct(nominal_raw, run_ids, field_kin, seen)

@@ -3,7 +3,7 @@
 A sun position is the point ``(azimuth, elevation)`` [rad] (PAINT convention); distances between records
 are Euclidean in that plane. Every function here works on ONE heliostat's records (numpy arrays of length
 n) and returns index arrays into them; :func:`split_records` applies a split to every heliostat of a
-:class:`~heliotwin.calibrate.records.RecordBatch`.
+:class:`~heliotwin.io.records.RecordTable`.
 
 Sizes
 -----
@@ -303,7 +303,7 @@ def split_indices(kind: str, azimuth, elevation, times, n_train: int, n_val: int
 
 
 def split_records(batch, kind: str, n_train: int, n_val: int, n_test: int | None, seed: int = 0):
-    """Split every heliostat of a :class:`RecordBatch`.
+    """Split every heliostat of a :class:`RecordTable`.
 
     Returns
     -------

@@ -19,7 +19,7 @@ import torch
 
 from ..field.plant import ACTUATOR_FIELDS, Kinematics
 from . import metrics
-from .records import RecordBatch
+from ..io.records import RecordTable
 
 #: (kind of test, threshold): relative deviation from the field median for lengths/increment, absolute
 #: [rad] for the initial angle.
@@ -58,7 +58,7 @@ def flag_values(kin: Kinematics, ids, medians: dict) -> dict:
     return out
 
 
-def _map_cost(kin: Kinematics, batch: RecordBatch, fp) -> float:
+def _map_cost(kin: Kinematics, batch: RecordTable, fp) -> float:
     """Posterior cost (data misfit + field prior, in rad^2) of the best Stone/Jülich fit of ONE heliostat."""
     from .lm import fit_lm
     from .params import STONE8
@@ -69,7 +69,7 @@ def _map_cost(kin: Kinematics, batch: RecordBatch, fp) -> float:
     return 2.0 * info["cost"]
 
 
-def check_and_correct(kin: Kinematics, ids, field_kin: Kinematics, train: RecordBatch) -> tuple[Kinematics, dict]:
+def check_and_correct(kin: Kinematics, ids, field_kin: Kinematics, train: RecordTable) -> tuple[Kinematics, dict]:
     """Flag suspicious properties and adopt a correction where the training records support it.
 
     The decision compares, for a flagged heliostat, the original and the corrected properties by their
@@ -85,7 +85,7 @@ def check_and_correct(kin: Kinematics, ids, field_kin: Kinematics, train: Record
     ids : list of str
     field_kin : Kinematics
         Every heliostat of the plant (for the field medians).
-    train : RecordBatch
+    train : RecordTable
         Training records only (validation/test are never looked at).
 
     Returns

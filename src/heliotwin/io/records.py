@@ -1,6 +1,6 @@
 """Calibration records as batched tensors, with validation of every record a method will see.
 
-A :class:`RecordBatch` holds R records of H heliostats as a structure of arrays: the heliostat of each
+A :class:`RecordTable` holds R records of H heliostats as a structure of arrays: the heliostat of each
 record is ``heliostat_index[r]`` (into the kinematics' heliostat axis), so a model evaluates all records of
 all heliostats in one call with ``kin.index(batch.heliostat_index)``.
 
@@ -45,7 +45,7 @@ def parse_time(text: str | None) -> float:
 
 
 @dataclass
-class RecordBatch:
+class RecordTable:
     """R calibration records of H heliostats (structure of arrays, float64).
 
     Attributes
@@ -104,7 +104,7 @@ class RecordBatch:
     def num_heliostats(self) -> int:
         return len(self.heliostat_ids)
 
-    def subset(self, idx) -> "RecordBatch":
+    def subset(self, idx) -> "RecordTable":
         """Records ``idx`` (bool mask, index list or tensor); the heliostat axis is unchanged."""
         idx = torch.as_tensor(idx)
         if idx.dtype == torch.bool:
@@ -121,7 +121,7 @@ class RecordBatch:
                 out[f.name] = [v[i] for i in idx.tolist()]
             else:
                 out[f.name] = v[idx]
-        return RecordBatch(**out)
+        return RecordTable(**out)
 
     def of(self, h: int) -> torch.Tensor:
         """Indices (into this batch) of the records of heliostat ``h``."""
@@ -133,7 +133,7 @@ class RecordBatch:
 
     @staticmethod
     def from_arrays(heliostat_ids, heliostat_index, sun_azimuth, sun_elevation, motor_steps, spot, target,
-                    time=None, record_id=None) -> "RecordBatch":
+                    time=None, record_id=None) -> "RecordTable":
         """Build a batch from plain arrays (synthetic records, tests, aiming).
 
         Parameters
@@ -156,7 +156,7 @@ class RecordBatch:
         def rep(v):
             return torch.as_tensor(v, **f64).reshape(1, 3).expand(r, 3).clone()
 
-        return RecordBatch(
+        return RecordTable(
             heliostat_ids=list(heliostat_ids), heliostat_index=hidx,
             record_id=torch.arange(r) if record_id is None else torch.as_tensor(record_id, dtype=torch.long),
             sun_azimuth=az, sun_elevation=el, sun=direction_from_paint_angles(az, el, check_horizon=False),
@@ -169,10 +169,10 @@ class RecordBatch:
             target=[target.name] * r, source=["synthetic"] * r)
 
     @staticmethod
-    def concatenate(items: list["RecordBatch"]) -> "RecordBatch":
+    def concatenate(items: list["RecordTable"]) -> "RecordTable":
         """Concatenate batches over the same heliostats."""
         out = {}
-        for f in fields(RecordBatch):
+        for f in fields(RecordTable):
             vs = [getattr(b, f.name) for b in items]
             if f.name == "heliostat_ids":
                 out[f.name] = list(vs[0])
@@ -182,14 +182,14 @@ class RecordBatch:
                 out[f.name] = [x for v in vs for x in v]
             else:
                 out[f.name] = torch.cat(vs)
-        return RecordBatch(**out)
+        return RecordTable(**out)
 
 
 WEATHER_KEYS = ("wind_speed", "wind_direction", "dni", "temperature", "humidity")
 
 
 def prepare_records(plant, records, heliostat_ids=None, *, focal_spot: str = "HeliOS",
-                    plane_tolerance: float = 0.1) -> tuple[RecordBatch, list[dict]]:
+                    plane_tolerance: float = 0.1) -> tuple[RecordTable, list[dict]]:
     """Validate PAINT records and batch the good ones.
 
     Parameters
@@ -208,7 +208,7 @@ def prepare_records(plant, records, heliostat_ids=None, *, focal_spot: str = "He
 
     Returns
     -------
-    batch : RecordBatch
+    batch : RecordTable
     skipped : list of dict
         ``{"record_id", "heliostat_id", "reason"}`` per dropped record.
     """
@@ -285,7 +285,7 @@ def prepare_records(plant, records, heliostat_ids=None, *, focal_spot: str = "He
 
     az = torch.tensor(cols["az"], **f64)
     el = torch.tensor(cols["el"], **f64)
-    batch = RecordBatch(
+    batch = RecordTable(
         heliostat_ids=ids,
         heliostat_index=torch.tensor(cols["hidx"], dtype=torch.long),
         record_id=torch.tensor(cols["rid"], dtype=torch.long),
