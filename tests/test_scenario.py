@@ -19,7 +19,7 @@ from heliotwin.field.facets import facet_normals, ideal_surfaces
 from heliotwin.field.plant import Kinematics, Plant, Surfaces
 from heliotwin.field.targets import CylinderTarget, PlanarTarget
 from heliotwin.io import scenario as sc
-from heliotwin.io.scenario import FORMAT, VERSION, load_scenario, save_scenario, scenario_from_paint
+from heliotwin.io.scenario import FORMAT, VERSION, load_scenario, provenance_entry, save_scenario, scenario_from_paint
 from heliotwin.site import JUELICH_REFERENCE
 from heliotwin.sun import direction_from_paint_angles
 
@@ -85,9 +85,47 @@ def test_demo_round_trip_with_extras_and_metadata(demo, tmp_path):
     assert md["created_by"].startswith("heliotwin ") and re.match(r"\d{4}-\d\d-\d\dT", md["created_utc"])
     assert {k: md[k] for k in meta} == meta
     with h5py.File(path, "r") as h5:
-        assert h5.attrs["format"] == FORMAT and h5.attrs["version"] == 1
+        assert h5.attrs["format"] == FORMAT and h5.attrs["version"] == VERSION == 2
         assert h5["field/kinematics/clockwise"].dtype == np.bool_
         assert h5["field/kinematics/position"].dtype == np.float64
+
+
+def test_learned_state_and_provenance_round_trip(demo, tmp_path):
+    learned = {"calibration": {"method": "lm", "heliostats": ["AA36", "AB38"], "parameter_names": ["a", "b"],
+                               "deviations": torch.tensor([[1e-3, -2e-3], [0.0, 5e-4]], dtype=torch.float64),
+                               "networks": {"AA36": {"config": '{"hidden": 4}',
+                                                     "state": {"w": torch.ones(4, 2, dtype=torch.float32)}}}}}
+    steps = [provenance_entry("from-paint", source="/data/paint"),
+             provenance_entry("calibrate", method="lm", records={"AA36": [1, 2, 3]})]
+    path = save_scenario(demo, tmp_path / "l.h5", learned=learned, provenance=steps)
+    sc = load_scenario(path)
+    assert_same(learned, sc.learned, "learned")
+    assert sc.provenance == steps
+    assert [p["step"] for p in sc.provenance] == ["from-paint", "calibrate"]
+    assert all(p["heliotwin"] and re.match(r"\d{4}-\d\d-\d\dT", p["utc"]) for p in sc.provenance)
+    # a nominal plant has no learned state and no provenance
+    bare = load_scenario(save_scenario(demo, tmp_path / "n.h5"))
+    assert bare.learned == {} and bare.provenance == []
+
+
+def test_version_1_files_still_load(demo, tmp_path):
+    path = save_scenario(demo, tmp_path / "v1.h5", extras={"x": torch.zeros(2)})
+    with h5py.File(path, "a") as h5:
+        h5.attrs["version"] = 1
+    sc = load_scenario(path)
+    assert sc.version == 1 and sc.learned == {} and sc.provenance == []
+    assert_same(demo, sc.plant, "plant")
+
+
+def test_bad_provenance_is_one_line_error(demo, tmp_path):
+    with pytest.raises(HeliotwinError, match=r"\[/provenance\]: not strict JSON"):
+        save_scenario(demo, tmp_path / "p.h5", provenance=[{"x": float("nan")}])
+    assert leftovers(tmp_path) == []
+    path = save_scenario(demo, tmp_path / "p.h5", provenance=[{"step": "x"}])
+    with h5py.File(path, "a") as h5:
+        del h5["provenance"]
+        h5.create_dataset("provenance", data="{not json", dtype=h5py.string_dtype("utf-8"))
+    assert _error(path).field == "/provenance"
 
 
 def test_paint_plant_round_trip(paint_plant, paint_dir, tmp_path):
@@ -173,7 +211,7 @@ def test_another_hdf5_format(tmp_path):
     assert "artist-scenario" in str(_error(path, ScenarioVersionError))
 
 
-@pytest.mark.parametrize("version, words", [(0, "older"), (2, "newer"), ("1", "non-integer"), (1.5, "non-integer")])
+@pytest.mark.parametrize("version, words", [(0, "older"), (3, "newer"), ("1", "non-integer"), (1.5, "non-integer")])
 def test_wrong_version(demo, tmp_path, version, words):
     path = save_scenario(demo, tmp_path / "s.h5")
     with h5py.File(path, "a") as h5:

@@ -1,12 +1,20 @@
-"""Scenario files: a whole :class:`~heliotwin.field.plant.Plant` (plus extras) in one versioned HDF5 file.
+"""Scenario files: the plant and everything heliotwin learned about it, in one versioned HDF5 file.
 
-A scenario is what a study starts from and what a calibration writes back: the site, the tower targets,
-the heliostat field (kinematics, facets, NURBS surfaces), the sun/optics settings, free-form ``extras``
-(e.g. learned calibration parameters) and ``metadata`` (who wrote it, from which PAINT folder).
+The scenario is the one currency between steps: ``scenario from-paint`` writes the nominal plant,
+``calibrate`` writes it back with calibrated kinematics, ``reconstruct`` with learned surfaces, and
+``trace`` / ``validate`` / ``aim`` / ``predict`` read whatever the last step wrote. It holds the site,
+the tower targets, the heliostat field (kinematics, facets, NURBS surfaces), the sun/optics settings,
+the ``learned`` state that is not plain plant geometry (calibration deviations, networks, field prior,
+surface-learning settings), the ``provenance`` of every step, free-form ``extras`` and ``metadata``.
 
-Layout (format ``"heliotwin-scenario"``, version 1)::
+The plant in the file is always the *current best* plant: ``/field/kinematics`` are the calibrated
+kinematics once a calibration ran and ``/field/surfaces`` the learned control points once a surface was
+learned, so a reader that knows nothing about learning still traces the learned plant.
 
-    /                       attrs: format = "heliotwin-scenario", version = 1
+Layout (format ``"heliotwin-scenario"``, version 2; version 1 is version 2 without ``/learned`` and
+``/provenance`` and still loads)::
+
+    /                       attrs: format = "heliotwin-scenario", version = 2
     /metadata               attrs: one per metadata key (str, int, float, bool stored natively; lists,
                             dicts and None as JSON text, their keys listed in the attr "_json_keys")
     /site                   attrs: latitude_deg, longitude_deg, altitude_m, name
@@ -20,7 +28,17 @@ Layout (format ``"heliotwin-scenario"``, version 1)::
                             attrs degree_u, degree_v
     /sun                    attrs: one per SunSettings attribute
     /extras                 optional: one dataset per entry (attr "type": "torch", "numpy", "scalar",
-                            "str"); nested dicts become sub-groups
+                            "str", "strs" for a list of str); nested dicts become sub-groups
+    /learned                optional, same encoding as /extras; the keys heliotwin writes:
+        calibration/        method, focal_spot, heliostats [Hc] (strs), parameter_names [P] (strs),
+                            deviations [Hc, P] (rad, m, relative increments; from the nominal
+                            kinematics), nominal/<Kinematics field> [Hc, ...] (the kinematics the
+                            deviations are relative to), networks/<HID>/{config (JSON str), state/...}
+                            for ``hybrid`` / ``mlp``, prior/{names, mean [P], sigma [P]} (field prior)
+        surfaces/<HID>/     settings (JSON str), displacement [F, nu, nv] (learned offsets along the
+                            facet normals [m]), train_records [n] (record ids)
+    /provenance             optional: one UTF-8 JSON string, a list of steps, each
+                            {"step", "utc", "heliotwin", ...} (method, records, settings, source)
 
 Every array keeps its dtype (float64 stays float64, bit for bit; bool stays bool). Writing is atomic: the
 file is written to a temporary file in the destination folder and moved into place with
@@ -55,8 +73,10 @@ from ..site import Site
 
 #: Root attribute ``format`` of every scenario file.
 FORMAT = "heliotwin-scenario"
-#: Layout version written by this heliotwin (and the only one it reads).
-VERSION = 1
+#: Layout version written by this heliotwin.
+VERSION = 2
+#: Versions this heliotwin reads (1: no learned state, no provenance).
+READABLE_VERSIONS = (1, 2)
 
 _TARGET_CLASSES = {"planar": PlanarTarget, "cylinder": CylinderTarget}
 #: Trailing shapes of the Kinematics tensors (after the heliostat axis); unlisted ones are not checked.
@@ -75,12 +95,16 @@ class Scenario:
     plant : Plant
         Tensors on the CPU, dtypes as stored.
     extras : dict
-        Name -> torch.Tensor / numpy.ndarray / Python scalar / str / nested dict, as saved.
+        Name -> torch.Tensor / numpy.ndarray / Python scalar / str / list of str / nested dict, as saved.
     metadata : dict
         Name -> str / int / float / bool / JSON value; always has ``created_by`` and ``created_utc``.
     version : int
         Format version of the file.
     path : str
+    learned : dict
+        The learned state (see the module docstring); ``{}`` for a nominal plant or a version-1 file.
+    provenance : list of dict
+        One entry per step that wrote the file, oldest first (see :func:`provenance_entry`).
     """
 
     plant: Plant
@@ -88,6 +112,8 @@ class Scenario:
     metadata: dict = field(default_factory=dict)
     version: int = VERSION
     path: str = ""
+    learned: dict = field(default_factory=dict)
+    provenance: list = field(default_factory=list)
 
     def __iter__(self):
         return iter((self.plant, self.extras, self.metadata))
@@ -176,8 +202,10 @@ def _write_extras(group: h5py.Group, extras: dict, path, where: str) -> None:
             ds, kind = group.create_dataset(key, data=np.asarray(value)), "scalar"
         elif isinstance(value, str):
             ds, kind = group.create_dataset(key, data=value, dtype=_STR), "str"
+        elif isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value):
+            ds, kind = group.create_dataset(key, data=np.array(list(value), dtype=object), dtype=_STR), "strs"
         else:
-            _fail_write(path, name, f"extras values must be tensors, arrays, numbers, str or dicts, got "
+            _fail_write(path, name, f"values must be tensors, arrays, numbers, str, lists of str or dicts, got "
                                     f"{type(value).__name__}")
         ds.attrs["type"] = kind
 
@@ -223,8 +251,9 @@ def _file_mode(path: Path) -> int:
         return 0o644
 
 
-def save_scenario(plant: Plant, path, extras: dict | None = None, metadata: dict | None = None) -> Path:
-    """Write a plant (and extras, metadata) to a scenario file, atomically.
+def save_scenario(plant: Plant, path, extras: dict | None = None, metadata: dict | None = None, *,
+                  learned: dict | None = None, provenance: list | None = None) -> Path:
+    """Write a plant (and learned state, provenance, extras, metadata) to a scenario file, atomically.
 
     Parameters
     ----------
@@ -240,6 +269,10 @@ def save_scenario(plant: Plant, path, extras: dict | None = None, metadata: dict
     metadata : dict, optional
         Name -> str / int / float / bool, or anything JSON-serialisable. ``created_by`` (heliotwin
         version) and ``created_utc`` (ISO time) are added unless given; e.g. ``{"source": paint_dir}``.
+    learned : dict, optional
+        The learned state (module docstring), encoded like ``extras``.
+    provenance : list of dict, optional
+        JSON-serialisable steps, oldest first (:func:`provenance_entry` builds one).
 
     Returns
     -------
@@ -257,6 +290,7 @@ def save_scenario(plant: Plant, path, extras: dict | None = None, metadata: dict
 
     path = Path(path)
     _validate_plant(plant, path, writing=True)
+    provenance_json = _provenance_json(provenance or [], path)
     meta = {"created_by": f"heliotwin {__version__}",
             "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
     meta.update(metadata or {})
@@ -275,6 +309,10 @@ def save_scenario(plant: Plant, path, extras: dict | None = None, metadata: dict
             _write_plant(h5, plant, path)
             if extras:
                 _write_extras(h5.create_group("extras", track_order=True), extras, path, "/extras")
+            if learned:
+                _write_extras(h5.create_group("learned", track_order=True), learned, path, "/learned")
+            if provenance:
+                h5.create_dataset("provenance", data=provenance_json, dtype=_STR)
         with open(tmp, "rb") as fh:
             os.fsync(fh.fileno())
         os.chmod(tmp, mode)
@@ -286,6 +324,32 @@ def save_scenario(plant: Plant, path, extras: dict | None = None, metadata: dict
             raise InputFileError(path, f"cannot write ({_one_line(exc)})") from None
         raise
     return path
+
+
+def _provenance_json(provenance: list, path) -> str:
+    if not isinstance(provenance, list) or not all(isinstance(p, dict) for p in provenance):
+        _fail_write(path, "/provenance", "expected a list of dicts")
+    try:
+        return json.dumps(provenance, allow_nan=False, sort_keys=False)
+    except (TypeError, ValueError) as exc:
+        _fail_write(path, "/provenance", f"not strict JSON ({_one_line(exc)})")
+
+
+def provenance_entry(step: str, **fields) -> dict:
+    """One provenance step: ``{"step", "utc", "heliotwin", **fields}`` (fields must be JSON values).
+
+    Parameters
+    ----------
+    step : str
+        ``"from-paint"``, ``"calibrate"``, ``"reconstruct"``, ...
+    **fields
+        What a reader needs to reproduce the step: ``method``, ``source`` (PAINT folder), ``records``
+        (ids used for training), ``settings``.
+    """
+    from .. import __version__
+
+    return {"step": step, "utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "heliotwin": __version__, **fields}
 
 
 # ============================================================================================ reading
@@ -406,6 +470,9 @@ def _read_extras(r: _Reader, group: h5py.Group) -> dict:
             out[key] = _read_extras(r, obj)
             continue
         kind = _py(obj.attrs.get("type", "numpy"))
+        if kind == "strs":
+            out[key] = r.strings(group, key)
+            continue
         if kind == "str":
             if h5py.check_string_dtype(obj.dtype) is None:
                 r.fail(where, "expected a string dataset")
@@ -419,7 +486,7 @@ def _read_extras(r: _Reader, group: h5py.Group) -> dict:
         elif kind == "scalar":
             out[key] = _py(data)
         else:
-            r.fail(where, f"unknown extras type {kind!r} (known: torch, numpy, scalar, str)")
+            r.fail(where, f"unknown value type {kind!r} (known: torch, numpy, scalar, str, strs)")
     return out
 
 
@@ -461,11 +528,28 @@ def _check_version(r: _Reader, h5: h5py.File) -> int:
         r.fail("/@version", f"missing or non-integer format version {version!r}", ScenarioVersionError)
     if version > VERSION:
         r.fail("/@version", f"written by a newer heliotwin (format version {version}; this heliotwin reads "
-                            f"version {VERSION}); upgrade heliotwin", ScenarioVersionError)
-    if version < VERSION:
-        r.fail("/@version", f"format version {version} is older than the supported version {VERSION} and has "
-                            f"no migration; re-create the scenario", ScenarioVersionError)
+                            f"versions {', '.join(map(str, READABLE_VERSIONS))}); upgrade heliotwin",
+               ScenarioVersionError)
+    if version not in READABLE_VERSIONS:
+        r.fail("/@version", f"format version {version} is older than the supported versions "
+                            f"{', '.join(map(str, READABLE_VERSIONS))} and has no migration; re-create the scenario",
+               ScenarioVersionError)
     return version
+
+
+def _read_provenance(r: _Reader, h5: h5py.File) -> list:
+    if "provenance" not in h5:
+        return []
+    obj = h5["provenance"]
+    if not isinstance(obj, h5py.Dataset) or h5py.check_string_dtype(obj.dtype) is None or obj.ndim != 0:
+        r.fail("/provenance", "expected one JSON string")
+    try:
+        value = json.loads(obj.asstr()[()])
+    except ValueError:
+        r.fail("/provenance", "malformed JSON")
+    if not isinstance(value, list) or not all(isinstance(p, dict) for p in value):
+        r.fail("/provenance", "expected a JSON list of objects")
+    return value
 
 
 def load_scenario(path) -> Scenario:
@@ -478,14 +562,15 @@ def load_scenario(path) -> Scenario:
     Returns
     -------
     Scenario
-        ``plant``, ``extras``, ``metadata`` (unpackable as a 3-tuple), ``version``, ``path``.
+        ``plant``, ``extras``, ``metadata`` (unpackable as a 3-tuple), ``version``, ``path``, ``learned``,
+        ``provenance``.
 
     Raises
     ------
     InputFileError
         Missing file, not HDF5, missing/mistyped group, dataset or attribute, inconsistent shapes.
     ScenarioVersionError
-        Another format, or an older/newer format version.
+        Another format, or a format version this heliotwin cannot read.
     """
     path = Path(path)
     r = _Reader(path)
@@ -505,10 +590,12 @@ def load_scenario(path) -> Scenario:
             metadata = _read_metadata(r, r.group(h5, "metadata"))
             plant = _read_plant(r, h5)
             extras = _read_extras(r, r.group(h5, "extras")) if "extras" in h5 else {}
+            learned = _read_extras(r, r.group(h5, "learned")) if "learned" in h5 else {}
+            provenance = _read_provenance(r, h5)
     except (OSError, KeyError, RuntimeError) as exc:  # h5py's low-level failures (corrupt/truncated file)
         raise InputFileError(path, f"cannot read HDF5 ({_one_line(exc)})") from None
     _validate_plant(plant, path)
-    return Scenario(plant, extras, metadata, version, str(path))
+    return Scenario(plant, extras, metadata, version, str(path), learned, provenance)
 
 
 # ========================================================================================= validation
