@@ -4,7 +4,7 @@ For every calibration record, with the given (default: nominal) kinematics and i
 
 * pointing error [mrad]: angle between the model mirror normal at the recorded motor steps and the
   measured normal (bisector of the sun direction and the direction concentrator -> measured spot), per
-  centroid source (HeliOS, UTIS);
+  centroid source (HeliOS, UTIS) — :mod:`heliotwin.calibrate.metrics`, the metric ``calibrate`` reports;
 * focal-spot distance on the target [m]: predicted flux centroid (analytic integrator) vs measured spot,
   in the target plane; where the predicted spot leaves the target the central reflected ray is used;
 * distance of the measured spot from its target plane [m] (a data-consistency check);
@@ -22,13 +22,13 @@ import torch
 from tqdm.auto import tqdm
 
 from .field import kinematics as kin_ops
-from .field.plant import Kinematics, SunSettings
+from .field.plant import Plant, SunSettings
 from .field.targets import PlanarTarget
 from .geometry import angle_between
-from .io.paint import FOCAL_SPOT_SOURCES, PaintDataset
+from .io.paint import PaintDataset
+from .io.records import SOURCES, RecordTable
 from .raytrace.flux import cross_correlation, normalized_l1, read_png
 from .scene import central_ray_spot, trace, world_surface
-from .sun import direction_from_paint_angles
 
 CENTERED_WINDOW_M = 6.0
 
@@ -38,23 +38,22 @@ def _median(xs):
     return statistics.median(xs) if xs else None
 
 
-def pointing_error_mrad(R_world_heliostat, concentrator, sun_direction, spot) -> torch.Tensor:
-    """Angle between model and measured mirror normals [mrad], shape (B,) (atan2-based, stable)."""
-    measured = kin_ops.bisector_normal(sun_direction, concentrator, spot)
-    return 1000.0 * angle_between(kin_ops.mirror_normal(R_world_heliostat), measured)
-
-
-def validate_dataset(ds: PaintDataset, *, kinematics: Kinematics | None = None, sun: SunSettings | None = None,
+def validate_dataset(ds: PaintDataset, *, plant: Plant | None = None, model=None, sun: SunSettings | None = None,
                      samples=(16, 16), resolution: int = 128, batch: int = 64, with_images: bool = True,
                      progress: bool = True) -> dict:
-    """Validate the forward model on every record of a PAINT dataset.
+    """Validate the forward model on every usable record of a PAINT dataset.
 
     Parameters
     ----------
     ds : PaintDataset
-        From :func:`heliotwin.io.paint.load_paint`.
-    kinematics : Kinematics, optional
-        Default: the nominal kinematics of ``ds.plant``.
+        From :func:`heliotwin.io.paint.load_paint`: its record table (and skipped records).
+    plant : Plant, optional
+        The plant to validate (e.g. a calibrated scenario's); default ``ds.plant`` (nominal kinematics,
+        ideal surfaces). Must contain every heliostat of ``ds``.
+    model : heliotwin.calibrate.model.Calibrated, optional
+        A calibrated model over some heliostats (``heliostat_ids``): their pointing error comes from its
+        :meth:`normals`, exactly the metric ``calibrate`` reports; networks included. Other heliostats use
+        ``plant``'s kinematics.
     sun : SunSettings, optional
         Optics for the predicted images (default: the plant's).
     samples : (int, int)
@@ -68,82 +67,106 @@ def validate_dataset(ds: PaintDataset, *, kinematics: Kinematics | None = None, 
     -------
     dict
         ``records`` (one dict per record), ``heliostats.<HID>`` medians, ``overall`` medians (the median
-        over heliostats of each heliostat's median).
+        over heliostats of each heliostat's median), ``skipped_records`` (with reasons).
     """
-    plant = ds.plant
-    kin = kinematics or plant.field.kinematics
+    plant = plant or ds.plant
+    table = ds.records.for_heliostats(plant.field.ids) if list(ds.records.heliostat_ids) != list(plant.field.ids) \
+        else ds.records
     sun = sun or plant.sun
-    index = {h: i for i, h in enumerate(plant.field.ids)}
-    by_target = defaultdict(list)
-    for r in ds.records:
-        by_target[r.target].append(r)
     rows = {}
-    bar = tqdm(total=len(ds.records), desc="validate", unit="rec", disable=not progress)
-    for tname, recs in by_target.items():
-        target = plant.target(tname)
-        for start in range(0, len(recs), batch):
-            chunk = recs[start:start + batch]
-            rows.update(_validate_chunk(chunk, target, plant, kin, sun, index, samples, resolution, with_images))
+    bar = tqdm(total=len(table), desc="validate", unit="rec", disable=not progress)
+    for tname in dict.fromkeys(table.target):
+        idx = torch.tensor([i for i, t in enumerate(table.target) if t == tname], dtype=torch.long)
+        for start in range(0, len(idx), batch):
+            chunk = table.subset(idx[start:start + batch])
+            rows.update(_validate_chunk(chunk, plant.target(tname), plant, model, sun, samples, resolution,
+                                        with_images))
             bar.update(len(chunk))
     bar.close()
-    records = [rows[r.record_id] for r in ds.records]
-    return summarise(records)
+    out = summarise([rows[int(r)] for r in table.record_id])
+    out["skipped_records"] = list(ds.skipped)
+    out["overall"]["skipped_records"] = len(ds.skipped)
+    return out
 
 
-def _validate_chunk(chunk, target, plant, kin, sun, index, samples, resolution, with_images) -> dict:
-    hidx = torch.tensor([index[r.heliostat_id] for r in chunk])
-    steps = torch.tensor([r.motor_steps for r in chunk], dtype=torch.float64)
-    s = direction_from_paint_angles(torch.tensor([r.sun_azimuth for r in chunk]),
-                                    torch.tensor([r.sun_elevation for r in chunk]))
+def _pointing_errors(chunk: RecordTable, plant: Plant, model) -> dict:
+    """Pointing error [rad] per source, [R] each (NaN where a record lacks that source)."""
+    from .calibrate import metrics
+
+    kin = plant.field.kinematics
+    normal, conc = metrics.model_normals(kin, chunk)
+    if model is not None:
+        mine = torch.tensor([plant.field.ids[h] in model.heliostat_ids for h in chunk.heliostat_index.tolist()])
+        if bool(mine.any()):
+            sub = chunk.subset(mine).for_heliostats(model.heliostat_ids)
+            n, c = model.normals(sub)
+            normal, conc = normal.clone(), conc.clone()
+            normal[mine], conc[mine] = n.to(normal), c.to(conc)
+    out = {}
+    for k, src in enumerate(SOURCES):
+        spot = chunk.focal_spots[:, k]
+        out[src] = angle_between(normal, kin_ops.bisector_normal(chunk.sun, conc, spot))  # TODO(merge): metrics
+    return out
+
+
+def _validate_chunk(chunk: RecordTable, target, plant: Plant, model, sun, samples, resolution, with_images) -> dict:
+    s = chunk.sun
     with torch.no_grad():
-        pts, nrm, area, R, c = world_surface(kin, plant.field.surfaces, hidx, steps, samples)
-        errors = {src: pointing_error_mrad(R, c, s, torch.stack([r.focal_spot.get(src, r.spot()) for r in chunk]))
-                  for src in FOCAL_SPOT_SOURCES}
+        errors = _pointing_errors(chunk, plant, model)
+        pts, nrm, area, R, c = world_surface(plant.field.kinematics, plant.field.surfaces, chunk.heliostat_index,
+                                             chunk.motor_steps, samples)
         # One heliostat per sample: its points' footprints differ by a few per cent, so one convolution
         # kernel per sample ("convolve" mode) is exact to second order and ~50x faster than per-point windows.
-        flux = trace(pts, nrm, area, s.to(pts), target, integrator="analytic", resolution=(resolution, resolution), sun=sun,
-                     mode="convolve")
-        power = flux.total_power_w
-        on_target = flux.intercepted_power_w > 0.5 * power
+        flux = trace(pts, nrm, area, s.to(pts), target, integrator="analytic", resolution=(resolution, resolution),
+                     sun=sun, mode="convolve")
+        on_target = flux.intercepted_power_w > 0.5 * flux.total_power_w
         pred_local = flux.centroid_local().to(torch.float64)
-        ray_spot = central_ray_spot(R, c, s, target) if isinstance(target, PlanarTarget) else None
-        if ray_spot is not None:
-            ray_local = target.to_local(ray_spot)
+        if isinstance(target, PlanarTarget):
+            ray_local = target.to_local(central_ray_spot(R, c, s, target))
             pred_local = torch.where(on_target.unsqueeze(-1), pred_local, ray_local)
+        meas_local = target.to_local(chunk.spot)
+        distance = torch.linalg.norm(pred_local - meas_local, dim=-1)
+        offset = target.distance_to_plane(chunk.spot)
         out = {}
-        for i, r in enumerate(chunk):
-            spot = r.spot("HeliOS")
-            meas_local = target.to_local(spot)
-            row = {
-                "record": r.record_id, "heliostat": r.heliostat_id, "target": r.target,
-                "sun_azimuth_deg": math.degrees(r.sun_azimuth), "sun_elevation_deg": math.degrees(r.sun_elevation),
-                "pointing_error_mrad": float(errors["HeliOS"][i]) if "HeliOS" in r.focal_spot else float(errors["UTIS"][i]),
-                "sources": sorted(r.focal_spot),
-                "distance_m": float(torch.linalg.norm(pred_local[i] - meas_local)),
-                "predicted_spot_on_target": bool(on_target[i]),
-                "measured_spot_plane_offset_m": float(target.distance_to_plane(spot)),
-                "datetime": r.datetime,
-            }
-            for src in FOCAL_SPOT_SOURCES:
-                if src in r.focal_spot:
-                    row[f"pointing_error_{src.lower()}_mrad"] = float(errors[src][i])
-            out[r.record_id] = row
+        for i, rid in enumerate(chunk.record_id.tolist()):
+            out[rid] = _row(chunk, i, errors, float(distance[i]), bool(on_target[i]), float(offset[i]))
         if with_images:
             _compare_images(chunk, target, pts, nrm, area, s, pred_local, sun, out)
     return out
 
 
-def _compare_images(chunk, target, pts, nrm, area, s, pred_local, sun, out) -> None:
+def _row(chunk: RecordTable, i: int, errors: dict, distance: float, on_target: bool, offset: float) -> dict:
+    sources = [src for k, src in enumerate(SOURCES) if bool(torch.isfinite(chunk.focal_spots[i, k]).all())]
+    row = {
+        "record": int(chunk.record_id[i]), "heliostat": chunk.heliostat_ids[int(chunk.heliostat_index[i])],
+        "target": chunk.target[i],
+        "sun_azimuth_deg": math.degrees(float(chunk.sun_azimuth[i])),
+        "sun_elevation_deg": math.degrees(float(chunk.sun_elevation[i])),
+        # The record's own centroid (``spot``: HeliOS where present) - the one calibrate scores too.
+        "pointing_error_mrad": 1e3 * float(errors[chunk.source[i]][i]),
+        "focal_spot_source": chunk.source[i],
+        "sources": sources,
+        "distance_m": distance,
+        "predicted_spot_on_target": on_target,
+        "measured_spot_plane_offset_m": offset,
+        "datetime": chunk.datetime[i],
+    }
+    for src in sources:
+        row[f"pointing_error_{src.lower()}_mrad"] = 1e3 * float(errors[src][i])
+    return row
+
+
+def _compare_images(chunk: RecordTable, target, pts, nrm, area, s, pred_local, sun, out) -> None:
     """Predicted vs measured ``flux-centered`` images for the records that have one.
 
     The predicted window is not clipped to the physical target: the comparison is of spot *shape*, and a
     nominal model whose spot leaves the target must still be compared (the measured one was on it).
     """
-    have = [i for i, r in enumerate(chunk) if r.flux_centered_png]
+    have = [i for i, p in enumerate(chunk.flux_centered_png) if p]
     by_res = defaultdict(list)
     measured = {}
     for i in have:
-        img = read_png(chunk[i].flux_centered_png)
+        img = read_png(chunk.flux_centered_png[i])
         measured[i] = img
         by_res[tuple(img.shape[-2:])].append(i)
     for res, idx in by_res.items():
@@ -155,9 +178,10 @@ def _compare_images(chunk, target, pts, nrm, area, s, pred_local, sun, out) -> N
         for j, i in enumerate(idx):
             m = measured[i].to(torch.float64)
             p = pred.bitmap[j].to(torch.float64)
-            out[chunk[i].record_id]["centered_l1"] = float(normalized_l1(p, m))
-            out[chunk[i].record_id]["centered_cross_correlation"] = float(cross_correlation(p, m))
-            out[chunk[i].record_id]["centered_resolution"] = list(res)
+            row = out[int(chunk.record_id[i])]
+            row["centered_l1"] = float(normalized_l1(p, m))
+            row["centered_cross_correlation"] = float(cross_correlation(p, m))
+            row["centered_resolution"] = list(res)
 
 
 def summarise(records: list[dict]) -> dict:

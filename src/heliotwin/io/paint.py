@@ -28,6 +28,7 @@ from ..errors import InputFileError
 from ..field.plant import Facets, Field, Kinematics, Plant, Site, SunSettings
 from ..field.targets import CylinderTarget, PlanarTarget
 from ..site import wgs84_to_enu
+from .records import RecordTable, build_record_table
 
 HELIOSTAT_DIR = re.compile(r"^[A-Z]{2}[0-9]{2}$")
 FOCAL_SPOT_SOURCES = ("HeliOS", "UTIS")
@@ -347,22 +348,42 @@ def read_metadata(root) -> tuple[dict, dict]:
 # ------------------------------------------------------------------------------------------- dataset
 @dataclass
 class PaintDataset:
-    """A PAINT folder read into a plant and its calibration records."""
+    """A PAINT folder read into a plant and its validated record table.
+
+    Attributes
+    ----------
+    root : str
+    plant : Plant
+        Nominal kinematics, ideal surfaces.
+    records : RecordTable
+        Every usable calibration record, heliostat axis = ``plant.field.ids``.
+    skipped : list of dict
+        ``{"record_id", "heliostat_id", "reason"}`` per record that could not be used.
+    properties : dict
+        Heliostat id -> :class:`HeliostatProperties`.
+    """
 
     root: str
     plant: Plant
-    records: list[CalibrationRecord] = field(default_factory=list)
+    records: RecordTable
+    skipped: list = field(default_factory=list)
     properties: dict = field(default_factory=dict)
 
-    def records_of(self, heliostat_id: str) -> list[CalibrationRecord]:
-        """Records of one heliostat, sorted by id."""
-        return [r for r in self.records if r.heliostat_id == heliostat_id]
+    def records_of(self, heliostat_id: str) -> RecordTable:
+        """Usable records of one heliostat, in reading order (ascending record id)."""
+        return self.records.select(heliostat=heliostat_id)
 
-    def record(self, record_id: int) -> CalibrationRecord:
-        for r in self.records:
-            if r.record_id == int(record_id):
-                return r
-        raise KeyError(f"record {record_id} not found in {self.root}")
+    def record(self, record_id: int) -> RecordTable:
+        """One record as a one-row table; a skipped record raises with its reason."""
+        for s in self.skipped:
+            if s["record_id"] == int(record_id):
+                raise InputFileError(self.root, f"record {record_id} of {s['heliostat_id']} cannot be used: "
+                                                f"{s['reason']}", field="record")
+        try:
+            return self.records.subset([self.records.index_of(record_id)])
+        except KeyError:
+            raise InputFileError(self.root, f"record {record_id} not found for heliostat(s) "
+                                            f"{', '.join(self.plant.field.ids)}", field="record") from None
 
 
 def list_heliostats(root) -> list[str]:
@@ -375,7 +396,7 @@ def list_heliostats(root) -> list[str]:
 
 
 def load_paint(root, heliostats=None, *, surface_control_points=(4, 4), surface_degree=(2, 2),
-               with_records: bool = True) -> PaintDataset:
+               with_records: bool = True, focal_spot: str = "HeliOS", plane_tolerance: float = 0.1) -> PaintDataset:
     """Read a PAINT folder into a :class:`Plant` (ideal flat canted surfaces) and its records.
 
     Parameters
@@ -388,6 +409,8 @@ def load_paint(root, heliostats=None, *, surface_control_points=(4, 4), surface_
         NURBS resolution of the ideal facets.
     with_records : bool
         Also read every calibration record.
+    focal_spot, plane_tolerance
+        See :func:`heliotwin.io.records.build_record_table`, which judges every record.
     """
     from ..field import facets as facet_ops
 
@@ -423,4 +446,5 @@ def load_paint(root, heliostats=None, *, surface_control_points=(4, 4), surface_
                 r.datetime = times.get(r.record_id)
                 r.weather = weather.get(r.record_id)
                 records.append(r)
-    return PaintDataset(root, plant, records, props)
+    table, skipped = build_record_table(plant, records, focal_spot=focal_spot, plane_tolerance=plane_tolerance)
+    return PaintDataset(root, plant, table, skipped, props)

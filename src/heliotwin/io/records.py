@@ -1,12 +1,18 @@
-"""Calibration records as batched tensors, with validation of every record a method will see.
+"""The calibration record table: every camera-target record of a plant, validated once, as tensors.
 
 A :class:`RecordTable` holds R records of H heliostats as a structure of arrays: the heliostat of each
 record is ``heliostat_index[r]`` (into the kinematics' heliostat axis), so a model evaluates all records of
-all heliostats in one call with ``kin.index(batch.heliostat_index)``.
+all heliostats in one call with ``kin.index(table.heliostat_index)``. The PAINT reader builds it once
+(:func:`build_record_table`); ``validate``, ``calibrate`` and ``surfaces`` all consume it, choosing records
+with :meth:`RecordTable.select` / :meth:`RecordTable.subset` and the centroid source with
+:meth:`RecordTable.with_focal_spot`.
 
-Bad input never crashes and never turns into a silent NaN: :func:`prepare_records` drops records whose
-focal spot lies off its target plane, whose motor steps are outside the actuator range, whose target is
-not planar, or whose numbers are not finite, and returns each drop with a reason.
+Every check a record must pass lives in :func:`build_record_table` and nowhere else: a record whose target
+is unknown or not planar, that has no usable centroid, whose numbers are not finite, whose motor steps are
+outside the actuator range, or whose centroid lies off its target plane is dropped with one reason string.
+(What makes a *file* unreadable — a missing field, a sun at or below the horizon, an unknown target — is the
+reader's job, :mod:`heliotwin.io.paint`, which names the file and field.) Duplicate record ids are an error (one of them would silently
+shadow the other).
 """
 from __future__ import annotations
 
@@ -16,7 +22,7 @@ from datetime import datetime, timezone
 
 import torch
 
-from ..errors import HeliotwinError
+from ..errors import HeliotwinError, InputFileError
 from ..sun import direction_from_paint_angles
 
 #: Focal-spot sources a record may carry, in PAINT's spelling.
@@ -75,8 +81,17 @@ class RecordTable:
         Focal-spot source used per record.
     spot_other : torch.Tensor, [R, 3], optional
         The centroid of the *other* source (UTIS when ``spot`` is HeliOS and vice versa), NaN where the
-        record has only one; ``None`` when not known (synthetic batches). Methods may fit on it (see
-        :func:`heliotwin.calibrate.methods.fit_spots`); the metric always uses ``spot``.
+        record has only one; ``None`` when not known (synthetic tables). Methods may fit on it; the metric
+        always uses ``spot``.
+    focal_spots : torch.Tensor, [R, 2, 3], optional
+        Every source's centroid in :data:`SOURCES` order (HeliOS, UTIS), ENU [m]; NaN where the record has
+        none or it is off the target plane. ``None`` for synthetic tables.
+    flux_png, flux_centered_png : list of (str or None)
+        Paths of the whole-target and the spot-centred measured image, ``None`` where the record has none.
+    datetime : list of (str or None)
+        UTC ISO time as the metadata CSV has it.
+    path : list of (str or None)
+        The record's properties file (for error messages).
     """
 
     heliostat_ids: list
@@ -96,6 +111,18 @@ class RecordTable:
     target: list = field(default_factory=list)
     source: list = field(default_factory=list)
     spot_other: torch.Tensor | None = None
+    focal_spots: torch.Tensor | None = None
+    flux_png: list = field(default_factory=list)
+    flux_centered_png: list = field(default_factory=list)
+    datetime: list = field(default_factory=list)
+    path: list = field(default_factory=list)
+
+    def __post_init__(self):
+        # Optional per-record lists default to "absent" so synthetic tables need not spell them out.
+        n = len(self)
+        for name in ("flux_png", "flux_centered_png", "datetime", "path"):
+            if not getattr(self, name):
+                setattr(self, name, [None] * n)
 
     def __len__(self) -> int:
         return int(self.record_id.shape[0])
@@ -122,6 +149,58 @@ class RecordTable:
             else:
                 out[f.name] = v[idx]
         return RecordTable(**out)
+
+    def index_of(self, record_id: int) -> int:
+        """Row of record ``record_id``; :class:`KeyError` naming the id when absent."""
+        hit = (self.record_id == int(record_id)).nonzero().flatten()
+        if not len(hit):
+            raise KeyError(f"record {record_id} is not among the {len(self)} usable records")
+        return int(hit[0])
+
+    def select(self, *, heliostat: str | None = None, record_ids=None, with_centered_image: bool = False
+               ) -> "RecordTable":
+        """Rows of one heliostat and/or the given record ids (in table order), optionally only those with a
+        flux-centred image; the heliostat axis is unchanged."""
+        keep = torch.ones(len(self), dtype=torch.bool)
+        if heliostat is not None:
+            if heliostat not in self.heliostat_ids:
+                raise KeyError(f"heliostat {heliostat} has no records in this table")
+            keep &= self.heliostat_index == self.heliostat_ids.index(heliostat)
+        if record_ids is not None:
+            keep &= torch.isin(self.record_id, torch.as_tensor(list(record_ids), dtype=torch.long))
+        if with_centered_image:
+            keep &= torch.tensor([p is not None for p in self.flux_centered_png], dtype=torch.bool)
+        return self.subset(keep)
+
+    def for_heliostats(self, heliostat_ids) -> "RecordTable":
+        """The records of ``heliostat_ids`` only, re-indexed so that ``heliostat_index`` points into that list
+        (the order a caller indexes its kinematics with)."""
+        ids = list(heliostat_ids)
+        unknown = [h for h in ids if h not in self.heliostat_ids]
+        if unknown:
+            raise KeyError(f"heliostat(s) {', '.join(unknown)} not in the record table")
+        old = torch.tensor([self.heliostat_ids.index(h) for h in ids], dtype=torch.long)
+        out = self.subset(torch.isin(self.heliostat_index, old))
+        remap = torch.full((max(len(self.heliostat_ids), 1),), -1, dtype=torch.long)
+        remap[old] = torch.arange(len(ids))
+        out.heliostat_index = remap[out.heliostat_index]
+        out.heliostat_ids = ids
+        return out
+
+    def with_focal_spot(self, source: str) -> "RecordTable":
+        """The same records with ``spot`` taken from ``source`` where the record has it (else the other
+        source), ``spot_other`` the remaining one and ``source`` naming what ``spot`` is."""
+        prefer = normalise_source(source)
+        if self.focal_spots is None:
+            raise HeliotwinError("this record table has no per-source centroids (synthetic records)")
+        p = SOURCES.index(prefer)
+        first, second = self.focal_spots[:, p], self.focal_spots[:, 1 - p]
+        has = torch.isfinite(first).all(-1)
+        out = self.subset(torch.arange(len(self)))
+        out.spot = torch.where(has.unsqueeze(-1), first, second)
+        out.spot_other = torch.where(has.unsqueeze(-1), second, torch.full_like(second, float("nan")))
+        out.source = [prefer if h else SOURCES[1 - p] for h in has.tolist()]
+        return out
 
     def of(self, h: int) -> torch.Tensor:
         """Indices (into this batch) of the records of heliostat ``h``."""
@@ -176,7 +255,7 @@ class RecordTable:
             vs = [getattr(b, f.name) for b in items]
             if f.name == "heliostat_ids":
                 out[f.name] = list(vs[0])
-            elif f.name == "spot_other":
+            elif f.name in ("spot_other", "focal_spots"):
                 out[f.name] = None if any(v is None for v in vs) else torch.cat(vs)
             elif isinstance(vs[0], list):
                 out[f.name] = [x for v in vs for x in v]
@@ -188,114 +267,119 @@ class RecordTable:
 WEATHER_KEYS = ("wind_speed", "wind_direction", "dni", "temperature", "humidity")
 
 
-def prepare_records(plant, records, heliostat_ids=None, *, focal_spot: str = "HeliOS",
-                    plane_tolerance: float = 0.1) -> tuple[RecordTable, list[dict]]:
-    """Validate PAINT records and batch the good ones.
+def _reason_to_skip(rec, target, kin, h: int, plane_tolerance: float) -> str | None:
+    """Why ``rec`` cannot be used (one line), or None. The only place a record is judged."""
+    if target is None:
+        return f"unknown target {rec.target!r}"
+    if getattr(target, "kind", "") != "planar":
+        return f"target {rec.target!r} is not planar (a centroid is measured on a flat target)"
+    if not rec.focal_spot:
+        return "no focal-spot centroid"
+    steps = torch.tensor(rec.motor_steps, dtype=torch.float64)
+    if not (bool(torch.isfinite(steps).all()) and math.isfinite(rec.sun_azimuth) and math.isfinite(rec.sun_elevation)
+            and all(bool(torch.isfinite(torch.as_tensor(v)).all()) for v in rec.focal_spot.values())):
+        return "non-finite value"
+    lo, hi = kin.min_steps[h], kin.max_steps[h]
+    bad = (steps < lo) | (steps > hi)
+    if bool(bad.any()):
+        a = int(bad.nonzero()[0])
+        return (f"motor steps axis {a + 1} = {steps[a].item():.0f} outside actuator range "
+                f"[{lo[a].item():.0f}, {hi[a].item():.0f}]")
+    offsets = {src: float(target.distance_to_plane(torch.as_tensor(v, dtype=torch.float64)))
+               for src, v in rec.focal_spot.items()}
+    if all(abs(d) > plane_tolerance for d in offsets.values()):
+        src, d = min(offsets.items(), key=lambda kv: abs(kv[1]))
+        return f"focal spot ({src}) {d:+.3f} m off the plane of target {rec.target!r} (tolerance {plane_tolerance} m)"
+    return None
+
+
+def build_record_table(plant, records, *, focal_spot: str = "HeliOS", plane_tolerance: float = 0.1
+                       ) -> tuple[RecordTable, list[dict]]:
+    """Validate raw records once and put the usable ones into one table over the plant's heliostats.
 
     Parameters
     ----------
     plant : heliotwin.field.plant.Plant
-        Provides targets and the kinematics' motor ranges.
+        Provides targets and the kinematics' motor ranges; the table's heliostat axis is ``plant.field.ids``.
     records : list of heliotwin.io.paint.CalibrationRecord
-    heliostat_ids : list of str, optional
-        Heliostats to keep, in this order (default: the plant's field order). Their index in this list is
-        ``heliostat_index``; the caller indexes the kinematics the same way.
+        As read from the files (parsed, not yet judged).
     focal_spot : str
-        Preferred centroid source (``HeliOS`` or ``UTIS``); a record without it falls back to the other.
+        Preferred centroid source for ``spot`` (``HeliOS`` or ``UTIS``); a record without a usable one falls
+        back to the other (:meth:`RecordTable.with_focal_spot` changes it later without re-reading).
     plane_tolerance : float
-        Largest distance [m] of a focal spot from its target plane (the multi-focus tower's records lie
-        up to 9 cm behind it; beyond 0.1 m the centroid is not on the target the record names).
+        Largest distance [m] of a centroid from its target plane (the multi-focus tower's records lie up to
+        9 cm behind it; beyond 0.1 m the centroid is not on the target the record names). A source beyond
+        it is treated as absent; a record with no source within it is dropped.
 
     Returns
     -------
-    batch : RecordTable
+    table : RecordTable
+        Usable records in reading order.
     skipped : list of dict
         ``{"record_id", "heliostat_id", "reason"}`` per dropped record.
+
+    Raises
+    ------
+    InputFileError
+        Two records with the same id (naming both files), or a non-finite / negative tolerance.
     """
+    if not (isinstance(plane_tolerance, (int, float)) and math.isfinite(plane_tolerance) and plane_tolerance >= 0):
+        raise HeliotwinError(f"plane tolerance must be a finite number >= 0 m, got {plane_tolerance!r}")
     prefer = normalise_source(focal_spot)
-    ids = list(plant.field.ids if heliostat_ids is None else heliostat_ids)
+    ids = list(plant.field.ids)
     pos = {h: i for i, h in enumerate(ids)}
     kin = plant.field.kinematics
-    cols = {k: [] for k in ("hidx", "rid", "az", "el", "steps", "spot", "other", "c", "n", "r", "u", "t", "w", "target",
-                            "source")}
-    skipped = []
+    first_path: dict = {}
+    rows, skipped = [], []
     for rec in records:
+        if rec.record_id in first_path:
+            raise InputFileError(rec.path, f"duplicate record id {rec.record_id} (also in {first_path[rec.record_id]})",
+                                 field="id")
+        first_path[rec.record_id] = rec.path
         if rec.heliostat_id not in pos:
             continue
-
-        def skip(reason):
-            skipped.append({"record_id": int(rec.record_id), "heliostat_id": rec.heliostat_id, "reason": reason})
-
-        h = plant.field.index_of(rec.heliostat_id)
         target = plant.targets.get(rec.target)
-        if target is None:
-            skip(f"unknown target {rec.target!r}")
+        reason = _reason_to_skip(rec, target, kin, pos[rec.heliostat_id], plane_tolerance)
+        if reason is not None:
+            skipped.append({"record_id": int(rec.record_id), "heliostat_id": rec.heliostat_id, "reason": reason})
             continue
-        if getattr(target, "kind", "") != "planar":
-            skip(f"target {rec.target!r} is not planar (centroid calibration needs a flat target)")
-            continue
-        src = prefer if prefer in rec.focal_spot else next((s for s in SOURCES if s in rec.focal_spot), None)
-        if src is None:
-            skip("no focal-spot centroid")
-            continue
-        spot = torch.as_tensor(rec.focal_spot[src], dtype=torch.float64)
-        steps = torch.tensor(rec.motor_steps, dtype=torch.float64)
-        if not (bool(torch.isfinite(spot).all()) and bool(torch.isfinite(steps).all())
-                and math.isfinite(rec.sun_azimuth) and math.isfinite(rec.sun_elevation)):
-            skip("non-finite value")
-            continue
-        if rec.sun_elevation <= 0:
-            skip(f"sun elevation {math.degrees(rec.sun_elevation):.2f} deg at or below the horizon")
-            continue
-        lo, hi = kin.min_steps[h], kin.max_steps[h]
-        bad = (steps < lo) | (steps > hi)
-        if bool(bad.any()):
-            a = int(bad.nonzero()[0])
-            skip(f"motor steps axis {a + 1} = {steps[a].item():.0f} outside actuator range "
-                 f"[{lo[a].item():.0f}, {hi[a].item():.0f}]")
-            continue
-        dist = float(target.distance_to_plane(spot))
-        if abs(dist) > plane_tolerance:
-            skip(f"focal spot {dist:+.3f} m off the plane of target {rec.target!r} (tolerance {plane_tolerance} m)")
-            continue
-        cols["hidx"].append(pos[rec.heliostat_id])
-        cols["rid"].append(int(rec.record_id))
-        cols["az"].append(rec.sun_azimuth)
-        cols["el"].append(rec.sun_elevation)
-        cols["steps"].append(steps)
-        cols["spot"].append(spot)
-        other = next((s for s in SOURCES if s != src and s in rec.focal_spot), None)
-        o = torch.as_tensor(rec.focal_spot[other], dtype=torch.float64) if other is not None else None
-        ok_other = o is not None and bool(torch.isfinite(o).all()) and abs(float(target.distance_to_plane(o))) <= plane_tolerance
-        cols["other"].append(o if ok_other else torch.full((3,), float("nan"), dtype=torch.float64))
-        cols["c"].append(target.center)
-        cols["n"].append(target.normal)
-        cols["r"].append(target.right)
-        cols["u"].append(target.up)
-        cols["t"].append(parse_time(rec.datetime))
-        w = rec.weather or {}
-        cols["w"].append([float(w.get(k, float("nan"))) for k in WEATHER_KEYS])
-        cols["target"].append(rec.target)
-        cols["source"].append(src)
+        spots = torch.full((len(SOURCES), 3), float("nan"), dtype=torch.float64)
+        for k, src in enumerate(SOURCES):
+            if src in rec.focal_spot:
+                v = torch.as_tensor(rec.focal_spot[src], dtype=torch.float64)
+                if abs(float(target.distance_to_plane(v))) <= plane_tolerance:
+                    spots[k] = v
+        rows.append((pos[rec.heliostat_id], rec, target, spots))
+    return _table_from_rows(ids, rows).with_focal_spot(prefer), skipped
+
+
+def _table_from_rows(ids: list, rows: list) -> RecordTable:
     f64 = dict(dtype=torch.float64)
-    n = len(cols["rid"])
+    n = len(rows)
 
-    def stack3(key):
-        return torch.stack(cols[key]).to(torch.float64) if n else torch.zeros(0, 3, **f64)
+    def stack(values, shape):
+        return torch.stack(values).to(torch.float64) if n else torch.zeros(0, *shape, **f64)
 
-    az = torch.tensor(cols["az"], **f64)
-    el = torch.tensor(cols["el"], **f64)
-    batch = RecordTable(
+    az = torch.tensor([r.sun_azimuth for _, r, _, _ in rows], **f64)
+    el = torch.tensor([r.sun_elevation for _, r, _, _ in rows], **f64)
+    spots = stack([s for _, _, _, s in rows], (len(SOURCES), 3))
+    return RecordTable(
         heliostat_ids=ids,
-        heliostat_index=torch.tensor(cols["hidx"], dtype=torch.long),
-        record_id=torch.tensor(cols["rid"], dtype=torch.long),
+        heliostat_index=torch.tensor([h for h, _, _, _ in rows], dtype=torch.long),
+        record_id=torch.tensor([int(r.record_id) for _, r, _, _ in rows], dtype=torch.long),
         sun_azimuth=az, sun_elevation=el,
         sun=direction_from_paint_angles(az, el, check_horizon=False) if n else torch.zeros(0, 3, **f64),
-        motor_steps=torch.stack(cols["steps"]) if n else torch.zeros(0, 2, **f64),
-        spot=stack3("spot"), plane_center=stack3("c"), plane_normal=stack3("n"),
-        plane_right=stack3("r"), plane_up=stack3("u"),
-        time=torch.tensor(cols["t"], **f64),
-        weather=torch.tensor(cols["w"], **f64) if n else torch.zeros(0, len(WEATHER_KEYS), **f64),
-        target=cols["target"], source=cols["source"], spot_other=stack3("other"),
+        motor_steps=stack([torch.tensor(r.motor_steps, **f64) for _, r, _, _ in rows], (2,)),
+        spot=spots[:, 0].clone(),
+        plane_center=stack([t.center for _, _, t, _ in rows], (3,)),
+        plane_normal=stack([t.normal for _, _, t, _ in rows], (3,)),
+        plane_right=stack([t.right for _, _, t, _ in rows], (3,)),
+        plane_up=stack([t.up for _, _, t, _ in rows], (3,)),
+        time=torch.tensor([parse_time(r.datetime) for _, r, _, _ in rows], **f64),
+        weather=torch.tensor([[float((r.weather or {}).get(k, float("nan"))) for k in WEATHER_KEYS]
+                              for _, r, _, _ in rows], **f64).reshape(n, len(WEATHER_KEYS)),
+        target=[r.target for _, r, _, _ in rows], source=[SOURCES[0]] * n, spot_other=spots[:, 1].clone(),
+        focal_spots=spots,
+        flux_png=[r.flux_png for _, r, _, _ in rows], flux_centered_png=[r.flux_centered_png for _, r, _, _ in rows],
+        datetime=[r.datetime for _, r, _, _ in rows], path=[r.path for _, r, _, _ in rows],
     )
-    return batch, skipped
