@@ -172,7 +172,8 @@ def _compare_images(chunk: RecordTable, target, pts, nrm, area, s, pred_local, s
     for res, idx in by_res.items():
         sel = torch.tensor(idx)
         half = CENTERED_WINDOW_M / 2
-        window = torch.cat((pred_local[sel] - half, torch.full((len(idx), 2), CENTERED_WINDOW_M, dtype=torch.float64)), -1)
+        size = torch.full((len(idx), 2), CENTERED_WINDOW_M, dtype=torch.float64)
+        window = torch.cat((pred_local[sel] - half, size), -1)
         pred = trace(pts[sel], nrm[sel], area[sel], s[sel].to(pts), target, integrator="analytic", resolution=res,
                      sun=sun, window=window, mode="convolve", clip_to_target=False)
         for j, i in enumerate(idx):
@@ -206,7 +207,8 @@ def summarise(records: list[dict]) -> dict:
         "median_pointing_error_mrad": _median([h["median_pointing_error_mrad"] for h in heliostats.values()]),
         "median_distance_m": _median([h["median_distance_m"] for h in heliostats.values()]),
         "median_pointing_error_over_records_mrad": _median([r["pointing_error_mrad"] for r in records]),
-        "max_measured_spot_plane_offset_m": max((abs(r["measured_spot_plane_offset_m"]) for r in records), default=None),
+        "max_measured_spot_plane_offset_m": max((abs(r["measured_spot_plane_offset_m"]) for r in records),
+                                                default=None),
         "images": sum("centered_l1" in r for r in records),
         "median_centered_l1": _median([r.get("centered_l1") for r in records]),
         "median_centered_cross_correlation": _median([r.get("centered_cross_correlation") for r in records]),

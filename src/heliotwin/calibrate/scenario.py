@@ -1,151 +1,120 @@
-"""The calibrated-model file (``-o calibrated.h5``) and the aim command built on it.
+"""A calibration in the scenario file, and aiming with it.
 
-Format ``heliotwin-calibration``, version 1 (HDF5, h5py)::
-
-    /                       attrs: format="heliotwin-calibration", version=1, method, split, created (UTC ISO)
-    /heliostats/<HID>/      one group per calibrated heliostat
-        kinematics/<field>  the calibrated static Kinematics, every field of
-                            heliotwin.field.plant.Kinematics without the heliostat axis
-                            (e.g. joint_tilt (2, 3), increment (2,), clockwise (2,) as uint8)
-        deviations          (P,) learned deviations from the nominal file (rad, m, relative increments)
-                            attrs: names (JSON list)
-        network/            optional (hybrid, mlp): attrs config (JSON); one dataset per state-dict entry
-
-This is the calibration module's own small format (the plant scenario format lives elsewhere); readers
-check ``format`` and ``version`` and raise :class:`~heliotwin.errors.ScenarioVersionError` otherwise.
+``heliotwin calibrate -o plant.h5`` writes one scenario (:mod:`heliotwin.io.scenario`): the plant with the
+calibrated static kinematics in ``/field/kinematics`` (so every reader traces the calibrated plant), and
+under ``/learned/calibration`` what the plant geometry cannot hold — the deviations from the kinematics
+they were fitted against, the networks of ``hybrid`` / ``mlp``, the field prior — plus a provenance step.
+:func:`aim` answers "which motor steps put the sun's reflection on this point" from such a file.
 """
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import fields
-from datetime import datetime, timezone
 
 import torch
 
-from ..errors import InputFileError, ScenarioVersionError
-from ..io.hdf5 import open_for_reading
-from ..field.plant import Kinematics
+from ..errors import HeliotwinError, InputFileError
+from ..field.plant import Kinematics, Plant
+from ..field.update import with_kinematics
 
-FORMAT = "heliotwin-calibration"
-VERSION = 1
-
-
-def save_calibration(path, model, *, split: str = "") -> None:
-    """Write a :class:`~heliotwin.calibrate.model.Calibrated` model (calibrated heliostats only), atomically."""
-    import h5py
-
-    path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".h5", dir=folder)
-    os.close(fd)
-    kin = model.kinematics
-    try:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["format"] = FORMAT
-            f.attrs["version"] = VERSION
-            f.attrs["method"] = model.method
-            f.attrs["split"] = split
-            f.attrs["created"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
-            root = f.create_group("heliostats")
-            for h, hid in enumerate(model.heliostat_ids):
-                if not bool(model.ok[h]):
-                    continue
-                g = root.create_group(hid)
-                kg = g.create_group("kinematics")
-                for fl in fields(Kinematics):
-                    v = getattr(kin, fl.name)[h].detach()
-                    kg.create_dataset(fl.name, data=(v.to(torch.uint8) if v.dtype == torch.bool else v).numpy())
-                d = g.create_dataset("deviations", data=model.delta[h].detach().double().numpy())
-                d.attrs["names"] = json.dumps(list(model.names))
-                net = model.extras.get("networks", {}).get(hid)
-                if net is not None:
-                    ng = g.create_group("network")
-                    ng.attrs["config"] = json.dumps(net["config"])
-                    for k, t in net["state"].items():
-                        ng.create_dataset(k, data=t.detach().cpu().numpy())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+#: The key of a calibration under ``Scenario.learned``.
+KEY = "calibration"
 
 
-def load_calibration(path) -> dict:
-    """Read a calibration file.
+def calibration_state(model, *, focal_spot: str = "", prior=None) -> dict:
+    """The ``/learned/calibration`` entry of a calibrated model (calibrated heliostats only).
+
+    Parameters
+    ----------
+    model : heliotwin.calibrate.model.Calibrated
+        H heliostats, ``ok`` [H] says which were calibrated.
+    focal_spot : str
+        Centroid source the method was scored on.
+    prior : (torch.Tensor [P], torch.Tensor [P]) or None
+        Field prior mean and standard deviation over ``model.names`` (rad, m, relative), when one was used.
 
     Returns
     -------
     dict
-        ``method``, ``heliostats``: dict of HID -> {"kinematics": Kinematics (1 heliostat),
-        "deviations": dict name -> value, "network": {"config": dict, "state": dict} or None}.
+        Encodable by :func:`heliotwin.io.scenario.save_scenario` (tensors, str, lists of str, dicts).
     """
-    path = os.fspath(path)
-    with open_for_reading(path) as f:
-        fmt = f.attrs.get("format")
-        fmt = fmt.decode() if isinstance(fmt, bytes) else fmt
-        if fmt != FORMAT:
-            raise ScenarioVersionError(path, f"format {fmt!r} is not {FORMAT!r}", field="format")
-        ver = int(f.attrs.get("version", -1))
-        if ver != VERSION:
-            raise ScenarioVersionError(path, f"version {ver} not supported (this heliotwin reads version {VERSION})",
-                                       field="version")
-        if "heliostats" not in f:
-            raise InputFileError(path, "missing group", field="heliostats")
-        out = {"method": str(f.attrs.get("method", "")), "heliostats": {}}
-        for hid, g in f["heliostats"].items():
-            vals = {}
-            for fl in fields(Kinematics):
-                key = f"kinematics/{fl.name}"
-                if key not in g:
-                    raise InputFileError(path, "missing dataset", field=f"heliostats/{hid}/{key}")
-                t = torch.as_tensor(g[key][()])
-                vals[fl.name] = (t.bool() if fl.name in ("clockwise", "linear") else t.double()).unsqueeze(0)
-            names = json.loads(g["deviations"].attrs["names"]) if "deviations" in g else []
-            dev = dict(zip(names, g["deviations"][()].tolist())) if names else {}
-            net = None
-            if "network" in g:
-                net = {"config": json.loads(g["network"].attrs["config"]),
-                       "state": {k: torch.as_tensor(v[()]) for k, v in g["network"].items()}}
-            out["heliostats"][hid] = {"kinematics": Kinematics(**vals), "deviations": dev, "network": net}
-    return out
+    ok = [h for h in range(len(model.heliostat_ids)) if bool(model.ok[h])]
+    ids = [model.heliostat_ids[h] for h in ok]
+    state = {"method": str(model.method), "focal_spot": str(focal_spot), "heliostats": ids,
+             "parameter_names": [str(n) for n in model.names],
+             "deviations": model.delta.detach()[ok].to(torch.float64).cpu(),
+             "nominal": {f.name: getattr(model.nominal, f.name)[ok].detach().cpu() for f in fields(Kinematics)}}
+    networks = model.extras.get("networks") or {}
+    if networks:
+        state["networks"] = {hid: {"config": json.dumps(net["config"]),
+                                   "state": {k: v.detach().cpu() for k, v in net["state"].items()}}
+                             for hid, net in networks.items() if hid in ids}
+    if prior is not None:
+        state["prior"] = {"names": [str(n) for n in model.names], "mean": torch.as_tensor(prior[0]).double(),
+                          "sigma": torch.as_tensor(prior[1]).double()}
+    return state
 
 
-def aim(calibration: dict, heliostat_id: str, sun_azimuth: float, sun_elevation: float, aim_point) -> dict:
-    """Motor steps that put the sun's reflection on ``aim_point`` with the calibrated model.
+def calibrated_plant(plant: Plant, model) -> Plant:
+    """``plant`` with the calibrated static kinematics of every calibrated heliostat of ``model``."""
+    ok = [h for h in range(len(model.heliostat_ids)) if bool(model.ok[h])]
+    if not ok:
+        return plant
+    return with_kinematics(plant, [model.heliostat_ids[h] for h in ok], model.kinematics.index(ok))
+
+
+def network_entry(learned: dict, heliostat_id: str, path="") -> dict | None:
+    """The stored network of one heliostat as ``{"config": dict, "state": dict}``, or None (rigid body)."""
+    nets = (learned.get(KEY) or {}).get("networks") or {}
+    entry = nets.get(heliostat_id)
+    if entry is None:
+        return None
+    try:
+        config = json.loads(entry["config"])
+        state = dict(entry["state"])
+    except (KeyError, TypeError, ValueError):
+        raise InputFileError(path, "malformed network entry", field=f"/learned/{KEY}/networks/{heliostat_id}") from None
+    return {"config": config, "state": state}
+
+
+def aim(scenario, heliostat_id: str, sun_azimuth: float, sun_elevation: float, aim_point) -> dict:
+    """Motor steps that put the sun's reflection on ``aim_point`` with the scenario's (calibrated) plant.
 
     Parameters
     ----------
-    calibration : dict
-        From :func:`load_calibration`.
+    scenario : heliotwin.io.scenario.Scenario
+        Any scenario: nominal kinematics when nothing was calibrated, plus the stored network of a
+        ``hybrid`` / ``mlp`` calibration.
+    heliostat_id : str
     sun_azimuth, sun_elevation : float
-        [rad], PAINT convention.
+        [rad], PAINT convention (azimuth 0 = south, +pi/2 = east).
     aim_point : sequence of 3 float
         ENU [m].
 
     Returns
     -------
     dict
-        ``motor_steps`` [2] (real-valued), ``reachable`` (bool), ``method``.
+        ``motor_steps`` [2] (real-valued), ``reachable`` (bool), ``method`` (``nominal`` when uncalibrated).
     """
-    from ..errors import HeliotwinError
     from ..field import kinematics as K
     from ..sun import direction_from_paint_angles
 
-    hs = calibration["heliostats"]
-    if heliostat_id not in hs:
-        raise HeliotwinError(f"heliostat {heliostat_id!r} not in the calibration file; it has {', '.join(sorted(hs)) or 'none'}")
-    entry = hs[heliostat_id]
-    kin = entry["kinematics"]
+    plant = scenario.plant
+    h = plant.field.index_of(heliostat_id)
+    kin = plant.field.kinematics.index([h])
+    cal = scenario.learned.get(KEY) or {}
+    calibrated = heliostat_id in (cal.get("heliostats") or [])
     sun = direction_from_paint_angles(torch.tensor([sun_azimuth]), torch.tensor([sun_elevation]))
     target = torch.as_tensor(aim_point, dtype=torch.float64).reshape(1, 3)
-    net = entry.get("network")
-    if net is not None and net["config"].get("kind") == "mlp":
+    if not bool(torch.isfinite(target).all()):
+        raise HeliotwinError(f"aim point must be 3 finite numbers, got {list(aim_point)}")
+    net = network_entry(scenario.learned, heliostat_id, scenario.path) if calibrated else None
+    kind = (net or {}).get("config", {}).get("kind")
+    if kind == "mlp":
         from .mlp import aim_mlp
 
         steps = aim_mlp(net, kin, sun, target)
-    elif net is not None and net["config"].get("kind") == "hybrid":
+    elif kind == "hybrid":
         from .hybrid import aim_hybrid
 
         steps = aim_hybrid(net, kin, sun, target)
@@ -154,4 +123,4 @@ def aim(calibration: dict, heliostat_id: str, sun_azimuth: float, sun_elevation:
     steps = steps.reshape(-1, 2)[0]
     reachable = bool(((steps >= kin.min_steps[0]) & (steps <= kin.max_steps[0])).all())
     return {"heliostat": heliostat_id, "motor_steps": [float(s) for s in steps], "reachable": reachable,
-            "method": calibration["method"]}
+            "method": cal.get("method", "nominal") if calibrated else "nominal"}

@@ -33,8 +33,8 @@ import torch
 
 from .. import nurbs
 from ..errors import HeliotwinError, InputFileError
-from .hdf5 import open_for_reading
 from ..field.plant import Facets
+from .hdf5 import open_for_reading
 
 POINTS = "surface_points"
 NORMALS = "surface_normals"

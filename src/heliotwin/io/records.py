@@ -11,8 +11,8 @@ Every check a record must pass lives in :func:`build_record_table` and nowhere e
 is unknown or not planar, that has no usable centroid, whose numbers are not finite, whose motor steps are
 outside the actuator range, or whose centroid lies off its target plane is dropped with one reason string.
 (What makes a *file* unreadable — a missing field, a sun at or below the horizon, an unknown target — is the
-reader's job, :mod:`heliotwin.io.paint`, which names the file and field.) Duplicate record ids are an error (one of them would silently
-shadow the other).
+reader's job, :mod:`heliotwin.io.paint`, which names the file and field.) Duplicate record ids are an
+error (one of them would silently shadow the other).
 """
 from __future__ import annotations
 

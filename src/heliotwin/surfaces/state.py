@@ -1,0 +1,78 @@
+"""A learned mirror surface in the scenario file.
+
+``heliotwin reconstruct -o plant.h5`` writes one scenario (:mod:`heliotwin.io.scenario`): the learned
+control points go into the plant's ``/field/surfaces`` (so every reader traces the learned mirror), and
+``/learned/surfaces/<HID>`` keeps what the geometry cannot hold — the learned displacement along the facet
+normals, the optics chosen on the training images, the training records and settings, the target the
+images were taken on.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import torch
+
+from ..errors import HeliotwinError, InputFileError
+from ..field import facets as facet_ops
+from ..field.plant import Plant, SunSettings, Surfaces
+
+#: The key of learned surfaces under ``Scenario.learned``.
+KEY = "surfaces"
+
+
+def surface_state(displacement: torch.Tensor, optics: SunSettings, *, train_records, target: str,
+                  settings: dict) -> dict:
+    """The ``/learned/surfaces/<HID>`` entry of one learned heliostat.
+
+    Parameters
+    ----------
+    displacement : torch.Tensor, [F, nu, nv]
+        Learned offsets along the facet normals [m].
+    optics : SunSettings
+        Sunshape and slope error the surface was learned (and is to be traced) with.
+    train_records : sequence of int
+        Record ids of the training images.
+    target : str
+        Target the training images were taken on (the default for prediction).
+    settings : dict
+        Training settings (JSON values).
+    """
+    return {"displacement": displacement.detach().to(torch.float64).cpu(),
+            "optics": json.dumps(dataclasses.asdict(optics)),
+            "train_records": torch.as_tensor([int(r) for r in train_records], dtype=torch.long),
+            "target": str(target), "settings": json.dumps(settings, allow_nan=False)}
+
+
+def learned_surface(scenario, heliostat_id: str) -> dict:
+    """One heliostat's learned surface from a scenario, with its ideal counterpart on the same net.
+
+    Returns
+    -------
+    dict
+        ``surfaces`` and ``ideal`` (:class:`Surfaces`, 1 heliostat), ``optics`` (:class:`SunSettings`),
+        ``target`` (name), ``train_records`` (list of int), ``settings`` (dict).
+    """
+    plant: Plant = scenario.plant
+    entries = scenario.learned.get(KEY) or {}
+    if heliostat_id not in entries:
+        have = ", ".join(sorted(entries)) or "none"
+        raise HeliotwinError(f"{scenario.path}: no learned surface for heliostat {heliostat_id} (learned: {have}); "
+                             f"run 'heliotwin reconstruct' first")
+    e = entries[heliostat_id]
+    where = f"/learned/{KEY}/{heliostat_id}"
+    try:
+        optics = SunSettings(**json.loads(e["optics"]))
+        settings = json.loads(e["settings"])
+        target = str(e["target"])
+        train = [int(r) for r in torch.as_tensor(e["train_records"]).tolist()]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputFileError(scenario.path, f"malformed learned-surface entry ({exc})", field=where) from None
+    h = plant.field.index_of(heliostat_id)
+    sf = plant.field.surfaces
+    cp = sf.control_points[h:h + 1]
+    facets = dataclasses.replace(plant.field.facets, **{f.name: getattr(plant.field.facets, f.name)[h:h + 1]
+                                                        for f in dataclasses.fields(plant.field.facets)})
+    ideal = facet_ops.ideal_surfaces(facets, (cp.shape[2], cp.shape[3]), (sf.degree_u, sf.degree_v))
+    return {"surfaces": Surfaces(cp, sf.degree_u, sf.degree_v), "ideal": ideal, "facets": facets, "optics": optics,
+            "target": target, "train_records": train, "settings": settings}
