@@ -35,12 +35,17 @@ def test_atomic_path_replaces_only_on_success(tmp_path):
         assert [p.name for p in tmp_path.iterdir()] == ["r.txt"]
 
 
-def test_atomic_path_creates_folder_and_keeps_the_extension(tmp_path):
+def test_missing_folder_is_an_error_unless_asked_to_make_it(tmp_path):
     out = tmp_path / "a" / "b" / "r.png"
-    with atomic_path(out) as tmp:
-        assert Path(tmp).parent == out.parent and tmp.endswith(".png")
+    with pytest.raises(InputFileError, match="cannot write"):
+        _write(out, "x")
+    assert list(tmp_path.iterdir()) == []
+    with atomic_path(out, make_folder=True) as tmp:
+        assert Path(tmp).parent == out.parent and tmp.endswith(".png")  # the format can follow the name
         Path(tmp).write_bytes(b"x")
     assert out.read_bytes() == b"x"
+    write_json(tmp_path / "c" / "r.json", {})  # reports make their folder, as they always did
+    assert (tmp_path / "c" / "r.json").read_text() == "{}\n"
 
 
 @pytest.mark.skipif(os.name != "posix", reason="POSIX permissions")

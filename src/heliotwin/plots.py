@@ -37,7 +37,7 @@ def plot_demo(plant, per_heliostat, receiver_flux, spot, path) -> None:
     fig.colorbar(sc, ax=axes[0], label="cosine efficiency")
     _imshow_flux(axes[1], receiver_flux, "receiver (unrolled cylinder)")
     _imshow_flux(axes[2], spot, f"focal spot on {spot.target.name}")
-    save_figure(fig, path)
+    save_figure(fig, path, make_folder=True)  # as before: plots make their folder
 
 
 def plot_validation(report: dict, path) -> None:
@@ -57,4 +57,4 @@ def plot_validation(report: dict, path) -> None:
     axes[1].set_ylabel("median spot distance [m]")
     axes[1].tick_params(axis="x", rotation=90)
     fig.suptitle("nominal kinematics vs measured focal spots")
-    save_figure(fig, path)
+    save_figure(fig, path, make_folder=True)  # as before: plots make their folder

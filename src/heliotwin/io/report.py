@@ -38,12 +38,13 @@ def _file_mode(path: str) -> int:
 
 
 @contextmanager
-def atomic_path(path):
+def atomic_path(path, *, make_folder: bool = False):
     """Yield a temporary path in the destination's folder; it becomes ``path`` only if the block succeeds.
 
-    The folder is created when missing. On any exception (including ``KeyboardInterrupt``) the temporary
-    file is removed and an existing ``path`` is left untouched. The temporary file has the destination's
-    extension, so writers that infer the format from the name (matplotlib, PIL) still work.
+    On any exception (including ``KeyboardInterrupt``) the temporary file is removed and an existing
+    ``path`` is left untouched. The temporary file has the destination's extension, so writers that infer
+    the format from the name (matplotlib, PIL) still work. A missing folder is an error (like ``open``)
+    unless ``make_folder`` is true.
 
     Raises
     ------
@@ -57,7 +58,8 @@ def atomic_path(path):
     try:
         try:
             folder = os.path.dirname(os.path.abspath(path))
-            os.makedirs(folder, exist_ok=True)
+            if make_folder:
+                os.makedirs(folder, exist_ok=True)
             fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.splitext(path)[1], dir=folder)
             os.close(fd)
         except OSError as exc:
@@ -116,8 +118,10 @@ def json_safe(obj):
     return obj
 
 
-def write_json(path, obj) -> None:
+def write_json(path, obj, *, make_folder: bool = True) -> None:
     """Write ``obj`` as strict, indented JSON, atomically (see :func:`json_safe` for the conversions).
+
+    The folder is created when missing (``make_folder``), as the package's report writers always did.
 
     Raises
     ------
@@ -128,13 +132,13 @@ def write_json(path, obj) -> None:
     """
     data = json_safe(obj)
     text = json.dumps(data, indent=1, allow_nan=False) + "\n"
-    with atomic_path(path) as tmp:
+    with atomic_path(path, make_folder=make_folder) as tmp:
         with open(tmp, "w", encoding="utf-8") as fh:
             fh.write(text)
 
 
-def save_figure(fig, path, *, dpi: int = 110, tight: bool = True) -> None:
-    """Write a matplotlib figure atomically and close it.
+def save_figure(fig, path, *, dpi: int = 110, tight: bool = True, make_folder: bool = False) -> None:
+    """Write a matplotlib figure atomically and close it (also when writing fails).
 
     The format follows the extension of ``path`` (PNG when it has none or matplotlib does not know it).
     Works for figures made with :class:`matplotlib.figure.Figure` (no backend, no global state: what
@@ -144,7 +148,7 @@ def save_figure(fig, path, *, dpi: int = 110, tight: bool = True) -> None:
     ext = os.path.splitext(os.fspath(path))[1].lower().lstrip(".")
     fmt = ext if ext in fig.canvas.get_supported_filetypes() else "png"
     try:
-        with atomic_path(path) as tmp:
+        with atomic_path(path, make_folder=make_folder) as tmp:
             fig.savefig(tmp, dpi=dpi, format=fmt, **({"bbox_inches": "tight"} if tight else {}))
     finally:
         pyplot = sys.modules.get("matplotlib.pyplot")
