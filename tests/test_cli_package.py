@@ -51,6 +51,15 @@ def test_every_command_has_help(command, capsys):
     assert out.startswith(f"usage: heliotwin {' '.join(command)}")
 
 
+def test_a_command_group_that_fails_to_import_breaks_the_cli():
+    """No 'except ImportError: continue': a broken group is an error, not a command that quietly vanishes."""
+    code = ("import sys; sys.modules['heliotwin.cli.calibrate'] = None\n"  # None in sys.modules: import fails
+            "try:\n    import heliotwin.cli\nexcept ImportError as exc:\n    print('ImportError', exc.name)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_env(), timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "ImportError heliotwin.cli.calibrate"
+
+
 def test_parser_does_not_import_torch():
     """``heliotwin --help`` must not pay for torch (or numpy/matplotlib): the library loads when a command runs."""
     code = ("import sys, heliotwin.cli as c; c.build_parser().format_help(); "
