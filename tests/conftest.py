@@ -1,4 +1,9 @@
-"""Shared pytest fixtures (keep small; add yours below)."""
+"""Shared pytest fixtures (keep small; add yours below).
+
+Shared helper *functions* live in the namespace package ``tests/helpers/`` (one module per area, no
+``__init__.py``), imported as ``from helpers.<area> import ...``: pyproject's ``pythonpath = ["tests"]``
+puts ``tests/`` on ``sys.path`` under every import mode.
+"""
 from __future__ import annotations
 
 import os

@@ -3,14 +3,8 @@ import json
 import shutil
 
 import pytest
-
-from heliotwin.cli import main
-
-
-def _run(capsys, *argv):
-    code = main(list(argv))
-    out, err = capsys.readouterr()
-    return code, out, err
+from helpers.cli import assert_one_line_error as _assert_one_line_error
+from helpers.cli import run_cli as _run
 
 
 def test_demo_writes_images_and_consistent_summary(tmp_path, capsys):
@@ -71,14 +65,6 @@ def test_trace_real_record_report(small_paint, tmp_path, capsys):
     assert abs(r["centroid_wgs84"]["latitude_deg"] - 50.9134) < 1e-3
 
 
-def _assert_one_line_error(code, err, *needles):
-    assert code != 0
-    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
-    assert len(lines) == 1, err
-    for n in needles:
-        assert n in lines[0], (n, lines[0])
-
-
 def test_malformed_json_names_file(small_paint, tmp_path, capsys):
     rec = _first_record(small_paint)
     rec.write_text("{ not json")
@@ -111,14 +97,14 @@ def test_motor_steps_outside_range_and_sun_below_horizon(small_paint, tmp_path, 
     data["motor_position"]["axis_1_motor_position"] = 10_000_000
     rec.write_text(json.dumps(data))
     out = tmp_path / "x.png"
-    code, _, err = _run(capsys, "trace", "--paint", str(small_paint), "--heliostat", "AA39", "--record", rid, "--out", str(out))
+    code, _, err = _run(capsys, "trace", "--paint", small_paint, "--heliostat", "AA39", "--record", rid, "--out", out)
     _assert_one_line_error(code, err, rec.name, "motor_position", "outside")
     assert not out.exists()
     data = json.loads(_first_record(small_paint).read_text())
     data["motor_position"]["axis_1_motor_position"] = 30000
     data["sun_elevation"] = -5.0
     rec.write_text(json.dumps(data))
-    code, _, err = _run(capsys, "trace", "--paint", str(small_paint), "--heliostat", "AA39", "--record", rid, "--out", str(out))
+    code, _, err = _run(capsys, "trace", "--paint", small_paint, "--heliostat", "AA39", "--record", rid, "--out", out)
     _assert_one_line_error(code, err, rec.name, "sun_elevation", "horizon")
     assert not out.exists()
 
@@ -147,11 +133,3 @@ def test_scenario_from_paint_and_bad_hdf5(small_paint, tmp_path, capsys):
     with pytest.raises(Exception) as exc:
         load_scenario(bad)
     assert "bad.h5" in str(exc.value)
-
-
-def test_every_command_has_help(capsys):
-    for cmd in (["demo"], ["trace"], ["validate"], ["bench"], ["scenario", "from-paint"]):
-        with pytest.raises(SystemExit) as exc:
-            main(cmd + ["--help"])
-        assert exc.value.code == 0
-        assert "usage" in capsys.readouterr().out

@@ -1,18 +1,14 @@
-"""Plots people would rather look at than read (matplotlib, Agg backend; files are written atomically)."""
+"""Plots people would rather look at than read (files are written atomically by :func:`save_figure`).
+
+Figures are made with :class:`matplotlib.figure.Figure`, not ``pyplot``: no backend is selected, no global
+figure registry grows, and importing this module never switches the caller's backend (a notebook keeps its
+inline plots; a headless run needs no display).
+"""
 from __future__ import annotations
 
-import matplotlib
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-
-from .io.report import atomic_path  # noqa: E402
-
-
-def _save(fig, path) -> None:
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
-    plt.close(fig)
+from .io.report import save_figure
 
 
 def _imshow_flux(ax, flux, title):
@@ -21,12 +17,13 @@ def _imshow_flux(ax, flux, title):
     ax.set_title(title)
     ax.set_xlabel("x along target 'right' [m] (left = east)")
     ax.set_ylabel("y up [m]")
-    plt.colorbar(im, ax=ax, label="flux [kW/m²]")
+    ax.figure.colorbar(im, ax=ax, label="flux [kW/m²]")
 
 
 def plot_demo(plant, per_heliostat, receiver_flux, spot, path) -> None:
     """Field layout coloured by cosine efficiency, receiver flux and one calibration spot."""
-    fig, axes = plt.subplots(1, 3, figsize=(17, 5))
+    fig = Figure(figsize=(17, 5))
+    axes = fig.subplots(1, 3)
     xs = [p["position_enu_m"][0] for p in per_heliostat]
     ys = [p["position_enu_m"][1] for p in per_heliostat]
     cs = [p["cosine_efficiency"] for p in per_heliostat]
@@ -37,25 +34,27 @@ def plot_demo(plant, per_heliostat, receiver_flux, spot, path) -> None:
     axes[0].set_ylabel("north [m]")
     axes[0].set_title("heliostat field")
     axes[0].legend()
-    plt.colorbar(sc, ax=axes[0], label="cosine efficiency")
+    fig.colorbar(sc, ax=axes[0], label="cosine efficiency")
     _imshow_flux(axes[1], receiver_flux, "receiver (unrolled cylinder)")
     _imshow_flux(axes[2], spot, f"focal spot on {spot.target.name}")
-    _save(fig, path)
+    save_figure(fig, path, make_folder=True)  # as before: plots make their folder
 
 
 def plot_validation(report: dict, path) -> None:
     """Per-heliostat median pointing error and spot distance of a validation report."""
     hs = report["heliostats"]
     ids = list(hs)
-    fig, axes = plt.subplots(2, 1, figsize=(max(8, 0.35 * len(ids)), 7), sharex=True)
+    fig = Figure(figsize=(max(8, 0.35 * len(ids)), 7))
+    axes = fig.subplots(2, 1, sharex=True)
     axes[0].bar(ids, [hs[h]["median_pointing_error_mrad"] for h in ids], color="tab:blue")
     axes[0].set_yscale("log")
     axes[0].set_ylabel("median pointing error [mrad]")
-    axes[0].axhline(report["overall"]["median_pointing_error_mrad"], color="k", ls="--", lw=1, label="median over heliostats")
+    axes[0].axhline(report["overall"]["median_pointing_error_mrad"], color="k", ls="--", lw=1,
+                    label="median over heliostats")
     axes[0].legend()
     axes[1].bar(ids, [hs[h]["median_distance_m"] for h in ids], color="tab:orange")
     axes[1].set_yscale("log")
     axes[1].set_ylabel("median spot distance [m]")
     axes[1].tick_params(axis="x", rotation=90)
     fig.suptitle("nominal kinematics vs measured focal spots")
-    _save(fig, path)
+    save_figure(fig, path, make_folder=True)  # as before: plots make their folder

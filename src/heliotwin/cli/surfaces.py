@@ -1,125 +1,124 @@
-"""``reconstruct`` and ``predict`` subcommands (:func:`register` for the main CLI; :func:`main` stand-alone).
+"""Surface learning commands: ``reconstruct`` and ``predict``.
 
 Usage::
 
-    python -m heliotwin.surfaces.cli reconstruct --paint PAINT_DIR --heliostat AA39 --train-first 3 \\
-        -o learned.h5 --json report.json
-    python -m heliotwin.surfaces.cli reconstruct ... --deflectometry AA39-deflectometry.h5 [--start-from-deflectometry]
-    python -m heliotwin.surfaces.cli predict --scenario learned.h5 --heliostat AA39 --year 2023 \\
-        --every 30min --json out.json
+    heliotwin reconstruct --paint PAINT_DIR --heliostat AA39 --train-first 3 -o learned.h5 --json report.json
+    heliotwin reconstruct ... --deflectometry AA39-deflectometry.h5 [--start-from-deflectometry]
+    heliotwin predict --scenario learned.h5 --heliostat AA39 --year 2023 --every 30min --json out.json
 
-Every user error prints one line (``error: ...``) to stderr and exits with status 2; nothing is written.
+:func:`register` adds them to the main parser; the library (:mod:`heliotwin.surfaces`) is imported inside
+the command functions, so ``--help`` stays torch-free. Output folders are checked before training, so a
+typo costs seconds, not a training run.
 """
 from __future__ import annotations
 
-import json
 import os
-import sys
-import tempfile
 
-__all__ = ["register", "main"]
+from ..errors import HeliotwinError
+from ..io.report import write_json
+from .common import check_output_folder
 
-
-def _write_json(path, data) -> None:
-    path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".json", dir=directory)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(data, fh, indent=2)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-def _check_out_dir(path, what: str) -> None:
-    from ..errors import HeliotwinError
-
-    if path is None:
-        return
-    d = os.path.dirname(os.path.abspath(os.fspath(path)))
-    if not os.path.isdir(d):
-        raise HeliotwinError(f"{what}: output folder {d} does not exist")
+__all__ = ["register"]
 
 
 def cmd_reconstruct(args) -> int:
-    import torch
+    from ..surfaces.reconstruct import reconstruct_paint
 
-    from ..errors import HeliotwinError
-    from .learning import parse_grid
-    from .plots import plot_flux_comparison, plot_normal_deviation
-    from .reconstruct import TrainSettings, reconstruct_paint
-    from .store import LearnedHeliostat, save_learned
-
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    _check_out_dir(args.json, "--json")
-    _check_out_dir(args.output, "-o")
-    if args.train_records and args.train_first is not None:
-        raise HeliotwinError("use either --train-records or --train-first, not both")
-    train_records = None
-    if args.train_records:
-        try:
-            train_records = [int(x) for x in args.train_records.split(",") if x.strip()]
-        except ValueError:
-            raise HeliotwinError(f"--train-records: expected comma-separated record ids, got {args.train_records!r}") from None
+    _set_threads(args.threads)
+    check_output_folder(args.json, "--json")
+    check_output_folder(args.output, "-o")
+    train_records = _train_records(args)
     if args.start_from_deflectometry and not args.deflectometry:
         raise HeliotwinError("--start-from-deflectometry needs --deflectometry FILE")
     if args.deflectometry:
         from ..io.deflectometry import read_deflectometry
 
         read_deflectometry(args.deflectometry)  # fail fast (one-line error naming the file) before training
-    cp = parse_grid(args.control_points)
-    settings = TrainSettings(control_points=cp, degree=(args.degree, args.degree), integrator=args.integrator,
-                             loss=args.loss, steps=args.steps)
     slope = None if args.slope_error == "auto" else float(args.slope_error) * 1e-3
     report, model, ds, extras = reconstruct_paint(
-        args.paint, args.heliostat, train_records=train_records, train_first=args.train_first, settings=settings,
-        slope_error=slope, background=args.background, alignment=args.alignment, evaluate_mc=not args.no_mc,
-        progress=not args.quiet, deflectometry=args.deflectometry, start_from_deflectometry=args.start_from_deflectometry)
+        args.paint, args.heliostat, train_records=train_records, train_first=args.train_first,
+        settings=_train_settings(args), slope_error=slope, background=args.background, alignment=args.alignment,
+        evaluate_mc=not args.no_mc, progress=not args.quiet, deflectometry=args.deflectometry,
+        start_from_deflectometry=args.start_from_deflectometry)
+    learned = model.surfaces()
+    report["plots"] = _plot_reconstruction(args, report, model, learned, extras)
+    if args.output:
+        _save_learned(args.output, args.heliostat, report, model, learned, ds.plant, extras)
+        report["output"] = os.fspath(args.output)
+    write_json(args.json, report)
+    if not args.quiet:
+        _print_reconstruction(args.heliostat, report)
+    return 0
+
+
+def _set_threads(threads: int) -> None:
+    if threads:
+        import torch
+
+        torch.set_num_threads(threads)
+
+
+def _train_records(args) -> list[int] | None:
+    if args.train_records and args.train_first is not None:
+        raise HeliotwinError("use either --train-records or --train-first, not both")
+    if not args.train_records:
+        return None
+    try:
+        return [int(x) for x in args.train_records.split(",") if x.strip()]
+    except ValueError:
+        raise HeliotwinError(f"--train-records: expected comma-separated record ids, "
+                             f"got {args.train_records!r}") from None
+
+
+def _train_settings(args):
+    from ..surfaces.learning import parse_grid
+    from ..surfaces.reconstruct import TrainSettings
+
+    return TrainSettings(control_points=parse_grid(args.control_points), degree=(args.degree, args.degree),
+                         integrator=args.integrator, loss=args.loss, steps=args.steps)
+
+
+def _plot_reconstruction(args, report, model, learned, extras) -> dict:
+    """The normal-deviation map and the test-image comparison, next to the ``--json`` report."""
+    from ..surfaces.plots import plot_flux_comparison, plot_normal_deviation
+
     stem = os.path.splitext(os.fspath(args.json))[0]
     plots = {"normal_deviation": stem + "-normal-deviation.png", "flux": stem + "-flux.png"}
-    learned = model.surfaces()
     plot_normal_deviation(extras["facets"], learned.control_points, model.degree, plots["normal_deviation"],
                           title=f"{args.heliostat}: learned normal deviation from ideal [mrad]")
     plot_flux_comparison(extras["test"].images, extras["ideal_images"], extras["learned_images"],
                          extras["test"].ids, plots["flux"], [r["l1_ideal"] for r in report["test"]],
                          [r["l1_learned"] for r in report["test"]])
-    report["plots"] = plots
-    if args.output:
-        plant = ds.plant
-        save_learned(args.output, LearnedHeliostat(
-            args.heliostat, learned, model.displacement.detach(), extras["facets"], plant.field.kinematics.index(0),
-            plant.targets, (plant.site.latitude_deg, plant.site.longitude_deg, plant.site.altitude_m), extras["optics"],
-            {"train": report["train"], "settings": report["settings"],
-             "default_target": extras["test"].targets[0].name}))
-        report["output"] = os.fspath(args.output)
-    _write_json(args.json, report)
-    if not args.quiet:
-        print(f"{args.heliostat}: median test L1 ideal {report['median_l1_ideal']:.3f} -> learned "
-              f"{report['median_l1_learned']:.3f} (median IMP {100 * report['median_imp']:+.0f} %), "
-              f"{report['seconds']:.1f} s")
-        if "deflectometry" in report:
-            c = report["deflectometry"]["learned_vs_deflectometry"]
-            print(f"learned vs deflectometry: {c['normal_deviation_mrad']:.3f} mrad mean normal deviation, "
-                  f"{c['height_rms_mm']:.3f} mm height RMS; median test L1 deflectometry "
-                  f"{report['deflectometry']['median_l1_deflectometry']:.3f}")
-    return 0
+    return plots
+
+
+def _save_learned(path, heliostat, report, model, learned, plant, extras) -> None:
+    from ..surfaces.store import LearnedHeliostat, save_learned
+
+    save_learned(path, LearnedHeliostat(
+        heliostat, learned, model.displacement.detach(), extras["facets"], plant.field.kinematics.index(0),
+        plant.targets, (plant.site.latitude_deg, plant.site.longitude_deg, plant.site.altitude_m), extras["optics"],
+        {"train": report["train"], "settings": report["settings"], "default_target": extras["test"].targets[0].name}))
+
+
+def _print_reconstruction(heliostat: str, report: dict) -> None:
+    print(f"{heliostat}: median test L1 ideal {report['median_l1_ideal']:.3f} -> learned "
+          f"{report['median_l1_learned']:.3f} (median IMP {100 * report['median_imp']:+.0f} %), "
+          f"{report['seconds']:.1f} s")
+    if "deflectometry" in report:
+        c = report["deflectometry"]["learned_vs_deflectometry"]
+        print(f"learned vs deflectometry: {c['normal_deviation_mrad']:.3f} mrad mean normal deviation, "
+              f"{c['height_rms_mm']:.3f} mm height RMS; median test L1 deflectometry "
+              f"{report['deflectometry']['median_l1_deflectometry']:.3f}")
 
 
 def cmd_predict(args) -> int:
-    import torch
-
-    from ..errors import HeliotwinError
     from ..field.facets import ideal_surfaces
-    from .predict import summarize, yearly_flux
-    from .store import load_learned
+    from ..surfaces.predict import summarize, yearly_flux
+    from ..surfaces.store import load_learned
 
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    _check_out_dir(args.json, "--json")
+    _set_threads(args.threads)
+    check_output_folder(args.json, "--json")
     item = load_learned(args.scenario)
     if args.heliostat and args.heliostat != item.heliostat_id:
         raise HeliotwinError(f"{args.scenario}: holds heliostat {item.heliostat_id}, not {args.heliostat}")
@@ -133,7 +132,7 @@ def cmd_predict(args) -> int:
     out = {"heliostat": item.heliostat_id, "target": name, "year": args.year, "every": args.every,
            "instants": len(series["time"]), "statistics": summarize(series), "series": series,
            "optics": {"sunshape": item.sun.sunshape, "slope_error_rad": item.sun.slope_error}}
-    _write_json(args.json, out)
+    write_json(args.json, out)
     if not args.quiet:
         st = out["statistics"]["l1_ideal_vs_learned"]
         print(f"{item.heliostat_id}: {out['instants']} instants; L1(ideal, learned) median {st['median']:.3f}")
@@ -178,13 +177,3 @@ def register(subparsers) -> None:
     q.add_argument("--quiet", action="store_true")
     q.set_defaults(func=cmd_predict)
 
-
-def main(argv=None) -> int:
-    """Stand-alone entry point; returns the exit status (0 ok, 2 user error)."""
-    from ..cli import run_module
-
-    return run_module(register, "heliotwin", "heliotwin surface learning", argv)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

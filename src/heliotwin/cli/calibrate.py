@@ -1,19 +1,16 @@
-"""Command line: ``calibrate``, ``split`` and ``aim``.
+"""Kinematic calibration commands: ``calibrate``, ``split`` and ``aim``.
 
-``register(subparsers)`` adds the three subcommands to a parent ``heliotwin`` parser; ``main(argv)`` runs
-them stand-alone (``python -m heliotwin.calibrate.cli calibrate ...``). User errors
-(:class:`~heliotwin.errors.HeliotwinError`) print one line ``error: <message>`` to stderr and exit 2.
+:func:`register` adds them to the main parser. The library (:mod:`heliotwin.calibrate`) is imported inside
+the command functions, so ``--help`` stays torch-free.
 """
 from __future__ import annotations
 
 import csv
-import io
 import math
 import os
-import sys
-import tempfile
 
 from ..errors import HeliotwinError
+from ..io.report import atomic_path, write_json
 
 METHOD_CHOICES = ("lm", "gradient", "hybrid", "mlp", "images")
 
@@ -80,14 +77,16 @@ def register(subparsers) -> None:
 
 
 def _config(args, method="lm"):
-    from .pipeline import RunConfig
+    from ..calibrate.pipeline import RunConfig, validate_config
 
-    return RunConfig(paint=args.paint, method=method, split=args.split, train=args.train,
-                     validation=args.validation, test=args.test, heliostats=_ids(args.heliostats),
-                     min_records=args.min_records, focal_spot=args.focal_spot, seed=args.seed,
-                     plane_tolerance=getattr(args, "plane_tolerance", 0.1),
-                     correct_suspicious=not getattr(args, "keep_suspicious", False),
-                     progress=getattr(args, "progress", False))
+    cfg = RunConfig(paint=args.paint, method=method, split=args.split, train=args.train,
+                    validation=args.validation, test=args.test, heliostats=_ids(args.heliostats),
+                    min_records=args.min_records, focal_spot=args.focal_spot, seed=args.seed,
+                    plane_tolerance=getattr(args, "plane_tolerance", 0.1),
+                    correct_suspicious=not getattr(args, "keep_suspicious", False),
+                    progress=getattr(args, "progress", False))
+    validate_config(cfg)
+    return cfg
 
 
 def _load(paint):
@@ -99,30 +98,17 @@ def _load(paint):
 
 
 def cmd_calibrate(args) -> int:
-    from dataclasses import replace
-
-    from .pipeline import run_calibration
-    from .report import write_json, write_plots
-    from .scenario import save_calibration
+    from ..calibrate.pipeline import run_calibration
+    from ..calibrate.report import write_plots
+    from ..calibrate.scenario import save_calibration
 
     cfg = _config(args, args.method)
-    from .pipeline import validate_config
-
-    validate_config(cfg)
     ds = _load(args.paint)
     report, model, arrays = run_calibration(cfg, ds)
     ov = report["overall"]
     curves = None
     if args.json and not args.no_plots and not args.no_curve and model is not None:
-        # Error vs training size from cheap lm refits on the same split rule and test set. Unbagged: the
-        # curve's shape is what a plant engineer reads, and bagging would make it ~10x slower.
-        sizes = sorted({n for n in (5, 10, 20, 30, 40, 60, 100) if n < cfg.train} | {cfg.train})
-        pts = []
-        for n in sizes:
-            r, _, _ = run_calibration(replace(cfg, method="lm", train=n, validation=None, progress=False,
-                                              method_options={"bags": 0}), ds)
-            pts.append((n, r["overall"]["median_test_mrad"]))
-        curves = {"lm (refits, unbagged)": pts, cfg.method: [(cfg.train, ov["median_test_mrad"])]}
+        curves = _training_size_curves(cfg, ds, ov["median_test_mrad"])
     if args.json:
         if not args.no_plots:
             report["plots"] = [os.path.basename(p) for p in write_plots(args.json, report, arrays, curves)]
@@ -133,6 +119,22 @@ def cmd_calibrate(args) -> int:
         save_calibration(args.output, model, split=cfg.split)
     _print_table(report)
     return 0
+
+
+def _training_size_curves(cfg, ds, median_test_mrad) -> dict:
+    """Error vs training size from cheap lm refits on the same split rule and test set. Unbagged: the
+    curve's shape is what a plant engineer reads, and bagging would make it ~10x slower."""
+    from dataclasses import replace
+
+    from ..calibrate.pipeline import run_calibration
+
+    sizes = sorted({n for n in (5, 10, 20, 30, 40, 60, 100) if n < cfg.train} | {cfg.train})
+    pts = []
+    for n in sizes:
+        r, _, _ = run_calibration(replace(cfg, method="lm", train=n, validation=None, progress=False,
+                                          method_options={"bags": 0}), ds)
+        pts.append((n, r["overall"]["median_test_mrad"]))
+    return {"lm (refits, unbagged)": pts, cfg.method: [(cfg.train, median_test_mrad)]}
 
 
 def _fmt(x, nd=2):
@@ -157,13 +159,10 @@ def _print_table(report: dict) -> None:
 def cmd_split(args) -> int:
     import torch
 
-    from .pipeline import validate_config
+    from ..calibrate.splits import split_records
     from ..io.records import prepare_records
-    from .report import write_json
-    from .splits import split_records
 
     cfg = _config(args)
-    validate_config(cfg)
     ds = _load(args.paint)
     ids = cfg.heliostats or list(ds.plant.field.ids)
     unknown = [h for h in ids if h not in ds.plant.field.ids]
@@ -189,15 +188,7 @@ def cmd_split(args) -> int:
     if args.json:
         write_json(args.json, out)
     if args.csv:
-        buf = io.StringIO()
-        w = csv.DictWriter(buf, fieldnames=["Id", "HeliostatId", "Split"], lineterminator="\n")
-        w.writeheader()
-        w.writerows(rows)
-        folder = os.path.dirname(os.path.abspath(args.csv))
-        fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".csv", dir=folder)
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(buf.getvalue())
-        os.replace(tmp, args.csv)
+        _write_split_csv(args.csv, rows)
     for hid, s in out["heliostats"].items():
         d = s.get("mean_train_test_distance_rad")
         print(f"{hid}: train {s['train']} validation {s['validation']} test {s['test']} "
@@ -207,9 +198,17 @@ def cmd_split(args) -> int:
     return 0
 
 
+def _write_split_csv(path, rows) -> None:
+    """PAINT's benchmark split format: ``Id,HeliostatId,Split``."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", encoding="utf-8", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=["Id", "HeliostatId", "Split"], lineterminator="\n")
+            w.writeheader()
+            w.writerows(rows)
+
+
 def cmd_aim(args) -> int:
-    from .report import write_json
-    from .scenario import aim, load_calibration
+    from ..calibrate.scenario import aim, load_calibration
 
     try:
         point = [float(x) for x in args.aim.split(",")]
@@ -229,12 +228,3 @@ def cmd_aim(args) -> int:
         write_json(args.json, ans)
     return 0 if ans["reachable"] else 3
 
-
-def main(argv=None) -> int:
-    from ..cli import run_module
-
-    return run_module(register, "heliotwin-calibrate", "heliotwin kinematic calibration", argv)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,0 +1,222 @@
+"""Plant commands: ``demo``, ``scenario from-paint``, ``trace``, ``validate`` and ``bench``.
+
+Each ``cmd_*`` reads its arguments, calls the library (imported inside the function, so ``--help`` stays
+torch-free) and prints one summary line; :func:`register` adds the subcommands to the main parser.
+"""
+from __future__ import annotations
+
+import math
+import os
+import time
+
+from ..errors import HeliotwinError
+from ..io.report import write_json
+from .common import csv_list, int_list, positive_int
+
+
+# ------------------------------------------------------------------------------------------------ demo
+def cmd_demo(args) -> int:
+    """Trace the embedded default plant at a spring-equinox noon and write flux PNGs + a JSON summary."""
+    from ..demo import run_demo
+
+    summary = run_demo(args.out, num_heliostats=args.heliostats, integrator=args.integrator,
+                       rays_per_point=args.rays_per_point, resolution=args.resolution, seed=args.seed,
+                       time_utc=args.time, progress=not args.quiet)
+    if args.json:
+        write_json(args.json, summary)
+    print(f"demo: {summary['heliostats_traced']} heliostats, sun az {summary['sun_azimuth_deg']:.1f} deg "
+          f"el {summary['sun_elevation_deg']:.1f} deg; receiver intercepts "
+          f"{summary['receiver']['intercepted_power_w'] / 1e3:.1f} kW of {summary['total_power_w'] / 1e3:.1f} kW "
+          f"reflected; outputs in {args.out}")
+    return 0
+
+
+# -------------------------------------------------------------------------------------------- scenario
+def cmd_scenario_from_paint(args) -> int:
+    from ..io.scenario import save_scenario, scenario_from_paint
+
+    plant = scenario_from_paint(args.paint_dir, csv_list(args.heliostats))
+    save_scenario(plant, args.output, metadata={"source": os.path.abspath(args.paint_dir),
+                                                "created_by": "heliotwin scenario from-paint"})
+    print(f"scenario: {len(plant.field.ids)} heliostats, {len(plant.targets)} targets -> {args.output}")
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------- trace
+def cmd_trace(args) -> int:
+    """Trace one real record with nominal kinematics and the ideal surface."""
+    from ..io.paint import load_paint
+    from ..raytrace.flux import to_png
+
+    ds = load_paint(args.paint, [args.heliostat])
+    rec = _find_record(ds, args.record)
+    flux, report = _trace_record(ds.plant, rec, args)
+    to_png(flux.bitmap[0], args.out)
+    if args.json:
+        write_json(args.json, report)
+    print(f"trace {args.heliostat}/{rec.record_id}: centroid ENU "
+          f"{', '.join(f'{v:.3f}' for v in report['centroid_enu_m'])} m; {report['intercepted_power_w'] / 1e3:.2f} "
+          f"of {report['total_power_w'] / 1e3:.2f} kW on {rec.target} -> {args.out}")
+    return 0
+
+
+def _find_record(ds, record_id: int):
+    for r in ds.records:
+        if r.record_id == record_id:
+            return r
+    raise HeliotwinError(f"record {record_id} not found for heliostat {ds.plant.field.ids[0]} in {ds.root}")
+
+
+def _trace_record(plant, rec, args):
+    """Trace ``rec`` of the plant's only heliostat; the flux image and the ``--json`` report."""
+    import torch
+
+    from ..field import kinematics as kin_ops
+    from ..scene import trace, world_surface
+    from ..sun import direction_from_paint_angles
+
+    target = plant.target(rec.target)
+    steps = torch.tensor([rec.motor_steps], dtype=torch.float64)
+    kin_ops.check_motor_range(plant.field.kinematics, steps, where=f"{rec.path} [motor_position]")
+    s = direction_from_paint_angles(torch.tensor([rec.sun_azimuth]), torch.tensor([rec.sun_elevation]))
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        pts, nrm, area, R, c = world_surface(plant.field.kinematics, plant.field.surfaces, [0], steps,
+                                             (args.samples, args.samples))
+        flux = trace(pts, nrm, area, s.to(pts), target, integrator=args.integrator,
+                     resolution=(args.resolution, args.resolution), sun=plant.sun, rays_per_point=args.rays_per_point,
+                     generator=torch.Generator().manual_seed(args.seed))
+    seconds = time.perf_counter() - t0
+    centroid = flux.centroid_enu()[0]
+    lla = plant.site.to_wgs84(centroid)
+    cosines = (nrm[0].to(torch.float64) @ s[0]).clamp_min(0)
+    report = {
+        "heliostat": args.heliostat, "record": rec.record_id, "target": rec.target, "integrator": args.integrator,
+        "rays_per_point": args.rays_per_point if args.integrator == "mc" else None, "resolution": args.resolution,
+        "sun_azimuth_deg": math.degrees(rec.sun_azimuth), "sun_elevation_deg": math.degrees(rec.sun_elevation),
+        "motor_steps": list(rec.motor_steps),
+        "centroid_enu_m": centroid.tolist(),
+        "centroid_wgs84": {"latitude_deg": float(lla[0]), "longitude_deg": float(lla[1]), "altitude_m": float(lla[2])},
+        "centroid_local_m": flux.centroid_local()[0].tolist(),
+        "measured_spot_enu_m": {k: v.tolist() for k, v in rec.focal_spot.items()},
+        "total_power_w": float(flux.total_power_w[0]), "intercepted_power_w": float(flux.intercepted_power_w[0]),
+        "mirror_area_m2": float(area[0].sum()),
+        "mean_incidence_cosine": float((cosines * area[0]).sum() / area[0].sum()),
+        "dni_w_m2": plant.sun.dni, "reflectivity": plant.sun.reflectivity, "sunshape": plant.sun.sunshape,
+        "slope_error_mrad": plant.sun.slope_error * 1e3, "seconds": seconds,
+        "concentrator_enu_m": c[0].tolist(), "mirror_normal_enu": kin_ops.mirror_normal(R)[0].tolist(),
+    }
+    return flux, report
+
+
+# -------------------------------------------------------------------------------------------- validate
+def cmd_validate(args) -> int:
+    from ..io.paint import load_paint
+    from ..validate import validate_dataset
+
+    t0 = time.perf_counter()
+    ds = load_paint(args.paint, csv_list(args.heliostats))
+    report = validate_dataset(ds, resolution=args.resolution, samples=(args.samples, args.samples),
+                              with_images=not args.no_images, progress=not args.quiet)
+    report["overall"]["seconds"] = time.perf_counter() - t0
+    report["settings"] = {"paint": os.path.abspath(args.paint), "kinematics": "nominal", "surface": "ideal",
+                          "integrator": "analytic", "resolution": args.resolution,
+                          "samples_per_facet": args.samples ** 2,
+                          "sunshape": ds.plant.sun.sunshape, "slope_error_mrad": ds.plant.sun.slope_error * 1e3}
+    write_json(args.json, report)
+    if args.plot:
+        from ..plots import plot_validation
+
+        plot_validation(report, args.plot)
+    o = report["overall"]
+    l1 = "n/a" if o["median_centered_l1"] is None else f"{o['median_centered_l1']:.3f}"
+    print(f"validate: {o['records']} records, {o['heliostats']} heliostats; median pointing error "
+          f"{o['median_pointing_error_mrad']:.2f} mrad (median over heliostats), median distance "
+          f"{o['median_distance_m']:.3f} m; {o['images']} images, median centred L1 {l1} -> {args.json}")
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------- bench
+def cmd_bench(args) -> int:
+    import torch
+
+    from ..raytrace.bench import run_benchmark
+
+    rpp = args.rays_per_point
+    result = run_benchmark(surface_points=args.surface_points, rays_per_point=tuple(rpp), resolution=args.resolution,
+                           seed=args.seed)
+    if args.json:
+        write_json(args.json, result)
+    mc = result["mc"]
+    print(f"bench ({torch.get_num_threads()} threads, {args.surface_points} points, {args.resolution}^2, "
+          f"{max(rpp)} rays/point): forward {mc['forward_rays_per_s'] / 1e6:.1f} M rays/s, "
+          f"forward+backward {mc['forward_backward_rays_per_s'] / 1e6:.1f} M rays/s")
+    return 0
+
+
+# -------------------------------------------------------------------------------------------- register
+def register(sub) -> None:
+    """Add ``demo``, ``scenario``, ``trace``, ``validate`` and ``bench`` to the main parser's subparsers."""
+    p = sub.add_parser("demo", help="trace the embedded default plant (no data needed)",
+                       description="Trace an embedded Jülich-like plant (generated in code): every heliostat aims at "
+                                   "the receiver; writes flux PNGs, a field plot and summary.json.")
+    p.add_argument("--out", default="heliotwin-demo", help="output folder (default: %(default)s)")
+    p.add_argument("--heliostats", type=positive_int, default=48, help="number of heliostats (default: %(default)s)")
+    p.add_argument("--integrator", choices=("mc", "analytic"), default="mc")
+    p.add_argument("--rays-per-point", type=positive_int, default=64)
+    p.add_argument("--resolution", type=positive_int, default=256)
+    p.add_argument("--time", default="2023-03-20T11:30:00Z", help="UTC time of the sun position (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", help="also write the summary here")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("scenario", help="scenario files", description="Build and inspect scenario files.")
+    ssub = p.add_subparsers(dest="scenario_command", metavar="ACTION")
+    ssub.required = True
+    q = ssub.add_parser("from-paint", help="build a scenario file from a PAINT folder",
+                        description="Read a PAINT download (tower, heliostat properties) into a versioned HDF5 "
+                                    "scenario.")
+    q.add_argument("paint_dir")
+    q.add_argument("--heliostats", help="comma-separated heliostat ids (default: all)")
+    q.add_argument("-o", "--output", required=True, help="scenario file to write (.h5)")
+    q.set_defaults(func=cmd_scenario_from_paint)
+
+    p = sub.add_parser("trace", help="trace one real calibration record",
+                       description="Trace a PAINT record (its sun, motor steps and target) with nominal kinematics and "
+                                   "the ideal surface; writes the whole-target flux PNG (PAINT orientation).")
+    p.add_argument("--paint", required=True, help="PAINT folder")
+    p.add_argument("--heliostat", required=True)
+    p.add_argument("--record", required=True, type=int)
+    p.add_argument("--integrator", choices=("mc", "analytic"), default="mc")
+    p.add_argument("--rays-per-point", type=positive_int, default=100)
+    p.add_argument("--resolution", type=positive_int, default=256)
+    p.add_argument("--samples", type=positive_int, default=50, help="surface samples per facet and direction")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, help="flux PNG to write")
+    p.add_argument("--json", help="JSON report")
+    p.set_defaults(func=cmd_trace)
+
+    p = sub.add_parser("validate", help="predicted vs measured focal spots on real records",
+                       description="For every record: pointing error (mrad), spot distance on the target (m) and, with "
+                                   "flux-centered images, normalised L1 and cross-correlation; nominal kinematics.")
+    p.add_argument("--paint", required=True)
+    p.add_argument("--heliostats", help="comma-separated heliostat ids (default: all)")
+    p.add_argument("--json", required=True)
+    p.add_argument("--resolution", type=positive_int, default=128, help="whole-target bitmap for centroids")
+    p.add_argument("--samples", type=positive_int, default=16, help="surface samples per facet and direction")
+    p.add_argument("--no-images", action="store_true", help="skip the image comparison")
+    p.add_argument("--plot", help="PNG with per-heliostat errors")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_validate)
+
+    p = sub.add_parser("bench", help="ray-tracer speed and accuracy",
+                       description="Forward and forward+backward rays/s, peak memory and time-to-accuracy of both "
+                                   "integrators.")
+    p.add_argument("--surface-points", type=positive_int, default=10000)
+    # argparse applies type= to a string default too, so args.rays_per_point is always a list.
+    p.add_argument("--rays-per-point", type=int_list, default="10,100", help="comma-separated (default: %(default)s)")
+    p.add_argument("--resolution", type=positive_int, default=256)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json")
+    p.set_defaults(func=cmd_bench)

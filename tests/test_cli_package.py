@@ -1,0 +1,168 @@
+"""The command line as a package: every command registered and documented, a torch-free parser, one error
+reporter, and no library module depending on the CLI."""
+from __future__ import annotations
+
+import argparse
+import ast
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from helpers.cli import assert_one_line_error, run_cli
+
+import heliotwin
+from heliotwin.cli import build_parser, main, run_command
+from heliotwin.errors import HeliotwinError
+
+SRC = Path(heliotwin.__file__).resolve().parent
+
+#: Every command a user can run. A group that fails to import must fail these tests, not vanish from --help.
+COMMANDS = {("demo",), ("scenario", "from-paint"), ("trace",), ("validate",), ("bench",), ("calibrate",),
+            ("split",), ("aim",), ("reconstruct",), ("predict",)}
+
+
+def _leaf_commands(parser, prefix=()):
+    """Paths of the runnable (leaf) subcommands of ``parser``."""
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    if not subs:
+        return [prefix]
+    return [leaf for name, p in subs[0].choices.items() for leaf in _leaf_commands(p, prefix + (name,))]
+
+
+def _env():
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(SRC.parent)] + [p for p in [env.get("PYTHONPATH")] if p])
+    return env
+
+
+def test_every_command_is_registered():
+    assert set(_leaf_commands(build_parser())) == COMMANDS
+
+
+@pytest.mark.parametrize("command", sorted(COMMANDS), ids=" ".join)
+def test_every_command_has_help(command, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main([*command, "--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"usage: heliotwin {' '.join(command)}")
+
+
+def test_a_command_group_that_fails_to_import_breaks_the_cli():
+    """No 'except ImportError: continue': a broken group is an error, not a command that quietly vanishes."""
+    code = ("import sys; sys.modules['heliotwin.cli.calibrate'] = None\n"  # None in sys.modules: import fails
+            "try:\n    import heliotwin.cli\nexcept ImportError as exc:\n    print('ImportError', exc.name)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_env(), timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "ImportError heliotwin.cli.calibrate"
+
+
+def test_parser_does_not_import_torch():
+    """``heliotwin --help`` must not pay for torch (or numpy/matplotlib): the library loads when a command runs."""
+    code = ("import sys, heliotwin.cli as c; c.build_parser().format_help(); "
+            "print(sorted({m.split('.')[0] for m in sys.modules} & {'torch', 'numpy', 'matplotlib', 'h5py'}))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_env(), timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "[]"
+
+
+def test_python_dash_m_heliotwin_reports_one_line_error(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "heliotwin", "predict", "--scenario", str(tmp_path / "missing.h5"),
+                           "--json", str(tmp_path / "o.json")], capture_output=True, text=True, env=_env(), timeout=300)
+    assert proc.returncode == 2
+    assert_one_line_error(proc.returncode, proc.stderr, "missing.h5")
+    assert not (tmp_path / "o.json").exists()
+
+
+def test_library_never_imports_the_cli():
+    """Only ``heliotwin.cli`` and ``heliotwin.__main__`` may import ``heliotwin.cli``; the old per-package
+    entry points are gone."""
+    assert not (SRC / "cli.py").exists()
+    assert not (SRC / "calibrate" / "cli.py").exists() and not (SRC / "surfaces" / "cli.py").exists()
+    offenders = []
+    for path in SRC.rglob("*.py"):
+        rel = path.relative_to(SRC)
+        if rel.parts[0] == "cli" or rel.name == "__main__.py":
+            continue
+        package = [heliotwin.__name__, *rel.parent.parts]
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom):
+                base = package[:len(package) - node.level + 1] if node.level else []
+                module = ".".join([*base, *([node.module] if node.module else [])])
+                names = [module] + [f"{module}.{alias.name}" for alias in node.names]
+            elif isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            else:
+                continue
+            if any(n == "heliotwin.cli" or n.startswith("heliotwin.cli.") for n in names):
+                offenders.append(f"{rel}:{node.lineno}")
+    assert offenders == []
+
+
+# ------------------------------------------------------------------------------------------------ errors
+def _command(exc):
+    def func(args):
+        raise exc
+    return argparse.Namespace(func=func)
+
+
+@pytest.mark.parametrize("exc, line", [
+    (HeliotwinError("a.json [field]: bad\nmore detail"), "heliotwin: error: a.json [field]: bad"),
+    (KeyError("unknown heliostat 'ZZ99'; this field has AA39"), "heliotwin: error: unknown heliostat 'ZZ99'; "
+                                                                "this field has AA39"),
+    (FileNotFoundError(2, "No such file or directory", "x.h5"), "heliotwin: error: [Errno 2] No such file or "
+                                                                 "directory: 'x.h5'"),
+    (NotImplementedError("cylinder targets need the mc integrator"), "heliotwin: error: cylinder targets need "
+                                                                     "the mc integrator"),
+])
+def test_user_errors_are_one_line_exit_2(exc, line, capsys):
+    assert run_command(_command(exc)) == 2
+    assert capsys.readouterr().err == line + "\n"
+
+
+@pytest.mark.parametrize("exc", [KeyError("median_test_mrad"), KeyError(3), TypeError("bug"), ZeroDivisionError()])
+def test_internal_errors_keep_their_traceback(exc):
+    """A dict lookup that fails inside the library is a bug, not a user error: it must not become one line."""
+    with pytest.raises(type(exc)):
+        run_command(_command(exc))
+
+
+def test_bad_argument_types_are_usage_errors(capsys):
+    for argv in (["bench", "--rays-per-point", "10,x"], ["bench", "--rays-per-point", ","],
+                 ["demo", "--heliostats", "0"]):
+        with pytest.raises(SystemExit) as exc:
+            main(argv)
+        assert exc.value.code == 2
+        assert "heliotwin" in capsys.readouterr().err
+
+
+def test_output_folder_checked_before_training(tmp_path, capsys):
+    code, _, err = run_cli(capsys, "reconstruct", "--paint", tmp_path, "--heliostat", "AA39",
+                           "--json", tmp_path / "missing" / "r.json")
+    assert_one_line_error(code, err, "--json", "does not exist")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_aim_rejects_bad_aim_point_before_reading(tmp_path, capsys):
+    out = tmp_path / "a.json"
+    code, _, err = run_cli(capsys, "aim", "--scenario", tmp_path / "none.h5", "--heliostat", "AA39",
+                           "--sun-azimuth", "0", "--sun-elevation", "30", "--aim", "1,2", "--json", out)
+    assert_one_line_error(code, err, "--aim")
+    assert not out.exists()
+
+
+def test_split_writes_paint_csv_and_json(paint_dir, tmp_path, capsys):
+    csv_path, js = tmp_path / "s.csv", tmp_path / "s.json"
+    code, out, err = run_cli(capsys, "split", "--paint", paint_dir, "--heliostats", "BH60", "--min-records", "5",
+                             "--train", "6", "--validation", "0", "--test", "4", "--csv", csv_path, "--json", js)
+    assert code == 0, err
+    lines = csv_path.read_text().splitlines()
+    assert lines[0] == "Id,HeliostatId,Split" and len(lines) == 1 + 6 + 4
+    assert {ln.split(",")[2] for ln in lines[1:]} == {"train", "test"}
+    rows = json.loads(js.read_text())["split"]
+    assert [f"{r['Id']},{r['HeliostatId']},{r['Split']}" for r in rows] == lines[1:]
+    assert "BH60: train 6" in out
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.csv", "s.json"]  # no temp file left behind
