@@ -63,6 +63,39 @@ def calibrated_plant(plant: Plant, model) -> Plant:
     return with_kinematics(plant, [model.heliostat_ids[h] for h in ok], model.kinematics.index(ok))
 
 
+def save_calibration(path, plant: Plant, model, *, previous=None, focal_spot: str = "", records: dict | None = None,
+                     settings: dict | None = None, source: str = ""):
+    """Write the calibrated plant as a scenario (plant′ = ``plant`` with the calibrated kinematics).
+
+    Parameters
+    ----------
+    path : str or Path
+    plant : Plant
+        The plant the calibration started from (nominal PAINT plant or a scenario's).
+    model : heliotwin.calibrate.model.Calibrated
+    previous : heliotwin.io.scenario.Scenario, optional
+        The scenario ``plant`` came from: its learned state (surfaces, ...) and provenance are kept; its
+        calibration is replaced.
+    focal_spot : str
+        Centroid source scored on.
+    records : dict, optional
+        Heliostat id -> record ids the method saw (training and validation), for the provenance.
+    settings : dict, optional
+        The run's settings (JSON values).
+    source : str
+        Where the records came from (the PAINT folder).
+    """
+    from ..io.scenario import provenance_entry, save_step
+
+    prior = model.extras.get("field_prior")
+    prior = (prior["mean"], prior["sigma"]) if isinstance(prior, dict) and "mean" in prior else None
+    learned = dict(previous.learned) if previous is not None else {}
+    learned[KEY] = calibration_state(model, focal_spot=focal_spot, prior=prior)
+    step = provenance_entry("calibrate", method=str(model.method), source=str(source), records=records or {},
+                            calibrated=list(learned[KEY]["heliostats"]), settings=settings or {})
+    return save_step(path, calibrated_plant(plant, model), previous, learned=learned, step=step)
+
+
 def network_entry(learned: dict, heliostat_id: str, path="") -> dict | None:
     """The stored network of one heliostat as ``{"config": dict, "state": dict}``, or None (rigid body)."""
     nets = (learned.get(KEY) or {}).get("networks") or {}

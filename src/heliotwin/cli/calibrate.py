@@ -46,7 +46,8 @@ def register(subparsers) -> None:
                                           "report the pointing error on held-out records.")
     _add_common(p)
     p.add_argument("--method", default="lm", choices=METHOD_CHOICES, help="calibration method (default lm)")
-    p.add_argument("-o", "--output", help="write the calibrated model (HDF5, format heliotwin-calibration v1)")
+    p.add_argument("--scenario", help="start from this scenario's plant (default: the PAINT folder's nominal plant)")
+    p.add_argument("-o", "--output", help="write the calibrated plant as a scenario file (.h5)")
     p.add_argument("--json", help="write the JSON report (plots are written next to it)")
     p.add_argument("--no-plots", action="store_true", help="do not write plots")
     p.add_argument("--no-curve", action="store_true", help="skip the error-vs-training-size curve (lm refits)")
@@ -67,7 +68,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("aim", help="motor steps for a sun position and aim point from a calibrated model",
                               description="Inverse kinematics with a calibrated model: motor steps that put the "
                                           "reflection of the sun on an aim point.")
-    p.add_argument("--scenario", required=True, help="calibration file written by 'calibrate -o'")
+    p.add_argument("--scenario", required=True, help="scenario file (e.g. written by 'calibrate -o')")
     p.add_argument("--heliostat", required=True, help="heliostat id")
     p.add_argument("--sun-azimuth", type=float, required=True, help="sun azimuth [deg], 0 = south, +90 = east")
     p.add_argument("--sun-elevation", type=float, required=True, help="sun elevation [deg]")
@@ -89,12 +90,28 @@ def _config(args, method="lm"):
     return cfg
 
 
-def _load(paint):
+def _load(paint, scenario=None, plane_tolerance: float = 0.1):
+    """The PAINT records, on the scenario's plant when one is given; returns (dataset, scenario or None)."""
     from ..io.paint import load_paint
+    from ..io.scenario import load_scenario
 
     if not os.path.isdir(paint):
         raise HeliotwinError(f"{paint}: PAINT folder not found")
-    return load_paint(paint)
+    previous = load_scenario(scenario) if scenario else None
+    ds = load_paint(paint, plane_tolerance=plane_tolerance)
+    return (ds.on_plant(previous.plant, previous.path) if previous else ds), previous
+
+
+def _seen_records(arrays: dict) -> dict:
+    """Heliostat id -> record ids a method saw (training + validation), for the provenance."""
+    out: dict = {}
+    for name in ("train", "validation"):
+        t = arrays.get(name)
+        if t is None:
+            continue
+        for h, rid in zip(t.heliostat_index.tolist(), t.record_id.tolist()):
+            out.setdefault(t.heliostat_ids[h], []).append(int(rid))
+    return out
 
 
 def cmd_calibrate(args) -> int:
@@ -103,20 +120,27 @@ def cmd_calibrate(args) -> int:
     from ..calibrate.scenario import save_calibration
 
     cfg = _config(args, args.method)
-    ds = _load(args.paint)
+    ds, previous = _load(args.paint, args.scenario, cfg.plane_tolerance)
     report, model, arrays = run_calibration(cfg, ds)
     ov = report["overall"]
+    calibrated = model is not None and bool(model.ok.any())
+    if args.output and not calibrated:
+        _print_table(report)
+        raise HeliotwinError(f"no heliostat could be calibrated (see the table above); {args.output} not written")
     curves = None
-    if args.json and not args.no_plots and not args.no_curve and model is not None:
+    if args.json and not args.no_plots and not args.no_curve and calibrated:
         curves = _training_size_curves(cfg, ds, ov["median_test_mrad"])
+    if args.output:
+        settings = {k: v for k, v in report["config"].items() if k != "method_options"}
+        save_calibration(args.output, ds.plant, model, previous=previous, focal_spot=cfg.focal_spot,
+                         records=_seen_records(arrays), settings=settings, source=os.path.abspath(args.paint))
+        report["output"] = os.fspath(args.output)
     if args.json:
         if not args.no_plots:
             report["plots"] = [os.path.basename(p) for p in write_plots(args.json, report, arrays, curves)]
         if curves:
             report["training_size_curve"] = {k: [list(p) for p in v] for k, v in curves.items()}
         write_json(args.json, report)
-    if args.output and model is not None:
-        save_calibration(args.output, model, split=cfg.split)
     _print_table(report)
     return 0
 
@@ -160,15 +184,15 @@ def cmd_split(args) -> int:
     import torch
 
     from ..calibrate.splits import split_records
-    from ..io.records import prepare_records
 
     cfg = _config(args)
-    ds = _load(args.paint)
+    ds, _ = _load(args.paint)
     ids = cfg.heliostats or list(ds.plant.field.ids)
     unknown = [h for h in ids if h not in ds.plant.field.ids]
     if unknown:
         raise HeliotwinError(f"heliostat(s) {', '.join(unknown)} not in {args.paint}")
-    batch, skipped = prepare_records(ds.plant, ds.records, ids, focal_spot=cfg.focal_spot)
+    batch = ds.records.for_heliostats(ids).with_focal_spot(cfg.focal_spot)
+    skipped = [s for s in ds.skipped if s["heliostat_id"] in ids]
     counts = batch.counts()
     keep = [h for h in range(len(ids)) if int(counts[h]) >= max(1, cfg.min_records)]
     sub = batch.subset(torch.isin(batch.heliostat_index, torch.tensor(keep, dtype=torch.long)))
@@ -208,7 +232,8 @@ def _write_split_csv(path, rows) -> None:
 
 
 def cmd_aim(args) -> int:
-    from ..calibrate.scenario import aim, load_calibration
+    from ..calibrate.scenario import aim
+    from ..io.scenario import load_scenario
 
     try:
         point = [float(x) for x in args.aim.split(",")]
@@ -220,8 +245,8 @@ def cmd_aim(args) -> int:
         raise HeliotwinError(f"--sun-elevation {args.sun_elevation} deg: the sun must be above the horizon")
     if not math.isfinite(args.sun_azimuth):
         raise HeliotwinError("--sun-azimuth must be finite")
-    cal = load_calibration(args.scenario)
-    ans = aim(cal, args.heliostat, math.radians(args.sun_azimuth), math.radians(args.sun_elevation), point)
+    ans = aim(load_scenario(args.scenario), args.heliostat, math.radians(args.sun_azimuth),
+              math.radians(args.sun_elevation), point)
     print(f"{ans['heliostat']}: motor steps axis 1 {ans['motor_steps'][0]:.0f}, axis 2 {ans['motor_steps'][1]:.0f}"
           f"{'' if ans['reachable'] else '  (OUTSIDE the actuator range: not reachable)'} [{ans['method']}]")
     if args.json:

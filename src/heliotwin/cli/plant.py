@@ -43,46 +43,66 @@ def cmd_scenario_from_paint(args) -> int:
 
 
 # ----------------------------------------------------------------------------------------------- trace
-def cmd_trace(args) -> int:
-    """Trace one real record with nominal kinematics and the ideal surface."""
+def _paint_on_scenario(paint, heliostats, scenario):
+    """PAINT records of ``heliostats`` (default all) on the scenario's plant (default: the folder's nominal
+    plant); returns (dataset, scenario or None)."""
+    from ..field.update import select_heliostats
     from ..io.paint import load_paint
+    from ..io.scenario import load_scenario
+
+    sc = load_scenario(scenario) if scenario else None
+    if sc is None:
+        return load_paint(paint, heliostats), None
+    ids = heliostats or [h for h in sc.plant.field.ids]
+    unknown = [h for h in ids if h not in sc.plant.field.ids]
+    if unknown:
+        raise HeliotwinError(f"{scenario}: heliostat(s) {', '.join(unknown)} not in this scenario")
+    return load_paint(paint, ids).on_plant(select_heliostats(sc.plant, ids), sc.path), sc
+
+
+def _describe(sc) -> dict:
+    """What the traced plant is: nominal/calibrated kinematics, ideal/learned surfaces."""
+    if sc is None:
+        return {"kinematics": "nominal", "surface": "ideal"}
+    cal = sc.learned.get("calibration") or {}
+    surfaces = sorted(sc.learned.get("surfaces") or {})
+    return {"scenario": os.path.abspath(sc.path),
+            "kinematics": f"calibrated ({cal.get('method')}) for {len(cal.get('heliostats', []))} heliostats"
+            if cal else "nominal",
+            "surface": f"learned for {', '.join(surfaces)}" if surfaces else "ideal"}
+
+
+def cmd_trace(args) -> int:
+    """Trace one real record with the scenario's plant (default: nominal kinematics, ideal surface)."""
     from ..raytrace.flux import to_png
 
-    ds = load_paint(args.paint, [args.heliostat])
-    rec = _find_record(ds, args.record)
-    flux, report = _trace_record(ds.plant, rec, args)
+    ds, sc = _paint_on_scenario(args.paint, [args.heliostat], args.scenario)
+    row = ds.record(args.record)
+    flux, report = _trace_record(ds.plant, row, args)
+    report.update(_describe(sc))
     to_png(flux.bitmap[0], args.out)
     if args.json:
         write_json(args.json, report)
-    print(f"trace {args.heliostat}/{rec.record_id}: centroid ENU "
+    print(f"trace {args.heliostat}/{args.record}: centroid ENU "
           f"{', '.join(f'{v:.3f}' for v in report['centroid_enu_m'])} m; {report['intercepted_power_w'] / 1e3:.2f} "
-          f"of {report['total_power_w'] / 1e3:.2f} kW on {rec.target} -> {args.out}")
+          f"of {report['total_power_w'] / 1e3:.2f} kW on {report['target']} -> {args.out}")
     return 0
 
 
-def _find_record(ds, record_id: int):
-    for r in ds.records:
-        if r.record_id == record_id:
-            return r
-    raise HeliotwinError(f"record {record_id} not found for heliostat {ds.plant.field.ids[0]} in {ds.root}")
-
-
-def _trace_record(plant, rec, args):
-    """Trace ``rec`` of the plant's only heliostat; the flux image and the ``--json`` report."""
+def _trace_record(plant, row, args):
+    """Trace the one record of table ``row`` (its heliostat in ``plant``); the flux image and the report."""
     import torch
 
     from ..field import kinematics as kin_ops
+    from ..io.records import SOURCES
     from ..scene import trace, world_surface
-    from ..sun import direction_from_paint_angles
 
-    target = plant.target(rec.target)
-    steps = torch.tensor([rec.motor_steps], dtype=torch.float64)
-    kin_ops.check_motor_range(plant.field.kinematics, steps, where=f"{rec.path} [motor_position]")
-    s = direction_from_paint_angles(torch.tensor([rec.sun_azimuth]), torch.tensor([rec.sun_elevation]))
+    target = plant.target(row.target[0])
+    s = row.sun
     t0 = time.perf_counter()
     with torch.no_grad():
-        pts, nrm, area, R, c = world_surface(plant.field.kinematics, plant.field.surfaces, [0], steps,
-                                             (args.samples, args.samples))
+        pts, nrm, area, R, c = world_surface(plant.field.kinematics, plant.field.surfaces, row.heliostat_index,
+                                             row.motor_steps, (args.samples, args.samples))
         flux = trace(pts, nrm, area, s.to(pts), target, integrator=args.integrator,
                      resolution=(args.resolution, args.resolution), sun=plant.sun, rays_per_point=args.rays_per_point,
                      generator=torch.Generator().manual_seed(args.seed))
@@ -90,15 +110,19 @@ def _trace_record(plant, rec, args):
     centroid = flux.centroid_enu()[0]
     lla = plant.site.to_wgs84(centroid)
     cosines = (nrm[0].to(torch.float64) @ s[0]).clamp_min(0)
+    spots = {src: row.focal_spots[0, k].tolist() for k, src in enumerate(SOURCES)
+             if bool(torch.isfinite(row.focal_spots[0, k]).all())}
     report = {
-        "heliostat": args.heliostat, "record": rec.record_id, "target": rec.target, "integrator": args.integrator,
+        "heliostat": args.heliostat, "record": int(row.record_id[0]), "target": row.target[0],
+        "integrator": args.integrator,
         "rays_per_point": args.rays_per_point if args.integrator == "mc" else None, "resolution": args.resolution,
-        "sun_azimuth_deg": math.degrees(rec.sun_azimuth), "sun_elevation_deg": math.degrees(rec.sun_elevation),
-        "motor_steps": list(rec.motor_steps),
+        "sun_azimuth_deg": math.degrees(float(row.sun_azimuth[0])),
+        "sun_elevation_deg": math.degrees(float(row.sun_elevation[0])),
+        "motor_steps": row.motor_steps[0].tolist(),
         "centroid_enu_m": centroid.tolist(),
         "centroid_wgs84": {"latitude_deg": float(lla[0]), "longitude_deg": float(lla[1]), "altitude_m": float(lla[2])},
         "centroid_local_m": flux.centroid_local()[0].tolist(),
-        "measured_spot_enu_m": {k: v.tolist() for k, v in rec.focal_spot.items()},
+        "measured_spot_enu_m": spots,
         "total_power_w": float(flux.total_power_w[0]), "intercepted_power_w": float(flux.intercepted_power_w[0]),
         "mirror_area_m2": float(area[0].sum()),
         "mean_incidence_cosine": float((cosines * area[0]).sum() / area[0].sum()),
@@ -111,15 +135,14 @@ def _trace_record(plant, rec, args):
 
 # -------------------------------------------------------------------------------------------- validate
 def cmd_validate(args) -> int:
-    from ..io.paint import load_paint
     from ..validate import validate_dataset
 
     t0 = time.perf_counter()
-    ds = load_paint(args.paint, csv_list(args.heliostats))
+    ds, sc = _paint_on_scenario(args.paint, csv_list(args.heliostats), args.scenario)
     report = validate_dataset(ds, resolution=args.resolution, samples=(args.samples, args.samples),
                               with_images=not args.no_images, progress=not args.quiet)
     report["overall"]["seconds"] = time.perf_counter() - t0
-    report["settings"] = {"paint": os.path.abspath(args.paint), "kinematics": "nominal", "surface": "ideal",
+    report["settings"] = {"paint": os.path.abspath(args.paint), **_describe(sc),
                           "integrator": "analytic", "resolution": args.resolution,
                           "samples_per_facet": args.samples ** 2,
                           "sunshape": ds.plant.sun.sunshape, "slope_error_mrad": ds.plant.sun.slope_error * 1e3}
@@ -184,8 +207,10 @@ def register(sub) -> None:
 
     p = sub.add_parser("trace", help="trace one real calibration record",
                        description="Trace a PAINT record (its sun, motor steps and target) with nominal kinematics and "
-                                   "the ideal surface; writes the whole-target flux PNG (PAINT orientation).")
+                                   "the ideal surface, or a scenario's calibrated/learned plant; writes the whole-target "
+                                   "flux PNG (PAINT orientation).")
     p.add_argument("--paint", required=True, help="PAINT folder")
+    p.add_argument("--scenario", help="trace this scenario's plant (default: the PAINT folder's nominal plant)")
     p.add_argument("--heliostat", required=True)
     p.add_argument("--record", required=True, type=int)
     p.add_argument("--integrator", choices=("mc", "analytic"), default="mc")
@@ -199,8 +224,10 @@ def register(sub) -> None:
 
     p = sub.add_parser("validate", help="predicted vs measured focal spots on real records",
                        description="For every record: pointing error (mrad), spot distance on the target (m) and, with "
-                                   "flux-centered images, normalised L1 and cross-correlation; nominal kinematics.")
+                                   "flux-centered images, normalised L1 and cross-correlation; nominal kinematics or a "
+                                   "scenario's calibrated/learned plant.")
     p.add_argument("--paint", required=True)
+    p.add_argument("--scenario", help="validate this scenario's plant (default: the PAINT folder's nominal plant)")
     p.add_argument("--heliostats", help="comma-separated heliostat ids (default: all)")
     p.add_argument("--json", required=True)
     p.add_argument("--resolution", type=positive_int, default=128, help="whole-target bitmap for centroids")

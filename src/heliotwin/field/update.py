@@ -55,6 +55,20 @@ def with_kinematics(plant: Plant, heliostat_ids, kinematics: Kinematics) -> Plan
     return replace(plant, field=replace(plant.field, kinematics=Kinematics(**new)))
 
 
+def select_heliostats(plant: Plant, heliostat_ids) -> Plant:
+    """The plant restricted to ``heliostat_ids`` (in that order); targets, site and optics unchanged."""
+    pos = _positions(plant, heliostat_ids)
+    fl = plant.field
+    sf = fl.surfaces
+    field = replace(fl, ids=[fl.ids[i] for i in pos.tolist()], kinematics=fl.kinematics.index(pos),
+                    facets=type(fl.facets)(*(getattr(fl.facets, f.name)[pos] for f in fields(fl.facets))),
+                    surfaces=Surfaces(sf.control_points[pos], sf.degree_u, sf.degree_v,
+                                      None if sf.weights is None else sf.weights[pos]),
+                    width=fl.width[pos], height=fl.height[pos],
+                    renovation=[fl.renovation[i] for i in pos.tolist()] if fl.renovation else [])
+    return replace(plant, field=field)
+
+
 def resample_surfaces(surfaces: Surfaces, num_control_points: tuple[int, int], degree: tuple[int, int],
                       grid: int = RESAMPLE_GRID) -> Surfaces:
     """The same mirror shapes on another control net (least-squares refit on a parameter grid).
@@ -126,4 +140,4 @@ def with_surfaces(plant: Plant, heliostat_ids, surfaces: Surfaces) -> Plant:
     return replace(plant, field=replace(plant.field, surfaces=new))
 
 
-__all__ = ["with_kinematics", "with_surfaces", "resample_surfaces"]
+__all__ = ["with_kinematics", "with_surfaces", "resample_surfaces", "select_heliostats"]

@@ -369,6 +369,25 @@ class PaintDataset:
     skipped: list = field(default_factory=list)
     properties: dict = field(default_factory=dict)
 
+    def on_plant(self, plant: Plant, source: str = "scenario") -> "PaintDataset":
+        """The same records on another plant of the same site (e.g. a calibrated scenario): the table's
+        heliostat axis becomes ``plant.field.ids`` (each must be in this folder), records of other heliostats
+        are left out. ``source`` names the plant in errors."""
+        mine, theirs = self.plant.site, plant.site
+        same_site = all(abs(float(getattr(mine, k)) - float(getattr(theirs, k))) <= tol for k, tol in
+                        (("latitude_deg", 1e-9), ("longitude_deg", 1e-9), ("altitude_m", 1e-6)))
+        if not same_site:
+            raise InputFileError(source, f"site ({theirs.latitude_deg}, {theirs.longitude_deg}, {theirs.altitude_m}) "
+                                         f"is not the PAINT folder's {self.root}", field="/site")
+        missing = [h for h in plant.field.ids if h not in self.plant.field.ids]
+        if missing:
+            raise InputFileError(source, f"heliostat(s) {', '.join(missing[:5])} are not in the PAINT folder "
+                                         f"{self.root}", field="/field/ids")
+        ids = set(plant.field.ids)
+        skipped = [s for s in self.skipped if s["heliostat_id"] in ids]
+        return PaintDataset(self.root, plant, self.records.for_heliostats(plant.field.ids), skipped,
+                            {h: p for h, p in self.properties.items() if h in ids})
+
     def records_of(self, heliostat_id: str) -> RecordTable:
         """Usable records of one heliostat, in reading order (ascending record id)."""
         return self.records.select(heliostat=heliostat_id)
@@ -377,8 +396,8 @@ class PaintDataset:
         """One record as a one-row table; a skipped record raises with its reason."""
         for s in self.skipped:
             if s["record_id"] == int(record_id):
-                raise InputFileError(self.root, f"record {record_id} of {s['heliostat_id']} cannot be used: "
-                                                f"{s['reason']}", field="record")
+                raise InputFileError(s["path"], f"record {record_id} of {s['heliostat_id']} cannot be used: "
+                                                f"{s['reason']}", field=s["field"])
         try:
             return self.records.subset([self.records.index_of(record_id)])
         except KeyError:

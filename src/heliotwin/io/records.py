@@ -267,29 +267,31 @@ class RecordTable:
 WEATHER_KEYS = ("wind_speed", "wind_direction", "dni", "temperature", "humidity")
 
 
-def _reason_to_skip(rec, target, kin, h: int, plane_tolerance: float) -> str | None:
-    """Why ``rec`` cannot be used (one line), or None. The only place a record is judged."""
+def _reason_to_skip(rec, target, kin, h: int, plane_tolerance: float) -> tuple[str, str] | None:
+    """Why ``rec`` cannot be used (one line) and the file field concerned, or None. The only place a record
+    is judged."""
     if target is None:
-        return f"unknown target {rec.target!r}"
+        return f"unknown target {rec.target!r}", "target_name"
     if getattr(target, "kind", "") != "planar":
-        return f"target {rec.target!r} is not planar (a centroid is measured on a flat target)"
+        return f"target {rec.target!r} is not planar (a centroid is measured on a flat target)", "target_name"
     if not rec.focal_spot:
-        return "no focal-spot centroid"
+        return "no focal-spot centroid", "focal_spot"
     steps = torch.tensor(rec.motor_steps, dtype=torch.float64)
     if not (bool(torch.isfinite(steps).all()) and math.isfinite(rec.sun_azimuth) and math.isfinite(rec.sun_elevation)
             and all(bool(torch.isfinite(torch.as_tensor(v)).all()) for v in rec.focal_spot.values())):
-        return "non-finite value"
+        return "non-finite value", "motor_position"
     lo, hi = kin.min_steps[h], kin.max_steps[h]
     bad = (steps < lo) | (steps > hi)
     if bool(bad.any()):
         a = int(bad.nonzero()[0])
         return (f"motor steps axis {a + 1} = {steps[a].item():.0f} outside actuator range "
-                f"[{lo[a].item():.0f}, {hi[a].item():.0f}]")
+                f"[{lo[a].item():.0f}, {hi[a].item():.0f}]", f"motor_position.axis_{a + 1}_motor_position")
     offsets = {src: float(target.distance_to_plane(torch.as_tensor(v, dtype=torch.float64)))
                for src, v in rec.focal_spot.items()}
     if all(abs(d) > plane_tolerance for d in offsets.values()):
         src, d = min(offsets.items(), key=lambda kv: abs(kv[1]))
-        return f"focal spot ({src}) {d:+.3f} m off the plane of target {rec.target!r} (tolerance {plane_tolerance} m)"
+        return (f"focal spot ({src}) {d:+.3f} m off the plane of target {rec.target!r} (tolerance "
+                f"{plane_tolerance} m)", f"focal_spot.{src}")
     return None
 
 
@@ -316,7 +318,8 @@ def build_record_table(plant, records, *, focal_spot: str = "HeliOS", plane_tole
     table : RecordTable
         Usable records in reading order.
     skipped : list of dict
-        ``{"record_id", "heliostat_id", "reason"}`` per dropped record.
+        ``{"record_id", "heliostat_id", "reason", "path", "field"}`` per dropped record (the file and the
+        field that made it unusable).
 
     Raises
     ------
@@ -339,9 +342,10 @@ def build_record_table(plant, records, *, focal_spot: str = "HeliOS", plane_tole
         if rec.heliostat_id not in pos:
             continue
         target = plant.targets.get(rec.target)
-        reason = _reason_to_skip(rec, target, kin, pos[rec.heliostat_id], plane_tolerance)
-        if reason is not None:
-            skipped.append({"record_id": int(rec.record_id), "heliostat_id": rec.heliostat_id, "reason": reason})
+        why = _reason_to_skip(rec, target, kin, pos[rec.heliostat_id], plane_tolerance)
+        if why is not None:
+            skipped.append({"record_id": int(rec.record_id), "heliostat_id": rec.heliostat_id, "reason": why[0],
+                            "path": str(rec.path), "field": why[1]})
             continue
         spots = torch.full((len(SOURCES), 3), float("nan"), dtype=torch.float64)
         for k, src in enumerate(SOURCES):

@@ -326,6 +326,32 @@ def save_scenario(plant: Plant, path, extras: dict | None = None, metadata: dict
     return path
 
 
+def save_step(path, plant: Plant, previous: Scenario | None, *, learned: dict, step: dict,
+              metadata: dict | None = None) -> Path:
+    """Write what one step made of a scenario: the new plant, its learned state and one more provenance step.
+
+    Parameters
+    ----------
+    path : str or Path
+    plant : Plant
+        The plant after the step (e.g. with calibrated kinematics).
+    previous : Scenario or None
+        The scenario the step started from (its extras, metadata and provenance are carried over), or
+        None when it started from a PAINT folder.
+    learned : dict
+        The complete learned state after the step (the caller merges ``previous.learned``).
+    step : dict
+        From :func:`provenance_entry`.
+    metadata : dict, optional
+        Added to (and overriding) the previous metadata.
+    """
+    meta = {k: v for k, v in (previous.metadata if previous else {}).items() if k not in ("created_by", "created_utc")}
+    meta.update(metadata or {})
+    provenance = list(previous.provenance if previous else []) + [step]
+    return save_scenario(plant, path, extras=dict(previous.extras) if previous else None, metadata=meta,
+                         learned=learned, provenance=provenance)
+
+
 def _provenance_json(provenance: list, path) -> str:
     if not isinstance(provenance, list) or not all(isinstance(p, dict) for p in provenance):
         _fail_write(path, "/provenance", "expected a list of dicts")
