@@ -206,9 +206,9 @@ def register(sub) -> None:
     q.set_defaults(func=cmd_scenario_from_paint)
 
     p = sub.add_parser("trace", help="trace one real calibration record",
-                       description="Trace a PAINT record (its sun, motor steps and target) with nominal kinematics and "
-                                   "the ideal surface, or a scenario's calibrated/learned plant; writes the whole-target "
-                                   "flux PNG (PAINT orientation).")
+                       description="Trace a PAINT record (its sun, motor steps and target) with nominal kinematics "
+                                   "and the ideal surface, or a scenario's calibrated/learned plant; writes the "
+                                   "whole-target flux PNG (PAINT orientation).")
     p.add_argument("--paint", required=True, help="PAINT folder")
     p.add_argument("--scenario", help="trace this scenario's plant (default: the PAINT folder's nominal plant)")
     p.add_argument("--heliostat", required=True)
