@@ -1,4 +1,4 @@
-"""Analytic (noise-free) flux integrator: one Gaussian footprint per mirror point.
+"""Gaussian-footprint (noise-free) flux integrator ("gaussian"): one Gaussian footprint per mirror point.
 
 Every mirror point's reflected sun cone (sunshape plus slope-error scatter, Gaussian-equivalent with
 per-axis variance ``sigma^2``, see :func:`heliotwin.sunshape.second_moment`) is mapped onto the target by
@@ -51,7 +51,7 @@ from .flux import FluxImage, target_extent
 from .montecarlo import _resolution, planar_coefficients, prepare_mirror
 from .splat import splat_bilinear
 
-__all__ = ["trace_analytic", "gaussian_footprints"]
+__all__ = ["trace_gaussian", "gaussian_footprints"]
 
 _EPS = 1e-9
 
@@ -203,7 +203,7 @@ def _max_sigma(cov: torch.Tensor, ok: torch.Tensor) -> float:
         return float(lam.max().clamp(min=0).sqrt()) if lam.numel() else 0.0
 
 
-def trace_analytic(points, normals, areas, sun_direction, target: PlanarTarget | CylinderTarget, *,
+def trace_gaussian(points, normals, areas, sun_direction, target: PlanarTarget | CylinderTarget, *,
                    resolution=(256, 256), sun: SunSettings | None = None, window=None, clip_to_target: bool = True,
                    mode: str = "auto", n_sigma: float = 3.5, max_half_window: int = 64, smoothing: float = 1.0 / 6.0,
                    convolve_tolerance: float = 0.1, max_pixels_per_chunk: int = 2 ** 21,
@@ -251,7 +251,7 @@ def trace_analytic(points, normals, areas, sun_direction, target: PlanarTarget |
     Returns
     -------
     FluxImage
-        ``method="analytic"``.
+        ``method="gaussian"``.
     """
     sun = sun or SunSettings()
     rows, cols = _resolution(resolution)
@@ -316,4 +316,4 @@ def trace_analytic(points, normals, areas, sun_direction, target: PlanarTarget |
             iny = (r >= bounds[:, 2:3]) & (r <= bounds[:, 3:4])
             bitmap = bitmap * (iny.unsqueeze(-1) & inx.unsqueeze(-2)).to(dtype)
     intercepted = bitmap.sum((-2, -1)) * pixel_area.to(bitmap)
-    return FluxImage(bitmap, target, extent, mirror.power.to(torch.float64).sum(-1), intercepted, "analytic")
+    return FluxImage(bitmap, target, extent, mirror.power.to(torch.float64).sum(-1), intercepted, "gaussian")
