@@ -430,7 +430,8 @@ def _conv_world_samples(facets, obs, i, samples=(24, 24)):
     pts, nrm, area = facet_ops.surface_points(surf, samples)
     rot = obs.rotation[i]
     pw = obs.concentrator[i] + pts[0] @ rot.T
-    return pw.float()[None], (nrm[0] @ rot.T).float()[None], area.float()
+    # Fixed mirror samples (no autograd graph back to the surface's parameters).
+    return pw.detach().float()[None], (nrm[0] @ rot.T).detach().float()[None], area.detach().float()
 
 
 def test_conv_matches_trace_gaussian_for_gaussian_sun():

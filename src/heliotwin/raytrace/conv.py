@@ -168,7 +168,7 @@ def footprint_kernel(sun: SunSettings, mean_ray: torch.Tensor, distance: torch.T
     """
     dens, half = angular_density(sun)
     r = mean_ray.to(torch.float64)
-    nrm, right, up = (t.to(torch.float64) for t in (target.normal, target.right, target.up))
+    nrm, right, up = (t.to(r) for t in (target.normal, target.right, target.up))
     # Any orthonormal frame of r works (the density is radially symmetric).
     helper = torch.where((r[:, 2].abs() < 0.9)[:, None], r.new_tensor([0.0, 0.0, 1.0]).expand_as(r),
                          r.new_tensor([1.0, 0.0, 0.0]).expand_as(r))
@@ -184,18 +184,19 @@ def footprint_kernel(sun: SunSettings, mean_ray: torch.Tensor, distance: torch.T
     minv = torch.linalg.inv(m)
     jac = minv.det().abs()  # d(angle area) / d(target area)
     s = int(supersample)
-    off = (torch.arange(size, dtype=torch.float64) - size // 2)
-    sub = (torch.arange(s, dtype=torch.float64) + 0.5) / s - 0.5
+    dev = r.device
+    off = (torch.arange(size, dtype=torch.float64, device=dev) - size // 2)
+    sub = (torch.arange(s, dtype=torch.float64, device=dev) + 0.5) / s - 0.5
     cx = (off[:, None] + sub[None, :]).reshape(-1) * pixel  # [size*s]
     # angle = minv @ (dx, dy) with dx = cx along columns and dy = -cx along rows (row grows downwards);
     # built by broadcasting in float32 (no [B, P, 2] float64 intermediates: this is the costly part).
     mi = (minv / half).to(torch.float32)  # grid_sample coordinates: -1/+1 = first/last cell centre
     c32 = cx.to(torch.float32)
-    grid = torch.empty(mi.shape[0], c32.numel(), c32.numel(), 2, dtype=torch.float32)
+    grid = torch.empty(mi.shape[0], c32.numel(), c32.numel(), 2, dtype=torch.float32, device=dev)
     # grid_sample: x indexes the last (column) axis = b (angle 1), y the row axis = a (angle 0).
     for k, row in ((0, 1), (1, 0)):
         grid[..., k] = (mi[:, row, 0, None, None] * c32[None, None, :] - mi[:, row, 1, None, None] * c32[None, :, None])
-    vals = F.grid_sample(dens.to(torch.float32).expand(grid.shape[0], 1, -1, -1), grid, mode="bilinear",
+    vals = F.grid_sample(dens.to(dev, torch.float32).expand(grid.shape[0], 1, -1, -1), grid, mode="bilinear",
                          padding_mode="zeros", align_corners=True)[:, 0].to(torch.float64)
     vals = vals.reshape(-1, size, s, size, s).mean((2, 4))
     return vals * jac[:, None, None] * pixel * pixel

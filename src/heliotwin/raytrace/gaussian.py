@@ -203,6 +203,16 @@ def _max_sigma(cov: torch.Tensor, ok: torch.Tensor) -> float:
         return float(lam.max().clamp(min=0).sqrt()) if lam.numel() else 0.0
 
 
+def _target_bounds(target, extent: torch.Tensor, rows: int, cols: int, dtype) -> torch.Tensor:
+    """Pixel-index range [B, 4] (col_min, col_max, row_min, row_max) of a window's pixel centres on the target."""
+    full = target_extent(target, extent.shape[0]).to(extent)
+    pw = (extent[:, 1] - extent[:, 0]) / cols
+    ph = (extent[:, 3] - extent[:, 2]) / rows
+    return torch.stack(((full[:, 0] - extent[:, 0]) / pw - 0.5, (full[:, 1] - extent[:, 0]) / pw - 0.5,
+                        (extent[:, 3] - full[:, 3]) / ph - 0.5, (extent[:, 3] - full[:, 2]) / ph - 0.5),
+                       -1).to(dtype)
+
+
 def trace_gaussian(points, normals, areas, sun_direction, target: PlanarTarget | CylinderTarget, *,
                    resolution=(256, 256), sun: SunSettings | None = None, window=None, clip_to_target: bool = True,
                    mode: str = "auto", n_sigma: float = 3.5, max_half_window: int = 64, smoothing: float = 1.0 / 6.0,
@@ -288,15 +298,7 @@ def trace_gaussian(points, normals, areas, sun_direction, target: PlanarTarget |
             spread = torch.linalg.matrix_norm(cov0 - cov_mean.unsqueeze(1)) / tr
             spread = torch.where(ok & (weights > 0), spread, torch.zeros_like(spread))
             mode = "convolve" if float(spread.max()) <= convolve_tolerance else "window"
-    bounds = None
-    if window is not None and clip_to_target:
-        full = target_extent(target, b).to(extent)
-        pw = (extent[:, 1] - extent[:, 0]) / cols
-        ph = (extent[:, 3] - extent[:, 2]) / rows
-        # pixel centres inside the target
-        bounds = torch.stack(((full[:, 0] - extent[:, 0]) / pw - 0.5, (full[:, 1] - extent[:, 0]) / pw - 0.5,
-                              (extent[:, 3] - full[:, 3]) / ph - 0.5, (extent[:, 3] - full[:, 2]) / ph - 0.5),
-                             -1).to(dtype)
+    bounds = _target_bounds(target, extent, rows, cols, dtype) if window is not None and clip_to_target else None
     if mode == "window":
         cov = cov0 + float(smoothing) * eye
         half = int(min(int(max_half_window), max(1, math.ceil(float(n_sigma) * _max_sigma(cov, ok)))))

@@ -58,6 +58,12 @@ class Observations:
     def __len__(self) -> int:
         return int(self.sun.shape[0])
 
+    def to(self, device) -> "Observations":
+        """The same observations on ``device`` (the learner follows it; targets stay as they are)."""
+        mv = lambda t: None if t is None else t.to(device)  # noqa: E731
+        return Observations(mv(self.sun), mv(self.rotation), mv(self.concentrator), self.targets, mv(self.images),
+                            list(self.ids), mv(self.centers))
+
     def subset(self, idx) -> "Observations":
         idx = list(idx)
         return Observations(self.sun[idx], self.rotation[idx], self.concentrator[idx], [self.targets[i] for i in idx],
