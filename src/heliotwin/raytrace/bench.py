@@ -116,8 +116,8 @@ def run_benchmark(surface_points: int = 10000, rays_per_point=(10, 100), resolut
     dict
         ``mc.forward_rays_per_s`` and ``mc.forward_backward_rays_per_s`` (for the largest K; float32,
         eager PyTorch, gradients w.r.t. mirror points and normals), ``mc.per_k`` (per-K timings),
-        ``peak_rss_mb``, and ``time_to_accuracy`` (Gaussian sun: reference image and its noise, analytic
-        time and L1 vs the reference, Monte-Carlo rays/time to reach that L1, measured or extrapolated).
+        ``peak_rss_mb``, and ``time_to_accuracy`` (Gaussian sun: reference image and its noise, gaussian
+        integrator time and L1 vs the reference, Monte-Carlo rays/time to reach that L1, measured or extrapolated).
     """
     old_threads = torch.get_num_threads()
     if threads is not None:
