@@ -93,8 +93,8 @@ def main(argv=None) -> int:
                 rows.append(r)
                 li = sum(r["test_l1_ideal"]) / len(r["test_l1_ideal"])
                 ll = sum(r["test_l1_learned"]) / len(r["test_l1_learned"])
-                print(f"{d:5.0f} {n:4d} {seed:4d} {r['normal_deviation_mrad']:10.3f} {r['height_rms_mm']:9.3f} {li:9.3f} "
-                      f"{ll:9.4f} {100 * r['imp']:8.0f} {r['laplacian']:6g} {r['loss_evaluations']:5d} "
+                print(f"{d:5.0f} {n:4d} {seed:4d} {r['normal_deviation_mrad']:10.3f} {r['height_rms_mm']:9.3f} "
+                      f"{li:9.3f} {ll:9.4f} {100 * r['imp']:8.0f} {r['laplacian']:6g} {r['loss_evaluations']:5d} "
                       f"{r['seconds']:6.1f}", flush=True)
     table = markdown(rows) + "\n\n" + mean_over_seeds(rows)
     print()
@@ -103,7 +103,8 @@ def main(argv=None) -> int:
           f"settings {settings.as_dict()}")
     if a.json:
         with open(a.json, "w", encoding="utf-8") as fh:
-            json.dump({"settings": settings.as_dict(), "seeds": a.seeds, "window": a.window, "rows": rows}, fh, indent=2)
+            json.dump({"settings": settings.as_dict(), "seeds": a.seeds, "window": a.window, "rows": rows}, fh,
+                      indent=2)
     if a.markdown:
         with open(a.markdown, "w", encoding="utf-8") as fh:
             fh.write(table + "\n")

@@ -37,8 +37,9 @@ def main(argv=None) -> int:
               f"{t['l1_ideal_sharp_sun']:19.3f} {t.get('l1_learned_mc', float('nan')):11.3f}")
     print(f"median L1 ideal {r['median_l1_ideal']:.3f} -> learned {r['median_l1_learned']:.3f}; median IMP "
           f"{100 * r['median_imp']:+.0f} % (vs sharp-sun ideal {100 * r['median_imp_vs_sharp_sun']:+.0f} %); "
-          f"below ideal on all: {r['learned_below_ideal_on_all']}; slope error {1e3 * r['optics']['slope_error_rad']:.2f} "
-          f"mrad; fit {r['fit_seconds']:.1f} s, total {r['seconds']:.1f} s on {r['torch_threads']} threads")
+          f"below ideal on all: {r['learned_below_ideal_on_all']}; "
+          f"slope error {1e3 * r['optics']['slope_error_rad']:.2f} mrad; fit {r['fit_seconds']:.1f} s, "
+          f"total {r['seconds']:.1f} s on {r['torch_threads']} threads")
     return 0
 
 

@@ -7,8 +7,16 @@ import torch
 
 from heliotwin.errors import InputFileError
 from heliotwin.field.targets import CylinderTarget, PlanarTarget
-from heliotwin.raytrace.flux import (FluxImage, centered_crop, cross_correlation, normalized_l1, pixel_centers,
-                                     read_png, target_extent, to_png)
+from heliotwin.raytrace.flux import (
+    FluxImage,
+    centered_crop,
+    cross_correlation,
+    normalized_l1,
+    pixel_centers,
+    read_png,
+    target_extent,
+    to_png,
+)
 
 D64 = torch.float64
 
@@ -103,8 +111,8 @@ def test_read_png_errors(tmp_path):
 
 
 def test_read_png_colour_and_16_bit(tmp_path):
-    from PIL import Image
     import numpy as np
+    from PIL import Image
 
     rgb = np.zeros((5, 6, 3), dtype=np.uint8)
     rgb[..., 0] = rgb[..., 1] = rgb[..., 2] = 255

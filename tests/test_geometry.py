@@ -4,8 +4,17 @@ import math
 import pytest
 import torch
 
-from heliotwin.geometry import (angle_between, orthonormal_frame, ray_cylinder, ray_plane, reflect, rotation_e,
-                                rotation_n, rotation_u, safe_normalize)
+from heliotwin.geometry import (
+    angle_between,
+    orthonormal_frame,
+    ray_cylinder,
+    ray_plane,
+    reflect,
+    rotation_e,
+    rotation_n,
+    rotation_u,
+    safe_normalize,
+)
 
 D = torch.float64
 

@@ -1,14 +1,20 @@
-"""Physics tests of the ray tracers (Monte-Carlo and analytic) and the splatting."""
+"""Physics tests of the ray tracers (Monte-Carlo, Gaussian-footprint, convolution), the dispatcher and the splatting."""
 import math
 
 import pytest
 import torch
 
+from heliotwin.errors import HeliotwinError
+from heliotwin.field import facets as facet_ops
 from heliotwin.field.plant import SunSettings
 from heliotwin.field.targets import CylinderTarget, PlanarTarget
-from heliotwin.raytrace import normalized_l1, projective_splat, splat_bilinear, trace_analytic, trace_mc
-from heliotwin.raytrace.montecarlo import _rotated_frames, planar_coefficients, prepare_mirror
+from heliotwin.raytrace import normalized_l1, projective_splat, splat_bilinear, trace_gaussian, trace_mc
+from heliotwin.raytrace.conv import mean_footprint_kernel, render_centered
 from heliotwin.raytrace.flux import target_extent
+from heliotwin.raytrace.montecarlo import _rotated_frames, planar_coefficients, prepare_mirror
+from heliotwin.scene import INTEGRATORS, trace
+from heliotwin.surfaces import losses
+from heliotwin.surfaces.learning import LearnableSurface
 
 D64 = torch.float64
 DNI, RHO = 900.0, 0.94
@@ -73,7 +79,7 @@ def spot_moments(flux):
 # radiometry
 # ----------------------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("method", ["mc", "analytic"])
+@pytest.mark.parametrize("method", ["mc", "gaussian"])
 def test_power_balance_large_target(method):
     pts, nrm, areas, sun, _ = facing_setup(dist=100.0)
     big = PlanarTarget.from_center_normal("big", [0.0, 0.0, 10.0], [0.0, 1.0, 0.0], 30.0, 30.0)
@@ -81,7 +87,7 @@ def test_power_balance_large_target(method):
     if method == "mc":
         f = trace_mc(pts, nrm, areas, sun, big, resolution=128, sun=optics, rays_per_point=200, generator=gen())
     else:
-        f = trace_analytic(pts, nrm, areas, sun, big, resolution=128, sun=optics)
+        f = trace_gaussian(pts, nrm, areas, sun, big, resolution=128, sun=optics)
     expected = DNI * RHO * float(areas.sum())
     assert float(f.total_power_w[0]) == pytest.approx(expected, rel=1e-6)
     got = float(f.bitmap.double().sum() * f.pixel_area[0])
@@ -156,7 +162,7 @@ def test_pillbox_spot_size_perpendicular_incidence():
 def test_symmetric_setup_gives_symmetric_bitmap():
     pts, nrm, areas, sun, tgt = facing_setup(dist=50.0, side=2.0, m=20)
     optics = SunSettings(sunshape="gaussian", sigma=3e-3, slope_error=1e-3)
-    fa = trace_analytic(pts, nrm, areas, sun, tgt, resolution=64, sun=optics)
+    fa = trace_gaussian(pts, nrm, areas, sun, tgt, resolution=64, sun=optics)
     b = fa.bitmap[0]
     assert torch.allclose(b, b.flip(-1), rtol=1e-4, atol=1e-3 * float(b.max()))
     assert torch.allclose(b, b.flip(-2), rtol=1e-4, atol=1e-3 * float(b.max()))
@@ -184,10 +190,10 @@ def test_image_left_is_east_and_top_is_up():
 # ----------------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("mode", ["window", "convolve"])
-def test_analytic_matches_converged_mc_gaussian(mode):
+def test_gaussian_matches_converged_mc_gaussian(mode):
     pts, nrm, areas, sun, tgt = oblique_setup(dist=100.0, side=2.0, m=16)
     optics = SunSettings(sunshape="gaussian", sigma=2.51e-3, slope_error=1e-3)
-    fa = trace_analytic(pts, nrm, areas, sun, tgt, resolution=128, sun=optics, mode=mode)
+    fa = trace_gaussian(pts, nrm, areas, sun, tgt, resolution=128, sun=optics, mode=mode)
     ref = torch.zeros(1, 128, 128)
     for seed in range(4):
         ref += trace_mc(pts, nrm, areas, sun, tgt, resolution=128, sun=optics, rays_per_point=8000,
@@ -195,18 +201,18 @@ def test_analytic_matches_converged_mc_gaussian(mode):
     l1 = float(normalized_l1(fa.bitmap, ref))
     assert l1 <= 0.02
     # sanity: the comparison can fail (a 20 % wider sun is clearly detected)
-    wide = trace_analytic(pts, nrm, areas, sun, tgt, resolution=128, mode=mode,
+    wide = trace_gaussian(pts, nrm, areas, sun, tgt, resolution=128, mode=mode,
                           sun=SunSettings(sunshape="gaussian", sigma=3.0e-3, slope_error=1e-3))
     assert float(normalized_l1(wide.bitmap, ref)) > 2 * l1
 
 
-def test_analytic_modes_agree_and_auto_choice():
+def test_gaussian_modes_agree_and_auto_choice():
     """One heliostat: the shared-covariance convolution equals the per-point windows (second-order error)."""
     pts, nrm, areas, sun, tgt = oblique_setup(dist=60.0, side=3.0, m=12)
     optics = SunSettings(sunshape="gaussian", sigma=2.51e-3, slope_error=1e-3)
-    w = trace_analytic(pts, nrm, areas, sun, tgt, resolution=96, sun=optics, mode="window")
-    c = trace_analytic(pts, nrm, areas, sun, tgt, resolution=96, sun=optics, mode="convolve")
-    a = trace_analytic(pts, nrm, areas, sun, tgt, resolution=96, sun=optics)
+    w = trace_gaussian(pts, nrm, areas, sun, tgt, resolution=96, sun=optics, mode="window")
+    c = trace_gaussian(pts, nrm, areas, sun, tgt, resolution=96, sun=optics, mode="convolve")
+    a = trace_gaussian(pts, nrm, areas, sun, tgt, resolution=96, sun=optics)
     assert float(normalized_l1(w.bitmap, c.bitmap)) < 0.01
     assert torch.equal(a.bitmap, c.bitmap)
     assert float(c.intercepted_power_w[0]) == pytest.approx(float(w.intercepted_power_w[0]), rel=1e-4)
@@ -214,8 +220,8 @@ def test_analytic_modes_agree_and_auto_choice():
     far = torch.cat((pts, pts * torch.tensor([1.0, 4.0, 1.0], dtype=D64)))
     nn = torch.cat((nrm, nrm))
     aa = torch.cat((areas, areas))
-    a2 = trace_analytic(far, nn, aa, sun, tgt, resolution=96, sun=optics)
-    w2 = trace_analytic(far, nn, aa, sun, tgt, resolution=96, sun=optics, mode="window")
+    a2 = trace_gaussian(far, nn, aa, sun, tgt, resolution=96, sun=optics)
+    w2 = trace_gaussian(far, nn, aa, sun, tgt, resolution=96, sun=optics, mode="window")
     assert torch.equal(a2.bitmap, w2.bitmap)
 
 
@@ -261,9 +267,9 @@ def test_batched_planar_target():
                         torch.stack((tgt.right, tgt2.right)), torch.stack((tgt.up, tgt2.up)),
                         torch.tensor([8.0, 6.0], dtype=D64), torch.tensor([8.0, 7.0], dtype=D64))
     p2 = pts.expand(2, -1, -1)
-    fb = trace_analytic(p2, nrm, areas, sun, both, resolution=48)
+    fb = trace_gaussian(p2, nrm, areas, sun, both, resolution=48)
     for i, t in enumerate((tgt, tgt2)):
-        fi = trace_analytic(pts, nrm, areas, sun, t, resolution=48)
+        fi = trace_gaussian(pts, nrm, areas, sun, t, resolution=48)
         assert torch.allclose(fb.bitmap[i], fi.bitmap[0], rtol=1e-4, atol=1e-4 * float(fi.bitmap.max()))
         assert torch.allclose(fb.centroid_enu()[i], fi.centroid_enu()[0], atol=1e-4)
     fm = trace_mc(p2, nrm, areas, sun, both, resolution=48, rays_per_point=500, generator=gen())
@@ -287,7 +293,7 @@ def test_window_matches_full_image():
     assert float(big.bitmap[0, :, :19].sum()) == 0.0 and float(big.bitmap[0, :19].sum()) == 0.0
     assert float(big.intercepted_power_w[0]) == pytest.approx(float(full.intercepted_power_w[0]), rel=1e-3)
     gauss = SunSettings(sunshape="gaussian", sigma=2.5e-3)
-    an = trace_analytic(pts, nrm, areas, sun, tgt, resolution=40, window=win, sun=gauss)
+    an = trace_gaussian(pts, nrm, areas, sun, tgt, resolution=40, window=win, sun=gauss)
     mc = trace_mc(pts, nrm, areas, sun, tgt, resolution=40, rays_per_point=5000, generator=gen(4), window=win,
                   sun=gauss, stratified=True)
     assert float(normalized_l1(an.bitmap, mc.bitmap)) < 0.03
@@ -326,7 +332,7 @@ def test_cylinder_power_and_centroid():
     expected = DNI * RHO * float(areas.sum()) * float(nrm[0] @ sun)
     assert float(f.intercepted_power_w[0]) == pytest.approx(expected, rel=1e-3)
     assert float((f.centroid_enu()[0] - cyl.center).norm()) < 0.05
-    fa = trace_analytic(pts, nrm, areas, sun, cyl, resolution=(96, 64), sun=optics)
+    fa = trace_gaussian(pts, nrm, areas, sun, cyl, resolution=(96, 64), sun=optics)
     assert float(fa.intercepted_power_w[0]) == pytest.approx(expected, rel=1e-3)
     assert float(normalized_l1(fa.bitmap, f.bitmap)) < 0.04
 
@@ -375,14 +381,14 @@ def test_gradcheck_trace_mc_end_to_end():
 
 
 @pytest.mark.parametrize("mode", ["window", "convolve"])
-def test_gradcheck_analytic(mode):
+def test_gradcheck_gaussian(mode):
     pts, nrm, areas, sun, tgt = oblique_setup(side=2.0, m=2, dist=30.0)
     p = pts.clone().requires_grad_(True)
     n = nrm.clone().requires_grad_(True)
     s = sun.clone().requires_grad_(True)
 
     def fn(pp, nn, ss):
-        return trace_analytic(pp, nn, areas, ss, tgt, resolution=(12, 10), dtype=D64, mode=mode,
+        return trace_gaussian(pp, nn, areas, ss, tgt, resolution=(12, 10), dtype=D64, mode=mode,
                               sun=SunSettings(sunshape="gaussian", sigma=4e-3)).bitmap
 
     assert torch.autograd.gradcheck(fn, (p, n, s), atol=1e-5, fast_mode=(mode == "convolve"))
@@ -405,11 +411,94 @@ def test_no_nan_gradients_in_degenerate_cases():
     for fn in (lambda: trace_mc(pts, nrm, areas, sun, tgt, resolution=32, rays_per_point=50, generator=gen()),
                lambda: trace_mc(pts, nrm, areas, sun, tgt, resolution=32, rays_per_point=50, generator=gen(),
                                 method="generic"),
-               lambda: trace_analytic(pts, nrm, areas, sun, tgt, resolution=32, mode="window"),
-               lambda: trace_analytic(pts, nrm, areas, sun, tgt, resolution=32, mode="convolve")):
+               lambda: trace_gaussian(pts, nrm, areas, sun, tgt, resolution=32, mode="window"),
+               lambda: trace_gaussian(pts, nrm, areas, sun, tgt, resolution=32, mode="convolve")):
         pts.grad = nrm.grad = None
         f = fn()
         assert torch.isfinite(f.bitmap).all()
         (f.bitmap * torch.linspace(0, 1, 32)).sum().backward()
         assert torch.isfinite(pts.grad).all() and torch.isfinite(nrm.grad).all()
         assert float(nrm.grad[0].abs().sum()) > 0  # the valid point does get a gradient
+
+
+# ----------------------------------------------------------------------------------------------------
+# conv integrator (exact-sunshape convolution) and the dispatcher
+# ----------------------------------------------------------------------------------------------------
+
+def _conv_world_samples(facets, obs, i, samples=(24, 24)):
+    surf = LearnableSurface(facets, (5, 5), (2, 2)).surfaces()
+    pts, nrm, area = facet_ops.surface_points(surf, samples)
+    rot = obs.rotation[i]
+    pw = obs.concentrator[i] + pts[0] @ rot.T
+    # Fixed mirror samples (no autograd graph back to the surface's parameters).
+    return pw.detach().float()[None], (nrm[0] @ rot.T).detach().float()[None], area.detach().float()
+
+
+def test_conv_matches_trace_gaussian_for_gaussian_sun():
+    from helpers.surfaces import small_scene
+
+    facets, obs, target = small_scene(distance=30.0, n=2)
+    for sun in (SunSettings(sunshape="gaussian", sigma=2.5e-3, slope_error=0.0),
+                SunSettings(sunshape="gaussian", sigma=2.0e-3, slope_error=1.0e-3)):
+        for i in range(2):
+            pw, nw, area = _conv_world_samples(facets, obs, i)
+            sund = obs.sun[i:i + 1].float()
+            res = render_centered(pw, nw, area, sund, target, sun, size_m=4.0, resolution=32)
+            c = res.center[0].detach().double()
+            window = (float(c[0]) - 2.0, float(c[1]) - 2.0, 4.0, 4.0)
+            ref = trace_gaussian(pw, nw, area, sund, target, resolution=(32, 32), sun=sun, window=window,
+                                 clip_to_target=False).bitmap
+            l1 = float(losses.l1(res.image, ref.to(res.image)).max())
+            print(f"L1(conv, trace_gaussian) = {l1:.4f}")
+            assert l1 < 0.03, (sun, i, l1)
+            # Same absolute flux scale (power conserved in the window by both).
+            ratio = float(res.image.sum() / ref.sum())
+            assert abs(ratio - 1.0) < 0.02, ratio
+
+
+def test_gradcheck_conv():
+    """render_centered w.r.t. mirror points, normals and areas (float64; kernel held fixed as in training)."""
+    pts, nrm, areas, sun, tgt = oblique_setup(side=2.0, m=3, dist=30.0)
+    optics = SunSettings(sunshape="buie", csr=0.05, slope_error=1e-3)
+    p, n, a = pts[None].clone(), nrm[None].clone(), areas[None].clone()
+    s = sun[None]
+    kern = mean_footprint_kernel(p, n, a, s, tgt, optics, 1.0 / 8, 16)
+    center = render_centered(p, n, a, s, tgt, optics, size_m=1.0, resolution=8, kernel=kern).center.detach()
+
+    def fn(pp, nn, aa):
+        return render_centered(pp, nn, aa, s, tgt, optics, size_m=1.0, resolution=8, kernel=kern, center=center).image
+
+    inputs = tuple(t.requires_grad_(True) for t in (p, n, a))
+    assert torch.autograd.gradcheck(fn, inputs, atol=1e-5, fast_mode=True)
+    # ... and with the window following the predicted centroid (the PAINT-style default).
+    assert torch.autograd.gradcheck(
+        lambda pp: render_centered(pp, n.detach(), a.detach(), s, tgt, optics, size_m=1.0, resolution=8,
+                                   kernel=kern).image, (p,), atol=1e-5, fast_mode=True)
+
+
+def test_dispatcher_names_and_errors():
+    pts, nrm, areas, sun, tgt = oblique_setup(side=2.0, m=6, dist=50.0)
+    optics = SunSettings(sunshape="gaussian", sigma=2.5e-3, slope_error=1e-3)
+    win = (-3.0, -3.0, 6.0, 6.0)
+    assert INTEGRATORS == ("mc", "gaussian", "conv")
+    images = {}
+    for name in INTEGRATORS:
+        f = trace(pts, nrm, areas, sun, tgt, integrator=name, resolution=32, sun=optics, window=win,
+                  generator=gen(), rays_per_point=400, clip_to_target=False) if name != "conv" else \
+            trace(pts, nrm, areas, sun, tgt, integrator=name, resolution=32, sun=optics, window=win)
+        assert f.method == name and f.bitmap.shape == (1, 32, 32)
+        images[name] = f
+    # Same reflected power (DNI rho sum A cos) from every integrator.
+    for name in ("mc", "conv"):
+        assert float(images[name].total_power_w[0]) == pytest.approx(float(images["gaussian"].total_power_w[0]),
+                                                                     rel=1e-5)
+    images = {k: f.bitmap for k, f in images.items()}
+    # The three integrators estimate the same image (Gaussian sun; MC with its noise).
+    assert float(normalized_l1(images["conv"], images["gaussian"])[0]) < 0.05
+    assert float(normalized_l1(images["mc"], images["gaussian"])[0]) < 0.1
+    for bad in ("analytic", "nope"):
+        with pytest.raises(HeliotwinError) as exc:
+            trace(pts, nrm, areas, sun, tgt, integrator=bad)
+        assert len(str(exc.value).splitlines()) == 1 and "gaussian" in str(exc.value)
+    with pytest.raises(HeliotwinError, match="square"):
+        trace(pts, nrm, areas, sun, tgt, integrator="conv", resolution=(32, 16))

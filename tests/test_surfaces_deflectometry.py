@@ -2,16 +2,15 @@
 from __future__ import annotations
 
 import torch
+from helpers.surfaces import small_scene
 
 from heliotwin.field import facets as facet_ops
 from heliotwin.field.plant import SunSettings
 from heliotwin.io.deflectometry import write_deflectometry
 from heliotwin.surfaces.cli import main
 from heliotwin.surfaces.deflectometry import compare_surfaces, deflectometry_surface
+from heliotwin.surfaces.imaging import evaluate_images, predict_images
 from heliotwin.surfaces.learning import LearnableSurface, learnable_surfaces
-from heliotwin.surfaces.reconstruct import evaluate_images, predict_images
-
-from test_surfaces_losses import small_scene
 
 
 def _dome_truth(facets, amp=1.5e-3, net=(5, 5), deg=(2, 2)):

@@ -4,7 +4,14 @@ from __future__ import annotations
 import torch
 
 from heliotwin.io.paint import load_paint
-from heliotwin.surfaces.insilico import ground_truth_heights, insilico_settings, make_scene, observe, random_suns, run_case
+from heliotwin.surfaces.insilico import (
+    ground_truth_heights,
+    insilico_settings,
+    make_scene,
+    observe,
+    random_suns,
+    run_case,
+)
 
 
 def test_ground_truth_has_the_published_defect_size():

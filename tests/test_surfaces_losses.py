@@ -2,43 +2,12 @@
 from __future__ import annotations
 
 import torch
+from helpers.surfaces import small_scene
 
-from heliotwin.field.plant import Facets, SunSettings
-from heliotwin.field.targets import PlanarTarget
+from heliotwin.field.plant import SunSettings
 from heliotwin.surfaces import losses
+from heliotwin.surfaces.imaging import predict_images
 from heliotwin.surfaces.learning import LearnableSurface
-from heliotwin.surfaces.reconstruct import Observations, predict_images
-from heliotwin.surfaces.render import aimed_pose
-from heliotwin.field.plant import Kinematics
-
-
-def _facets():
-    t = torch.tensor([[[-0.4, 0.3, 0.0], [0.4, 0.3, 0.0], [-0.4, -0.3, 0.0], [0.4, -0.3, 0.0]]], dtype=torch.float64)
-    ce = torch.tensor([0.39, 0.0, 0.0], dtype=torch.float64).expand(1, 4, 3).clone()
-    cn = torch.tensor([0.0, 0.29, 0.0], dtype=torch.float64).expand(1, 4, 3).clone()
-    return Facets(t, ce, cn)
-
-
-def _kinematics(position):
-    z = lambda *s: torch.zeros(*s, dtype=torch.float64)  # noqa: E731
-    o = lambda *s: torch.ones(*s, dtype=torch.float64)  # noqa: E731
-    return Kinematics(position=torch.tensor([position], dtype=torch.float64), joint_translation=z(1, 2, 3),
-                      concentrator_translation=z(1, 3), joint_tilt=z(1, 2, 3), concentrator_tilt=z(1, 3),
-                      increment=o(1, 2), offset=o(1, 2), pivot_radius=o(1, 2), initial_angle=z(1, 2),
-                      initial_stroke_length=o(1, 2), clockwise=torch.zeros(1, 2, dtype=torch.bool),
-                      linear=torch.zeros(1, 2, dtype=torch.bool), min_steps=-1e9 * o(1, 2), max_steps=1e9 * o(1, 2),
-                      min_angle=z(1, 2), max_angle=z(1, 2))
-
-
-def small_scene(distance=20.0, n=2):
-    """A 1.6 m x 1.2 m, 4-facet heliostat ``distance`` m north of a 6 m target, n sun positions."""
-    target = PlanarTarget.from_center_normal("t", [0.0, 0.0, 15.0], [0.0, 1.0, 0.0], 6.0, 6.0)
-    kin = _kinematics([0.0, distance, 1.0])
-    sun = torch.tensor([[0.3, -0.6, 0.74], [-0.4, -0.5, 0.77], [0.1, -0.3, 0.95], [0.5, -0.2, 0.84]],
-                       dtype=torch.float64)[:n]
-    sun = sun / sun.norm(dim=-1, keepdim=True)
-    rot, conc = aimed_pose(kin, target.center.expand(n, 3), sun)
-    return _facets(), Observations(sun, rot, conc, [target] * n, None, [str(i) for i in range(n)]), target
 
 
 def test_losses_scale_invariant_and_zero_at_match():

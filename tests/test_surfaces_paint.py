@@ -10,7 +10,7 @@ import torch
 
 from heliotwin.io.paint import load_paint
 from heliotwin.surfaces.cli import main
-from heliotwin.surfaces.reconstruct import load_centered_image, observations_from_records, split_records
+from heliotwin.surfaces.observations import load_centered_image, observations_from_records, split_records
 
 
 def test_aa39_centred_records_split_and_orientation(paint_dir):

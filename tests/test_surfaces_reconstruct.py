@@ -2,14 +2,15 @@
 from __future__ import annotations
 
 import torch
+from helpers.surfaces import small_scene
 
 from heliotwin.field.plant import SunSettings
 from heliotwin.surfaces import losses
+from heliotwin.surfaces.imaging import predict_images
 from heliotwin.surfaces.insilico import surface_metrics
 from heliotwin.surfaces.learning import LearnableSurface, learnable_surfaces
-from heliotwin.surfaces.reconstruct import Observations, TrainSettings, fit_surface, predict_images
-
-from test_surfaces_losses import small_scene
+from heliotwin.surfaces.observations import Observations
+from heliotwin.surfaces.training import TrainSettings, fit_surface
 
 
 def test_tiny_reconstruction_recovers_bump():
@@ -27,7 +28,7 @@ def test_tiny_reconstruction_recovers_bump():
     train, test = obs.subset([0, 1]), obs.subset([2])
     settings = TrainSettings(control_points=net, degree=deg, samples=(12, 12), resolution=32, steps=50, lr=0.3,
                              decay=0.99, laplacian=1e-3, loss="l1")
-    model = fit_surface(facets, train, sun, settings, progress=False)
+    model, _ = fit_surface(facets, train, sun, settings, progress=False)
     ideal = LearnableSurface(facets, net, deg).surfaces()
     with torch.no_grad():
         li = float(losses.l1(predict_images(ideal, test, sun, samples=(16, 16), resolution=32)[0], test.images).mean())
@@ -40,7 +41,7 @@ def test_tiny_reconstruction_recovers_bump():
 
 
 def test_lbfgs_coarse_to_fine_and_leave_one_out_weight_choice():
-    from heliotwin.surfaces.reconstruct import train_with_early_stopping
+    from heliotwin.surfaces.training import train_with_early_stopping
 
     facets, obs, _ = small_scene(distance=20.0, n=3)
     sun = SunSettings(sunshape="buie", slope_error=0.5e-3)
@@ -54,7 +55,9 @@ def test_lbfgs_coarse_to_fine_and_leave_one_out_weight_choice():
                       lbfgs_round=10, steps=30, laplacian_grid=(1e-3, 1e-2), laplacian_cv="loo")
     model, info = train_with_early_stopping(facets, obs, sun, s, progress=False)
     assert model.num_control_points == (5, 5)
-    assert info["laplacian_cv"] == "loo" and len(info["holdout"]) == 3 and set(info["laplacian_scores"]) == {1e-3, 1e-2}
+    chosen = info.selection
+    assert chosen["laplacian_cv"] == "loo" and len(chosen["holdout"]) == 3
+    assert set(chosen["laplacian_scores"]) == {1e-3, 1e-2}
     ideal = LearnableSurface(facets, (5, 5), (2, 2)).surfaces()
     assert surface_metrics(facets, model.surfaces(), truth)["normal_deviation_mrad"] < \
         surface_metrics(facets, ideal, truth)["normal_deviation_mrad"]
@@ -93,8 +96,8 @@ def test_common_tilt_is_learned_in_fixed_windows_and_invisible_in_centred_ones()
     assert l1_fixed > 5 * l1_centred, (l1_centred, l1_fixed)
     s = TrainSettings(control_points=net, degree=deg, samples=(12, 12), resolution=32, loss="l1", optimizer="lbfgs",
                       fix_gauge=True, continuation=(), lbfgs_round=40, steps=80, laplacian=1e-3)
-    learned_fixed = fit_surface(facets, fixed, sun, s, progress=False)
-    learned_centred = fit_surface(facets, obs, sun, s, progress=False)
+    learned_fixed, _ = fit_surface(facets, fixed, sun, s, progress=False)
+    learned_centred, _ = fit_surface(facets, obs, sun, s, progress=False)
     assert not learned_fixed.gauge_tilt and learned_centred.gauge_tilt
     assert surface_metrics(facets, learned_fixed.surfaces(), truth)["normal_deviation_mrad"] < 0.2
     assert surface_metrics(facets, learned_centred.surfaces(), truth)["normal_deviation_mrad"] > 0.9

@@ -5,7 +5,7 @@ The scene (a :class:`~heliotwin.field.plant.Plant`) is plain data; the integrato
 
     motor steps --kinematics.forward--> (R_world_heliostat, concentrator)
     control points --facets.surface_points--> heliostat-frame points, normals, areas
-    --> world points, normals (ENU) --> raytrace.montecarlo / raytrace.analytic --> FluxImage
+    --> world points, normals (ENU) --> trace(integrator="mc" | "gaussian" | "conv") --> FluxImage
 
 Shapes: B samples (a sample is one heliostat under one sun position; a heliostat may appear in many),
 P surface points per heliostat.
@@ -17,6 +17,7 @@ import torch
 from .field import facets as facet_ops
 from .field import kinematics as kin_ops
 from .field.plant import Kinematics, Surfaces
+from .geometry import ray_plane, reflect
 
 
 def heliostat_frame_surface(surfaces: Surfaces, samples: tuple[int, int] = (32, 32)):
@@ -91,19 +92,38 @@ def world_surface(kinematics: Kinematics, surfaces: Surfaces, heliostat_index, m
     return pw, nw, area[idx].to(dtype), R, c
 
 
-def trace(points, normals, areas, sun_direction, target, *, integrator: str = "analytic", resolution=(256, 256),
-          sun=None, window=None, rays_per_point: int = 100, generator: torch.Generator | None = None, **kwargs):
-    """Dispatch to an integrator: ``"mc"`` (Monte-Carlo) or ``"analytic"`` (Gaussian footprints).
+#: Integrator names accepted by :func:`trace`: Monte-Carlo, Gaussian footprints, exact-sunshape convolution.
+INTEGRATORS = ("mc", "gaussian", "conv")
 
-    Parameters are those of :func:`heliotwin.raytrace.trace_mc` / :func:`heliotwin.raytrace.trace_analytic`;
-    ``rays_per_point`` and ``generator`` are used by ``"mc"`` only.
+
+def trace(points, normals, areas, sun_direction, target, *, integrator: str = "gaussian", resolution=(256, 256),
+          sun=None, window=None, rays_per_point: int = 100, generator: torch.Generator | None = None, **kwargs):
+    """The one integrator dispatcher: ``"mc"``, ``"gaussian"`` or ``"conv"`` -> FluxImage.
+
+    ``"mc"``: :func:`heliotwin.raytrace.trace_mc` (needs ``generator``; uses ``rays_per_point``);
+    ``"gaussian"``: :func:`heliotwin.raytrace.trace_gaussian` (Gaussian-equivalent sun, any target);
+    ``"conv"``: :func:`heliotwin.raytrace.trace_conv` (exact tabulated sunshape, planar targets, square
+    windows; default window the PAINT-style centred one). Other parameters are those of the integrator.
+
+    Parameters
+    ----------
+    points, normals : torch.Tensor, [B, P, 3]
+        World ENU [m] / unit.
+    areas : torch.Tensor, [B, P]
+        [m^2].
+    sun_direction : torch.Tensor, [B, 3]
+        Unit, towards the sun.
+    target : PlanarTarget or CylinderTarget
+    integrator : {"mc", "gaussian", "conv"}
 
     Returns
     -------
     FluxImage
+        Flux [W/m^2], ``method`` = the integrator name.
     """
     from .errors import HeliotwinError
 
+    check_integrator(integrator)
     if integrator == "mc":
         from .raytrace import montecarlo
 
@@ -111,12 +131,28 @@ def trace(points, normals, areas, sun_direction, target, *, integrator: str = "a
             raise HeliotwinError("the Monte-Carlo integrator needs a torch.Generator (pass a seed)")
         return montecarlo.trace_mc(points, normals, areas, sun_direction, target, resolution=resolution, sun=sun,
                                    window=window, rays_per_point=rays_per_point, generator=generator, **kwargs)
-    if integrator == "analytic":
-        from .raytrace import analytic
+    if integrator == "gaussian":
+        from .raytrace import gaussian
 
-        return analytic.trace_analytic(points, normals, areas, sun_direction, target, resolution=resolution, sun=sun,
+        return gaussian.trace_gaussian(points, normals, areas, sun_direction, target, resolution=resolution, sun=sun,
                                        window=window, **kwargs)
-    raise HeliotwinError(f"unknown integrator {integrator!r}; expected 'mc' or 'analytic'")
+    from .field.targets import PlanarTarget
+    from .raytrace import conv
+
+    if not isinstance(target, PlanarTarget):
+        raise HeliotwinError("the conv integrator supports planar targets only (use 'gaussian' or 'mc')")
+    return conv.trace_conv(points, normals, areas, sun_direction, target, resolution=resolution, sun=sun,
+                           window=window, **kwargs)
+
+
+def check_integrator(name: str) -> str:
+    """``name`` if it is one of :data:`INTEGRATORS`, else a one-line :class:`HeliotwinError`."""
+    from .errors import HeliotwinError
+
+    if name in INTEGRATORS:
+        return name
+    hint = " ('analytic' is now 'gaussian' or 'conv')" if name == "analytic" else ""
+    raise HeliotwinError(f"unknown integrator {name!r}; expected one of {', '.join(INTEGRATORS)}{hint}")
 
 
 def central_ray_spot(R_world_heliostat: torch.Tensor, concentrator: torch.Tensor, sun_direction: torch.Tensor, target):
@@ -137,10 +173,10 @@ def central_ray_spot(R_world_heliostat: torch.Tensor, concentrator: torch.Tensor
         ENU [m] (float64). Rays parallel to or leaving the plane give NaN (no intersection).
     """
     n = kin_ops.mirror_normal(R_world_heliostat).to(torch.float64)
-    s = sun_direction.to(torch.float64)
-    r = 2 * (n * s).sum(-1, keepdim=True) * n - s  # reflect(-s, n)
+    r = reflect(-sun_direction.to(torch.float64), n)
     tn = target.normal.to(r)
-    denom = r @ tn
-    t = ((target.center.to(r) - concentrator.to(r)) @ tn) / torch.where(denom < 0, denom, torch.full_like(denom, -1.0))
-    hit = concentrator.to(r) + t.unsqueeze(-1) * r
-    return torch.where((denom < 0).unsqueeze(-1), hit, torch.full_like(hit, float("nan")))
+    conc = concentrator.to(r)
+    t, _ = ray_plane(conc, r, target.center.to(r), tn, eps=0.0)
+    hit = conc + t.unsqueeze(-1) * r
+    # Only rays travelling towards the (one-sided) target face count; the rest have no spot.
+    return torch.where(((r * tn).sum(-1) < 0).unsqueeze(-1), hit, torch.full_like(hit, float("nan")))

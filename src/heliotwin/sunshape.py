@@ -45,6 +45,8 @@ __all__ = [
     "sample",
     "sample_with_slope_error",
     "second_moment",
+    "radial_profile",
+    "angular_extent",
     "buie_profile",
     "buie_table",
     "buie_radial_cdf",
@@ -281,3 +283,42 @@ def second_moment(sunshape: str, *, sigma: float = 2.51e-3, radius: float = SOLA
     else:
         var = _buie_table_cached(float(csr))[2] / 2.0
     return var + (2.0 * float(slope_error)) ** 2
+
+
+def radial_profile(sunshape: str, theta: torch.Tensor, *, sigma: float = 2.51e-3, radius: float = SOLAR_DISC_RADIUS,
+                   csr: float = 0.05) -> torch.Tensor:
+    """Unnormalised radiance of a sunshape at angle ``theta`` from the sun centre (tabulated kernels).
+
+    Parameters
+    ----------
+    sunshape : {"gaussian", "pillbox", "buie"}
+    theta : torch.Tensor, shape (...)
+        Angle from the sun centre [rad].
+    sigma, radius, csr : float
+        As in :func:`sample`.
+
+    Returns
+    -------
+    torch.Tensor, shape (...)
+        Relative radiance [-] (1 at the centre): ``exp(-theta^2 / 2 sigma^2)``, the disc indicator, or
+        :func:`buie_profile`. Callers normalise the tabulated density themselves.
+    """
+    name = _check(sunshape)
+    if name == "buie":
+        return buie_profile(theta, float(csr))
+    if name == "pillbox":
+        return (theta <= float(radius)).to(theta.dtype)
+    return torch.exp(-0.5 * theta * theta / (float(sigma) * float(sigma)))
+
+
+def angular_extent(sunshape: str, *, sigma: float = 2.51e-3, radius: float = SOLAR_DISC_RADIUS) -> float:
+    """Half-angle [rad] beyond which :func:`radial_profile` is (numerically) zero.
+
+    ``4.5 sigma`` (gaussian), ``radius`` (pillbox), the outer edge of the aureole (buie).
+    """
+    name = _check(sunshape)
+    if name == "buie":
+        return BUIE_AUREOLE_LIMIT
+    if name == "pillbox":
+        return float(radius)
+    return 4.5 * float(sigma)

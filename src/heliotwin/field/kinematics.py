@@ -19,7 +19,6 @@ from ..geometry import rotation_e, rotation_n, rotation_u
 from .actuators import angle_to_steps, steps_to_angle
 from .plant import Kinematics
 
-
 # The elementary rotations live in heliotwin.geometry; short aliases keep the chain formulas readable.
 rot_e, rot_n, rot_u = rotation_e, rotation_n, rotation_u
 
@@ -51,7 +50,8 @@ def joint_angles(kin: Kinematics, motor_steps) -> torch.Tensor:
 def _tilts(kin: Kinematics):
     t1 = rot_u(kin.joint_tilt[..., 0, 2]) @ rot_n(kin.joint_tilt[..., 0, 1])
     t2 = rot_e(kin.joint_tilt[..., 1, 0]) @ rot_n(kin.joint_tilt[..., 1, 1])
-    t3 = rot_e(kin.concentrator_tilt[..., 0]) @ rot_n(kin.concentrator_tilt[..., 1]) @ rot_u(kin.concentrator_tilt[..., 2])
+    ct = kin.concentrator_tilt
+    t3 = rot_e(ct[..., 0]) @ rot_n(ct[..., 1]) @ rot_u(ct[..., 2])
     return t1, t2, t3
 
 
@@ -131,7 +131,8 @@ def bisector_normal(sun_direction: torch.Tensor, concentrator: torch.Tensor, aim
     return _unit(sun_direction + _unit(aim_point - concentrator))
 
 
-def angles_for_normal(kin: Kinematics, normal: torch.Tensor, reference_angles: torch.Tensor | None = None) -> torch.Tensor:
+def angles_for_normal(kin: Kinematics, normal: torch.Tensor,
+                      reference_angles: torch.Tensor | None = None) -> torch.Tensor:
     """Joint angles that turn the mirror normal to ``normal`` — analytic, exact for any tilts.
 
     With ``m = R3 R_E(pi/2) e_z``, the model normal is ``T1 R_E(a) T2 R_U(theta2) m`` (``a = theta1 - pi/2``).
@@ -166,6 +167,50 @@ def angles_for_normal(kin: Kinematics, normal: torch.Tensor, reference_angles: t
     return torch.stack((theta1, theta2), dim=-1)
 
 
+def aim_angles(kin: Kinematics, aim_point, sun_direction, *, iterations: int = 20,
+               tolerance: float = 1e-12) -> torch.Tensor:
+    """Joint angles that reflect the sun's centre from the concentrator onto an aim point (no motor range).
+
+    The concentrator moves with the joint angles, so the bisector is re-evaluated at the concentrator
+    of the last solution until the angles change by less than ``tolerance`` [rad] (fixed point; the lever
+    arm of a few decimetres against ~100 m slant range makes it contract fast). ``tolerance=0`` runs all
+    ``iterations``. Shared by :func:`inverse` (-> motor steps) and the conv renderer's measured-spot poses.
+
+    Parameters
+    ----------
+    kin : Kinematics
+        H heliostats (float64 recommended; the result has its dtype).
+    aim_point : tensor-like, shape (..., H, 3)
+        ENU [m].
+    sun_direction : tensor-like, shape (..., H, 3) or (..., 1, 3)
+        Unit vector towards the sun.
+    iterations : int
+        Maximum fixed-point iterations.
+    tolerance : float
+        [rad].
+
+    Returns
+    -------
+    torch.Tensor, shape (..., H, 2)
+        Joint angles [rad].
+    """
+    dtype = kin.position.dtype
+    aim = torch.as_tensor(aim_point, dtype=dtype)
+    sun = torch.as_tensor(sun_direction, dtype=dtype)
+    shape = torch.broadcast_shapes(aim.shape, sun.shape, kin.position.shape)
+    aim, sun = aim.expand(shape), sun.expand(shape)
+    concentrator = kin.position.expand(shape)
+    angles = None
+    for _ in range(iterations):
+        new = angles_for_normal(kin, bisector_normal(sun, concentrator, aim))
+        _, concentrator = pose_from_angles(kin, new)
+        done = angles is not None and float((new - angles).abs().max()) < tolerance
+        angles = new
+        if done:
+            break
+    return angles
+
+
 def inverse(kin: Kinematics, aim_point, sun_direction, *, iterations: int = 20, tolerance: float = 1e-12,
             strict: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """Motor steps that reflect the sun onto an aim point.
@@ -195,20 +240,7 @@ def inverse(kin: Kinematics, aim_point, sun_direction, *, iterations: int = 20, 
     reachable : torch.Tensor of bool, shape (..., H)
         Within ``[min_steps, max_steps]`` on both axes and realisable.
     """
-    dtype = kin.position.dtype
-    aim = torch.as_tensor(aim_point, dtype=dtype)
-    sun = torch.as_tensor(sun_direction, dtype=dtype)
-    shape = torch.broadcast_shapes(aim.shape, sun.shape, kin.position.shape)
-    aim, sun = aim.expand(shape), sun.expand(shape)
-    concentrator = kin.position.expand(shape)
-    angles = None
-    for _ in range(iterations):
-        new = angles_for_normal(kin, bisector_normal(sun, concentrator, aim))
-        _, concentrator = pose_from_angles(kin, new)
-        done = angles is not None and float((new - angles).abs().max()) < tolerance
-        angles = new
-        if done:
-            break
+    angles = aim_angles(kin, aim_point, sun_direction, iterations=iterations, tolerance=tolerance)
     steps, valid = angle_to_steps(angles, **_actuator_kwargs(kin))
     in_range = (steps >= kin.min_steps) & (steps <= kin.max_steps) & valid
     reachable = in_range.all(-1)
@@ -218,6 +250,39 @@ def inverse(kin: Kinematics, aim_point, sun_direction, *, iterations: int = 20, 
                               f"motor steps {steps[tuple(bad)].tolist()} outside "
                               f"[{kin.min_steps[bad[-1]].tolist()}, {kin.max_steps[bad[-1]].tolist()}]")
     return steps, reachable
+
+
+def aimed_pose(kin: Kinematics, aim_point, sun_direction, *, iterations: int = 8
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pose of one heliostat that reflects the sun's centre from its concentrator onto ``aim_point``.
+
+    :func:`aim_angles` then :func:`pose_from_angles` (no motor steps, no range check): used where the
+    *measured* focal spot is known (PAINT records), so the pose follows the real tracking instead of the
+    (tens of mrad off) nominal kinematics, without learning anything.
+
+    Parameters
+    ----------
+    kin : Kinematics
+        One heliostat (H = 1), float64.
+    aim_point : tensor-like, [B, 3]
+        ENU [m].
+    sun_direction : tensor-like, [B, 3]
+        Unit vectors towards the sun.
+    iterations : int
+        Fixed-point iterations, all run (the concentrator moves with the angles).
+
+    Returns
+    -------
+    R_world_heliostat : torch.Tensor, [B, 3, 3]
+    concentrator : torch.Tensor, [B, 3]
+        ENU [m]; both in the kinematics' dtype.
+    """
+    dtype = kin.position.dtype
+    aim = torch.as_tensor(aim_point, dtype=dtype).reshape(-1, 1, 3)
+    sun = torch.as_tensor(sun_direction, dtype=dtype).reshape(-1, 1, 3)
+    angles = aim_angles(kin, aim, sun, iterations=iterations, tolerance=0.0)
+    rot, conc = pose_from_angles(kin, angles)
+    return rot[:, 0], conc[:, 0]
 
 
 def check_motor_range(kin: Kinematics, motor_steps, *, where: str = "motor steps") -> None:

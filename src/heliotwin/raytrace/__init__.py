@@ -1,18 +1,25 @@
-"""Ray tracing: Monte-Carlo and analytic flux integrators, splatting, flux images.
+"""Ray tracing: the three flux integrators, splatting, flux images.
 
-Entry points
-------------
-:func:`trace_mc`
+Integrators (dispatched by name in :func:`heliotwin.scene.trace`, names in :data:`heliotwin.scene.INTEGRATORS`)
+-----------------------------------------------------------------------------------------------------------
+``"mc"`` -- :func:`trace_mc`
     Monte-Carlo tracer (projective fast path for planar targets, generic path for the cylinder).
-:func:`trace_analytic`
-    Noise-free Gaussian-footprint integrator (cost independent of any ray count).
+``"gaussian"`` -- :func:`trace_gaussian`
+    Noise-free Gaussian-footprint integrator (Gaussian-equivalent sun; cost independent of any ray count).
+``"conv"`` -- :func:`trace_conv` / :func:`render_centered`
+    Noise-free mirror-point splat convolved with the exact tabulated sunshape (planar targets, square
+    windows); the surface learner's renderer.
+
+Images
+------
 :class:`FluxImage`
     The result: bitmap [B, rows, cols] in W/m^2 (PAINT orientation) plus target, extent and powers.
 :func:`centered_crop`, :func:`to_png`, :func:`read_png`, :func:`normalized_l1`, :func:`cross_correlation`
     PAINT-style image handling and comparison.
 """
-from .analytic import trace_analytic
+from .conv import render_centered, trace_conv
 from .flux import FluxImage, centered_crop, cross_correlation, normalized_l1, read_png, target_extent, to_png
+from .gaussian import trace_gaussian
 from .montecarlo import trace_mc
 from .splat import projective_splat, splat_bilinear, splat_hard
 
@@ -22,9 +29,11 @@ __all__ = [
     "cross_correlation",
     "normalized_l1",
     "read_png",
+    "render_centered",
     "target_extent",
     "to_png",
-    "trace_analytic",
+    "trace_conv",
+    "trace_gaussian",
     "trace_mc",
     "projective_splat",
     "splat_bilinear",

@@ -16,8 +16,8 @@ import torch
 
 from ..field.plant import SunSettings
 from ..field.targets import PlanarTarget
-from .analytic import trace_analytic
 from .flux import normalized_l1
+from .gaussian import trace_gaussian
 from .montecarlo import trace_mc
 
 __all__ = ["run_benchmark", "benchmark_scene"]
@@ -109,15 +109,15 @@ def run_benchmark(surface_points: int = 10000, rays_per_point=(10, 100), resolut
         Minimum timed repetitions per measurement (more are run until ~2 s have passed); the best time is
         reported, i.e. the run least disturbed by other load on the machine.
     time_to_accuracy : bool
-        Also run the reference / analytic / MC-convergence comparison.
+        Also run the reference / gaussian / MC-convergence comparison.
 
     Returns
     -------
     dict
         ``mc.forward_rays_per_s`` and ``mc.forward_backward_rays_per_s`` (for the largest K; float32,
         eager PyTorch, gradients w.r.t. mirror points and normals), ``mc.per_k`` (per-K timings),
-        ``peak_rss_mb``, and ``time_to_accuracy`` (Gaussian sun: reference image and its noise, analytic
-        time and L1 vs the reference, Monte-Carlo rays/time to reach that L1, measured or extrapolated).
+        ``peak_rss_mb``, and ``time_to_accuracy`` (Gaussian sun: reference image and its noise, gaussian
+        integrator time and L1 vs the reference, Monte-Carlo rays/time to reach that L1, measured or extrapolated).
     """
     old_threads = torch.get_num_threads()
     if threads is not None:
@@ -184,7 +184,7 @@ def _run(surface_points, rays_per_point, resolution, seed, repeats, time_to_accu
 
 
 def _time_to_accuracy(pts, nrm, areas, sun_dir, target, resolution, seed, repeats):
-    """Gaussian sun (the analytic integrator's exact case): reference, analytic, MC convergence."""
+    """Gaussian sun (the gaussian integrator's exact case): reference, gaussian, MC convergence."""
     optics = SunSettings(sunshape="gaussian", sigma=2.51e-3, slope_error=1e-3)
     p = pts.shape[1]
     ref_rays_per_point, ref_runs = 4000, 8
@@ -202,12 +202,12 @@ def _time_to_accuracy(pts, nrm, areas, sun_dir, target, resolution, seed, repeat
     # noise floor of the reference: L1 between its halves, scaled to the full reference (1/sqrt(2) x 1/sqrt(2))
     ref_noise = float(normalized_l1(halves[0], halves[1])[0]) / 2.0
 
-    def analytic():
+    def gaussian():
         with torch.no_grad():
-            return trace_analytic(pts, nrm, areas, sun_dir, target, resolution=resolution, sun=optics)
+            return trace_gaussian(pts, nrm, areas, sun_dir, target, resolution=resolution, sun=optics)
 
-    t_an = _best_time(analytic, max(1, repeats // 2))
-    l1_an = float(normalized_l1(analytic().bitmap, ref)[0])
+    t_an = _best_time(gaussian, max(1, repeats // 2))
+    l1_an = float(normalized_l1(gaussian().bitmap, ref)[0])
     curve = []
     reached = None
     for k in (10, 30, 100, 300, 1000, 3000, 10000):
@@ -237,7 +237,7 @@ def _time_to_accuracy(pts, nrm, areas, sun_dir, target, resolution, seed, repeat
         "sunshape": "gaussian",
         "reference": {"rays": p * ref_rays_per_point * ref_runs, "time_s": t_ref, "noise_l1": ref_noise},
         "mc_to_same_l1_estimate": estimate,
-        "analytic": {"time_s": t_an, "l1_vs_reference": l1_an},
+        "gaussian": {"time_s": t_an, "l1_vs_reference": l1_an},
         "mc_to_same_l1": reached,
         "mc_curve": curve,
     }

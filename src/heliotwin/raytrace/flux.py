@@ -18,6 +18,7 @@ import torch.nn.functional as F
 
 from ..errors import HeliotwinError, InputFileError
 from ..field.targets import CylinderTarget, PlanarTarget
+from ..io.images import CENTERED_WINDOW_M
 
 __all__ = [
     "FluxImage",
@@ -107,7 +108,7 @@ class FluxImage:
     intercepted_power_w : torch.Tensor, shape (B,), optional
         Power deposited in the bitmap ``sum(bitmap) * pixel_area`` [W].
     method : str
-        ``"mc"`` or ``"analytic"``.
+        ``"mc"``, ``"gaussian"`` or ``"conv"`` (the integrator that made it).
     """
 
     bitmap: torch.Tensor
@@ -160,7 +161,7 @@ class FluxImage:
 
 
 def centered_crop(bitmap_or_flux, target: PlanarTarget | CylinderTarget | None, center_local: torch.Tensor,
-                  size_m: float = 6.0, resolution=64) -> torch.Tensor:
+                  size_m: float = CENTERED_WINDOW_M, resolution=64) -> torch.Tensor:
     """Resample the flux in a square window centred on a local point (PAINT ``-flux-centered.png`` style).
 
     Bilinear resampling (``grid_sample``, differentiable w.r.t. the bitmap and the centre); outside the

@@ -50,10 +50,9 @@ from .. import sunshape as _sunshape
 from ..errors import HeliotwinError, OutOfRangeError
 from ..field.plant import SunSettings
 from ..field.targets import CylinderTarget, PlanarTarget
-from ..geometry import orthonormal_frame, ray_cylinder, ray_plane, safe_normalize
+from ..geometry import orthonormal_frame, ray_cylinder, ray_plane, reflect, safe_normalize
 from .flux import FluxImage, target_extent
-from .splat import (DEFAULT_MAX_RAYS_PER_CHUNK, projective_splat, projective_splat_hard, splat_bilinear,
-                    splat_hard)
+from .splat import DEFAULT_MAX_RAYS_PER_CHUNK, projective_splat, projective_splat_hard, splat_bilinear, splat_hard
 
 __all__ = ["trace_mc", "offset_pattern", "planar_coefficients", "MirrorBatch", "prepare_mirror"]
 
@@ -133,7 +132,7 @@ def prepare_mirror(points, normals, areas, sun_direction, sun: SunSettings,
     cos = (normals * s).sum(-1)
     lit = torch.clamp(cos, min=0.0)  # shaded (n.s <= 0) -> 0 with zero gradient
     power = float(sun.dni) * float(sun.reflectivity) * areas * lit
-    reflected = 2.0 * cos.unsqueeze(-1) * normals - s
+    reflected = reflect(-s, normals)
     return MirrorBatch(points, reflected, power)
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import torch
 
 from ..field.plant import Facets, Surfaces
+from ..geometry import angle_between
 from ..io.deflectometry import fit_deflectometry, read_deflectometry
 from .learning import normal_heights
 
@@ -60,10 +61,11 @@ def compare_surfaces(facets: Facets, a: Surfaces, b: Surfaces, grid=(48, 48)) ->
                                 None if a.weights is None else a.weights.to(torch.float64))
         hb, nb = normal_heights(facets, b.control_points.to(torch.float64), (b.degree_u, b.degree_v), grid,
                                 None if b.weights is None else b.weights.to(torch.float64))
-        ang = torch.atan2(torch.linalg.cross(na, nb, dim=-1).norm(dim=-1), (na * nb).sum(-1)) * 1e3
+        ang = angle_between(na, nb) * 1e3
         dh = ha - hb
         dh = (dh - dh.mean((-2, -1), keepdim=True)) * 1e3
-    return {"normal_deviation_mrad": float(ang.mean()), "normal_deviation_p95_mrad": float(ang.flatten().quantile(0.95)),
+    return {"normal_deviation_mrad": float(ang.mean()),
+            "normal_deviation_p95_mrad": float(ang.flatten().quantile(0.95)),
             "height_rms_mm": float(dh.pow(2).mean().sqrt()), "height_max_mm": float(dh.abs().max()),
             "facet_normal_deviation_mrad": ang.mean((-2, -1)).tolist(),
             "facet_height_rms_mm": dh.pow(2).mean((-2, -1)).sqrt().tolist()}

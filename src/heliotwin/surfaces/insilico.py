@@ -27,12 +27,15 @@ from dataclasses import dataclass
 import torch
 
 from ..errors import HeliotwinError
+from ..field import kinematics as kin_ops
 from ..field.plant import Facets, Kinematics, SunSettings, Surfaces
 from ..field.targets import PlanarTarget
+from ..geometry import angle_between
 from . import losses
+from .imaging import predict_images
 from .learning import LearnableSurface, heights_to_displacement, learnable_surfaces, normal_heights
-from .reconstruct import Observations, TrainSettings, predict_images, train_with_early_stopping
-from .render import aimed_pose
+from .observations import Observations
+from .training import TrainSettings, train_with_early_stopping
 
 __all__ = ["ground_truth_heights", "make_scene", "run_case", "surface_metrics", "InSilicoScene", "insilico_settings"]
 
@@ -80,7 +83,8 @@ def ground_truth_heights(num_facets: int, generator: torch.Generator, grid=(48, 
         bump = torch.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (2 * width ** 2))
         bump = bump * (bump_mm * 1e-3 / bump.abs().mean())
         ang, phase = r[3] * math.pi, r[4] * 2 * math.pi
-        wav = waviness_mm * 1e-3 * torch.sin(2 * math.pi * (x * math.cos(ang) + y * math.sin(ang)) / wavelength_m + phase)
+        along = x * math.cos(ang) + y * math.sin(ang)  # [m] across the wave crests
+        wav = waviness_mm * 1e-3 * torch.sin(2 * math.pi * along / wavelength_m + phase)
         out.append(bump + wav)
     return torch.stack(out)
 
@@ -135,7 +139,7 @@ def observe(scene: InSilicoScene, suns: torch.Tensor, samples=(48, 48), ids=None
     if window not in ("aim", "centred"):
         raise HeliotwinError(f"window must be 'aim' or 'centred', got {window!r}")
     aim = scene.target.center.to(torch.float64).expand(suns.shape[0], 3)
-    rot, conc = aimed_pose(scene.kinematics, aim, suns)
+    rot, conc = kin_ops.aimed_pose(scene.kinematics, aim, suns)
     centers = scene.target.to_local(aim) if window == "aim" else None
     obs = Observations(suns, rot, conc, [scene.target] * suns.shape[0], None, ids or [str(i) for i in range(len(suns))],
                        centers)
@@ -149,10 +153,11 @@ def surface_metrics(facets: Facets, learned: Surfaces, truth: Surfaces, grid=(48
     """Mean normal deviation [mrad] and piston-free height RMS [mm] of ``learned`` vs ``truth``."""
     hl, nl = normal_heights(facets, learned.control_points, (learned.degree_u, learned.degree_v), grid)
     ht, nt = normal_heights(facets, truth.control_points, (truth.degree_u, truth.degree_v), grid)
-    ang = torch.atan2(torch.linalg.cross(nl, nt, dim=-1).norm(dim=-1), (nl * nt).sum(-1))
+    ang = angle_between(nl, nt)
     dh = hl - ht
     dh = dh - dh.mean((-2, -1), keepdim=True)
-    return {"normal_deviation_mrad": float(ang.detach().mean() * 1e3), "height_rms_mm": float(dh.detach().pow(2).mean().sqrt() * 1e3)}
+    return {"normal_deviation_mrad": float(ang.detach().mean() * 1e3),
+            "height_rms_mm": float(dh.detach().pow(2).mean().sqrt() * 1e3)}
 
 
 def run_case(plant, distance: float, num_train: int, seed: int = 0, num_test: int = 5,
@@ -188,7 +193,8 @@ def run_case(plant, distance: float, num_train: int, seed: int = 0, num_test: in
             "normal_deviation_mrad": m["normal_deviation_mrad"], "height_rms_mm": m["height_rms_mm"],
             "ideal_normal_deviation_mrad": m0["normal_deviation_mrad"], "ideal_height_rms_mm": m0["height_rms_mm"],
             "test_l1_ideal": l1_i, "test_l1_learned": l1_l, "imp": mean_i / max(mean_l, 1e-12) - 1.0,
-            "seconds": seconds, "early_stopping_best_step": info["best_step"],
-            "laplacian": info.get("laplacian", s.laplacian), "laplacian_scores": info.get("laplacian_scores"),
-            "optimizer": s.optimizer, "loss_evaluations": getattr(model, "steps_run", None),
+            "seconds": seconds, "early_stopping_best_step": info.best_step,
+            "laplacian": info.selection.get("laplacian", s.laplacian),
+            "laplacian_scores": info.selection.get("laplacian_scores"),
+            "optimizer": s.optimizer, "loss_evaluations": info.steps_run,
             "torch_threads": torch.get_num_threads()}

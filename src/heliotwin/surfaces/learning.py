@@ -24,7 +24,8 @@ from ..errors import HeliotwinError
 from ..field import facets as facet_ops
 from ..field.plant import Facets, Surfaces
 
-__all__ = ["learnable_surfaces", "LearnableSurface", "gauge_basis", "parse_grid", "normal_heights", "heights_to_displacement"]
+__all__ = ["learnable_surfaces", "LearnableSurface", "gauge_basis", "parse_grid", "normal_heights",
+           "heights_to_displacement"]
 
 #: Metres per optimiser unit of displacement (the parameters are in mm).
 MM = 1e-3
@@ -208,7 +209,7 @@ class LearnableSurface(nn.Module):
         base = facet_ops.flat_control_points(self.facets, self.num_control_points, self.degree)
         self.register_buffer("base", base)
         nf = base.shape[1]
-        disp = torch.zeros(1, nf, *self.num_control_points, dtype=dtype)
+        disp = torch.zeros(1, nf, *self.num_control_points, dtype=dtype, device=base.device)
         if initial is not None:
             disp = self._displacement_of(initial.to(dtype), tuple(initial_degree or self.degree))
         self.displacement_mm = nn.Parameter(disp / MM)

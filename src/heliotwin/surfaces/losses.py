@@ -22,6 +22,7 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import HeliotwinError
+from ..io.images import subtract_background
 from ..raytrace.flux import normalized_l1
 
 __all__ = ["normalize", "image_loss", "l1", "l2", "kl", "ridge", "lasso", "laplacian", "IMAGE_LOSSES",
@@ -100,10 +101,7 @@ def laplacian(d_mm: torch.Tensor) -> torch.Tensor:
 
 
 def threshold_background(image: torch.Tensor, level: float = 0.02) -> torch.Tensor:
-    """Measured-image preprocessing: subtract a background level (fraction of the max) and clip at 0.
-
-    Camera images carry a dark/background floor; the PAINT centred PNGs here are already 0 outside the
-    spot, so the default removes only the faint (< 2 % of max) halo of noise and quantisation.
+    """Measured-image preprocessing: :func:`heliotwin.io.images.subtract_background` (one implementation).
 
     Parameters
     ----------
@@ -111,5 +109,4 @@ def threshold_background(image: torch.Tensor, level: float = 0.02) -> torch.Tens
     level : float
         Fraction of each image's maximum.
     """
-    m = image.amax((-2, -1), keepdim=True)
-    return (image - level * m).clamp_min(0.0)
+    return subtract_background(image, level)

@@ -12,6 +12,7 @@ import tempfile
 import torch
 
 from ..field.plant import Facets
+from ..geometry import angle_between
 from .learning import normal_heights
 
 __all__ = ["normal_deviation_map", "plot_normal_deviation", "plot_flux_comparison"]
@@ -33,9 +34,7 @@ def normal_deviation_map(facets: Facets, control_points: torch.Tensor, degree, r
         ref = facet_ops.facet_normals(facets.canting_e, facets.canting_n)[0].to(n)[:, None, None, :].expand_as(n)
     else:
         _, ref = normal_heights(facets, reference, reference_degree or degree, samples)
-    cos = (n * ref).sum(-1).clamp(-1.0, 1.0)
-    cross = torch.linalg.cross(n, ref, dim=-1).norm(dim=-1)
-    return torch.atan2(cross, cos) * 1e3
+    return angle_between(n, ref) * 1e3
 
 
 def _save(fig, path) -> None:

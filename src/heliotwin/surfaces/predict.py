@@ -1,7 +1,7 @@
 """Yearly flux prediction of one heliostat with a learned surface (sun every N minutes of daylight, pvlib).
 
 For every daylight instant of a year the heliostat is aimed at its target's centre
-(:func:`~heliotwin.surfaces.render.aimed_pose`) and its flux is computed with the learned and with the ideal
+(:func:`~heliotwin.field.kinematics.aimed_pose`) and its flux is computed with the learned and with the ideal
 surface (same optics, same centred 6 m window). Without measurements the per-instant quantities are the
 shape difference ``L1(ideal, learned)``, peak flux and power of both. When a ground-truth surface is known
 (in silico) the IMP ``L1(ideal, truth) / L1(learned, truth) - 1`` is reported per instant with its
@@ -17,19 +17,21 @@ import statistics
 import torch
 
 from ..errors import HeliotwinError
+from ..field import kinematics as kin_ops
 from ..field.plant import Kinematics, SunSettings, Surfaces
 from ..field.targets import PlanarTarget
+from ..io.images import CENTERED_WINDOW_M
 from ..sun import daylight_times, direction_from_paint_angles
 from . import losses
-from .reconstruct import Observations, predict_images
-from .render import aimed_pose
+from .imaging import predict_images
+from .observations import Observations
 
 __all__ = ["yearly_flux", "summarize"]
 
 
 def yearly_flux(kinematics: Kinematics, target: PlanarTarget, site: tuple, learned: Surfaces, ideal: Surfaces,
                 sun: SunSettings, *, year: int = 2023, every: str = "30min", truth: Surfaces | None = None,
-                samples=(24, 24), resolution: int = 64, size_m: float = 6.0, chunk: int = 48,
+                samples=(24, 24), resolution: int = 64, size_m: float = CENTERED_WINDOW_M, chunk: int = 48,
                 kernel_supersample: int = 2,
                 min_elevation_deg: float = 5.0, progress: bool = True) -> dict:
     """Flux of one heliostat on ``target`` over a year.
@@ -74,7 +76,7 @@ def yearly_flux(kinematics: Kinematics, target: PlanarTarget, site: tuple, learn
         sl = slice(start, start + chunk)
         s = sund[sl]
         aim = target.center.to(torch.float64).expand(s.shape[0], 3)
-        rot, conc = aimed_pose(kinematics, aim, s)
+        rot, conc = kin_ops.aimed_pose(kinematics, aim, s)
         obs = Observations(s, rot, conc, [target] * s.shape[0], None, [])
         with torch.no_grad():
             kernels: dict = {}

@@ -1,7 +1,7 @@
-"""Noise-free, differentiable flux images for surface learning: mirror-point splat * sun-cone kernel.
+"""Exact-sunshape convolution integrator ("conv"): mirror-point splat * sun-cone kernel, noise-free.
 
-Model ("conv" analytic integrator)
-----------------------------------
+Model
+-----
 Every mirror sample ``p`` (unit normal ``n``, area ``A``) reflects the *central* sun ray ``-s`` into
 ``r = reflect(-s, n)``, which hits the target plane at ``h(p)``. The flux is the sum over samples of the
 sun-cone footprint centred on ``h(p)``. Across one heliostat (a few metres at tens of metres slant range)
@@ -15,31 +15,32 @@ on the reflected ray) projected obliquely onto the plane through the mean ray. U
 this keeps the *real* sunshape (Buie disc + aureole, or pillbox) and costs one FFT per image, independent
 of the number of mirror samples; gradients w.r.t. the hit positions are exact (no sampling noise).
 
-Why a second analytic integrator
---------------------------------
-:func:`heliotwin.raytrace.trace_analytic` (the shared one) replaces the sun cone by its *Gaussian-equivalent*
-second moment, footprint per point (or one mean Gaussian convolved with the splat). That is right for field
-flux maps, but a Buie sun is a sharp-edged disc plus a faint wide aureole, not a Gaussian: with a
-Gaussian of the same variance the spot of a near-focused heliostat has the wrong edge and tail, and a
-surface learned against real images would absorb that error as fake shape (the peer's "learned blur").
-Here the kernel is the *exact* tabulated angular density (sunshape convolved with the slope-error
-Gaussian) projected onto the target, applied by one FFT per image, and the window is centred like
-PAINT's. For a Gaussian sun both integrators estimate the same image: ``tests/test_surfaces_render.py``
-checks that their normalised L1 stays below 0.03 (measured 0.013-0.016 at 32x32 px; the residual is
-the Gaussian-vs-tabulated kernel discretisation and the per-point vs mean footprint). The Monte-Carlo
-tracer remains the independent check (``trace_mc_centered``).
+Why not the "gaussian" integrator
+---------------------------------
+:func:`heliotwin.raytrace.trace_gaussian` replaces the sun cone by its *Gaussian-equivalent* second moment,
+footprint per point (or one mean Gaussian convolved with the splat). That is right for field flux maps,
+but a Buie sun is a sharp-edged disc plus a faint wide aureole, not a Gaussian: with a Gaussian of the same
+variance the spot of a near-focused heliostat has the wrong edge and tail, and a surface learned against
+real images would absorb that error as fake shape ("learned blur"). Here the kernel is the *exact*
+tabulated angular density (sunshape convolved with the slope-error Gaussian) projected onto the target,
+applied by one FFT per image, and the window is centred like PAINT's. For a Gaussian sun both integrators
+estimate the same image: ``tests/test_raytrace.py`` checks that their normalised L1 stays below 0.03
+(measured 0.013-0.016 at 32x32 px; the residual is the Gaussian-vs-tabulated kernel discretisation and
+the per-point vs mean footprint). The Monte-Carlo tracer remains the independent check.
 
 Centred window
 --------------
-PAINT's ``-flux-centered.png`` is a 6 m x 6 m window centred on the *measured* spot's own centroid. We do
-the same with the prediction (window centred on the predicted power-weighted centroid of the hits, which a
-centrally symmetric kernel leaves unchanged), so a tracking error never reads as surface shape.
+PAINT's ``-flux-centered.png`` is a 6 m x 6 m window (:data:`heliotwin.io.images.CENTERED_WINDOW_M`)
+centred on the *measured* spot's own centroid. We do the same with the prediction (window centred on the
+predicted power-weighted centroid of the hits, which a centrally symmetric kernel leaves unchanged), so a
+tracking error never reads as surface shape.
 
 Shapes: B images, N mirror samples; R window pixels per side. Units: metres, radians, W/m^2.
 """
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from functools import lru_cache
 
 import torch
@@ -47,65 +48,18 @@ import torch.nn.functional as F
 
 from .. import sunshape as sunshape_ops
 from ..errors import HeliotwinError
-from ..field import kinematics as kin_ops
-from ..field.plant import Kinematics, SunSettings
+from ..field.plant import SunSettings
 from ..field.targets import PlanarTarget
-from ..raytrace.splat import splat_bilinear
+from ..geometry import ray_plane, reflect
+from ..io.images import CENTERED_WINDOW_M
+from .flux import FluxImage
+from .splat import splat_bilinear
 
-__all__ = ["aimed_pose", "reflect_to_plane", "angular_density", "footprint_kernel", "render_centered",
-           "RenderResult", "correction_rotation"]
+__all__ = ["reflect_to_plane", "angular_density", "footprint_kernel", "mean_footprint_kernel", "render_centered",
+           "RenderResult", "trace_conv"]
 
 #: Angular grid step of the tabulated sunshape [rad].
 _ANG_STEP = 0.2e-3
-
-
-def aimed_pose(kinematics: Kinematics, aim_point: torch.Tensor, sun_direction: torch.Tensor,
-               iterations: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pose of one heliostat that reflects the sun's centre from its concentrator onto ``aim_point``.
-
-    Used when the *measured* focal spot is known (PAINT records): the orientation then follows the
-    real tracking instead of the (tens of mrad off) nominal kinematics, without learning anything.
-
-    Parameters
-    ----------
-    kinematics : Kinematics
-        One heliostat (H = 1), float64.
-    aim_point : torch.Tensor, [B, 3]
-        ENU [m].
-    sun_direction : torch.Tensor, [B, 3]
-        Unit vectors towards the sun.
-    iterations : int
-        Fixed-point iterations (the concentrator moves with the angles).
-
-    Returns
-    -------
-    R_world_heliostat : torch.Tensor, [B, 3, 3], float64
-    concentrator : torch.Tensor, [B, 3], float64, ENU [m]
-    """
-    aim = torch.as_tensor(aim_point, dtype=torch.float64).reshape(-1, 1, 3)
-    sun = torch.as_tensor(sun_direction, dtype=torch.float64).reshape(-1, 1, 3)
-    conc = kinematics.position.to(torch.float64).expand(aim.shape[0], 1, 3)
-    rot = None
-    for _ in range(iterations):
-        angles = kin_ops.angles_for_normal(kinematics, kin_ops.bisector_normal(sun, conc, aim))
-        rot, conc = kin_ops.pose_from_angles(kinematics, angles)
-    return rot[:, 0], conc[:, 0]
-
-
-def correction_rotation(delta: torch.Tensor) -> torch.Tensor:
-    """Small rotation in the heliostat frame from two angles (about its x then y axis).
-
-    Parameters
-    ----------
-    delta : torch.Tensor, [B, 2]
-        [rad].
-
-    Returns
-    -------
-    torch.Tensor, [B, 3, 3]
-        ``R_x(delta_0) R_y(delta_1)``; right-multiplied onto ``R_world_heliostat``.
-    """
-    return kin_ops.rot_e(delta[:, 0]) @ kin_ops.rot_n(delta[:, 1])
 
 
 def reflect_to_plane(points: torch.Tensor, normals: torch.Tensor, sun_direction: torch.Tensor,
@@ -129,15 +83,13 @@ def reflect_to_plane(points: torch.Tensor, normals: torch.Tensor, sun_direction:
         Slant range mirror -> hit [m] (>= 0).
     """
     s = sun_direction.to(points).unsqueeze(1)
-    d = -s
-    r = d - 2.0 * (d * normals).sum(-1, keepdim=True) * normals
+    r = reflect(-s, normals)
     nrm = target.normal.to(points)
-    denom = (r * nrm).sum(-1)
-    # Rays not travelling towards the plane (denom >= 0) would divide by ~0: give them a huge finite range,
-    # which puts the hit far outside any window (weight 0 after the splat) with finite gradients.
-    toward = denom < -1e-6
-    safe = torch.where(toward, denom, torch.full_like(denom, -1e-6))
-    t = ((target.center.to(points) - points) * nrm).sum(-1) / safe
+    t, _ = ray_plane(points, r, target.center.to(points), nrm, eps=1e-6)
+    # Rays not travelling towards the plane (r . n >= 0) would divide by ~0 or hit from behind: give them a
+    # huge finite range, which puts the hit far outside any window (weight 0 after the splat) with finite
+    # gradients.
+    toward = (r * nrm).sum(-1) < -1e-6
     t = torch.where(toward, t, torch.full_like(t, 1e6))
     hits = points + t.unsqueeze(-1) * r
     return target.to_local(hits), r, t
@@ -145,16 +97,8 @@ def reflect_to_plane(points: torch.Tensor, normals: torch.Tensor, sun_direction:
 
 @lru_cache(maxsize=8)
 def _angular_density_cached(sunshape: str, sigma: float, radius: float, csr: float, slope_error: float):
-    name = sunshape.lower()
     spread = 2.0 * slope_error  # per axis on the reflected ray
-    if name == "buie":
-        extent = sunshape_ops.BUIE_AUREOLE_LIMIT
-    elif name == "pillbox":
-        extent = radius
-    elif name == "gaussian":
-        extent = 4.5 * sigma
-    else:
-        raise HeliotwinError(f"unknown sunshape {sunshape!r}; expected gaussian, pillbox or buie")
+    extent = sunshape_ops.angular_extent(sunshape, sigma=sigma, radius=radius)
     half = extent + 4.5 * spread + 2 * _ANG_STEP
     n = int(math.ceil(half / _ANG_STEP))
     ax = torch.arange(-n, n + 1, dtype=torch.float64) * _ANG_STEP
@@ -166,12 +110,7 @@ def _angular_density_cached(sunshape: str, sigma: float, radius: float, csr: flo
     for da in sub:
         for db in sub:
             th = torch.sqrt((a + da) ** 2 + (b + db) ** 2)
-            if name == "buie":
-                dens += sunshape_ops.buie_profile(th, csr)
-            elif name == "pillbox":
-                dens += (th <= radius).to(th.dtype)
-            else:
-                dens += torch.exp(-0.5 * th * th / (sigma * sigma))
+            dens += sunshape_ops.radial_profile(sunshape, th, sigma=sigma, radius=radius, csr=csr)
     if spread > 0:
         # Separable Gaussian blur = convolution with the slope-error scatter.
         k = int(math.ceil(4.5 * spread / _ANG_STEP))
@@ -229,7 +168,7 @@ def footprint_kernel(sun: SunSettings, mean_ray: torch.Tensor, distance: torch.T
     """
     dens, half = angular_density(sun)
     r = mean_ray.to(torch.float64)
-    nrm, right, up = (t.to(torch.float64) for t in (target.normal, target.right, target.up))
+    nrm, right, up = (t.to(r) for t in (target.normal, target.right, target.up))
     # Any orthonormal frame of r works (the density is radially symmetric).
     helper = torch.where((r[:, 2].abs() < 0.9)[:, None], r.new_tensor([0.0, 0.0, 1.0]).expand_as(r),
                          r.new_tensor([1.0, 0.0, 0.0]).expand_as(r))
@@ -245,23 +184,67 @@ def footprint_kernel(sun: SunSettings, mean_ray: torch.Tensor, distance: torch.T
     minv = torch.linalg.inv(m)
     jac = minv.det().abs()  # d(angle area) / d(target area)
     s = int(supersample)
-    off = (torch.arange(size, dtype=torch.float64) - size // 2)
-    sub = (torch.arange(s, dtype=torch.float64) + 0.5) / s - 0.5
+    dev = r.device
+    off = (torch.arange(size, dtype=torch.float64, device=dev) - size // 2)
+    sub = (torch.arange(s, dtype=torch.float64, device=dev) + 0.5) / s - 0.5
     cx = (off[:, None] + sub[None, :]).reshape(-1) * pixel  # [size*s]
     # angle = minv @ (dx, dy) with dx = cx along columns and dy = -cx along rows (row grows downwards);
     # built by broadcasting in float32 (no [B, P, 2] float64 intermediates: this is the costly part).
     mi = (minv / half).to(torch.float32)  # grid_sample coordinates: -1/+1 = first/last cell centre
     c32 = cx.to(torch.float32)
-    grid = torch.empty(mi.shape[0], c32.numel(), c32.numel(), 2, dtype=torch.float32)
+    grid = torch.empty(mi.shape[0], c32.numel(), c32.numel(), 2, dtype=torch.float32, device=dev)
     # grid_sample: x indexes the last (column) axis = b (angle 1), y the row axis = a (angle 0).
     for k, row in ((0, 1), (1, 0)):
         grid[..., k] = (mi[:, row, 0, None, None] * c32[None, None, :] - mi[:, row, 1, None, None] * c32[None, :, None])
-    vals = F.grid_sample(dens.to(torch.float32).expand(grid.shape[0], 1, -1, -1), grid, mode="bilinear",
+    vals = F.grid_sample(dens.to(dev, torch.float32).expand(grid.shape[0], 1, -1, -1), grid, mode="bilinear",
                          padding_mode="zeros", align_corners=True)[:, 0].to(torch.float64)
     vals = vals.reshape(-1, size, s, size, s).mean((2, 4))
     return vals * jac[:, None, None] * pixel * pixel
 
 
+@torch.no_grad()
+def _mean_kernel(w, refl, dist, target, sun, pixel, size, supersample=4):
+    # The kernel of the power-weighted mean ray and slant range; it depends on the surface only to second
+    # order, so it is built without autograd (and callers may cache it across optimiser steps).
+    wsum = w.sum(-1).clamp_min(1e-12)
+    mean_ray = (w.unsqueeze(-1) * refl).sum(1) / wsum.unsqueeze(-1)
+    mean_ray = mean_ray / mean_ray.norm(dim=-1, keepdim=True)
+    mdist = (w * dist).sum(1) / wsum
+    return footprint_kernel(sun, mean_ray, mdist, target, pixel, size, supersample)
+
+
+def mean_footprint_kernel(points: torch.Tensor, normals: torch.Tensor, areas: torch.Tensor,
+                          sun_direction: torch.Tensor, target: PlanarTarget, sun: SunSettings, pixel: float,
+                          size: int, supersample: int = 4) -> torch.Tensor:
+    """The kernel :func:`render_centered` builds when none is passed (for callers that cache it).
+
+    Parameters
+    ----------
+    points, normals : torch.Tensor, [B, N, 3]
+        World ENU [m] / unit normals of the mirror samples.
+    areas : torch.Tensor, [B, N]
+        [m^2].
+    sun_direction : torch.Tensor, [B, 3]
+    target : PlanarTarget
+    sun : SunSettings
+    pixel : float
+        Pixel side [m] (window side / resolution).
+    size : int
+        Kernel side in pixels (``2 * resolution`` for :func:`render_centered`).
+    supersample : int
+        Sub-samples per pixel and axis.
+
+    Returns
+    -------
+    torch.Tensor, [B, size, size], float64
+        See :func:`footprint_kernel` (no autograd graph).
+    """
+    _, refl, dist = reflect_to_plane(points, normals, sun_direction, target)
+    w = areas * (normals * sun_direction.to(points).unsqueeze(1)).sum(-1).clamp_min(0.0)
+    return _mean_kernel(w, refl, dist, target, sun, pixel, size, supersample)
+
+
+@dataclass
 class RenderResult:
     """Output of :func:`render_centered`.
 
@@ -277,13 +260,15 @@ class RenderResult:
         Soft miss penalty: mean squared overshoot [m^2] of hits beyond the window, power-weighted.
     """
 
-    def __init__(self, image, center, power, miss):
-        self.image, self.center, self.power, self.miss = image, center, power, miss
+    image: torch.Tensor
+    center: torch.Tensor
+    power: torch.Tensor
+    miss: torch.Tensor
 
 
 def render_centered(points: torch.Tensor, normals: torch.Tensor, areas: torch.Tensor,
                     sun_direction: torch.Tensor, target: PlanarTarget, sun: SunSettings, *,
-                    size_m: float = 6.0, resolution: int = 64, center: torch.Tensor | None = None,
+                    size_m: float = CENTERED_WINDOW_M, resolution: int = 64, center: torch.Tensor | None = None,
                     kernel: torch.Tensor | None = None) -> RenderResult:
     """Flux of B mirror poses in a square window (centred on the predicted centroid by default).
 
@@ -330,11 +315,7 @@ def render_centered(points: torch.Tensor, normals: torch.Tensor, areas: torch.Te
     py = (y1 - local[..., 1]) / pix - 0.5
     img = splat_bilinear(px, py, w, big, big)  # [B, 2R, 2R] m^2 per pixel
     if kernel is None:
-        with torch.no_grad():
-            mean_ray = (w.unsqueeze(-1) * refl).sum(1) / wsum.unsqueeze(-1)
-            mean_ray = mean_ray / mean_ray.norm(dim=-1, keepdim=True)
-            mdist = (w * dist).sum(1) / wsum
-            kernel = footprint_kernel(sun, mean_ray, mdist, target, pix, big)
+        kernel = _mean_kernel(w, refl, dist, target, sun, pix, big)
     kern = kernel.to(img.dtype)
     n = 2 * big
     spec = torch.fft.rfft2(img, s=(n, n)) * torch.fft.rfft2(kern, s=(n, n))
@@ -346,3 +327,65 @@ def render_centered(points: torch.Tensor, normals: torch.Tensor, areas: torch.Te
     over = (local - center.unsqueeze(1)).abs() - size_m / 2
     miss = ((w * over.clamp_min(0.0).pow(2).sum(-1)).sum(1) / wsum).mean()
     return RenderResult(flux, center, float(sun.dni) * float(sun.reflectivity) * w.sum(-1), miss)
+
+
+def trace_conv(points, normals, areas, sun_direction, target: PlanarTarget, *, resolution=64,
+               sun: SunSettings | None = None, window=None, kernel: torch.Tensor | None = None,
+               dtype: torch.dtype = torch.float32) -> FluxImage:
+    """The conv integrator behind the :func:`heliotwin.scene.trace` interface (square windows only).
+
+    Parameters
+    ----------
+    points, normals : torch.Tensor, [B, N, 3] or [N, 3]
+        World ENU [m] / unit normals.
+    areas : torch.Tensor, [B, N] or [N]
+        [m^2].
+    sun_direction : torch.Tensor, [B, 3] or [3]
+        Unit, towards the sun.
+    target : PlanarTarget
+    resolution : int or (int, int)
+        Pixels per side (square, even).
+    sun : SunSettings, optional
+        Default ``SunSettings()``.
+    window : (x0, y0, width, height), optional
+        Square local window [m] (its centre is held fixed). Default: the PAINT-style window of
+        :data:`~heliotwin.io.images.CENTERED_WINDOW_M` centred on the predicted centroid.
+    kernel : torch.Tensor, [B, 2R, 2R], optional
+        Precomputed :func:`mean_footprint_kernel`.
+    dtype : torch.dtype
+        Ray precision of the splat (float32 by default, like the other integrators).
+
+    Returns
+    -------
+    FluxImage
+        ``method="conv"``; ``intercepted_power_w`` is the flux summed over the window.
+    """
+    rows, cols = (resolution, resolution) if isinstance(resolution, int) else tuple(resolution)
+    if rows != cols:
+        raise HeliotwinError(f"the conv integrator renders square windows only, got resolution {rows}x{cols}")
+    sun = sun or SunSettings()
+    pts, nrm = torch.as_tensor(points), torch.as_tensor(normals)
+    pts = pts.unsqueeze(0) if pts.dim() == 2 else pts
+    nrm = nrm.unsqueeze(0) if nrm.dim() == 2 else nrm
+    ar = torch.as_tensor(areas)
+    ar = ar.unsqueeze(0) if ar.dim() == 1 else ar
+    sdir = torch.as_tensor(sun_direction).reshape(-1, 3)
+    b = max(pts.shape[0], nrm.shape[0], ar.shape[0], sdir.shape[0])
+    p = pts.shape[1]
+    pts, nrm = pts.to(dtype).expand(b, p, 3), nrm.to(dtype).expand(b, p, 3)
+    ar, sdir = ar.to(dtype).expand(b, p), sdir.to(dtype).expand(b, 3)
+    center, size_m = None, CENTERED_WINDOW_M
+    if window is not None:
+        x0, y0, w, h = (float(v) for v in window)
+        if abs(w - h) > 1e-9 * max(w, h):
+            raise HeliotwinError(f"the conv integrator renders square windows only, got {w} m x {h} m")
+        size_m = w
+        center = pts.new_tensor([x0 + w / 2, y0 + h / 2]).expand(b, 2)
+    res = render_centered(pts, nrm, ar, sdir, target, sun, size_m=size_m, resolution=rows, center=center,
+                          kernel=kernel)
+    c = res.center.detach().to(torch.float64)
+    half = size_m / 2
+    extent = torch.stack((c[:, 0] - half, c[:, 0] + half, c[:, 1] - half, c[:, 1] + half), -1)
+    pixel_area = (size_m / rows) ** 2
+    return FluxImage(res.image, target, extent, res.power.to(torch.float64),
+                     res.image.detach().to(torch.float64).sum((-1, -2)) * pixel_area, "conv")

@@ -1,4 +1,4 @@
-"""Analytic (noise-free) flux integrator: one Gaussian footprint per mirror point.
+"""Gaussian-footprint (noise-free) flux integrator ("gaussian"): one Gaussian footprint per mirror point.
 
 Every mirror point's reflected sun cone (sunshape plus slope-error scatter, Gaussian-equivalent with
 per-axis variance ``sigma^2``, see :func:`heliotwin.sunshape.second_moment`) is mapped onto the target by
@@ -51,7 +51,7 @@ from .flux import FluxImage, target_extent
 from .montecarlo import _resolution, planar_coefficients, prepare_mirror
 from .splat import splat_bilinear
 
-__all__ = ["trace_analytic", "gaussian_footprints"]
+__all__ = ["trace_gaussian", "gaussian_footprints"]
 
 _EPS = 1e-9
 
@@ -203,7 +203,17 @@ def _max_sigma(cov: torch.Tensor, ok: torch.Tensor) -> float:
         return float(lam.max().clamp(min=0).sqrt()) if lam.numel() else 0.0
 
 
-def trace_analytic(points, normals, areas, sun_direction, target: PlanarTarget | CylinderTarget, *,
+def _target_bounds(target, extent: torch.Tensor, rows: int, cols: int, dtype) -> torch.Tensor:
+    """Pixel-index range [B, 4] (col_min, col_max, row_min, row_max) of a window's pixel centres on the target."""
+    full = target_extent(target, extent.shape[0]).to(extent)
+    pw = (extent[:, 1] - extent[:, 0]) / cols
+    ph = (extent[:, 3] - extent[:, 2]) / rows
+    return torch.stack(((full[:, 0] - extent[:, 0]) / pw - 0.5, (full[:, 1] - extent[:, 0]) / pw - 0.5,
+                        (extent[:, 3] - full[:, 3]) / ph - 0.5, (extent[:, 3] - full[:, 2]) / ph - 0.5),
+                       -1).to(dtype)
+
+
+def trace_gaussian(points, normals, areas, sun_direction, target: PlanarTarget | CylinderTarget, *,
                    resolution=(256, 256), sun: SunSettings | None = None, window=None, clip_to_target: bool = True,
                    mode: str = "auto", n_sigma: float = 3.5, max_half_window: int = 64, smoothing: float = 1.0 / 6.0,
                    convolve_tolerance: float = 0.1, max_pixels_per_chunk: int = 2 ** 21,
@@ -251,7 +261,7 @@ def trace_analytic(points, normals, areas, sun_direction, target: PlanarTarget |
     Returns
     -------
     FluxImage
-        ``method="analytic"``.
+        ``method="gaussian"``.
     """
     sun = sun or SunSettings()
     rows, cols = _resolution(resolution)
@@ -288,15 +298,7 @@ def trace_analytic(points, normals, areas, sun_direction, target: PlanarTarget |
             spread = torch.linalg.matrix_norm(cov0 - cov_mean.unsqueeze(1)) / tr
             spread = torch.where(ok & (weights > 0), spread, torch.zeros_like(spread))
             mode = "convolve" if float(spread.max()) <= convolve_tolerance else "window"
-    bounds = None
-    if window is not None and clip_to_target:
-        full = target_extent(target, b).to(extent)
-        pw = (extent[:, 1] - extent[:, 0]) / cols
-        ph = (extent[:, 3] - extent[:, 2]) / rows
-        # pixel centres inside the target
-        bounds = torch.stack(((full[:, 0] - extent[:, 0]) / pw - 0.5, (full[:, 1] - extent[:, 0]) / pw - 0.5,
-                              (extent[:, 3] - full[:, 3]) / ph - 0.5, (extent[:, 3] - full[:, 2]) / ph - 0.5),
-                             -1).to(dtype)
+    bounds = _target_bounds(target, extent, rows, cols, dtype) if window is not None and clip_to_target else None
     if mode == "window":
         cov = cov0 + float(smoothing) * eye
         half = int(min(int(max_half_window), max(1, math.ceil(float(n_sigma) * _max_sigma(cov, ok)))))
@@ -316,4 +318,4 @@ def trace_analytic(points, normals, areas, sun_direction, target: PlanarTarget |
             iny = (r >= bounds[:, 2:3]) & (r <= bounds[:, 3:4])
             bitmap = bitmap * (iny.unsqueeze(-1) & inx.unsqueeze(-2)).to(dtype)
     intercepted = bitmap.sum((-2, -1)) * pixel_area.to(bitmap)
-    return FluxImage(bitmap, target, extent, mirror.power.to(torch.float64).sum(-1), intercepted, "analytic")
+    return FluxImage(bitmap, target, extent, mirror.power.to(torch.float64).sum(-1), intercepted, "gaussian")

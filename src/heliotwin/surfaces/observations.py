@@ -1,0 +1,176 @@
+"""Observations of one heliostat for surface learning: poses + measured images, and which records train.
+
+:class:`Observations` is the data the learner sees (B images with their sun directions, mirror poses and
+targets). :func:`observations_from_records` builds them from calibration records (pose aimed at the
+measured focal spot, or from the motor steps; image from the one measured-image loader,
+:func:`heliotwin.io.images.load_measured_image`). :func:`split_record_ids` is the train/test split over
+plain record columns (id, time, image path), so it can be fed from any record table;
+:func:`split_records` applies it to record objects.
+
+Shapes: B images; R window pixels per side. Units: metres, radians.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from ..errors import HeliotwinError
+from ..field import kinematics as kin_ops
+from ..field.targets import PlanarTarget
+from ..io.images import load_measured_image
+
+__all__ = ["Observations", "observations_from_records", "split_record_ids", "split_records", "load_centered_image"]
+
+
+@dataclass
+class Observations:
+    """B images of one heliostat with their poses.
+
+    Attributes
+    ----------
+    sun : torch.Tensor, [B, 3], float64
+        Unit vectors towards the sun.
+    rotation : torch.Tensor, [B, 3, 3], float64
+        ``R_world_heliostat`` per image.
+    concentrator : torch.Tensor, [B, 3], float64
+        ENU [m].
+    targets : list of PlanarTarget, length B
+    images : torch.Tensor, [B, R, R], optional
+        Measured centred images (any scale; they are normalised to unit sum where compared).
+    ids : list of str
+        Names (record ids) for reports.
+    centers : torch.Tensor, [B, 2], optional
+        Fixed window centres (target-local [m]) for images taken with *known* kinematics, e.g. the aim
+        point: the spot's position in the window then carries information (a common tilt of all facets
+        becomes observable). None (PAINT's ``flux-centered`` images): each window is centred on its own
+        spot centroid.
+    """
+
+    sun: torch.Tensor
+    rotation: torch.Tensor
+    concentrator: torch.Tensor
+    targets: list
+    images: torch.Tensor | None = None
+    ids: list = field(default_factory=list)
+    centers: torch.Tensor | None = None
+
+    def __len__(self) -> int:
+        return int(self.sun.shape[0])
+
+    def to(self, device) -> "Observations":
+        """The same observations on ``device`` (the learner follows it; targets stay as they are)."""
+        mv = lambda t: None if t is None else t.to(device)  # noqa: E731
+        return Observations(mv(self.sun), mv(self.rotation), mv(self.concentrator), self.targets, mv(self.images),
+                            list(self.ids), mv(self.centers))
+
+    def subset(self, idx) -> "Observations":
+        idx = list(idx)
+        return Observations(self.sun[idx], self.rotation[idx], self.concentrator[idx], [self.targets[i] for i in idx],
+                            None if self.images is None else self.images[idx], [self.ids[i] for i in idx],
+                            None if self.centers is None else self.centers[idx])
+
+
+def load_centered_image(path, resolution: int = 64, background: float = 0.0) -> torch.Tensor:
+    """A PAINT ``-flux-centered.png`` as ``[R, R]`` float32 on the comparison grid (relative scale).
+
+    :func:`heliotwin.io.images.load_measured_image` with ``square=True``: 256x256 images (newer releases) are
+    box-averaged to 64x64 so that every image is compared on the same 9.4 cm pixels; ``background``
+    (fraction of the max) is subtracted and clipped at 0.
+    """
+    return load_measured_image(path, resolution, background=background, square=True)
+
+
+def _time_key(record_id: int, time) -> tuple:
+    # Records with a DateTime first (ISO strings sort chronologically), the rest by id.
+    return (0, str(time), record_id) if time else (1, "", record_id)
+
+
+def split_record_ids(record_ids, times, image_paths, train_records=None,
+                     train_first: int | None = None) -> tuple[list[int], list[int]]:
+    """Train/test split of the records that have centred images, over plain record columns.
+
+    Parameters
+    ----------
+    record_ids : sequence of int, length N
+    times : sequence of str or None, length N
+        ISO DateTime (UTC) per record, or None/"" where unknown.
+    image_paths : sequence of str or None, length N
+        Centred image per record (None/"": none; such records are in neither set).
+    train_records : iterable of int, optional
+        Explicit training ids (each must have a centred image); the rest are test.
+    train_first : int, optional
+        Otherwise the K (default 3) earliest by DateTime (records without one come after, by id).
+
+    Returns
+    -------
+    train, test : list of int
+        Indices into the columns; ``train`` in time order, ``test`` in input order.
+    """
+    ids = [int(r) for r in record_ids]
+    with_img = [i for i, p in enumerate(image_paths) if p]
+    if not with_img:
+        raise HeliotwinError("no records with a '-flux-centered.png' image for this heliostat")
+    key = {i: _time_key(ids[i], times[i]) for i in with_img}
+    if train_records:
+        wanted = {int(x) for x in train_records}
+        missing = sorted(wanted - {ids[i] for i in with_img})
+        if missing:
+            raise HeliotwinError(f"train record(s) {', '.join(map(str, missing))} have no centred image or do not "
+                                 f"exist; records with images: {', '.join(str(ids[i]) for i in with_img)}")
+        train = [i for i in with_img if ids[i] in wanted]
+    else:
+        k = 3 if train_first is None else int(train_first)
+        if k < 1:
+            raise HeliotwinError(f"--train-first must be >= 1, got {k}")
+        train = sorted(with_img, key=key.get)[:k]
+    test = [i for i in with_img if i not in train]
+    if not test:
+        raise HeliotwinError(f"no test images left: {len(with_img)} records have centred images, all used for training")
+    return sorted(train, key=key.get), test
+
+
+def split_records(records: list, train_records=None, train_first: int | None = None) -> tuple[list, list]:
+    """:func:`split_record_ids` applied to record objects (``record_id``, ``datetime``, ``flux_centered_png``).
+
+    Returns
+    -------
+    train, test : list of records
+    """
+    tr, te = split_record_ids([r.record_id for r in records], [r.datetime for r in records],
+                              [r.flux_centered_png for r in records], train_records, train_first)
+    return [records[i] for i in tr], [records[i] for i in te]
+
+
+def observations_from_records(plant, heliostat_index: int, records: list, resolution: int = 64,
+                              background: float = 0.0, alignment: str = "focal-spot") -> Observations:
+    """Poses and measured images of calibration records.
+
+    Each record needs ``record_id``, ``sun_azimuth``/``sun_elevation`` [deg, PAINT convention], ``target``
+    (a planar target's name), ``flux_centered_png`` and, per alignment, ``spot()`` (measured focal spot,
+    ENU [m]) or ``motor_steps`` [steps].
+
+    ``alignment="focal-spot"`` aims the heliostat at each record's measured focal spot (HeliOS, else UTIS);
+    ``"motor"`` uses the nominal kinematics at the recorded motor steps.
+    """
+    from ..sun import direction_from_paint_angles
+
+    kin = plant.field.kinematics.index(heliostat_index)
+    sun = direction_from_paint_angles(torch.tensor([r.sun_azimuth for r in records], dtype=torch.float64),
+                                      torch.tensor([r.sun_elevation for r in records], dtype=torch.float64))
+    if alignment == "focal-spot":
+        rot, conc = kin_ops.aimed_pose(kin, torch.stack([r.spot() for r in records]), sun)
+    elif alignment == "motor":
+        steps = torch.tensor([r.motor_steps for r in records], dtype=torch.float64).reshape(-1, 1, 2)
+        rot, conc = kin_ops.forward(kin, steps)
+        rot, conc = rot[:, 0], conc[:, 0]
+    else:
+        raise HeliotwinError(f"unknown alignment {alignment!r}; expected focal-spot or motor")
+    targets = []
+    for r in records:
+        t = plant.target(r.target)
+        if not isinstance(t, PlanarTarget):
+            raise HeliotwinError(f"record {r.record_id}: target {r.target!r} is not planar")
+        targets.append(t)
+    images = torch.stack([load_centered_image(r.flux_centered_png, resolution, background) for r in records])
+    return Observations(sun, rot, conc, targets, images, [str(r.record_id) for r in records])
