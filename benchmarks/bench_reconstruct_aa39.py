@@ -11,7 +11,7 @@ import json
 import os
 import sys
 
-from heliotwin.surfaces.cli import main as cli
+from heliotwin.cli import main as cli
 
 PAINT = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "paint")
 

@@ -82,7 +82,7 @@ def test_bad_input_is_reported_not_crashing(dataset, tmp_path):
 
 
 def test_cli_calibrate_aim_split_and_errors(paint_dir, tmp_path, capsys):
-    from heliotwin.calibrate.cli import main
+    from heliotwin.cli import main
 
     js, h5 = tmp_path / "r.json", tmp_path / "cal.h5"
     rc = main(["calibrate", "--paint", str(paint_dir), "--heliostats", "BH60,BG62,AA39", "--method", "lm",
@@ -103,7 +103,7 @@ def test_cli_calibrate_aim_split_and_errors(paint_dir, tmp_path, capsys):
     capsys.readouterr()
     assert main(["calibrate", "--paint", str(tmp_path / "nope"), "--train", "10"]) == 2
     err = capsys.readouterr().err
-    assert err.startswith("error:") and len(err.strip().splitlines()) == 1
+    assert err.startswith("heliotwin: error:") and len(err.strip().splitlines()) == 1
     assert main(["aim", "--scenario", str(h5), "--heliostat", "ZZ99", "--sun-azimuth", "0", "--sun-elevation", "30",
                  "--aim", "0,0,40"]) == 2
     assert main(["calibrate", "--paint", str(paint_dir), "--train", "10", "--validation", "10"]) == 2

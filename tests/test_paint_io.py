@@ -79,9 +79,10 @@ def test_real_download_counts(dataset):
     assert len(dataset.records) == 1704
     aa39 = dataset.records_of("AA39")
     assert len(aa39) == 18
-    assert sum(r.flux_png is not None for r in aa39) == 10
-    assert all(Path(r.flux_png).is_file() for r in aa39 if r.flux_png)
-    assert [r.record_id for r in aa39] == sorted(r.record_id for r in aa39)
+    assert sum(p is not None for p in aa39.flux_png) == 10
+    assert all(Path(p).is_file() for p in aa39.flux_png if p)
+    assert aa39.record_id.tolist() == sorted(aa39.record_id.tolist())
+    assert dataset.skipped == []  # every real record passes the record table's checks
     kin = dataset.plant.field.kinematics
     assert kin.num_heliostats == 30 and kin.position.dtype == torch.float64
     assert kin.clockwise.dtype == torch.bool and kin.linear.dtype == torch.bool
@@ -91,16 +92,20 @@ def test_real_download_counts(dataset):
 
 
 def test_real_records_sources_and_metadata(dataset):
-    sources = [frozenset(r.focal_spot) for r in dataset.records]
-    assert sources.count(frozenset({"HeliOS"})) > 0  # HeliOS-only records exist in the real data
-    assert sources.count(frozenset({"HeliOS", "UTIS"})) > 0
-    helios_only = next(r for r in dataset.records if set(r.focal_spot) == {"HeliOS"})
-    assert torch.equal(helios_only.spot("UTIS"), helios_only.focal_spot["HeliOS"])  # falls back
+    t = dataset.records
+    has = torch.isfinite(t.focal_spots).all(-1)  # [R, 2]: HeliOS, UTIS
+    assert int((has[:, 0] & ~has[:, 1]).sum()) > 0  # HeliOS-only records exist in the real data
+    assert int((has[:, 0] & has[:, 1]).sum()) > 0
+    utis = t.with_focal_spot("UTIS")
+    helios_only = has[:, 0] & ~has[:, 1]
+    assert torch.equal(utis.spot[helios_only], t.focal_spots[helios_only, 0])  # falls back to HeliOS
+    assert set(utis.source[i] for i in helios_only.nonzero().flatten().tolist()) == {"HeliOS"}
+    assert torch.equal(utis.spot[has[:, 1]], t.focal_spots[has[:, 1], 1])
     r = dataset.record(AA39_RECORD)
-    assert r.heliostat_id == "AA39" and r.flux_png and r.flux_centered_png
-    assert 0 < r.sun_elevation <= math.pi / 2
-    assert sum(r.datetime is not None for r in dataset.records) > 1600
-    assert sum(r.weather is not None for r in dataset.records) > 0
+    assert r.heliostat_ids[int(r.heliostat_index[0])] == "AA39" and r.flux_png[0] and r.flux_centered_png[0]
+    assert 0 < float(r.sun_elevation[0]) <= math.pi / 2
+    assert sum(d is not None for d in t.datetime) > 1600
+    assert int(torch.isfinite(t.weather).any(-1).sum()) > 0
 
 
 def test_real_data_has_both_kinematics_keys(paint_dir):
@@ -111,9 +116,12 @@ def test_real_data_has_both_kinematics_keys(paint_dir):
 
 def test_focal_spots_lie_on_their_target_planes(dataset):
     dist, outside = [], []
-    for r in dataset.records:
-        target = dataset.plant.target(r.target)
-        for spot in r.focal_spot.values():
+    t = dataset.records
+    for i, name in enumerate(t.target):
+        target = dataset.plant.target(name)
+        for spot in t.focal_spots[i]:
+            if not bool(torch.isfinite(spot).all()):
+                continue
             dist.append(float(target.distance_to_plane(spot)))
             xy = target.to_local(spot)
             outside.append(float((xy.abs() - xy.new_tensor([target.width / 2, target.height / 2])).max()))

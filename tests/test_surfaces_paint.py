@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from heliotwin.io.paint import load_paint
-from heliotwin.surfaces.cli import main
+from heliotwin.cli import main
 from heliotwin.surfaces.observations import load_centered_image, observations_from_records, split_records
 
 
@@ -17,16 +17,16 @@ def test_aa39_centred_records_split_and_orientation(paint_dir):
     ds = load_paint(paint_dir, heliostats=["AA39"])
     records = ds.records_of("AA39")
     assert len(records) == 18
-    with_img = [r for r in records if r.flux_centered_png]
+    with_img = records.select(with_centered_image=True)
     assert len(with_img) == 10
     train, test = split_records(records, train_first=3)
     # No DateTime for AA39 in the metadata: the earliest are by id.
-    assert [r.record_id for r in train] == [86520, 151375, 202558]
-    assert len(test) == 7 and not set(r.record_id for r in train) & set(r.record_id for r in test)
+    assert train.record_id.tolist() == [86520, 151375, 202558]
+    assert len(test) == 7 and not set(train.record_id.tolist()) & set(test.record_id.tolist())
     obs = observations_from_records(ds.plant, 0, train)
     assert obs.images.shape == (3, 64, 64)
     # Every centred image is centred on its own centroid (PAINT) -> within a pixel of the window centre.
-    img = load_centered_image(with_img[-1].flux_centered_png)  # a 256x256 one, box-averaged
+    img = load_centered_image(with_img.flux_centered_png[-1])  # a 256x256 one, box-averaged
     idx = torch.arange(64, dtype=torch.float64) + 0.5
     w = img.double() / img.sum()
     assert abs(float((w.sum(1) * idx).sum()) - 32) < 1.0 and abs(float((w.sum(0) * idx).sum()) - 32) < 1.0
@@ -49,7 +49,7 @@ def test_cli_bad_input_one_line_error_no_output(paint_dir, tmp_path, capsys, arg
                "--quiet", "--no-mc"])
     err = capsys.readouterr().err.strip()
     assert rc != 0
-    assert len(err.splitlines()) == 1 and needle in err and err.startswith("error:")
+    assert len(err.splitlines()) == 1 and needle in err and err.startswith("heliotwin: error:")
     assert not out_json.exists() and not out_h5.exists()
     assert list(tmp_path.iterdir()) == []
 
@@ -62,7 +62,7 @@ def test_cli_missing_scenario_file(tmp_path, capsys):
 
 
 def test_cli_module_entry_point_reports_error(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "heliotwin.surfaces.cli", "predict", "--scenario",
+    proc = subprocess.run([sys.executable, "-m", "heliotwin", "predict", "--scenario",
                            str(tmp_path / "missing.h5"), "--json", str(tmp_path / "o.json")],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode != 0 and len(proc.stderr.strip().splitlines()) == 1

@@ -5,7 +5,7 @@ For every calibration record, with the given (default: nominal) kinematics and i
 * pointing error [mrad]: angle between the model mirror normal at the recorded motor steps and the
   measured normal (bisector of the sun direction and the direction concentrator -> measured spot), per
   centroid source (HeliOS, UTIS) — :mod:`heliotwin.calibrate.metrics`, the metric ``calibrate`` reports;
-* focal-spot distance on the target [m]: predicted flux centroid (analytic integrator) vs measured spot,
+* focal-spot distance on the target [m]: predicted flux centroid (gaussian integrator) vs measured spot,
   in the target plane; where the predicted spot leaves the target the central reflected ray is used;
 * distance of the measured spot from its target plane [m] (a data-consistency check);
 * for records with a ``flux-centered`` PNG: normalised L1 (images scaled to sum 1, ``sum |a - b|``) and
@@ -25,12 +25,12 @@ from .field import kinematics as kin_ops
 from .field.plant import Plant, SunSettings
 from .field.targets import PlanarTarget
 from .geometry import angle_between
+from .io.images import CENTERED_WINDOW_M, load_measured_image
 from .io.paint import PaintDataset
 from .io.records import SOURCES, RecordTable
-from .raytrace.flux import cross_correlation, normalized_l1, read_png
+from .raytrace.flux import cross_correlation, normalized_l1
 from .scene import central_ray_spot, trace, world_surface
 
-CENTERED_WINDOW_M = 6.0
 
 
 def _median(xs):
@@ -117,7 +117,7 @@ def _validate_chunk(chunk: RecordTable, target, plant: Plant, model, sun, sample
                                              chunk.motor_steps, samples)
         # One heliostat per sample: its points' footprints differ by a few per cent, so one convolution
         # kernel per sample ("convolve" mode) is exact to second order and ~50x faster than per-point windows.
-        flux = trace(pts, nrm, area, s.to(pts), target, integrator="analytic", resolution=(resolution, resolution),
+        flux = trace(pts, nrm, area, s.to(pts), target, integrator="gaussian", resolution=(resolution, resolution),
                      sun=sun, mode="convolve")
         on_target = flux.intercepted_power_w > 0.5 * flux.total_power_w
         pred_local = flux.centroid_local().to(torch.float64)
@@ -166,7 +166,7 @@ def _compare_images(chunk: RecordTable, target, pts, nrm, area, s, pred_local, s
     by_res = defaultdict(list)
     measured = {}
     for i in have:
-        img = read_png(chunk.flux_centered_png[i])
+        img = load_measured_image(chunk.flux_centered_png[i])  # native size, relative scale
         measured[i] = img
         by_res[tuple(img.shape[-2:])].append(i)
     for res, idx in by_res.items():
@@ -174,7 +174,7 @@ def _compare_images(chunk: RecordTable, target, pts, nrm, area, s, pred_local, s
         half = CENTERED_WINDOW_M / 2
         size = torch.full((len(idx), 2), CENTERED_WINDOW_M, dtype=torch.float64)
         window = torch.cat((pred_local[sel] - half, size), -1)
-        pred = trace(pts[sel], nrm[sel], area[sel], s[sel].to(pts), target, integrator="analytic", resolution=res,
+        pred = trace(pts[sel], nrm[sel], area[sel], s[sel].to(pts), target, integrator="gaussian", resolution=res,
                      sun=sun, window=window, mode="convolve", clip_to_target=False)
         for j, i in enumerate(idx):
             m = measured[i].to(torch.float64)

@@ -143,7 +143,7 @@ def cmd_validate(args) -> int:
                               with_images=not args.no_images, progress=not args.quiet)
     report["overall"]["seconds"] = time.perf_counter() - t0
     report["settings"] = {"paint": os.path.abspath(args.paint), **_describe(sc),
-                          "integrator": "analytic", "resolution": args.resolution,
+                          "integrator": "gaussian", "resolution": args.resolution,
                           "samples_per_facet": args.samples ** 2,
                           "sunshape": ds.plant.sun.sunshape, "slope_error_mrad": ds.plant.sun.slope_error * 1e3}
     write_json(args.json, report)
@@ -185,7 +185,7 @@ def register(sub) -> None:
                                    "the receiver; writes flux PNGs, a field plot and summary.json.")
     p.add_argument("--out", default="heliotwin-demo", help="output folder (default: %(default)s)")
     p.add_argument("--heliostats", type=positive_int, default=48, help="number of heliostats (default: %(default)s)")
-    p.add_argument("--integrator", choices=("mc", "analytic"), default="mc")
+    p.add_argument("--integrator", choices=("mc", "gaussian"), default="mc")
     p.add_argument("--rays-per-point", type=positive_int, default=64)
     p.add_argument("--resolution", type=positive_int, default=256)
     p.add_argument("--time", default="2023-03-20T11:30:00Z", help="UTC time of the sun position (default: %(default)s)")
@@ -213,7 +213,7 @@ def register(sub) -> None:
     p.add_argument("--scenario", help="trace this scenario's plant (default: the PAINT folder's nominal plant)")
     p.add_argument("--heliostat", required=True)
     p.add_argument("--record", required=True, type=int)
-    p.add_argument("--integrator", choices=("mc", "analytic"), default="mc")
+    p.add_argument("--integrator", choices=("mc", "gaussian"), default="mc")
     p.add_argument("--rays-per-point", type=positive_int, default=100)
     p.add_argument("--resolution", type=positive_int, default=256)
     p.add_argument("--samples", type=positive_int, default=50, help="surface samples per facet and direction")

@@ -22,7 +22,8 @@ __all__ = ["register"]
 
 
 def cmd_reconstruct(args) -> int:
-    from ..surfaces.reconstruct import reconstruct_paint
+    from ..io.scenario import load_scenario
+    from ..surfaces.study import reconstruct_paint
 
     _set_threads(args.threads)
     check_output_folder(args.json, "--json")
@@ -34,16 +35,17 @@ def cmd_reconstruct(args) -> int:
         from ..io.deflectometry import read_deflectometry
 
         read_deflectometry(args.deflectometry)  # fail fast (one-line error naming the file) before training
+    previous = load_scenario(args.scenario) if args.scenario else None
     slope = None if args.slope_error == "auto" else float(args.slope_error) * 1e-3
     report, model, ds, extras = reconstruct_paint(
         args.paint, args.heliostat, train_records=train_records, train_first=args.train_first,
         settings=_train_settings(args), slope_error=slope, background=args.background, alignment=args.alignment,
         evaluate_mc=not args.no_mc, progress=not args.quiet, deflectometry=args.deflectometry,
-        start_from_deflectometry=args.start_from_deflectometry)
+        start_from_deflectometry=args.start_from_deflectometry, plant=previous.plant if previous else None)
     learned = model.surfaces()
     report["plots"] = _plot_reconstruction(args, report, model, learned, extras)
     if args.output:
-        _save_learned(args.output, args.heliostat, report, model, learned, ds.plant, extras)
+        _save_learned(args, report, model, learned, previous, extras)
         report["output"] = os.fspath(args.output)
     write_json(args.json, report)
     if not args.quiet:
@@ -72,7 +74,7 @@ def _train_records(args) -> list[int] | None:
 
 def _train_settings(args):
     from ..surfaces.learning import parse_grid
-    from ..surfaces.reconstruct import TrainSettings
+    from ..surfaces.training import TrainSettings
 
     return TrainSettings(control_points=parse_grid(args.control_points), degree=(args.degree, args.degree),
                          integrator=args.integrator, loss=args.loss, steps=args.steps)
@@ -92,13 +94,16 @@ def _plot_reconstruction(args, report, model, learned, extras) -> dict:
     return plots
 
 
-def _save_learned(path, heliostat, report, model, learned, plant, extras) -> None:
-    from ..surfaces.store import LearnedHeliostat, save_learned
+def _save_learned(args, report, model, learned, previous, extras) -> None:
+    """plant″: the scenario's plant (or the PAINT folder's) with this heliostat's learned surface."""
+    from ..io.scenario import scenario_from_paint
+    from ..surfaces.state import save_learned_surface
 
-    save_learned(path, LearnedHeliostat(
-        heliostat, learned, model.displacement.detach(), extras["facets"], plant.field.kinematics.index(0),
-        plant.targets, (plant.site.latitude_deg, plant.site.longitude_deg, plant.site.altitude_m), extras["optics"],
-        {"train": report["train"], "settings": report["settings"], "default_target": extras["test"].targets[0].name}))
+    plant = previous.plant if previous is not None else scenario_from_paint(args.paint)
+    save_learned_surface(args.output, plant, args.heliostat, learned, model.displacement.detach(), extras["optics"],
+                         previous=previous, train_records=[int(r["record"]) for r in report["train"]],
+                         target=extras["test"].targets[0].name, settings=report["settings"],
+                         source=os.path.abspath(args.paint))
 
 
 def _print_reconstruction(heliostat: str, report: dict) -> None:
@@ -113,29 +118,35 @@ def _print_reconstruction(heliostat: str, report: dict) -> None:
 
 
 def cmd_predict(args) -> int:
-    from ..field.facets import ideal_surfaces
+    from ..io.scenario import load_scenario
     from ..surfaces.predict import summarize, yearly_flux
-    from ..surfaces.store import load_learned
+    from ..surfaces.state import learned_surface
 
     _set_threads(args.threads)
     check_output_folder(args.json, "--json")
-    item = load_learned(args.scenario)
-    if args.heliostat and args.heliostat != item.heliostat_id:
-        raise HeliotwinError(f"{args.scenario}: holds heliostat {item.heliostat_id}, not {args.heliostat}")
-    name = args.target or item.settings.get("default_target") or sorted(item.targets)[0]
-    if name not in item.targets:
-        raise HeliotwinError(f"unknown target {name!r}; stored: {', '.join(sorted(item.targets))}")
-    cp = item.surfaces.control_points
-    ideal = ideal_surfaces(item.facets, (cp.shape[2], cp.shape[3]), (item.surfaces.degree_u, item.surfaces.degree_v))
-    series = yearly_flux(item.kinematics, item.targets[name], item.site, item.surfaces, ideal, item.sun,
+    sc = load_scenario(args.scenario)
+    learned = sorted(sc.learned.get("surfaces") or {})
+    if args.heliostat is None:
+        if len(learned) != 1:
+            raise HeliotwinError(f"{args.scenario}: {len(learned)} learned surfaces ({', '.join(learned) or 'none'}); "
+                                 f"choose one with --heliostat")
+        args.heliostat = learned[0]
+    item = learned_surface(sc, args.heliostat)
+    plant = sc.plant
+    name = args.target or item["target"]
+    target = plant.target(name)
+    site = (plant.site.latitude_deg, plant.site.longitude_deg, plant.site.altitude_m)
+    kin = plant.field.kinematics.index([plant.field.index_of(args.heliostat)])
+    series = yearly_flux(kin, target, site, item["surfaces"], item["ideal"], item["optics"],
                          year=args.year, every=args.every, progress=not args.quiet)
-    out = {"heliostat": item.heliostat_id, "target": name, "year": args.year, "every": args.every,
+    optics = item["optics"]
+    out = {"heliostat": args.heliostat, "target": name, "year": args.year, "every": args.every,
            "instants": len(series["time"]), "statistics": summarize(series), "series": series,
-           "optics": {"sunshape": item.sun.sunshape, "slope_error_rad": item.sun.slope_error}}
+           "optics": {"sunshape": optics.sunshape, "slope_error_rad": optics.slope_error}}
     write_json(args.json, out)
     if not args.quiet:
         st = out["statistics"]["l1_ideal_vs_learned"]
-        print(f"{item.heliostat_id}: {out['instants']} instants; L1(ideal, learned) median {st['median']:.3f}")
+        print(f"{args.heliostat}: {out['instants']} instants; L1(ideal, learned) median {st['median']:.3f}")
     return 0
 
 
@@ -149,7 +160,8 @@ def register(subparsers) -> None:
     g.add_argument("--train-first", type=int, help="train on the K earliest records with centred images (default 3)")
     p.add_argument("--control-points", default="7x7", help="control points per facet, e.g. 7x7")
     p.add_argument("--degree", type=int, default=3, help="NURBS degree (both directions)")
-    p.add_argument("--integrator", choices=("analytic", "mc"), default="analytic")
+    p.add_argument("--integrator", choices=("conv", "mc"), default="conv",
+                   help="renderer of the training images: exact-sunshape convolution or Monte Carlo (default conv)")
     p.add_argument("--loss", choices=("kl", "l1", "l2"), default="kl")
     p.add_argument("--steps", type=int, default=200, help="maximum optimiser steps")
     p.add_argument("--slope-error", default="auto", help="mirror slope error [mrad] or 'auto' (fit on training images)")
@@ -160,15 +172,17 @@ def register(subparsers) -> None:
                                           "compare the learned surface with it (mm, mrad)")
     p.add_argument("--start-from-deflectometry", action="store_true",
                    help="start the learning from the deflectometry surface instead of flat")
-    p.add_argument("-o", "--output", help="learned surface HDF5 to write")
+    p.add_argument("--scenario", help="start from this scenario's plant, e.g. a calibrated one (default: the PAINT "
+                                      "folder's nominal plant)")
+    p.add_argument("-o", "--output", help="write the plant with the learned surface as a scenario file (.h5)")
     p.add_argument("--json", required=True, help="report JSON to write")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: leave as is)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_reconstruct)
 
     q = subparsers.add_parser("predict", help="yearly flux prediction of a learned heliostat")
-    q.add_argument("--scenario", required=True, help="learned surface HDF5 (from reconstruct -o)")
-    q.add_argument("--heliostat", help="heliostat id (checked against the file)")
+    q.add_argument("--scenario", required=True, help="scenario with a learned surface (from reconstruct -o)")
+    q.add_argument("--heliostat", help="heliostat id (default: the scenario's only learned surface)")
     q.add_argument("--year", type=int, default=2023)
     q.add_argument("--every", default="30min", help="pandas frequency, e.g. 30min")
     q.add_argument("--target", help="target name (default: the training images' target)")

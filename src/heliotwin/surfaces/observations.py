@@ -17,8 +17,8 @@ import torch
 
 from ..errors import HeliotwinError
 from ..field import kinematics as kin_ops
-from ..field.targets import PlanarTarget
 from ..io.images import load_measured_image
+from ..io.records import RecordTable
 
 __all__ = ["Observations", "observations_from_records", "split_record_ids", "split_records", "load_centered_image"]
 
@@ -130,47 +130,39 @@ def split_record_ids(record_ids, times, image_paths, train_records=None,
     return sorted(train, key=key.get), test
 
 
-def split_records(records: list, train_records=None, train_first: int | None = None) -> tuple[list, list]:
-    """:func:`split_record_ids` applied to record objects (``record_id``, ``datetime``, ``flux_centered_png``).
+def split_records(records: RecordTable, train_records=None, train_first: int | None = None
+                  ) -> tuple[RecordTable, RecordTable]:
+    """:func:`split_record_ids` applied to one heliostat's rows of the record table.
 
     Returns
     -------
-    train, test : list of records
+    train, test : RecordTable
+        ``train`` in time order, ``test`` in table order.
     """
-    tr, te = split_record_ids([r.record_id for r in records], [r.datetime for r in records],
-                              [r.flux_centered_png for r in records], train_records, train_first)
-    return [records[i] for i in tr], [records[i] for i in te]
+    tr, te = split_record_ids(records.record_id.tolist(), records.datetime, records.flux_centered_png,
+                              train_records, train_first)
+    return records.subset(tr), records.subset(te)
 
 
-def observations_from_records(plant, heliostat_index: int, records: list, resolution: int = 64,
+def observations_from_records(plant, heliostat_index: int, records: RecordTable, resolution: int = 64,
                               background: float = 0.0, alignment: str = "focal-spot") -> Observations:
-    """Poses and measured images of calibration records.
+    """Poses and measured images of calibration records (rows of the record table, each with a centred image).
 
-    Each record needs ``record_id``, ``sun_azimuth``/``sun_elevation`` [deg, PAINT convention], ``target``
-    (a planar target's name), ``flux_centered_png`` and, per alignment, ``spot()`` (measured focal spot,
-    ENU [m]) or ``motor_steps`` [steps].
-
-    ``alignment="focal-spot"`` aims the heliostat at each record's measured focal spot (HeliOS, else UTIS);
-    ``"motor"`` uses the nominal kinematics at the recorded motor steps.
+    ``alignment="focal-spot"`` aims the heliostat at each record's measured focal spot (``records.spot``:
+    HeliOS, else UTIS); ``"motor"`` uses the plant's kinematics at the recorded motor steps.
     """
-    from ..sun import direction_from_paint_angles
-
     kin = plant.field.kinematics.index(heliostat_index)
-    sun = direction_from_paint_angles(torch.tensor([r.sun_azimuth for r in records], dtype=torch.float64),
-                                      torch.tensor([r.sun_elevation for r in records], dtype=torch.float64))
+    sun = records.sun
     if alignment == "focal-spot":
-        rot, conc = kin_ops.aimed_pose(kin, torch.stack([r.spot() for r in records]), sun)
+        rot, conc = kin_ops.aimed_pose(kin, records.spot, sun)
     elif alignment == "motor":
-        steps = torch.tensor([r.motor_steps for r in records], dtype=torch.float64).reshape(-1, 1, 2)
-        rot, conc = kin_ops.forward(kin, steps)
+        rot, conc = kin_ops.forward(kin, records.motor_steps.reshape(-1, 1, 2))
         rot, conc = rot[:, 0], conc[:, 0]
     else:
         raise HeliotwinError(f"unknown alignment {alignment!r}; expected focal-spot or motor")
-    targets = []
-    for r in records:
-        t = plant.target(r.target)
-        if not isinstance(t, PlanarTarget):
-            raise HeliotwinError(f"record {r.record_id}: target {r.target!r} is not planar")
-        targets.append(t)
-    images = torch.stack([load_centered_image(r.flux_centered_png, resolution, background) for r in records])
-    return Observations(sun, rot, conc, targets, images, [str(r.record_id) for r in records])
+    # The record table holds planar-target records only.
+    targets = [plant.target(name) for name in records.target]
+    if any(p is None for p in records.flux_centered_png):
+        raise HeliotwinError("every record needs a '-flux-centered.png' image")
+    images = torch.stack([load_centered_image(p, resolution, background) for p in records.flux_centered_png])
+    return Observations(sun, rot, conc, targets, images, [str(r) for r in records.record_id.tolist()])

@@ -44,6 +44,41 @@ def surface_state(displacement: torch.Tensor, optics: SunSettings, *, train_reco
             "target": str(target), "settings": json.dumps(settings, allow_nan=False)}
 
 
+def save_learned_surface(path, plant: Plant, heliostat_id: str, surfaces: Surfaces, displacement: torch.Tensor,
+                         optics: SunSettings, *, previous=None, train_records=(), target: str = "",
+                         settings: dict | None = None, source: str = ""):
+    """Write the plant with one heliostat's learned surface as a scenario (plant″).
+
+    Parameters
+    ----------
+    path : str or Path
+    plant : Plant
+        The whole plant the step started from (a scenario's or the PAINT folder's).
+    heliostat_id : str
+    surfaces : Surfaces
+        The learned surface, ``control_points`` [1, F, nu, nv, 3] [m], heliostat frame.
+    displacement : torch.Tensor, [1, F, nu, nv] or [F, nu, nv]
+        Learned offsets along the facet normals [m].
+    optics : SunSettings
+        Optics chosen for (and used in) the fit.
+    previous : heliotwin.io.scenario.Scenario, optional
+        The scenario ``plant`` came from (learned state and provenance kept).
+    train_records, target, settings, source
+        Provenance: training record ids, their target, the fit settings, the PAINT folder.
+    """
+    from ..field.update import with_surfaces
+    from ..io.scenario import provenance_entry, save_step
+
+    learned = dict(previous.learned) if previous is not None else {}
+    entries = dict(learned.get(KEY) or {})
+    entries[heliostat_id] = surface_state(displacement.reshape(displacement.shape[-3:]), optics,
+                                          train_records=train_records, target=target, settings=settings or {})
+    learned[KEY] = entries
+    step = provenance_entry("reconstruct", heliostat=heliostat_id, source=str(source),
+                            records=[int(r) for r in train_records], settings=settings or {})
+    return save_step(path, with_surfaces(plant, [heliostat_id], surfaces), previous, learned=learned, step=step)
+
+
 def learned_surface(scenario, heliostat_id: str) -> dict:
     """One heliostat's learned surface from a scenario, with its ideal counterpart on the same net.
 

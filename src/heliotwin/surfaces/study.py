@@ -146,8 +146,12 @@ def reconstruct_paint(paint_dir, heliostat_id: str, *, train_records=None, train
                       settings: TrainSettings | None = None, sun: SunSettings | None = None,
                       slope_error: float | None = None, background: float = 0.0, alignment: str = "focal-spot",
                       evaluate_mc: bool = True, progress: bool = True, deflectometry=None,
-                      start_from_deflectometry: bool = False) -> tuple[dict, LearnableSurface, object, dict]:
+                      start_from_deflectometry: bool = False, plant=None
+                      ) -> tuple[dict, LearnableSurface, object, dict]:
     """Learn a heliostat's surface from its earliest centred images; evaluate on the others.
+
+    ``plant`` (e.g. a calibrated scenario's) replaces the PAINT folder's nominal plant: its kinematics pose
+    the heliostat (``alignment="motor"`` then uses the calibrated kinematics at the recorded motor steps).
 
     ``deflectometry`` (a PAINT deflectometry HDF5 path): its NURBS fit is traced on the test images like the
     ideal and learned surfaces, and the learned surface is compared with it in mm and mrad (report key
@@ -168,6 +172,10 @@ def reconstruct_paint(paint_dir, heliostat_id: str, *, train_records=None, train
     t0 = time.perf_counter()
     s = settings or TrainSettings()
     ds = load_paint(paint_dir, heliostats=[heliostat_id])
+    if plant is not None:
+        from ..field.update import select_heliostats
+
+        ds = ds.on_plant(select_heliostats(plant, [heliostat_id]))
     plant = ds.plant
     train_recs, test_recs = split_records(ds.records_of(heliostat_id), train_records, train_first)
     train = observations_from_records(plant, 0, train_recs, s.resolution, background, alignment)
