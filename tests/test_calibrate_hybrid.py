@@ -2,17 +2,15 @@
 import math
 
 import torch
+from helpers.calibrate import jueliche_like, simulate, with_weekly_times
 
-import test_calibrate_synthetic as syn
 from heliotwin.calibrate.hybrid import SECONDS_PER_YEAR, features, fit_hybrid_method
-from heliotwin.calibrate.methods import fit_spots
+from heliotwin.calibrate.inputs import fit_spots
 
 
 def _batch_with_times(n=24, seed=3):
-    kin = syn.jueliche_like(1)
-    b = syn.simulate(kin, n, seed, noise=1e-3)
-    b.time = torch.arange(n, dtype=torch.float64) * 86400.0 * 7 + 1.6e9
-    return kin, b
+    kin = jueliche_like(1)
+    return kin, with_weekly_times(simulate(kin, n, seed, noise=1e-3))
 
 
 def test_age_feature_is_clamped_to_the_training_range():

@@ -15,7 +15,8 @@ import torch
 from ..errors import HeliotwinError
 from ..io.paint import load_paint
 from . import metrics
-from .methods import MIN_TRAIN, get_method
+from .inputs import MIN_TRAIN
+from .methods import get_method
 from .model import Calibrated, nominal_model
 from ..io.records import RecordTable, normalise_source, prepare_records
 from .splits import SPLIT_TYPES, split_records

@@ -18,8 +18,12 @@ from __future__ import annotations
 import torch
 
 from ..field.plant import ACTUATOR_FIELDS, Kinematics
-from . import metrics
 from ..io.records import RecordTable
+from . import metrics
+from .inputs import MIN_TRAIN
+from .lm import fit_lm
+from .params import STONE8
+from .priors import LOOSE_SIGMA, field_prior
 
 #: (kind of test, threshold): relative deviation from the field median for lengths/increment, absolute
 #: [rad] for the initial angle.
@@ -60,10 +64,6 @@ def flag_values(kin: Kinematics, ids, medians: dict) -> dict:
 
 def _map_cost(kin: Kinematics, batch: RecordTable, fp) -> float:
     """Posterior cost (data misfit + field prior, in rad^2) of the best Stone/Jülich fit of ONE heliostat."""
-    from .lm import fit_lm
-    from .params import STONE8
-    from .priors import LOOSE_SIGMA
-
     _, info = fit_lm(kin, batch, names=STONE8, prior_sigma=LOOSE_SIGMA, prior_mean=fp[0].unsqueeze(0).clone(),
                      prior_sigma_vector=fp[1])
     return 2.0 * info["cost"]
@@ -95,18 +95,14 @@ def check_and_correct(kin: Kinematics, ids, field_kin: Kinematics, train: Record
     findings : dict of heliostat id -> dict
         ``flags`` (values), nominal training error before/after, ``corrected`` (bool), ``note``.
     """
-    from .lm import fit_lm
-    from .methods import MIN_TRAIN
-    from .params import STONE8
-    from .priors import LOOSE_SIGMA, field_prior
-
     findings: dict = {}
     if field_kin.num_heliostats < MIN_FIELD or len(train) == 0:
         return kin, findings
     with torch.no_grad():
         err = metrics.pointing_error(kin, train)
     counts = train.counts()
-    per_h = [float(err[train.heliostat_index == h].median()) if int(counts[h]) else float("nan") for h in range(len(ids))]
+    per_h = [float(err[train.heliostat_index == h].median()) if int(counts[h]) else float("nan")
+             for h in range(len(ids))]
     finite = [e for e in per_h if e == e]
     field_nominal = float(torch.tensor(finite).median()) if finite else float("nan")
     medians = field_medians(field_kin)
@@ -150,7 +146,8 @@ def check_and_correct(kin: Kinematics, ids, field_kin: Kinematics, train: Record
                     entry["note"] = f"suspicious actuator value(s) replaced by the field median ({why})"
                 else:
                     entry["corrected"] = False
-                    entry["note"] = f"actuator value(s) far from the field median but the records prefer them ({why}); kept"
+                    entry["note"] = (f"actuator value(s) far from the field median but the records prefer them "
+                                     f"({why}); kept")
             else:
                 entry["corrected"] = False
                 entry["note"] = "actuator value(s) far from the field median; too few training records to check"
