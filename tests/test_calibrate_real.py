@@ -45,16 +45,18 @@ def test_lm_improves_drastically_on_real_heliostats(dataset):
     assert any(f["field"] == "initial_stroke_length" for f in s["flags"]) and s["corrected"]
     assert report["heliostats"]["BF41"]["nominal_mean_test_mrad"] > 300
     assert report["heliostats"]["BF41"]["mean_test_mrad"] < 5
-    assert report["overall"]["median_test_mrad"] < 2.0
-    assert report["overall"]["seconds"] < 30
+    assert report["overall"]["median_of_mean_test_mrad"] < 2.0
 
 
-def test_gradient_runs_batched_and_fast(dataset):
+def test_gradient_runs_batched(dataset):
+    """All 26 chain deviations of 4 heliostats in one batched fit (its speed: benchmarks/bench_calibration.py)."""
     report, model, _ = run(dataset, method="gradient", heliostats=["AK32", "BH60", "BG62", "BH35"], train=30, test=30)
     ov = report["overall"]
-    assert ov["median_test_mrad"] < 2.0 and ov["nominal_median_test_mrad"] > 15
-    assert ov["fit_seconds"] < 30
+    assert ov["median_of_mean_test_mrad"] < 2.0 and ov["nominal_median_of_mean_test_mrad"] > 15
     assert len(model.names) == 26
+    # early stopping picked a state per heliostat, and the report's keys say which statistic they are
+    assert len(model.extras["best_iteration"]) == 4
+    assert ov["median_of_median_test_mrad"] is not None and "median_test_mrad" not in ov
 
 
 def test_bad_input_is_reported_not_crashing(dataset, tmp_path):
@@ -96,7 +98,8 @@ def test_cli_calibrate_aim_split_and_errors(paint_dir, tmp_path, capsys):
                "--aim", "0,-3.24,40"])
     assert rc == 0
     rc = main(["split", "--paint", str(paint_dir), "--type", "isolation", "--train", "20", "--validation", "4",
-               "--test", "10", "--heliostats", "BH60", "--csv", str(tmp_path / "s.csv"), "--json", str(tmp_path / "s.json")])
+               "--test", "10", "--heliostats", "BH60", "--csv", str(tmp_path / "s.csv"),
+               "--json", str(tmp_path / "s.json")])
     assert rc == 0
     lines = (tmp_path / "s.csv").read_text().splitlines()
     assert lines[0] == "Id,HeliostatId,Split" and len(lines) == 31
