@@ -111,15 +111,17 @@ def _normalised_steps(kin, steps: torch.Tensor) -> torch.Tensor:
 
 
 def fit_mlp_method(nominal, train, validation, *, seed=0, progress=False, hidden=32, depth=2, every="6h",
-                   year=2023, pretrain_steps=500, finetune_steps=300, lr=1e-2, site=None) -> MLPModel:
+                   year=2023, pretrain_steps=500, finetune_steps=300, lr=1e-2, site=None,
+                   rigid_options: dict | None = None) -> MLPModel:
     """``mlp``: per-heliostat networks from (sun, aim) to motor steps (see module docstring).
 
-    The networks follow the nominal kinematics' dtype and device; every random draw takes ``seed``.
+    ``rigid_options`` go to the ``gradient`` fit of the rigid body (pretraining data and fallback). The
+    networks follow the nominal kinematics' dtype and device; every random draw takes ``seed``.
     """
     from ..site import Site
 
     h, like = nominal.num_heliostats, nominal.position
-    rigid = fit_gradient_method(nominal, train, validation, seed=seed, progress=progress)
+    rigid = fit_gradient_method(nominal, train, validation, seed=seed, progress=progress, **(rigid_options or {}))
     ok = rigid.ok & trainable(train)
     gen = torch.Generator().manual_seed(int(seed))
     reference = train.plane_center[0] if len(train) else like.new_zeros(3)
