@@ -75,34 +75,59 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
     names = check_names(names)
     h, p = nominal.num_heliostats, len(names)
     scale = units(names)  # optimise in natural units (mrad, mm, 0.1 %) for a well-scaled problem
-    sig = priors.STONE8_SIGMA if prior_sigma is None else prior_sigma
-    sig_vec = torch.tensor([sig.get(k, float("inf")) if sig.get(k) is not None else float("inf") for k in kinds(names)],
-                           dtype=torch.float64)
-    if prior_sigma_vector is not None:  # per-parameter sigma (e.g. a field prior), overrides the kinds
-        sig_vec = prior_sigma_vector.detach().double().clone()
-    # MAP: |r|^2 / noise^2 + |delta / sigma|^2, written as residuals (r, noise * delta / sigma) so that the
-    # prior is weighed against the measurement noise (~1 mrad per record), not against 1 rad.
-    inv_sig = (noise / sig_vec) * scale  # prior residual per natural unit
+    sig_vec = _sigma_vector(names, prior_sigma, prior_sigma_vector)
     mean = torch.zeros(h, p, dtype=torch.float64) if prior_mean is None else prior_mean.detach().double()
-    hidx = batch.heliostat_index
-    kin_rec = nominal.index(hidx)
-    r_rows = len(batch)
-    has = torch.bincount(hidx, minlength=h) > 0
     # Heliostats without records keep zero deviations; exclude their parameters from the problem.
-    active = has.nonzero().flatten()
-    col_of = torch.full((h,), -1, dtype=torch.long)
-    col_of[active] = torch.arange(len(active))
+    active = (torch.bincount(batch.heliostat_index, minlength=h) > 0).nonzero().flatten()
     na = len(active)
-    if na == 0 or r_rows == 0:
+    if na == 0 or len(batch) == 0:
         return torch.zeros(h, p, dtype=torch.float64), {"nfev": 0, "status": 0, "message": "no records", "cost": 0.0}
-    prior_rows = (torch.isfinite(sig_vec) & (sig_vec > 0))
-    prior_cols = prior_rows.nonzero().flatten()
-    rows_idx = torch.arange(r_rows)
+    prior_cols = (torch.isfinite(sig_vec) & (sig_vec > 0)).nonzero().flatten()
 
     def unpack(x):
         full = torch.zeros(h, p, dtype=torch.float64)
         full[active] = torch.as_tensor(x, dtype=torch.float64).reshape(na, p) * scale
         return full
+
+    fun, jac = _cached(_stacked_problem(nominal, batch, names, unpack, active, scale, mean, sig_vec, prior_cols,
+                                        noise))
+    x0 = (mean[active] / scale).reshape(-1).numpy()
+    # MINPACK's LM needs at least as many residuals as unknowns; with the prior this always holds,
+    # without it a heliostat needs >= P/3 records (checked by the caller, padded here for safety).
+    method = "trf" if len(batch) * 3 + na * len(prior_cols) < na * p else "lm"
+    if loss != "linear":
+        method = "trf"  # MINPACK LM has no robust loss
+    sol = least_squares(fun, x0, jac=jac, method=method, max_nfev=max_nfev, x_scale=1.0, xtol=1e-12, ftol=1e-12,
+                        loss=loss, f_scale=f_scale, gtol=1e-12)
+    delta = unpack(sol.x)
+    return delta, {"nfev": int(sol.nfev), "status": int(sol.status), "message": str(sol.message),
+                   "cost": float(sol.cost), "method": method}
+
+
+def _sigma_vector(names, prior_sigma: dict | None, prior_sigma_vector: torch.Tensor | None) -> torch.Tensor:
+    """Prior sigma per parameter [P] (inf = no prior): the per-parameter vector if given, else per kind."""
+    if prior_sigma_vector is not None:  # per-parameter sigma (e.g. a field prior), overrides the kinds
+        return prior_sigma_vector.detach().double().clone()
+    sig = priors.STONE8_SIGMA if prior_sigma is None else prior_sigma
+    return torch.tensor([sig.get(k, float("inf")) if sig.get(k) is not None else float("inf") for k in kinds(names)],
+                        dtype=torch.float64)
+
+
+def _stacked_problem(nominal, batch, names, unpack, active, scale, mean, sig_vec, prior_cols, noise):
+    """``fun_and_jac(x) -> (residuals, Jacobian)`` (numpy) of the joint MAP problem of every active heliostat.
+
+    MAP: |r|^2 / noise^2 + |delta / sigma|^2, written as residuals (r, noise * delta / sigma) so that the
+    prior is weighed against the measurement noise (~1 mrad per record), not against 1 rad. ``x`` holds the
+    active heliostats' parameters in natural units, [na * P].
+    """
+    h, p, na = len(mean), len(names), len(active)
+    hidx = batch.heliostat_index
+    kin_rec = nominal.index(hidx)
+    r_rows = len(batch)
+    rows_idx = torch.arange(r_rows)
+    col_of = torch.full((h,), -1, dtype=torch.long)
+    col_of[active] = torch.arange(na)
+    inv_sig = (noise / sig_vec) * scale  # prior residual per natural unit
 
     def fun_and_jac(x):
         delta = unpack(x)
@@ -124,38 +149,21 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
             J = torch.cat([J, Jp.reshape(na * len(prior_cols), na * p)])
         return res.numpy(), J.numpy()
 
+    return fun_and_jac
+
+
+def _cached(fun_and_jac):
+    """``(fun, jac)`` for scipy from one function that computes both (each point evaluated once)."""
     cache = {}
 
-    def fun(x):
+    def get(x):
         key = x.tobytes()
         if key not in cache:
             cache.clear()
             cache[key] = fun_and_jac(x)
-        return cache[key][0]
+        return cache[key]
 
-    def jac(x):
-        key = x.tobytes()
-        if key not in cache:
-            cache.clear()
-            cache[key] = fun_and_jac(x)
-        return cache[key][1]
-
-    x0 = (mean[active] / scale).reshape(-1).numpy()
-    # MINPACK's LM needs at least as many residuals as unknowns; with the prior this always holds,
-    # without it a heliostat needs >= P/3 records (checked by the caller, padded here for safety).
-    m_needed = na * p
-    if r_rows * 3 + na * len(prior_cols) < m_needed:
-        method = "trf"
-    else:
-        method = "lm"
-    if loss != "linear":
-        method = "trf"  # MINPACK LM has no robust loss
-    sol = least_squares(fun, x0, jac=jac, method=method, max_nfev=max_nfev, x_scale=1.0, xtol=1e-12, ftol=1e-12,
-                        loss=loss, f_scale=f_scale,
-                        gtol=1e-12)
-    delta = unpack(sol.x)
-    return delta, {"nfev": int(sol.nfev), "status": int(sol.status), "message": str(sol.message),
-                   "cost": float(sol.cost), "method": method}
+    return (lambda x: get(x)[0]), (lambda x: get(x)[1])
 
 
 #: Robust loss of the Stone/Jülich LM fits (scipy ``least_squares`` loss, scale [rad] per residual).

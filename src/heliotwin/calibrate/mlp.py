@@ -70,7 +70,8 @@ def _simulate(rigid_model: Calibrated, train: RecordTable, site, every: str, yea
                                min_elevation_deg=8.0)
     sun = direction_from_paint_angles(az, el).to(train.spot)
     kin = rigid_model.kinematics
-    dev = train.spot.device  # draws on the CPU generator, then to the records' device
+    # Draws in float64 on the CPU generator (one seed, the same draws for any dtype/device), then moved.
+    dev = train.spot.device
     h = kin.num_heliostats
     rows = []
     for i in range(h):
