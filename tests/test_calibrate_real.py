@@ -49,8 +49,13 @@ def test_lm_improves_drastically_on_real_heliostats(dataset):
 
 
 def test_gradient_runs_batched(dataset):
-    """All 26 chain deviations of 4 heliostats in one batched fit (its speed: benchmarks/bench_calibration.py)."""
-    report, model, _ = run(dataset, method="gradient", heliostats=["AK32", "BH60", "BG62", "BH35"], train=30, test=30)
+    """All 26 chain deviations of 4 heliostats in one batched fit, early-stopped per heliostat.
+
+    10 LBFGS iterations instead of the default 25: every heliostat's best iteration here is <= 10, so the
+    model is the default one at under half the cost. The default run and its speed: benchmarks/bench_calibration.py.
+    """
+    report, model, _ = run(dataset, method="gradient", heliostats=["AK32", "BH60", "BG62", "BH35"], train=30, test=30,
+                           method_options={"iterations": 10})
     ov = report["overall"]
     assert ov["median_of_mean_test_mrad"] < 2.0 and ov["nominal_median_of_mean_test_mrad"] > 15
     assert len(model.names) == 26
