@@ -246,7 +246,7 @@ def _heliostat_report(run: Run, h: int, hid: str, per_h_seconds: float) -> dict:
     rep["mean_test_mrad"] = rep["test"]["mean_mrad"]
     rep["median_test_mrad"] = rep["test"]["median_mrad"]
     rep["nominal_mean_test_mrad"] = rep["nominal_test"]["mean_mrad"]
-    rep["seconds"] = per_h_seconds
+    rep["fit_seconds_share"] = per_h_seconds
     if model.names and ok:
         rep["parameters"] = {n: float(model.delta[h, j]) for j, n in enumerate(model.names)}
     if hid in run.findings:
@@ -257,7 +257,8 @@ def _heliostat_report(run: Run, h: int, hid: str, per_h_seconds: float) -> dict:
 
 
 def report_heliostats(run: Run) -> None:
-    """One entry per heliostat that ran (``fit_seconds`` shared equally: the fit is batched)."""
+    """One entry per heliostat that ran; ``fit_seconds_share`` = the run's ``fit_seconds`` / H (the fit is batched,
+    a heliostat has no time of its own; ``overall.seconds`` is the whole run's wall time)."""
     per_h_seconds = run.fit_seconds / max(1, len(run.run_ids))
     for h, hid in enumerate(run.run_ids):
         run.report["heliostats"][hid] = _heliostat_report(run, h, hid, per_h_seconds)

@@ -14,7 +14,8 @@ over heliostats of which per-heliostat statistic::
     heliostats.<HID>    status ("ok"/"skipped"), reason, split (sizes, dropped_no_time, coverage,
                         mean_train_test_distance_rad), train/validation/test/nominal_test
                         ({n, median_mrad, mean_mrad, max_mrad, median_miss_m}), mean_test_mrad,
-                        median_test_mrad, nominal_mean_test_mrad, seconds, parameters, suspicious
+                        median_test_mrad, nominal_mean_test_mrad, fit_seconds_share, parameters,
+                        suspicious, method_info
     skipped_records     [{record_id, heliostat_id, reason}]
     plots               file names of the figures written next to the JSON
 
