@@ -11,7 +11,8 @@ Usage::
     python benchmarks/bench_calibration.py [--paint ../shared/data/paint] [--json bench.json]
         [--methods lm,gradient,hybrid,mlp,images] [--skip-msc] [--threads 2]
 
-3. Speed: ``lm`` + ``gradient`` fit time over all heliostats (goal < 60 s on 2 cores), printed at the end.
+3. Speed: ``lm`` + ``gradient`` fit time over all heliostats (goal < 60 s on 2 cores), printed at the end;
+   the wall-clock figures live here, never in the tests.
 """
 from __future__ import annotations
 
@@ -27,8 +28,9 @@ DEFAULT_PAINT = Path(__file__).resolve().parents[2] / "shared" / "data" / "paint
 
 def main(argv=None) -> int:
     from heliotwin.calibrate.pipeline import RunConfig, run_calibration
-    from heliotwin.calibrate.report import plot_training_size, write_json
+    from heliotwin.calibrate.report import plot_training_size
     from heliotwin.io.paint import load_paint
+    from heliotwin.io.report import write_json
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--paint", default=str(DEFAULT_PAINT))
@@ -49,10 +51,10 @@ def main(argv=None) -> int:
         for n in (10, 30):
             rep, _, _ = run_calibration(replace(base, method=method, train=n), ds)
             ov = rep["overall"]
-            out["table"][f"{method}/N={n}"] = {"overall": ov,
-                                                "per_heliostat_mean_test_mrad": {h: r.get("mean_test_mrad") for h, r in rep["heliostats"].items()
-                                                                                if r.get("status") == "ok"}}
-            rows.append((method, n, ov["median_test_mrad"], ov["mean_test_mrad"], ov["nominal_median_test_mrad"],
+            per_h = {h: r.get("mean_test_mrad") for h, r in rep["heliostats"].items() if r.get("status") == "ok"}
+            out["table"][f"{method}/N={n}"] = {"overall": ov, "per_heliostat_mean_test_mrad": per_h}
+            rows.append((method, n, ov["median_of_mean_test_mrad"], ov["mean_of_mean_test_mrad"],
+                         ov["nominal_median_of_mean_test_mrad"],
                          ov["fit_seconds"], ov["n_heliostats"]))
             info = ov.get("method_info") or {}
             extra = ""
@@ -60,8 +62,9 @@ def main(argv=None) -> int:
                 extra = f", network kept for {info['heliostats_using_network']}/{ov['n_heliostats']} heliostats"
             if "image_records_train" in info:
                 extra = f", {info['image_records_train']} training records with images"
-            print(f"{method:9s} N={n:3d}: median {ov['median_test_mrad']:.3f} mrad  mean {ov['mean_test_mrad']:.3f}  "
-                  f"(nominal {ov['nominal_median_test_mrad']:.2f}), fit {ov['fit_seconds']:.1f} s, "
+            print(f"{method:9s} N={n:3d}: median {ov['median_of_mean_test_mrad']:.3f} mrad  "
+                  f"mean {ov['mean_of_mean_test_mrad']:.3f}  (nominal {ov['nominal_median_of_mean_test_mrad']:.2f}), "
+                  f"fit {ov['fit_seconds']:.1f} s, "
                   f"{ov['n_heliostats']} heliostats{extra}", flush=True)
     print("\n| method | N=10 median [mrad] | N=30 median [mrad] | N=10 mean | N=30 mean | fit s (N=10 / N=30) |")
     print("|---|---|---|---|---|---|")
@@ -82,8 +85,8 @@ def main(argv=None) -> int:
             for n in (10, 20, 40, 60, 100):
                 rep, _, _ = run_calibration(replace(base, method=method, train=n), ds)
                 ov = rep["overall"]
-                pts.append((n, ov["median_test_mrad"]))
-                print(f"size curve {method:9s} N={n:3d}: median {ov['median_test_mrad']:.3f} mrad "
+                pts.append((n, ov["median_of_mean_test_mrad"]))
+                print(f"size curve {method:9s} N={n:3d}: median {ov['median_of_mean_test_mrad']:.3f} mrad "
                       f"({ov['n_heliostats']} heliostats)", flush=True)
             curves[method] = pts
         out["msc"]["training_size"] = curves
@@ -95,11 +98,13 @@ def main(argv=None) -> int:
             per = {h: {"mean_test_mrad": r["mean_test_mrad"],
                        "mean_train_test_distance_rad": r["split"]["mean_train_test_distance_rad"]}
                    for h, r in rep["heliostats"].items() if r.get("status") == "ok"}
-            dist[split] = {"median_test_mrad": rep["overall"]["median_test_mrad"],
-                           "mean_train_test_distance_rad": rep["overall"]["mean_train_test_distance_rad"],
+            dist[split] = {"median_of_mean_test_mrad": rep["overall"]["median_of_mean_test_mrad"],
+                           "mean_of_mean_train_test_distance_rad":
+                               rep["overall"]["mean_of_mean_train_test_distance_rad"],
                            "heliostats": per}
-            print(f"distance {split:9s}: median test {rep['overall']['median_test_mrad']:.3f} mrad, "
-                  f"mean train-test distance {rep['overall']['mean_train_test_distance_rad']:.3f} rad", flush=True)
+            print(f"distance {split:9s}: median test {rep['overall']['median_of_mean_test_mrad']:.3f} mrad, "
+                  f"mean train-test distance {rep['overall']['mean_of_mean_train_test_distance_rad']:.3f} rad",
+                  flush=True)
         out["msc"]["distance"] = dist
     out["seconds"] = time.perf_counter() - t0
     write_json(args.json, out)

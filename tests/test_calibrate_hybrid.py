@@ -2,17 +2,17 @@
 import math
 
 import torch
+from helpers.calibrate import TRUE, jueliche_like, simulate, with_weekly_times
 
-import test_calibrate_synthetic as syn
 from heliotwin.calibrate.hybrid import SECONDS_PER_YEAR, features, fit_hybrid_method
-from heliotwin.calibrate.methods import fit_spots
+from heliotwin.calibrate.inputs import fit_spots
+from heliotwin.calibrate.lm import fit_lm_method
+from heliotwin.calibrate.params import STONE8, apply_deviations
 
 
 def _batch_with_times(n=24, seed=3):
-    kin = syn.jueliche_like(1)
-    b = syn.simulate(kin, n, seed, noise=1e-3)
-    b.time = torch.arange(n, dtype=torch.float64) * 86400.0 * 7 + 1.6e9
-    return kin, b
+    kin = jueliche_like(1)
+    return kin, with_weekly_times(simulate(kin, n, seed, noise=1e-3))
 
 
 def test_age_feature_is_clamped_to_the_training_range():
@@ -48,3 +48,26 @@ def test_fit_spots_prefers_utis_average_and_metric_source():
     assert fit_spots(b, "HeliOS").spot.equal(b.spot) and fit_spots(b, None) is b
     assert not math.isnan(float(u.spot.sum()))
     assert SECONDS_PER_YEAR > 0
+
+
+def _drifting(n, seed, drift):
+    """One heliostat whose axis-1 encoder offset drifts by ``drift`` [rad] over its ``n`` weekly records."""
+    kin = jueliche_like(1)
+    d = torch.tensor([TRUE[k] for k in STONE8], dtype=torch.float64).expand(n, 8).clone()
+    d[:, 0] += drift * torch.linspace(0, 1, n, dtype=torch.float64)
+    b = simulate(apply_deviations(kin.index(torch.zeros(n, dtype=torch.long)), d, STONE8), 1, seed)
+    b.heliostat_index = torch.zeros(n, dtype=torch.long)
+    b.heliostat_ids = ["S0"]
+    return kin, with_weekly_times(b)
+
+
+def test_hybrid_network_follows_a_drift_the_rigid_body_cannot():
+    kin, b = _drifting(40, 1, 6e-3)
+    tr, va, te = b.subset(torch.arange(30)), b.subset(torch.arange(30, 36)), b.subset(torch.arange(36, 40))
+    model = fit_hybrid_method(kin, tr, va, field_prior=False)
+    info = model.extras["per_heliostat"]["S0"]
+    assert info["uses_network"] is True and info["fallback_reason"] is None
+    assert info["hybrid_validation_mrad"] < 0.5 * info["rigid_validation_mrad"]
+    # later records (age clamped to the last training state): still better than the static rigid body
+    rigid = fit_lm_method(kin, tr, va, field_prior=False, bags=0)
+    assert float(model.pointing_error(te).mean()) < 0.6 * float(rigid.pointing_error(te).mean())

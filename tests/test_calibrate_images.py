@@ -1,5 +1,7 @@
 """``images`` method: a rotation invisible to the centroid (mirror about its own normal) learned from images."""
 import torch
+from helpers.calibrate import TARGET as CENTROID_TARGET
+from helpers.calibrate import TRUE, jueliche_like, simulate
 
 from heliotwin import scene
 from heliotwin.calibrate.images import IMAGE_PARAMETERS, fit_images_method
@@ -8,8 +10,6 @@ from heliotwin.field.facets import ideal_surfaces
 from heliotwin.field.plant import Facets, SunSettings
 from heliotwin.field.targets import PlanarTarget
 from heliotwin.raytrace.analytic import trace_analytic
-
-import test_calibrate_synthetic as syn
 
 F64 = torch.float64
 TARGET = PlanarTarget.from_center_normal("synthetic_target", [0.0, -3.24, 20.0], [0.0, 1.0, 0.0], 8.0, 8.0)
@@ -23,19 +23,17 @@ def _long_heliostat():
     tr = torch.tensor([[[-2.25 + 1.5 * i, 0.0, 0.0] for i in range(n)]], dtype=F64)
     ce = torch.tensor([0.75, 0.0, 0.0], dtype=F64).expand(1, n, 3).clone()
     cn = torch.tensor([0.0, 0.25, 0.0], dtype=F64).expand(1, n, 3).clone()
-    kin = syn.jueliche_like(1).replace(position=torch.tensor([[-3.0, 25.0, 1.5]], dtype=F64))
+    kin = jueliche_like(1).replace(position=torch.tensor([[-3.0, 25.0, 1.5]], dtype=F64))
     return kin, ideal_surfaces(Facets(tr, ce, cn))
 
 
-def test_images_learn_rotation_about_the_mirror_normal(monkeypatch):
-    torch.manual_seed(0)
+def test_images_learn_rotation_about_the_mirror_normal():
     kin, srf = _long_heliostat()
     names = tuple(IMAGE_PARAMETERS)
     assert names[-1] == "concentrator_tilt_n" and names[:8] == STONE8
-    truth = torch.tensor([[*syn.TRUE.values(), 0.03]], dtype=F64)
+    truth = torch.tensor([[*TRUE.values(), 0.03]], dtype=F64)
     kin_true = apply_deviations(kin, truth, names)
-    monkeypatch.setattr(syn, "TARGET", TARGET)
-    batch = syn.simulate(kin_true, 10, 0)
+    batch = simulate(kin_true, 10, 0, target=TARGET)
     # the tilt does not move the mirror normal: centroids cannot see it
     n0 = apply_deviations(kin, truth[:, :8], STONE8)
     from heliotwin.calibrate import metrics
@@ -60,13 +58,13 @@ def test_images_method_needs_surfaces_and_skips_broken_images(tmp_path):
     from heliotwin.errors import HeliotwinError
 
     kin, srf = _long_heliostat()
-    batch = syn.simulate(kin, 6, 1)
+    batch = simulate(kin, 6, 1)
     with pytest.raises(HeliotwinError):
         fit_images_method(kin, batch, None, images={})
     bad = tmp_path / "broken-flux.png"
     bad.write_bytes(b"not a png")
     model = fit_images_method(kin, batch, None, images={int(batch.record_id[0]): str(bad)}, surfaces=srf,
-                              targets={syn.TARGET.name: syn.TARGET}, sun=SUN, field_prior=False, iterations=2,
+                              targets={CENTROID_TARGET.name: CENTROID_TARGET}, sun=SUN, field_prior=False, iterations=2,
                               resolution=RES, samples=SAMPLES)
     assert model.extras["summary"]["image_records_train"] == 0
     assert int(batch.record_id[0]) in model.extras["summary"]["skipped_images"]

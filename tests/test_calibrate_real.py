@@ -45,16 +45,23 @@ def test_lm_improves_drastically_on_real_heliostats(dataset):
     assert any(f["field"] == "initial_stroke_length" for f in s["flags"]) and s["corrected"]
     assert report["heliostats"]["BF41"]["nominal_mean_test_mrad"] > 300
     assert report["heliostats"]["BF41"]["mean_test_mrad"] < 5
-    assert report["overall"]["median_test_mrad"] < 2.0
-    assert report["overall"]["seconds"] < 30
+    assert report["overall"]["median_of_mean_test_mrad"] < 2.0
 
 
-def test_gradient_runs_batched_and_fast(dataset):
-    report, model, _ = run(dataset, method="gradient", heliostats=["AK32", "BH60", "BG62", "BH35"], train=30, test=30)
+def test_gradient_runs_batched(dataset):
+    """All 26 chain deviations of 4 heliostats in one batched fit, early-stopped per heliostat.
+
+    10 LBFGS iterations instead of the default 25: every heliostat's best iteration here is <= 10, so the
+    model is the default one at under half the cost. The default run and its speed: benchmarks/bench_calibration.py.
+    """
+    report, model, _ = run(dataset, method="gradient", heliostats=["AK32", "BH60", "BG62", "BH35"], train=30, test=30,
+                           method_options={"iterations": 10})
     ov = report["overall"]
-    assert ov["median_test_mrad"] < 2.0 and ov["nominal_median_test_mrad"] > 15
-    assert ov["fit_seconds"] < 30
+    assert ov["median_of_mean_test_mrad"] < 2.0 and ov["nominal_median_of_mean_test_mrad"] > 15
     assert len(model.names) == 26
+    # early stopping picked a state per heliostat, and the report's keys say which statistic they are
+    assert len(model.extras["best_iteration"]) == 4
+    assert ov["median_of_median_test_mrad"] is not None and "median_test_mrad" not in ov
 
 
 def test_bad_input_is_reported_not_crashing(dataset, tmp_path):
@@ -96,7 +103,8 @@ def test_cli_calibrate_aim_split_and_errors(paint_dir, tmp_path, capsys):
                "--aim", "0,-3.24,40"])
     assert rc == 0
     rc = main(["split", "--paint", str(paint_dir), "--type", "isolation", "--train", "20", "--validation", "4",
-               "--test", "10", "--heliostats", "BH60", "--csv", str(tmp_path / "s.csv"), "--json", str(tmp_path / "s.json")])
+               "--test", "10", "--heliostats", "BH60", "--csv", str(tmp_path / "s.csv"),
+               "--json", str(tmp_path / "s.json")])
     assert rc == 0
     lines = (tmp_path / "s.csv").read_text().splitlines()
     assert lines[0] == "Id,HeliostatId,Split" and len(lines) == 31
@@ -107,3 +115,16 @@ def test_cli_calibrate_aim_split_and_errors(paint_dir, tmp_path, capsys):
     assert main(["aim", "--scenario", str(h5), "--heliostat", "ZZ99", "--sun-azimuth", "0", "--sun-elevation", "30",
                  "--aim", "0,0,40"]) == 2
     assert main(["calibrate", "--paint", str(paint_dir), "--train", "10", "--validation", "10"]) == 2
+
+
+@pytest.mark.slow
+def test_lm_headline_on_every_heliostat(dataset):
+    """The benchmark's headline run (lm, chrono, --train 30 --test 30, every heliostat with >= 50 records).
+
+    Slow (every heliostat, 10 bags); the figure and its timing are tracked by benchmarks/bench_calibration.py,
+    the default run covers lm on 5 heliostats above.
+    """
+    report, _, _ = run(dataset, method="lm", train=30, test=30)
+    ov = report["overall"]
+    assert ov["n_heliostats"] >= 10
+    assert ov["median_of_mean_test_mrad"] < 1.0 < 15 < ov["nominal_median_of_mean_test_mrad"]

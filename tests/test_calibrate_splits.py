@@ -2,8 +2,14 @@
 import numpy as np
 import pytest
 
-from heliotwin.calibrate.splits import (SPLIT_TYPES, coverage, knn_mean_distance, mean_train_test_distance,
-                                        region_cover, split_indices)
+from heliotwin.calibrate.splits import (
+    SPLIT_TYPES,
+    coverage,
+    knn_mean_distance,
+    mean_train_test_distance,
+    region_cover,
+    split_indices,
+)
 from heliotwin.errors import HeliotwinError
 
 

@@ -8,115 +8,33 @@ fits. The loss is the negative log posterior
     sum_records |n_model - n_measured|^2 / noise^2 + sum_params ((delta - mean) / sigma)^2
 
 (Gaussian prior towards nominal, scaled per parameter type, or the field prior of
-:mod:`~heliotwin.calibrate.priors`). Bounds: a box per parameter type plus a barrier that keeps every
-linear actuator's law of cosines valid over its whole motor range; a step that still leaves a heliostat
-invalid is undone for that heliostat. Early stopping: the validation error of every heliostat is
-evaluated every ``check_every`` iterations and the best state per heliostat is restored at the end.
+:mod:`~heliotwin.calibrate.priors`) plus the actuator barrier. Bounds, validity restore and the
+per-heliostat early stopping on the validation records are the shared loop of
+:mod:`~heliotwin.calibrate.fitloop`.
 """
 from __future__ import annotations
-
-import math
 
 import torch
 
 from ..field.plant import Kinematics
-from . import metrics
-from .params import ALL, REDUNDANT, actuator_margin, apply_deviations, check_names, kinds, units
 from ..io.records import RecordTable
+from . import metrics, priors
+from .fitloop import (
+    actuator_barrier,
+    box_and_validity,
+    early_stopping_fit,
+    make_optimizer,
+    prior_and_start,
+    tensor_state,
+)
+from .inputs import FIT_FOCAL_SPOT, fit_spots, restrict, trainable
+from .lm import field_prior_extras, stone8_field_fit
+from .model import Calibrated
+from .params import ALL, REDUNDANT, STONE8, actuators_valid, apply_deviations, check_names, kinds
 
 #: The learnable deviations of the chain (all but the two invisible ones).
 GRADIENT_PARAMETERS = tuple(n for n in ALL if n not in REDUNDANT)
 
-#: Prior sigma per kind towards nominal (physical units) when no field prior is available.
-PRIOR_SIGMA = {"angle": 0.02, "tilt": 0.03, "increment": 5e-3, "translation": 0.02, "actuator_length": 2e-3}
-
-#: Box bounds per kind (physical units): far outside any real deviation, they only stop runaways.
-BOUNDS = {"angle": 0.5, "tilt": 0.2, "increment": 0.2, "translation": 0.5, "actuator_length": 0.05}
-
-#: Smallest law-of-cosines margin [m] the barrier defends (1 mm of stroke).
-MIN_MARGIN = 1e-3
-
-
-def make_optimizer(x: torch.Tensor, objective, optimizer: str, lr: float, lbfgs_max_iter: int = 20):
-    """Optimiser over the deviation tensor ``x`` and the closure that evaluates ``objective(x)``.
-
-    Parameters
-    ----------
-    x : torch.Tensor, [H, P]
-        Leaf tensor of deviations (natural units), requires grad.
-    objective : callable
-        ``objective(x) -> scalar`` loss.
-    optimizer : {"lbfgs", "adam"}
-    lr : float
-        Adam step size (L-BFGS starts from a unit step with a strong-Wolfe line search).
-    lbfgs_max_iter : int
-        Function evaluations per L-BFGS ``step``.
-
-    Returns
-    -------
-    opt : torch.optim.Optimizer
-    closure : callable
-        For ``opt.step(closure)``.
-    """
-    if optimizer == "lbfgs":
-        opt = torch.optim.LBFGS([x], lr=1.0, max_iter=lbfgs_max_iter, history_size=20, line_search_fn="strong_wolfe",
-                                tolerance_grad=1e-9, tolerance_change=1e-12)
-    elif optimizer == "adam":
-        opt = torch.optim.Adam([x], lr=lr)
-    else:
-        from ..errors import HeliotwinError
-
-        raise HeliotwinError(f"unknown optimizer {optimizer!r}; known: lbfgs, adam")
-
-    def closure():
-        opt.zero_grad()
-        loss = objective(x)
-        loss.backward()
-        return loss
-
-    return opt, closure
-
-
-
-def prior_and_start(names, num_heliostats: int, prior_sigma, prior_mean=None, init=None):
-    """Scaled parameters of a bounded, prior-regularised fit (shared by ``gradient`` and ``images``).
-
-    Parameters
-    ----------
-    names : list of str
-        Deviation parameter names (checked).
-    num_heliostats : int
-        H.
-    prior_sigma : dict kind -> sigma, or tensor [P] / [H, P]
-        Prior standard deviations in physical units (``inf`` or a missing kind: no prior).
-    prior_mean, init : torch.Tensor, [H, P], optional
-        Prior mean (default 0) and start (default the prior mean), physical units.
-
-    Returns
-    -------
-    unit : torch.Tensor, [P]
-        Physical units per optimiser unit.
-    mu, inv_sig : torch.Tensor, [H, P]
-        Prior mean and inverse sigma (0 where there is no prior).
-    bound : torch.Tensor, [P]
-        Box bound in optimiser units.
-    x : torch.Tensor, [H, P]
-        The start in optimiser units, clamped into the box, a leaf that requires grad.
-    """
-    h, p = int(num_heliostats), len(names)
-    unit = units(names)
-    kk = kinds(names)
-    if isinstance(prior_sigma, dict):
-        sig = torch.tensor([float(prior_sigma.get(k, float("inf"))) for k in kk], dtype=torch.float64)
-    else:
-        sig = torch.as_tensor(prior_sigma, dtype=torch.float64)
-    sig = sig.expand(h, p)
-    inv_sig = torch.where(torch.isfinite(sig), 1.0 / sig, torch.zeros_like(sig))
-    mu = torch.zeros(h, p, dtype=torch.float64) if prior_mean is None else \
-        torch.as_tensor(prior_mean, dtype=torch.float64).expand(h, p)
-    bound = torch.tensor([BOUNDS[k] for k in kk], dtype=torch.float64) / unit
-    x = ((mu if init is None else init.detach().double()) / unit).clamp(-bound, bound).clone().requires_grad_(True)
-    return unit, mu, inv_sig, bound, x
 
 def fit_gradient(nominal: Kinematics, train: RecordTable, validation: RecordTable | None = None, *,
                  names=GRADIENT_PARAMETERS, prior_mean: torch.Tensor | None = None,
@@ -128,7 +46,7 @@ def fit_gradient(nominal: Kinematics, train: RecordTable, validation: RecordTabl
     Parameters
     ----------
     nominal : Kinematics
-        H heliostats.
+        H heliostats; the fit follows its dtype and device.
     train, validation : RecordTable
         Records over the same H heliostats; ``validation`` may be None or empty (then the last state is kept).
     names : sequence of str
@@ -136,7 +54,7 @@ def fit_gradient(nominal: Kinematics, train: RecordTable, validation: RecordTabl
     prior_mean : torch.Tensor, [H, P] or [P], optional
         Prior centre (physical units); default nominal (0).
     prior_sigma : torch.Tensor [P] or [H, P], or dict per kind, optional
-        Prior sigma; default :data:`PRIOR_SIGMA`.
+        Prior sigma; default :data:`~heliotwin.calibrate.priors.CHAIN_SIGMA`.
     noise : float
         Per-record pointing noise [rad] the prior is weighed against.
     optimizer : ``"lbfgs"`` or ``"adam"``
@@ -159,66 +77,104 @@ def fit_gradient(nominal: Kinematics, train: RecordTable, validation: RecordTabl
     """
     names = check_names(names)
     h = nominal.num_heliostats
-    unit, mu, inv_sig, bound, x = prior_and_start(names, h, PRIOR_SIGMA if prior_sigma is None else prior_sigma,
-                                                  prior_mean, init)
+    sigma = priors.CHAIN_SIGMA if prior_sigma is None else prior_sigma
+    unit, mu, inv_sig, bound, x = prior_and_start(names, h, sigma, prior_mean, init, like=nominal.position)
     kin_tr = nominal.index(train.heliostat_index)
     hidx = train.heliostat_index
     has_val = validation is not None and len(validation) > 0
-    counts_val = validation.counts() if has_val else torch.zeros(h, dtype=torch.long)
 
     def objective(xx):
         delta = xx * unit
         r = metrics.normal_residuals(apply_deviations(kin_tr, delta[hidx], names), train, per_record=True)
         data = (r * r).sum() / noise ** 2
         prior = (((delta - mu) * inv_sig) ** 2).sum()
-        margin = actuator_margin(apply_deviations(nominal, delta, names))
-        barrier = (torch.relu(MIN_MARGIN - margin) / MIN_MARGIN).pow(2).sum() * 1e4
-        return data + prior + barrier
+        return data + prior + actuator_barrier(apply_deviations(nominal, delta, names))
 
     def val_error():
         with torch.no_grad():
             if not has_val:
-                return torch.full((h,), math.inf, dtype=torch.float64)
-            k = apply_deviations(nominal, x.detach() * unit, names)
-            e = metrics.pointing_error(k, validation)
-            s = torch.zeros(h, dtype=torch.float64).index_add_(0, validation.heliostat_index, e)
-            return torch.where(counts_val > 0, s / counts_val.clamp_min(1), torch.full_like(s, math.inf))
+                return torch.full((h,), float("inf"), dtype=x.dtype, device=x.device)
+            e = metrics.pointing_error(apply_deviations(nominal, x.detach() * unit, names), validation)
+            return metrics.per_heliostat_mean(e, validation.heliostat_index, h)
 
     opt, closure = make_optimizer(x, objective, optimizer, lr)
+    validated = validation.counts() > 0 if has_val else torch.zeros(h, dtype=torch.bool, device=x.device)
+    log = early_stopping_fit(lambda: opt.step(closure), val_error, tensor_state(x), iterations,
+                             validated=validated, check_every=check_every, stop_at=stop_at, progress=progress,
+                             desc="gradient",
+                             project=box_and_validity(x, bound, lambda xx: actuators_valid(
+                                 apply_deviations(nominal, xx * unit, names))))
+    return log.best * unit, {"best_iteration": log.best_iteration.tolist(), "history": log.history}
 
-    best = x.detach().clone()
-    best_err = val_error()
-    best_it = torch.zeros(h, dtype=torch.long)
-    history = [(0, float(best_err[torch.isfinite(best_err)].median()) * 1e3 if torch.isfinite(best_err).any() else None)]
-    last_valid = x.detach().clone()
-    iterator = range(1, iterations + 1)
-    if progress:
-        from tqdm import tqdm
 
-        iterator = tqdm(iterator, desc="gradient", leave=False)
-    for it in iterator:
-        opt.step(closure)
-        with torch.no_grad():
-            x.data = torch.maximum(torch.minimum(x.data, bound), -bound)
-            ok = (actuator_margin(apply_deviations(nominal, x * unit, names)) > 0).all(-1)
-            # A heliostat whose actuator triangle broke goes back to its last valid state.
-            x.data[~ok] = last_valid[~ok]
-            last_valid = x.detach().clone()
-            if not torch.isfinite(x).all():
-                bad = ~torch.isfinite(x).all(-1)
-                x.data[bad] = best[bad]
-        if it % check_every == 0 or it == iterations:
-            err = val_error()
-            better = err < best_err
-            if not has_val:
-                better = torch.ones(h, dtype=torch.bool) if stop_at is None else (stop_at >= it)
-            best[better] = x.detach()[better]
-            best_err = torch.where(better, err, best_err)
-            best_it[better] = it
-            fin = torch.isfinite(err)
-            history.append((it, float(err[fin].median()) * 1e3 if fin.any() else None))
-    # Heliostats without validation records keep the final (MAP) state (or their stop_at state).
-    no_val = counts_val == 0
-    if stop_at is None:
-        best[no_val] = x.detach()[no_val]
-    return best * unit, {"best_iteration": best_it.tolist(), "history": history}
+def prealign(nominal, train, validation, names, fit_focal_spot, field_prior):
+    """Shared start of the chain methods: Stone/Jülich LM pre-alignment and the prior of every parameter.
+
+    Parameters
+    ----------
+    names : tuple of str
+        Parameters the method learns (see :mod:`heliotwin.calibrate.params`).
+
+    Returns
+    -------
+    ok : torch.Tensor of bool, [H]
+        Heliostats with enough training records.
+    train, validation : RecordTable
+        Restricted to ``ok`` heliostats, training spots from ``fit_focal_spot``.
+    init : torch.Tensor, [H, P]
+        Initial deviations (the Stone/Jülich fit on its 8 parameters, 0 elsewhere) [parameter units].
+    prior_mean, prior_sigma : torch.Tensor, [P]
+        Field prior on the Stone/Jülich 8 where available, :data:`~heliotwin.calibrate.priors.CHAIN_SIGMA`
+        on the rest.
+    field_prior_fit : tuple or None
+        The field prior (mean, sigma) of the Stone/Jülich 8, if one was fitted.
+    """
+    ok = trainable(train)
+    tr = fit_spots(restrict(train, ok), fit_focal_spot)
+    va = restrict(validation, ok)
+    d8, fp = stone8_field_fit(nominal, tr, ok, field_prior=field_prior)
+    fk = dict(dtype=nominal.position.dtype, device=nominal.position.device)
+    mu = torch.zeros(len(names), **fk)
+    sig = torch.tensor([priors.CHAIN_SIGMA[k] for k in kinds(names)], **fk)
+    init = _with_stone8(torch.zeros(nominal.num_heliostats, len(names), **fk), d8, names)
+    if fp is not None:
+        for j, n in enumerate(STONE8):
+            if n in names:
+                mu[names.index(n)], sig[names.index(n)] = fp[0][j], fp[1][j]
+    return ok, tr, va, init, mu, sig, fp
+
+
+def _with_stone8(init: torch.Tensor, d8: torch.Tensor, names) -> torch.Tensor:
+    """``init`` [H, P] with the Stone/Jülich columns set from ``d8`` [H, 8] (in place; returned)."""
+    for j, n in enumerate(STONE8):
+        if n in names:
+            init[:, names.index(n)] = d8[:, j].to(init)
+    return init
+
+
+def fit_gradient_method(nominal, train, validation, *, seed=0, progress=False, field_prior=True,
+                        names=GRADIENT_PARAMETERS, optimizer="lbfgs", iterations=25, refit=True,
+                        fit_focal_spot=FIT_FOCAL_SPOT) -> Calibrated:
+    """``gradient``: all deviations of the chain, pre-aligned by the Stone/Jülich LM fit, then LBFGS.
+
+    Prior: the field prior on the Stone/Jülich 8 (they carry the field-wide systematic deviations), the
+    nominal prior :data:`~heliotwin.calibrate.priors.CHAIN_SIGMA` on the rest; early stopping on the
+    validation records restores each heliostat's best state.
+    """
+    names = tuple(names)
+    ok, tr, va, init, mu, sig, fp = prealign(nominal, train, validation, names, fit_focal_spot, field_prior)
+    delta, info = fit_gradient(nominal, tr, va, names=names, prior_mean=mu, prior_sigma=sig, init=init,
+                               optimizer=optimizer, iterations=iterations, progress=progress)
+    if refit and va is not None and len(va):
+        # Early stopping found each heliostat's best iteration on validation; refit on every record it may
+        # see (train + validation) and stop each heliostat there. With 10 records, 2 more matter.
+        seen = RecordTable.concatenate([tr, fit_spots(va, fit_focal_spot)])
+        d8, _ = stone8_field_fit(nominal, seen, ok, field_prior=field_prior)
+        stop = torch.tensor(info["best_iteration"], dtype=torch.long, device=init.device)
+        delta, _ = fit_gradient(nominal, seen, None, names=names, prior_mean=mu, prior_sigma=sig,
+                                init=_with_stone8(init, d8, names), optimizer=optimizer,
+                                iterations=max(1, int(stop.max())), progress=progress, stop_at=stop)
+    delta[~ok] = 0.0
+    extras = {"best_iteration": info["best_iteration"], "history": info["history"],
+              "field_prior": field_prior_extras(fp)}
+    return Calibrated("gradient", list(train.heliostat_ids), nominal, names, delta, ok, extras=extras)

@@ -26,12 +26,14 @@ import math
 
 import torch
 
+from ..io.records import RecordTable
 from . import metrics
-from .methods import FIT_FOCAL_SPOT, MIN_TRAIN, fit_spots, stone8_field_fit
+from .fitloop import early_stopping_fit, net_state
+from .inputs import FIT_FOCAL_SPOT, fit_spots, restrict, trainable
+from .lm import stone8_field_fit
 from .model import Calibrated
 from .nets import BatchedMLP
 from .params import STONE8, apply_deviations, kinds
-from ..io.records import RecordTable
 
 #: Physical size of one network output unit per kind (see module docstring).
 OUTPUT_SCALE = {"angle": 0.01, "tilt": 0.01, "translation": 1.0, "actuator_length": 1.0, "increment": 0.01}
@@ -62,12 +64,6 @@ def features(batch: RecordTable, kin, t0: torch.Tensor, span: torch.Tensor | Non
     return torch.cat([enc, age.unsqueeze(-1), season], -1)
 
 
-def _per_h_mean(err: torch.Tensor, batch: RecordTable, h: int) -> torch.Tensor:
-    s = torch.zeros(h, dtype=torch.float64).index_add_(0, batch.heliostat_index, err)
-    c = batch.counts()
-    return torch.where(c > 0, s / c.clamp_min(1), torch.full_like(s, math.inf))
-
-
 class HybridModel(Calibrated):
     """Calibrated hybrid: static deviations plus network deviations per record."""
 
@@ -75,101 +71,143 @@ class HybridModel(Calibrated):
         net, scale, t0 = self.extras["net"], self.extras["scale"], self.extras["t0"]
         use, span = self.extras["use_net"], self.extras.get("span")
         with torch.no_grad():
-            d = self.delta[batch.heliostat_index] + scale * net(features(batch, self.nominal, t0, span), batch.heliostat_index) \
-                * use[batch.heliostat_index].unsqueeze(-1).double()
+            x = features(batch, self.nominal, t0, span)
+            d = self.delta[batch.heliostat_index] + scale * net(x, batch.heliostat_index) \
+                * use[batch.heliostat_index].unsqueeze(-1).to(scale)
             k = apply_deviations(self.nominal.index(batch.heliostat_index), d, self.names)
             return metrics.model_normals(k, batch, per_record=True)
 
 
-def fit_hybrid_method(nominal, train, validation, *, seed=0, progress=False, field_prior=True, depth=14, hidden=2,
-                      steps=400, lr=3e-3, weight_decay=1e-3, noise=1e-3, fit_focal_spot=FIT_FOCAL_SPOT) -> HybridModel:
-    h = nominal.num_heliostats
-    ok = train.counts() >= MIN_TRAIN
-    tr = fit_spots(train.subset(ok[train.heliostat_index]), fit_focal_spot)
-    va = validation.subset(ok[validation.heliostat_index]) if validation is not None else train.subset([])
-    static, _ = stone8_field_fit(nominal, tr, ok, field_prior=field_prior)
-    names = STONE8
-    scale = torch.tensor([OUTPUT_SCALE[k] for k in kinds(names)], dtype=torch.float64)
-    t0 = torch.zeros(h, dtype=torch.float64)
-    span = torch.full((h,), SECONDS_PER_YEAR, dtype=torch.float64)
+def training_times(train: RecordTable, h: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """First training time ``t0`` [H] [s] and span of the training times [H] [s] (>= 1 day; a year without).
+
+    Heliostats without a timed training record get ``t0 = 0`` and a span of one year.
+    """
+    like = train.spot
+    t0 = like.new_zeros(h)
+    span = like.new_full((h,), SECONDS_PER_YEAR)
     for i in range(h):
-        t = tr.time[(tr.heliostat_index == i) & torch.isfinite(tr.time)]
+        t = train.time[(train.heliostat_index == i) & torch.isfinite(train.time)]
         t0[i] = t.min() if len(t) else 0.0
         if len(t) > 1:
             span[i] = (t.max() - t.min()).clamp_min(86400.0)
-    gen = torch.Generator().manual_seed(int(seed))
-    net = BatchedMLP(h, 7, len(names), hidden, depth, gen, zero_output=True)
-    best = BatchedMLP(h, 7, len(names), hidden, depth, gen, zero_output=True)
-    best.copy_rows(net, torch.ones(h, dtype=torch.bool))
-    opt = torch.optim.Adam(net.parameters(), lr=lr)
-    x_tr, kin_tr = features(tr, nominal, t0, span), nominal.index(tr.heliostat_index)
-    x_va = features(va, nominal, t0, span) if len(va) else None
+    return t0, span
 
-    def val_err(model_net, per_record=False):
-        if not len(va):
-            return torch.full((h,), math.inf, dtype=torch.float64)
+
+class _HybridFit:
+    """The hybrid's deviations per record: ``static + scale * net(features)`` on a fixed record batch."""
+
+    def __init__(self, nominal, static, names, scale, t0, span, batch: RecordTable):
+        self.nominal, self.static, self.names, self.scale, self.batch = nominal, static, names, scale, batch
+        self.x = features(batch, nominal, t0, span) if len(batch) else None
+        self.kin = nominal.index(batch.heliostat_index)
+
+    def deltas(self, net) -> torch.Tensor:
+        """[R, P]; ``net=None`` = the rigid body alone."""
+        d = self.static[self.batch.heliostat_index]
+        return d if net is None else d + self.scale * net(self.x, self.batch.heliostat_index)
+
+    def residuals(self, net) -> torch.Tensor:
+        """Model minus measured normal [R, 3]."""
+        return metrics.normal_residuals(apply_deviations(self.kin, self.deltas(net), self.names), self.batch,
+                                        per_record=True)
+
+    def errors(self, net) -> torch.Tensor:
+        """Pointing error per record [rad], [R] (no gradient)."""
         with torch.no_grad():
-            d = static[va.heliostat_index] + scale * model_net(x_va, va.heliostat_index)
-            e = metrics.pointing_error(apply_deviations(nominal.index(va.heliostat_index), d, names), va, per_record=True)
-            return e if per_record else _per_h_mean(e, va, h)
+            return metrics.pointing_error(apply_deviations(self.kin, self.deltas(net), self.names), self.batch,
+                                          per_record=True)
 
-    with torch.no_grad():
-        rigid_val = val_err(lambda x, i: torch.zeros(len(x), len(names), dtype=torch.float64))
-    best_err = rigid_val.clone()
-    it = range(steps)
-    if progress:
-        from tqdm import tqdm
 
-        it = tqdm(it, desc="hybrid", leave=False)
-    for step in it:
+def _fallback(fit_va: _HybridFit, best, best_err, rigid_val, ok) -> tuple[torch.Tensor, dict]:
+    """Which heliostats keep their network ``best`` (see module docstring), and why the others do not.
+
+    ``best_err``/``rigid_val``: validation error per heliostat [H] of the network and of the rigid body.
+    """
+    h, va = len(ok), fit_va.batch
+    use_net = torch.zeros(h, dtype=torch.bool, device=ok.device)
+    why = {}
+    if not len(va):
+        return use_net, why
+    gain = fit_va.errors(None) - fit_va.errors(best)  # per record, rigid minus hybrid
+    for i in range(h):
+        g = gain[va.heliostat_index == i]
+        n = len(g)
+        if n < MIN_VALIDATION:
+            why[i] = f"{n} validation records < {MIN_VALIDATION}"
+            continue
+        se = float(g.std()) / math.sqrt(n) if n > 1 else math.inf
+        m = float(g.mean())
+        if not best_err[i] < FALLBACK_MARGIN * rigid_val[i]:
+            why[i] = "validation gain below 10 %"
+        elif not m > SIGNIFICANCE * se:
+            why[i] = f"validation gain {m * 1e3:.2f} mrad not significant (< {SIGNIFICANCE} x {se * 1e3:.2f})"
+        else:
+            use_net[i] = True
+    return use_net, why
+
+
+def _mrad(x) -> float | None:
+    return float(x) * 1e3 if math.isfinite(x) else None
+
+
+def fit_hybrid_method(nominal, train, validation, *, seed=0, progress=False, field_prior=True, depth=14, hidden=2,
+                      steps=400, lr=3e-3, weight_decay=1e-3, noise=1e-3, fit_focal_spot=FIT_FOCAL_SPOT) -> HybridModel:
+    """``hybrid``: the pre-aligned rigid body plus a small network per heliostat (see module docstring).
+
+    The network follows the nominal kinematics' dtype and device; every random draw takes ``seed``.
+    """
+    h = nominal.num_heliostats
+    ok = trainable(train)
+    tr = fit_spots(restrict(train, ok), fit_focal_spot)
+    va = restrict(validation, ok) if validation is not None else train.subset([])  # never None below
+    static, _ = stone8_field_fit(nominal, tr, ok, field_prior=field_prior)
+    names = STONE8
+    like = nominal.position
+    static = static.to(like)
+    scale = torch.tensor([OUTPUT_SCALE[k] for k in kinds(names)], dtype=like.dtype, device=like.device)
+    t0, span = training_times(tr, h)
+    gen = torch.Generator().manual_seed(int(seed))
+    net = BatchedMLP(h, 7, len(names), hidden, depth, gen, zero_output=True, dtype=like.dtype).to(like.device)
+    opt = torch.optim.Adam(net.parameters(), lr=lr)
+    fit_tr = _HybridFit(nominal, static, names, scale, t0, span, tr)
+    fit_va = _HybridFit(nominal, static, names, scale, t0, span, va)
+
+    def step():
         opt.zero_grad()
-        d = static[tr.heliostat_index] + scale * net(x_tr, tr.heliostat_index)
-        r = metrics.normal_residuals(apply_deviations(kin_tr, d, names), tr, per_record=True)
+        r = fit_tr.residuals(net)
         loss = (r * r).sum() / noise ** 2 + weight_decay * net.weight_norm().sum()
         loss.backward()
         opt.step()
-        if (step + 1) % 10 == 0:
-            err = val_err(net)
-            better = err < best_err
-            best.copy_rows(net, better)
-            best_err = torch.where(better, err, best_err)
+        return loss
+
+    def val_err(model_net=net):
+        if not len(va):
+            return like.new_full((h,), float("inf"))
+        return metrics.per_heliostat_mean(fit_va.errors(model_net), va.heliostat_index, h)
+
+    rigid_val = val_err(None)
+    # The network starts with a zero output layer: the loop's start is exactly the rigid body.
+    log = early_stopping_fit(step, val_err, net_state(net), steps, validated=va.counts() > 0, check_every=10,
+                             progress=progress, desc="hybrid")
+    best, best_err = log.best, log.best_error
     # Fallback unless the net beats its own rigid body on validation by a clear (10 %) AND significant
     # paired gain on enough records: a gain on 2-6 records is mostly noise, and the net extrapolates in time.
-    zero = lambda x, i: torch.zeros(len(x), len(names), dtype=torch.float64)  # noqa: E731
-    use_net = torch.zeros(h, dtype=torch.bool)
-    why = {}
-    if len(va):
-        gain = val_err(zero, True) - val_err(best, True)  # per record, rigid minus hybrid
-        for i in range(h):
-            g = gain[va.heliostat_index == i]
-            n = len(g)
-            if n < MIN_VALIDATION:
-                why[i] = f"{n} validation records < {MIN_VALIDATION}"
-                continue
-            se = float(g.std()) / math.sqrt(n) if n > 1 else math.inf
-            m = float(g.mean())
-            if not best_err[i] < FALLBACK_MARGIN * rigid_val[i]:
-                why[i] = "validation gain below 10 %"
-            elif not m > SIGNIFICANCE * se:
-                why[i] = f"validation gain {m * 1e3:.2f} mrad not significant (< {SIGNIFICANCE} x {se * 1e3:.2f})"
-            else:
-                use_net[i] = True
+    use_net, why = _fallback(fit_va, best, best_err, rigid_val, ok)
     # Fallback heliostats: the rigid body refitted on every record they may see (as lm does).
     seen = RecordTable.concatenate([tr, fit_spots(va, fit_focal_spot)]) if len(va) else tr
     refit, _ = stone8_field_fit(nominal, seen, ok, field_prior=field_prior)
-    static = torch.where(use_net.unsqueeze(-1), static, refit)
+    static = torch.where(use_net.unsqueeze(-1), static, refit.to(static))
     static[~ok] = 0.0
-    per_h = {}
     ids = list(train.heliostat_ids)
-    for i, hid in enumerate(ids):
-        if bool(ok[i]):
-            per_h[hid] = {"uses_network": bool(use_net[i]), "fallback_reason": why.get(i),
-                          "rigid_validation_mrad": float(rigid_val[i]) * 1e3 if math.isfinite(rigid_val[i]) else None,
-                          "hybrid_validation_mrad": float(best_err[i]) * 1e3 if math.isfinite(best_err[i]) else None}
+    per_h = {hid: {"uses_network": bool(use_net[i]), "fallback_reason": why.get(i),
+                   "rigid_validation_mrad": _mrad(rigid_val[i]), "hybrid_validation_mrad": _mrad(best_err[i])}
+             for i, hid in enumerate(ids) if bool(ok[i])}
     networks = {hid: {"config": dict(best.config, kind="hybrid", names=list(names), scale=scale.tolist(),
                                      t0=float(t0[i]), span=float(span[i]), use_net=bool(use_net[i])),
                       "state": best.state_of(i)} for i, hid in enumerate(ids) if bool(ok[i])}
-    extras = {"net": best, "scale": scale, "t0": t0, "span": span, "use_net": use_net, "per_heliostat": per_h, "networks": networks,
+    extras = {"net": best, "scale": scale, "t0": t0, "span": span, "use_net": use_net, "per_heliostat": per_h,
+              "networks": networks,
               "summary": {"heliostats_using_network": int((use_net & ok).sum()), "depth": depth, "hidden": hidden}}
     return HybridModel("hybrid", ids, nominal, names, static, ok, extras=extras)
 
@@ -193,8 +231,9 @@ def aim_hybrid(net_entry: dict, kin, sun: torch.Tensor, target: torch.Tensor) ->
     now = time.time()
     z = torch.zeros(1, dtype=torch.float64)
     for _ in range(5):
-        b = RecordTable(["h"], torch.zeros(1, dtype=torch.long), torch.zeros(1, dtype=torch.long), z, z, sun.reshape(1, 3),
-                        steps.reshape(1, 2), target.reshape(1, 3), target.reshape(1, 3), target.reshape(1, 3),
+        b = RecordTable(["h"], torch.zeros(1, dtype=torch.long), torch.zeros(1, dtype=torch.long), z, z,
+                        sun.reshape(1, 3), steps.reshape(1, 2), target.reshape(1, 3), target.reshape(1, 3),
+                        target.reshape(1, 3),
                         target.reshape(1, 3), target.reshape(1, 3), torch.tensor([now], dtype=torch.float64),
                         torch.zeros(1, 5, dtype=torch.float64))
         with torch.no_grad():

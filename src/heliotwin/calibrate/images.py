@@ -18,29 +18,36 @@ and the deviations are learned with the published three-term loss:
 
 Records without an image contribute the ordinary centroid term (model minus measured mirror normal, as
 in ``gradient``); records with an image contribute their centroid term too. Pre-alignment: the
-Stone/Jülich LM fit with the field prior (:func:`~heliotwin.calibrate.methods.stone8_field_fit`), so the
-rendered spots start on their targets. Prior: field prior on the Stone/Jülich 8, the ``gradient`` nominal
-prior on the rest. Optimiser: Adam in natural units (mrad, mm, 0.1 %), early-stopped per heliostat on
-the validation loss (same three terms + centroid term) when there are validation records.
+Stone/Jülich LM fit with the field prior (:func:`~heliotwin.calibrate.lm.stone8_field_fit`), so the
+rendered spots start on their targets. Prior: field prior on the Stone/Jülich 8, the chain's nominal
+prior (:data:`~heliotwin.calibrate.priors.CHAIN_SIGMA`) on the rest. Optimiser: L-BFGS (or Adam) in
+natural units (mrad, mm, 0.1 %), early-stopped per heliostat on the validation loss (same three terms +
+centroid term) when there are validation records.
 
 The images and the mirror surfaces come from the pipeline (``images={record_id: path or bitmap}``,
 ``surfaces=Surfaces`` of the run's heliostats, ``targets={name: PlanarTarget}``, ``sun=SunSettings``).
 """
 from __future__ import annotations
 
-import math
-
 import torch
 import torch.nn.functional as F
 
 from ..errors import HeliotwinError
-from . import metrics
-from .gradient import PRIOR_SIGMA as GRADIENT_SIGMA
-from .gradient import make_optimizer
-from .methods import FIT_FOCAL_SPOT, prealign
-from .model import Calibrated
-from .params import STONE8, actuator_margin, apply_deviations, check_names
 from ..io.records import RecordTable
+from . import metrics, priors
+from .fitloop import (
+    actuator_barrier,
+    box_and_validity,
+    early_stopping_fit,
+    make_optimizer,
+    prior_and_start,
+    tensor_state,
+)
+from .gradient import prealign
+from .inputs import FIT_FOCAL_SPOT
+from .lm import field_prior_extras
+from .model import Calibrated
+from .params import STONE8, actuators_valid, apply_deviations, check_names
 
 #: Learned by default: the Stone/Jülich 8 plus the mirror's rotation about its own normal (invisible to
 #: centroids, visible in the image).
@@ -104,11 +111,12 @@ class ImageTerms:
             self.groups.setdefault(tname, []).append(j)
         self.targets = {n: targets[n] for n in self.groups}
         # measured centroids (local target coordinates, m)
-        cen = torch.zeros(len(rows), 2, dtype=torch.float64)
+        cen = batch.spot.new_zeros(len(rows), 2)  # the records' dtype and device
         for tname, js in self.groups.items():
             ext = target_extent(self.targets[tname], 1)
             x, y = pixel_centers(ext, *self.resolution)
-            m = self.measured[js].double()
+            m = self.measured[js].to(cen)
+            x, y = x.to(cen), y.to(cen)
             cen[js, 0] = (m.sum(-2) * x).sum(-1)
             cen[js, 1] = (m.sum(-1) * y).sum(-1)
         self.measured_centroid = cen
@@ -122,26 +130,25 @@ class ImageTerms:
         from ..raytrace.analytic import trace_analytic
         from ..raytrace.flux import normalized_l1
 
-        m = len(self)
-        pix = torch.zeros(m, dtype=torch.float64)
-        ali = torch.zeros(m, dtype=torch.float64)
-        mis = torch.zeros(m, dtype=torch.float64)
+        m, like = len(self), kin.position  # terms follow the kinematics' dtype and device
+        pix, ali, mis = like.new_zeros(m), like.new_zeros(m), like.new_zeros(m)
         b = self.batch
         for tname, js in self.groups.items():
-            j = torch.tensor(js, dtype=torch.long)
+            j = torch.tensor(js, dtype=torch.long, device=like.device)
             t = self.targets[tname]
             pw, nw, ar, _, conc = scene.world_surface(kin, self.surfaces, b.heliostat_index[j], b.motor_steps[j],
                                                       samples=self.samples)
             fl = trace_analytic(pw, nw, ar, b.sun[j].float(), t, resolution=self.resolution, sun=self.sun,
                                 mode=self.mode)
             render = fl.bitmap
-            p = normalized_l1(render, self.measured[j].to(render)).double()
-            cen = fl.centroid_local().double()
+            p = normalized_l1(render, self.measured[j].to(render)).to(like)
+            cen = fl.centroid_local().to(like)
             slant = torch.linalg.norm(t.center.to(conc) - conc, dim=-1)
-            a = torch.linalg.norm(cen - self.measured_centroid[j], dim=-1) / slant
-            frac = (fl.intercepted_power_w.double() / fl.total_power_w.double().clamp_min(1e-30)).clamp(0, 1)
+            a = torch.linalg.norm(cen - self.measured_centroid[j].to(like), dim=-1) / slant
+            power, total = fl.intercepted_power_w.to(like), fl.total_power_w.to(like).clamp_min(1e-30)
+            frac = (power / total).clamp(0, 1)
             # an image with no flux on the target: pixel term is its maximum, alignment undefined -> miss only
-            landed = fl.intercepted_power_w.double() > 1e-9 * fl.total_power_w.double().clamp_min(1e-30)
+            landed = power > 1e-9 * total
             pix = pix.index_copy(0, j, torch.where(landed, p, torch.full_like(p, 2.0)))
             ali = ali.index_copy(0, j, torch.where(landed, a, torch.zeros_like(a)))
             mis = mis.index_copy(0, j, 1.0 - frac)
@@ -152,20 +159,19 @@ def image_loss_per_heliostat(terms: ImageTerms, kin, h: int, *, noise: float, pi
                              miss_weight: float) -> tuple[torch.Tensor, dict]:
     """Sum of the image loss per heliostat [H] and the raw terms."""
     if not len(terms):
-        z = torch.zeros(h, dtype=torch.float64)
-        return z, {}
+        return kin.position.new_zeros(h), {}
     pix, ali, mis = terms.terms(kin)
     per = pixel_weight * pix + (ali / noise) ** 2 + miss_weight * mis
     hidx = terms.batch.heliostat_index
-    return torch.zeros(h, dtype=torch.float64).index_add(0, hidx, per), {"pixel": pix, "alignment": ali, "miss": mis}
+    return per.new_zeros(h).index_add(0, hidx, per), {"pixel": pix, "alignment": ali, "miss": mis}
 
 
 def _centroid_loss_per_heliostat(kin_nominal, delta, names, batch: RecordTable, h: int, noise: float) -> torch.Tensor:
     if not len(batch):
-        return torch.zeros(h, dtype=torch.float64)
+        return delta.new_zeros(h)
     k = apply_deviations(kin_nominal.index(batch.heliostat_index), delta[batch.heliostat_index], names)
     r = metrics.normal_residuals(k, batch, per_record=True)
-    return torch.zeros(h, dtype=torch.float64).index_add(0, batch.heliostat_index, (r * r).sum(-1) / noise ** 2)
+    return delta.new_zeros(h).index_add(0, batch.heliostat_index, (r * r).sum(-1) / noise ** 2)
 
 
 def fit_images(nominal, train: RecordTable, validation: RecordTable | None, images: dict, surfaces, targets: dict,
@@ -177,6 +183,8 @@ def fit_images(nominal, train: RecordTable, validation: RecordTable | None, imag
     """Learn deviations from images (+ centroids) by LBFGS (or Adam); see the module docstring.
 
     ``iterations`` counts LBFGS outer iterations (each up to ``lbfgs_inner`` evaluations) or Adam steps.
+    The prior defaults to :data:`~heliotwin.calibrate.priors.CHAIN_SIGMA`; bounds, validity restore and the
+    per-heliostat early stopping on the validation loss are the loop of :mod:`~heliotwin.calibrate.fitloop`.
 
     Returns
     -------
@@ -184,15 +192,14 @@ def fit_images(nominal, train: RecordTable, validation: RecordTable | None, imag
     info : dict
         ``image_records`` (train, validation), ``loss_history``, per-term means before/after, ``skipped_images``.
     """
-    from .gradient import MIN_MARGIN, prior_and_start
-
     names = check_names(names)
     h = nominal.num_heliostats
-    unit, mu, inv_sig, bound, x = prior_and_start(names, h, GRADIENT_SIGMA if prior_sigma is None else prior_sigma,
-                                                  prior_mean, init)
+    sigma = priors.CHAIN_SIGMA if prior_sigma is None else prior_sigma
+    unit, mu, inv_sig, bound, x = prior_and_start(names, h, sigma, prior_mean, init, like=nominal.position)
     tr_img = ImageTerms(train, images, surfaces, targets, sun, resolution=resolution, samples=samples)
     has_val = validation is not None and len(validation) > 0
-    va_img = ImageTerms(validation, images, surfaces, targets, sun, resolution=resolution, samples=samples) if has_val else None
+    va_img = ImageTerms(validation, images, surfaces, targets, sun, resolution=resolution,
+                        samples=samples) if has_val else None
     kw = dict(noise=noise, pixel_weight=pixel_weight, miss_weight=miss_weight)
 
     def objective(xx):
@@ -201,19 +208,18 @@ def fit_images(nominal, train: RecordTable, validation: RecordTable | None, imag
         data = centroid_weight * _centroid_loss_per_heliostat(nominal, delta, names, train, h, noise).sum()
         img, _ = image_loss_per_heliostat(tr_img, kin, h, **kw)
         prior = (((delta - mu) * inv_sig) ** 2).sum()
-        barrier = (torch.relu(MIN_MARGIN - actuator_margin(kin)) / MIN_MARGIN).pow(2).sum() * 1e4
-        return data + img.sum() + prior + barrier
+        return data + img.sum() + prior + actuator_barrier(kin)
 
     def val_loss():
         with torch.no_grad():
             if not has_val:
-                return torch.full((h,), math.inf, dtype=torch.float64)
+                return torch.full((h,), float("inf"), dtype=x.dtype, device=x.device)
             delta = x.detach() * unit
             kin = apply_deviations(nominal, delta, names)
             v = centroid_weight * _centroid_loss_per_heliostat(nominal, delta, names, validation, h, noise)
             vi, _ = image_loss_per_heliostat(va_img, kin, h, **kw)
             c = validation.counts()
-            return torch.where(c > 0, (v + vi) / c.clamp_min(1), torch.full_like(v, math.inf))
+            return torch.where(c > 0, (v + vi) / c.clamp_min(1), torch.full_like(v, float("inf")))
 
     def mean_terms():
         if not len(tr_img):
@@ -224,39 +230,17 @@ def fit_images(nominal, train: RecordTable, validation: RecordTable | None, imag
 
     before = mean_terms()
     opt, closure = make_optimizer(x, objective, optimizer, lr, lbfgs_max_iter=lbfgs_inner)
-
-    best = x.detach().clone()
-    best_err = val_loss()
-    best_it = torch.zeros(h, dtype=torch.long)
-    history = []
-    it_range = range(1, iterations + 1)
-    if progress:
-        from tqdm import tqdm
-
-        it_range = tqdm(it_range, desc="images", leave=False)
-    last_valid = x.detach().clone()
-    for it in it_range:
-        loss = opt.step(closure)
-        with torch.no_grad():
-            x.data = torch.maximum(torch.minimum(x.data, bound), -bound)
-            ok = (actuator_margin(apply_deviations(nominal, x * unit, names)) > 0).all(-1) & torch.isfinite(x).all(-1)
-            x.data[~ok] = last_valid[~ok]
-            last_valid = x.detach().clone()
-        history.append(float(loss.detach()))
-        if has_val and (it % check_every == 0 or it == iterations):
-            err = val_loss()
-            better = err < best_err
-            best[better] = x.detach()[better]
-            best_err = torch.where(better, err, best_err)
-            best_it[better] = it
-    no_val = validation.counts() == 0 if has_val else torch.ones(h, dtype=torch.bool)
-    best[no_val] = x.detach()[no_val]
-    x.data = best.clone()
+    validated = validation.counts() > 0 if has_val else torch.zeros(h, dtype=torch.bool, device=x.device)
+    log = early_stopping_fit(lambda: opt.step(closure), val_loss, tensor_state(x), iterations, validated=validated,
+                             check_every=check_every, progress=progress, desc="images",
+                             project=box_and_validity(x, bound, lambda xx: actuators_valid(
+                                 apply_deviations(nominal, xx * unit, names))))
+    x.data = log.best.clone()
     info = {"image_records_train": len(tr_img), "image_records_validation": len(va_img) if va_img is not None else 0,
-            "image_terms_before": before, "image_terms_after": mean_terms(), "loss_history": history,
-            "best_iteration": best_it.tolist(),
+            "image_terms_before": before, "image_terms_after": mean_terms(), "loss_history": log.losses,
+            "best_iteration": log.best_iteration.tolist(),
             "skipped_images": {**tr_img.skipped, **(va_img.skipped if va_img is not None else {})}}
-    return best * unit, info
+    return log.best * unit, info
 
 
 def fit_images_method(nominal, train, validation, *, seed=0, progress=False, images=None, surfaces=None,
@@ -280,15 +264,14 @@ def fit_images_method(nominal, train, validation, *, seed=0, progress=False, ima
     delta, info = fit_images(nominal, tr, va, images, surfaces, targets, sun, names=names, init=init, prior_mean=mu,
                              prior_sigma=sig, progress=progress, **options)
     delta[~ok] = 0.0
-    counts_img = torch.zeros(h, dtype=torch.long)
-    for r in range(len(tr)):
-        if int(tr.record_id[r]) in images:
-            counts_img[int(tr.heliostat_index[r])] += 1
-    per_h = {hid: {"image_records_train": int(counts_img[i])} for i, hid in enumerate(train.heliostat_ids) if bool(ok[i])}
+    with_image = torch.tensor([int(i) in images for i in tr.record_id.tolist()], dtype=torch.bool)
+    counts_img = torch.bincount(tr.heliostat_index.cpu()[with_image], minlength=h)
+    per_h = {hid: {"image_records_train": int(counts_img[i])}
+             for i, hid in enumerate(train.heliostat_ids) if bool(ok[i])}
     extras = {"per_heliostat": per_h,
               "summary": {k: info[k] for k in ("image_records_train", "image_records_validation", "image_terms_before",
                                                "image_terms_after", "skipped_images")},
-              "field_prior": None if fp is None else {"mean": fp[0].tolist(), "sigma": fp[1].tolist()}}
+              "field_prior": field_prior_extras(fp)}
     return Calibrated("images", list(train.heliostat_ids), nominal, names, delta, ok, extras=extras)
 
 

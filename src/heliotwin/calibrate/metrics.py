@@ -1,9 +1,14 @@
-"""Pointing error and miss distance of a kinematic model on calibration records.
+"""Pointing error and miss distance of a kinematic model on calibration records: the one home of both.
 
 Pointing error of a record = angle between the model's mirror normal at the recorded motor steps and the
 *measured* normal, the bisector of the direction to the sun and the direction from the concentrator to the
-measured focal spot. The angle is ``atan2(|a x b|, a . b)``: ``acos`` of a dot product loses half the digits
-near zero (an error of 0.1 mrad would be resolved to ~0.01 mrad only), and calibrated errors are ~1 mrad.
+measured focal spot. The angle is :func:`heliotwin.geometry.angle_between` (``atan2(|a x b|, a . b)``):
+``acos`` of a dot product loses half the digits near zero (an error of 0.1 mrad would be resolved to
+~0.01 mrad only), and calibrated errors are ~1 mrad.
+
+:func:`pointing_error` (kinematics with a heliostat axis + a :class:`~heliotwin.io.records.RecordTable`)
+is what calibration, its report and validation all use; models whose normals do not come from rigid-body
+kinematics (hybrid, MLP) go through :func:`pointing_error_of_normals`.
 """
 from __future__ import annotations
 
@@ -11,12 +16,8 @@ import torch
 
 from ..field import kinematics as K
 from ..field.plant import Kinematics
+from ..geometry import angle_between
 from ..io.records import RecordTable
-
-
-def angle_between(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Angle [rad] between vectors (..., 3), by atan2 (accurate near 0 and pi)."""
-    return torch.atan2(torch.linalg.norm(torch.linalg.cross(a, b, dim=-1), dim=-1), (a * b).sum(-1))
 
 
 def per_record_kinematics(kin: Kinematics, batch: RecordTable) -> Kinematics:
@@ -57,10 +58,24 @@ def normal_residuals(kin: Kinematics, batch: RecordTable, *, per_record: bool = 
     return n - measured_normals(batch, c)
 
 
+def pointing_error_of_normals(normal: torch.Tensor, concentrator: torch.Tensor, batch: RecordTable) -> torch.Tensor:
+    """Pointing error per record [rad], [R], of model normals [R, 3] at concentrators [R, 3] (ENU, m)."""
+    return angle_between(normal, measured_normals(batch, concentrator))
+
+
 def pointing_error(kin: Kinematics, batch: RecordTable, *, per_record: bool = False) -> torch.Tensor:
-    """Pointing error per record [rad], shape [R]."""
+    """Pointing error per record [rad], shape [R].
+
+    Parameters
+    ----------
+    kin : Kinematics
+        The batch's H heliostats (``batch.heliostat_index`` indexes them), or R entries already indexed
+        per record (``per_record=True``).
+    batch : RecordTable
+        R records; the measured normal uses ``batch.spot``.
+    """
     n, c = model_normals(kin, batch, per_record=per_record)
-    return angle_between(n, measured_normals(batch, c))
+    return pointing_error_of_normals(n, c, batch)
 
 
 def predicted_spot(normal: torch.Tensor, concentrator: torch.Tensor, batch: RecordTable) -> torch.Tensor:
@@ -82,8 +97,23 @@ def miss_distance(kin: Kinematics, batch: RecordTable, *, per_record: bool = Fal
     the plane (multi-focus tower) does not add its depth to the miss.
     """
     n, c = model_normals(kin, batch, per_record=per_record)
-    d = predicted_spot(n, c, batch) - batch.spot
+    return miss_distance_of_normals(n, c, batch)
+
+
+def miss_distance_of_normals(normal: torch.Tensor, concentrator: torch.Tensor, batch: RecordTable) -> torch.Tensor:
+    """:func:`miss_distance` [m], [R], of model normals [R, 3] at concentrators [R, 3] (ENU, m)."""
+    d = predicted_spot(normal, concentrator, batch) - batch.spot
     return torch.sqrt(((d * batch.plane_right).sum(-1)) ** 2 + ((d * batch.plane_up).sum(-1)) ** 2)
+
+
+def per_heliostat_mean(values: torch.Tensor, heliostat_index: torch.Tensor, num_heliostats: int) -> torch.Tensor:
+    """Mean of per-record ``values`` [R] per heliostat, [H]; ``inf`` for a heliostat without records.
+
+    ``inf`` (not NaN) so that an early-stopping comparison ``error < best`` is simply False there.
+    """
+    s = values.new_zeros(num_heliostats).index_add_(0, heliostat_index, values)
+    c = torch.bincount(heliostat_index, minlength=num_heliostats)
+    return torch.where(c > 0, s / c.clamp_min(1), torch.full_like(s, float("inf")))
 
 
 def summarize(errors_rad: torch.Tensor, miss_m: torch.Tensor | None = None) -> dict:

@@ -20,11 +20,13 @@ import math
 
 import torch
 
+from ..io.records import RecordTable
 from . import metrics
-from .methods import MIN_TRAIN, fit_gradient_method
+from .fitloop import early_stopping_fit, net_state
+from .gradient import fit_gradient_method
+from .inputs import trainable
 from .model import Calibrated
 from .nets import BatchedMLP
-from ..io.records import RecordTable
 
 
 def _inputs(sun: torch.Tensor, aim: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
@@ -46,7 +48,7 @@ class MLPModel(Calibrated):
         rigid = self.kinematics
         with torch.no_grad():
             n_rec, c = metrics.model_normals(rigid, batch)
-            pred = batch.subset(torch.arange(len(batch)))
+            pred = batch.subset(torch.arange(len(batch), device=batch.spot.device))
             pred.motor_steps = self.predict_steps(batch)
             n_pred, _ = metrics.model_normals(rigid, pred)
             measured = metrics.measured_normals(batch, c)
@@ -64,9 +66,12 @@ def _simulate(rigid_model: Calibrated, train: RecordTable, site, every: str, yea
     from ..field import kinematics as K
     from ..sun import daylight_times, direction_from_paint_angles
 
-    _, az, el = daylight_times(year, every, site.latitude_deg, site.longitude_deg, site.altitude_m, min_elevation_deg=8.0)
-    sun = direction_from_paint_angles(az, el)
+    _, az, el = daylight_times(year, every, site.latitude_deg, site.longitude_deg, site.altitude_m,
+                               min_elevation_deg=8.0)
+    sun = direction_from_paint_angles(az, el).to(train.spot)
     kin = rigid_model.kinematics
+    # Draws in float64 on the CPU generator (one seed, the same draws for any dtype/device), then moved.
+    dev = train.spot.device
     h = kin.num_heliostats
     rows = []
     for i in range(h):
@@ -75,34 +80,20 @@ def _simulate(rigid_model: Calibrated, train: RecordTable, site, every: str, yea
             continue
         # Aim points: the heliostat's measured training spots, jittered by +-1 m in the target plane.
         spots, right, up = train.spot[m], train.plane_right[m], train.plane_up[m]
-        pick = torch.randint(len(spots), (len(sun),), generator=gen)
-        jit = (torch.rand(len(sun), 2, generator=gen, dtype=torch.float64) - 0.5) * 2.0
+        pick = torch.randint(len(spots), (len(sun),), generator=gen).to(dev)
+        jit = ((torch.rand(len(sun), 2, generator=gen, dtype=torch.float64) - 0.5) * 2.0).to(spots)
         aim = spots[pick] + jit[:, :1] * right[pick] + jit[:, 1:] * up[pick]
         steps, ok = K.inverse(kin.index([i] * len(sun)), aim, sun, strict=False)
         ok = ok & torch.isfinite(steps).all(-1)
-        rows.append((torch.full((int(ok.sum()),), i, dtype=torch.long), sun[ok], aim[ok], steps[ok]))
+        rows.append((torch.full((int(ok.sum()),), i, dtype=torch.long, device=dev), sun[ok], aim[ok], steps[ok]))
     return [torch.cat(c) for c in zip(*rows)]
 
 
-def fit_mlp_method(nominal, train, validation, *, seed=0, progress=False, hidden=32, depth=2, every="6h",
-                   year=2023, pretrain_steps=500, finetune_steps=300, lr=1e-2, site=None) -> MLPModel:
-    from ..site import Site
-
-    h = nominal.num_heliostats
-    rigid = fit_gradient_method(nominal, train, validation, seed=seed, progress=progress)
-    ok = rigid.ok & (train.counts() >= MIN_TRAIN)
-    site = site or Site()
-    gen = torch.Generator().manual_seed(int(seed))
-    reference = train.plane_center[0] if len(train) else torch.zeros(3, dtype=torch.float64)
-    hidx, sun, aim, steps = _simulate(rigid, train, site, every, year, gen)
-    k_sim = nominal.index(hidx)
-    y_sim = (steps - k_sim.min_steps) / (k_sim.max_steps - k_sim.min_steps)
-    x_sim = _inputs(sun, aim, reference)
-    net = BatchedMLP(h, 5, 2, hidden, depth, gen)
+def _pretrain(net, x_sim, hidx, y_sim, steps: int, lr: float, huber, progress: bool) -> None:
+    """Pretraining on the simulated records: AdaMax with a cosine schedule over ``steps``."""
     opt = torch.optim.Adamax(net.parameters(), lr=lr)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, pretrain_steps)
-    huber = torch.nn.HuberLoss(delta=0.01)
-    it = range(pretrain_steps)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
+    it = range(steps)
     if progress:
         from tqdm import tqdm
 
@@ -113,64 +104,83 @@ def fit_mlp_method(nominal, train, validation, *, seed=0, progress=False, hidden
         loss.backward()
         opt.step()
         sched.step()
+
+
+def _normalised_steps(kin, steps: torch.Tensor) -> torch.Tensor:
+    """Motor steps [R, 2] as a fraction of each actuator's range (kinematics indexed per record)."""
+    return (steps - kin.min_steps) / (kin.max_steps - kin.min_steps)
+
+
+def fit_mlp_method(nominal, train, validation, *, seed=0, progress=False, hidden=32, depth=2, every="6h",
+                   year=2023, pretrain_steps=500, finetune_steps=300, lr=1e-2, site=None,
+                   rigid_options: dict | None = None) -> MLPModel:
+    """``mlp``: per-heliostat networks from (sun, aim) to motor steps (see module docstring).
+
+    ``rigid_options`` go to the ``gradient`` fit of the rigid body (pretraining data and fallback). The
+    networks follow the nominal kinematics' dtype and device; every random draw takes ``seed``.
+    """
+    from ..site import Site
+
+    h, like = nominal.num_heliostats, nominal.position
+    rigid = fit_gradient_method(nominal, train, validation, seed=seed, progress=progress, **(rigid_options or {}))
+    ok = rigid.ok & trainable(train)
+    gen = torch.Generator().manual_seed(int(seed))
+    reference = train.plane_center[0] if len(train) else like.new_zeros(3)
+    hidx, sun, aim, steps = _simulate(rigid, train, site or Site(), every, year, gen)
+    net = BatchedMLP(h, 5, 2, hidden, depth, gen, dtype=like.dtype).to(like.device)
+    huber = torch.nn.HuberLoss(delta=0.01)
+    _pretrain(net, _inputs(sun, aim, reference), hidx, _normalised_steps(nominal.index(hidx), steps),
+              pretrain_steps, lr, huber, progress)
     # Fine-tune on the real training records; early stopping on validation (state per heliostat).
-    k_tr = nominal.index(train.heliostat_index)
     x_tr = _inputs(train.sun, train.spot, reference)
-    y_tr = (train.motor_steps - k_tr.min_steps) / (k_tr.max_steps - k_tr.min_steps)
+    y_tr = _normalised_steps(nominal.index(train.heliostat_index), train.motor_steps)
     model = MLPModel("mlp", list(train.heliostat_ids), nominal, rigid.names, rigid.delta, ok,
                      corrections=rigid.corrections, extras={"net": net, "reference": reference})
-    best = BatchedMLP(h, 5, 2, hidden, depth, gen)
-    best.copy_rows(net, torch.ones(h, dtype=torch.bool))
+    has_val = validation is not None and len(validation) > 0
 
-    def val_err():
-        if validation is None or not len(validation):
-            return torch.full((h,), math.inf, dtype=torch.float64)
-        e = model.pointing_error(validation)
-        s = torch.zeros(h, dtype=torch.float64).index_add_(0, validation.heliostat_index, e)
-        c = validation.counts()
-        return torch.where(c > 0, s / c.clamp_min(1), torch.full_like(s, math.inf))
+    def val_err(m=model):
+        if not has_val:
+            return like.new_full((h,), float("inf"))
+        return metrics.per_heliostat_mean(m.pointing_error(validation), validation.heliostat_index, h)
 
-    best_err = val_err()
-    pretrain_err = best_err.clone()
     opt = torch.optim.Adamax(net.parameters(), lr=lr / 5)
-    for step in range(finetune_steps):
+
+    def step():
         opt.zero_grad()
         loss = huber(net(x_tr, train.heliostat_index), y_tr)
         loss.backward()
         opt.step()
-        if (step + 1) % 10 == 0:
-            err = val_err()
-            better = err < best_err
-            best.copy_rows(net, better)
-            best_err = torch.where(better, err, best_err)
-    no_val = torch.isinf(best_err)
-    best.copy_rows(net, no_val)
+        return loss
+
+    pretrain_err = val_err()
+    validated = validation.counts() > 0 if has_val else torch.zeros(h, dtype=torch.bool, device=like.device)
+    log = early_stopping_fit(step, val_err, net_state(net), finetune_steps, validated=validated, check_every=10,
+                             progress=progress, desc="mlp finetune")
+    best, best_err = log.best, log.best_error
     model.extras["net"] = best
     # Fallback: the rigid body wherever the MLP is not better on validation (the report tells which).
-    if validation is not None and len(validation):
-        e = rigid.pointing_error(validation)
-        s_ = torch.zeros(h, dtype=torch.float64).index_add_(0, validation.heliostat_index, e)
-        c_ = validation.counts()
-        rigid_val = torch.where(c_ > 0, s_ / c_.clamp_min(1), torch.full_like(s_, math.inf))
-    else:
-        rigid_val = torch.full((h,), math.inf, dtype=torch.float64)
-    use_net = best_err < rigid_val
+    use_net = best_err < val_err(rigid)
     model.extras["use_net"] = use_net
-    ids = list(train.heliostat_ids)
-    model.extras["per_heliostat"] = {hid: {"validation_after_pretraining_mrad": float(pretrain_err[i]) * 1e3
-                                           if math.isfinite(pretrain_err[i]) else None,
-                                           "validation_after_finetuning_mrad": float(best_err[i]) * 1e3
-                                           if math.isfinite(best_err[i]) else None,
-                                           "rigid_validation_mrad": float(rigid_val[i]) * 1e3
-                                           if math.isfinite(rigid_val[i]) else None,
+    _describe(model, best, ok, use_net, pretrain_err, best_err, val_err(rigid), reference, len(hidx))
+    return model
+
+
+def _describe(model, best, ok, use_net, pretrain_err, best_err, rigid_val, reference, samples: int) -> None:
+    """Per-heliostat report, stored networks and summary of a fitted MLP model (into ``model.extras``)."""
+    def mrad(x):
+        return float(x) * 1e3 if math.isfinite(x) else None
+
+    ids = model.heliostat_ids
+    model.extras["per_heliostat"] = {hid: {"validation_after_pretraining_mrad": mrad(pretrain_err[i]),
+                                           "validation_after_finetuning_mrad": mrad(best_err[i]),
+                                           "rigid_validation_mrad": mrad(rigid_val[i]),
                                            "uses_network": bool(use_net[i])}
                                      for i, hid in enumerate(ids) if bool(ok[i])}
     model.extras["networks"] = {hid: {"config": dict(best.config, kind="mlp", reference=reference.tolist(),
                                                      use_net=bool(use_net[i])),
                                       "state": best.state_of(i)} for i, hid in enumerate(ids) if bool(ok[i])}
-    model.extras["summary"] = {"pretraining_samples": int(len(hidx)), "hidden": hidden, "depth": depth,
-                               "heliostats_using_network": int((use_net & ok).sum())}
-    return model
+    model.extras["summary"] = {"pretraining_samples": samples, "hidden": best.config["hidden"],
+                               "depth": best.config["depth"], "heliostats_using_network": int((use_net & ok).sum())}
 
 
 def aim_mlp(net_entry: dict, kin, sun: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

@@ -13,9 +13,9 @@ from dataclasses import dataclass, field
 import torch
 
 from ..field.plant import Kinematics
+from ..io.records import RecordTable
 from . import metrics
 from .params import apply_deviations
-from ..io.records import RecordTable
 
 
 @dataclass
@@ -63,19 +63,16 @@ class Calibrated:
     def pointing_error(self, batch: RecordTable) -> torch.Tensor:
         """Pointing error per record [rad], [R]."""
         with torch.no_grad():
-            n, c = self.normals(batch)
-            return metrics.angle_between(n, metrics.measured_normals(batch, c))
+            return metrics.pointing_error_of_normals(*self.normals(batch), batch)
 
     def miss_distance(self, batch: RecordTable) -> torch.Tensor:
         """Miss distance on the target plane per record [m], [R]."""
         with torch.no_grad():
-            n, c = self.normals(batch)
-            d = metrics.predicted_spot(n, c, batch) - batch.spot
-            return torch.sqrt((d * batch.plane_right).sum(-1) ** 2 + (d * batch.plane_up).sum(-1) ** 2)
+            return metrics.miss_distance_of_normals(*self.normals(batch), batch)
 
 
 def nominal_model(heliostat_ids, kin: Kinematics) -> Calibrated:
     """The uncalibrated model (zero deviations) in the same interface."""
-    h = kin.num_heliostats
-    return Calibrated("nominal", list(heliostat_ids), kin, (), torch.zeros(h, 0, dtype=torch.float64),
-                      torch.ones(h, dtype=torch.bool))
+    h, like = kin.num_heliostats, kin.position
+    return Calibrated("nominal", list(heliostat_ids), kin, (), like.new_zeros(h, 0),
+                      torch.ones(h, dtype=torch.bool, device=like.device))

@@ -74,7 +74,8 @@ class BatchedMLP(torch.nn.Module):
     @classmethod
     def from_state(cls, config: dict, state: dict) -> "BatchedMLP":
         """A 1-heliostat network from :meth:`state_of` output."""
-        net = cls(1, config["n_in"], config["n_out"], config["hidden"], config["depth"], torch.Generator().manual_seed(0))
+        net = cls(1, config["n_in"], config["n_out"], config["hidden"], config["depth"],
+                  torch.Generator().manual_seed(0))
         with torch.no_grad():
             for i in range(len(net.weights)):
                 net.weights[i].copy_(torch.as_tensor(state[f"w{i}"]).double().unsqueeze(0))

@@ -29,7 +29,8 @@ _AX = "enu"
 
 #: (name, Kinematics field, index within the per-heliostat tensor, kind). Kinds set prior scales.
 PARAMETERS: tuple = tuple(
-    [(f"joint_translation_{j + 1}_{a}", "joint_translation", (j, i), "translation") for j in range(2) for i, a in enumerate(_AX)]
+    [(f"joint_translation_{j + 1}_{a}", "joint_translation", (j, i), "translation")
+     for j in range(2) for i, a in enumerate(_AX)]
     + [(f"joint_tilt_{j + 1}_{a}", "joint_tilt", (j, i), "tilt") for j in range(2) for i, a in enumerate(_AX)]
     + [(f"concentrator_translation_{a}", "concentrator_translation", (i,), "translation") for i, a in enumerate(_AX)]
     + [(f"concentrator_tilt_{a}", "concentrator_tilt", (i,), "tilt") for i, a in enumerate(_AX)]
@@ -62,9 +63,9 @@ def kinds(names) -> list[str]:
     return [_BY_NAME[n][3] for n in names]
 
 
-def units(names, dtype=torch.float64) -> torch.Tensor:
+def units(names, dtype=torch.float64, device=None) -> torch.Tensor:
     """``UNIT`` of each named parameter, [P]."""
-    return torch.tensor([UNIT[k] for k in kinds(names)], dtype=dtype)
+    return torch.tensor([UNIT[k] for k in kinds(names)], dtype=dtype, device=device)
 
 
 def check_names(names) -> tuple:

@@ -1,11 +1,21 @@
-"""One calibration run: read, validate, split, check properties, fit, evaluate, report.
+"""One calibration run as a pipeline of named steps (:data:`STEPS`).
 
-:func:`run_calibration` is what ``heliotwin calibrate`` does; benchmarks and tests call it directly.
-Every heliostat or record that cannot be used is reported with a reason, never dropped silently.
+:func:`run_calibration` is what ``heliotwin calibrate`` does; benchmarks and tests call it directly. It
+runs, in order, on one :class:`Run` state: ``select`` (heliostats asked for), ``prepare`` (validated
+records; heliostats with too few are skipped), ``rebatch`` (the run's heliostat axis), ``split``
+(train/validation/test), ``check_properties`` (suspicious property values, corrected where the training
+records support it), ``fit`` (the method), ``evaluate`` (pointing error and miss distance of calibrated
+and nominal model), ``report_heliostats``, ``report_overall`` and ``plot_arrays``. Every heliostat or
+record that cannot be used is reported with a reason, never dropped silently.
+
+Report keys mean one thing each: per heliostat, ``mean_test_mrad``/``median_test_mrad`` are the mean and
+median over its test records; over the run, ``median_of_mean_test_mrad`` is the median over heliostats of
+those per-heliostat means (the headline figure), ``median_of_median_test_mrad`` the median of the medians.
 """
 from __future__ import annotations
 
 import math
+import os
 import time
 from dataclasses import dataclass, field
 
@@ -14,10 +24,11 @@ import torch
 
 from ..errors import HeliotwinError
 from ..io.paint import load_paint
-from . import metrics
-from .methods import MIN_TRAIN, get_method
-from .model import Calibrated, nominal_model
 from ..io.records import RecordTable, normalise_source, prepare_records
+from . import metrics
+from .inputs import MIN_TRAIN
+from .methods import get_method
+from .model import Calibrated, nominal_model
 from .splits import SPLIT_TYPES, split_records
 from .suspicious import check_and_correct
 
@@ -57,19 +68,12 @@ def validate_config(cfg: RunConfig) -> None:
         raise HeliotwinError(f"--train must be >= 1, got {cfg.train}")
     v = cfg.n_validation()
     if v < 0 or v >= cfg.train:
-        raise HeliotwinError(f"--validation must be in [0, train) (validation is carved out of --train {cfg.train}), got {v}")
+        raise HeliotwinError(f"--validation must be in [0, train) (validation is carved out of --train {cfg.train}), "
+                             f"got {v}")
     if cfg.test is not None and cfg.test < 1:
         raise HeliotwinError(f"--test must be >= 1, got {cfg.test}")
     if cfg.min_records < 0:
         raise HeliotwinError(f"--min-records must be >= 0, got {cfg.min_records}")
-
-
-def _per_heliostat(values: torch.Tensor, batch: RecordTable, h: int) -> torch.Tensor:
-    return values[batch.heliostat_index == h]
-
-
-def _stats(err: torch.Tensor, miss: torch.Tensor | None = None) -> dict:
-    return metrics.summarize(err, miss)
 
 
 def _median(xs):
@@ -82,10 +86,115 @@ def _mean(xs):
     return float(np.mean(xs)) if xs else None
 
 
-def _image_context(ds, plant, all_ids, run_ids) -> dict:
+@dataclass
+class Run:
+    """State of one calibration run, filled in by the steps of :data:`STEPS` (each sets what it names)."""
+
+    cfg: RunConfig
+    dataset: object = None
+    t_start: float = field(default_factory=time.perf_counter)
+    stop: bool = False
+    report: dict = field(default_factory=dict)
+    arrays: dict = field(default_factory=dict)
+    wanted: list = field(default_factory=list)
+    run_ids: list = field(default_factory=list)
+    batch_all: RecordTable | None = None
+    skipped_records: list = field(default_factory=list)
+    skipped_heliostats: dict = field(default_factory=dict)
+    batch: RecordTable | None = None
+    nominal_raw: object = None
+    nominal: object = None
+    findings: dict = field(default_factory=dict)
+    train: RecordTable | None = None
+    validation: RecordTable | None = None
+    test: RecordTable | None = None
+    split_info: dict = field(default_factory=dict)
+    model: Calibrated | None = None
+    fit_seconds: float = 0.0
+    errors: dict = field(default_factory=dict)
+
+    @property
+    def parts(self) -> dict:
+        return {"train": self.train, "validation": self.validation, "test": self.test}
+
+
+def select(run: Run) -> None:
+    """The heliostats asked for (``--heliostats``, default all); an unknown id is a one-line error."""
+    cfg = run.cfg
+    if run.dataset is None:
+        run.dataset = load_paint(cfg.paint)
+    all_ids = list(run.dataset.plant.field.ids)
+    if cfg.heliostats:
+        unknown = [h for h in cfg.heliostats if h not in all_ids]
+        if unknown:
+            raise HeliotwinError(f"heliostat(s) {', '.join(unknown)} not in {cfg.paint}; "
+                                 f"available: {', '.join(all_ids)}")
+        run.wanted = list(dict.fromkeys(cfg.heliostats))
+    else:
+        run.wanted = all_ids
+
+
+def prepare(run: Run) -> None:
+    """Validated records of the wanted heliostats; heliostats with fewer than ``--min-records`` are skipped."""
+    cfg = run.cfg
+    run.batch_all, run.skipped_records = prepare_records(run.dataset.plant, run.dataset.records, run.wanted,
+                                                         focal_spot=cfg.focal_spot, plane_tolerance=cfg.plane_tolerance)
+    counts = run.batch_all.counts()
+    need = max(cfg.min_records, 1)
+    for h, hid in enumerate(run.wanted):
+        if int(counts[h]) < need:
+            run.skipped_heliostats[hid] = f"too few usable records ({int(counts[h])} < --min-records {need})"
+        else:
+            run.run_ids.append(hid)
+    config = {k: v for k, v in cfg.__dict__.items() if k not in ("progress",)}
+    config["paint"] = os.fspath(cfg.paint)
+    config["validation"] = cfg.n_validation()
+    run.report = {"config": config, "skipped_records": run.skipped_records,
+                  "heliostats": {hid: {"status": "skipped", "reason": r} for hid, r in run.skipped_heliostats.items()}}
+    if not run.run_ids:
+        run.report["overall"] = {"n_heliostats": 0, "median_of_mean_test_mrad": None, "mean_of_mean_test_mrad": None,
+                                 "nominal_median_of_mean_test_mrad": None, "note": "no heliostat with enough records",
+                                 "seconds": time.perf_counter() - run.t_start}
+        run.stop = True
+
+
+def rebatch(run: Run) -> None:
+    """Records and nominal kinematics over the heliostats that run (heliostat index = position in run_ids)."""
+    keep = torch.tensor([run.wanted.index(h) for h in run.run_ids])
+    batch = run.batch_all.subset(torch.isin(run.batch_all.heliostat_index, keep))
+    remap = torch.full((len(run.wanted),), -1, dtype=torch.long)
+    remap[keep] = torch.arange(len(run.run_ids))
+    batch.heliostat_index = remap[batch.heliostat_index]
+    batch.heliostat_ids = list(run.run_ids)
+    run.batch = batch
+    all_ids = list(run.dataset.plant.field.ids)
+    run.nominal_raw = run.dataset.plant.field.kinematics.index([all_ids.index(h) for h in run.run_ids])
+
+
+def split(run: Run) -> None:
+    """Train/validation/test records per heliostat (validation carved out of ``--train``)."""
+    cfg = run.cfg
+    tr, va, te, run.split_info = split_records(run.batch, cfg.split, cfg.train, cfg.n_validation(), cfg.test,
+                                               seed=cfg.seed)
+    run.train, run.validation, run.test = run.batch.subset(tr), run.batch.subset(va), run.batch.subset(te)
+
+
+def check_properties(run: Run) -> None:
+    """Suspicious property values, corrected where the training + validation records support it."""
+    if run.cfg.correct_suspicious:
+        seen = RecordTable.concatenate([run.train, run.validation])
+        run.nominal, run.findings = check_and_correct(run.nominal_raw, run.run_ids,
+                                                      run.dataset.plant.field.kinematics, seen)
+    else:
+        run.nominal, run.findings = run.nominal_raw, {}
+
+
+def _image_context(ds, run_ids) -> dict:
     """What the ``images`` method needs beyond records: flux-image paths, surfaces, targets, sun."""
     from ..field.plant import Surfaces
 
+    plant = ds.plant
+    all_ids = list(plant.field.ids)
     srf = plant.field.surfaces
     idx = torch.tensor([all_ids.index(h) for h in run_ids])
     surfaces = Surfaces(control_points=srf.control_points[idx], degree_u=srf.degree_u, degree_v=srf.degree_v,
@@ -94,8 +203,110 @@ def _image_context(ds, plant, all_ids, run_ids) -> dict:
     return {"images": images, "surfaces": surfaces, "targets": plant.targets, "sun": plant.sun}
 
 
+def fit(run: Run) -> None:
+    """The method on the training (and validation) records; ``fit_seconds`` is its wall time alone."""
+    cfg = run.cfg
+    options = dict(cfg.method_options)
+    if cfg.method == "images":
+        options.update(_image_context(run.dataset, run.run_ids))
+    t_fit = time.perf_counter()
+    run.model = get_method(cfg.method)(run.nominal, run.train, run.validation, seed=cfg.seed, progress=cfg.progress,
+                                       **options)
+    run.fit_seconds = time.perf_counter() - t_fit
+    run.model.corrections = {h: f for h, f in run.findings.items() if f.get("corrected")}
+
+
+def evaluate(run: Run) -> None:
+    """Per-record pointing error [rad] and miss distance [m]: calibrated on every part, nominal on test.
+
+    The nominal model is the *uncorrected* one: what the plant would do without this calibration.
+    """
+    def of(model, b):
+        empty = b.spot.new_zeros(0)
+        return (model.pointing_error(b), model.miss_distance(b)) if len(b) else (empty, empty)
+
+    with torch.no_grad():
+        run.errors = {name: of(run.model, b) for name, b in run.parts.items()}
+        run.errors["nominal_test"] = of(nominal_model(run.run_ids, run.nominal_raw), run.test)
+
+
+def _heliostat_report(run: Run, h: int, hid: str, per_h_seconds: float) -> dict:
+    model, info = run.model, run.split_info[hid]
+    ok = bool(model.ok[h])
+    rep = {"status": "ok" if ok else "skipped", "split": info}
+    if not ok:
+        rep["reason"] = model.reasons.get(hid, f"too few training records ({info['train']} < {MIN_TRAIN})")
+    for name, b in list(run.parts.items()) + [("nominal_test", run.test)]:
+        e, m = run.errors[name]
+        mine = b.heliostat_index == h
+        rep[name] = metrics.summarize(e[mine], m[mine])
+    if not ok:
+        # An uncalibrated heliostat has no calibrated error; do not let nominal numbers pass as one.
+        rep["test"] = {k: None for k in rep["test"]}
+    rep["mean_test_mrad"] = rep["test"]["mean_mrad"]
+    rep["median_test_mrad"] = rep["test"]["median_mrad"]
+    rep["nominal_mean_test_mrad"] = rep["nominal_test"]["mean_mrad"]
+    rep["fit_seconds_share"] = per_h_seconds
+    if model.names and ok:
+        rep["parameters"] = {n: float(model.delta[h, j]) for j, n in enumerate(model.names)}
+    if hid in run.findings:
+        rep["suspicious"] = run.findings[hid]
+    if model.extras.get("per_heliostat", {}).get(hid):
+        rep["method_info"] = model.extras["per_heliostat"][hid]
+    return rep
+
+
+def report_heliostats(run: Run) -> None:
+    """One entry per heliostat that ran; ``fit_seconds_share`` = the run's ``fit_seconds`` / H (the fit is batched,
+    a heliostat has no time of its own; ``overall.seconds`` is the whole run's wall time)."""
+    per_h_seconds = run.fit_seconds / max(1, len(run.run_ids))
+    for h, hid in enumerate(run.run_ids):
+        run.report["heliostats"][hid] = _heliostat_report(run, h, hid, per_h_seconds)
+
+
+def report_overall(run: Run) -> None:
+    """Statistics over the calibrated heliostats (each key: which statistic over heliostats of which one)."""
+    cfg, reps = run.cfg, run.report["heliostats"]
+    ran = [reps[h] for h in run.run_ids if reps[h]["status"] == "ok"]
+    run.report["overall"] = {
+        "method": cfg.method, "split": cfg.split, "n_heliostats": len(ran),
+        "median_of_mean_test_mrad": _median([r["mean_test_mrad"] for r in ran]),
+        "mean_of_mean_test_mrad": _mean([r["mean_test_mrad"] for r in ran]),
+        "median_of_median_test_mrad": _median([r["median_test_mrad"] for r in ran]),
+        "nominal_median_of_mean_test_mrad": _median([r["nominal_mean_test_mrad"] for r in ran]),
+        "nominal_mean_of_mean_test_mrad": _mean([r["nominal_mean_test_mrad"] for r in ran]),
+        "median_of_mean_train_mrad": _median([r["train"]["mean_mrad"] for r in ran]),
+        "median_of_median_test_miss_m": _median([r["test"].get("median_miss_m") for r in ran]),
+        "mean_of_mean_train_test_distance_rad": _mean([r["split"].get("mean_train_test_distance_rad") for r in ran]),
+        "fit_seconds": run.fit_seconds,
+        "seconds": time.perf_counter() - run.t_start,
+        "skipped_heliostats": len(run.skipped_heliostats) + sum(1 for h in run.run_ids if reps[h]["status"] != "ok"),
+        "skipped_records": len(run.skipped_records),
+        "dropped_no_time": int(sum(run.split_info[h]["dropped_no_time"] for h in run.run_ids)),
+    }
+    if run.model.extras.get("summary"):
+        run.report["overall"]["method_info"] = run.model.extras["summary"]
+
+
+def plot_arrays(run: Run) -> None:
+    """Per-record arrays of the test records for the plots (errors in mrad)."""
+    test = run.test
+    run.arrays = {"heliostat_ids": run.run_ids,
+                  "test_heliostat": test.heliostat_index.cpu().numpy(), "test_azimuth": test.sun_azimuth.cpu().numpy(),
+                  "test_elevation": test.sun_elevation.cpu().numpy(),
+                  "test_error_mrad": run.errors["test"][0].cpu().numpy() * 1e3,
+                  "test_nominal_mrad": run.errors["nominal_test"][0].cpu().numpy() * 1e3,
+                  "train": run.train, "validation": run.validation, "test": test, "nominal": run.nominal}
+
+
+#: The steps of :func:`run_calibration`, in order (name, function of :class:`Run`).
+STEPS = (("select", select), ("prepare", prepare), ("rebatch", rebatch), ("split", split),
+         ("check_properties", check_properties), ("fit", fit), ("evaluate", evaluate),
+         ("report_heliostats", report_heliostats), ("report_overall", report_overall), ("plot_arrays", plot_arrays))
+
+
 def run_calibration(cfg: RunConfig, dataset=None) -> tuple[dict, Calibrated | None, dict]:
-    """Run one calibration.
+    """Run one calibration: the steps of :data:`STEPS` in order (stopping early when no heliostat can run).
 
     Parameters
     ----------
@@ -114,121 +325,9 @@ def run_calibration(cfg: RunConfig, dataset=None) -> tuple[dict, Calibrated | No
         error [mrad]).
     """
     validate_config(cfg)
-    t_start = time.perf_counter()
-    ds = dataset if dataset is not None else load_paint(cfg.paint)
-    plant = ds.plant
-    all_ids = list(plant.field.ids)
-    if cfg.heliostats:
-        unknown = [h for h in cfg.heliostats if h not in all_ids]
-        if unknown:
-            raise HeliotwinError(f"heliostat(s) {', '.join(unknown)} not in {cfg.paint}; available: {', '.join(all_ids)}")
-        wanted = list(dict.fromkeys(cfg.heliostats))
-    else:
-        wanted = all_ids
-    batch_all, skipped_records = prepare_records(plant, ds.records, wanted, focal_spot=cfg.focal_spot,
-                                                 plane_tolerance=cfg.plane_tolerance)
-    counts = batch_all.counts()
-    skipped_heliostats = {}
-    run_ids = []
-    for h, hid in enumerate(wanted):
-        n = int(counts[h])
-        if n < max(cfg.min_records, 1):
-            skipped_heliostats[hid] = f"too few usable records ({n} < --min-records {max(cfg.min_records, 1)})"
-        else:
-            run_ids.append(hid)
-    heliostat_reports: dict = {hid: {"status": "skipped", "reason": r} for hid, r in skipped_heliostats.items()}
-    report = {"config": {k: v for k, v in cfg.__dict__.items() if k not in ("progress",)},
-              "skipped_records": skipped_records, "heliostats": heliostat_reports}
-    report["config"]["validation"] = cfg.n_validation()
-    arrays: dict = {}
-    if not run_ids:
-        report["overall"] = {"n_heliostats": 0, "median_test_mrad": None, "mean_test_mrad": None,
-                             "nominal_median_test_mrad": None, "seconds": time.perf_counter() - t_start,
-                             "note": "no heliostat with enough records"}
-        return report, None, arrays
-    # Re-batch over the heliostats that run (their index = position in run_ids).
-    keep = torch.tensor([wanted.index(h) for h in run_ids])
-    sel = torch.isin(batch_all.heliostat_index, keep)
-    batch = batch_all.subset(sel)
-    remap = torch.full((len(wanted),), -1, dtype=torch.long)
-    remap[keep] = torch.arange(len(run_ids))
-    batch.heliostat_index = remap[batch.heliostat_index]
-    batch.heliostat_ids = list(run_ids)
-    field_kin = plant.field.kinematics
-    nominal_raw = field_kin.index([all_ids.index(h) for h in run_ids])
-
-    tr_idx, va_idx, te_idx, split_info = split_records(batch, cfg.split, cfg.train, cfg.n_validation(), cfg.test, seed=cfg.seed)
-    train, val, test = batch.subset(tr_idx), batch.subset(va_idx), batch.subset(te_idx)
-    seen = RecordTable.concatenate([train, val])
-
-    if cfg.correct_suspicious:
-        nominal, findings = check_and_correct(nominal_raw, run_ids, field_kin, seen)
-    else:
-        nominal, findings = nominal_raw, {}
-
-    fit = get_method(cfg.method)
-    options = dict(cfg.method_options)
-    if cfg.method == "images":
-        options.update(_image_context(ds, plant, all_ids, run_ids))
-    t_fit = time.perf_counter()
-    model = fit(nominal, train, val, seed=cfg.seed, progress=cfg.progress, **options)
-    fit_seconds = time.perf_counter() - t_fit
-    model.corrections = {h: f for h, f in findings.items() if f.get("corrected")}
-
-    nominal_m = nominal_model(run_ids, nominal_raw)
-    with torch.no_grad():
-        ev = {}
-        for name, b in (("train", train), ("validation", val), ("test", test)):
-            ev[name] = (model.pointing_error(b), model.miss_distance(b)) if len(b) else (torch.zeros(0), torch.zeros(0))
-        nom_test = (nominal_m.pointing_error(test), nominal_m.miss_distance(test)) if len(test) else (torch.zeros(0), torch.zeros(0))
-    per_h_seconds = fit_seconds / max(1, len(run_ids))
-    names = list(model.names)
-    for h, hid in enumerate(run_ids):
-        info = split_info[hid]
-        rep = {"status": "ok" if bool(model.ok[h]) else "skipped", "split": info}
-        if not bool(model.ok[h]):
-            rep["reason"] = model.reasons.get(hid, f"too few training records ({info['train']} < {MIN_TRAIN})")
-        for name in ("train", "validation", "test"):
-            b = {"train": train, "validation": val, "test": test}[name]
-            e, m = ev[name]
-            rep[name] = _stats(_per_heliostat(e, b, h), _per_heliostat(m, b, h))
-        rep["nominal_test"] = _stats(_per_heliostat(nom_test[0], test, h), _per_heliostat(nom_test[1], test, h))
-        if rep["status"] != "ok":
-            # An uncalibrated heliostat has no calibrated error; do not let nominal numbers pass as one.
-            rep["test"] = {k: None for k in rep["test"]}
-        rep["mean_test_mrad"] = rep["test"]["mean_mrad"]
-        rep["median_test_mrad"] = rep["test"]["median_mrad"]
-        rep["nominal_mean_test_mrad"] = rep["nominal_test"]["mean_mrad"]
-        rep["seconds"] = per_h_seconds
-        if names and bool(model.ok[h]):
-            rep["parameters"] = {n: float(model.delta[h, j]) for j, n in enumerate(names)}
-        if hid in findings:
-            rep["suspicious"] = findings[hid]
-        if model.extras.get("per_heliostat", {}).get(hid):
-            rep["method_info"] = model.extras["per_heliostat"][hid]
-        heliostat_reports[hid] = rep
-    ran = [heliostat_reports[h] for h in run_ids if heliostat_reports[h]["status"] == "ok"]
-    report["overall"] = {
-        "method": cfg.method, "split": cfg.split, "n_heliostats": len(ran),
-        "median_test_mrad": _median([r["mean_test_mrad"] for r in ran]),
-        "mean_test_mrad": _mean([r["mean_test_mrad"] for r in ran]),
-        "median_of_median_test_mrad": _median([r["median_test_mrad"] for r in ran]),
-        "nominal_median_test_mrad": _median([r["nominal_mean_test_mrad"] for r in ran]),
-        "nominal_mean_test_mrad": _mean([r["nominal_mean_test_mrad"] for r in ran]),
-        "median_train_mrad": _median([r["train"]["mean_mrad"] for r in ran]),
-        "median_test_miss_m": _median([r["test"].get("median_miss_m") for r in ran]),
-        "mean_train_test_distance_rad": _mean([r["split"].get("mean_train_test_distance_rad") for r in ran]),
-        "fit_seconds": fit_seconds,
-        "seconds": time.perf_counter() - t_start,
-        "skipped_heliostats": len(skipped_heliostats) + sum(1 for h in run_ids if heliostat_reports[h]["status"] != "ok"),
-        "skipped_records": len(skipped_records),
-        "dropped_no_time": int(sum(split_info[h]["dropped_no_time"] for h in run_ids)),
-    }
-    if model.extras.get("summary"):
-        report["overall"]["method_info"] = model.extras["summary"]
-    arrays = {"heliostat_ids": run_ids,
-              "test_heliostat": test.heliostat_index.numpy(), "test_azimuth": test.sun_azimuth.numpy(),
-              "test_elevation": test.sun_elevation.numpy(), "test_error_mrad": ev["test"][0].numpy() * 1e3,
-              "test_nominal_mrad": nom_test[0].numpy() * 1e3, "train": train, "validation": val, "test": test,
-              "nominal": nominal}
-    return report, model, arrays
+    run = Run(cfg, dataset)
+    for _, step in STEPS:
+        step(run)
+        if run.stop:
+            break
+    return run.report, run.model, run.arrays

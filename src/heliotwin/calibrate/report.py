@@ -1,16 +1,21 @@
-"""JSON report (written atomically) and the plots a plant engineer reads at a glance.
+"""The calibration report's layout and the plots a plant engineer reads at a glance.
 
-Report layout (``heliotwin calibrate --json report.json``)::
+The report is written by :func:`heliotwin.io.report.write_json` (strict JSON, atomic). Layout
+(``heliotwin calibrate --json report.json``); over heliostats, ``<stat>_of_<stat>`` names which statistic
+over heliostats of which per-heliostat statistic::
 
     config              the run's options
-    overall             median_test_mrad (median over heliostats of each heliostat's MEAN test error),
-                        mean_test_mrad, nominal_median_test_mrad, nominal_mean_test_mrad,
-                        median_train_mrad, median_test_miss_m, mean_train_test_distance_rad,
-                        seconds, fit_seconds, skipped_heliostats, skipped_records, dropped_no_time
+    overall             median_of_mean_test_mrad (median over heliostats of each heliostat's mean test
+                        error: the headline figure), mean_of_mean_test_mrad, median_of_median_test_mrad,
+                        nominal_median_of_mean_test_mrad, nominal_mean_of_mean_test_mrad,
+                        median_of_mean_train_mrad, median_of_median_test_miss_m,
+                        mean_of_mean_train_test_distance_rad, seconds, fit_seconds, skipped_heliostats,
+                        skipped_records, dropped_no_time, method_info
     heliostats.<HID>    status ("ok"/"skipped"), reason, split (sizes, dropped_no_time, coverage,
                         mean_train_test_distance_rad), train/validation/test/nominal_test
                         ({n, median_mrad, mean_mrad, max_mrad, median_miss_m}), mean_test_mrad,
-                        median_test_mrad, nominal_mean_test_mrad, seconds, parameters, suspicious
+                        median_test_mrad, nominal_mean_test_mrad, fit_seconds_share, parameters,
+                        suspicious, method_info
     skipped_records     [{record_id, heliostat_id, reason}]
     plots               file names of the figures written next to the JSON
 
@@ -20,51 +25,14 @@ test error against the number of training records.
 """
 from __future__ import annotations
 
-import json
-import math
 import os
 import tempfile
 
 import numpy as np
 
-
-def _clean(obj):
-    """JSON-safe copy: numpy/torch scalars to Python, NaN/inf to None (a report never holds NaN)."""
-    import torch
-
-    if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, torch.Tensor):
-        return _clean(obj.tolist())
-    if isinstance(obj, np.ndarray):
-        return _clean(obj.tolist())
-    if isinstance(obj, (np.floating, float)):
-        f = float(obj)
-        return f if math.isfinite(f) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, (str, int, bool)) or obj is None:
-        return obj
-    return str(obj)
-
-
-def write_json(path, data) -> None:
-    """Write JSON atomically (temporary file in the same folder, then ``os.replace``)."""
-    path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".json", dir=folder)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(_clean(data), fh, indent=1, allow_nan=False)
-            fh.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+# The one strict-JSON writer of the package. Re-exported because ``calibrate/cli.py`` still imports
+# ``write_json`` from here; import it from :mod:`heliotwin.io.report` instead.
+from ..io.report import write_json  # noqa: F401
 
 
 def _plt():
@@ -135,7 +103,7 @@ def plot_training_size(path, curves: dict, title: str = "") -> None:
 
     Parameters
     ----------
-    curves : dict of label -> list of (n_train, median_test_mrad)
+    curves : dict of label -> list of (n_train, median_of_mean_test_mrad)
     """
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6, 4))

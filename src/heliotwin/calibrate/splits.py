@@ -327,9 +327,11 @@ def split_records(batch, kind: str, n_train: int, n_val: int, n_test: int | None
             out[key].append(torch.as_tensor(rows[s[key]], dtype=torch.long))
         pts = sun_points(az, el)
         seen = np.concatenate([s["train"], s["validation"]])
-        info[hid] = {"n_records": int(len(rows)), "train": int(len(s["train"])), "validation": int(len(s["validation"])),
+        info[hid] = {"n_records": int(len(rows)), "train": int(len(s["train"])),
+                     "validation": int(len(s["validation"])),
                      "test": int(len(s["test"])), "dropped_no_time": int(s["dropped_no_time"]),
                      "mean_train_test_distance_rad": mean_train_test_distance(pts[seen], pts[s["test"]]),
-                     "coverage_train": coverage(az[seen], el[seen]), "coverage_test": coverage(az[s["test"]], el[s["test"]])}
+                     "coverage_train": coverage(az[seen], el[seen]),
+                     "coverage_test": coverage(az[s["test"]], el[s["test"]])}
     cat = {k: (torch.cat(v) if v else torch.zeros(0, dtype=torch.long)) for k, v in out.items()}
     return cat["train"], cat["validation"], cat["test"], info

@@ -18,8 +18,12 @@ from __future__ import annotations
 import torch
 
 from ..field.plant import ACTUATOR_FIELDS, Kinematics
-from . import metrics
 from ..io.records import RecordTable
+from . import metrics
+from .inputs import MIN_TRAIN
+from .lm import fit_lm
+from .params import STONE8
+from .priors import LOOSE_SIGMA, field_prior
 
 #: (kind of test, threshold): relative deviation from the field median for lengths/increment, absolute
 #: [rad] for the initial angle.
@@ -60,13 +64,44 @@ def flag_values(kin: Kinematics, ids, medians: dict) -> dict:
 
 def _map_cost(kin: Kinematics, batch: RecordTable, fp) -> float:
     """Posterior cost (data misfit + field prior, in rad^2) of the best Stone/Jülich fit of ONE heliostat."""
-    from .lm import fit_lm
-    from .params import STONE8
-    from .priors import LOOSE_SIGMA
-
     _, info = fit_lm(kin, batch, names=STONE8, prior_sigma=LOOSE_SIGMA, prior_mean=fp[0].unsqueeze(0).clone(),
                      prior_sigma_vector=fp[1])
     return 2.0 * info["cost"]
+
+
+def _judge_correction(kin: Kinematics, h: int, flags: list, medians: dict, train: RecordTable, before: float,
+                      fp) -> dict:
+    """Whether heliostat ``h``'s training records support replacing its flagged values by the field medians.
+
+    ``before`` is its nominal training error [rad] (median over records); ``fp`` the field prior or None.
+    Returns the report entry: ``corrected`` (bool), ``note`` and the numbers the decision was made on.
+    """
+    m = train.heliostat_index == h
+    if int(m.sum()) < MIN_TRAIN:
+        return {"corrected": False,
+                "note": "actuator value(s) far from the field median; too few training records to check"}
+    trial = {f: getattr(kin, f)[h:h + 1].clone() for f in ACTUATOR_FIELDS}
+    for fl in flags:
+        trial[fl["field"]][0, fl["axis"] - 1] = medians[fl["field"]][fl["axis"] - 1]
+    sub = train.subset(m)
+    sub.heliostat_index = torch.zeros(len(sub), dtype=torch.long, device=m.device)
+    k_orig = kin.index(h)
+    k_corr = k_orig.replace(**trial)
+    with torch.no_grad():
+        after = float(metrics.pointing_error(k_corr, sub).median())
+    entry = {"nominal_train_mrad_before": before * 1e3, "nominal_train_mrad_after_correction": after * 1e3}
+    if fp is not None:
+        c0, c1 = _map_cost(k_orig, sub, fp), _map_cost(k_corr, sub, fp)
+        entry["posterior_cost_before"], entry["posterior_cost_after_correction"] = c0, c1
+        accept = c1 < c0
+        why = f"posterior cost under the field prior {c0:.3g} -> {c1:.3g}"
+    else:
+        accept = after * ACCEPT_FACTOR <= before
+        why = f"nominal training error {before * 1e3:.1f} -> {after * 1e3:.1f} mrad"
+    entry["corrected"] = accept
+    entry["note"] = (f"suspicious actuator value(s) replaced by the field median ({why})" if accept else
+                     f"actuator value(s) far from the field median but the records prefer them ({why}); kept")
+    return entry
 
 
 def check_and_correct(kin: Kinematics, ids, field_kin: Kinematics, train: RecordTable) -> tuple[Kinematics, dict]:
@@ -95,18 +130,14 @@ def check_and_correct(kin: Kinematics, ids, field_kin: Kinematics, train: Record
     findings : dict of heliostat id -> dict
         ``flags`` (values), nominal training error before/after, ``corrected`` (bool), ``note``.
     """
-    from .lm import fit_lm
-    from .methods import MIN_TRAIN
-    from .params import STONE8
-    from .priors import LOOSE_SIGMA, field_prior
-
     findings: dict = {}
     if field_kin.num_heliostats < MIN_FIELD or len(train) == 0:
         return kin, findings
     with torch.no_grad():
         err = metrics.pointing_error(kin, train)
     counts = train.counts()
-    per_h = [float(err[train.heliostat_index == h].median()) if int(counts[h]) else float("nan") for h in range(len(ids))]
+    per_h = [float(err[train.heliostat_index == h].median()) if int(counts[h]) else float("nan")
+             for h in range(len(ids))]
     finite = [e for e in per_h if e == e]
     field_nominal = float(torch.tensor(finite).median()) if finite else float("nan")
     medians = field_medians(field_kin)
@@ -120,40 +151,10 @@ def check_and_correct(kin: Kinematics, ids, field_kin: Kinematics, train: Record
     for h, hid in enumerate(ids):
         entry = {}
         if hid in flags:
-            entry["flags"] = flags[hid]
-            trial = {f: getattr(kin, f)[h:h + 1].clone() for f in ACTUATOR_FIELDS}
-            for fl in flags[hid]:
-                trial[fl["field"]][0, fl["axis"] - 1] = medians[fl["field"]][fl["axis"] - 1]
-            m = train.heliostat_index == h
-            if int(m.sum()) >= MIN_TRAIN:
-                sub = train.subset(m)
-                sub.heliostat_index = torch.zeros(len(sub), dtype=torch.long)
-                k_orig = kin.index(h)
-                k_corr = k_orig.replace(**trial)
-                with torch.no_grad():
-                    after = float(metrics.pointing_error(k_corr, sub).median())
-                before = per_h[h]
-                entry["nominal_train_mrad_before"] = before * 1e3
-                entry["nominal_train_mrad_after_correction"] = after * 1e3
-                if fp is not None:
-                    c0, c1 = _map_cost(k_orig, sub, fp), _map_cost(k_corr, sub, fp)
-                    entry["posterior_cost_before"], entry["posterior_cost_after_correction"] = c0, c1
-                    accept = c1 < c0
-                    why = f"posterior cost under the field prior {c0:.3g} -> {c1:.3g}"
-                else:
-                    accept = after * ACCEPT_FACTOR <= before
-                    why = f"nominal training error {before * 1e3:.1f} -> {after * 1e3:.1f} mrad"
-                if accept:
-                    for fl in flags[hid]:
-                        changes[fl["field"]][h, fl["axis"] - 1] = medians[fl["field"]][fl["axis"] - 1]
-                    entry["corrected"] = True
-                    entry["note"] = f"suspicious actuator value(s) replaced by the field median ({why})"
-                else:
-                    entry["corrected"] = False
-                    entry["note"] = f"actuator value(s) far from the field median but the records prefer them ({why}); kept"
-            else:
-                entry["corrected"] = False
-                entry["note"] = "actuator value(s) far from the field median; too few training records to check"
+            entry = {"flags": flags[hid], **_judge_correction(kin, h, flags[hid], medians, train, per_h[h], fp)}
+            if entry["corrected"]:
+                for fl in flags[hid]:
+                    changes[fl["field"]][h, fl["axis"] - 1] = medians[fl["field"]][fl["axis"] - 1]
         if per_h[h] == per_h[h] and field_nominal == field_nominal and per_h[h] > NOMINAL_FACTOR * field_nominal:
             entry["nominal_error_far_above_field"] = {"nominal_train_mrad": per_h[h] * 1e3,
                                                       "field_median_mrad": field_nominal * 1e3}

@@ -1,0 +1,272 @@
+"""The one fit loop of every per-heliostat, early-stopped fit in ``calibrate`` (gradient, images, hybrid, mlp).
+
+All heliostats of a run are fitted at once: the loss is a sum of independent per-heliostat terms, so one
+optimiser over a tensor (or a :class:`~heliotwin.calibrate.nets.BatchedMLP`) with a leading heliostat axis
+equals H separate fits. What differs between heliostats is *when to stop*: every ``check_every``
+iterations the validation error of each heliostat is evaluated and its best state so far is kept
+(:func:`early_stopping_fit`); heliostats without validation records keep the final state.
+
+The rigid-body fits (``gradient``, ``images``) share the rest of their setup here too: the scaled,
+prior-regularised start (:func:`prior_and_start`), the box :data:`BOUNDS`, the actuator barrier
+(:func:`actuator_barrier`) and the projection after every step (:func:`box_and_validity`: back into the
+box, and a heliostat whose actuator triangle broke or whose state went non-finite goes back to its last
+valid state).
+"""
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+from typing import Callable
+
+import torch
+
+from ..errors import HeliotwinError
+from ..field.plant import Kinematics
+from .params import actuator_margin, kinds, units
+
+#: Box bounds per kind (physical units): far outside any real deviation, they only stop runaways.
+BOUNDS = {"angle": 0.5, "tilt": 0.2, "increment": 0.2, "translation": 0.5, "actuator_length": 0.05}
+
+#: Smallest law-of-cosines margin [m] the barrier defends (1 mm of stroke).
+MIN_MARGIN = 1e-3
+
+#: Weight of the squared relative margin shortfall: steep enough that no fit trades a broken actuator
+#: triangle for a smaller data term (one record's term at 1 mrad error is ~1).
+BARRIER_WEIGHT = 1e4
+
+
+def actuator_barrier(kin: Kinematics) -> torch.Tensor:
+    """Penalty (scalar) for linear actuators closer than :data:`MIN_MARGIN` to an invalid triangle.
+
+    ``kin`` has H heliostats with deviations applied; 0 when every margin is at least :data:`MIN_MARGIN`.
+    """
+    return (torch.relu(MIN_MARGIN - actuator_margin(kin)) / MIN_MARGIN).pow(2).sum() * BARRIER_WEIGHT
+
+
+def make_optimizer(x: torch.Tensor, objective, optimizer: str, lr: float, lbfgs_max_iter: int = 20):
+    """Optimiser over the deviation tensor ``x`` and the closure that evaluates ``objective(x)``.
+
+    Parameters
+    ----------
+    x : torch.Tensor, [H, P]
+        Leaf tensor of deviations (natural units), requires grad.
+    objective : callable
+        ``objective(x) -> scalar`` loss.
+    optimizer : {"lbfgs", "adam"}
+    lr : float
+        Adam step size (L-BFGS starts from a unit step with a strong-Wolfe line search).
+    lbfgs_max_iter : int
+        Function evaluations per L-BFGS ``step``.
+
+    Returns
+    -------
+    opt : torch.optim.Optimizer
+    closure : callable
+        For ``opt.step(closure)``.
+    """
+    if optimizer == "lbfgs":
+        opt = torch.optim.LBFGS([x], lr=1.0, max_iter=lbfgs_max_iter, history_size=20, line_search_fn="strong_wolfe",
+                                tolerance_grad=1e-9, tolerance_change=1e-12)
+    elif optimizer == "adam":
+        opt = torch.optim.Adam([x], lr=lr)
+    else:
+        raise HeliotwinError(f"unknown optimizer {optimizer!r}; known: lbfgs, adam")
+
+    def closure():
+        opt.zero_grad()
+        loss = objective(x)
+        loss.backward()
+        return loss
+
+    return opt, closure
+
+
+def prior_and_start(names, num_heliostats: int, prior_sigma, prior_mean=None, init=None, *, like: torch.Tensor):
+    """Scaled parameters of a bounded, prior-regularised fit (shared by ``gradient`` and ``images``).
+
+    Parameters
+    ----------
+    names : list of str
+        Deviation parameter names (checked by the caller).
+    num_heliostats : int
+        H.
+    prior_sigma : dict kind -> sigma, or tensor [P] / [H, P]
+        Prior standard deviations in physical units (``inf`` or a missing kind: no prior).
+    prior_mean, init : torch.Tensor, [H, P], optional
+        Prior mean (default 0) and start (default the prior mean), physical units.
+    like : torch.Tensor
+        Every tensor returned follows its dtype and device (the nominal kinematics').
+
+    Returns
+    -------
+    unit : torch.Tensor, [P]
+        Physical units per optimiser unit.
+    mu, inv_sig : torch.Tensor, [H, P]
+        Prior mean and inverse sigma (0 where there is no prior).
+    bound : torch.Tensor, [P]
+        Box bound in optimiser units.
+    x : torch.Tensor, [H, P]
+        The start in optimiser units, clamped into the box, a leaf that requires grad.
+    """
+    h, p = int(num_heliostats), len(names)
+    fk = dict(dtype=like.dtype, device=like.device)
+    unit = units(names, **fk)
+    kk = kinds(names)
+    if isinstance(prior_sigma, dict):
+        sig = torch.tensor([float(prior_sigma.get(k, float("inf"))) for k in kk], **fk)
+    else:
+        sig = torch.as_tensor(prior_sigma).to(**fk)
+    sig = sig.expand(h, p)
+    inv_sig = torch.where(torch.isfinite(sig), 1.0 / sig, torch.zeros_like(sig))
+    mu = torch.zeros(h, p, **fk) if prior_mean is None else torch.as_tensor(prior_mean).to(**fk).expand(h, p)
+    bound = torch.tensor([BOUNDS[k] for k in kk], **fk) / unit
+    start = mu if init is None else init.detach().to(**fk)
+    x = (start / unit).clamp(-bound, bound).clone().requires_grad_(True)
+    return unit, mu, inv_sig, bound, x
+
+
+def box_and_validity(x: torch.Tensor, bound: torch.Tensor, valid: Callable[[torch.Tensor], torch.Tensor]):
+    """The projection after every optimiser step of a bounded rigid-body fit.
+
+    Parameters
+    ----------
+    x : torch.Tensor, [H, P]
+        The optimised leaf (optimiser units); changed in place.
+    bound : torch.Tensor, [P]
+        Box bound in optimiser units.
+    valid : callable
+        ``valid(x) -> [H] bool``: every linear actuator of the heliostat realises its whole motor range.
+
+    Returns
+    -------
+    callable
+        ``project()``: clamp into the box; a heliostat whose state is invalid or non-finite goes back to
+        its last valid state (the barrier keeps this rare; an L-BFGS line search can still overshoot).
+    """
+    last_valid = x.detach().clone()
+
+    def project() -> None:
+        with torch.no_grad():
+            x.data = torch.maximum(torch.minimum(x.data, bound), -bound)
+            ok = valid(x) & torch.isfinite(x).all(-1)
+            x.data[~ok] = last_valid[~ok]
+            last_valid.copy_(x.detach())
+
+    return project
+
+
+@dataclass
+class State:
+    """How the fit loop copies per-heliostat states: ``snapshot()`` -> a copy, ``keep(copy, rows [H] bool)``
+    overwrites those heliostats' rows of the copy with the live state."""
+
+    snapshot: Callable
+    keep: Callable
+
+
+def tensor_state(x: torch.Tensor) -> State:
+    """:class:`State` of a leaf tensor with a leading heliostat axis."""
+    def keep(best, rows):
+        best[rows] = x.detach()[rows]
+
+    return State(lambda: x.detach().clone(), keep)
+
+
+def net_state(net) -> State:
+    """:class:`State` of a :class:`~heliotwin.calibrate.nets.BatchedMLP` (one network per heliostat)."""
+    return State(lambda: copy.deepcopy(net), lambda best, rows: best.copy_rows(net, rows))
+
+
+@dataclass
+class FitLog:
+    """What the loop saw.
+
+    Attributes
+    ----------
+    best : object
+        The kept state (a snapshot of :class:`State`): per heliostat its best validated state, the final
+        state without validation records, or its ``stop_at`` state in refit mode.
+    best_error : torch.Tensor, [H]
+        Validation error of the kept state (inf without validation records).
+    best_iteration : torch.Tensor, [H], long
+        Iteration of the kept state (0 = the start).
+    history : list of (iteration, median over heliostats of the validation error [mrad] or None)
+    losses : list of float
+        Training loss per iteration (what ``step`` returned).
+    """
+
+    best: object
+    best_error: torch.Tensor
+    best_iteration: torch.Tensor
+    history: list = field(default_factory=list)
+    losses: list = field(default_factory=list)
+
+
+def _median_mrad(err: torch.Tensor):
+    fin = torch.isfinite(err)
+    return float(err[fin].median()) * 1e3 if fin.any() else None
+
+
+def _iterations(iterations: int, progress: bool, desc: str):
+    it = range(1, iterations + 1)
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, desc=desc, leave=False)
+    return it
+
+
+def early_stopping_fit(step: Callable, validation_error: Callable, state: State, iterations: int, *,
+                       validated: torch.Tensor, check_every: int = 1, project: Callable | None = None,
+                       stop_at: torch.Tensor | None = None, progress: bool = False, desc: str = "fit") -> FitLog:
+    """Run ``iterations`` optimiser steps and keep every heliostat's best state on validation.
+
+    Parameters
+    ----------
+    step : callable
+        ``step() -> loss`` (tensor or float, or None): one optimiser step on the training loss.
+    validation_error : callable
+        ``validation_error() -> [H]`` of the live state (inf for heliostats without validation records);
+        lower is better.
+    state : State
+        How to copy the live state (:func:`tensor_state`, :func:`net_state`).
+    iterations : int
+    validated : torch.Tensor, [H], bool
+        Heliostats with validation records; the others keep the final state (the MAP of the training
+        loss) unless ``stop_at`` is given.
+    check_every : int
+        Validation every this many iterations and after the last one.
+    project : callable, optional
+        Called after every step (bounds, validity: :func:`box_and_validity`).
+    stop_at : torch.Tensor, [H], long, optional
+        Refit mode: keep each heliostat's state at this iteration (a checked one, 0 = the start), e.g. the
+        best iteration found on validation in a first pass; the validation error is not consulted.
+    progress : bool
+        tqdm bar titled ``desc``.
+    """
+    best = state.snapshot()
+    best_err = validation_error()
+    best_it = torch.zeros(len(best_err), dtype=torch.long, device=best_err.device)
+    log = FitLog(best, best_err, best_it, history=[(0, _median_mrad(best_err))])
+    for it in _iterations(iterations, progress, desc):
+        loss = step()
+        if loss is not None:
+            log.losses.append(float(loss.detach()) if isinstance(loss, torch.Tensor) else float(loss))
+        if project is not None:
+            project()
+        if it % check_every == 0 or it == iterations:
+            err = validation_error()
+            better = (stop_at >= it) if stop_at is not None else err < log.best_error
+            state.keep(best, better)
+            log.best_error = torch.where(better, err, log.best_error)
+            log.best_iteration[better] = it
+            log.history.append((it, _median_mrad(err)))
+    if stop_at is None:
+        final = ~validated.to(best_it.device)
+        state.keep(best, final)
+        log.best_iteration[final] = iterations
+    return log
+
+
+__all__ = ["BOUNDS", "MIN_MARGIN", "BARRIER_WEIGHT", "actuator_barrier", "make_optimizer", "prior_and_start",
+           "box_and_validity", "State", "tensor_state", "net_state", "FitLog", "early_stopping_fit"]

@@ -1,0 +1,67 @@
+"""Synthetic calibration fixtures shared by the ``test_calibrate_*`` modules (no real data needed).
+
+A PAINT-typical Jülich heliostat (:func:`jueliche_like`), known Stone/Jülich deviations (:data:`TRUE`) and
+records simulated from any kinematics by inverse kinematics (:func:`simulate`): the exact answer of every
+calibration is known.
+"""
+from __future__ import annotations
+
+import torch
+
+from heliotwin.field import kinematics as K
+from heliotwin.field.plant import Kinematics
+from heliotwin.field.targets import PlanarTarget
+from heliotwin.io.records import RecordTable
+
+F64 = torch.float64
+
+#: Known Stone/Jülich deviations (rad; relative for increments), in the order of ``params.STONE8``.
+TRUE = {"initial_angle_1": -0.011, "initial_angle_2": 0.004, "joint_tilt_1_n": 0.003, "joint_tilt_1_u": -0.02,
+        "joint_tilt_2_n": 0.002, "concentrator_tilt_e": 0.009, "increment_1": 0.004, "increment_2": -0.003}
+
+#: Calibration target on the tower's north face, 40 m up.
+TARGET = PlanarTarget.from_center_normal("synthetic_target", [0.0, -3.24, 40.0], [0.0, 1.0, 0.0], 6.0, 6.0)
+
+
+def jueliche_like(h: int = 1) -> Kinematics:
+    """PAINT-typical Jülich heliostat(s) north of the tower (values as in the PAINT properties files)."""
+    def t(v):
+        v = torch.tensor(v, dtype=F64)
+        return v.expand(h, *v.shape).clone()
+
+    pos = torch.tensor([[8.0 * i - 10.0, 60.0 + 5 * i, 1.5] for i in range(h)], dtype=F64)
+    return Kinematics(position=pos, joint_translation=torch.zeros(h, 2, 3, dtype=F64),
+                      concentrator_translation=t([0.0, 0.175, 0.0]), joint_tilt=torch.zeros(h, 2, 3, dtype=F64),
+                      concentrator_tilt=torch.zeros(h, 3, dtype=F64), increment=t([154166.6667, 154166.6667]),
+                      offset=t([0.33531, 0.34077]), pivot_radius=t([0.33809, 0.3191]), initial_angle=t([0.0135, 0.937]),
+                      initial_stroke_length=t([0.0757, 0.077]), clockwise=torch.tensor([[False, True]] * h),
+                      linear=torch.tensor([[True, True]] * h), min_steps=t([0.0, 0.0]), max_steps=t([69000.0, 75000.0]),
+                      min_angle=t([0.0, 0.0]), max_angle=t([1.0, 1.0]))
+
+
+def simulate(kin_true: Kinematics, n: int, seed: int, noise: float = 0.0, target: PlanarTarget = TARGET) -> RecordTable:
+    """``n`` records per heliostat: sun over a year-like range, aim at ``target``'s centre +-1 m.
+
+    ``noise`` [rad] moves each measured spot by a pointing noise of that size (at ~60 m slant range).
+    """
+    from heliotwin.sun import direction_from_paint_angles
+
+    g = torch.Generator().manual_seed(seed)
+    h = kin_true.num_heliostats
+    az = (torch.rand(h * n, generator=g, dtype=F64) - 0.5) * 2.4
+    el = 0.15 + torch.rand(h * n, generator=g, dtype=F64) * 0.9
+    hidx = torch.arange(h).repeat_interleave(n)
+    sun = direction_from_paint_angles(az, el)
+    jit = (torch.rand(h * n, 2, generator=g, dtype=F64) - 0.5) * 2
+    spot = target.to_world(jit)
+    steps, ok = K.inverse(kin_true.index(hidx), spot, sun, strict=False)
+    assert bool(ok.all())
+    if noise:
+        spot = spot + target.to_world(torch.randn(h * n, 2, generator=g, dtype=F64) * noise * 2 * 60) - target.center
+    return RecordTable.from_arrays([f"S{i}" for i in range(h)], hidx, az, el, steps, spot, target)
+
+
+def with_weekly_times(batch: RecordTable, start: float = 1.6e9) -> RecordTable:
+    """``batch`` with one record a week from ``start`` [s, UNIX], in record order (changed in place)."""
+    batch.time = start + torch.arange(len(batch), dtype=F64) * 86400.0 * 7
+    return batch
