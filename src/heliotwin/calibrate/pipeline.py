@@ -24,7 +24,7 @@ import torch
 
 from ..errors import HeliotwinError
 from ..io.paint import load_paint
-from ..io.records import RecordTable, normalise_source, prepare_records
+from ..io.records import RecordTable, normalise_source
 from . import metrics
 from .inputs import MIN_TRAIN
 from .methods import get_method
@@ -122,7 +122,7 @@ def select(run: Run) -> None:
     """The heliostats asked for (``--heliostats``, default all); an unknown id is a one-line error."""
     cfg = run.cfg
     if run.dataset is None:
-        run.dataset = load_paint(cfg.paint)
+        run.dataset = load_paint(cfg.paint, plane_tolerance=cfg.plane_tolerance)
     all_ids = list(run.dataset.plant.field.ids)
     if cfg.heliostats:
         unknown = [h for h in cfg.heliostats if h not in all_ids]
@@ -137,8 +137,9 @@ def select(run: Run) -> None:
 def prepare(run: Run) -> None:
     """Validated records of the wanted heliostats; heliostats with fewer than ``--min-records`` are skipped."""
     cfg = run.cfg
-    run.batch_all, run.skipped_records = prepare_records(run.dataset.plant, run.dataset.records, run.wanted,
-                                                         focal_spot=cfg.focal_spot, plane_tolerance=cfg.plane_tolerance)
+    # The dataset's record table already judged every record (with the tolerance it was loaded with).
+    run.batch_all = run.dataset.records.for_heliostats(run.wanted).with_focal_spot(cfg.focal_spot)
+    run.skipped_records = [s for s in run.dataset.skipped if s["heliostat_id"] in run.wanted]
     counts = run.batch_all.counts()
     need = max(cfg.min_records, 1)
     for h, hid in enumerate(run.wanted):
@@ -199,7 +200,8 @@ def _image_context(ds, run_ids) -> dict:
     idx = torch.tensor([all_ids.index(h) for h in run_ids])
     surfaces = Surfaces(control_points=srf.control_points[idx], degree_u=srf.degree_u, degree_v=srf.degree_v,
                         weights=None if srf.weights is None else srf.weights[idx])
-    images = {int(r.record_id): r.flux_png for r in ds.records if r.heliostat_id in run_ids and r.flux_png}
+    table = ds.records.for_heliostats(run_ids)
+    images = {rid: png for rid, png in zip(table.record_id.tolist(), table.flux_png) if png}
     return {"images": images, "surfaces": surfaces, "targets": plant.targets, "sun": plant.sun}
 
 
@@ -312,7 +314,9 @@ def run_calibration(cfg: RunConfig, dataset=None) -> tuple[dict, Calibrated | No
     ----------
     cfg : RunConfig
     dataset : heliotwin.io.paint.PaintDataset, optional
-        Already loaded PAINT folder (every heliostat, with records); read from ``cfg.paint`` otherwise.
+        Already loaded PAINT folder (its record table, possibly on a scenario's plant via
+        :meth:`~heliotwin.io.paint.PaintDataset.on_plant`); read from ``cfg.paint`` with
+        ``cfg.plane_tolerance`` otherwise.
 
     Returns
     -------

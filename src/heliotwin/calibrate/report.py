@@ -26,42 +26,20 @@ test error against the number of training records.
 from __future__ import annotations
 
 import os
-import tempfile
 
+import matplotlib
 import numpy as np
+from matplotlib.figure import Figure
 
-# The one strict-JSON writer of the package. Re-exported because ``calibrate/cli.py`` still imports
-# ``write_json`` from here; import it from :mod:`heliotwin.io.report` instead.
-from ..io.report import write_json  # noqa: F401
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save(fig, path):
-    folder = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".png", dir=folder)
-    os.close(fd)
-    try:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+from ..io.report import save_figure
 
 
 def plot_sky(path, arrays: dict, title: str = "") -> None:
     """Per-record test error against sun azimuth and elevation (nominal faint, calibrated bold)."""
-    plt = _plt()
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    fig = Figure(figsize=(11, 4))
+    axes = fig.subplots(1, 2, sharey=True)
     ids = arrays["heliostat_ids"]
-    cmap = plt.get_cmap("tab20")
+    cmap = matplotlib.colormaps["tab20"]
     for ax, key, label in ((axes[0], "test_azimuth", "sun azimuth [deg] (0 = south, +90 = east)"),
                            (axes[1], "test_elevation", "sun elevation [deg]")):
         x = np.degrees(arrays[key])
@@ -74,15 +52,14 @@ def plot_sky(path, arrays: dict, title: str = "") -> None:
     axes[0].set_ylabel("calibrated test pointing error [mrad]")
     axes[1].legend(fontsize=7, ncol=2, loc="upper right")
     fig.suptitle(title or "test error against sun position")
-    _save(fig, path)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def plot_heliostats(path, report: dict, title: str = "") -> None:
     """Per-heliostat mean test error, nominal vs calibrated (log scale)."""
-    plt = _plt()
     rows = [(h, r) for h, r in report["heliostats"].items() if r.get("status") == "ok"]
-    fig, ax = plt.subplots(figsize=(max(5, 0.6 * len(rows) + 2), 4))
+    fig = Figure(figsize=(max(5, 0.6 * len(rows) + 2), 4))
+    ax = fig.subplots()
     x = np.arange(len(rows))
     nom = [r["nominal_mean_test_mrad"] or np.nan for _, r in rows]
     cal = [r["mean_test_mrad"] or np.nan for _, r in rows]
@@ -94,8 +71,7 @@ def plot_heliostats(path, report: dict, title: str = "") -> None:
     ax.grid(alpha=0.3, axis="y")
     ax.legend()
     ax.set_title(title or "per-heliostat test error before/after calibration")
-    _save(fig, path)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def plot_training_size(path, curves: dict, title: str = "") -> None:
@@ -105,8 +81,8 @@ def plot_training_size(path, curves: dict, title: str = "") -> None:
     ----------
     curves : dict of label -> list of (n_train, median_of_mean_test_mrad)
     """
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig = Figure(figsize=(6, 4))
+    ax = fig.subplots()
     for label, pts in curves.items():
         pts = [(n, e) for n, e in pts if e is not None]
         if pts:
@@ -117,8 +93,7 @@ def plot_training_size(path, curves: dict, title: str = "") -> None:
     ax.grid(alpha=0.3)
     ax.legend()
     ax.set_title(title or "test error vs number of training records")
-    _save(fig, path)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def write_plots(json_path, report: dict, arrays: dict, curves: dict | None = None) -> list[str]:

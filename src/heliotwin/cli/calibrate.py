@@ -129,7 +129,7 @@ def cmd_calibrate(args) -> int:
         raise HeliotwinError(f"no heliostat could be calibrated (see the table above); {args.output} not written")
     curves = None
     if args.json and not args.no_plots and not args.no_curve and calibrated:
-        curves = _training_size_curves(cfg, ds, ov["median_test_mrad"])
+        curves = _training_size_curves(cfg, ds, ov["median_of_mean_test_mrad"])
     if args.output:
         settings = {k: v for k, v in report["config"].items() if k != "method_options"}
         save_calibration(args.output, ds.plant, model, previous=previous, focal_spot=cfg.focal_spot,
@@ -157,7 +157,7 @@ def _training_size_curves(cfg, ds, median_test_mrad) -> dict:
     for n in sizes:
         r, _, _ = run_calibration(replace(cfg, method="lm", train=n, validation=None, progress=False,
                                           method_options={"bags": 0}), ds)
-        pts.append((n, r["overall"]["median_test_mrad"]))
+        pts.append((n, r["overall"]["median_of_mean_test_mrad"]))
     return {"lm (refits, unbagged)": pts, cfg.method: [(cfg.train, median_test_mrad)]}
 
 
@@ -175,8 +175,8 @@ def _print_table(report: dict) -> None:
         print(f"{hid:10s} {r['status']:8s} {s.get('train', 0):5d} {s.get('validation', 0):4d} {s.get('test', 0):4d} "
               f"{_fmt(r.get('nominal_mean_test_mrad')):>9s} {_fmt(r.get('mean_test_mrad')):>8s}  {note}")
     ov = report["overall"]
-    print(f"overall: median over heliostats of mean test error {_fmt(ov.get('median_test_mrad'))} mrad "
-          f"(nominal {_fmt(ov.get('nominal_median_test_mrad'))}), {ov.get('n_heliostats', 0)} heliostats, "
+    print(f"overall: median over heliostats of mean test error {_fmt(ov.get('median_of_mean_test_mrad'))} mrad "
+          f"(nominal {_fmt(ov.get('nominal_median_of_mean_test_mrad'))}), {ov.get('n_heliostats', 0)} heliostats, "
           f"{_fmt(ov.get('seconds'), 1)} s; skipped records {ov.get('skipped_records', 0)}")
 
 

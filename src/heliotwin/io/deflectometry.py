@@ -21,9 +21,7 @@ points and normals.
 """
 from __future__ import annotations
 
-import os
 import re
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,6 +33,7 @@ from .. import nurbs
 from ..errors import HeliotwinError, InputFileError
 from ..field.plant import Facets
 from .hdf5 import open_for_reading
+from .report import atomic_path
 
 POINTS = "surface_points"
 NORMALS = "surface_normals"
@@ -147,18 +146,12 @@ def write_deflectometry(path, facets_points_normals: Sequence[tuple[torch.Tensor
             raise HeliotwinError(f"write_deflectometry: facet{k} needs points and normals of the same shape "
                                  f"[N, 3], got {list(p.shape)} and {list(n.shape)}")
         arrays.append((p, n))
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
             for k, (p, n) in enumerate(arrays, start=1):
                 g = f.create_group(f"facet{k}")
                 g.create_dataset(POINTS, data=p)
                 g.create_dataset(NORMALS, data=n)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 # --------------------------------------------------------------------------------------------------

@@ -52,13 +52,11 @@ the older versions it still supports.
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import datetime as _dt
 import json
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -70,6 +68,7 @@ from ..errors import HeliotwinError, InputFileError, ScenarioVersionError
 from ..field.plant import Facets, Field, Kinematics, Plant, SunSettings, Surfaces
 from ..field.targets import CylinderTarget, PlanarTarget
 from ..site import Site
+from .report import atomic_path
 
 #: Root attribute ``format`` of every scenario file.
 FORMAT = "heliotwin-scenario"
@@ -244,13 +243,6 @@ def _write_plant(h5: h5py.File, plant: Plant, path) -> None:
     _write_dataclass(h5.create_group("sun"), plant.sun, path, "/sun")
 
 
-def _file_mode(path: Path) -> int:
-    try:
-        return os.stat(path).st_mode & 0o7777
-    except OSError:
-        return 0o644
-
-
 def save_scenario(plant: Plant, path, extras: dict | None = None, metadata: dict | None = None, *,
                   learned: dict | None = None, provenance: list | None = None) -> Path:
     """Write a plant (and learned state, provenance, extras, metadata) to a scenario file, atomically.
@@ -294,14 +286,7 @@ def save_scenario(plant: Plant, path, extras: dict | None = None, metadata: dict
     meta = {"created_by": f"heliotwin {__version__}",
             "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
     meta.update(metadata or {})
-    folder = path.parent if str(path.parent) else Path(".")
-    mode = _file_mode(path)
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-    except OSError as exc:
-        raise InputFileError(path, f"cannot write ({_one_line(exc.strerror or exc)})") from None
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as h5:
             h5.attrs["format"] = FORMAT
             h5.attrs["version"] = VERSION
@@ -313,16 +298,6 @@ def save_scenario(plant: Plant, path, extras: dict | None = None, metadata: dict
                 _write_extras(h5.create_group("learned", track_order=True), learned, path, "/learned")
             if provenance:
                 h5.create_dataset("provenance", data=provenance_json, dtype=_STR)
-        with open(tmp, "rb") as fh:
-            os.fsync(fh.fileno())
-        os.chmod(tmp, mode)
-        os.replace(tmp, path)
-    except BaseException as exc:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        if isinstance(exc, OSError):
-            raise InputFileError(path, f"cannot write ({_one_line(exc)})") from None
-        raise
     return path
 
 

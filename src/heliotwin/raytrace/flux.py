@@ -8,8 +8,6 @@ local rectangle ``[x_min, x_max] x [y_min, y_max]`` is
 """
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 
 import numpy as np
@@ -229,17 +227,10 @@ def to_png(bitmap: torch.Tensor, path) -> None:
     m = float(a.max()) if a.numel() else 0.0
     img = (a / m * 255.0).round() if m > 0 else torch.zeros_like(a)
     arr = img.clamp(0, 255).to(torch.uint8).numpy()
-    path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".png", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            Image.fromarray(arr).save(fh, format="PNG")  # uint8 2-D -> mode "L"
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    from ..io.report import atomic_path
+
+    with atomic_path(path) as tmp:
+        Image.fromarray(arr).save(tmp, format="PNG")  # uint8 2-D -> mode "L"
 
 
 def read_png(path) -> torch.Tensor:

@@ -1,4 +1,4 @@
-"""Figures for surface learning (matplotlib, Agg; written atomically next to the report).
+"""Figures for surface learning (matplotlib figures without pyplot; written atomically next to the report).
 
 * :func:`plot_normal_deviation` -- per facet, the angle [mrad] between the learned and the ideal
   (flat canted) surface normal, as in the paper's Fig. 1d.
@@ -6,13 +6,12 @@
 """
 from __future__ import annotations
 
-import os
-import tempfile
-
 import torch
+from matplotlib.figure import Figure
 
 from ..field.plant import Facets
 from ..geometry import angle_between
+from ..io.report import save_figure
 from .learning import normal_heights
 
 __all__ = ["normal_deviation_map", "plot_normal_deviation", "plot_flux_comparison"]
@@ -37,33 +36,18 @@ def normal_deviation_map(facets: Facets, control_points: torch.Tensor, degree, r
     return angle_between(n, ref) * 1e3
 
 
-def _save(fig, path) -> None:
-    path = os.fspath(path)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".png", dir=os.path.dirname(os.path.abspath(path)))
-    os.close(fd)
-    try:
-        fig.savefig(tmp, dpi=110, format="png")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
 def plot_normal_deviation(facets: Facets, control_points: torch.Tensor, degree, path, title: str = "") -> None:
     """Per-facet map of the normal deviation [mrad] from the ideal facet, arranged like the heliostat.
 
     Facets are placed by their centre (east right, north up, seen from above the mirror lying flat).
     """
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     dev = normal_deviation_map(facets, control_points, degree).detach().cpu()
     tr = facets.translation[0].detach().cpu()
     ce = facets.canting_e[0].detach().cpu()
     cn = facets.canting_n[0].detach().cpu()
     vmax = float(dev.max()) if dev.numel() else 1.0
-    fig, ax = plt.subplots(figsize=(6, 5))
+    fig = Figure(figsize=(6, 5))
+    ax = fig.subplots()
     im = None
     for f in range(dev.shape[0]):
         hx, hy = float(ce[f].norm()), float(cn[f].norm())
@@ -77,19 +61,15 @@ def plot_normal_deviation(facets: Facets, control_points: torch.Tensor, degree, 
     ax.set_ylabel("north [m]")
     ax.set_title(title or "surface normal deviation from ideal [mrad]")
     fig.colorbar(im, ax=ax, label="mrad")
-    _save(fig, path)
-    plt.close(fig)
+    save_figure(fig, path, tight=False)
 
 
 def plot_flux_comparison(measured: torch.Tensor, ideal: torch.Tensor, learned: torch.Tensor, labels, path,
                          l1_ideal=None, l1_learned=None) -> None:
     """Rows = images; columns = measured / ideal / learned (each normalised to its max)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     n = measured.shape[0]
-    fig, axes = plt.subplots(n, 3, figsize=(7.5, 2.5 * n), squeeze=False)
+    fig = Figure(figsize=(7.5, 2.5 * n))
+    axes = fig.subplots(n, 3, squeeze=False)
     for i in range(n):
         for j, (name, img) in enumerate((("measured", measured), ("ideal", ideal), ("learned", learned))):
             a = img[i].detach().cpu().float()
@@ -105,5 +85,4 @@ def plot_flux_comparison(measured: torch.Tensor, ideal: torch.Tensor, learned: t
             ax.set_xticks([])
             ax.set_yticks([])
     fig.tight_layout()
-    _save(fig, path)
-    plt.close(fig)
+    save_figure(fig, path, tight=False)
