@@ -21,10 +21,8 @@ from collections import defaultdict
 import torch
 from tqdm.auto import tqdm
 
-from .field import kinematics as kin_ops
 from .field.plant import Plant, SunSettings
 from .field.targets import PlanarTarget
-from .geometry import angle_between
 from .io.images import CENTERED_WINDOW_M, load_measured_image
 from .io.paint import PaintDataset
 from .io.records import SOURCES, RecordTable
@@ -32,13 +30,12 @@ from .raytrace.flux import cross_correlation, normalized_l1
 from .scene import central_ray_spot, trace, world_surface
 
 
-
 def _median(xs):
     xs = [x for x in xs if x is not None and math.isfinite(x)]
     return statistics.median(xs) if xs else None
 
 
-def validate_dataset(ds: PaintDataset, *, plant: Plant | None = None, model=None, sun: SunSettings | None = None,
+def validate_dataset(ds: PaintDataset, *, plant: Plant | None = None, sun: SunSettings | None = None,
                      samples=(16, 16), resolution: int = 128, batch: int = 64, with_images: bool = True,
                      progress: bool = True) -> dict:
     """Validate the forward model on every usable record of a PAINT dataset.
@@ -48,12 +45,10 @@ def validate_dataset(ds: PaintDataset, *, plant: Plant | None = None, model=None
     ds : PaintDataset
         From :func:`heliotwin.io.paint.load_paint`: its record table (and skipped records).
     plant : Plant, optional
-        The plant to validate (e.g. a calibrated scenario's); default ``ds.plant`` (nominal kinematics,
-        ideal surfaces). Must contain every heliostat of ``ds``.
-    model : heliotwin.calibrate.model.Calibrated, optional
-        A calibrated model over some heliostats (``heliostat_ids``): their pointing error comes from its
-        :meth:`normals`, exactly the metric ``calibrate`` reports; networks included. Other heliostats use
-        ``plant``'s kinematics.
+        The plant to validate (e.g. a calibrated scenario's, see
+        :meth:`~heliotwin.io.paint.PaintDataset.on_plant`); default ``ds.plant``. Must contain every
+        heliostat of ``ds``. Its static kinematics are evaluated (the networks of a ``hybrid`` / ``mlp``
+        calibration are not part of the plant).
     sun : SunSettings, optional
         Optics for the predicted images (default: the plant's).
     samples : (int, int)
@@ -79,8 +74,7 @@ def validate_dataset(ds: PaintDataset, *, plant: Plant | None = None, model=None
         idx = torch.tensor([i for i, t in enumerate(table.target) if t == tname], dtype=torch.long)
         for start in range(0, len(idx), batch):
             chunk = table.subset(idx[start:start + batch])
-            rows.update(_validate_chunk(chunk, plant.target(tname), plant, model, sun, samples, resolution,
-                                        with_images))
+            rows.update(_validate_chunk(chunk, plant.target(tname), plant, sun, samples, resolution, with_images))
             bar.update(len(chunk))
     bar.close()
     out = summarise([rows[int(r)] for r in table.record_id])
@@ -89,30 +83,24 @@ def validate_dataset(ds: PaintDataset, *, plant: Plant | None = None, model=None
     return out
 
 
-def _pointing_errors(chunk: RecordTable, plant: Plant, model) -> dict:
-    """Pointing error [rad] per source, [R] each (NaN where a record lacks that source)."""
+def _pointing_errors(chunk: RecordTable, plant: Plant) -> dict:
+    """Pointing error [rad] per centroid source, [R] each (NaN where a record lacks that source): the metric
+    of :mod:`heliotwin.calibrate.metrics`, so validate and calibrate report the same number."""
     from .calibrate import metrics
 
-    kin = plant.field.kinematics
-    normal, conc = metrics.model_normals(kin, chunk)
-    if model is not None:
-        mine = torch.tensor([plant.field.ids[h] in model.heliostat_ids for h in chunk.heliostat_index.tolist()])
-        if bool(mine.any()):
-            sub = chunk.subset(mine).for_heliostats(model.heliostat_ids)
-            n, c = model.normals(sub)
-            normal, conc = normal.clone(), conc.clone()
-            normal[mine], conc[mine] = n.to(normal), c.to(conc)
+    normal, conc = metrics.model_normals(plant.field.kinematics, chunk)
     out = {}
     for k, src in enumerate(SOURCES):
-        spot = chunk.focal_spots[:, k]
-        out[src] = angle_between(normal, kin_ops.bisector_normal(chunk.sun, conc, spot))  # TODO(merge): metrics
+        has = torch.isfinite(chunk.focal_spots[:, k]).all(-1)
+        err = metrics.pointing_error_of_normals(normal, conc, chunk.with_focal_spot(src))
+        out[src] = torch.where(has, err, torch.full_like(err, float("nan")))
     return out
 
 
-def _validate_chunk(chunk: RecordTable, target, plant: Plant, model, sun, samples, resolution, with_images) -> dict:
+def _validate_chunk(chunk: RecordTable, target, plant: Plant, sun, samples, resolution, with_images) -> dict:
     s = chunk.sun
     with torch.no_grad():
-        errors = _pointing_errors(chunk, plant, model)
+        errors = _pointing_errors(chunk, plant)
         pts, nrm, area, R, c = world_surface(plant.field.kinematics, plant.field.surfaces, chunk.heliostat_index,
                                              chunk.motor_steps, samples)
         # One heliostat per sample: its points' footprints differ by a few per cent, so one convolution

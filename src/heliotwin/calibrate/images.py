@@ -1,8 +1,8 @@
 """``images``: kinematic calibration through the ray tracer from flux images.
 
 For records with a flux image (PAINT ``<id>-flux.png``: the whole target, max-normalised, image left =
-east) each record's spot is rendered by the differentiable analytic tracer
-(:func:`heliotwin.raytrace.analytic.trace_analytic`) from the calibrated kinematics and the mirror surfaces,
+east) each record's spot is rendered by the differentiable Gaussian-footprint tracer
+(:func:`heliotwin.raytrace.gaussian.trace_gaussian`) from the calibrated kinematics and the mirror surfaces,
 and the deviations are learned with the published three-term loss:
 
 * **pixel** -- normalised L1 distance between the rendered and the measured image (both scaled to unit
@@ -30,7 +30,6 @@ The images and the mirror surfaces come from the pipeline (``images={record_id: 
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 
 from ..errors import HeliotwinError
 from ..io.records import RecordTable
@@ -61,17 +60,9 @@ MISS_WEIGHT = 100.0
 
 def load_image(entry, resolution) -> torch.Tensor:
     """A measured image as a unit-sum bitmap [rows, cols] at the render resolution (area resampling)."""
-    from ..raytrace.flux import read_png
+    from ..io.images import load_measured_image
 
-    img = read_png(entry) if not isinstance(entry, torch.Tensor) else entry.detach().float()
-    img = torch.nan_to_num(img, nan=0.0).clamp_min(0.0)
-    rows, cols = resolution
-    if tuple(img.shape[-2:]) != (rows, cols):
-        img = F.adaptive_avg_pool2d(img.reshape(1, 1, *img.shape[-2:]), (rows, cols)).reshape(rows, cols)
-    s = img.sum()
-    if not bool(s > 0):
-        raise HeliotwinError("empty flux image (all pixels zero)")
-    return img / s
+    return load_measured_image(entry, resolution, normalise="sum")
 
 
 class ImageTerms:
@@ -127,8 +118,8 @@ class ImageTerms:
     def terms(self, kin) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Pixel [M], alignment [M] (rad) and miss [M] terms for calibrated kinematics ``kin`` (H heliostats)."""
         from .. import scene
-        from ..raytrace.analytic import trace_analytic
         from ..raytrace.flux import normalized_l1
+        from ..raytrace.gaussian import trace_gaussian
 
         m, like = len(self), kin.position  # terms follow the kinematics' dtype and device
         pix, ali, mis = like.new_zeros(m), like.new_zeros(m), like.new_zeros(m)
@@ -138,7 +129,7 @@ class ImageTerms:
             t = self.targets[tname]
             pw, nw, ar, _, conc = scene.world_surface(kin, self.surfaces, b.heliostat_index[j], b.motor_steps[j],
                                                       samples=self.samples)
-            fl = trace_analytic(pw, nw, ar, b.sun[j].float(), t, resolution=self.resolution, sun=self.sun,
+            fl = trace_gaussian(pw, nw, ar, b.sun[j].float(), t, resolution=self.resolution, sun=self.sun,
                                 mode=self.mode)
             render = fl.bitmap
             p = normalized_l1(render, self.measured[j].to(render)).to(like)

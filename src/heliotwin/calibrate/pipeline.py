@@ -290,6 +290,18 @@ def report_overall(run: Run) -> None:
         run.report["overall"]["method_info"] = run.model.extras["summary"]
 
 
+def report_records(run: Run) -> None:
+    """Per test record: heliostat, id, calibrated and nominal pointing error [mrad] (report ``test_records``),
+    the numbers ``heliotwin validate --scenario`` reproduces record by record."""
+    test = run.test
+    ok = run.model.ok
+    cal, nom = run.errors["test"][0].tolist(), run.errors["nominal_test"][0].tolist()
+    run.report["test_records"] = [
+        {"record": int(rid), "heliostat": run.run_ids[h], "pointing_error_mrad": 1e3 * cal[i] if bool(ok[h]) else None,
+         "nominal_pointing_error_mrad": 1e3 * nom[i]}
+        for i, (rid, h) in enumerate(zip(test.record_id.tolist(), test.heliostat_index.tolist()))]
+
+
 def plot_arrays(run: Run) -> None:
     """Per-record arrays of the test records for the plots (errors in mrad)."""
     test = run.test
@@ -304,7 +316,8 @@ def plot_arrays(run: Run) -> None:
 #: The steps of :func:`run_calibration`, in order (name, function of :class:`Run`).
 STEPS = (("select", select), ("prepare", prepare), ("rebatch", rebatch), ("split", split),
          ("check_properties", check_properties), ("fit", fit), ("evaluate", evaluate),
-         ("report_heliostats", report_heliostats), ("report_overall", report_overall), ("plot_arrays", plot_arrays))
+         ("report_heliostats", report_heliostats), ("report_overall", report_overall),
+         ("report_records", report_records), ("plot_arrays", plot_arrays))
 
 
 def run_calibration(cfg: RunConfig, dataset=None) -> tuple[dict, Calibrated | None, dict]:
