@@ -2,12 +2,14 @@
 import math
 
 import torch
-from helpers.calibrate import TRUE, jueliche_like, simulate, with_weekly_times
+from helpers.calibrate import TRUE, jueliche_like, scenario_round_trip, simulate, with_weekly_times
 
-from heliotwin.calibrate.hybrid import SECONDS_PER_YEAR, features, fit_hybrid_method
+from heliotwin.calibrate.hybrid import SECONDS_PER_YEAR, aim_hybrid, features, fit_hybrid_method
 from heliotwin.calibrate.inputs import fit_spots
 from heliotwin.calibrate.lm import fit_lm_method
 from heliotwin.calibrate.params import STONE8, apply_deviations
+from heliotwin.calibrate.scenario import aim, network_entry
+from heliotwin.field import kinematics as K
 
 
 def _batch_with_times(n=24, seed=3):
@@ -61,7 +63,7 @@ def _drifting(n, seed, drift):
     return kin, with_weekly_times(b)
 
 
-def test_hybrid_network_follows_a_drift_the_rigid_body_cannot():
+def test_hybrid_network_follows_a_drift_the_rigid_body_cannot(tmp_path):
     kin, b = _drifting(40, 1, 6e-3)
     tr, va, te = b.subset(torch.arange(30)), b.subset(torch.arange(30, 36)), b.subset(torch.arange(36, 40))
     model = fit_hybrid_method(kin, tr, va, field_prior=False)
@@ -71,3 +73,16 @@ def test_hybrid_network_follows_a_drift_the_rigid_body_cannot():
     # later records (age clamped to the last training state): still better than the static rigid body
     rigid = fit_lm_method(kin, tr, va, field_prior=False, bags=0)
     assert float(model.pointing_error(te).mean()) < 0.6 * float(rigid.pointing_error(te).mean())
+    # Through the scenario file: the network is stored bit for bit and aiming uses it.
+    sc = scenario_round_trip(tmp_path, kin, model)
+    entry = network_entry(sc.learned, "S0")
+    stored = model.extras["networks"]["S0"]
+    assert entry["config"]["kind"] == "hybrid" and entry["config"]["use_net"] is True
+    assert all(torch.equal(entry["state"][k], v) for k, v in stored["state"].items())
+    az, el = float(te.sun_azimuth[0]), float(te.sun_elevation[0])
+    ans = aim(sc, "S0", az, el, te.spot[0].tolist())
+    assert ans["method"] == "hybrid"
+    expected = aim_hybrid(stored, model.kinematics, te.sun[:1], te.spot[:1]).reshape(2)
+    assert torch.allclose(torch.tensor(ans["motor_steps"], dtype=torch.float64), expected, atol=1e-6)
+    rigid_steps = K.inverse(model.kinematics, te.spot[:1], te.sun[:1], strict=False)[0].reshape(2)
+    assert float((expected - rigid_steps).abs().max()) > 1.0  # the network moves the motors

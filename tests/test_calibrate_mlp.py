@@ -1,14 +1,15 @@
 """``mlp``: per-heliostat networks from (sun, aim) to motor steps, with the rigid body as fallback."""
 import torch
-from helpers.calibrate import TRUE, jueliche_like, simulate
+from helpers.calibrate import TRUE, jueliche_like, scenario_round_trip, simulate
 
 from heliotwin.calibrate import metrics
 from heliotwin.calibrate.mlp import aim_mlp, fit_mlp_method
 from heliotwin.calibrate.params import STONE8, apply_deviations
+from heliotwin.calibrate.scenario import aim, network_entry
 from heliotwin.field import kinematics as K
 
 
-def test_mlp_finetunes_and_falls_back_to_a_better_rigid_body():
+def test_mlp_finetunes_and_falls_back_to_a_better_rigid_body(tmp_path):
     kin = jueliche_like(1)
     true = apply_deviations(kin, torch.tensor([[TRUE[k] for k in STONE8]], dtype=torch.float64), STONE8)
     b = simulate(true, 40, 3, noise=5e-4)
@@ -27,3 +28,9 @@ def test_mlp_finetunes_and_falls_back_to_a_better_rigid_body():
     entry = model.extras["networks"]["S0"]
     steps = aim_mlp(entry, model.kinematics, te.sun[:1], te.spot[:1])
     assert torch.allclose(steps, K.inverse(model.kinematics, te.spot[:1], te.sun[:1], strict=False)[0])
+    # Through the scenario file: the plant holds the rigid body, the stored network says "not used".
+    sc = scenario_round_trip(tmp_path, kin, model)
+    assert torch.equal(sc.plant.field.kinematics.joint_tilt, model.kinematics.joint_tilt)
+    assert network_entry(sc.learned, "S0")["config"]["use_net"] is False
+    ans = aim(sc, "S0", float(te.sun_azimuth[0]), float(te.sun_elevation[0]), te.spot[0].tolist())
+    assert ans["method"] == "mlp" and torch.allclose(torch.tensor([ans["motor_steps"]], dtype=torch.float64), steps)

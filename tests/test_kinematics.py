@@ -10,7 +10,13 @@ import torch
 from heliotwin.errors import OutOfRangeError
 from heliotwin.field import kinematics as K
 from heliotwin.field.actuators import angle_to_steps, steps_to_angle
-from heliotwin.io.paint import find_tower_file, list_heliostats, read_calibration_record, read_heliostat_properties, read_tower
+from heliotwin.io.paint import (
+    find_tower_file,
+    list_heliostats,
+    read_calibration_record,
+    read_heliostat_properties,
+    read_tower,
+)
 from heliotwin.sun import direction_from_paint_angles
 
 ORACLE = Path(__file__).resolve().parents[2] / "shared" / "tools" / "paint_nominal_reference.py"

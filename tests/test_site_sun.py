@@ -9,8 +9,7 @@ import torch
 
 from heliotwin.errors import OutOfRangeError
 from heliotwin.io import paint as P
-from heliotwin.site import (JUELICH_REFERENCE, WGS84_A, WGS84_E2, Site, enu_to_wgs84, geodetic_to_ecef,
-                            wgs84_to_enu)
+from heliotwin.site import JUELICH_REFERENCE, WGS84_A, WGS84_E2, Site, enu_to_wgs84, geodetic_to_ecef, wgs84_to_enu
 from heliotwin.sun import direction_from_paint_angles, paint_angles_from_direction, solar_position
 
 REF = torch.tensor(JUELICH_REFERENCE, dtype=torch.float64)

@@ -4,10 +4,10 @@ from __future__ import annotations
 import torch
 from helpers.surfaces import small_scene
 
+from heliotwin.cli import main
 from heliotwin.field import facets as facet_ops
 from heliotwin.field.plant import SunSettings
 from heliotwin.io.deflectometry import write_deflectometry
-from heliotwin.cli import main
 from heliotwin.surfaces.deflectometry import compare_surfaces, deflectometry_surface
 from heliotwin.surfaces.imaging import evaluate_images, predict_images
 from heliotwin.surfaces.learning import LearnableSurface, learnable_surfaces

@@ -8,8 +8,8 @@ import sys
 import pytest
 import torch
 
-from heliotwin.io.paint import load_paint
 from heliotwin.cli import main
+from heliotwin.io.paint import load_paint
 from heliotwin.surfaces.observations import load_centered_image, observations_from_records, split_records
 
 

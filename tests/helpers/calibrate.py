@@ -65,3 +65,26 @@ def with_weekly_times(batch: RecordTable, start: float = 1.6e9) -> RecordTable:
     """``batch`` with one record a week from ``start`` [s, UNIX], in record order (changed in place)."""
     batch.time = start + torch.arange(len(batch), dtype=F64) * 86400.0 * 7
     return batch
+
+
+def plant_of(kin: Kinematics, ids=None):
+    """A plant (demo site, targets and facets) around synthetic kinematics, to carry a calibration in a
+    scenario file."""
+    from dataclasses import replace
+
+    from heliotwin.field.demo import demo_plant
+    from heliotwin.field.update import select_heliostats
+
+    h = kin.num_heliostats
+    plant = demo_plant(num_heliostats=max(h, 2))
+    plant = select_heliostats(plant, plant.field.ids[:h])
+    ids = list(ids or [f"S{i}" for i in range(h)])
+    return replace(plant, field=replace(plant.field, ids=ids, kinematics=kin))
+
+
+def scenario_round_trip(tmp_path, kin: Kinematics, model):
+    """Write ``model`` as a calibrated scenario of a plant around ``kin`` and read it back."""
+    from heliotwin.calibrate.scenario import save_calibration
+    from heliotwin.io.scenario import load_scenario
+
+    return load_scenario(save_calibration(tmp_path / "calibrated.h5", plant_of(kin, model.heliostat_ids), model))
