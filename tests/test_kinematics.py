@@ -104,7 +104,8 @@ def _kin(h=3, seed=0):
 
 def test_actuator_round_trip_linear_and_ideal():
     kin = _kin(4)
-    steps = torch.tensor([[10000.0, 60000.0], [30000.0, 20000.0], [1.0, 74000.0], [50000.0, 40000.0]], dtype=torch.float64)
+    steps = torch.tensor([[10000.0, 60000.0], [30000.0, 20000.0], [1.0, 74000.0], [50000.0, 40000.0]],
+                         dtype=torch.float64)
     for linear in (True, False):
         k = kin.replace(linear=torch.full_like(kin.linear, linear))
         kw = dict(increment=k.increment, offset=k.offset, pivot_radius=k.pivot_radius, initial_angle=k.initial_angle,
@@ -139,7 +140,8 @@ def test_inverse_respects_actuator_limits():
     narrow = kin.replace(max_steps=torch.full_like(kin.max_steps, 10.0))
     with pytest.raises(OutOfRangeError):
         K.inverse(narrow.replace(position=torch.tensor([[0.0, 60.0, 1.0]], dtype=torch.float64)), aim, sun)
-    _, ok = K.inverse(narrow.replace(position=torch.tensor([[0.0, 60.0, 1.0]], dtype=torch.float64)), aim, sun, strict=False)
+    far = narrow.replace(position=torch.tensor([[0.0, 60.0, 1.0]], dtype=torch.float64))
+    _, ok = K.inverse(far, aim, sun, strict=False)
     assert not bool(ok.any())
 
 

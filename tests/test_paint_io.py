@@ -110,7 +110,8 @@ def test_real_records_sources_and_metadata(dataset):
 
 def test_real_data_has_both_kinematics_keys(paint_dir):
     names = ("kinematics_properties", "kinematic_properties")
-    keys = {h: next(k for k in names if k in _load_json(_props_path(paint_dir, h))) for h in P.list_heliostats(paint_dir)}
+    keys = {h: next(k for k in names if k in _load_json(_props_path(paint_dir, h)))
+            for h in P.list_heliostats(paint_dir)}
     assert set(keys.values()) == {"kinematics_properties", "kinematic_properties"}
 
 

@@ -81,7 +81,8 @@ def run_demo(out: str, *, num_heliostats: int = 48, integrator: str = "mc", rays
     cal_steps, _ = kin_ops.inverse(kin.index(first), cal.center[None], sun_dir[None], strict=False)
     with torch.no_grad():
         pts, nrm, area, _, _ = world_surface(kin, fld.surfaces, [first], cal_steps, samples)
-        spot = trace(pts, nrm, area, sun_dir.to(pts)[None], cal, integrator=integrator, resolution=(resolution, resolution),
+        spot = trace(pts, nrm, area, sun_dir.to(pts)[None], cal, integrator=integrator,
+                     resolution=(resolution, resolution),
                      sun=plant.sun, rays_per_point=rays_per_point, generator=gen)
     to_png(spot.bitmap[0], os.path.join(out, "calibration-spot.png"))
     plot_demo(plant, per_heliostat, receiver_flux, spot, os.path.join(out, "field.png"))
@@ -91,7 +92,8 @@ def run_demo(out: str, *, num_heliostats: int = 48, integrator: str = "mc", rays
         "sun_azimuth_deg": math.degrees(float(az)), "sun_elevation_deg": math.degrees(float(el)),
         "dni_w_m2": plant.sun.dni, "sunshape": plant.sun.sunshape, "slope_error_mrad": plant.sun.slope_error * 1e3,
         "reflectivity": plant.sun.reflectivity, "integrator": integrator,
-        "rays_per_point": rays_per_point if integrator == "mc" else None, "surface_samples_per_facet": samples[0] * samples[1],
+        "rays_per_point": rays_per_point if integrator == "mc" else None,
+        "surface_samples_per_facet": samples[0] * samples[1],
         "heliostats": h, "heliostats_traced": int(len(idx)), "heliostats_unreachable": [fld.ids[i] for i in
                                                                                       torch.nonzero(~reachable).flatten().tolist()],
         "total_power_w": total,

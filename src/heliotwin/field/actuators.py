@@ -58,7 +58,8 @@ def steps_to_angle(steps, *, increment, offset, pivot_radius, initial_angle, ini
     """
     steps = torch.as_tensor(steps).to(initial_angle.dtype)
     stroke = steps / increment + initial_stroke_length
-    delta_linear = _pivot_angle(initial_stroke_length, offset, pivot_radius) - _pivot_angle(stroke, offset, pivot_radius)
+    delta_linear = (_pivot_angle(initial_stroke_length, offset, pivot_radius)
+                    - _pivot_angle(stroke, offset, pivot_radius))
     delta = torch.where(linear, delta_linear, steps / increment)
     return torch.where(clockwise, initial_angle + delta, initial_angle - delta)
 

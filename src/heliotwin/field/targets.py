@@ -97,7 +97,8 @@ class PlanarTarget:
         n = _unit(torch.as_tensor(normal, dtype=torch.float64))
         r, u = in_plane_basis(n)
         width = float(((pts["upper_right"] - pts["upper_left"]) @ r + (pts["lower_right"] - pts["lower_left"]) @ r) / 2)
-        height = float(((pts["upper_left"] - pts["lower_left"]) @ u + (pts["upper_right"] - pts["lower_right"]) @ u) / 2)
+        height = float(((pts["upper_left"] - pts["lower_left"]) @ u
+                        + (pts["upper_right"] - pts["lower_right"]) @ u) / 2)
         # Centre the rectangle on the corners in-plane but keep the stored centre's depth along the normal.
         mid = quad.mean(0)
         c = c + r * ((mid - c) @ r) + u * ((mid - c) @ u)
@@ -174,7 +175,8 @@ class CylinderTarget:
         return p + self.radius * (torch.cos(a) * n + torch.sin(a) * r) + xy[..., 1:2] * u
 
     @classmethod
-    def from_outer_corners(cls, name: str, corners: dict, normal, radius: float, opening_angle: float) -> "CylinderTarget":
+    def from_outer_corners(cls, name: str, corners: dict, normal, radius: float, opening_angle: float
+                           ) -> "CylinderTarget":
         """Build from the four outer edge corners (ENU) of the segment and the stored aperture normal.
 
         The corners lie on the two edge generator lines; the apex lies ``radius * (1 - cos(half angle))``

@@ -86,7 +86,8 @@ def _vector(d: dict, key: str, path, prefix: str = "", n: int = 3) -> list[float
 def _geodetic(d: dict, key: str, path, prefix: str = "") -> list[float]:
     v = _vector(d, key, path, prefix)
     if not (-90.0 <= v[0] <= 90.0 and -180.0 <= v[1] <= 180.0):
-        raise InputFileError(path, f"not a [latitude, longitude, altitude] (lat-first WGS84): {v}", field=f"{prefix}{key}")
+        raise InputFileError(path, f"not a [latitude, longitude, altitude] (lat-first WGS84): {v}",
+                             field=f"{prefix}{key}")
     return v
 
 
@@ -132,13 +133,16 @@ def read_tower(path) -> tuple[Site, dict]:
             radius = _number(spec, "radius", path, pre, positive=True)
             opening_deg = _number(spec, "opening_angle", path, pre, positive=True)
             if opening_deg >= 360.0:
-                raise InputFileError(path, f"opening angle must be below 360 deg, got {opening_deg}", field=pre + "opening_angle")
+                raise InputFileError(path, f"opening angle must be below 360 deg, got {opening_deg}",
+                                     field=pre + "opening_angle")
             opening = math.radians(opening_deg)
-            corners = {k: wgs84_to_enu(_geodetic(coords, f"receiver_outer_{k}", path, pre + "coordinates."), site.reference)
+            corners = {k: wgs84_to_enu(_geodetic(coords, f"receiver_outer_{k}", path, pre + "coordinates."),
+                                       site.reference)
                        for k in ("upper_left", "upper_right", "lower_left", "lower_right")}
             targets[name] = CylinderTarget.from_outer_corners(name, corners, normal, radius, opening)
         else:
-            raise InputFileError(path, f"unknown target type {kind!r} (known: planar, convex_cylinder)", field=pre + "type")
+            raise InputFileError(path, f"unknown target type {kind!r} (known: planar, convex_cylinder)",
+                                 field=pre + "type")
     return site, targets
 
 
@@ -173,7 +177,8 @@ def read_heliostat_properties(path, site: Site, heliostat_id: str | None = None)
     acts = _get(kin, "actuators", path, pre)
     if not isinstance(acts, list) or len(acts) != 2:
         raise InputFileError(path, "expected a list of 2 actuators", field=pre + "actuators")
-    per_axis = {k: [] for k in _ACTUATOR_KEYS + ("min_increment", "max_increment", "min_movement_angle", "max_movement_angle")}
+    per_axis = {k: [] for k in _ACTUATOR_KEYS + ("min_increment", "max_increment", "min_movement_angle",
+                                                 "max_movement_angle")}
     clockwise, linear = [], []
     for i, act in enumerate(acts):
         ap = f"{pre}actuators[{i}]."
@@ -193,7 +198,8 @@ def read_heliostat_properties(path, site: Site, heliostat_id: str | None = None)
         if kind == "linear":
             for k in ("offset", "pivot_radius"):
                 if per_axis[k][-1] <= 0:
-                    raise InputFileError(path, f"must be positive for a linear actuator, got {per_axis[k][-1]}", field=ap + k)
+                    raise InputFileError(path, f"must be positive for a linear actuator, got {per_axis[k][-1]}",
+                                         field=ap + k)
         if per_axis["max_increment"][-1] < per_axis["min_increment"][-1]:
             raise InputFileError(path, "max_increment < min_increment", field=ap + "max_increment")
 
@@ -296,7 +302,8 @@ def read_calibration_record(path, site: Site, heliostat_id: str, known_targets=N
     if not isinstance(target, str):
         raise InputFileError(path, f"expected a string, got {target!r}", field="target_name")
     if known_targets is not None and target not in known_targets:
-        raise InputFileError(path, f"unknown target {target!r}; known: {', '.join(sorted(known_targets))}", field="target_name")
+        raise InputFileError(path, f"unknown target {target!r}; known: {', '.join(sorted(known_targets))}",
+                             field="target_name")
     spots = _get(data, "focal_spot", path)
     if not isinstance(spots, dict):
         raise InputFileError(path, "expected an object", field="focal_spot")
@@ -405,6 +412,12 @@ class PaintDataset:
                                             f"{', '.join(self.plant.field.ids)}", field="record") from None
 
 
+def _record_number(path: str) -> int:
+    """Numeric record id of a calibration file name (-1 for a name that does not start with one)."""
+    head = os.path.basename(path).split("-")[0]
+    return int(head) if head.isdigit() else -1
+
+
 def list_heliostats(root) -> list[str]:
     """Heliostat folders (``AA39``-style names with a Properties file) of a PAINT download, sorted."""
     root = str(root)
@@ -443,14 +456,16 @@ def load_paint(root, heliostats=None, *, surface_control_points=(4, 4), surface_
                              field="heliostats")
     if not ids:
         raise InputFileError(root, "no heliostats with a properties file")
-    props = {h: read_heliostat_properties(os.path.join(root, h, "Properties", f"{h}-heliostat-properties.json"), site, h)
+    props = {h: read_heliostat_properties(os.path.join(root, h, "Properties", f"{h}-heliostat-properties.json"),
+                                          site, h)
              for h in ids}
     nfac = {p.facets.translation.shape[1] for p in props.values()}
     if len(nfac) != 1:
         raise InputFileError(root, f"heliostats have different facet counts {sorted(nfac)}; load them separately",
                              field="facet_properties.number_of_facets")
     kin = Kinematics.concatenate([props[h].kinematics for h in ids])
-    fac = Facets(*(torch.cat([getattr(props[h].facets, a) for h in ids]) for a in ("translation", "canting_e", "canting_n")))
+    fac = Facets(*(torch.cat([getattr(props[h].facets, a) for h in ids])
+                   for a in ("translation", "canting_e", "canting_n")))
     surfaces = facet_ops.ideal_surfaces(fac, num_control_points=surface_control_points, degree=surface_degree)
     fld = Field(ids, kin, fac, surfaces, torch.tensor([props[h].width for h in ids], dtype=torch.float64),
                 torch.tensor([props[h].height for h in ids], dtype=torch.float64), [props[h].renovation for h in ids])
@@ -460,7 +475,7 @@ def load_paint(root, heliostats=None, *, surface_control_points=(4, 4), surface_
         times, weather = read_metadata(root)
         for h in ids:
             files = glob.glob(os.path.join(root, h, "Calibration", "*-calibration-properties.json"))
-            for f in sorted(files, key=lambda p: int(os.path.basename(p).split("-")[0]) if os.path.basename(p).split("-")[0].isdigit() else -1):
+            for f in sorted(files, key=_record_number):
                 r = read_calibration_record(f, site, h, known_targets=targets)
                 r.datetime = times.get(r.record_id)
                 r.weather = weather.get(r.record_id)

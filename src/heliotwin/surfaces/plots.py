@@ -53,7 +53,7 @@ def plot_normal_deviation(facets: Facets, control_points: torch.Tensor, degree, 
         hx, hy = float(ce[f].norm()), float(cn[f].norm())
         x0, y0 = float(tr[f, 0]), float(tr[f, 1])
         # u runs along canting_e (east), v along canting_n (north): transpose so rows = north.
-        im = ax.imshow(dev[f].T.flip(0), extent=(x0 - hx, x0 + hx, y0 - hy, y0 + hy), vmin=0.0, vmax=vmax,
+        im = ax.imshow(dev[f].T.flip(0).numpy(), extent=(x0 - hx, x0 + hx, y0 - hy, y0 + hy), vmin=0.0, vmax=vmax,
                        cmap="viridis")
     ax.set_xlim(float((tr[:, 0] - ce.norm(dim=-1)).min()) - 0.05, float((tr[:, 0] + ce.norm(dim=-1)).max()) + 0.05)
     ax.set_ylim(float((tr[:, 1] - cn.norm(dim=-1)).min()) - 0.05, float((tr[:, 1] + cn.norm(dim=-1)).max()) + 0.05)
@@ -75,7 +75,7 @@ def plot_flux_comparison(measured: torch.Tensor, ideal: torch.Tensor, learned: t
             a = img[i].detach().cpu().float()
             a = a / a.max().clamp_min(1e-30)
             ax = axes[i, j]
-            ax.imshow(a, vmin=0, vmax=1, cmap="inferno")
+            ax.imshow(a.numpy(), vmin=0, vmax=1, cmap="inferno")
             text = f"{labels[i]} {name}"
             if j == 1 and l1_ideal is not None:
                 text += f"\nL1 {l1_ideal[i]:.3f}"
