@@ -1,7 +1,7 @@
 """heliotwin: a differentiable digital twin of a solar tower power plant.
 
 The pipeline reads like the package: ``site`` & ``sun`` -> ``field`` (plant data, kinematics, facets)
--> ``nurbs`` surfaces -> ``raytrace`` (Monte-Carlo and analytic integrators, flux images) -> losses ->
+-> ``nurbs`` surfaces -> ``raytrace`` (integrators mc, gaussian, conv; flux images) -> losses ->
 ``calibrate`` / ``surfaces`` (learning) with ``io`` and ``cli`` at the edges.
 
 Conventions (everywhere inside the package): right-handed East-North-Up (ENU) frame in metres with the
