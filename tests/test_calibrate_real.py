@@ -1,8 +1,8 @@
 """Calibration on the real PAINT records (Jülich): lm/gradient improve drastically; bad input is reported."""
 import json
-import shutil
 
 import pytest
+from helpers.paint import copy_paint
 
 
 @pytest.fixture(scope="module")
@@ -56,12 +56,7 @@ def test_bad_input_is_reported_not_crashing(paint_dir, tmp_path):
     """Off-plane focal spot, out-of-range motor steps, a heliostat with too few records."""
     from heliotwin.io.paint import load_paint
 
-    root = tmp_path / "paint"
-    root.mkdir()
-    shutil.copy(paint_dir / "WRI1030197-tower-measurements.json", root)
-    shutil.copytree(paint_dir / "metadata", root / "metadata")  # record times: the chrono split needs them
-    for h in ("BH60", "BH20"):
-        shutil.copytree(paint_dir / h, root / h)
+    root = copy_paint(paint_dir, tmp_path, ("BH60", "BH20"), metadata=True)
     off, out = sorted((root / "BH60" / "Calibration").glob("*-calibration-properties.json"))[:2]
     data = json.loads(off.read_text())
     for src in ("HeliOS", "UTIS"):

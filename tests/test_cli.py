@@ -1,10 +1,10 @@
 """The `heliotwin` command line: outputs that make physical sense, and one-line errors for bad input."""
 import json
-import shutil
 
 import pytest
 from helpers.cli import assert_one_line_error as _assert_one_line_error
 from helpers.cli import run_cli as _run
+from helpers.paint import copy_paint
 
 
 def test_demo_writes_images_and_consistent_summary(tmp_path, capsys):
@@ -32,11 +32,7 @@ def test_demo_writes_images_and_consistent_summary(tmp_path, capsys):
 @pytest.fixture()
 def small_paint(tmp_path, paint_dir):
     """A PAINT folder with only AA39 (copied) that tests may corrupt."""
-    root = tmp_path / "paint"
-    root.mkdir()
-    shutil.copy(paint_dir / "WRI1030197-tower-measurements.json", root)
-    shutil.copytree(paint_dir / "AA39", root / "AA39")
-    return root
+    return copy_paint(paint_dir, tmp_path)
 
 
 def _first_record(root):

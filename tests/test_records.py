@@ -6,6 +6,7 @@ import shutil
 
 import pytest
 import torch
+from helpers.paint import copy_paint
 
 from heliotwin.errors import InputFileError
 from heliotwin.io.paint import load_paint
@@ -14,11 +15,7 @@ from heliotwin.io.paint import load_paint
 @pytest.fixture()
 def aa39_copy(tmp_path, paint_dir):
     """A PAINT folder with only AA39 (copied), free to corrupt."""
-    root = tmp_path / "paint"
-    root.mkdir()
-    shutil.copy(paint_dir / "WRI1030197-tower-measurements.json", root)
-    shutil.copytree(paint_dir / "AA39", root / "AA39")
-    return root
+    return copy_paint(paint_dir, tmp_path)
 
 
 def _records(root):
@@ -85,3 +82,22 @@ def test_select_for_heliostats_and_sources(paint_dir):
     assert len(t.select(heliostat="AA39", with_centered_image=True)) == 10
     rows = t.select(record_ids=t.record_id[:3].tolist())
     assert rows.record_id.tolist() == t.record_id[:3].tolist()
+
+
+def test_records_on_a_scenario_of_another_plant_are_a_one_line_error(paint_dir, tmp_path):
+    from dataclasses import replace
+
+    from heliotwin.field.demo import demo_plant
+    from heliotwin.io.scenario import load_records, save_scenario
+    from heliotwin.site import Site
+
+    demo = demo_plant(num_heliostats=3)
+    path = save_scenario(demo, tmp_path / "demo.h5")
+    with pytest.raises(InputFileError, match=r"\[/field/ids\]: heliostat\(s\) .* not in the PAINT folder"):
+        load_records(paint_dir, path)
+    moved = replace(demo, site=Site(48.0, 11.0, 500.0, "elsewhere"))
+    aa39 = load_paint(paint_dir, ["AA39"]).plant
+    with pytest.raises(InputFileError, match=r"\[/site\]"):
+        load_records(paint_dir, save_scenario(replace(aa39, site=moved.site), tmp_path / "moved.h5"))
+    ds, sc = load_records(paint_dir, save_scenario(aa39, tmp_path / "aa39.h5"))
+    assert sc.plant.field.ids == ["AA39"] and len(ds.records) == 18

@@ -92,14 +92,11 @@ def _config(args, method="lm"):
 
 def _load(paint, scenario=None, plane_tolerance: float = 0.1):
     """The PAINT records, on the scenario's plant when one is given; returns (dataset, scenario or None)."""
-    from ..io.paint import load_paint
-    from ..io.scenario import load_scenario
+    from ..io.scenario import load_records
 
     if not os.path.isdir(paint):
         raise HeliotwinError(f"{paint}: PAINT folder not found")
-    previous = load_scenario(scenario) if scenario else None
-    ds = load_paint(paint, plane_tolerance=plane_tolerance)
-    return (ds.on_plant(previous.plant, previous.path) if previous else ds), previous
+    return load_records(paint, scenario, plane_tolerance=plane_tolerance)
 
 
 def _seen_records(arrays: dict) -> dict:

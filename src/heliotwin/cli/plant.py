@@ -9,7 +9,6 @@ import math
 import os
 import time
 
-from ..errors import HeliotwinError
 from ..io.report import write_json
 from .common import csv_list, int_list, positive_int
 
@@ -43,23 +42,6 @@ def cmd_scenario_from_paint(args) -> int:
 
 
 # ----------------------------------------------------------------------------------------------- trace
-def _paint_on_scenario(paint, heliostats, scenario):
-    """PAINT records of ``heliostats`` (default all) on the scenario's plant (default: the folder's nominal
-    plant); returns (dataset, scenario or None)."""
-    from ..field.update import select_heliostats
-    from ..io.paint import load_paint
-    from ..io.scenario import load_scenario
-
-    sc = load_scenario(scenario) if scenario else None
-    if sc is None:
-        return load_paint(paint, heliostats), None
-    ids = heliostats or [h for h in sc.plant.field.ids]
-    unknown = [h for h in ids if h not in sc.plant.field.ids]
-    if unknown:
-        raise HeliotwinError(f"{scenario}: heliostat(s) {', '.join(unknown)} not in this scenario")
-    return load_paint(paint, ids).on_plant(select_heliostats(sc.plant, ids), sc.path), sc
-
-
 def _describe(sc) -> dict:
     """What the traced plant is: nominal/calibrated kinematics, ideal/learned surfaces."""
     if sc is None:
@@ -74,9 +56,10 @@ def _describe(sc) -> dict:
 
 def cmd_trace(args) -> int:
     """Trace one real record with the scenario's plant (default: nominal kinematics, ideal surface)."""
+    from ..io.scenario import load_records
     from ..raytrace.flux import to_png
 
-    ds, sc = _paint_on_scenario(args.paint, [args.heliostat], args.scenario)
+    ds, sc = load_records(args.paint, args.scenario, [args.heliostat])
     row = ds.record(args.record)
     flux, report = _trace_record(ds.plant, row, args)
     report.update(_describe(sc))
@@ -138,7 +121,9 @@ def cmd_validate(args) -> int:
     from ..validate import validate_dataset
 
     t0 = time.perf_counter()
-    ds, sc = _paint_on_scenario(args.paint, csv_list(args.heliostats), args.scenario)
+    from ..io.scenario import load_records
+
+    ds, sc = load_records(args.paint, args.scenario, csv_list(args.heliostats))
     report = validate_dataset(ds, resolution=args.resolution, samples=(args.samples, args.samples),
                               with_images=not args.no_images, progress=not args.quiet)
     report["overall"]["seconds"] = time.perf_counter() - t0

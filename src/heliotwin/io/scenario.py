@@ -684,3 +684,41 @@ def scenario_from_paint(paint_dir, heliostats=None, **kwargs) -> Plant:
     from .paint import load_paint
 
     return load_paint(paint_dir, heliostats, with_records=False, **kwargs).plant
+
+
+def load_records(paint_dir, scenario=None, heliostats=None, *, plane_tolerance: float = 0.1):
+    """The PAINT records of ``heliostats`` (default: all of the scenario, else all of the folder) on the
+    scenario's plant (default: the folder's nominal plant): what every learner and checker starts from.
+
+    Parameters
+    ----------
+    paint_dir : path
+        The PAINT folder the records come from.
+    scenario : path or Scenario, optional
+        Its plant (e.g. calibrated) replaces the folder's nominal plant; same site, heliostats in the folder.
+    heliostats : list of str, optional
+    plane_tolerance : float
+        See :func:`heliotwin.io.records.build_record_table`.
+
+    Returns
+    -------
+    dataset : heliotwin.io.paint.PaintDataset
+        Plant and record table (heliostat axis = the plant's heliostats).
+    scenario : Scenario or None
+    """
+    from ..field.update import select_heliostats
+    from .paint import list_heliostats, load_paint
+
+    sc = load_scenario(scenario) if isinstance(scenario, (str, os.PathLike)) else scenario
+    if sc is None:
+        return load_paint(paint_dir, heliostats, plane_tolerance=plane_tolerance), None
+    ids = list(heliostats or sc.plant.field.ids)
+    unknown = [h for h in ids if h not in sc.plant.field.ids]
+    if unknown:
+        raise InputFileError(sc.path, f"heliostat(s) {', '.join(unknown)} not in this scenario", field="/field/ids")
+    absent = [h for h in ids if h not in set(list_heliostats(paint_dir))]
+    if absent:
+        raise InputFileError(sc.path, f"heliostat(s) {', '.join(absent[:5])} not in the PAINT folder {paint_dir}",
+                             field="/field/ids")
+    ds = load_paint(paint_dir, ids, plane_tolerance=plane_tolerance)
+    return ds.on_plant(select_heliostats(sc.plant, ids), sc.path), sc
