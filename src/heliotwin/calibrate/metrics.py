@@ -16,7 +16,7 @@ import torch
 
 from ..field import kinematics as K
 from ..field.plant import Kinematics
-from ..geometry import angle_between
+from ..geometry import angle_between, ray_plane, reflect
 from ..io.records import RecordTable
 
 
@@ -81,12 +81,13 @@ def pointing_error(kin: Kinematics, batch: RecordTable, *, per_record: bool = Fa
 def predicted_spot(normal: torch.Tensor, concentrator: torch.Tensor, batch: RecordTable) -> torch.Tensor:
     """Where the reflected central ray meets the record's target plane, ENU [R, 3].
 
-    A ray parallel to the plane (never the case for a heliostat aiming at its target) gives inf/NaN; the
-    caller reports that record rather than averaging it.
+    A ray parallel to the plane (never the case for a heliostat aiming at its target) gives NaN; the caller
+    reports that record rather than averaging it.
     """
-    s = batch.sun
-    reflected = -s + 2.0 * (s * normal).sum(-1, keepdim=True) * normal
-    t = ((batch.plane_center - concentrator) * batch.plane_normal).sum(-1) / (reflected * batch.plane_normal).sum(-1)
+    reflected = reflect(-batch.sun, normal)
+    t, _ = ray_plane(concentrator, reflected, batch.plane_center, batch.plane_normal)
+    parallel = (reflected * batch.plane_normal).sum(-1).abs() <= 1e-12  # ray_plane's t = 0 there: not a spot
+    t = torch.where(parallel, torch.full_like(t, float("nan")), t)
     return concentrator + t.unsqueeze(-1) * reflected
 
 

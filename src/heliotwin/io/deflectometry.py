@@ -32,6 +32,7 @@ import torch
 from .. import nurbs
 from ..errors import HeliotwinError, InputFileError
 from ..field.plant import Facets
+from ..geometry import angle_between
 from .hdf5 import open_for_reading
 from .report import atomic_path
 
@@ -244,11 +245,6 @@ def facet_parameters(points: torch.Tensor, translation: torch.Tensor, canting_e:
     return ((st + 1.0) / 2.0).clamp(0.0, 1.0), outside
 
 
-def _angle(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    # atan2 of |a x b| and a . b is accurate for the small angles of interest (acos is not).
-    return torch.atan2(torch.linalg.vector_norm(torch.linalg.cross(a, b, dim=-1), dim=-1), (a * b).sum(-1))
-
-
 def fit_deflectometry(measurements: Sequence[tuple[torch.Tensor, torch.Tensor]], facets,
                       num_control_points: tuple[int, int] = (8, 8), degree: tuple[int, int] = (3, 3),
                       normal_weight: float = 1.0, ridge: float = 1e-9) -> tuple[torch.Tensor, DeflectometryFit]:
@@ -304,7 +300,7 @@ def fit_deflectometry(measurements: Sequence[tuple[torch.Tensor, torch.Tensor]],
         s, su, sv = nurbs.evaluate_points(net, p, q, uv)
         dist = torch.linalg.vector_norm(s - points, dim=-1)
         fitted_normal = torch.linalg.cross(su, sv, dim=-1)
-        ang = _angle(fitted_normal, normals) * 1e3
+        ang = angle_between(fitted_normal, normals) * 1e3
         nets.append(net)
         rms.append(dist.square().mean().sqrt())
         mx.append(dist.max())
