@@ -113,8 +113,7 @@ def _command(exc):
     (HeliotwinError("a.json [field]: bad\nmore detail"), "heliotwin: error: a.json [field]: bad"),
     (KeyError("unknown heliostat 'ZZ99'; this field has AA39"), "heliotwin: error: unknown heliostat 'ZZ99'; "
                                                                 "this field has AA39"),
-    (FileNotFoundError(2, "No such file or directory", "x.h5"), "heliotwin: error: [Errno 2] No such file or "
-                                                                 "directory: 'x.h5'"),
+    (FileNotFoundError(2, "No such file or directory", "x.h5"), "heliotwin: error: x.h5: No such file or directory"),
     (NotImplementedError("cylinder targets need the mc integrator"), "heliotwin: error: cylinder targets need "
                                                                      "the mc integrator"),
 ])
@@ -123,11 +122,31 @@ def test_user_errors_are_one_line_exit_2(exc, line, capsys):
     assert capsys.readouterr().err == line + "\n"
 
 
-@pytest.mark.parametrize("exc", [KeyError("median_test_mrad"), KeyError(3), TypeError("bug"), ZeroDivisionError()])
-def test_internal_errors_keep_their_traceback(exc):
-    """A dict lookup that fails inside the library is a bug, not a user error: it must not become one line."""
-    with pytest.raises(type(exc)):
-        run_command(_command(exc))
+@pytest.mark.parametrize("exc", [KeyError("median_test_mrad"), KeyError(3), TypeError("bug"), ZeroDivisionError(),
+                                 RuntimeError("CUDA error: device-side assert\ntriggered"), RecursionError()])
+def test_internal_errors_are_one_line_exit_1_traceback_only_on_request(exc, capsys, monkeypatch):
+    """A bug is still one line (exit 1, saying it is internal and how to see more); --debug or
+    HELIOTWIN_DEBUG=1 adds the traceback."""
+    monkeypatch.delenv("HELIOTWIN_DEBUG", raising=False)
+    assert run_command(_command(exc)) == 1
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and err.startswith("heliotwin: error: ") and "Traceback" not in err
+    assert "--debug" in err
+    args = _command(exc)
+    args.debug = True
+    assert run_command(args) == 1
+    err = capsys.readouterr().err
+    assert "Traceback (most recent call last)" in err and err.splitlines()[-1].startswith("heliotwin: error: ")
+    monkeypatch.setenv("HELIOTWIN_DEBUG", "1")
+    assert run_command(_command(exc)) == 1
+    assert "Traceback" in capsys.readouterr().err
+
+
+def test_debug_flag_before_or_after_the_command():
+    assert build_parser().parse_args(["--debug", "bench"]).debug is True
+    assert build_parser().parse_args(["bench", "--debug"]).debug is True
+    assert build_parser().parse_args(["scenario", "from-paint", "P", "-o", "x.h5", "--debug"]).debug is True
+    assert build_parser().parse_args(["bench"]).debug is False
 
 
 def test_bad_argument_types_are_usage_errors(capsys):

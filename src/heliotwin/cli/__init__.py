@@ -12,8 +12,10 @@ The groups are ordinary imports: a command whose module fails to import breaks `
 of disappearing from it. Library modules never import this package. Building the parser imports no torch
 (commands import the library when they run), so ``heliotwin --help`` is instant.
 
-Every command has ``--help``. Errors a user can cause are printed as one line (``heliotwin: error: ...``
-naming the file and field) with exit code 2, and no partial output file is left behind.
+Every command has ``--help`` and ``--debug``. Every error is printed as one line (``heliotwin: error: ...``
+naming the file and field): exit code 2 for bad input, 1 for an internal error (the traceback only with
+``--debug`` or ``HELIOTWIN_DEBUG=1``), 130/143 for Ctrl-C/SIGTERM; no partial output file is left behind
+(see :mod:`.common` for the exit codes).
 """
 from __future__ import annotations
 
@@ -21,7 +23,7 @@ import argparse
 
 from .. import __version__
 from . import calibrate, plant, surfaces
-from .common import run_command
+from .common import ArgumentParser, run_command
 
 __all__ = ["build_parser", "main", "run_command"]
 
@@ -31,14 +33,28 @@ GROUPS = (plant, calibrate, surfaces)
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``heliotwin`` parser with every command group's subcommands."""
-    parser = argparse.ArgumentParser(prog="heliotwin",
+    parser = ArgumentParser(prog="heliotwin",
                                      description="Differentiable digital twin of a solar tower plant.")
     parser.add_argument("--version", action="version", version=f"heliotwin {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for group in GROUPS:
         group.register(sub)
+    parser.add_argument("--debug", action="store_true", help="show the traceback of an error (or HELIOTWIN_DEBUG=1)")
+    _add_debug(sub)
     return parser
+
+
+def _add_debug(sub) -> None:
+    """``--debug`` on every leaf command too (``heliotwin trace ... --debug``); SUPPRESS keeps a sub-parser's
+    default from overwriting the main parser's value."""
+    for p in set(sub.choices.values()):
+        inner = [a for a in p._actions if isinstance(a, argparse._SubParsersAction)]
+        if inner:
+            _add_debug(inner[0])
+        elif not any("--debug" in a.option_strings for a in p._actions):
+            p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                           help="show the traceback of an error (or HELIOTWIN_DEBUG=1)")
 
 
 def main(argv=None) -> int:

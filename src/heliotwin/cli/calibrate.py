@@ -5,14 +5,18 @@ the command functions, so ``--help`` stays torch-free.
 """
 from __future__ import annotations
 
+import argparse
 import csv
 import math
 import os
 
 from ..errors import HeliotwinError
-from ..io.report import atomic_path, write_json
+from ..io.report import atomic_path, output_set, write_json
+from .common import float_range, int_range, seed_int
 
 METHOD_CHOICES = ("lm", "gradient", "hybrid", "mlp", "images")
+_COUNT, _COUNT0 = int_range(1, 10**6, "a record count"), int_range(0, 10**6, "a record count")
+_AZIMUTH = float_range(-360.0, 360.0, what="an azimuth [deg]")
 
 
 def _ids(text: str | None):
@@ -27,16 +31,18 @@ def _ids(text: str | None):
 def _add_common(p):
     p.add_argument("--paint", required=True, help="PAINT download folder")
     p.add_argument("--heliostats", help="comma-separated heliostat ids (default: every heliostat)")
-    p.add_argument("--min-records", type=int, default=50, help="skip heliostats with fewer usable records (default 50)")
+    p.add_argument("--min-records", type=_COUNT, default=50,
+                   help="skip heliostats with fewer usable records (default 50)")
     p.add_argument("--split", "--type", dest="split", default="chrono",
                    choices=("chrono", "isolation", "region", "azimuth", "solstice", "balanced", "high_variance"),
                    help="split type (default chrono)")
-    p.add_argument("--train", type=int, default=30, help="records a method may see per heliostat, validation included")
-    p.add_argument("--validation", type=int, default=None,
+    p.add_argument("--train", type=_COUNT, default=30,
+                   help="records a method may see per heliostat, validation included")
+    p.add_argument("--validation", type=_COUNT0, default=None,
                    help="validation records carved out of --train (default 20%% of it, 0 below 8)")
-    p.add_argument("--test", type=int, default=None, help="test records per heliostat (default: every other record)")
+    p.add_argument("--test", type=_COUNT, default=None, help="test records per heliostat (default: every other record)")
     p.add_argument("--focal-spot", default="HeliOS", help="centroid source: heliOS or utis (falls back to the other)")
-    p.add_argument("--seed", type=int, default=0, help="seed of every random choice")
+    p.add_argument("--seed", type=seed_int, default=0, help="seed of every random choice")
 
 
 def register(subparsers) -> None:
@@ -50,12 +56,15 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", help="write the calibrated plant as a scenario file (.h5)")
     p.add_argument("--json", help="write the JSON report (plots are written next to it)")
     p.add_argument("--no-plots", action="store_true", help="do not write plots")
-    p.add_argument("--no-curve", action="store_true", help="skip the error-vs-training-size curve (lm refits)")
-    p.add_argument("--plane-tolerance", type=float, default=0.1,
+    p.add_argument("--curve", action="store_true",
+                   help="also run the error-vs-training-size experiment (lm refits; needs --json)")
+    p.add_argument("--no-curve", action="store_true", help=argparse.SUPPRESS)  # the old opt-out: now the default
+    p.add_argument("--plane-tolerance", type=float_range(0.0, 100.0, lo_open=True, what="a distance [m]"), default=0.1,
                    help="largest distance of a focal spot from its target plane [m] (default 0.1)")
     p.add_argument("--keep-suspicious", action="store_true",
                    help="report suspicious property values but never replace them")
-    p.add_argument("--progress", action="store_true", help="show progress bars")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--progress", action="store_true", help=argparse.SUPPRESS)  # old flag: progress is the default
     p.set_defaults(func=cmd_calibrate)
 
     p = subparsers.add_parser("split", help="write a train/validation/test split and its coverage metrics",
@@ -70,8 +79,9 @@ def register(subparsers) -> None:
                                           "reflection of the sun on an aim point.")
     p.add_argument("--scenario", required=True, help="scenario file (e.g. written by 'calibrate -o')")
     p.add_argument("--heliostat", required=True, help="heliostat id")
-    p.add_argument("--sun-azimuth", type=float, required=True, help="sun azimuth [deg], 0 = south, +90 = east")
-    p.add_argument("--sun-elevation", type=float, required=True, help="sun elevation [deg]")
+    p.add_argument("--sun-azimuth", type=_AZIMUTH, required=True, help="sun azimuth [deg], 0 = south, +90 = east")
+    p.add_argument("--sun-elevation", type=float_range(0.0, 90.0, lo_open=True, what="an elevation [deg]"),
+                   required=True, help="sun elevation [deg]")
     p.add_argument("--aim", required=True, help="aim point E,N,U [m] in the plant's ENU frame")
     p.add_argument("--json", help="also write the answer as JSON")
     p.set_defaults(func=cmd_aim)
@@ -85,7 +95,7 @@ def _config(args, method="lm"):
                     min_records=args.min_records, focal_spot=args.focal_spot, seed=args.seed,
                     plane_tolerance=getattr(args, "plane_tolerance", 0.1),
                     correct_suspicious=not getattr(args, "keep_suspicious", False),
-                    progress=getattr(args, "progress", False))
+                    progress=not getattr(args, "quiet", True))
     validate_config(cfg)
     return cfg
 
@@ -117,27 +127,29 @@ def cmd_calibrate(args) -> int:
     from ..calibrate.scenario import save_calibration
 
     cfg = _config(args, args.method)
-    ds, previous = _load(args.paint, args.scenario, cfg.plane_tolerance)
-    report, model, arrays = run_calibration(cfg, ds)
-    ov = report["overall"]
-    calibrated = model is not None and bool(model.ok.any())
-    if args.output and not calibrated:
-        _print_table(report)
-        raise HeliotwinError(f"no heliostat could be calibrated (see the table above); {args.output} not written")
-    curves = None
-    if args.json and not args.no_plots and not args.no_curve and calibrated:
-        curves = _training_size_curves(cfg, ds, ov["median_of_mean_test_mrad"])
-    if args.output:
-        settings = {k: v for k, v in report["config"].items() if k != "method_options"}
-        save_calibration(args.output, ds.plant, model, previous=previous, focal_spot=cfg.focal_spot,
-                         records=_seen_records(arrays), settings=settings, source=os.path.abspath(args.paint))
-        report["output"] = os.fspath(args.output)
-    if args.json:
-        if not args.no_plots:
-            report["plots"] = [os.path.basename(p) for p in write_plots(args.json, report, arrays, curves)]
-        if curves:
-            report["training_size_curve"] = {k: [list(p) for p in v] for k, v in curves.items()}
-        write_json(args.json, report)
+    with output_set([("--paint", args.paint), ("--scenario", args.scenario)]) as out:
+        output, json_path = out.file(args.output, "-o"), out.file(args.json, "--json")
+        ds, previous = _load(args.paint, args.scenario, cfg.plane_tolerance)
+        report, model, arrays = run_calibration(cfg, ds)
+        ov = report["overall"]
+        calibrated = model is not None and bool(model.ok.any())
+        if args.output and not calibrated:
+            _print_table(report)
+            raise HeliotwinError(f"no heliostat could be calibrated (see the table above); {args.output} not written")
+        curves = None
+        if args.curve and args.json and not args.no_plots and calibrated:
+            curves = _training_size_curves(cfg, ds, ov["median_of_mean_test_mrad"])
+        if output:
+            settings = {k: v for k, v in report["config"].items() if k != "method_options"}
+            save_calibration(output, ds.plant, model, previous=previous, focal_spot=cfg.focal_spot,
+                             records=_seen_records(arrays), settings=settings, source=os.path.abspath(args.paint))
+            report["output"] = os.fspath(args.output)
+        if json_path:
+            if not args.no_plots:
+                report["plots"] = [os.path.basename(p) for p in write_plots(json_path, report, arrays, curves)]
+            if curves:
+                report["training_size_curve"] = {k: [list(p) for p in v] for k, v in curves.items()}
+            write_json(json_path, report)
     _print_table(report)
     return 0
 
@@ -178,11 +190,16 @@ def _print_table(report: dict) -> None:
 
 
 def cmd_split(args) -> int:
+    cfg = _config(args)
+    with output_set([("--paint", args.paint)]) as out:
+        return _split(args, cfg, out.file(args.json, "--json"), out.file(args.csv, "--csv"))
+
+
+def _split(args, cfg, json_path, csv_path) -> int:
     import torch
 
     from ..calibrate.splits import split_records
 
-    cfg = _config(args)
     ds, _ = _load(args.paint)
     ids = cfg.heliostats or list(ds.plant.field.ids)
     unknown = [h for h in ids if h not in ds.plant.field.ids]
@@ -206,10 +223,10 @@ def cmd_split(args) -> int:
            "heliostats": {k: v for k, v in info.items() if k in [ids[h] for h in keep]},
            "skipped_heliostats": skipped_h, "skipped_records": skipped, "split": rows}
     out["config"]["validation"] = cfg.n_validation()
-    if args.json:
-        write_json(args.json, out)
-    if args.csv:
-        _write_split_csv(args.csv, rows)
+    if json_path:
+        write_json(json_path, out)
+    if csv_path:
+        _write_split_csv(csv_path, rows)
     for hid, s in out["heliostats"].items():
         d = s.get("mean_train_test_distance_rad")
         print(f"{hid}: train {s['train']} validation {s['validation']} test {s['test']} "
@@ -242,11 +259,13 @@ def cmd_aim(args) -> int:
         raise HeliotwinError(f"--sun-elevation {args.sun_elevation} deg: the sun must be above the horizon")
     if not math.isfinite(args.sun_azimuth):
         raise HeliotwinError("--sun-azimuth must be finite")
-    ans = aim(load_scenario(args.scenario), args.heliostat, math.radians(args.sun_azimuth),
-              math.radians(args.sun_elevation), point)
+    with output_set([("--scenario", args.scenario)]) as out:
+        json_path = out.file(args.json, "--json")
+        ans = aim(load_scenario(args.scenario), args.heliostat, math.radians(args.sun_azimuth),
+                  math.radians(args.sun_elevation), point)
+        if json_path:
+            write_json(json_path, ans)
     print(f"{ans['heliostat']}: motor steps axis 1 {ans['motor_steps'][0]:.0f}, axis 2 {ans['motor_steps'][1]:.0f}"
           f"{'' if ans['reachable'] else '  (OUTSIDE the actuator range: not reachable)'} [{ans['method']}]")
-    if args.json:
-        write_json(args.json, ans)
     return 0 if ans["reachable"] else 3
 

@@ -1,87 +1,235 @@
-"""What every command shares: error reporting (:func:`run_command`), argument types, output checks.
+"""What every command shares: the safety net (:func:`run_command`), argument types with ranges, output checks.
 
 Imports nothing heavy: building the parser (``heliotwin --help``) must not pay for torch.
+
+Exit codes (documented in the README):
+
+* 0 -- success;
+* 1 -- internal error (a bug: please report it; ``--debug`` or ``HELIOTWIN_DEBUG=1`` shows the traceback);
+* 2 -- bad input: a file, a field or an argument the user can fix (one line naming it);
+* 3 -- ``aim`` only: the aim point is outside the actuator range;
+* 130 / 143 -- interrupted by Ctrl-C (SIGINT) / terminated (SIGTERM); nothing is left behind.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
+import datetime as _dt
+import math
 import os
+import re
+import signal
 import sys
+import threading
+import traceback
 
 from ..errors import HeliotwinError
 
-__all__ = ["run_command", "csv_list", "int_list", "positive_int", "check_output_folder"]
+__all__ = ["ArgumentParser", "run_command", "csv_list", "int_list", "positive_int", "int_range", "float_range",
+           "finite_float", "seed_int", "frequency", "utc_time", "check_output_folder", "debug_requested", "Terminated",
+           "EXIT_OK", "EXIT_INTERNAL", "EXIT_INPUT", "EXIT_INTERRUPTED", "EXIT_TERMINATED"]
+
+EXIT_OK, EXIT_INTERNAL, EXIT_INPUT = 0, 1, 2
+EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143  # 128 + SIGINT, 128 + SIGTERM (the shell's convention)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, delivered like Ctrl-C: every ``finally`` and :func:`~heliotwin.io.report.atomic_path` cleans up."""
+
+
+def debug_requested(args=None) -> bool:
+    """``--debug`` on the command line or ``HELIOTWIN_DEBUG`` set to anything but ``""``/``0``/``false``/``no``."""
+    if args is not None and getattr(args, "debug", False):
+        return True
+    return os.environ.get("HELIOTWIN_DEBUG", "").strip().lower() not in ("", "0", "false", "no")
 
 
 def _is_user_key_error(exc: KeyError) -> bool:
     """A ``KeyError`` the library raised for a name the user gave (``"unknown heliostat 'ZZ99'; ..."``).
 
     The plant containers and the PAINT reader raise ``KeyError`` with a sentence; a bare
-    ``KeyError('median_test_mrad')`` from a dict lookup is a bug and must show its traceback.
+    ``KeyError('median_test_mrad')`` from a dict lookup is a bug (exit 1, not a user error).
     """
     return len(exc.args) == 1 and isinstance(exc.args[0], str) and " " in exc.args[0].strip()
 
 
-def run_command(args, prefix: str = "heliotwin: ") -> int:
-    """Run a parsed command (``args.func(args)``) and return its exit status.
+def _classify(exc: BaseException) -> tuple[int, str]:
+    """Exit status and the one-line message of an exception that reached the command line's edge."""
+    if isinstance(exc, KeyError) and _is_user_key_error(exc):
+        return EXIT_INPUT, exc.args[0]  # str(KeyError) would add quotes around the message
+    if isinstance(exc, (HeliotwinError, NotImplementedError)):
+        return EXIT_INPUT, str(exc) or type(exc).__name__
+    if isinstance(exc, OSError):
+        # A file the user named (missing, unreadable, disk full): name it, with the reason.
+        if exc.filename is not None and exc.strerror:
+            return EXIT_INPUT, f"{exc.filename}: {exc.strerror}"
+        return EXIT_INPUT, str(exc) or type(exc).__name__
+    if isinstance(exc, MemoryError):
+        return EXIT_INTERNAL, "out of memory (try fewer heliostats, rays or a lower --resolution)"
+    if isinstance(exc, RecursionError):
+        return EXIT_INTERNAL, "internal error: recursion too deep (rerun with --debug; please report it)"
+    text = " ".join(str(exc).split())
+    what = f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+    return EXIT_INTERNAL, f"internal error: {what} (rerun with --debug for the traceback; please report it)"
 
-    Errors a user can cause -- :class:`~heliotwin.errors.HeliotwinError`, unknown names (``KeyError`` with
-    a message), unsupported combinations (``NotImplementedError``) and files that cannot be read or
-    written (``OSError``) -- become one line ``<prefix>error: ...`` on stderr and exit status 2. Anything
-    else is a bug and propagates with its traceback.
-    """
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt():
+    """Turn SIGTERM into :class:`Terminated` while a command runs (main thread only), then restore."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise Terminated()
+
+    previous = signal.signal(signal.SIGTERM, handler)
     try:
-        return int(args.func(args) or 0)
-    except KeyError as exc:
-        if not _is_user_key_error(exc):
-            raise
-        # str(KeyError) adds quotes around the message: print the message itself.
-        return _report(prefix, exc.args[0])
-    except (HeliotwinError, NotImplementedError, OSError) as exc:
-        return _report(prefix, str(exc) or type(exc).__name__)
-    except KeyboardInterrupt:
-        print(f"{prefix}interrupted", file=sys.stderr)
-        return 130
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
-def _report(prefix: str, message: str) -> int:
-    lines = [ln for ln in message.splitlines() if ln.strip()]
-    print(f"{prefix}error: {lines[0] if lines else message}", file=sys.stderr)
-    return 2
+def run_command(args, prefix: str = "heliotwin: ") -> int:
+    """Run a parsed command (``args.func(args)``) and return its exit status: the command line's safety net.
+
+    Every exception becomes one line ``<prefix>error: ...`` on stderr: exit status 2 for errors a user can
+    cause (:class:`~heliotwin.errors.HeliotwinError`, unknown names -- ``KeyError`` with a message --,
+    unsupported combinations -- ``NotImplementedError`` -- and files that cannot be read or written --
+    ``OSError``), 1 for anything else (a bug; the line says so). The traceback is printed only with
+    ``--debug`` or ``HELIOTWIN_DEBUG=1``. Ctrl-C exits 130 and SIGTERM 143 after the writers have removed
+    their temporary files.
+    """
+    debug = debug_requested(args)
+    try:
+        with _sigterm_as_interrupt():
+            return int(args.func(args) or 0)
+    except KeyboardInterrupt as exc:
+        terminated = isinstance(exc, Terminated)
+        if debug:
+            traceback.print_exc()
+        print(f"{prefix}{'terminated' if terminated else 'interrupted'}; nothing was written", file=sys.stderr)
+        return EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
+    except Exception as exc:  # noqa: BLE001 -- the one place that turns every error into one line
+        code, message = _classify(exc)
+        if debug:
+            traceback.print_exc()
+        lines = [ln for ln in str(message).splitlines() if ln.strip()]
+        print(f"{prefix}error: {lines[0] if lines else message}", file=sys.stderr)
+        return code
 
 
 # ------------------------------------------------------------------------------------------ argument types
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse with the command line's one-line errors: ``heliotwin: error: trace: argument --steps: ...``
+    and a pointer to ``--help`` instead of the usage block (exit status 2, as argparse's)."""
+
+    def error(self, message):
+        command = self.prog.split(" ", 1)[1] if " " in self.prog else ""
+        where = f"{command}: " if command else ""
+        self.exit(EXIT_INPUT, f"heliotwin: error: {where}{' '.join(message.split())} "
+                              f"(see '{self.prog} --help')\n")
+
+
 def csv_list(text: str | None) -> list[str] | None:
     """``"AA39, AB38"`` -> ``["AA39", "AB38"]``; empty or missing -> ``None`` (meaning: all)."""
     return [t.strip() for t in text.split(",") if t.strip()] if text else None
 
 
 def int_list(text: str) -> list[int]:
-    """argparse type: comma-separated integers (at least one)."""
+    """argparse type: comma-separated positive integers (at least one, each at most 10**9)."""
     try:
         values = [int(t) for t in text.split(",") if t.strip()]
     except ValueError:
         values = []
-    if not values:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}")
+    if not values or not all(0 < v <= 10**9 for v in values):
+        raise argparse.ArgumentTypeError(f"expected comma-separated positive integers, got {text!r}")
     return values
 
 
-def positive_int(text: str) -> int:
-    """argparse type: an integer > 0."""
+def int_range(lo: int | None = None, hi: int | None = None, what: str = "an integer"):
+    """argparse type factory: an integer in ``[lo, hi]`` (either bound may be None)."""
+    def parse(text: str) -> int:
+        try:
+            v = int(str(text).strip())
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+        if (lo is not None and v < lo) or (hi is not None and v > hi):
+            span = f"{'-inf' if lo is None else lo}..{'inf' if hi is None else hi}"
+            raise argparse.ArgumentTypeError(f"expected {what} in {span}, got {text!r}")
+        return v
+    parse.__name__ = what  # argparse names the type in its messages
+    return parse
+
+
+#: argparse type: an integer > 0 (at most 10**9: larger counts are typos, not plans).
+positive_int = int_range(1, 10**9, "a positive integer")
+
+#: argparse type: a random seed, 0 .. 2**63 - 1 (what ``torch.Generator.manual_seed`` accepts).
+seed_int = int_range(0, 2**63 - 1, "a seed")
+
+
+def float_range(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False, what: str = "a number"):
+    """argparse type factory: a finite float in ``[lo, hi]`` (``(lo, hi]`` with ``lo_open``); NaN never passes."""
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+        bad_lo = lo is not None and (v <= lo if lo_open else v < lo)
+        if not math.isfinite(v) or bad_lo or (hi is not None and v > hi):
+            span = f"{'(' if lo_open else '['}{'-inf' if lo is None else lo}, {'inf' if hi is None else hi}]"
+            raise argparse.ArgumentTypeError(f"expected {what} in {span}, got {text!r}")
+        return v
+    parse.__name__ = what
+    return parse
+
+
+#: argparse type: any finite float.
+finite_float = float_range(what="a finite number")
+
+_FREQ = re.compile(r"^\s*(\d+)\s*(s|sec|min|t|h|d)\s*$", re.IGNORECASE)
+_FREQ_SECONDS = {"s": 1, "sec": 1, "min": 60, "t": 60, "h": 3600, "d": 86400}
+
+
+def frequency(text: str) -> str:
+    """argparse type: a time step like ``30min``, ``1h``, ``90s`` or ``1d``, between 1 minute and 1 day.
+
+    Returns a pandas frequency in whole minutes (``"60min"`` for ``1h``), valid in every pandas version.
+    """
+    m = _FREQ.match(str(text))
+    if not m:
+        raise argparse.ArgumentTypeError(f"expected a time step like 30min, 1h or 1d, got {text!r}")
+    seconds = int(m.group(1)) * _FREQ_SECONDS[m.group(2).lower()]
+    if seconds < 60 or seconds > 86400 or seconds % 60:
+        raise argparse.ArgumentTypeError(f"expected a time step of whole minutes between 1min and 1d, got {text!r}")
+    return f"{seconds // 60}min"
+
+
+def utc_time(text: str) -> str:
+    """argparse type: an ISO 8601 time (``2023-03-20T11:30:00Z``; no zone means UTC), years 1900-2100.
+
+    Returns the time as ISO text in UTC (``...+00:00``), which pandas and pvlib read unambiguously.
+    """
+    s = str(text).strip()
     try:
-        v = int(text)
+        t = _dt.datetime.fromisoformat(s[:-1] + "+00:00" if s.endswith(("Z", "z")) else s)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if v <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return v
+        raise argparse.ArgumentTypeError(f"expected an ISO time like 2023-03-20T11:30:00Z, got {text!r}") from None
+    t = t.replace(tzinfo=_dt.timezone.utc) if t.tzinfo is None else t.astimezone(_dt.timezone.utc)
+    if not 1900 <= t.year <= 2100:
+        raise argparse.ArgumentTypeError(f"expected a time between 1900 and 2100, got {text!r}")
+    return t.isoformat()
 
 
 def check_output_folder(path, flag: str) -> None:
-    """Fail before a long run, not after it, when the folder of an output file does not exist."""
+    """Fail before a long run, not after it, when the folder of an output file does not exist.
+
+    The rule of every command: an output's folder must exist (commands never create folders, except
+    ``demo --out``, whose output is the folder itself).
+    """
     if path is None:
         return
     folder = os.path.dirname(os.path.abspath(os.fspath(path)))
     if not os.path.isdir(folder):
-        raise HeliotwinError(f"{flag}: output folder {folder} does not exist")
+        raise HeliotwinError(f"{flag} {os.fspath(path)}: output folder {folder} does not exist (create it first)")

@@ -9,8 +9,18 @@ import math
 import os
 import time
 
-from ..io.report import write_json
-from .common import csv_list, int_list, positive_int
+from ..io.report import output_set, write_json
+from .common import csv_list, int_list, int_range, seed_int, utc_time
+
+# Ranges of the numeric arguments: beyond them a run would exhaust memory or mean a typo.
+_RESOLUTION = int_range(8, 4096, "a resolution [pixels]")
+_SAMPLES = int_range(1, 1000, "a sample count")
+_RAYS = int_range(1, 100_000, "a ray count")
+
+
+def _fmt(x, spec: str = ".2f", none: str = "n/a") -> str:
+    """A number for a summary line; ``None``/NaN (nothing to measure) print as ``n/a``."""
+    return none if x is None or (isinstance(x, float) and not math.isfinite(x)) else format(x, spec)
 
 
 # ------------------------------------------------------------------------------------------------ demo
@@ -18,11 +28,14 @@ def cmd_demo(args) -> int:
     """Trace the embedded default plant at a spring-equinox noon and write flux PNGs + a JSON summary."""
     from ..demo import run_demo
 
-    summary = run_demo(args.out, num_heliostats=args.heliostats, integrator=args.integrator,
-                       rays_per_point=args.rays_per_point, resolution=args.resolution, seed=args.seed,
-                       time_utc=args.time, progress=not args.quiet)
-    if args.json:
-        write_json(args.json, summary)
+    with output_set() as out:
+        folder = out.folder(args.out, "--out")
+        json_path = out.file(args.json, "--json")
+        summary = run_demo(folder, num_heliostats=args.heliostats, integrator=args.integrator,
+                           rays_per_point=args.rays_per_point, resolution=args.resolution, seed=args.seed,
+                           time_utc=args.time, progress=not args.quiet)
+        if json_path:
+            write_json(json_path, summary)
     print(f"demo: {summary['heliostats_traced']} heliostats, sun az {summary['sun_azimuth_deg']:.1f} deg "
           f"el {summary['sun_elevation_deg']:.1f} deg; receiver intercepts "
           f"{summary['receiver']['intercepted_power_w'] / 1e3:.1f} kW of {summary['total_power_w'] / 1e3:.1f} kW "
@@ -34,9 +47,11 @@ def cmd_demo(args) -> int:
 def cmd_scenario_from_paint(args) -> int:
     from ..io.scenario import save_scenario, scenario_from_paint
 
-    plant = scenario_from_paint(args.paint_dir, csv_list(args.heliostats))
-    save_scenario(plant, args.output, metadata={"source": os.path.abspath(args.paint_dir),
-                                                "created_by": "heliotwin scenario from-paint"})
+    with output_set([("PAINT_DIR", args.paint_dir)]) as out:
+        output = out.file(args.output, "-o")
+        plant = scenario_from_paint(args.paint_dir, csv_list(args.heliostats))
+        save_scenario(plant, output, metadata={"source": os.path.abspath(args.paint_dir),
+                                               "created_by": "heliotwin scenario from-paint"})
     print(f"scenario: {len(plant.field.ids)} heliostats, {len(plant.targets)} targets -> {args.output}")
     return 0
 
@@ -59,15 +74,19 @@ def cmd_trace(args) -> int:
     from ..io.scenario import load_records
     from ..raytrace.flux import to_png
 
-    ds, sc = load_records(args.paint, args.scenario, [args.heliostat])
-    row = ds.record(args.record)
-    flux, report = _trace_record(ds.plant, row, args)
-    report.update(_describe(sc))
-    to_png(flux.bitmap[0], args.out)
-    if args.json:
-        write_json(args.json, report)
-    print(f"trace {args.heliostat}/{args.record}: centroid ENU "
-          f"{', '.join(f'{v:.3f}' for v in report['centroid_enu_m'])} m; {report['intercepted_power_w'] / 1e3:.2f} "
+    with output_set([("--paint", args.paint), ("--scenario", args.scenario)]) as out:
+        png = out.file(args.out, "--out")
+        json_path = out.file(args.json, "--json")
+        ds, sc = load_records(args.paint, args.scenario, [args.heliostat])
+        row = ds.record(args.record)
+        flux, report = _trace_record(ds.plant, row, args)
+        report.update(_describe(sc))
+        to_png(flux.bitmap[0], png)
+        if json_path:
+            write_json(json_path, report)
+    where = ("no light on the target: no centroid" if report["centroid_enu_m"] is None else
+             f"centroid ENU {', '.join(f'{v:.3f}' for v in report['centroid_enu_m'])} m")
+    print(f"trace {args.heliostat}/{args.record}: {where}; {report['intercepted_power_w'] / 1e3:.2f} "
           f"of {report['total_power_w'] / 1e3:.2f} kW on {report['target']} -> {args.out}")
     return 0
 
@@ -90,8 +109,11 @@ def _trace_record(plant, row, args):
                      resolution=(args.resolution, args.resolution), sun=plant.sun, rays_per_point=args.rays_per_point,
                      generator=torch.Generator().manual_seed(args.seed))
     seconds = time.perf_counter() - t0
-    centroid = flux.centroid_enu()[0]
-    lla = plant.site.to_wgs84(centroid)
+    # No light on the target (a heliostat pointing away, a sun behind it): there is no centroid; the
+    # target centre that a zero-sum image's centroid would give is not a measurement.
+    lit = bool(flux.bitmap[0].sum() > 0) and float(flux.intercepted_power_w[0]) > 0
+    centroid = flux.centroid_enu()[0] if lit else None
+    lla = plant.site.to_wgs84(centroid) if lit else None
     cosines = (nrm[0].to(torch.float64) @ s[0]).clamp_min(0)
     spots = {src: row.focal_spots[0, k].tolist() for k, src in enumerate(SOURCES)
              if bool(torch.isfinite(row.focal_spots[0, k]).all())}
@@ -102,9 +124,10 @@ def _trace_record(plant, row, args):
         "sun_azimuth_deg": math.degrees(float(row.sun_azimuth[0])),
         "sun_elevation_deg": math.degrees(float(row.sun_elevation[0])),
         "motor_steps": row.motor_steps[0].tolist(),
-        "centroid_enu_m": centroid.tolist(),
-        "centroid_wgs84": {"latitude_deg": float(lla[0]), "longitude_deg": float(lla[1]), "altitude_m": float(lla[2])},
-        "centroid_local_m": flux.centroid_local()[0].tolist(),
+        "centroid_enu_m": centroid.tolist() if lit else None,
+        "centroid_wgs84": {"latitude_deg": float(lla[0]), "longitude_deg": float(lla[1]),
+                           "altitude_m": float(lla[2])} if lit else None,
+        "centroid_local_m": flux.centroid_local()[0].tolist() if lit else None,
         "measured_spot_enu_m": spots,
         "total_power_w": float(flux.total_power_w[0]), "intercepted_power_w": float(flux.intercepted_power_w[0]),
         "mirror_area_m2": float(area[0].sum()),
@@ -118,29 +141,31 @@ def _trace_record(plant, row, args):
 
 # -------------------------------------------------------------------------------------------- validate
 def cmd_validate(args) -> int:
+    from ..io.scenario import load_records
     from ..validate import validate_dataset
 
     t0 = time.perf_counter()
-    from ..io.scenario import load_records
+    with output_set([("--paint", args.paint), ("--scenario", args.scenario)]) as out:
+        json_path = out.file(args.json, "--json")
+        plot_path = out.file(args.plot, "--plot")
+        ds, sc = load_records(args.paint, args.scenario, csv_list(args.heliostats))
+        report = validate_dataset(ds, resolution=args.resolution, samples=(args.samples, args.samples),
+                                  with_images=not args.no_images, progress=not args.quiet)
+        report["overall"]["seconds"] = time.perf_counter() - t0
+        report["settings"] = {"paint": os.path.abspath(args.paint), **_describe(sc),
+                              "integrator": "gaussian", "resolution": args.resolution,
+                              "samples_per_facet": args.samples ** 2,
+                              "sunshape": ds.plant.sun.sunshape, "slope_error_mrad": ds.plant.sun.slope_error * 1e3}
+        write_json(json_path, report)
+        if plot_path and report["heliostats"]:
+            from ..plots import plot_validation
 
-    ds, sc = load_records(args.paint, args.scenario, csv_list(args.heliostats))
-    report = validate_dataset(ds, resolution=args.resolution, samples=(args.samples, args.samples),
-                              with_images=not args.no_images, progress=not args.quiet)
-    report["overall"]["seconds"] = time.perf_counter() - t0
-    report["settings"] = {"paint": os.path.abspath(args.paint), **_describe(sc),
-                          "integrator": "gaussian", "resolution": args.resolution,
-                          "samples_per_facet": args.samples ** 2,
-                          "sunshape": ds.plant.sun.sunshape, "slope_error_mrad": ds.plant.sun.slope_error * 1e3}
-    write_json(args.json, report)
-    if args.plot:
-        from ..plots import plot_validation
-
-        plot_validation(report, args.plot)
+            plot_validation(report, plot_path)
     o = report["overall"]
-    l1 = "n/a" if o["median_centered_l1"] is None else f"{o['median_centered_l1']:.3f}"
-    print(f"validate: {o['records']} records, {o['heliostats']} heliostats; median pointing error "
-          f"{o['median_pointing_error_mrad']:.2f} mrad (median over heliostats), median distance "
-          f"{o['median_distance_m']:.3f} m; {o['images']} images, median centred L1 {l1} -> {args.json}")
+    print(f"validate: {o.get('records', 0)} records, {o.get('heliostats', 0)} heliostats; median pointing error "
+          f"{_fmt(o.get('median_pointing_error_mrad'))} mrad (median over heliostats), median distance "
+          f"{_fmt(o.get('median_distance_m'), '.3f')} m; {o.get('images', 0)} images, median centred L1 "
+          f"{_fmt(o.get('median_centered_l1'), '.3f')} -> {args.json}")
     return 0
 
 
@@ -151,10 +176,12 @@ def cmd_bench(args) -> int:
     from ..raytrace.bench import run_benchmark
 
     rpp = args.rays_per_point
-    result = run_benchmark(surface_points=args.surface_points, rays_per_point=tuple(rpp), resolution=args.resolution,
-                           seed=args.seed)
-    if args.json:
-        write_json(args.json, result)
+    with output_set() as out:
+        json_path = out.file(args.json, "--json")
+        result = run_benchmark(surface_points=args.surface_points, rays_per_point=tuple(rpp),
+                               resolution=args.resolution, seed=args.seed)
+        if json_path:
+            write_json(json_path, result)
     mc = result["mc"]
     print(f"bench ({torch.get_num_threads()} threads, {args.surface_points} points, {args.resolution}^2, "
           f"{max(rpp)} rays/point): forward {mc['forward_rays_per_s'] / 1e6:.1f} M rays/s, "
@@ -169,12 +196,14 @@ def register(sub) -> None:
                        description="Trace an embedded Jülich-like plant (generated in code): every heliostat aims at "
                                    "the receiver; writes flux PNGs, a field plot and summary.json.")
     p.add_argument("--out", default="heliotwin-demo", help="output folder (default: %(default)s)")
-    p.add_argument("--heliostats", type=positive_int, default=48, help="number of heliostats (default: %(default)s)")
+    p.add_argument("--heliostats", type=int_range(1, 10_000, "a heliostat count"), default=48,
+                   help="number of heliostats (default: %(default)s)")
     p.add_argument("--integrator", choices=("mc", "gaussian"), default="mc")
-    p.add_argument("--rays-per-point", type=positive_int, default=64)
-    p.add_argument("--resolution", type=positive_int, default=256)
-    p.add_argument("--time", default="2023-03-20T11:30:00Z", help="UTC time of the sun position (default: %(default)s)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--rays-per-point", type=_RAYS, default=64)
+    p.add_argument("--resolution", type=_RESOLUTION, default=256)
+    p.add_argument("--time", type=utc_time, default="2023-03-20T11:30:00Z",
+                   help="UTC time of the sun position, ISO 8601 (default: %(default)s)")
+    p.add_argument("--seed", type=seed_int, default=0)
     p.add_argument("--json", help="also write the summary here")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_demo)
@@ -197,12 +226,12 @@ def register(sub) -> None:
     p.add_argument("--paint", required=True, help="PAINT folder")
     p.add_argument("--scenario", help="trace this scenario's plant (default: the PAINT folder's nominal plant)")
     p.add_argument("--heliostat", required=True)
-    p.add_argument("--record", required=True, type=int)
+    p.add_argument("--record", required=True, type=int_range(0, 2**63 - 1, "a record id"))
     p.add_argument("--integrator", choices=("mc", "gaussian"), default="mc")
-    p.add_argument("--rays-per-point", type=positive_int, default=100)
-    p.add_argument("--resolution", type=positive_int, default=256)
-    p.add_argument("--samples", type=positive_int, default=50, help="surface samples per facet and direction")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--rays-per-point", type=_RAYS, default=100)
+    p.add_argument("--resolution", type=_RESOLUTION, default=256)
+    p.add_argument("--samples", type=_SAMPLES, default=50, help="surface samples per facet and direction")
+    p.add_argument("--seed", type=seed_int, default=0)
     p.add_argument("--out", required=True, help="flux PNG to write")
     p.add_argument("--json", help="JSON report")
     p.set_defaults(func=cmd_trace)
@@ -215,8 +244,8 @@ def register(sub) -> None:
     p.add_argument("--scenario", help="validate this scenario's plant (default: the PAINT folder's nominal plant)")
     p.add_argument("--heliostats", help="comma-separated heliostat ids (default: all)")
     p.add_argument("--json", required=True)
-    p.add_argument("--resolution", type=positive_int, default=128, help="whole-target bitmap for centroids")
-    p.add_argument("--samples", type=positive_int, default=16, help="surface samples per facet and direction")
+    p.add_argument("--resolution", type=_RESOLUTION, default=128, help="whole-target bitmap for centroids")
+    p.add_argument("--samples", type=_SAMPLES, default=16, help="surface samples per facet and direction")
     p.add_argument("--no-images", action="store_true", help="skip the image comparison")
     p.add_argument("--plot", help="PNG with per-heliostat errors")
     p.add_argument("--quiet", action="store_true")
@@ -225,10 +254,10 @@ def register(sub) -> None:
     p = sub.add_parser("bench", help="ray-tracer speed and accuracy",
                        description="Forward and forward+backward rays/s, peak memory and time-to-accuracy of both "
                                    "integrators.")
-    p.add_argument("--surface-points", type=positive_int, default=10000)
+    p.add_argument("--surface-points", type=int_range(1, 10_000_000, "a point count"), default=10000)
     # argparse applies type= to a string default too, so args.rays_per_point is always a list.
     p.add_argument("--rays-per-point", type=int_list, default="10,100", help="comma-separated (default: %(default)s)")
-    p.add_argument("--resolution", type=positive_int, default=256)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--resolution", type=_RESOLUTION, default=256)
+    p.add_argument("--seed", type=seed_int, default=0)
     p.add_argument("--json")
     p.set_defaults(func=cmd_bench)

@@ -15,8 +15,8 @@ from __future__ import annotations
 import os
 
 from ..errors import HeliotwinError
-from ..io.report import write_json
-from .common import check_output_folder
+from ..io.report import output_set, write_json
+from .common import float_range, frequency, int_range, positive_int
 
 __all__ = ["register"]
 
@@ -26,28 +26,30 @@ def cmd_reconstruct(args) -> int:
     from ..surfaces.study import reconstruct_paint
 
     _set_threads(args.threads)
-    check_output_folder(args.json, "--json")
-    check_output_folder(args.output, "-o")
-    train_records = _train_records(args)
-    if args.start_from_deflectometry and not args.deflectometry:
-        raise HeliotwinError("--start-from-deflectometry needs --deflectometry FILE")
-    if args.deflectometry:
-        from ..io.deflectometry import read_deflectometry
+    inputs = [("--paint", args.paint), ("--scenario", args.scenario), ("--deflectometry", args.deflectometry)]
+    with output_set(inputs) as out:
+        json_path = out.file(args.json, "--json")
+        output = out.file(args.output, "-o")
+        train_records = _train_records(args)
+        if args.start_from_deflectometry and not args.deflectometry:
+            raise HeliotwinError("--start-from-deflectometry needs --deflectometry FILE")
+        if args.deflectometry:
+            from ..io.deflectometry import read_deflectometry
 
-        read_deflectometry(args.deflectometry)  # fail fast (one-line error naming the file) before training
-    previous = load_scenario(args.scenario) if args.scenario else None
-    slope = None if args.slope_error == "auto" else float(args.slope_error) * 1e-3
-    report, model, ds, extras = reconstruct_paint(
-        args.paint, args.heliostat, train_records=train_records, train_first=args.train_first,
-        settings=_train_settings(args), slope_error=slope, background=args.background, alignment=args.alignment,
-        evaluate_mc=not args.no_mc, progress=not args.quiet, deflectometry=args.deflectometry,
-        start_from_deflectometry=args.start_from_deflectometry, plant=previous.plant if previous else None)
-    learned = model.surfaces()
-    report["plots"] = _plot_reconstruction(args, report, model, learned, extras)
-    if args.output:
-        _save_learned(args, report, model, learned, previous, extras)
-        report["output"] = os.fspath(args.output)
-    write_json(args.json, report)
+            read_deflectometry(args.deflectometry)  # fail fast (one-line error naming the file) before training
+        previous = load_scenario(args.scenario) if args.scenario else None
+        slope = None if args.slope_error == "auto" else args.slope_error * 1e-3
+        report, model, ds, extras = reconstruct_paint(
+            args.paint, args.heliostat, train_records=train_records, train_first=args.train_first,
+            settings=_train_settings(args), slope_error=slope, background=args.background, alignment=args.alignment,
+            evaluate_mc=not args.no_mc, progress=not args.quiet, deflectometry=args.deflectometry,
+            start_from_deflectometry=args.start_from_deflectometry, plant=previous.plant if previous else None)
+        learned = model.surfaces()
+        report["plots"] = _plot_reconstruction(args, json_path, report, model, learned, extras)
+        if output:
+            _save_learned(args, output, report, model, learned, previous, extras)
+            report["output"] = os.fspath(args.output)
+        write_json(json_path, report)
     if not args.quiet:
         _print_reconstruction(args.heliostat, report)
     return 0
@@ -80,27 +82,28 @@ def _train_settings(args):
                          integrator=args.integrator, loss=args.loss, steps=args.steps)
 
 
-def _plot_reconstruction(args, report, model, learned, extras) -> dict:
-    """The normal-deviation map and the test-image comparison, next to the ``--json`` report."""
+def _plot_reconstruction(args, json_path, report, model, learned, extras) -> dict:
+    """The normal-deviation map and the test-image comparison, next to the ``--json`` report (written next to
+    the staged ``json_path``; the report names them next to the user's ``--json``)."""
     from ..surfaces.plots import plot_flux_comparison, plot_normal_deviation
 
-    stem = os.path.splitext(os.fspath(args.json))[0]
-    plots = {"normal_deviation": stem + "-normal-deviation.png", "flux": stem + "-flux.png"}
-    plot_normal_deviation(extras["facets"], learned.control_points, model.degree, plots["normal_deviation"],
+    names = {"normal_deviation": "-normal-deviation.png", "flux": "-flux.png"}
+    staged = {k: os.path.splitext(os.fspath(json_path))[0] + v for k, v in names.items()}
+    plot_normal_deviation(extras["facets"], learned.control_points, model.degree, staged["normal_deviation"],
                           title=f"{args.heliostat}: learned normal deviation from ideal [mrad]")
     plot_flux_comparison(extras["test"].images, extras["ideal_images"], extras["learned_images"],
-                         extras["test"].ids, plots["flux"], [r["l1_ideal"] for r in report["test"]],
+                         extras["test"].ids, staged["flux"], [r["l1_ideal"] for r in report["test"]],
                          [r["l1_learned"] for r in report["test"]])
-    return plots
+    return {k: os.path.splitext(os.fspath(args.json))[0] + v for k, v in names.items()}
 
 
-def _save_learned(args, report, model, learned, previous, extras) -> None:
+def _save_learned(args, output, report, model, learned, previous, extras) -> None:
     """plant″: the scenario's plant (or the PAINT folder's) with this heliostat's learned surface."""
     from ..io.scenario import scenario_from_paint
     from ..surfaces.state import save_learned_surface
 
     plant = previous.plant if previous is not None else scenario_from_paint(args.paint)
-    save_learned_surface(args.output, plant, args.heliostat, learned, model.displacement.detach(), extras["optics"],
+    save_learned_surface(output, plant, args.heliostat, learned, model.displacement.detach(), extras["optics"],
                          previous=previous, train_records=[int(r["record"]) for r in report["train"]],
                          target=extras["test"].targets[0].name, settings=report["settings"],
                          source=os.path.abspath(args.paint))
@@ -119,12 +122,24 @@ def _print_reconstruction(heliostat: str, report: dict) -> None:
 
 def cmd_predict(args) -> int:
     from ..io.scenario import load_scenario
+
+    _set_threads(args.threads)
+    with output_set([("--scenario", args.scenario)]) as outputs:
+        json_path = outputs.file(args.json, "--json")
+        out = _predict(args, load_scenario(args.scenario))
+        write_json(json_path, out)
+    if not args.quiet:
+        st = out["statistics"]["l1_ideal_vs_learned"]
+        print(f"{args.heliostat}: {out['instants']} instants; L1(ideal, learned) median "
+              f"{'n/a' if st.get('median') is None else format(st['median'], '.3f')}")
+    return 0
+
+
+def _predict(args, sc) -> dict:
+    """The yearly prediction of ``args.heliostat`` (default: the only learned surface) in scenario ``sc``."""
     from ..surfaces.predict import summarize, yearly_flux
     from ..surfaces.state import learned_surface
 
-    _set_threads(args.threads)
-    check_output_folder(args.json, "--json")
-    sc = load_scenario(args.scenario)
     learned = sorted(sc.learned.get("surfaces") or {})
     if args.heliostat is None:
         if len(learned) != 1:
@@ -140,14 +155,17 @@ def cmd_predict(args) -> int:
     series = yearly_flux(kin, target, site, item["surfaces"], item["ideal"], item["optics"],
                          year=args.year, every=args.every, progress=not args.quiet)
     optics = item["optics"]
-    out = {"heliostat": args.heliostat, "target": name, "year": args.year, "every": args.every,
-           "instants": len(series["time"]), "statistics": summarize(series), "series": series,
-           "optics": {"sunshape": optics.sunshape, "slope_error_rad": optics.slope_error}}
-    write_json(args.json, out)
-    if not args.quiet:
-        st = out["statistics"]["l1_ideal_vs_learned"]
-        print(f"{args.heliostat}: {out['instants']} instants; L1(ideal, learned) median {st['median']:.3f}")
-    return 0
+    return {"heliostat": args.heliostat, "target": name, "year": args.year, "every": args.every,
+            "instants": len(series["time"]), "statistics": summarize(series), "series": series,
+            "optics": {"sunshape": optics.sunshape, "slope_error_rad": optics.slope_error}}
+
+
+def _slope_error(text: str):
+    """argparse type of ``--slope-error``: ``auto`` or a slope error in [0, 100] mrad."""
+    return "auto" if str(text).strip().lower() == "auto" else _SLOPE(text)
+
+
+_SLOPE = float_range(0.0, 100.0, what="a slope error [mrad] or 'auto'")
 
 
 def register(subparsers) -> None:
@@ -157,15 +175,18 @@ def register(subparsers) -> None:
     p.add_argument("--heliostat", required=True, help="heliostat id, e.g. AA39")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--train-records", help="comma-separated record ids to train on (rest with images: test)")
-    g.add_argument("--train-first", type=int, help="train on the K earliest records with centred images (default 3)")
+    g.add_argument("--train-first", type=positive_int,
+                   help="train on the K earliest records with centred images (default 3)")
     p.add_argument("--control-points", default="7x7", help="control points per facet, e.g. 7x7")
-    p.add_argument("--degree", type=int, default=3, help="NURBS degree (both directions)")
+    p.add_argument("--degree", type=int_range(1, 5, "a NURBS degree"), default=3, help="NURBS degree (both directions)")
     p.add_argument("--integrator", choices=("conv", "mc"), default="conv",
                    help="renderer of the training images: exact-sunshape convolution or Monte Carlo (default conv)")
     p.add_argument("--loss", choices=("kl", "l1", "l2"), default="kl")
-    p.add_argument("--steps", type=int, default=200, help="maximum optimiser steps")
-    p.add_argument("--slope-error", default="auto", help="mirror slope error [mrad] or 'auto' (fit on training images)")
-    p.add_argument("--background", type=float, default=0.0, help="background to subtract, fraction of image max")
+    p.add_argument("--steps", type=positive_int, default=200, help="maximum optimiser steps")
+    p.add_argument("--slope-error", type=_slope_error, default="auto",
+                   help="mirror slope error [mrad] or 'auto' (fit on training images)")
+    p.add_argument("--background", type=float_range(0.0, 1.0, what="a fraction"), default=0.0,
+                   help="background to subtract, fraction of image max")
     p.add_argument("--alignment", choices=("focal-spot", "motor"), default="focal-spot")
     p.add_argument("--no-mc", action="store_true", help="skip the Monte-Carlo evaluation")
     p.add_argument("--deflectometry", help="PAINT deflectometry HDF5: trace its NURBS fit on the test images and "
@@ -176,18 +197,20 @@ def register(subparsers) -> None:
                                       "folder's nominal plant)")
     p.add_argument("-o", "--output", help="write the plant with the learned surface as a scenario file (.h5)")
     p.add_argument("--json", required=True, help="report JSON to write")
-    p.add_argument("--threads", type=int, default=0, help="torch threads (0: leave as is)")
+    p.add_argument("--threads", type=int_range(0, 1024, "a thread count"), default=0,
+                   help="torch threads (0: leave as is)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_reconstruct)
 
     q = subparsers.add_parser("predict", help="yearly flux prediction of a learned heliostat")
     q.add_argument("--scenario", required=True, help="scenario with a learned surface (from reconstruct -o)")
     q.add_argument("--heliostat", help="heliostat id (default: the scenario's only learned surface)")
-    q.add_argument("--year", type=int, default=2023)
-    q.add_argument("--every", default="30min", help="pandas frequency, e.g. 30min")
+    q.add_argument("--year", type=int_range(1900, 2100, "a year"), default=2023)
+    q.add_argument("--every", type=frequency, default="30min",
+                   help="time step between 1min and 1d, e.g. 30min, 1h (default: %(default)s)")
     q.add_argument("--target", help="target name (default: the training images' target)")
     q.add_argument("--json", required=True)
-    q.add_argument("--threads", type=int, default=0)
+    q.add_argument("--threads", type=int_range(0, 1024, "a thread count"), default=0)
     q.add_argument("--quiet", action="store_true")
     q.set_defaults(func=cmd_predict)
 

@@ -13,28 +13,41 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
+import signal
 import sys
 import tempfile
+import threading
 from contextlib import contextmanager
 
 from ..errors import InputFileError
 
-__all__ = ["atomic_path", "write_json", "save_figure", "json_safe"]
+__all__ = ["atomic_path", "write_json", "save_figure", "json_safe", "OutputSet", "output_set"]
 
-#: Permissions of a new output file. ``mkstemp`` creates 0600 files; a report should be as readable as one
-#: written by ``open()``. An existing destination keeps its own permissions (as ``io.scenario`` does).
-_NEW_FILE_MODE = 0o644
-
+_UMASK_LOCK = threading.Lock()
 
 def _one_line(text) -> str:
     return " ".join(str(text).split())
 
 
+def _umask() -> int:
+    with _UMASK_LOCK:
+        mask = os.umask(0)
+        os.umask(mask)
+    return mask
+
+
+def _new_file_mode() -> int:
+    """The mode ``open()`` gives a new file: 0666 less the umask (``mkstemp`` would leave 0600)."""
+    return 0o666 & ~_umask()
+
+
 def _file_mode(path: str) -> int:
+    """An existing destination keeps its own permissions; a new one gets the umask's."""
     try:
         return os.stat(path).st_mode & 0o7777
     except OSError:
-        return _NEW_FILE_MODE
+        return _new_file_mode()
 
 
 @contextmanager
@@ -154,3 +167,140 @@ def save_figure(fig, path, *, dpi: int = 110, tight: bool = True, make_folder: b
         pyplot = sys.modules.get("matplotlib.pyplot")
         if pyplot is not None:
             pyplot.close(fig)  # a no-op for figures pyplot does not manage
+
+
+# ------------------------------------------------------------------------------------------ output sets
+def _same_file(a: str, b: str) -> bool:
+    return os.path.realpath(a) == os.path.realpath(b)
+
+
+class OutputSet:
+    """Every output of one command, staged and then moved into place together, only when all has succeeded.
+
+    Each destination folder gets one hidden staging folder (``.heliotwin-XXXX``); :meth:`file` returns a path
+    there with the destination's own name, so writers that derive further files from it (plots next to a
+    report) stage those too. :meth:`commit` moves everything into place with Ctrl-C and SIGTERM held back;
+    :meth:`discard` (any failure) removes the staging folders and leaves existing files untouched.
+
+    The rules, checked when an output is declared (before any work is done):
+
+    * its folder must exist (nothing creates folders, except :meth:`folder` for an output that *is* a folder);
+    * it may not be an existing folder (for :meth:`file`), the same file as another output, an input file,
+      or an existing file inside an input folder (a report written over a PAINT file).
+
+    Parameters
+    ----------
+    inputs : iterable of (str, path)
+        ``(flag, path)`` of every input the command reads (files or folders); ``None`` paths are ignored.
+    """
+
+    def __init__(self, inputs=()):
+        self.inputs = [(flag, os.fspath(p)) for flag, p in inputs if p is not None]
+        self._staging: dict[str, str] = {}  # destination folder -> staging folder
+        self._declared: list[tuple[str, str]] = []  # (flag, destination)
+
+    def _check(self, path: str, flag: str, *, is_folder: bool) -> str:
+        folder = os.path.dirname(os.path.abspath(path))
+        if not os.path.isdir(folder):
+            raise InputFileError(path, f"output folder {folder} does not exist (create it first)", field=flag)
+        if not is_folder and os.path.isdir(path):
+            raise InputFileError(path, "is a folder; expected a file name", field=flag)
+        if is_folder and os.path.exists(path) and not os.path.isdir(path):
+            raise InputFileError(path, "is a file; expected a folder", field=flag)
+        for other_flag, other in self._declared:
+            if _same_file(path, other):
+                raise InputFileError(path, f"is also the output of {other_flag}; give each output its own name",
+                                     field=flag)
+        for in_flag, src in self.inputs:
+            if _same_file(path, src):
+                raise InputFileError(path, f"is the input {in_flag}; an output may not replace an input", field=flag)
+            inside = os.path.realpath(path).startswith(os.path.realpath(src) + os.sep)
+            if os.path.isdir(src) and inside and os.path.exists(path):
+                raise InputFileError(path, f"would replace a file of the input folder {in_flag} {src}", field=flag)
+        self._declared.append((flag, path))
+        return folder
+
+    def _stage(self, folder: str) -> str:
+        if folder not in self._staging:
+            try:
+                self._staging[folder] = tempfile.mkdtemp(prefix=".heliotwin-", dir=folder)
+            except OSError as exc:
+                raise InputFileError(folder, f"cannot write ({_one_line(exc.strerror or exc)})") from exc
+        return self._staging[folder]
+
+    def file(self, path, flag: str):
+        """Declare output file ``path`` (given by ``flag``); return where to write it now (same name)."""
+        if path is None:
+            return None
+        path = os.fspath(path)
+        folder = self._check(path, flag, is_folder=False)
+        return os.path.join(self._stage(folder), os.path.basename(path))
+
+    def folder(self, path, flag: str) -> str:
+        """Declare an output folder (created when missing; existing files in it are replaced one by one)."""
+        path = os.fspath(path).rstrip(os.sep) or os.sep
+        parent = self._check(path, flag, is_folder=True)
+        staged = os.path.join(self._stage(parent), os.path.basename(path))
+        os.mkdir(staged)
+        return staged
+
+    def commit(self) -> None:
+        """Move every staged file into place (signals held back meanwhile), then remove the staging folders."""
+        with _signals_held():
+            for folder, staging in self._staging.items():
+                for name in sorted(os.listdir(staging)):
+                    _move(os.path.join(staging, name), os.path.join(folder, name))
+            self.discard()
+
+    def discard(self) -> None:
+        """Remove the staging folders (and whatever a failed run had written there)."""
+        for staging in self._staging.values():
+            shutil.rmtree(staging, ignore_errors=True)
+        self._staging.clear()
+
+
+def _move(src: str, dest: str) -> None:
+    """Rename ``src`` onto ``dest``; a folder onto an existing folder merges file by file."""
+    if os.path.isdir(src):
+        if os.path.isdir(dest):
+            for name in sorted(os.listdir(src)):
+                _move(os.path.join(src, name), os.path.join(dest, name))
+            return
+        os.chmod(src, 0o777 & ~_umask())
+    else:
+        os.chmod(src, _file_mode(dest))
+    try:
+        os.replace(src, dest)
+    except OSError as exc:
+        raise _cannot_write(dest, exc, src) from exc
+
+
+@contextmanager
+def _signals_held():
+    """Block SIGINT and SIGTERM (delivered afterwards) so that the renames of a commit are not cut short."""
+    blockable = hasattr(signal, "pthread_sigmask") and threading.current_thread() is threading.main_thread()
+    sigs = {signal.SIGINT, signal.SIGTERM}
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, sigs) if blockable else None
+    try:
+        yield
+    finally:
+        if blockable:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+@contextmanager
+def output_set(inputs=()):
+    """An :class:`OutputSet` committed when the block succeeds and discarded on any exception (Ctrl-C too)::
+
+        with output_set([("--paint", args.paint)]) as out:
+            json_path = out.file(args.json, "--json")   # checks now, before the work
+            ...                                          # compute; write to json_path
+        # here every output is in place, or none is
+    """
+    outputs = OutputSet(inputs)
+    try:
+        yield outputs
+    except BaseException:
+        outputs.discard()
+        raise
+    outputs.commit()
