@@ -20,6 +20,7 @@ naming the file and field): exit code 2 for bad input, 1 for an internal error (
 from __future__ import annotations
 
 import argparse
+import sys
 
 from .. import __version__
 from . import calibrate, plant, surfaces
@@ -57,6 +58,25 @@ def _add_debug(sub) -> None:
                            help="show the traceback of an error (or HELIOTWIN_DEBUG=1)")
 
 
+#: Options whose value may start with a minus sign (``--aim -1,-3.24,36``): argparse would take the value
+#: for an option, so :func:`main` joins it to its option (``--aim=-1,-3.24,36``) first.
+SIGNED_VALUE_OPTIONS = ("--aim",)
+
+
+def _join_signed_values(argv: list[str]) -> list[str]:
+    out, i = [], 0
+    while i < len(argv):
+        value = argv[i + 1] if i + 1 < len(argv) else ""
+        if argv[i] in SIGNED_VALUE_OPTIONS and value[:1] == "-" and (value[1:2].isdigit() or value[1:2] == "."):
+            out.append(f"{argv[i]}={value}")
+            i += 2
+        else:
+            out.append(argv[i])
+            i += 1
+    return out
+
+
 def main(argv=None) -> int:
     """Parse ``argv`` (default: ``sys.argv[1:]``), run the command, return its exit status."""
+    argv = _join_signed_values(list(sys.argv[1:] if argv is None else argv))
     return run_command(build_parser().parse_args(argv))

@@ -9,6 +9,7 @@ import math
 import os
 import time
 
+from ..errors import HeliotwinError
 from ..io.report import output_set, write_json
 from .common import csv_list, int_list, int_range, seed_int, utc_time
 
@@ -151,6 +152,10 @@ def cmd_validate(args) -> int:
         ds, sc = load_records(args.paint, args.scenario, csv_list(args.heliostats))
         report = validate_dataset(ds, resolution=args.resolution, samples=(args.samples, args.samples),
                                   with_images=not args.no_images, progress=not args.quiet)
+        if not report["overall"].get("records"):
+            skipped = report.get("skipped_records") or ds.skipped
+            why = f"; first: {skipped[0].get('reason')}" if skipped else ""
+            raise HeliotwinError(f"{args.paint}: no usable record to validate ({len(skipped)} skipped{why})")
         report["overall"]["seconds"] = time.perf_counter() - t0
         report["settings"] = {"paint": os.path.abspath(args.paint), **_describe(sc),
                               "integrator": "gaussian", "resolution": args.resolution,

@@ -16,13 +16,58 @@ import torch.nn.functional as F
 
 from ..errors import InputFileError
 
-__all__ = ["CENTERED_WINDOW_M", "NORMALISATIONS", "load_measured_image", "subtract_background"]
+__all__ = ["CENTERED_WINDOW_M", "NORMALISATIONS", "MAX_IMAGE_PIXELS", "MIN_IMAGE_SIDE", "check_image_file",
+           "load_measured_image", "subtract_background"]
 
 #: Side [m] of PAINT's ``-flux-centered.png`` window (square, centred on the measured spot's centroid).
 CENTERED_WINDOW_M = 6.0
 
 #: Scalings :func:`load_measured_image` offers: unit sum, unit max, or the PNG's relative scale (None).
 NORMALISATIONS = ("sum", "max", None)
+
+#: Largest measured image [pixels] read (PAINT's are 64x64 and 256x256): bounded memory, no decompression bomb.
+MAX_IMAGE_PIXELS = 4096 * 4096
+#: Smallest side [pixels] of a measured image: below it there is no spot to compare (a 1x1 image would be a
+#: "perfect match" of any prediction after normalisation).
+MIN_IMAGE_SIDE = 8
+
+
+def check_image_file(path) -> tuple[int, int]:
+    """Read only the header of an image file: ``(rows, cols)`` if it is an image of sane size.
+
+    Raises
+    ------
+    InputFileError
+        Missing, not an image, or outside :data:`MIN_IMAGE_SIDE` .. :data:`MAX_IMAGE_PIXELS` (checked before
+        a pixel is decoded, so a crafted 14000x14000 PNG costs nothing).
+    """
+    import warnings
+
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as img:
+                cols, rows = img.size
+    except FileNotFoundError:
+        raise InputFileError(path, "file not found") from None
+    except Image.DecompressionBombError:
+        raise InputFileError(path, f"image larger than the {MAX_IMAGE_PIXELS} pixels a flux image may have") from None
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
+        raise InputFileError(path, f"not a readable image ({' '.join(str(exc).split()) or type(exc).__name__})") \
+            from None
+    _check_size(path, rows, cols)
+    return rows, cols
+
+
+def _check_size(where, rows: int, cols: int) -> None:
+    if rows * cols > MAX_IMAGE_PIXELS:
+        raise InputFileError(where, f"image of {cols}x{rows} pixels is larger than the {MAX_IMAGE_PIXELS} pixels "
+                                    f"a flux image may have")
+    if min(rows, cols) < MIN_IMAGE_SIDE:
+        raise InputFileError(where, f"image of {cols}x{rows} pixels is too small to hold a flux spot "
+                                    f"(at least {MIN_IMAGE_SIDE} pixels a side)")
 
 
 def subtract_background(image: torch.Tensor, level: float = 0.02) -> torch.Tensor:
@@ -72,8 +117,8 @@ def load_measured_image(source, resolution=None, *, normalise: str | None = None
     Raises
     ------
     InputFileError
-        One line naming the file: unreadable, not square when ``square``, or empty (all zero) after the
-        background is removed.
+        One line naming the file: unreadable, too large or too small (:func:`check_image_file`), not square
+        when ``square``, non-finite, empty (all zero) or uniform (no spot) after the background is removed.
     """
     from ..raytrace.flux import read_png
 
@@ -82,12 +127,16 @@ def load_measured_image(source, resolution=None, *, normalise: str | None = None
     if isinstance(source, torch.Tensor):
         where = "<image>" if name is None else name
         img = source.detach().to(torch.float32)
+        if img.dim() != 2:
+            raise InputFileError(where, f"expected a 2-D image, got shape {list(img.shape)}")
+        _check_size(where, *img.shape)
+        if bool(torch.isinf(img).any()):
+            raise InputFileError(where, "image holds infinite values")
     else:
         where = source
+        check_image_file(source)
         img = read_png(source)
     img = torch.nan_to_num(img, nan=0.0).clamp_min(0.0)
-    if img.dim() != 2:
-        raise InputFileError(where, f"expected a 2-D image, got shape {list(img.shape)}")
     if square and img.shape[0] != img.shape[1]:
         raise InputFileError(where, f"expected a square centred image, got {list(img.shape)}")
     if resolution is not None:
@@ -98,6 +147,8 @@ def load_measured_image(source, resolution=None, *, normalise: str | None = None
         img = subtract_background(img, background)
     if not bool(img.sum() > 0):
         raise InputFileError(where, "image is empty (all zero)")
+    if bool(img.amin() == img.amax()):
+        raise InputFileError(where, "image is uniform (no flux spot to compare)")
     if normalise == "sum":
         img = img / img.sum()
     elif normalise == "max":

@@ -33,18 +33,57 @@ from .records import RecordTable, build_record_table
 HELIOSTAT_DIR = re.compile(r"^[A-Z]{2}[0-9]{2}$")
 FOCAL_SPOT_SOURCES = ("HeliOS", "UTIS")
 
+# Plausibility bounds of a plant's geometry: the largest tower plants reach ~2 km from the tower, heliostats
+# and their parts are metres in size. Beyond these a file holds a typo or corruption, not a plant.
+#: Largest horizontal distance [m] of a target, heliostat or focal spot from the plant reference.
+MAX_PLANT_RADIUS_M = 5000.0
+#: Largest height difference [m] from the plant reference.
+MAX_PLANT_HEIGHT_M = 1000.0
+#: Largest heliostat-local length [m]: joint/concentrator/facet translations, canting vectors, actuator lengths.
+MAX_HELIOSTAT_LENGTH_M = 50.0
+#: Largest JSON file [bytes] a PAINT reader opens (PAINT's are a few kB) and its deepest nesting.
+MAX_JSON_BYTES = 16 * 2**20
+MAX_JSON_DEPTH = 32
+
+
+def _depth(obj, limit: int) -> int:
+    """Nesting depth of parsed JSON, iteratively (no recursion), stopping once ``limit`` is exceeded."""
+    deepest, stack = 0, [(obj, 1)]
+    while stack:
+        node, d = stack.pop()
+        deepest = max(deepest, d)
+        if deepest > limit:
+            return deepest
+        if isinstance(node, dict):
+            stack.extend((v, d + 1) for v in node.values())
+        elif isinstance(node, list):
+            stack.extend((v, d + 1) for v in node)
+    return deepest
+
 
 def read_json(path) -> dict:
-    """Parse a JSON file; one-line :class:`InputFileError` when it is missing or malformed."""
+    """Parse a JSON file; one-line :class:`InputFileError` when it is missing, malformed, not UTF-8, larger
+    than :data:`MAX_JSON_BYTES` or nested deeper than :data:`MAX_JSON_DEPTH`."""
     try:
+        size = os.path.getsize(path)
+        if size > MAX_JSON_BYTES:
+            raise InputFileError(path, f"{size} bytes; a PAINT JSON file is at most {MAX_JSON_BYTES} bytes")
         with open(path, encoding="utf-8") as fh:
             data = json.load(fh)
     except FileNotFoundError:
         raise InputFileError(path, "file not found") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError as exc:
+        raise InputFileError(path, f"not UTF-8 text (byte {exc.start})") from None
+    except json.JSONDecodeError as exc:
         raise InputFileError(path, f"malformed JSON ({exc})") from None
+    except RecursionError:
+        raise InputFileError(path, "malformed JSON (nested too deeply)") from None
+    except ValueError as exc:  # e.g. an integer literal of more than 4300 digits
+        raise InputFileError(path, f"malformed JSON ({' '.join(str(exc).split())})") from None
     except OSError as exc:
         raise InputFileError(path, f"cannot read ({exc.strerror})") from None
+    if _depth(data, MAX_JSON_DEPTH) > MAX_JSON_DEPTH:
+        raise InputFileError(path, f"nested deeper than {MAX_JSON_DEPTH} levels; not a PAINT file")
     if not isinstance(data, dict):
         raise InputFileError(path, "expected a JSON object at top level")
     return data
@@ -75,12 +114,35 @@ def _number(d: dict, key: str, path, prefix: str = "", *, positive: bool = False
     return float(v)
 
 
-def _vector(d: dict, key: str, path, prefix: str = "", n: int = 3) -> list[float]:
+def _vector(d: dict, key: str, path, prefix: str = "", n: int = 3, *, bound: float | None = None) -> list[float]:
     v = _get(d, key, path, prefix)
     if (not isinstance(v, (list, tuple)) or len(v) != n
             or not all(_finite_number(x) for x in v)):
-        raise InputFileError(path, f"expected a list of {n} finite numbers, got {v!r}", field=f"{prefix}{key}")
-    return [float(x) for x in v]
+        raise InputFileError(path, f"expected a list of {n} finite numbers, got {_short(v)}", field=f"{prefix}{key}")
+    out = [float(x) for x in v]
+    if bound is not None and max(abs(x) for x in out) > bound:
+        raise InputFileError(path, f"implausible: a component beyond {bound:g} m in {out}", field=f"{prefix}{key}")
+    return out
+
+
+def _short(v, n: int = 80) -> str:
+    text = repr(v)
+    return text if len(text) <= n else text[:n] + "..."
+
+
+def _near_plant(enu: torch.Tensor, path, fld: str) -> torch.Tensor:
+    """``enu`` [3] if within :data:`MAX_PLANT_RADIUS_M` / :data:`MAX_PLANT_HEIGHT_M` of the plant reference."""
+    horizontal, up = float(torch.hypot(enu[0], enu[1])), float(enu[2])
+    if horizontal > MAX_PLANT_RADIUS_M or abs(up) > MAX_PLANT_HEIGHT_M:
+        raise InputFileError(path, f"implausible: {horizontal / 1e3:.1f} km from the plant reference and {up:.0f} m "
+                                   f"above it (a plant spans at most {MAX_PLANT_RADIUS_M / 1e3:g} km, "
+                                   f"{MAX_PLANT_HEIGHT_M:g} m)", field=fld)
+    return enu
+
+
+def _local_enu(d: dict, key: str, path, site, prefix: str = "") -> torch.Tensor:
+    """A lat-first WGS84 point of the plant as ENU [3] about the reference, checked to be near the plant."""
+    return _near_plant(wgs84_to_enu(_geodetic(d, key, path, prefix), site.reference), path, prefix + key)
 
 
 def _geodetic(d: dict, key: str, path, prefix: str = "") -> list[float]:
@@ -121,23 +183,26 @@ def read_tower(path) -> tuple[Site, dict]:
         pre = f"{name}."
         kind = _get(spec, "type", path, pre)
         coords = _get(spec, "coordinates", path, pre)
+        if not isinstance(spec, dict):
+            raise InputFileError(path, f"expected an object, got {_short(spec)}", field=name)
         normal = _vector(spec, "normal_vector", path, pre)
         if math.hypot(*normal) < 1e-9:
             raise InputFileError(path, "zero-length normal vector", field=pre + "normal_vector")
         if kind == "planar":
-            corners = {k: wgs84_to_enu(_geodetic(coords, k, path, pre + "coordinates."), site.reference)
+            corners = {k: _local_enu(coords, k, path, site, pre + "coordinates.")
                        for k in ("upper_left", "upper_right", "lower_left", "lower_right")}
-            center = wgs84_to_enu(_geodetic(coords, "center", path, pre + "coordinates."), site.reference)
+            center = _local_enu(coords, "center", path, site, pre + "coordinates.")
             targets[name] = PlanarTarget.from_corners(name, corners, normal, center)
         elif kind == "convex_cylinder":
             radius = _number(spec, "radius", path, pre, positive=True)
+            if radius > MAX_HELIOSTAT_LENGTH_M:
+                raise InputFileError(path, f"implausible receiver radius {radius} m", field=pre + "radius")
             opening_deg = _number(spec, "opening_angle", path, pre, positive=True)
             if opening_deg >= 360.0:
                 raise InputFileError(path, f"opening angle must be below 360 deg, got {opening_deg}",
                                      field=pre + "opening_angle")
             opening = math.radians(opening_deg)
-            corners = {k: wgs84_to_enu(_geodetic(coords, f"receiver_outer_{k}", path, pre + "coordinates."),
-                                       site.reference)
+            corners = {k: _local_enu(coords, f"receiver_outer_{k}", path, site, pre + "coordinates.")
                        for k in ("upper_left", "upper_right", "lower_left", "lower_right")}
             targets[name] = CylinderTarget.from_outer_corners(name, corners, normal, radius, opening)
         else:
@@ -170,7 +235,7 @@ def read_heliostat_properties(path, site: Site, heliostat_id: str | None = None)
     """
     data = read_json(path)
     hid = heliostat_id or os.path.basename(str(path)).split("-")[0]
-    position = wgs84_to_enu(_geodetic(data, "heliostat_position", path), site.reference)
+    position = _local_enu(data, "heliostat_position", path, site)
     key = "kinematics_properties" if "kinematics_properties" in data else "kinematic_properties"
     kin = _get(data, key, path)
     pre = key + "."
@@ -196,15 +261,24 @@ def read_heliostat_properties(path, site: Site, heliostat_id: str | None = None)
         clockwise.append(bool(cw))
         linear.append(kind == "linear")
         if kind == "linear":
-            for k in ("offset", "pivot_radius"):
-                if per_axis[k][-1] <= 0:
-                    raise InputFileError(path, f"must be positive for a linear actuator, got {per_axis[k][-1]}",
-                                         field=ap + k)
+            for k in ("offset", "pivot_radius", "initial_stroke_length"):
+                v = per_axis[k][-1]
+                if not (v > 0 if k != "initial_stroke_length" else v >= 0) or v > MAX_HELIOSTAT_LENGTH_M:
+                    raise InputFileError(path, f"implausible for a linear actuator: {v} m (expected "
+                                               f"{'0' if k == 'initial_stroke_length' else '> 0'} to "
+                                               f"{MAX_HELIOSTAT_LENGTH_M:g} m)", field=ap + k)
+        for k in ("initial_angle", "min_movement_angle", "max_movement_angle"):
+            if abs(per_axis[k][-1]) > 4 * math.pi:  # NaN (absent) passes
+                raise InputFileError(path, f"implausible angle {per_axis[k][-1]} rad", field=ap + k)
         if per_axis["max_increment"][-1] < per_axis["min_increment"][-1]:
             raise InputFileError(path, "max_increment < min_increment", field=ap + "max_increment")
 
     def num(k):
-        return _number(kin, k, path, pre) if k in kin else 0.0
+        v = _number(kin, k, path, pre) if k in kin else 0.0
+        if abs(v) > MAX_HELIOSTAT_LENGTH_M:
+            raise InputFileError(path, f"implausible translation {v} m (at most {MAX_HELIOSTAT_LENGTH_M:g} m)",
+                                 field=pre + k)
+        return v
 
     t = lambda v: torch.tensor(v, dtype=torch.float64)  # noqa: E731
     joint_translation = t([[[num(f"joint_translation_{a}_{j}") for a in "enu"] for j in (1, 2)]])
@@ -226,14 +300,17 @@ def read_heliostat_properties(path, site: Site, heliostat_id: str | None = None)
     tr, ce, cn = [], [], []
     for i, f in enumerate(facets):
         fpre = f"facet_properties.facets[{i}]."
-        tr.append(_vector(f, "translation_vector", path, fpre))
-        ce.append(_vector(f, "canting_e", path, fpre))
-        cn.append(_vector(f, "canting_n", path, fpre))
+        tr.append(_vector(f, "translation_vector", path, fpre, bound=MAX_HELIOSTAT_LENGTH_M))
+        ce.append(_vector(f, "canting_e", path, fpre, bound=MAX_HELIOSTAT_LENGTH_M))
+        cn.append(_vector(f, "canting_n", path, fpre, bound=MAX_HELIOSTAT_LENGTH_M))
         if math.hypot(*ce[-1]) == 0 or math.hypot(*cn[-1]) == 0:
             raise InputFileError(path, "zero-length canting span vector", field=fpre + "canting_e")
     fac = Facets(t([tr]), t([ce]), t([cn]))
     width = _number(data, "width", path, positive=True) if "width" in data else float("nan")
     height = _number(data, "height", path, positive=True) if "height" in data else float("nan")
+    for k, v in (("width", width), ("height", height)):
+        if v > MAX_HELIOSTAT_LENGTH_M:
+            raise InputFileError(path, f"implausible heliostat {k} {v} m", field=k)
     return HeliostatProperties(hid, kinematics, fac, width, height, str(data.get("renovation", "")), str(path))
 
 
@@ -311,7 +388,7 @@ def read_calibration_record(path, site: Site, heliostat_id: str, known_targets=N
     for src in FOCAL_SPOT_SOURCES:
         if spots.get(src) is not None:
             lla[src] = _geodetic(spots, src, path, "focal_spot.")
-            enu[src] = wgs84_to_enu(lla[src], site.reference)
+            enu[src] = _near_plant(wgs84_to_enu(lla[src], site.reference), path, f"focal_spot.{src}")
     if not enu:
         raise InputFileError(path, "neither a HeliOS nor a UTIS centroid", field="focal_spot")
     az = _number(data, "sun_azimuth", path)
@@ -326,30 +403,65 @@ def read_calibration_record(path, site: Site, heliostat_id: str, known_targets=N
 
 
 def read_metadata(root) -> tuple[dict, dict]:
-    """DateTime and weather per record id from ``metadata/*.csv`` (empty dicts when absent)."""
-    times, weather = {}, {}
+    """DateTime and weather per record id from ``metadata/*.csv`` (empty dicts when absent).
+
+    Raises
+    ------
+    InputFileError
+        A CSV that is not UTF-8, malformed, lacks its columns, or has a bad Id, a duplicate Id or a
+        non-finite weather value (file, line and column named).
+    """
     meta = os.path.join(str(root), "metadata", "calibration-metadata.csv")
-    if os.path.exists(meta):
-        with open(meta, newline="", encoding="utf-8") as fh:
+    wpath = os.path.join(str(root), "metadata", "calibration-weather.csv")
+    times = _read_csv(meta, _metadata_row, ("Id", "DateTime")) if os.path.exists(meta) else {}
+    weather = _read_csv(wpath, _weather_row, ("Id",)) if os.path.exists(wpath) else {}
+    return times, weather
+
+
+def _metadata_row(row: dict):
+    return row["DateTime"] or None
+
+
+def _weather_row(row: dict) -> dict:
+    out = {}
+    for k, v in row.items():
+        if k in ("Id", "HeliostatId", "DateTime") or v in (None, ""):
+            continue
+        if k is None or not isinstance(v, str):
+            raise ValueError("more fields than columns")
+        x = float(v)
+        if not math.isfinite(x):
+            raise ValueError(f"column {k}: {v!r} is not a finite number")
+        out[k] = x
+    return out
+
+
+def _read_csv(path: str, parse_row, columns) -> dict:
+    """Record id -> ``parse_row(row)`` for every row of a PAINT metadata CSV."""
+    out, line = {}, 1
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
             reader = csv.DictReader(fh)
-            if "Id" not in (reader.fieldnames or []) or "DateTime" not in (reader.fieldnames or []):
-                raise InputFileError(meta, "needs columns Id and DateTime", field="header")
+            if not all(c in (reader.fieldnames or []) for c in columns):
+                raise InputFileError(path, f"needs columns {', '.join(columns)}", field="header")
             for line, row in enumerate(reader, start=2):
                 try:
-                    times[int(row["Id"])] = row["DateTime"] or None
-                except (TypeError, ValueError):
-                    raise InputFileError(meta, f"line {line}: bad Id {row.get('Id')!r}", field="Id") from None
-    wpath = os.path.join(str(root), "metadata", "calibration-weather.csv")
-    if os.path.exists(wpath):
-        with open(wpath, newline="", encoding="utf-8") as fh:
-            for line, row in enumerate(csv.DictReader(fh), start=2):
-                try:
                     rid = int(row["Id"])
-                    weather[rid] = {k: float(v) for k, v in row.items()
-                                    if k not in ("Id", "HeliostatId", "DateTime") and v not in (None, "")}
-                except (KeyError, TypeError, ValueError) as exc:
-                    raise InputFileError(wpath, f"line {line}: {exc}", field="Id") from None
-    return times, weather
+                except (TypeError, ValueError):
+                    raise InputFileError(path, f"line {line}: bad Id {_short(row.get('Id'))}", field="Id") from None
+                if rid in out:
+                    raise InputFileError(path, f"line {line}: duplicate Id {rid}", field="Id")
+                try:
+                    out[rid] = parse_row(row)
+                except (TypeError, ValueError) as exc:
+                    raise InputFileError(path, f"line {line}: {' '.join(str(exc).split())}") from None
+    except UnicodeDecodeError as exc:
+        raise InputFileError(path, f"not UTF-8 text (byte {exc.start} after line {line})") from None
+    except csv.Error as exc:
+        raise InputFileError(path, f"line {line}: malformed CSV ({exc})") from None
+    except OSError as exc:
+        raise InputFileError(path, f"cannot read ({exc.strerror})") from None
+    return out
 
 
 # ------------------------------------------------------------------------------------------- dataset
