@@ -1,0 +1,92 @@
+"""Ctrl-C (SIGINT) and SIGTERM in the middle of a command or of its writes: exit 130 / 143, one line, and
+nothing left behind -- no output, no staging folder, no temporary file, existing outputs untouched."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+import heliotwin
+
+SRC = Path(heliotwin.__file__).resolve().parents[1]
+pytestmark = pytest.mark.skipif(os.name != "posix", reason="POSIX signals")
+
+
+def _env():
+    return dict(os.environ, PYTHONPATH=os.pathsep.join([str(SRC), os.environ.get("PYTHONPATH", "")]),
+                OMP_NUM_THREADS="1", HELIOTWIN_DEBUG="0")
+
+
+def _wait_for(predicate, proc, timeout=120.0):
+    t0 = time.monotonic()
+    while not predicate():
+        if proc.poll() is not None:
+            out, err = proc.communicate()
+            pytest.fail(f"process ended before the signal: {proc.returncode}\n{out}\n{err}")
+        if time.monotonic() - t0 > timeout:
+            proc.kill()
+            pytest.fail("timed out waiting for the command to start its work")
+        time.sleep(0.02)
+
+
+#: A command that stages its output and then writes it slowly, chunk by chunk, through the CLI's safety net.
+_SLOW_WRITER = """
+import sys, time
+from argparse import Namespace
+from heliotwin.cli.common import run_command
+from heliotwin.io.report import output_set
+
+def func(args):
+    with output_set() as out:
+        path = out.file(args.path, "--json")
+        with open(path, "w") as fh:
+            fh.write("x" * 100)
+            fh.flush()
+            for _ in range(600):
+                fh.write("y")
+                time.sleep(0.05)
+    return 0
+
+sys.exit(run_command(Namespace(func=func, path=sys.argv[1])))
+"""
+
+
+@pytest.mark.parametrize("sig, code, word", [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated")])
+def test_signal_during_a_write_leaves_the_old_output_and_nothing_else(tmp_path, sig, code, word):
+    out = tmp_path / "report.json"
+    out.write_text("old")
+    proc = subprocess.Popen([sys.executable, "-c", _SLOW_WRITER, str(out)], env=_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+    def writing():
+        staged = [p for d in tmp_path.glob(".heliotwin-*") for p in d.iterdir()]
+        return bool(staged) and staged[0].stat().st_size >= 100
+
+    _wait_for(writing, proc)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == code, err
+    assert err.strip() == f"heliotwin: {word}; nothing was written"
+    assert out.read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["report.json"]
+
+
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_signal_during_demo_leaves_no_output_folder(tmp_path, sig, code):
+    """``heliotwin demo`` killed while tracing: neither its folder nor its --json report appears."""
+    folder, report = tmp_path / "demo", tmp_path / "demo.json"
+    proc = subprocess.Popen([sys.executable, "-m", "heliotwin", "demo", "--out", str(folder), "--json", str(report),
+                             "--heliostats", "400", "--rays-per-point", "256", "--quiet"], env=_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _wait_for(lambda: any(tmp_path.glob(".heliotwin-*")), proc)
+    time.sleep(0.3)  # into the tracing
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == code, err
+    assert len(err.strip().splitlines()) == 1
+    assert list(tmp_path.iterdir()) == []
