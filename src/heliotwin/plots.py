@@ -10,14 +10,43 @@ from matplotlib.figure import Figure
 
 from .io.report import save_figure
 
+__all__ = ["draw_flux", "plot_demo", "plot_validation"]
 
-def _imshow_flux(ax, flux, title):
+
+def draw_flux(ax, flux, title: str, *, measured: dict | None = None) -> None:
+    """Draw the first image of a :class:`~heliotwin.raytrace.flux.FluxImage` on ``ax``: title, axes in metres
+    on the target (as seen from the field: left = east), colour bar in kW/m².
+
+    ``measured`` (a ``trace`` report) marks the measured focal spots (HeliOS, UTIS) and the predicted
+    centroid, so the figure reads as measured vs predicted.
+    """
     ext = flux.extent[0].tolist()
     im = ax.imshow(flux.bitmap[0].detach().cpu().numpy() / 1e3, extent=(ext[0], ext[1], ext[2], ext[3]), cmap="inferno")
     ax.set_title(title)
     ax.set_xlabel("x along target 'right' [m] (left = east)")
     ax.set_ylabel("y up [m]")
     ax.figure.colorbar(im, ax=ax, label="flux [kW/m²]")
+    if measured:
+        _mark_spots(ax, flux.target, measured)
+
+
+def _mark_spots(ax, target, report: dict) -> None:
+    import torch
+
+    marks = [(src, enu, m) for (src, enu), m in zip(sorted((report.get("measured_spot_enu_m") or {}).items()),
+                                                    ("c+", "gx"))]
+    if report.get("centroid_enu_m") is not None:
+        marks.append(("predicted centroid", report["centroid_enu_m"], "wo"))
+    for label, enu, style in marks:
+        xy = target.to_local(torch.tensor([enu], dtype=torch.float64))[0].tolist()
+        ax.plot(xy[0], xy[1], style, ms=9, mfc="none" if style == "wo" else None,
+                label=f"measured ({label})" if style != "wo" else label)
+    if marks:
+        ax.legend(loc="upper right", fontsize="small")
+
+
+def _imshow_flux(ax, flux, title):
+    draw_flux(ax, flux, title)
 
 
 def plot_demo(plant, per_heliostat, receiver_flux, spot, path) -> None:

@@ -42,18 +42,35 @@ def build_parser() -> argparse.ArgumentParser:
     for group in GROUPS:
         group.register(sub)
     parser.add_argument("--debug", action="store_true", help="show the traceback of an error (or HELIOTWIN_DEBUG=1)")
-    _add_debug(sub)
+    _add_shared_flags(sub)
     return parser
 
 
-def _add_debug(sub) -> None:
-    """``--debug`` on every leaf command too (``heliotwin trace ... --debug``); SUPPRESS keeps a sub-parser's
-    default from overwriting the main parser's value."""
-    for p in set(sub.choices.values()):
+#: Commands that compute (and so take ``--device``); the others only read and write files.
+COMPUTE_COMMANDS = ("demo", "trace", "validate", "bench", "calibrate", "reconstruct", "predict")
+
+
+def _add_shared_flags(sub) -> None:
+    """The flags every command shares, added once here so that no command can miss them:
+
+    * ``--debug`` (also before the command; SUPPRESS keeps a sub-parser's default from overwriting the main
+      parser's value);
+    * ``--quiet``: no progress bars and no summary line (errors still go to stderr);
+    * ``--device auto|cpu|cuda`` on the computing commands (:func:`.common.resolve_device`).
+    """
+    for name, p in sub.choices.items():
         inner = [a for a in p._actions if isinstance(a, argparse._SubParsersAction)]
         if inner:
-            _add_debug(inner[0])
-        elif not any("--debug" in a.option_strings for a in p._actions):
+            _add_shared_flags(inner[0])
+            continue
+        flags = {o for a in p._actions for o in a.option_strings}
+        if "--quiet" not in flags:
+            p.add_argument("--quiet", action="store_true", help="no progress bars and no summary line")
+        if name in COMPUTE_COMMANDS and "--device" not in flags:
+            p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
+                           help="where to compute: auto = CUDA when present and the command supports it "
+                                "(default: %(default)s)")
+        if "--debug" not in flags:
             p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                            help="show the traceback of an error (or HELIOTWIN_DEBUG=1)")
 

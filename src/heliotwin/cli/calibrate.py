@@ -63,7 +63,7 @@ def register(subparsers) -> None:
                    help="largest distance of a focal spot from its target plane [m] (default 0.1)")
     p.add_argument("--keep-suspicious", action="store_true",
                    help="report suspicious property values but never replace them")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--quiet", action="store_true", help="no progress bars and no summary line")
     p.add_argument("--progress", action="store_true", help=argparse.SUPPRESS)  # old flag: progress is the default
     p.set_defaults(func=cmd_calibrate)
 
@@ -150,7 +150,8 @@ def cmd_calibrate(args) -> int:
             if curves:
                 report["training_size_curve"] = {k: [list(p) for p in v] for k, v in curves.items()}
             write_json(json_path, report)
-    _print_table(report)
+    if not args.quiet:
+        _print_table(report)
     return 0
 
 
@@ -227,11 +228,11 @@ def _split(args, cfg, json_path, csv_path) -> int:
         write_json(json_path, out)
     if csv_path:
         _write_split_csv(csv_path, rows)
-    for hid, s in out["heliostats"].items():
+    for hid, s in out["heliostats"].items() if not args.quiet else ():
         d = s.get("mean_train_test_distance_rad")
         print(f"{hid}: train {s['train']} validation {s['validation']} test {s['test']} "
               f"(dropped without time {s['dropped_no_time']}), mean train-test distance {_fmt(d, 3)} rad")
-    for hid, why in skipped_h.items():
+    for hid, why in skipped_h.items() if not args.quiet else ():
         print(f"{hid}: skipped, {why}")
     return 0
 
@@ -265,7 +266,9 @@ def cmd_aim(args) -> int:
                   math.radians(args.sun_elevation), point)
         if json_path:
             write_json(json_path, ans)
-    print(f"{ans['heliostat']}: motor steps axis 1 {ans['motor_steps'][0]:.0f}, axis 2 {ans['motor_steps'][1]:.0f}"
-          f"{'' if ans['reachable'] else '  (OUTSIDE the actuator range: not reachable)'} [{ans['method']}]")
+    if not args.quiet:
+        note = "" if ans["reachable"] else "  (OUTSIDE the actuator range: not reachable)"
+        print(f"{ans['heliostat']}: motor steps axis 1 {ans['motor_steps'][0]:.0f}, axis 2 "
+              f"{ans['motor_steps'][1]:.0f}{note} [{ans['method']}]")
     return 0 if ans["reachable"] else 3
 

@@ -25,9 +25,10 @@ import traceback
 
 from ..errors import HeliotwinError
 
-__all__ = ["ArgumentParser", "run_command", "csv_list", "int_list", "positive_int", "int_range", "float_range",
-           "finite_float", "seed_int", "frequency", "utc_time", "check_output_folder", "debug_requested", "Terminated",
-           "EXIT_OK", "EXIT_INTERNAL", "EXIT_INPUT", "EXIT_INTERRUPTED", "EXIT_TERMINATED"]
+__all__ = ["ArgumentParser", "run_command", "resolve_device", "debug_requested", "Terminated", "csv_list",
+           "int_list", "positive_int", "int_range", "float_range", "finite_float", "seed_int", "frequency",
+           "utc_time", "check_output_folder", "EXIT_OK", "EXIT_INTERNAL", "EXIT_INPUT", "EXIT_INTERRUPTED",
+           "EXIT_TERMINATED"]
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT = 0, 1, 2
 EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143  # 128 + SIGINT, 128 + SIGTERM (the shell's convention)
@@ -103,6 +104,9 @@ def run_command(args, prefix: str = "heliotwin: ") -> int:
     debug = debug_requested(args)
     try:
         with _sigterm_as_interrupt():
+            if getattr(args, "device", None) is not None:
+                args.device = resolve_device(args.device, getattr(args.func, "supports_cuda", False),
+                                             getattr(args, "command", None))
             return int(args.func(args) or 0)
     except KeyboardInterrupt as exc:
         terminated = isinstance(exc, Terminated)
@@ -117,6 +121,27 @@ def run_command(args, prefix: str = "heliotwin: ") -> int:
         lines = [ln for ln in str(message).splitlines() if ln.strip()]
         print(f"{prefix}error: {lines[0] if lines else message}", file=sys.stderr)
         return code
+
+
+def resolve_device(name: str, supports_cuda: bool, command: str | None = None) -> str:
+    """``--device``: ``auto`` -> ``"cuda"`` when a CUDA device is present and the command can use it, else
+    ``"cpu"``; ``cuda`` without a device, or on a command that runs on the CPU only so far, is an error."""
+    if name == "cpu":
+        return "cpu"
+    import torch
+
+    available = torch.cuda.is_available()
+    if name == "auto":
+        return "cuda" if available and supports_cuda else "cpu"
+    if name != "cuda":
+        raise HeliotwinError(f"--device {name}: expected auto, cpu or cuda")
+    if not available:
+        raise HeliotwinError("--device cuda: no CUDA device is available (torch.cuda.is_available() is False; "
+                             "use --device cpu or install a CUDA build of torch)")
+    if not supports_cuda:
+        raise HeliotwinError(f"--device cuda: {command or 'this command'} runs on the CPU only so far "
+                             f"(use --device cpu or auto)")
+    return "cuda"
 
 
 # ------------------------------------------------------------------------------------------ argument types

@@ -37,6 +37,8 @@ def cmd_demo(args) -> int:
                            time_utc=args.time, progress=not args.quiet)
         if json_path:
             write_json(json_path, summary)
+    if args.quiet:
+        return 0
     print(f"demo: {summary['heliostats_traced']} heliostats, sun az {summary['sun_azimuth_deg']:.1f} deg "
           f"el {summary['sun_elevation_deg']:.1f} deg; receiver intercepts "
           f"{summary['receiver']['intercepted_power_w'] / 1e3:.1f} kW of {summary['total_power_w'] / 1e3:.1f} kW "
@@ -48,12 +50,19 @@ def cmd_demo(args) -> int:
 def cmd_scenario_from_paint(args) -> int:
     from ..io.scenario import save_scenario, scenario_from_paint
 
+    if args.paint and args.paint_dir and os.path.abspath(args.paint) != os.path.abspath(args.paint_dir):
+        raise HeliotwinError(f"two PAINT folders: {args.paint_dir} and --paint {args.paint}; give one")
+    args.paint_dir = args.paint or args.paint_dir
+    if not args.paint_dir:
+        raise HeliotwinError("scenario from-paint: which PAINT folder? (--paint PAINT_DIR)")
+
     with output_set([("PAINT_DIR", args.paint_dir)]) as out:
         output = out.file(args.output, "-o")
         plant = scenario_from_paint(args.paint_dir, csv_list(args.heliostats))
         save_scenario(plant, output, metadata={"source": os.path.abspath(args.paint_dir),
                                                "created_by": "heliotwin scenario from-paint"})
-    print(f"scenario: {len(plant.field.ids)} heliostats, {len(plant.targets)} targets -> {args.output}")
+    if not args.quiet:
+        print(f"scenario: {len(plant.field.ids)} heliostats, {len(plant.targets)} targets -> {args.output}")
     return 0
 
 
@@ -72,19 +81,27 @@ def _describe(sc) -> dict:
 
 def cmd_trace(args) -> int:
     """Trace one real record with the scenario's plant (default: nominal kinematics, ideal surface)."""
+    from ..api import plot_flux, trace_record
     from ..io.scenario import load_records
     from ..raytrace.flux import to_png
 
     with output_set([("--paint", args.paint), ("--scenario", args.scenario)]) as out:
         png = out.file(args.out, "--out")
         json_path = out.file(args.json, "--json")
+        plot_path = out.file(args.plot, "--plot")
         ds, sc = load_records(args.paint, args.scenario, [args.heliostat])
-        row = ds.record(args.record)
-        flux, report = _trace_record(ds.plant, row, args)
+        flux, report = trace_record(ds, args.record, integrator=args.integrator, rays_per_point=args.rays_per_point,
+                                    resolution=args.resolution, samples=args.samples, seed=args.seed,
+                                    device=args.device)
         report.update(_describe(sc))
         to_png(flux.bitmap[0], png)
+        if plot_path:
+            plot_flux(flux, plot_path, measured=report,
+                      title=f"{args.heliostat} record {args.record}: predicted flux on {report['target']}")
         if json_path:
             write_json(json_path, report)
+    if args.quiet:
+        return 0
     where = ("no light on the target: no centroid" if report["centroid_enu_m"] is None else
              f"centroid ENU {', '.join(f'{v:.3f}' for v in report['centroid_enu_m'])} m")
     print(f"trace {args.heliostat}/{args.record}: {where}; {report['intercepted_power_w'] / 1e3:.2f} "
@@ -92,52 +109,7 @@ def cmd_trace(args) -> int:
     return 0
 
 
-def _trace_record(plant, row, args):
-    """Trace the one record of table ``row`` (its heliostat in ``plant``); the flux image and the report."""
-    import torch
-
-    from ..field import kinematics as kin_ops
-    from ..io.records import SOURCES
-    from ..scene import trace, world_surface
-
-    target = plant.target(row.target[0])
-    s = row.sun
-    t0 = time.perf_counter()
-    with torch.no_grad():
-        pts, nrm, area, R, c = world_surface(plant.field.kinematics, plant.field.surfaces, row.heliostat_index,
-                                             row.motor_steps, (args.samples, args.samples))
-        flux = trace(pts, nrm, area, s.to(pts), target, integrator=args.integrator,
-                     resolution=(args.resolution, args.resolution), sun=plant.sun, rays_per_point=args.rays_per_point,
-                     generator=torch.Generator().manual_seed(args.seed))
-    seconds = time.perf_counter() - t0
-    # No light on the target (a heliostat pointing away, a sun behind it): there is no centroid; the
-    # target centre that a zero-sum image's centroid would give is not a measurement.
-    lit = bool(flux.bitmap[0].sum() > 0) and float(flux.intercepted_power_w[0]) > 0
-    centroid = flux.centroid_enu()[0] if lit else None
-    lla = plant.site.to_wgs84(centroid) if lit else None
-    cosines = (nrm[0].to(torch.float64) @ s[0]).clamp_min(0)
-    spots = {src: row.focal_spots[0, k].tolist() for k, src in enumerate(SOURCES)
-             if bool(torch.isfinite(row.focal_spots[0, k]).all())}
-    report = {
-        "heliostat": args.heliostat, "record": int(row.record_id[0]), "target": row.target[0],
-        "integrator": args.integrator,
-        "rays_per_point": args.rays_per_point if args.integrator == "mc" else None, "resolution": args.resolution,
-        "sun_azimuth_deg": math.degrees(float(row.sun_azimuth[0])),
-        "sun_elevation_deg": math.degrees(float(row.sun_elevation[0])),
-        "motor_steps": row.motor_steps[0].tolist(),
-        "centroid_enu_m": centroid.tolist() if lit else None,
-        "centroid_wgs84": {"latitude_deg": float(lla[0]), "longitude_deg": float(lla[1]),
-                           "altitude_m": float(lla[2])} if lit else None,
-        "centroid_local_m": flux.centroid_local()[0].tolist() if lit else None,
-        "measured_spot_enu_m": spots,
-        "total_power_w": float(flux.total_power_w[0]), "intercepted_power_w": float(flux.intercepted_power_w[0]),
-        "mirror_area_m2": float(area[0].sum()),
-        "mean_incidence_cosine": float((cosines * area[0]).sum() / area[0].sum()),
-        "dni_w_m2": plant.sun.dni, "reflectivity": plant.sun.reflectivity, "sunshape": plant.sun.sunshape,
-        "slope_error_mrad": plant.sun.slope_error * 1e3, "seconds": seconds,
-        "concentrator_enu_m": c[0].tolist(), "mirror_normal_enu": kin_ops.mirror_normal(R)[0].tolist(),
-    }
-    return flux, report
+cmd_trace.supports_cuda = True  # the tracing happens here, on args.device
 
 
 # -------------------------------------------------------------------------------------------- validate
@@ -167,6 +139,8 @@ def cmd_validate(args) -> int:
 
             plot_validation(report, plot_path)
     o = report["overall"]
+    if args.quiet:
+        return 0
     print(f"validate: {o.get('records', 0)} records, {o.get('heliostats', 0)} heliostats; median pointing error "
           f"{_fmt(o.get('median_pointing_error_mrad'))} mrad (median over heliostats), median distance "
           f"{_fmt(o.get('median_distance_m'), '.3f')} m; {o.get('images', 0)} images, median centred L1 "
@@ -188,6 +162,8 @@ def cmd_bench(args) -> int:
         if json_path:
             write_json(json_path, result)
     mc = result["mc"]
+    if args.quiet:
+        return 0
     print(f"bench ({torch.get_num_threads()} threads, {args.surface_points} points, {args.resolution}^2, "
           f"{max(rpp)} rays/point): forward {mc['forward_rays_per_s'] / 1e6:.1f} M rays/s, "
           f"forward+backward {mc['forward_backward_rays_per_s'] / 1e6:.1f} M rays/s")
@@ -200,7 +176,8 @@ def register(sub) -> None:
     p = sub.add_parser("demo", help="trace the embedded default plant (no data needed)",
                        description="Trace an embedded Jülich-like plant (generated in code): every heliostat aims at "
                                    "the receiver; writes flux PNGs, a field plot and summary.json.")
-    p.add_argument("--out", default="heliotwin-demo", help="output folder (default: %(default)s)")
+    p.add_argument("-o", "--output", "--out", dest="out", default="heliotwin-demo",
+                   help="output folder, created when missing (default: %(default)s)")
     p.add_argument("--heliostats", type=int_range(1, 10_000, "a heliostat count"), default=48,
                    help="number of heliostats (default: %(default)s)")
     p.add_argument("--integrator", choices=("mc", "gaussian"), default="mc")
@@ -210,7 +187,7 @@ def register(sub) -> None:
                    help="UTC time of the sun position, ISO 8601 (default: %(default)s)")
     p.add_argument("--seed", type=seed_int, default=0)
     p.add_argument("--json", help="also write the summary here")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress bars and no summary line")
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("scenario", help="scenario files", description="Build and inspect scenario files.")
@@ -219,7 +196,8 @@ def register(sub) -> None:
     q = ssub.add_parser("from-paint", help="build a scenario file from a PAINT folder",
                         description="Read a PAINT download (tower, heliostat properties) into a versioned HDF5 "
                                     "scenario.")
-    q.add_argument("paint_dir")
+    q.add_argument("paint_dir", nargs="?", metavar="PAINT_DIR", help="PAINT folder (or --paint)")
+    q.add_argument("--paint", help="PAINT folder")
     q.add_argument("--heliostats", help="comma-separated heliostat ids (default: all)")
     q.add_argument("-o", "--output", required=True, help="scenario file to write (.h5)")
     q.set_defaults(func=cmd_scenario_from_paint)
@@ -237,8 +215,10 @@ def register(sub) -> None:
     p.add_argument("--resolution", type=_RESOLUTION, default=256)
     p.add_argument("--samples", type=_SAMPLES, default=50, help="surface samples per facet and direction")
     p.add_argument("--seed", type=seed_int, default=0)
-    p.add_argument("--out", required=True, help="flux PNG to write")
+    p.add_argument("-o", "--output", "--out", dest="out", required=True, help="flux PNG to write")
     p.add_argument("--json", help="JSON report")
+    p.add_argument("--plot", help="figure (PNG/PDF/SVG): the predicted flux in kW/m² with the measured spots and the "
+                                  "predicted centroid marked")
     p.set_defaults(func=cmd_trace)
 
     p = sub.add_parser("validate", help="predicted vs measured focal spots on real records",
@@ -253,7 +233,7 @@ def register(sub) -> None:
     p.add_argument("--samples", type=_SAMPLES, default=16, help="surface samples per facet and direction")
     p.add_argument("--no-images", action="store_true", help="skip the image comparison")
     p.add_argument("--plot", help="PNG with per-heliostat errors")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress bars and no summary line")
     p.set_defaults(func=cmd_validate)
 
     p = sub.add_parser("bench", help="ray-tracer speed and accuracy",

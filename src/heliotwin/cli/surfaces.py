@@ -199,7 +199,7 @@ def register(subparsers) -> None:
     p.add_argument("--json", required=True, help="report JSON to write")
     p.add_argument("--threads", type=int_range(0, 1024, "a thread count"), default=0,
                    help="torch threads (0: leave as is)")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress bars and no summary line")
     p.set_defaults(func=cmd_reconstruct)
 
     q = subparsers.add_parser("predict", help="yearly flux prediction of a learned heliostat")
@@ -211,6 +211,6 @@ def register(subparsers) -> None:
     q.add_argument("--target", help="target name (default: the training images' target)")
     q.add_argument("--json", required=True)
     q.add_argument("--threads", type=int_range(0, 1024, "a thread count"), default=0)
-    q.add_argument("--quiet", action="store_true")
+    q.add_argument("--quiet", action="store_true", help="no progress bars and no summary line")
     q.set_defaults(func=cmd_predict)
 

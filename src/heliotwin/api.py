@@ -1,0 +1,295 @@
+"""heliotwin in a few calls: the public surface for notebooks and scripts.
+
+Three lines from a PAINT download to a labelled flux figure::
+
+    from heliotwin import api
+    ds = api.load("PAINT_DIR", heliostats=["AA39"])
+    flux, report = api.trace_record(ds, 151375)
+    api.plot_flux(flux, "flux.png", measured=report)
+
+Conventions at this edge: angles in degrees with ``_deg`` in their names (inside the package: radians),
+lengths in metres, powers in watts; every default is the command line's (``heliotwin trace``,
+``heliotwin calibrate``, ``heliotwin reconstruct``; a test checks that they agree). Importing this module
+imports neither torch nor matplotlib and changes no global state (no backend, no seed, no threads): each
+function imports what it needs when called.
+
+Functions
+---------
+:func:`load` (records on a plant), :func:`field` (the plant alone), :func:`trace_record` (one record's flux
+and report), :func:`plot_flux` (a titled, labelled figure with a colour bar), :func:`calibrate` (kinematics),
+:func:`reconstruct` (a mirror surface), :func:`to_device` (move plant pieces between CPU and GPU).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import time
+
+__all__ = ["load", "field", "trace_record", "plot_flux", "calibrate", "reconstruct", "to_device"]
+
+
+def load(paint, heliostats=None, *, scenario=None, plane_tolerance: float = 0.1):
+    """The usable calibration records of a PAINT download, on the nominal plant or a scenario's plant.
+
+    Parameters
+    ----------
+    paint : str or os.PathLike
+        PAINT download folder (see ``docs/data.md``).
+    heliostats : list of str, optional
+        Heliostat ids (default: every heliostat of the folder, or of the scenario).
+    scenario : str or os.PathLike, optional
+        A scenario file (``heliotwin calibrate -o`` / ``reconstruct -o``): its calibrated kinematics and learned
+        surfaces are used instead of the nominal plant.
+    plane_tolerance : float
+        Largest distance [m] of a measured focal spot from its target plane (CLI ``--plane-tolerance``).
+
+    Returns
+    -------
+    heliotwin.io.paint.PaintDataset
+        ``.plant`` (the plant), ``.records`` (a :class:`~heliotwin.io.records.RecordTable`), ``.skipped`` (records
+        that could not be used, with reasons).
+    """
+    from .io.scenario import load_records
+
+    ds, _ = load_records(os.fspath(paint), None if scenario is None else os.fspath(scenario),
+                         None if heliostats is None else list(heliostats), plane_tolerance=plane_tolerance)
+    return ds
+
+
+def field(source, heliostats=None):
+    """The plant of a PAINT folder (nominal kinematics, ideal surfaces) or of a scenario file (``.h5``).
+
+    Returns
+    -------
+    heliotwin.field.plant.Plant
+    """
+    from .io.scenario import load_scenario, scenario_from_paint
+
+    source = os.fspath(source)
+    if os.path.isdir(source):
+        return scenario_from_paint(source, None if heliostats is None else list(heliostats))
+    plant = load_scenario(source).plant
+    if heliostats is not None:
+        from .field.update import select_heliostats
+
+        plant = select_heliostats(plant, list(heliostats))
+    return plant
+
+
+def to_device(obj, device):
+    """``obj`` with every tensor on ``device``: tensors, dataclasses (plants, targets, record tables, flux
+    images), and lists/tuples/dicts of them; anything else is returned as is. Dtypes are kept."""
+    import torch
+
+    if isinstance(obj, torch.Tensor):
+        return obj.to(device)
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        changes = {f.name: to_device(getattr(obj, f.name), device) for f in dataclasses.fields(obj) if f.init}
+        return dataclasses.replace(obj, **changes)
+    if isinstance(obj, dict):
+        return {k: to_device(v, device) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(to_device(v, device) for v in obj)
+    return obj
+
+
+def _device(name) -> str:
+    """``"auto"`` -> ``"cuda"`` when torch sees a CUDA device, else ``"cpu"``; anything else as given."""
+    import torch
+
+    if str(name) == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return str(name)
+
+
+def trace_record(dataset, record_id: int, *, integrator: str = "mc", rays_per_point: int = 100,
+                 resolution: int = 256, samples: int = 50, seed: int = 0, device: str = "auto"):
+    """Trace one calibration record (its sun, motor steps and target) with the dataset's plant.
+
+    The defaults are ``heliotwin trace``'s.
+
+    Parameters
+    ----------
+    dataset : PaintDataset
+        From :func:`load`.
+    record_id : int
+        PAINT record id (one of ``dataset.records.record_id``).
+    integrator : {"mc", "gaussian"}
+    rays_per_point : int
+        Monte-Carlo rays per mirror sample (``mc`` only).
+    resolution : int
+        Bitmap rows = columns over the whole target.
+    samples : int
+        Mirror samples per facet and direction.
+    seed : int
+        Seed of the ray generator.
+    device : {"auto", "cpu", "cuda"} or torch.device
+        Where to trace (``auto``: CUDA when present); the returned flux image is on the CPU.
+
+    Returns
+    -------
+    flux : heliotwin.raytrace.flux.FluxImage
+        Batch of one, on the CPU.
+    report : dict
+        Powers [W], centroid (ENU [m], WGS84 [deg], target-local [m]; ``None`` when no light reaches the
+        target), sun angles [deg] (PAINT: azimuth 0 = south, +90 = east), the measured spots, optics.
+    """
+    import torch
+
+    from .field import kinematics as kin_ops
+    from .io.records import SOURCES
+    from .scene import trace, world_surface
+
+    device = _device(device)
+    plant = dataset.plant
+    row = dataset.record(int(record_id))
+    kin, surfaces, target, row_on = to_device((plant.field.kinematics, plant.field.surfaces,
+                                               plant.target(row.target[0]), row), device)
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        pts, nrm, area, R, c = world_surface(kin, surfaces, row_on.heliostat_index, row_on.motor_steps,
+                                             (samples, samples))
+        flux = trace(pts, nrm, area, row_on.sun.to(pts), target, integrator=integrator,
+                     resolution=(resolution, resolution), sun=plant.sun, rays_per_point=rays_per_point,
+                     generator=torch.Generator(device=device).manual_seed(seed))
+    seconds = time.perf_counter() - t0
+    # Reporting happens on the CPU, where the plant's site and targets live.
+    flux, nrm, area, R, c = to_device((flux, nrm, area, R, c), "cpu")
+    s = row.sun
+    # No light on the target: there is no centroid (a zero image's "centroid" would be the target centre).
+    lit = bool(flux.bitmap[0].sum() > 0) and float(flux.intercepted_power_w[0]) > 0
+    centroid = flux.centroid_enu()[0] if lit else None
+    lla = plant.site.to_wgs84(centroid) if lit else None
+    cosines = (nrm[0].to(torch.float64) @ s[0]).clamp_min(0)
+    spots = {src: row.focal_spots[0, k].tolist() for k, src in enumerate(SOURCES)
+             if bool(torch.isfinite(row.focal_spots[0, k]).all())}
+    report = {
+        "heliostat": row.heliostat_ids[int(row.heliostat_index[0])], "record": int(row.record_id[0]),
+        "target": row.target[0], "integrator": integrator, "device": str(device),
+        "rays_per_point": rays_per_point if integrator == "mc" else None, "resolution": resolution,
+        "sun_azimuth_deg": math.degrees(float(row.sun_azimuth[0])),
+        "sun_elevation_deg": math.degrees(float(row.sun_elevation[0])),
+        "motor_steps": row.motor_steps[0].tolist(),
+        "centroid_enu_m": centroid.tolist() if lit else None,
+        "centroid_wgs84": {"latitude_deg": float(lla[0]), "longitude_deg": float(lla[1]),
+                           "altitude_m": float(lla[2])} if lit else None,
+        "centroid_local_m": flux.centroid_local()[0].tolist() if lit else None,
+        "measured_spot_enu_m": spots,
+        "total_power_w": float(flux.total_power_w[0]), "intercepted_power_w": float(flux.intercepted_power_w[0]),
+        "mirror_area_m2": float(area[0].sum()),
+        "mean_incidence_cosine": float((cosines * area[0]).sum() / area[0].sum()),
+        "dni_w_m2": plant.sun.dni, "reflectivity": plant.sun.reflectivity, "sunshape": plant.sun.sunshape,
+        "slope_error_mrad": plant.sun.slope_error * 1e3, "seconds": seconds,
+        "concentrator_enu_m": c[0].tolist(), "mirror_normal_enu": kin_ops.mirror_normal(R)[0].tolist(),
+    }
+    return flux, report
+
+
+def plot_flux(flux, path=None, *, title: str | None = None, measured: dict | None = None, ax=None):
+    """A flux image as a figure people read: title, axes in metres on the target, colour bar in kW/m².
+
+    Parameters
+    ----------
+    flux : FluxImage
+        The first image of the batch is drawn.
+    path : str or os.PathLike, optional
+        Write the figure here (atomically; format from the extension).
+    title : str, optional
+        Default: the target's name.
+    measured : dict, optional
+        A :func:`trace_record` report: its measured focal spots (HeliOS, UTIS) and the predicted centroid are
+        marked, so the figure reads "measured vs predicted".
+    ax : matplotlib.axes.Axes, optional
+        Draw into this axes (e.g. a notebook's) instead of a new figure.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        Made without pyplot (no backend is selected, nothing global changes); in a notebook, display it.
+    """
+    from matplotlib.figure import Figure
+
+    from .io.report import save_figure
+    from .plots import draw_flux
+
+    fig = ax.figure if ax is not None else Figure(figsize=(6.4, 5.2))
+    ax = ax if ax is not None else fig.subplots()
+    draw_flux(ax, flux, title or f"flux on {flux.target.name}", measured=measured)
+    if path is not None:
+        save_figure(fig, path)
+    return fig
+
+
+def calibrate(paint, *, method: str = "lm", heliostats=None, split: str = "chrono", train: int = 30,
+              validation: int | None = None, test: int | None = None, min_records: int = 50,
+              focal_spot: str = "HeliOS", seed: int = 0, plane_tolerance: float = 0.1,
+              keep_suspicious: bool = False, progress: bool = True, scenario=None, output=None):
+    """Calibrate heliostat kinematics from PAINT calibration records (``heliotwin calibrate``'s defaults).
+
+    Returns
+    -------
+    report : dict
+        Per-heliostat and overall pointing errors [mrad] on held-out test records (see ``docs/glossary.md``).
+    model : heliotwin.calibrate.methods.Calibrated or None
+        None when no heliostat could be calibrated.
+    output : str or None
+        The scenario file written (``output``), when asked and something was calibrated.
+    """
+    from .calibrate.pipeline import RunConfig, run_calibration, validate_config
+    from .calibrate.scenario import save_calibration
+    from .errors import HeliotwinError
+
+    cfg = RunConfig(paint=os.fspath(paint), method=method, split=split, train=train, validation=validation,
+                    test=test, heliostats=None if heliostats is None else list(heliostats), min_records=min_records,
+                    focal_spot=focal_spot, seed=seed, plane_tolerance=plane_tolerance,
+                    correct_suspicious=not keep_suspicious, progress=progress)
+    validate_config(cfg)
+    ds = load(paint, scenario=scenario, plane_tolerance=plane_tolerance)
+    report, model, arrays = run_calibration(cfg, ds)
+    if output is None:
+        return report, model, None
+    if model is None or not bool(model.ok.any()):
+        raise HeliotwinError(f"no heliostat could be calibrated; {os.fspath(output)} not written")
+    from .io.scenario import load_scenario
+
+    seen: dict = {}
+    for name in ("train", "validation"):
+        t = arrays.get(name)
+        for h, rid in zip(t.heliostat_index.tolist(), t.record_id.tolist()) if t is not None else ():
+            seen.setdefault(t.heliostat_ids[h], []).append(int(rid))
+    settings = {k: v for k, v in report["config"].items() if k != "method_options"}
+    save_calibration(output, ds.plant, model, previous=load_scenario(scenario) if scenario else None,
+                     focal_spot=cfg.focal_spot, records=seen, settings=settings, source=os.path.abspath(paint))
+    return report, model, os.fspath(output)
+
+
+def reconstruct(paint, heliostat: str, *, train_records=None, train_first: int | None = None,
+                control_points: str = "7x7", degree: int = 3, integrator: str = "conv", loss: str = "kl",
+                steps: int = 200, slope_error_mrad: float | None = None, background: float = 0.0,
+                alignment: str = "focal-spot", evaluate_mc: bool = True, progress: bool = True,
+                deflectometry=None, scenario=None):
+    """Learn one heliostat's mirror surface from its centred flux images (``heliotwin reconstruct``'s defaults).
+
+    ``slope_error_mrad=None`` fits the slope error on the training images (the CLI's ``auto``).
+
+    Returns
+    -------
+    report : dict
+        Per-record normalised L1 of ideal and learned surfaces on test images and IMP (see the glossary).
+    model : heliotwin.surfaces.learning.LearnableSurface
+        ``model.surfaces()`` is the learned NURBS surface.
+    """
+    from .io.scenario import load_scenario
+    from .surfaces.learning import parse_grid
+    from .surfaces.study import reconstruct_paint
+    from .surfaces.training import TrainSettings
+
+    settings = TrainSettings(control_points=parse_grid(control_points), degree=(degree, degree),
+                             integrator=integrator, loss=loss, steps=steps)
+    plant = load_scenario(scenario).plant if scenario is not None else None
+    report, model, _, _ = reconstruct_paint(
+        os.fspath(paint), heliostat, train_records=train_records, train_first=train_first, settings=settings,
+        slope_error=None if slope_error_mrad is None else slope_error_mrad * 1e-3, background=background,
+        alignment=alignment, evaluate_mc=evaluate_mc, progress=progress, deflectometry=deflectometry, plant=plant)
+    return report, model

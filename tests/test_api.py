@@ -1,0 +1,108 @@
+"""The public API (heliotwin.api): three lines from PAINT to a labelled figure, the CLI's defaults, and no
+global side effects on import."""
+from __future__ import annotations
+
+import inspect
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import heliotwin
+from heliotwin import api
+from heliotwin.cli import build_parser
+
+SRC = Path(heliotwin.__file__).resolve().parents[1]
+
+
+def _defaults(*command):
+    """The CLI's default of every option of ``heliotwin COMMAND`` (dest -> default)."""
+    import argparse
+
+    parser = build_parser()
+    for name in command:
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        parser = sub.choices[name]
+    return {a.dest: a.default for a in parser._actions if a.option_strings}
+
+
+@pytest.mark.parametrize("func, command, renamed", [
+    (api.trace_record, ("trace",), {}),
+    (api.calibrate, ("calibrate",), {}),
+    (api.reconstruct, ("reconstruct",), {"slope_error_mrad": "slope_error"}),
+])
+def test_api_defaults_are_the_cli_defaults(func, command, renamed):
+    cli = _defaults(*command)
+    special = {("reconstruct", "slope_error"): ("auto", None), ("calibrate", "progress"): (False, True),
+               ("reconstruct", "progress"): (None, True)}
+    checked = 0
+    for name, p in inspect.signature(func).parameters.items():
+        dest = renamed.get(name, name)
+        if p.default is inspect.Parameter.empty or dest not in cli:
+            continue
+        expected = cli[dest]
+        if (command[0], dest) in special:
+            expected = special[(command[0], dest)][1]
+        if dest == "control_points":
+            expected = "7x7"
+        assert p.default == expected, (func.__name__, name, p.default, cli[dest])
+        checked += 1
+    assert checked >= 4
+
+
+def test_importing_the_api_and_plots_has_no_global_side_effects(tmp_path):
+    """No torch/matplotlib import for ``heliotwin.api``; ``heliotwin.plots`` keeps the caller's backend."""
+    code = ("import sys, matplotlib; matplotlib.use('svg'); import heliotwin.api, heliotwin.plots; "
+            "print(matplotlib.get_backend(), 'matplotlib.pyplot' in sys.modules)")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(SRC), os.environ.get("PYTHONPATH", "")]))
+    env.pop("MPLBACKEND", None)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["svg", "False"]
+    code = "import sys, heliotwin.api; print(sorted({'torch', 'matplotlib'} & set(sys.modules)))"
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert proc.stdout.strip() == "[]", proc.stderr
+
+
+def test_three_lines_from_paint_to_a_labelled_figure(paint_dir, tmp_path):
+    ds = api.load(paint_dir, heliostats=["AA39"])
+    rid = 151375  # on the lower calibration target
+    flux, report = api.trace_record(ds, rid, rays_per_point=8, samples=16, resolution=64)
+    fig = api.plot_flux(flux, tmp_path / "flux.png", measured=report)
+    assert (tmp_path / "flux.png").read_bytes()[:4] == b"\x89PNG"
+    # physics: energy bookkeeping and a centroid near the measured spot (nominal kinematics: < 3 m)
+    assert 0 < report["intercepted_power_w"] <= report["total_power_w"] * (1 + 1e-6)
+    meas = report["measured_spot_enu_m"]["HeliOS"]
+    assert sum((a - b) ** 2 for a, b in zip(report["centroid_enu_m"], meas)) ** 0.5 < 3.0
+    assert 0 < report["sun_elevation_deg"] <= 90
+    # a figure people read: title, axis labels with units, a colour bar, the measured spot in the legend
+    ax, cbar = fig.axes
+    assert flux.target.name in ax.get_title()
+    assert "[m]" in ax.get_xlabel() and "[m]" in ax.get_ylabel() and "kW/m²" in cbar.get_ylabel()
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert "measured (HeliOS)" in labels and "predicted centroid" in labels
+    # same record, same seed: the CLI's numbers
+    again, _ = api.trace_record(ds, rid, rays_per_point=8, samples=16, resolution=64)
+    assert bool((again.bitmap == flux.bitmap).all())
+
+
+def test_field_from_paint_and_scenario(paint_dir, tmp_path):
+    from heliotwin.io.scenario import save_scenario
+
+    plant = api.field(paint_dir, ["AA39", "AB38"])
+    assert plant.field.ids == ["AA39", "AB38"]
+    save_scenario(plant, tmp_path / "p.h5")
+    again = api.field(tmp_path / "p.h5", ["AB38"])
+    assert again.field.ids == ["AB38"]
+    assert bool((again.field.kinematics.position[0] == plant.field.kinematics.position[1]).all())
+
+
+def test_to_device_moves_every_tensor_and_keeps_dtypes(paint_dir):
+    import torch
+
+    ds = api.load(paint_dir, heliostats=["AA39"])
+    moved = api.to_device((ds.plant.field.kinematics, ds.records), "cpu")
+    assert moved[0].position.dtype == torch.float64 and moved[0].clockwise.dtype == torch.bool
+    assert bool((moved[1].sun == ds.records.sun).all())
