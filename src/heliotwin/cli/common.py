@@ -218,7 +218,7 @@ _FREQ_SECONDS = {"s": 1, "sec": 1, "min": 60, "t": 60, "h": 3600, "d": 86400}
 
 
 def frequency(text: str) -> str:
-    """argparse type: a time step like ``30min``, ``1h``, ``90s`` or ``1d``, between 1 minute and 1 day.
+    """argparse type: a time step like ``30min``, ``1h``, ``90s`` or ``1d``, between 1 minute and 31 days.
 
     Returns a pandas frequency in whole minutes (``"60min"`` for ``1h``), valid in every pandas version.
     """
@@ -226,8 +226,8 @@ def frequency(text: str) -> str:
     if not m:
         raise argparse.ArgumentTypeError(f"expected a time step like 30min, 1h or 1d, got {text!r}")
     seconds = int(m.group(1)) * _FREQ_SECONDS[m.group(2).lower()]
-    if seconds < 60 or seconds > 86400 or seconds % 60:
-        raise argparse.ArgumentTypeError(f"expected a time step of whole minutes between 1min and 1d, got {text!r}")
+    if seconds < 60 or seconds > 31 * 86400 or seconds % 60:
+        raise argparse.ArgumentTypeError(f"expected a time step of whole minutes between 1min and 31d, got {text!r}")
     return f"{seconds // 60}min"
 
 

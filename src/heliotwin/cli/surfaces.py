@@ -207,7 +207,7 @@ def register(subparsers) -> None:
     q.add_argument("--heliostat", help="heliostat id (default: the scenario's only learned surface)")
     q.add_argument("--year", type=int_range(1900, 2100, "a year"), default=2023)
     q.add_argument("--every", type=frequency, default="30min",
-                   help="time step between 1min and 1d, e.g. 30min, 1h (default: %(default)s)")
+                   help="time step between 1min and 31d, e.g. 30min, 1h (default: %(default)s)")
     q.add_argument("--target", help="target name (default: the training images' target)")
     q.add_argument("--json", required=True)
     q.add_argument("--threads", type=int_range(0, 1024, "a thread count"), default=0)
