@@ -185,3 +185,40 @@ def test_split_writes_paint_csv_and_json(paint_dir, tmp_path, capsys):
     assert [f"{r['Id']},{r['HeliostatId']},{r['Split']}" for r in rows] == lines[1:]
     assert "BH60: train 6" in out
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.csv", "s.json"]  # no temp file left behind
+
+
+# ------------------------------------------------------------------------------------------------- docs
+ROOT = SRC.parents[1]
+
+
+def test_readme_documents_every_exit_code_and_shared_flag():
+    from heliotwin.cli import common
+
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    for code in (common.EXIT_OK, common.EXIT_INTERNAL, common.EXIT_INPUT, 3, common.EXIT_INTERRUPTED,
+                 common.EXIT_TERMINATED):
+        assert f"| {code} " in readme or f"{code} /" in readme or f"/ {code}" in readme, code
+    for flag in ("--paint", "-o/--output", "--json", "--quiet", "--device", "--debug", "HELIOTWIN_DEBUG"):
+        assert flag in readme, flag
+
+
+def test_licence_citation_and_glossary_are_there():
+    assert (ROOT / "LICENSE").read_text().startswith("MIT License")
+    cff = (ROOT / "CITATION.cff").read_text()
+    assert "cff-version: 1.2.0" in cff and "license: MIT" in cff and "PAINT" in cff
+    glossary = (ROOT / "docs" / "glossary.md").read_text(encoding="utf-8")
+    for term in ("**Pointing error**", "**L1 (normalised L1)**", "**IMP**", "ENU", "WGS84"):
+        assert term in glossary, term
+    data = (ROOT / "docs" / "data.md").read_text(encoding="utf-8")
+    assert "CDLA-Permissive-2.0" in data and "paint-csp" in data
+    assert "## Limits" in (ROOT / "docs" / "physics.md").read_text(encoding="utf-8")
+
+
+def test_help_is_fast_and_torch_free_through_python_dash_m():
+    """``python -m heliotwin --help`` never imports torch (the < 1 s promise; time itself is not asserted)."""
+    code = ("import runpy, sys; sys.argv = ['heliotwin', 'calibrate', '--help']\n"
+            "try:\n    runpy.run_module('heliotwin', run_name='__main__')\nexcept SystemExit:\n    pass\n"
+            "print('TORCH' if 'torch' in sys.modules else 'NO-TORCH', file=sys.stderr)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_env(), timeout=120)
+    assert proc.stderr.strip().endswith("NO-TORCH"), proc.stderr
+    assert "--device" in proc.stdout and "--curve" in proc.stdout
