@@ -245,3 +245,21 @@ def test_failing_run_keeps_existing_outputs_and_leaves_nothing(small_paint, tmp_
     assert_one_line_error(code, err, "999")
     assert png.read_bytes() == b"old png" and js.read_text() == "old json"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["paint", "t.json", "t.png"]
+
+
+def test_validate_plot_is_labelled_with_counts(small_paint, tmp_path, capsys):
+    js, png = tmp_path / "v.json", tmp_path / "v.png"
+    code, _, err = run_cli(capsys, "validate", "--paint", small_paint, "--json", js, "--plot", png, "--quiet",
+                           "--samples", "4", "--no-images")
+    assert code == 0, err
+    assert png.read_bytes()[:4] == b"\x89PNG"
+    report = json.loads(js.read_text())
+    assert report["heliostats"]["AA39"]["records"] == report["overall"]["records"] > 0
+
+
+def test_calibrate_checks_its_outputs_before_reading_anything(tmp_path, capsys):
+    """Two outputs on one path: refused before the (missing) PAINT folder is even opened."""
+    code, _, err = run_cli(capsys, "calibrate", "--paint", tmp_path / "nope", "-o", tmp_path / "x",
+                           "--json", tmp_path / "x")
+    assert_one_line_error(code, err, "--json", "also the output of -o")
+    assert list(tmp_path.iterdir()) == []

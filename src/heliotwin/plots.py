@@ -70,11 +70,15 @@ def plot_demo(plant, per_heliostat, receiver_flux, spot, path) -> None:
 
 
 def plot_validation(report: dict, path) -> None:
-    """Per-heliostat median pointing error and spot distance of a validation report."""
+    """Per-heliostat median pointing error, spot distance and record counts of a validation report.
+
+    Bars are labelled with units; the count panel shows how many records (and images) each median rests on,
+    so a reader sees which heliostats' errors are backed by few records.
+    """
     hs = report["heliostats"]
     ids = list(hs)
-    fig = Figure(figsize=(max(8, 0.35 * len(ids)), 7))
-    axes = fig.subplots(2, 1, sharex=True)
+    fig = Figure(figsize=(max(8, 0.35 * len(ids)), 9))
+    axes = fig.subplots(3, 1, sharex=True, gridspec_kw={"height_ratios": [3, 3, 2]})
     axes[0].bar(ids, [hs[h]["median_pointing_error_mrad"] for h in ids], color="tab:blue")
     axes[0].set_yscale("log")
     axes[0].set_ylabel("median pointing error [mrad]")
@@ -84,6 +88,15 @@ def plot_validation(report: dict, path) -> None:
     axes[1].bar(ids, [hs[h]["median_distance_m"] for h in ids], color="tab:orange")
     axes[1].set_yscale("log")
     axes[1].set_ylabel("median spot distance [m]")
-    axes[1].tick_params(axis="x", rotation=90)
-    fig.suptitle("nominal kinematics vs measured focal spots")
+    counts = [hs[h].get("records", 0) for h in ids]
+    images = [hs[h].get("images", 0) for h in ids]
+    axes[2].bar(ids, counts, color="tab:gray", label="records")
+    axes[2].bar(ids, images, color="tab:green", label="with a centred image")
+    axes[2].set_ylabel("records [-]")
+    axes[2].legend(fontsize="small")
+    axes[2].tick_params(axis="x", rotation=90)
+    axes[2].set_xlabel("heliostat")
+    settings = report.get("settings") or {}
+    fig.suptitle(f"{settings.get('kinematics', 'nominal')} kinematics, {settings.get('surface', 'ideal')} surface "
+                 f"vs measured focal spots")
     save_figure(fig, path, make_folder=True)  # as before: plots make their folder
