@@ -127,3 +127,40 @@ def test_plots_do_not_switch_the_callers_backend(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "svg"
     assert (tmp_path / "v.png").read_bytes()[:4] == b"\x89PNG"
+
+
+@pytest.mark.skipif(os.name != "posix", reason="POSIX permissions")
+def test_new_outputs_follow_the_umask(tmp_path):
+    from heliotwin.io.report import output_set
+
+    old = os.umask(0o027)
+    try:
+        write_json(tmp_path / "a.json", {})
+        with output_set() as out:
+            write_json(out.file(tmp_path / "b.json", "--json"), {})
+            folder = out.folder(tmp_path / "demo", "-o")
+            write_json(os.path.join(folder, "c.json"), {})
+    finally:
+        os.umask(old)
+    for name in ("a.json", "b.json", "demo/c.json"):
+        assert stat.S_IMODE((tmp_path / name).stat().st_mode) == 0o640, name
+    assert stat.S_IMODE((tmp_path / "demo").stat().st_mode) == 0o750
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.json", "demo"]
+
+
+def test_output_set_moves_all_or_nothing(tmp_path):
+    from heliotwin.io.report import output_set
+
+    (tmp_path / "b.json").write_text("old")
+    with pytest.raises(RuntimeError):
+        with output_set() as out:
+            write_json(out.file(tmp_path / "a.json", "--json"), {"a": 1})
+            write_json(out.file(tmp_path / "b.json", "-o"), {"b": 1})
+            raise RuntimeError("the last step fails")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["b.json"] and (tmp_path / "b.json").read_text() == "old"
+    with output_set([("--paint", tmp_path / "b.json")]) as out:
+        with pytest.raises(InputFileError, match=r"b.json \[--json\]: is the input --paint"):
+            out.file(tmp_path / "b.json", "--json")
+        write_json(out.file(tmp_path / "a.json", "--json"), {"a": 1})
+    assert json.loads((tmp_path / "a.json").read_text()) == {"a": 1}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.json"]
