@@ -77,9 +77,13 @@ def test_three_lines_from_paint_to_a_labelled_figure(paint_dir, tmp_path):
     meas = report["measured_spot_enu_m"]["HeliOS"]
     assert sum((a - b) ** 2 for a, b in zip(report["centroid_enu_m"], meas)) ** 0.5 < 3.0
     assert 0 < report["sun_elevation_deg"] <= 90
-    # a figure people read: title, axis labels with units, a colour bar, the measured spot in the legend
-    ax, cbar = fig.axes
-    assert flux.target.name in ax.get_title()
+    # a figure people read: the camera image next to the prediction, titles, axis labels with units, colour
+    # bars, the measured spot in the legend
+    camera, ax, camera_bar, cbar = fig.axes
+    assert report["measured_flux_png"].endswith("151375-flux.png")
+    assert "measured" in camera.get_title() and "predicted" in ax.get_title()
+    assert flux.target.name in fig._suptitle.get_text()
+    assert "[m]" in camera.get_xlabel() and "relative" in camera_bar.get_ylabel()
     assert "[m]" in ax.get_xlabel() and "[m]" in ax.get_ylabel() and "kW/m²" in cbar.get_ylabel()
     labels = [t.get_text() for t in ax.get_legend().get_texts()]
     assert "measured (HeliOS)" in labels and "predicted centroid" in labels

@@ -176,6 +176,7 @@ def trace_record(dataset, record_id: int, *, integrator: str = "mc", rays_per_po
                            "altitude_m": float(lla[2])} if lit else None,
         "centroid_local_m": flux.centroid_local()[0].tolist() if lit else None,
         "measured_spot_enu_m": spots,
+        "measured_flux_png": row.flux_png[0],
         "total_power_w": float(flux.total_power_w[0]), "intercepted_power_w": float(flux.intercepted_power_w[0]),
         "mirror_area_m2": float(area[0].sum()),
         "mean_incidence_cosine": float((cosines * area[0]).sum() / area[0].sum()),
@@ -199,9 +200,10 @@ def plot_flux(flux, path=None, *, title: str | None = None, measured: dict | Non
         Default: the target's name.
     measured : dict, optional
         A :func:`trace_record` report: its measured focal spots (HeliOS, UTIS) and the predicted centroid are
-        marked, so the figure reads "measured vs predicted".
+        marked, so the figure reads "measured vs predicted"; when the record has PAINT's whole-target camera
+        image (``measured_flux_png``) it is drawn on the left, on the same target extent (relative scale).
     ax : matplotlib.axes.Axes, optional
-        Draw into this axes (e.g. a notebook's) instead of a new figure.
+        Draw the prediction into this axes (e.g. a notebook's) instead of a new figure (no camera panel).
 
     Returns
     -------
@@ -211,11 +213,20 @@ def plot_flux(flux, path=None, *, title: str | None = None, measured: dict | Non
     from matplotlib.figure import Figure
 
     from .io.report import save_figure
-    from .plots import draw_flux
+    from .plots import draw_flux, draw_measured_image
 
-    fig = ax.figure if ax is not None else Figure(figsize=(6.4, 5.2))
-    ax = ax if ax is not None else fig.subplots()
-    draw_flux(ax, flux, title or f"flux on {flux.target.name}", measured=measured)
+    camera = (measured or {}).get("measured_flux_png") if ax is None else None
+    if ax is None:
+        fig = Figure(figsize=(12.4, 5.2) if camera else (6.4, 5.2))
+        axes = fig.subplots(1, 2 if camera else 1)
+        ax = axes[-1] if camera else axes
+        if camera:
+            draw_measured_image(axes[0], flux, camera, measured=measured)
+    fig = ax.figure
+    title = title or f"flux on {flux.target.name}"
+    if camera:
+        fig.suptitle(title)
+    draw_flux(ax, flux, "predicted" if camera else title, measured=measured)
     if path is not None:
         save_figure(fig, path)
     return fig

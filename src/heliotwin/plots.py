@@ -10,7 +10,7 @@ from matplotlib.figure import Figure
 
 from .io.report import save_figure
 
-__all__ = ["draw_flux", "plot_demo", "plot_validation"]
+__all__ = ["draw_flux", "draw_measured_image", "plot_demo", "plot_validation"]
 
 
 def draw_flux(ax, flux, title: str, *, measured: dict | None = None) -> None:
@@ -28,6 +28,22 @@ def draw_flux(ax, flux, title: str, *, measured: dict | None = None) -> None:
     ax.figure.colorbar(im, ax=ax, label="flux [kW/m²]")
     if measured:
         _mark_spots(ax, flux.target, measured)
+
+
+def draw_measured_image(ax, flux, png, *, measured: dict | None = None) -> None:
+    """PAINT's whole-target camera image ``png`` on ``ax``, on the extent of ``flux``'s target (PAINT
+    orientation: left = east), relative scale (max = 1), with the measured spots marked."""
+    from .io.images import load_measured_image
+
+    img = load_measured_image(png, normalise="max")
+    ext = flux.extent[0].tolist()
+    im = ax.imshow(img.numpy(), extent=(ext[0], ext[1], ext[2], ext[3]), cmap="inferno", vmin=0, vmax=1)
+    ax.set_title("measured (camera image)")
+    ax.set_xlabel("x along target 'right' [m] (left = east)")
+    ax.set_ylabel("y up [m]")
+    ax.figure.colorbar(im, ax=ax, label="relative intensity [-]")
+    if measured:
+        _mark_spots(ax, flux.target, {**measured, "centroid_enu_m": None})
 
 
 def _mark_spots(ax, target, report: dict) -> None:

@@ -97,7 +97,8 @@ def cmd_trace(args) -> int:
         to_png(flux.bitmap[0], png)
         if plot_path:
             plot_flux(flux, plot_path, measured=report,
-                      title=f"{args.heliostat} record {args.record}: predicted flux on {report['target']}")
+                      title=f"{args.heliostat} record {args.record} on {report['target']} ({report['kinematics']} "
+                            f"kinematics, {report['surface']} surface)")
         if json_path:
             write_json(json_path, report)
     if args.quiet:
