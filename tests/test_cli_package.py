@@ -222,3 +222,22 @@ def test_help_is_fast_and_torch_free_through_python_dash_m():
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_env(), timeout=120)
     assert proc.stderr.strip().endswith("NO-TORCH"), proc.stderr
     assert "--device" in proc.stdout and "--curve" in proc.stdout
+
+
+def test_stage_lines_only_on_a_terminal_and_not_when_quiet():
+    import io
+
+    from heliotwin.cli.common import stage
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    args = argparse.Namespace(command="calibrate", quiet=False)
+    tty, pipe = Tty(), io.StringIO()
+    stage(args, "fitting (lm)", tty)
+    stage(args, "fitting (lm)", pipe)
+    assert tty.getvalue() == "heliotwin calibrate: fitting (lm)\n" and pipe.getvalue() == ""
+    args.quiet = True
+    stage(args, "fitting (lm)", tty)
+    assert tty.getvalue() == "heliotwin calibrate: fitting (lm)\n"

@@ -12,7 +12,7 @@ import os
 
 from ..errors import HeliotwinError
 from ..io.report import atomic_path, output_set, write_json
-from .common import float_range, int_range, seed_int
+from .common import float_range, int_range, seed_int, stage
 
 METHOD_CHOICES = ("lm", "gradient", "hybrid", "mlp", "images")
 _COUNT, _COUNT0 = int_range(1, 10**6, "a record count"), int_range(0, 10**6, "a record count")
@@ -129,7 +129,9 @@ def cmd_calibrate(args) -> int:
     cfg = _config(args, args.method)
     with output_set([("--paint", args.paint), ("--scenario", args.scenario)]) as out:
         output, json_path = out.file(args.output, "-o"), out.file(args.json, "--json")
+        stage(args, f"reading {args.paint}")
         ds, previous = _load(args.paint, args.scenario, cfg.plane_tolerance)
+        stage(args, f"calibrating ({cfg.method}, {cfg.split} split)")
         report, model, arrays = run_calibration(cfg, ds)
         ov = report["overall"]
         calibrated = model is not None and bool(model.ok.any())
@@ -138,7 +140,9 @@ def cmd_calibrate(args) -> int:
             raise HeliotwinError(f"no heliostat could be calibrated (see the table above); {args.output} not written")
         curves = None
         if args.curve and args.json and not args.no_plots and calibrated:
+            stage(args, "training-size curve (lm refits)")
             curves = _training_size_curves(cfg, ds, ov["median_of_mean_test_mrad"])
+        stage(args, "writing outputs")
         if output:
             settings = {k: v for k, v in report["config"].items() if k != "method_options"}
             save_calibration(output, ds.plant, model, previous=previous, focal_spot=cfg.focal_spot,

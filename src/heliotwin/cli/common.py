@@ -25,7 +25,7 @@ import traceback
 
 from ..errors import HeliotwinError
 
-__all__ = ["ArgumentParser", "run_command", "resolve_device", "debug_requested", "Terminated", "csv_list",
+__all__ = ["ArgumentParser", "run_command", "resolve_device", "stage", "debug_requested", "Terminated", "csv_list",
            "int_list", "positive_int", "int_range", "float_range", "finite_float", "seed_int", "frequency",
            "utc_time", "check_output_folder", "EXIT_OK", "EXIT_INTERNAL", "EXIT_INPUT", "EXIT_INTERRUPTED",
            "EXIT_TERMINATED"]
@@ -144,6 +144,18 @@ def resolve_device(name: str, supports_cuda: bool, command: str | None = None) -
     return "cuda"
 
 
+def stage(args, text: str, stream=None) -> None:
+    """Name the stage a long command has reached (``heliotwin calibrate: fitting (lm) ...``) on stderr.
+
+    Only when stderr is a terminal and ``--quiet`` is not given: piped or captured stderr then holds nothing
+    but the one-line error, and the per-step progress bars (tqdm) show below the stage line.
+    """
+    stream = sys.stderr if stream is None else stream
+    if getattr(args, "quiet", False) or not getattr(stream, "isatty", lambda: False)():
+        return
+    print(f"heliotwin {getattr(args, 'command', None) or ''}: {text}".replace(" :", ":"), file=stream, flush=True)
+
+
 # ------------------------------------------------------------------------------------------ argument types
 class ArgumentParser(argparse.ArgumentParser):
     """argparse with the command line's one-line errors: ``heliotwin: error: trace: argument --steps: ...``
@@ -161,14 +173,14 @@ def csv_list(text: str | None) -> list[str] | None:
     return [t.strip() for t in text.split(",") if t.strip()] if text else None
 
 
-def int_list(text: str) -> list[int]:
-    """argparse type: comma-separated positive integers (at least one, each at most 10**9)."""
+def int_list(text: str, hi: int = 10**9) -> list[int]:
+    """argparse type: comma-separated positive integers (at least one, each at most ``hi``)."""
     try:
         values = [int(t) for t in text.split(",") if t.strip()]
     except ValueError:
         values = []
-    if not values or not all(0 < v <= 10**9 for v in values):
-        raise argparse.ArgumentTypeError(f"expected comma-separated positive integers, got {text!r}")
+    if not values or not all(0 < v <= hi for v in values):
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers in 1..{hi}, got {text!r}")
     return values
 
 

@@ -11,12 +11,17 @@ import time
 
 from ..errors import HeliotwinError
 from ..io.report import output_set, write_json
-from .common import csv_list, int_list, int_range, seed_int, utc_time
+from .common import csv_list, int_list, int_range, seed_int, stage, utc_time
 
 # Ranges of the numeric arguments: beyond them a run would exhaust memory or mean a typo.
 _RESOLUTION = int_range(8, 4096, "a resolution [pixels]")
 _SAMPLES = int_range(1, 1000, "a sample count")
 _RAYS = int_range(1, 100_000, "a ray count")
+
+
+def _ray_list(text: str) -> list[int]:
+    """argparse type of ``bench --rays-per-point``: comma-separated ray counts, each in 1..100000."""
+    return int_list(text, 100_000)
 
 
 def _fmt(x, spec: str = ".2f", none: str = "n/a") -> str:
@@ -122,7 +127,9 @@ def cmd_validate(args) -> int:
     with output_set([("--paint", args.paint), ("--scenario", args.scenario)]) as out:
         json_path = out.file(args.json, "--json")
         plot_path = out.file(args.plot, "--plot")
+        stage(args, f"reading {args.paint}")
         ds, sc = load_records(args.paint, args.scenario, csv_list(args.heliostats))
+        stage(args, f"tracing {len(ds.records.record_id)} records")
         report = validate_dataset(ds, resolution=args.resolution, samples=(args.samples, args.samples),
                                   with_images=not args.no_images, progress=not args.quiet)
         if not report["overall"].get("records"):
@@ -242,7 +249,7 @@ def register(sub) -> None:
                                    "integrators.")
     p.add_argument("--surface-points", type=int_range(1, 10_000_000, "a point count"), default=10000)
     # argparse applies type= to a string default too, so args.rays_per_point is always a list.
-    p.add_argument("--rays-per-point", type=int_list, default="10,100", help="comma-separated (default: %(default)s)")
+    p.add_argument("--rays-per-point", type=_ray_list, default="10,100", help="comma-separated (default: %(default)s)")
     p.add_argument("--resolution", type=_RESOLUTION, default=256)
     p.add_argument("--seed", type=seed_int, default=0)
     p.add_argument("--json")

@@ -16,7 +16,7 @@ import os
 
 from ..errors import HeliotwinError
 from ..io.report import output_set, write_json
-from .common import float_range, frequency, int_range, positive_int
+from .common import float_range, frequency, int_range, positive_int, stage
 
 __all__ = ["register"]
 
@@ -38,6 +38,7 @@ def cmd_reconstruct(args) -> int:
 
             read_deflectometry(args.deflectometry)  # fail fast (one-line error naming the file) before training
         previous = load_scenario(args.scenario) if args.scenario else None
+        stage(args, f"learning {args.heliostat}'s surface ({args.integrator}, <= {args.steps} steps), then evaluating")
         slope = None if args.slope_error == "auto" else args.slope_error * 1e-3
         report, model, ds, extras = reconstruct_paint(
             args.paint, args.heliostat, train_records=train_records, train_first=args.train_first,
@@ -45,6 +46,7 @@ def cmd_reconstruct(args) -> int:
             evaluate_mc=not args.no_mc, progress=not args.quiet, deflectometry=args.deflectometry,
             start_from_deflectometry=args.start_from_deflectometry, plant=previous.plant if previous else None)
         learned = model.surfaces()
+        stage(args, "plotting and writing outputs")
         report["plots"] = _plot_reconstruction(args, json_path, report, model, learned, extras)
         if output:
             _save_learned(args, output, report, model, learned, previous, extras)
