@@ -247,13 +247,11 @@ def scenario_file(paint_dir, tmp_path_factory) -> Path:
     return path
 
 
-#: io.scenario reads NaN/inf kinematics without a word (see the targeted xfail below); until it checks them the
-#: scenario fuzz asserts only "no traceback".
-STRICT_SCENARIO = False
+#: io.scenario refuses NaN/inf kinematics, facets and control points (test below), so the scenario fuzz also
+#: asserts that every successful load holds only finite geometry.
+STRICT_SCENARIO = True
 
 
-@pytest.mark.xfail(strict=True, reason="io.scenario.load_scenario accepts NaN kinematics (e.g. /field/kinematics/"
-                                       "offset); _validate_plant needs a finiteness check (not this branch's file)")
 def test_scenario_refuses_nan_kinematics(scenario_file, tmp_path):
     from heliotwin.io.scenario import load_scenario
 
@@ -321,9 +319,6 @@ def test_fuzz_deflectometry_hdf5(tmp_path_factory, facets, data):
         assert torch.allclose(normals.norm(dim=1), torch.ones(len(normals), dtype=normals.dtype))
 
 
-@pytest.mark.xfail(strict=True, reason="io.deflectometry.read_deflectometry accepts 1e308 values: the norm of such "
-                                       "a normal overflows and the 're-normalised' normal is 0 (needs a magnitude "
-                                       "bound in _read_vectors; not this branch's file)")
 def test_deflectometry_refuses_overflowing_values(tmp_path):
     from heliotwin.io.deflectometry import NORMALS, POINTS, read_deflectometry
 

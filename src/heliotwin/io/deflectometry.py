@@ -44,6 +44,10 @@ _FACET_GROUP = re.compile(r"facet(\d+)$")
 # --------------------------------------------------------------------------------------------------
 # Reading and writing
 # --------------------------------------------------------------------------------------------------
+#: Largest magnitude of a deflectometry point coordinate [m] or normal component accepted on reading.
+MAX_ABS_VALUE = 1e3
+
+
 def _read_vectors(path, group, name: str, field: str) -> np.ndarray:
     if name not in group:
         raise InputFileError(path, "missing dataset", field=field)
@@ -60,6 +64,12 @@ def _read_vectors(path, group, name: str, field: str) -> np.ndarray:
     if bad.any():
         raise InputFileError(path, f"{int(bad.sum())} of {data.shape[0]} rows contain NaN/inf "
                                    f"(first at row {int(np.argmax(bad))})", field=field)
+    # Points are metres on a mirror of a few metres and normals are (near-)unit vectors: anything beyond
+    # MAX_ABS_VALUE is corrupt, and squaring it (normalising a normal) would overflow to inf or 0.
+    big = np.abs(data).max(axis=1) > MAX_ABS_VALUE
+    if big.any():
+        raise InputFileError(path, f"{int(big.sum())} of {data.shape[0]} rows have a value beyond "
+                                   f"{MAX_ABS_VALUE:g} (first at row {int(np.argmax(big))})", field=field)
     return data
 
 

@@ -82,6 +82,8 @@ _TARGET_CLASSES = {"planar": PlanarTarget, "cylinder": CylinderTarget}
 _KINEMATICS_TRAILING = {"position": (3,), "joint_translation": (2, 3), "concentrator_translation": (3,),
                         "joint_tilt": (2, 3), "concentrator_tilt": (3,)}
 _KINEMATICS_BOOL = ("clockwise", "linear")
+#: Kinematics fields that may hold NaN (limits a PAINT file does not give).
+_KINEMATICS_OPTIONAL = ("min_angle", "max_angle")
 _STR = h5py.string_dtype("utf-8")
 
 
@@ -600,67 +602,85 @@ def load_scenario(path) -> Scenario:
 
 
 # ========================================================================================= validation
-def _validate_plant(plant: Plant, path, *, writing: bool = False) -> None:
-    """Shape/dtype consistency of a plant; raises naming the HDF5 object the problem maps to."""
+class _PlantCheck:
+    """Failing checks of :func:`_validate_plant`, each naming the HDF5 object the problem maps to."""
 
-    def fail(where: str, message: str):
-        if writing:
-            _fail_write(path, where, message)
-        raise InputFileError(path, message, field=where)
+    def __init__(self, path, writing: bool):
+        self.path, self.writing = path, writing
 
-    def tensor(where: str, t, shape: tuple, *, floating: bool = True):
+    def fail(self, where: str, message: str):
+        if self.writing:
+            _fail_write(self.path, where, message)
+        raise InputFileError(self.path, message, field=where)
+
+    def tensor(self, where: str, t, shape: tuple, *, floating: bool = True, finite: bool = False):
         if not isinstance(t, torch.Tensor):
-            fail(where, f"expected a tensor, got {type(t).__name__}")
+            self.fail(where, f"expected a tensor, got {type(t).__name__}")
         ok = t.dim() == len(shape) and all(s is None or s == n for s, n in zip(shape, t.shape))
         if not ok:
             want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
-            fail(where, f"expected shape {want}, got {list(t.shape)}")
+            self.fail(where, f"expected shape {want}, got {list(t.shape)}")
         if floating and not t.dtype.is_floating_point:
-            fail(where, f"expected a floating-point tensor, got {t.dtype}")
+            self.fail(where, f"expected a floating-point tensor, got {t.dtype}")
+        if finite and not bool(torch.isfinite(t).all()):
+            self.fail(where, "contains NaN/inf")
 
+
+def _validate_plant(plant: Plant, path, *, writing: bool = False) -> None:
+    """Shape/dtype/finiteness consistency of a plant; raises naming the HDF5 object the problem maps to."""
+    c = _PlantCheck(path, writing)
     if not isinstance(plant, Plant):
-        fail("/", f"expected a Plant, got {type(plant).__name__}")
+        c.fail("/", f"expected a Plant, got {type(plant).__name__}")
     s = plant.site
     for name in ("latitude_deg", "longitude_deg", "altitude_m"):
         v = getattr(s, name)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
-            fail(f"/site@{name}", f"expected a finite number, got {v!r}")
+            c.fail(f"/site@{name}", f"expected a finite number, got {v!r}")
     for key, t in plant.targets.items():
         for name in ("center", "normal", "right", "up"):
-            tensor(f"/targets/{key}/{name}", getattr(t, name), (3,))
-
+            c.tensor(f"/targets/{key}/{name}", getattr(t, name), (3,))
     fl = plant.field
     if not isinstance(fl.ids, (list, tuple)) or not all(isinstance(i, str) for i in fl.ids):
-        fail("/field/ids", "expected a list of str")
+        c.fail("/field/ids", "expected a list of str")
     if len(set(fl.ids)) != len(fl.ids):
-        fail("/field/ids", "duplicate heliostat ids")
+        c.fail("/field/ids", "duplicate heliostat ids")
     h = len(fl.ids)
-    tensor("/field/width", fl.width, (h,))
-    tensor("/field/height", fl.height, (h,))
+    c.tensor("/field/width", fl.width, (h,))
+    c.tensor("/field/height", fl.height, (h,))
     if len(fl.renovation) not in (0, h) or not all(isinstance(x, str) for x in fl.renovation):
-        fail("/field/renovation", f"expected 0 or {h} strings, got {len(fl.renovation)} entries")
-    kin = fl.kinematics
+        c.fail("/field/renovation", f"expected 0 or {h} strings, got {len(fl.renovation)} entries")
+    _validate_kinematics(c, fl.kinematics, h)
+    _validate_mirrors(c, fl, h)
+
+
+def _validate_kinematics(c: _PlantCheck, kin: Kinematics, h: int) -> None:
     for f in dataclasses.fields(Kinematics):
         t = getattr(kin, f.name)
         where = f"/field/kinematics/{f.name}"
         trailing = _KINEMATICS_TRAILING.get(f.name, (2,))
-        tensor(where, t, (h, *trailing), floating=f.name not in _KINEMATICS_BOOL)
+        # Movement-angle limits are optional in PAINT (NaN = not given); every other value must be finite.
+        c.tensor(where, t, (h, *trailing), floating=f.name not in _KINEMATICS_BOOL,
+                 finite=f.name not in _KINEMATICS_BOOL + _KINEMATICS_OPTIONAL)
         if f.name in _KINEMATICS_BOOL and t.dtype != torch.bool:
-            fail(where, f"expected a bool tensor, got {t.dtype}")
+            c.fail(where, f"expected a bool tensor, got {t.dtype}")
+
+
+def _validate_mirrors(c: _PlantCheck, fl: Field, h: int) -> None:
+    """Facets [H, F, 3] and their NURBS surfaces [H, F, nu, nv, 3] (degrees below the net size)."""
     fac = fl.facets
-    tensor("/field/facets/translation", fac.translation, (h, None, 3))
+    c.tensor("/field/facets/translation", fac.translation, (h, None, 3), finite=True)
     nf = fac.translation.shape[1]
-    tensor("/field/facets/canting_e", fac.canting_e, (h, nf, 3))
-    tensor("/field/facets/canting_n", fac.canting_n, (h, nf, 3))
+    c.tensor("/field/facets/canting_e", fac.canting_e, (h, nf, 3), finite=True)
+    c.tensor("/field/facets/canting_n", fac.canting_n, (h, nf, 3), finite=True)
     sf = fl.surfaces
-    tensor("/field/surfaces/control_points", sf.control_points, (h, nf, None, None, 3))
+    c.tensor("/field/surfaces/control_points", sf.control_points, (h, nf, None, None, 3), finite=True)
     cp = sf.control_points.shape
     for name, n in (("degree_u", cp[2]), ("degree_v", cp[3])):
         d = getattr(sf, name)
         if isinstance(d, bool) or not isinstance(d, int) or not 1 <= d < n:
-            fail(f"/field/surfaces@{name}", f"expected an int in [1, {n - 1}] for {n} control points, got {d!r}")
+            c.fail(f"/field/surfaces@{name}", f"expected an int in [1, {n - 1}] for {n} control points, got {d!r}")
     if sf.weights is not None:
-        tensor("/field/surfaces/weights", sf.weights, tuple(cp[:-1]))
+        c.tensor("/field/surfaces/weights", sf.weights, tuple(cp[:-1]), finite=True)
 
 
 # ======================================================================================= from PAINT
