@@ -11,6 +11,7 @@ from matplotlib.figure import Figure
 
 from ..field.plant import Facets
 from ..geometry import angle_between
+from ..io.images import CENTERED_WINDOW_M
 from ..io.report import save_figure
 from .learning import normal_heights
 
@@ -65,24 +66,37 @@ def plot_normal_deviation(facets: Facets, control_points: torch.Tensor, degree, 
 
 
 def plot_flux_comparison(measured: torch.Tensor, ideal: torch.Tensor, learned: torch.Tensor, labels, path,
-                         l1_ideal=None, l1_learned=None) -> None:
-    """Rows = images; columns = measured / ideal / learned (each normalised to its max)."""
+                         l1_ideal=None, l1_learned=None, window_m: float = CENTERED_WINDOW_M, title: str = "") -> None:
+    """Rows = test images; columns = measured / ideal / learned, each normalised to its own maximum.
+
+    Every panel shows the spot-centred window in metres on the target (PAINT orientation: image left = east),
+    with one colour bar for the relative flux; the L1 of sum-normalised images against the measured one is
+    in the panel titles.
+    """
     n = measured.shape[0]
-    fig = Figure(figsize=(7.5, 2.5 * n))
+    fig = Figure(figsize=(8.2, 2.6 * n + 0.6))
     axes = fig.subplots(n, 3, squeeze=False)
+    half = window_m / 2
+    im = None
     for i in range(n):
         for j, (name, img) in enumerate((("measured", measured), ("ideal", ideal), ("learned", learned))):
             a = img[i].detach().cpu().float()
             a = a / a.max().clamp_min(1e-30)
             ax = axes[i, j]
-            ax.imshow(a.numpy(), vmin=0, vmax=1, cmap="inferno")
+            im = ax.imshow(a.numpy(), vmin=0, vmax=1, cmap="inferno", extent=(-half, half, -half, half))
             text = f"{labels[i]} {name}"
             if j == 1 and l1_ideal is not None:
                 text += f"\nL1 {l1_ideal[i]:.3f}"
             if j == 2 and l1_learned is not None:
                 text += f"\nL1 {l1_learned[i]:.3f}"
             ax.set_title(text, fontsize=8)
-            ax.set_xticks([])
-            ax.set_yticks([])
-    fig.tight_layout()
+            ax.tick_params(labelsize=6)
+            if i == n - 1:
+                ax.set_xlabel("[m] (left = east)", fontsize=7)
+            if j == 0:
+                ax.set_ylabel("up [m]", fontsize=7)
+    fig.suptitle(title or "centred flux: measured vs ideal vs learned surface", fontsize=10)
+    fig.tight_layout(rect=(0, 0, 0.9, 0.98))
+    cax = fig.add_axes((0.91, 0.1, 0.02, 0.8))
+    fig.colorbar(im, cax=cax, label="flux / its maximum")
     save_figure(fig, path, tight=False)
