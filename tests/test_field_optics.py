@@ -162,3 +162,33 @@ def test_new_commands_have_help(command, capsys):
         main([*command, "--help"])
     assert exc.value.code == 0
     assert capsys.readouterr().out.startswith(f"usage: heliotwin {' '.join(command)}")
+
+
+def test_tower_shadow_matches_a_direct_ray_test_on_every_point(solarpilot):
+    """The tower (receiver radius, up to its top) shades the heliostats behind it at a low southern sun; the
+    bounding pre-test keeps exactly the direct all-heliostat ray-cylinder result."""
+    from heliotwin.geometry import ray_cylinder
+    from heliotwin.raytrace.field import _samples, _tower_shading
+
+    plant = solarpilot[0]
+    res = solarpilot[1][WINTER][0]
+    pts, nrm, area = _samples(plant, res.normal, 8, torch.float64)
+    lit = area * (nrm * res.sun).sum(-1).clamp_min(0)
+    rec = plant.targets["receiver"]
+    t, hit, _ = ray_cylinder(pts, res.sun.expand_as(pts), rec.axis_point, rec.up, rec.radius)
+    shaded = hit & ((pts + t.unsqueeze(-1) * res.sun - rec.axis_point)[..., 2] <= rec.height / 2)
+    direct = (lit * ~shaded).sum(1) / lit.sum(1)
+    assert torch.allclose(_tower_shading(plant, pts, res.sun, lit), direct)
+    assert 5 < int((direct < 1).sum()) < 100
+    assert torch.all(plant.field.kinematics.position[direct < 1][:, 0].abs() < 10.0)  # behind the tower only
+
+
+def test_monte_carlo_map_agrees_with_the_gaussian_map(solarpilot):
+    """Same samples, occlusion and attenuation; the Monte-Carlo map samples the true limb-darkened sun."""
+    plant = solarpilot[0]
+    g = solarpilot[1]["az179.99_el62.52"][0]
+    with torch.no_grad():
+        m = field_optics(plant, g.sun, settings=FieldSettings(integrator="mc", rays_per_point=32, seed=3))
+    assert float(m.flux.max()) == pytest.approx(float(g.flux.max()), rel=0.05)
+    assert float(m.flux.sum()) == pytest.approx(float(g.flux.sum()), rel=0.02)
+    assert float((m.flux - g.flux).abs().sum() / g.flux.sum()) < 0.08

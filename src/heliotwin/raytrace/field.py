@@ -235,17 +235,38 @@ def _occlusion(plant: Plant, normal, aim, sun, settings: FieldSettings):
 
 
 def _tower_shading(plant: Plant, points, sun, lit) -> torch.Tensor:
-    """Unshaded fraction [H] by the tower: a vertical cylinder of the receiver's radius up to its top edge."""
+    """Unshaded fraction [H] by the tower: a vertical cylinder of the receiver's radius up to its top edge.
+
+    Only heliostats whose sun ray passes near the tower (a per-heliostat bounding test) are ray-tested.
+    """
     rec = plant.targets["receiver"]
+    out = torch.ones(points.shape[0], dtype=points.dtype, device=points.device)
     if not isinstance(rec, CylinderTarget):
-        return torch.ones(points.shape[0], dtype=points.dtype, device=points.device)
+        return out
     axis = rec.axis_point.to(points)
     up = rec.up.to(points)
     top = float(rec.height) / 2
-    t, hit, _ = ray_cylinder(points, sun.expand_as(points), axis, up, float(rec.radius))
-    height = ((points + t.unsqueeze(-1) * sun - axis) * up).sum(-1)
+    with torch.no_grad():
+        centre = points.mean(1)
+        reach = (points - centre.unsqueeze(1)).norm(dim=-1).amax(1)
+        rel = axis - centre
+        horiz = sun - (sun @ up) * up
+        hn = horiz.norm().clamp_min(1e-12)
+        along = rel @ (horiz / hn)
+        perp = (rel - along.unsqueeze(-1) * (horiz / hn) - (rel @ up).unsqueeze(-1) * up).norm(dim=-1)
+        # height the sun ray gains before it can reach the tower wall (a lower bound)
+        rise = (along - float(rec.radius) - reach).clamp_min(0) * float(sun @ up) / float(hn)
+        near = (along > -float(rec.radius)) & (perp < float(rec.radius) + reach) & \
+            (((centre - axis) @ up) + rise - reach <= top)
+        rows = torch.nonzero(near).flatten()
+    if rows.numel() == 0:
+        return out
+    p = points[rows]
+    t, hit, _ = ray_cylinder(p, sun.expand_as(p), axis, up, float(rec.radius))
+    height = ((p + t.unsqueeze(-1) * sun - axis) * up).sum(-1)
     shaded = hit & (height <= top)
-    return (lit * (~shaded)).sum(1) / lit.sum(1).clamp_min(1e-30)
+    frac = (lit[rows] * (~shaded)).sum(1) / lit[rows].sum(1).clamp_min(1e-30)
+    return out.index_put((rows,), frac)
 
 
 def _footprints(points, reflected, target, extent, rows, cols):

@@ -208,23 +208,27 @@ def unoccluded(origins: torch.Tensor, directions: torch.Tensor, occluders: Occlu
 
 
 def _unoccluded_chunk(o, d, occ: OccluderSet, idx, valid, sl, softness, eps):
-    base = occ.center[sl].unsqueeze(1)  # work relative to the own pivot: small numbers in any precision
-    c = (occ.center[idx] - base).unsqueeze(1)  # [h, 1, K, 3]
-    n = occ.normal[idx].unsqueeze(1)
-    ew = occ.width_axis[idx].unsqueeze(1)
-    eh = occ.height_axis[idx].unsqueeze(1)
-    hw = occ.half_width[idx].unsqueeze(1)
-    hh = occ.half_height[idx].unsqueeze(1)
-    rel_o = (o - base).unsqueeze(2)  # [h, P, 1, 3]
-    d = d.unsqueeze(2)
-    w = c - rel_o  # [h, P, K, 3]
-    denom = (d * n).sum(-1)
+    # Work relative to the own pivot (small numbers in any precision); every dot product with the candidates'
+    # three axes (normal, width, height) is one batched matrix product, never a [h, P, K, 3] tensor.
+    dt = o.dtype if softness is not None else torch.float32  # the hard test is a 0/1 decision: rays precision
+    base = occ.center[sl].unsqueeze(1)
+    c = (occ.center[idx] - base).to(dt)  # [h, K, 3]
+    axes = torch.stack((occ.normal[idx], occ.width_axis[idx], occ.height_axis[idx]), dim=2).to(dt)  # [h, K, 3, 3]
+    hk = axes.shape[:2]
+    flat = axes.reshape(hk[0], hk[1] * 3, 3)  # [h, 3K, 3]
+    c_ax = (axes * c.unsqueeze(2)).sum(-1)  # [h, K, 3]: c . (n, ew, eh)
+    o_ax = torch.bmm((o - base).to(dt), flat.transpose(1, 2)).view(o.shape[0], o.shape[1], hk[1], 3)
+    d = d.to(dt).expand(o.shape[0], o.shape[1], 3) if d.shape[1] == 1 else d.to(dt)
+    d_ax = torch.bmm(d, flat.transpose(1, 2)).view(o.shape[0], o.shape[1], hk[1], 3)
+    w_ax = c_ax.unsqueeze(1) - o_ax  # (c - o) . axis, [h, P, K, 3]
+    denom = d_ax[..., 0]
     ok = denom.abs() > 1e-9
-    safe = torch.where(ok, denom, torch.ones_like(denom))
-    t = (w * n).sum(-1) / safe
+    t = w_ax[..., 0] / torch.where(ok, denom, torch.ones_like(denom))
     # in-plane coordinates of the crossing relative to the occluder centre: (o + t d - c) . axis
-    u = t * (d * ew).sum(-1) - (w * ew).sum(-1)
-    v = t * (d * eh).sum(-1) - (w * eh).sum(-1)
+    u = t * d_ax[..., 1] - w_ax[..., 1]
+    v = t * d_ax[..., 2] - w_ax[..., 2]
+    hw = occ.half_width[idx].unsqueeze(1).to(dt)
+    hh = occ.half_height[idx].unsqueeze(1).to(dt)
     mask = valid.unsqueeze(1) & ok
     if softness is None:
         stop = (t > eps) & (u.abs() <= hw) & (v.abs() <= hh) & mask
