@@ -100,12 +100,15 @@ def cmd_field(args) -> int:
                                  "(use --aim equator)")
         aim = torch.as_tensor(aim, dtype=torch.float64)
     settings = FieldSettings(resolution=args.resolution, integrator=args.integrator, seed=args.seed)
+    t1 = time.perf_counter()
     with torch.no_grad():
         result = field_optics(plant, sun, atmosphere=Atmosphere.from_extras(sc.extras), aim=aim, settings=settings)
+    seconds_model = time.perf_counter() - t1
     seconds = time.perf_counter() - t0
     report = summary(result, plant)
     report.update({"scenario": os.path.abspath(args.scenario), "aim": args.aim, "integrator": args.integrator,
-                   "resolution": {"cols": args.resolution[1], "rows": args.resolution[0]}, "seconds": seconds})
+                   "resolution": {"cols": args.resolution[1], "rows": args.resolution[0]}, "seconds": seconds,
+                   "seconds_field_model": seconds_model})
     if args.json:
         write_json(args.json, report)
     if args.per_heliostat:
