@@ -7,7 +7,8 @@
    north) become heliotwin's PAINT azimuths as ``180 - az``.
 2. **Blocking, brute force**: for the east sun, the heliostats where SolarPILOT reports no blocking but the
    ray-rectangle test finds some, with the all-pairs check of the worst one.
-3. **Speed** of one sun (shading + blocking + 48 x 20 map, and + 256 x 256 map) for generated radial-staggered
+3. **Over a year**: the efficiency table and the hourly clear-sky annual energy for 2000 heliostats (time).
+4. **Speed** of one sun (shading + blocking + 48 x 20 map, and + 256 x 256 map) for generated radial-staggered
    fields of 50 to 10 000 heliostats; peak resident memory of the process. Wall times depend on the machine
    and its load: the script records ``torch.get_num_threads()`` and the load average next to them.
 
@@ -148,10 +149,25 @@ def speed(out: Path, sizes: list[int]) -> list[dict]:
     return rows
 
 
+def yearly(out: Path, n: int) -> dict:
+    """The yearly table (24 azimuths x 11 elevations) and the 2023 hourly clear-sky energy for ``n`` heliostats."""
+    from heliotwin.raytrace.yearly import annual_energy
+
+    layout = out / f"layout-{n}.csv"
+    layout.write_text("x,y,z\n" + "\n".join(",".join(f"{v:.4f}" for v in p) for p in radial_staggered(n)) + "\n")
+    plant, atm = plant_from_layout(layout, out / "plant.toml")
+    rep = annual_energy(plant, 2023, "1h", atmosphere=atm)
+    rep.pop("table")
+    rep["heliostats"] = n
+    print(f"  yearly ({n} heliostats): {rep['seconds']:.1f} s, {rep['annual_optical_energy_mwh']:.0f} MWh", flush=True)
+    return rep
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", required=True)
     ap.add_argument("--sizes", default="50,500,2000,10000")
+    ap.add_argument("--year-heliostats", type=int, default=2000, help="0: skip the yearly run")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -170,6 +186,8 @@ def main(argv=None) -> int:
     report["east_sun_blocking"] = blocking_disagreement(out)
     print("east sun blocking:", json.dumps(report["east_sun_blocking"]))
     report["speed"] = speed(out, [int(s) for s in args.sizes.split(",")])
+    if args.year_heliostats:
+        report["yearly"] = yearly(out, args.year_heliostats)
     report["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"peak resident memory {report['peak_rss_mb']:.0f} MB")
     write_json(out / "field.json", report)

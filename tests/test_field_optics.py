@@ -154,7 +154,7 @@ def test_field_command_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys
     assert not js.exists()
 
 
-@pytest.mark.parametrize("command", [("scenario", "from-layout"), ("field",)])
+@pytest.mark.parametrize("command", [("scenario", "from-layout"), ("field",), ("aimpoints",)])
 def test_new_commands_have_help(command, capsys):
     from heliotwin.cli import main
 

@@ -87,6 +87,8 @@ def cmd_field(args) -> int:
     t0 = time.perf_counter()
     sc = load_scenario(args.scenario)
     plant = sc.plant
+    if args.year is not None:
+        return _field_year(args, sc, t0)
     if args.dni is not None:
         if args.dni < 0:
             raise HeliotwinError(f"--dni: expected a non-negative irradiance, got {args.dni}")
@@ -122,6 +124,35 @@ def cmd_field(args) -> int:
           f"{e['shading']:.4f}, blocking {e['blocking']:.4f}, attenuation {e['attenuation']:.4f}, intercept "
           f"{e['intercept']:.4f}); receiver {report['receiver']['power_w'] / 1e6:.3f} MW, peak "
           f"{report['receiver']['peak_flux_w_m2'] / 1e3:.1f} kW/m2; {seconds:.2f} s")
+    return 0
+
+
+def _field_year(args, sc, t0) -> int:
+    """``field --year``: the efficiency table over sun positions and the clear-sky annual optical energy."""
+    import numpy as np
+
+    from ..atmosphere import Atmosphere
+    from ..raytrace.yearly import DEFAULT_ELEVATIONS_DEG, annual_energy, efficiency_table
+
+    try:
+        import pandas as pd
+
+        pd.Timedelta(args.every)
+    except ValueError:
+        raise HeliotwinError(f"--every: cannot parse {args.every!r} (e.g. 1h, 30min)") from None
+    atm = Atmosphere.from_extras(sc.extras)
+    step = float(args.table_azimuth_step)
+    if not 0 < step <= 180:
+        raise HeliotwinError(f"--table-azimuth-step: expected (0, 180] deg, got {step}")
+    table = efficiency_table(sc.plant, atmosphere=atm, azimuths_deg=np.arange(-180.0, 180.0, step),
+                             elevations_deg=DEFAULT_ELEVATIONS_DEG)
+    report = annual_energy(sc.plant, args.year, args.every, atmosphere=atm, table=table)
+    report.update({"scenario": os.path.abspath(args.scenario), "aim": "equator",
+                   "dni_model": "pvlib ineichen clear sky", "seconds": time.perf_counter() - t0})
+    write_json(args.json, report)
+    print(f"field {args.year}: {report['instants']} daylight instants every {args.every}; annual optical energy "
+          f"{report['annual_optical_energy_mwh']:.1f} MWh of {report['annual_dni_energy_on_mirrors_mwh']:.1f} MWh "
+          f"clear-sky DNI on the mirrors (efficiency {report['mean_efficiency']:.4f}); {report['seconds']:.1f} s")
     return 0
 
 
@@ -219,7 +250,12 @@ def register(sub) -> None:
     when.add_argument("--sun-azimuth", type=float, help="[deg], PAINT convention: 0 = south, +90 = east "
                                                         "(SolarPILOT azimuth = 180 - this)")
     when.add_argument("--time", help="UTC time (ISO), sun position from pvlib at the scenario's site")
+    when.add_argument("--year", type=int, help="efficiency table over sun positions and the annual optical energy "
+                                               "under pvlib's clear-sky DNI (equator aiming)")
     p.add_argument("--sun-elevation", type=float, help="[deg] (with --sun-azimuth)")
+    p.add_argument("--every", default="1h", help="with --year: time step (default: %(default)s)")
+    p.add_argument("--table-azimuth-step", type=float, default=15.0, help="with --year: azimuth step [deg] of the "
+                                                                          "efficiency table (default: %(default)s)")
     p.add_argument("--dni", type=float, help="direct normal irradiance [W/m2] (default: the scenario's)")
     p.add_argument("--aim", choices=("equator", "scenario"), default="equator",
                    help="equator: each heliostat aims at the receiver point facing it at mid-height (SolarPILOT "
