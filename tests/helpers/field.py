@@ -80,7 +80,9 @@ def dense_field(rows: int, cols: int, *, spacing=(4.0, 3.6), first_row: float = 
 def brute_force_unoccluded(origins, directions, center, normal, width_axis, height_axis, width, height):
     """All-pairs reference: 1 where no other heliostat's rectangle stops the ray, else 0, [H, P].
 
-    Loops over occluders (reference code, not a hot path); a heliostat never occludes itself.
+    ``origins`` [H, P, 3] holds the rays of all H heliostats (row k = heliostat k, which never occludes
+    itself); the rectangles are given by ``center``, ``normal``, the two axes [H, 3] and sizes [H]. Loops
+    over occluders (reference code, not a hot path).
     """
     h, p = origins.shape[:2]
     free = torch.ones(h, p, dtype=torch.bool)

@@ -408,7 +408,7 @@ def field_optics(plant: Plant, sun_direction: torch.Tensor, *, atmosphere: Atmos
         raise HeliotwinError(f"unknown field integrator {settings.integrator!r}; expected gaussian or mc")
     target = plant.target(receiver)
     pos = plant.field.kinematics.position
-    f64 = aim.dtype if aim is not None and aim.dtype == torch.float64 else torch.float64
+    f64 = torch.float64  # geometry in float64; rays and maps in settings.dtype
     pos = pos.to(f64)
     sun = safe_normalize(torch.as_tensor(sun_direction, dtype=f64, device=pos.device).reshape(3))
     if float(sun[2]) <= 0:
