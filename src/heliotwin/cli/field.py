@@ -103,8 +103,14 @@ def cmd_field(args) -> int:
         aim = torch.as_tensor(aim, dtype=torch.float64)
     settings = FieldSettings(resolution=args.resolution, integrator=args.integrator, seed=args.seed)
     t1 = time.perf_counter()
-    with torch.no_grad():
-        result = field_optics(plant, sun, atmosphere=Atmosphere.from_extras(sc.extras), aim=aim, settings=settings)
+    kwargs = dict(atmosphere=Atmosphere.from_extras(sc.extras), aim=aim, settings=settings)
+    if args.nproc > 1:
+        from ..distributed import run_sharded
+
+        result = run_sharded(plant, sun, args.nproc, **kwargs)
+    else:
+        with torch.no_grad():
+            result = field_optics(plant, sun, **kwargs)
     seconds_model = time.perf_counter() - t1
     seconds = time.perf_counter() - t0
     report = summary(result, plant)
@@ -264,6 +270,8 @@ def register(sub) -> None:
     p.add_argument("--resolution", type=_resolution, default=(20, 48), help="COLSxROWS of the receiver map "
                                                                             "(default: 48x20)")
     p.add_argument("--seed", type=int, default=0, help="Monte-Carlo seed")
+    p.add_argument("--nproc", type=int, default=1, help="shard the heliostats over N local processes "
+                                                         "(torch.distributed, gloo)")
     p.add_argument("--json", required=True, help="JSON report")
     p.add_argument("--per-heliostat", help="CSV, one row per heliostat")
     p.add_argument("--flux", help="receiver flux map PNG")

@@ -41,7 +41,7 @@ Everything is batched over heliostats (no loop over heliostats or points) and di
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 
@@ -189,12 +189,18 @@ def tracking_normals(position: torch.Tensor, aim: torch.Tensor, sun_direction: t
     return safe_normalize(sun_direction.to(position) + safe_normalize(aim - position))
 
 
-def _samples(plant: Plant, normal: torch.Tensor, per_direction: int, dtype):
-    """World mirror samples [H, N, 3] (float64 points, ``dtype`` normals) and areas [H, N] of tracked heliostats."""
-    pts, nrm, area = surface_points(plant.field.surfaces, (per_direction, per_direction))
+def _samples(plant: Plant, normal: torch.Tensor, per_direction: int, dtype, rows: torch.Tensor | None = None):
+    """World mirror samples [h, N, 3] (float64 points, ``dtype`` normals) and areas [h, N] of the tracked
+    heliostats ``rows`` (default all; ``normal`` [h, 3] is theirs)."""
+    sf = plant.field.surfaces
+    if rows is not None:
+        sf = replace(sf, control_points=sf.control_points[rows],
+                     weights=None if sf.weights is None else sf.weights[rows])
+    pts, nrm, area = surface_points(sf, (per_direction, per_direction))
     ew, eh = mirror_frame(normal)
-    rot = torch.stack((ew, eh, normal), dim=-1)  # R_world_heliostat [H, 3, 3], columns = heliostat x, y, z
+    rot = torch.stack((ew, eh, normal), dim=-1)  # R_world_heliostat [h, 3, 3], columns = heliostat x, y, z
     pos = plant.field.kinematics.position.to(normal)
+    pos = pos if rows is None else pos[rows]
     pw = pos.unsqueeze(1) + pts.to(normal) @ rot.transpose(-1, -2)
     nw = nrm.to(normal) @ rot.transpose(-1, -2)
     return pw, nw.to(dtype), area.to(normal)
@@ -209,21 +215,24 @@ def _pool(x: torch.Tensor, weight: torch.Tensor, facets: int, m: int, k: int) ->
     return (num / den.clamp_min(1e-30)).reshape(h, -1)
 
 
-def _occlusion(plant: Plant, normal, aim, sun, settings: FieldSettings):
-    """Shading, blocking (pooled onto the flux samples [H, N]) and per-heliostat factors [H]."""
+def _occlusion(plant: Plant, normal, aim, sun, settings: FieldSettings, rows: torch.Tensor):
+    """Shading, blocking (pooled onto the flux samples [h, N]) and per-heliostat factors [h] of heliostats
+    ``rows``; every heliostat of the field (``normal``, ``aim`` [H, 3]) can occlude them."""
     fl = plant.field
-    h, nf = fl.facets.translation.shape[:2]
+    nf = fl.facets.translation.shape[1]
+    h = rows.shape[0]
     m, k = int(settings.flux_samples), int(settings.occlusion_oversampling)
-    pw, nw, area = _samples(plant, normal, m * k, normal.dtype)
-    occ = OccluderSet(fl.kinematics.position.to(normal), normal, fl.width.to(normal), fl.height.to(normal))
+    pw, nw, area = _samples(plant, normal[rows], m * k, normal.dtype, rows)
+    pos = fl.kinematics.position.to(normal)
+    occ = OccluderSet(pos, normal, fl.width.to(normal), fl.height.to(normal))
     s = sun.to(normal)
     cos_p = (nw * s).sum(-1).clamp_min(0.0)
     lit = area * cos_p
-    idx, valid = occluder_candidates(occ, s)
-    free_sun = unoccluded(pw, s.expand(h, 1, 3), occ, idx, valid, softness=settings.softness)
+    idx, valid = occluder_candidates(occ, s, queries=rows)
+    free_sun = unoccluded(pw, s.expand(h, 1, 3), occ, idx, valid, softness=settings.softness, owners=rows)
     reflected = reflect(-s.expand_as(nw), nw)
-    idx_b, valid_b = occluder_candidates(occ, safe_normalize(aim - fl.kinematics.position.to(normal)))
-    free_rx = unoccluded(pw, reflected, occ, idx_b, valid_b, softness=settings.softness)
+    idx_b, valid_b = occluder_candidates(occ, safe_normalize(aim[rows] - pos[rows]), queries=rows)
+    free_rx = unoccluded(pw, reflected, occ, idx_b, valid_b, softness=settings.softness, owners=rows)
     shading = (lit * free_sun).sum(1) / lit.sum(1).clamp_min(1e-30)
     blocking = (lit * free_sun * free_rx).sum(1) / (lit * free_sun).sum(1).clamp_min(1e-30)
     tower = _tower_shading(plant, pw, s, lit)
@@ -381,7 +390,7 @@ def _power_scale(plant: Plant, nw, sun):
 
 def field_optics(plant: Plant, sun_direction: torch.Tensor, *, atmosphere: Atmosphere | None = None,
                  aim: torch.Tensor | None = None, settings: FieldSettings | None = None,
-                 receiver: str = "receiver") -> FieldResult:
+                 receiver: str = "receiver", heliostats: torch.Tensor | None = None) -> FieldResult:
     """Optical efficiency of every heliostat and the receiver flux map for one sun.
 
     Parameters
@@ -398,6 +407,9 @@ def field_optics(plant: Plant, sun_direction: torch.Tensor, *, atmosphere: Atmos
     settings : FieldSettings, optional
     receiver : str
         Target name.
+    heliostats : torch.Tensor, [h], long, optional
+        Trace only these heliostats (a shard, :mod:`heliotwin.distributed`); all heliostats still shade and
+        block them. The result's per-heliostat tensors are theirs and the map holds their light only.
 
     Returns
     -------
@@ -416,12 +428,15 @@ def field_optics(plant: Plant, sun_direction: torch.Tensor, *, atmosphere: Atmos
         raise HeliotwinError(f"the sun is below the horizon (elevation {elevation:.2f} deg)")
     aim = equator_aim_points(target, pos) if aim is None else aim.to(pos)
     normal = tracking_normals(pos, aim, sun)
+    rows = torch.arange(pos.shape[0], device=pos.device) if heliostats is None else \
+        torch.as_tensor(heliostats, dtype=torch.long, device=pos.device)
+    shading, blocking, tower, free, blocking_whole = _occlusion(plant, normal, aim, sun, settings, rows)
+    aim, normal, pos = aim[rows], normal[rows], pos[rows]
     cosine = (normal * sun).sum(-1)
-    shading, blocking, tower, free, blocking_whole = _occlusion(plant, normal, aim, sun, settings)
     slant = torch.linalg.vector_norm(aim - pos, dim=-1)
     att = attenuation(slant, atmosphere)
     m = int(settings.flux_samples)
-    pw, nw, area = _samples(plant, normal, m, settings.dtype)
+    pw, nw, area = _samples(plant, normal, m, settings.dtype, rows)
     nw64 = nw.to(f64)
     cos_p = (nw64 * sun).sum(-1).clamp_min(0.0)
     rho, dni = float(plant.sun.reflectivity), float(plant.sun.dni)

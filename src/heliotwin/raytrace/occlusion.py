@@ -99,34 +99,42 @@ def _grid_table(xy: torch.Tensor, cell: float):
 
 
 def occluder_candidates(occluders: OccluderSet, direction: torch.Tensor, *, max_rise: float | None = None,
-                        angular_margin: float = 0.02) -> tuple[torch.Tensor, torch.Tensor]:
+                        angular_margin: float = 0.02, queries: torch.Tensor | None = None
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
     """Heliostats that may stop rays leaving each heliostat along (about) ``direction``; spatial-grid lookup.
 
     Parameters
     ----------
     occluders : OccluderSet
         H heliostats.
-    direction : torch.Tensor, [H, 3] or [3]
-        Representative unit ray direction per heliostat (towards the sun; towards the aim point). Rays of
+    direction : torch.Tensor, [Q, 3] or [3]
+        Representative unit ray direction per querying heliostat (towards the sun; towards the aim point). Rays of
         the heliostat's points may deviate from it by ``angular_margin`` [rad] (canting, slope).
     max_rise : float, optional
         Height [m] the rays must climb above their start before no mirror can stop them; default: the
         field's pivot height range plus two bounding radii.
     angular_margin : float
         [rad], widens the corridor with distance.
+    queries : torch.Tensor, [Q], long, optional
+        The heliostats whose rays are tested (default all H; a shard of the field in
+        :mod:`heliotwin.distributed`); every heliostat of ``occluders`` can stop them.
 
     Returns
     -------
-    index : torch.Tensor, [H, K], long
+    index : torch.Tensor, [Q, K], long
         Candidate occluders (K = the largest count over heliostats; padded with 0).
-    valid : torch.Tensor, [H, K], bool
+    valid : torch.Tensor, [Q, K], bool
         False for padding. A heliostat is never its own candidate.
     """
     c = occluders.center.detach().to(torch.float64)
-    h = c.shape[0]
+    if queries is None:
+        queries = torch.arange(c.shape[0], device=c.device)
+    own_index = queries.to(c.device)
+    h = own_index.shape[0]
     d = safe_normalize(direction.detach().to(torch.float64).expand(h, 3))
-    rad = occluders.radius.detach().to(torch.float64)
-    r_max = float(rad.max())
+    rad_all = occluders.radius.detach().to(torch.float64)
+    rad = rad_all[own_index]
+    r_max = float(rad_all.max())
     if max_rise is None:
         max_rise = float(c[:, 2].max() - c[:, 2].min()) + 2.0 * r_max
     horiz = torch.linalg.vector_norm(d[:, :2], dim=-1).clamp_min(1e-12)
@@ -141,7 +149,7 @@ def occluder_candidates(occluders: OccluderSet, direction: torch.Tensor, *, max_
     dxy = d[:, :2] / horiz.unsqueeze(-1)
     along = torch.arange(steps, dtype=torch.float64, device=c.device) * cell
     along = torch.minimum(along.unsqueeze(0), reach.unsqueeze(1))  # [H, S]
-    q = c[:, None, :2] + along.unsqueeze(-1) * dxy.unsqueeze(1)  # corridor samples [H, S, 2]
+    q = c[own_index, None, :2] + along.unsqueeze(-1) * dxy.unsqueeze(1)  # corridor samples [Q, S, 2]
     qi = torch.floor((q - lo) / cell).long()
     off = torch.tensor([(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1)], device=c.device)
     cells = qi.unsqueeze(2) + off  # [H, S, 9, 2]
@@ -153,16 +161,16 @@ def occluder_candidates(occluders: OccluderSet, direction: torch.Tensor, *, max_
     cand, _ = torch.sort(cand, dim=1)
     repeat = torch.zeros_like(cand, dtype=torch.bool)
     repeat[:, 1:] = cand[:, 1:] == cand[:, :-1]
-    own = cand == torch.arange(h, device=c.device).unsqueeze(1)
+    own = cand == own_index.unsqueeze(1)
     keep = (cand >= 0) & ~repeat & ~own
     # Conservative sphere test: the occluder's bounding sphere reaches the ray bundle (a cylinder about the
     # central ray, widened by the angular margin) ahead of the heliostat.
     safe = cand.clamp_min(0)
-    rel = c[safe] - c.unsqueeze(1)  # [H, C, 3]
+    rel = c[safe] - c[own_index].unsqueeze(1)  # [Q, C, 3]
     t = (rel * d.unsqueeze(1)).sum(-1)
     perp = torch.linalg.vector_norm(rel - t.unsqueeze(-1) * d.unsqueeze(1), dim=-1)
-    reach_r = rad.unsqueeze(1) + rad[safe] + angular_margin * t.abs()
-    keep = keep & (perp <= reach_r) & (t >= -(rad.unsqueeze(1) + rad[safe]))
+    reach_r = rad.unsqueeze(1) + rad_all[safe] + angular_margin * t.abs()
+    keep = keep & (perp <= reach_r) & (t >= -(rad.unsqueeze(1) + rad_all[safe]))
     k = max(int(keep.sum(1).max()) if h else 0, 1)
     order = torch.argsort((~keep).to(torch.int8), dim=1, stable=True)[:, :k]
     index = torch.gather(cand, 1, order).clamp_min(0)
@@ -172,7 +180,7 @@ def occluder_candidates(occluders: OccluderSet, direction: torch.Tensor, *, max_
 
 def unoccluded(origins: torch.Tensor, directions: torch.Tensor, occluders: OccluderSet, index: torch.Tensor,
                valid: torch.Tensor, *, softness: float | None = None, eps: float = 1e-6,
-               max_tests_per_chunk: int = 2 ** 22) -> torch.Tensor:
+               max_tests_per_chunk: int = 2 ** 22, owners: torch.Tensor | None = None) -> torch.Tensor:
     """Fraction of each ray that no candidate occluder stops (1 = free, 0 = stopped).
 
     Parameters
@@ -191,6 +199,8 @@ def unoccluded(origins: torch.Tensor, directions: torch.Tensor, occluders: Occlu
         Minimum ray parameter [m] of a hit (a ray never stops on its own start point).
     max_tests_per_chunk : int
         Memory bound: rays x candidates per chunk of heliostats.
+    owners : torch.Tensor, [H_rays], long, optional
+        Which heliostat each row of ``origins`` belongs to (default: row i = heliostat i).
 
     Returns
     -------
@@ -198,20 +208,22 @@ def unoccluded(origins: torch.Tensor, directions: torch.Tensor, occluders: Occlu
         Unoccluded fraction, dtype of ``origins``; differentiable with ``softness``.
     """
     h, p = origins.shape[:2]
+    owners = torch.arange(h, device=origins.device) if owners is None else owners
     k = index.shape[1]
     step = max(1, int(max_tests_per_chunk) // max(1, p * k))
     out = []
     for s0 in range(0, h, step):
         sl = slice(s0, min(h, s0 + step))
-        out.append(_unoccluded_chunk(origins[sl], directions[sl], occluders, index[sl], valid[sl], sl, softness, eps))
+        out.append(_unoccluded_chunk(origins[sl], directions[sl], occluders, index[sl], valid[sl], owners[sl],
+                                     softness, eps))
     return torch.cat(out, 0)
 
 
-def _unoccluded_chunk(o, d, occ: OccluderSet, idx, valid, sl, softness, eps):
+def _unoccluded_chunk(o, d, occ: OccluderSet, idx, valid, own, softness, eps):
     # Work relative to the own pivot (small numbers in any precision); every dot product with the candidates'
     # three axes (normal, width, height) is one batched matrix product, never a [h, P, K, 3] tensor.
     dt = o.dtype if softness is not None else torch.float32  # the hard test is a 0/1 decision: rays precision
-    base = occ.center[sl].unsqueeze(1)
+    base = occ.center[own].unsqueeze(1)
     c = (occ.center[idx] - base).to(dt)  # [h, K, 3]
     axes = torch.stack((occ.normal[idx], occ.width_axis[idx], occ.height_axis[idx]), dim=2).to(dt)  # [h, K, 3, 3]
     hk = axes.shape[:2]
