@@ -57,5 +57,18 @@ def test_aimpoints_command_writes_scenario_read_by_field(small_field, tmp_path, 
                              "--sun-elevation", SUN_EL, "--json", fj)
     assert code == 0, err
     field = json.loads(fj.read_text())
+    # motor steps through the plant's kinematics put the reflected sun on the optimised aim points
+    from heliotwin.field import kinematics as kin_ops
+    from heliotwin.geometry import angle_between, reflect
+    from heliotwin.io.scenario import load_scenario
+
+    sc = load_scenario(aimed)
+    ap = sc.learned["aimpoints"]
+    ok = ap["reachable"]
+    assert int(ok.sum()) == rep["optimised"]["motor_steps_reachable"] > 0
+    R, c = kin_ops.forward(sc.plant.field.kinematics.index(torch.nonzero(ok).flatten()), ap["motor_steps"][ok])
+    sun = ap["sun_direction"]
+    out_dir = reflect(-sun.expand(len(c), 3), kin_ops.mirror_normal(R))
+    assert float(angle_between(out_dir, ap["aim"][ok] - c).max()) < 1e-6
     assert field["receiver"]["peak_flux_w_m2"] == pytest.approx(rep["optimised"]["peak_flux_w_m2"], rel=1e-6)
     assert field["receiver"]["power_w"] == pytest.approx(rep["optimised"]["power_w"], rel=1e-6)

@@ -207,9 +207,16 @@ def cmd_aimpoints(args) -> int:
               "resolution": {"cols": args.resolution[1], "rows": args.resolution[0]},
               "equator": entry(equator), "aiming_factor": {**entry(factor), "k": factor.parameter},
               "optimised": {**entry(best), "iterations": best.iterations}}
+    from ..field.kinematics import inverse
+
+    # motor steps through the plant's (possibly calibrated) kinematics; unreachable ones are reported, not hidden
+    steps, reachable = inverse(plant.field.kinematics, best.aim.to(torch.float64), sun.to(torch.float64)[None],
+                               strict=False)
+    report["optimised"]["motor_steps_reachable"] = int(reachable.sum())
     learned = dict(sc.learned)
     learned["aimpoints"] = {"aim": best.aim.to(torch.float64), "peak_limit_w_m2": limit,
-                            "sun_direction": sun.to(torch.float64), "method": "augmented-lagrangian"}
+                            "sun_direction": sun.to(torch.float64), "method": "augmented-lagrangian",
+                            "motor_steps": steps, "reachable": reachable}
     step = provenance_entry("aimpoints", peak_limit_w_m2=limit, sun_direction=sun.tolist(), iterations=args.iterations,
                             power_w=best.power_w, peak_flux_w_m2=best.peak_flux_w_m2)
     save_step(args.output, plant, sc, learned=learned, step=step)
