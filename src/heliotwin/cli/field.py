@@ -14,7 +14,7 @@ import time
 
 from ..errors import HeliotwinError
 from ..io.report import write_json
-from .common import check_output_folder
+from .common import check_output_folder, positive_int
 
 
 # ---------------------------------------------------------------------------------- scenario from-layout
@@ -277,7 +277,7 @@ def register(sub) -> None:
     p.add_argument("--resolution", type=_resolution, default=(20, 48), help="COLSxROWS of the receiver map "
                                                                             "(default: 48x20)")
     p.add_argument("--seed", type=int, default=0, help="Monte-Carlo seed")
-    p.add_argument("--nproc", type=int, default=1, help="shard the heliostats over N local processes "
+    p.add_argument("--nproc", type=positive_int, default=1, help="shard the heliostats over N local processes "
                                                          "(torch.distributed, gloo)")
     p.add_argument("--json", required=True, help="JSON report")
     p.add_argument("--per-heliostat", help="CSV, one row per heliostat")
@@ -297,7 +297,7 @@ def register(sub) -> None:
     p.add_argument("--sun-elevation", type=float, help="[deg] (with --sun-azimuth)")
     p.add_argument("--peak-limit", type=float, required=True, help="[W/m2] on every map cell")
     p.add_argument("--resolution", type=_resolution, default=(20, 48), help="COLSxROWS (default: 48x20)")
-    p.add_argument("--iterations", type=int, default=150)
+    p.add_argument("--iterations", type=positive_int, default=150)
     p.add_argument("-o", "--output", required=True, help="scenario file to write (.h5)")
     p.add_argument("--json", required=True, help="JSON report")
     p.set_defaults(func=_checked(cmd_aimpoints))
