@@ -108,19 +108,11 @@ def blocking_disagreement(out: Path) -> dict:
             "field_blocking_solarpilot": float(np.mean(list(theirs.values())))}
 
 
-def radial_staggered(n: int, first_ring: float = 27.5, width: float = 3.22, height: float = 2.56) -> np.ndarray:
-    """A northern-sector (+-60 deg) radial-staggered field of ``n`` heliostats, rings 0.95 mirror heights apart
-    (denser farther out would block more; this is a SolarPILOT-like spacing)."""
-    out, r, ring = [], first_ring, 0
-    while len(out) < n:
-        count = max(2, int((2 * math.pi / 3) * r / (1.8 * width)))
-        shift = 0.5 if ring % 2 else 0.0
-        for k in range(count):
-            a = math.radians(-60) + (k + 0.5 + shift) * math.radians(120) / (count + 0.5)
-            out.append((r * math.sin(a), r * math.cos(a), 0.0))
-        r += 1.25 * height + 0.004 * r
-        ring += 1
-    return np.asarray(out[:n])
+def radial_staggered(n: int) -> np.ndarray:
+    """The demo's radial-staggered northern field (:func:`heliotwin.field.demo.demo_field_positions`)."""
+    from heliotwin.field.demo import demo_field_positions
+
+    return demo_field_positions(n).numpy()
 
 
 def speed(out: Path, sizes: list[int]) -> list[dict]:

@@ -58,7 +58,8 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - Python 3.10 only
     import tomli as tomllib
 
-__all__ = ["Layout", "read_layout", "read_plant_config", "plant_from_layout", "RECEIVER_TYPES", "CANTINGS"]
+__all__ = ["Layout", "PlantConfig", "read_layout", "read_plant_config", "plant_from_layout", "build_plant",
+           "RECEIVER_TYPES", "CANTINGS"]
 
 RECEIVER_TYPES = ("cylinder", "planar")
 CANTINGS = ("flat", "on-axis")
@@ -388,6 +389,11 @@ def plant_from_layout(layout_path, config_path, *, num_control_points=(4, 4)) ->
     config = read_plant_config(config_path)
     layout = read_layout(layout_path)
     _check_outside_tower(layout, config, config_path)
+    return build_plant(layout, config, num_control_points=num_control_points), config.atmosphere
+
+
+def build_plant(layout: Layout, config: PlantConfig, *, num_control_points=(4, 4)) -> Plant:
+    """The plant of validated inputs (:func:`plant_from_layout` without the files; also the demo field's)."""
     pos = layout.position
     towards = pos[:, :2].mean(0) - torch.tensor(config.receiver["center"][:2], dtype=torch.float64)
     towards = torch.cat((towards, towards.new_zeros(1)))
@@ -410,4 +416,4 @@ def plant_from_layout(layout_path, config_path, *, num_control_points=(4, 4)) ->
                 torch.full((h,), config.width, dtype=torch.float64),
                 torch.full((h,), config.height, dtype=torch.float64),
                 [""] * h)
-    return Plant(config.site, {"receiver": receiver}, fld, config.sun), config.atmosphere
+    return Plant(config.site, {"receiver": receiver}, fld, config.sun)
