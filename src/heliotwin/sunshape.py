@@ -16,6 +16,14 @@ Sunshapes
     ``exp(kappa) theta^gamma`` in the aureole (``4.65 < theta <= 43.6``), with
     ``kappa = 0.9 ln(13.5 chi) chi^-0.3`` and ``gamma = 2.2 ln(0.52 chi) chi^0.43 - 0.1``. The radius is
     drawn by inverse-CDF lookup of the tabulated density ``theta phi(theta)``, the azimuth uniformly.
+``limb-darkened``
+    The limb-darkened solar disc of DELSOL3 and SolarPILOT (their default sun), after Dellin (1979):
+    ``phi = 1 - 0.5138 (theta / radius)^4`` on the disc of half-angle ``radius`` (4.65 mrad), 0 outside.
+    The radius is drawn by inverting the closed-form radial CDF (Newton steps), the azimuth uniformly.
+
+    T. A. Dellin, "An improved Hermite expansion calculation of the flux distribution from heliostats",
+    Sandia National Laboratories, SAND79-8619 (1979); B. L. Kistler, "A user's manual for DELSOL3",
+    SAND86-8018 (1986).
 
 Slope error
 -----------
@@ -50,11 +58,15 @@ __all__ = [
     "buie_profile",
     "buie_table",
     "buie_radial_cdf",
+    "LIMB_DARKENING",
+    "limb_darkened_profile",
+    "limb_darkened_radial_cdf",
 ]
 
-SUNSHAPES = ("gaussian", "pillbox", "buie")
+SUNSHAPES = ("gaussian", "pillbox", "buie", "limb-darkened")
 SOLAR_DISC_RADIUS = 4.65e-3  #: half-angle of the solar disc [rad]
 BUIE_AUREOLE_LIMIT = 43.6e-3  #: outer edge of the Buie aureole [rad]
+LIMB_DARKENING = 0.5138  #: Dellin's (1979) limb-darkening coefficient: phi = 1 - 0.5138 (theta / radius)^4
 
 _TABLE_DISC = 4001  #: knots of the Buie table on the disc
 _TABLE_AUREOLE = 8001  #: knots of the Buie table in the aureole
@@ -171,6 +183,61 @@ def _buie_inverse_cdf(u: torch.Tensor, csr: float) -> torch.Tensor:
     return t0 + w * (t1 - t0)
 
 
+def limb_darkened_profile(theta: torch.Tensor, radius: float = SOLAR_DISC_RADIUS) -> torch.Tensor:
+    """Limb-darkened radiance ``phi(theta) = 1 - 0.5138 (theta / radius)^4`` on the disc (Dellin 1979).
+
+    Parameters
+    ----------
+    theta : torch.Tensor, shape (...)
+        Angle from the sun centre [rad].
+    radius : float
+        Half-angle of the solar disc [rad] (SolarPILOT: 4.65 mrad).
+
+    Returns
+    -------
+    torch.Tensor, shape (...)
+        Relative radiance [-] (1 at the centre, 0.4862 at the limb, 0 outside the disc).
+    """
+    x = theta / float(radius)
+    return torch.where(x <= 1.0, 1.0 - LIMB_DARKENING * x ** 4, torch.zeros_like(x))
+
+
+def _limb_darkened_cdf_x(x: torch.Tensor) -> torch.Tensor:
+    """Radial CDF in ``x = theta / radius`` (x in [0, 1]): integral of ``x (1 - a x^4)``, normalised."""
+    a = LIMB_DARKENING
+    return (0.5 * x * x - a * x ** 6 / 6.0) / (0.5 - a / 6.0)
+
+
+def limb_darkened_radial_cdf(theta: torch.Tensor, radius: float = SOLAR_DISC_RADIUS) -> torch.Tensor:
+    """``P(radius of a sample <= theta)`` for the limb-darkened sun (closed form).
+
+    Parameters
+    ----------
+    theta : torch.Tensor, shape (...)
+        [rad].
+    radius : float
+        Disc half-angle [rad].
+
+    Returns
+    -------
+    torch.Tensor, shape (...)
+        In [0, 1]: ``(x^2 / 2 - 0.5138 x^6 / 6) / (1/2 - 0.5138 / 6)`` with ``x = min(theta / radius, 1)``.
+    """
+    x = (torch.as_tensor(theta, dtype=torch.float64) / float(radius)).clamp(0.0, 1.0)
+    return _limb_darkened_cdf_x(x)
+
+
+def _limb_darkened_inverse_cdf(u: torch.Tensor) -> torch.Tensor:
+    """``x = theta / radius`` with CDF(x) = u, by Newton steps from the uniform-disc guess ``sqrt(u)``."""
+    a = LIMB_DARKENING
+    norm = 0.5 - a / 6.0
+    x = torch.sqrt(u).clamp(1e-6, 1.0)
+    for _ in range(30):  # the CDF is smooth and monotone on [0, 1]; converges to round-off in < 10 steps
+        f = _limb_darkened_cdf_x(x) - u
+        x = (x - f * norm / (x * (1.0 - a * x ** 4))).clamp(1e-9, 1.0)
+    return torch.where(u > 0, x, torch.zeros_like(x))
+
+
 def _uniform_pair(n: int, generator: torch.Generator, stratified: bool) -> tuple[torch.Tensor, torch.Tensor]:
     """Two uniform [0, 1) vectors of length n (float64), optionally a Latin hypercube design."""
     dev = generator.device
@@ -189,7 +256,7 @@ def sample(sunshape: str, n: int, generator: torch.Generator, *, sigma: float = 
 
     Parameters
     ----------
-    sunshape : {"gaussian", "pillbox", "buie"}
+    sunshape : {"gaussian", "pillbox", "buie", "limb-darkened"}
     n : int
         Number of samples.
     generator : torch.Generator
@@ -197,7 +264,7 @@ def sample(sunshape: str, n: int, generator: torch.Generator, *, sigma: float = 
     sigma : float
         Gaussian standard deviation per axis [rad].
     radius : float
-        Pillbox half-angle [rad].
+        Pillbox / limb-darkened disc half-angle [rad].
     csr : float
         Buie circumsolar ratio [-].
     dtype, device
@@ -223,6 +290,8 @@ def sample(sunshape: str, n: int, generator: torch.Generator, *, sigma: float = 
     else:
         if name == "pillbox":
             r = float(radius) * torch.sqrt(u1)
+        elif name == "limb-darkened":
+            r = float(radius) * _limb_darkened_inverse_cdf(u1)
         else:
             r = _buie_inverse_cdf(u1, float(csr))
         phi = 2.0 * math.pi * u2
@@ -263,7 +332,7 @@ def second_moment(sunshape: str, *, sigma: float = 2.51e-3, radius: float = SOLA
 
     Parameters
     ----------
-    sunshape : {"gaussian", "pillbox", "buie"}
+    sunshape : {"gaussian", "pillbox", "buie", "limb-darkened"}
     sigma, radius, csr : float
         As in :func:`sample`.
     slope_error : float
@@ -273,13 +342,17 @@ def second_moment(sunshape: str, *, sigma: float = 2.51e-3, radius: float = SOLA
     -------
     float
         ``E[alpha^2] = E[theta^2] / 2`` [rad^2]: ``sigma^2`` (gaussian), ``radius^2 / 4`` (pillbox), the
-        tabulated value (buie), plus the slope-error term.
+        tabulated value (buie), ``radius^2 (1/4 - a/8) / (1/2 - a/6) / 2`` (limb-darkened, a = 0.5138),
+        plus the slope-error term.
     """
     name = _check(sunshape)
     if name == "gaussian":
         var = float(sigma) ** 2
     elif name == "pillbox":
         var = float(radius) ** 2 / 4.0
+    elif name == "limb-darkened":
+        a = LIMB_DARKENING  # E[x^2] = (1/4 - a/8) / (1/2 - a/6) for the radial density x (1 - a x^4)
+        var = float(radius) ** 2 * (0.25 - a / 8.0) / (0.5 - a / 6.0) / 2.0
     else:
         var = _buie_table_cached(float(csr))[2] / 2.0
     return var + (2.0 * float(slope_error)) ** 2
@@ -291,7 +364,7 @@ def radial_profile(sunshape: str, theta: torch.Tensor, *, sigma: float = 2.51e-3
 
     Parameters
     ----------
-    sunshape : {"gaussian", "pillbox", "buie"}
+    sunshape : {"gaussian", "pillbox", "buie", "limb-darkened"}
     theta : torch.Tensor, shape (...)
         Angle from the sun centre [rad].
     sigma, radius, csr : float
@@ -308,17 +381,19 @@ def radial_profile(sunshape: str, theta: torch.Tensor, *, sigma: float = 2.51e-3
         return buie_profile(theta, float(csr))
     if name == "pillbox":
         return (theta <= float(radius)).to(theta.dtype)
+    if name == "limb-darkened":
+        return limb_darkened_profile(theta, float(radius))
     return torch.exp(-0.5 * theta * theta / (float(sigma) * float(sigma)))
 
 
 def angular_extent(sunshape: str, *, sigma: float = 2.51e-3, radius: float = SOLAR_DISC_RADIUS) -> float:
     """Half-angle [rad] beyond which :func:`radial_profile` is (numerically) zero.
 
-    ``4.5 sigma`` (gaussian), ``radius`` (pillbox), the outer edge of the aureole (buie).
+    ``4.5 sigma`` (gaussian), ``radius`` (pillbox, limb-darkened), the outer edge of the aureole (buie).
     """
     name = _check(sunshape)
     if name == "buie":
         return BUIE_AUREOLE_LIMIT
-    if name == "pillbox":
+    if name in ("pillbox", "limb-darkened"):
         return float(radius)
     return 4.5 * float(sigma)

@@ -11,6 +11,7 @@ import time
 
 from ..errors import HeliotwinError
 from ..io.report import output_set, write_json
+from . import field
 from .common import csv_list, int_list, int_range, seed_int, stage, utc_time
 
 # Ranges of the numeric arguments: beyond them a run would exhaust memory or mean a typo.
@@ -209,6 +210,7 @@ def register(sub) -> None:
     q.add_argument("--heliostats", help="comma-separated heliostat ids (default: all)")
     q.add_argument("-o", "--output", required=True, help="scenario file to write (.h5)")
     q.set_defaults(func=cmd_scenario_from_paint)
+    field.register_scenario_action(ssub)
 
     p = sub.add_parser("trace", help="trace one real calibration record",
                        description="Trace a PAINT record (its sun, motor steps and target) with nominal kinematics "

@@ -1,0 +1,190 @@
+"""The whole field: heliotwin against SolarPILOT, and the speed of the field model.
+
+1. **Against SolarPILOT** on ``../shared/data/solarpilot-reference`` (500 heliostats, four suns): per sun, ours
+   against theirs -- per-heliostat cosine and attenuation (max abs difference), field-average shading and
+   blocking, intercept, total efficiency, receiver power and the peak flux on the same 48 x 20 grid. Also the
+   whole-mirror blocking (SolarPILOT's reading) and the tower's shadow. SolarPILOT azimuths (clockwise from
+   north) become heliotwin's PAINT azimuths as ``180 - az``.
+2. **Blocking, brute force**: for the east sun, the heliostats where SolarPILOT reports no blocking but the
+   ray-rectangle test finds some, with the all-pairs check of the worst one.
+3. **Over a year**: the efficiency table and the hourly clear-sky annual energy for 2000 heliostats (time).
+4. **Speed** of one sun (shading + blocking + 48 x 20 map, and + 256 x 256 map) for generated radial-staggered
+   fields of 50 to 10 000 heliostats; peak resident memory of the process. Wall times depend on the machine
+   and its load: the script records ``torch.get_num_threads()`` and the load average next to them.
+
+Usage::
+
+    OMP_NUM_THREADS=2 python benchmarks/bench_field.py --out /tmp/field [--sizes 50,500,2000,10000]
+
+Writes ``<out>/field.json`` and prints the tables.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from heliotwin.field.layout import plant_from_layout
+from heliotwin.io.report import write_json
+from heliotwin.raytrace.field import FieldSettings, field_optics, summary
+from heliotwin.sun import direction_from_paint_angles
+
+REF = Path(__file__).resolve().parents[2] / "shared" / "data" / "solarpilot-reference"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from helpers.field import PLANT_TOML, brute_force_unoccluded  # noqa: E402
+
+
+def _sun(solarpilot_az: float, el: float) -> torch.Tensor:
+    return direction_from_paint_angles(torch.tensor(math.radians(180.0 - solarpilot_az), dtype=torch.float64),
+                                       torch.tensor(math.radians(el), dtype=torch.float64))
+
+
+def against_solarpilot(out: Path) -> list[dict]:
+    toml = out / "plant.toml"
+    toml.write_text(PLANT_TOML)
+    plant, atm = plant_from_layout(REF / "layout-500.csv", toml)
+    table = []
+    for ref in json.loads((REF / "field-results.json").read_text())["suns"]:
+        az, el = ref["sun_azimuth_deg_from_north_clockwise"], ref["sun_elevation_deg"]
+        key = f"az{az:.2f}_el{el:.2f}"
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            res = field_optics(plant, _sun(az, el), atmosphere=atm)
+        seconds = time.perf_counter() - t0
+        rep = summary(res, plant)
+        rows = list(csv.DictReader(open(REF / f"per-heliostat_{key}.csv")))
+        idx = torch.tensor([plant.field.ids.index(f"H{int(r['id']):04d}") for r in rows])
+        col = {k: torch.tensor([float(r[k]) for r in rows], dtype=torch.float64) for k in ("cosine", "attenuation")}
+        e = rep["field"]["efficiency"]
+        table.append({
+            "sun": key, "solarpilot_azimuth_deg": az, "elevation_deg": el, "seconds": seconds,
+            "cosine_max_abs_diff": float((res.cosine[idx] - col["cosine"]).abs().max()),
+            "attenuation_max_abs_diff": float((res.attenuation[idx] - col["attenuation"]).abs().max()),
+            **{f"{k}_ours": e[k] for k in ("shading", "blocking", "intercept", "total")},
+            **{f"{k}_solarpilot": ref[f"eff_{k}"] for k in ("shading", "blocking", "intercept", "total")},
+            "blocking_whole_mirror_ours": e["blocking_whole_mirror"], "tower_shading_ours": e["tower_shading"],
+            "power_kw_ours": rep["receiver"]["power_w"] / 1e3, "power_kw_solarpilot": ref["receiver_power_kw"],
+            "peak_48x20_kw_m2_ours": rep["receiver"]["peak_flux_w_m2"] / 1e3,
+            "peak_48x20_kw_m2_solarpilot": ref["peak_flux_kw_m2"]["48x20"],
+        })
+    return table
+
+
+def blocking_disagreement(out: Path) -> dict:
+    """East sun: heliostats SolarPILOT calls unblocked but the ray test blocks, checked all-pairs."""
+    toml = out / "plant.toml"
+    plant, atm = plant_from_layout(REF / "layout-500.csv", toml)
+    sun = _sun(97.5527, 36.7262)
+    with torch.no_grad():
+        res = field_optics(plant, sun, atmosphere=atm)
+    rows = list(csv.DictReader(open(REF / "per-heliostat_az97.55_el36.73.csv")))
+    theirs = {f"H{int(r['id']):04d}": float(r["blocking"]) for r in rows}
+    ours = dict(zip(plant.field.ids, res.blocking.tolist()))
+    missed = sorted((h for h in ours if theirs[h] >= 0.9999 and ours[h] < 0.99), key=lambda h: ours[h])
+    worst = plant.field.ids.index(missed[0]) if missed else None
+    check = None
+    if worst is not None:
+        from heliotwin.raytrace.field import _samples
+        from heliotwin.raytrace.occlusion import OccluderSet
+
+        occ = OccluderSet(plant.field.kinematics.position, res.normal, plant.field.width, plant.field.height)
+        pts, nrm, _ = _samples(plant, res.normal, 16, torch.float64)
+        refl = -sun + 2 * (nrm * sun).sum(-1, keepdim=True) * nrm
+        free = brute_force_unoccluded(pts, refl, occ.center, occ.normal, occ.width_axis, occ.height_axis,
+                                      plant.field.width, plant.field.height)[worst]
+        check = {"heliostat": missed[0], "blocking_ours": ours[missed[0]], "blocking_solarpilot": theirs[missed[0]],
+                 "all_pairs_blocked_fraction": 1.0 - float(free.mean())}
+    return {"heliostats_unblocked_in_solarpilot_blocked_here": len(missed), "worst": check,
+            "field_blocking_ours": float(res.blocking.mean()),
+            "field_blocking_solarpilot": float(np.mean(list(theirs.values())))}
+
+
+def radial_staggered(n: int) -> np.ndarray:
+    """The demo's radial-staggered northern field (:func:`heliotwin.field.demo.demo_field_positions`)."""
+    from heliotwin.field.demo import demo_field_positions
+
+    return demo_field_positions(n).numpy()
+
+
+def speed(out: Path, sizes: list[int]) -> list[dict]:
+    toml = out / "plant.toml"
+    sun = _sun(180.0, 39.8)
+    rows = []
+    for n in sizes:
+        layout = out / f"layout-{n}.csv"
+        xyz = radial_staggered(n)
+        layout.write_text("x,y,z\n" + "\n".join(",".join(f"{v:.4f}" for v in p) for p in xyz) + "\n")
+        plant, atm = plant_from_layout(layout, toml)
+        entry = {"heliostats": n}
+        for name, res in (("48x20", (20, 48)), ("256x256", (256, 256))):
+            with torch.no_grad():
+                field_optics(plant, sun, atmosphere=atm, settings=FieldSettings(resolution=res))  # warm-up
+                times = []
+                for _ in range(3):
+                    t0 = time.perf_counter()
+                    r = field_optics(plant, sun, atmosphere=atm, settings=FieldSettings(resolution=res))
+                    times.append(time.perf_counter() - t0)
+            entry[f"seconds_{name}"] = min(times)
+            entry[f"total_efficiency_{name}"] = float(r.efficiency.mean())
+        rows.append(entry)
+        print(f"  {n:6d} heliostats: {entry['seconds_48x20']:.3f} s (48x20), {entry['seconds_256x256']:.3f} s "
+              f"(256x256)", flush=True)
+    return rows
+
+
+def yearly(out: Path, n: int) -> dict:
+    """The yearly table (24 azimuths x 11 elevations) and the 2023 hourly clear-sky energy for ``n`` heliostats."""
+    from heliotwin.raytrace.yearly import annual_energy
+
+    layout = out / f"layout-{n}.csv"
+    layout.write_text("x,y,z\n" + "\n".join(",".join(f"{v:.4f}" for v in p) for p in radial_staggered(n)) + "\n")
+    plant, atm = plant_from_layout(layout, out / "plant.toml")
+    rep = annual_energy(plant, 2023, "1h", atmosphere=atm)
+    rep.pop("table")
+    rep["heliostats"] = n
+    print(f"  yearly ({n} heliostats): {rep['seconds']:.1f} s, {rep['annual_optical_energy_mwh']:.0f} MWh", flush=True)
+    return rep
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--sizes", default="50,500,2000,10000")
+    ap.add_argument("--year-heliostats", type=int, default=2000, help="0: skip the yearly run")
+    args = ap.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    report = {"threads": torch.get_num_threads(), "load_average": os.getloadavg()}
+    table = against_solarpilot(out)
+    print("sun                 | cos dmax | att dmax | shading ours/SP | blocking ours/SP | intercept ours/SP | "
+          "total ours/SP   | power kW ours/SP | peak 48x20 kW/m2 ours/SP")
+    for t in table:
+        print(f"{t['sun']:19s} | {t['cosine_max_abs_diff']:.1e}  | {t['attenuation_max_abs_diff']:.1e}  | "
+              f"{t['shading_ours']:.4f}/{t['shading_solarpilot']:.4f}   | {t['blocking_ours']:.4f}/"
+              f"{t['blocking_solarpilot']:.4f}    | {t['intercept_ours']:.4f}/{t['intercept_solarpilot']:.4f}     | "
+              f"{t['total_ours']:.4f}/{t['total_solarpilot']:.4f} | {t['power_kw_ours']:.1f}/"
+              f"{t['power_kw_solarpilot']:.1f}  | {t['peak_48x20_kw_m2_ours']:.1f}/"
+              f"{t['peak_48x20_kw_m2_solarpilot']:.1f}")
+    report["against_solarpilot"] = table
+    report["east_sun_blocking"] = blocking_disagreement(out)
+    print("east sun blocking:", json.dumps(report["east_sun_blocking"]))
+    report["speed"] = speed(out, [int(s) for s in args.sizes.split(",")])
+    if args.year_heliostats:
+        report["yearly"] = yearly(out, args.year_heliostats)
+    report["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"peak resident memory {report['peak_rss_mb']:.0f} MB")
+    write_json(out / "field.json", report)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,419 @@
+"""Fields as input: a heliostat layout CSV (as SolarPILOT writes it) plus a small TOML plant description.
+
+Layout CSV
+----------
+``x, y, z`` = east, north, up [m] of each heliostat's pivot, tower base at the origin; lines starting with
+``#`` are comments; the first other line is the header (column names ``x``, ``y``, ``z``, optionally
+``id``; SolarPILOT's ``x_location``/``y_location``/``z_location`` are accepted too; other columns are
+ignored). Without an ``id`` column heliostats are named ``H0000``, ``H0001``, ... in file order.
+
+Plant description (TOML)
+------------------------
+::
+
+    [site]        latitude, longitude [deg], altitude [m]
+    [heliostat]   width, height [m], facets = [nx, ny], canting = "flat" | "on-axis" (focal_length [m],
+                  default: each heliostat's slant range to the receiver), reflectivity [-],
+                  slope_error_mrad (per in-plane direction)
+    [receiver]    type = "cylinder" (radius, height [m], center = [e, n, u] of the axis at mid-height,
+                  opening_angle_deg, optional horizontal normal: default the field's mean direction, for a
+                  full cylinder the nearest of N/E/S/W; it only fixes where the unrolled map starts)
+                  | "planar" (width, height, center, normal)
+    [sun]         shape = "limb-darkened" | "buie" (csr) | "gaussian" (sigma_mrad) | "pillbox"
+                  (radius_mrad, also the limb-darkened disc), dni [W/m^2]
+    [atmosphere]  model = "polynomial", coefficients = [c0, c1, c2, c3] (loss in slant range [km])
+
+Every key has a unit in its name or above; unknown keys are errors (a typo must not silently fall back to a
+default). Errors are one line naming the file and the field (``plant.toml [receiver.type]: ...``,
+``layout.csv [line 7, y]: ...``), raised before anything is written.
+
+The heliostats become a :class:`~heliotwin.field.plant.Plant` with nominal Jülich linear actuators (the
+kinematics only matter to commands that convert aim points to motor steps), the facets tiling the mirror
+(flat or canted on-axis, :func:`heliotwin.field.demo.receiver_canting`), ideal NURBS surfaces, the receiver
+as the target named ``"receiver"``, and the sun/mirror optics in :class:`~heliotwin.field.plant.SunSettings`.
+The atmosphere is returned separately (:class:`heliotwin.atmosphere.Atmosphere`; scenario files keep it in
+``/extras/atmosphere``).
+"""
+from __future__ import annotations
+
+import csv
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from ..atmosphere import ATMOSPHERE_MODELS, Atmosphere
+from ..errors import InputFileError
+from ..site import Site
+from ..sunshape import SUNSHAPES
+from .demo import ACTUATOR_NOMINAL, receiver_canting
+from .facets import ideal_surfaces
+from .plant import Facets, Field, Kinematics, Plant, SunSettings
+from .targets import CylinderTarget, PlanarTarget
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10 only
+    import tomli as tomllib
+
+__all__ = ["Layout", "PlantConfig", "read_layout", "read_plant_config", "plant_from_layout", "build_plant",
+           "RECEIVER_TYPES", "CANTINGS"]
+
+RECEIVER_TYPES = ("cylinder", "planar")
+CANTINGS = ("flat", "on-axis")
+_REQUIRED = object()
+_ALIASES = {"x": ("x", "x_location"), "y": ("y", "y_location"), "z": ("z", "z_location"), "id": ("id",)}
+
+
+@dataclass
+class Layout:
+    """Heliostat positions read from a layout CSV.
+
+    Attributes
+    ----------
+    ids : list of str
+        Heliostat names, length H.
+    position : torch.Tensor, [H, 3], float64
+        Pivot positions, ENU [m] about the tower base.
+    lines : list of int
+        Source line of each heliostat (for error messages).
+    path : str
+    """
+
+    ids: list
+    position: torch.Tensor
+    lines: list
+    path: str
+
+
+def read_layout(path) -> Layout:
+    """Read a layout CSV (module docstring).
+
+    Raises
+    ------
+    InputFileError
+        Missing/unreadable file, no header, missing ``x``/``y``/``z`` column, a value that is not a finite
+        number, a short row, duplicate ids, no heliostat (message names the line and column).
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputFileError(path, f"cannot read layout ({exc.__class__.__name__}: {exc})") from None
+    rows = [(n, line) for n, line in enumerate(text.splitlines(), start=1)
+            if line.strip() and not line.lstrip().startswith("#")]
+    if not rows:
+        raise InputFileError(path, "no header and no heliostats (expected a header line x,y,z)")
+    header_line, header = rows[0]
+    names = [c.strip().lower() for c in next(csv.reader([header]))]
+    column = {}
+    for key, aliases in _ALIASES.items():
+        found = [i for i, c in enumerate(names) if c in aliases]
+        if found:
+            column[key] = found[0]
+        elif key != "id":
+            raise InputFileError(path, f"missing column {key!r} in header {header.strip()!r} (expected x,y,z[,id])",
+                                 field=f"line {header_line}")
+    values, ids, lines = [], [], []
+    for n, line in rows[1:]:
+        cells = [c.strip() for c in next(csv.reader([line]))]
+        xyz = []
+        for key in ("x", "y", "z"):
+            i = column[key]
+            if i >= len(cells) or not cells[i]:
+                raise InputFileError(path, f"missing value (row has {len(cells)} columns)", field=f"line {n}, {key}")
+            try:
+                v = float(cells[i])
+            except ValueError:
+                raise InputFileError(path, f"expected a number, got {cells[i]!r}", field=f"line {n}, {key}") from None
+            if not math.isfinite(v):
+                raise InputFileError(path, f"expected a finite number, got {cells[i]!r}", field=f"line {n}, {key}")
+            xyz.append(v)
+        if "id" in column:
+            i = column["id"]
+            if i >= len(cells) or not cells[i]:
+                raise InputFileError(path, "missing id", field=f"line {n}, id")
+            ids.append(cells[i])
+        else:
+            ids.append(f"H{len(ids):04d}")
+        values.append(xyz)
+        lines.append(n)
+    if not values:
+        raise InputFileError(path, "no heliostats after the header")
+    seen = {}
+    for hid, n in zip(ids, lines):
+        if hid in seen:
+            raise InputFileError(path, f"duplicate id {hid!r} (first on line {seen[hid]})", field=f"line {n}, id")
+        seen[hid] = n
+    return Layout(ids, torch.tensor(values, dtype=torch.float64), lines, str(path))
+
+
+# ------------------------------------------------------------------------------------------------ TOML
+class _Table:
+    """One TOML table with typed, unit-checked access; every failure names ``[section.key]``."""
+
+    def __init__(self, path, section: str, data):
+        self.path, self.section = path, section
+        if not isinstance(data, dict):
+            self.fail(None, f"expected a table [{section}], got {type(data).__name__}")
+        self.data, self.used = data, set()
+
+    def fail(self, key, message: str):
+        field = self.section if key is None else f"{self.section}.{key}"
+        raise InputFileError(self.path, message, field=field)
+
+    def number(self, key: str, default=_REQUIRED, *, lo=None, hi=None, lo_open=False) -> float:
+        self.used.add(key)
+        if key not in self.data:
+            if default is _REQUIRED:
+                self.fail(key, "missing")
+            return default
+        v = self.data[key]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+            self.fail(key, f"expected a finite number, got {v!r}")
+        v = float(v)
+        if lo is not None and (v < lo or (lo_open and v == lo)):
+            self.fail(key, f"expected a value {'>' if lo_open else '>='} {lo:g}, got {v:g}")
+        if hi is not None and v > hi:
+            self.fail(key, f"expected a value <= {hi:g}, got {v:g}")
+        return v
+
+    def vector(self, key: str, length: int | None, default=_REQUIRED, *, integer=False) -> list:
+        self.used.add(key)
+        if key not in self.data:
+            if default is _REQUIRED:
+                self.fail(key, "missing")
+            return default
+        v = self.data[key]
+        kinds = (int,) if integer else (int, float)
+        if not isinstance(v, list) or (length is not None and len(v) != length) or not v or \
+                not all(isinstance(x, kinds) and not isinstance(x, bool) and math.isfinite(float(x)) for x in v):
+            want = f"{length} " if length else ""
+            self.fail(key, f"expected a list of {want}{'integers' if integer else 'numbers'}, got {v!r}")
+        return [int(x) if integer else float(x) for x in v]
+
+    def choice(self, key: str, options, default=_REQUIRED) -> str:
+        self.used.add(key)
+        if key not in self.data:
+            if default is _REQUIRED:
+                self.fail(key, f"missing (one of {', '.join(options)})")
+            return default
+        v = self.data[key]
+        if not isinstance(v, str) or v.lower() not in options:
+            self.fail(key, f"unknown value {v!r}; expected one of {', '.join(options)}")
+        return v.lower()
+
+    def done(self):
+        extra = sorted(set(self.data) - self.used)
+        if extra:
+            self.fail(extra[0], "unknown key (check the spelling; see heliotwin.field.layout)")
+
+
+@dataclass
+class PlantConfig:
+    """The validated plant description (all SI units; angles in rad)."""
+
+    site: Site
+    width: float
+    height: float
+    facets: tuple
+    canting: str
+    focal_length: float | None
+    receiver: dict
+    sun: SunSettings
+    atmosphere: Atmosphere
+
+
+def read_plant_config(path) -> PlantConfig:
+    """Read and validate the TOML plant description (module docstring).
+
+    Raises
+    ------
+    InputFileError
+        Missing or malformed file, missing/unknown/mistyped key, out-of-range value, unknown receiver
+        type, sunshape, canting or atmosphere model (one line naming ``[section.key]``).
+    """
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            doc = tomllib.load(fh)
+    except OSError as exc:
+        raise InputFileError(path, f"cannot read ({exc.__class__.__name__}: {exc.strerror or exc})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputFileError(path, f"malformed TOML ({exc})") from None
+    for section in doc:
+        if section not in ("site", "heliostat", "receiver", "sun", "atmosphere"):
+            raise InputFileError(path, "unknown section (expected site, heliostat, receiver, sun, atmosphere)",
+                                 field=section)
+    t = _Table(path, "site", doc.get("site", {}))
+    site = Site(t.number("latitude", lo=-90, hi=90), t.number("longitude", lo=-180, hi=180),
+                t.number("altitude", 0.0), str(t.data.get("name", path.stem)))
+    t.used.add("name")
+    t.done()
+
+    t = _Table(path, "heliostat", doc.get("heliostat", {}))
+    width, height = t.number("width", lo=0, lo_open=True), t.number("height", lo=0, lo_open=True)
+    facets = t.vector("facets", 2, [1, 1], integer=True)
+    if min(facets) < 1:
+        t.fail("facets", f"expected two positive integers, got {facets}")
+    canting = t.choice("canting", CANTINGS, "flat")
+    focal = t.number("focal_length", None, lo=0, lo_open=True)
+    reflectivity = t.number("reflectivity", 0.9, lo=0, hi=1)
+    slope = t.number("slope_error_mrad", 1.53, lo=0) * 1e-3
+    t.done()
+
+    if "receiver" not in doc:
+        raise InputFileError(path, "missing table (type = \"cylinder\" or \"planar\")", field="receiver")
+    receiver = _receiver_config(_Table(path, "receiver", doc["receiver"]))
+
+    t = _Table(path, "sun", doc.get("sun", {}))
+    shape = t.choice("shape", SUNSHAPES, "limb-darkened")
+    sun = SunSettings(sunshape=shape, sigma=t.number("sigma_mrad", 2.51, lo=0, lo_open=True) * 1e-3,
+                      radius=t.number("radius_mrad", 4.65, lo=0, lo_open=True) * 1e-3,
+                      csr=t.number("csr", 0.05, lo=0, lo_open=True, hi=0.999), slope_error=slope,
+                      dni=t.number("dni", 1000.0, lo=0), reflectivity=reflectivity)
+    t.done()
+
+    t = _Table(path, "atmosphere", doc.get("atmosphere", {}))
+    atmosphere = Atmosphere(t.choice("model", ATMOSPHERE_MODELS, "polynomial"),
+                            tuple(t.vector("coefficients", None, list(Atmosphere().coefficients))))
+    t.done()
+    return PlantConfig(site, width, height, tuple(facets), canting, focal, receiver, sun, atmosphere)
+
+
+def _receiver_config(t: _Table) -> dict:
+    kind = t.choice("type", RECEIVER_TYPES)
+    out = {"type": kind, "center": t.vector("center", 3), "height": t.number("height", lo=0, lo_open=True)}
+    normal = t.vector("normal", 3, None)
+    if normal is not None and math.hypot(*normal) == 0.0:
+        t.fail("normal", "expected a non-zero vector")
+    out["normal"] = normal
+    if kind == "cylinder":
+        out["radius"] = t.number("radius", lo=0, lo_open=True)
+        out["opening_angle"] = math.radians(t.number("opening_angle_deg", 360.0, lo=0, lo_open=True, hi=360))
+        if normal is not None and abs(normal[2]) > 1e-9 * math.hypot(*normal):
+            t.fail("normal", "a cylinder's aperture normal must be horizontal (the axis is vertical)")
+    else:
+        out["width"] = t.number("width", lo=0, lo_open=True)
+        if normal is None:
+            t.fail("normal", "missing (planar receivers need their normal, towards the field)")
+    t.done()
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ plant
+def _receiver(config: dict, towards_field: torch.Tensor):
+    f64 = dict(dtype=torch.float64)
+    center = torch.tensor(config["center"], **f64)
+    if config["type"] == "planar":
+        return PlanarTarget.from_center_normal("receiver", center, config["normal"], config["width"], config["height"])
+    normal = torch.tensor(config["normal"], **f64) if config["normal"] is not None else towards_field
+    normal = normal / torch.linalg.vector_norm(normal)
+    up = torch.tensor([0.0, 0.0, 1.0], **f64)
+    right = torch.linalg.cross(up, normal)
+    r = float(config["radius"])
+    return CylinderTarget("receiver", center + r * normal, normal, right, up, r, float(config["height"]),
+                          float(config["opening_angle"]))
+
+
+def _check_outside_tower(layout: Layout, config: PlantConfig, config_path) -> None:
+    """Heliostats whose mirror would reach into the tower's footprint (the receiver's horizontal extent)."""
+    rc = config.receiver
+    reach = rc["radius"] if rc["type"] == "cylinder" else 0.5 * rc["width"]
+    centre = torch.tensor(rc["center"][:2], dtype=torch.float64)
+    clearance = reach + 0.5 * math.hypot(config.width, config.height)
+    dist = torch.linalg.vector_norm(layout.position[:, :2] - centre, dim=-1)
+    bad = torch.nonzero(dist < clearance).flatten()
+    if bad.numel():
+        i = int(bad[0])
+        raise InputFileError(layout.path, f"heliostat {layout.ids[i]} at {dist[i]:.2f} m from the tower axis is inside "
+                             f"the tower (receiver reach + half mirror diagonal = {clearance:.2f} m, from "
+                             f"{config_path})", field=f"line {layout.lines[i]}")
+
+
+def _nominal_kinematics(position: torch.Tensor) -> Kinematics:
+    """Nominal Jülich linear actuators at every pivot (zero joint offsets, concentrator at the pivot)."""
+    h = position.shape[0]
+    f64 = dict(dtype=torch.float64)
+
+    def const(values):
+        return torch.tensor(values, **f64).expand(h, len(values)).clone()
+
+    act = {k: const(v) for k, v in ACTUATOR_NOMINAL.items()}
+    zeros3 = torch.zeros(h, 3, **f64)
+    return Kinematics(position=position.clone(), joint_translation=torch.zeros(h, 2, 3, **f64),
+                      concentrator_translation=zeros3.clone(), joint_tilt=torch.zeros(h, 2, 3, **f64),
+                      concentrator_tilt=zeros3.clone(), clockwise=torch.tensor([[False, True]]).expand(h, 2).clone(),
+                      linear=torch.ones(h, 2, dtype=torch.bool), min_steps=torch.zeros(h, 2, **f64),
+                      max_steps=const((69000.0, 75000.0)), min_angle=const((-math.pi / 2, -math.pi)),
+                      max_angle=const((math.pi / 2, math.pi)), **act)
+
+
+def _facets(config: PlantConfig, h: int, focal_length: torch.Tensor) -> Facets:
+    nx, ny = config.facets
+    hw, hh = config.width / (2 * nx), config.height / (2 * ny)
+    ex = [(-config.width / 2 + (2 * i + 1) * hw) for i in range(nx)]
+    ny_ = [(config.height / 2 - (2 * j + 1) * hh) for j in range(ny)]
+    centres = torch.tensor([(x, y, 0.0) for y in ny_ for x in ex], dtype=torch.float64)
+    translation = centres.expand(h, -1, -1).clone()
+    if config.canting == "on-axis":
+        ce, cn = receiver_canting(translation, hw, hh, focal_length)
+    else:
+        ce = torch.tensor([hw, 0.0, 0.0], dtype=torch.float64).expand_as(translation).clone()
+        cn = torch.tensor([0.0, hh, 0.0], dtype=torch.float64).expand_as(translation).clone()
+    return Facets(translation, ce, cn)
+
+
+def plant_from_layout(layout_path, config_path, *, num_control_points=(4, 4)) -> tuple[Plant, Atmosphere]:
+    """A plant from a layout CSV and a TOML plant description.
+
+    Parameters
+    ----------
+    layout_path, config_path : path
+    num_control_points : (int, int)
+        NURBS control net of each ideal facet.
+
+    Returns
+    -------
+    plant : Plant
+        H heliostats (float64), target ``"receiver"``, sun/optics from the description.
+    atmosphere : Atmosphere
+
+    Raises
+    ------
+    InputFileError
+        Any problem of either file (one line naming file and field), including heliostats inside the tower.
+    """
+    config = read_plant_config(config_path)
+    layout = read_layout(layout_path)
+    _check_outside_tower(layout, config, config_path)
+    return build_plant(layout, config, num_control_points=num_control_points), config.atmosphere
+
+
+def build_plant(layout: Layout, config: PlantConfig, *, num_control_points=(4, 4)) -> Plant:
+    """The plant of validated inputs (:func:`plant_from_layout` without the files; also the demo field's)."""
+    pos = layout.position
+    towards = pos[:, :2].mean(0) - torch.tensor(config.receiver["center"][:2], dtype=torch.float64)
+    towards = torch.cat((towards, towards.new_zeros(1)))
+    if float(torch.linalg.vector_norm(towards)) < 1e-9:  # surround field: aperture reference faces north
+        towards = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    if config.receiver["type"] == "cylinder" and config.receiver["opening_angle"] >= 2 * math.pi - 1e-9:
+        # A full cylinder's normal only fixes where its unrolled map starts: snap it to the nearest of N, E, S,
+        # W so that the map does not move with the layout's asymmetries.
+        k = round(math.atan2(float(towards[0]), float(towards[1])) / (math.pi / 2)) % 4
+        towards = torch.tensor([(0.0, 1.0, 0.0), (1.0, 0.0, 0.0), (0.0, -1.0, 0.0), (-1.0, 0.0, 0.0)][k],
+                               dtype=torch.float64)
+    receiver = _receiver(config.receiver, towards / torch.linalg.vector_norm(towards))
+    aim_centre = receiver.center if receiver.kind == "planar" else receiver.axis_point
+    slant = torch.linalg.vector_norm(aim_centre - pos, dim=-1)
+    focal = torch.full_like(slant, config.focal_length) if config.focal_length else slant
+    h = len(layout.ids)
+    facets = _facets(config, h, focal)
+    surfaces = ideal_surfaces(facets, num_control_points=num_control_points)
+    fld = Field(list(layout.ids), _nominal_kinematics(pos), facets, surfaces,
+                torch.full((h,), config.width, dtype=torch.float64),
+                torch.full((h,), config.height, dtype=torch.float64),
+                [""] * h)
+    return Plant(config.site, {"receiver": receiver}, fld, config.sun)

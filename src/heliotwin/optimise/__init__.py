@@ -1,0 +1,1 @@
+"""Acting on the learned plant: aim-point optimisation over the differentiable field model."""

@@ -1,0 +1,506 @@
+"""The whole field on the receiver: per-heliostat optical efficiency and the receiver flux, for one sun.
+
+For every heliostat, as SolarPILOT reports them (Wagner & Wendelin, Solar Energy 171 (2018) 185):
+
+``cosine``        ``n . s``: tracking normal (bisecting the sun and the aim direction) against the sun.
+``shading``       unshaded fraction of the mirror (rays towards the sun stopped by other heliostats);
+                  the tower's shadow is reported separately (``tower_shading``, not in the product).
+``blocking``      fraction of the unshaded mirror's reflected light that no other heliostat stops (so the
+                  product counts light that is both shaded and blocked once; the whole-mirror reading,
+                  as if all of it were lit, is in ``extras["blocking_whole_mirror"]``).
+``attenuation``   :func:`heliotwin.atmosphere.attenuation` over the heliostat -> aim point slant range.
+``intercept``     fraction of the light arriving at the receiver that lands on it.
+``reflectance``   the mirror reflectivity.
+``efficiency``    the product; ``power_w = DNI * mirror area * efficiency``.
+
+Model
+-----
+Heliostats track ideally about azimuth-elevation axes (the mirror's width edge stays horizontal): the
+normal bisects the sun and the aim direction seen from the pivot, which is the mirror centre. The mirror
+surfaces are the plant's NURBS facets (flat or canted; learned surfaces included), sampled on a grid of
+``flux_samples`` points per facet and direction; shading and blocking are ray-tested
+(:mod:`heliotwin.raytrace.occlusion`) on a ``occlusion_oversampling`` times finer grid and pooled onto
+the flux samples. Each flux sample's reflected sun cone (sunshape plus slope error, Gaussian of equal
+second moment, :func:`heliotwin.sunshape.second_moment`) lands on the receiver as the Gaussian footprint of
+:mod:`heliotwin.raytrace.gaussian` (exact central hit, tangent-plane spread). The intercept of a sample is
+that Gaussian's mass on the receiver: its axial marginal between the top and bottom edge (and for a partial
+cylinder or a planar receiver, times the lateral marginal; exact for the full cylinder, the lateral
+correlation is neglected otherwise); a central ray that misses the receiver contributes nothing.
+
+The flux map sums the footprints: ``window`` mode evaluates every sample's own Gaussian (exact, cost
+~ samples x window pixels); ``grouped`` mode sorts the samples into ``groups`` classes of similar footprint
+size, splats each class's mean hits bilinearly and convolves it (FFT) with the class's power-weighted mean
+Gaussian (cost ~ samples + groups x pixels log pixels); ``auto`` takes ``window`` when its cost is small.
+With ``integrator="mc"`` the map is a Monte-Carlo trace of the same samples (occlusion and attenuation as
+weights); the per-heliostat intercept stays the Gaussian one. The unrolled map of a full cylinder does not
+wrap footprints across its seam (the seam is at the back of the receiver).
+
+Everything is batched over heliostats (no loop over heliostats or points) and differentiable with
+``softness`` set (smooth occlusion): w.r.t. aim points, positions and the sun.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import torch
+
+from .. import sunshape as _sunshape
+from ..atmosphere import Atmosphere, attenuation
+from ..errors import HeliotwinError
+from ..field.facets import surface_points
+from ..field.plant import Plant
+from ..field.targets import CylinderTarget, PlanarTarget
+from ..geometry import orthonormal_frame, ray_cylinder, reflect, safe_normalize
+from .flux import target_extent
+from .gaussian import _cylinder_moments, _fft_convolve, _gaussian_kernels, _projective_moments, gaussian_footprints
+from .montecarlo import planar_coefficients
+from .occlusion import OccluderSet, mirror_frame, occluder_candidates, unoccluded
+from .splat import splat_bilinear
+
+__all__ = ["FieldSettings", "FieldResult", "equator_aim_points", "tracking_normals", "field_optics", "summary",
+           "per_heliostat_rows", "FACTORS"]
+
+#: Per-heliostat factors whose product is the optical efficiency (SolarPILOT's breakdown).
+FACTORS = ("cosine", "shading", "blocking", "attenuation", "intercept", "reflectance")
+
+
+@dataclass
+class FieldSettings:
+    """Numerical settings of :func:`field_optics`.
+
+    Attributes
+    ----------
+    resolution : (int, int)
+        Receiver map (rows, cols); for a cylinder the columns run around the circumference.
+    integrator : {"gaussian", "mc"}
+    flux_samples : int
+        Flux samples per facet and direction (per heliostat ``F * flux_samples^2``).
+    occlusion_oversampling : int
+        Occlusion rays per flux sample and direction.
+    softness : float or None
+        None: exact (hard) occlusion; a length [m]: smooth, differentiable occlusion.
+    flux_mode : {"auto", "window", "grouped"}
+    groups : int
+        Footprint classes per axis in ``grouped`` mode (``groups^2`` classes).
+    smoothing : float
+        Variance [px^2] added to every footprint (1/12: a pixel-box average).
+    n_sigma : float
+        Footprint window half-size in standard deviations.
+    rays_per_point, seed : int
+        Monte-Carlo settings.
+    dtype : torch.dtype
+        Precision of rays, footprints and maps (float64 for gradient checks).
+    """
+
+    resolution: tuple = (20, 48)
+    integrator: str = "gaussian"
+    flux_samples: int = 8
+    occlusion_oversampling: int = 2
+    softness: float | None = None
+    flux_mode: str = "auto"
+    groups: int = 4
+    smoothing: float = 1.0 / 12.0
+    n_sigma: float = 3.5
+    rays_per_point: int = 64
+    seed: int = 0
+    dtype: torch.dtype = torch.float32
+
+
+@dataclass
+class FieldResult:
+    """Per-heliostat factors [H] (see module docstring), aim points and normals [H, 3], the receiver map.
+
+    ``flux`` [rows, cols] [W/m^2] (PAINT orientation: row 0 = top), ``extent`` (4,) its local rectangle
+    [m], ``mirror_area`` [H] [m^2], ``power_w`` [H] [W], ``sun`` (3,), ``dni`` [W/m^2].
+    """
+
+    aim: torch.Tensor
+    normal: torch.Tensor
+    cosine: torch.Tensor
+    shading: torch.Tensor
+    tower_shading: torch.Tensor
+    blocking: torch.Tensor
+    attenuation: torch.Tensor
+    intercept: torch.Tensor
+    reflectance: torch.Tensor
+    efficiency: torch.Tensor
+    power_w: torch.Tensor
+    mirror_area: torch.Tensor
+    flux: torch.Tensor
+    extent: torch.Tensor
+    sun: torch.Tensor
+    dni: float
+    extras: dict = field(default_factory=dict)
+
+    @property
+    def pixel_area(self) -> float:
+        """[m^2] of one map cell."""
+        rows, cols = self.flux.shape[-2:]
+        e = self.extent
+        return float((e[1] - e[0]) * (e[3] - e[2])) / (rows * cols)
+
+
+def equator_aim_points(receiver: PlanarTarget | CylinderTarget, position: torch.Tensor) -> torch.Tensor:
+    """SolarPILOT's "simple" aiming: the receiver point facing each heliostat, at mid-height.
+
+    Parameters
+    ----------
+    receiver : CylinderTarget or PlanarTarget
+    position : torch.Tensor, [H, 3]
+        Heliostat pivots, ENU [m].
+
+    Returns
+    -------
+    torch.Tensor, [H, 3]
+        Cylinder: ``axis_point + radius * horizontal unit vector towards the heliostat`` (clamped to the
+        segment for a partial cylinder); planar: the receiver centre. Dtype of ``position``.
+    """
+    if isinstance(receiver, PlanarTarget):
+        return receiver.center.to(position).expand_as(position).clone()
+    axis = receiver.axis_point.to(position)
+    up = receiver.up.to(position)
+    d = position - axis
+    d = d - (d * up).sum(-1, keepdim=True) * up
+    d = safe_normalize(d)
+    if receiver.opening_angle < 2 * math.pi - 1e-9:
+        n, r = receiver.normal.to(position), receiver.right.to(position)
+        ang = torch.atan2((d * r).sum(-1), (d * n).sum(-1)).clamp(-receiver.opening_angle / 2,
+                                                                   receiver.opening_angle / 2)
+        d = torch.cos(ang).unsqueeze(-1) * n + torch.sin(ang).unsqueeze(-1) * r
+    return axis + float(receiver.radius) * d
+
+
+def tracking_normals(position: torch.Tensor, aim: torch.Tensor, sun_direction: torch.Tensor) -> torch.Tensor:
+    """Ideal tracking: the mirror normal bisects the sun and the aim direction.
+
+    Parameters
+    ----------
+    position, aim : torch.Tensor, [H, 3]
+        Mirror centres and aim points, ENU [m].
+    sun_direction : torch.Tensor, [3]
+        Unit, towards the sun.
+
+    Returns
+    -------
+    torch.Tensor, [H, 3]
+        Unit normals ``normalize(s + normalize(aim - position))``.
+    """
+    return safe_normalize(sun_direction.to(position) + safe_normalize(aim - position))
+
+
+def _samples(plant: Plant, normal: torch.Tensor, per_direction: int, dtype, rows: torch.Tensor | None = None):
+    """World mirror samples [h, N, 3] (float64 points, ``dtype`` normals) and areas [h, N] of the tracked
+    heliostats ``rows`` (default all; ``normal`` [h, 3] is theirs)."""
+    sf = plant.field.surfaces
+    if rows is not None:
+        sf = replace(sf, control_points=sf.control_points[rows],
+                     weights=None if sf.weights is None else sf.weights[rows])
+    pts, nrm, area = surface_points(sf, (per_direction, per_direction))
+    ew, eh = mirror_frame(normal)
+    rot = torch.stack((ew, eh, normal), dim=-1)  # R_world_heliostat [h, 3, 3], columns = heliostat x, y, z
+    pos = plant.field.kinematics.position.to(normal)
+    pos = pos if rows is None else pos[rows]
+    pw = pos.unsqueeze(1) + pts.to(normal) @ rot.transpose(-1, -2)
+    nw = nrm.to(normal) @ rot.transpose(-1, -2)
+    return pw, nw.to(dtype), area.to(normal)
+
+
+def _pool(x: torch.Tensor, weight: torch.Tensor, facets: int, m: int, k: int) -> torch.Tensor:
+    """Weighted mean of fine-grid values [H, F*(m k)^2] over each k x k block -> [H, F*m^2]."""
+    h = x.shape[0]
+    shape = (h, facets, m, k, m, k)
+    num = (x * weight).reshape(shape).sum((3, 5))
+    den = weight.reshape(shape).sum((3, 5))
+    return (num / den.clamp_min(1e-30)).reshape(h, -1)
+
+
+def _occlusion(plant: Plant, normal, aim, sun, settings: FieldSettings, rows: torch.Tensor):
+    """Shading, blocking (pooled onto the flux samples [h, N]) and per-heliostat factors [h] of heliostats
+    ``rows``; every heliostat of the field (``normal``, ``aim`` [H, 3]) can occlude them."""
+    fl = plant.field
+    nf = fl.facets.translation.shape[1]
+    h = rows.shape[0]
+    m, k = int(settings.flux_samples), int(settings.occlusion_oversampling)
+    pw, nw, area = _samples(plant, normal[rows], m * k, normal.dtype, rows)
+    pos = fl.kinematics.position.to(normal)
+    occ = OccluderSet(pos, normal, fl.width.to(normal), fl.height.to(normal))
+    s = sun.to(normal)
+    cos_p = (nw * s).sum(-1).clamp_min(0.0)
+    lit = area * cos_p
+    idx, valid = occluder_candidates(occ, s, queries=rows)
+    free_sun = unoccluded(pw, s.expand(h, 1, 3), occ, idx, valid, softness=settings.softness, owners=rows)
+    reflected = reflect(-s.expand_as(nw), nw)
+    idx_b, valid_b = occluder_candidates(occ, safe_normalize(aim[rows] - pos[rows]), queries=rows)
+    free_rx = unoccluded(pw, reflected, occ, idx_b, valid_b, softness=settings.softness, owners=rows)
+    shading = (lit * free_sun).sum(1) / lit.sum(1).clamp_min(1e-30)
+    blocking = (lit * free_sun * free_rx).sum(1) / (lit * free_sun).sum(1).clamp_min(1e-30)
+    tower = _tower_shading(plant, pw, s, lit)
+    free = _pool(free_sun * free_rx, lit.detach() + 1e-30, nf, m, k)
+    # SolarPILOT's reading: blocking of the whole mirror's light as if it were all lit (counts the light that
+    # is both shaded and blocked twice in a product, so it is only reported, never multiplied in)
+    blocking_whole = (lit * free_rx).sum(1) / lit.sum(1).clamp_min(1e-30)
+    return shading, blocking, tower, free, blocking_whole
+
+
+def _tower_shading(plant: Plant, points, sun, lit) -> torch.Tensor:
+    """Unshaded fraction [H] by the tower: a vertical cylinder of the receiver's radius up to its top edge.
+
+    Only heliostats whose sun ray passes near the tower (a per-heliostat bounding test) are ray-tested.
+    """
+    rec = plant.targets["receiver"]
+    out = torch.ones(points.shape[0], dtype=points.dtype, device=points.device)
+    if not isinstance(rec, CylinderTarget):
+        return out
+    axis = rec.axis_point.to(points)
+    up = rec.up.to(points)
+    top = float(rec.height) / 2
+    with torch.no_grad():
+        centre = points.mean(1)
+        reach = (points - centre.unsqueeze(1)).norm(dim=-1).amax(1)
+        rel = axis - centre
+        horiz = sun - (sun @ up) * up
+        hn = horiz.norm().clamp_min(1e-12)
+        along = rel @ (horiz / hn)
+        perp = (rel - along.unsqueeze(-1) * (horiz / hn) - (rel @ up).unsqueeze(-1) * up).norm(dim=-1)
+        # height the sun ray gains before it can reach the tower wall (a lower bound)
+        rise = (along - float(rec.radius) - reach).clamp_min(0) * float(sun @ up) / float(hn)
+        near = (along > -float(rec.radius)) & (perp < float(rec.radius) + reach) & \
+            (((centre - axis) @ up) + rise - reach <= top)
+        rows = torch.nonzero(near).flatten()
+    if rows.numel() == 0:
+        return out
+    p = points[rows]
+    t, hit, _ = ray_cylinder(p, sun.expand_as(p), axis, up, float(rec.radius))
+    height = ((p + t.unsqueeze(-1) * sun - axis) * up).sum(-1)
+    shaded = hit & (height <= top)
+    frac = (lit[rows] * (~shaded)).sum(1) / lit[rows].sum(1).clamp_min(1e-30)
+    return out.index_put((rows,), frac)
+
+
+def _footprints(points, reflected, target, extent, rows, cols):
+    """Mean hits mu [1, N, 2] and Jacobians [1, N, 2, 2] in pixels, ok [1, N] (central ray lands)."""
+    u, v = orthonormal_frame(reflected)
+    if isinstance(target, PlanarTarget):
+        coef, in_front = planar_coefficients(points, reflected, u, v, target, extent, rows, cols)
+        mu, jac, ok = _projective_moments(coef)
+        return mu, jac, ok & in_front
+    if isinstance(target, CylinderTarget):
+        return _cylinder_moments(points, reflected, u, v, target, extent, rows, cols)
+    raise HeliotwinError(f"unsupported receiver type {type(target).__name__}")
+
+
+def _intercept(mu, cov, ok, target, rows, cols):
+    """Mass [N] of each footprint Gaussian on the receiver (pixel space; the bitmap covers the whole target)."""
+    sq2 = math.sqrt(2.0)
+
+    def band(m, var, n):
+        sd = torch.sqrt(var.clamp_min(1e-12)) * sq2
+        return 0.5 * (torch.erf((n - 0.5 - m) / sd) - torch.erf((-0.5 - m) / sd))
+
+    frac = band(mu[..., 1], cov[..., 1, 1], rows)
+    full = isinstance(target, CylinderTarget) and target.opening_angle >= 2 * math.pi - 1e-9
+    if not full:
+        frac = frac * band(mu[..., 0], cov[..., 0, 0], cols)
+    return torch.where(ok, frac, torch.zeros_like(frac))
+
+
+def _grouped_map(mu, cov, weights, rows, cols, groups, n_sigma):
+    """Footprints in classes of similar covariance: per class a bilinear splat convolved with its mean Gaussian."""
+    n = mu.shape[0]
+    with torch.no_grad():
+        lx, ly = torch.log(cov[:, 0, 0].clamp_min(1e-12)), torch.log(cov[:, 1, 1].clamp_min(1e-12))
+        q = torch.linspace(0, 1, groups + 1, dtype=lx.dtype, device=lx.device)[1:-1]
+        gx = torch.bucketize(lx, torch.quantile(lx, q)) if groups > 1 else torch.zeros_like(lx, dtype=torch.long)
+        gy = torch.bucketize(ly, torch.quantile(ly, q)) if groups > 1 else torch.zeros_like(ly, dtype=torch.long)
+        g = gx * groups + gy
+        ng = groups * groups
+        order = torch.argsort(g, stable=True)
+        counts = torch.bincount(g, minlength=ng)
+        start = torch.cumsum(counts, 0) - counts
+        rank = torch.arange(n, device=mu.device) - start[g[order]]
+        width = int(counts.max())
+    slot = g[order] * width + rank
+    lay_mu = mu.new_full((ng * width, 2), -1e9).index_copy(0, slot, mu[order]).view(ng, width, 2)
+    lay_w = weights.new_zeros(ng * width).index_copy(0, slot, weights[order]).view(ng, width)
+    wsum = lay_w.sum(1)
+    lay_cov = cov.new_zeros(ng * width, 2, 2).index_copy(0, slot, cov[order]).view(ng, width, 2, 2)
+    kcov = (lay_w[..., None, None] * lay_cov).sum(1) / wsum.clamp_min(1e-30)[:, None, None]
+    kcov = torch.where((wsum > 0)[:, None, None], kcov, torch.eye(2, dtype=cov.dtype, device=cov.device))
+    with torch.no_grad():
+        tr = kcov[:, 0, 0] + kcov[:, 1, 1]
+        lam = 0.5 * tr + torch.sqrt(0.25 * (kcov[:, 0, 0] - kcov[:, 1, 1]) ** 2 + kcov[:, 0, 1] ** 2)
+        half = int(min(max(rows, cols), max(1, math.ceil(n_sigma * float(lam.max().sqrt())))))
+    canvas = splat_bilinear(lay_mu[..., 0] + half, lay_mu[..., 1] + half, lay_w, rows + 2 * half, cols + 2 * half)
+    # the bilinear splat already blurs by its tent kernel (variance 1/6 px^2): take it out of the class kernel
+    eye = torch.eye(2, dtype=cov.dtype, device=cov.device)
+    with torch.no_grad():
+        lam_min = 0.5 * tr - torch.sqrt(0.25 * (kcov[:, 0, 0] - kcov[:, 1, 1]) ** 2 + kcov[:, 0, 1] ** 2)
+        sub = torch.minimum(torch.full_like(lam_min, 1.0 / 6.0), 0.9 * lam_min.clamp_min(0.0))
+    kern = _gaussian_kernels(kcov - sub[:, None, None] * eye, half)
+    return _fft_convolve(canvas, kern, half, rows, cols).sum(0)
+
+
+def _flux_map(points, nw, reflected, weights, target, settings: FieldSettings, plant: Plant, sun):
+    """Receiver map [rows, cols] [W/m^2], per-sample intercept [N], the map's extent (4,)."""
+    rows, cols = (int(x) for x in settings.resolution)
+    extent = target_extent(target, 1).to(points.device)
+    pixel_area = float((extent[0, 1] - extent[0, 0]) * (extent[0, 3] - extent[0, 2])) / (rows * cols)
+    dt = settings.dtype
+    mu, jac, ok = _footprints(points.unsqueeze(0), reflected.unsqueeze(0).to(dt), target, extent, rows, cols)
+    mu, jac, ok = mu[0], jac[0], ok[0]
+    s = plant.sun
+    var = _sunshape.second_moment(s.sunshape, sigma=float(s.sigma), radius=float(s.radius), csr=float(s.csr),
+                                  slope_error=float(s.slope_error))
+    eye = torch.eye(2, dtype=jac.dtype, device=jac.device)
+    cov = var * (jac @ jac.transpose(-1, -2))
+    cov = torch.where(ok[..., None, None], cov, eye)
+    icpt = _intercept(mu, cov, ok, target, rows, cols)
+    w = torch.where(ok, weights.to(dt) / pixel_area, torch.zeros_like(weights.to(dt)))
+    mu = torch.where(ok.unsqueeze(-1), mu, torch.full_like(mu, -1e9))
+    cov_s = cov + float(settings.smoothing) * eye
+    if settings.integrator == "mc":
+        from .montecarlo import trace_mc
+
+        img = trace_mc(points.unsqueeze(0), nw.unsqueeze(0), (weights / (_power_scale(plant, nw, sun))).unsqueeze(0),
+                       sun.unsqueeze(0), target, resolution=(rows, cols), sun=plant.sun,
+                       rays_per_point=int(settings.rays_per_point),
+                       generator=torch.Generator().manual_seed(int(settings.seed)), dtype=dt)
+        return img.bitmap[0], icpt, extent[0]
+    mode = settings.flux_mode
+    with torch.no_grad():
+        sd = torch.sqrt(torch.where(ok, cov_s[:, 0, 0].maximum(cov_s[:, 1, 1]), torch.zeros_like(cov_s[:, 0, 0])))
+        half = int(min(64, max(1, math.ceil(settings.n_sigma * float(sd.max())))))
+    if mode == "auto":
+        mode = "window" if mu.shape[0] * (2 * half + 1) ** 2 <= 2e7 else "grouped"
+    if mode == "window":
+        img = gaussian_footprints(mu, cov_s, w, rows, cols, 1, mu.shape[0], half)[0]
+    elif mode == "grouped":
+        img = _grouped_map(mu, cov_s, w, rows, cols, int(settings.groups), float(settings.n_sigma))
+    else:
+        raise HeliotwinError(f"flux_mode must be 'auto', 'window' or 'grouped', got {mode!r}")
+    return img, icpt, extent[0]
+
+
+def _power_scale(plant: Plant, nw, sun):
+    """DNI rho cos per sample: turns a sample's power back into the 'area' the Monte-Carlo tracer expects."""
+    cos = (nw * sun.to(nw)).sum(-1).clamp_min(1e-12)
+    return float(plant.sun.dni) * float(plant.sun.reflectivity) * cos
+
+
+def field_optics(plant: Plant, sun_direction: torch.Tensor, *, atmosphere: Atmosphere | None = None,
+                 aim: torch.Tensor | None = None, settings: FieldSettings | None = None,
+                 receiver: str = "receiver", heliostats: torch.Tensor | None = None) -> FieldResult:
+    """Optical efficiency of every heliostat and the receiver flux map for one sun.
+
+    Parameters
+    ----------
+    plant : Plant
+        H heliostats (``kinematics.position`` = mirror centres, ``width``/``height``, facets, surfaces), the
+        target ``receiver``, ``sun`` settings (DNI, reflectivity, sunshape, slope error).
+    sun_direction : torch.Tensor, [3]
+        Unit vector towards the sun (ENU); the sun must be above the horizon.
+    atmosphere : Atmosphere, optional
+        Default: SolarPILOT's default coefficients.
+    aim : torch.Tensor, [H, 3], optional
+        Aim points ENU [m] (default: :func:`equator_aim_points`); gradients flow to it.
+    settings : FieldSettings, optional
+    receiver : str
+        Target name.
+    heliostats : torch.Tensor, [h], long, optional
+        Trace only these heliostats (a shard, :mod:`heliotwin.distributed`); all heliostats still shade and
+        block them. The result's per-heliostat tensors are theirs and the map holds their light only.
+
+    Returns
+    -------
+    FieldResult
+    """
+    settings = settings or FieldSettings()
+    if settings.integrator not in ("gaussian", "mc"):
+        raise HeliotwinError(f"unknown field integrator {settings.integrator!r}; expected gaussian or mc")
+    target = plant.target(receiver)
+    pos = plant.field.kinematics.position
+    f64 = torch.float64  # geometry in float64; rays and maps in settings.dtype
+    pos = pos.to(f64)
+    sun = safe_normalize(torch.as_tensor(sun_direction, dtype=f64, device=pos.device).reshape(3))
+    if float(sun[2]) <= 0:
+        elevation = math.degrees(math.asin(float(sun[2])))
+        raise HeliotwinError(f"the sun is below the horizon (elevation {elevation:.2f} deg)")
+    aim = equator_aim_points(target, pos) if aim is None else aim.to(pos)
+    normal = tracking_normals(pos, aim, sun)
+    rows = torch.arange(pos.shape[0], device=pos.device) if heliostats is None else \
+        torch.as_tensor(heliostats, dtype=torch.long, device=pos.device)
+    shading, blocking, tower, free, blocking_whole = _occlusion(plant, normal, aim, sun, settings, rows)
+    aim, normal, pos = aim[rows], normal[rows], pos[rows]
+    cosine = (normal * sun).sum(-1)
+    slant = torch.linalg.vector_norm(aim - pos, dim=-1)
+    att = attenuation(slant, atmosphere)
+    m = int(settings.flux_samples)
+    pw, nw, area = _samples(plant, normal, m, settings.dtype, rows)
+    nw64 = nw.to(f64)
+    cos_p = (nw64 * sun).sum(-1).clamp_min(0.0)
+    rho, dni = float(plant.sun.reflectivity), float(plant.sun.dni)
+    # [H, N] power [W] leaving each sample towards the receiver
+    weights = dni * rho * area * cos_p * free * att.unsqueeze(1)
+    reflected = reflect(-sun.expand_as(nw64), nw64)
+    h, n = weights.shape
+    flux, icpt, extent = _flux_map(pw.reshape(h * n, 3), nw.reshape(h * n, 3), reflected.reshape(h * n, 3),
+                                   weights.reshape(-1), target, settings, plant, sun)
+    icpt = icpt.reshape(h, n).to(f64)
+    intercept = (weights * icpt).sum(1) / weights.sum(1).clamp_min(1e-30)
+    mirror_area = area.sum(1)
+    reflectance = torch.full_like(cosine, rho)
+    efficiency = cosine * shading * blocking * att * intercept * reflectance
+    return FieldResult(aim, normal, cosine, shading, tower, blocking, att, intercept, reflectance, efficiency,
+                       dni * mirror_area * efficiency, mirror_area, flux, extent, sun, dni,
+                       {"blocking_whole_mirror": blocking_whole})
+
+
+def summary(result: FieldResult, plant: Plant) -> dict:
+    """JSON-ready report: field averages (unweighted as SolarPILOT, and power-weighted), receiver figures.
+
+    The power-weighted factors chain (each weighted by the power reaching that stage), so their product is
+    the field's total efficiency ``receiver power / (DNI x mirror area)``.
+    """
+    r = result
+    a = r.mirror_area
+    unweighted = {name: float(getattr(r, name).mean()) for name in FACTORS}
+    unweighted["total"] = float(r.efficiency.mean())
+    unweighted["tower_shading"] = float(r.tower_shading.mean())
+    if "blocking_whole_mirror" in r.extras:
+        unweighted["blocking_whole_mirror"] = float(r.extras["blocking_whole_mirror"].mean())
+    stage = a.clone()
+    weighted = {}
+    for name in FACTORS:
+        f = getattr(r, name)
+        weighted[name] = float((stage * f).sum() / stage.sum().clamp_min(1e-30))
+        stage = stage * f
+    weighted["total"] = float((a * r.efficiency).sum() / a.sum())
+    peak = float(r.flux.max())
+    return {
+        "heliostats": len(plant.field.ids),
+        "sun": {"direction_enu": r.sun.tolist(),
+                "azimuth_deg_paint": math.degrees(math.atan2(float(r.sun[0]), -float(r.sun[1]))),
+                "elevation_deg": math.degrees(math.asin(float(r.sun[2])))},
+        "dni_w_m2": r.dni,
+        "mirror_area_m2": float(a.sum()),
+        "field": {"efficiency": unweighted, "efficiency_power_weighted": weighted},
+        "receiver": {"power_w": float(r.power_w.sum()), "peak_flux_w_m2": peak,
+                     "map_power_w": float(r.flux.sum()) * r.pixel_area,
+                     "map_shape": list(r.flux.shape), "cell_m": [(float(r.extent[1] - r.extent[0])) / r.flux.shape[1],
+                                                                 (float(r.extent[3] - r.extent[2])) / r.flux.shape[0]]},
+    }
+
+
+def per_heliostat_rows(result: FieldResult, plant: Plant) -> list[dict]:
+    """One dict per heliostat with the CSV columns ``id,x,y,z,aim_x,aim_y,aim_z,efficiency,<factors>,power_w``."""
+    pos = plant.field.kinematics.position.detach().to(torch.float64)
+    aim = result.aim.detach().to(torch.float64)
+    cols = {name: getattr(result, name).detach().tolist() for name in ("efficiency",) + FACTORS + ("power_w",)}
+    rows = []
+    for i, hid in enumerate(plant.field.ids):
+        row = {"id": hid, "x": float(pos[i, 0]), "y": float(pos[i, 1]), "z": float(pos[i, 2]),
+               "aim_x": float(aim[i, 0]), "aim_y": float(aim[i, 1]), "aim_z": float(aim[i, 2])}
+        row.update({k: v[i] for k, v in cols.items()})
+        rows.append(row)
+    return rows

@@ -1,0 +1,251 @@
+"""Shading and blocking between heliostats: rays from mirror points against neighbouring mirror rectangles.
+
+A point of a mirror is *shaded* when the ray from it towards the sun meets another heliostat, and its
+reflected light is *blocked* when the reflected ray meets another heliostat on its way to the receiver.
+Every heliostat is an occluder rectangle (its overall ``width`` x ``height``, centred at its pivot, in its
+mirror plane); a ray ``o + t d`` is stopped by rectangle ``k`` when ``t > 0`` and its crossing of the plane
+lies inside the rectangle.
+
+Occluder candidates come from a uniform 2-D grid over east/north (:func:`occluder_candidates`): a heliostat
+can only be stopped by heliostats inside the corridor its rays sweep before they rise above the tallest
+mirror, so each heliostat looks up the grid cells along that corridor (a fixed number of cells per
+heliostat), keeps the candidates whose bounding spheres reach its rays, and only those are ray-tested.
+The cost is about linear in the number of heliostats; there is no all-pairs test.
+
+Two tests share the geometry:
+
+* hard (:func:`unoccluded`, ``softness=None``): the exact indicator, for reporting;
+* smooth (``softness=tau`` [m]): the indicator's three conditions become logistic steps of width ``tau``
+  (``sigmoid((w/2 - |u|) / tau) sigmoid((h/2 - |v|) / tau) sigmoid(t / tau)``) and the union over
+  occluders is ``1 - prod_k (1 - stop_k)``; differentiable in every position, normal and direction, and
+  equal to the hard test as ``tau -> 0``.
+
+Shapes: H heliostats, P points per heliostat, K candidates per heliostat. Units: metres.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from ..geometry import safe_normalize
+
+__all__ = ["mirror_frame", "occluder_candidates", "unoccluded", "OccluderSet"]
+
+
+def mirror_frame(normal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """In-plane axes of azimuth-elevation tracked mirrors: the width edge stays horizontal.
+
+    Parameters
+    ----------
+    normal : torch.Tensor, [..., 3]
+        Unit mirror normals (ENU).
+
+    Returns
+    -------
+    width_axis, height_axis : torch.Tensor, [..., 3]
+        ``normalize(e_up x normal)`` (east for a mirror facing the zenith or straight south) and
+        ``normal x width_axis``. Together with ``normal`` they form ``R_world_heliostat``'s columns.
+    """
+    up = torch.zeros_like(normal)
+    up[..., 2] = 1.0
+    w = torch.linalg.cross(up, normal, dim=-1)
+    flat = (w * w).sum(-1, keepdim=True) < 1e-18
+    east = torch.zeros_like(normal)
+    east[..., 0] = 1.0
+    w = torch.where(flat, east, safe_normalize(w))
+    return w, torch.linalg.cross(normal, w, dim=-1)
+
+
+class OccluderSet:
+    """The field's heliostats as occluder rectangles.
+
+    Parameters
+    ----------
+    center : torch.Tensor, [H, 3]
+        Rectangle centres (pivots), ENU [m].
+    normal : torch.Tensor, [H, 3]
+        Unit mirror normals.
+    width, height : torch.Tensor, [H]
+        Full rectangle sizes [m] (along :func:`mirror_frame`'s width / height axes).
+    """
+
+    def __init__(self, center, normal, width, height):
+        self.center, self.normal = center, normal
+        self.width_axis, self.height_axis = mirror_frame(normal)
+        self.half_width, self.half_height = 0.5 * width, 0.5 * height
+
+    @property
+    def radius(self) -> torch.Tensor:
+        """Bounding-sphere radius [H] [m] (half diagonal)."""
+        return torch.sqrt(self.half_width ** 2 + self.half_height ** 2)
+
+
+def _grid_table(xy: torch.Tensor, cell: float):
+    """Heliostats binned in square cells: (origin, shape (nx, ny), table [nx*ny, M] of indices or -1)."""
+    lo = xy.min(0).values - cell
+    ij = torch.floor((xy - lo) / cell).long()
+    nx, ny = int(ij[:, 0].max()) + 2, int(ij[:, 1].max()) + 2
+    cid = ij[:, 0] * ny + ij[:, 1]
+    order = torch.argsort(cid, stable=True)
+    sorted_cid = cid[order]
+    counts = torch.bincount(sorted_cid, minlength=nx * ny)
+    start = torch.cumsum(counts, 0) - counts
+    rank = torch.arange(len(order), device=xy.device) - start[sorted_cid]
+    m = int(counts.max())
+    table = torch.full((nx * ny, m), -1, dtype=torch.long, device=xy.device)
+    table[sorted_cid, rank] = order
+    return lo, (nx, ny), table
+
+
+def occluder_candidates(occluders: OccluderSet, direction: torch.Tensor, *, max_rise: float | None = None,
+                        angular_margin: float = 0.02, queries: torch.Tensor | None = None
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Heliostats that may stop rays leaving each heliostat along (about) ``direction``; spatial-grid lookup.
+
+    Parameters
+    ----------
+    occluders : OccluderSet
+        H heliostats.
+    direction : torch.Tensor, [Q, 3] or [3]
+        Representative unit ray direction per querying heliostat (towards the sun; towards the aim point). Rays of
+        the heliostat's points may deviate from it by ``angular_margin`` [rad] (canting, slope).
+    max_rise : float, optional
+        Height [m] the rays must climb above their start before no mirror can stop them; default: the
+        field's pivot height range plus two bounding radii.
+    angular_margin : float
+        [rad], widens the corridor with distance.
+    queries : torch.Tensor, [Q], long, optional
+        The heliostats whose rays are tested (default all H; a shard of the field in
+        :mod:`heliotwin.distributed`); every heliostat of ``occluders`` can stop them.
+
+    Returns
+    -------
+    index : torch.Tensor, [Q, K], long
+        Candidate occluders (K = the largest count over heliostats; padded with 0).
+    valid : torch.Tensor, [Q, K], bool
+        False for padding. A heliostat is never its own candidate.
+    """
+    c = occluders.center.detach().to(torch.float64)
+    if queries is None:
+        queries = torch.arange(c.shape[0], device=c.device)
+    own_index = queries.to(c.device)
+    h = own_index.shape[0]
+    d = safe_normalize(direction.detach().to(torch.float64).expand(h, 3))
+    rad_all = occluders.radius.detach().to(torch.float64)
+    rad = rad_all[own_index]
+    r_max = float(rad_all.max())
+    if max_rise is None:
+        max_rise = float(c[:, 2].max() - c[:, 2].min()) + 2.0 * r_max
+    horiz = torch.linalg.vector_norm(d[:, :2], dim=-1).clamp_min(1e-12)
+    tan_el = d[:, 2] / horiz
+    # Horizontal distance after which the rays are above every mirror (rays going down: the whole field).
+    reach = torch.where(tan_el > 1e-3, max_rise / tan_el.clamp_min(1e-3), torch.full_like(tan_el, 1e4)) + 2 * r_max
+    reach = torch.minimum(reach, torch.full_like(reach, 1e4))
+    half_corridor = 2.0 * r_max + angular_margin * float(reach.max())
+    cell = max(half_corridor / 0.85, 1e-3)  # 3x3 cells around a corridor sample cover the corridor's width
+    lo, (nx, ny), table = _grid_table(c[:, :2], cell)
+    steps = int(math.ceil(float(reach.max()) / cell)) + 1
+    dxy = d[:, :2] / horiz.unsqueeze(-1)
+    along = torch.arange(steps, dtype=torch.float64, device=c.device) * cell
+    along = torch.minimum(along.unsqueeze(0), reach.unsqueeze(1))  # [H, S]
+    q = c[own_index, None, :2] + along.unsqueeze(-1) * dxy.unsqueeze(1)  # corridor samples [Q, S, 2]
+    qi = torch.floor((q - lo) / cell).long()
+    off = torch.tensor([(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1)], device=c.device)
+    cells = qi.unsqueeze(2) + off  # [H, S, 9, 2]
+    inside = (cells[..., 0] >= 0) & (cells[..., 0] < nx) & (cells[..., 1] >= 0) & (cells[..., 1] < ny)
+    cid = (cells[..., 0].clamp(0, nx - 1) * ny + cells[..., 1].clamp(0, ny - 1)).reshape(h, -1)
+    cand = torch.where(inside.reshape(h, -1).unsqueeze(-1), table[cid], torch.full_like(table[cid], -1))
+    cand = cand.reshape(h, -1)
+    # Unique per row: sort, drop repeats, drop self and padding.
+    cand, _ = torch.sort(cand, dim=1)
+    repeat = torch.zeros_like(cand, dtype=torch.bool)
+    repeat[:, 1:] = cand[:, 1:] == cand[:, :-1]
+    own = cand == own_index.unsqueeze(1)
+    keep = (cand >= 0) & ~repeat & ~own
+    # Conservative sphere test: the occluder's bounding sphere reaches the ray bundle (a cylinder about the
+    # central ray, widened by the angular margin) ahead of the heliostat.
+    safe = cand.clamp_min(0)
+    rel = c[safe] - c[own_index].unsqueeze(1)  # [Q, C, 3]
+    t = (rel * d.unsqueeze(1)).sum(-1)
+    perp = torch.linalg.vector_norm(rel - t.unsqueeze(-1) * d.unsqueeze(1), dim=-1)
+    reach_r = rad.unsqueeze(1) + rad_all[safe] + angular_margin * t.abs()
+    keep = keep & (perp <= reach_r) & (t >= -(rad.unsqueeze(1) + rad_all[safe]))
+    k = max(int(keep.sum(1).max()) if h else 0, 1)
+    order = torch.argsort((~keep).to(torch.int8), dim=1, stable=True)[:, :k]
+    index = torch.gather(cand, 1, order).clamp_min(0)
+    valid = torch.gather(keep, 1, order)
+    return index, valid
+
+
+def unoccluded(origins: torch.Tensor, directions: torch.Tensor, occluders: OccluderSet, index: torch.Tensor,
+               valid: torch.Tensor, *, softness: float | None = None, eps: float = 1e-6,
+               max_tests_per_chunk: int = 2 ** 22, owners: torch.Tensor | None = None) -> torch.Tensor:
+    """Fraction of each ray that no candidate occluder stops (1 = free, 0 = stopped).
+
+    Parameters
+    ----------
+    origins : torch.Tensor, [H, P, 3]
+        Ray origins on heliostat h's mirror, ENU [m].
+    directions : torch.Tensor, [H, P, 3] or [H, 1, 3]
+        Unit ray directions.
+    occluders : OccluderSet
+        All heliostats (H rectangles).
+    index, valid : torch.Tensor, [H, K]
+        From :func:`occluder_candidates`.
+    softness : float, optional
+        None: the exact (hard) test, a 0/1 float. A length [m]: the smooth test (module docstring).
+    eps : float
+        Minimum ray parameter [m] of a hit (a ray never stops on its own start point).
+    max_tests_per_chunk : int
+        Memory bound: rays x candidates per chunk of heliostats.
+    owners : torch.Tensor, [H_rays], long, optional
+        Which heliostat each row of ``origins`` belongs to (default: row i = heliostat i).
+
+    Returns
+    -------
+    torch.Tensor, [H, P]
+        Unoccluded fraction, dtype of ``origins``; differentiable with ``softness``.
+    """
+    h, p = origins.shape[:2]
+    owners = torch.arange(h, device=origins.device) if owners is None else owners
+    k = index.shape[1]
+    step = max(1, int(max_tests_per_chunk) // max(1, p * k))
+    out = []
+    for s0 in range(0, h, step):
+        sl = slice(s0, min(h, s0 + step))
+        out.append(_unoccluded_chunk(origins[sl], directions[sl], occluders, index[sl], valid[sl], owners[sl],
+                                     softness, eps))
+    return torch.cat(out, 0)
+
+
+def _unoccluded_chunk(o, d, occ: OccluderSet, idx, valid, own, softness, eps):
+    # Work relative to the own pivot (small numbers in any precision); every dot product with the candidates'
+    # three axes (normal, width, height) is one batched matrix product, never a [h, P, K, 3] tensor.
+    dt = o.dtype if softness is not None else torch.float32  # the hard test is a 0/1 decision: rays precision
+    base = occ.center[own].unsqueeze(1)
+    c = (occ.center[idx] - base).to(dt)  # [h, K, 3]
+    axes = torch.stack((occ.normal[idx], occ.width_axis[idx], occ.height_axis[idx]), dim=2).to(dt)  # [h, K, 3, 3]
+    hk = axes.shape[:2]
+    flat = axes.reshape(hk[0], hk[1] * 3, 3)  # [h, 3K, 3]
+    c_ax = (axes * c.unsqueeze(2)).sum(-1)  # [h, K, 3]: c . (n, ew, eh)
+    o_ax = torch.bmm((o - base).to(dt), flat.transpose(1, 2)).view(o.shape[0], o.shape[1], hk[1], 3)
+    d = d.to(dt).expand(o.shape[0], o.shape[1], 3) if d.shape[1] == 1 else d.to(dt)
+    d_ax = torch.bmm(d, flat.transpose(1, 2)).view(o.shape[0], o.shape[1], hk[1], 3)
+    w_ax = c_ax.unsqueeze(1) - o_ax  # (c - o) . axis, [h, P, K, 3]
+    denom = d_ax[..., 0]
+    ok = denom.abs() > 1e-9
+    t = w_ax[..., 0] / torch.where(ok, denom, torch.ones_like(denom))
+    # in-plane coordinates of the crossing relative to the occluder centre: (o + t d - c) . axis
+    u = t * d_ax[..., 1] - w_ax[..., 1]
+    v = t * d_ax[..., 2] - w_ax[..., 2]
+    hw = occ.half_width[idx].unsqueeze(1).to(dt)
+    hh = occ.half_height[idx].unsqueeze(1).to(dt)
+    mask = valid.unsqueeze(1) & ok
+    if softness is None:
+        stop = (t > eps) & (u.abs() <= hw) & (v.abs() <= hh) & mask
+        return (~stop.any(-1)).to(o.dtype)
+    tau = float(softness)
+    stop = torch.sigmoid((hw - u.abs()) / tau) * torch.sigmoid((hh - v.abs()) / tau) * torch.sigmoid((t - eps) / tau)
+    stop = torch.where(mask, stop, torch.zeros_like(stop))
+    return torch.prod(1.0 - stop, dim=-1)
