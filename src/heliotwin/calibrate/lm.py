@@ -45,7 +45,8 @@ def record_jacobian(nominal_per_record: Kinematics, batch: RecordTable, delta_re
 def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma: dict | None = None,
            prior_mean: torch.Tensor | None = None, noise: float = NOISE, max_nfev: int = 200,
            loss: str = "linear", f_scale: float = 2e-3,
-           prior_sigma_vector: torch.Tensor | None = None) -> tuple[torch.Tensor, dict]:
+           prior_sigma_vector: torch.Tensor | None = None,
+           prior_whitening: torch.Tensor | None = None) -> tuple[torch.Tensor, dict]:
     """Fit deviations of every heliostat in ``batch`` by Levenberg-Marquardt.
 
     Parameters
@@ -64,6 +65,10 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
         Prior centre (default zero = nominal).
     noise : float
         Measurement noise per record [rad] that the prior is weighed against.
+    prior_whitening : torch.Tensor, [P, P] or [H, P, P], optional
+        A full-covariance Gaussian prior (e.g. :class:`~heliotwin.calibrate.priors.PlantPrior`): ``W`` with
+        ``W^T W`` = the prior's inverse covariance; the prior term is ``|W (delta - mean)|^2``. Replaces
+        ``prior_sigma`` / ``prior_sigma_vector`` when given.
 
     Returns
     -------
@@ -83,6 +88,10 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
     if na == 0 or len(batch) == 0:
         return torch.zeros(h, p, dtype=torch.float64), {"nfev": 0, "status": 0, "message": "no records", "cost": 0.0}
     prior_cols = (torch.isfinite(sig_vec) & (sig_vec > 0)).nonzero().flatten()
+    if prior_whitening is not None:
+        w = prior_whitening.detach().double()
+        sig_vec = w.expand(h, p, p).clone()  # per-heliostat whitening replaces the diagonal prior
+        prior_cols = torch.arange(p)
 
     def unpack(x):
         full = torch.zeros(h, p, dtype=torch.float64)
@@ -127,7 +136,7 @@ def _stacked_problem(nominal, batch, names, unpack, active, scale, mean, sig_vec
     rows_idx = torch.arange(r_rows)
     col_of = torch.full((h,), -1, dtype=torch.long)
     col_of[active] = torch.arange(na)
-    inv_sig = (noise / sig_vec) * scale  # prior residual per natural unit
+    inv_sig = (noise / sig_vec) * scale if sig_vec.dim() == 1 else None  # prior residual per natural unit
 
     def fun_and_jac(x):
         delta = unpack(x)
@@ -138,7 +147,15 @@ def _stacked_problem(nominal, batch, names, unpack, active, scale, mean, sig_vec
         J[rows_idx, :, col_of[hidx], :] = jac
         J = J.reshape(r_rows * 3, na * p)
         res = res.reshape(-1)
-        if len(prior_cols):
+        if sig_vec.dim() == 3:  # full covariance: noise * W_h (delta_h - mean_h), block diagonal Jacobian
+            w = sig_vec[active]  # [na, P, P]
+            z = noise * torch.einsum("hij,hj->hi", w, delta[active] - mean[active])
+            Jp = torch.zeros(na, p, na, p, dtype=torch.float64)
+            ar = torch.arange(na)
+            Jp[ar, :, ar, :] = noise * w * scale
+            res = torch.cat([res, z.reshape(-1)])
+            J = torch.cat([J, Jp.reshape(na * p, na * p)])
+        elif len(prior_cols):
             z = noise * (delta[active] - mean[active]) / sig_vec  # [na, P]
             pr = z[:, prior_cols].reshape(-1)
             Jp = torch.zeros(na, len(prior_cols), na, p, dtype=torch.float64)
@@ -197,6 +214,18 @@ def stone8_field_fit(nominal: Kinematics, batch: RecordTable, usable: torch.Tens
     return delta, fp
 
 
+def stone8_plant_fit(nominal: Kinematics, batch: RecordTable, prior: priors.PlantPrior, *, loss: str = LM_LOSS,
+                     f_scale: float = LM_F_SCALE) -> torch.Tensor:
+    """LM on the Stone/Jülich 8 with a plant prior (mean + covariance learned from other heliostats), [H, 8].
+
+    One pass: the prior does not depend on the run's records, so there is no loose first pass to make.
+    """
+    mean = prior.mean.double().expand(nominal.num_heliostats, len(STONE8)).clone()
+    delta, _ = fit_lm(nominal, batch, names=STONE8, prior_mean=mean, prior_whitening=prior.whitening(), loss=loss,
+                      f_scale=f_scale)
+    return delta
+
+
 def bagged(fit_one, batch: RecordTable, bags: int, seed: int):
     """Average of ``fit_one(resampled batch)`` [H, P] over bootstrap resamples of every heliostat's records.
 
@@ -224,7 +253,8 @@ def field_prior_extras(fp) -> dict | None:
 
 
 def fit_lm_method(nominal, train, validation, *, seed=0, progress=False, field_prior=True,
-                  fit_focal_spot=FIT_FOCAL_SPOT, loss=LM_LOSS, f_scale=LM_F_SCALE, bags=LM_BAGS) -> Calibrated:
+                  fit_focal_spot=FIT_FOCAL_SPOT, loss=LM_LOSS, f_scale=LM_F_SCALE, bags=LM_BAGS,
+                  plant_prior: priors.PlantPrior | None = None) -> Calibrated:
     """``lm``: the Stone/Jülich 8 by Levenberg-Marquardt on every record it may see (train + validation).
 
     LM has no iteration count to stop early, so the validation records are used for fitting too (they
@@ -232,13 +262,25 @@ def fit_lm_method(nominal, train, validation, *, seed=0, progress=False, field_p
     :data:`~heliotwin.calibrate.inputs.FIT_FOCAL_SPOT` centroids with the robust :data:`LM_LOSS`, averaged
     over :data:`LM_BAGS` bootstrap resamples (bagging: with 10 records one outlier or one unlucky sun
     position otherwise decides the extrapolation).
+
+    With ``plant_prior`` (:class:`~heliotwin.calibrate.priors.PlantPrior`, learned from *other* heliostats;
+    see :mod:`.archive`) the field prior of the run's own training records is replaced by it.
     """
     seen = RecordTable.concatenate([train, validation]) if validation is not None and len(validation) else train
     ok = trainable(seen)
     fit_on = fit_spots(seen.subset(ok[seen.heliostat_index]), fit_focal_spot)
-    delta, fp = bagged(lambda b: stone8_field_fit(nominal, b, ok, field_prior=field_prior, loss=loss, f_scale=f_scale),
-                       fit_on, bags, seed)
+    if plant_prior is not None:
+        delta, fp = bagged(lambda b: (stone8_plant_fit(nominal, b, plant_prior, loss=loss, f_scale=f_scale), None),
+                           fit_on, bags, seed)
+    else:
+        delta, fp = bagged(lambda b: stone8_field_fit(nominal, b, ok, field_prior=field_prior, loss=loss,
+                                                      f_scale=f_scale), fit_on, bags, seed)
     delta[~ok] = 0.0
     extras = {"field_prior": field_prior_extras(fp),
-              "summary": {"bags": bags, "fit_focal_spot": fit_focal_spot, "loss": loss}}
+              "summary": {"bags": bags, "fit_focal_spot": fit_focal_spot, "loss": loss,
+                          "prior": "plant" if plant_prior is not None else ("field" if fp is not None else "nominal")}}
+    if plant_prior is not None:
+        extras["plant_prior"] = plant_prior
+        extras["summary"]["prior_heliostats"] = list(plant_prior.heliostats)
+        extras["summary"]["prior_settings"] = dict(plant_prior.settings)
     return Calibrated("lm", list(train.heliostat_ids), nominal, STONE8, delta, ok, extras=extras)

@@ -4,7 +4,8 @@
 runs, in order, on one :class:`Run` state: ``select`` (heliostats asked for), ``prepare`` (validated
 records; heliostats with too few are skipped), ``rebatch`` (the run's heliostat axis), ``split``
 (train/validation/test), ``check_properties`` (suspicious property values, corrected where the training
-records support it), ``fit`` (the method), ``evaluate`` (pointing error and miss distance of calibrated
+records support it), ``learn_prior`` (a plant prior from other heliostats, when asked for), ``fit`` (the
+method), ``evaluate`` (pointing error and miss distance of calibrated
 and nominal model), ``report_heliostats``, ``report_overall`` and ``plot_arrays``. Every heliostat or
 record that cannot be used is reported with a reason, never dropped silently.
 
@@ -51,6 +52,20 @@ class RunConfig:
     correct_suspicious: bool = True
     progress: bool = False
     method_options: dict = field(default_factory=dict)
+    #: ``"run"``: the method's own prior (lm: field prior of the run's training records); ``"plant"``: a plant
+    #: prior learned from the heliostats of the PAINT folder that are NOT calibrated (see :mod:`.archive`).
+    prior: str = "run"
+    #: ``--prior-from``: a PAINT folder or scenario path, or an already built
+    #: :class:`~heliotwin.calibrate.archive.PriorArchive` / :class:`~heliotwin.calibrate.priors.PlantPrior`;
+    #: implies ``prior="plant"``.
+    prior_from: object = None
+    #: Settings of the plant prior (:meth:`~heliotwin.calibrate.archive.PriorArchive.prior`).
+    prior_options: dict = field(default_factory=dict)
+    #: Heliostats that must not enter the plant prior besides the calibrated ones (cross-validation folds).
+    prior_exclude: list = field(default_factory=list)
+
+    def uses_plant_prior(self) -> bool:
+        return self.prior == "plant" or self.prior_from is not None
 
     def n_validation(self) -> int:
         """Validation records carved out of ``train``: default 20 % (at least 2 when train >= 8, else 0)."""
@@ -74,6 +89,11 @@ def validate_config(cfg: RunConfig) -> None:
         raise HeliotwinError(f"--test must be >= 1, got {cfg.test}")
     if cfg.min_records < 0:
         raise HeliotwinError(f"--min-records must be >= 0, got {cfg.min_records}")
+    if cfg.prior not in ("run", "plant"):
+        raise HeliotwinError(f"--prior must be 'run' or 'plant', got {cfg.prior!r}")
+    if cfg.uses_plant_prior() and cfg.method != "lm":
+        raise HeliotwinError(f"a plant prior (--prior-from / --prior plant) is implemented for --method lm only, "
+                             f"not {cfg.method}")
 
 
 def _median(xs):
@@ -112,6 +132,7 @@ class Run:
     model: Calibrated | None = None
     fit_seconds: float = 0.0
     errors: dict = field(default_factory=dict)
+    plant_prior: object = None
 
     @property
     def parts(self) -> dict:
@@ -149,6 +170,8 @@ def prepare(run: Run) -> None:
             run.run_ids.append(hid)
     config = {k: v for k, v in cfg.__dict__.items() if k not in ("progress",)}
     config["paint"] = os.fspath(cfg.paint)
+    pf = cfg.prior_from
+    config["prior_from"] = pf if pf is None or isinstance(pf, str) else (getattr(pf, "source", "") or type(pf).__name__)
     config["validation"] = cfg.n_validation()
     run.report = {"config": config, "skipped_records": run.skipped_records,
                   "heliostats": {hid: {"status": "skipped", "reason": r} for hid, r in run.skipped_heliostats.items()}}
@@ -190,6 +213,24 @@ def check_properties(run: Run) -> None:
         run.nominal, run.findings = run.nominal_raw, {}
 
 
+def learn_prior(run: Run) -> None:
+    """The plant prior of a run that asks for one, from heliostats that are neither calibrated nor tested.
+
+    Leakage rule (:mod:`.archive`): the run's heliostats (and ``prior_exclude``) never enter the prior.
+    """
+    from .archive import PriorArchive, load_prior_source, resolve_prior
+
+    cfg = run.cfg
+    if not cfg.uses_plant_prior():
+        return
+    source = cfg.prior_from
+    if source is None:
+        source = PriorArchive.from_dataset(run.dataset, focal_spot=cfg.focal_spot, source=os.fspath(cfg.paint))
+    elif isinstance(source, (str, os.PathLike)):
+        source = load_prior_source(os.fspath(source), cfg.plane_tolerance)
+    run.plant_prior = resolve_prior(source, list(run.run_ids) + list(cfg.prior_exclude), settings=cfg.prior_options)
+
+
 def _image_context(ds, run_ids) -> dict:
     """What the ``images`` method needs beyond records: flux-image paths, surfaces, targets, sun."""
     from ..field.plant import Surfaces
@@ -211,6 +252,8 @@ def fit(run: Run) -> None:
     options = dict(cfg.method_options)
     if cfg.method == "images":
         options.update(_image_context(run.dataset, run.run_ids))
+    if run.plant_prior is not None:
+        options["plant_prior"] = run.plant_prior
     t_fit = time.perf_counter()
     run.model = get_method(cfg.method)(run.nominal, run.train, run.validation, seed=cfg.seed, progress=cfg.progress,
                                        **options)
@@ -315,7 +358,7 @@ def plot_arrays(run: Run) -> None:
 
 #: The steps of :func:`run_calibration`, in order (name, function of :class:`Run`).
 STEPS = (("select", select), ("prepare", prepare), ("rebatch", rebatch), ("split", split),
-         ("check_properties", check_properties), ("fit", fit), ("evaluate", evaluate),
+         ("check_properties", check_properties), ("learn_prior", learn_prior), ("fit", fit), ("evaluate", evaluate),
          ("report_heliostats", report_heliostats), ("report_overall", report_overall),
          ("report_records", report_records), ("plot_arrays", plot_arrays))
 

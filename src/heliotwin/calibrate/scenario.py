@@ -16,6 +16,7 @@ import torch
 from ..errors import HeliotwinError, InputFileError
 from ..field.plant import Kinematics, Plant
 from ..field.update import with_kinematics
+from .priors import PlantPrior
 
 #: The key of a calibration under ``Scenario.learned``.
 KEY = "calibration"
@@ -30,8 +31,11 @@ def calibration_state(model, *, focal_spot: str = "", prior=None) -> dict:
         H heliostats, ``ok`` [H] says which were calibrated.
     focal_spot : str
         Centroid source the method was scored on.
-    prior : (torch.Tensor [P], torch.Tensor [P]) or None
-        Field prior mean and standard deviation over ``model.names`` (rad, m, relative), when one was used.
+    prior : (torch.Tensor [P], torch.Tensor [P]) or PlantPrior or None
+        Field prior mean and standard deviation over ``model.names`` (rad, m, relative), when one was used, or
+        a plant prior (:class:`~heliotwin.calibrate.priors.PlantPrior`: mean, sigma, covariance [P, P] and the
+        heliostats it was learned from). A field prior of the run's own records lists the calibrated
+        heliostats as its sources (so ``--prior-from`` refuses it for them).
 
     Returns
     -------
@@ -49,9 +53,11 @@ def calibration_state(model, *, focal_spot: str = "", prior=None) -> dict:
         state["networks"] = {hid: {"config": json.dumps(net["config"]),
                                    "state": {k: v.detach().cpu() for k, v in net["state"].items()}}
                              for hid, net in networks.items() if hid in ids}
-    if prior is not None:
+    if isinstance(prior, PlantPrior):
+        state["prior"] = prior.state()
+    elif prior is not None:
         state["prior"] = {"names": [str(n) for n in model.names], "mean": torch.as_tensor(prior[0]).double(),
-                          "sigma": torch.as_tensor(prior[1]).double()}
+                          "sigma": torch.as_tensor(prior[1]).double(), "heliostats": list(ids)}
     return state
 
 
@@ -87,8 +93,8 @@ def save_calibration(path, plant: Plant, model, *, previous=None, focal_spot: st
     """
     from ..io.scenario import provenance_entry, save_step
 
-    prior = model.extras.get("field_prior")
-    prior = (prior["mean"], prior["sigma"]) if isinstance(prior, dict) and "mean" in prior else None
+    prior = model.extras.get("plant_prior") or model.extras.get("field_prior")
+    prior = (prior["mean"], prior["sigma"]) if isinstance(prior, dict) and "mean" in prior else prior
     learned = dict(previous.learned) if previous is not None else {}
     learned[KEY] = calibration_state(model, focal_spot=focal_spot, prior=prior)
     step = provenance_entry("calibrate", method=str(model.method), source=str(source), records=records or {},

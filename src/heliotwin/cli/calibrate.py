@@ -56,6 +56,12 @@ def register(subparsers) -> None:
     p.add_argument("--keep-suspicious", action="store_true",
                    help="report suspicious property values but never replace them")
     p.add_argument("--progress", action="store_true", help="show progress bars")
+    p.add_argument("--prior", choices=("run", "plant"), default="run",
+                   help="lm prior: 'run' = field prior of the run's training records (default), 'plant' = learned "
+                        "from the PAINT folder's heliostats that are not calibrated")
+    p.add_argument("--prior-from", metavar="ARCHIVE",
+                   help="lm plant prior from ARCHIVE: a PAINT folder of the same plant (its heliostats that this run "
+                        "calibrates are excluded) or a scenario holding a prior learned from other heliostats")
     p.set_defaults(func=cmd_calibrate)
 
     p = subparsers.add_parser("split", help="write a train/validation/test split and its coverage metrics",
@@ -85,7 +91,8 @@ def _config(args, method="lm"):
                     min_records=args.min_records, focal_spot=args.focal_spot, seed=args.seed,
                     plane_tolerance=getattr(args, "plane_tolerance", 0.1),
                     correct_suspicious=not getattr(args, "keep_suspicious", False),
-                    progress=getattr(args, "progress", False))
+                    progress=getattr(args, "progress", False), prior=getattr(args, "prior", "run"),
+                    prior_from=getattr(args, "prior_from", None))
     validate_config(cfg)
     return cfg
 
