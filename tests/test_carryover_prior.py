@@ -104,6 +104,15 @@ def test_cli_prior_from_paint_and_scenario(paint_dir, tmp_path, capsys):
     for hid in ("AK32", "BE36"):
         r = rep["heliostats"][hid]
         assert r["mean_test_mrad"] < 3.0 and r["mean_test_mrad"] < r["nominal_mean_test_mrad"] / 5, r
+        # the predictive error is of the size of the measured one, and most test records lie in its interval
+        assert 0.3 < r["expected_test_mrad"] / r["mean_test_mrad"] < 3.0 and r["interval_90_coverage"] >= 0.5, r
+    assert 0.5 <= rep["overall"]["interval_90_coverage"] <= 1.0
+    aj = tmp_path / "aim.json"
+    code, out, err = run_cli(capsys, "aim", "--scenario", h5, "--heliostat", "AK32", "--sun-azimuth", "20",
+                             "--sun-elevation", "35", "--aim", "0,-3.24,40", "--json", aj)
+    ans = json.loads(aj.read_text())
+    assert code == 0 and "expected pointing error" in out
+    assert 0.2 < ans["expected_error_mrad"] < ans["error_interval_90_mrad"][1] < 10.0
     # the stored prior is reusable for other heliostats, refused for the ones it was learned from
     code, out, err = run_cli(capsys, "calibrate", "--paint", paint_dir, "--heliostats", "AK32", "--train", "30",
                              "--test", "30", "--prior-from", h5, "--json", js, "--no-plots")

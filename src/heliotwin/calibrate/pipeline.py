@@ -6,7 +6,8 @@ records; heliostats with too few are skipped), ``rebatch`` (the run's heliostat 
 (train/validation/test), ``check_properties`` (suspicious property values, corrected where the training
 records support it), ``learn_prior`` (a plant prior from other heliostats, when asked for), ``fit`` (the
 method), ``evaluate`` (pointing error and miss distance of calibrated
-and nominal model), ``report_heliostats``, ``report_overall`` and ``plot_arrays``. Every heliostat or
+and nominal model), ``predict_intervals`` (predictive error and its 90 % interval per test record, for
+methods with a posterior), ``report_heliostats``, ``report_overall`` and ``plot_arrays``. Every heliostat or
 record that cannot be used is reported with a reason, never dropped silently.
 
 Report keys mean one thing each: per heliostat, ``mean_test_mrad``/``median_test_mrad`` are the mean and
@@ -133,6 +134,8 @@ class Run:
     fit_seconds: float = 0.0
     errors: dict = field(default_factory=dict)
     plant_prior: object = None
+    intervals: dict = field(default_factory=dict)
+    interval_inputs: dict = field(default_factory=dict)
 
     @property
     def parts(self) -> dict:
@@ -275,6 +278,31 @@ def evaluate(run: Run) -> None:
         run.errors["nominal_test"] = of(nominal_model(run.run_ids, run.nominal_raw), run.test)
 
 
+def predict_intervals(run: Run) -> None:
+    """Predictive pointing error of every test record from the model's Laplace posterior (when it has one):
+    ``run.intervals`` = {"expected", "median", "lower", "upper"} [R] (rad, interval ``[0, q_0.9]``),
+    "inside" [R] bool."""
+    post = run.model.extras.get("posterior")
+    test = run.test
+    if not post or test is None or len(test) == 0:
+        return
+    from .lm import record_jacobian
+    from .uncertainty import predictive
+
+    model, hidx = run.model, test.heliostat_index
+    _, jac = record_jacobian(model.nominal.index(hidx), test, model.delta.detach()[hidx], model.names)
+    normal, _ = model.normals(test)
+    err = run.errors["test"][0].double()
+    keep = model.ok[hidx]
+    run.interval_inputs = {"jacobian": jac[keep], "normal": normal.detach()[keep],
+                           "covariance": post["covariance"][hidx][keep], "noise": post["noise_rad"][hidx][keep],
+                           "error": err[keep], "heliostat": [run.run_ids[h] for h in hidx[keep].tolist()]}
+    pred = predictive(jac, normal.detach(), post["covariance"][hidx], post["noise_rad"][hidx],
+                      drift=post.get("drift_rad", 0.0), generator=torch.Generator().manual_seed(run.cfg.seed))
+    pred["inside"] = (err >= pred["lower"]) & (err <= pred["upper"])
+    run.intervals = pred
+
+
 def _heliostat_report(run: Run, h: int, hid: str, per_h_seconds: float) -> dict:
     model, info = run.model, run.split_info[hid]
     ok = bool(model.ok[h])
@@ -292,6 +320,13 @@ def _heliostat_report(run: Run, h: int, hid: str, per_h_seconds: float) -> dict:
     rep["median_test_mrad"] = rep["test"]["median_mrad"]
     rep["nominal_mean_test_mrad"] = rep["nominal_test"]["mean_mrad"]
     rep["fit_seconds_share"] = per_h_seconds
+    if run.intervals and ok:
+        mine = run.test.heliostat_index == h
+        iv = run.intervals
+        rep["interval_90_coverage"] = float(iv["inside"][mine].double().mean()) if bool(mine.any()) else None
+        rep["expected_test_mrad"] = float(1e3 * iv["expected"][mine].mean()) if bool(mine.any()) else None
+        rep["interval_90_mrad"] = ([float(1e3 * iv["lower"][mine].median()), float(1e3 * iv["upper"][mine].median())]
+                                   if bool(mine.any()) else None)
     if model.names and ok:
         rep["parameters"] = {n: float(model.delta[h, j]) for j, n in enumerate(model.names)}
     if hid in run.findings:
@@ -329,6 +364,11 @@ def report_overall(run: Run) -> None:
         "skipped_records": len(run.skipped_records),
         "dropped_no_time": int(sum(run.split_info[h]["dropped_no_time"] for h in run.run_ids)),
     }
+    if run.intervals:
+        mine = run.model.ok[run.test.heliostat_index]
+        inside = run.intervals["inside"][mine]
+        run.report["overall"]["interval_90_coverage"] = float(inside.double().mean()) if len(inside) else None
+        run.report["overall"]["median_of_expected_test_mrad"] = _median([r.get("expected_test_mrad") for r in ran])
     if run.model.extras.get("summary"):
         run.report["overall"]["method_info"] = run.model.extras["summary"]
 
@@ -353,12 +393,14 @@ def plot_arrays(run: Run) -> None:
                   "test_elevation": test.sun_elevation.cpu().numpy(),
                   "test_error_mrad": run.errors["test"][0].cpu().numpy() * 1e3,
                   "test_nominal_mrad": run.errors["nominal_test"][0].cpu().numpy() * 1e3,
-                  "train": run.train, "validation": run.validation, "test": test, "nominal": run.nominal}
+                  "train": run.train, "validation": run.validation, "test": test, "nominal": run.nominal,
+                  "interval_inputs": run.interval_inputs}
 
 
 #: The steps of :func:`run_calibration`, in order (name, function of :class:`Run`).
 STEPS = (("select", select), ("prepare", prepare), ("rebatch", rebatch), ("split", split),
          ("check_properties", check_properties), ("learn_prior", learn_prior), ("fit", fit), ("evaluate", evaluate),
+         ("predict_intervals", predict_intervals),
          ("report_heliostats", report_heliostats), ("report_overall", report_overall),
          ("report_records", report_records), ("plot_arrays", plot_arrays))
 

@@ -253,6 +253,9 @@ def cmd_aim(args) -> int:
               math.radians(args.sun_elevation), point)
     print(f"{ans['heliostat']}: motor steps axis 1 {ans['motor_steps'][0]:.0f}, axis 2 {ans['motor_steps'][1]:.0f}"
           f"{'' if ans['reachable'] else '  (OUTSIDE the actuator range: not reachable)'} [{ans['method']}]")
+    if "expected_error_mrad" in ans:
+        lo, hi = ans["error_interval_90_mrad"]
+        print(f"expected pointing error {ans['expected_error_mrad']:.2f} mrad, 90 % interval [{lo:.2f}, {hi:.2f}] mrad")
     if args.json:
         write_json(args.json, ans)
     return 0 if ans["reachable"] else 3
