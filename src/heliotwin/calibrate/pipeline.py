@@ -6,7 +6,8 @@ records; heliostats with too few are skipped), ``rebatch`` (the run's heliostat 
 (train/validation/test), ``check_properties`` (suspicious property values, corrected where the training
 records support it), ``learn_prior`` (a plant prior from other heliostats, when asked for), ``fit`` (the
 method), ``evaluate`` (pointing error and miss distance of calibrated
-and nominal model), ``predict_intervals`` (predictive error and its 90 % interval per test record, for
+and nominal model), ``online_refit`` (``--split online``: test errors of refits as records arrive),
+``predict_intervals`` (predictive error and its 90 % interval per test record, for
 methods with a posterior), ``report_heliostats``, ``report_overall`` and ``plot_arrays``. Every heliostat or
 record that cannot be used is reported with a reason, never dropped silently.
 
@@ -64,6 +65,8 @@ class RunConfig:
     prior_options: dict = field(default_factory=dict)
     #: Heliostats that must not enter the plant prior besides the calibrated ones (cross-validation folds).
     prior_exclude: list = field(default_factory=list)
+    #: ``--split online``: test records predicted per refit (see :mod:`.online`).
+    online_step: int = 5
 
     def uses_plant_prior(self) -> bool:
         return self.prior == "plant" or self.prior_from is not None
@@ -75,9 +78,15 @@ class RunConfig:
         return max(2, int(round(0.2 * self.train))) if self.train >= 8 else 0
 
 
+#: Split types of a calibration run: the record splits plus the online protocol (:mod:`.online`).
+RUN_SPLITS = SPLIT_TYPES + ("online",)
+
+
 def validate_config(cfg: RunConfig) -> None:
-    if cfg.split not in SPLIT_TYPES:
-        raise HeliotwinError(f"unknown split type {cfg.split!r}; known: {', '.join(SPLIT_TYPES)}")
+    if cfg.split not in RUN_SPLITS:
+        raise HeliotwinError(f"unknown split type {cfg.split!r}; known: {', '.join(RUN_SPLITS)}")
+    if cfg.online_step < 1:
+        raise HeliotwinError(f"--online-step must be >= 1, got {cfg.online_step}")
     get_method(cfg.method)
     normalise_source(cfg.focal_spot)
     if cfg.train < 1:
@@ -201,8 +210,13 @@ def rebatch(run: Run) -> None:
 def split(run: Run) -> None:
     """Train/validation/test records per heliostat (validation carved out of ``--train``)."""
     cfg = run.cfg
-    tr, va, te, run.split_info = split_records(run.batch, cfg.split, cfg.train, cfg.n_validation(), cfg.test,
-                                               seed=cfg.seed)
+    if cfg.split == "online":
+        from .online import online_split
+
+        tr, va, te, run.split_info = online_split(run.batch, cfg.train, cfg.test)
+    else:
+        tr, va, te, run.split_info = split_records(run.batch, cfg.split, cfg.train, cfg.n_validation(), cfg.test,
+                                                   seed=cfg.seed)
     run.train, run.validation, run.test = run.batch.subset(tr), run.batch.subset(va), run.batch.subset(te)
 
 
@@ -278,13 +292,38 @@ def evaluate(run: Run) -> None:
         run.errors["nominal_test"] = of(nominal_model(run.run_ids, run.nominal_raw), run.test)
 
 
+def online_refit(run: Run) -> None:
+    """``--split online``: replace the test errors by those of refits on the records before each test block."""
+    if run.cfg.split != "online" or run.test is None or len(run.test) == 0:
+        return
+    from .online import online_errors
+
+    cfg = run.cfg
+    options = dict(cfg.method_options)
+    if run.plant_prior is not None:
+        options["plant_prior"] = run.plant_prior
+    method = get_method(cfg.method)
+
+    def fit_one(train):
+        return method(run.nominal, train, None, seed=cfg.seed, progress=False, **options)
+
+    _, _, te, _ = _online_indices(run)
+    run.errors["test"] = online_errors(fit_one, run.batch, te, cfg.train, cfg.online_step)
+
+
+def _online_indices(run: Run):
+    from .online import online_split
+
+    return online_split(run.batch, run.cfg.train, run.cfg.test)
+
+
 def predict_intervals(run: Run) -> None:
     """Predictive pointing error of every test record from the model's Laplace posterior (when it has one):
     ``run.intervals`` = {"expected", "median", "lower", "upper"} [R] (rad, interval ``[0, q_0.9]``),
     "inside" [R] bool."""
     post = run.model.extras.get("posterior")
     test = run.test
-    if not post or test is None or len(test) == 0:
+    if not post or test is None or len(test) == 0 or run.cfg.split == "online":  # online: one model per block
         return
     from .lm import record_jacobian
     from .uncertainty import predictive
@@ -400,7 +439,7 @@ def plot_arrays(run: Run) -> None:
 #: The steps of :func:`run_calibration`, in order (name, function of :class:`Run`).
 STEPS = (("select", select), ("prepare", prepare), ("rebatch", rebatch), ("split", split),
          ("check_properties", check_properties), ("learn_prior", learn_prior), ("fit", fit), ("evaluate", evaluate),
-         ("predict_intervals", predict_intervals),
+         ("online_refit", online_refit), ("predict_intervals", predict_intervals),
          ("report_heliostats", report_heliostats), ("report_overall", report_overall),
          ("report_records", report_records), ("plot_arrays", plot_arrays))
 

@@ -29,8 +29,10 @@ def _add_common(p):
     p.add_argument("--heliostats", help="comma-separated heliostat ids (default: every heliostat)")
     p.add_argument("--min-records", type=int, default=50, help="skip heliostats with fewer usable records (default 50)")
     p.add_argument("--split", "--type", dest="split", default="chrono",
-                   choices=("chrono", "isolation", "region", "azimuth", "solstice", "balanced", "high_variance"),
-                   help="split type (default chrono)")
+                   choices=("chrono", "isolation", "region", "azimuth", "solstice", "balanced", "high_variance",
+                            "online"),
+                   help="split type (default chrono; online = each test record predicted from the --train records "
+                        "before it, calibrate only)")
     p.add_argument("--train", type=int, default=30, help="records a method may see per heliostat, validation included")
     p.add_argument("--validation", type=int, default=None,
                    help="validation records carved out of --train (default 20%% of it, 0 below 8)")
@@ -62,6 +64,8 @@ def register(subparsers) -> None:
     p.add_argument("--prior-from", metavar="ARCHIVE",
                    help="lm plant prior from ARCHIVE: a PAINT folder of the same plant (its heliostats that this run "
                         "calibrates are excluded) or a scenario holding a prior learned from other heliostats")
+    p.add_argument("--online-step", type=int, default=5,
+                   help="--split online: refit every this many test records (default 5; 1 = before every record)")
     p.set_defaults(func=cmd_calibrate)
 
     p = subparsers.add_parser("split", help="write a train/validation/test split and its coverage metrics",
@@ -92,7 +96,7 @@ def _config(args, method="lm"):
                     plane_tolerance=getattr(args, "plane_tolerance", 0.1),
                     correct_suspicious=not getattr(args, "keep_suspicious", False),
                     progress=getattr(args, "progress", False), prior=getattr(args, "prior", "run"),
-                    prior_from=getattr(args, "prior_from", None))
+                    prior_from=getattr(args, "prior_from", None), online_step=getattr(args, "online_step", 5))
     validate_config(cfg)
     return cfg
 
