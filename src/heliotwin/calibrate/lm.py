@@ -46,7 +46,8 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
            prior_mean: torch.Tensor | None = None, noise: float = NOISE, max_nfev: int = 200,
            loss: str = "linear", f_scale: float = 2e-3,
            prior_sigma_vector: torch.Tensor | None = None,
-           prior_whitening: torch.Tensor | None = None) -> tuple[torch.Tensor, dict]:
+           prior_whitening: torch.Tensor | None = None,
+           half_life_days: float | None = None) -> tuple[torch.Tensor, dict]:
     """Fit deviations of every heliostat in ``batch`` by Levenberg-Marquardt.
 
     Parameters
@@ -69,6 +70,10 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
         A full-covariance Gaussian prior (e.g. :class:`~heliotwin.calibrate.priors.PlantPrior`): ``W`` with
         ``W^T W`` = the prior's inverse covariance; the prior term is ``|W (delta - mean)|^2``. Replaces
         ``prior_sigma`` / ``prior_sigma_vector`` when given.
+    half_life_days : float, optional
+        Drift tracking: a record ``a`` days older than its heliostat's latest training record weighs
+        ``0.5 ** (a / half_life_days)`` (records without a time weigh 1), so the fit follows where a slowly
+        drifting offset is *now* rather than its average over the training period.
 
     Returns
     -------
@@ -98,8 +103,9 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
         full[active] = torch.as_tensor(x, dtype=torch.float64).reshape(na, p) * scale
         return full
 
+    weights = recency_weights(batch, half_life_days) if half_life_days else None
     fun, jac = _cached(_stacked_problem(nominal, batch, names, unpack, active, scale, mean, sig_vec, prior_cols,
-                                        noise))
+                                        noise, weights))
     x0 = (mean[active] / scale).reshape(-1).numpy()
     # MINPACK's LM needs at least as many residuals as unknowns; with the prior this always holds,
     # without it a heliostat needs >= P/3 records (checked by the caller, padded here for safety).
@@ -122,7 +128,17 @@ def _sigma_vector(names, prior_sigma: dict | None, prior_sigma_vector: torch.Ten
                         dtype=torch.float64)
 
 
-def _stacked_problem(nominal, batch, names, unpack, active, scale, mean, sig_vec, prior_cols, noise):
+def recency_weights(batch: RecordTable, half_life_days: float) -> torch.Tensor:
+    """Weight per record [R]: ``0.5 ** (age / half_life)``, age [days] behind the heliostat's latest record."""
+    t = batch.time.double() if batch.time is not None else torch.full((len(batch),), float("nan"), dtype=torch.float64)
+    known = torch.isfinite(t)
+    latest = torch.full((batch.num_heliostats,), -float("inf"), dtype=torch.float64)
+    latest = latest.scatter_reduce(0, batch.heliostat_index[known], t[known], reduce="amax")
+    age = ((latest[batch.heliostat_index] - t) / 86400.0).clamp_min(0.0)
+    return torch.where(known, 0.5 ** (age / float(half_life_days)), torch.ones_like(t))
+
+
+def _stacked_problem(nominal, batch, names, unpack, active, scale, mean, sig_vec, prior_cols, noise, weights=None):
     """``fun_and_jac(x) -> (residuals, Jacobian)`` (numpy) of the joint MAP problem of every active heliostat.
 
     MAP: |r|^2 / noise^2 + |delta / sigma|^2, written as residuals (r, noise * delta / sigma) so that the
@@ -141,6 +157,9 @@ def _stacked_problem(nominal, batch, names, unpack, active, scale, mean, sig_vec
     def fun_and_jac(x):
         delta = unpack(x)
         res, jac = record_jacobian(kin_rec, batch, delta[hidx], names)
+        if weights is not None:  # weighted least squares: sqrt(w) on each record's residual rows
+            sw = weights.sqrt()
+            res, jac = res * sw[:, None], jac * sw[:, None, None]
         # Jacobian w.r.t. natural units, scattered into the block of each record's heliostat.
         jac = jac * scale
         J = torch.zeros(r_rows, 3, na, p, dtype=torch.float64)
@@ -193,7 +212,7 @@ LM_BAGS = 10
 
 
 def stone8_field_fit(nominal: Kinematics, batch: RecordTable, usable: torch.Tensor, *, field_prior: bool = True,
-                     loss: str = LM_LOSS, f_scale: float = LM_F_SCALE):
+                     loss: str = LM_LOSS, f_scale: float = LM_F_SCALE, half_life_days: float | None = None):
     """LM on the Stone/Jülich 8 with the field prior (nominal prior when the run is too small for one).
 
     The first (loose) pass is plain least squares; the final fit uses the robust ``loss`` (one bad centroid
@@ -207,22 +226,24 @@ def stone8_field_fit(nominal: Kinematics, batch: RecordTable, usable: torch.Tens
     first, _ = fit_lm(nominal, batch, names=STONE8, prior_sigma=priors.LOOSE_SIGMA)
     fp = priors.field_prior(first, usable, STONE8) if field_prior else None
     if fp is None:
-        delta, _ = fit_lm(nominal, batch, names=STONE8, prior_sigma=priors.STONE8_SIGMA, loss=loss, f_scale=f_scale)
+        delta, _ = fit_lm(nominal, batch, names=STONE8, prior_sigma=priors.STONE8_SIGMA, loss=loss, f_scale=f_scale,
+                          half_life_days=half_life_days)
         return delta, None
     delta, _ = fit_lm(nominal, batch, names=STONE8, prior_sigma=priors.LOOSE_SIGMA,
-                      prior_mean=fp[0].expand_as(first).clone(), prior_sigma_vector=fp[1], loss=loss, f_scale=f_scale)
+                      prior_mean=fp[0].expand_as(first).clone(), prior_sigma_vector=fp[1], loss=loss, f_scale=f_scale,
+                      half_life_days=half_life_days)
     return delta, fp
 
 
 def stone8_plant_fit(nominal: Kinematics, batch: RecordTable, prior: priors.PlantPrior, *, loss: str = LM_LOSS,
-                     f_scale: float = LM_F_SCALE) -> torch.Tensor:
+                     f_scale: float = LM_F_SCALE, half_life_days: float | None = None) -> torch.Tensor:
     """LM on the Stone/Jülich 8 with a plant prior (mean + covariance learned from other heliostats), [H, 8].
 
     One pass: the prior does not depend on the run's records, so there is no loose first pass to make.
     """
     mean = prior.mean.double().expand(nominal.num_heliostats, len(STONE8)).clone()
     delta, _ = fit_lm(nominal, batch, names=STONE8, prior_mean=mean, prior_whitening=prior.whitening(), loss=loss,
-                      f_scale=f_scale)
+                      f_scale=f_scale, half_life_days=half_life_days)
     return delta
 
 
@@ -282,7 +303,8 @@ def laplace(nominal: Kinematics, batch: RecordTable, delta: torch.Tensor, prior_
 
 def fit_lm_method(nominal, train, validation, *, seed=0, progress=False, field_prior=True,
                   fit_focal_spot=FIT_FOCAL_SPOT, loss=LM_LOSS, f_scale=LM_F_SCALE, bags=LM_BAGS,
-                  plant_prior: priors.PlantPrior | None = None, drift: float = 0.0) -> Calibrated:
+                  plant_prior: priors.PlantPrior | None = None, drift: float = 0.0,
+                  half_life_days: float | None = None) -> Calibrated:
     """``lm``: the Stone/Jülich 8 by Levenberg-Marquardt on every record it may see (train + validation).
 
     LM has no iteration count to stop early, so the validation records are used for fitting too (they
@@ -296,21 +318,23 @@ def fit_lm_method(nominal, train, validation, *, seed=0, progress=False, field_p
 
     ``extras["posterior"]``: the Laplace posterior of every heliostat's deviations around the fit
     (:mod:`.uncertainty`; ``drift`` [rad] is the offset drift added to the predictive noise, chosen by
-    cross-validated coverage).
+    cross-validated coverage). ``half_life_days`` down-weights old records (drift tracking, :func:`fit_lm`).
     """
     seen = RecordTable.concatenate([train, validation]) if validation is not None and len(validation) else train
     ok = trainable(seen)
     fit_on = fit_spots(seen.subset(ok[seen.heliostat_index]), fit_focal_spot)
     if plant_prior is not None:
-        delta, fp = bagged(lambda b: (stone8_plant_fit(nominal, b, plant_prior, loss=loss, f_scale=f_scale), None),
-                           fit_on, bags, seed)
+        delta, fp = bagged(lambda b: (stone8_plant_fit(nominal, b, plant_prior, loss=loss, f_scale=f_scale,
+                                                       half_life_days=half_life_days), None), fit_on, bags, seed)
     else:
         delta, fp = bagged(lambda b: stone8_field_fit(nominal, b, ok, field_prior=field_prior, loss=loss,
-                                                      f_scale=f_scale), fit_on, bags, seed)
+                                                      f_scale=f_scale, half_life_days=half_life_days),
+                           fit_on, bags, seed)
     delta[~ok] = 0.0
     extras = {"field_prior": field_prior_extras(fp),
               "posterior": laplace(nominal, fit_on, delta, _prior_precision(plant_prior, fp), drift),
               "summary": {"bags": bags, "fit_focal_spot": fit_focal_spot, "loss": loss,
+                          "half_life_days": half_life_days,
                           "prior": "plant" if plant_prior is not None else ("field" if fp is not None else "nominal")}}
     if plant_prior is not None:
         extras["plant_prior"] = plant_prior

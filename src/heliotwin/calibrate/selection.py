@@ -28,7 +28,8 @@ import numpy as np
 
 from .pipeline import RunConfig, run_calibration
 
-#: Settings tried, in order (the first is today's ``lm`` default). ``bags``: bootstrap bags of ``lm``.
+#: Settings tried, in order (the first is today's ``lm`` default). ``bags``: bootstrap bags of ``lm``;
+#: ``half_life_days``: drift tracking by recency weights (:func:`~heliotwin.calibrate.lm.fit_lm`).
 CANDIDATES = (
     {"prior": "run", "bags": 10},
     {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 1.0, "bags": 10},
@@ -36,23 +37,29 @@ CANDIDATES = (
     {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 2.0, "bags": 10},
     {"prior": "plant", "covariance": "diag", "widen": 1.0, "bags": 10},
     {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 1.0, "bags": 0},
+    {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 2.0, "bags": 10, "half_life_days": 60.0},
+    {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 2.0, "bags": 10, "half_life_days": 180.0},
+    {"prior": "run", "bags": 10, "half_life_days": 60.0},
 )
 
 
 def label(candidate: dict) -> str:
     """Short text of a candidate, e.g. ``plant/full/s0.2/w1/b10``."""
     c = candidate
+    hl = f"/hl{c['half_life_days']:g}d" if c.get("half_life_days") else ""
     if c.get("prior", "run") == "run":
-        return f"run/b{c.get('bags', 10)}"
+        return f"run/b{c.get('bags', 10)}{hl}"
     cov = c.get("covariance", "full")
     shrink = f"/s{c.get('shrink', 0.2):g}" if cov == "full" else ""
-    return f"plant/{cov}{shrink}/w{c.get('widen', 1.0):g}/b{c.get('bags', 10)}"
+    return f"plant/{cov}{shrink}/w{c.get('widen', 1.0):g}/b{c.get('bags', 10)}{hl}"
 
 
 def config_of(base: RunConfig, candidate: dict, archive=None) -> RunConfig:
     """``base`` with a candidate's settings (``archive``: a :class:`~.archive.PriorArchive` for plant priors)."""
     opts = {k: candidate[k] for k in ("covariance", "shrink", "widen", "min_records") if k in candidate}
     method_options = dict(base.method_options, bags=int(candidate.get("bags", 10)))
+    if candidate.get("half_life_days"):
+        method_options["half_life_days"] = float(candidate["half_life_days"])
     if candidate.get("prior", "run") == "plant":
         return replace(base, prior="plant", prior_from=archive, prior_options=opts, method_options=method_options)
     return replace(base, prior="run", prior_from=None, prior_options={}, method_options=method_options)
