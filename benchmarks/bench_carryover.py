@@ -9,8 +9,10 @@ For ``--train`` 10 and 30 (split chrono, test = the latest 30 records, heliostat
    figure: one ordinary run over all heliostats (``heliotwin calibrate --prior plant`` when a plant prior is
    chosen: the prior then comes from the folder's heliostats with < 50 records only), plus the default
    ``lm`` for comparison;
-3. the nested leave-heliostats-out CV figure of the whole choice procedure (the honest estimate);
-4. where the report has it, ``overall.interval_90_coverage`` of the protocol run.
+3. the online protocol (``--split online``) with the chosen setting and with the default ``lm``;
+4. the nested leave-heliostats-out CV figure of the whole choice procedure (the honest estimate);
+5. ``overall.interval_90_coverage`` of the protocol run (drift term chosen by CV coverage) and of the
+   nested CV (drift chosen on the inner folds).
 
 Usage::
 
@@ -81,6 +83,14 @@ def main(argv=None) -> int:
         print(f"chosen by CV: {S.label(chosen)}; protocol figure "
               f"{_fmt(rep_chosen['overall']['median_of_mean_test_mrad'])} mrad "
               f"(default lm {_fmt(rep_default['overall']['median_of_mean_test_mrad'])})", flush=True)
+        cfg_on = replace(cfg, split="online", method_options=dict(cfg.method_options, drift=drift))
+        rep_online, _, _ = run_calibration(cfg_on, ds)
+        rep_online_default, _, _ = run_calibration(replace(base, split="online"), ds)
+        res["online_chosen"] = rep_online["overall"]
+        res["online_default_lm"] = rep_online_default["overall"]
+        print(f"online (test = latest 30, each block of {base.online_step} predicted from the {n} records before it): "
+              f"chosen {_fmt(rep_online['overall']['median_of_mean_test_mrad'])} mrad, default lm "
+              f"{_fmt(rep_online_default['overall']['median_of_mean_test_mrad'])}", flush=True)
         nested = None
         if not args.skip_nested:
             print(f"== N={n}: nested leave-heliostats-out CV of the choice procedure", flush=True)
@@ -89,15 +99,17 @@ def main(argv=None) -> int:
             res["nested_cv"] = nested
         out["train"][str(n)] = res
         rows.append((n, rep_default["overall"], rep_chosen["overall"], f"{S.label(chosen)}, drift {1e3 * drift:.2f}",
-                     nested, S.median(scores[S.label(chosen)].values())))
+                     nested, S.median(scores[S.label(chosen)].values()), rep_online["overall"],
+                     rep_online_default["overall"]))
     print("\n| N | default lm protocol | chosen setting | chosen protocol | CV of chosen (fixed) | nested LOHO CV |"
-          " coverage90 protocol | coverage90 nested |")
-    print("|---|---|---|---|---|---|---|---|")
-    for n, d, c, lab, nested, cvfix in rows:
+          " coverage90 protocol | coverage90 nested | online chosen | online default lm |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for n, d, c, lab, nested, cvfix, on, on_d in rows:
         print(f"| {n} | {_fmt(d['median_of_mean_test_mrad'])} | {lab} | {_fmt(c['median_of_mean_test_mrad'])} | "
               f"{_fmt(cvfix)} | {_fmt(nested['median_of_mean_test_mrad']) if nested else '-'} | "
               f"{_fmt(c.get('interval_90_coverage'))} | "
-              f"{_fmt(nested.get('interval_90_coverage')) if nested else '-'} |")
+              f"{_fmt(nested.get('interval_90_coverage')) if nested else '-'} | "
+              f"{_fmt(on['median_of_mean_test_mrad'])} | {_fmt(on_d['median_of_mean_test_mrad'])} |")
     out["seconds"] = time.perf_counter() - t0
     write_json(args.json, out)
     print(f"wrote {args.json} ({out['seconds']:.0f} s)")
