@@ -40,6 +40,8 @@ CANDIDATES = (
     {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 2.0, "bags": 10, "half_life_days": 60.0},
     {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 2.0, "bags": 10, "half_life_days": 180.0},
     {"prior": "run", "bags": 10, "half_life_days": 60.0},
+    {"prior": "run", "bags": 10, "half_life_days": 20.0},
+    {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 2.0, "bags": 10, "half_life_days": 20.0},
 )
 
 
