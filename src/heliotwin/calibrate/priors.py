@@ -18,6 +18,12 @@ training pools and the small heliostats that are not part of the benchmark).
 Without a field prior the fits fall back to a *nominal* prior towards zero deviation. There are two, one
 per kind of fit, and they differ on purpose: :data:`STONE8_SIGMA` for the 8-parameter Levenberg-Marquardt
 fits (``lm``), :data:`CHAIN_SIGMA` for the gradient fits of the whole chain (``gradient``, ``images``).
+
+The *plant prior* (:class:`PlantPrior`, :func:`plant_prior`) is the hierarchical version learned from
+*other* heliostats with long histories instead of the run's own first records: mean + a full covariance
+(shrunk towards its diagonal), so the near-degenerate pairs (axis-2 initial angle <-> first-joint tilt
+north) are held to the combination the plant shows. It is built by :mod:`.archive` and used by ``lm`` with
+``--prior plant`` / ``--prior-from``.
 """
 from __future__ import annotations
 
