@@ -73,9 +73,11 @@ class PriorArchive:
 
     @classmethod
     def from_dataset(cls, dataset, *, focal_spot: str = "HeliOS", min_records: int = priors.MIN_PRIOR_RECORDS,
-                     source: str = "") -> PriorArchive:
-        """Fit every heliostat of a loaded PAINT folder (:class:`heliotwin.io.paint.PaintDataset`)."""
-        table = dataset.records.with_focal_spot(focal_spot)
+                     source: str = "", exclude=()) -> PriorArchive:
+        """Fit every heliostat of a loaded PAINT folder (:class:`heliotwin.io.paint.PaintDataset`) except
+        ``exclude`` (never fitted: they could not enter a prior for a run that calibrates them anyway)."""
+        keep = [h for h in dataset.records.heliostat_ids if h not in set(exclude)]
+        table = dataset.records.for_heliostats(keep).with_focal_spot(focal_spot)
         ids = list(dataset.plant.field.ids)
         kin = dataset.plant.field.kinematics.index([ids.index(h) for h in table.heliostat_ids])
         return cls.fit(kin, table, source=source or str(getattr(dataset, "root", "")), min_records=min_records)
@@ -98,15 +100,16 @@ class PriorArchive:
         return pp
 
 
-def load_prior_source(path, plane_tolerance: float = 0.1):
-    """``--prior-from PATH``: a PAINT folder (-> :class:`PriorArchive`) or a scenario with a stored prior
-    (-> :class:`~heliotwin.calibrate.priors.PlantPrior`)."""
+def load_prior_source(path, plane_tolerance: float = 0.1, exclude=()):
+    """``--prior-from PATH``: a PAINT folder (-> :class:`PriorArchive`, its heliostats in ``exclude`` not
+    fitted) or a scenario with a stored prior (-> :class:`~heliotwin.calibrate.priors.PlantPrior`)."""
     import os
 
     if os.path.isdir(path):
         from ..io.paint import load_paint
 
-        return PriorArchive.from_dataset(load_paint(path, plane_tolerance=plane_tolerance), source=os.fspath(path))
+        return PriorArchive.from_dataset(load_paint(path, plane_tolerance=plane_tolerance), source=os.fspath(path),
+                                         exclude=exclude)
     if not os.path.isfile(path):
         raise HeliotwinError(f"{path}: --prior-from needs a PAINT folder or a scenario file")
     from ..io.scenario import load_scenario

@@ -240,12 +240,13 @@ def learn_prior(run: Run) -> None:
     cfg = run.cfg
     if not cfg.uses_plant_prior():
         return
-    source = cfg.prior_from
+    source, excluded = cfg.prior_from, list(run.run_ids) + list(cfg.prior_exclude)
     if source is None:
-        source = PriorArchive.from_dataset(run.dataset, focal_spot=cfg.focal_spot, source=os.fspath(cfg.paint))
+        source = PriorArchive.from_dataset(run.dataset, focal_spot=cfg.focal_spot, source=os.fspath(cfg.paint),
+                                           exclude=excluded)
     elif isinstance(source, (str, os.PathLike)):
-        source = load_prior_source(os.fspath(source), cfg.plane_tolerance)
-    run.plant_prior = resolve_prior(source, list(run.run_ids) + list(cfg.prior_exclude), settings=cfg.prior_options)
+        source = load_prior_source(os.fspath(source), cfg.plane_tolerance, exclude=excluded)
+    run.plant_prior = resolve_prior(source, excluded, settings=cfg.prior_options)
 
 
 def _image_context(ds, run_ids) -> dict:
