@@ -69,6 +69,8 @@ def test_cli_online_on_real_records(paint_dir, tmp_path, capsys):
     r = rep["heliostats"]["BH60"]
     assert r["split"]["test"] == 10 and r["split"]["train"] == 30 and r["test"]["n"] == 10
     assert r["mean_test_mrad"] < 2.0 and r["nominal_mean_test_mrad"] > 10 * r["mean_test_mrad"]
+    code, out, err = run_cli(capsys, "calibrate", "--paint", paint_dir, "--method", "gradient", "--half-life-days", "5")
+    assert code == 2 and "--method lm only" in err and len(err.strip().splitlines()) == 1
 
 
 def test_recency_weights_track_a_drifting_offset():
@@ -91,3 +93,14 @@ def test_recency_weights_track_a_drifting_offset():
                            half_life_days=21.0)
     e_static, e_recent = (m.pointing_error(batch.subset(te)).mean() for m in (static, recent))
     assert e_recent < 0.7 * e_static, (e_recent, e_static)
+
+
+def test_cli_drift_flags_become_lm_options():
+    from heliotwin.cli import build_parser
+    from heliotwin.cli.calibrate import _config
+
+    args = build_parser().parse_args(["calibrate", "--paint", "P", "--half-life-days", "20", "--drift-mrad", "1.5",
+                                      "--prior", "plant", "--split", "online", "--online-step", "3"])
+    cfg = _config(args, args.method)
+    assert cfg.method_options == {"half_life_days": 20.0, "drift": 1.5e-3}
+    assert cfg.prior == "plant" and cfg.split == "online" and cfg.online_step == 3

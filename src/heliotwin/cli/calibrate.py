@@ -64,6 +64,12 @@ def register(subparsers) -> None:
     p.add_argument("--prior-from", metavar="ARCHIVE",
                    help="lm plant prior from ARCHIVE: a PAINT folder of the same plant (its heliostats that this run "
                         "calibrates are excluded) or a scenario holding a prior learned from other heliostats")
+    p.add_argument("--half-life-days", type=float, default=None,
+                   help="lm drift tracking: a training record N days older than the latest weighs 0.5**(N/this) "
+                        "(default: all records weigh 1; benchmarks/bench_carryover.py chooses it by CV)")
+    p.add_argument("--drift-mrad", type=float, default=None,
+                   help="lm predictive interval: offset drift per component [mrad] added to the Laplace posterior's "
+                        "noise (default 0; chosen by cross-validated coverage in benchmarks/bench_carryover.py)")
     p.add_argument("--online-step", type=int, default=5,
                    help="--split online: refit every this many test records (default 5; 1 = before every record)")
     p.set_defaults(func=cmd_calibrate)
@@ -96,9 +102,27 @@ def _config(args, method="lm"):
                     plane_tolerance=getattr(args, "plane_tolerance", 0.1),
                     correct_suspicious=not getattr(args, "keep_suspicious", False),
                     progress=getattr(args, "progress", False), prior=getattr(args, "prior", "run"),
-                    prior_from=getattr(args, "prior_from", None), online_step=getattr(args, "online_step", 5))
+                    prior_from=getattr(args, "prior_from", None), online_step=getattr(args, "online_step", 5),
+                    method_options=_lm_options(args, method))
     validate_config(cfg)
     return cfg
+
+
+def _lm_options(args, method) -> dict:
+    """``--half-life-days`` / ``--drift-mrad`` as lm method options (one-line error for other methods)."""
+    opts = {}
+    hl, drift = getattr(args, "half_life_days", None), getattr(args, "drift_mrad", None)
+    if hl is not None:
+        if not (math.isfinite(hl) and hl > 0):
+            raise HeliotwinError(f"--half-life-days must be a positive number, got {hl}")
+        opts["half_life_days"] = hl
+    if drift is not None:
+        if not (math.isfinite(drift) and drift >= 0):
+            raise HeliotwinError(f"--drift-mrad must be >= 0, got {drift}")
+        opts["drift"] = 1e-3 * drift
+    if opts and method != "lm":
+        raise HeliotwinError(f"--half-life-days / --drift-mrad apply to --method lm only, not {method}")
+    return opts
 
 
 def _load(paint, scenario=None, plane_tolerance: float = 0.1):
