@@ -7,5 +7,8 @@ field priors), :mod:`suspicious` (property checks), :mod:`inputs` (what a method
 (the one early-stopping loop of the iterative fits), methods :mod:`lm`, :mod:`gradient`, :mod:`hybrid`,
 :mod:`mlp`, :mod:`images` (through the ray tracer) in the registry :mod:`methods`, :mod:`pipeline` (one run
 as named steps), :mod:`report` (report layout + plots), :mod:`scenario` (calibration file + aim), :mod:`cli`
-(``calibrate``, ``split``, ``aim``).
+(``calibrate``, ``split``, ``aim``). Issue 10 (accuracy that carries over): :mod:`archive` (a plant prior
+learned from other heliostats, ``--prior-from``, its no-leakage rule), :mod:`uncertainty` (Laplace
+predictive error and its interval), :mod:`selection` (leave-heliostats-out cross-validation of settings),
+:mod:`online` (``--split online``), :mod:`plan` (which record next).
 """

@@ -45,7 +45,9 @@ def record_jacobian(nominal_per_record: Kinematics, batch: RecordTable, delta_re
 def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma: dict | None = None,
            prior_mean: torch.Tensor | None = None, noise: float = NOISE, max_nfev: int = 200,
            loss: str = "linear", f_scale: float = 2e-3,
-           prior_sigma_vector: torch.Tensor | None = None) -> tuple[torch.Tensor, dict]:
+           prior_sigma_vector: torch.Tensor | None = None,
+           prior_whitening: torch.Tensor | None = None,
+           half_life_days: float | None = None) -> tuple[torch.Tensor, dict]:
     """Fit deviations of every heliostat in ``batch`` by Levenberg-Marquardt.
 
     Parameters
@@ -64,6 +66,14 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
         Prior centre (default zero = nominal).
     noise : float
         Measurement noise per record [rad] that the prior is weighed against.
+    prior_whitening : torch.Tensor, [P, P] or [H, P, P], optional
+        A full-covariance Gaussian prior (e.g. :class:`~heliotwin.calibrate.priors.PlantPrior`): ``W`` with
+        ``W^T W`` = the prior's inverse covariance; the prior term is ``|W (delta - mean)|^2``. Replaces
+        ``prior_sigma`` / ``prior_sigma_vector`` when given.
+    half_life_days : float, optional
+        Drift tracking: a record ``a`` days older than its heliostat's latest training record weighs
+        ``0.5 ** (a / half_life_days)`` (records without a time weigh 1), so the fit follows where a slowly
+        drifting offset is *now* rather than its average over the training period.
 
     Returns
     -------
@@ -83,14 +93,19 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
     if na == 0 or len(batch) == 0:
         return torch.zeros(h, p, dtype=torch.float64), {"nfev": 0, "status": 0, "message": "no records", "cost": 0.0}
     prior_cols = (torch.isfinite(sig_vec) & (sig_vec > 0)).nonzero().flatten()
+    if prior_whitening is not None:
+        w = prior_whitening.detach().double()
+        sig_vec = w.expand(h, p, p).clone()  # per-heliostat whitening replaces the diagonal prior
+        prior_cols = torch.arange(p)
 
     def unpack(x):
         full = torch.zeros(h, p, dtype=torch.float64)
         full[active] = torch.as_tensor(x, dtype=torch.float64).reshape(na, p) * scale
         return full
 
+    weights = recency_weights(batch, half_life_days) if half_life_days else None
     fun, jac = _cached(_stacked_problem(nominal, batch, names, unpack, active, scale, mean, sig_vec, prior_cols,
-                                        noise))
+                                        noise, weights))
     x0 = (mean[active] / scale).reshape(-1).numpy()
     # MINPACK's LM needs at least as many residuals as unknowns; with the prior this always holds,
     # without it a heliostat needs >= P/3 records (checked by the caller, padded here for safety).
@@ -113,7 +128,17 @@ def _sigma_vector(names, prior_sigma: dict | None, prior_sigma_vector: torch.Ten
                         dtype=torch.float64)
 
 
-def _stacked_problem(nominal, batch, names, unpack, active, scale, mean, sig_vec, prior_cols, noise):
+def recency_weights(batch: RecordTable, half_life_days: float) -> torch.Tensor:
+    """Weight per record [R]: ``0.5 ** (age / half_life)``, age [days] behind the heliostat's latest record."""
+    t = batch.time.double() if batch.time is not None else torch.full((len(batch),), float("nan"), dtype=torch.float64)
+    known = torch.isfinite(t)
+    latest = torch.full((batch.num_heliostats,), -float("inf"), dtype=torch.float64)
+    latest = latest.scatter_reduce(0, batch.heliostat_index[known], t[known], reduce="amax")
+    age = ((latest[batch.heliostat_index] - t) / 86400.0).clamp_min(0.0)
+    return torch.where(known, 0.5 ** (age / float(half_life_days)), torch.ones_like(t))
+
+
+def _stacked_problem(nominal, batch, names, unpack, active, scale, mean, sig_vec, prior_cols, noise, weights=None):
     """``fun_and_jac(x) -> (residuals, Jacobian)`` (numpy) of the joint MAP problem of every active heliostat.
 
     MAP: |r|^2 / noise^2 + |delta / sigma|^2, written as residuals (r, noise * delta / sigma) so that the
@@ -127,18 +152,29 @@ def _stacked_problem(nominal, batch, names, unpack, active, scale, mean, sig_vec
     rows_idx = torch.arange(r_rows)
     col_of = torch.full((h,), -1, dtype=torch.long)
     col_of[active] = torch.arange(na)
-    inv_sig = (noise / sig_vec) * scale  # prior residual per natural unit
+    inv_sig = (noise / sig_vec) * scale if sig_vec.dim() == 1 else None  # prior residual per natural unit
 
     def fun_and_jac(x):
         delta = unpack(x)
         res, jac = record_jacobian(kin_rec, batch, delta[hidx], names)
+        if weights is not None:  # weighted least squares: sqrt(w) on each record's residual rows
+            sw = weights.sqrt()
+            res, jac = res * sw[:, None], jac * sw[:, None, None]
         # Jacobian w.r.t. natural units, scattered into the block of each record's heliostat.
         jac = jac * scale
         J = torch.zeros(r_rows, 3, na, p, dtype=torch.float64)
         J[rows_idx, :, col_of[hidx], :] = jac
         J = J.reshape(r_rows * 3, na * p)
         res = res.reshape(-1)
-        if len(prior_cols):
+        if sig_vec.dim() == 3:  # full covariance: noise * W_h (delta_h - mean_h), block diagonal Jacobian
+            w = sig_vec[active]  # [na, P, P]
+            z = noise * torch.einsum("hij,hj->hi", w, delta[active] - mean[active])
+            Jp = torch.zeros(na, p, na, p, dtype=torch.float64)
+            ar = torch.arange(na)
+            Jp[ar, :, ar, :] = noise * w * scale
+            res = torch.cat([res, z.reshape(-1)])
+            J = torch.cat([J, Jp.reshape(na * p, na * p)])
+        elif len(prior_cols):
             z = noise * (delta[active] - mean[active]) / sig_vec  # [na, P]
             pr = z[:, prior_cols].reshape(-1)
             Jp = torch.zeros(na, len(prior_cols), na, p, dtype=torch.float64)
@@ -176,7 +212,7 @@ LM_BAGS = 10
 
 
 def stone8_field_fit(nominal: Kinematics, batch: RecordTable, usable: torch.Tensor, *, field_prior: bool = True,
-                     loss: str = LM_LOSS, f_scale: float = LM_F_SCALE):
+                     loss: str = LM_LOSS, f_scale: float = LM_F_SCALE, half_life_days: float | None = None):
     """LM on the Stone/Jülich 8 with the field prior (nominal prior when the run is too small for one).
 
     The first (loose) pass is plain least squares; the final fit uses the robust ``loss`` (one bad centroid
@@ -190,11 +226,25 @@ def stone8_field_fit(nominal: Kinematics, batch: RecordTable, usable: torch.Tens
     first, _ = fit_lm(nominal, batch, names=STONE8, prior_sigma=priors.LOOSE_SIGMA)
     fp = priors.field_prior(first, usable, STONE8) if field_prior else None
     if fp is None:
-        delta, _ = fit_lm(nominal, batch, names=STONE8, prior_sigma=priors.STONE8_SIGMA, loss=loss, f_scale=f_scale)
+        delta, _ = fit_lm(nominal, batch, names=STONE8, prior_sigma=priors.STONE8_SIGMA, loss=loss, f_scale=f_scale,
+                          half_life_days=half_life_days)
         return delta, None
     delta, _ = fit_lm(nominal, batch, names=STONE8, prior_sigma=priors.LOOSE_SIGMA,
-                      prior_mean=fp[0].expand_as(first).clone(), prior_sigma_vector=fp[1], loss=loss, f_scale=f_scale)
+                      prior_mean=fp[0].expand_as(first).clone(), prior_sigma_vector=fp[1], loss=loss, f_scale=f_scale,
+                      half_life_days=half_life_days)
     return delta, fp
+
+
+def stone8_plant_fit(nominal: Kinematics, batch: RecordTable, prior: priors.PlantPrior, *, loss: str = LM_LOSS,
+                     f_scale: float = LM_F_SCALE, half_life_days: float | None = None) -> torch.Tensor:
+    """LM on the Stone/Jülich 8 with a plant prior (mean + covariance learned from other heliostats), [H, 8].
+
+    One pass: the prior does not depend on the run's records, so there is no loose first pass to make.
+    """
+    mean = prior.mean.double().expand(nominal.num_heliostats, len(STONE8)).clone()
+    delta, _ = fit_lm(nominal, batch, names=STONE8, prior_mean=mean, prior_whitening=prior.whitening(), loss=loss,
+                      f_scale=f_scale, half_life_days=half_life_days)
+    return delta
 
 
 def bagged(fit_one, batch: RecordTable, bags: int, seed: int):
@@ -223,8 +273,38 @@ def field_prior_extras(fp) -> dict | None:
     return None if fp is None else {"mean": fp[0].tolist(), "sigma": fp[1].tolist()}
 
 
+def _prior_precision(plant_prior, fp) -> torch.Tensor:
+    """Prior precision [P, P] of the final lm fit (plant prior, field prior or the nominal Stone/Jülich prior)."""
+    if plant_prior is not None:
+        w = plant_prior.whitening()
+        return w.T @ w
+    sigma = fp[1] if fp is not None else priors.sigma_vector(STONE8, priors.STONE8_SIGMA)
+    return torch.diag(1.0 / sigma.double() ** 2)
+
+
+def laplace(nominal: Kinematics, batch: RecordTable, delta: torch.Tensor, prior_precision: torch.Tensor,
+            drift: float = 0.0) -> dict:
+    """Laplace posterior of the Stone/Jülich 8 around ``delta`` [H, 8] on the fit's records (:mod:`.uncertainty`).
+
+    Returns ``{"covariance": [H, 8, 8], "noise_rad": [H], "drift_rad": float}``.
+    """
+    from .uncertainty import posterior
+
+    h = nominal.num_heliostats
+    hidx = batch.heliostat_index
+    if len(batch) == 0:
+        eye = torch.eye(len(STONE8), dtype=torch.float64)
+        return {"covariance": eye.expand(h, -1, -1).clone(), "noise_rad": torch.ones(h, dtype=torch.float64),
+                "drift_rad": float(drift)}
+    res, jac = record_jacobian(nominal.index(hidx), batch, delta.detach()[hidx], STONE8)
+    cov, noise = posterior(res, jac, hidx, prior_precision, h, len(STONE8))
+    return {"covariance": cov, "noise_rad": noise, "drift_rad": float(drift)}
+
+
 def fit_lm_method(nominal, train, validation, *, seed=0, progress=False, field_prior=True,
-                  fit_focal_spot=FIT_FOCAL_SPOT, loss=LM_LOSS, f_scale=LM_F_SCALE, bags=LM_BAGS) -> Calibrated:
+                  fit_focal_spot=FIT_FOCAL_SPOT, loss=LM_LOSS, f_scale=LM_F_SCALE, bags=LM_BAGS,
+                  plant_prior: priors.PlantPrior | None = None, drift: float = 0.0,
+                  half_life_days: float | None = None) -> Calibrated:
     """``lm``: the Stone/Jülich 8 by Levenberg-Marquardt on every record it may see (train + validation).
 
     LM has no iteration count to stop early, so the validation records are used for fitting too (they
@@ -232,13 +312,32 @@ def fit_lm_method(nominal, train, validation, *, seed=0, progress=False, field_p
     :data:`~heliotwin.calibrate.inputs.FIT_FOCAL_SPOT` centroids with the robust :data:`LM_LOSS`, averaged
     over :data:`LM_BAGS` bootstrap resamples (bagging: with 10 records one outlier or one unlucky sun
     position otherwise decides the extrapolation).
+
+    With ``plant_prior`` (:class:`~heliotwin.calibrate.priors.PlantPrior`, learned from *other* heliostats;
+    see :mod:`.archive`) the field prior of the run's own training records is replaced by it.
+
+    ``extras["posterior"]``: the Laplace posterior of every heliostat's deviations around the fit
+    (:mod:`.uncertainty`; ``drift`` [rad] is the offset drift added to the predictive noise, chosen by
+    cross-validated coverage). ``half_life_days`` down-weights old records (drift tracking, :func:`fit_lm`).
     """
     seen = RecordTable.concatenate([train, validation]) if validation is not None and len(validation) else train
     ok = trainable(seen)
     fit_on = fit_spots(seen.subset(ok[seen.heliostat_index]), fit_focal_spot)
-    delta, fp = bagged(lambda b: stone8_field_fit(nominal, b, ok, field_prior=field_prior, loss=loss, f_scale=f_scale),
-                       fit_on, bags, seed)
+    if plant_prior is not None:
+        delta, fp = bagged(lambda b: (stone8_plant_fit(nominal, b, plant_prior, loss=loss, f_scale=f_scale,
+                                                       half_life_days=half_life_days), None), fit_on, bags, seed)
+    else:
+        delta, fp = bagged(lambda b: stone8_field_fit(nominal, b, ok, field_prior=field_prior, loss=loss,
+                                                      f_scale=f_scale, half_life_days=half_life_days),
+                           fit_on, bags, seed)
     delta[~ok] = 0.0
     extras = {"field_prior": field_prior_extras(fp),
-              "summary": {"bags": bags, "fit_focal_spot": fit_focal_spot, "loss": loss}}
+              "posterior": laplace(nominal, fit_on, delta, _prior_precision(plant_prior, fp), drift),
+              "summary": {"bags": bags, "fit_focal_spot": fit_focal_spot, "loss": loss,
+                          "half_life_days": half_life_days,
+                          "prior": "plant" if plant_prior is not None else ("field" if fp is not None else "nominal")}}
+    if plant_prior is not None:
+        extras["plant_prior"] = plant_prior
+        extras["summary"]["prior_heliostats"] = list(plant_prior.heliostats)
+        extras["summary"]["prior_settings"] = dict(plant_prior.settings)
     return Calibrated("lm", list(train.heliostat_ids), nominal, STONE8, delta, ok, extras=extras)

@@ -4,8 +4,11 @@
 runs, in order, on one :class:`Run` state: ``select`` (heliostats asked for), ``prepare`` (validated
 records; heliostats with too few are skipped), ``rebatch`` (the run's heliostat axis), ``split``
 (train/validation/test), ``check_properties`` (suspicious property values, corrected where the training
-records support it), ``fit`` (the method), ``evaluate`` (pointing error and miss distance of calibrated
-and nominal model), ``report_heliostats``, ``report_overall`` and ``plot_arrays``. Every heliostat or
+records support it), ``learn_prior`` (a plant prior from other heliostats, when asked for), ``fit`` (the
+method), ``evaluate`` (pointing error and miss distance of calibrated
+and nominal model), ``online_refit`` (``--split online``: test errors of refits as records arrive),
+``predict_intervals`` (predictive error and its 90 % interval per test record, for
+methods with a posterior), ``report_heliostats``, ``report_overall`` and ``plot_arrays``. Every heliostat or
 record that cannot be used is reported with a reason, never dropped silently.
 
 Report keys mean one thing each: per heliostat, ``mean_test_mrad``/``median_test_mrad`` are the mean and
@@ -51,6 +54,22 @@ class RunConfig:
     correct_suspicious: bool = True
     progress: bool = False
     method_options: dict = field(default_factory=dict)
+    #: ``"run"``: the method's own prior (lm: field prior of the run's training records); ``"plant"``: a plant
+    #: prior learned from the heliostats of the PAINT folder that are NOT calibrated (see :mod:`.archive`).
+    prior: str = "run"
+    #: ``--prior-from``: a PAINT folder or scenario path, or an already built
+    #: :class:`~heliotwin.calibrate.archive.PriorArchive` / :class:`~heliotwin.calibrate.priors.PlantPrior`;
+    #: implies ``prior="plant"``.
+    prior_from: object = None
+    #: Settings of the plant prior (:meth:`~heliotwin.calibrate.archive.PriorArchive.prior`).
+    prior_options: dict = field(default_factory=dict)
+    #: Heliostats that must not enter the plant prior besides the calibrated ones (cross-validation folds).
+    prior_exclude: list = field(default_factory=list)
+    #: ``--split online``: test records predicted per refit (see :mod:`.online`).
+    online_step: int = 5
+
+    def uses_plant_prior(self) -> bool:
+        return self.prior == "plant" or self.prior_from is not None
 
     def n_validation(self) -> int:
         """Validation records carved out of ``train``: default 20 % (at least 2 when train >= 8, else 0)."""
@@ -59,9 +78,15 @@ class RunConfig:
         return max(2, int(round(0.2 * self.train))) if self.train >= 8 else 0
 
 
+#: Split types of a calibration run: the record splits plus the online protocol (:mod:`.online`).
+RUN_SPLITS = SPLIT_TYPES + ("online",)
+
+
 def validate_config(cfg: RunConfig) -> None:
-    if cfg.split not in SPLIT_TYPES:
-        raise HeliotwinError(f"unknown split type {cfg.split!r}; known: {', '.join(SPLIT_TYPES)}")
+    if cfg.split not in RUN_SPLITS:
+        raise HeliotwinError(f"unknown split type {cfg.split!r}; known: {', '.join(RUN_SPLITS)}")
+    if cfg.online_step < 1:
+        raise HeliotwinError(f"--online-step must be >= 1, got {cfg.online_step}")
     get_method(cfg.method)
     normalise_source(cfg.focal_spot)
     if cfg.train < 1:
@@ -74,6 +99,11 @@ def validate_config(cfg: RunConfig) -> None:
         raise HeliotwinError(f"--test must be >= 1, got {cfg.test}")
     if cfg.min_records < 0:
         raise HeliotwinError(f"--min-records must be >= 0, got {cfg.min_records}")
+    if cfg.prior not in ("run", "plant"):
+        raise HeliotwinError(f"--prior must be 'run' or 'plant', got {cfg.prior!r}")
+    if cfg.uses_plant_prior() and cfg.method != "lm":
+        raise HeliotwinError(f"a plant prior (--prior-from / --prior plant) is implemented for --method lm only, "
+                             f"not {cfg.method}")
 
 
 def _median(xs):
@@ -112,6 +142,9 @@ class Run:
     model: Calibrated | None = None
     fit_seconds: float = 0.0
     errors: dict = field(default_factory=dict)
+    plant_prior: object = None
+    intervals: dict = field(default_factory=dict)
+    interval_inputs: dict = field(default_factory=dict)
 
     @property
     def parts(self) -> dict:
@@ -149,6 +182,8 @@ def prepare(run: Run) -> None:
             run.run_ids.append(hid)
     config = {k: v for k, v in cfg.__dict__.items() if k not in ("progress",)}
     config["paint"] = os.fspath(cfg.paint)
+    pf = cfg.prior_from
+    config["prior_from"] = pf if pf is None or isinstance(pf, str) else (getattr(pf, "source", "") or type(pf).__name__)
     config["validation"] = cfg.n_validation()
     run.report = {"config": config, "skipped_records": run.skipped_records,
                   "heliostats": {hid: {"status": "skipped", "reason": r} for hid, r in run.skipped_heliostats.items()}}
@@ -175,8 +210,13 @@ def rebatch(run: Run) -> None:
 def split(run: Run) -> None:
     """Train/validation/test records per heliostat (validation carved out of ``--train``)."""
     cfg = run.cfg
-    tr, va, te, run.split_info = split_records(run.batch, cfg.split, cfg.train, cfg.n_validation(), cfg.test,
-                                               seed=cfg.seed)
+    if cfg.split == "online":
+        from .online import online_split
+
+        tr, va, te, run.split_info = online_split(run.batch, cfg.train, cfg.test)
+    else:
+        tr, va, te, run.split_info = split_records(run.batch, cfg.split, cfg.train, cfg.n_validation(), cfg.test,
+                                                   seed=cfg.seed)
     run.train, run.validation, run.test = run.batch.subset(tr), run.batch.subset(va), run.batch.subset(te)
 
 
@@ -188,6 +228,25 @@ def check_properties(run: Run) -> None:
                                                       run.dataset.plant.field.kinematics, seen)
     else:
         run.nominal, run.findings = run.nominal_raw, {}
+
+
+def learn_prior(run: Run) -> None:
+    """The plant prior of a run that asks for one, from heliostats that are neither calibrated nor tested.
+
+    Leakage rule (:mod:`.archive`): the run's heliostats (and ``prior_exclude``) never enter the prior.
+    """
+    from .archive import PriorArchive, load_prior_source, resolve_prior
+
+    cfg = run.cfg
+    if not cfg.uses_plant_prior():
+        return
+    source, excluded = cfg.prior_from, list(run.run_ids) + list(cfg.prior_exclude)
+    if source is None:
+        source = PriorArchive.from_dataset(run.dataset, focal_spot=cfg.focal_spot, source=os.fspath(cfg.paint),
+                                           exclude=excluded)
+    elif isinstance(source, (str, os.PathLike)):
+        source = load_prior_source(os.fspath(source), cfg.plane_tolerance, exclude=excluded)
+    run.plant_prior = resolve_prior(source, excluded, settings=cfg.prior_options)
 
 
 def _image_context(ds, run_ids) -> dict:
@@ -211,6 +270,8 @@ def fit(run: Run) -> None:
     options = dict(cfg.method_options)
     if cfg.method == "images":
         options.update(_image_context(run.dataset, run.run_ids))
+    if run.plant_prior is not None:
+        options["plant_prior"] = run.plant_prior
     t_fit = time.perf_counter()
     run.model = get_method(cfg.method)(run.nominal, run.train, run.validation, seed=cfg.seed, progress=cfg.progress,
                                        **options)
@@ -232,6 +293,56 @@ def evaluate(run: Run) -> None:
         run.errors["nominal_test"] = of(nominal_model(run.run_ids, run.nominal_raw), run.test)
 
 
+def online_refit(run: Run) -> None:
+    """``--split online``: replace the test errors by those of refits on the records before each test block."""
+    if run.cfg.split != "online" or run.test is None or len(run.test) == 0:
+        return
+    from .online import online_errors
+
+    cfg = run.cfg
+    options = dict(cfg.method_options)
+    if run.plant_prior is not None:
+        options["plant_prior"] = run.plant_prior
+    method = get_method(cfg.method)
+
+    def fit_one(train):
+        return method(run.nominal, train, None, seed=cfg.seed, progress=False, **options)
+
+    _, _, te, _ = _online_indices(run)
+    run.errors["test"] = online_errors(fit_one, run.batch, te, cfg.train, cfg.online_step)
+
+
+def _online_indices(run: Run):
+    from .online import online_split
+
+    return online_split(run.batch, run.cfg.train, run.cfg.test)
+
+
+def predict_intervals(run: Run) -> None:
+    """Predictive pointing error of every test record from the model's Laplace posterior (when it has one):
+    ``run.intervals`` = {"expected", "median", "lower", "upper"} [R] (rad, interval ``[0, q_0.9]``),
+    "inside" [R] bool."""
+    post = run.model.extras.get("posterior")
+    test = run.test
+    if not post or test is None or len(test) == 0 or run.cfg.split == "online":  # online: one model per block
+        return
+    from .lm import record_jacobian
+    from .uncertainty import predictive
+
+    model, hidx = run.model, test.heliostat_index
+    _, jac = record_jacobian(model.nominal.index(hidx), test, model.delta.detach()[hidx], model.names)
+    normal, _ = model.normals(test)
+    err = run.errors["test"][0].double()
+    keep = model.ok[hidx]
+    run.interval_inputs = {"jacobian": jac[keep], "normal": normal.detach()[keep],
+                           "covariance": post["covariance"][hidx][keep], "noise": post["noise_rad"][hidx][keep],
+                           "error": err[keep], "heliostat": [run.run_ids[h] for h in hidx[keep].tolist()]}
+    pred = predictive(jac, normal.detach(), post["covariance"][hidx], post["noise_rad"][hidx],
+                      drift=post.get("drift_rad", 0.0), generator=torch.Generator().manual_seed(run.cfg.seed))
+    pred["inside"] = (err >= pred["lower"]) & (err <= pred["upper"])
+    run.intervals = pred
+
+
 def _heliostat_report(run: Run, h: int, hid: str, per_h_seconds: float) -> dict:
     model, info = run.model, run.split_info[hid]
     ok = bool(model.ok[h])
@@ -249,6 +360,13 @@ def _heliostat_report(run: Run, h: int, hid: str, per_h_seconds: float) -> dict:
     rep["median_test_mrad"] = rep["test"]["median_mrad"]
     rep["nominal_mean_test_mrad"] = rep["nominal_test"]["mean_mrad"]
     rep["fit_seconds_share"] = per_h_seconds
+    if run.intervals and ok:
+        mine = run.test.heliostat_index == h
+        iv = run.intervals
+        rep["interval_90_coverage"] = float(iv["inside"][mine].double().mean()) if bool(mine.any()) else None
+        rep["expected_test_mrad"] = float(1e3 * iv["expected"][mine].mean()) if bool(mine.any()) else None
+        rep["interval_90_mrad"] = ([float(1e3 * iv["lower"][mine].median()), float(1e3 * iv["upper"][mine].median())]
+                                   if bool(mine.any()) else None)
     if model.names and ok:
         rep["parameters"] = {n: float(model.delta[h, j]) for j, n in enumerate(model.names)}
     if hid in run.findings:
@@ -286,6 +404,11 @@ def report_overall(run: Run) -> None:
         "skipped_records": len(run.skipped_records),
         "dropped_no_time": int(sum(run.split_info[h]["dropped_no_time"] for h in run.run_ids)),
     }
+    if run.intervals:
+        mine = run.model.ok[run.test.heliostat_index]
+        inside = run.intervals["inside"][mine]
+        run.report["overall"]["interval_90_coverage"] = float(inside.double().mean()) if len(inside) else None
+        run.report["overall"]["median_of_expected_test_mrad"] = _median([r.get("expected_test_mrad") for r in ran])
     if run.model.extras.get("summary"):
         run.report["overall"]["method_info"] = run.model.extras["summary"]
 
@@ -310,12 +433,14 @@ def plot_arrays(run: Run) -> None:
                   "test_elevation": test.sun_elevation.cpu().numpy(),
                   "test_error_mrad": run.errors["test"][0].cpu().numpy() * 1e3,
                   "test_nominal_mrad": run.errors["nominal_test"][0].cpu().numpy() * 1e3,
-                  "train": run.train, "validation": run.validation, "test": test, "nominal": run.nominal}
+                  "train": run.train, "validation": run.validation, "test": test, "nominal": run.nominal,
+                  "interval_inputs": run.interval_inputs}
 
 
 #: The steps of :func:`run_calibration`, in order (name, function of :class:`Run`).
 STEPS = (("select", select), ("prepare", prepare), ("rebatch", rebatch), ("split", split),
-         ("check_properties", check_properties), ("fit", fit), ("evaluate", evaluate),
+         ("check_properties", check_properties), ("learn_prior", learn_prior), ("fit", fit), ("evaluate", evaluate),
+         ("online_refit", online_refit), ("predict_intervals", predict_intervals),
          ("report_heliostats", report_heliostats), ("report_overall", report_overall),
          ("report_records", report_records), ("plot_arrays", plot_arrays))
 

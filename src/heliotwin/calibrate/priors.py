@@ -18,8 +18,17 @@ training pools and the small heliostats that are not part of the benchmark).
 Without a field prior the fits fall back to a *nominal* prior towards zero deviation. There are two, one
 per kind of fit, and they differ on purpose: :data:`STONE8_SIGMA` for the 8-parameter Levenberg-Marquardt
 fits (``lm``), :data:`CHAIN_SIGMA` for the gradient fits of the whole chain (``gradient``, ``images``).
+
+The *plant prior* (:class:`PlantPrior`, :func:`plant_prior`) is the hierarchical version learned from
+*other* heliostats with long histories instead of the run's own first records: mean + a full covariance
+(shrunk towards its diagonal), so the near-degenerate pairs (axis-2 initial angle <-> first-joint tilt
+north) are held to the combination the plant shows. It is built by :mod:`.archive` and used by ``lm`` with
+``--prior plant`` / ``--prior-from``.
 """
 from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
 
 import torch
 
@@ -76,3 +85,140 @@ def field_prior(first_pass: torch.Tensor, usable: torch.Tensor, names, *, floor:
     mad = (d - mu).abs().median(0).values * 1.4826 * widen
     fl = sigma_vector(names, floor or FLOOR_SIGMA)
     return mu, torch.maximum(mad, fl)
+
+
+# --------------------------------------------------------------------------------------- plant prior
+#: Fewest records of an archive heliostat for its fit to enter a plant prior (more than the 8 Stone/Jülich
+#: parameters, so that its loose fit is determined by data rather than by the loose prior).
+MIN_PRIOR_RECORDS = 9
+
+#: Default settings of a plant prior (see :meth:`PriorArchive.prior`); :mod:`.selection` chooses among
+#: alternatives by leave-heliostats-out cross-validation.
+PLANT_PRIOR_DEFAULTS = {"covariance": "full", "shrink": 0.2, "widen": 1.0, "min_records": MIN_PRIOR_RECORDS}
+
+
+@dataclass
+class PlantPrior:
+    """Hierarchical (plant-level) prior: a heliostat's deviations ~ N(``mean``, ``covariance``).
+
+    Each heliostat's parameters are the plant mean plus an individual deviation; the covariance is the
+    spread of those deviations over the plant's heliostats, estimated from heliostats with long histories.
+    A full covariance holds the near-degenerate pairs (axis-2 initial angle <-> first-joint tilt north,
+    which few records cannot tell apart) to the *combination* the plant shows, so a heliostat with 10
+    records is not pushed far along that direction by noise.
+
+    Attributes
+    ----------
+    names : tuple of str, length P
+    mean : torch.Tensor, [P]
+        Physical units (rad, m, relative for increments).
+    covariance : torch.Tensor, [P, P]
+        Symmetric positive definite.
+    heliostats : list of str
+        Heliostats the prior was learned from (the leakage check compares them with the calibrated ones).
+    settings : dict
+        How it was estimated (JSON values).
+    """
+
+    names: tuple
+    mean: torch.Tensor
+    covariance: torch.Tensor
+    heliostats: list = field(default_factory=list)
+    settings: dict = field(default_factory=dict)
+
+    @property
+    def sigma(self) -> torch.Tensor:
+        """Marginal standard deviation per parameter [P]."""
+        return self.covariance.diagonal().clamp_min(0).sqrt()
+
+    def whitening(self) -> torch.Tensor:
+        """``W`` [P, P] with ``W^T W = covariance^-1`` (inverse Cholesky factor): prior residual ``W (d - mean)``."""
+        chol = torch.linalg.cholesky(self.covariance.double())
+        eye = torch.eye(len(self.names), dtype=torch.float64)
+        return torch.linalg.solve_triangular(chol, eye, upper=False)
+
+    def state(self) -> dict:
+        """The ``/learned/calibration/prior`` entry (``sigma`` kept for readers of the diagonal prior)."""
+        return {"names": [str(n) for n in self.names], "mean": self.mean.detach().double().cpu(),
+                "sigma": self.sigma.detach().double().cpu(), "covariance": self.covariance.detach().double().cpu(),
+                "heliostats": [str(h) for h in self.heliostats], "settings": json.dumps(self.settings)}
+
+    @classmethod
+    def from_state(cls, state: dict, path="") -> PlantPrior:
+        """Read a stored prior; one with only ``sigma`` (a diagonal field prior) becomes a diagonal covariance."""
+        from ..errors import InputFileError
+
+        try:
+            names = tuple(str(n) for n in state["names"])
+            mean = torch.as_tensor(state["mean"], dtype=torch.float64).reshape(-1)
+            if "covariance" in state:
+                cov = torch.as_tensor(state["covariance"], dtype=torch.float64)
+            else:
+                cov = torch.diag(torch.as_tensor(state["sigma"], dtype=torch.float64).reshape(-1) ** 2)
+            heliostats = [str(h) for h in state.get("heliostats", [])]
+            settings = json.loads(state["settings"]) if isinstance(state.get("settings"), str) else {}
+        except (KeyError, TypeError, ValueError):
+            raise InputFileError(path, "malformed calibration prior", field="/learned/calibration/prior") from None
+        p = len(names)
+        finite = bool(torch.isfinite(cov).all() & torch.isfinite(mean).all())
+        if mean.shape != (p,) or cov.shape != (p, p) or not finite:
+            raise InputFileError(path, f"calibration prior needs mean [{p}] and covariance [{p}, {p}] of finite "
+                                 "numbers", field="/learned/calibration/prior")
+        try:
+            torch.linalg.cholesky(cov)
+        except RuntimeError:
+            raise InputFileError(path, "calibration prior covariance is not positive definite",
+                                 field="/learned/calibration/prior") from None
+        return cls(names, mean, cov, heliostats, settings)
+
+
+def plant_prior(deviations: torch.Tensor, names, heliostats, *, covariance: str = "full", shrink: float = 0.2,
+                widen: float = 1.0, floor: dict | None = None) -> PlantPrior:
+    """Plant prior from per-heliostat deviations fitted on long histories.
+
+    Parameters
+    ----------
+    deviations : torch.Tensor, [H, P]
+        One fit per archive heliostat (physical units), H >= :data:`MIN_HELIOSTATS`.
+    names : sequence of str, length P
+    heliostats : list of str, length H
+    covariance : str
+        ``"full"`` (the plant's covariance, shrunk towards its diagonal by ``shrink``) or ``"diag"``.
+    shrink : float
+        Ledoit-Wolf-style weight of the diagonal, in [0, 1] (H ~ 10-30 heliostats estimate a P x P matrix).
+    widen : float
+        Multiplies the covariance's standard deviations (1 = as estimated).
+    floor : dict, optional
+        Smallest marginal sigma per kind (default :data:`FLOOR_SIGMA`).
+
+    Returns
+    -------
+    PlantPrior
+
+    Notes
+    -----
+    Robust: mean = per-parameter median; heliostats farther than 3 robust sigmas are clipped (winsorised)
+    to 3 sigmas before the covariance, so one heliostat with a broken history cannot set it.
+    """
+    d = deviations.detach().double()
+    if len(d) < MIN_HELIOSTATS:
+        raise ValueError(f"a plant prior needs >= {MIN_HELIOSTATS} heliostats, got {len(d)}")
+    mu = d.median(0).values
+    mad = ((d - mu).abs().median(0).values * 1.4826).clamp_min(1e-12)
+    clipped = mu + ((d - mu) / mad).clamp(-3.0, 3.0) * mad
+    c = clipped - clipped.mean(0)
+    cov = c.T @ c / max(1, len(d) - 1)
+    fl = sigma_vector(names, floor or FLOOR_SIGMA)
+    var = torch.maximum(cov.diagonal(), fl ** 2)
+    sd_old = cov.diagonal().clamp_min(1e-30).sqrt()
+    corr = cov / (sd_old[:, None] * sd_old[None, :])
+    if covariance == "diag":
+        corr = torch.eye(len(mu), dtype=torch.float64)
+    elif covariance == "full":
+        corr = (1.0 - shrink) * corr + shrink * torch.eye(len(mu), dtype=torch.float64)
+    else:
+        raise ValueError(f"covariance must be 'full' or 'diag', got {covariance!r}")
+    sd = var.sqrt() * widen
+    cov = corr * sd[:, None] * sd[None, :]
+    settings = {"covariance": covariance, "shrink": float(shrink), "widen": float(widen), "n_heliostats": len(d)}
+    return PlantPrior(tuple(names), mu, 0.5 * (cov + cov.T), list(heliostats), settings)

@@ -16,6 +16,7 @@ import torch
 from ..errors import HeliotwinError, InputFileError
 from ..field.plant import Kinematics, Plant
 from ..field.update import with_kinematics
+from .priors import PlantPrior
 
 #: The key of a calibration under ``Scenario.learned``.
 KEY = "calibration"
@@ -30,8 +31,11 @@ def calibration_state(model, *, focal_spot: str = "", prior=None) -> dict:
         H heliostats, ``ok`` [H] says which were calibrated.
     focal_spot : str
         Centroid source the method was scored on.
-    prior : (torch.Tensor [P], torch.Tensor [P]) or None
-        Field prior mean and standard deviation over ``model.names`` (rad, m, relative), when one was used.
+    prior : (torch.Tensor [P], torch.Tensor [P]) or PlantPrior or None
+        Field prior mean and standard deviation over ``model.names`` (rad, m, relative), when one was used, or
+        a plant prior (:class:`~heliotwin.calibrate.priors.PlantPrior`: mean, sigma, covariance [P, P] and the
+        heliostats it was learned from). A field prior of the run's own records lists the calibrated
+        heliostats as its sources (so ``--prior-from`` refuses it for them).
 
     Returns
     -------
@@ -44,14 +48,21 @@ def calibration_state(model, *, focal_spot: str = "", prior=None) -> dict:
              "parameter_names": [str(n) for n in model.names],
              "deviations": model.delta.detach()[ok].to(torch.float64).cpu(),
              "nominal": {f.name: getattr(model.nominal, f.name)[ok].detach().cpu() for f in fields(Kinematics)}}
+    post = model.extras.get("posterior")
+    if post:  # what aim needs for the expected error and its interval (Laplace posterior, see uncertainty.py)
+        state["posterior"] = {"covariance": post["covariance"].detach()[ok].to(torch.float64).cpu(),
+                              "noise_rad": post["noise_rad"].detach()[ok].to(torch.float64).cpu(),
+                              "drift_rad": torch.tensor([float(post.get("drift_rad", 0.0))], dtype=torch.float64)}
     networks = model.extras.get("networks") or {}
     if networks:
         state["networks"] = {hid: {"config": json.dumps(net["config"]),
                                    "state": {k: v.detach().cpu() for k, v in net["state"].items()}}
                              for hid, net in networks.items() if hid in ids}
-    if prior is not None:
+    if isinstance(prior, PlantPrior):
+        state["prior"] = prior.state()
+    elif prior is not None:
         state["prior"] = {"names": [str(n) for n in model.names], "mean": torch.as_tensor(prior[0]).double(),
-                          "sigma": torch.as_tensor(prior[1]).double()}
+                          "sigma": torch.as_tensor(prior[1]).double(), "heliostats": list(ids)}
     return state
 
 
@@ -87,8 +98,8 @@ def save_calibration(path, plant: Plant, model, *, previous=None, focal_spot: st
     """
     from ..io.scenario import provenance_entry, save_step
 
-    prior = model.extras.get("field_prior")
-    prior = (prior["mean"], prior["sigma"]) if isinstance(prior, dict) and "mean" in prior else None
+    prior = model.extras.get("plant_prior") or model.extras.get("field_prior")
+    prior = (prior["mean"], prior["sigma"]) if isinstance(prior, dict) and "mean" in prior else prior
     learned = dict(previous.learned) if previous is not None else {}
     learned[KEY] = calibration_state(model, focal_spot=focal_spot, prior=prior)
     step = provenance_entry("calibrate", method=str(model.method), source=str(source), records=records or {},
@@ -127,7 +138,9 @@ def aim(scenario, heliostat_id: str, sun_azimuth: float, sun_elevation: float, a
     Returns
     -------
     dict
-        ``motor_steps`` [2] (real-valued), ``reachable`` (bool), ``method`` (``nominal`` when uncalibrated).
+        ``motor_steps`` [2] (real-valued), ``reachable`` (bool), ``method`` (``nominal`` when uncalibrated);
+        for a rigid-body calibration with a stored posterior also ``expected_error_mrad`` and
+        ``error_interval_90_mrad`` (``[0, q_0.9]`` of the pointing error, :func:`expected_error`).
     """
     from ..field import kinematics as K
     from ..sun import direction_from_paint_angles
@@ -155,5 +168,44 @@ def aim(scenario, heliostat_id: str, sun_azimuth: float, sun_elevation: float, a
         steps, _ = K.inverse(kin, target, sun, strict=False)
     steps = steps.reshape(-1, 2)[0]
     reachable = bool(((steps >= kin.min_steps[0]) & (steps <= kin.max_steps[0])).all())
-    return {"heliostat": heliostat_id, "motor_steps": [float(s) for s in steps], "reachable": reachable,
-            "method": cal.get("method", "nominal") if calibrated else "nominal"}
+    out = {"heliostat": heliostat_id, "motor_steps": [float(s) for s in steps], "reachable": reachable,
+           "method": cal.get("method", "nominal") if calibrated else "nominal"}
+    if calibrated and kind is None and cal.get("posterior"):
+        out.update(expected_error(cal, heliostat_id, steps, scenario.path))
+    return out
+
+
+def expected_error(cal: dict, heliostat_id: str, steps: torch.Tensor, path="") -> dict:
+    """Expected pointing error and its 90 % interval ``[0, q_0.9]`` [mrad] at ``steps`` [2] (Laplace posterior).
+
+    ``cal`` is the ``/learned/calibration`` entry; the normal's Jacobian w.r.t. the heliostat's deviations
+    is taken at the stored fit (nominal kinematics + deviations), see :mod:`heliotwin.calibrate.uncertainty`.
+    """
+    from ..field import kinematics as K
+    from .params import apply_deviations
+    from .uncertainty import LEVEL, predictive
+
+    where = f"/learned/{KEY}/posterior"
+    try:
+        j = list(cal["heliostats"]).index(heliostat_id)
+        post = cal["posterior"]
+        cov = torch.as_tensor(post["covariance"], dtype=torch.float64)[j]
+        noise = torch.as_tensor(post["noise_rad"], dtype=torch.float64)[j]
+        drift = float(torch.as_tensor(post["drift_rad"]).reshape(-1)[0])
+        names = list(cal["parameter_names"])
+        nominal = Kinematics(**{f.name: torch.as_tensor(cal["nominal"][f.name])[j:j + 1] for f in fields(Kinematics)})
+        delta = torch.as_tensor(cal["deviations"], dtype=torch.float64)[j:j + 1]
+    except (KeyError, IndexError, TypeError, ValueError, RuntimeError):
+        raise InputFileError(path, "malformed calibration posterior", field=where) from None
+    if cov.shape != (len(names), len(names)):
+        raise InputFileError(path, f"posterior covariance must be [{len(names)}, {len(names)}]", field=where)
+
+    def normal(d):
+        rot, _ = K.forward(apply_deviations(nominal, d, names), steps.reshape(1, 2).double())
+        return K.mirror_normal(rot).reshape(3)
+
+    jac = torch.autograd.functional.jacobian(normal, delta).reshape(3, len(names))
+    with torch.no_grad():
+        pred = predictive(jac[None], normal(delta)[None], cov[None], noise.reshape(1), drift=drift)
+    return {"expected_error_mrad": float(1e3 * pred["expected"][0]),
+            f"error_interval_{round(100 * LEVEL)}_mrad": [float(1e3 * pred["lower"][0]), float(1e3 * pred["upper"][0])]}

@@ -23,13 +23,13 @@ import argparse
 import sys
 
 from .. import __version__
-from . import calibrate, field, plant, surfaces
+from . import calibrate, field, plan, plant, surfaces
 from .common import ArgumentParser, run_command
 
 __all__ = ["build_parser", "main", "run_command"]
 
 #: Command groups in the order of ``heliotwin --help``.
-GROUPS = (plant, calibrate, surfaces, field)
+GROUPS = (plant, calibrate, plan, surfaces, field)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -34,8 +34,10 @@ def _add_common(p):
     p.add_argument("--min-records", type=_COUNT, default=50,
                    help="skip heliostats with fewer usable records (default 50)")
     p.add_argument("--split", "--type", dest="split", default="chrono",
-                   choices=("chrono", "isolation", "region", "azimuth", "solstice", "balanced", "high_variance"),
-                   help="split type (default chrono)")
+                   choices=("chrono", "isolation", "region", "azimuth", "solstice", "balanced", "high_variance",
+                            "online"),
+                   help="split type (default chrono; online = each test record predicted from the --train records "
+                        "before it, calibrate only)")
     p.add_argument("--train", type=_COUNT, default=30,
                    help="records a method may see per heliostat, validation included")
     p.add_argument("--validation", type=_COUNT0, default=None,
@@ -65,6 +67,21 @@ def register(subparsers) -> None:
                    help="report suspicious property values but never replace them")
     p.add_argument("--quiet", action="store_true", help="no progress bars and no summary line")
     p.add_argument("--progress", action="store_true", help=argparse.SUPPRESS)  # old flag: progress is the default
+    p.add_argument("--prior", choices=("run", "plant"), default="run",
+                   help="lm prior: 'run' = field prior of the run's training records (default), 'plant' = learned "
+                        "from the PAINT folder's heliostats that are not calibrated")
+    p.add_argument("--prior-from", metavar="ARCHIVE",
+                   help="lm plant prior from ARCHIVE: a PAINT folder of the same plant (its heliostats that this run "
+                        "calibrates are excluded) or a scenario holding a prior learned from other heliostats")
+    p.add_argument("--half-life-days", type=float_range(0.0, 1e5, lo_open=True, what="a half-life [days]"),
+                   default=None,
+                   help="lm drift tracking: a training record N days older than the latest weighs 0.5**(N/this) "
+                        "(default: all records weigh 1; benchmarks/bench_carryover.py chooses it by CV)")
+    p.add_argument("--drift-mrad", type=float_range(0.0, 1e3, what="a drift [mrad]"), default=None,
+                   help="lm predictive interval: offset drift per component [mrad] added to the Laplace posterior's "
+                        "noise (default 0; chosen by cross-validated coverage in benchmarks/bench_carryover.py)")
+    p.add_argument("--online-step", type=_COUNT, default=5,
+                   help="--split online: refit every this many test records (default 5; 1 = before every record)")
     p.set_defaults(func=cmd_calibrate)
 
     p = subparsers.add_parser("split", help="write a train/validation/test split and its coverage metrics",
@@ -95,9 +112,28 @@ def _config(args, method="lm"):
                     min_records=args.min_records, focal_spot=args.focal_spot, seed=args.seed,
                     plane_tolerance=getattr(args, "plane_tolerance", 0.1),
                     correct_suspicious=not getattr(args, "keep_suspicious", False),
-                    progress=not getattr(args, "quiet", True))
+                    progress=not getattr(args, "quiet", True), prior=getattr(args, "prior", "run"),
+                    prior_from=getattr(args, "prior_from", None), online_step=getattr(args, "online_step", 5),
+                    method_options=_lm_options(args, method))
     validate_config(cfg)
     return cfg
+
+
+def _lm_options(args, method) -> dict:
+    """``--half-life-days`` / ``--drift-mrad`` as lm method options (one-line error for other methods)."""
+    opts = {}
+    hl, drift = getattr(args, "half_life_days", None), getattr(args, "drift_mrad", None)
+    if hl is not None:
+        if not (math.isfinite(hl) and hl > 0):
+            raise HeliotwinError(f"--half-life-days must be a positive number, got {hl}")
+        opts["half_life_days"] = hl
+    if drift is not None:
+        if not (math.isfinite(drift) and drift >= 0):
+            raise HeliotwinError(f"--drift-mrad must be >= 0, got {drift}")
+        opts["drift"] = 1e-3 * drift
+    if opts and method != "lm":
+        raise HeliotwinError(f"--half-life-days / --drift-mrad apply to --method lm only, not {method}")
+    return opts
 
 
 def _load(paint, scenario=None, plane_tolerance: float = 0.1):
@@ -144,7 +180,7 @@ def cmd_calibrate(args) -> int:
             curves = _training_size_curves(cfg, ds, ov["median_of_mean_test_mrad"])
         stage(args, "writing outputs")
         if output:
-            settings = {k: v for k, v in report["config"].items() if k != "method_options"}
+            settings = dict(report["config"])  # method options too (half-life, drift): they shape the result
             save_calibration(output, ds.plant, model, previous=previous, focal_spot=cfg.focal_spot,
                              records=_seen_records(arrays), settings=settings, source=os.path.abspath(args.paint))
             report["output"] = os.fspath(args.output)
@@ -274,5 +310,9 @@ def cmd_aim(args) -> int:
         note = "" if ans["reachable"] else "  (OUTSIDE the actuator range: not reachable)"
         print(f"{ans['heliostat']}: motor steps axis 1 {ans['motor_steps'][0]:.0f}, axis 2 "
               f"{ans['motor_steps'][1]:.0f}{note} [{ans['method']}]")
+        if "expected_error_mrad" in ans:
+            lo, hi = ans["error_interval_90_mrad"]
+            print(f"expected pointing error {ans['expected_error_mrad']:.2f} mrad, 90 % interval "
+                  f"[{lo:.2f}, {hi:.2f}] mrad")
     return 0 if ans["reachable"] else 3
 

@@ -1,0 +1,198 @@
+"""Honest model selection: settings chosen by leave-heliostats-out cross-validation, as code.
+
+A *candidate* is a dict of settings of the ``lm`` calibration (:data:`CANDIDATES`): which prior (the run's
+own field prior, or a plant prior learned from other heliostats, :mod:`.archive`), the plant prior's
+covariance form, shrinkage and width, and the number of bootstrap bags. Every figure here is computed with
+the benchmark protocol (``--split chrono``, test = the latest ``test`` records of a heliostat, ``--train N``)
+on heliostats that no choice looked at:
+
+* :func:`cross_validated_errors`: K folds over heliostats; the heliostats of fold k are calibrated with a
+  plant prior from every other heliostat of the folder (never fold k's, nor any ``exclude``d heliostat);
+  returns each heliostat's mean test error per candidate.
+* :func:`select`: the candidate with the lowest median (over heliostats) of those errors — the choice
+  procedure, which sees only the heliostats it is given.
+* :func:`nested_cv`: the honest estimate of :func:`select` itself: for each outer fold, :func:`select` runs
+  on the other heliostats only (inner K-fold, the outer fold excluded from every prior), and the chosen
+  candidate is then scored on the outer fold. The median over all heliostats of those held-out errors is
+  the leave-heliostats-out CV figure.
+
+Heliostats with fewer than ``min_records`` usable records are never calibrated or tested here, but their
+records feed the plant priors (they are the plant's other heliostats).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from .pipeline import RunConfig, run_calibration
+
+#: Settings tried, in order (the first is today's ``lm`` default). ``bags``: bootstrap bags of ``lm``;
+#: ``half_life_days``: drift tracking by recency weights (:func:`~heliotwin.calibrate.lm.fit_lm`).
+CANDIDATES = (
+    {"prior": "run", "bags": 10},
+    {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 1.0, "bags": 10},
+    {"prior": "plant", "covariance": "full", "shrink": 0.5, "widen": 1.0, "bags": 10},
+    {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 2.0, "bags": 10},
+    {"prior": "plant", "covariance": "diag", "widen": 1.0, "bags": 10},
+    {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 1.0, "bags": 0},
+    {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 2.0, "bags": 10, "half_life_days": 60.0},
+    {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 2.0, "bags": 10, "half_life_days": 180.0},
+    {"prior": "run", "bags": 10, "half_life_days": 60.0},
+    {"prior": "run", "bags": 10, "half_life_days": 20.0},
+    {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 2.0, "bags": 10, "half_life_days": 20.0},
+)
+
+
+def label(candidate: dict) -> str:
+    """Short text of a candidate, e.g. ``plant/full/s0.2/w1/b10``."""
+    c = candidate
+    hl = f"/hl{c['half_life_days']:g}d" if c.get("half_life_days") else ""
+    if c.get("prior", "run") == "run":
+        return f"run/b{c.get('bags', 10)}{hl}"
+    cov = c.get("covariance", "full")
+    shrink = f"/s{c.get('shrink', 0.2):g}" if cov == "full" else ""
+    return f"plant/{cov}{shrink}/w{c.get('widen', 1.0):g}/b{c.get('bags', 10)}{hl}"
+
+
+def config_of(base: RunConfig, candidate: dict, archive=None) -> RunConfig:
+    """``base`` with a candidate's settings (``archive``: a :class:`~.archive.PriorArchive` for plant priors)."""
+    opts = {k: candidate[k] for k in ("covariance", "shrink", "widen", "min_records") if k in candidate}
+    method_options = dict(base.method_options, bags=int(candidate.get("bags", 10)))
+    if candidate.get("half_life_days"):
+        method_options["half_life_days"] = float(candidate["half_life_days"])
+    if candidate.get("prior", "run") == "plant":
+        return replace(base, prior="plant", prior_from=archive, prior_options=opts, method_options=method_options)
+    return replace(base, prior="run", prior_from=None, prior_options={}, method_options=method_options)
+
+
+def eligible(dataset, min_records: int = 50, focal_spot: str = "HeliOS") -> list:
+    """Heliostats with at least ``min_records`` usable records (those a benchmark calibrates and tests)."""
+    counts = dataset.records.with_focal_spot(focal_spot).counts()
+    ids = dataset.records.heliostat_ids
+    return [h for h, c in zip(ids, counts.tolist()) if c >= min_records]
+
+
+def folds_of(heliostats, k: int, seed: int) -> list:
+    """``k`` folds of heliostat ids (seeded shuffle, round-robin; sizes differ by at most one)."""
+    order = list(np.random.default_rng(seed).permutation(len(heliostats)))
+    return [[heliostats[i] for i in order[j::k]] for j in range(k) if order[j::k]]
+
+
+def cross_validated_errors(dataset, base: RunConfig, candidates, heliostats, *, folds: int, seed: int = 0,
+                           archive=None, exclude=(), log=None, collect: dict | None = None) -> dict:
+    """Per candidate (its :func:`label`), heliostat id -> mean test error [mrad] under K-fold over heliostats.
+
+    Fold k is calibrated in one run (``base`` settings, ``heliostats=fold k``); the plant prior excludes fold
+    k (the run's heliostats) and every id in ``exclude``. ``collect`` (optional) receives, per candidate, the
+    list of the runs' predictive-interval inputs (for :func:`choose_drift`).
+    """
+    out = {}
+    for cand in candidates:
+        errs = {}
+        # The run's own field prior learns only from the run's training records: no fold is needed, and
+        # calibrating the heliostats together is how that candidate is used (its prior needs >= 4 of them).
+        groups = [list(heliostats)] if cand.get("prior", "run") == "run" else folds_of(list(heliostats), folds, seed)
+        for fold in groups:
+            cfg = replace(config_of(base, cand, archive), heliostats=fold, prior_exclude=list(exclude))
+            rep, _, arrays = run_calibration(cfg, dataset)
+            errs.update({h: r["mean_test_mrad"] for h, r in rep["heliostats"].items()
+                         if h in fold and r.get("status") == "ok"})
+            if collect is not None and arrays.get("interval_inputs"):
+                collect.setdefault(label(cand), []).append(arrays["interval_inputs"])
+        out[label(cand)] = errs
+        if log:
+            log(f"  {label(cand):28s} median {median(errs.values()):.3f} mrad over {len(errs)} heliostats")
+    return out
+
+
+def median(values) -> float:
+    v = [x for x in values if x is not None and math.isfinite(x)]
+    return float(np.median(v)) if v else float("inf")
+
+
+def select(scores: dict, candidates) -> dict:
+    """The candidate whose per-heliostat errors (``scores[label]``) have the lowest median (ties: earlier)."""
+    best = min(range(len(candidates)), key=lambda i: (median(scores[label(candidates[i])].values()), i))
+    return candidates[best]
+
+
+#: Offset drift values tried for the predictive interval [rad] (:func:`choose_drift`).
+DRIFT_GRID = (0.0, 2.5e-4, 5e-4, 7.5e-4, 1e-3, 1.5e-3, 2e-3)
+
+
+def coverage(inputs: list, drift: float, seed: int = 0, samples: int | None = None) -> float:
+    """Fraction of the records in ``inputs`` (runs' ``interval_inputs``) whose error lies in the 90 % interval."""
+    import torch
+
+    from .uncertainty import SAMPLES, predictive
+
+    inside, n = 0, 0
+    for x in inputs:
+        if len(x["error"]) == 0:
+            continue
+        pred = predictive(x["jacobian"], x["normal"], x["covariance"], x["noise"], drift=drift,
+                          samples=samples or SAMPLES, generator=torch.Generator().manual_seed(seed))
+        inside += int(((x["error"] >= pred["lower"]) & (x["error"] <= pred["upper"])).sum())
+        n += len(x["error"])
+    return inside / n if n else float("nan")
+
+
+def choose_drift(inputs: list, grid=DRIFT_GRID, target: float = 0.9, samples: int | None = None) -> tuple[float, dict]:
+    """The offset drift [rad] whose 90 % intervals cover a fraction closest to ``target`` of the records of
+    ``inputs`` (cross-validation runs on heliostats other than the ones it will be applied to; ties: the
+    smaller drift). Returns (drift, {drift: coverage})."""
+    cov = {d: coverage(inputs, d, samples=samples) for d in grid}
+    best = min(grid, key=lambda d: (abs(cov[d] - target), d))
+    return best, cov
+
+
+def nested_cv(dataset, base: RunConfig, candidates=CANDIDATES, *, folds: int = 4, inner_folds: int = 3,
+              min_records: int = 50, seed: int = 0, archive=None, log=None) -> dict:
+    """Leave-heliostats-out CV of the whole choice procedure (module docstring).
+
+    Returns
+    -------
+    dict
+        ``heliostats`` (id -> held-out mean test error [mrad]), ``median_of_mean_test_mrad`` (the CV
+        figure), ``interval_90_coverage`` (held-out records inside their 90 % interval, drift chosen on the
+        inner folds), ``folds`` (per outer fold: held-out ids, chosen candidate and drift, inner medians).
+    """
+    from .archive import PriorArchive
+
+    if archive is None:
+        archive = PriorArchive.from_dataset(dataset, focal_spot=base.focal_spot, source=str(base.paint))
+    ids = eligible(dataset, min_records, base.focal_spot)
+    held_out, report, cov_in = {}, [], []
+    for k, fold in enumerate(folds_of(ids, folds, seed)):
+        rest = [h for h in ids if h not in fold]
+        if log:
+            log(f"outer fold {k}: held out {','.join(fold)}; choosing on {len(rest)} heliostats")
+        collect: dict = {}
+        inner = cross_validated_errors(dataset, base, candidates, rest, folds=inner_folds, seed=seed + 1 + k,
+                                       archive=archive, exclude=fold, log=log, collect=collect)
+        chosen = select(inner, candidates)
+        drift, _ = choose_drift(collect.get(label(chosen), []))
+        # a run-prior candidate is used on all heliostats at once (training records only; see above)
+        run_on = ids if chosen.get("prior", "run") == "run" else fold
+        cfg = replace(config_of(base, chosen, archive), heliostats=run_on)
+        cfg = replace(cfg, method_options=dict(cfg.method_options, drift=drift))
+        rep, _, arrays = run_calibration(cfg, dataset)
+        errs = {h: rep["heliostats"][h]["mean_test_mrad"] for h in fold if rep["heliostats"][h].get("status") == "ok"}
+        held_out.update(errs)
+        iv = arrays.get("interval_inputs") or {}
+        mine = [i for i, h in enumerate(iv.get("heliostat", [])) if h in fold]
+        if mine:
+            sub = {key: (iv[key][mine] if key != "heliostat" else None) for key in iv}
+            inside = coverage([sub], drift)
+            cov_in.append((inside * len(mine), len(mine)))
+        report.append({"held_out": fold, "chosen": label(chosen), "drift_rad": drift,
+                       "inner_median_mrad": {c: median(v.values()) for c, v in inner.items()},
+                       "held_out_mean_test_mrad": errs})
+        if log:
+            log(f"outer fold {k}: chose {label(chosen)}, drift {1e3 * drift:.2f} mrad; held-out errors "
+                + ", ".join(f"{h} {e:.2f}" for h, e in errs.items()))
+    n_cov = sum(n for _, n in cov_in)
+    return {"heliostats": held_out, "median_of_mean_test_mrad": median(held_out.values()), "folds": report,
+            "interval_90_coverage": sum(c for c, _ in cov_in) / n_cov if n_cov else None}

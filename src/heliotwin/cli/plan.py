@@ -1,0 +1,53 @@
+"""``heliotwin plan``: which calibration records to take next for one heliostat.
+
+:func:`register` adds the command; the library (:mod:`heliotwin.calibrate.plan`) is imported inside the
+command function so that ``--help`` stays torch-free.
+"""
+from __future__ import annotations
+
+from ..io.report import output_set, write_json
+from .common import float_range, frequency, int_range
+
+
+def register(subparsers) -> None:
+    """Add ``plan`` to an argparse subparsers object."""
+    p = subparsers.add_parser("plan", help="sun positions whose calibration records would shrink a heliostat's "
+                                           "predictive uncertainty most",
+                              description="Propose the times (sun positions) at which a calibration record of one "
+                                          "heliostat would shrink its predictive pointing uncertainty most, from "
+                                          "the posterior stored by 'calibrate -o' (method lm).")
+    p.add_argument("--scenario", required=True, help="calibrated scenario file (calibrate --method lm -o)")
+    p.add_argument("--heliostat", required=True, help="heliostat id")
+    p.add_argument("--year", type=int_range(1900, 2100, "a year"), default=None,
+                   help="year of the candidate times (default: the current year)")
+    p.add_argument("--every", type=frequency, default="1h", help="spacing of candidate times (default 1h)")
+    p.add_argument("--count", type=int_range(1, 1000, "a record count"), default=5,
+                   help="records to propose (default 5)")
+    p.add_argument("--target", help="planar calibration target to aim at (default: the first by name)")
+    p.add_argument("--min-elevation", type=float_range(0.0, 89.0, what="an elevation [deg]"), default=15.0,
+                   help="lowest sun elevation [deg] (default 15)")
+    p.add_argument("--json", help="also write the proposals as JSON")
+    p.set_defaults(func=cmd_plan)
+
+
+def cmd_plan(args) -> int:
+    import datetime
+
+    from ..calibrate.plan import plan
+    from ..io.scenario import load_scenario
+
+    year = args.year or datetime.datetime.now(datetime.timezone.utc).year
+    with output_set([("--scenario", args.scenario)]) as out:
+        json_path = out.file(args.json, "--json")
+        ans = plan(load_scenario(args.scenario), args.heliostat, year=year, every=args.every, count=args.count,
+                   target=args.target, min_elevation_deg=args.min_elevation)
+        if json_path:
+            write_json(json_path, ans)
+    if args.quiet:
+        return 0
+    print(f"{ans['heliostat']}: predictive spread of the normal over {ans['year']}'s sun positions "
+          f"{ans['rms_now_mrad']:.3f} mrad now ({ans['candidates']} candidate times, target {ans['target']})")
+    for p in ans["proposals"]:
+        print(f"  {p['time']}  sun azimuth {p['sun_azimuth_deg']:7.2f} deg, elevation {p['sun_elevation_deg']:5.2f} deg"
+              f"  -> {p['rms_after_mrad']:.3f} mrad")
+    return 0
