@@ -1,5 +1,4 @@
 """``plan``: the next calibration records are where the posterior is least sure (greedy I-optimal design)."""
-import argparse
 import json
 import math
 
@@ -43,20 +42,17 @@ def test_plan_proposes_sun_positions_away_from_the_training_sky(tmp_path):
 
 
 def test_plan_command(tmp_path, capsys):
-    from heliotwin.cli import plan as plan_cli
-    from heliotwin.cli.common import run_command
+    from heliotwin.cli import main
 
     kin = jueliche_like(1)
     true = apply_deviations(kin, torch.tensor([[TRUE[n] for n in STONE8]], dtype=F64), STONE8)
     model = fit_lm_method(kin, simulate(true, 12, 2, noise=3e-4), None, bags=0, field_prior=False,
                           fit_focal_spot=None)
     scenario_round_trip(tmp_path, kin, model)
-    parser = argparse.ArgumentParser(prog="heliotwin")
-    plan_cli.register(parser.add_subparsers(dest="command"))
     js = tmp_path / "plan.json"
     argv = ["plan", "--scenario", str(tmp_path / "calibrated.h5"), "--heliostat", "S0", "--year", "2023",
             "--every", "3h", "--count", "2", "--json", str(js)]
-    assert run_command(parser.parse_args(argv)) == 0
+    assert main(argv) == 0
     assert len(json.loads(js.read_text())["proposals"]) == 2 and "mrad now" in capsys.readouterr().out
-    assert run_command(parser.parse_args(argv[:4] + ["ZZ9", "--year", "2023"])) == 2
+    assert main(argv[:4] + ["ZZ9", "--year", "2023"]) == 2
     assert "not calibrated" in capsys.readouterr().err
