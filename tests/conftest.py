@@ -6,21 +6,16 @@ puts ``tests/`` on ``sys.path`` under every import mode.
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
+from helpers.data import SHARED_DATA, require_shared
 
 #: The real PAINT data shipped next to the checkout (see its README.md).
-PAINT_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "paint"
+PAINT_DIR = SHARED_DATA / "paint"
 
 
 @pytest.fixture(scope="session")
 def paint_dir() -> Path:
     """The real PAINT folder; skips the test when it is missing (fails instead when ``CI=true``)."""
-    if not (PAINT_DIR / "WRI1030197-tower-measurements.json").is_file():
-        message = f"real PAINT data not found at {PAINT_DIR}"
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(message)
-        pytest.skip(message)
-    return PAINT_DIR
+    return require_shared(PAINT_DIR, "WRI1030197-tower-measurements.json", "real PAINT data")

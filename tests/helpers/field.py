@@ -2,15 +2,14 @@
 brute-force (all-pairs, loop over occluders) ray-rectangle reference for shading and blocking."""
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
-import pytest
 import torch
+from helpers.data import SHARED_DATA, require_shared
 
 #: SolarPILOT's output for one field (see its README.md), next to the checkout.
-SOLARPILOT_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "solarpilot-reference"
+SOLARPILOT_DIR = SHARED_DATA / "solarpilot-reference"
 
 #: The issue's plant description for the SolarPILOT case (flat single-facet 3.22 m x 2.56 m heliostats).
 PLANT_TOML = """\
@@ -42,12 +41,7 @@ coefficients = [0.006789, 0.1046, -0.0107, 0.002845]
 
 def solarpilot_dir() -> Path:
     """The reference folder; skips when missing (fails when ``CI=true``)."""
-    if not (SOLARPILOT_DIR / "field-results.json").is_file():
-        message = f"SolarPILOT reference not found at {SOLARPILOT_DIR}"
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(message)
-        pytest.skip(message)
-    return SOLARPILOT_DIR
+    return require_shared(SOLARPILOT_DIR, "field-results.json", "SolarPILOT reference")
 
 
 def write_plant_toml(folder: Path, text: str = PLANT_TOML) -> Path:
