@@ -149,7 +149,10 @@ def aim(scenario, heliostat_id: str, sun_azimuth: float, sun_elevation: float, a
     h = plant.field.index_of(heliostat_id)
     kin = plant.field.kinematics.index([h])
     cal = scenario.learned.get(KEY) or {}
-    calibrated = heliostat_id in (cal.get("heliostats") or [])
+    ids = cal.get("heliostats") or []
+    if not isinstance(ids, list) or not all(isinstance(i, str) for i in ids):
+        raise InputFileError(scenario.path, "expected a list of heliostat ids", field=f"/learned/{KEY}/heliostats")
+    calibrated = heliostat_id in ids
     sun = direction_from_paint_angles(torch.tensor([sun_azimuth]), torch.tensor([sun_elevation]))
     target = torch.as_tensor(aim_point, dtype=torch.float64).reshape(1, 3)
     if not bool(torch.isfinite(target).all()):

@@ -231,6 +231,9 @@ def _print_table(report: dict) -> None:
 
 
 def cmd_split(args) -> int:
+    if args.split == "online":
+        raise HeliotwinError("--type online: the online protocol refits as records arrive, so it exists for "
+                             "'heliotwin calibrate --split online' only, not as a fixed split")
     cfg = _config(args)
     with output_set([("--paint", args.paint)]) as out:
         return _split(args, cfg, out.file(args.json, "--json"), out.file(args.csv, "--csv"))

@@ -34,9 +34,16 @@ Layout (format ``"heliotwin-scenario"``, version 2; version 1 is version 2 witho
                             deviations [Hc, P] (rad, m, relative increments; from the nominal
                             kinematics), nominal/<Kinematics field> [Hc, ...] (the kinematics the
                             deviations are relative to), networks/<HID>/{config (JSON str), state/...}
-                            for ``hybrid`` / ``mlp``, prior/{names, mean [P], sigma [P]} (field prior)
+                            for ``hybrid`` / ``mlp``, prior/{names, mean [P], sigma [P], and for a
+                            plant prior covariance [P, P], heliostats (its sources), settings},
+                            posterior/{covariance [Hc, P, P], noise_rad [Hc], drift_rad [1]} (the
+                            Laplace predictive error ``aim`` reports; method lm)
         surfaces/<HID>/     settings (JSON str), displacement [F, nu, nv] (learned offsets along the
-                            facet normals [m]), train_records [n] (record ids)
+                            facet normals [m]), optics (JSON str), train_records [n] (record ids), target
+        aimpoints/          aim points and their motor steps (``heliotwin aimpoints``; see
+                            :mod:`heliotwin.optimise.aimpoints`)
+    /extras/atmosphere      optional: the attenuation model of a layout-built plant
+                            (:mod:`heliotwin.atmosphere`)
     /provenance             optional: one UTF-8 JSON string, a list of steps, each
                             {"step", "utc", "heliotwin", ...} (method, records, settings, source)
 
