@@ -164,13 +164,19 @@ class _Table:
         field = self.section if key is None else f"{self.section}.{key}"
         raise InputFileError(self.path, message, field=field)
 
-    def number(self, key: str, default=_REQUIRED, *, lo=None, hi=None, lo_open=False) -> float:
+    def _lookup(self, key: str, default, missing: str = "missing") -> tuple[bool, object]:
+        """(present, value): marks ``key`` as used; a required key that is absent fails with ``missing``."""
         self.used.add(key)
-        if key not in self.data:
-            if default is _REQUIRED:
-                self.fail(key, "missing")
-            return default
-        v = self.data[key]
+        if key in self.data:
+            return True, self.data[key]
+        if default is _REQUIRED:
+            self.fail(key, missing)
+        return False, default
+
+    def number(self, key: str, default=_REQUIRED, *, lo=None, hi=None, lo_open=False) -> float:
+        present, v = self._lookup(key, default)
+        if not present:
+            return v
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
             self.fail(key, f"expected a finite number, got {v!r}")
         v = float(v)
@@ -181,12 +187,9 @@ class _Table:
         return v
 
     def vector(self, key: str, length: int | None, default=_REQUIRED, *, integer=False) -> list:
-        self.used.add(key)
-        if key not in self.data:
-            if default is _REQUIRED:
-                self.fail(key, "missing")
-            return default
-        v = self.data[key]
+        present, v = self._lookup(key, default)
+        if not present:
+            return v
         kinds = (int,) if integer else (int, float)
         if not isinstance(v, list) or (length is not None and len(v) != length) or not v or \
                 not all(isinstance(x, kinds) and not isinstance(x, bool) and math.isfinite(float(x)) for x in v):
@@ -195,12 +198,9 @@ class _Table:
         return [int(x) if integer else float(x) for x in v]
 
     def choice(self, key: str, options, default=_REQUIRED) -> str:
-        self.used.add(key)
-        if key not in self.data:
-            if default is _REQUIRED:
-                self.fail(key, f"missing (one of {', '.join(options)})")
-            return default
-        v = self.data[key]
+        present, v = self._lookup(key, default, f"missing (one of {', '.join(options)})")
+        if not present:
+            return v
         if not isinstance(v, str) or v.lower() not in options:
             self.fail(key, f"unknown value {v!r}; expected one of {', '.join(options)}")
         return v.lower()
