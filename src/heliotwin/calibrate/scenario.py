@@ -22,6 +22,11 @@ from .priors import PlantPrior
 KEY = "calibration"
 
 
+def _calibrated_rows(model) -> list[int]:
+    """Rows (heliostat axis of ``model``) of the heliostats that were calibrated."""
+    return model.ok.nonzero().flatten().tolist()
+
+
 def calibration_state(model, *, focal_spot: str = "", prior=None) -> dict:
     """The ``/learned/calibration`` entry of a calibrated model (calibrated heliostats only).
 
@@ -42,7 +47,7 @@ def calibration_state(model, *, focal_spot: str = "", prior=None) -> dict:
     dict
         Encodable by :func:`heliotwin.io.scenario.save_scenario` (tensors, str, lists of str, dicts).
     """
-    ok = [h for h in range(len(model.heliostat_ids)) if bool(model.ok[h])]
+    ok = _calibrated_rows(model)
     ids = [model.heliostat_ids[h] for h in ok]
     state = {"method": str(model.method), "focal_spot": str(focal_spot), "heliostats": ids,
              "parameter_names": [str(n) for n in model.names],
@@ -68,7 +73,7 @@ def calibration_state(model, *, focal_spot: str = "", prior=None) -> dict:
 
 def calibrated_plant(plant: Plant, model) -> Plant:
     """``plant`` with the calibrated static kinematics of every calibrated heliostat of ``model``."""
-    ok = [h for h in range(len(model.heliostat_ids)) if bool(model.ok[h])]
+    ok = _calibrated_rows(model)
     if not ok:
         return plant
     return with_kinematics(plant, [model.heliostat_ids[h] for h in ok], model.kinematics.index(ok))
