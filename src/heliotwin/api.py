@@ -79,11 +79,16 @@ def field(source, heliostats=None):
 
 def to_device(obj, device):
     """``obj`` with every tensor on ``device``: tensors, dataclasses (plants, targets, record tables, flux
-    images), and lists/tuples/dicts of them; anything else is returned as is. Dtypes are kept."""
+    images), modules (networks, copied), and lists/tuples/dicts of them; anything else is returned as is.
+    Dtypes are kept."""
+    import copy
+
     import torch
 
     if isinstance(obj, torch.Tensor):
         return obj.to(device)
+    if isinstance(obj, torch.nn.Module):
+        return copy.deepcopy(obj).to(device)
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         changes = {f.name: to_device(getattr(obj, f.name), device) for f in dataclasses.fields(obj) if f.init}
         return dataclasses.replace(obj, **changes)

@@ -1,0 +1,248 @@
+"""Checkpoint and resume of long fits: an interrupted fit, resumed, reaches the uninterrupted fit's result.
+
+Interruptions are deterministic: the checkpoint's test hook raises after a chosen step of a chosen loop
+(between two saves, so the resumed run redoes some steps), as Ctrl-C would. Synthetic data (no real data)
+for the library loops; the CLI tests use a copy of two real heliostats.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+
+import pytest
+import torch
+from helpers.calibrate import TRUE, jueliche_like, simulate
+from helpers.cli import assert_one_line_error, run_cli
+from helpers.surfaces import small_scene
+
+from heliotwin.calibrate.gradient import fit_gradient_method
+from heliotwin.calibrate.hybrid import fit_hybrid_method
+from heliotwin.calibrate.params import STONE8, apply_deviations
+from heliotwin.errors import HeliotwinError
+from heliotwin.field.plant import SunSettings
+from heliotwin.io.checkpoint import Checkpoint, active, checkpoint_path, make_tag
+from heliotwin.surfaces.imaging import predict_images
+from heliotwin.surfaces.learning import LearnableSurface, learnable_surfaces
+from heliotwin.surfaces.training import TrainSettings, fit_surface, train_with_early_stopping
+
+
+class Interrupt(KeyboardInterrupt):
+    """What the hook raises: Ctrl-C in the middle of a fit."""
+
+
+def _stop_at(key: str, step: int, seen: list | None = None):
+    def hook(event, k, s):
+        if seen is not None and event == "step":
+            seen.append((k, s))
+        if event == "step" and k == key and s == step:
+            raise Interrupt()
+    return hook
+
+
+def _interrupted_then_resumed(tmp_path, fit, key, step, every=3):
+    """Run ``fit()`` under a checkpoint until ``key`` reaches ``step``; resume; return (result, steps redone)."""
+    path = tmp_path / "run.ckpt"
+    with pytest.raises(Interrupt):
+        with active(Checkpoint(path, "tag", every=every, min_interval_s=0, hook=_stop_at(key, step))):
+            fit()
+    assert path.exists()
+    seen: list = []
+    ck = Checkpoint(path, "tag", resume=True, every=every, min_interval_s=0, hook=_stop_at("-", -1, seen))
+    assert ck.resumed and key in ck.entries
+    with active(ck):
+        out = fit()
+    return out, seen
+
+
+@pytest.fixture(scope="module")
+def synthetic_records():
+    nom = jueliche_like(2)
+    true = apply_deviations(nom, torch.tensor([list(TRUE.values())] * 2, dtype=torch.float64), STONE8)
+    recs = simulate(true, 18, seed=3, noise=1e-3)
+    idx = torch.arange(len(recs))
+    return nom, recs.subset(idx % 3 != 0), recs.subset(idx % 3 == 0)
+
+
+@pytest.fixture(scope="module")
+def gradient_reference(synthetic_records):
+    nom, tr, va = synthetic_records
+    return fit_gradient_method(nom, tr, va, seed=0, iterations=10)
+
+
+def test_gradient_fit_resumed_mid_loop_equals_the_uninterrupted_fit(tmp_path, synthetic_records, gradient_reference):
+    """The rigid-body gradient fit (L-BFGS, two early-stopping passes): interrupted at step 7 of its first
+    loop (last save at step 6), resumed: the same deviations, bit for bit, and only steps 7.. are rerun."""
+    nom, tr, va = synthetic_records
+    ref = gradient_reference
+    out, seen = _interrupted_then_resumed(tmp_path, lambda: fit_gradient_method(nom, tr, va, seed=0, iterations=10),
+                                          "fit/0", 7)
+    assert torch.equal(out.delta, ref.delta)
+    first = [s for k, s in seen if k == "fit/0"]
+    assert first[0] == 7  # continued after the saved step 6, not from the start
+
+
+def test_gradient_fit_interrupted_in_its_second_loop_restores_the_first(tmp_path, synthetic_records,
+                                                                         gradient_reference):
+    nom, tr, va = synthetic_records
+    ref = gradient_reference
+    out, seen = _interrupted_then_resumed(tmp_path, lambda: fit_gradient_method(nom, tr, va, seed=0, iterations=10),
+                                          "fit/1", 1, every=1)
+    assert torch.equal(out.delta, ref.delta)
+    assert not any(k == "fit/0" for k, _ in seen)  # the finished first loop is restored, not rerun
+
+
+def test_hybrid_network_fit_resumed_equals_the_uninterrupted_fit(tmp_path, synthetic_records):
+    """Adam on per-heliostat networks: parameters, Adam moments and the best-so-far networks all restored."""
+    nom, tr, va = synthetic_records
+    ref = fit_hybrid_method(nom, tr, va, seed=0, steps=40)
+    out, _ = _interrupted_then_resumed(tmp_path, lambda: fit_hybrid_method(nom, tr, va, seed=0, steps=40),
+                                       "fit/0", 25, every=10)
+    assert torch.equal(out.delta, ref.delta)
+    a, b = out.extras["net"].state_dict(), ref.extras["net"].state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in b)
+
+
+@pytest.fixture(scope="module")
+def dome_scene():
+    facets, obs, _ = small_scene(distance=20.0, n=3)
+    sun = SunSettings(sunshape="buie", slope_error=0.5e-3)
+    u = torch.linspace(-1, 1, 5, dtype=torch.float64)
+    d_true = (1.5e-3 * (1 - u[:, None] ** 2) * (1 - u[None, :] ** 2)).expand(1, 4, 5, 5).clone()
+    truth = learnable_surfaces(facets, LearnableSurface(facets, (5, 5), (2, 2)).base, d_true, (2, 2))
+    with torch.no_grad():
+        obs.images, _, _ = predict_images(truth, obs, sun, samples=(10, 10), resolution=32)
+    return facets, obs, sun
+
+
+def test_surface_adam_fit_with_mc_and_refinement_resumed_equals_the_uninterrupted_fit(tmp_path, dome_scene):
+    """Adam with the Monte-Carlo integrator (one draw per step: the generator state is checkpointed),
+    a coarse-to-fine refinement before the interruption, and early stopping on a held-out image."""
+    facets, obs, sun = dome_scene
+    s = TrainSettings(control_points=(3, 3), refine_to=(5, 5), refine_at=4, degree=(2, 2), samples=(8, 8),
+                      resolution=32, loss="l1", steps=14, lr=0.3, eval_every=3, integrator="mc", rays_per_point=4)
+
+    def fit():
+        return fit_surface(facets, obs.subset([0, 1]), sun, s, validation=obs.subset([2]), progress=False)
+
+    ref, ref_info = fit()
+    (out, info), _ = _interrupted_then_resumed(tmp_path, fit, "surface/0", 8, every=3)
+    assert out.num_control_points == ref.num_control_points == (5, 5)
+    # The same steps on the same values (identical logs); the refined net's final surface agrees to float
+    # round-off (the refinement's basis is rebuilt on resume).
+    torch.testing.assert_close(out.displacement, ref.displacement, rtol=0, atol=1e-15)
+    assert info.log == ref_info.log and info.steps_run == ref_info.steps_run
+
+
+def test_surface_lbfgs_study_resumed_equals_the_uninterrupted_one(tmp_path, dome_scene):
+    """L-BFGS rounds with a Laplacian weight chosen by held-out fits (many fits, each its own key)."""
+    facets, obs, sun = dome_scene
+    s = TrainSettings(control_points=(3, 3), degree=(2, 2), samples=(8, 8), resolution=32, loss="l1",
+                      optimizer="lbfgs", continuation=(1.5,), continuation_iters=4, lbfgs_round=6, steps=16,
+                      laplacian_grid=(1e-3, 1e-2))
+
+    def fit():
+        return train_with_early_stopping(facets, obs, sun, s, progress=False)
+
+    ref, ref_info = fit()
+    (out, info), seen = _interrupted_then_resumed(tmp_path, fit, "surface/1", 1)
+    assert torch.equal(out.displacement, ref.displacement)
+    assert info.selection == ref_info.selection
+    assert not any(k == "surface/0" for k, _ in seen)
+
+
+def test_changed_settings_stale_and_corrupt_checkpoints_are_one_line_errors(tmp_path):
+    path = tmp_path / "run.ckpt"
+    ck = Checkpoint(path, make_tag({"steps": 10}), min_interval_s=0)
+    ck.put("fit/0", {"step": 1})
+    assert make_tag({"steps": 10}) == make_tag({"steps": 10}) != make_tag({"steps": 11})
+    with pytest.raises(HeliotwinError, match="other settings or inputs"):
+        Checkpoint(path, make_tag({"steps": 11}), resume=True)
+    with pytest.raises(HeliotwinError, match="rerun with --resume"):
+        Checkpoint(path, make_tag({"steps": 10}))  # an interrupted run's work is never overwritten silently
+    assert Checkpoint(path, make_tag({"steps": 10}), resume=True).get("fit/0") == {"step": 1}
+    path.write_bytes(b"not a checkpoint")
+    with pytest.raises(HeliotwinError, match="not a readable heliotwin checkpoint"):
+        Checkpoint(path, "t", resume=True)
+    torch.save({"format": "something else"}, path)
+    with pytest.raises(HeliotwinError, match="field 'format'"):
+        Checkpoint(path, "t", resume=True)
+    assert sorted(os.listdir(tmp_path)) == ["run.ckpt"]  # no temporary file left by the writes
+    # Inputs are part of the tag: a changed input file is a different run.
+    data = tmp_path / "in.txt"
+    data.write_text("a")
+    before = make_tag({}, [data])
+    data.write_text("ab")
+    assert make_tag({}, [data]) != before
+
+
+# ------------------------------------------------------------------------------------------- CLI
+@pytest.fixture()
+def two_heliostats(tmp_path, paint_dir):
+    from helpers.paint import copy_paint
+
+    return copy_paint(paint_dir, tmp_path, heliostats=("AA39", "AB38"), metadata=True)
+
+
+def _calibrate(capsys, paint, out, *extra):
+    return run_cli(capsys, "calibrate", "--paint", paint, "--method", "gradient", "--train", "12", "--test", "10",
+                   "--min-records", "20", "--no-plots", "--checkpoint-interval", "0", "--json", out, *extra)
+
+
+def test_cli_calibrate_interrupted_resumes_to_the_same_report(tmp_path, two_heliostats, capsys, monkeypatch):
+    """``calibrate`` interrupted by Ctrl-C in its fit: exit 130, the checkpoint kept, nothing else written;
+    ``--resume`` finishes with the uninterrupted run's numbers and removes the checkpoint; a resume with
+    other settings is one line, exit 2."""
+    from heliotwin.io import checkpoint as ckmod
+
+    ref_json = tmp_path / "ref.json"
+    code, _, err = _calibrate(capsys, two_heliostats, ref_json)
+    assert code == 0, err
+    assert not os.path.exists(checkpoint_path(ref_json))
+
+    out = tmp_path / "run.json"
+    real_init = ckmod.Checkpoint.__init__
+
+    def init_with_hook(self, *a, **kw):
+        real_init(self, *a, **dict(kw, hook=_stop_at("fit/0", 5)))
+
+    monkeypatch.setattr(ckmod.Checkpoint, "__init__", init_with_hook)
+    code, _, err = _calibrate(capsys, two_heliostats, out)
+    monkeypatch.undo()
+    assert code == 130 and "--resume" in err
+    assert not out.exists() and os.path.exists(checkpoint_path(out))
+
+    code, _, err = _calibrate(capsys, two_heliostats, out, "--seed", "1", "--resume")
+    assert_one_line_error(code, err, "other settings")
+    code, _, err = _calibrate(capsys, two_heliostats, out)
+    assert_one_line_error(code, err, "--resume")
+
+    code, _, err = _calibrate(capsys, two_heliostats, out, "--resume")
+    assert code == 0, err
+    assert not os.path.exists(checkpoint_path(out))
+    a, b = json.loads(out.read_text()), json.loads(ref_json.read_text())
+    for hid, rep in b["heliostats"].items():
+        assert a["heliostats"][hid].get("parameters") == rep.get("parameters")
+        assert a["heliostats"][hid]["test"] == rep["test"]
+
+
+def test_cli_reconstruct_resume_without_output_and_after_a_finished_run(tmp_path, two_heliostats, capsys):
+    """``--resume`` with nothing to resume starts afresh (and leaves no checkpoint behind)."""
+    out = tmp_path / "r.json"
+    code, _, err = run_cli(capsys, "reconstruct", "--paint", two_heliostats, "--heliostat", "AA39", "--steps", "3",
+                           "--control-points", "4x4", "--degree", "2", "--no-mc", "--slope-error", "1",
+                           "--json", out, "--resume", "--device", "cpu")
+    assert code == 0, err
+    assert out.exists() and not os.path.exists(checkpoint_path(out))
+
+
+def test_library_settings_hash_ignores_progress():
+    from heliotwin.calibrate.pipeline import RunConfig, calibration_checkpoint
+
+    tags = set()
+    for progress in (True, False):
+        cfg = RunConfig(paint="/nonexistent", progress=progress)
+        tags.add(calibration_checkpoint(cfg, "/nonexistent/x.ckpt").tag)
+    assert len(tags) == 1
+    cfg = dataclasses.replace(RunConfig(paint="/nonexistent"), train=10)
+    assert calibration_checkpoint(cfg, "/nonexistent/x.ckpt").tag not in tags
