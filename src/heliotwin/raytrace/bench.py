@@ -216,9 +216,9 @@ def _time_to_accuracy(pts, nrm, areas, sun_dir, target, resolution, seed, repeat
     halves = [None, None]
     with torch.no_grad():
         for i in range(ref_runs):
+            gen = torch.Generator(device=device).manual_seed(10_000 + seed + i)
             f = trace_mc(pts, nrm, areas, sun_dir, target, resolution=resolution, sun=optics,
-                         rays_per_point=ref_rays_per_point, generator=torch.Generator(device=device).manual_seed(10_000 + seed + i),
-                         stratified=True)
+                         rays_per_point=ref_rays_per_point, generator=gen, stratified=True)
             h = i % 2
             halves[h] = f.bitmap if halves[h] is None else halves[h] + f.bitmap
     if device.type == "cuda":
