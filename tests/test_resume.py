@@ -181,14 +181,16 @@ def test_changed_settings_stale_and_corrupt_checkpoints_are_one_line_errors(tmp_
 def two_heliostats(tmp_path, paint_dir):
     from helpers.paint import copy_paint
 
-    return copy_paint(paint_dir, tmp_path, heliostats=("AA39", "AB38"), metadata=True)
+    return copy_paint(paint_dir, tmp_path, heliostats=("AA39", "AK46", "BG23"), metadata=True)
 
 
 def _calibrate(capsys, paint, out, *extra):
-    return run_cli(capsys, "calibrate", "--paint", paint, "--method", "gradient", "--train", "12", "--test", "10",
+    return run_cli(capsys, "calibrate", "--paint", paint, "--heliostats", "AK46,BG23", "--method", "gradient",
+                   "--train", "12", "--test", "10",
                    "--min-records", "20", "--no-plots", "--checkpoint-interval", "0", "--json", out, *extra)
 
 
+@pytest.mark.slow  # three real gradient fits (~15 s)
 def test_cli_calibrate_interrupted_resumes_to_the_same_report(tmp_path, two_heliostats, capsys, monkeypatch):
     """``calibrate`` interrupted by Ctrl-C in its fit: exit 130, the checkpoint kept, nothing else written;
     ``--resume`` finishes with the uninterrupted run's numbers and removes the checkpoint; a resume with
@@ -204,7 +206,7 @@ def test_cli_calibrate_interrupted_resumes_to_the_same_report(tmp_path, two_heli
     real_init = ckmod.Checkpoint.__init__
 
     def init_with_hook(self, *a, **kw):
-        real_init(self, *a, **dict(kw, hook=_stop_at("fit/0", 5)))
+        real_init(self, *a, **dict(kw, hook=_stop_at("fit/0", 12)))
 
     monkeypatch.setattr(ckmod.Checkpoint, "__init__", init_with_hook)
     code, _, err = _calibrate(capsys, two_heliostats, out)
@@ -226,13 +228,92 @@ def test_cli_calibrate_interrupted_resumes_to_the_same_report(tmp_path, two_heli
         assert a["heliostats"][hid]["test"] == rep["test"]
 
 
-def test_cli_reconstruct_resume_without_output_and_after_a_finished_run(tmp_path, two_heliostats, capsys):
-    """``--resume`` with nothing to resume starts afresh (and leaves no checkpoint behind)."""
-    out = tmp_path / "r.json"
-    code, _, err = run_cli(capsys, "reconstruct", "--paint", two_heliostats, "--heliostat", "AA39", "--steps", "3",
-                           "--control-points", "4x4", "--degree", "2", "--no-mc", "--slope-error", "1",
-                           "--json", out, "--resume", "--device", "cpu")
+def _reconstruct(capsys, paint, out, *extra):
+    return run_cli(capsys, "reconstruct", "--paint", paint, "--heliostat", "AA39", "--steps", "12", "--control-points",
+                   "4x4", "--degree", "2", "--no-mc", "--slope-error", "1", "--checkpoint-interval", "0", "--json", out,
+                   "--device", "cpu", *extra)
+
+
+@pytest.mark.slow  # three real reconstructions with plots (~15 s)
+def test_cli_reconstruct_interrupted_resumes_to_the_same_report(tmp_path, two_heliostats, capsys, monkeypatch):
+    """``reconstruct`` (held-out-image fit, then the refit) interrupted in its second fit: exit 130 with the
+    checkpoint kept; ``--resume`` restores the first fit and reaches the uninterrupted run's report."""
+    from heliotwin.io import checkpoint as ckmod
+
+    ref = tmp_path / "ref.json"
+    code, _, err = _reconstruct(capsys, two_heliostats, ref)
     assert code == 0, err
+    out = tmp_path / "run.json"
+    real_init = ckmod.Checkpoint.__init__
+    monkeypatch.setattr(ckmod.Checkpoint, "__init__",
+                        lambda self, *a, **kw: real_init(self, *a, **dict(kw, hook=_stop_at("surface/1", 5))))
+    code, _, err = _reconstruct(capsys, two_heliostats, out)
+    monkeypatch.undo()
+    assert code == 130 and "--resume" in err.splitlines()[-1]
+    assert not out.exists() and os.path.exists(checkpoint_path(out))
+    code, _, err = _reconstruct(capsys, two_heliostats, out, "--steps", "13", "--resume")
+    assert_one_line_error(code, err, "other settings")
+    code, _, err = _reconstruct(capsys, two_heliostats, out, "--resume")
+    assert code == 0, err
+    assert not os.path.exists(checkpoint_path(out))
+    a, b = json.loads(out.read_text()), json.loads(ref.read_text())
+    assert a["test"] == b["test"] and a["early_stopping"] == b["early_stopping"]
+    assert a["displacement_mm"] == b["displacement_mm"]
+
+
+def test_cli_refuses_a_corrupt_or_unresumed_checkpoint_before_any_work(tmp_path, capsys):
+    """Checked before the PAINT folder is even read: a corrupt checkpoint, a checkpoint without --resume and
+    --resume without an output are one line each (exit 2), and the file is left alone."""
+    out = tmp_path / "run.json"
+    ck = tmp_path / "run.json.ckpt"
+    ck.write_bytes(b"\x00garbage")
+    for command in (["reconstruct", "--heliostat", "AA39", "--json", out],
+                    ["calibrate", "--json", out]):
+        code, _, err = run_cli(capsys, *command, "--paint", tmp_path / "missing", "--resume")
+        assert_one_line_error(code, err, str(ck), "not a readable heliotwin checkpoint")
+        assert code == 2
+        code, _, err = run_cli(capsys, *command, "--paint", tmp_path / "missing")
+        assert_one_line_error(code, err, str(ck), "--resume")
+    assert ck.read_bytes() == b"\x00garbage" and not out.exists()
+    code, _, err = run_cli(capsys, "calibrate", "--paint", tmp_path / "missing", "--resume")
+    assert_one_line_error(code, err, "--resume needs -o or --json")
+
+
+@pytest.mark.slow  # a real subprocess and a real signal; waits for the first checkpoint to appear
+@pytest.mark.skipif(os.name != "posix", reason="POSIX signals")
+def test_sigterm_during_reconstruct_keeps_the_checkpoint_and_resume_finishes(tmp_path, two_heliostats):
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    import heliotwin
+
+    src = Path(heliotwin.__file__).resolve().parents[1]
+    env = dict(os.environ, PYTHONPATH=str(src), OMP_NUM_THREADS="1", HELIOTWIN_DEBUG="0")
+    out = tmp_path / "run.json"
+    argv = [sys.executable, "-m", "heliotwin", "reconstruct", "--paint", str(two_heliostats), "--heliostat", "AA39",
+            "--steps", "400", "--control-points", "4x4", "--degree", "2", "--no-mc", "--slope-error", "1",
+            "--checkpoint-interval", "0", "--json", str(out), "--quiet"]
+    proc = subprocess.Popen(argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.monotonic()
+    while not os.path.exists(checkpoint_path(out)):
+        if proc.poll() is not None:
+            pytest.skip(f"the fit ended before the first checkpoint ({proc.returncode})")
+        if time.monotonic() - t0 > 300:
+            proc.kill()
+            pytest.fail("no checkpoint appeared")
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    if proc.returncode == 0:
+        pytest.skip("the fit finished before the signal arrived")
+    assert proc.returncode == 143, err
+    assert "--resume" in err and os.path.exists(checkpoint_path(out)) and not out.exists()
+    assert not [p for p in os.listdir(tmp_path) if p.startswith(".heliotwin")]
+    done = subprocess.run(argv + ["--resume"], env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
     assert out.exists() and not os.path.exists(checkpoint_path(out))
 
 
