@@ -82,6 +82,15 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
     info : dict
         ``nfev``, ``status``, ``message`` of the scipy run, and ``cost``.
     """
+    if nominal.position.device.type != "cpu":  # scipy's LM runs on the CPU: fit CPU copies, deviations back
+        from ..api import to_device
+
+        cpu = lambda t: None if t is None else t.detach().cpu()  # noqa: E731
+        delta, info = fit_lm(to_device(nominal, "cpu"), to_device(batch, "cpu"), names=names, prior_sigma=prior_sigma,
+                             prior_mean=cpu(prior_mean), noise=noise, max_nfev=max_nfev, loss=loss, f_scale=f_scale,
+                             prior_sigma_vector=cpu(prior_sigma_vector), prior_whitening=cpu(prior_whitening),
+                             half_life_days=half_life_days)
+        return delta.to(nominal.position.device), info
     names = check_names(names)
     h, p = nominal.num_heliostats, len(names)
     scale = units(names)  # optimise in natural units (mrad, mm, 0.1 %) for a well-scaled problem

@@ -352,7 +352,9 @@ def predict_intervals(run: Run) -> None:
     run.interval_inputs = {"jacobian": jac[keep], "normal": normal.detach()[keep],
                            "covariance": post["covariance"][hidx][keep], "noise": post["noise_rad"][hidx][keep],
                            "error": err[keep], "heliostat": [run.run_ids[h] for h in hidx[keep].tolist()]}
-    pred = predictive(jac, normal.detach(), post["covariance"][hidx], post["noise_rad"][hidx],
+    # The posterior predictive samples on the CPU (its draws take a CPU generator): a few thousand numbers.
+    jac, normal, err, hidx = jac.cpu(), normal.detach().cpu(), err.cpu(), hidx.cpu()
+    pred = predictive(jac, normal, post["covariance"].cpu()[hidx], post["noise_rad"].cpu()[hidx],
                       drift=post.get("drift_rad", 0.0), generator=torch.Generator().manual_seed(run.cfg.seed))
     pred["inside"] = (err >= pred["lower"]) & (err <= pred["upper"])
     run.intervals = pred
@@ -376,7 +378,7 @@ def _heliostat_report(run: Run, h: int, hid: str, per_h_seconds: float) -> dict:
     rep["nominal_mean_test_mrad"] = rep["nominal_test"]["mean_mrad"]
     rep["fit_seconds_share"] = per_h_seconds
     if run.intervals and ok:
-        mine = run.test.heliostat_index == h
+        mine = (run.test.heliostat_index == h).cpu()
         iv = run.intervals
         rep["interval_90_coverage"] = float(iv["inside"][mine].double().mean()) if bool(mine.any()) else None
         rep["expected_test_mrad"] = float(1e3 * iv["expected"][mine].mean()) if bool(mine.any()) else None
@@ -420,7 +422,7 @@ def report_overall(run: Run) -> None:
         "dropped_no_time": int(sum(run.split_info[h]["dropped_no_time"] for h in run.run_ids)),
     }
     if run.intervals:
-        mine = run.model.ok[run.test.heliostat_index]
+        mine = run.model.ok[run.test.heliostat_index].cpu()
         inside = run.intervals["inside"][mine]
         run.report["overall"]["interval_90_coverage"] = float(inside.double().mean()) if len(inside) else None
         run.report["overall"]["median_of_expected_test_mrad"] = _median([r.get("expected_test_mrad") for r in ran])

@@ -183,12 +183,21 @@ def _predict(args, sc) -> dict:
     target = plant.target(name)
     site = (plant.site.latitude_deg, plant.site.longitude_deg, plant.site.altitude_m)
     kin = plant.field.kinematics.index([plant.field.index_of(args.heliostat)])
-    series = yearly_flux(kin, target, site, item["surfaces"], item["ideal"], item["optics"],
+    surfaces, ideal = item["surfaces"], item["ideal"]
+    device = getattr(args, "device", "cpu")
+    if device != "cpu":
+        from ..api import to_device
+
+        kin, target, surfaces, ideal = to_device((kin, target, surfaces, ideal), device)
+    series = yearly_flux(kin, target, site, surfaces, ideal, item["optics"],
                          year=args.year, every=args.every, progress=not args.quiet)
     optics = item["optics"]
     return {"heliostat": args.heliostat, "target": name, "year": args.year, "every": args.every,
             "instants": len(series["time"]), "statistics": summarize(series), "series": series,
-            "optics": {"sunshape": optics.sunshape, "slope_error_rad": optics.slope_error}}
+            "optics": {"sunshape": optics.sunshape, "slope_error_rad": optics.slope_error}, "device": device}
+
+
+cmd_predict.supports_cuda = True  # yearly_flux follows the device of the plant pieces moved to args.device
 
 
 def _slope_error(text: str):
