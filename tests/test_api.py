@@ -155,3 +155,18 @@ def test_api_fits_refuse_a_checkpoint_of_other_settings_before_any_work(tmp_path
         with pytest.raises(HeliotwinError, match="rerun with --resume"):
             fit()
     assert path.exists()
+
+
+def test_calibrate_reports_its_stages_to_a_progress_callback(paint_dir, tmp_path):
+    """Every named step of the run, in order, to a callable ``progress`` (the CLI shows them as a tqdm bar)."""
+    from helpers.paint import copy_paint
+
+    from heliotwin.calibrate.pipeline import STEPS
+
+    root = copy_paint(paint_dir, tmp_path, ("AK46",), metadata=True)
+    seen = []
+    report, model, _ = api.calibrate(root, train=10, test=5, min_records=20, device="cpu",
+                                     progress=lambda name, i, n: seen.append((name, i, n)))
+    assert [s[0] for s in seen] == [name for name, _ in STEPS]
+    assert [s[1] for s in seen] == list(range(len(STEPS))) and {s[2] for s in seen} == {len(STEPS)}
+    assert report["config"]["device"] == "cpu" and bool(model.ok.all())

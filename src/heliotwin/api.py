@@ -244,6 +244,8 @@ def calibrate(paint, *, method: str = "lm", heliostats=None, split: str = "chron
               checkpoint=None, resume: bool = False):
     """Calibrate heliostat kinematics from PAINT calibration records (``heliotwin calibrate``'s defaults).
 
+    ``progress``: tqdm bars (the run's steps, titled ``calibrate <method>``, and the fit loops), or a callable
+    ``progress(step_name, index, total)`` called before each step of the run (no bars then).
     ``device``: ``"auto"`` (CUDA when present, as the CLI), ``"cpu"`` or ``"cuda"``; the model comes back on
     the CPU. ``checkpoint``: a file where the fit saves its state as it goes (e.g. ``"run.ckpt"``); after an
     interruption, the same call with ``resume=True`` continues from it and reaches the same result (refused,
@@ -265,7 +267,7 @@ def calibrate(paint, *, method: str = "lm", heliostats=None, split: str = "chron
     cfg = RunConfig(paint=os.fspath(paint), method=method, split=split, train=train, validation=validation,
                     test=test, heliostats=None if heliostats is None else list(heliostats), min_records=min_records,
                     focal_spot=focal_spot, seed=seed, plane_tolerance=plane_tolerance,
-                    correct_suspicious=not keep_suspicious, progress=progress)
+                    correct_suspicious=not keep_suspicious, progress=progress is True)
     validate_config(cfg)
     ck = None
     if checkpoint is not None:
@@ -274,7 +276,8 @@ def calibrate(paint, *, method: str = "lm", heliostats=None, split: str = "chron
         ck = calibration_checkpoint(cfg, checkpoint, device=_device(device), resume=resume,
                                     inputs=[scenario] if scenario is not None else [])
     ds = load(paint, scenario=scenario, plane_tolerance=plane_tolerance)
-    report, model, arrays = run_calibration(cfg, ds, device=_device(device), checkpoint=ck)
+    report, model, arrays = run_calibration(cfg, ds, device=_device(device), checkpoint=ck,
+                                            progress=progress if callable(progress) else None)
     if output is None:
         if ck is not None:
             ck.remove()

@@ -529,7 +529,7 @@ class _StageBar:
         if progress is True:
             from tqdm.auto import tqdm
 
-            self.bar = tqdm(total=total, desc=desc, leave=False)
+            self.bar = tqdm(total=total, desc=desc, leave=False, disable=None)  # None: off when not a terminal
 
     def stage(self, name: str) -> None:
         if self.callback is not None:
