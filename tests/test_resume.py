@@ -67,26 +67,26 @@ def synthetic_records():
 @pytest.fixture(scope="module")
 def gradient_reference(synthetic_records):
     nom, tr, va = synthetic_records
-    return fit_gradient_method(nom, tr, va, seed=0, iterations=10)
+    return fit_gradient_method(nom, tr, va, seed=0, iterations=6)
 
 
 def test_gradient_fit_resumed_mid_loop_equals_the_uninterrupted_fit(tmp_path, synthetic_records, gradient_reference):
-    """The rigid-body gradient fit (L-BFGS, two early-stopping passes): interrupted at step 7 of its first
-    loop (last save at step 6), resumed: the same deviations, bit for bit, and only steps 7.. are rerun."""
+    """The rigid-body gradient fit (L-BFGS, two early-stopping passes): interrupted at step 5 of its first
+    loop (last save at step 3), resumed: the same deviations, bit for bit, and only steps 4.. are rerun."""
     nom, tr, va = synthetic_records
     ref = gradient_reference
-    out, seen = _interrupted_then_resumed(tmp_path, lambda: fit_gradient_method(nom, tr, va, seed=0, iterations=10),
-                                          "fit/0", 7)
+    out, seen = _interrupted_then_resumed(tmp_path, lambda: fit_gradient_method(nom, tr, va, seed=0, iterations=6),
+                                          "fit/0", 5)
     assert torch.equal(out.delta, ref.delta)
     first = [s for k, s in seen if k == "fit/0"]
-    assert first[0] == 7  # continued after the saved step 6, not from the start
+    assert first[0] == 4  # continued after the saved step 3, not from the start
 
 
 def test_gradient_fit_interrupted_in_its_second_loop_restores_the_first(tmp_path, synthetic_records,
                                                                          gradient_reference):
     nom, tr, va = synthetic_records
     ref = gradient_reference
-    out, seen = _interrupted_then_resumed(tmp_path, lambda: fit_gradient_method(nom, tr, va, seed=0, iterations=10),
+    out, seen = _interrupted_then_resumed(tmp_path, lambda: fit_gradient_method(nom, tr, va, seed=0, iterations=6),
                                           "fit/1", 1, every=1)
     assert torch.equal(out.delta, ref.delta)
     assert not any(k == "fit/0" for k, _ in seen)  # the finished first loop is restored, not rerun
