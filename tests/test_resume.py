@@ -18,6 +18,7 @@ from helpers.surfaces import small_scene
 
 from heliotwin.calibrate.gradient import fit_gradient_method
 from heliotwin.calibrate.hybrid import fit_hybrid_method
+from heliotwin.calibrate.lm import fit_lm_method
 from heliotwin.calibrate.params import STONE8, apply_deviations
 from heliotwin.errors import HeliotwinError
 from heliotwin.field.plant import SunSettings
@@ -101,6 +102,16 @@ def test_hybrid_network_fit_resumed_equals_the_uninterrupted_fit(tmp_path, synth
     assert torch.equal(out.delta, ref.delta)
     a, b = out.extras["net"].state_dict(), ref.extras["net"].state_dict()
     assert all(torch.equal(a[k], b[k]) for k in b)
+
+
+def test_lm_bagging_resumed_after_some_bags_equals_the_uninterrupted_fit(tmp_path, synthetic_records):
+    """``lm`` (the default method): a checkpoint after the full-data fit and after every bootstrap bag (the
+    resampling generator's state with it); interrupted after bag 2 of 4, the resumed fit redoes bags 3-4 only."""
+    nom, tr, va = synthetic_records
+    ref = fit_lm_method(nom, tr, va, seed=5, bags=4)
+    out, seen = _interrupted_then_resumed(tmp_path, lambda: fit_lm_method(nom, tr, va, seed=5, bags=4), "bags/0", 3)
+    assert torch.equal(out.delta, ref.delta)
+    assert [s for k, s in seen if k == "bags/0"] == [4, 5]
 
 
 @pytest.fixture(scope="module")

@@ -37,7 +37,8 @@ import time
 from ..errors import HeliotwinError
 from .report import _new_file_mode
 
-__all__ = ["Checkpoint", "checkpoint_path", "make_tag", "fingerprint", "active", "current", "FORMAT", "VERSION"]
+__all__ = ["Checkpoint", "checkpoint_path", "make_tag", "fingerprint", "active", "current", "resumable_range", "FORMAT",
+           "VERSION"]
 
 FORMAT = "heliotwin-checkpoint"
 VERSION = 1
@@ -207,3 +208,23 @@ def active(checkpoint: Checkpoint | None):
 def current() -> Checkpoint | None:
     """The active checkpoint (None outside :func:`active`)."""
     return _ACTIVE.get()
+
+
+def resumable_range(kind: str, total: int, dump, load):
+    """``range(total)`` of a loop whose iterations are long (e.g. one Levenberg-Marquardt fit each), under the
+    active checkpoint: the state after the last finished iteration is restored (``load(state)``) and the loop
+    goes on from there; after every iteration ``dump()`` (a copy of the state: tensors, numbers, containers) is
+    saved. Without an active checkpoint it is ``range(total)``.
+    """
+    ck = current()
+    key = ck.claim(kind) if ck is not None else None
+    first = 0
+    saved = ck.get(key) if key is not None else None
+    if saved is not None:
+        load(saved["state"])
+        first = int(saved["step"])
+    for i in range(first, total):
+        yield i
+        if key is not None:
+            ck.put(key, {"step": i + 1, "state": dump()})
+            ck.notify("step", key, i + 1)
