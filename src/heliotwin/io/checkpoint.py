@@ -6,7 +6,8 @@ One file per run, next to its main output (``<output>.ckpt``, :func:`checkpoint_
 ``surface/0``): a run's loops come in the same order every time (the setup between them is deterministic),
 so a resumed run finds each loop's entry under the same key. An entry holds the loop's full state after a
 step (parameters, optimiser state, generator state, best-so-far and early-stopping bookkeeping, logs); a
-finished loop's entry is its final state, so on resume it is restored instead of run.
+finished loop's entry is its final state, so on resume it is restored instead of run. Loops whose every
+iteration is long (``lm``'s bootstrap bags) use :func:`resumable_range` and save after each iteration.
 
 Granularity: a loop saves every :attr:`Checkpoint.every` steps, at most once per
 :attr:`Checkpoint.min_interval_s` seconds (the disk is not hammered by fast steps), and always when it
