@@ -185,6 +185,13 @@ def test_changed_settings_stale_and_corrupt_checkpoints_are_one_line_errors(tmp_
     before = make_tag({}, [data])
     data.write_text("ab")
     assert make_tag({}, [data]) != before
+    # A folder's fingerprint ignores the run's own checkpoint (an output may be written into an input folder).
+    folder = tmp_path / "inputs"
+    folder.mkdir()
+    (folder / "a.json").write_text("{}")
+    before = make_tag({}, [folder])
+    (folder / "report.json.ckpt").write_bytes(b"x")
+    assert make_tag({}, [folder]) == before
 
 
 # ------------------------------------------------------------------------------------------- CLI

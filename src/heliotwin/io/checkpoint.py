@@ -55,6 +55,7 @@ def checkpoint_path(output) -> str:
 def fingerprint(path) -> list:
     """What identifies an input path for :func:`make_tag`: per file (a folder: every file below it, sorted)
     its path relative to ``path``, size [bytes] and modification time [ns]; ``None`` for a missing path.
+    Checkpoints (``*.ckpt``) and heliotwin's staging files inside a folder are left out.
 
     Stat only, no reading: a PAINT folder of thousands of files is fingerprinted in milliseconds.
     """
@@ -68,8 +69,11 @@ def fingerprint(path) -> list:
         return None
     rows = []
     for root, dirs, files in os.walk(path):
-        dirs.sort()
+        # A run's own checkpoint and staging files may lie inside an input folder: not part of the input.
+        dirs[:] = sorted(d for d in dirs if not d.startswith(".heliotwin-"))
         for name in sorted(files):
+            if name.endswith(".ckpt") or name.startswith(".heliotwin-"):
+                continue
             full = os.path.join(root, name)
             try:
                 st = os.stat(full)
