@@ -129,3 +129,44 @@ def test_getting_started_notebook_runs_on_the_shared_data(paint_dir, tmp_path, m
     assert (tmp_path / "getting-started-flux.png").read_bytes()[:4] == b"\x89PNG"
     overall = namespace["overall"]
     assert overall["median_of_mean_test_mrad"] < overall["nominal_median_of_mean_test_mrad"]
+
+
+def test_to_device_copies_networks():
+    import torch
+
+    net = torch.nn.Linear(2, 2).double()
+    moved = api.to_device({"net": net}, "cpu")["net"]
+    assert moved is not net and torch.equal(moved.weight, net.weight)
+
+
+def test_api_fits_refuse_a_checkpoint_of_other_settings_before_any_work(tmp_path):
+    """``checkpoint=``/``resume=`` as the CLI's ``--resume``: a checkpoint of another run is one clear error,
+    raised before the PAINT folder is read (it does not even exist here); without ``resume`` an existing
+    checkpoint is never overwritten."""
+    from heliotwin.errors import HeliotwinError
+    from heliotwin.io.checkpoint import Checkpoint
+
+    path = tmp_path / "run.ckpt"
+    Checkpoint(path, "another run", min_interval_s=0).put("fit/0", {"step": 3})
+    for fit in (lambda **kw: api.calibrate(tmp_path / "no-paint", checkpoint=path, **kw),
+                lambda **kw: api.reconstruct(tmp_path / "no-paint", "AA39", checkpoint=path, **kw)):
+        with pytest.raises(HeliotwinError, match="other settings or inputs"):
+            fit(resume=True)
+        with pytest.raises(HeliotwinError, match="rerun with --resume"):
+            fit()
+    assert path.exists()
+
+
+def test_calibrate_reports_its_stages_to_a_progress_callback(paint_dir, tmp_path):
+    """Every named step of the run, in order, to a callable ``progress`` (the CLI shows them as a tqdm bar)."""
+    from helpers.paint import copy_paint
+
+    from heliotwin.calibrate.pipeline import STEPS
+
+    root = copy_paint(paint_dir, tmp_path, ("AK46",), metadata=True)
+    seen = []
+    report, model, _ = api.calibrate(root, train=10, test=5, min_records=20, device="cpu",
+                                     progress=lambda name, i, n: seen.append((name, i, n)))
+    assert [s[0] for s in seen] == [name for name, _ in STEPS]
+    assert [s[1] for s in seen] == list(range(len(STEPS))) and {s[2] for s in seen} == {len(STEPS)}
+    assert report["config"]["device"] == "cpu" and bool(model.ok.all())

@@ -19,7 +19,10 @@ def test_every_compute_command_takes_device():
         argv = {"demo": [], "trace": ["--paint", "P", "--heliostat", "A", "--record", "1", "-o", "f.png"],
                 "validate": ["--paint", "P", "--json", "v.json"], "bench": [], "calibrate": ["--paint", "P"],
                 "reconstruct": ["--paint", "P", "--heliostat", "A", "--json", "r.json"],
-                "predict": ["--scenario", "s.h5", "--json", "p.json"]}[command]
+                "predict": ["--scenario", "s.h5", "--json", "p.json"],
+                "field": ["--scenario", "s.h5", "--time", "2023-03-20T12:00:00Z", "--json", "f.json"],
+                "aimpoints": ["--scenario", "s.h5", "--time", "2023-03-20T12:00:00Z", "--peak-limit", "1e6",
+                              "-o", "a.h5", "--json", "a.json"]}[command]
         assert p.parse_args([command, *argv]).device == "auto"
         assert p.parse_args([command, *argv, "--device", "cpu"]).device == "cpu"
 
@@ -63,7 +66,87 @@ def test_gpu_smoke_trace_agrees_with_cpu(small_paint, tmp_path, capsys):
     assert max(abs(a - b) for a, b in zip(g["centroid_enu_m"], c["centroid_enu_m"])) < 2e-3
 
 
-@pytest.mark.skipif(not CUDA, reason="needs a CUDA device")
-def test_gpu_cuda_on_a_cpu_only_command_is_refused(tmp_path, capsys):
-    code, _, err = run_cli(capsys, "bench", "--device", "cuda", "--surface-points", "10", "--json", tmp_path / "b.json")
-    assert_one_line_error(code, err, "--device cuda", "CPU only")
+def test_cuda_on_a_cpu_only_command_is_refused():
+    from heliotwin.cli.common import resolve_device
+    from heliotwin.errors import HeliotwinError
+
+    assert resolve_device("auto", False, "x") == "cpu"
+    with pytest.raises(HeliotwinError, match="CPU only" if CUDA else "no CUDA device"):
+        resolve_device("cuda", False, "x")
+
+
+def test_the_fit_commands_run_on_the_cuda_capable_path_on_the_cpu(small_paint, tmp_path, capsys):
+    """``--device cpu`` goes through the same device plumbing (plant moved, results back) as cuda would."""
+    from heliotwin.calibrate.pipeline import resolve_device
+
+    assert resolve_device("auto") == ("cuda" if CUDA else "cpu")
+    js = tmp_path / "v.json"
+    code, _, err = run_cli(capsys, "validate", "--paint", small_paint, "--json", js, "--samples", "4",
+                           "--resolution", "32", "--no-images", "--device", "cpu", "--quiet")
+    assert code == 0, err
+    assert json.loads(js.read_text())["settings"]["device"] == "cpu"
+
+
+# ------------------------------------------------------------------------------ GPU smoke, one per command
+gpu = pytest.mark.skipif(not CUDA, reason="needs a CUDA device")
+
+
+@pytest.fixture()
+def fit_paint(tmp_path, paint_dir):
+    return copy_paint(paint_dir, tmp_path, heliostats=("AA39", "AK46", "BG23"), metadata=True)
+
+
+def _both(capsys, tmp_path, name, *argv, out="--json"):
+    """Run a command on cuda and on the cpu; return both JSON reports."""
+    reports = {}
+    for device in ("cuda", "cpu"):
+        js = tmp_path / f"{name}-{device}.json"
+        code, _, err = run_cli(capsys, *argv, out, js, "--device", device, "--quiet")
+        assert code == 0, (device, err)
+        reports[device] = json.loads(js.read_text())
+    return reports["cuda"], reports["cpu"]
+
+
+@gpu
+def test_gpu_smoke_validate(small_paint, tmp_path, capsys):
+    g, c = _both(capsys, tmp_path, "v", "validate", "--paint", small_paint, "--samples", "8", "--resolution", "64")
+    assert g["settings"]["device"] == "cuda"
+    assert g["overall"]["records"] == c["overall"]["records"]
+    assert g["overall"]["median_pointing_error_mrad"] == pytest.approx(c["overall"]["median_pointing_error_mrad"],
+                                                                       abs=1e-6)
+    assert g["overall"]["median_distance_m"] == pytest.approx(c["overall"]["median_distance_m"], abs=5e-3)
+
+
+@gpu
+def test_gpu_smoke_bench(tmp_path, capsys):
+    js = tmp_path / "b.json"
+    code, _, err = run_cli(capsys, "bench", "--device", "cuda", "--surface-points", "400", "--rays-per-point", "10",
+                           "--resolution", "64", "--json", js, "--quiet")
+    assert code == 0, err
+    r = json.loads(js.read_text())
+    assert r["device"].startswith("cuda") and r["mc"]["forward_rays_per_s"] > 0 and r["peak_device_mb"] > 0
+
+
+@gpu
+def test_gpu_smoke_calibrate(fit_paint, tmp_path, capsys):
+    argv = ("calibrate", "--paint", fit_paint, "--heliostats", "AK46,BG23", "--train", "12", "--test", "10",
+            "--min-records", "20", "--no-plots")
+    g, c = _both(capsys, tmp_path, "c", *argv)
+    assert g["config"]["device"] == "cuda" and c["config"]["device"] == "cpu"
+    for hid, rep in c["heliostats"].items():
+        assert g["heliostats"][hid]["mean_test_mrad"] == pytest.approx(rep["mean_test_mrad"], abs=1e-6)
+
+
+@gpu
+def test_gpu_smoke_reconstruct_and_predict(fit_paint, tmp_path, capsys):
+    argv = ("reconstruct", "--paint", fit_paint, "--heliostat", "AA39", "--steps", "10", "--control-points", "4x4",
+            "--degree", "2", "--no-mc", "--slope-error", "1")
+    g, c = _both(capsys, tmp_path, "r", *argv)
+    assert g["median_l1_learned"] == pytest.approx(c["median_l1_learned"], abs=2e-3)
+    scenario = tmp_path / "learned.h5"
+    code, _, err = run_cli(capsys, *argv, "--json", tmp_path / "r.json", "-o", scenario, "--device", "cpu", "--quiet")
+    assert code == 0, err
+    g, c = _both(capsys, tmp_path, "p", "predict", "--scenario", scenario, "--every", "7d")
+    assert g["device"] == "cuda" and g["instants"] == c["instants"]
+    ga, ca = g["statistics"]["l1_ideal_vs_learned"], c["statistics"]["l1_ideal_vs_learned"]
+    assert ga["median"] == pytest.approx(ca["median"], abs=2e-3)

@@ -79,11 +79,16 @@ def field(source, heliostats=None):
 
 def to_device(obj, device):
     """``obj`` with every tensor on ``device``: tensors, dataclasses (plants, targets, record tables, flux
-    images), and lists/tuples/dicts of them; anything else is returned as is. Dtypes are kept."""
+    images), modules (networks, copied), and lists/tuples/dicts of them; anything else is returned as is.
+    Dtypes are kept."""
+    import copy
+
     import torch
 
     if isinstance(obj, torch.Tensor):
         return obj.to(device)
+    if isinstance(obj, torch.nn.Module):
+        return copy.deepcopy(obj).to(device)
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         changes = {f.name: to_device(getattr(obj, f.name), device) for f in dataclasses.fields(obj) if f.init}
         return dataclasses.replace(obj, **changes)
@@ -235,8 +240,16 @@ def plot_flux(flux, path=None, *, title: str | None = None, measured: dict | Non
 def calibrate(paint, *, method: str = "lm", heliostats=None, split: str = "chrono", train: int = 30,
               validation: int | None = None, test: int | None = None, min_records: int = 50,
               focal_spot: str = "HeliOS", seed: int = 0, plane_tolerance: float = 0.1,
-              keep_suspicious: bool = False, progress: bool = True, scenario=None, output=None):
+              keep_suspicious: bool = False, progress: bool = True, scenario=None, output=None, device: str = "auto",
+              checkpoint=None, resume: bool = False):
     """Calibrate heliostat kinematics from PAINT calibration records (``heliotwin calibrate``'s defaults).
+
+    ``progress``: tqdm bars (the run's steps, titled ``calibrate <method>``, and the fit loops), or a callable
+    ``progress(step_name, index, total)`` called before each step of the run (no bars then).
+    ``device``: ``"auto"`` (CUDA when present, as the CLI), ``"cpu"`` or ``"cuda"``; the model comes back on
+    the CPU. ``checkpoint``: a file where the fit saves its state as it goes (e.g. ``"run.ckpt"``); after an
+    interruption, the same call with ``resume=True`` continues from it and reaches the same result (refused,
+    one line, when the settings or inputs differ). The file is removed when the call succeeds.
 
     Returns
     -------
@@ -254,11 +267,20 @@ def calibrate(paint, *, method: str = "lm", heliostats=None, split: str = "chron
     cfg = RunConfig(paint=os.fspath(paint), method=method, split=split, train=train, validation=validation,
                     test=test, heliostats=None if heliostats is None else list(heliostats), min_records=min_records,
                     focal_spot=focal_spot, seed=seed, plane_tolerance=plane_tolerance,
-                    correct_suspicious=not keep_suspicious, progress=progress)
+                    correct_suspicious=not keep_suspicious, progress=progress is True)
     validate_config(cfg)
+    ck = None
+    if checkpoint is not None:
+        from .calibrate.pipeline import calibration_checkpoint
+
+        ck = calibration_checkpoint(cfg, checkpoint, device=_device(device), resume=resume,
+                                    inputs=[scenario] if scenario is not None else [])
     ds = load(paint, scenario=scenario, plane_tolerance=plane_tolerance)
-    report, model, arrays = run_calibration(cfg, ds)
+    report, model, arrays = run_calibration(cfg, ds, device=_device(device), checkpoint=ck,
+                                            progress=progress if callable(progress) else None)
     if output is None:
+        if ck is not None:
+            ck.remove()
         return report, model, None
     if model is None or not bool(model.ok.any()):
         raise HeliotwinError(f"no heliostat could be calibrated; {os.fspath(output)} not written")
@@ -272,6 +294,8 @@ def calibrate(paint, *, method: str = "lm", heliostats=None, split: str = "chron
     settings = {k: v for k, v in report["config"].items() if k != "method_options"}
     save_calibration(output, ds.plant, model, previous=load_scenario(scenario) if scenario else None,
                      focal_spot=cfg.focal_spot, records=seen, settings=settings, source=os.path.abspath(paint))
+    if ck is not None:
+        ck.remove()
     return report, model, os.fspath(output)
 
 
@@ -279,10 +303,11 @@ def reconstruct(paint, heliostat: str, *, train_records=None, train_first: int |
                 control_points: str = "7x7", degree: int = 3, integrator: str = "conv", loss: str = "kl",
                 steps: int = 200, slope_error_mrad: float | None = None, background: float = 0.0,
                 alignment: str = "focal-spot", evaluate_mc: bool = True, progress: bool = True,
-                deflectometry=None, scenario=None):
+                deflectometry=None, scenario=None, device: str = "auto", checkpoint=None, resume: bool = False):
     """Learn one heliostat's mirror surface from its centred flux images (``heliotwin reconstruct``'s defaults).
 
-    ``slope_error_mrad=None`` fits the slope error on the training images (the CLI's ``auto``).
+    ``slope_error_mrad=None`` fits the slope error on the training images (the CLI's ``auto``). ``device``,
+    ``checkpoint`` and ``resume`` as in :func:`calibrate` (the model comes back on the CPU).
 
     Returns
     -------
@@ -298,9 +323,18 @@ def reconstruct(paint, heliostat: str, *, train_records=None, train_first: int |
 
     settings = TrainSettings(control_points=parse_grid(control_points), degree=(degree, degree),
                              integrator=integrator, loss=loss, steps=steps)
+    fit_args = dict(train_records=train_records, train_first=train_first, settings=settings,
+                    slope_error=None if slope_error_mrad is None else slope_error_mrad * 1e-3, background=background,
+                    alignment=alignment, deflectometry=deflectometry, start_from_deflectometry=False)
+    ck = None
+    if checkpoint is not None:
+        from .surfaces.study import reconstruction_checkpoint
+
+        ck = reconstruction_checkpoint(checkpoint, paint, heliostat, resume=resume, device=_device(device),
+                                       inputs=[scenario, deflectometry], **fit_args)
     plant = load_scenario(scenario).plant if scenario is not None else None
-    report, model, _, _ = reconstruct_paint(
-        os.fspath(paint), heliostat, train_records=train_records, train_first=train_first, settings=settings,
-        slope_error=None if slope_error_mrad is None else slope_error_mrad * 1e-3, background=background,
-        alignment=alignment, evaluate_mc=evaluate_mc, progress=progress, deflectometry=deflectometry, plant=plant)
+    report, model, _, _ = reconstruct_paint(os.fspath(paint), heliostat, evaluate_mc=evaluate_mc, progress=progress,
+                                            plant=plant, device=_device(device), checkpoint=ck, **fit_args)
+    if ck is not None:
+        ck.remove()
     return report, model

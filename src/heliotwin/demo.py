@@ -19,34 +19,39 @@ from .sun import direction_from_time, paint_angles_from_direction
 
 def run_demo(out: str, *, num_heliostats: int = 48, integrator: str = "mc", rays_per_point: int = 64,
              resolution: int = 256, seed: int = 0, time_utc: str = "2023-03-20T11:30:00Z",
-             samples: tuple[int, int] = (20, 20), chunk: int = 8, progress: bool = True) -> dict:
+             samples: tuple[int, int] = (20, 20), chunk: int = 8, progress: bool = True, device="cpu") -> dict:
     """Trace the demo plant at ``time_utc`` with every heliostat aimed at the receiver's apex.
 
     Writes into ``out``: ``receiver-flux.png`` (unrolled cylinder, PAINT orientation: left = east),
     ``calibration-spot.png`` (the first heliostat on the lower calibration target, as in a camera-target
     calibration), ``field.png`` (layout coloured by cosine efficiency, flux maps in kW/m²) and
-    ``summary.json``.
+    ``summary.json``. ``device`` (``"cpu"``, ``"cuda"``, ``"auto"`` = CUDA when present) is where the
+    tracing runs; images, plots and numbers are made on the CPU.
 
     Returns
     -------
     dict
         The summary (also written to ``out/summary.json``).
     """
+    from .api import to_device
+    from .calibrate.pipeline import resolve_device
     from .io.report import write_json
     from .plots import plot_demo
 
+    device = resolve_device(device)
     os.makedirs(out, exist_ok=True)
-    plant = demo_plant(num_heliostats, seed)
+    plant_cpu = demo_plant(num_heliostats, seed)
+    plant = to_device(plant_cpu, device) if device != "cpu" else plant_cpu
     site, fld, kin = plant.site, plant.field, plant.field.kinematics
-    sun_dir = direction_from_time([time_utc], *site.reference)[0]
+    sun_dir = direction_from_time([time_utc], *site.reference)[0].to(kin.position.device)
     az, el = paint_angles_from_direction(sun_dir)
     receiver = plant.target("receiver")
     h = len(fld.ids)
     aim = receiver.center.expand(h, 3)
     steps, reachable = kin_ops.inverse(kin, aim, sun_dir.expand(h, 3), strict=False)
     idx = torch.nonzero(reachable).flatten()
-    gen = torch.Generator().manual_seed(seed)
-    bitmap = torch.zeros(resolution, resolution)
+    gen = torch.Generator(device=device).manual_seed(seed)
+    bitmap = torch.zeros(resolution, resolution, device=device)
     total, intercepted, per_heliostat = 0.0, 0.0, []
     bar = tqdm(total=len(idx), desc="demo: tracing field", unit="heliostat", disable=not progress)
     extent = None
@@ -72,7 +77,8 @@ def run_demo(out: str, *, num_heliostats: int = 48, integrator: str = "mc", rays
             intercepted += float(flux.intercepted_power_w.sum())
             bar.update(len(sel))
     bar.close()
-    receiver_flux = FluxImage(bitmap[None], receiver, extent)
+    bitmap = bitmap.cpu()
+    receiver_flux = to_device(FluxImage(bitmap[None], receiver, extent), "cpu")
     to_png(bitmap, os.path.join(out, "receiver-flux.png"))
 
     # One heliostat on the lower calibration target, as the camera-target calibration photographs it.
@@ -84,8 +90,10 @@ def run_demo(out: str, *, num_heliostats: int = 48, integrator: str = "mc", rays
         spot = trace(pts, nrm, area, sun_dir.to(pts)[None], cal, integrator=integrator,
                      resolution=(resolution, resolution),
                      sun=plant.sun, rays_per_point=rays_per_point, generator=gen)
+    spot = to_device(spot, "cpu")
+    cal = to_device(cal, "cpu")
     to_png(spot.bitmap[0], os.path.join(out, "calibration-spot.png"))
-    plot_demo(plant, per_heliostat, receiver_flux, spot, os.path.join(out, "field.png"))
+    plot_demo(plant_cpu, per_heliostat, receiver_flux, spot, os.path.join(out, "field.png"))
     peak = float(bitmap.max())
     summary = {
         "plant": "embedded Jülich-like demo plant", "time_utc": time_utc,

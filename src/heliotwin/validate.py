@@ -37,7 +37,7 @@ def _median(xs):
 
 def validate_dataset(ds: PaintDataset, *, plant: Plant | None = None, sun: SunSettings | None = None,
                      samples=(16, 16), resolution: int = 128, batch: int = 64, with_images: bool = True,
-                     progress: bool = True) -> dict:
+                     progress: bool = True, device="cpu") -> dict:
     """Validate the forward model on every usable record of a PAINT dataset.
 
     Parameters
@@ -57,6 +57,8 @@ def validate_dataset(ds: PaintDataset, *, plant: Plant | None = None, sun: SunSe
         Whole-target bitmap resolution used for the predicted centroid.
     batch : int
         Records traced at once (memory bound).
+    device : str or torch.device
+        Where to trace (``"auto"``: CUDA when present); the report holds plain numbers either way.
 
     Returns
     -------
@@ -64,14 +66,21 @@ def validate_dataset(ds: PaintDataset, *, plant: Plant | None = None, sun: SunSe
         ``records`` (one dict per record), ``heliostats.<HID>`` medians, ``overall`` medians (the median
         over heliostats of each heliostat's median), ``skipped_records`` (with reasons).
     """
+    from .api import to_device
+    from .calibrate.pipeline import resolve_device
+
     plant = plant or ds.plant
+    device = resolve_device(device)
+    if device != "cpu":
+        plant, ds = to_device(plant, device), to_device(ds, device)
     table = ds.records.for_heliostats(plant.field.ids) if list(ds.records.heliostat_ids) != list(plant.field.ids) \
         else ds.records
     sun = sun or plant.sun
     rows = {}
     bar = tqdm(total=len(table), desc="validate", unit="rec", disable=not progress)
     for tname in dict.fromkeys(table.target):
-        idx = torch.tensor([i for i, t in enumerate(table.target) if t == tname], dtype=torch.long)
+        idx = torch.tensor([i for i, t in enumerate(table.target) if t == tname], dtype=torch.long,
+                           device=table.record_id.device)
         for start in range(0, len(idx), batch):
             chunk = table.subset(idx[start:start + batch])
             rows.update(_validate_chunk(chunk, plant.target(tname), plant, sun, samples, resolution, with_images))
@@ -158,15 +167,15 @@ def _compare_images(chunk: RecordTable, target, pts, nrm, area, s, pred_local, s
         measured[i] = img
         by_res[tuple(img.shape[-2:])].append(i)
     for res, idx in by_res.items():
-        sel = torch.tensor(idx)
+        sel = torch.tensor(idx, device=pts.device)
         half = CENTERED_WINDOW_M / 2
-        size = torch.full((len(idx), 2), CENTERED_WINDOW_M, dtype=torch.float64)
+        size = torch.full((len(idx), 2), CENTERED_WINDOW_M, dtype=torch.float64, device=pts.device)
         window = torch.cat((pred_local[sel] - half, size), -1)
         pred = trace(pts[sel], nrm[sel], area[sel], s[sel].to(pts), target, integrator="gaussian", resolution=res,
                      sun=sun, window=window, mode="convolve", clip_to_target=False)
         for j, i in enumerate(idx):
-            m = measured[i].to(torch.float64)
             p = pred.bitmap[j].to(torch.float64)
+            m = measured[i].to(p)
             row = out[int(chunk.record_id[i])]
             row["centered_l1"] = float(normalized_l1(p, m))
             row["centered_cross_correlation"] = float(cross_correlation(p, m))

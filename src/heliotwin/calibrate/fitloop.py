@@ -11,9 +11,16 @@ prior-regularised start (:func:`prior_and_start`), the box :data:`BOUNDS`, the a
 (:func:`actuator_barrier`) and the projection after every step (:func:`box_and_validity`: back into the
 box, and a heliostat whose actuator triangle broke or whose state went non-finite goes back to its last
 valid state).
+
+Checkpoints. Under an active :mod:`heliotwin.io.checkpoint` (``calibrate --resume``) every loop claims a key
+(``fit/0``, ``fit/1``, ...) and saves its full state: the live and best states, the early-stopping
+bookkeeping, the state of every optimiser that steps inside it (found by torch's global optimiser-step
+hooks, so no method has to hand its optimiser over) and of the generators it is given. A resumed run
+restores a finished loop instead of running it, and continues an unfinished one after its last saved step.
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 from dataclasses import dataclass, field
 from typing import Callable
@@ -22,6 +29,7 @@ import torch
 
 from ..errors import HeliotwinError
 from ..field.plant import Kinematics
+from ..io import checkpoint as _checkpoint
 from .params import actuator_margin, kinds, units
 
 #: Box bounds per kind (physical units): far outside any real deviation, they only stop runaways.
@@ -152,16 +160,32 @@ def box_and_validity(x: torch.Tensor, bound: torch.Tensor, valid: Callable[[torc
             x.data[~ok] = last_valid[~ok]
             last_valid.copy_(x.detach())
 
+    def sync() -> None:  # a restored checkpoint: the live state is the last valid one
+        last_valid.copy_(x.detach())
+
+    project.sync = sync
     return project
 
 
 @dataclass
 class State:
     """How the fit loop copies per-heliostat states: ``snapshot()`` -> a copy, ``keep(copy, rows [H] bool)``
-    overwrites those heliostats' rows of the copy with the live state."""
+    overwrites those heliostats' rows of the copy with the live state.
+
+    For checkpoints (optional; without them the loop is not checkpointed): ``live`` is the live state,
+    ``dump(obj)`` turns it or a snapshot into tensors and containers (a copy), ``load(obj, data)`` writes such
+    a dump back into it in place."""
 
     snapshot: Callable
     keep: Callable
+    live: object = None
+    dump: Callable | None = None
+    load: Callable | None = None
+
+
+def _copy_into(obj: torch.Tensor, data: torch.Tensor) -> None:
+    with torch.no_grad():
+        obj.copy_(data)
 
 
 def tensor_state(x: torch.Tensor) -> State:
@@ -169,12 +193,63 @@ def tensor_state(x: torch.Tensor) -> State:
     def keep(best, rows):
         best[rows] = x.detach()[rows]
 
-    return State(lambda: x.detach().clone(), keep)
+    return State(lambda: x.detach().clone(), keep, x, lambda obj: obj.detach().clone(), _copy_into)
 
 
 def net_state(net) -> State:
     """:class:`State` of a :class:`~heliotwin.calibrate.nets.BatchedMLP` (one network per heliostat)."""
-    return State(lambda: copy.deepcopy(net), lambda best, rows: best.copy_rows(net, rows))
+    return State(lambda: copy.deepcopy(net), lambda best, rows: best.copy_rows(net, rows), net,
+                 lambda obj: {k: v.detach().clone() for k, v in obj.state_dict().items()},
+                 lambda obj, data: obj.load_state_dict(data))
+
+
+class _Optimisers:
+    """The optimisers that step inside a loop, in the order of their first step (torch's global step hook):
+    their states go into the checkpoint; on resume, saved states are loaded into them before their first step."""
+
+    def __init__(self, pending=None):
+        self.seen: list = []
+        self.pending = list(pending or [])
+
+    @contextlib.contextmanager
+    def watching(self):
+        from torch.optim.optimizer import register_optimizer_step_pre_hook
+
+        def before(opt, args, kwargs):
+            if not any(o is opt for o in self.seen):
+                self.seen.append(opt)
+                if self.pending:
+                    opt.load_state_dict(self.pending.pop(0))
+
+        handle = register_optimizer_step_pre_hook(before)
+        try:
+            yield self
+        finally:
+            handle.remove()
+
+    def dump(self) -> list:
+        return [copy.deepcopy(o.state_dict()) for o in self.seen]
+
+
+def _entry(it: int, state: State, log, optimisers: _Optimisers, generators) -> dict:
+    """The checkpoint entry of a loop after iteration ``it``."""
+    return {"step": int(it), "live": state.dump(state.live), "best": state.dump(log.best),
+            "best_error": log.best_error.detach().clone(), "best_iteration": log.best_iteration.clone(),
+            "history": [(int(i), m) for i, m in log.history], "losses": list(log.losses),
+            "optimisers": optimisers.dump(), "generators": [g.get_state() for g in generators]}
+
+
+def _restore(saved: dict, state: State, log, generators) -> int:
+    """Load a checkpoint entry into the live state and the log; returns the iteration to continue after."""
+    state.load(state.live, saved["live"])
+    state.load(log.best, saved["best"])
+    log.best_error = saved["best_error"].to(log.best_error)
+    log.best_iteration = saved["best_iteration"].to(log.best_iteration.device)
+    log.history = [tuple(h) for h in saved["history"]]
+    log.losses = list(saved["losses"])
+    for g, st in zip(generators, saved["generators"]):
+        g.set_state(st)
+    return int(saved["step"])
 
 
 @dataclass
@@ -207,18 +282,19 @@ def _median_mrad(err: torch.Tensor):
     return float(err[fin].median()) * 1e3 if fin.any() else None
 
 
-def _iterations(iterations: int, progress: bool, desc: str):
-    it = range(1, iterations + 1)
+def _iterations(iterations: int, progress: bool, desc: str, first: int = 1):
+    it = range(first, iterations + 1)
     if progress:
         from tqdm import tqdm
 
-        it = tqdm(it, desc=desc, leave=False)
+        it = tqdm(it, desc=desc, leave=False, initial=first - 1, total=iterations)
     return it
 
 
 def early_stopping_fit(step: Callable, validation_error: Callable, state: State, iterations: int, *,
                        validated: torch.Tensor, check_every: int = 1, project: Callable | None = None,
-                       stop_at: torch.Tensor | None = None, progress: bool = False, desc: str = "fit") -> FitLog:
+                       stop_at: torch.Tensor | None = None, progress: bool = False, desc: str = "fit",
+                       generators=()) -> FitLog:
     """Run ``iterations`` optimiser steps and keep every heliostat's best state on validation.
 
     Parameters
@@ -243,12 +319,35 @@ def early_stopping_fit(step: Callable, validation_error: Callable, state: State,
         best iteration found on validation in a first pass; the validation error is not consulted.
     progress : bool
         tqdm bar titled ``desc``.
+    generators : sequence of torch.Generator
+        Generators ``step`` draws from (their states are checkpointed with the loop's).
     """
+    ck = _checkpoint.current()
+    key = ck.claim("fit") if ck is not None and state.dump is not None else None
     best = state.snapshot()
     best_err = validation_error()
     best_it = torch.zeros(len(best_err), dtype=torch.long, device=best_err.device)
     log = FitLog(best, best_err, best_it, history=[(0, _median_mrad(best_err))])
-    for it in _iterations(iterations, progress, desc):
+    saved = ck.get(key) if key is not None else None
+    optimisers = _Optimisers(saved["optimisers"] if saved is not None else None)
+    done = _restore(saved, state, log, generators) if saved is not None else 0
+    if done and getattr(project, "sync", None) is not None:
+        project.sync()
+    with optimisers.watching() if key is not None else contextlib.nullcontext():
+        _steps(step, validation_error, state, iterations, log, check_every, project, stop_at,
+               _iterations(iterations, progress, desc, done + 1), ck, key, optimisers, generators)
+    if stop_at is None:
+        final = ~validated.to(best_it.device)
+        state.keep(log.best, final)
+        log.best_iteration[final] = iterations
+    return log
+
+
+def _steps(step, validation_error, state, iterations, log, check_every, project, stop_at, its, ck, key, optimisers,
+           generators) -> None:
+    """The iterations ``its`` of :func:`early_stopping_fit` (saving the loop's state when a checkpoint is due)."""
+    best = log.best
+    for it in its:
         loss = step()
         if loss is not None:
             log.losses.append(float(loss.detach()) if isinstance(loss, torch.Tensor) else float(loss))
@@ -261,11 +360,10 @@ def early_stopping_fit(step: Callable, validation_error: Callable, state: State,
             log.best_error = torch.where(better, err, log.best_error)
             log.best_iteration[better] = it
             log.history.append((it, _median_mrad(err)))
-    if stop_at is None:
-        final = ~validated.to(best_it.device)
-        state.keep(best, final)
-        log.best_iteration[final] = iterations
-    return log
+        if key is not None:
+            if it == iterations or ck.due(it):
+                ck.put(key, _entry(it, state, log, optimisers, generators))
+            ck.notify("step", key, it)
 
 
 __all__ = ["BOUNDS", "MIN_MARGIN", "BARRIER_WEIGHT", "actuator_barrier", "make_optimizer", "prior_and_start",

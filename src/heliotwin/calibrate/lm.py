@@ -17,6 +17,7 @@ import torch
 from scipy.optimize import least_squares
 
 from ..field.plant import Kinematics
+from ..io.checkpoint import resumable_range
 from ..io.records import RecordTable
 from . import metrics, priors
 from .inputs import FIT_FOCAL_SPOT, fit_spots, trainable
@@ -82,6 +83,15 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
     info : dict
         ``nfev``, ``status``, ``message`` of the scipy run, and ``cost``.
     """
+    if nominal.position.device.type != "cpu":  # scipy's LM runs on the CPU: fit CPU copies, deviations back
+        from ..api import to_device
+
+        cpu = lambda t: None if t is None else t.detach().cpu()  # noqa: E731
+        delta, info = fit_lm(to_device(nominal, "cpu"), to_device(batch, "cpu"), names=names, prior_sigma=prior_sigma,
+                             prior_mean=cpu(prior_mean), noise=noise, max_nfev=max_nfev, loss=loss, f_scale=f_scale,
+                             prior_sigma_vector=cpu(prior_sigma_vector), prior_whitening=cpu(prior_whitening),
+                             half_life_days=half_life_days)
+        return delta.to(nominal.position.device), info
     names = check_names(names)
     h, p = nominal.num_heliostats, len(names)
     scale = units(names)  # optimise in natural units (mrad, mm, 0.1 %) for a well-scaled problem
@@ -250,22 +260,42 @@ def stone8_plant_fit(nominal: Kinematics, batch: RecordTable, prior: priors.Plan
 def bagged(fit_one, batch: RecordTable, bags: int, seed: int):
     """Average of ``fit_one(resampled batch)`` [H, P] over bootstrap resamples of every heliostat's records.
 
-    Returns (mean delta, the first return value's extras of the full-data fit).
+    Returns (mean delta, the first return value's extras of the full-data fit). Under an active checkpoint
+    (:mod:`heliotwin.io.checkpoint`) the state is saved after every fit (full data, then each bag) and a
+    resumed run goes on after the last finished one.
     """
-    full, extra = fit_one(batch)
-    if bags <= 0 or len(batch) == 0:
-        return full, extra
     g = torch.Generator().manual_seed(int(seed))
-    acc = torch.zeros_like(full)
-    for _ in range(bags):
+    dev = batch.heliostat_index.device
+    st: dict = {}
+
+    def dump():
+        return {"full": st["full"].clone(), "extra": st["extra"], "acc": st["acc"].clone(), "gen": g.get_state()}
+
+    def load(saved):
+        g.set_state(saved["gen"])
+        st.update(full=saved["full"].to(dev), acc=saved["acc"].to(dev), extra=_to(saved["extra"], dev))
+
+    total = 1 if bags <= 0 or len(batch) == 0 else bags + 1
+    for i in resumable_range("bags", total, dump, load):
+        if i == 0:
+            st["full"], st["extra"] = fit_one(batch)
+            st["acc"] = torch.zeros_like(st["full"])
+            continue
         idx = []
         for h in range(batch.num_heliostats):
             rows = batch.of(h)
             if len(rows):
                 idx.append(rows[torch.randint(len(rows), (len(rows),), generator=g).to(rows.device)])
         d, _ = fit_one(batch.subset(torch.cat(idx)))
-        acc += d
-    return acc / bags, extra
+        st["acc"] += d
+    if total == 1:
+        return st["full"], st["extra"]
+    return st["acc"] / bags, st["extra"]
+
+
+def _to(obj, device):
+    """A field prior (tuple of tensors) or None on ``device``."""
+    return None if obj is None else tuple(t.to(device) for t in obj)
 
 
 def field_prior_extras(fp) -> dict | None:

@@ -11,6 +11,13 @@ and nominal model), ``online_refit`` (``--split online``: test errors of refits 
 methods with a posterior), ``report_heliostats``, ``report_overall`` and ``plot_arrays``. Every heliostat or
 record that cannot be used is reported with a reason, never dropped silently.
 
+Devices: ``run_calibration(..., device="cuda")`` moves the plant and the record table there (the methods follow
+the device of their inputs) and hands the model and the plot arrays back on the CPU. Progress: a tqdm bar
+over the steps, titled ``calibrate <method>`` with the step's name, plus the methods' own loop bars
+(``cfg.progress``; or a callable ``progress(step, index, total)``). Checkpoints: under a
+:class:`~heliotwin.io.checkpoint.Checkpoint` (:func:`calibration_checkpoint`) every fit loop of the run
+saves its state and a resumed run restores it (:mod:`.fitloop`).
+
 Report keys mean one thing each: per heliostat, ``mean_test_mrad``/``median_test_mrad`` are the mean and
 median over its test records; over the run, ``median_of_mean_test_mrad`` is the median over heliostats of
 those per-heliostat means (the headline figure), ``median_of_median_test_mrad`` the median of the medians.
@@ -26,6 +33,7 @@ import numpy as np
 import torch
 
 from ..errors import HeliotwinError
+from ..io import checkpoint as _checkpoint
 from ..io.paint import load_paint
 from ..io.records import RecordTable, normalise_source
 from . import metrics
@@ -145,6 +153,7 @@ class Run:
     plant_prior: object = None
     intervals: dict = field(default_factory=dict)
     interval_inputs: dict = field(default_factory=dict)
+    device: str = "cpu"
 
     @property
     def parts(self) -> dict:
@@ -156,6 +165,10 @@ def select(run: Run) -> None:
     cfg = run.cfg
     if run.dataset is None:
         run.dataset = load_paint(cfg.paint, plane_tolerance=cfg.plane_tolerance)
+    if run.device != "cpu":
+        from ..api import to_device
+
+        run.dataset = to_device(run.dataset, run.device)
     all_ids = list(run.dataset.plant.field.ids)
     if cfg.heliostats:
         unknown = [h for h in cfg.heliostats if h not in all_ids]
@@ -185,6 +198,7 @@ def prepare(run: Run) -> None:
     pf = cfg.prior_from
     config["prior_from"] = pf if pf is None or isinstance(pf, str) else (getattr(pf, "source", "") or type(pf).__name__)
     config["validation"] = cfg.n_validation()
+    config["device"] = run.device
     run.report = {"config": config, "skipped_records": run.skipped_records,
                   "heliostats": {hid: {"status": "skipped", "reason": r} for hid, r in run.skipped_heliostats.items()}}
     if not run.run_ids:
@@ -196,10 +210,11 @@ def prepare(run: Run) -> None:
 
 def rebatch(run: Run) -> None:
     """Records and nominal kinematics over the heliostats that run (heliostat index = position in run_ids)."""
-    keep = torch.tensor([run.wanted.index(h) for h in run.run_ids])
+    dev = run.batch_all.heliostat_index.device
+    keep = torch.tensor([run.wanted.index(h) for h in run.run_ids], device=dev)
     batch = run.batch_all.subset(torch.isin(run.batch_all.heliostat_index, keep))
-    remap = torch.full((len(run.wanted),), -1, dtype=torch.long)
-    remap[keep] = torch.arange(len(run.run_ids))
+    remap = torch.full((len(run.wanted),), -1, dtype=torch.long, device=dev)
+    remap[keep] = torch.arange(len(run.run_ids), device=dev)
     batch.heliostat_index = remap[batch.heliostat_index]
     batch.heliostat_ids = list(run.run_ids)
     run.batch = batch
@@ -256,7 +271,7 @@ def _image_context(ds, run_ids) -> dict:
     plant = ds.plant
     all_ids = list(plant.field.ids)
     srf = plant.field.surfaces
-    idx = torch.tensor([all_ids.index(h) for h in run_ids])
+    idx = torch.tensor([all_ids.index(h) for h in run_ids], device=srf.control_points.device)
     surfaces = Surfaces(control_points=srf.control_points[idx], degree_u=srf.degree_u, degree_v=srf.degree_v,
                         weights=None if srf.weights is None else srf.weights[idx])
     table = ds.records.for_heliostats(run_ids)
@@ -337,7 +352,9 @@ def predict_intervals(run: Run) -> None:
     run.interval_inputs = {"jacobian": jac[keep], "normal": normal.detach()[keep],
                            "covariance": post["covariance"][hidx][keep], "noise": post["noise_rad"][hidx][keep],
                            "error": err[keep], "heliostat": [run.run_ids[h] for h in hidx[keep].tolist()]}
-    pred = predictive(jac, normal.detach(), post["covariance"][hidx], post["noise_rad"][hidx],
+    # The posterior predictive samples on the CPU (its draws take a CPU generator): a few thousand numbers.
+    jac, normal, err, hidx = jac.cpu(), normal.detach().cpu(), err.cpu(), hidx.cpu()
+    pred = predictive(jac, normal, post["covariance"].cpu()[hidx], post["noise_rad"].cpu()[hidx],
                       drift=post.get("drift_rad", 0.0), generator=torch.Generator().manual_seed(run.cfg.seed))
     pred["inside"] = (err >= pred["lower"]) & (err <= pred["upper"])
     run.intervals = pred
@@ -361,7 +378,7 @@ def _heliostat_report(run: Run, h: int, hid: str, per_h_seconds: float) -> dict:
     rep["nominal_mean_test_mrad"] = rep["nominal_test"]["mean_mrad"]
     rep["fit_seconds_share"] = per_h_seconds
     if run.intervals and ok:
-        mine = run.test.heliostat_index == h
+        mine = (run.test.heliostat_index == h).cpu()
         iv = run.intervals
         rep["interval_90_coverage"] = float(iv["inside"][mine].double().mean()) if bool(mine.any()) else None
         rep["expected_test_mrad"] = float(1e3 * iv["expected"][mine].mean()) if bool(mine.any()) else None
@@ -405,7 +422,7 @@ def report_overall(run: Run) -> None:
         "dropped_no_time": int(sum(run.split_info[h]["dropped_no_time"] for h in run.run_ids)),
     }
     if run.intervals:
-        mine = run.model.ok[run.test.heliostat_index]
+        mine = run.model.ok[run.test.heliostat_index].cpu()
         inside = run.intervals["inside"][mine]
         run.report["overall"]["interval_90_coverage"] = float(inside.double().mean()) if len(inside) else None
         run.report["overall"]["median_of_expected_test_mrad"] = _median([r.get("expected_test_mrad") for r in ran])
@@ -445,7 +462,8 @@ STEPS = (("select", select), ("prepare", prepare), ("rebatch", rebatch), ("split
          ("report_records", report_records), ("plot_arrays", plot_arrays))
 
 
-def run_calibration(cfg: RunConfig, dataset=None) -> tuple[dict, Calibrated | None, dict]:
+def run_calibration(cfg: RunConfig, dataset=None, *, device: str = "cpu", progress=None,
+                    checkpoint=None) -> tuple[dict, Calibrated | None, dict]:
     """Run one calibration: the steps of :data:`STEPS` in order (stopping early when no heliostat can run).
 
     Parameters
@@ -455,21 +473,90 @@ def run_calibration(cfg: RunConfig, dataset=None) -> tuple[dict, Calibrated | No
         Already loaded PAINT folder (its record table, possibly on a scenario's plant via
         :meth:`~heliotwin.io.paint.PaintDataset.on_plant`); read from ``cfg.paint`` with
         ``cfg.plane_tolerance`` otherwise.
+    device : str or torch.device
+        Where to compute (``"cpu"``, ``"cuda"``, ``"auto"`` = CUDA when present); results come back on the CPU.
+    progress : bool or callable, optional
+        tqdm bars (default ``cfg.progress``), or ``progress(step_name, index, total)`` called before each step.
+    checkpoint : heliotwin.io.checkpoint.Checkpoint, optional
+        Save every fit loop's state there; a resumed checkpoint continues where the run stopped
+        (:func:`calibration_checkpoint`). The caller removes it once its outputs are written.
 
     Returns
     -------
     report : dict
         The JSON report (see module :mod:`heliotwin.calibrate.report`).
     model : Calibrated or None
-        The calibrated model over the heliostats that were run (None when none could be).
+        The calibrated model over the heliostats that were run (None when none could be), on the CPU.
     arrays : dict
         Per-record arrays for the plots (test records: azimuth, elevation, heliostat, nominal and calibrated
-        error [mrad]).
+        error [mrad]), on the CPU.
     """
+    from ..api import to_device
+
     validate_config(cfg)
-    run = Run(cfg, dataset)
-    for _, step in STEPS:
-        step(run)
-        if run.stop:
-            break
-    return run.report, run.model, run.arrays
+    run = Run(cfg, dataset, device=resolve_device(device))
+    show = cfg.progress if progress is None else progress
+    bar = _StageBar(f"calibrate {cfg.method}", len(STEPS), show)
+    try:
+        with _checkpoint.active(checkpoint):
+            for name, step in STEPS:
+                bar.stage(name)
+                step(run)
+                if run.stop:
+                    break
+    finally:
+        bar.close()
+    if run.device == "cpu":
+        return run.report, run.model, run.arrays
+    return run.report, to_device(run.model, "cpu"), to_device(run.arrays, "cpu")
+
+
+def resolve_device(device) -> str:
+    """``"auto"`` -> ``"cuda"`` when torch sees a CUDA device, else ``"cpu"``; anything else as given."""
+    name = str(device)
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return name
+
+
+class _StageBar:
+    """Progress over the steps of a run: a tqdm bar titled ``desc`` showing the step's name, a callable
+    ``progress(step, index, total)``, or nothing."""
+
+    def __init__(self, desc: str, total: int, progress):
+        self.callback = progress if callable(progress) else None
+        self.total, self.index, self.bar = total, 0, None
+        if progress is True:
+            from tqdm.auto import tqdm
+
+            self.bar = tqdm(total=total, desc=desc, leave=False, disable=None)  # None: off when not a terminal
+
+    def stage(self, name: str) -> None:
+        if self.callback is not None:
+            self.callback(name, self.index, self.total)
+        if self.bar is not None:
+            if self.index:
+                self.bar.update(1)
+            self.bar.set_postfix_str(name)
+        self.index += 1
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def calibration_checkpoint(cfg: RunConfig, path, *, device: str = "cpu", resume: bool = False, inputs=(),
+                           **options) -> _checkpoint.Checkpoint:
+    """The :class:`~heliotwin.io.checkpoint.Checkpoint` of a calibration run at ``path``, tagged with the
+    run's settings (every field of ``cfg`` but ``progress``, and the device) and inputs (the PAINT folder,
+    a ``prior_from`` path and ``inputs``, e.g. the starting scenario). ``options`` go to the checkpoint."""
+    settings = {k: v for k, v in cfg.__dict__.items() if k != "progress"}
+    settings["paint"] = os.path.abspath(os.fspath(cfg.paint))
+    settings["validation"] = cfg.n_validation()
+    settings["device"] = resolve_device(device)
+    pf = cfg.prior_from
+    settings["prior_from"] = pf if pf is None or isinstance(pf, (str, os.PathLike)) else \
+        (getattr(pf, "source", "") or type(pf).__name__)
+    files = [cfg.paint] + [p for p in [cfg.prior_from, *inputs] if isinstance(p, (str, os.PathLike))]
+    tag = _checkpoint.make_tag({"command": "calibrate", "settings": settings}, files)
+    return _checkpoint.Checkpoint(path, tag, resume=resume, **options)

@@ -47,7 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 #: Commands that compute (and so take ``--device``); the others only read and write files.
-COMPUTE_COMMANDS = ("demo", "trace", "validate", "bench", "calibrate", "reconstruct", "predict")
+COMPUTE_COMMANDS = ("demo", "trace", "validate", "bench", "calibrate", "reconstruct", "predict", "field", "aimpoints")
 
 
 def _add_shared_flags(sub) -> None:

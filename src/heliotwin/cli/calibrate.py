@@ -12,7 +12,7 @@ import os
 
 from ..errors import HeliotwinError
 from ..io.report import atomic_path, output_set, write_json
-from .common import float_range, int_range, seed_int, stage
+from .common import add_resume_flags, checkpoint_file, checkpointed, float_range, int_range, seed_int, stage
 
 METHOD_CHOICES = ("lm", "gradient", "hybrid", "mlp", "images")
 _COUNT, _COUNT0 = int_range(1, 10**6, "a record count"), int_range(0, 10**6, "a record count")
@@ -82,6 +82,7 @@ def register(subparsers) -> None:
                         "noise (default 0; chosen by cross-validated coverage in benchmarks/bench_carryover.py)")
     p.add_argument("--online-step", type=_COUNT, default=5,
                    help="--split online: refit every this many test records (default 5; 1 = before every record)")
+    add_resume_flags(p)
     p.set_defaults(func=cmd_calibrate)
 
     p = subparsers.add_parser("split", help="write a train/validation/test split and its coverage metrics",
@@ -163,12 +164,15 @@ def cmd_calibrate(args) -> int:
     from ..calibrate.scenario import save_calibration
 
     cfg = _config(args, args.method)
-    with output_set([("--paint", args.paint), ("--scenario", args.scenario)]) as out:
+    device = getattr(args, "device", "cpu")
+    # The checkpoint outlives the staged outputs: removed only once they are in place.
+    with checkpointed(args, _checkpoint(args, cfg, device)), \
+            output_set([("--paint", args.paint), ("--scenario", args.scenario)]) as out:
         output, json_path = out.file(args.output, "-o"), out.file(args.json, "--json")
         stage(args, f"reading {args.paint}")
         ds, previous = _load(args.paint, args.scenario, cfg.plane_tolerance)
-        stage(args, f"calibrating ({cfg.method}, {cfg.split} split)")
-        report, model, arrays = run_calibration(cfg, ds)
+        stage(args, f"calibrating ({cfg.method}, {cfg.split} split) on {device}")
+        report, model, arrays = run_calibration(cfg, ds, device=device, checkpoint=args.checkpoint)
         ov = report["overall"]
         calibrated = model is not None and bool(model.ok.any())
         if args.output and not calibrated:
@@ -193,6 +197,22 @@ def cmd_calibrate(args) -> int:
     if not args.quiet:
         _print_table(report)
     return 0
+
+
+def _checkpoint(args, cfg, device):
+    """The run's checkpoint next to its main output (None without one); also ``args.checkpoint``."""
+    from ..calibrate.pipeline import calibration_checkpoint
+
+    path = checkpoint_file(args)
+    args.checkpoint = None if path is None else calibration_checkpoint(
+        cfg, path, device=device, resume=args.resume, inputs=[args.scenario] if args.scenario else [],
+        min_interval_s=args.checkpoint_interval)
+    if args.checkpoint is not None and args.checkpoint.resumed:
+        stage(args, f"resuming from {path}")
+    return args.checkpoint
+
+
+cmd_calibrate.supports_cuda = True  # the fit follows args.device (run_calibration moves the plant there)
 
 
 def _training_size_curves(cfg, ds, median_test_mrad) -> dict:

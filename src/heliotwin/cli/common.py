@@ -25,7 +25,8 @@ import traceback
 
 from ..errors import HeliotwinError
 
-__all__ = ["ArgumentParser", "run_command", "resolve_device", "stage", "debug_requested", "Terminated", "csv_list",
+__all__ = ["ArgumentParser", "run_command", "resolve_device", "stage", "add_resume_flags", "checkpoint_file",
+           "checkpointed", "debug_requested", "Terminated", "csv_list",
            "int_list", "positive_int", "int_range", "float_range", "finite_float", "seed_int", "frequency",
            "utc_time", "check_output_folder", "EXIT_OK", "EXIT_INTERNAL", "EXIT_INPUT", "EXIT_INTERRUPTED",
            "EXIT_TERMINATED"]
@@ -112,7 +113,10 @@ def run_command(args, prefix: str = "heliotwin: ") -> int:
         terminated = isinstance(exc, Terminated)
         if debug:
             traceback.print_exc()
-        print(f"{prefix}{'terminated' if terminated else 'interrupted'}; nothing was written", file=sys.stderr)
+        kept = getattr(args, "checkpoint_kept", None)
+        tail = (f"; the fit's checkpoint {kept} is kept: rerun the same command with --resume to continue"
+                if kept and os.path.exists(kept) else "")
+        print(f"{prefix}{'terminated' if terminated else 'interrupted'}; nothing was written{tail}", file=sys.stderr)
         return EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
     except Exception as exc:  # noqa: BLE001 -- the one place that turns every error into one line
         code, message = _classify(exc)
@@ -154,6 +158,48 @@ def stage(args, text: str, stream=None) -> None:
     if getattr(args, "quiet", False) or not getattr(stream, "isatty", lambda: False)():
         return
     print(f"heliotwin {getattr(args, 'command', None) or ''}: {text}".replace(" :", ":"), file=stream, flush=True)
+
+
+# ------------------------------------------------------------------------------------------------ resume
+def add_resume_flags(p) -> None:
+    """``--resume`` and ``--checkpoint-interval`` of the commands with long fits (``calibrate``, ``reconstruct``)."""
+    p.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run from its checkpoint (<output>.ckpt next to -o, else --json); "
+                        "refused when the settings or inputs differ")
+    p.add_argument("--checkpoint-interval", type=float_range(0.0, 86400.0, what="seconds"), default=30.0,
+                   help="least seconds between two checkpoint saves of a running fit (0: every 10 steps; default "
+                        "%(default)s); finished fits are always saved")
+
+
+def checkpoint_file(args) -> str | None:
+    """Where a command's checkpoint lives: next to its main output (``-o``, else ``--json``), or None."""
+    from ..io.checkpoint import checkpoint_path
+
+    main = getattr(args, "output", None) or getattr(args, "json", None)
+    if main is None:
+        if getattr(args, "resume", False):
+            raise HeliotwinError("--resume needs -o or --json: the checkpoint lives next to the output")
+        return None
+    return checkpoint_path(main)
+
+
+@contextlib.contextmanager
+def checkpointed(args, checkpoint):
+    """Around a command's fit and output writing: the checkpoint is removed once the outputs are written, kept
+    when the command is interrupted (Ctrl-C, SIGTERM: the message says how to resume) or cannot write
+    (``OSError``: disk full), and removed after any other error (a resume would meet it again)."""
+    if checkpoint is None:
+        yield
+        return
+    args.checkpoint_kept = checkpoint.path
+    try:
+        yield
+    except (KeyboardInterrupt, OSError):
+        raise
+    except BaseException:
+        checkpoint.remove()
+        raise
+    checkpoint.remove()
 
 
 # ------------------------------------------------------------------------------------------ argument types

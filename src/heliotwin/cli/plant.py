@@ -132,7 +132,8 @@ def cmd_validate(args) -> int:
         ds, sc = load_records(args.paint, args.scenario, csv_list(args.heliostats))
         stage(args, f"tracing {len(ds.records.record_id)} records")
         report = validate_dataset(ds, resolution=args.resolution, samples=(args.samples, args.samples),
-                                  with_images=not args.no_images, progress=not args.quiet)
+                                  with_images=not args.no_images, progress=not args.quiet,
+                                  device=getattr(args, "device", "cpu"))
         if not report["overall"].get("records"):
             skipped = report.get("skipped_records") or ds.skipped
             why = f"; first: {skipped[0].get('reason')}" if skipped else ""
@@ -140,6 +141,7 @@ def cmd_validate(args) -> int:
         report["overall"]["seconds"] = time.perf_counter() - t0
         report["settings"] = {"paint": os.path.abspath(args.paint), **_describe(sc),
                               "integrator": "gaussian", "resolution": args.resolution,
+                              "device": getattr(args, "device", "cpu"),
                               "samples_per_facet": args.samples ** 2,
                               "sunshape": ds.plant.sun.sunshape, "slope_error_mrad": ds.plant.sun.slope_error * 1e3}
         write_json(json_path, report)
@@ -157,6 +159,9 @@ def cmd_validate(args) -> int:
     return 0
 
 
+cmd_validate.supports_cuda = True  # validate_dataset traces on args.device
+
+
 # ----------------------------------------------------------------------------------------------- bench
 def cmd_bench(args) -> int:
     import torch
@@ -167,16 +172,20 @@ def cmd_bench(args) -> int:
     with output_set() as out:
         json_path = out.file(args.json, "--json")
         result = run_benchmark(surface_points=args.surface_points, rays_per_point=tuple(rpp),
-                               resolution=args.resolution, seed=args.seed)
+                               resolution=args.resolution, seed=args.seed, device=getattr(args, "device", "cpu"))
         if json_path:
             write_json(json_path, result)
     mc = result["mc"]
     if args.quiet:
         return 0
-    print(f"bench ({torch.get_num_threads()} threads, {args.surface_points} points, {args.resolution}^2, "
+    where = "cuda" if result["device"].startswith("cuda") else f"{torch.get_num_threads()} threads"
+    print(f"bench ({where}, {args.surface_points} points, {args.resolution}^2, "
           f"{max(rpp)} rays/point): forward {mc['forward_rays_per_s'] / 1e6:.1f} M rays/s, "
           f"forward+backward {mc['forward_backward_rays_per_s'] / 1e6:.1f} M rays/s")
     return 0
+
+
+cmd_bench.supports_cuda = True  # run_benchmark traces and times on args.device
 
 
 # -------------------------------------------------------------------------------------------- register

@@ -16,7 +16,16 @@ import os
 
 from ..errors import HeliotwinError
 from ..io.report import output_set, write_json
-from .common import float_range, frequency, int_range, positive_int, stage
+from .common import (
+    add_resume_flags,
+    checkpoint_file,
+    checkpointed,
+    float_range,
+    frequency,
+    int_range,
+    positive_int,
+    stage,
+)
 
 __all__ = ["register"]
 
@@ -27,10 +36,15 @@ def cmd_reconstruct(args) -> int:
 
     _set_threads(args.threads)
     inputs = [("--paint", args.paint), ("--scenario", args.scenario), ("--deflectometry", args.deflectometry)]
-    with output_set(inputs) as out:
+    train_records = _train_records(args)
+    slope = None if args.slope_error == "auto" else args.slope_error * 1e-3
+    fit_args = dict(train_records=train_records, train_first=args.train_first, settings=_train_settings(args),
+                    slope_error=slope, background=args.background, alignment=args.alignment,
+                    deflectometry=args.deflectometry, start_from_deflectometry=args.start_from_deflectometry)
+    # The checkpoint outlives the staged outputs: removed only once they are in place.
+    with checkpointed(args, _checkpoint(args, fit_args)), output_set(inputs) as out:
         json_path = out.file(args.json, "--json")
         output = out.file(args.output, "-o")
-        train_records = _train_records(args)
         if args.start_from_deflectometry and not args.deflectometry:
             raise HeliotwinError("--start-from-deflectometry needs --deflectometry FILE")
         if args.deflectometry:
@@ -38,13 +52,12 @@ def cmd_reconstruct(args) -> int:
 
             read_deflectometry(args.deflectometry)  # fail fast (one-line error naming the file) before training
         previous = load_scenario(args.scenario) if args.scenario else None
-        stage(args, f"learning {args.heliostat}'s surface ({args.integrator}, <= {args.steps} steps), then evaluating")
-        slope = None if args.slope_error == "auto" else args.slope_error * 1e-3
+        stage(args, f"learning {args.heliostat}'s surface ({args.integrator}, <= {args.steps} steps) on "
+                    f"{getattr(args, 'device', 'cpu')}, then evaluating")
         report, model, ds, extras = reconstruct_paint(
-            args.paint, args.heliostat, train_records=train_records, train_first=args.train_first,
-            settings=_train_settings(args), slope_error=slope, background=args.background, alignment=args.alignment,
-            evaluate_mc=not args.no_mc, progress=not args.quiet, deflectometry=args.deflectometry,
-            start_from_deflectometry=args.start_from_deflectometry, plant=previous.plant if previous else None)
+            args.paint, args.heliostat, evaluate_mc=not args.no_mc, progress=not args.quiet,
+            plant=previous.plant if previous else None, device=getattr(args, "device", "cpu"),
+            checkpoint=args.checkpoint, **fit_args)
         learned = model.surfaces()
         stage(args, "plotting and writing outputs")
         report["plots"] = _plot_reconstruction(args, json_path, report, model, learned, extras)
@@ -55,6 +68,22 @@ def cmd_reconstruct(args) -> int:
     if not args.quiet:
         _print_reconstruction(args.heliostat, report)
     return 0
+
+
+cmd_reconstruct.supports_cuda = True  # the learner follows args.device
+
+
+def _checkpoint(args, fit_args: dict):
+    """The run's checkpoint next to its main output (None without one); also ``args.checkpoint``."""
+    from ..surfaces.study import reconstruction_checkpoint
+
+    path = checkpoint_file(args)
+    args.checkpoint = None if path is None else reconstruction_checkpoint(
+        path, args.paint, args.heliostat, resume=args.resume, device=getattr(args, "device", "cpu"),
+        inputs=[args.scenario, args.deflectometry], min_interval_s=args.checkpoint_interval, **fit_args)
+    if args.checkpoint is not None and args.checkpoint.resumed:
+        stage(args, f"resuming from {path}")
+    return args.checkpoint
 
 
 def _set_threads(threads: int) -> None:
@@ -154,12 +183,21 @@ def _predict(args, sc) -> dict:
     target = plant.target(name)
     site = (plant.site.latitude_deg, plant.site.longitude_deg, plant.site.altitude_m)
     kin = plant.field.kinematics.index([plant.field.index_of(args.heliostat)])
-    series = yearly_flux(kin, target, site, item["surfaces"], item["ideal"], item["optics"],
+    surfaces, ideal = item["surfaces"], item["ideal"]
+    device = getattr(args, "device", "cpu")
+    if device != "cpu":
+        from ..api import to_device
+
+        kin, target, surfaces, ideal = to_device((kin, target, surfaces, ideal), device)
+    series = yearly_flux(kin, target, site, surfaces, ideal, item["optics"],
                          year=args.year, every=args.every, progress=not args.quiet)
     optics = item["optics"]
     return {"heliostat": args.heliostat, "target": name, "year": args.year, "every": args.every,
             "instants": len(series["time"]), "statistics": summarize(series), "series": series,
-            "optics": {"sunshape": optics.sunshape, "slope_error_rad": optics.slope_error}}
+            "optics": {"sunshape": optics.sunshape, "slope_error_rad": optics.slope_error}, "device": device}
+
+
+cmd_predict.supports_cuda = True  # yearly_flux follows the device of the plant pieces moved to args.device
 
 
 def _slope_error(text: str):
@@ -202,6 +240,7 @@ def register(subparsers) -> None:
     p.add_argument("--threads", type=int_range(0, 1024, "a thread count"), default=0,
                    help="torch threads (0: leave as is)")
     p.add_argument("--quiet", action="store_true", help="no progress bars and no summary line")
+    add_resume_flags(p)
     p.set_defaults(func=cmd_reconstruct)
 
     q = subparsers.add_parser("predict", help="yearly flux prediction of a learned heliostat")

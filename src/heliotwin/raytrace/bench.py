@@ -68,8 +68,21 @@ def benchmark_scene(surface_points: int = 10000, dtype=torch.float32):
             sun.unsqueeze(0), target)
 
 
-def _best_time(fn, repeats: int, min_total: float = 0.0) -> float:
+def _synced(fn, device):
+    """``fn`` followed by a CUDA synchronisation on a GPU (kernels run asynchronously: time them finished)."""
+    if torch.device(device).type != "cuda":
+        return fn
+
+    def run():
+        out = fn()
+        torch.cuda.synchronize(device)
+        return out
+    return run
+
+
+def _best_time(fn, repeats: int, min_total: float = 0.0, device="cpu") -> float:
     """Best wall time [s] of ``fn()`` over at least ``repeats`` calls and ``min_total`` seconds (one warm-up)."""
+    fn = _synced(fn, device)
     fn()  # warm-up
     best = float("inf")
     t_start = time.perf_counter()
@@ -90,7 +103,7 @@ def _peak_rss_mb() -> float:
 
 
 def run_benchmark(surface_points: int = 10000, rays_per_point=(10, 100), resolution: int = 256, seed: int = 0,
-                  threads: int | None = 2, repeats: int = 10, time_to_accuracy: bool = True) -> dict:
+                  threads: int | None = 2, repeats: int = 10, time_to_accuracy: bool = True, device="cpu") -> dict:
     """Measure the Monte-Carlo tracer's throughput and compare integrators at equal accuracy.
 
     Parameters
@@ -110,6 +123,9 @@ def run_benchmark(surface_points: int = 10000, rays_per_point=(10, 100), resolut
         reported, i.e. the run least disturbed by other load on the machine.
     time_to_accuracy : bool
         Also run the reference / gaussian / MC-convergence comparison.
+    device : str or torch.device
+        Where to trace (``"auto"``: CUDA when present); timings wait for the device to finish, and
+        ``peak_device_mb`` reports the GPU's peak allocated memory there.
 
     Returns
     -------
@@ -123,18 +139,24 @@ def run_benchmark(surface_points: int = 10000, rays_per_point=(10, 100), resolut
     if threads is not None:
         torch.set_num_threads(int(threads))
     try:
-        return _run(surface_points, rays_per_point, resolution, seed, repeats, time_to_accuracy)
+        return _run(surface_points, rays_per_point, resolution, seed, repeats, time_to_accuracy, device)
     finally:
         torch.set_num_threads(old_threads)
 
 
-def _run(surface_points, rays_per_point, resolution, seed, repeats, time_to_accuracy):
+def _run(surface_points, rays_per_point, resolution, seed, repeats, time_to_accuracy, device="cpu"):
+    from ..api import to_device
+    from ..calibrate.pipeline import resolve_device
+
+    device = resolve_device(device)
     ks = [int(rays_per_point)] if isinstance(rays_per_point, int) else [int(k) for k in rays_per_point]
-    pts, nrm, areas, sun_dir, target = benchmark_scene(surface_points)
+    pts, nrm, areas, sun_dir, target = to_device(benchmark_scene(surface_points), device)
     p = pts.shape[1]
     optics = SunSettings()
-    gen = torch.Generator().manual_seed(seed)
-    weights = torch.rand(1, resolution, resolution, generator=torch.Generator().manual_seed(seed + 1))
+    gen = torch.Generator(device=device).manual_seed(seed)
+    weights = torch.rand(1, resolution, resolution, generator=torch.Generator().manual_seed(seed + 1)).to(device)
+    if device != "cpu":
+        torch.cuda.reset_peak_memory_stats(device)
     per_k = {}
     for k in ks:
         def fwd():
@@ -152,8 +174,8 @@ def _run(surface_points, rays_per_point, resolution, seed, repeats, time_to_accu
             (f.bitmap * weights).sum().backward()
 
         rays = p * k
-        t_f = _best_time(fwd, repeats, min_total=2.0)
-        t_fb = _best_time(fwd_bwd, repeats, min_total=2.0)
+        t_f = _best_time(fwd, repeats, min_total=2.0, device=device)
+        t_fb = _best_time(fwd_bwd, repeats, min_total=2.0, device=device)
         per_k[str(k)] = {
             "rays": rays,
             "forward_s": t_f,
@@ -163,7 +185,7 @@ def _run(surface_points, rays_per_point, resolution, seed, repeats, time_to_accu
         }
     top = per_k[str(max(ks))]
     result = {
-        "device": "cpu",
+        "device": str(device),
         "torch": torch.__version__,
         "threads": torch.get_num_threads(),
         "cpu_count": os.cpu_count(),
@@ -180,23 +202,27 @@ def _run(surface_points, rays_per_point, resolution, seed, repeats, time_to_accu
     if time_to_accuracy:
         result["time_to_accuracy"] = _time_to_accuracy(pts, nrm, areas, sun_dir, target, resolution, seed, repeats)
     result["peak_rss_mb"] = _peak_rss_mb()
+    if device != "cpu":
+        result["peak_device_mb"] = torch.cuda.max_memory_allocated(device) / 2 ** 20
     return result
 
 
 def _time_to_accuracy(pts, nrm, areas, sun_dir, target, resolution, seed, repeats):
     """Gaussian sun (the gaussian integrator's exact case): reference, gaussian, MC convergence."""
     optics = SunSettings(sunshape="gaussian", sigma=2.51e-3, slope_error=1e-3)
-    p = pts.shape[1]
+    p, device = pts.shape[1], pts.device
     ref_rays_per_point, ref_runs = 4000, 8
     t0 = time.perf_counter()
     halves = [None, None]
     with torch.no_grad():
         for i in range(ref_runs):
+            gen = torch.Generator(device=device).manual_seed(10_000 + seed + i)
             f = trace_mc(pts, nrm, areas, sun_dir, target, resolution=resolution, sun=optics,
-                         rays_per_point=ref_rays_per_point, generator=torch.Generator().manual_seed(10_000 + seed + i),
-                         stratified=True)
+                         rays_per_point=ref_rays_per_point, generator=gen, stratified=True)
             h = i % 2
             halves[h] = f.bitmap if halves[h] is None else halves[h] + f.bitmap
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
     t_ref = time.perf_counter() - t0
     ref = (halves[0] + halves[1]) / ref_runs
     # noise floor of the reference: L1 between its halves, scaled to the full reference (1/sqrt(2) x 1/sqrt(2))
@@ -206,19 +232,19 @@ def _time_to_accuracy(pts, nrm, areas, sun_dir, target, resolution, seed, repeat
         with torch.no_grad():
             return trace_gaussian(pts, nrm, areas, sun_dir, target, resolution=resolution, sun=optics)
 
-    t_an = _best_time(gaussian, max(1, repeats // 2))
+    t_an = _best_time(gaussian, max(1, repeats // 2), device=device)
     l1_an = float(normalized_l1(gaussian().bitmap, ref)[0])
     curve = []
     reached = None
     for k in (10, 30, 100, 300, 1000, 3000, 10000):
-        gen = torch.Generator().manual_seed(seed + 77)
+        gen = torch.Generator(device=device).manual_seed(seed + 77)
 
         def mc():
             with torch.no_grad():
                 return trace_mc(pts, nrm, areas, sun_dir, target, resolution=resolution, sun=optics,
                                 rays_per_point=k, generator=gen)
 
-        t_mc = _best_time(mc, 3 if k <= 1000 else 1)
+        t_mc = _best_time(mc, 3 if k <= 1000 else 1, device=device)
         l1 = float(normalized_l1(mc().bitmap, ref)[0])
         curve.append({"rays_per_point": k, "rays": p * k, "time_s": t_mc, "l1": l1})
         if l1 <= l1_an:

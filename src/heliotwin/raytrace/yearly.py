@@ -33,7 +33,8 @@ DEFAULT_ELEVATIONS_DEG = (5.0, 10.0, 15.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0, 8
 
 
 def efficiency_table(plant: Plant, *, atmosphere: Atmosphere | None = None, azimuths_deg=DEFAULT_AZIMUTHS_DEG,
-                     elevations_deg=DEFAULT_ELEVATIONS_DEG, settings: FieldSettings | None = None) -> dict:
+                     elevations_deg=DEFAULT_ELEVATIONS_DEG, settings: FieldSettings | None = None,
+                     device=None) -> dict:
     """Field efficiency (and the unweighted factors) on a grid of sun positions.
 
     Parameters
@@ -44,6 +45,8 @@ def efficiency_table(plant: Plant, *, atmosphere: Atmosphere | None = None, azim
         Grid [deg] (PAINT azimuth, increasing; elevations in (0, 90]).
     settings : FieldSettings, optional
         Default: the field model with a small map (the intercept does not depend on the map).
+    device : str or torch.device, optional
+        Where to trace (``"auto"``: CUDA when present); default: the plant's device. The table is NumPy.
 
     Returns
     -------
@@ -52,6 +55,8 @@ def efficiency_table(plant: Plant, *, atmosphere: Atmosphere | None = None, azim
         ``<factor>`` [E, Z] for every factor (unweighted means, SolarPILOT's table), ``seconds``.
     """
     settings = settings or FieldSettings(resolution=(4, 8))
+    plant = _on_device(plant, device)
+    dev = plant.field.kinematics.position.device
     az = [float(a) for a in azimuths_deg]
     el = [float(e) for e in elevations_deg]
     out = {"efficiency": np.zeros((len(el), len(az)))}
@@ -59,8 +64,8 @@ def efficiency_table(plant: Plant, *, atmosphere: Atmosphere | None = None, azim
     t0 = time.perf_counter()
     for i, e in enumerate(el):
         for j, a in enumerate(az):
-            sun = direction_from_paint_angles(torch.tensor(math.radians(a), dtype=torch.float64),
-                                              torch.tensor(math.radians(e), dtype=torch.float64))
+            sun = direction_from_paint_angles(torch.tensor(math.radians(a), dtype=torch.float64, device=dev),
+                                              torch.tensor(math.radians(e), dtype=torch.float64, device=dev))
             with torch.no_grad():
                 r = field_optics(plant, sun, atmosphere=atmosphere, settings=settings)
             out["efficiency"][i, j] = float((r.mirror_area * r.efficiency).sum() / r.mirror_area.sum())
@@ -113,7 +118,7 @@ def clear_sky_dni(times, plant: Plant) -> np.ndarray:
 
 
 def annual_energy(plant: Plant, year: int, every: str = "1h", *, atmosphere: Atmosphere | None = None,
-                  table: dict | None = None) -> dict:
+                  table: dict | None = None, device=None) -> dict:
     """Annual optical energy on the receiver under clear-sky DNI.
 
     Parameters
@@ -125,6 +130,8 @@ def annual_energy(plant: Plant, year: int, every: str = "1h", *, atmosphere: Atm
     atmosphere : Atmosphere, optional
     table : dict, optional
         From :func:`efficiency_table` (computed when missing).
+    device : str or torch.device, optional
+        Where :func:`efficiency_table` traces (default: the plant's device).
 
     Returns
     -------
@@ -135,7 +142,7 @@ def annual_energy(plant: Plant, year: int, every: str = "1h", *, atmosphere: Atm
     import pandas as pd
 
     t0 = time.perf_counter()
-    table = table or efficiency_table(plant, atmosphere=atmosphere)
+    table = table or efficiency_table(plant, atmosphere=atmosphere, device=device)
     s = plant.site
     times, az, el = daylight_times(int(year), every, s.latitude_deg, s.longitude_deg, s.altitude_m)
     dni = clear_sky_dni(times, plant)
@@ -149,6 +156,16 @@ def annual_energy(plant: Plant, year: int, every: str = "1h", *, atmosphere: Atm
             "mean_efficiency": e_rx / e_mirror if e_mirror > 0 else None,
             "table": {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in table.items()},
             "seconds": time.perf_counter() - t0}
+
+
+def _on_device(plant: Plant, device) -> Plant:
+    """``plant`` on ``device`` (None: where it is; ``"auto"``: CUDA when present)."""
+    if device is None:
+        return plant
+    from ..api import to_device
+    from ..calibrate.pipeline import resolve_device
+
+    return to_device(plant, resolve_device(device))
 
 
 def _mirror_area(plant: Plant) -> float:

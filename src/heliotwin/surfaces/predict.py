@@ -67,7 +67,7 @@ def yearly_flux(kinematics: Kinematics, target: PlanarTarget, site: tuple, learn
     times, az, el = daylight_times(year, every, site[0], site[1], site[2], min_elevation_deg=min_elevation_deg)
     if len(times) == 0:
         raise HeliotwinError(f"no daylight instants in {year} every {every}")
-    sund = direction_from_paint_angles(az, el)
+    sund = direction_from_paint_angles(az, el).to(kinematics.position.device)  # pvlib's angles are on the CPU
     out = {k: [] for k in ("l1_ideal_vs_learned", "peak_learned_w_m2", "peak_ideal_w_m2", "power_w")}
     if truth is not None:
         out.update({"l1_ideal": [], "l1_learned": [], "imp": []})

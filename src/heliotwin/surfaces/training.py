@@ -18,6 +18,13 @@ Fits return ``(model, FitInfo)``: the learned :class:`~heliotwin.surfaces.learni
 the fit did (steps, best step, orientation corrections, log, choices made on held-out images). The learner
 follows the device of the facets and observations.
 
+Checkpoints. Under an active :mod:`heliotwin.io.checkpoint` (``reconstruct --resume``) every fit claims a
+key (``surface/0``, ``surface/1``, ... in the deterministic order of :func:`train_with_early_stopping`) and
+saves its full state: the surface (and its net, after a refinement), the orientation corrections, Adam's
+and the learning-rate schedule's states, the generator (MC integrator), the early-stopping bookkeeping and
+the log; every few Adam steps, and after every L-BFGS round. A resumed fit continues after its last saved
+step (a finished fit is restored, not rerun) and reaches the uninterrupted fit's result.
+
 Shapes: B images; R window pixels per side; F facets. Units: metres, radians.
 """
 from __future__ import annotations
@@ -32,6 +39,7 @@ import torch.nn.functional as F
 
 from ..errors import HeliotwinError
 from ..field.plant import Facets, SunSettings
+from ..io import checkpoint as _checkpoint
 from ..io.images import CENTERED_WINDOW_M
 from . import losses
 from .imaging import check_learning_integrator, evaluate_images, predict_images
@@ -228,7 +236,7 @@ def _adam(model: LearnableSurface, s: TrainSettings, delta: torch.Tensor | None,
     return opt, sched
 
 
-def _adam_step(model, train, sun, s, meas, delta, kernels, gen, opt, sched) -> float:
+def _adam_step(model, train, sun, s, meas, delta, kernels, *, gen, opt, sched) -> float:
     """One Adam step on the training images; returns the data loss."""
     opt.zero_grad(set_to_none=True)
     pred, _, miss = predict_images(model.surfaces(), train, sun, samples=s.samples, resolution=s.resolution,
@@ -251,6 +259,57 @@ def _validation_l1(model, validation, sun, s, val_meas, val_kernels) -> float:
     return float(losses.l1(vp, val_meas).mean())
 
 
+def _state_copy(model: LearnableSurface) -> dict:
+    return {k: v.detach().clone() for k, v in model.state_dict().items()}
+
+
+def _load_model(model: LearnableSurface, control_points, state: dict) -> None:
+    """A saved surface into ``model`` (refined first when it was saved on the finer net)."""
+    if tuple(control_points) != tuple(model.num_control_points):
+        model.refine(tuple(int(c) for c in control_points))
+    model.load_state_dict(state)
+
+
+class _AdamRun:
+    """The mutable state of :func:`_fit_adam` (what a checkpoint saves and restores)."""
+
+    def __init__(self, model, s, delta, gen):
+        self.model, self.s, self.delta, self.gen = model, s, delta, gen
+        self.opt, self.sched = _adam(model, s, delta)
+        self.best = (math.inf, copy.deepcopy(model.state_dict()), model.num_control_points)
+        self.bad, self.steps_run, self.log, self.next_step, self.finished = 0, 0, [], 0, False
+        # The footprint-kernel caches are filled from the surface of the first step that needs them: part of
+        # the state (a resumed fit recomputing them from a later surface would take other steps).
+        self.kernels: dict = {}
+        self.val_kernels: dict = {}
+
+    def entry(self) -> dict:
+        return {"step": self.next_step, "finished": self.finished,
+                "control_points": list(self.model.num_control_points), "model": _state_copy(self.model),
+                "delta": None if self.delta is None else self.delta.detach().clone(),
+                "opt": copy.deepcopy(self.opt.state_dict()), "sched": self.sched.state_dict(),
+                "gen": self.gen.get_state(), "best_val": float(self.best[0]), "best_state": self.best[1],
+                "best_cp": list(self.best[2]), "bad": self.bad, "steps_run": self.steps_run, "log": list(self.log),
+                "kernels": dict(self.kernels), "val_kernels": dict(self.val_kernels)}
+
+    def restore(self, e: dict) -> None:
+        if tuple(e["control_points"]) != tuple(self.model.num_control_points):
+            self.model.refine(tuple(int(c) for c in e["control_points"]))
+            self.opt, self.sched = _adam(self.model, self.s, self.delta)
+        self.model.load_state_dict(e["model"])
+        if self.delta is not None:
+            with torch.no_grad():
+                self.delta.copy_(e["delta"])
+        self.opt.load_state_dict(e["opt"])
+        self.sched.load_state_dict(e["sched"])
+        self.gen.set_state(e["gen"])
+        self.best = (float(e["best_val"]), e["best_state"], tuple(int(c) for c in e["best_cp"]))
+        self.bad, self.steps_run, self.log = int(e["bad"]), int(e["steps_run"]), list(e["log"])
+        self.next_step, self.finished = int(e["step"]), bool(e["finished"])
+        self.kernels.update(e["kernels"])
+        self.val_kernels.update(e["val_kernels"])
+
+
 def _fit_adam(model, facets, train, validation, sun, s, progress) -> tuple[LearnableSurface, FitInfo]:
     """Adam with exponential decay and early stopping on ``validation`` (see :class:`TrainSettings`)."""
     from tqdm.auto import tqdm
@@ -261,33 +320,41 @@ def _fit_adam(model, facets, train, validation, sun, s, progress) -> tuple[Learn
     if s.learn_orientation:
         delta = torch.zeros(len(train), 2, dtype=train.rotation.dtype, device=train.rotation.device,
                             requires_grad=True)
-    kernels: dict = {}
-    val_kernels: dict = {}
-    opt, sched = _adam(model, s, delta)
-    gen = torch.Generator(device=train.sun.device).manual_seed(int(s.seed))
-    best = (math.inf, copy.deepcopy(model.state_dict()), model.num_control_points)
-    bad, steps_run, log = 0, 0, []
-    bar = tqdm(range(s.steps), desc="surface", disable=not progress, leave=False)
+    run = _AdamRun(model, s, delta, torch.Generator(device=train.sun.device).manual_seed(int(s.seed)))
+    ck = _checkpoint.current()
+    key = ck.claim("surface") if ck is not None else None
+    if key is not None and ck.get(key) is not None:
+        run.restore(ck.get(key))
+    steps = range(run.next_step, 0 if run.finished else s.steps)
+    bar = tqdm(steps, desc="surface", disable=not progress, leave=False, initial=run.next_step, total=s.steps)
     for step in bar:
         if s.refine_to is not None and step == s.refine_at and step > 0:
             model.refine(s.refine_to)
-            opt, sched = _adam(model, s, delta, lr=sched.get_last_lr()[0])
-            best = (math.inf, best[1], best[2])  # a new parameter space: restart the bookkeeping
-        data = _adam_step(model, train, sun, s, meas, delta, kernels, gen, opt, sched)
-        steps_run = step + 1
+            run.opt, run.sched = _adam(model, s, delta, lr=run.sched.get_last_lr()[0])
+            run.best = (math.inf, run.best[1], run.best[2])  # a new parameter space: restart the bookkeeping
+        data = _adam_step(model, train, sun, s, meas, delta, run.kernels, gen=run.gen, opt=run.opt, sched=run.sched)
+        run.steps_run = step + 1
         if val_meas is not None and (step % s.eval_every == s.eval_every - 1 or step == s.steps - 1):
-            vloss = _validation_l1(model, validation, sun, s, val_meas, val_kernels)
-            log.append({"step": step + 1, "train": data, "val": vloss})
+            vloss = _validation_l1(model, validation, sun, s, val_meas, run.val_kernels)
+            run.log.append({"step": step + 1, "train": data, "val": vloss})
             bar.set_postfix(train=f"{data:.4f}", val=f"{vloss:.4f}")
-            if vloss < best[0] - 1e-5:
-                best = (vloss, copy.deepcopy(model.state_dict()), model.num_control_points)
-                bad = 0
+            if vloss < run.best[0] - 1e-5:
+                run.best = (vloss, copy.deepcopy(model.state_dict()), model.num_control_points)
+                run.bad = 0
             else:
-                bad += 1
-                if bad >= s.patience:
-                    break
+                run.bad += 1
+                run.finished = run.bad >= s.patience
         elif step % s.eval_every == 0:
-            log.append({"step": step + 1, "train": data})
+            run.log.append({"step": step + 1, "train": data})
+        run.next_step = step + 1
+        run.finished = run.finished or run.next_step == s.steps
+        if key is not None:
+            if run.finished or ck.due(run.next_step):
+                ck.put(key, run.entry())
+            ck.notify("step", key, run.next_step)
+        if run.finished:
+            break
+    best, log = run.best, run.log
     if val_meas is not None and best[0] < math.inf:
         if best[2] != model.num_control_points:
             # The best state was on the coarse net: rebuild it, then load.
@@ -296,7 +363,7 @@ def _fit_adam(model, facets, train, validation, sun, s, progress) -> tuple[Learn
         model.load_state_dict(best[1])
     vals = [e for e in log if "val" in e]
     best_step = min(vals, key=lambda e: e["val"])["step"] if vals else None
-    return model, FitInfo(steps_run, best_step, None if delta is None else delta.detach(), log)
+    return model, FitInfo(run.steps_run, best_step, None if delta is None else delta.detach(), log)
 
 
 def blur_images(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
@@ -348,8 +415,21 @@ def _fit_lbfgs(model: LearnableSurface, train: Observations, sun: SunSettings,
             return total
         return closure
 
-    previous = math.inf
-    for blur, iters in _lbfgs_rounds(s, model):
+    previous, first, finished = math.inf, 0, False
+    rounds = _lbfgs_rounds(s, model)  # of the start's net, before a restored (refined) state is loaded
+    ck = _checkpoint.current()
+    key = ck.claim("surface") if ck is not None else None
+    saved = ck.get(key) if key is not None else None
+    if saved is not None:  # continue after the last finished round
+        _load_model(model, saved["control_points"], saved["model"])
+        evals, log, previous = int(saved["evals"]), list(saved["log"]), float(saved["previous"])
+        first, finished = int(saved["step"]), bool(saved["finished"])
+        kernels.update(saved["kernels"])  # filled from the start's surface (see _AdamRun)
+    for r, (blur, iters) in enumerate(rounds):
+        if finished:
+            break
+        if r < first:
+            continue
         if blur == "refine":
             model.refine(tuple(s.refine_to))
             continue
@@ -363,9 +443,13 @@ def _fit_lbfgs(model: LearnableSurface, train: Observations, sun: SunSettings,
         value = float(opt.step(closure).detach())
         log.append({"step": evals, "train": getattr(closure, "data", value), "blur_px": blur, "total": value})
         if blur == 0.0 and (s.refine_to is None or tuple(model.num_control_points) == tuple(s.refine_to)):
-            if previous - value <= s.tolerance * abs(value):
-                break
-            previous = value
+            finished = previous - value <= s.tolerance * abs(value)
+            previous = value if not finished else previous
+        if key is not None:  # a round is long: save after every one
+            ck.put(key, {"step": r + 1, "finished": finished or evals >= int(s.steps),
+                         "control_points": list(model.num_control_points), "model": _state_copy(model),
+                         "evals": evals, "log": list(log), "previous": float(previous), "kernels": dict(kernels)})
+            ck.notify("step", key, r + 1)
     return model, FitInfo(evals, None, None, log)
 
 
