@@ -55,7 +55,14 @@ from ..geometry import orthonormal_frame, ray_cylinder, reflect, safe_normalize
 from .flux import target_extent
 from .gaussian import _cylinder_moments, _fft_convolve, _gaussian_kernels, _projective_moments, gaussian_footprints
 from .montecarlo import planar_coefficients
-from .occlusion import OccluderSet, mirror_frame, occluder_candidates, unoccluded
+from .occlusion import (
+    OccluderSet,
+    mirror_frame,
+    occluder_candidates,
+    solarpilot_interference,
+    solarpilot_neighbours,
+    unoccluded,
+)
 from .splat import splat_bilinear
 
 __all__ = ["FieldSettings", "FieldResult", "equator_aim_points", "tracking_normals", "field_optics", "summary",
@@ -80,6 +87,11 @@ class FieldSettings:
         Occlusion rays per flux sample and direction.
     softness : float or None
         None: exact (hard) occlusion; a length [m]: smooth, differentiable occlusion.
+    occlusion_model : {"exact", "solarpilot"}
+        ``exact`` (default): shading and blocking ray-tested point by point (the physics).
+        ``solarpilot``: SolarPILOT's analytic per-pair estimate
+        (:func:`heliotwin.raytrace.occlusion.solarpilot_interference`), whole-mirror shading and blocking
+        applied uniformly to the mirror; for comparing with SolarPILOT's reports (docs/physics.md).
     flux_mode : {"auto", "window", "grouped"}
     groups : int
         Footprint classes per axis in ``grouped`` mode (``groups^2`` classes).
@@ -98,6 +110,7 @@ class FieldSettings:
     flux_samples: int = 8
     occlusion_oversampling: int = 2
     softness: float | None = None
+    occlusion_model: str = "exact"
     flux_mode: str = "auto"
     groups: int = 4
     smoothing: float = 1.0 / 12.0
@@ -228,6 +241,8 @@ def _occlusion(plant: Plant, normal, aim, sun, settings: FieldSettings, rows: to
     s = sun.to(normal)
     cos_p = (nw * s).sum(-1).clamp_min(0.0)
     lit = area * cos_p
+    if settings.occlusion_model == "solarpilot":
+        return _occlusion_solarpilot(plant, occ, normal, aim, s, pw, lit, nf, m, k, rows)
     idx, valid = occluder_candidates(occ, s, queries=rows)
     free_sun = unoccluded(pw, s.expand(h, 1, 3), occ, idx, valid, softness=settings.softness, owners=rows)
     reflected = reflect(-s.expand_as(nw), nw)
@@ -241,6 +256,24 @@ def _occlusion(plant: Plant, normal, aim, sun, settings: FieldSettings, rows: to
     # is both shaded and blocked twice in a product, so it is only reported, never multiplied in)
     blocking_whole = (lit * free_rx).sum(1) / lit.sum(1).clamp_min(1e-30)
     return shading, blocking, tower, free, blocking_whole
+
+
+def _occlusion_solarpilot(plant: Plant, occ: OccluderSet, normal, aim, sun, pw, lit, nf, m, k, rows):
+    """SolarPILOT's analytic shading and blocking (whole mirror, per heliostat [h]), spread uniformly over the
+    flux samples; the same outputs as :func:`_occlusion`."""
+    fl = plant.field
+    pos, width, height = occ.center, fl.width.to(normal), fl.height.to(normal)
+    elevation = math.asin(max(-1.0, min(1.0, float(sun[2]))))
+    idx, valid = occluder_candidates(occ, sun, queries=rows)
+    valid = solarpilot_neighbours(pos, height, width, elevation, idx, valid, rows)
+    shading = solarpilot_interference(pos, normal, width, height, sun, idx, valid, rows)
+    tower_dir = safe_normalize(aim[rows] - pos[rows])
+    idx_b, valid_b = occluder_candidates(occ, tower_dir, queries=rows)
+    valid_b = solarpilot_neighbours(pos, height, width, elevation, idx_b, valid_b, rows)
+    blocking = solarpilot_interference(pos, normal, width, height, tower_dir, idx_b, valid_b, rows)
+    tower = _tower_shading(plant, pw, sun, lit)
+    free = (shading * blocking).unsqueeze(1).expand(rows.shape[0], nf * m * m)
+    return shading, blocking, tower, free, blocking
 
 
 def _tower_shading(plant: Plant, points, sun, lit) -> torch.Tensor:
@@ -418,6 +451,11 @@ def field_optics(plant: Plant, sun_direction: torch.Tensor, *, atmosphere: Atmos
     settings = settings or FieldSettings()
     if settings.integrator not in ("gaussian", "mc"):
         raise HeliotwinError(f"unknown field integrator {settings.integrator!r}; expected gaussian or mc")
+    if settings.occlusion_model not in ("exact", "solarpilot"):
+        raise HeliotwinError(f"unknown occlusion model {settings.occlusion_model!r}; expected exact or solarpilot")
+    if settings.occlusion_model == "solarpilot" and settings.softness is not None:
+        raise HeliotwinError("the solarpilot occlusion model is a report (not differentiable); use softness with "
+                             "occlusion_model='exact'")
     target = plant.target(receiver)
     pos = plant.field.kinematics.position
     f64 = torch.float64  # geometry in float64; rays and maps in settings.dtype
