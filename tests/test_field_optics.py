@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 from helpers.cli import assert_one_line_error, run_cli
-from helpers.field import dense_field, solarpilot_dir, write_layout, write_plant_toml
+from helpers.field import PLANT_TOML, dense_field, solarpilot_dir, write_layout, write_plant_toml
 
 from heliotwin.field.layout import plant_from_layout
 from heliotwin.raytrace.field import FieldSettings, equator_aim_points, field_optics, summary
@@ -223,3 +223,17 @@ def test_monte_carlo_map_agrees_with_the_gaussian_map(solarpilot):
     assert float(m.flux.max()) == pytest.approx(float(g.flux.max()), rel=0.05)
     assert float(m.flux.sum()) == pytest.approx(float(g.flux.sum()), rel=0.02)
     assert float((m.flux - g.flux).abs().sum() / g.flux.sum()) < 0.08
+
+
+def test_full_cylinder_map_wraps_at_its_seam(tmp_path):
+    """A heliostat behind a north-facing 360-degree receiver lights the seam: the unrolled map is periodic, so
+    the map holds all the intercepted power and both edges carry the two halves of the spot alike."""
+    toml = write_plant_toml(tmp_path, PLANT_TOML.replace("opening_angle_deg = 360",
+                                                         "opening_angle_deg = 360\nnormal = [0.0, 1.0, 0.0]"))
+    plant, atm = plant_from_layout(write_layout(tmp_path, [[0.3, -80.0, 0.0], [40.0, 60.0, 0.0]]), toml)
+    for mode in ("window", "grouped"):
+        with torch.no_grad():
+            res = field_optics(plant, _sun(180.0, 40.0), atmosphere=atm, settings=FieldSettings(flux_mode=mode))
+        assert float(res.flux.sum()) * res.pixel_area == pytest.approx(float(res.power_w.sum()), rel=1e-2)
+        left, right = res.flux[:, :3].sum(), res.flux[:, -3:].sum()
+        assert float(left) > 0.1 * float(res.flux.max()) and float(right) == pytest.approx(float(left), rel=0.3)

@@ -231,30 +231,70 @@ def demo_plant(num_heliostats: int = 32, seed: int = 0, *, num_control_points: t
 
 
 # ------------------------------------------------------------------------------------------ whole field
-def demo_field_positions(num_heliostats: int = 2000, *, first_ring: float = 27.5, width: float = HELIOSTAT_WIDTH,
-                         height: float = HELIOSTAT_HEIGHT) -> torch.Tensor:
-    """A radial-staggered field north of the tower (+/-60 deg), SolarPILOT-like spacing, pivots on the ground.
+def demo_field_positions(num_heliostats: int = 2000, *, first_ring: float = 27.5, tower_height: float = 55.0,
+                         width: float = HELIOSTAT_WIDTH, height: float = HELIOSTAT_HEIGHT,
+                         design_sun_elevation_deg: float = 40.0, azimuth_pitch: float = 2.0, zone_reset: float = 1.4,
+                         half_span_deg: float = 60.0, max_east: float = 135.0) -> torch.Tensor:
+    """A radial-staggered field north of the tower, spaced so that blocking costs a few per cent.
 
-    Rings start at ``first_ring`` [m]; consecutive rings are ``1.25 height + 0.004 r`` apart and staggered by
-    half a slot; a ring holds as many heliostats as fit at 1.8 mirror widths along its arc.
+    The extent is Jülich's (PAINT: rows from ~25 m to ~300 m north, within about +/-130 m east-west): rings
+    from ``first_ring`` within +/-``half_span_deg`` of north and ``|east| <= max_east``, as many as the count
+    needs (2000 heliostats reach ~250 m).
+
+    * **Along a ring** the heliostats are ``azimuth_pitch`` mirror widths apart when a zone starts (a gap of
+      one mirror width lets the reflected beam pass between the two staggered heliostats of the ring ahead);
+      the angular pitch is kept through the zone, so the arc spacing grows with the radius, and a new zone
+      with the nominal spacing starts when it exceeds ``zone_reset`` times it (DELSOL's and SolarPILOT's
+      "slip planes").
+    * **Between rings** the pitch is half the distance at which a heliostat straight ahead (two rings ahead,
+      staggered) stops blocking at solar noon with the sun at ``design_sun_elevation_deg``: the beam from the
+      lower edge, rising at the tower's elevation ``phi``, clears the upper edge of the one ahead when
+      ``D >= h (sin e + cos e / tan phi)`` with ``e = (phi + design elevation) / 2`` the normal's elevation;
+      and at least the distance at which two mirrors cannot collide (two half diagonals apart: against the
+      staggered neighbours of the next ring and the one straight ahead two rings on; the full diagonal before
+      a new zone, whose ring is not staggered against the last one).
+
+    Parameters
+    ----------
+    num_heliostats : int
+        H >= 1.
+    first_ring, tower_height, width, height : float
+        [m]; ``tower_height`` is the receiver's height above the pivots.
+    design_sun_elevation_deg, half_span_deg : float
+        [deg].
+    azimuth_pitch, zone_reset : float
+        In mirror widths, and the ratio that starts a new zone.
+    max_east : float
+        [m].
 
     Returns
     -------
     torch.Tensor, [H, 3], float64
-        ENU [m] about the tower base.
+        ENU [m] about the tower base (pivots on the ground, z = 0), ring by ring from the tower.
     """
     if isinstance(num_heliostats, bool) or not isinstance(num_heliostats, (int, np.integer)) or num_heliostats < 1:
         raise HeliotwinError(f"demo_field_positions: num_heliostats must be a positive int, got {num_heliostats!r}")
-    out, r, ring = [], float(first_ring), 0
+    out, r, ring, pitch = [], float(first_ring), 0, None
+    collide = math.hypot(width, height)  # two half diagonals
+    span = math.radians(half_span_deg)
+    arc = azimuth_pitch * width
     while len(out) < num_heliostats:
-        count = max(2, int((2 * math.pi / 3) * r / (1.8 * width)))
-        shift = 0.5 if ring % 2 else 0.0
-        for k in range(count):
-            a = math.radians(-60) + (k + 0.5 + shift) * math.radians(120) / (count + 0.5)
-            out.append((r * math.sin(a), r * math.cos(a), 0.0))
-        r += 1.25 * height + 0.004 * r
+        if pitch is None or r * pitch > zone_reset * arc:
+            pitch, ring = arc / r, 0
+        a = np.arange(-span + 0.5 * pitch * (1 + ring % 2), span, pitch)
+        x, y = r * np.sin(a), r * np.cos(a)
+        keep = np.abs(x) <= max_east
+        out.extend(zip(x[keep], y[keep], np.zeros(int(keep.sum()))))
+        phi = math.atan2(tower_height, r)
+        e = 0.5 * (phi + math.radians(design_sun_elevation_deg))
+        clear = 0.5 * height * (math.sin(e) + math.cos(e) / math.tan(phi))
+        stagger = math.sqrt(max(collide ** 2 - (0.5 * r * pitch) ** 2, 0.0))
+        step = max(clear, stagger, 0.5 * collide)  # 0.5 collide: the one straight ahead is two rings ahead
+        if (r + step) * pitch > zone_reset * arc:  # the next ring starts a zone: no stagger to rely on
+            step = max(step, collide)
+        r += step
         ring += 1
-    return torch.tensor(out[:num_heliostats], dtype=torch.float64)
+    return torch.tensor(np.asarray(out[:num_heliostats], dtype=np.float64))
 
 
 def demo_field_plant(num_heliostats: int = 2000):

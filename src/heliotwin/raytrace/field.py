@@ -400,9 +400,12 @@ def _flux_map(points, nw, reflected, weights, target, settings: FieldSettings, p
                        rays_per_point=int(settings.rays_per_point),
                        generator=torch.Generator().manual_seed(int(settings.seed)), dtype=dt)
         return img.bitmap[0], icpt, extent[0]
+    if isinstance(target, CylinderTarget) and target.opening_angle >= 2 * math.pi - 1e-9:
+        mu, cov_s, w = _wrap_seam(mu, cov_s, w, ok, cols, float(settings.n_sigma))
     mode = settings.flux_mode
     with torch.no_grad():
-        sd = torch.sqrt(torch.where(ok, cov_s[:, 0, 0].maximum(cov_s[:, 1, 1]), torch.zeros_like(cov_s[:, 0, 0])))
+        sd = torch.sqrt(torch.where(mu[:, 0] > -1e8, cov_s[:, 0, 0].maximum(cov_s[:, 1, 1]),
+                                    torch.zeros_like(cov_s[:, 0, 0])))
         half = int(min(64, max(1, math.ceil(settings.n_sigma * float(sd.max())))))
     if mode == "auto":
         mode = "window" if mu.shape[0] * (2 * half + 1) ** 2 <= 2e7 else "grouped"
@@ -413,6 +416,21 @@ def _flux_map(points, nw, reflected, weights, target, settings: FieldSettings, p
     else:
         raise HeliotwinError(f"flux_mode must be 'auto', 'window' or 'grouped', got {mode!r}")
     return img, icpt, extent[0]
+
+
+def _wrap_seam(mu, cov, w, ok, cols: int, n_sigma: float):
+    """A full cylinder's map is periodic in its columns: footprints reaching over the seam (left or right edge,
+    ``cols`` pixels apart) get a copy shifted by one period, so the light that spills over one edge lands at
+    the other. Only the samples within ``n_sigma`` footprint widths of an edge are copied."""
+    with torch.no_grad():
+        reach = n_sigma * torch.sqrt(cov[:, 0, 0].clamp_min(0.0)) + 1.0
+        left = torch.nonzero(ok & (mu[:, 0] - reach < -0.5)).flatten()
+        right = torch.nonzero(ok & (mu[:, 0] + reach > cols - 0.5)).flatten()
+    if left.numel() + right.numel() == 0:
+        return mu, cov, w
+    period = torch.tensor([float(cols), 0.0], dtype=mu.dtype, device=mu.device)
+    mu = torch.cat((mu, mu[left] + period, mu[right] - period))
+    return mu, torch.cat((cov, cov[left], cov[right])), torch.cat((w, w[left], w[right]))
 
 
 def _power_scale(plant: Plant, nw, sun):
