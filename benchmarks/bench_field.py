@@ -8,13 +8,16 @@
 2. **Blocking, brute force**: for the east sun, the heliostats where SolarPILOT reports no blocking but the
    ray-rectangle test finds some, with the all-pairs check of the worst one.
 3. **Over a year**: the efficiency table and the hourly clear-sky annual energy for 2000 heliostats (time).
-4. **Speed** of one sun (shading + blocking + 48 x 20 map, and + 256 x 256 map) for generated radial-staggered
+4. **The demo** (``heliotwin demo``'s :func:`heliotwin.field.demo.run_field_demo`): wall time per stage and
+   its figures (field efficiency, peak before/after aim points, power ratio).
+5. **Speed** of one sun (shading + blocking + 48 x 20 map, and + 256 x 256 map) for generated radial-staggered
    fields of 50 to 10 000 heliostats; peak resident memory of the process. Wall times depend on the machine
    and its load: the script records ``torch.get_num_threads()`` and the load average next to them.
 
 Usage::
 
     OMP_NUM_THREADS=2 python benchmarks/bench_field.py --out /tmp/field [--sizes 50,500,2000,10000]
+        [--year-heliostats 2000] [--demo-heliostats 2000]    # --sizes "" / 0: skip that part
 
 Writes ``<out>/field.json`` and prints the tables.
 """
@@ -212,11 +215,30 @@ def yearly(out: Path, n: int) -> dict:
     return rep
 
 
+def demo(out: Path, n: int) -> dict:
+    """``heliotwin demo``'s run on ``n`` heliostats: seconds per stage and the headline figures."""
+    from heliotwin.field.demo import run_field_demo
+
+    t0 = time.perf_counter()
+    rep = run_field_demo(out / "demo", num_heliostats=n)
+    entry = {"heliostats": n, "wall_seconds": time.perf_counter() - t0, "seconds": rep["seconds"],
+             "field_efficiency_power_weighted": rep["field"]["efficiency_power_weighted"],
+             "aim_points": rep["aim_points"], "receiver_power_w": rep["receiver"]["power_w"]}
+    a = rep["aim_points"]
+    print(f"  demo ({n} heliostats): {entry['wall_seconds']:.1f} s (field {rep['seconds']['field_model']:.1f} s, "
+          f"aim points {rep['seconds']['aim_points']:.1f} s); efficiency "
+          f"{entry['field_efficiency_power_weighted']['total']:.3f}; peak {a['equator_peak_w_m2'] / 1e3:.0f} -> "
+          f"{a['optimised_peak_w_m2'] / 1e3:.0f} kW/m2 (limit {a['peak_limit_w_m2'] / 1e3:.0f}) at "
+          f"{a['power_vs_equator']:.4f} of the power", flush=True)
+    return entry
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", required=True)
     ap.add_argument("--sizes", default="50,500,2000,10000", help="empty: skip the speed runs")
     ap.add_argument("--year-heliostats", type=int, default=2000, help="0: skip the yearly run")
+    ap.add_argument("--demo-heliostats", type=int, default=2000, help="0: skip the demo run")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -240,6 +262,8 @@ def main(argv=None) -> int:
     sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
     if sizes:
         report["speed"] = speed(out, sizes)
+    if args.demo_heliostats:
+        report["demo"] = demo(out, args.demo_heliostats)
     if args.year_heliostats:
         report["yearly"] = yearly(out, args.year_heliostats)
     report["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
