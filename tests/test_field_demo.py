@@ -20,7 +20,7 @@ from heliotwin.sun import direction_from_paint_angles
 
 
 def test_demo_field_is_a_northern_radial_staggered_field_of_julich_extent():
-    pos = demo_field_positions(2000)
+    pos = demo_field_positions(2000, max_east=135.0)  # as demo_field_plant(2000)
     assert pos.shape == (2000, 3)
     r = torch.linalg.vector_norm(pos[:, :2], dim=-1)
     assert float(r.min()) == pytest.approx(27.5, abs=1e-9)

@@ -234,12 +234,13 @@ def demo_plant(num_heliostats: int = 32, seed: int = 0, *, num_control_points: t
 def demo_field_positions(num_heliostats: int = 2000, *, first_ring: float = 27.5, tower_height: float = 55.0,
                          width: float = HELIOSTAT_WIDTH, height: float = HELIOSTAT_HEIGHT,
                          design_sun_elevation_deg: float = 40.0, azimuth_pitch: float = 2.0, zone_reset: float = 1.4,
-                         half_span_deg: float = 60.0, max_east: float = 135.0) -> torch.Tensor:
+                         half_span_deg: float = 60.0, max_east: float | None = None) -> torch.Tensor:
     """A radial-staggered field north of the tower, spaced so that blocking costs a few per cent.
 
-    The extent is Jülich's (PAINT: rows from ~25 m to ~300 m north, within about +/-130 m east-west): rings
-    from ``first_ring`` within +/-``half_span_deg`` of north and ``|east| <= max_east``, as many as the count
-    needs (2000 heliostats reach ~250 m).
+    Rings from ``first_ring`` within +/-``half_span_deg`` of north (and ``|east| <= max_east`` when given),
+    as many as the count needs. :func:`demo_field_plant` keeps Jülich's extent (PAINT: rows from ~25 m to
+    ~300 m north within about +/-130 m east-west, ``max_east=135``) for up to 2200 heliostats: 2000 reach
+    ~285 m.
 
     * **Along a ring** the heliostats are ``azimuth_pitch`` mirror widths apart when a zone starts (a gap of
       one mirror width lets the reflected beam pass between the two staggered heliostats of the ring ahead);
@@ -264,7 +265,7 @@ def demo_field_positions(num_heliostats: int = 2000, *, first_ring: float = 27.5
         [deg].
     azimuth_pitch, zone_reset : float
         In mirror widths, and the ratio that starts a new zone.
-    max_east : float
+    max_east : float, optional
         [m].
 
     Returns
@@ -283,7 +284,7 @@ def demo_field_positions(num_heliostats: int = 2000, *, first_ring: float = 27.5
             pitch, ring = arc / r, 0
         a = np.arange(-span + 0.5 * pitch * (1 + ring % 2), span, pitch)
         x, y = r * np.sin(a), r * np.cos(a)
-        keep = np.abs(x) <= max_east
+        keep = np.abs(x) <= (np.inf if max_east is None else max_east)
         out.extend(zip(x[keep], y[keep], np.zeros(int(keep.sum()))))
         phi = math.atan2(tower_height, r)
         e = 0.5 * (phi + math.radians(design_sun_elevation_deg))
@@ -294,11 +295,15 @@ def demo_field_positions(num_heliostats: int = 2000, *, first_ring: float = 27.5
             step = max(step, collide, 2.0 * clear)
         r += step
         ring += 1
+        if r > 40.0 * tower_height:
+            raise HeliotwinError(f"demo_field_positions: {num_heliostats} heliostats do not fit within "
+                                 f"{40 * tower_height:.0f} m of the tower (widen half_span_deg or max_east)")
     return torch.tensor(np.asarray(out[:num_heliostats], dtype=np.float64))
 
 
 def demo_field_plant(num_heliostats: int = 2000):
-    """The embedded whole-field demo plant and its atmosphere: :func:`demo_field_positions` with Jülich-size
+    """The embedded whole-field demo plant and its atmosphere: :func:`demo_field_positions` (Jülich's extent,
+    ``|east| <= 135 m``, up to 2200 heliostats; the full +/-60 degree fan beyond) with Jülich-size
     heliostats (2 x 2 facets canted on-axis at their slant range, reflectivity 0.9, 1.53 mrad slope error)
     around an external 360-degree cylinder receiver (radius 4.1 m, height 5 m, centre 55 m up), the
     limb-darkened sun at DNI 900 W/m^2 and SolarPILOT's default atmosphere.
@@ -311,7 +316,7 @@ def demo_field_plant(num_heliostats: int = 2000):
     from ..atmosphere import Atmosphere
     from .layout import Layout, PlantConfig, build_plant
 
-    pos = demo_field_positions(num_heliostats)
+    pos = demo_field_positions(num_heliostats, max_east=135.0 if num_heliostats <= 2200 else None)
     ids = [f"R{i:05d}" for i in range(pos.shape[0])]
     sun = SunSettings(sunshape="limb-darkened", slope_error=1.53e-3, dni=900.0, reflectivity=0.9)
     receiver = {"type": "cylinder", "center": [0.0, 0.0, 55.0], "height": 5.0, "normal": None, "radius": 4.1,
