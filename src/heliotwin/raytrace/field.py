@@ -32,8 +32,14 @@ The flux map sums the footprints: ``window`` mode evaluates every sample's own G
 size, splats each class's mean hits bilinearly and convolves it (FFT) with the class's power-weighted mean
 Gaussian (cost ~ samples + groups x pixels log pixels); ``auto`` takes ``window`` when its cost is small.
 With ``integrator="mc"`` the map is a Monte-Carlo trace of the same samples (occlusion and attenuation as
-weights); the per-heliostat intercept stays the Gaussian one. The unrolled map of a full cylinder does not
-wrap footprints across its seam (the seam is at the back of the receiver).
+weights); the per-heliostat intercept stays the Gaussian one. The unrolled map of a full cylinder is
+periodic: Gaussian footprints that reach over its seam continue at the other edge (the Monte-Carlo map does
+not wrap).
+
+Not offered: the exact-sunshape ``conv`` integrator (:mod:`heliotwin.raytrace.conv`). Its kernel is the
+tabulated sun cone projected obliquely onto one target plane for one heliostat image; on the field it
+would need such a kernel per footprint class on the unrolled cylinder (in place of ``grouped`` mode's
+Gaussian class kernels), which is future work.
 
 Everything is batched over heliostats (no loop over heliostats or points) and differentiable with
 ``softness`` set (smooth occlusion): w.r.t. aim points, positions and the sun.
