@@ -13,6 +13,9 @@ For every heliostat, as SolarPILOT reports them (Wagner & Wendelin, Solar Energy
 ``reflectance``   the mirror reflectivity.
 ``efficiency``    the product; ``power_w = DNI * mirror area * efficiency``.
 
+Shading and blocking come from the exact ray test (default) or, with ``occlusion_model="solarpilot"``,
+from SolarPILOT's analytic estimate (whole-mirror factors, for comparing with its reports; docs/physics.md).
+
 Model
 -----
 Heliostats track ideally about azimuth-elevation axes (the mirror's width edge stays horizontal): the
