@@ -8,13 +8,16 @@
 2. **Blocking, brute force**: for the east sun, the heliostats where SolarPILOT reports no blocking but the
    ray-rectangle test finds some, with the all-pairs check of the worst one.
 3. **Over a year**: the efficiency table and the hourly clear-sky annual energy for 2000 heliostats (time).
-4. **Speed** of one sun (shading + blocking + 48 x 20 map, and + 256 x 256 map) for generated radial-staggered
+4. **The demo** (``heliotwin demo``'s :func:`heliotwin.field.demo.run_field_demo`): wall time per stage and
+   its figures (field efficiency, peak before/after aim points, power ratio).
+5. **Speed** of one sun (shading + blocking + 48 x 20 map, and + 256 x 256 map) for generated radial-staggered
    fields of 50 to 10 000 heliostats; peak resident memory of the process. Wall times depend on the machine
    and its load: the script records ``torch.get_num_threads()`` and the load average next to them.
 
 Usage::
 
     OMP_NUM_THREADS=2 python benchmarks/bench_field.py --out /tmp/field [--sizes 50,500,2000,10000]
+        [--year-heliostats 2000] [--demo-heliostats 2000]    # --sizes "" / 0: skip that part
 
 Writes ``<out>/field.json`` and prints the tables.
 """
@@ -34,6 +37,7 @@ import numpy as np
 import torch
 
 from heliotwin.field.layout import plant_from_layout
+from heliotwin.geometry import safe_normalize
 from heliotwin.io.report import write_json
 from heliotwin.raytrace.field import FieldSettings, field_optics, summary
 from heliotwin.sun import direction_from_paint_angles
@@ -48,27 +52,33 @@ def _sun(solarpilot_az: float, el: float) -> torch.Tensor:
                                        torch.tensor(math.radians(el), dtype=torch.float64))
 
 
-def against_solarpilot(out: Path) -> list[dict]:
+def against_solarpilot(out: Path, model: str = "exact") -> list[dict]:
+    """Per sun, ours (occlusion ``model``: ``exact`` ray tests or ``solarpilot``'s analytic estimate) vs theirs."""
     toml = out / "plant.toml"
     toml.write_text(PLANT_TOML)
     plant, atm = plant_from_layout(REF / "layout-500.csv", toml)
+    settings = FieldSettings(occlusion_model=model)
     table = []
     for ref in json.loads((REF / "field-results.json").read_text())["suns"]:
         az, el = ref["sun_azimuth_deg_from_north_clockwise"], ref["sun_elevation_deg"]
         key = f"az{az:.2f}_el{el:.2f}"
         t0 = time.perf_counter()
         with torch.no_grad():
-            res = field_optics(plant, _sun(az, el), atmosphere=atm)
+            res = field_optics(plant, _sun(az, el), atmosphere=atm, settings=settings)
         seconds = time.perf_counter() - t0
         rep = summary(res, plant)
         rows = list(csv.DictReader(open(REF / f"per-heliostat_{key}.csv")))
         idx = torch.tensor([plant.field.ids.index(f"H{int(r['id']):04d}") for r in rows])
-        col = {k: torch.tensor([float(r[k]) for r in rows], dtype=torch.float64) for k in ("cosine", "attenuation")}
+        col = {k: torch.tensor([float(r[k]) for r in rows], dtype=torch.float64)
+               for k in ("cosine", "attenuation", "shading", "blocking")}
         e = rep["field"]["efficiency"]
         table.append({
-            "sun": key, "solarpilot_azimuth_deg": az, "elevation_deg": el, "seconds": seconds,
+            "sun": key, "occlusion_model": model, "solarpilot_azimuth_deg": az, "elevation_deg": el,
+            "seconds": seconds,
             "cosine_max_abs_diff": float((res.cosine[idx] - col["cosine"]).abs().max()),
             "attenuation_max_abs_diff": float((res.attenuation[idx] - col["attenuation"]).abs().max()),
+            "shading_per_heliostat_max_abs_diff": float((res.shading[idx] - col["shading"]).abs().max()),
+            "blocking_per_heliostat_max_abs_diff": float((res.blocking[idx] - col["blocking"]).abs().max()),
             **{f"{k}_ours": e[k] for k in ("shading", "blocking", "intercept", "total")},
             **{f"{k}_solarpilot": ref[f"eff_{k}"] for k in ("shading", "blocking", "intercept", "total")},
             "blocking_whole_mirror_ours": e["blocking_whole_mirror"], "tower_shading_ours": e["tower_shading"],
@@ -79,8 +89,24 @@ def against_solarpilot(out: Path) -> list[dict]:
     return table
 
 
+def _print_table(table: list[dict]) -> None:
+    print("model      | sun                 | cos dmax | att dmax | shading ours/SP | blocking ours/SP | "
+          "intercept ours/SP | total ours/SP   | power kW ours/SP | peak 48x20 kW/m2 ours/SP | "
+          "per-helio max|d| shad/block")
+    for t in table:
+        print(f"{t['occlusion_model']:10s} | {t['sun']:19s} | {t['cosine_max_abs_diff']:.1e}  | "
+              f"{t['attenuation_max_abs_diff']:.1e}  | "
+              f"{t['shading_ours']:.4f}/{t['shading_solarpilot']:.4f}   | {t['blocking_ours']:.4f}/"
+              f"{t['blocking_solarpilot']:.4f}    | {t['intercept_ours']:.4f}/{t['intercept_solarpilot']:.4f}     | "
+              f"{t['total_ours']:.4f}/{t['total_solarpilot']:.4f} | {t['power_kw_ours']:.1f}/"
+              f"{t['power_kw_solarpilot']:.1f}  | {t['peak_48x20_kw_m2_ours']:.1f}/"
+              f"{t['peak_48x20_kw_m2_solarpilot']:.1f}             | "
+              f"{t['shading_per_heliostat_max_abs_diff']:.4f}/{t['blocking_per_heliostat_max_abs_diff']:.4f}")
+
+
 def blocking_disagreement(out: Path) -> dict:
-    """East sun: heliostats SolarPILOT calls unblocked but the ray test blocks, checked all-pairs."""
+    """East sun: heliostats SolarPILOT calls unblocked but the ray test blocks, checked all-pairs, and the
+    mechanism (:func:`mechanism`)."""
     toml = out / "plant.toml"
     plant, atm = plant_from_layout(REF / "layout-500.csv", toml)
     sun = _sun(97.5527, 36.7262)
@@ -105,7 +131,41 @@ def blocking_disagreement(out: Path) -> dict:
                  "all_pairs_blocked_fraction": 1.0 - float(free.mean())}
     return {"heliostats_unblocked_in_solarpilot_blocked_here": len(missed), "worst": check,
             "field_blocking_ours": float(res.blocking.mean()),
-            "field_blocking_solarpilot": float(np.mean(list(theirs.values())))}
+            "field_blocking_solarpilot": float(np.mean(list(theirs.values()))),
+            "mechanism": mechanism(plant)}
+
+
+_VARIANTS = ("solarpilot", "no_reach_test", "no_reach_test_independent", "no_reach_test_independent_no_corner_rule")
+
+
+def mechanism(plant) -> dict:
+    """Field-average shading and blocking per sun with SolarPILOT's estimate, then with its approximations
+    removed one at a time: ``distance_cutoff=False`` (no reach test: SolarPILOT compares the 3-D pivot distance
+    with an along-the-ray reach and so drops diagonal neighbours that do block), then also
+    ``combine="independent"`` (overlapping pair losses not counted twice), then also ``corner_rule=False``."""
+    from heliotwin.raytrace.field import equator_aim_points, tracking_normals
+    from heliotwin.raytrace.occlusion import OccluderSet, occluder_candidates, solarpilot_interference
+
+    pos = plant.field.kinematics.position.to(torch.float64)
+    w, h = plant.field.width.to(torch.float64), plant.field.height.to(torch.float64)
+    aim = equator_aim_points(plant.targets["receiver"], pos)
+    out = {}
+    for ref in json.loads((REF / "field-results.json").read_text())["suns"]:
+        az, el = ref["sun_azimuth_deg_from_north_clockwise"], ref["sun_elevation_deg"]
+        sun = _sun(az, el)
+        n = tracking_normals(pos, aim, sun)
+        occ = OccluderSet(pos, n, w, h)
+        entry = {}
+        for name, direction in (("shading", sun), ("blocking", safe_normalize(aim - pos))):
+            idx, valid = occluder_candidates(occ, direction)
+            for label, kw in (("solarpilot", {}), ("no_reach_test", {"distance_cutoff": False}),
+                              ("no_reach_test_independent", {"distance_cutoff": False, "combine": "independent"}),
+                              ("no_reach_test_independent_no_corner_rule",
+                               {"distance_cutoff": False, "combine": "independent", "corner_rule": False})):
+                entry[f"{name}_{label}"] = float(solarpilot_interference(pos, n, w, h, direction, idx, valid,
+                                                                         **kw).mean())
+        out[f"az{az:.2f}_el{el:.2f}"] = entry
+    return out
 
 
 def radial_staggered(n: int) -> np.ndarray:
@@ -155,29 +215,55 @@ def yearly(out: Path, n: int) -> dict:
     return rep
 
 
+def demo(out: Path, n: int) -> dict:
+    """``heliotwin demo``'s run on ``n`` heliostats: seconds per stage and the headline figures."""
+    from heliotwin.field.demo import run_field_demo
+
+    t0 = time.perf_counter()
+    rep = run_field_demo(out / "demo", num_heliostats=n)
+    entry = {"heliostats": n, "wall_seconds": time.perf_counter() - t0, "seconds": rep["seconds"],
+             "field_efficiency_power_weighted": rep["field"]["efficiency_power_weighted"],
+             "aim_points": rep["aim_points"], "receiver_power_w": rep["receiver"]["power_w"]}
+    a = rep["aim_points"]
+    print(f"  demo ({n} heliostats): {entry['wall_seconds']:.1f} s (field {rep['seconds']['field_model']:.1f} s, "
+          f"aim points {rep['seconds']['aim_points']:.1f} s); efficiency "
+          f"{entry['field_efficiency_power_weighted']['total']:.3f}; peak {a['equator_peak_w_m2'] / 1e3:.0f} -> "
+          f"{a['optimised_peak_w_m2'] / 1e3:.0f} kW/m2 (limit {a['peak_limit_w_m2'] / 1e3:.0f}) at "
+          f"{a['power_vs_equator']:.4f} of the power", flush=True)
+    return entry
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", required=True)
-    ap.add_argument("--sizes", default="50,500,2000,10000")
+    ap.add_argument("--sizes", default="50,500,2000,10000", help="empty: skip the speed runs")
     ap.add_argument("--year-heliostats", type=int, default=2000, help="0: skip the yearly run")
+    ap.add_argument("--demo-heliostats", type=int, default=2000, help="0: skip the demo run")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     report = {"threads": torch.get_num_threads(), "load_average": os.getloadavg()}
-    table = against_solarpilot(out)
-    print("sun                 | cos dmax | att dmax | shading ours/SP | blocking ours/SP | intercept ours/SP | "
-          "total ours/SP   | power kW ours/SP | peak 48x20 kW/m2 ours/SP")
-    for t in table:
-        print(f"{t['sun']:19s} | {t['cosine_max_abs_diff']:.1e}  | {t['attenuation_max_abs_diff']:.1e}  | "
-              f"{t['shading_ours']:.4f}/{t['shading_solarpilot']:.4f}   | {t['blocking_ours']:.4f}/"
-              f"{t['blocking_solarpilot']:.4f}    | {t['intercept_ours']:.4f}/{t['intercept_solarpilot']:.4f}     | "
-              f"{t['total_ours']:.4f}/{t['total_solarpilot']:.4f} | {t['power_kw_ours']:.1f}/"
-              f"{t['power_kw_solarpilot']:.1f}  | {t['peak_48x20_kw_m2_ours']:.1f}/"
-              f"{t['peak_48x20_kw_m2_solarpilot']:.1f}")
+    table = against_solarpilot(out, "exact") + against_solarpilot(out, "solarpilot")
+    _print_table(table)
     report["against_solarpilot"] = table
     report["east_sun_blocking"] = blocking_disagreement(out)
+    mech = report["east_sun_blocking"].pop("mechanism")
     print("east sun blocking:", json.dumps(report["east_sun_blocking"]))
-    report["speed"] = speed(out, [int(s) for s in args.sizes.split(",")])
+    report["east_sun_blocking"]["mechanism"] = mech
+    exact = {t["sun"]: t for t in table if t["occlusion_model"] == "exact"}
+    print("mechanism (field averages): SolarPILOT's estimate -> without its reach test -> and overlaps not summed "
+          "-> and no corner rule || exact ray test (blocking: of the whole mirror, and of the lit part)")
+    for key, m in mech.items():
+        sh = " -> ".join(f"{m['shading_' + v]:.4f}" for v in _VARIANTS)
+        bl = " -> ".join(f"{m['blocking_' + v]:.4f}" for v in _VARIANTS)
+        e = exact[key]
+        print(f"  {key:19s} shading {sh} || {e['shading_ours']:.4f};  blocking {bl} || "
+              f"{e['blocking_whole_mirror_ours']:.4f}, {e['blocking_ours']:.4f}")
+    sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
+    if sizes:
+        report["speed"] = speed(out, sizes)
+    if args.demo_heliostats:
+        report["demo"] = demo(out, args.demo_heliostats)
     if args.year_heliostats:
         report["yearly"] = yearly(out, args.year_heliostats)
     report["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

@@ -9,8 +9,8 @@ from helpers.paint import copy_paint
 
 def test_demo_writes_images_and_consistent_summary(tmp_path, capsys):
     out = tmp_path / "demo"
-    code, stdout, _ = _run(capsys, "demo", "--out", str(out), "--heliostats", "6", "--rays-per-point", "16",
-                           "--resolution", "64")
+    code, stdout, _ = _run(capsys, "demo", "--classic", "--out", str(out), "--heliostats", "6",
+                           "--rays-per-point", "16", "--resolution", "64")
     assert code == 0
     summary = json.loads((out / "summary.json").read_text())
     for name in ("receiver-flux.png", "calibration-spot.png", "field.png"):

@@ -9,7 +9,7 @@ from helpers.field import brute_force_unoccluded, dense_field, write_layout, wri
 from heliotwin.field.layout import plant_from_layout
 from heliotwin.geometry import reflect
 from heliotwin.raytrace.field import _samples, equator_aim_points, tracking_normals
-from heliotwin.raytrace.occlusion import OccluderSet, occluder_candidates, unoccluded
+from heliotwin.raytrace.occlusion import OccluderSet, occluder_candidates, solarpilot_interference, unoccluded
 from heliotwin.sun import direction_from_paint_angles
 
 
@@ -102,3 +102,45 @@ def test_smooth_occlusion_gradcheck(tmp_path):
     out = f(*inputs)
     assert 0.0 < float(out.detach().min()) < 0.9  # some rays are partly stopped: the gradient is not trivially zero
     assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-6)
+
+
+def test_solarpilot_estimate_equals_the_exact_area_for_parallel_mirrors_in_line():
+    """SolarPILOT's per-pair estimate is exact where its assumptions hold: two parallel mirrors, the neighbour
+    straight ahead along the direction, its upper corners landing inside: the lost fraction is the area under
+    the projected upper edge, as a dense ray test finds."""
+    n = torch.nn.functional.normalize(torch.tensor([[0.0, -0.6, 0.8]] * 2, dtype=torch.float64), dim=-1)
+    d = torch.nn.functional.normalize(torch.tensor([0.1, -0.8, 0.5], dtype=torch.float64), dim=0)
+    center = torch.zeros(2, 3, dtype=torch.float64)
+    center[1] = center[0] + 3.0 * d + torch.tensor([0.4, 0.0, -1.2], dtype=torch.float64)  # ahead, a bit lower
+    w = torch.tensor([3.22, 3.22], dtype=torch.float64)
+    h = torch.tensor([2.56, 2.56], dtype=torch.float64)
+    occ = OccluderSet(center, n, w, h)
+    idx, valid = torch.tensor([[1], [0]]), torch.tensor([[True], [False]])
+    sp = solarpilot_interference(center, n, w, h, d, idx, valid, distance_cutoff=False)
+    g = (torch.arange(200, dtype=torch.float64) + 0.5) / 200 - 0.5
+    u, v = torch.meshgrid(g * 3.22, g * 2.56, indexing="ij")
+    pts = center[0] + u.reshape(-1, 1) * occ.width_axis[0] + v.reshape(-1, 1) * occ.height_axis[0]
+    exact = unoccluded(pts.unsqueeze(0), d.expand(1, 1, 3), occ, idx[:1], valid[:1])
+    assert 0.1 < 1 - float(sp[0]) < 0.9  # a real partial overlap
+    assert float(sp[0]) == pytest.approx(float(exact.mean()), abs=5e-3)
+    assert float(sp[1]) == 1.0
+
+
+def test_solarpilot_reach_test_drops_diagonal_neighbours_that_block(tmp_path):
+    """The mechanism behind the east-sun gap (docs/physics.md): SolarPILOT compares the 3-D pivot distance with
+    an along-the-ray reach, so on a staggered field under an east sun some heliostats it calls unblocked are
+    blocked by a diagonal neighbour, by the exact test and by the brute-force all-pairs reference."""
+    plant = _field(tmp_path, 6, 8, spacing=(4.0, 3.6), first_row=60.0)
+    sun = _sun(82.4, 36.7)
+    occ, pts, refl, aim = _rays(plant, sun, samples=8)
+    direction = torch.nn.functional.normalize(aim - occ.center, dim=-1)
+    idx, valid = occluder_candidates(occ, direction)
+    args = (occ.center, occ.normal, 2 * occ.half_width, 2 * occ.half_height, direction, idx, valid)
+    sp = solarpilot_interference(*args)
+    no_reach = solarpilot_interference(*args, distance_cutoff=False)
+    exact = brute_force_unoccluded(pts, refl, occ.center, occ.normal, occ.width_axis, occ.height_axis,
+                                   2 * occ.half_width, 2 * occ.half_height).mean(1)
+    dropped = (sp > 0.9999) & (no_reach < 0.99) & (exact < 0.99)
+    assert int(dropped.sum()) >= 3
+    assert float(no_reach.mean()) == pytest.approx(float(exact.mean()), abs=0.005)
+    assert float(sp.mean()) > float(exact.mean()) + 0.003

@@ -86,7 +86,7 @@ def test_signal_during_demo_leaves_no_output_folder(tmp_path, sig, code):
     """``heliotwin demo`` killed while tracing: neither its folder nor its --json report appears."""
     folder, report = tmp_path / "demo", tmp_path / "demo.json"
     proc = subprocess.Popen([sys.executable, "-m", "heliotwin", "demo", "--out", str(folder), "--json", str(report),
-                             "--heliostats", "400", "--rays-per-point", "256", "--quiet"], env=_env(),
+                             "--heliostats", "2000", "--quiet"], env=_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     _wait_for(lambda: any(tmp_path.glob(".heliotwin-*")), proc)
     time.sleep(0.3)  # into the tracing

@@ -31,16 +31,48 @@ def _fmt(x, spec: str = ".2f", none: str = "n/a") -> str:
 
 
 # ------------------------------------------------------------------------------------------------ demo
+_CLASSIC_ONLY = (("integrator", "--integrator"), ("rays_per_point", "--rays-per-point"),
+                 ("resolution", "--resolution"), ("seed", "--seed"))
+
+
 def cmd_demo(args) -> int:
+    """The whole embedded field (default) or, with ``--classic``, the small traced plant of earlier releases."""
+    if args.classic:
+        return _cmd_demo_classic(args)
+    for attr, flag in _CLASSIC_ONLY:
+        if getattr(args, attr) is not None:
+            raise HeliotwinError(f"demo: {flag} belongs to the classic demo (add --classic); the field demo uses "
+                                 "the Gaussian field model on a 48x20 receiver map")
+    from ..field.demo import run_field_demo
+
+    with output_set() as out:
+        folder = out.folder(args.out, "--out")
+        json_path = out.file(args.json, "--json")
+        summary = run_field_demo(folder, num_heliostats=args.heliostats or 2000, time_utc=args.time,
+                                 iterations=args.iterations, progress=not args.quiet)
+        if json_path:
+            write_json(json_path, summary)
+    if args.quiet:
+        return 0
+    a, e = summary["aim_points"], summary["field"]["efficiency_power_weighted"]
+    print(f"demo: {summary['heliostats']} heliostats, sun el {summary['sun']['elevation_deg']:.1f} deg; field "
+          f"efficiency {e['total']:.3f}, {summary['receiver']['power_w'] / 1e6:.2f} MW on the receiver; peak "
+          f"{a['equator_peak_w_m2'] / 1e3:.0f} -> {a['optimised_peak_w_m2'] / 1e3:.0f} kW/m2 (limit "
+          f"{a['peak_limit_w_m2'] / 1e3:.0f}) at {100 * a['power_vs_equator']:.1f} % of the power; "
+          f"{summary['seconds']['total']:.0f} s; outputs in {args.out}")
+    return 0
+
+
+def _cmd_demo_classic(args) -> int:
     """Trace the embedded default plant at a spring-equinox noon and write flux PNGs + a JSON summary."""
     from ..demo import run_demo
 
     with output_set() as out:
         folder = out.folder(args.out, "--out")
         json_path = out.file(args.json, "--json")
-        summary = run_demo(folder, num_heliostats=args.heliostats, integrator=args.integrator,
-                           rays_per_point=args.rays_per_point, resolution=args.resolution, seed=args.seed,
-                           time_utc=args.time, progress=not args.quiet)
+        summary = run_demo(folder, num_heliostats=args.heliostats or 48, integrator=args.integrator or "mc",
+                           rays_per_point=args.rays_per_point or 64, resolution=args.resolution or 256,
+                           seed=args.seed or 0, time_utc=args.time, progress=not args.quiet)
         if json_path:
             write_json(json_path, summary)
     if args.quiet:
@@ -191,21 +223,30 @@ cmd_bench.supports_cuda = True  # run_benchmark traces and times on args.device
 # -------------------------------------------------------------------------------------------- register
 def register(sub) -> None:
     """Add ``demo``, ``scenario``, ``trace``, ``validate`` and ``bench`` to the main parser's subparsers."""
-    p = sub.add_parser("demo", help="trace the embedded default plant (no data needed)",
-                       description="Trace an embedded Jülich-like plant (generated in code): every heliostat aims at "
-                                   "the receiver; writes flux PNGs, a field plot and summary.json.")
+    p = sub.add_parser("demo", help="the whole embedded ~2000-heliostat field, before and after aim points",
+                       description="The main job on an embedded Jülich-like field of about 2000 heliostats "
+                                   "(generated in code, no data needed): per-heliostat optical efficiency with "
+                                   "shading, blocking and attenuation, the loss breakdown, and the receiver flux "
+                                   "before and after aim-point optimisation under a peak limit; writes PNGs, "
+                                   "heliostats.csv and summary.json. --classic runs the earlier small demo "
+                                   "(a few dozen PAINT-style heliostats traced one by one, no shading).")
     p.add_argument("-o", "--output", "--out", dest="out", default="heliotwin-demo",
                    help="output folder, created when missing (default: %(default)s)")
-    p.add_argument("--heliostats", type=int_range(1, 10_000, "a heliostat count"), default=48,
-                   help="number of heliostats (default: %(default)s)")
-    p.add_argument("--integrator", choices=("mc", "gaussian"), default="mc")
-    p.add_argument("--rays-per-point", type=_RAYS, default=64)
-    p.add_argument("--resolution", type=_RESOLUTION, default=256)
+    p.add_argument("--heliostats", type=int_range(1, 10_000, "a heliostat count"), default=None,
+                   help="number of heliostats (default: 2000; 48 with --classic)")
     p.add_argument("--time", type=utc_time, default="2023-03-20T11:30:00Z",
                    help="UTC time of the sun position, ISO 8601 (default: %(default)s)")
-    p.add_argument("--seed", type=seed_int, default=0)
+    p.add_argument("--iterations", type=int_range(1, 10_000, "an iteration count"), default=10,
+                   help="aim-point optimisation steps (default: %(default)s)")
     p.add_argument("--json", help="also write the summary here")
     p.add_argument("--quiet", action="store_true", help="no progress bars and no summary line")
+    p.add_argument("--classic", action="store_true",
+                   help="the earlier demo: trace a few PAINT-style heliostats one by one (no shading or blocking)")
+    g = p.add_argument_group("classic demo (--classic)")
+    g.add_argument("--integrator", choices=("mc", "gaussian"), default=None, help="(default: mc)")
+    g.add_argument("--rays-per-point", type=_RAYS, default=None, help="(default: 64)")
+    g.add_argument("--resolution", type=_RESOLUTION, default=None, help="(default: 256)")
+    g.add_argument("--seed", type=seed_int, default=None, help="(default: 0)")
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("scenario", help="scenario files", description="Build and inspect scenario files.")

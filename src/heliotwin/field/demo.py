@@ -231,34 +231,79 @@ def demo_plant(num_heliostats: int = 32, seed: int = 0, *, num_control_points: t
 
 
 # ------------------------------------------------------------------------------------------ whole field
-def demo_field_positions(num_heliostats: int = 2000, *, first_ring: float = 27.5, width: float = HELIOSTAT_WIDTH,
-                         height: float = HELIOSTAT_HEIGHT) -> torch.Tensor:
-    """A radial-staggered field north of the tower (+/-60 deg), SolarPILOT-like spacing, pivots on the ground.
+def demo_field_positions(num_heliostats: int = 2000, *, first_ring: float = 27.5, tower_height: float = 55.0,
+                         width: float = HELIOSTAT_WIDTH, height: float = HELIOSTAT_HEIGHT,
+                         design_sun_elevation_deg: float = 40.0, azimuth_pitch: float = 2.0, zone_reset: float = 1.4,
+                         half_span_deg: float = 60.0, max_east: float | None = None) -> torch.Tensor:
+    """A radial-staggered field north of the tower, spaced so that blocking costs a few per cent.
 
-    Rings start at ``first_ring`` [m]; consecutive rings are ``1.25 height + 0.004 r`` apart and staggered by
-    half a slot; a ring holds as many heliostats as fit at 1.8 mirror widths along its arc.
+    Rings from ``first_ring`` within +/-``half_span_deg`` of north (and ``|east| <= max_east`` when given),
+    as many as the count needs. :func:`demo_field_plant` keeps Jülich's extent (PAINT: rows from ~25 m to
+    ~300 m north within about +/-130 m east-west, ``max_east=135``) for up to 2200 heliostats: 2000 reach
+    ~285 m.
+
+    * **Along a ring** the heliostats are ``azimuth_pitch`` mirror widths apart when a zone starts (a gap of
+      one mirror width lets the reflected beam pass between the two staggered heliostats of the ring ahead);
+      the angular pitch is kept through the zone, so the arc spacing grows with the radius, and a new zone
+      with the nominal spacing starts when it exceeds ``zone_reset`` times it (DELSOL's and SolarPILOT's
+      "slip planes").
+    * **Between rings** the pitch is half the distance at which a heliostat straight ahead (two rings ahead,
+      staggered) stops blocking at solar noon with the sun at ``design_sun_elevation_deg``: the beam from the
+      lower edge, rising at the tower's elevation ``phi``, clears the upper edge of the one ahead when
+      ``D >= h (sin e + cos e / tan phi)`` with ``e = (phi + design elevation) / 2`` the normal's elevation;
+      and at least the distance at which two mirrors cannot collide (two half diagonals apart: against the
+      staggered neighbours of the next ring and the one straight ahead two rings on). A new zone's first ring
+      is not staggered against the last one: it keeps the full no-blocking distance and a full diagonal.
+
+    Parameters
+    ----------
+    num_heliostats : int
+        H >= 1.
+    first_ring, tower_height, width, height : float
+        [m]; ``tower_height`` is the receiver's height above the pivots.
+    design_sun_elevation_deg, half_span_deg : float
+        [deg].
+    azimuth_pitch, zone_reset : float
+        In mirror widths, and the ratio that starts a new zone.
+    max_east : float, optional
+        [m].
 
     Returns
     -------
     torch.Tensor, [H, 3], float64
-        ENU [m] about the tower base.
+        ENU [m] about the tower base (pivots on the ground, z = 0), ring by ring from the tower.
     """
     if isinstance(num_heliostats, bool) or not isinstance(num_heliostats, (int, np.integer)) or num_heliostats < 1:
         raise HeliotwinError(f"demo_field_positions: num_heliostats must be a positive int, got {num_heliostats!r}")
-    out, r, ring = [], float(first_ring), 0
+    out, r, ring, pitch = [], float(first_ring), 0, None
+    collide = math.hypot(width, height)  # two half diagonals
+    span = math.radians(half_span_deg)
+    arc = azimuth_pitch * width
     while len(out) < num_heliostats:
-        count = max(2, int((2 * math.pi / 3) * r / (1.8 * width)))
-        shift = 0.5 if ring % 2 else 0.0
-        for k in range(count):
-            a = math.radians(-60) + (k + 0.5 + shift) * math.radians(120) / (count + 0.5)
-            out.append((r * math.sin(a), r * math.cos(a), 0.0))
-        r += 1.25 * height + 0.004 * r
+        if pitch is None or r * pitch > zone_reset * arc:
+            pitch, ring = arc / r, 0
+        a = np.arange(-span + 0.5 * pitch * (1 + ring % 2), span, pitch)
+        x, y = r * np.sin(a), r * np.cos(a)
+        keep = np.abs(x) <= (np.inf if max_east is None else max_east)
+        out.extend(zip(x[keep], y[keep], np.zeros(int(keep.sum()))))
+        phi = math.atan2(tower_height, r)
+        e = 0.5 * (phi + math.radians(design_sun_elevation_deg))
+        clear = 0.5 * height * (math.sin(e) + math.cos(e) / math.tan(phi))
+        stagger = math.sqrt(max(collide ** 2 - (0.5 * r * pitch) ** 2, 0.0))
+        step = max(clear, stagger, 0.5 * collide)  # 0.5 collide: the one straight ahead is two rings ahead
+        if (r + step) * pitch > zone_reset * arc:  # the next ring starts a zone: no stagger to rely on
+            step = max(step, collide, 2.0 * clear)
+        r += step
         ring += 1
-    return torch.tensor(out[:num_heliostats], dtype=torch.float64)
+        if r > 40.0 * tower_height:
+            raise HeliotwinError(f"demo_field_positions: {num_heliostats} heliostats do not fit within "
+                                 f"{40 * tower_height:.0f} m of the tower (widen half_span_deg or max_east)")
+    return torch.tensor(np.asarray(out[:num_heliostats], dtype=np.float64))
 
 
 def demo_field_plant(num_heliostats: int = 2000):
-    """The embedded whole-field demo plant and its atmosphere: :func:`demo_field_positions` with Jülich-size
+    """The embedded whole-field demo plant and its atmosphere: :func:`demo_field_positions` (Jülich's extent,
+    ``|east| <= 135 m``, up to 2200 heliostats; the full +/-60 degree fan beyond) with Jülich-size
     heliostats (2 x 2 facets canted on-axis at their slant range, reflectivity 0.9, 1.53 mrad slope error)
     around an external 360-degree cylinder receiver (radius 4.1 m, height 5 m, centre 55 m up), the
     limb-darkened sun at DNI 900 W/m^2 and SolarPILOT's default atmosphere.
@@ -271,7 +316,7 @@ def demo_field_plant(num_heliostats: int = 2000):
     from ..atmosphere import Atmosphere
     from .layout import Layout, PlantConfig, build_plant
 
-    pos = demo_field_positions(num_heliostats)
+    pos = demo_field_positions(num_heliostats, max_east=135.0 if num_heliostats <= 2200 else None)
     ids = [f"R{i:05d}" for i in range(pos.shape[0])]
     sun = SunSettings(sunshape="limb-darkened", slope_error=1.53e-3, dni=900.0, reflectivity=0.9)
     receiver = {"type": "cylinder", "center": [0.0, 0.0, 55.0], "height": 5.0, "normal": None, "radius": 4.1,
@@ -281,76 +326,169 @@ def demo_field_plant(num_heliostats: int = 2000):
     return build_plant(Layout(ids, pos, list(range(len(ids))), "demo"), config), config.atmosphere
 
 
-def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-06-21T11:30:00Z",
-                   peak_limit_fraction: float = 0.75, iterations: int = 40) -> dict:
+def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-20T11:30:00Z",
+                   peak_limit_fraction: float = 0.75, iterations: int = 10, flux_samples: int | None = None,
+                   progress: bool = False) -> dict:
     """The demo as the whole field: efficiency map, loss breakdown, receiver flux before/after aim points.
+
+    On :func:`demo_field_plant` at ``time_utc``: the field model with exact shading and blocking
+    (:func:`heliotwin.raytrace.field.field_optics`, Gaussian footprints on the 48 x 20 receiver map) at
+    equator aiming, then :func:`heliotwin.optimise.aimpoints.optimise_aimpoints` for a peak limit of
+    ``peak_limit_fraction`` times equator aiming's peak (re-judged with exact occlusion).
 
     Parameters
     ----------
     out : path
-        Folder (created) for ``field_efficiency.png``, ``losses.png``, ``flux_equator.png``,
-        ``flux_optimised.png`` and ``summary.json``.
+        Folder (created when missing) for ``field_efficiency.png`` (per-heliostat efficiency),
+        ``losses.png`` (power-weighted loss breakdown), ``flux_equator.png`` and ``flux_optimised.png``
+        (receiver maps [kW/m^2]), ``heliostats.csv`` (per-heliostat factors, the ``field`` command's
+        columns) and ``summary.json``.
     num_heliostats : int
     time_utc : str
-        Instant of the sun position (pvlib at the Jülich reference).
+        Instant of the sun position (pvlib at the Jülich reference); the sun must be up.
     peak_limit_fraction : float
-        The aim points are optimised for a peak limit of this fraction of equator aiming's peak.
+        In (0, 1].
     iterations : int
         Aim-point optimisation steps.
+    flux_samples : int, optional
+        Mirror samples per facet and direction while optimising; default: a budget of about 8000 samples in
+        all (1 for 2000 heliostats of 4 facets, up to 4 for small fields), which bounds the time per step.
+    progress : bool
+        A progress bar over the stages.
 
     Returns
     -------
     dict
-        The summary (also written as JSON).
+        The summary (also written as JSON): the ``field`` command's report (``field.efficiency`` unweighted as
+        SolarPILOT and power-weighted, ``receiver``), ``losses`` (per factor: power-weighted fraction and
+        [W]), ``aim_points`` (limit, peaks before/after, violation, power ratio), ``seconds`` per stage.
     """
+    import time
     from pathlib import Path
 
     import pandas as pd
-    from matplotlib.figure import Figure
+    from tqdm.auto import tqdm
 
-    from ..io.report import save_figure, write_json
+    from ..io.report import write_json
     from ..optimise.aimpoints import optimise_aimpoints
-    from ..raytrace.field import FACTORS, field_optics, summary
+    from ..raytrace.field import field_optics, per_heliostat_rows, summary
     from ..sun import direction_from_time
 
+    if not 0.0 < float(peak_limit_fraction) <= 1.0:
+        raise HeliotwinError(f"run_field_demo: peak_limit_fraction must be in (0, 1], got {peak_limit_fraction!r}")
+    t_start = time.perf_counter()
     folder = Path(out)
-    folder.mkdir(parents=True, exist_ok=True)
+    seconds = {}
+    bar = tqdm(total=4, desc="demo: whole field", unit="stage", disable=not progress)
     plant, atm = demo_field_plant(num_heliostats)
     s = plant.site
     sun = direction_from_time(pd.DatetimeIndex([pd.Timestamp(time_utc)]), s.latitude_deg, s.longitude_deg,
                               s.altitude_m)[0]
+    t0 = time.perf_counter()
     with torch.no_grad():
         before = field_optics(plant, sun, atmosphere=atm)
+    seconds["field_model"] = time.perf_counter() - t0
     rep = summary(before, plant)
-    limit = peak_limit_fraction * rep["receiver"]["peak_flux_w_m2"]
-    aimed = optimise_aimpoints(plant, sun, limit, atmosphere=atm, iterations=iterations)
-    pos = plant.field.kinematics.position.numpy()
-
-    fig = Figure(figsize=(6, 5))
-    ax = fig.add_subplot()
-    sc = ax.scatter(pos[:, 0], pos[:, 1], c=before.efficiency.numpy(), s=4, cmap="viridis")
-    fig.colorbar(sc, ax=ax, label="optical efficiency [-]")
-    ax.set(xlabel="east [m]", ylabel="north [m]", title=f"{len(pos)} heliostats, {time_utc}", aspect="equal")
-    save_figure(fig, folder / "field_efficiency.png")
-    fig = Figure(figsize=(6, 3.5))
-    ax = fig.add_subplot()
-    weighted = rep["field"]["efficiency_power_weighted"]
-    ax.bar(FACTORS, [1.0 - weighted[k] for k in FACTORS])
-    ax.set(ylabel="loss (power-weighted) [-]", title=f"field efficiency {weighted['total']:.3f}")
-    save_figure(fig, folder / "losses.png")
-    vmax = float(before.flux.max()) / 1e3
-    for name, flux in (("flux_equator", before.flux), ("flux_optimised", aimed.flux)):
-        fig = Figure(figsize=(7, 2.6))
-        ax = fig.add_subplot()
-        e = before.extent.tolist()
-        im = ax.imshow(flux.numpy() / 1e3, extent=e, aspect="auto", vmin=0, vmax=vmax, cmap="inferno")
-        fig.colorbar(im, ax=ax, label="flux [kW/m2]")
-        ax.set(xlabel="arc [m]", ylabel="height [m]", title=f"{name.split('_')[1]}: peak {float(flux.max()) / 1e3:.0f}")
-        save_figure(fig, folder / f"{name}.png")
-    rep.update({"time_utc": time_utc, "aim_points": {
-        "peak_limit_w_m2": limit, "equator_peak_w_m2": rep["receiver"]["peak_flux_w_m2"],
-        "optimised_peak_w_m2": aimed.peak_flux_w_m2, "violation": aimed.violation(limit),
-        "power_vs_equator": aimed.power_w / rep["receiver"]["power_w"], "iterations": aimed.iterations,
-        "seconds": aimed.seconds}})
+    bar.update()
+    limit = float(peak_limit_fraction) * rep["receiver"]["peak_flux_w_m2"]
+    if flux_samples is None:
+        facets = plant.field.facets.translation.shape[1]
+        flux_samples = max(1, min(4, int(math.sqrt(8000.0 / (facets * len(plant.field.ids))))))
+    t0 = time.perf_counter()
+    aimed = optimise_aimpoints(plant, sun, limit, atmosphere=atm, iterations=int(iterations),
+                               flux_samples=int(flux_samples))
+    seconds["aim_points"] = time.perf_counter() - t0
+    bar.update()
+    folder.mkdir(parents=True, exist_ok=True)
+    rep["losses"] = _loss_breakdown(before)
+    t0 = time.perf_counter()
+    _demo_figures(folder, plant, before, aimed, rep, limit, time_utc)
+    _write_rows(folder / "heliostats.csv", per_heliostat_rows(before, plant))
+    seconds["outputs"] = time.perf_counter() - t0
+    bar.update()
+    seconds["total"] = time.perf_counter() - t_start
+    rep.update({"plant": "embedded Jülich-like field (heliotwin.field.demo.demo_field_plant)", "time_utc": time_utc,
+                "aim_points": {
+                    "peak_limit_w_m2": limit, "equator_peak_w_m2": rep["receiver"]["peak_flux_w_m2"],
+                    "optimised_peak_w_m2": aimed.peak_flux_w_m2, "violation": aimed.violation(limit),
+                    "equator_power_w": rep["receiver"]["power_w"], "optimised_power_w": aimed.power_w,
+                    "power_vs_equator": aimed.power_w / rep["receiver"]["power_w"], "iterations": aimed.iterations},
+                "seconds": seconds,
+                "files": ["field_efficiency.png", "losses.png", "flux_equator.png", "flux_optimised.png",
+                          "heliostats.csv", "summary.json"]})
     write_json(folder / "summary.json", rep)
+    bar.update()
+    bar.close()
     return rep
+
+
+def _loss_breakdown(result) -> dict:
+    """Per factor of the chain (cosine, shading, blocking, attenuation, intercept, reflectance): the
+    power-weighted fraction lost at that stage and the power [W] it costs (they add up to DNI x area - power)."""
+    from ..raytrace.field import FACTORS
+
+    stage = result.dni * result.mirror_area.to(torch.float64)
+    out = {}
+    for name in FACTORS:
+        f = getattr(result, name).to(torch.float64)
+        lost = float((stage * (1.0 - f)).sum())
+        out[name] = {"fraction": lost / max(float(stage.sum()), 1e-30), "power_w": lost}
+        stage = stage * f
+    out["tower_shading_unweighted_mean"] = float(result.tower_shading.mean())
+    return out
+
+
+def _write_rows(path, rows: list[dict]) -> None:
+    import csv
+
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+
+
+def _demo_figures(folder, plant, before, aimed, rep, limit: float, time_utc: str) -> None:
+    """The four demo figures (colour bars, titles, units)."""
+    from matplotlib.figure import Figure
+
+    from ..io.report import save_figure
+    from ..raytrace.field import FACTORS
+
+    pos = plant.field.kinematics.position.numpy()
+    sun = rep["sun"]
+    e = rep["field"]["efficiency_power_weighted"]
+    fig = Figure(figsize=(7, 6))
+    ax = fig.add_subplot()
+    sc = ax.scatter(pos[:, 0], pos[:, 1], c=before.efficiency.numpy(), s=5, cmap="viridis")
+    ax.plot([0.0], [0.0], marker="^", color="k", markersize=8, linestyle="none", label="tower")
+    fig.colorbar(sc, ax=ax, label="optical efficiency per heliostat [-]")
+    ax.set(xlabel="east [m]", ylabel="north [m]", aspect="equal",
+           title=f"{len(pos)} heliostats, {time_utc[:16]} UTC (sun el {sun['elevation_deg']:.1f} deg)\n"
+                 f"field efficiency {e['total']:.3f} (power-weighted)")
+    ax.legend(loc="lower right")
+    save_figure(fig, folder / "field_efficiency.png")
+
+    fig = Figure(figsize=(7, 4))
+    ax = fig.add_subplot()
+    loss = [100.0 * rep["losses"][k]["fraction"] for k in FACTORS]
+    bars = ax.bar(FACTORS, loss, color="tab:red")
+    for b, v, k in zip(bars, loss, FACTORS):
+        ax.annotate(f"{v:.1f} %\n{rep['losses'][k]['power_w'] / 1e6:.2f} MW", (b.get_x() + b.get_width() / 2, v),
+                    ha="center", va="bottom", fontsize=8)
+    ax.set(ylabel="share of DNI x mirror area lost [%]", ylim=(0, max(loss) * 1.3 + 1),
+           title=f"loss breakdown: {rep['receiver']['power_w'] / 1e6:.2f} MW on the receiver "
+                 f"(efficiency {e['total']:.3f})")
+    save_figure(fig, folder / "losses.png")
+
+    vmax = max(float(before.flux.max()), float(aimed.flux.max())) / 1e3
+    ext = before.extent.tolist()
+    for name, flux, label, power in (("flux_equator", before.flux, "equator aiming", rep["receiver"]["power_w"]),
+                                     ("flux_optimised", aimed.flux, "optimised aim points", aimed.power_w)):
+        fig = Figure(figsize=(8, 3))
+        ax = fig.add_subplot()
+        im = ax.imshow(flux.detach().numpy() / 1e3, extent=ext, aspect="auto", vmin=0, vmax=vmax, cmap="inferno")
+        fig.colorbar(im, ax=ax, label="flux [kW/m²]")
+        ax.set(xlabel="arc along the unrolled receiver [m]", ylabel="height [m]",
+               title=f"{label}: peak {float(flux.max()) / 1e3:.0f} kW/m² (limit {limit / 1e3:.0f}), "
+                     f"{power / 1e6:.2f} MW")
+        save_figure(fig, folder / f"{name}.png")

@@ -13,6 +13,9 @@ For every heliostat, as SolarPILOT reports them (Wagner & Wendelin, Solar Energy
 ``reflectance``   the mirror reflectivity.
 ``efficiency``    the product; ``power_w = DNI * mirror area * efficiency``.
 
+Shading and blocking come from the exact ray test (default) or, with ``occlusion_model="solarpilot"``,
+from SolarPILOT's analytic estimate (whole-mirror factors, for comparing with its reports; docs/physics.md).
+
 Model
 -----
 Heliostats track ideally about azimuth-elevation axes (the mirror's width edge stays horizontal): the
@@ -32,8 +35,14 @@ The flux map sums the footprints: ``window`` mode evaluates every sample's own G
 size, splats each class's mean hits bilinearly and convolves it (FFT) with the class's power-weighted mean
 Gaussian (cost ~ samples + groups x pixels log pixels); ``auto`` takes ``window`` when its cost is small.
 With ``integrator="mc"`` the map is a Monte-Carlo trace of the same samples (occlusion and attenuation as
-weights); the per-heliostat intercept stays the Gaussian one. The unrolled map of a full cylinder does not
-wrap footprints across its seam (the seam is at the back of the receiver).
+weights); the per-heliostat intercept stays the Gaussian one. The unrolled map of a full cylinder is
+periodic: Gaussian footprints that reach over its seam continue at the other edge (the Monte-Carlo map does
+not wrap).
+
+Not offered: the exact-sunshape ``conv`` integrator (:mod:`heliotwin.raytrace.conv`). Its kernel is the
+tabulated sun cone projected obliquely onto one target plane for one heliostat image; on the field it
+would need such a kernel per footprint class on the unrolled cylinder (in place of ``grouped`` mode's
+Gaussian class kernels), which is future work.
 
 Everything is batched over heliostats (no loop over heliostats or points) and differentiable with
 ``softness`` set (smooth occlusion): w.r.t. aim points, positions and the sun.
@@ -55,7 +64,14 @@ from ..geometry import orthonormal_frame, ray_cylinder, reflect, safe_normalize
 from .flux import target_extent
 from .gaussian import _cylinder_moments, _fft_convolve, _gaussian_kernels, _projective_moments, gaussian_footprints
 from .montecarlo import planar_coefficients
-from .occlusion import OccluderSet, mirror_frame, occluder_candidates, unoccluded
+from .occlusion import (
+    OccluderSet,
+    mirror_frame,
+    occluder_candidates,
+    solarpilot_interference,
+    solarpilot_neighbours,
+    unoccluded,
+)
 from .splat import splat_bilinear
 
 __all__ = ["FieldSettings", "FieldResult", "equator_aim_points", "tracking_normals", "field_optics", "summary",
@@ -80,6 +96,11 @@ class FieldSettings:
         Occlusion rays per flux sample and direction.
     softness : float or None
         None: exact (hard) occlusion; a length [m]: smooth, differentiable occlusion.
+    occlusion_model : {"exact", "solarpilot"}
+        ``exact`` (default): shading and blocking ray-tested point by point (the physics).
+        ``solarpilot``: SolarPILOT's analytic per-pair estimate
+        (:func:`heliotwin.raytrace.occlusion.solarpilot_interference`), whole-mirror shading and blocking
+        applied uniformly to the mirror; for comparing with SolarPILOT's reports (docs/physics.md).
     flux_mode : {"auto", "window", "grouped"}
     groups : int
         Footprint classes per axis in ``grouped`` mode (``groups^2`` classes).
@@ -98,6 +119,7 @@ class FieldSettings:
     flux_samples: int = 8
     occlusion_oversampling: int = 2
     softness: float | None = None
+    occlusion_model: str = "exact"
     flux_mode: str = "auto"
     groups: int = 4
     smoothing: float = 1.0 / 12.0
@@ -228,6 +250,8 @@ def _occlusion(plant: Plant, normal, aim, sun, settings: FieldSettings, rows: to
     s = sun.to(normal)
     cos_p = (nw * s).sum(-1).clamp_min(0.0)
     lit = area * cos_p
+    if settings.occlusion_model == "solarpilot":
+        return _occlusion_solarpilot(plant, occ, normal, aim, s, pw, lit, nf, m, k, rows)
     idx, valid = occluder_candidates(occ, s, queries=rows)
     free_sun = unoccluded(pw, s.expand(h, 1, 3), occ, idx, valid, softness=settings.softness, owners=rows)
     reflected = reflect(-s.expand_as(nw), nw)
@@ -241,6 +265,24 @@ def _occlusion(plant: Plant, normal, aim, sun, settings: FieldSettings, rows: to
     # is both shaded and blocked twice in a product, so it is only reported, never multiplied in)
     blocking_whole = (lit * free_rx).sum(1) / lit.sum(1).clamp_min(1e-30)
     return shading, blocking, tower, free, blocking_whole
+
+
+def _occlusion_solarpilot(plant: Plant, occ: OccluderSet, normal, aim, sun, pw, lit, nf, m, k, rows):
+    """SolarPILOT's analytic shading and blocking (whole mirror, per heliostat [h]), spread uniformly over the
+    flux samples; the same outputs as :func:`_occlusion`."""
+    fl = plant.field
+    pos, width, height = occ.center, fl.width.to(normal), fl.height.to(normal)
+    elevation = math.asin(max(-1.0, min(1.0, float(sun[2]))))
+    idx, valid = occluder_candidates(occ, sun, queries=rows)
+    valid = solarpilot_neighbours(pos, height, width, elevation, idx, valid, rows)
+    shading = solarpilot_interference(pos, normal, width, height, sun, idx, valid, rows)
+    tower_dir = safe_normalize(aim[rows] - pos[rows])
+    idx_b, valid_b = occluder_candidates(occ, tower_dir, queries=rows)
+    valid_b = solarpilot_neighbours(pos, height, width, elevation, idx_b, valid_b, rows)
+    blocking = solarpilot_interference(pos, normal, width, height, tower_dir, idx_b, valid_b, rows)
+    tower = _tower_shading(plant, pw, sun, lit)
+    free = (shading * blocking).unsqueeze(1).expand(rows.shape[0], nf * m * m)
+    return shading, blocking, tower, free, blocking
 
 
 def _tower_shading(plant: Plant, points, sun, lit) -> torch.Tensor:
@@ -367,9 +409,12 @@ def _flux_map(points, nw, reflected, weights, target, settings: FieldSettings, p
                        rays_per_point=int(settings.rays_per_point),
                        generator=torch.Generator().manual_seed(int(settings.seed)), dtype=dt)
         return img.bitmap[0], icpt, extent[0]
+    if isinstance(target, CylinderTarget) and target.opening_angle >= 2 * math.pi - 1e-9:
+        mu, cov_s, w = _wrap_seam(mu, cov_s, w, ok, cols, float(settings.n_sigma))
     mode = settings.flux_mode
     with torch.no_grad():
-        sd = torch.sqrt(torch.where(ok, cov_s[:, 0, 0].maximum(cov_s[:, 1, 1]), torch.zeros_like(cov_s[:, 0, 0])))
+        sd = torch.sqrt(torch.where(mu[:, 0] > -1e8, cov_s[:, 0, 0].maximum(cov_s[:, 1, 1]),
+                                    torch.zeros_like(cov_s[:, 0, 0])))
         half = int(min(64, max(1, math.ceil(settings.n_sigma * float(sd.max())))))
     if mode == "auto":
         mode = "window" if mu.shape[0] * (2 * half + 1) ** 2 <= 2e7 else "grouped"
@@ -380,6 +425,21 @@ def _flux_map(points, nw, reflected, weights, target, settings: FieldSettings, p
     else:
         raise HeliotwinError(f"flux_mode must be 'auto', 'window' or 'grouped', got {mode!r}")
     return img, icpt, extent[0]
+
+
+def _wrap_seam(mu, cov, w, ok, cols: int, n_sigma: float):
+    """A full cylinder's map is periodic in its columns: footprints reaching over the seam (left or right edge,
+    ``cols`` pixels apart) get a copy shifted by one period, so the light that spills over one edge lands at
+    the other. Only the samples within ``n_sigma`` footprint widths of an edge are copied."""
+    with torch.no_grad():
+        reach = n_sigma * torch.sqrt(cov[:, 0, 0].clamp_min(0.0)) + 1.0
+        left = torch.nonzero(ok & (mu[:, 0] - reach < -0.5)).flatten()
+        right = torch.nonzero(ok & (mu[:, 0] + reach > cols - 0.5)).flatten()
+    if left.numel() + right.numel() == 0:
+        return mu, cov, w
+    period = torch.tensor([float(cols), 0.0], dtype=mu.dtype, device=mu.device)
+    mu = torch.cat((mu, mu[left] + period, mu[right] - period))
+    return mu, torch.cat((cov, cov[left], cov[right])), torch.cat((w, w[left], w[right]))
 
 
 def _power_scale(plant: Plant, nw, sun):
@@ -418,6 +478,11 @@ def field_optics(plant: Plant, sun_direction: torch.Tensor, *, atmosphere: Atmos
     settings = settings or FieldSettings()
     if settings.integrator not in ("gaussian", "mc"):
         raise HeliotwinError(f"unknown field integrator {settings.integrator!r}; expected gaussian or mc")
+    if settings.occlusion_model not in ("exact", "solarpilot"):
+        raise HeliotwinError(f"unknown occlusion model {settings.occlusion_model!r}; expected exact or solarpilot")
+    if settings.occlusion_model == "solarpilot" and settings.softness is not None:
+        raise HeliotwinError("the solarpilot occlusion model is a report (not differentiable); use softness with "
+                             "occlusion_model='exact'")
     target = plant.target(receiver)
     pos = plant.field.kinematics.position
     f64 = torch.float64  # geometry in float64; rays and maps in settings.dtype

@@ -20,6 +20,13 @@ Two tests share the geometry:
   occluders is ``1 - prod_k (1 - stop_k)``; differentiable in every position, normal and direction, and
   equal to the hard test as ``tau -> 0``.
 
+A third, :func:`solarpilot_interference`, restates SolarPILOT's analytic per-pair estimate (two projected
+corners, parallel mirrors, summed pair losses; with :func:`solarpilot_neighbours`, its neighbour grid) so
+that reports can be compared with SolarPILOT's on equal terms: it reproduces SolarPILOT's per-heliostat
+shading and blocking on the shared reference field to the 1e-4 its files are rounded to. It is a modelling
+choice, not the physics: docs/physics.md ("Shading and blocking against SolarPILOT") shows where it
+departs from the exact test and why.
+
 Shapes: H heliostats, P points per heliostat, K candidates per heliostat. Units: metres.
 """
 from __future__ import annotations
@@ -30,7 +37,8 @@ import torch
 
 from ..geometry import safe_normalize
 
-__all__ = ["mirror_frame", "occluder_candidates", "unoccluded", "OccluderSet"]
+__all__ = ["mirror_frame", "occluder_candidates", "unoccluded", "OccluderSet", "solarpilot_neighbours",
+           "solarpilot_interference"]
 
 
 def mirror_frame(normal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -249,3 +257,158 @@ def _unoccluded_chunk(o, d, occ: OccluderSet, idx, valid, own, softness, eps):
     stop = torch.sigmoid((hw - u.abs()) / tau) * torch.sigmoid((hh - v.abs()) / tau) * torch.sigmoid((t - eps) / tau)
     stop = torch.where(mask, stop, torch.zeros_like(stop))
     return torch.prod(1.0 - stop, dim=-1)
+
+
+def solarpilot_neighbours(center: torch.Tensor, height: torch.Tensor, width: torch.Tensor, sun_elevation: float,
+                          index: torch.Tensor, valid: torch.Tensor, queries: torch.Tensor | None = None
+                          ) -> torch.Tensor:
+    """SolarPILOT's neighbour restriction: only heliostats in the same or an adjacent cell of a coarse grid.
+
+    SolarPILOT (``SolarField::UpdateNeighborList``, read for its facts) bins the heliostats into square
+    cells of side
+    ``r = min(max(2 r_c / tan(elevation), 3 r_c, 10 h/2), 200 h/2)`` (``r_c`` the half diagonal, ``h`` the
+    mirror height; the cells tile the field extent including the tower base) and lets only heliostats of
+    the 3 x 3 cells around a heliostat's cell interact with it. This filters a candidate list.
+
+    Parameters
+    ----------
+    center : torch.Tensor, [H, 3]
+        Pivots, ENU [m].
+    height, width : torch.Tensor, [H]
+        Mirror sizes [m].
+    sun_elevation : float
+        [rad].
+    index, valid : torch.Tensor, [Q, K]
+        Candidate occluders per querying heliostat (:func:`occluder_candidates`).
+    queries : torch.Tensor, [Q], long, optional
+        The querying heliostats (default all H).
+
+    Returns
+    -------
+    torch.Tensor, [Q, K], bool
+        ``valid`` and in a neighbouring cell.
+    """
+    c = center.detach().to(torch.float64)
+    queries = torch.arange(c.shape[0], device=c.device) if queries is None else queries.to(c.device)
+    rc = float(torch.sqrt((height / 2) ** 2 + (width / 2) ** 2).mean())
+    hm = float(height.mean()) / 2
+    r_shade = max(2 * rc / max(math.tan(sun_elevation), 1e-9), 3 * rc)
+    r_cell = min(max(r_shade, 10 * hm), 200 * hm)
+    lo = torch.minimum(c[:, :2].min(0).values, torch.zeros(2, dtype=c.dtype, device=c.device))
+    hi = torch.maximum(c[:, :2].max(0).values, torch.zeros(2, dtype=c.dtype, device=c.device))
+    lo = torch.where(lo < 0, lo * 1.01, lo * 0.99)
+    hi = torch.where(hi > 0, hi * 1.01, hi * 0.99)
+    n = torch.clamp(torch.floor((hi - lo) / r_cell), min=1)
+    size = (hi - lo) / n
+    cell = torch.minimum(torch.floor((c[:, :2] - lo) / size).clamp_min(0), n - 1).long()
+    near = ((cell[index] - cell[queries].unsqueeze(1)).abs() <= 1).all(-1)
+    return valid & near
+
+
+def solarpilot_interference(center: torch.Tensor, normal: torch.Tensor, width: torch.Tensor, height: torch.Tensor,
+                            direction: torch.Tensor, index: torch.Tensor, valid: torch.Tensor,
+                            queries: torch.Tensor | None = None, *, interaction_limit: float = 50.0,
+                            corner_rule: bool = True, distance_cutoff: bool = True, combine: str = "sum",
+                            edge_samples: int = 65
+                            ) -> torch.Tensor:
+    """SolarPILOT's per-pair shading / blocking estimate, summed over neighbours: the unoccluded fraction.
+
+    The analytic model of SolarPILOT (Wagner, M.S. thesis, U. Wisconsin 2008; as implemented in SolarPILOT's
+    ``SolarField::calcShadowBlock``, read for its facts, not copied), restated so that the field model can
+    be compared with SolarPILOT's reports on equal terms.
+    For a heliostat ``q`` and a neighbour ``k`` (direction ``d``: towards the sun for shading, towards
+    ``q``'s aim point for blocking):
+
+    * no interaction when ``k`` lies behind ``q`` along ``d`` or farther than
+      ``l_max = (z_k - z_q + h_k sin(zen_k)) / tan(el_d) + h_k cos(zen_k)`` (``zen_k`` the tilt of ``k``'s
+      mirror, ``el_d`` the elevation of ``d``; at most ``interaction_limit`` mirror heights);
+    * only ``k``'s two *upper* corners are projected along ``d`` onto ``q``'s mirror plane; if neither lands
+      inside ``q``'s rectangle the pair counts as no interaction at all (even when ``k``'s outline crosses
+      ``q`` between them);
+    * the lost fraction is the rectangle from the projected upper edge down to ``q``'s lower edge, with the
+      two heliostats taken as parallel: both corners inside -> ``(h/2 + mean v)/h * |u_0 - u_1|/w``; one
+      inside -> ``(h/2 + v_on)/h`` times the part of the width between that corner and the edge the other
+      corner spills over;
+    * the pair losses are *summed* (overlapping shadows counted twice) and ``1 - sum`` is clipped to [0, 1];
+      shading and blocking are computed independently over the whole mirror (light that is both shaded and
+      blocked is lost twice in the product).
+
+    Parameters
+    ----------
+    center, normal : torch.Tensor, [H, 3]
+        Pivots (mirror centres) ENU [m] and unit mirror normals.
+    width, height : torch.Tensor, [H]
+        Mirror sizes [m].
+    direction : torch.Tensor, [Q, 3] or [3]
+        Unit interference direction per querying heliostat.
+    index, valid : torch.Tensor, [Q, K]
+        Candidate neighbours (:func:`occluder_candidates`, optionally :func:`solarpilot_neighbours`).
+    queries : torch.Tensor, [Q], long, optional
+        The querying heliostats (default all H).
+    interaction_limit : float
+        Cap of ``l_max`` in mirror heights.
+    distance_cutoff : bool
+        True: SolarPILOT's ``l_max`` test above; False (a diagnostic): every neighbour ahead interacts.
+    corner_rule : bool
+        True: SolarPILOT's rule above. False (a diagnostic): the area under the projected upper edge within
+        ``q``'s rectangle, whether or not a corner lands inside (``edge_samples`` points along the edge).
+    combine : {"sum", "independent"}
+        ``sum``: SolarPILOT's sum of pair losses; ``independent`` (a diagnostic): ``prod_k (1 - loss_k)``,
+        which stops counting overlapping shadows twice.
+
+    Returns
+    -------
+    torch.Tensor, [Q]
+        ``clip(1 - sum_k loss_k, 0, 1)``, dtype of ``center``. Not differentiable in a useful way (a report).
+    """
+    queries = torch.arange(center.shape[0], device=center.device) if queries is None else queries.to(center.device)
+    q = queries
+    d = safe_normalize(direction.to(center).expand(q.shape[0], 3)).unsqueeze(1)  # [Q, 1, 3]
+    ew, eh = mirror_frame(normal)
+    cq, nq, ewq, ehq = (t[q].unsqueeze(1) for t in (center, normal, ew, eh))
+    ck, nk, ewk, ehk = center[index], normal[index], ew[index], eh[index]  # [Q, K, 3]
+    wq, hq = width[q].unsqueeze(1), height[q].unsqueeze(1)
+    wk, hk = width[index], height[index]
+    rel = ck - cq
+    hdist = torch.linalg.vector_norm(rel, dim=-1)
+    tan_el = d[..., 2] / torch.linalg.vector_norm(d[..., :2], dim=-1).clamp_min(1e-12)
+    cos_k = nk[..., 2]
+    sin_k = torch.sqrt((1 - cos_k ** 2).clamp_min(0))
+    l_max = (rel[..., 2] + hk * sin_k) / tan_el + hk * cos_k
+    l_max = torch.minimum(l_max, interaction_limit * hk)
+    ahead = (rel * d).sum(-1) >= 0
+    active = valid & ahead & ((hdist <= l_max) | (not distance_cutoff))
+    uv = []
+    for sign in (-1.0, 1.0):  # the two upper corners of k
+        corner = ck + (sign * 0.5 * wk).unsqueeze(-1) * ewk + (0.5 * hk).unsqueeze(-1) * ehk
+        den = (d * nq).sum(-1)
+        ok = den.abs() > 1e-12
+        t = ((cq - corner) * nq).sum(-1) / torch.where(ok, den, torch.ones_like(den))
+        p = corner + t.unsqueeze(-1) * d - cq
+        u, v = (p * ewq).sum(-1), (p * ehq).sum(-1)
+        inside = ok & (u.abs() <= wq / 2) & (v.abs() <= hq / 2)
+        uv.append((u, v, inside))
+    (u0, v0, in0), (u1, v1, in1) = uv
+    both = in0 & in1
+    loss_both = (hq / 2 + 0.5 * (v0 + v1)) / hq * (u0 - u1).abs() / wq
+    u_on = torch.where(in0, u0, u1)
+    v_on = torch.where(in0, v0, v1)
+    u_off = torch.where(in0, u1, u0)
+    # SolarPILOT measures across from its own x axis, which is minus ours: "spills past its +x edge" is
+    # u_off < -w/2 here, and anything else is taken as spilling past the other edge.
+    dx = torch.where(u_off < -wq / 2, 0.5 + u_on / wq, 0.5 - u_on / wq)
+    loss_one = (hq / 2 + v_on) / hq * dx
+    loss = torch.where(both, loss_both, torch.where(in0 | in1, loss_one, torch.zeros_like(loss_one)))
+    if not corner_rule:
+        s = torch.linspace(0.0, 1.0, int(edge_samples), dtype=u0.dtype, device=u0.device)
+        u = u0.unsqueeze(-1) + (u1 - u0).unsqueeze(-1) * s
+        v = v0.unsqueeze(-1) + (v1 - v0).unsqueeze(-1) * s
+        hq3, wq3 = hq.unsqueeze(-1), wq.unsqueeze(-1)
+        covered = (torch.minimum(torch.maximum(v, -hq3 / 2), hq3 / 2) + hq3 / 2) * (u.abs() <= wq3 / 2)
+        loss = covered.mean(-1) * (u1 - u0).abs() / (wq * hq)
+    loss = torch.where(active, loss, torch.zeros_like(loss))
+    if combine == "independent":
+        return torch.prod(1.0 - loss.clamp(0.0, 1.0), dim=-1)
+    if combine != "sum":
+        raise ValueError(f"combine must be 'sum' or 'independent', got {combine!r}")
+    return (1.0 - loss.sum(-1)).clamp(0.0, 1.0)
