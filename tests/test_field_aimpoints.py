@@ -134,3 +134,41 @@ def test_aimpoints_command_instants_scenario_and_field(tmp_path, capsys):
     assert code == 0, err
     field = json.loads(fj2.read_text())
     assert field["receiver"]["power_w"] == pytest.approx(rep["instants"][1]["optimised"]["power_w"], rel=1e-6)
+
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_optimiser_runs_on_the_requested_device(device):
+    """``device=`` moves the plant: the aim points come back there and meet the limit (the CLI's --device)."""
+    import pandas as pd
+
+    plant, atm = demo_field_plant(20)
+    s = plant.site
+    sun = direction_from_time(pd.DatetimeIndex([pd.Timestamp(TIME)]), s.latitude_deg, s.longitude_deg,
+                              s.altitude_m)[0]
+    limit = 0.8 * float(calibrate_images(plant, sun, atm, (20, 48))[1].flux.max())
+    best = optimise_aimpoints(plant, sun, limit, atmosphere=atm, iterations=100, device=device)
+    assert best.aim.device.type == device
+    assert best.violation(limit) == 0.0
+
+
+def test_aimpoints_bad_target_file_is_one_line_naming_the_file(tmp_path, capsys):
+    from helpers.cli import assert_one_line_error
+
+    from heliotwin.io.scenario import save_scenario
+
+    plant, atm = demo_field_plant(10)
+    h5 = tmp_path / "p.h5"
+    save_scenario(plant, h5, extras=atm.to_extras())
+    bad = tmp_path / "target.csv"
+    bad.write_text("1,2,3\n4,5,6\n")
+    js, out = tmp_path / "a.json", tmp_path / "a.h5"
+    code, _, err = run_cli(capsys, "aimpoints", "--scenario", h5, "--time", "2023-06-21T12:00:00Z", "--peak-limit",
+                           1e5, "--target", bad, "--no-baselines", "-o", out, "--json", js)
+    assert_one_line_error(code, err, "target.csv")
+    assert not js.exists() and not out.exists()  # nothing half-written
+    code, _, err = run_cli(capsys, "aimpoints", "--scenario", h5, "--day", "2023-12-21", "--every", "nonsense",
+                           "--peak-limit", 1e5, "-o", out, "--json", js)
+    assert_one_line_error(code, err, "--every")

@@ -63,8 +63,8 @@ from ..field.plant import Plant
 from ..field.targets import CylinderTarget
 from ..raytrace.field import FieldSettings, equator_aim_points, field_optics
 
-__all__ = ["AimResult", "ImageModel", "optimise_aimpoints", "aiming_factor", "image_size_priority", "evaluate",
-           "uniform_target", "load_target", "target_mismatch"]
+__all__ = ["AimResult", "ImageModel", "optimise_aimpoints", "calibrate_images", "to_device", "aiming_factor",
+           "image_size_priority", "evaluate", "check_settings", "uniform_target", "load_target", "target_mismatch"]
 
 _SQ2 = math.sqrt(2.0)
 
@@ -85,6 +85,22 @@ class AimResult:
     def violation(self, limit: float) -> float:
         """Relative excess of the peak over the limit (0 when met)."""
         return max(0.0, self.peak_flux_w_m2 / float(limit) - 1.0)
+
+
+def to_device(obj, device):
+    """``obj`` (a plant, target, tensor, or containers of them) with every tensor on ``device``; dtypes kept."""
+    import dataclasses
+
+    if isinstance(obj, torch.Tensor):
+        return obj.to(device)
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return dataclasses.replace(obj, **{f.name: to_device(getattr(obj, f.name), device)
+                                           for f in dataclasses.fields(obj) if f.init})
+    if isinstance(obj, dict):
+        return {k: to_device(v, device) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(to_device(v, device) for v in obj)
+    return obj
 
 
 # ------------------------------------------------------------------------------------------ exact model
@@ -351,7 +367,7 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, *, at
                        resolution=(20, 48), iterations: int = 300, rounds: int = 8, inner: int = 10,
                        lr: float = 0.03, rho: float = 1.0, margin: float = 0.005, tolerance: float = 1e-3,
                        target: torch.Tensor | None = None, group=None, equator=None, model=None,
-                       progress=None) -> AimResult:
+                       progress=None, device=None) -> AimResult:
     """Aim points that maximise intercepted power (or match ``target``) with every map cell at or below
     ``peak_limit`` [W/m^2] on the exact model.
 
@@ -390,6 +406,9 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, *, at
         The exact equator result and a calibrated :class:`ImageModel` (from :func:`calibrate_images`).
     progress : callable, optional
         Called with a one-line string after each round.
+    device : str or torch.device, optional
+        Run on this device (the plant, sun and target are moved there; ``equator``/``model`` must already be
+        there). Default: where the plant's tensors are.
 
     Returns
     -------
@@ -398,9 +417,12 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, *, at
         margin and whether the check passed; ``iterations`` the Adam steps done.
     """
     t0 = time.perf_counter()
+    if device is not None:
+        plant, sun = to_device(plant, device), torch.as_tensor(sun).to(device)
     grp = _Group(group)
     rec = plant.target("receiver")
     pos = plant.field.kinematics.position.to(torch.float64)
+    sun = torch.as_tensor(sun).to(pos)
     h = pos.shape[0]
     rows = grp.rows(h, pos.device)
     limit = float(peak_limit)
