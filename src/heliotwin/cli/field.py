@@ -242,7 +242,8 @@ def _aim_instant(args, plant, sun, atm, limit, target_spec):
         target = uniform_target(eq_field.flux)
     elif target_spec is not None:
         target = load_target(target_spec, args.resolution)
-    kw = dict(atmosphere=atm, resolution=args.resolution, iterations=args.iterations, target=target)
+    kw = dict(atmosphere=atm, resolution=args.resolution, iterations=args.iterations, target=target,
+              field_gradient=args.field_gradient)
     if args.nproc > 1:
         from ..distributed import run_aimpoints_sharded
 
@@ -425,6 +426,8 @@ def register(sub) -> None:
     p.add_argument("--iterations", type=positive_int, default=300, help="image-model steps per round")
     p.add_argument("--nproc", type=positive_int, default=1, help="shard the heliostats over N local processes "
                                                                  "(torch.distributed, gloo)")
+    p.add_argument("--field-gradient", action="store_true", help="add the smooth field model's power gradient "
+                   "(shading, blocking, cosine) to the image model each round (one backward pass per round)")
     p.add_argument("--no-baselines", action="store_true", help="skip the aiming-factor and image-size baselines")
     p.add_argument("-o", "--output", required=True, help="scenario file to write (.h5)")
     p.add_argument("--json", required=True, help="JSON report")

@@ -26,6 +26,11 @@ Structural Optimization 15 (1998) 16):
 4. the exact model re-checks the new aim points; the margin ``m`` grows by the observed excess when the
    check fails. Rounds stop when the check passes and the power settles.
 
+With ``field_gradient=True`` the corrected power is also first-order exact at ``a_k``: the difference between
+the smooth differentiable field model's power gradient (soft shading and blocking, cosine, attenuation,
+intercept; one backward pass through :func:`~heliotwin.raytrace.field.field_optics`) and the image model's is
+added as a linear term, so the optimiser sees how occlusion and cosine move with the aim points.
+
 The answer is the best aim points whose *exact* check passed (or, if none did, the least violating ones,
 with the violation reported as it is, never clipped).
 
@@ -51,6 +56,7 @@ Shapes: H heliostats; aim points [H, 3] ENU [m]; maps [rows, cols] [W/m^2] (row 
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -333,9 +339,26 @@ def target_mismatch(flux: torch.Tensor, target: torch.Tensor) -> float:
 
 
 # ------------------------------------------------------------------------------------------ optimiser
+def _field_power_gradient(plant, sun, atmosphere, rec, x_all, y_all, rows, grp, resolution, softness,
+                          dtype=torch.float32):
+    """d(receiver power)/d(x, y) [h], [h] of this rank's heliostats through the smooth field model (shading,
+    blocking, cosine, attenuation and intercept all move with the aim points) [W/m]."""
+    xa, ya = x_all.clone().requires_grad_(), y_all.clone().requires_grad_()
+    settings = FieldSettings(resolution=tuple(int(r) for r in resolution), softness=float(softness), flux_samples=4,
+                             flux_mode="window", dtype=dtype)
+    r = field_optics(plant, sun, atmosphere=atmosphere, aim=_world(rec, xa, ya), settings=settings,
+                     heliostats=None if grp.group is None else rows)
+    gx, gy = torch.autograd.grad(r.power_w.sum(), (xa, ya))  # a shard's power also moves with its occluders
+    return grp.sum(gx.detach())[rows], grp.sum(gy.detach())[rows]
+
+
 def _alm(model: ImageModel, x, y, defect, power_defect, limit_int, lam, *, grp, steps, lr, rho, inner,
-         half_height, p0, weight, target):
-    """Augmented-Lagrangian Adam steps on the corrected image model; returns x, y, lam (updated in place)."""
+         half_height, p0, weight, target, linear=None):
+    """Augmented-Lagrangian Adam steps on the corrected image model; returns x, y (``lam`` updated in place).
+
+    ``linear = (cx, cy)``: a first-order power correction ``sum cx (x - x_k) + cy (y - y_k)`` [W] about the start.
+    """
+    x0, y0 = x.clone(), y.clone()
     x = x.clone().requires_grad_()
     y = y.clone().requires_grad_()
     opt = torch.optim.Adam([x, y], lr=lr)
@@ -343,7 +366,10 @@ def _alm(model: ImageModel, x, y, defect, power_defect, limit_int, lam, *, grp, 
     for it in range(int(steps)):
         f_loc, p_loc = model.flux(x, y)
         f = grp.sum(f_loc) + defect
-        p = grp.sum(p_loc.sum()) + power_defect
+        p_loc = p_loc.sum()
+        if linear is not None:
+            p_loc = p_loc + (linear[0] * (x - x0) + linear[1] * (y - y0)).sum()
+        p = grp.sum(p_loc) + power_defect
         if target is None:
             obj = -p / p0
         else:
@@ -367,7 +393,8 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, *, at
                        resolution=(20, 48), iterations: int = 300, rounds: int = 8, inner: int = 10,
                        lr: float = 0.03, rho: float = 1.0, margin: float = 0.005, tolerance: float = 1e-3,
                        target: torch.Tensor | None = None, group=None, equator=None, model=None,
-                       progress=None, device=None) -> AimResult:
+                       progress=None, device=None, field_gradient: bool = False, softness: float = 0.05
+                       ) -> AimResult:
     """Aim points that maximise intercepted power (or match ``target``) with every map cell at or below
     ``peak_limit`` [W/m^2] on the exact model.
 
@@ -406,6 +433,10 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, *, at
         The exact equator result and a calibrated :class:`ImageModel` (from :func:`calibrate_images`).
     progress : callable, optional
         Called with a one-line string after each round.
+    field_gradient : bool
+        Also make the power model first-order exact at every round's start: add the difference between the
+        smooth differentiable field model's power gradient (shading, blocking, cosine, attenuation, intercept;
+        occlusion width ``softness`` [m]) and the image model's (one field-model backward pass per round).
     device : str or torch.device, optional
         Run on this device (the plant, sun and target are moved there; ``equator``/``model`` must already be
         there). Default: where the plant's tensors are.
@@ -428,6 +459,7 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, *, at
     limit = float(peak_limit)
     if model is None or equator is None:
         model, equator = calibrate_images(plant, sun, atmosphere, resolution, group=group, equator=equator)
+    model = dataclasses.replace(model)  # its power is refreshed every round: leave the caller's alone
     eq_aim = equator_aim_points(rec, pos)
     x0, _ = _local(rec, eq_aim)
     x = x0[rows].clone()
@@ -471,9 +503,17 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, *, at
             f_s, p_s = model.flux(x, y)
             f_s, p_s = grp.sum(f_s), grp.sum(p_s.sum())
         defect = ex.flux.to(pos) - f_s
+        linear = None
+        if field_gradient:
+            # first-order model management: the corrected model's power gradient at a_k becomes the field model's
+            xs, ys = x.clone().requires_grad_(), y.clone().requires_grad_()
+            gsx, gsy = torch.autograd.grad(model.flux(xs, ys)[1].sum(), (xs, ys))
+            gfx, gfy = _field_power_gradient(plant, sun, atmosphere, rec, grp.gather(x, h), grp.gather(y, h), rows,
+                                             grp, resolution, softness)
+            linear = (gfx - gsx, gfy - gsy)
         x, y = _alm(model, x, y, defect, power - float(p_s), limit * (1.0 - m), lam, grp=grp,
                     steps=iterations, lr=lr, rho=rho, inner=inner, half_height=half, p0=p_eq, weight=float(h),
-                    target=tgt)
+                    target=tgt, linear=linear)
         steps += int(iterations)
     out = best if best is not None else least
     out.seconds, out.iterations, out.history, out.parameter = time.perf_counter() - t0, steps, history, m
