@@ -17,6 +17,22 @@ Usage::
 
 Writes ``<out>/aimpoints.json`` and ``<out>/flux_<instant>_{equator,optimised}.png``. Deterministic (no random
 draws); wall times depend on the machine and its load (recorded next to them).
+
+Measured (2000 heliostats, 1 thread, 2 cores shared with other jobs, load average ~3; 5.6 min in all), limit =
+equator peak / 1.35, all on the exact check:
+
+==================  ===========  =============  ====================  ==========================
+instant (UTC)       sun elev.    optimised      aiming factor          image-size priority
+==================  ===========  =============  ====================  ==========================
+2023-06-21 07:00    31.1 deg     peak 0.968 L,  peak 0.983 L, power    peak 0.964 L, power 0.9975
+                                 power 0.9996   0.9974 (k = 0.969)     (k = 2.44)
+2023-06-21 11:30    62.5 deg     peak 0.988 L,  peak 0.994 L, power    peak 0.987 L, power 0.9931
+                                 power 0.9984   0.9975 (k = 0.875)     (k = 2.16)
+==================  ===========  =============  ====================  ==========================
+
+(power as a fraction of equator aiming's.) Seconds per instant for the optimised aim points (calibration +
+rounds): 60 s and 41 s (3 exact checks each); the heuristics 45-57 s each (6 exact checks). One vs two gloo
+processes at 07:00: 60 s vs 27 s wall, largest aim-point difference 0.13 mm, peaks 425 769 vs 425 771 W/m2.
 """
 from __future__ import annotations
 
