@@ -4,6 +4,10 @@
 small TOML plant description into a scenario file; ``field`` reports the optical efficiency of every
 heliostat (cosine, shading, blocking, attenuation, intercept, reflectance) and the receiver's power and flux
 map for one sun. Both are thin shells over :mod:`heliotwin.field.layout` and :mod:`heliotwin.raytrace.field`.
+``aimpoints`` optimises aim points under a peak-flux limit for one or several instants
+(:mod:`heliotwin.optimise.aimpoints`; ``--nproc`` shards them over local gloo processes,
+:mod:`heliotwin.distributed`) and writes them, per instant, into ``/learned/aimpoints`` with their motor steps;
+``field --aim scenario`` traces the stored instant whose sun is nearest the requested one.
 """
 from __future__ import annotations
 
