@@ -10,6 +10,11 @@ with ``torchrun --nproc-per-node N`` or :func:`torch.multiprocessing.spawn` afte
 
 The map is exactly the single-process one with ``FieldSettings(flux_mode="window")``; in ``grouped`` mode
 each shard forms its own footprint classes (the same physics, a slightly different approximation).
+
+Aim points (:func:`heliotwin.optimise.aimpoints.optimise_aimpoints` with ``group=``): every rank optimises
+the aim points of its shard; the image-model map and power are all-reduced at every step (so the gradient
+of every heliostat sees the whole field's flux) and the exact checks are :func:`field_optics_sharded`.
+:func:`run_aimpoints_sharded` spawns N local gloo processes for it.
 """
 from __future__ import annotations
 
@@ -18,7 +23,7 @@ import torch.distributed as dist
 
 from .raytrace.field import FieldResult, field_optics
 
-__all__ = ["shard", "field_optics_sharded", "run_sharded"]
+__all__ = ["shard", "field_optics_sharded", "run_sharded", "run_aimpoints_sharded"]
 
 _PER_HELIOSTAT = ("aim", "normal", "cosine", "shading", "tower_shading", "blocking", "attenuation", "intercept",
                   "reflectance", "efficiency", "power_w", "mirror_area")
@@ -94,4 +99,39 @@ def run_sharded(plant, sun_direction, nproc: int, **kwargs) -> FieldResult:
     with tempfile.TemporaryDirectory() as folder:
         torch.save({"plant": plant, "sun": sun_direction, "kwargs": kwargs}, f"{folder}/job.pt")
         mp.spawn(_run_rank, args=(int(nproc), folder, threads), nprocs=int(nproc), join=True)
+        return torch.load(f"{folder}/result.pt", weights_only=False)
+
+
+def _run_aim_rank(rank: int, world: int, folder: str, threads: int) -> None:
+    from .optimise.aimpoints import calibrate_images, optimise_aimpoints
+
+    torch.set_num_threads(threads)
+    dist.init_process_group("gloo", init_method=f"file://{folder}/store", rank=rank, world_size=world)
+    try:
+        job = torch.load(f"{folder}/job.pt", weights_only=False)
+        kw = dict(job["kwargs"])
+        group = dist.group.WORLD
+        model, equator = calibrate_images(job["plant"], job["sun"], kw.get("atmosphere"),
+                                          kw.get("resolution", (20, 48)), group=group)
+        result = optimise_aimpoints(job["plant"], job["sun"], job["limit"], group=group, equator=equator,
+                                    model=model, **kw)
+        if rank == 0:
+            torch.save(result, f"{folder}/result.pt")
+    finally:
+        dist.destroy_process_group()
+
+
+def run_aimpoints_sharded(plant, sun_direction, peak_limit: float, nproc: int, **kwargs):
+    """:func:`heliotwin.optimise.aimpoints.optimise_aimpoints` sharded over ``nproc`` spawned local gloo
+    processes (CPU); rank 0's result (every rank holds the same aim points). ``kwargs`` as for it, without
+    ``group``, ``equator``, ``model`` and ``progress``."""
+    import tempfile
+
+    import torch.multiprocessing as mp
+
+    threads = max(1, torch.get_num_threads() // int(nproc))
+    with tempfile.TemporaryDirectory() as folder:
+        torch.save({"plant": plant, "sun": sun_direction, "limit": float(peak_limit), "kwargs": kwargs},
+                   f"{folder}/job.pt")
+        mp.spawn(_run_aim_rank, args=(int(nproc), folder, threads), nprocs=int(nproc), join=True)
         return torch.load(f"{folder}/result.pt", weights_only=False)
