@@ -110,9 +110,10 @@ def test_two_gloo_processes_give_the_single_process_aim_points(tmp_path):
     assert ref.violation(limit) == 0.0
     for rank in range(2):
         got = torch.load(tmp_path / f"aim{rank}.pt")
-        # each shard's exact window map picks its own window half-size (raytrace/field.py), so the exact maps
-        # differ by ~1e-5 relative and the rounds amplify that to about a centimetre; same limit, same power
-        assert float((got["aim"] - ref.aim).abs().max()) < 0.05, str((got["history"], ref.history))
+        # the shards agree on the footprint window (raytrace/field.py), so only the summation order differs
+        diff = float((got["aim"] - ref.aim).abs().max())
+        print("max aim-point difference [m]", diff)
+        assert diff < 1e-4, str((got["history"], ref.history))
         assert got["peak"] <= limit
-        assert got["peak"] == pytest.approx(ref.peak_flux_w_m2, rel=1e-3)
-        assert got["power"] == pytest.approx(ref.power_w, rel=1e-4)
+        assert got["peak"] == pytest.approx(ref.peak_flux_w_m2, rel=1e-5)
+        assert got["power"] == pytest.approx(ref.power_w, rel=1e-6)

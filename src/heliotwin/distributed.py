@@ -64,7 +64,7 @@ def field_optics_sharded(plant, sun_direction, *, group=None, **kwargs) -> Field
     rank, world = dist.get_rank(group), dist.get_world_size(group)
     h = len(plant.field.ids)
     rows = shard(h, rank, world)
-    r = field_optics(plant, sun_direction, heliostats=rows, **kwargs)
+    r = field_optics(plant, sun_direction, heliostats=rows, group=group, **kwargs)
     flux = r.flux.detach().clone()
     dist.all_reduce(flux, group=group)
     counts = [len(shard(h, k, world)) for k in range(world)]

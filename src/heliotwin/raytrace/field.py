@@ -383,8 +383,12 @@ def _grouped_map(mu, cov, weights, rows, cols, groups, n_sigma):
     return _fft_convolve(canvas, kern, half, rows, cols).sum(0)
 
 
-def _flux_map(points, nw, reflected, weights, target, settings: FieldSettings, plant: Plant, sun):
-    """Receiver map [rows, cols] [W/m^2], per-sample intercept [N], the map's extent (4,)."""
+def _flux_map(points, nw, reflected, weights, target, settings: FieldSettings, plant: Plant, sun, group=None):
+    """Receiver map [rows, cols] [W/m^2], per-sample intercept [N], the map's extent (4,).
+
+    ``group``: a ``torch.distributed`` process group whose ranks each draw a shard of the field; they agree on
+    the footprint window and the map mode (largest window, total sample count), so that their maps sum to the
+    one-process map exactly, not just within the window truncation."""
     rows, cols = (int(x) for x in settings.resolution)
     extent = target_extent(target, 1).to(points.device)
     pixel_area = float((extent[0, 1] - extent[0, 0]) * (extent[0, 3] - extent[0, 2])) / (rows * cols)
@@ -416,8 +420,11 @@ def _flux_map(points, nw, reflected, weights, target, settings: FieldSettings, p
         sd = torch.sqrt(torch.where(mu[:, 0] > -1e8, cov_s[:, 0, 0].maximum(cov_s[:, 1, 1]),
                                     torch.zeros_like(cov_s[:, 0, 0])))
         half = int(min(64, max(1, math.ceil(settings.n_sigma * float(sd.max())))))
+        total = mu.shape[0]
+        if group is not None:
+            half, total = _agree(half, total, group)
     if mode == "auto":
-        mode = "window" if mu.shape[0] * (2 * half + 1) ** 2 <= 2e7 else "grouped"
+        mode = "window" if total * (2 * half + 1) ** 2 <= 2e7 else "grouped"
     if mode == "window":
         img = gaussian_footprints(mu, cov_s, w, rows, cols, 1, mu.shape[0], half)[0]
     elif mode == "grouped":
@@ -425,6 +432,17 @@ def _flux_map(points, nw, reflected, weights, target, settings: FieldSettings, p
     else:
         raise HeliotwinError(f"flux_mode must be 'auto', 'window' or 'grouped', got {mode!r}")
     return img, icpt, extent[0]
+
+
+def _agree(half: int, count: int, group) -> tuple[int, int]:
+    """The largest window half-size and the summed sample count over the ranks of ``group``."""
+    import torch.distributed as dist
+
+    device = "cuda" if dist.get_backend(group) == "nccl" else "cpu"
+    t = torch.tensor([half, count], dtype=torch.long, device=device)
+    dist.all_reduce(t[:1], op=dist.ReduceOp.MAX, group=group)
+    dist.all_reduce(t[1:], group=group)
+    return int(t[0]), int(t[1])
 
 
 def _wrap_seam(mu, cov, w, ok, cols: int, n_sigma: float):
@@ -450,7 +468,7 @@ def _power_scale(plant: Plant, nw, sun):
 
 def field_optics(plant: Plant, sun_direction: torch.Tensor, *, atmosphere: Atmosphere | None = None,
                  aim: torch.Tensor | None = None, settings: FieldSettings | None = None,
-                 receiver: str = "receiver", heliostats: torch.Tensor | None = None) -> FieldResult:
+                 receiver: str = "receiver", heliostats: torch.Tensor | None = None, group=None) -> FieldResult:
     """Optical efficiency of every heliostat and the receiver flux map for one sun.
 
     Parameters
@@ -470,6 +488,9 @@ def field_optics(plant: Plant, sun_direction: torch.Tensor, *, atmosphere: Atmos
     heliostats : torch.Tensor, [h], long, optional
         Trace only these heliostats (a shard, :mod:`heliotwin.distributed`); all heliostats still shade and
         block them. The result's per-heliostat tensors are theirs and the map holds their light only.
+    group : torch.distributed ProcessGroup, optional
+        With ``heliostats`` = this rank's shard: the ranks agree on the footprint window, so the sum of their
+        maps is the one-process map (:func:`heliotwin.distributed.field_optics_sharded` passes it).
 
     Returns
     -------
@@ -510,7 +531,7 @@ def field_optics(plant: Plant, sun_direction: torch.Tensor, *, atmosphere: Atmos
     reflected = reflect(-sun.expand_as(nw64), nw64)
     h, n = weights.shape
     flux, icpt, extent = _flux_map(pw.reshape(h * n, 3), nw.reshape(h * n, 3), reflected.reshape(h * n, 3),
-                                   weights.reshape(-1), target, settings, plant, sun)
+                                   weights.reshape(-1), target, settings, plant, sun, group)
     icpt = icpt.reshape(h, n).to(f64)
     intercept = (weights * icpt).sum(1) / weights.sum(1).clamp_min(1e-30)
     mirror_area = area.sum(1)
