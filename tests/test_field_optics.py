@@ -237,3 +237,26 @@ def test_full_cylinder_map_wraps_at_its_seam(tmp_path):
         assert float(res.flux.sum()) * res.pixel_area == pytest.approx(float(res.power_w.sum()), rel=1e-2)
         left, right = res.flux[:, :3].sum(), res.flux[:, -3:].sum()
         assert float(left) > 0.1 * float(res.flux.max()) and float(right) == pytest.approx(float(left), rel=0.3)
+
+
+def test_field_command_occlusion_solarpilot_reproduces_solarpilots_east_blocking(tmp_path, capsys):
+    """``field --occlusion solarpilot`` on SolarPILOT's own layout: its field-average blocking at the east sun,
+    where the exact ray test finds more blocking (docs/physics.md: SolarPILOT's reach test)."""
+    ref = solarpilot_dir()
+    h5 = tmp_path / "sp.h5"
+    assert run_cli(capsys, "scenario", "from-layout", ref / "layout-500.csv", "--config", write_plant_toml(tmp_path),
+                   "-o", h5)[0] == 0
+    theirs = next(s for s in json.loads((ref / "field-results.json").read_text())["suns"]
+                  if abs(s["sun_azimuth_deg_from_north_clockwise"] - 97.55) < 0.01)
+    blocking = {}
+    for model in ("exact", "solarpilot"):
+        js = tmp_path / f"{model}.json"
+        code, _, err = run_cli(capsys, "field", "--scenario", h5, "--sun-azimuth", f"{180 - 97.55}",
+                               "--sun-elevation", "36.73", "--occlusion", model, "--json", js)
+        assert code == 0, err
+        rep = json.loads(js.read_text())
+        assert rep["occlusion"] == model
+        blocking[model] = rep["field"]["efficiency"]["blocking"]
+    sp = theirs["eff_blocking"]
+    assert blocking["solarpilot"] == pytest.approx(sp, abs=5e-4)
+    assert blocking["exact"] < sp - 0.005  # the diagonal neighbours SolarPILOT's reach test drops

@@ -102,7 +102,8 @@ def cmd_field(args) -> int:
     aim = None
     if args.aim == "scenario":
         aim = _stored_aim(sc, sun)
-    settings = FieldSettings(resolution=args.resolution, integrator=args.integrator, seed=args.seed)
+    settings = FieldSettings(resolution=args.resolution, integrator=args.integrator, seed=args.seed,
+                             occlusion_model=args.occlusion)
     t1 = time.perf_counter()
     kwargs = dict(atmosphere=Atmosphere.from_extras(sc.extras), aim=aim, settings=settings)
     if args.nproc > 1:
@@ -116,6 +117,7 @@ def cmd_field(args) -> int:
     seconds = time.perf_counter() - t0
     report = summary(result, plant)
     report.update({"scenario": os.path.abspath(args.scenario), "aim": args.aim, "integrator": args.integrator,
+                   "occlusion": args.occlusion,
                    "resolution": {"cols": args.resolution[1], "rows": args.resolution[0]}, "seconds": seconds,
                    "seconds_field_model": seconds_model})
     if args.json:
@@ -400,6 +402,9 @@ def register(sub) -> None:
     p.add_argument("--integrator", choices=("gaussian", "mc"), default="gaussian")
     p.add_argument("--resolution", type=_resolution, default=(20, 48), help="COLSxROWS of the receiver map "
                                                                             "(default: 48x20)")
+    p.add_argument("--occlusion", choices=("exact", "solarpilot"), default="exact",
+                   help="exact: shading and blocking ray-tested on the mirrors (default); solarpilot: SolarPILOT's "
+                        "analytic per-pair estimate, to compare with its reports (docs/physics.md)")
     p.add_argument("--seed", type=int, default=0, help="Monte-Carlo seed")
     p.add_argument("--nproc", type=positive_int, default=1, help="shard the heliostats over N local processes "
                                                          "(torch.distributed, gloo)")
