@@ -44,7 +44,7 @@ from .observations import Observations
 
 __all__ = ["GeneraliseSettings", "reconstruct_generalising", "summarise",
            "canting_focal_length", "focused_start", "choose_optics", "fit_generalising",
-           "blur_for", "evaluate_with_camera", "loo_select"]
+           "blur_for", "evaluate_with_camera", "loo_select", "reconstruct_paint_generalising"]
 
 
 @dataclass
@@ -75,7 +75,7 @@ class GeneraliseSettings:
     resolution: int = 64
     size_m: float = 6.0
     focus_grid: tuple = (None, 1.0, 2.0, 4.0)
-    slope_grid: tuple = (0.5e-3, 1.0e-3, 1.5e-3, 2.0e-3, 2.5e-3, 3.0e-3, 4.0e-3)
+    slope_grid: tuple = (0.5e-3, 1.0e-3, 1.5e-3, 2.0e-3, 2.5e-3, 3.0e-3, 4.0e-3, 5.0e-3)
     blur_grid_px: tuple = (0.0, 1.0, 2.0, 3.0, 4.0)
     slope_weight_grid: tuple = (1e-3, 1e-2, 1e-1)
     steps: int = 300
@@ -187,7 +187,8 @@ def _fit(facets, obs, camera, sigma0, sun, start, weight, s, steps, heldout=None
     ``heldout``: ``(Observations, CameraModel)`` of one image; its blur follows :func:`blur_for` from the
     current training blurs.
     """
-    model = LearnableSurface(facets, s.control_points, s.degree, initial=start, fix_gauge=True)
+    model = LearnableSurface(facets, s.control_points, s.degree, initial=start, fix_gauge=True,
+                             gauge_tilt=obs.centers is None)
     ref = normal_heights(facets, model.surfaces().control_points.detach(), s.degree, (16, 16))[1].detach()
     log_sigma = torch.log(sigma0.to(torch.float32).clamp_min(0.1)).clone().requires_grad_(True)
     params = [p for p in model.parameters() if p.requires_grad]
@@ -376,3 +377,34 @@ def reconstruct_generalising(facets: Facets, train: Observations, test: Observat
               "optics_used": {"sunshape": sun.sunshape, "csr": sun.csr, "slope_error_rad": sun.slope_error},
               **info["report"]}
     return report, model, info
+
+
+def reconstruct_paint_generalising(paint_dir, heliostat_id: str, *, train_first: int | None = 3, train_records=None,
+                                   settings: GeneraliseSettings | None = None, sun: SunSettings | None = None,
+                                   alignment: str = "focal-spot", progress: bool = False
+                                   ) -> tuple[dict, LearnableSurface, dict]:
+    """:func:`reconstruct_generalising` on a PAINT heliostat (the split and poses of
+    :func:`heliotwin.surfaces.study.reconstruct_paint`; Buie sun, CSR 0.05, slope error chosen as above).
+
+    Returns
+    -------
+    report : dict
+    model : LearnableSurface
+    extras : dict
+        ``facets``, ``train``, ``test``, ``info`` (see :func:`fit_generalising`).
+    """
+    from ..io.paint import load_paint
+    from .observations import observations_from_records, split_records
+
+    s = settings or GeneraliseSettings()
+    ds = load_paint(paint_dir, heliostats=[heliostat_id])
+    plant = ds.plant
+    tr, te = split_records(ds.records_of(heliostat_id), train_records, train_first)
+    train = observations_from_records(plant, 0, tr, s.resolution, 0.0, alignment)
+    test = observations_from_records(plant, 0, te, s.resolution, 0.0, alignment)
+    facets = Facets(*(getattr(plant.field.facets, a)[:1].to(torch.float64)
+                      for a in ("translation", "canting_e", "canting_n")))
+    report, model, info = reconstruct_generalising(facets, train, test, sun or SunSettings(sunshape="buie", csr=0.05),
+                                                   s, progress)
+    report.update(heliostat=heliostat_id, paint=str(paint_dir), alignment=alignment)
+    return report, model, {"facets": facets, "train": train, "test": test, "info": info}

@@ -7,9 +7,10 @@ stated rules and applied to the model image, so the surface only has to explain 
 
 Rules (per measured image ``m``, scaled to max 1):
 
-* **Background cut** ``t``: the median value of the measured spot's *boundary* pixels (non-zero pixels with a
-  zero 4-neighbour). A hard cut at level ``t`` of a smooth image leaves boundary values just above ``t``;
-  box-averaging (256 -> 64 px) lowers them, so the median is a conservative estimate of the cut.
+* **Background cut** ``t``: the 10th percentile (``CUT_QUANTILE``) of the measured spot's *boundary* pixels
+  (non-zero pixels with a zero 4-neighbour). A hard cut at level ``t`` of a smooth image leaves boundary
+  values in ``[t, t + slope x pixel]``, so a low quantile sits just above the cut; box-averaging (256 -> 64 px)
+  lowers some of them, so the estimate errs on the low (conservative) side.
 * **Saturation**: ``n_sat`` = the number of measured pixels >= ``SATURATED`` (0.98) of the max. The model
   image (scaled to max 1) is multiplied by a gain ``g = 1 / p_(n_sat)`` (its ``n_sat``-th largest value),
   then clipped at 1, so it shows the same number of plateau pixels. ``g`` is computed from the current model
@@ -28,10 +29,13 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-__all__ = ["CameraModel", "estimate_camera", "apply_camera", "gaussian_blur", "SATURATED", "BLUR_RADIUS_PX"]
+__all__ = ["CameraModel", "estimate_camera", "apply_camera", "gaussian_blur", "SATURATED", "BLUR_RADIUS_PX",
+           "CUT_QUANTILE"]
 
 #: Fraction of the max at and above which a measured pixel counts as saturated (plateau).
 SATURATED = 0.98
+#: Quantile of the boundary pixels' values taken as the background cut.
+CUT_QUANTILE = 0.1
 #: Support of the per-image blur kernel [px] (fixed, so the blur is differentiable in sigma).
 BLUR_RADIUS_PX = 8
 
@@ -77,7 +81,7 @@ def estimate_camera(measured: torch.Tensor) -> CameraModel:
     thr = []
     for i in range(m.shape[0]):  # B is a handful of images
         vals = m[i][boundary[i]]
-        thr.append(vals.median() if vals.numel() else m.new_zeros(()))
+        thr.append(vals.quantile(CUT_QUANTILE) if vals.numel() else m.new_zeros(()))
     n_sat = (m >= SATURATED).sum((-2, -1))
     return CameraModel(torch.stack(thr).to(torch.float32), n_sat.to(torch.int64))
 
