@@ -42,10 +42,11 @@ def _legacy(a) -> dict:
 
 
 def _maps(out, hid, extras, model) -> dict:
+    from matplotlib.figure import Figure
+
     from heliotwin.io.report import save_figure
     from heliotwin.surfaces.edges import residual_map_mrad
     from heliotwin.surfaces.plots import plot_normal_deviation
-    from matplotlib.figure import Figure
 
     facets, learned, ideal = extras["facets"], model.surfaces(), extras["info"]["ideal"]
     total = os.path.join(out, f"{hid}-normal-deviation.png")
@@ -106,8 +107,8 @@ def main(argv=None) -> int:
         lg = summary["legacy"]
         print(f"legacy (KL, early stopping on the latest image): median test L1 ideal {lg['median_l1_ideal']:.4f} -> "
               f"learned {lg['median_l1_learned']:.4f}; training worse {lg['train_worse_than_ideal']}; improved "
-              f"{lg['test_improved']}/{lg['test_images']}; max edge ridge {lg['edge_ridge']['edge_max_mrad']:.2f} mrad (total "
-              f"{lg['edge_ridge']['total_max_mrad']:.2f})")
+              f"{lg['test_improved']}/{lg['test_images']}; max edge ridge {lg['edge_ridge']['edge_max_mrad']:.2f} "
+              f"mrad (total {lg['edge_ridge']['total_max_mrad']:.2f})")
     with open(os.path.join(a.out, f"{hid}-bench.json"), "w", encoding="utf-8") as fh:
         json.dump(summary, fh, indent=1)
     return 0
