@@ -39,6 +39,8 @@ def test_wilson_interval_matches_the_closed_form():
 def test_outlier_rule_drops_only_the_inconsistent_image():
     drop, z = robust_outliers([0.20, 0.21, 0.19, 0.60])
     assert drop == [3] and z[3] > 3
+    # Two-sided: an image the others predict far better than each other (it pulled the shared optics).
+    assert robust_outliers([0.42, 0.08, 0.38, 0.40])[0] == [1]
     assert robust_outliers([0.20, 0.24, 0.21])[0] == []  # ordinary scatter (below the metric's floor)
     assert robust_outliers([0.2, 0.9], keep_at_least=2)[0] == []
 

@@ -2,7 +2,10 @@
 
 * :func:`wilson_interval`: 95 % Wilson score interval of a binomial proportion (how many test images improved).
 * :func:`robust_outliers`: training images to drop as inconsistent -- robust z-score of each image's held-out
-  L1 (under a fit to the *other* training images) against the median and MAD of all of them.
+  L1 (under a fit to the *other* training images) against the median and MAD of all of them, two-sided: an
+  image the others predict far *worse* than the rest (a halo they cannot produce) or far *better* (the
+  others are fitted badly because this image pulled the shared optics, e.g. a broad halo choosing a large
+  slope error) is inconsistent with them either way.
 * :func:`shrink_to_accept`: the acceptance rule. A learned surface is accepted only if no training image is
   worse than under the ideal (start) surface; otherwise the deviation from the start is shrunk,
   ``d = d0 + alpha (d1 - d0)``, and the largest ``alpha`` of a decreasing grid that satisfies the rule (and,
@@ -41,16 +44,16 @@ def wilson_interval(k: int, n: int, z: float = 1.959963984540054) -> tuple[float
 
 def robust_outliers(heldout_l1: list[float], z_drop: float = Z_DROP, floor: float = Z_FLOOR,
                     keep_at_least: int = 2) -> tuple[list[int], list[float]]:
-    """Indices of images whose held-out L1 is an upper outlier, and every image's robust z-score.
+    """Indices of images whose held-out L1 is an outlier, and every image's robust z-score.
 
-    ``z = (x - median) / max(1.4826 MAD, floor)``; an image is dropped if ``z > z_drop``; at most
-    ``len - keep_at_least`` images are dropped (the worst first).
+    ``z = (x - median) / max(1.4826 MAD, floor)``; an image is dropped if ``|z| > z_drop``; at most
+    ``len - keep_at_least`` images are dropped (the largest ``|z|`` first).
     """
     med = statistics.median(heldout_l1)
     mad = statistics.median(abs(x - med) for x in heldout_l1)
     scale = max(1.4826 * mad, floor)
     z = [(x - med) / scale for x in heldout_l1]
-    worst = sorted((i for i, v in enumerate(z) if v > z_drop), key=lambda i: -z[i])
+    worst = sorted((i for i, v in enumerate(z) if abs(v) > z_drop), key=lambda i: -abs(z[i]))
     return sorted(worst[:max(0, len(heldout_l1) - keep_at_least)]), z
 
 

@@ -18,7 +18,8 @@ Steps (:func:`fit_generalising`), each a stated rule:
    ``eval_every`` steps; the (weight, step count) with the lowest mean held-out L1 is kept (a
    cross-validated step budget: no single image decides when to stop).
 5. **Inconsistent images**: an image whose held-out L1 at the chosen setting is a robust-z outlier
-   (:func:`heliotwin.surfaces.acceptance.robust_outliers`) is dropped from the final fit.
+   (two-sided, :func:`heliotwin.surfaces.acceptance.robust_outliers`) is dropped, and steps 1-4 are run
+   again on the kept images (the odd image may have pulled the optics choice too).
 6. **Final fit** on the kept images, then the **acceptance rule**
    (:func:`heliotwin.surfaces.acceptance.shrink_to_accept`) over *all* training images, dropped ones included.
 7. **Facet edges**: the slope-deviation penalty with a hinge at 5 mrad (:mod:`heliotwin.surfaces.edges`).
@@ -284,17 +285,23 @@ def fit_generalising(facets: Facets, train: Observations, base_sun: SunSettings,
     camera = estimate_camera(train.images.to(torch.float32))
     cands = _candidates(facets, train, base_sun, camera, s, progress)
     best = min(cands, key=lambda c: c["score"])
-    sm, sun, start, sigma0, sel = best["settings"], best["sun"], best["optics"]["start"], best["sigma0"], \
-        best["selection"]
     n = len(train)
-    keep = [i for i in range(n) if i not in sel["drop"]]
+    drop = list(best["selection"]["drop"])
+    keep = [i for i in range(n) if i not in drop]
+    first = None
+    if drop:  # choose everything again without the inconsistent images (they pulled the optics too)
+        first = {"blur_mode": best["mode"], "selection": best["selection"]}
+        cands = _candidates(facets, train.subset(keep), base_sun, camera.subset(keep), s, progress)
+        best = min(cands, key=lambda c: c["score"])
+    sm, sun, start, sel = best["settings"], best["sun"], best["optics"]["start"], best["selection"]
+    sigma0 = torch.zeros(n, dtype=torch.float32)
+    sigma0[keep] = best["sigma0"]
     model, sigma_keep, _ = _fit(facets, train.subset(keep), camera.subset(keep), sigma0[keep], sun, start,
                                 sel["slope_weight"], sm, sel["steps"])
     sigma = sigma0.clone()
     sigma[keep] = sigma_keep
-    if sel["drop"]:  # a dropped image's blur follows the rule for unseen images
-        sigma[sel["drop"]] = blur_for([train.targets[i] for i in keep], sigma_keep,
-                                      [train.targets[i] for i in sel["drop"]])
+    if drop:  # a dropped image's blur follows the rule for unseen images
+        sigma[drop] = blur_for([train.targets[i] for i in keep], sigma_keep, [train.targets[i] for i in drop])
     ideal = LearnableSurface(facets, s.control_points, s.degree, initial=start).surfaces()
     ideal_l1 = evaluate_with_camera(ideal, train, sun, camera, sigma, sm)["l1"]
     learned_mm = model.displacement_mm.detach().clone()
@@ -313,10 +320,12 @@ def fit_generalising(facets: Facets, train: Observations, base_sun: SunSettings,
               "blur_mode_rule": "lowest mean held-out L1 (leave-one-training-image-out) over modes",
               "candidates": [{"mode": c["mode"], "optics_chosen": c["optics"]["chosen"],
                               "selection": c["selection"]} for c in cands],
-              "dropped": [{"record": train.ids[i], "robust_z": sel["robust_z"][i],
-                           "heldout_l1": sel["heldout_l1"][i],
-                           "why": "held-out L1 under a fit to the other training images is a robust-z outlier"}
-                          for i in sel["drop"]],
+              "dropped": [{"record": train.ids[i], "robust_z": (first or best)["selection"]["robust_z"][i],
+                           "heldout_l1": (first or best)["selection"]["heldout_l1"][i],
+                           "why": "held-out L1 under a fit to the other training images is a robust-z outlier "
+                                  "(|z| > 3); optics, blur mode, weight and steps were then chosen again without it"}
+                          for i in drop],
+              "first_pass": first,
               "acceptance": {"alpha": alpha, "tried": tried, "shrunk": alpha < 1.0,
                              "rule": "no training image (dropped ones included) worse than the ideal surface; "
                                      "else shrink the deviation from the ideal (largest alpha that passes)"},
