@@ -53,7 +53,7 @@ def test_demo_field_plant_has_canted_facets_and_a_cylinder_receiver():
 
 
 def test_run_field_demo_writes_figures_and_a_consistent_summary(tmp_path):
-    rep = run_field_demo(tmp_path, num_heliostats=40, iterations=15)
+    rep = run_field_demo(tmp_path, num_heliostats=40)
     for name in ("field_efficiency.png", "losses.png", "flux_equator.png", "flux_optimised.png", "heliostats.csv",
                  "summary.json"):
         assert (tmp_path / name).stat().st_size > 0
@@ -62,7 +62,8 @@ def test_run_field_demo_writes_figures_and_a_consistent_summary(tmp_path):
     a = saved["aim_points"]
     assert a["peak_limit_w_m2"] == pytest.approx(0.75 * a["equator_peak_w_m2"])
     assert a["optimised_peak_w_m2"] < 0.9 * a["equator_peak_w_m2"]  # the optimiser really spreads the flux
-    assert a["power_vs_equator"] > 0.95
+    assert a["violation"] == 0.0 and a["optimised_peak_w_m2"] <= a["peak_limit_w_m2"]  # met on the exact map
+    assert a["power_vs_equator"] > 0.98
     assert rep["field"]["efficiency"]["total"] == pytest.approx(saved["field"]["efficiency"]["total"])
     # the loss chain adds up: DNI x mirror area = receiver power + every stage's loss
     lost = sum(saved["losses"][k]["power_w"] for k in FACTORS)

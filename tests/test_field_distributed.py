@@ -9,7 +9,7 @@ from helpers.field import dense_field, write_layout, write_plant_toml
 
 from heliotwin.distributed import field_optics_sharded, shard
 from heliotwin.field.layout import plant_from_layout
-from heliotwin.raytrace.field import field_optics
+from heliotwin.raytrace.field import FieldSettings, field_optics
 from heliotwin.sun import direction_from_paint_angles
 
 
@@ -26,8 +26,9 @@ def _worker(rank, world, folder):
     try:
         plant, atm, sun = _case(folder)
         r = field_optics_sharded(plant, sun, atmosphere=atm)
+        grouped = field_optics_sharded(plant, sun, atmosphere=atm, settings=FieldSettings(flux_mode="grouped"))
         torch.save({"flux": r.flux, "efficiency": r.efficiency, "shading": r.shading, "blocking": r.blocking,
-                    "power_w": r.power_w}, f"{folder}/rank{rank}.pt")
+                    "power_w": r.power_w, "grouped": grouped.flux}, f"{folder}/rank{rank}.pt")
     finally:
         dist.destroy_process_group()
 
@@ -42,12 +43,16 @@ def test_two_gloo_processes_give_the_single_process_field(tmp_path):
     plant, atm, sun = _case(tmp_path)
     with torch.no_grad():
         ref = field_optics(plant, sun, atmosphere=atm)
+        grouped = field_optics(plant, sun, atmosphere=atm, settings=FieldSettings(flux_mode="grouped")).flux
     assert 0.0 < float(ref.shading.mean()) < 0.99  # the low sun shades: occluders cross the shard boundary
     for rank in range(2):
         got = torch.load(tmp_path / f"rank{rank}.pt")
         for name in ("efficiency", "shading", "blocking", "power_w"):
             assert torch.allclose(got[name], getattr(ref, name), rtol=1e-6, atol=0), name
         assert torch.allclose(got["flux"], ref.flux, rtol=1e-5, atol=1e-3 * float(ref.flux.max()) * 1e-3)
+        # grouped mode: the ranks share the footprint classes and their kernels, so the maps sum exactly too
+        assert float((got["grouped"] - grouped).abs().max()) < 1e-5 * float(grouped.max())
+        assert float((grouped - ref.flux).abs().max()) > 1e-4 * float(grouped.max())  # a different approximation
 
 
 def test_field_command_nproc_2_equals_one_process(tmp_path, capsys):

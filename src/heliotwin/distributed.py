@@ -8,8 +8,9 @@ gathered (``all_gather``, padded to the largest shard), so every rank ends with 
 with ``torchrun --nproc-per-node N`` or :func:`torch.multiprocessing.spawn` after
 :func:`torch.distributed.init_process_group`, or let :func:`run_sharded` spawn N local gloo processes.
 
-The map is exactly the single-process one with ``FieldSettings(flux_mode="window")``; in ``grouped`` mode
-each shard forms its own footprint classes (the same physics, a slightly different approximation).
+The map is the single-process one in every ``flux_mode``: the ranks agree on the footprint window, and in
+``grouped`` mode on the footprint classes and their kernels (all ranks' footprints), so their maps sum to the
+one-process map up to float rounding.
 
 Aim points (:func:`heliotwin.optimise.aimpoints.optimise_aimpoints` with ``group=``): every rank optimises
 the aim points of its shard; the image-model map and power are all-reduced at every step (so the gradient
@@ -61,6 +62,7 @@ def field_optics_sharded(plant, sun_direction, *, group=None, **kwargs) -> Field
     FieldResult
         The whole field's result, identical on every rank (map summed, per-heliostat tensors gathered).
     """
+    group = group if group is not None else dist.group.WORLD  # field_optics reads None as "not sharded"
     rank, world = dist.get_rank(group), dist.get_world_size(group)
     h = len(plant.field.ids)
     rows = shard(h, rank, world)

@@ -236,8 +236,8 @@ def register(sub) -> None:
                    help="number of heliostats (default: 2000; 48 with --classic)")
     p.add_argument("--time", type=utc_time, default="2023-03-20T11:30:00Z",
                    help="UTC time of the sun position, ISO 8601 (default: %(default)s)")
-    p.add_argument("--iterations", type=int_range(1, 10_000, "an iteration count"), default=10,
-                   help="aim-point optimisation steps (default: %(default)s)")
+    p.add_argument("--iterations", type=int_range(1, 10_000, "an iteration count"),
+                   help="image-model steps per round of the aim-point optimiser (default: the optimiser's)")
     p.add_argument("--json", help="also write the summary here")
     p.add_argument("--quiet", action="store_true", help="no progress bars and no summary line")
     p.add_argument("--classic", action="store_true",

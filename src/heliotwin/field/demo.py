@@ -327,7 +327,7 @@ def demo_field_plant(num_heliostats: int = 2000):
 
 
 def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-20T11:30:00Z",
-                   peak_limit_fraction: float = 0.75, iterations: int = 10, flux_samples: int | None = None,
+                   peak_limit_fraction: float = 0.75, iterations: int | None = None,
                    progress: bool = False) -> dict:
     """The demo as the whole field: efficiency map, loss breakdown, receiver flux before/after aim points.
 
@@ -348,11 +348,8 @@ def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-
         Instant of the sun position (pvlib at the Jülich reference); the sun must be up.
     peak_limit_fraction : float
         In (0, 1].
-    iterations : int
-        Aim-point optimisation steps.
-    flux_samples : int, optional
-        Mirror samples per facet and direction while optimising; default: a budget of about 8000 samples in
-        all (1 for 2000 heliostats of 4 facets, up to 4 for small fields), which bounds the time per step.
+    iterations : int, optional
+        Image-model steps per round of the aim-point optimiser (default: the optimiser's).
     progress : bool
         A progress bar over the stages.
 
@@ -391,12 +388,9 @@ def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-
     rep = summary(before, plant)
     bar.update()
     limit = float(peak_limit_fraction) * rep["receiver"]["peak_flux_w_m2"]
-    if flux_samples is None:
-        facets = plant.field.facets.translation.shape[1]
-        flux_samples = max(1, min(4, int(math.sqrt(8000.0 / (facets * len(plant.field.ids))))))
     t0 = time.perf_counter()
-    aimed = optimise_aimpoints(plant, sun, limit, atmosphere=atm, iterations=int(iterations),
-                               flux_samples=int(flux_samples))
+    steps = {} if iterations is None else {"iterations": int(iterations)}
+    aimed = optimise_aimpoints(plant, sun, limit, atmosphere=atm, **steps)
     seconds["aim_points"] = time.perf_counter() - t0
     bar.update()
     folder.mkdir(parents=True, exist_ok=True)

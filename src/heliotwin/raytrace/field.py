@@ -347,14 +347,19 @@ def _intercept(mu, cov, ok, target, rows, cols):
     return torch.where(ok, frac, torch.zeros_like(frac))
 
 
-def _grouped_map(mu, cov, weights, rows, cols, groups, n_sigma):
-    """Footprints in classes of similar covariance: per class a bilinear splat convolved with its mean Gaussian."""
+def _grouped_map(mu, cov, weights, rows, cols, groups, n_sigma, group=None):
+    """Footprints in classes of similar covariance: per class a bilinear splat convolved with its mean Gaussian.
+
+    ``group`` (ranks each holding a shard of the samples): the class boundaries come from every rank's
+    footprints and the class kernels from every rank's members, so the shards' maps sum to the one-process map.
+    """
     n = mu.shape[0]
     with torch.no_grad():
         lx, ly = torch.log(cov[:, 0, 0].clamp_min(1e-12)), torch.log(cov[:, 1, 1].clamp_min(1e-12))
         q = torch.linspace(0, 1, groups + 1, dtype=lx.dtype, device=lx.device)[1:-1]
-        gx = torch.bucketize(lx, torch.quantile(lx, q)) if groups > 1 else torch.zeros_like(lx, dtype=torch.long)
-        gy = torch.bucketize(ly, torch.quantile(ly, q)) if groups > 1 else torch.zeros_like(ly, dtype=torch.long)
+        all_x, all_y = (lx, ly) if group is None else _gather_all(torch.stack((lx, ly), -1), group).unbind(-1)
+        gx = torch.bucketize(lx, torch.quantile(all_x, q)) if groups > 1 else torch.zeros_like(lx, dtype=torch.long)
+        gy = torch.bucketize(ly, torch.quantile(all_y, q)) if groups > 1 else torch.zeros_like(ly, dtype=torch.long)
         g = gx * groups + gy
         ng = groups * groups
         order = torch.argsort(g, stable=True)
@@ -367,7 +372,10 @@ def _grouped_map(mu, cov, weights, rows, cols, groups, n_sigma):
     lay_w = weights.new_zeros(ng * width).index_copy(0, slot, weights[order]).view(ng, width)
     wsum = lay_w.sum(1)
     lay_cov = cov.new_zeros(ng * width, 2, 2).index_copy(0, slot, cov[order]).view(ng, width, 2, 2)
-    kcov = (lay_w[..., None, None] * lay_cov).sum(1) / wsum.clamp_min(1e-30)[:, None, None]
+    wcov = (lay_w[..., None, None] * lay_cov).sum(1)
+    if group is not None:
+        wsum, wcov = _sum_all(wsum, group), _sum_all(wcov, group)
+    kcov = wcov / wsum.clamp_min(1e-30)[:, None, None]
     kcov = torch.where((wsum > 0)[:, None, None], kcov, torch.eye(2, dtype=cov.dtype, device=cov.device))
     with torch.no_grad():
         tr = kcov[:, 0, 0] + kcov[:, 1, 1]
@@ -380,7 +388,7 @@ def _grouped_map(mu, cov, weights, rows, cols, groups, n_sigma):
         lam_min = 0.5 * tr - torch.sqrt(0.25 * (kcov[:, 0, 0] - kcov[:, 1, 1]) ** 2 + kcov[:, 0, 1] ** 2)
         sub = torch.minimum(torch.full_like(lam_min, 1.0 / 6.0), 0.9 * lam_min.clamp_min(0.0))
     kern = _gaussian_kernels(kcov - sub[:, None, None] * eye, half)
-    return _fft_convolve(canvas, kern, half, rows, cols).sum(0)
+    return _fft_convolve(canvas, kern, half, rows, cols, summed=True)
 
 
 def _flux_map(points, nw, reflected, weights, target, settings: FieldSettings, plant: Plant, sun, group=None):
@@ -428,7 +436,7 @@ def _flux_map(points, nw, reflected, weights, target, settings: FieldSettings, p
     if mode == "window":
         img = gaussian_footprints(mu, cov_s, w, rows, cols, 1, mu.shape[0], half)[0]
     elif mode == "grouped":
-        img = _grouped_map(mu, cov_s, w, rows, cols, int(settings.groups), float(settings.n_sigma))
+        img = _grouped_map(mu, cov_s, w, rows, cols, int(settings.groups), float(settings.n_sigma), group)
     else:
         raise HeliotwinError(f"flux_mode must be 'auto', 'window' or 'grouped', got {mode!r}")
     return img, icpt, extent[0]
@@ -443,6 +451,31 @@ def _agree(half: int, count: int, group) -> tuple[int, int]:
     dist.all_reduce(t[:1], op=dist.ReduceOp.MAX, group=group)
     dist.all_reduce(t[1:], group=group)
     return int(t[0]), int(t[1])
+
+
+def _gather_all(t: torch.Tensor, group) -> torch.Tensor:
+    """Every rank's rows of ``t`` [n_r, ...] concatenated in rank order (no gradient)."""
+    import torch.distributed as dist
+
+    world = dist.get_world_size(group)
+    n = torch.tensor([t.shape[0]], dtype=torch.long, device=t.device)
+    counts = [torch.zeros_like(n) for _ in range(world)]
+    dist.all_gather(counts, n, group=group)
+    counts = [int(c) for c in counts]
+    pad = t.new_zeros((max(counts), *t.shape[1:]))
+    pad[: t.shape[0]] = t.detach()
+    parts = [torch.empty_like(pad) for _ in range(world)]
+    dist.all_gather(parts, pad, group=group)
+    return torch.cat([p[:c] for p, c in zip(parts, counts)])
+
+
+def _sum_all(t: torch.Tensor, group) -> torch.Tensor:
+    """``t`` summed over the ranks; the gradient flows to this rank's own term."""
+    import torch.distributed as dist
+
+    total = t.detach().clone()
+    dist.all_reduce(total, group=group)
+    return t + (total - t.detach())
 
 
 def _wrap_seam(mu, cov, w, ok, cols: int, n_sigma: float):

@@ -173,14 +173,32 @@ def gaussian_footprints(mu: torch.Tensor, cov: torch.Tensor, weights: torch.Tens
     return out.view(n_samples, rows, cols)
 
 
-def _fft_convolve(canvas: torch.Tensor, kernel: torch.Tensor, h: int, rows: int, cols: int) -> torch.Tensor:
-    """Linear convolution of canvases [B, rows+2h, cols+2h] with kernels [B, 2h+1, 2h+1]; the central crop."""
+def _fast_fft_size(n: int) -> int:
+    """The smallest m >= n whose only prime factors are 2, 3 and 5 (sizes pocketfft and cuFFT handle fastest;
+    a canvas side with a large prime factor can cost several times more)."""
+    m = max(1, int(n))
+    while True:
+        k = m
+        for p in (2, 3, 5):
+            while k % p == 0:
+                k //= p
+        if k == 1:
+            return m
+        m += 1
+
+
+def _fft_convolve(canvas: torch.Tensor, kernel: torch.Tensor, h: int, rows: int, cols: int,
+                  summed: bool = False) -> torch.Tensor:
+    """Linear convolution of canvases [B, rows+2h, cols+2h] with kernels [B, 2h+1, 2h+1]; the central crop
+    [B, rows, cols], or with ``summed`` the sum over B [rows, cols] (one inverse transform instead of B: the
+    transform is linear). Transforms are zero-padded to fast sizes >= the linear-convolution size."""
     hc, wc = canvas.shape[-2:]
-    n0, n1 = hc + 2 * h, wc + 2 * h
-    fc = torch.fft.rfft2(canvas, s=(n0, n1))
-    fk = torch.fft.rfft2(kernel, s=(n0, n1))
-    full = torch.fft.irfft2(fc * fk, s=(n0, n1))
-    return full[:, 2 * h:2 * h + rows, 2 * h:2 * h + cols]
+    n0, n1 = _fast_fft_size(hc + 2 * h), _fast_fft_size(wc + 2 * h)
+    prod = torch.fft.rfft2(canvas, s=(n0, n1)) * torch.fft.rfft2(kernel, s=(n0, n1))
+    if summed:
+        prod = prod.sum(0, keepdim=True)
+    full = torch.fft.irfft2(prod, s=(n0, n1))[:, 2 * h:2 * h + rows, 2 * h:2 * h + cols]
+    return full[0] if summed else full
 
 
 def _gaussian_kernels(cov: torch.Tensor, h: int) -> torch.Tensor:
