@@ -135,7 +135,7 @@ def blur_for(train_targets: list, train_sigma: torch.Tensor, targets: list) -> t
     for t in targets:
         same = [float(s) for n, s in zip(names, train_sigma) if n == t.name]
         out.append(statistics.median(same or [float(s) for s in train_sigma]))
-    return torch.tensor(out, dtype=torch.float32)
+    return torch.tensor(out, dtype=torch.float32, device=train_sigma.device)
 
 
 def _render(surf, obs, sun, s, kernels=None):
@@ -168,7 +168,8 @@ def choose_optics(facets: Facets, train: Observations, base_sun: SunSettings, ca
             sun = dataclasses.replace(base_sun, slope_error=float(se))
             with torch.no_grad():
                 pred, _ = _render(ideal, train, sun, s)
-                per_blur = torch.stack([losses.l1(apply_camera(pred, camera, torch.full((len(train),), float(b))),
+                per_blur = torch.stack([losses.l1(apply_camera(pred, camera, torch.full((len(train),), float(b),
+                                                                                       device=pred.device)),
                                                   meas.to(pred)) for b in s.blur_grid_px])  # [G, B]
             l1, ib = per_blur.min(0)
             row = {"focus_multiple": m, "focal_length_m": None if m is None else m * f_cant,
@@ -191,7 +192,8 @@ def _fit(facets, obs, camera, sigma0, sun, start, weight, s, steps, heldout=None
     model = LearnableSurface(facets, s.control_points, s.degree, initial=start, fix_gauge=True,
                              gauge_tilt=obs.centers is None)
     ref = normal_heights(facets, model.surfaces().control_points.detach(), s.degree, (16, 16))[1].detach()
-    log_sigma = torch.log(sigma0.to(torch.float32).clamp_min(0.1)).clone().requires_grad_(True)
+    dev = obs.images.device
+    log_sigma = torch.log(sigma0.to(device=dev, dtype=torch.float32).clamp_min(0.1)).clone().requires_grad_(True)
     params = [p for p in model.parameters() if p.requires_grad]
     opt = torch.optim.Adam([{"params": params, "lr": s.lr}, {"params": [log_sigma], "lr": s.blur_lr}])
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=s.decay)
@@ -253,7 +255,7 @@ def _candidates(facets, train, base_sun, camera, s, progress) -> list:
         sm = _mode_settings(s, mode)
         opt = choose_optics(facets, train, base_sun, camera, sm)
         sun = dataclasses.replace(base_sun, slope_error=opt["chosen"]["slope_error_rad"])
-        sigma0 = torch.tensor(opt["chosen"]["blur_px"], dtype=torch.float32)
+        sigma0 = torch.tensor(opt["chosen"]["blur_px"], dtype=torch.float32, device=train.images.device)
         if len(train) >= 3 and s.select:
             sel = loo_select(facets, train, camera, sigma0, sun, opt["start"], sm, progress)
             score = min(r["mean_heldout_l1"] for r in sel["table"])
@@ -294,7 +296,7 @@ def fit_generalising(facets: Facets, train: Observations, base_sun: SunSettings,
         cands = _candidates(facets, train.subset(keep), base_sun, camera.subset(keep), s, progress)
         best = min(cands, key=lambda c: c["score"])
     sm, sun, start, sel = best["settings"], best["sun"], best["optics"]["start"], best["selection"]
-    sigma0 = torch.zeros(n, dtype=torch.float32)
+    sigma0 = torch.zeros(n, dtype=torch.float32, device=train.images.device)
     sigma0[keep] = best["sigma0"]
     model, sigma_keep, _ = _fit(facets, train.subset(keep), camera.subset(keep), sigma0[keep], sun, start,
                                 sel["slope_weight"], sm, sel["steps"])
@@ -366,7 +368,9 @@ def reconstruct_generalising(facets: Facets, train: Observations, test: Observat
     Test images: camera model estimated from each measured test image (its cut and plateau: a property of
     that recording, like PAINT's centring), blur by :func:`blur_for` from the training blurs (never fitted
     to a test image). ``l1_*`` are with the camera model, ``l1_*_raw`` of the raw model images; the ideal
-    uses the same optics, start and nuisance, so the difference measures shape.
+    uses the same optics, start and nuisance, so the difference measures shape. ``info`` (third result) gets
+    ``train_images`` / ``test_images``: ``{"ideal", "learned"}`` predicted images ``[B, R, R]`` through the
+    camera model, for plots.
     ``reference``: the surface the edge ridge is measured against (default: the ideal start).
     """
     from .edges import edge_ridge_mrad
@@ -378,8 +382,10 @@ def reconstruct_generalising(facets: Facets, train: Observations, test: Observat
     sig_te = blur_for(train.targets, info["sigma"], test.targets)
     ev = {}
     for name, obs, cam, sig in (("train", train, info["camera"], info["sigma"]), ("test", test, cam_te, sig_te)):
-        ev[name] = _rows(obs, evaluate_with_camera(ideal, obs, sun, cam, sig, info["settings"]),
-                         evaluate_with_camera(learned, obs, sun, cam, sig, info["settings"]))
+        e_ideal = evaluate_with_camera(ideal, obs, sun, cam, sig, info["settings"])
+        e_learn = evaluate_with_camera(learned, obs, sun, cam, sig, info["settings"])
+        ev[name] = _rows(obs, e_ideal, e_learn)
+        info[f"{name}_images"] = {"ideal": e_ideal["images"], "learned": e_learn["images"]}  # with the camera model
     report = {"train": ev["train"], "test": ev["test"], **summarise(ev["train"], ev["test"]),
               "edge_ridge": edge_ridge_mrad(learned, reference or ideal, facets),
               "test_camera": cam_te.as_dict(test.ids), "test_blur_px": dict(zip(test.ids, sig_te.tolist())),
@@ -390,30 +396,58 @@ def reconstruct_generalising(facets: Facets, train: Observations, test: Observat
 
 def reconstruct_paint_generalising(paint_dir, heliostat_id: str, *, train_first: int | None = 3, train_records=None,
                                    settings: GeneraliseSettings | None = None, sun: SunSettings | None = None,
-                                   alignment: str = "focal-spot", progress: bool = False
+                                   alignment: str = "focal-spot", progress: bool = False, plant=None, device="cpu"
                                    ) -> tuple[dict, LearnableSurface, dict]:
     """:func:`reconstruct_generalising` on a PAINT heliostat (the split and poses of
     :func:`heliotwin.surfaces.study.reconstruct_paint`; Buie sun, CSR 0.05, slope error chosen as above).
 
+    ``plant`` (e.g. a calibrated scenario's) replaces the PAINT folder's nominal plant, as in
+    :func:`~heliotwin.surfaces.study.reconstruct_paint`: its kinematics pose the heliostat. ``device``
+    (``"cpu"``, ``"cuda"``, ``"auto"``) is where the surface is learned and evaluated; the model, extras and
+    report come back on the CPU.
+
     Returns
     -------
     report : dict
+        :func:`reconstruct_generalising`'s, plus ``heliostat``, ``paint``, ``alignment``, ``device``,
+        ``seconds``.
     model : LearnableSurface
     extras : dict
-        ``facets``, ``train``, ``test``, ``info`` (see :func:`fit_generalising`).
+        ``facets``, ``train``, ``test``, ``info`` (see :func:`fit_generalising` and
+        :func:`reconstruct_generalising`), ``optics`` (SunSettings used), ``ideal`` (Surfaces).
     """
+    import time
+
+    from ..api import to_device
+    from ..calibrate.pipeline import resolve_device
     from ..io.paint import load_paint
     from .observations import observations_from_records, split_records
 
+    t0 = time.perf_counter()
+    device = resolve_device(device)
     s = settings or GeneraliseSettings()
     ds = load_paint(paint_dir, heliostats=[heliostat_id])
-    plant = ds.plant
+    source = "paint" if plant is None else "scenario"
+    if plant is not None:
+        from ..field.update import select_heliostats
+
+        ds = ds.on_plant(select_heliostats(plant, [heliostat_id]))
+    plant = ds.plant if device == "cpu" else to_device(ds.plant, device)
     tr, te = split_records(ds.records_of(heliostat_id), train_records, train_first)
     train = observations_from_records(plant, 0, tr, s.resolution, 0.0, alignment)
     test = observations_from_records(plant, 0, te, s.resolution, 0.0, alignment)
+    if device != "cpu":  # the measured images are read on the CPU
+        train, test = train.to(device), test.to(device)
     facets = Facets(*(getattr(plant.field.facets, a)[:1].to(torch.float64)
                       for a in ("translation", "canting_e", "canting_n")))
     report, model, info = reconstruct_generalising(facets, train, test, sun or SunSettings(sunshape="buie", csr=0.05),
                                                    s, progress)
-    report.update(heliostat=heliostat_id, paint=str(paint_dir), alignment=alignment)
-    return report, model, {"facets": facets, "train": train, "test": test, "info": info}
+    report.update(heliostat=heliostat_id, paint=str(paint_dir), alignment=alignment, device=device,
+                  plant=source,
+                  seconds=time.perf_counter() - t0)
+    extras = {"facets": facets, "train": train, "test": test, "info": info, "optics": info["optics"],
+              "ideal": info["ideal"]}
+    if device != "cpu":
+        model, extras = model.cpu(), to_device(extras, "cpu")
+        extras["train"], extras["test"] = train.to("cpu"), test.to("cpu")
+    return report, model, extras
