@@ -170,7 +170,8 @@ def _check_method(args) -> None:
 
 def _generalise_settings(args):
     """:class:`~heliotwin.surfaces.generalise.GeneraliseSettings` from the flags: ``--control-points``,
-    ``--degree``; ``--steps`` is the leave-one-out step budget (held-out L1 every ``min(30, steps)`` steps);
+    ``--degree``; ``--steps`` is the leave-one-out step budget (held-out L1 every ``min(30, steps // 2)`` steps,
+    so even a small budget leaves the step count a choice);
     a numeric ``--slope-error`` fixes the slope-error grid to that value."""
     from ..surfaces.generalise import GeneraliseSettings
     from ..surfaces.learning import parse_grid
@@ -178,7 +179,7 @@ def _generalise_settings(args):
     base = GeneraliseSettings()
     steps = args.steps or base.steps
     kw = dict(control_points=parse_grid(args.control_points), degree=(args.degree, args.degree), steps=steps,
-              eval_every=min(base.eval_every, steps))
+              eval_every=min(base.eval_every, max(1, steps // 2)))
     if args.slope_error != "auto":
         kw["slope_grid"] = (args.slope_error * 1e-3,)
     return GeneraliseSettings(**kw)
