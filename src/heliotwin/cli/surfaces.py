@@ -85,7 +85,11 @@ def _reconstruct_generalising(args) -> int:
 
     train_records = _train_records(args)
     settings = _generalise_settings(args)
-    with output_set([("--paint", args.paint), ("--scenario", args.scenario)]) as out:
+    fit_args = dict(method="generalising", train_records=train_records, train_first=args.train_first,
+                    settings=settings, alignment=args.alignment)
+    # The checkpoint outlives the staged outputs: removed only once they are in place.
+    with checkpointed(args, _checkpoint(args, fit_args)), \
+            output_set([("--paint", args.paint), ("--scenario", args.scenario)]) as out:
         json_path = out.file(args.json, "--json")
         output = out.file(args.output, "-o")
         previous = load_scenario(args.scenario) if args.scenario else None
@@ -94,7 +98,8 @@ def _reconstruct_generalising(args) -> int:
         report, model, extras = reconstruct_paint_generalising(
             args.paint, args.heliostat, train_first=args.train_first,
             train_records=train_records, settings=settings, alignment=args.alignment, progress=not args.quiet,
-            plant=previous.plant if previous else None, device=getattr(args, "device", "cpu"))
+            plant=previous.plant if previous else None, device=getattr(args, "device", "cpu"),
+            checkpoint=args.checkpoint)
         report["method"] = "generalising"
         report["choices"] = _generalising_choices(report)
         learned = model.surfaces()
@@ -120,7 +125,8 @@ def _checkpoint(args, fit_args: dict):
     path = checkpoint_file(args)
     args.checkpoint = None if path is None else reconstruction_checkpoint(
         path, args.paint, args.heliostat, resume=args.resume, device=getattr(args, "device", "cpu"),
-        inputs=[args.scenario, args.deflectometry], min_interval_s=args.checkpoint_interval, **fit_args)
+        inputs=[args.scenario, getattr(args, "deflectometry", None)], min_interval_s=args.checkpoint_interval,
+        **fit_args)
     if args.checkpoint is not None and args.checkpoint.resumed:
         stage(args, f"resuming from {path}")
     return args.checkpoint
@@ -147,7 +153,6 @@ def _train_records(args) -> list[int] | None:
 
 #: Flags of the legacy learner that ``--method generalising`` does not take: (flag, is it set?, why).
 _LEGACY_ONLY = (
-    ("--resume", lambda a: a.resume, "its fits are not checkpointed; rerun without --resume"),
     ("--loss", lambda a: a.loss is not None, "it fits the L1 of unit-sum images after the camera model"),
     ("--integrator", lambda a: a.integrator != "conv", "it renders with the conv integrator"),
     ("--background", lambda a: a.background > 0, "it models each image's background cut instead"),
@@ -341,8 +346,8 @@ def register(subparsers) -> None:
     p.add_argument("--integrator", choices=("conv", "mc"), default="conv",
                    help="renderer of the training images: exact-sunshape convolution or Monte Carlo (default conv)")
     p.add_argument("--method", choices=("legacy", "generalising"), default="legacy",
-                   help="legacy: KL loss with early stopping on the latest training image (checkpointed, "
-                        "--resume); generalising: camera model, optics chosen on the training images, settings "
+                   help="legacy: KL loss with early stopping on the latest training image; generalising: "
+                        "camera model, optics chosen on the training images, settings "
                         "and step count by leave-one-training-image-out, outlier drop, acceptance rule (no "
                         "training image worse than the ideal) (default %(default)s)")
     p.add_argument("--loss", choices=("kl", "l1", "l2"), default=None, help="legacy: image loss (default kl)")

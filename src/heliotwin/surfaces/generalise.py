@@ -28,6 +28,7 @@ Shapes: B images, R window pixels per side, F facets. Units: metres, radians; L1
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import statistics
 from dataclasses import dataclass
@@ -188,7 +189,14 @@ def _fit(facets, obs, camera, sigma0, sun, start, weight, s, steps, heldout=None
 
     ``heldout``: ``(Observations, CameraModel)`` of one image; its blur follows :func:`blur_for` from the
     current training blurs.
+
+    Under an active :mod:`heliotwin.io.checkpoint` every fit claims a key (``generalise/0``, ``generalise/1``,
+    ... in the deterministic order of :func:`fit_generalising`) and saves its state (surface, log-blur, Adam
+    and schedule states, footprint kernels, held-out curve); a resumed fit goes on after its last saved step
+    and a finished one is restored, not rerun.
     """
+    from ..io import checkpoint as _checkpoint
+
     model = LearnableSurface(facets, s.control_points, s.degree, initial=start, fix_gauge=True,
                              gauge_tilt=obs.centers is None)
     ref = normal_heights(facets, model.surfaces().control_points.detach(), s.degree, (16, 16))[1].detach()
@@ -198,9 +206,22 @@ def _fit(facets, obs, camera, sigma0, sun, start, weight, s, steps, heldout=None
     opt = torch.optim.Adam([{"params": params, "lr": s.lr}, {"params": [log_sigma], "lr": s.blur_lr}])
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=s.decay)
     meas = obs.images.to(torch.float32)
-    kernels: dict = {}
+    kernels: dict = {}  # filled from the first step's surface: part of the saved state
     curve = []
-    for step in range(int(steps)):
+    ck = _checkpoint.current()
+    key = ck.claim("generalise") if ck is not None else None
+    saved = ck.get(key) if key is not None else None
+    first = 0
+    if saved is not None:
+        model.load_state_dict(saved["model"])
+        with torch.no_grad():
+            log_sigma.copy_(saved["log_sigma"])
+        opt.load_state_dict(saved["opt"])
+        sched.load_state_dict(saved["sched"])
+        kernels.update(saved["kernels"])
+        curve = [(int(a), float(b)) for a, b in saved["curve"]]
+        first = int(saved["step"])
+    for step in range(first, int(steps)):
         opt.zero_grad(set_to_none=True)
         surf = model.surfaces()
         pred, miss = _render(surf, obs, sun, s, kernels)
@@ -215,6 +236,13 @@ def _fit(facets, obs, camera, sigma0, sun, start, weight, s, steps, heldout=None
             hobs, hcam = heldout
             sig = blur_for(obs.targets, log_sigma.detach().exp(), hobs.targets)
             curve.append((step + 1, evaluate_with_camera(model.surfaces(), hobs, sun, hcam, sig, s)["l1"][0]))
+        if key is not None:
+            if step + 1 == int(steps) or ck.due(step + 1):
+                ck.put(key, {"step": step + 1, "model": {k: v.detach().clone() for k, v in model.state_dict().items()},
+                             "log_sigma": log_sigma.detach().clone(), "opt": copy.deepcopy(opt.state_dict()),
+                             "sched": sched.state_dict(), "kernels": dict(kernels),
+                             "curve": [[a, b] for a, b in curve]})
+            ck.notify("step", key, step + 1)
     return model, log_sigma.detach().exp(), curve
 
 
@@ -396,15 +424,17 @@ def reconstruct_generalising(facets: Facets, train: Observations, test: Observat
 
 def reconstruct_paint_generalising(paint_dir, heliostat_id: str, *, train_first: int | None = 3, train_records=None,
                                    settings: GeneraliseSettings | None = None, sun: SunSettings | None = None,
-                                   alignment: str = "focal-spot", progress: bool = False, plant=None, device="cpu"
-                                   ) -> tuple[dict, LearnableSurface, dict]:
+                                   alignment: str = "focal-spot", progress: bool = False, plant=None, device="cpu",
+                                   checkpoint=None) -> tuple[dict, LearnableSurface, dict]:
     """:func:`reconstruct_generalising` on a PAINT heliostat (the split and poses of
     :func:`heliotwin.surfaces.study.reconstruct_paint`; Buie sun, CSR 0.05, slope error chosen as above).
 
     ``plant`` (e.g. a calibrated scenario's) replaces the PAINT folder's nominal plant, as in
     :func:`~heliotwin.surfaces.study.reconstruct_paint`: its kinematics pose the heliostat. ``device``
     (``"cpu"``, ``"cuda"``, ``"auto"``) is where the surface is learned and evaluated; the model, extras and
-    report come back on the CPU.
+    report come back on the CPU. Under ``checkpoint``
+    (:func:`heliotwin.surfaces.study.reconstruction_checkpoint`) every fit saves its state and a resumed
+    checkpoint continues it (see :func:`_fit`); the caller removes it once its outputs are written.
 
     Returns
     -------
@@ -440,8 +470,11 @@ def reconstruct_paint_generalising(paint_dir, heliostat_id: str, *, train_first:
         train, test = train.to(device), test.to(device)
     facets = Facets(*(getattr(plant.field.facets, a)[:1].to(torch.float64)
                       for a in ("translation", "canting_e", "canting_n")))
-    report, model, info = reconstruct_generalising(facets, train, test, sun or SunSettings(sunshape="buie", csr=0.05),
-                                                   s, progress)
+    from ..io import checkpoint as _checkpoint
+
+    with _checkpoint.active(checkpoint):
+        report, model, info = reconstruct_generalising(facets, train, test,
+                                                       sun or SunSettings(sunshape="buie", csr=0.05), s, progress)
     report.update(heliostat=heliostat_id, paint=str(paint_dir), alignment=alignment, device=device,
                   plant=source,
                   seconds=time.perf_counter() - t0)
