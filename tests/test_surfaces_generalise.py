@@ -245,3 +245,46 @@ def test_cli_generalising_refuses_legacy_only_flags_in_one_line(tmp_path, capsys
     code, _, err = _reconstruct_generalising(capsys, tmp_path / "missing", tmp_path, *flags)
     assert_one_line_error(code, err, needle, "--method generalising")
     assert code == 2 and not (tmp_path / "r.json").exists()
+
+
+class _Interrupt(KeyboardInterrupt):
+    pass
+
+
+@pytest.mark.slow  # three real AA39 runs (~25 s)
+def test_cli_generalising_interrupted_resumes_to_the_same_report(paint_dir, tmp_path, capsys, monkeypatch):
+    """``reconstruct --method generalising`` stopped (Ctrl-C) in its second leave-one-out fit: exit 130 with
+    the checkpoint kept; ``--resume`` with other settings is one line; ``--resume`` finishes with the
+    uninterrupted run's rows and choices and removes the checkpoint."""
+    import json
+
+    from helpers.cli import assert_one_line_error
+
+    from heliotwin.io import checkpoint as ckmod
+
+    def run(out, *extra):
+        return _reconstruct_generalising(capsys, paint_dir, tmp_path, "--checkpoint-interval", "0", "--json", out,
+                                         *extra)
+
+    ref = tmp_path / "ref.json"
+    code, _, err = run(ref)
+    assert code == 0, err
+
+    def hook(event, key, step):
+        if event == "step" and key == "generalise/1" and step == 2:
+            raise _Interrupt
+
+    out = tmp_path / "run.json"
+    real_init = ckmod.Checkpoint.__init__
+    monkeypatch.setattr(ckmod.Checkpoint, "__init__", lambda self, *a, **kw: real_init(self, *a, **dict(kw, hook=hook)))
+    code, _, err = run(out)
+    monkeypatch.undo()
+    assert code == 130 and "--resume" in err.splitlines()[-1]
+    assert not out.exists() and (tmp_path / "run.json.ckpt").exists()
+    code, _, err = run(out, "--control-points", "5x5", "--resume")
+    assert_one_line_error(code, err, "other settings")
+    code, _, err = run(out, "--resume")
+    assert code == 0, err
+    assert not (tmp_path / "run.json.ckpt").exists()
+    a, b = json.loads(out.read_text()), json.loads(ref.read_text())
+    assert a["train"] == b["train"] and a["test"] == b["test"] and a["choices"] == b["choices"]
