@@ -3,7 +3,7 @@
 Usage::
 
     heliotwin reconstruct --paint PAINT_DIR --heliostat AA39 --train-first 3 -o learned.h5 --json report.json
-    heliotwin reconstruct ... --deflectometry AA39-deflectometry.h5 [--start-from-deflectometry]
+    heliotwin reconstruct --method legacy ... --deflectometry AA39-deflectometry.h5 [--start-from-deflectometry]
     heliotwin predict --scenario learned.h5 --heliostat AA39 --year 2023 --every 30min --json out.json
 
 :func:`register` adds them to the main parser; the library (:mod:`heliotwin.surfaces`) is imported inside
@@ -153,7 +153,7 @@ def _train_records(args) -> list[int] | None:
 
 #: Flags of the legacy learner that ``--method generalising`` does not take: (flag, is it set?, why).
 _LEGACY_ONLY = (
-    ("--loss", lambda a: a.loss is not None, "it fits the L1 of unit-sum images after the camera model"),
+    ("--loss", lambda a: _given(a.loss), "it fits the L1 of unit-sum images after the camera model"),
     ("--integrator", lambda a: a.integrator != "conv", "it renders with the conv integrator"),
     ("--background", lambda a: a.background > 0, "it models each image's background cut instead"),
     ("--deflectometry", lambda a: a.deflectometry is not None, "deflectometry comparison is legacy-only"),
@@ -161,16 +161,29 @@ _LEGACY_ONLY = (
 )
 
 
+class _Unset(str):
+    """A flag's default that says it was not given (equal to the default it stands for)."""
+
+
+class _UnsetInt(int):
+    """An integer flag's default that says it was not given (equal to the default it stands for)."""
+
+
+def _given(value) -> bool:
+    return not isinstance(value, (_Unset, _UnsetInt))
+
+
 def _check_method(args) -> None:
-    """One line for a flag the chosen method does not take (before any file is read)."""
+    """One line for a flag the chosen method does not take (before any file is read); plain values after."""
     if args.method == "generalising":
         for flag, given, why in _LEGACY_ONLY:
             if given(args):
-                raise HeliotwinError(f"{flag} is not supported with --method generalising ({why})")
-    if args.loss is None:
-        args.loss = "kl"
-    if args.steps is None and args.method == "legacy":
-        args.steps = 200
+                raise HeliotwinError(f"{flag} is not supported with --method generalising ({why}); "
+                                     f"use --method legacy")
+        args.steps = int(args.steps) if _given(args.steps) else None
+    else:
+        args.steps = int(args.steps)
+    args.loss = str(args.loss)
 
 
 def _generalise_settings(args):
@@ -345,13 +358,13 @@ def register(subparsers) -> None:
     p.add_argument("--degree", type=int_range(1, 5, "a NURBS degree"), default=3, help="NURBS degree (both directions)")
     p.add_argument("--integrator", choices=("conv", "mc"), default="conv",
                    help="renderer of the training images: exact-sunshape convolution or Monte Carlo (default conv)")
-    p.add_argument("--method", choices=("legacy", "generalising"), default="legacy",
+    p.add_argument("--method", choices=("generalising", "legacy"), default="generalising",
                    help="legacy: KL loss with early stopping on the latest training image; generalising: "
                         "camera model, optics chosen on the training images, settings "
                         "and step count by leave-one-training-image-out, outlier drop, acceptance rule (no "
                         "training image worse than the ideal) (default %(default)s)")
-    p.add_argument("--loss", choices=("kl", "l1", "l2"), default=None, help="legacy: image loss (default kl)")
-    p.add_argument("--steps", type=positive_int, default=None,
+    p.add_argument("--loss", choices=("kl", "l1", "l2"), default=_Unset("kl"), help="legacy: image loss (default kl)")
+    p.add_argument("--steps", type=positive_int, default=_UnsetInt(200),
                    help="maximum optimiser steps (legacy, default 200); generalising: the leave-one-out step "
                         "budget (default 300)")
     p.add_argument("--slope-error", type=_slope_error, default="auto",
@@ -359,7 +372,8 @@ def register(subparsers) -> None:
     p.add_argument("--background", type=float_range(0.0, 1.0, what="a fraction"), default=0.0,
                    help="background to subtract, fraction of image max")
     p.add_argument("--alignment", choices=("focal-spot", "motor"), default="focal-spot")
-    p.add_argument("--no-mc", action="store_true", help="skip the Monte-Carlo evaluation")
+    p.add_argument("--no-mc", action="store_true",
+                   help="skip the Monte-Carlo evaluation (legacy; generalising has none)")
     p.add_argument("--deflectometry", help="PAINT deflectometry HDF5: trace its NURBS fit on the test images and "
                                           "compare the learned surface with it (mm, mrad)")
     p.add_argument("--start-from-deflectometry", action="store_true",
