@@ -57,27 +57,14 @@ def _data_driven(extras) -> dict:
 
 
 def _maps(out, hid, extras, model) -> dict:
-    from matplotlib.figure import Figure
-
-    from heliotwin.io.report import save_figure
-    from heliotwin.surfaces.edges import residual_map_mrad
-    from heliotwin.surfaces.plots import plot_normal_deviation
+    from heliotwin.surfaces.plots import plot_normal_deviation, plot_residual_deviation
 
     facets, learned, ideal = extras["facets"], model.surfaces(), extras["info"]["ideal"]
     total = os.path.join(out, f"{hid}-normal-deviation.png")
     plot_normal_deviation(facets, learned.control_points.detach(), model.degree, total,
                           title=f"{hid}: normal deviation from the flat canted ideal [mrad]")
-    res = residual_map_mrad(learned, ideal, facets).cpu()
-    fig = Figure(figsize=(8, 2.4))
-    axes = fig.subplots(1, res.shape[0])
-    for f, ax in enumerate(axes):
-        im = ax.imshow(res[f].T.flip(0).numpy(), vmin=0.0, vmax=max(5.0, float(res.max())), cmap="viridis")
-        ax.set_title(f"facet {f}")
-        ax.set_xticks([])
-        ax.set_yticks([])
-    fig.colorbar(im, ax=list(axes), label="mrad (5 = limit)")
     resid = os.path.join(out, f"{hid}-residual-deviation.png")
-    save_figure(fig, resid, tight=False)
+    plot_residual_deviation(learned, ideal, facets, resid)
     return {"normal_deviation_png": total, "residual_deviation_png": resid}
 
 

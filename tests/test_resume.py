@@ -249,7 +249,7 @@ def test_cli_calibrate_interrupted_resumes_to_the_same_report(tmp_path, two_heli
 def _reconstruct(capsys, paint, out, *extra):
     return run_cli(capsys, "reconstruct", "--paint", paint, "--heliostat", "AA39", "--steps", "12", "--control-points",
                    "4x4", "--degree", "2", "--no-mc", "--slope-error", "1", "--checkpoint-interval", "0", "--json", out,
-                   "--device", "cpu", *extra)
+                   "--device", "cpu", "--method", "legacy", *extra)
 
 
 @pytest.mark.slow  # three real reconstructions with plots (~15 s)
@@ -313,7 +313,7 @@ def test_sigterm_during_reconstruct_keeps_the_checkpoint_and_resume_finishes(tmp
     out = tmp_path / "run.json"
     argv = [sys.executable, "-m", "heliotwin", "reconstruct", "--paint", str(two_heliostats), "--heliostat", "AA39",
             "--steps", "400", "--control-points", "4x4", "--degree", "2", "--no-mc", "--slope-error", "1",
-            "--checkpoint-interval", "0", "--json", str(out), "--quiet"]
+            "--checkpoint-interval", "0", "--json", str(out), "--quiet", "--method", "legacy"]
     proc = subprocess.Popen(argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     t0 = time.monotonic()
     while not os.path.exists(checkpoint_path(out)):

@@ -114,7 +114,7 @@ def test_slope_penalty_is_zero_at_the_start_and_has_a_finite_gradient():
     assert float(slope_penalty(model.surfaces(), ref, facets, 1e-2, (6, 6))) > 0.0
 
 
-def test_fit_never_leaves_a_training_image_worse_than_the_ideal():
+def _small_fit_case():
     facets, obs, _ = small_scene(distance=20.0, n=3)
     truth = LearnableSurface(facets, (4, 4), (2, 2))
     gen = torch.Generator().manual_seed(0)
@@ -126,6 +126,43 @@ def test_fit_never_leaves_a_training_image_worse_than_the_ideal():
     s = GeneraliseSettings(control_points=(4, 4), degree=(2, 2), samples=(6, 6), resolution=16, size_m=4.0,
                            focus_grid=(None,), slope_grid=(1e-3, 2e-3), blur_grid_px=(0.0, 1.0),
                            slope_weight_grid=(1e-2,), steps=4, eval_every=2, blur_modes=("none",))
+    return facets, obs, s
+
+
+class _Stop(Exception):
+    pass
+
+
+def test_an_interrupted_fit_resumes_to_the_uninterrupted_surface(tmp_path):
+    """Under a checkpoint every fit (leave-one-out and final) saves its state; a run stopped inside the
+    second leave-one-out fit and resumed reaches the uninterrupted run's surface and choices exactly."""
+    from heliotwin.io.checkpoint import Checkpoint, active
+
+    facets, obs, s = _small_fit_case()
+    sun = SunSettings(sunshape="buie", csr=0.05)
+    ref, ref_info = fit_generalising(facets, obs, sun, s)
+
+    def stop(event, key, step):
+        if event == "step" and key == "generalise/1" and step == 3:
+            raise _Stop
+
+    path = tmp_path / "run.ckpt"
+    with pytest.raises(_Stop), active(Checkpoint(path, "t", every=1, min_interval_s=0.0, hook=stop)):
+        fit_generalising(facets, obs, sun, s)
+    seen = []
+    ck = Checkpoint(path, "t", resume=True, every=1, min_interval_s=0.0,
+                    hook=lambda e, k, st: seen.append((k, st)) if e == "step" else None)
+    with active(ck):
+        model, info = fit_generalising(facets, obs, sun, s)
+    assert ("generalise/0", 1) not in seen and ("generalise/1", 3) not in seen  # restored, not rerun
+    assert ("generalise/1", 4) in seen
+    assert torch.equal(model.displacement_mm, ref.displacement_mm)
+    assert info["report"]["selection"] == ref_info["report"]["selection"]
+    assert info["report"]["acceptance"] == ref_info["report"]["acceptance"]
+
+
+def test_fit_never_leaves_a_training_image_worse_than_the_ideal():
+    facets, obs, s = _small_fit_case()
     model, info = fit_generalising(facets, obs, SunSettings(sunshape="buie", csr=0.05), s)
     assert info["report"]["selection"]["steps"] in (2, 4)  # a cross-validated step count
     kw = dict(sun=info["optics"], camera=info["camera"], sigma=info["sigma"], s=info["settings"])
@@ -146,3 +183,108 @@ def test_aa39_generalising_meets_the_issue_figures(paint_dir):
     assert rep["median_l1_learned"] < 0.146 and rep["median_l1_learned_raw"] < 0.146
     assert rep["test_improved_wilson95"][0] > 0.5
     assert rep["edge_ridge"]["edge_max_mrad"] < 5.0
+
+
+def _reconstruct_generalising(capsys, paint_dir, tmp_path, *extra):
+    from helpers.cli import run_cli
+
+    return run_cli(capsys, "reconstruct", "--method", "generalising", "--paint", paint_dir, "--heliostat", "AA39",
+                   "--steps", "4", "--control-points", "4x4", "--degree", "2", "--slope-error", "2", "--quiet",
+                   "--json", tmp_path / "r.json", *extra)
+
+
+def test_cli_generalising_on_a_scenario_stores_an_accepted_surface(paint_dir, tmp_path, capsys):
+    """``reconstruct --method generalising --scenario S -o`` on real AA39 with a 4-step budget (~8 s): no
+    training image worse than the ideal, the choices and per-image rows reported, and the learned surface
+    (the accepted one) stored under /learned/surfaces/AA39 with the method's provenance."""
+    import json
+
+    from helpers.cli import run_cli
+
+    from heliotwin.io.scenario import load_scenario
+    from heliotwin.surfaces.state import learned_surface
+
+    code, _, err = run_cli(capsys, "scenario", "from-paint", paint_dir, "--heliostats", "AA39", "-o", tmp_path / "a.h5",
+                           "--quiet")
+    assert code == 0, err
+    code, _, err = _reconstruct_generalising(capsys, paint_dir, tmp_path, "--scenario", tmp_path / "a.h5",
+                                             "-o", tmp_path / "b.h5")
+    assert code == 0, err
+    rep = json.loads((tmp_path / "r.json").read_text())
+    assert rep["method"] == "generalising" and rep["plant"] == "scenario"
+    assert len(rep["train"]) == 3 and len(rep["test"]) == 7
+    assert rep["train_worse_than_ideal"] == 0
+    assert all(r["l1_learned"] <= r["l1_ideal"] + 1e-6 for r in rep["train"])
+    for key in ("test_improved_wilson95", "edge_ridge", "dropped", "acceptance", "choices", "selection", "optics"):
+        assert key in rep, key
+    assert rep["choices"]["steps"] in (2, 4) and rep["choices"]["slope_error_rad"] == pytest.approx(2e-3)
+    lo, hi = rep["test_improved_wilson95"]
+    assert 0.0 <= lo <= rep["test_improved"] / rep["test_images"] + 1e-12 and hi <= 1.0
+    for path in rep["plots"].values():
+        assert (tmp_path / path.rsplit("/", 1)[-1]).stat().st_size > 0
+    sc = load_scenario(tmp_path / "b.h5")
+    assert sc.provenance[-1]["step"] == "reconstruct" and list(sc.learned["surfaces"]) == ["AA39"]
+    item = learned_surface(sc, "AA39")
+    assert item["settings"]["method"] == "generalising" and item["settings"]["chosen"] == rep["choices"]
+    assert item["optics"].slope_error == pytest.approx(2e-3) and item["train_records"] == [
+        int(r["record"]) for r in rep["train"]]
+    cp = item["surfaces"].control_points
+    assert cp.shape[2:4] == (4, 4) and torch.isfinite(cp).all()
+    if rep["acceptance"]["alpha"] == 0.0 and rep["choices"]["focal_length_m"] is None:
+        # Nothing accepted: what is stored is the flat canted ideal itself.
+        assert torch.allclose(cp, item["ideal"].control_points, atol=1e-9)
+
+
+@pytest.mark.parametrize("flags, needle", [(["--loss", "kl"], "--loss"),
+                                           (["--integrator", "mc"], "--integrator"),
+                                           (["--background", "0.1"], "--background"),
+                                           (["--deflectometry", "d.h5"], "--deflectometry")])
+def test_cli_generalising_refuses_legacy_only_flags_in_one_line(tmp_path, capsys, flags, needle):
+    from helpers.cli import assert_one_line_error
+
+    code, _, err = _reconstruct_generalising(capsys, tmp_path / "missing", tmp_path, *flags)
+    assert_one_line_error(code, err, needle, "--method generalising")
+    assert code == 2 and not (tmp_path / "r.json").exists()
+
+
+class _Interrupt(KeyboardInterrupt):
+    pass
+
+
+@pytest.mark.slow  # three real AA39 runs (~25 s)
+def test_cli_generalising_interrupted_resumes_to_the_same_report(paint_dir, tmp_path, capsys, monkeypatch):
+    """``reconstruct --method generalising`` stopped (Ctrl-C) in its second leave-one-out fit: exit 130 with
+    the checkpoint kept; ``--resume`` with other settings is one line; ``--resume`` finishes with the
+    uninterrupted run's rows and choices and removes the checkpoint."""
+    import json
+
+    from helpers.cli import assert_one_line_error
+
+    from heliotwin.io import checkpoint as ckmod
+
+    def run(out, *extra):
+        return _reconstruct_generalising(capsys, paint_dir, tmp_path, "--checkpoint-interval", "0", "--json", out,
+                                         *extra)
+
+    ref = tmp_path / "ref.json"
+    code, _, err = run(ref)
+    assert code == 0, err
+
+    def hook(event, key, step):
+        if event == "step" and key == "generalise/1" and step == 2:
+            raise _Interrupt
+
+    out = tmp_path / "run.json"
+    real_init = ckmod.Checkpoint.__init__
+    monkeypatch.setattr(ckmod.Checkpoint, "__init__", lambda self, *a, **kw: real_init(self, *a, **dict(kw, hook=hook)))
+    code, _, err = run(out)
+    monkeypatch.undo()
+    assert code == 130 and "--resume" in err.splitlines()[-1]
+    assert not out.exists() and (tmp_path / "run.json.ckpt").exists()
+    code, _, err = run(out, "--control-points", "5x5", "--resume")
+    assert_one_line_error(code, err, "other settings")
+    code, _, err = run(out, "--resume")
+    assert code == 0, err
+    assert not (tmp_path / "run.json.ckpt").exists()
+    a, b = json.loads(out.read_text()), json.loads(ref.read_text())
+    assert a["train"] == b["train"] and a["test"] == b["test"] and a["choices"] == b["choices"]

@@ -3,7 +3,7 @@
 Usage::
 
     heliotwin reconstruct --paint PAINT_DIR --heliostat AA39 --train-first 3 -o learned.h5 --json report.json
-    heliotwin reconstruct ... --deflectometry AA39-deflectometry.h5 [--start-from-deflectometry]
+    heliotwin reconstruct --method legacy ... --deflectometry AA39-deflectometry.h5 [--start-from-deflectometry]
     heliotwin predict --scenario learned.h5 --heliostat AA39 --year 2023 --every 30min --json out.json
 
 :func:`register` adds them to the main parser; the library (:mod:`heliotwin.surfaces`) is imported inside
@@ -31,10 +31,17 @@ __all__ = ["register"]
 
 
 def cmd_reconstruct(args) -> int:
+    _set_threads(args.threads)
+    _check_method(args)
+    if args.method == "generalising":
+        return _reconstruct_generalising(args)
+    return _reconstruct_legacy(args)
+
+
+def _reconstruct_legacy(args) -> int:
     from ..io.scenario import load_scenario
     from ..surfaces.study import reconstruct_paint
 
-    _set_threads(args.threads)
     inputs = [("--paint", args.paint), ("--scenario", args.scenario), ("--deflectometry", args.deflectometry)]
     train_records = _train_records(args)
     slope = None if args.slope_error == "auto" else args.slope_error * 1e-3
@@ -58,6 +65,7 @@ def cmd_reconstruct(args) -> int:
             args.paint, args.heliostat, evaluate_mc=not args.no_mc, progress=not args.quiet,
             plant=previous.plant if previous else None, device=getattr(args, "device", "cpu"),
             checkpoint=args.checkpoint, **fit_args)
+        report["method"] = "legacy"
         learned = model.surfaces()
         stage(args, "plotting and writing outputs")
         report["plots"] = _plot_reconstruction(args, json_path, report, model, learned, extras)
@@ -67,6 +75,43 @@ def cmd_reconstruct(args) -> int:
         write_json(json_path, report)
     if not args.quiet:
         _print_reconstruction(args.heliostat, report)
+    return 0
+
+
+def _reconstruct_generalising(args) -> int:
+    """``--method generalising`` (:func:`heliotwin.surfaces.generalise.reconstruct_paint_generalising`)."""
+    from ..io.scenario import load_scenario
+    from ..surfaces.generalise import reconstruct_paint_generalising
+
+    train_records = _train_records(args)
+    settings = _generalise_settings(args)
+    fit_args = dict(method="generalising", train_records=train_records, train_first=args.train_first,
+                    settings=settings, alignment=args.alignment)
+    # The checkpoint outlives the staged outputs: removed only once they are in place.
+    with checkpointed(args, _checkpoint(args, fit_args)), \
+            output_set([("--paint", args.paint), ("--scenario", args.scenario)]) as out:
+        json_path = out.file(args.json, "--json")
+        output = out.file(args.output, "-o")
+        previous = load_scenario(args.scenario) if args.scenario else None
+        stage(args, f"learning {args.heliostat}'s surface (generalising: optics, leave-one-out over "
+                    f"<= {settings.steps} steps, acceptance) on {getattr(args, 'device', 'cpu')}, then evaluating")
+        report, model, extras = reconstruct_paint_generalising(
+            args.paint, args.heliostat, train_first=args.train_first,
+            train_records=train_records, settings=settings, alignment=args.alignment, progress=not args.quiet,
+            plant=previous.plant if previous else None, device=getattr(args, "device", "cpu"),
+            checkpoint=args.checkpoint)
+        report["method"] = "generalising"
+        report["choices"] = _generalising_choices(report)
+        learned = model.surfaces()
+        stage(args, "plotting and writing outputs")
+        report["plots"] = _plot_generalising(args, json_path, report, model, learned, extras)
+        if output:
+            report["settings"] = dict(report["settings"], method="generalising", chosen=report["choices"])
+            _save_learned(args, output, report, model, learned, previous, extras)
+            report["output"] = os.fspath(args.output)
+        write_json(json_path, report)
+    if not args.quiet:
+        _print_generalising(args.heliostat, report)
     return 0
 
 
@@ -80,7 +125,8 @@ def _checkpoint(args, fit_args: dict):
     path = checkpoint_file(args)
     args.checkpoint = None if path is None else reconstruction_checkpoint(
         path, args.paint, args.heliostat, resume=args.resume, device=getattr(args, "device", "cpu"),
-        inputs=[args.scenario, args.deflectometry], min_interval_s=args.checkpoint_interval, **fit_args)
+        inputs=[args.scenario, getattr(args, "deflectometry", None)], min_interval_s=args.checkpoint_interval,
+        **fit_args)
     if args.checkpoint is not None and args.checkpoint.resumed:
         stage(args, f"resuming from {path}")
     return args.checkpoint
@@ -103,6 +149,67 @@ def _train_records(args) -> list[int] | None:
     except ValueError:
         raise HeliotwinError(f"--train-records: expected comma-separated record ids, "
                              f"got {args.train_records!r}") from None
+
+
+#: Flags of the legacy learner that ``--method generalising`` does not take: (flag, is it set?, why).
+_LEGACY_ONLY = (
+    ("--loss", lambda a: _given(a.loss), "it fits the L1 of unit-sum images after the camera model"),
+    ("--integrator", lambda a: a.integrator != "conv", "it renders with the conv integrator"),
+    ("--background", lambda a: a.background > 0, "it models each image's background cut instead"),
+    ("--deflectometry", lambda a: a.deflectometry is not None, "deflectometry comparison is legacy-only"),
+    ("--start-from-deflectometry", lambda a: a.start_from_deflectometry, "it starts from the canting focus"),
+)
+
+
+class _Unset(str):
+    """A flag's default that says it was not given (equal to the default it stands for)."""
+
+
+class _UnsetInt(int):
+    """An integer flag's default that says it was not given (equal to the default it stands for)."""
+
+
+def _given(value) -> bool:
+    return not isinstance(value, (_Unset, _UnsetInt))
+
+
+def _check_method(args) -> None:
+    """One line for a flag the chosen method does not take (before any file is read); plain values after."""
+    if args.method == "generalising":
+        for flag, given, why in _LEGACY_ONLY:
+            if given(args):
+                raise HeliotwinError(f"{flag} is not supported with --method generalising ({why}); "
+                                     f"use --method legacy")
+        args.steps = int(args.steps) if _given(args.steps) else None
+    else:
+        args.steps = int(args.steps)
+    args.loss = str(args.loss)
+
+
+def _generalise_settings(args):
+    """:class:`~heliotwin.surfaces.generalise.GeneraliseSettings` from the flags: ``--control-points``,
+    ``--degree``; ``--steps`` is the leave-one-out step budget (held-out L1 every ``min(30, steps // 2)`` steps,
+    so even a small budget leaves the step count a choice);
+    a numeric ``--slope-error`` fixes the slope-error grid to that value."""
+    from ..surfaces.generalise import GeneraliseSettings
+    from ..surfaces.learning import parse_grid
+
+    base = GeneraliseSettings()
+    steps = args.steps or base.steps
+    kw = dict(control_points=parse_grid(args.control_points), degree=(args.degree, args.degree), steps=steps,
+              eval_every=min(base.eval_every, max(1, steps // 2)))
+    if args.slope_error != "auto":
+        kw["slope_grid"] = (args.slope_error * 1e-3,)
+    return GeneraliseSettings(**kw)
+
+
+def _generalising_choices(report: dict) -> dict:
+    """What the generalising method chose (JSON): optics, blur mode, penalty weight, steps, drops, acceptance."""
+    chosen = report["optics"]["chosen"]
+    return {"focal_length_m": chosen["focal_length_m"], "focus_multiple": chosen["focus_multiple"],
+            "slope_error_rad": report["optics_used"]["slope_error_rad"], "blur_mode": report["blur_mode"],
+            "slope_weight": report["selection"]["slope_weight"], "steps": report["selection"]["steps"],
+            "dropped": [d["record"] for d in report["dropped"]], "acceptance_alpha": report["acceptance"]["alpha"]}
 
 
 def _train_settings(args):
@@ -128,6 +235,27 @@ def _plot_reconstruction(args, json_path, report, model, learned, extras) -> dic
     return {k: os.path.splitext(os.fspath(args.json))[0] + v for k, v in names.items()}
 
 
+def _plot_generalising(args, json_path, report, model, learned, extras) -> dict:
+    """Measured vs predicted test images (through the camera model), the normal-deviation map and the residual
+    map beyond each facet's tilt + quadratic shape (where edge ridges show), next to the ``--json`` report."""
+    from ..surfaces.plots import plot_flux_comparison, plot_normal_deviation, plot_residual_deviation
+
+    names = {"normal_deviation": "-normal-deviation.png", "residual_deviation": "-residual-deviation.png",
+             "flux": "-flux.png"}
+    staged = {k: os.path.splitext(os.fspath(json_path))[0] + v for k, v in names.items()}
+    plot_normal_deviation(extras["facets"], learned.control_points.detach(), model.degree,
+                          staged["normal_deviation"],
+                          title=f"{args.heliostat}: learned normal deviation from the flat canted ideal [mrad]")
+    plot_residual_deviation(learned, extras["ideal"], extras["facets"], staged["residual_deviation"],
+                            title=f"{args.heliostat}: residual normal deviation [mrad]")
+    images = extras["info"]["test_images"]
+    plot_flux_comparison(extras["test"].images, images["ideal"], images["learned"], extras["test"].ids,
+                         staged["flux"], [r["l1_ideal"] for r in report["test"]],
+                         [r["l1_learned"] for r in report["test"]],
+                         title="centred flux: measured vs ideal vs learned (camera model)")
+    return {k: os.path.splitext(os.fspath(args.json))[0] + v for k, v in names.items()}
+
+
 def _save_learned(args, output, report, model, learned, previous, extras) -> None:
     """plant″: the scenario's plant (or the PAINT folder's) with this heliostat's learned surface."""
     from ..io.scenario import scenario_from_paint
@@ -149,6 +277,15 @@ def _print_reconstruction(heliostat: str, report: dict) -> None:
         print(f"learned vs deflectometry: {c['normal_deviation_mrad']:.3f} mrad mean normal deviation, "
               f"{c['height_rms_mm']:.3f} mm height RMS; median test L1 deflectometry "
               f"{report['deflectometry']['median_l1_deflectometry']:.3f}")
+
+
+def _print_generalising(heliostat: str, report: dict) -> None:
+    lo, hi = report["test_improved_wilson95"]
+    print(f"{heliostat} (generalising): median test L1 ideal {report['median_l1_ideal']:.3f} -> learned "
+          f"{report['median_l1_learned']:.3f}; test improved {report['test_improved']}/{report['test_images']} "
+          f"(Wilson 95 % [{lo:.2f}, {hi:.2f}]); training images worse than ideal "
+          f"{report['train_worse_than_ideal']}; edge ridge {report['edge_ridge']['edge_max_mrad']:.2f} mrad; "
+          f"{report['seconds']:.1f} s")
 
 
 def cmd_predict(args) -> int:
@@ -221,14 +358,22 @@ def register(subparsers) -> None:
     p.add_argument("--degree", type=int_range(1, 5, "a NURBS degree"), default=3, help="NURBS degree (both directions)")
     p.add_argument("--integrator", choices=("conv", "mc"), default="conv",
                    help="renderer of the training images: exact-sunshape convolution or Monte Carlo (default conv)")
-    p.add_argument("--loss", choices=("kl", "l1", "l2"), default="kl")
-    p.add_argument("--steps", type=positive_int, default=200, help="maximum optimiser steps")
+    p.add_argument("--method", choices=("generalising", "legacy"), default="generalising",
+                   help="legacy: KL loss with early stopping on the latest training image; generalising: "
+                        "camera model, optics chosen on the training images, settings "
+                        "and step count by leave-one-training-image-out, outlier drop, acceptance rule (no "
+                        "training image worse than the ideal) (default %(default)s)")
+    p.add_argument("--loss", choices=("kl", "l1", "l2"), default=_Unset("kl"), help="legacy: image loss (default kl)")
+    p.add_argument("--steps", type=positive_int, default=_UnsetInt(200),
+                   help="maximum optimiser steps (legacy, default 200); generalising: the leave-one-out step "
+                        "budget (default 300)")
     p.add_argument("--slope-error", type=_slope_error, default="auto",
-                   help="mirror slope error [mrad] or 'auto' (fit on training images)")
+                   help="mirror slope error [mrad] or 'auto' (chosen on the training images)")
     p.add_argument("--background", type=float_range(0.0, 1.0, what="a fraction"), default=0.0,
                    help="background to subtract, fraction of image max")
     p.add_argument("--alignment", choices=("focal-spot", "motor"), default="focal-spot")
-    p.add_argument("--no-mc", action="store_true", help="skip the Monte-Carlo evaluation")
+    p.add_argument("--no-mc", action="store_true",
+                   help="skip the Monte-Carlo evaluation (legacy; generalising has none)")
     p.add_argument("--deflectometry", help="PAINT deflectometry HDF5: trace its NURBS fit on the test images and "
                                           "compare the learned surface with it (mm, mrad)")
     p.add_argument("--start-from-deflectometry", action="store_true",

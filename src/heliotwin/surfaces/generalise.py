@@ -28,6 +28,7 @@ Shapes: B images, R window pixels per side, F facets. Units: metres, radians; L1
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import statistics
 from dataclasses import dataclass
@@ -115,8 +116,9 @@ def focused_start(facets: Facets, focal_length: float | None, num_control_points
     """Control net ``[1, F, nu, nv, 3]`` of facets curved to a paraboloid of ``focal_length`` [m] (None: flat)."""
     if focal_length is None:
         return None
-    le = facets.canting_e[0].to(torch.float64).norm(dim=-1)
-    ln = facets.canting_n[0].to(torch.float64).norm(dim=-1)
+    # A tiny least-squares fit: on the CPU (heights_to_displacement builds its bases there), then to the net.
+    le = facets.canting_e[0].detach().cpu().to(torch.float64).norm(dim=-1)
+    ln = facets.canting_n[0].detach().cpu().to(torch.float64).norm(dim=-1)
     su = sv = 32
     u = (torch.arange(su, dtype=torch.float64) + 0.5) / su * 2 - 1
     v = (torch.arange(sv, dtype=torch.float64) + 0.5) / sv * 2 - 1
@@ -135,7 +137,7 @@ def blur_for(train_targets: list, train_sigma: torch.Tensor, targets: list) -> t
     for t in targets:
         same = [float(s) for n, s in zip(names, train_sigma) if n == t.name]
         out.append(statistics.median(same or [float(s) for s in train_sigma]))
-    return torch.tensor(out, dtype=torch.float32)
+    return torch.tensor(out, dtype=torch.float32, device=train_sigma.device)
 
 
 def _render(surf, obs, sun, s, kernels=None):
@@ -168,7 +170,8 @@ def choose_optics(facets: Facets, train: Observations, base_sun: SunSettings, ca
             sun = dataclasses.replace(base_sun, slope_error=float(se))
             with torch.no_grad():
                 pred, _ = _render(ideal, train, sun, s)
-                per_blur = torch.stack([losses.l1(apply_camera(pred, camera, torch.full((len(train),), float(b))),
+                per_blur = torch.stack([losses.l1(apply_camera(pred, camera, torch.full((len(train),), float(b),
+                                                                                       device=pred.device)),
                                                   meas.to(pred)) for b in s.blur_grid_px])  # [G, B]
             l1, ib = per_blur.min(0)
             row = {"focus_multiple": m, "focal_length_m": None if m is None else m * f_cant,
@@ -187,18 +190,39 @@ def _fit(facets, obs, camera, sigma0, sun, start, weight, s, steps, heldout=None
 
     ``heldout``: ``(Observations, CameraModel)`` of one image; its blur follows :func:`blur_for` from the
     current training blurs.
+
+    Under an active :mod:`heliotwin.io.checkpoint` every fit claims a key (``generalise/0``, ``generalise/1``,
+    ... in the deterministic order of :func:`fit_generalising`) and saves its state (surface, log-blur, Adam
+    and schedule states, footprint kernels, held-out curve); a resumed fit goes on after its last saved step
+    and a finished one is restored, not rerun.
     """
+    from ..io import checkpoint as _checkpoint
+
     model = LearnableSurface(facets, s.control_points, s.degree, initial=start, fix_gauge=True,
                              gauge_tilt=obs.centers is None)
     ref = normal_heights(facets, model.surfaces().control_points.detach(), s.degree, (16, 16))[1].detach()
-    log_sigma = torch.log(sigma0.to(torch.float32).clamp_min(0.1)).clone().requires_grad_(True)
+    dev = obs.images.device
+    log_sigma = torch.log(sigma0.to(device=dev, dtype=torch.float32).clamp_min(0.1)).clone().requires_grad_(True)
     params = [p for p in model.parameters() if p.requires_grad]
     opt = torch.optim.Adam([{"params": params, "lr": s.lr}, {"params": [log_sigma], "lr": s.blur_lr}])
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=s.decay)
     meas = obs.images.to(torch.float32)
-    kernels: dict = {}
+    kernels: dict = {}  # filled from the first step's surface: part of the saved state
     curve = []
-    for step in range(int(steps)):
+    ck = _checkpoint.current()
+    key = ck.claim("generalise") if ck is not None else None
+    saved = ck.get(key) if key is not None else None
+    first = 0
+    if saved is not None:
+        model.load_state_dict(saved["model"])
+        with torch.no_grad():
+            log_sigma.copy_(saved["log_sigma"])
+        opt.load_state_dict(saved["opt"])
+        sched.load_state_dict(saved["sched"])
+        kernels.update(saved["kernels"])
+        curve = [(int(a), float(b)) for a, b in saved["curve"]]
+        first = int(saved["step"])
+    for step in range(first, int(steps)):
         opt.zero_grad(set_to_none=True)
         surf = model.surfaces()
         pred, miss = _render(surf, obs, sun, s, kernels)
@@ -213,6 +237,13 @@ def _fit(facets, obs, camera, sigma0, sun, start, weight, s, steps, heldout=None
             hobs, hcam = heldout
             sig = blur_for(obs.targets, log_sigma.detach().exp(), hobs.targets)
             curve.append((step + 1, evaluate_with_camera(model.surfaces(), hobs, sun, hcam, sig, s)["l1"][0]))
+        if key is not None:
+            if step + 1 == int(steps) or ck.due(step + 1):
+                ck.put(key, {"step": step + 1, "model": {k: v.detach().clone() for k, v in model.state_dict().items()},
+                             "log_sigma": log_sigma.detach().clone(), "opt": copy.deepcopy(opt.state_dict()),
+                             "sched": sched.state_dict(), "kernels": dict(kernels),
+                             "curve": [[a, b] for a, b in curve]})
+            ck.notify("step", key, step + 1)
     return model, log_sigma.detach().exp(), curve
 
 
@@ -253,7 +284,7 @@ def _candidates(facets, train, base_sun, camera, s, progress) -> list:
         sm = _mode_settings(s, mode)
         opt = choose_optics(facets, train, base_sun, camera, sm)
         sun = dataclasses.replace(base_sun, slope_error=opt["chosen"]["slope_error_rad"])
-        sigma0 = torch.tensor(opt["chosen"]["blur_px"], dtype=torch.float32)
+        sigma0 = torch.tensor(opt["chosen"]["blur_px"], dtype=torch.float32, device=train.images.device)
         if len(train) >= 3 and s.select:
             sel = loo_select(facets, train, camera, sigma0, sun, opt["start"], sm, progress)
             score = min(r["mean_heldout_l1"] for r in sel["table"])
@@ -294,7 +325,7 @@ def fit_generalising(facets: Facets, train: Observations, base_sun: SunSettings,
         cands = _candidates(facets, train.subset(keep), base_sun, camera.subset(keep), s, progress)
         best = min(cands, key=lambda c: c["score"])
     sm, sun, start, sel = best["settings"], best["sun"], best["optics"]["start"], best["selection"]
-    sigma0 = torch.zeros(n, dtype=torch.float32)
+    sigma0 = torch.zeros(n, dtype=torch.float32, device=train.images.device)
     sigma0[keep] = best["sigma0"]
     model, sigma_keep, _ = _fit(facets, train.subset(keep), camera.subset(keep), sigma0[keep], sun, start,
                                 sel["slope_weight"], sm, sel["steps"])
@@ -349,7 +380,9 @@ def summarise(train_rows: list, test_rows: list) -> dict:
             "train_worse_than_ideal": sum(r["l1_learned"] > r["l1_ideal"] + 1e-6 for r in train_rows),
             "train_worse_than_ideal_raw": sum(r["l1_learned_raw"] > r["l1_ideal_raw"] + 1e-6 for r in train_rows),
             "test_improved": k, "test_images": n, "test_improved_wilson95": [lo, hi],
-            "test_improved_raw": sum(r["l1_learned_raw"] < r["l1_ideal_raw"] for r in test_rows)}
+            "test_improved_raw": sum(r["l1_learned_raw"] < r["l1_ideal_raw"] for r in test_rows),
+            # IMP = L1(ideal) / L1(learned) - 1 (docs/glossary.md), as the legacy report gives it
+            "median_imp": statistics.median(r["l1_ideal"] / max(r["l1_learned"], 1e-12) - 1.0 for r in test_rows)}
 
 
 def _rows(obs, e_ideal, e_learn) -> list:
@@ -366,7 +399,9 @@ def reconstruct_generalising(facets: Facets, train: Observations, test: Observat
     Test images: camera model estimated from each measured test image (its cut and plateau: a property of
     that recording, like PAINT's centring), blur by :func:`blur_for` from the training blurs (never fitted
     to a test image). ``l1_*`` are with the camera model, ``l1_*_raw`` of the raw model images; the ideal
-    uses the same optics, start and nuisance, so the difference measures shape.
+    uses the same optics, start and nuisance, so the difference measures shape. ``info`` (third result) gets
+    ``train_images`` / ``test_images``: ``{"ideal", "learned"}`` predicted images ``[B, R, R]`` through the
+    camera model, for plots.
     ``reference``: the surface the edge ridge is measured against (default: the ideal start).
     """
     from .edges import edge_ridge_mrad
@@ -378,8 +413,10 @@ def reconstruct_generalising(facets: Facets, train: Observations, test: Observat
     sig_te = blur_for(train.targets, info["sigma"], test.targets)
     ev = {}
     for name, obs, cam, sig in (("train", train, info["camera"], info["sigma"]), ("test", test, cam_te, sig_te)):
-        ev[name] = _rows(obs, evaluate_with_camera(ideal, obs, sun, cam, sig, info["settings"]),
-                         evaluate_with_camera(learned, obs, sun, cam, sig, info["settings"]))
+        e_ideal = evaluate_with_camera(ideal, obs, sun, cam, sig, info["settings"])
+        e_learn = evaluate_with_camera(learned, obs, sun, cam, sig, info["settings"])
+        ev[name] = _rows(obs, e_ideal, e_learn)
+        info[f"{name}_images"] = {"ideal": e_ideal["images"], "learned": e_learn["images"]}  # with the camera model
     report = {"train": ev["train"], "test": ev["test"], **summarise(ev["train"], ev["test"]),
               "edge_ridge": edge_ridge_mrad(learned, reference or ideal, facets),
               "test_camera": cam_te.as_dict(test.ids), "test_blur_px": dict(zip(test.ids, sig_te.tolist())),
@@ -390,30 +427,63 @@ def reconstruct_generalising(facets: Facets, train: Observations, test: Observat
 
 def reconstruct_paint_generalising(paint_dir, heliostat_id: str, *, train_first: int | None = 3, train_records=None,
                                    settings: GeneraliseSettings | None = None, sun: SunSettings | None = None,
-                                   alignment: str = "focal-spot", progress: bool = False
-                                   ) -> tuple[dict, LearnableSurface, dict]:
+                                   alignment: str = "focal-spot", progress: bool = False, plant=None, device="cpu",
+                                   checkpoint=None) -> tuple[dict, LearnableSurface, dict]:
     """:func:`reconstruct_generalising` on a PAINT heliostat (the split and poses of
     :func:`heliotwin.surfaces.study.reconstruct_paint`; Buie sun, CSR 0.05, slope error chosen as above).
+
+    ``plant`` (e.g. a calibrated scenario's) replaces the PAINT folder's nominal plant, as in
+    :func:`~heliotwin.surfaces.study.reconstruct_paint`: its kinematics pose the heliostat. ``device``
+    (``"cpu"``, ``"cuda"``, ``"auto"``) is where the surface is learned and evaluated; the model, extras and
+    report come back on the CPU. Under ``checkpoint``
+    (:func:`heliotwin.surfaces.study.reconstruction_checkpoint`) every fit saves its state and a resumed
+    checkpoint continues it (see :func:`_fit`); the caller removes it once its outputs are written.
 
     Returns
     -------
     report : dict
+        :func:`reconstruct_generalising`'s, plus ``heliostat``, ``paint``, ``alignment``, ``device``,
+        ``seconds``.
     model : LearnableSurface
     extras : dict
-        ``facets``, ``train``, ``test``, ``info`` (see :func:`fit_generalising`).
+        ``facets``, ``train``, ``test``, ``info`` (see :func:`fit_generalising` and
+        :func:`reconstruct_generalising`), ``optics`` (SunSettings used), ``ideal`` (Surfaces).
     """
+    import time
+
+    from ..api import to_device
+    from ..calibrate.pipeline import resolve_device
     from ..io.paint import load_paint
     from .observations import observations_from_records, split_records
 
+    t0 = time.perf_counter()
+    device = resolve_device(device)
     s = settings or GeneraliseSettings()
     ds = load_paint(paint_dir, heliostats=[heliostat_id])
-    plant = ds.plant
+    source = "paint" if plant is None else "scenario"
+    if plant is not None:
+        from ..field.update import select_heliostats
+
+        ds = ds.on_plant(select_heliostats(plant, [heliostat_id]))
+    plant = ds.plant if device == "cpu" else to_device(ds.plant, device)
     tr, te = split_records(ds.records_of(heliostat_id), train_records, train_first)
     train = observations_from_records(plant, 0, tr, s.resolution, 0.0, alignment)
     test = observations_from_records(plant, 0, te, s.resolution, 0.0, alignment)
+    if device != "cpu":  # the measured images are read on the CPU
+        train, test = train.to(device), test.to(device)
     facets = Facets(*(getattr(plant.field.facets, a)[:1].to(torch.float64)
                       for a in ("translation", "canting_e", "canting_n")))
-    report, model, info = reconstruct_generalising(facets, train, test, sun or SunSettings(sunshape="buie", csr=0.05),
-                                                   s, progress)
-    report.update(heliostat=heliostat_id, paint=str(paint_dir), alignment=alignment)
-    return report, model, {"facets": facets, "train": train, "test": test, "info": info}
+    from ..io import checkpoint as _checkpoint
+
+    with _checkpoint.active(checkpoint):
+        report, model, info = reconstruct_generalising(facets, train, test,
+                                                       sun or SunSettings(sunshape="buie", csr=0.05), s, progress)
+    report.update(heliostat=heliostat_id, paint=str(paint_dir), alignment=alignment, device=device,
+                  plant=source,
+                  seconds=time.perf_counter() - t0)
+    extras = {"facets": facets, "train": train, "test": test, "info": info, "optics": info["optics"],
+              "ideal": info["ideal"]}
+    if device != "cpu":
+        model, extras = model.cpu(), to_device(extras, "cpu")
+        extras["train"], extras["test"] = train.to("cpu"), test.to("cpu")
+    return report, model, extras

@@ -3,6 +3,8 @@
 * :func:`plot_normal_deviation` -- per facet, the angle [mrad] between the learned and the ideal
   (flat canted) surface normal, as in the paper's Fig. 1d.
 * :func:`plot_flux_comparison` -- measured / ideal / learned centred flux side by side per test image.
+* :func:`plot_residual_deviation` -- per facet, the normal deviation [mrad] beyond the facet's tilt and
+  quadratic shape (:func:`heliotwin.surfaces.edges.residual_map_mrad`): where facet-edge ridges show.
 """
 from __future__ import annotations
 
@@ -15,7 +17,7 @@ from ..io.images import CENTERED_WINDOW_M
 from ..io.report import save_figure
 from .learning import normal_heights
 
-__all__ = ["normal_deviation_map", "plot_normal_deviation", "plot_flux_comparison"]
+__all__ = ["normal_deviation_map", "plot_normal_deviation", "plot_flux_comparison", "plot_residual_deviation"]
 
 
 def normal_deviation_map(facets: Facets, control_points: torch.Tensor, degree, reference: torch.Tensor | None = None,
@@ -99,4 +101,33 @@ def plot_flux_comparison(measured: torch.Tensor, ideal: torch.Tensor, learned: t
     fig.tight_layout(rect=(0, 0, 0.9, 0.98))
     cax = fig.add_axes((0.91, 0.1, 0.02, 0.8))
     fig.colorbar(im, cax=cax, label="flux / its maximum")
+    save_figure(fig, path, tight=False)
+
+
+def plot_residual_deviation(learned, reference, facets: Facets, path, title: str = "", limit_mrad: float = 5.0) -> None:
+    """One panel per facet: the learned surface's normal deviation from ``reference`` beyond each facet's tilt
+    and quadratic shape [mrad] (:func:`heliotwin.surfaces.edges.residual_map_mrad`), colour scale from 0 to
+    ``max(limit_mrad, largest value)`` so a map under the limit reads as such.
+
+    Parameters
+    ----------
+    learned, reference : Surfaces
+        One heliostat, ``control_points`` [1, F, nu, nv, 3] [m].
+    facets : Facets
+        ``[1, F, 3]`` [m].
+    """
+    from .edges import residual_map_mrad
+
+    res = residual_map_mrad(learned, reference, facets).detach().cpu()
+    fig = Figure(figsize=(2.0 * res.shape[0] + 0.8, 2.4))
+    axes = fig.subplots(1, res.shape[0], squeeze=False)[0]
+    im = None
+    for f, ax in enumerate(axes):
+        im = ax.imshow(res[f].T.flip(0).numpy(), vmin=0.0, vmax=max(limit_mrad, float(res.max())), cmap="viridis")
+        ax.set_title(f"facet {f}", fontsize=8)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.colorbar(im, ax=list(axes), label=f"mrad ({limit_mrad:g} = limit)")
     save_figure(fig, path, tight=False)
