@@ -299,13 +299,18 @@ def calibrate(paint, *, method: str = "lm", heliostats=None, split: str = "chron
     return report, model, os.fspath(output)
 
 
-def reconstruct(paint, heliostat: str, *, train_records=None, train_first: int | None = None,
-                control_points: str = "7x7", degree: int = 3, integrator: str = "conv", loss: str = "kl",
-                steps: int = 200, slope_error_mrad: float | None = None, background: float = 0.0,
-                alignment: str = "focal-spot", evaluate_mc: bool = True, progress: bool = True,
-                deflectometry=None, scenario=None, device: str = "auto", checkpoint=None, resume: bool = False):
+def reconstruct(paint, heliostat: str, *, method: str = "generalising", train_records=None,
+                train_first: int | None = None, control_points: str = "7x7", degree: int = 3,
+                integrator: str = "conv", loss: str = "kl", steps: int | None = None,
+                slope_error_mrad: float | None = None, background: float = 0.0, alignment: str = "focal-spot",
+                evaluate_mc: bool = True, progress: bool = True, deflectometry=None, scenario=None,
+                device: str = "auto", checkpoint=None, resume: bool = False):
     """Learn one heliostat's mirror surface from its centred flux images (``heliotwin reconstruct``'s defaults).
 
+    ``method``: ``generalising`` (camera model, leave-one-out choices, acceptance; see
+    :mod:`heliotwin.surfaces.generalise`) or ``legacy`` (KL loss, early stopping; the only one that takes
+    ``loss``, ``integrator="mc"``, ``background``, ``deflectometry`` and ``evaluate_mc``). ``steps=None``: the
+    method's default (legacy 200 optimiser steps, generalising a 300-step leave-one-out budget).
     ``slope_error_mrad=None`` fits the slope error on the training images (the CLI's ``auto``). ``device``,
     ``checkpoint`` and ``resume`` as in :func:`calibrate` (the model comes back on the CPU).
 
@@ -316,16 +321,38 @@ def reconstruct(paint, heliostat: str, *, train_records=None, train_first: int |
     model : heliotwin.surfaces.learning.LearnableSurface
         ``model.surfaces()`` is the learned NURBS surface.
     """
+    from .errors import HeliotwinError
     from .io.scenario import load_scenario
     from .surfaces.learning import parse_grid
-    from .surfaces.study import reconstruct_paint
-    from .surfaces.training import TrainSettings
 
-    settings = TrainSettings(control_points=parse_grid(control_points), degree=(degree, degree),
-                             integrator=integrator, loss=loss, steps=steps)
-    fit_args = dict(train_records=train_records, train_first=train_first, settings=settings,
-                    slope_error=None if slope_error_mrad is None else slope_error_mrad * 1e-3, background=background,
-                    alignment=alignment, deflectometry=deflectometry, start_from_deflectometry=False)
+    if method not in ("generalising", "legacy"):
+        raise HeliotwinError(f"reconstruct: method must be 'generalising' or 'legacy', got {method!r}")
+    if method == "generalising":
+        legacy_only = {"loss": loss != "kl", "integrator": integrator != "conv", "background": background > 0,
+                       "deflectometry": deflectometry is not None}
+        given = [k for k, v in legacy_only.items() if v]
+        if given:
+            raise HeliotwinError(f"reconstruct: {', '.join(given)} only apply to method='legacy'")
+        from .surfaces.generalise import GeneraliseSettings, reconstruct_paint_generalising
+
+        base = GeneraliseSettings()
+        n = int(steps or base.steps)
+        kw = dict(control_points=parse_grid(control_points), degree=(degree, degree), steps=n,
+                  eval_every=min(base.eval_every, max(1, n // 2)))
+        if slope_error_mrad is not None:
+            kw["slope_grid"] = (slope_error_mrad * 1e-3,)
+        settings = GeneraliseSettings(**kw)
+        fit_args = dict(method="generalising", train_records=train_records, train_first=train_first,
+                        settings=settings, alignment=alignment)
+    else:
+        from .surfaces.training import TrainSettings
+
+        settings = TrainSettings(control_points=parse_grid(control_points), degree=(degree, degree),
+                                 integrator=integrator, loss=loss, steps=int(steps or 200))
+        fit_args = dict(train_records=train_records, train_first=train_first, settings=settings,
+                        slope_error=None if slope_error_mrad is None else slope_error_mrad * 1e-3,
+                        background=background, alignment=alignment, deflectometry=deflectometry,
+                        start_from_deflectometry=False)
     ck = None
     if checkpoint is not None:
         from .surfaces.study import reconstruction_checkpoint
@@ -333,8 +360,18 @@ def reconstruct(paint, heliostat: str, *, train_records=None, train_first: int |
         ck = reconstruction_checkpoint(checkpoint, paint, heliostat, resume=resume, device=_device(device),
                                        inputs=[scenario, deflectometry], **fit_args)
     plant = load_scenario(scenario).plant if scenario is not None else None
-    report, model, _, _ = reconstruct_paint(os.fspath(paint), heliostat, evaluate_mc=evaluate_mc, progress=progress,
-                                            plant=plant, device=_device(device), checkpoint=ck, **fit_args)
+    if method == "generalising":
+        fit_args.pop("method")
+        report, model, _ = reconstruct_paint_generalising(os.fspath(paint), heliostat, progress=progress,
+                                                          plant=plant, device=_device(device), checkpoint=ck,
+                                                          **fit_args)
+        report["method"] = "generalising"
+    else:
+        from .surfaces.study import reconstruct_paint
+
+        report, model, _, _ = reconstruct_paint(os.fspath(paint), heliostat, evaluate_mc=evaluate_mc,
+                                                progress=progress, plant=plant, device=_device(device),
+                                                checkpoint=ck, **fit_args)
     if ck is not None:
         ck.remove()
     return report, model
