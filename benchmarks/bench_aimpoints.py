@@ -18,21 +18,24 @@ Usage::
 Writes ``<out>/aimpoints.json`` and ``<out>/flux_<instant>_{equator,optimised}.png``. Deterministic (no random
 draws); wall times depend on the machine and its load (recorded next to them).
 
-Measured (2000 heliostats, 1 thread, 2 cores shared with other jobs, load average ~3; 5.6 min in all), limit =
-equator peak / 1.35, all on the exact check:
+Measured (2000 heliostats, 1 thread, 2 cores shared with two other jobs; the exact check is the map as
+``heliotwin field`` draws it), limit = equator peak / 1.35, all on the exact check:
 
-==================  ===========  =============  ====================  ==========================
-instant (UTC)       sun elev.    optimised      aiming factor          image-size priority
-==================  ===========  =============  ====================  ==========================
-2023-06-21 07:00    31.1 deg     peak 0.968 L,  peak 0.983 L, power    peak 0.964 L, power 0.9975
-                                 power 0.9996   0.9974 (k = 0.969)     (k = 2.44)
-2023-06-21 11:30    62.5 deg     peak 0.988 L,  peak 0.994 L, power    peak 0.987 L, power 0.9931
-                                 power 0.9984   0.9975 (k = 0.875)     (k = 2.16)
-==================  ===========  =============  ====================  ==========================
+==================  ===========  =============  ======================  ==========================
+instant (UTC)       sun elev.    optimised      aiming factor            image-size priority
+==================  ===========  =============  ======================  ==========================
+2023-06-21 07:00    31.1 deg     peak 0.969 L,  peak 1.028 L (limit     peak 0.945 L, power 0.9963
+                                 power 1.0006   missed), power 0.9976   (k = 2.34)
+                                                (k = 1.0)
+2023-06-21 11:30    62.5 deg     peak 0.993 L,  peak 1.000 L, power     peak 0.950 L, power 0.9967
+                                 power 0.9999   0.9973 (k = 0.969)      (k = 2.44)
+==================  ===========  =============  ======================  ==========================
 
-(power as a fraction of equator aiming's.) Seconds per instant for the optimised aim points (calibration +
-rounds): 60 s and 41 s (3 exact checks each); the heuristics 45-57 s each (6 exact checks). One vs two gloo
-processes at 07:00: 60 s vs 27 s wall, largest aim-point difference 0.13 mm, peaks 425 769 vs 425 771 W/m2.
+(power as a fraction of equator aiming's; above 1 at 07:00 because spreading also cuts spillage at the
+receiver's edges.) Seconds per instant for the optimised aim points (image-model calibration + rounds):
+31 s and 46 s; the heuristics 10-60 s each (bisection on the exact check). One vs two gloo processes at 07:00:
+31 s vs 62 s wall on the shared machine (the two ranks competed with two other jobs for two cores), largest
+aim-point difference 6.6 um, peaks 510 264.7 vs 510 266.2 W/m2, power equal to 1.4e-9.
 """
 from __future__ import annotations
 
