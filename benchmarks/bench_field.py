@@ -11,8 +11,10 @@
 4. **The demo** (``heliotwin demo``'s :func:`heliotwin.field.demo.run_field_demo`): wall time per stage and
    its figures (field efficiency, peak before/after aim points, power ratio).
 5. **Speed** of one sun (shading + blocking + 48 x 20 map, and + 256 x 256 map) for generated radial-staggered
-   fields of 50 to 10 000 heliostats; peak resident memory of the process. Wall times depend on the machine
-   and its load: the script records ``torch.get_num_threads()`` and the load average next to them.
+   fields of 50 to 10 000 heliostats, and the Monte-Carlo field model's rays per second (64 rays per flux
+   sample, shading and blocking included in the time) up to 2000 heliostats; peak resident memory. Wall
+   times depend on the machine and its load: the script records ``torch.get_num_threads()`` and the load
+   average next to them.
 
 Usage::
 
@@ -195,9 +197,19 @@ def speed(out: Path, sizes: list[int]) -> list[dict]:
                     times.append(time.perf_counter() - t0)
             entry[f"seconds_{name}"] = min(times)
             entry[f"total_efficiency_{name}"] = float(r.efficiency.mean())
+        if n <= 2000:  # Monte Carlo with shading and blocking: rays per second of the whole field model
+            mc = FieldSettings(integrator="mc", rays_per_point=64)
+            with torch.no_grad():
+                field_optics(plant, sun, atmosphere=atm, settings=mc)
+                t0 = time.perf_counter()
+                field_optics(plant, sun, atmosphere=atm, settings=mc)
+                dt = time.perf_counter() - t0
+            rays = n * plant.field.facets.translation.shape[1] * mc.flux_samples ** 2 * mc.rays_per_point
+            entry.update(mc_rays=rays, mc_seconds=dt, mc_rays_per_s=rays / dt)
         rows.append(entry)
+        mc_text = f", Monte Carlo {entry['mc_rays_per_s'] / 1e6:.1f} M rays/s" if "mc_rays" in entry else ""
         print(f"  {n:6d} heliostats: {entry['seconds_48x20']:.3f} s (48x20), {entry['seconds_256x256']:.3f} s "
-              f"(256x256)", flush=True)
+              f"(256x256){mc_text}", flush=True)
     return rows
 
 
