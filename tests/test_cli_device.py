@@ -150,3 +150,19 @@ def test_gpu_smoke_reconstruct_and_predict(fit_paint, tmp_path, capsys):
     assert g["device"] == "cuda" and g["instants"] == c["instants"]
     ga, ca = g["statistics"]["l1_ideal_vs_learned"], c["statistics"]["l1_ideal_vs_learned"]
     assert ga["median"] == pytest.approx(ca["median"], abs=2e-3)
+
+
+@gpu
+def test_gpu_smoke_field_demo_with_aim_points(tmp_path, capsys):
+    """The field demo (field model with shading and blocking, aim points) on cuda agrees with the cpu."""
+    reports = {}
+    for device in ("cuda", "cpu"):
+        out = tmp_path / f"demo-{device}"
+        code, _, err = run_cli(capsys, "demo", "-o", out, "--heliostats", "30", "--device", device, "--quiet")
+        assert code == 0, (device, err)
+        reports[device] = json.loads((out / "summary.json").read_text())
+    g, c = reports["cuda"], reports["cpu"]
+    for key in ("total", "shading", "blocking", "intercept"):
+        assert g["field"]["efficiency"][key] == pytest.approx(c["field"]["efficiency"][key], rel=1e-4)
+    assert g["aim_points"]["violation"] == 0.0 and c["aim_points"]["violation"] == 0.0
+    assert g["aim_points"]["power_vs_equator"] == pytest.approx(c["aim_points"]["power_vs_equator"], abs=2e-3)

@@ -21,7 +21,6 @@ and report), :func:`plot_flux` (a titled, labelled figure with a colour bar), :f
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 import time
@@ -78,34 +77,18 @@ def field(source, heliostats=None):
 
 
 def to_device(obj, device):
-    """``obj`` with every tensor on ``device``: tensors, dataclasses (plants, targets, record tables, flux
-    images), modules (networks, copied), and lists/tuples/dicts of them; anything else is returned as is.
-    Dtypes are kept."""
-    import copy
+    """``obj`` with every tensor on ``device`` (:func:`heliotwin.devices.to_device`): plants, targets, record
+    tables, flux images, networks and containers of them; dtypes kept."""
+    from .devices import to_device as move
 
-    import torch
-
-    if isinstance(obj, torch.Tensor):
-        return obj.to(device)
-    if isinstance(obj, torch.nn.Module):
-        return copy.deepcopy(obj).to(device)
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        changes = {f.name: to_device(getattr(obj, f.name), device) for f in dataclasses.fields(obj) if f.init}
-        return dataclasses.replace(obj, **changes)
-    if isinstance(obj, dict):
-        return {k: to_device(v, device) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return type(obj)(to_device(v, device) for v in obj)
-    return obj
+    return move(obj, device)
 
 
 def _device(name) -> str:
     """``"auto"`` -> ``"cuda"`` when torch sees a CUDA device, else ``"cpu"``; anything else as given."""
-    import torch
+    from .devices import resolve_device
 
-    if str(name) == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    return str(name)
+    return resolve_device(name)
 
 
 def trace_record(dataset, record_id: int, *, integrator: str = "mc", rays_per_point: int = 100,

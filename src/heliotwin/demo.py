@@ -33,8 +33,7 @@ def run_demo(out: str, *, num_heliostats: int = 48, integrator: str = "mc", rays
     dict
         The summary (also written to ``out/summary.json``).
     """
-    from .api import to_device
-    from .calibrate.pipeline import resolve_device
+    from .devices import resolve_device, to_device
     from .io.report import write_json
     from .plots import plot_demo
 

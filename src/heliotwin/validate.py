@@ -66,8 +66,7 @@ def validate_dataset(ds: PaintDataset, *, plant: Plant | None = None, sun: SunSe
         ``records`` (one dict per record), ``heliostats.<HID>`` medians, ``overall`` medians (the median
         over heliostats of each heliostat's median), ``skipped_records`` (with reasons).
     """
-    from .api import to_device
-    from .calibrate.pipeline import resolve_device
+    from .devices import resolve_device, to_device
 
     plant = plant or ds.plant
     device = resolve_device(device)

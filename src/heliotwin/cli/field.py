@@ -352,7 +352,7 @@ def cmd_aimpoints(args) -> int:
 
 def _on_device(plant, args):
     """The plant on ``args.device`` (None or no ``device``: on the CPU)."""
-    from ..api import to_device
+    from ..devices import to_device
 
     device = getattr(args, "device", None) if args is not None else "cpu"
     return plant if device is None else to_device(plant, device)

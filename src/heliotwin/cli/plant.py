@@ -49,7 +49,8 @@ def cmd_demo(args) -> int:
         folder = out.folder(args.out, "--out")
         json_path = out.file(args.json, "--json")
         summary = run_field_demo(folder, num_heliostats=args.heliostats or 2000, time_utc=args.time,
-                                 iterations=args.iterations, progress=not args.quiet)
+                                 iterations=args.iterations, progress=not args.quiet,
+                                 device=getattr(args, "device", "cpu"))
         if json_path:
             write_json(json_path, summary)
     if args.quiet:
@@ -63,6 +64,9 @@ def cmd_demo(args) -> int:
     return 0
 
 
+cmd_demo.supports_cuda = True  # both demos run on args.device
+
+
 def _cmd_demo_classic(args) -> int:
     """Trace the embedded default plant at a spring-equinox noon and write flux PNGs + a JSON summary."""
     from ..demo import run_demo
@@ -72,7 +76,8 @@ def _cmd_demo_classic(args) -> int:
         json_path = out.file(args.json, "--json")
         summary = run_demo(folder, num_heliostats=args.heliostats or 48, integrator=args.integrator or "mc",
                            rays_per_point=args.rays_per_point or 64, resolution=args.resolution or 256,
-                           seed=args.seed or 0, time_utc=args.time, progress=not args.quiet)
+                           seed=args.seed or 0, time_utc=args.time, progress=not args.quiet,
+                           device=getattr(args, "device", "cpu"))
         if json_path:
             write_json(json_path, summary)
     if args.quiet:

@@ -328,7 +328,7 @@ def demo_field_plant(num_heliostats: int = 2000):
 
 def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-20T11:30:00Z",
                    peak_limit_fraction: float = 0.75, iterations: int | None = None,
-                   progress: bool = False) -> dict:
+                   progress: bool = False, device: str = "cpu") -> dict:
     """The demo as the whole field: efficiency map, loss breakdown, receiver flux before/after aim points.
 
     On :func:`demo_field_plant` at ``time_utc``: the field model with exact shading and blocking
@@ -352,6 +352,8 @@ def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-
         Image-model steps per round of the aim-point optimiser (default: the optimiser's).
     progress : bool
         A progress bar over the stages.
+    device : str
+        Where the field model and the aim points run (``auto``: CUDA when present); results on the CPU.
 
     Returns
     -------
@@ -377,27 +379,31 @@ def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-
     folder = Path(out)
     seconds = {}
     bar = tqdm(total=4, desc="demo: whole field", unit="stage", disable=not progress)
+    from ..devices import resolve_device, to_device
+
     plant, atm = demo_field_plant(num_heliostats)
     s = plant.site
     sun = direction_from_time(pd.DatetimeIndex([pd.Timestamp(time_utc)]), s.latitude_deg, s.longitude_deg,
                               s.altitude_m)[0]
+    device = resolve_device(device)
+    plant_cpu, plant, sun = plant, to_device(plant, device), sun.to(device)
     t0 = time.perf_counter()
     with torch.no_grad():
-        before = field_optics(plant, sun, atmosphere=atm)
+        before = to_device(field_optics(plant, sun, atmosphere=atm), "cpu")
     seconds["field_model"] = time.perf_counter() - t0
-    rep = summary(before, plant)
+    rep = summary(before, plant_cpu)
     bar.update()
     limit = float(peak_limit_fraction) * rep["receiver"]["peak_flux_w_m2"]
     t0 = time.perf_counter()
     steps = {} if iterations is None else {"iterations": int(iterations)}
-    aimed = optimise_aimpoints(plant, sun, limit, atmosphere=atm, **steps)
+    aimed = to_device(optimise_aimpoints(plant, sun, limit, atmosphere=atm, **steps), "cpu")
     seconds["aim_points"] = time.perf_counter() - t0
     bar.update()
     folder.mkdir(parents=True, exist_ok=True)
     rep["losses"] = _loss_breakdown(before)
     t0 = time.perf_counter()
-    _demo_figures(folder, plant, before, aimed, rep, limit, time_utc)
-    _write_rows(folder / "heliostats.csv", per_heliostat_rows(before, plant))
+    _demo_figures(folder, plant_cpu, before, aimed, rep, limit, time_utc)
+    _write_rows(folder / "heliostats.csv", per_heliostat_rows(before, plant_cpu))
     seconds["outputs"] = time.perf_counter() - t0
     bar.update()
     seconds["total"] = time.perf_counter() - t_start

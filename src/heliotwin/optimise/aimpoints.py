@@ -65,6 +65,7 @@ from dataclasses import dataclass, field
 import torch
 
 from ..atmosphere import Atmosphere
+from ..devices import to_device
 from ..errors import HeliotwinError
 from ..field.plant import Plant
 from ..field.targets import CylinderTarget
@@ -92,22 +93,6 @@ class AimResult:
     def violation(self, limit: float) -> float:
         """Relative excess of the peak over the limit (0 when met)."""
         return max(0.0, self.peak_flux_w_m2 / float(limit) - 1.0)
-
-
-def to_device(obj, device):
-    """``obj`` (a plant, target, tensor, or containers of them) with every tensor on ``device``; dtypes kept."""
-    import dataclasses
-
-    if isinstance(obj, torch.Tensor):
-        return obj.to(device)
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return dataclasses.replace(obj, **{f.name: to_device(getattr(obj, f.name), device)
-                                           for f in dataclasses.fields(obj) if f.init})
-    if isinstance(obj, dict):
-        return {k: to_device(v, device) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return type(obj)(to_device(v, device) for v in obj)
-    return obj
 
 
 # ------------------------------------------------------------------------------------------ exact model

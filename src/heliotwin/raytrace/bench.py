@@ -145,8 +145,7 @@ def run_benchmark(surface_points: int = 10000, rays_per_point=(10, 100), resolut
 
 
 def _run(surface_points, rays_per_point, resolution, seed, repeats, time_to_accuracy, device="cpu"):
-    from ..api import to_device
-    from ..calibrate.pipeline import resolve_device
+    from ..devices import resolve_device, to_device
 
     device = resolve_device(device)
     ks = [int(rays_per_point)] if isinstance(rays_per_point, int) else [int(k) for k in rays_per_point]

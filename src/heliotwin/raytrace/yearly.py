@@ -162,8 +162,7 @@ def _on_device(plant: Plant, device) -> Plant:
     """``plant`` on ``device`` (None: where it is; ``"auto"``: CUDA when present)."""
     if device is None:
         return plant
-    from ..api import to_device
-    from ..calibrate.pipeline import resolve_device
+    from ..devices import resolve_device, to_device
 
     return to_device(plant, resolve_device(device))
 
