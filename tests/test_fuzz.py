@@ -430,3 +430,91 @@ def test_fuzz_cli_runs_fail_in_one_line_and_leave_outputs_alone(scenario_file, p
         assert len(err.getvalue().strip().splitlines()) == 1
     elif out.read_text() != "old":
         json.loads(out.read_text(), parse_constant=lambda c: pytest.fail(f"{c} token in {out}"))
+
+
+# ------------------------------------------------------------------------------------ field readers
+_LAYOUT_OK = "# SolarPILOT layout\nid,x,y,z\nH1,0.0,40.0,0.0\nH2,12.0,55.0,0.5\nH3,-12.0,55.0,0.5\n"
+_TOML_VALUES = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True).map(lambda v: "nan" if v != v else ("inf" if v == math.inf else
+                                                                                      "-inf" if v == -math.inf
+                                                                                      else repr(v))),
+    st.integers(min_value=-(10**20), max_value=10**20).map(str),
+    st.sampled_from(['"cylinder"', '"planar"', '"torus"', '"on-axis"', '"buie"', '[]', '[1, 2]', '[0.0, 0.0]',
+                     '"x"', 'true', '{a = 1}', '1e400', '-1', '0']))
+
+
+def _field_reader_outcome(layout_text: str, toml_text: str, folder: Path):
+    """plant_from_layout on the two texts: a finite plant, or one HeliotwinError naming one of the two files."""
+    from heliotwin.field.layout import plant_from_layout
+
+    csv_path, toml_path = folder / "layout.csv", folder / "plant.toml"
+    csv_path.write_text(layout_text, encoding="utf-8", errors="surrogateescape")
+    toml_path.write_text(toml_text, encoding="utf-8", errors="surrogateescape")
+    try:
+        plant, atm = plant_from_layout(csv_path, toml_path)
+    except HeliotwinError as exc:
+        msg = str(exc)
+        assert "\n" not in msg and (str(csv_path) in msg or str(toml_path) in msg or "layout.csv" in msg
+                                    or "plant.toml" in msg), msg
+        return "refused"
+    assert torch.isfinite(plant.field.kinematics.position).all()
+    assert torch.isfinite(torch.as_tensor(atm.coefficients)).all()
+    return "read"
+
+
+@FUZZ
+@given(data=st.data())
+def test_fuzz_layout_csv(tmp_path_factory, data):
+    """Corrupted layout CSV lines (text, NaN, huge numbers, missing columns, duplicate ids): read into a finite
+    plant or refused in one line naming the file."""
+    from helpers.field import PLANT_TOML
+
+    lines = _LAYOUT_OK.splitlines()
+    k = data.draw(st.integers(min_value=1, max_value=len(lines) - 1))
+    lines[k] = data.draw(st.one_of(
+        st.text(max_size=30),
+        st.lists(st.sampled_from(["H1", "nan", "inf", "1e308", "-1e308", "", "0", "3.5", "x", "55"]),
+                 min_size=0, max_size=6).map(",".join)))
+    _field_reader_outcome("\n".join(lines) + "\n", PLANT_TOML, tmp_path_factory.mktemp("layout"))
+
+
+@FUZZ
+@given(data=st.data())
+def test_fuzz_plant_toml(tmp_path_factory, data):
+    """One value of the plant TOML replaced by anything (wrong type, NaN, out of range) or a line garbled: read
+    into a finite plant or refused in one line naming the file."""
+    from helpers.field import PLANT_TOML
+
+    lines = PLANT_TOML.splitlines()
+    keyed = [i for i, ln in enumerate(lines) if "=" in ln]
+    i = data.draw(st.sampled_from(keyed))
+    if data.draw(st.booleans()):
+        lines[i] = lines[i].split("=")[0] + "= " + data.draw(_TOML_VALUES)
+    else:
+        lines[i] = data.draw(st.text(max_size=20))
+    _field_reader_outcome(_LAYOUT_OK, "\n".join(lines) + "\n", tmp_path_factory.mktemp("toml"))
+
+
+@FUZZ
+@given(rows=st.integers(min_value=0, max_value=4), cols=st.integers(min_value=0, max_value=4),
+       fill=st.sampled_from([0.0, 1.0, -1.0, math.nan, math.inf, 1e308]), text=st.booleans())
+def test_fuzz_aim_target_map(tmp_path_factory, rows, cols, fill, text):
+    """A target flux map of any shape and content: the unit-sum [3, 4] map, or one line naming the file."""
+    from heliotwin.optimise.aimpoints import load_target
+
+    d = tmp_path_factory.mktemp("target")
+    arr = np.full((rows, cols), fill)
+    if rows and cols:
+        arr[0, 0] = 1.0
+    path = d / ("t.csv" if text else "t.npy")
+    if text:
+        path.write_text("\n".join(",".join(repr(float(v)) for v in r) for r in arr) + "\n")
+    else:
+        np.save(path, arr)
+    try:
+        t = load_target(path, (3, 4))
+    except HeliotwinError as exc:
+        assert str(path) in str(exc) and "\n" not in str(exc)
+        return
+    assert t.shape == (3, 4) and torch.isfinite(t).all() and (t >= 0).all()
+    assert float(t.sum()) == pytest.approx(1.0)

@@ -60,6 +60,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import torch
@@ -305,7 +306,10 @@ def load_target(path, resolution) -> torch.Tensor:
     rows, cols = (int(r) for r in resolution)
     text = str(path)
     try:
-        arr = np.load(text) if text.endswith(".npy") else np.loadtxt(text, delimiter=",", comments="#", ndmin=2)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # numpy's "no data" warning: the shape check says it
+            arr = np.load(text) if text.endswith(".npy") else np.loadtxt(text, delimiter=",", comments="#",
+                                                                           ndmin=2)
     except (OSError, ValueError) as exc:
         raise HeliotwinError(f"{text}: cannot read the target flux map ({exc})") from None
     arr = np.asarray(arr, dtype=np.float64)
@@ -313,9 +317,9 @@ def load_target(path, resolution) -> torch.Tensor:
         raise HeliotwinError(f"{text}: target map has shape {arr.shape[0] if arr.ndim else 0}x"
                              f"{arr.shape[1] if arr.ndim > 1 else 0} (rows x cols), the receiver grid is "
                              f"{rows}x{cols}")
-    if not np.isfinite(arr).all() or (arr < 0).any() or arr.sum() <= 0:
+    if not np.isfinite(arr).all() or (arr < 0).any() or not (arr > 0).any():
         raise HeliotwinError(f"{text}: target map must be finite, non-negative and not all zero")
-    t = torch.as_tensor(arr)
+    t = torch.as_tensor(arr / arr.max())  # scaled first: a sum of values near 1e308 would overflow
     return t / t.sum()
 
 
