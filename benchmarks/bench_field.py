@@ -11,7 +11,7 @@
 4. **The demo** (``heliotwin demo``'s :func:`heliotwin.field.demo.run_field_demo`): wall time per stage and
    its figures (field efficiency, peak before/after aim points, power ratio).
 5. **Speed** of one sun (shading + blocking + 48 x 20 map, and + 256 x 256 map) for generated radial-staggered
-   fields of 50 to 10 000 heliostats, and the Monte-Carlo field model's rays per second (64 rays per flux
+   fields of 50 to 10 000 heliostats, and the Monte-Carlo field model's rays per second (256 rays per flux
    sample, shading and blocking included in the time) up to 2000 heliostats; peak resident memory. Wall
    times depend on the machine and its load: the script records ``torch.get_num_threads()`` and the load
    average next to them.
@@ -198,7 +198,7 @@ def speed(out: Path, sizes: list[int]) -> list[dict]:
             entry[f"seconds_{name}"] = min(times)
             entry[f"total_efficiency_{name}"] = float(r.efficiency.mean())
         if n <= 2000:  # Monte Carlo with shading and blocking: rays per second of the whole field model
-            mc = FieldSettings(integrator="mc", rays_per_point=64)
+            mc = FieldSettings(integrator="mc", rays_per_point=256)
             with torch.no_grad():
                 field_optics(plant, sun, atmosphere=atm, settings=mc)
                 t0 = time.perf_counter()
