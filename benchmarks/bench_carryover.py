@@ -99,6 +99,17 @@ def main(argv=None) -> int:
         rep_online_default, _, _ = run_calibration(replace(base, split="online"), ds)
         res["online_chosen"] = rep_online["overall"]
         res["online_default_lm"] = rep_online_default["overall"]
+        # the drift model on the online protocol: the random-walk candidate that LOHO CV ranks best among
+        # the random-walk candidates (chosen on chrono, like every choice here)
+        walk = [c for c in S.CANDIDATES if c.get("drift_model") == "kalman"]
+        rep_online_walk = None
+        if walk:
+            best_walk = S.select(scores, walk)
+            cfg_w = S.config_of(base, best_walk, None)
+            rep_online_walk, _, _ = run_calibration(replace(cfg_w, split="online", prior_from=None), ds)
+            res["online_best_walk"] = {"candidate": S.label(best_walk), **rep_online_walk["overall"]}
+            print(f"online, best random-walk candidate {S.label(best_walk)}: "
+                  f"{_fmt(rep_online_walk['overall']['median_of_mean_test_mrad'])} mrad", flush=True)
         print(f"online (test = latest 30, each block of {base.online_step} predicted from the {n} records before it): "
               f"chosen {_fmt(rep_online['overall']['median_of_mean_test_mrad'])} mrad, default lm "
               f"{_fmt(rep_online_default['overall']['median_of_mean_test_mrad'])}", flush=True)
@@ -111,16 +122,17 @@ def main(argv=None) -> int:
         out["train"][str(n)] = res
         rows.append((n, rep_default["overall"], rep_chosen["overall"], f"{S.label(chosen)}, drift {1e3 * drift:.2f}",
                      nested, S.median(scores[S.label(chosen)].values()), rep_online["overall"],
-                     rep_online_default["overall"]))
+                     rep_online_default["overall"], rep_online_walk))
     print("\n| N | default lm protocol | chosen setting | chosen protocol | CV of chosen (fixed) | nested LOHO CV |"
-          " coverage90 protocol | coverage90 nested | online chosen | online default lm |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
-    for n, d, c, lab, nested, cvfix, on, on_d in rows:
+          " coverage90 protocol | coverage90 nested | online chosen | online default lm | online best walk |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for n, d, c, lab, nested, cvfix, on, on_d, on_w in rows:
         print(f"| {n} | {_fmt(d['median_of_mean_test_mrad'])} | {lab} | {_fmt(c['median_of_mean_test_mrad'])} | "
               f"{_fmt(cvfix)} | {_fmt(nested['median_of_mean_test_mrad']) if nested else '-'} | "
               f"{_fmt(c.get('interval_90_coverage'))} | "
               f"{_fmt(nested.get('interval_90_coverage')) if nested else '-'} | "
-              f"{_fmt(on['median_of_mean_test_mrad'])} | {_fmt(on_d['median_of_mean_test_mrad'])} |")
+              f"{_fmt(on['median_of_mean_test_mrad'])} | {_fmt(on_d['median_of_mean_test_mrad'])} | "
+              f"{_fmt(on_w['median_of_mean_test_mrad']) if on_w else '-'} |")
     out["seconds"] = time.perf_counter() - t0
     write_json(args.json, out)
     print(f"wrote {args.json} ({out['seconds']:.0f} s)")

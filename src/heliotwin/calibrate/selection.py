@@ -29,7 +29,8 @@ import numpy as np
 from .pipeline import RunConfig, run_calibration
 
 #: Settings tried, in order (the first is today's ``lm`` default). ``bags``: bootstrap bags of ``lm``;
-#: ``half_life_days``: drift tracking by recency weights (:func:`~heliotwin.calibrate.lm.fit_lm`).
+#: ``half_life_days``: drift tracking by recency weights (:func:`~heliotwin.calibrate.lm.fit_lm`);
+#: ``drift_model``/``process_noise``: the random-walk offset (:mod:`.drift`, q [mrad^2/day]).
 CANDIDATES = (
     {"prior": "run", "bags": 10},
     {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 1.0, "bags": 10},
@@ -42,6 +43,15 @@ CANDIDATES = (
     {"prior": "run", "bags": 10, "half_life_days": 60.0},
     {"prior": "run", "bags": 10, "half_life_days": 20.0},
     {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 2.0, "bags": 10, "half_life_days": 20.0},
+    # the rigid body + a random-walk offset of the axis offsets (drift.py): q [mrad^2/day] fixed, or "auto"
+    # (chronological validation inside each heliostat's training records)
+    {"prior": "run", "bags": 10, "drift_model": "kalman", "process_noise": 0.01},
+    {"prior": "run", "bags": 10, "drift_model": "kalman", "process_noise": 0.03},
+    {"prior": "run", "bags": 10, "drift_model": "kalman", "process_noise": "auto"},
+    {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 2.0, "bags": 10, "drift_model": "kalman",
+     "process_noise": 0.03},
+    {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 2.0, "bags": 10, "drift_model": "kalman",
+     "process_noise": "auto"},
 )
 
 
@@ -49,6 +59,9 @@ def label(candidate: dict) -> str:
     """Short text of a candidate, e.g. ``plant/full/s0.2/w1/b10``."""
     c = candidate
     hl = f"/hl{c['half_life_days']:g}d" if c.get("half_life_days") else ""
+    if c.get("drift_model", "none") == "kalman":
+        pn = c.get("process_noise", "auto")
+        hl += f"/kq{pn:g}" if isinstance(pn, (int, float)) else f"/kq{pn}"
     if c.get("prior", "run") == "run":
         return f"run/b{c.get('bags', 10)}{hl}"
     cov = c.get("covariance", "full")
@@ -62,9 +75,12 @@ def config_of(base: RunConfig, candidate: dict, archive=None) -> RunConfig:
     method_options = dict(base.method_options, bags=int(candidate.get("bags", 10)))
     if candidate.get("half_life_days"):
         method_options["half_life_days"] = float(candidate["half_life_days"])
+    drift = {"drift_model": candidate.get("drift_model", "none"),
+             "process_noise": candidate.get("process_noise", "auto")}
     if candidate.get("prior", "run") == "plant":
-        return replace(base, prior="plant", prior_from=archive, prior_options=opts, method_options=method_options)
-    return replace(base, prior="run", prior_from=None, prior_options={}, method_options=method_options)
+        return replace(base, prior="plant", prior_from=archive, prior_options=opts, method_options=method_options,
+                       **drift)
+    return replace(base, prior="run", prior_from=None, prior_options={}, method_options=method_options, **drift)
 
 
 def eligible(dataset, min_records: int = 50, focal_spot: str = "HeliOS") -> list:
