@@ -133,3 +133,12 @@ def test_cli_drift_flags_become_run_settings():
         args = build_parser().parse_args(["calibrate", "--paint", "P", "--drift", "kalman", *bad])
         with pytest.raises(HeliotwinError):
             _config(args, args.method)
+
+
+def test_cli_aim_time_flag():
+    from heliotwin.cli.calibrate import _aim_time
+    from heliotwin.errors import HeliotwinError
+
+    assert _aim_time(None) is None and _aim_time("2023-05-01T12:00:00Z") == pytest.approx(1682942400.0)
+    with pytest.raises(HeliotwinError, match="--time"):
+        _aim_time("yesterday")
