@@ -92,7 +92,9 @@ def offset_jacobian(nominal, batch: RecordTable, delta: torch.Tensor | None = No
     from .lm import record_jacobian
 
     hidx = batch.heliostat_index
-    d = torch.zeros(nominal.num_heliostats, len(STONE8), dtype=torch.float64) if delta is None else delta.double()
+    dev = nominal.position.device
+    d = torch.zeros(nominal.num_heliostats, len(STONE8), dtype=torch.float64, device=dev) if delta is None \
+        else delta.double()
     _, jac = record_jacobian(nominal.index(hidx), batch, d.detach()[hidx], STONE8)
     return jac[:, :, columns(basis)]
 
@@ -104,8 +106,8 @@ def _padded_model(batch: RecordTable, jac: torch.Tensor, q: float):
     tau, _ = elapsed_days(batch)
     safe = index.clamp_min(0)
     timed = mask & torch.isfinite(tau[safe])
-    a = torch.where(timed[..., None, None], jac.double()[safe], torch.zeros((), dtype=torch.float64))
-    tt = torch.where(timed, tau[safe], torch.zeros((), dtype=torch.float64))
+    a = torch.where(timed[..., None, None], jac.double()[safe], 0.0)
+    tt = torch.where(timed, tau[safe], 0.0)
     k = float(q) * torch.minimum(tt[:, :, None], tt[:, None, :])
     return a, k, index, mask
 
@@ -114,7 +116,7 @@ def _sigma(a: torch.Tensor, k: torch.Tensor, noise: float) -> torch.Tensor:
     """Marginal residual covariance ``A K A^T + s^2 I`` [H, 3n, 3n]."""
     h, n = k.shape[:2]
     sig = torch.einsum("hikc,hij,hjlc->hikjl", a, k, a).reshape(h, 3 * n, 3 * n)
-    return sig + float(noise) ** 2 * torch.eye(3 * n, dtype=torch.float64)
+    return sig + float(noise) ** 2 * torch.eye(3 * n, dtype=torch.float64, device=k.device)
 
 
 def whitener(nominal, batch: RecordTable, q: float, noise: float, basis: str = "axes"):
@@ -135,7 +137,7 @@ def whitener(nominal, batch: RecordTable, q: float, noise: float, basis: str = "
     a, k, index, mask = _padded_model(batch, offset_jacobian(nominal, batch, basis=basis), q)
     h, n = index.shape
     chol = torch.linalg.cholesky(_sigma(a, k, noise))
-    eye = torch.eye(3 * n, dtype=torch.float64).expand(h, -1, -1)
+    eye = torch.eye(3 * n, dtype=torch.float64, device=chol.device).expand(h, -1, -1)
     w = float(noise) * torch.linalg.solve_triangular(chol, eye, upper=False)  # [H, 3n, 3n]
     rows = index[mask]
     hh, jj = mask.nonzero(as_tuple=True)
@@ -170,30 +172,31 @@ def smooth(nominal, batch: RecordTable, delta: torch.Tensor, q: float, noise: fl
     a, k, index, mask = _padded_model(batch, offset_jacobian(nominal, batch, basis=basis), q)
     hn, n = index.shape
     nb = a.shape[-1]
-    y = torch.zeros(hn, n, 3, dtype=torch.float64)
+    dev = res.device
+    y = torch.zeros(hn, n, 3, dtype=torch.float64, device=dev)
     y[mask] = -res[index[mask]]
     sig = _sigma(a, k, noise)
     chol = torch.linalg.cholesky(sig)
     z = torch.cholesky_solve(y.reshape(hn, 3 * n, 1), chol).reshape(hn, n, 3)
     u = torch.einsum("hjkc,hjk->hjc", a, z)  # A^T Sigma^-1 y, [H, n, 2]
     mean = torch.einsum("hij,hjc->hic", k, u)  # K A^T Sigma^-1 y
-    smoothed = torch.zeros(len(batch), nb, dtype=torch.float64)
+    smoothed = torch.zeros(len(batch), nb, dtype=torch.float64, device=dev)
     smoothed[index[mask]] = mean[mask]
     tau, first = elapsed_days(batch)
-    tt = torch.where(mask, tau[index.clamp_min(0)], torch.full((), float("nan"), dtype=torch.float64))
+    tt = torch.where(mask, tau[index.clamp_min(0)], float("nan"))
     tt = torch.nan_to_num(tt, nan=-1.0)
     last = tt.argmax(1)  # the latest timed record (the walk's state at the latest training time)
     tl = tt.gather(1, last[:, None])[:, 0].clamp_min(0.0)
-    ar = torch.arange(hn)
+    ar = torch.arange(hn, device=dev)
     offset = mean[ar, last] * (tt[ar, last] >= 0)[:, None]
     # Cov(b_l, y) = K[:, l] A (per record), [H, 3n, 2]; P_l = q tau_l I - G^T Sigma^-1 G
     g = (a * k[ar, :, last][:, :, None, None]).reshape(hn, 3 * n, nb)
     sg = torch.cholesky_solve(g, chol)
-    cov = float(q) * tl[:, None, None] * torch.eye(nb, dtype=torch.float64) - g.transpose(1, 2) @ sg
+    cov = float(q) * tl[:, None, None] * torch.eye(nb, dtype=torch.float64, device=dev) - g.transpose(1, 2) @ sg
     cov = 0.5 * (cov + cov.transpose(1, 2))
     time = first + tl * _DAY
     return {"smoothed": smoothed, "offset": offset, "covariance": cov, "time": time[:h], "q": float(q),
-            "columns": torch.tensor(columns(basis))}
+            "columns": torch.tensor(columns(basis), device=dev)}
 
 
 def predicted_covariance(state: dict, heliostat_index: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
@@ -201,7 +204,7 @@ def predicted_covariance(state: dict, heliostat_index: torch.Tensor, time: torch
     (records without a time: ``P_l``)."""
     dt = ((time.double() - state["time"].double()[heliostat_index]) / _DAY).clamp_min(0.0)
     dt = torch.nan_to_num(dt, nan=0.0)
-    eye = torch.eye(state["covariance"].shape[-1], dtype=torch.float64)
+    eye = torch.eye(state["covariance"].shape[-1], dtype=torch.float64, device=state["covariance"].device)
     return state["covariance"].double()[heliostat_index] + float(state["q"]) * dt[:, None, None] * eye
 
 
@@ -225,7 +228,7 @@ def split_for_choice(batch: RecordTable, fraction: float = 0.25) -> tuple[torch.
         timed = timed[torch.argsort(tau[timed], stable=True)]
         nv = max(1, int(round(fraction * len(timed)))) if len(timed) >= 4 else 0
         val.append(timed[len(timed) - nv:])
-        keep = torch.ones(len(rows), dtype=torch.bool)
+        keep = torch.ones(len(rows), dtype=torch.bool, device=rows.device)
         keep[torch.isin(rows, val[-1])] = False
         fit.append(rows[keep])
     return torch.cat(fit), torch.cat(val)

@@ -383,7 +383,7 @@ def predict_intervals(run: Run) -> None:
 
         cols = state["columns"].tolist()
         cov = cov.clone()
-        rows = torch.tensor(cols)
+        rows = torch.tensor(cols, device=cov.device)
         cov[:, rows[:, None], rows[None, :]] += predicted_covariance(state, hidx, test.time).to(cov)
     run.interval_inputs = {"jacobian": jac[keep], "normal": normal.detach()[keep],
                            "covariance": cov[keep], "noise": post["noise_rad"][hidx][keep],
