@@ -122,7 +122,9 @@ def main(argv=None) -> int:
         out["train"][str(n)] = res
         rows.append((n, rep_default["overall"], rep_chosen["overall"], f"{S.label(chosen)}, drift {1e3 * drift:.2f}",
                      nested, S.median(scores[S.label(chosen)].values()), rep_online["overall"],
-                     rep_online_default["overall"], rep_online_walk))
+                     rep_online_default["overall"], rep_online_walk and rep_online_walk["overall"]))
+    out["seconds"] = time.perf_counter() - t0
+    write_json(args.json, out)  # before the table: the figures are safe whatever the printing does
     print("\n| N | default lm protocol | chosen setting | chosen protocol | CV of chosen (fixed) | nested LOHO CV |"
           " coverage90 protocol | coverage90 nested | online chosen | online default lm | online best walk |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
@@ -133,8 +135,6 @@ def main(argv=None) -> int:
               f"{_fmt(nested.get('interval_90_coverage')) if nested else '-'} | "
               f"{_fmt(on['median_of_mean_test_mrad'])} | {_fmt(on_d['median_of_mean_test_mrad'])} | "
               f"{_fmt(on_w['median_of_mean_test_mrad']) if on_w else '-'} |")
-    out["seconds"] = time.perf_counter() - t0
-    write_json(args.json, out)
     print(f"wrote {args.json} ({out['seconds']:.0f} s)")
     return 0
 
