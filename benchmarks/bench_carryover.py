@@ -84,22 +84,23 @@ def main(argv=None) -> int:
         scores = S.cross_validated_errors(ds, base, S.CANDIDATES, ids, folds=args.folds, archive=archive,
                                           log=print, collect=collect)
         chosen = S.select(scores, S.CANDIDATES)
-        drift, drift_cov = S.choose_drift(collect[S.label(chosen)])
-        print("coverage of the 90 % interval vs offset drift [mrad] (CV runs of the chosen setting): "
-              + ", ".join(f"{1e3 * d:.2f}: {c:.3f}" for d, c in drift_cov.items()), flush=True)
+        drift, walk_scale, drift_cov = S.choose_interval(collect[S.label(chosen)])
+        print("coverage of the 90 % interval vs (offset drift [mrad], walk scale) (CV runs of the chosen setting): "
+              + ", ".join(f"({1e3 * d:.2f}, {s:g}): {c:.3f}" for (d, s), c in drift_cov.items()), flush=True)
         rep_default, _, _ = run_calibration(base, ds)
         cfg = S.config_of(base, chosen, None)
-        rep_chosen, _, _ = run_calibration(replace(cfg, method_options=dict(cfg.method_options, drift=drift)), ds)
+        cfg = replace(cfg, method_options=dict(cfg.method_options, drift=drift, walk_scale=walk_scale))
+        rep_chosen, _, _ = run_calibration(cfg, ds)
         res = {"cv_table": {k: {"median_of_mean_test_mrad": S.median(v.values()), "heliostats": v}
                             for k, v in scores.items()},
                "chosen": S.label(chosen), "drift_rad": drift,
-               "drift_coverage": {str(k): v for k, v in drift_cov.items()},
+               "walk_scale": walk_scale, "drift_coverage": {str(k): v for k, v in drift_cov.items()},
                "protocol_chosen": rep_chosen["overall"],
                "protocol_default_lm": rep_default["overall"]}
         print(f"chosen by CV: {S.label(chosen)}; protocol figure "
               f"{_fmt(rep_chosen['overall']['median_of_mean_test_mrad'])} mrad "
               f"(default lm {_fmt(rep_default['overall']['median_of_mean_test_mrad'])})", flush=True)
-        cfg_on = replace(cfg, split="online", method_options=dict(cfg.method_options, drift=drift))
+        cfg_on = replace(cfg, split="online")
         rep_online, _, _ = run_calibration(cfg_on, ds)
         rep_online_default, _, _ = run_calibration(replace(base, split="online"), ds)
         res["online_chosen"] = rep_online["overall"]
@@ -125,7 +126,8 @@ def main(argv=None) -> int:
                                  log=print)
             res["nested_cv"] = nested
         out["train"][str(n)] = res
-        rows.append((n, rep_default["overall"], rep_chosen["overall"], f"{S.label(chosen)}, drift {1e3 * drift:.2f}",
+        rows.append((n, rep_default["overall"], rep_chosen["overall"],
+                     f"{S.label(chosen)}, drift {1e3 * drift:.2f}, walk x{walk_scale:g}",
                      nested, S.median(scores[S.label(chosen)].values()), rep_online["overall"],
                      rep_online_default["overall"], rep_online_walk and rep_online_walk["overall"]))
     out["seconds"] = time.perf_counter() - t0

@@ -353,7 +353,7 @@ def fit_lm_method(nominal, train, validation, *, seed=0, progress=False, field_p
                   fit_focal_spot=FIT_FOCAL_SPOT, loss=LM_LOSS, f_scale=LM_F_SCALE, bags=LM_BAGS,
                   plant_prior: priors.PlantPrior | None = None, drift: float = 0.0,
                   half_life_days: float | None = None, drift_model: str = "none",
-                  process_noise: float | str = 0.0, drift_basis: str = "axes") -> Calibrated:
+                  process_noise: float | str = 0.0, drift_basis: str = "axes", walk_scale: float = 1.0) -> Calibrated:
     """``lm``: the Stone/Jülich 8 by Levenberg-Marquardt on every record it may see (train + validation).
 
     LM has no iteration count to stop early, so the validation records are used for fitting too (they
@@ -374,7 +374,9 @@ def fit_lm_method(nominal, train, validation, *, seed=0, progress=False, field_p
     training records, :func:`choose_process_noise`). The static part is fitted in generalised least
     squares, the offset smoothed over the training records; the returned ``delta`` is the static part + the
     offset at the latest training time (what aims the heliostat *now*), ``extras["drift_state"]`` holds that
-    offset, its covariance, time and ``q``.
+    offset, its covariance, time and ``q``. ``walk_scale`` scales the walk's covariance in the predictive
+    interval (chosen with ``drift`` by cross-validated coverage: a real offset does not wander without bound
+    as a random walk would over the months of a chrono test block).
     """
     if drift_model not in ("none", "kalman"):
         raise ValueError(f"drift_model must be 'none' or 'kalman', got {drift_model!r}")
@@ -391,7 +393,8 @@ def fit_lm_method(nominal, train, validation, *, seed=0, progress=False, field_p
                             f_scale=f_scale, half_life_days=half_life_days, q=q, bags=bags, seed=seed,
                             basis=drift_basis)
     extras = {"field_prior": field_prior_extras(fp),
-              "posterior": laplace(nominal, fit_on, delta, _prior_precision(plant_prior, fp), drift),
+              "posterior": dict(laplace(nominal, fit_on, delta, _prior_precision(plant_prior, fp), drift),
+                                walk_scale=float(walk_scale)),
               "summary": {"bags": bags, "fit_focal_spot": fit_focal_spot, "loss": loss,
                           "half_life_days": half_life_days, "drift_model": drift_model,
                           "prior": "plant" if plant_prior is not None else ("field" if fp is not None else "nominal")}}

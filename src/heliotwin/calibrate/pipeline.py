@@ -381,16 +381,18 @@ def predict_intervals(run: Run) -> None:
     if state is not None:  # the offset's uncertainty at the latest training time, grown by q dt (drift.py)
         from .drift import predicted_covariance
 
-        cols = state["columns"].tolist()
-        cov = cov.clone()
-        rows = torch.tensor(cols, device=cov.device)
-        cov[:, rows[:, None], rows[None, :]] += predicted_covariance(state, hidx, test.time).to(cov)
+        rows = state["columns"].to(cov.device)
+        walk = torch.zeros_like(cov)
+        walk[:, rows[:, None], rows[None, :]] = predicted_covariance(state, hidx, test.time).to(cov)
+    else:
+        walk = torch.zeros_like(cov)
     run.interval_inputs = {"jacobian": jac[keep], "normal": normal.detach()[keep],
-                           "covariance": cov[keep], "noise": post["noise_rad"][hidx][keep],
+                           "covariance": cov[keep], "walk": walk[keep], "noise": post["noise_rad"][hidx][keep],
                            "error": err[keep], "heliostat": [run.run_ids[h] for h in hidx[keep].tolist()]}
     # The posterior predictive samples on the CPU (its draws take a CPU generator): a few thousand numbers.
     jac, normal, err, hidx = jac.cpu(), normal.detach().cpu(), err.cpu(), hidx.cpu()
-    pred = predictive(jac, normal, cov.cpu(), post["noise_rad"].cpu()[hidx],
+    full = (cov + float(post.get("walk_scale", 1.0)) * walk).cpu()
+    pred = predictive(jac, normal, full, post["noise_rad"].cpu()[hidx],
                       drift=post.get("drift_rad", 0.0), generator=torch.Generator().manual_seed(run.cfg.seed))
     pred["inside"] = (err >= pred["lower"]) & (err <= pred["upper"])
     run.intervals = pred

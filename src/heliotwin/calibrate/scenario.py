@@ -57,7 +57,8 @@ def calibration_state(model, *, focal_spot: str = "", prior=None) -> dict:
     if post:  # what aim needs for the expected error and its interval (Laplace posterior, see uncertainty.py)
         state["posterior"] = {"covariance": post["covariance"].detach()[ok].to(torch.float64).cpu(),
                               "noise_rad": post["noise_rad"].detach()[ok].to(torch.float64).cpu(),
-                              "drift_rad": torch.tensor([float(post.get("drift_rad", 0.0))], dtype=torch.float64)}
+                              "drift_rad": torch.tensor([float(post.get("drift_rad", 0.0))], dtype=torch.float64),
+                              "walk_scale": torch.tensor([float(post.get("walk_scale", 1.0))], dtype=torch.float64)}
     ds = model.extras.get("drift_state")
     if ds:  # the random-walk offset (drift.py): already inside "deviations"; its state lets aim grow the
         # uncertainty with the time since the latest training record, and a later run start from it
@@ -249,6 +250,7 @@ def _with_drift(cal: dict, j: int, names: list, cov: torch.Tensor, time, path) -
         p_l = torch.as_tensor(d["covariance"], dtype=torch.float64)[j]
         t_l = float(torch.as_tensor(d["time"], dtype=torch.float64)[j])
         q = float(torch.as_tensor(d["process_noise_rad2_per_day"]).reshape(-1)[0])
+        scale = float(torch.as_tensor(cal["posterior"].get("walk_scale", 1.0)).reshape(-1)[0])
     except (KeyError, IndexError, TypeError, ValueError, RuntimeError):
         raise InputFileError(path, "malformed drift state", field=where) from None
     if p_l.shape != (len(cols), len(cols)):
@@ -258,5 +260,5 @@ def _with_drift(cal: dict, j: int, names: list, cov: torch.Tensor, time, path) -
         days = max(0.0, (float(time) - t_l) / 86400.0)
     idx = torch.tensor(cols)
     cov = cov.clone()
-    cov[idx[:, None], idx[None, :]] += p_l + q * days * torch.eye(len(cols), dtype=torch.float64)
+    cov[idx[:, None], idx[None, :]] += scale * (p_l + q * days * torch.eye(len(cols), dtype=torch.float64))
     return cov, {"drift_days": days}
