@@ -106,6 +106,7 @@ def test_drift_state_round_trips_through_the_scenario_and_aim(tmp_path):
     d = sc.learned[KEY]["drift"]
     st = model.extras["drift_state"]
     assert list(d["names"]) == list(D.DRIFT_NAMES)
+    assert float(torch.as_tensor(sc.learned[KEY]["posterior"]["walk_scale"]).reshape(-1)[0]) == 1.0
     assert torch.allclose(torch.as_tensor(d["offset"]), st["offset"])
     assert torch.allclose(torch.as_tensor(d["covariance"]), st["covariance"])
     assert torch.allclose(torch.as_tensor(d["time"]), st["time"])
@@ -142,3 +143,26 @@ def test_cli_aim_time_flag():
     assert _aim_time(None) is None and _aim_time("2023-05-01T12:00:00Z") == pytest.approx(1682942400.0)
     with pytest.raises(HeliotwinError, match="--time"):
         _aim_time("yesterday")
+
+
+def test_choose_interval_shrinks_a_walk_that_overstates_the_drift():
+    """Errors of noise s only, but a walk covariance that claims 3 mrad of offset: the chosen walk scale
+    is below 1 and its coverage is near 0.9; runs without a walk keep scale 1."""
+    import math
+
+    from heliotwin.calibrate import selection
+
+    g = torch.Generator().manual_seed(0)
+    n, s = 1000, 1e-3
+    err = (torch.randn(n, 2, generator=g, dtype=F64) * s).norm(dim=-1)
+    jac = torch.zeros(n, 3, 8, dtype=F64)
+    jac[:, 0, 0] = 1.0  # the normal's x moves with the axis-1 offset
+    walk = torch.zeros(n, 8, 8, dtype=F64)
+    walk[:, 0, 0] = 9e-6
+    x = {"jacobian": jac, "normal": torch.tensor([[0.0, 0.0, 1.0]] * n, dtype=F64),
+         "covariance": 1e-20 * torch.eye(8, dtype=F64).expand(n, 8, 8), "noise": torch.full((n,), s, dtype=F64),
+         "error": err}
+    drift, scale, cov = selection.choose_interval([dict(x, walk=walk)], samples=1000)
+    assert scale < 1.0 and abs(cov[(drift, scale)] - 0.9) < 0.05 and cov[(0.0, 1.0)] > 0.97
+    drift, scale, cov = selection.choose_interval([x], samples=1000)
+    assert scale == 1.0 and all(k[1] == 1.0 for k in cov) and math.isfinite(drift)
