@@ -10,5 +10,6 @@ as named steps), :mod:`report` (report layout + plots), :mod:`scenario` (calibra
 (``calibrate``, ``split``, ``aim``). Issue 10 (accuracy that carries over): :mod:`archive` (a plant prior
 learned from other heliostats, ``--prior-from``, its no-leakage rule), :mod:`uncertainty` (Laplace
 predictive error and its interval), :mod:`selection` (leave-heliostats-out cross-validation of settings),
-:mod:`online` (``--split online``), :mod:`plan` (which record next).
+:mod:`online` (``--split online``), :mod:`plan` (which record next), :mod:`drift` (a random-walk offset:
+``--drift kalman``).
 """

@@ -48,7 +48,8 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
            loss: str = "linear", f_scale: float = 2e-3,
            prior_sigma_vector: torch.Tensor | None = None,
            prior_whitening: torch.Tensor | None = None,
-           half_life_days: float | None = None) -> tuple[torch.Tensor, dict]:
+           half_life_days: float | None = None, process_noise: float = 0.0,
+           drift_basis: str = "axes") -> tuple[torch.Tensor, dict]:
     """Fit deviations of every heliostat in ``batch`` by Levenberg-Marquardt.
 
     Parameters
@@ -75,6 +76,10 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
         Drift tracking: a record ``a`` days older than its heliostat's latest training record weighs
         ``0.5 ** (a / half_life_days)`` (records without a time weigh 1), so the fit follows where a slowly
         drifting offset is *now* rather than its average over the training period.
+    process_noise : float
+        Random-walk offset of the two axis offsets [rad^2/day] (:mod:`.drift`): the residuals are fitted in
+        generalised least squares, whitened by their covariance under that walk (0 = the static fit).
+        Excludes ``half_life_days``. ``drift_basis``: which deviations drift (:data:`.drift.BASES`).
 
     Returns
     -------
@@ -90,7 +95,7 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
         delta, info = fit_lm(to_device(nominal, "cpu"), to_device(batch, "cpu"), names=names, prior_sigma=prior_sigma,
                              prior_mean=cpu(prior_mean), noise=noise, max_nfev=max_nfev, loss=loss, f_scale=f_scale,
                              prior_sigma_vector=cpu(prior_sigma_vector), prior_whitening=cpu(prior_whitening),
-                             half_life_days=half_life_days)
+                             half_life_days=half_life_days, process_noise=process_noise, drift_basis=drift_basis)
         return delta.to(nominal.position.device), info
     names = check_names(names)
     h, p = nominal.num_heliostats, len(names)
@@ -114,8 +119,15 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
         return full
 
     weights = recency_weights(batch, half_life_days) if half_life_days else None
+    whiten = None
+    if process_noise and process_noise > 0:
+        from .drift import whitener
+
+        if weights is not None:
+            raise ValueError("half_life_days and process_noise are two drift models: give one")
+        whiten = whitener(nominal, batch, process_noise, noise, basis=drift_basis)
     fun, jac = _cached(_stacked_problem(nominal, batch, names, unpack, active, scale, mean, sig_vec, prior_cols,
-                                        noise, weights))
+                                        noise, weights, whiten))
     x0 = (mean[active] / scale).reshape(-1).numpy()
     # MINPACK's LM needs at least as many residuals as unknowns; with the prior this always holds,
     # without it a heliostat needs >= P/3 records (checked by the caller, padded here for safety).
@@ -148,7 +160,8 @@ def recency_weights(batch: RecordTable, half_life_days: float) -> torch.Tensor:
     return torch.where(known, 0.5 ** (age / float(half_life_days)), torch.ones_like(t))
 
 
-def _stacked_problem(nominal, batch, names, unpack, active, scale, mean, sig_vec, prior_cols, noise, weights=None):
+def _stacked_problem(nominal, batch, names, unpack, active, scale, mean, sig_vec, prior_cols, noise, weights=None,
+                     whiten=None):
     """``fun_and_jac(x) -> (residuals, Jacobian)`` (numpy) of the joint MAP problem of every active heliostat.
 
     MAP: |r|^2 / noise^2 + |delta / sigma|^2, written as residuals (r, noise * delta / sigma) so that the
@@ -170,6 +183,8 @@ def _stacked_problem(nominal, batch, names, unpack, active, scale, mean, sig_vec
         if weights is not None:  # weighted least squares: sqrt(w) on each record's residual rows
             sw = weights.sqrt()
             res, jac = res * sw[:, None], jac * sw[:, None, None]
+        if whiten is not None:  # generalised least squares under the random-walk offset (drift.py)
+            res, jac = whiten(res), whiten(jac)
         # Jacobian w.r.t. natural units, scattered into the block of each record's heliostat.
         jac = jac * scale
         J = torch.zeros(r_rows, 3, na, p, dtype=torch.float64)
@@ -222,7 +237,8 @@ LM_BAGS = 10
 
 
 def stone8_field_fit(nominal: Kinematics, batch: RecordTable, usable: torch.Tensor, *, field_prior: bool = True,
-                     loss: str = LM_LOSS, f_scale: float = LM_F_SCALE, half_life_days: float | None = None):
+                     loss: str = LM_LOSS, f_scale: float = LM_F_SCALE, half_life_days: float | None = None,
+                     process_noise: float = 0.0, drift_basis: str = "axes"):
     """LM on the Stone/Jülich 8 with the field prior (nominal prior when the run is too small for one).
 
     The first (loose) pass is plain least squares; the final fit uses the robust ``loss`` (one bad centroid
@@ -237,23 +253,25 @@ def stone8_field_fit(nominal: Kinematics, batch: RecordTable, usable: torch.Tens
     fp = priors.field_prior(first, usable, STONE8) if field_prior else None
     if fp is None:
         delta, _ = fit_lm(nominal, batch, names=STONE8, prior_sigma=priors.STONE8_SIGMA, loss=loss, f_scale=f_scale,
-                          half_life_days=half_life_days)
+                          half_life_days=half_life_days, process_noise=process_noise, drift_basis=drift_basis)
         return delta, None
     delta, _ = fit_lm(nominal, batch, names=STONE8, prior_sigma=priors.LOOSE_SIGMA,
                       prior_mean=fp[0].expand_as(first).clone(), prior_sigma_vector=fp[1], loss=loss, f_scale=f_scale,
-                      half_life_days=half_life_days)
+                      half_life_days=half_life_days, process_noise=process_noise, drift_basis=drift_basis)
     return delta, fp
 
 
 def stone8_plant_fit(nominal: Kinematics, batch: RecordTable, prior: priors.PlantPrior, *, loss: str = LM_LOSS,
-                     f_scale: float = LM_F_SCALE, half_life_days: float | None = None) -> torch.Tensor:
+                     f_scale: float = LM_F_SCALE, half_life_days: float | None = None,
+                     process_noise: float = 0.0, drift_basis: str = "axes") -> torch.Tensor:
     """LM on the Stone/Jülich 8 with a plant prior (mean + covariance learned from other heliostats), [H, 8].
 
     One pass: the prior does not depend on the run's records, so there is no loose first pass to make.
     """
     mean = prior.mean.double().expand(nominal.num_heliostats, len(STONE8)).clone()
     delta, _ = fit_lm(nominal, batch, names=STONE8, prior_mean=mean, prior_whitening=prior.whitening(), loss=loss,
-                      f_scale=f_scale, half_life_days=half_life_days)
+                      f_scale=f_scale, half_life_days=half_life_days, process_noise=process_noise,
+                      drift_basis=drift_basis)
     return delta
 
 
@@ -334,7 +352,8 @@ def laplace(nominal: Kinematics, batch: RecordTable, delta: torch.Tensor, prior_
 def fit_lm_method(nominal, train, validation, *, seed=0, progress=False, field_prior=True,
                   fit_focal_spot=FIT_FOCAL_SPOT, loss=LM_LOSS, f_scale=LM_F_SCALE, bags=LM_BAGS,
                   plant_prior: priors.PlantPrior | None = None, drift: float = 0.0,
-                  half_life_days: float | None = None) -> Calibrated:
+                  half_life_days: float | None = None, drift_model: str = "none",
+                  process_noise: float | str = 0.0, drift_basis: str = "axes", walk_scale: float = 1.0) -> Calibrated:
     """``lm``: the Stone/Jülich 8 by Levenberg-Marquardt on every record it may see (train + validation).
 
     LM has no iteration count to stop early, so the validation records are used for fitting too (they
@@ -349,25 +368,97 @@ def fit_lm_method(nominal, train, validation, *, seed=0, progress=False, field_p
     ``extras["posterior"]``: the Laplace posterior of every heliostat's deviations around the fit
     (:mod:`.uncertainty`; ``drift`` [rad] is the offset drift added to the predictive noise, chosen by
     cross-validated coverage). ``half_life_days`` down-weights old records (drift tracking, :func:`fit_lm`).
+
+    ``drift_model="kalman"``: the rigid body + a random-walk offset of the two axis offsets with
+    ``process_noise`` [mrad^2/day] (:mod:`.drift`; ``"auto"``: chosen by chronological validation inside the
+    training records, :func:`choose_process_noise`). The static part is fitted in generalised least
+    squares, the offset smoothed over the training records; the returned ``delta`` is the static part + the
+    offset at the latest training time (what aims the heliostat *now*), ``extras["drift_state"]`` holds that
+    offset, its covariance, time and ``q``. ``walk_scale`` scales the walk's covariance in the predictive
+    interval (chosen with ``drift`` by cross-validated coverage: a real offset does not wander without bound
+    as a random walk would over the months of a chrono test block).
     """
+    if drift_model not in ("none", "kalman"):
+        raise ValueError(f"drift_model must be 'none' or 'kalman', got {drift_model!r}")
     seen = RecordTable.concatenate([train, validation]) if validation is not None and len(validation) else train
     ok = trainable(seen)
     fit_on = fit_spots(seen.subset(ok[seen.heliostat_index]), fit_focal_spot)
-    if plant_prior is not None:
-        delta, fp = bagged(lambda b: (stone8_plant_fit(nominal, b, plant_prior, loss=loss, f_scale=f_scale,
-                                                       half_life_days=half_life_days), None), fit_on, bags, seed)
-    else:
-        delta, fp = bagged(lambda b: stone8_field_fit(nominal, b, ok, field_prior=field_prior, loss=loss,
-                                                      f_scale=f_scale, half_life_days=half_life_days),
-                           fit_on, bags, seed)
-    delta[~ok] = 0.0
+    q_choice = None
+    if drift_model == "kalman" and process_noise == "auto":
+        process_noise, q_choice = choose_process_noise(nominal, fit_on, ok, plant_prior=plant_prior,
+                                                       field_prior=field_prior, loss=loss, f_scale=f_scale,
+                                                       basis=drift_basis)
+    q = 1e-6 * float(process_noise) if drift_model == "kalman" else 0.0  # mrad^2/day -> rad^2/day
+    delta, fp = _static_fit(nominal, fit_on, ok, plant_prior=plant_prior, field_prior=field_prior, loss=loss,
+                            f_scale=f_scale, half_life_days=half_life_days, q=q, bags=bags, seed=seed,
+                            basis=drift_basis)
     extras = {"field_prior": field_prior_extras(fp),
-              "posterior": laplace(nominal, fit_on, delta, _prior_precision(plant_prior, fp), drift),
+              "posterior": dict(laplace(nominal, fit_on, delta, _prior_precision(plant_prior, fp), drift),
+                                walk_scale=float(walk_scale)),
               "summary": {"bags": bags, "fit_focal_spot": fit_focal_spot, "loss": loss,
-                          "half_life_days": half_life_days,
+                          "half_life_days": half_life_days, "drift_model": drift_model,
                           "prior": "plant" if plant_prior is not None else ("field" if fp is not None else "nominal")}}
+    if drift_model == "kalman":
+        from .drift import smooth, with_offset
+
+        state = smooth(nominal, fit_on, delta, q, NOISE, basis=drift_basis)
+        state["offset"][~ok] = 0.0
+        state.pop("smoothed")
+        state["static_deviations"] = delta
+        extras["drift_state"] = state
+        extras["summary"]["process_noise_mrad2_per_day"] = float(process_noise)
+        if q_choice is not None:
+            extras["summary"]["process_noise_choice"] = q_choice
+        extras["summary"]["drift_basis"] = drift_basis
+        delta = with_offset(delta, state["offset"], drift_basis)
     if plant_prior is not None:
         extras["plant_prior"] = plant_prior
         extras["summary"]["prior_heliostats"] = list(plant_prior.heliostats)
         extras["summary"]["prior_settings"] = dict(plant_prior.settings)
     return Calibrated("lm", list(train.heliostat_ids), nominal, STONE8, delta, ok, extras=extras)
+
+
+def _static_fit(nominal, fit_on, ok, *, plant_prior, field_prior, loss, f_scale, half_life_days, q, bags, seed,
+                basis="axes"):
+    """Bagged static (or GLS under a random-walk offset with ``q`` [rad^2/day]) fit, [H, 8] and field prior."""
+    if plant_prior is not None:
+        delta, fp = bagged(lambda b: (stone8_plant_fit(nominal, b, plant_prior, loss=loss, f_scale=f_scale,
+                                                       half_life_days=half_life_days, process_noise=q,
+                                                       drift_basis=basis), None),
+                           fit_on, bags, seed)
+    else:
+        delta, fp = bagged(lambda b: stone8_field_fit(nominal, b, ok, field_prior=field_prior, loss=loss,
+                                                      f_scale=f_scale, half_life_days=half_life_days,
+                                                      process_noise=q, drift_basis=basis),
+                           fit_on, bags, seed)
+    delta[~ok] = 0.0
+    return delta, fp
+
+
+def choose_process_noise(nominal, fit_on: RecordTable, ok, *, plant_prior=None, field_prior=True, loss=LM_LOSS,
+                         f_scale=LM_F_SCALE, grid=None, basis: str = "axes") -> tuple[float, dict]:
+    """``process_noise="auto"``: the q [mrad^2/day] of :data:`~heliotwin.calibrate.drift.Q_GRID` whose fit on
+    each heliostat's earlier training records best predicts its latest quarter (median over heliostats of
+    the mean error; ties: the smaller q). Validation stays inside the records the method may see.
+
+    Returns (q, {q: median validation error [mrad]}).
+    """
+    from .drift import Q_GRID, smooth, split_for_choice, with_offset
+
+    grid = Q_GRID if grid is None else grid
+    fit_rows, val_rows = split_for_choice(fit_on)
+    early, late = fit_on.subset(fit_rows), fit_on.subset(val_rows)
+    if len(late) == 0:
+        return 0.0, {}
+    scores = {}
+    for qm in grid:
+        q = 1e-6 * float(qm)
+        d, _ = _static_fit(nominal, early, ok, plant_prior=plant_prior, field_prior=field_prior, loss=loss,
+                           f_scale=f_scale, half_life_days=None, q=q, bags=0, seed=0, basis=basis)
+        if q > 0:
+            d = with_offset(d, smooth(nominal, early, d, q, NOISE, basis=basis)["offset"], basis)
+        err = metrics.pointing_error(apply_deviations(nominal, d, STONE8), late)
+        per_h = metrics.per_heliostat_mean(err.detach(), late.heliostat_index, late.num_heliostats)
+        scores[float(qm)] = float(1e3 * per_h[torch.isfinite(per_h)].median())
+    best = min(grid, key=lambda x: (scores[float(x)], x))
+    return float(best), scores

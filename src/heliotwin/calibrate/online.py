@@ -11,6 +11,9 @@ was fitted on records before t. For every heliostat (records without a time are 
   block, never by a fit that saw any of them).
 
 The run's returned model (and the scenario it writes) is the fit on the window before the test block.
+With the drift model (``--drift kalman``, :mod:`.drift`) every refit smooths the random-walk offset over its
+window and predicts the block with the filtered offset at the window's latest record: the filter updates as
+records arrive.
 """
 from __future__ import annotations
 

@@ -75,6 +75,21 @@ class RunConfig:
     prior_exclude: list = field(default_factory=list)
     #: ``--split online``: test records predicted per refit (see :mod:`.online`).
     online_step: int = 5
+    #: ``--drift``: ``"none"`` (static rigid body) or ``"kalman"`` (rigid body + random-walk offset of the two
+    #: axis offsets, :mod:`.drift`; lm only).
+    drift_model: str = "none"
+    #: ``--process-noise``: the walk's process noise [mrad^2/day] per component, or ``"auto"`` (chosen by
+    #: chronological validation inside the training records, :func:`~heliotwin.calibrate.lm.choose_process_noise`).
+    process_noise: object = "auto"
+    #: ``--drift-basis``: which deviations drift (:data:`heliotwin.calibrate.drift.BASES`).
+    drift_basis: str = "axes"
+
+    def fit_options(self) -> dict:
+        """The method's options: ``method_options`` plus the drift model's settings."""
+        opts = dict(self.method_options)
+        if self.drift_model != "none":
+            opts.update(drift_model=self.drift_model, process_noise=self.process_noise, drift_basis=self.drift_basis)
+        return opts
 
     def uses_plant_prior(self) -> bool:
         return self.prior == "plant" or self.prior_from is not None
@@ -109,6 +124,18 @@ def validate_config(cfg: RunConfig) -> None:
         raise HeliotwinError(f"--min-records must be >= 0, got {cfg.min_records}")
     if cfg.prior not in ("run", "plant"):
         raise HeliotwinError(f"--prior must be 'run' or 'plant', got {cfg.prior!r}")
+    if cfg.drift_model not in ("none", "kalman"):
+        raise HeliotwinError(f"--drift must be 'none' or 'kalman', got {cfg.drift_model!r}")
+    if cfg.drift_model != "none":
+        if cfg.method != "lm":
+            raise HeliotwinError(f"--drift {cfg.drift_model} is implemented for --method lm only, not {cfg.method}")
+        if cfg.drift_basis not in ("axes", "rotation"):
+            raise HeliotwinError(f"--drift-basis must be 'axes' or 'rotation', got {cfg.drift_basis!r}")
+        if cfg.method_options.get("half_life_days"):
+            raise HeliotwinError("--drift kalman and --half-life-days are two drift models: give one")
+        pn = cfg.process_noise
+        if pn != "auto" and not (isinstance(pn, (int, float)) and math.isfinite(pn) and pn >= 0):
+            raise HeliotwinError(f"--process-noise must be 'auto' or a number >= 0 [mrad^2/day], got {pn!r}")
     if cfg.uses_plant_prior() and cfg.method != "lm":
         raise HeliotwinError(f"a plant prior (--prior-from / --prior plant) is implemented for --method lm only, "
                              f"not {cfg.method}")
@@ -282,7 +309,7 @@ def _image_context(ds, run_ids) -> dict:
 def fit(run: Run) -> None:
     """The method on the training (and validation) records; ``fit_seconds`` is its wall time alone."""
     cfg = run.cfg
-    options = dict(cfg.method_options)
+    options = cfg.fit_options()
     if cfg.method == "images":
         options.update(_image_context(run.dataset, run.run_ids))
     if run.plant_prior is not None:
@@ -315,7 +342,7 @@ def online_refit(run: Run) -> None:
     from .online import online_errors
 
     cfg = run.cfg
-    options = dict(cfg.method_options)
+    options = cfg.fit_options()
     if run.plant_prior is not None:
         options["plant_prior"] = run.plant_prior
     method = get_method(cfg.method)
@@ -349,12 +376,23 @@ def predict_intervals(run: Run) -> None:
     normal, _ = model.normals(test)
     err = run.errors["test"][0].double()
     keep = model.ok[hidx]
+    cov = post["covariance"][hidx]
+    state = model.extras.get("drift_state")
+    if state is not None:  # the offset's uncertainty at the latest training time, grown by q dt (drift.py)
+        from .drift import predicted_covariance
+
+        rows = state["columns"].to(cov.device)
+        walk = torch.zeros_like(cov)
+        walk[:, rows[:, None], rows[None, :]] = predicted_covariance(state, hidx, test.time).to(cov)
+    else:
+        walk = torch.zeros_like(cov)
     run.interval_inputs = {"jacobian": jac[keep], "normal": normal.detach()[keep],
-                           "covariance": post["covariance"][hidx][keep], "noise": post["noise_rad"][hidx][keep],
+                           "covariance": cov[keep], "walk": walk[keep], "noise": post["noise_rad"][hidx][keep],
                            "error": err[keep], "heliostat": [run.run_ids[h] for h in hidx[keep].tolist()]}
     # The posterior predictive samples on the CPU (its draws take a CPU generator): a few thousand numbers.
     jac, normal, err, hidx = jac.cpu(), normal.detach().cpu(), err.cpu(), hidx.cpu()
-    pred = predictive(jac, normal, post["covariance"].cpu()[hidx], post["noise_rad"].cpu()[hidx],
+    full = (cov + float(post.get("walk_scale", 1.0)) * walk).cpu()
+    pred = predictive(jac, normal, full, post["noise_rad"].cpu()[hidx],
                       drift=post.get("drift_rad", 0.0), generator=torch.Generator().manual_seed(run.cfg.seed))
     pred["inside"] = (err >= pred["lower"]) & (err <= pred["upper"])
     run.intervals = pred

@@ -57,7 +57,20 @@ def calibration_state(model, *, focal_spot: str = "", prior=None) -> dict:
     if post:  # what aim needs for the expected error and its interval (Laplace posterior, see uncertainty.py)
         state["posterior"] = {"covariance": post["covariance"].detach()[ok].to(torch.float64).cpu(),
                               "noise_rad": post["noise_rad"].detach()[ok].to(torch.float64).cpu(),
-                              "drift_rad": torch.tensor([float(post.get("drift_rad", 0.0))], dtype=torch.float64)}
+                              "drift_rad": torch.tensor([float(post.get("drift_rad", 0.0))], dtype=torch.float64),
+                              "walk_scale": torch.tensor([float(post.get("walk_scale", 1.0))], dtype=torch.float64)}
+    ds = model.extras.get("drift_state")
+    if ds:  # the random-walk offset (drift.py): already inside "deviations"; its state lets aim grow the
+        # uncertainty with the time since the latest training record, and a later run start from it
+        from .drift import STONE8
+
+        state["drift"] = {"model": "kalman",
+                          "names": [STONE8[c] for c in ds["columns"].tolist()],
+                          "offset": ds["offset"].detach()[ok].to(torch.float64).cpu(),
+                          "covariance": ds["covariance"].detach()[ok].to(torch.float64).cpu(),
+                          "time": ds["time"].detach()[ok].to(torch.float64).cpu(),
+                          "process_noise_rad2_per_day": torch.tensor([float(ds["q"])], dtype=torch.float64),
+                          "static_deviations": ds["static_deviations"].detach()[ok].to(torch.float64).cpu()}
     networks = model.extras.get("networks") or {}
     if networks:
         state["networks"] = {hid: {"config": json.dumps(net["config"]),
@@ -126,7 +139,8 @@ def network_entry(learned: dict, heliostat_id: str, path="") -> dict | None:
     return {"config": config, "state": state}
 
 
-def aim(scenario, heliostat_id: str, sun_azimuth: float, sun_elevation: float, aim_point) -> dict:
+def aim(scenario, heliostat_id: str, sun_azimuth: float, sun_elevation: float, aim_point,
+        time: float | None = None) -> dict:
     """Motor steps that put the sun's reflection on ``aim_point`` with the scenario's (calibrated) plant.
 
     Parameters
@@ -139,6 +153,10 @@ def aim(scenario, heliostat_id: str, sun_azimuth: float, sun_elevation: float, a
         [rad], PAINT convention (azimuth 0 = south, +pi/2 = east).
     aim_point : sequence of 3 float
         ENU [m].
+    time : float, optional
+        When [POSIX s]. With a drift model (``--drift kalman``) the steps use the offset at the latest
+        training time (its best prediction at any later time); its uncertainty grows by ``q (time - t_l)``
+        (default: at ``t_l``). The answer then also has ``drift_days`` (time since that record).
 
     Returns
     -------
@@ -179,11 +197,11 @@ def aim(scenario, heliostat_id: str, sun_azimuth: float, sun_elevation: float, a
     out = {"heliostat": heliostat_id, "motor_steps": [float(s) for s in steps], "reachable": reachable,
            "method": cal.get("method", "nominal") if calibrated else "nominal"}
     if calibrated and kind is None and cal.get("posterior"):
-        out.update(expected_error(cal, heliostat_id, steps, scenario.path))
+        out.update(expected_error(cal, heliostat_id, steps, scenario.path, time=time))
     return out
 
 
-def expected_error(cal: dict, heliostat_id: str, steps: torch.Tensor, path="") -> dict:
+def expected_error(cal: dict, heliostat_id: str, steps: torch.Tensor, path="", time: float | None = None) -> dict:
     """Expected pointing error and its 90 % interval ``[0, q_0.9]`` [mrad] at ``steps`` [2] (Laplace posterior).
 
     ``cal`` is the ``/learned/calibration`` entry; the normal's Jacobian w.r.t. the heliostat's deviations
@@ -207,6 +225,9 @@ def expected_error(cal: dict, heliostat_id: str, steps: torch.Tensor, path="") -
         raise InputFileError(path, "malformed calibration posterior", field=where) from None
     if cov.shape != (len(names), len(names)):
         raise InputFileError(path, f"posterior covariance must be [{len(names)}, {len(names)}]", field=where)
+    extra = {}
+    if cal.get("drift"):
+        cov, extra = _with_drift(cal, j, names, cov, time, path)
 
     def normal(d):
         rot, _ = K.forward(apply_deviations(nominal, d, names), steps.reshape(1, 2).double())
@@ -216,4 +237,28 @@ def expected_error(cal: dict, heliostat_id: str, steps: torch.Tensor, path="") -
     with torch.no_grad():
         pred = predictive(jac[None], normal(delta)[None], cov[None], noise.reshape(1), drift=drift)
     return {"expected_error_mrad": float(1e3 * pred["expected"][0]),
-            f"error_interval_{round(100 * LEVEL)}_mrad": [float(1e3 * pred["lower"][0]), float(1e3 * pred["upper"][0])]}
+            f"error_interval_{round(100 * LEVEL)}_mrad": [float(1e3 * pred["lower"][0]), float(1e3 * pred["upper"][0])],
+            **extra}
+
+
+def _with_drift(cal: dict, j: int, names: list, cov: torch.Tensor, time, path) -> tuple[torch.Tensor, dict]:
+    """The posterior covariance [P, P] plus the drifting offset's covariance at ``time`` (drift.py)."""
+    where = f"/learned/{KEY}/drift"
+    try:
+        d = cal["drift"]
+        cols = [names.index(n) for n in d["names"]]
+        p_l = torch.as_tensor(d["covariance"], dtype=torch.float64)[j]
+        t_l = float(torch.as_tensor(d["time"], dtype=torch.float64)[j])
+        q = float(torch.as_tensor(d["process_noise_rad2_per_day"]).reshape(-1)[0])
+        scale = float(torch.as_tensor(cal["posterior"].get("walk_scale", 1.0)).reshape(-1)[0])
+    except (KeyError, IndexError, TypeError, ValueError, RuntimeError):
+        raise InputFileError(path, "malformed drift state", field=where) from None
+    if p_l.shape != (len(cols), len(cols)):
+        raise InputFileError(path, f"drift covariance must be [{len(cols)}, {len(cols)}]", field=where)
+    days = 0.0
+    if time is not None and torch.isfinite(torch.tensor(t_l)):
+        days = max(0.0, (float(time) - t_l) / 86400.0)
+    idx = torch.tensor(cols)
+    cov = cov.clone()
+    cov[idx[:, None], idx[None, :]] += scale * (p_l + q * days * torch.eye(len(cols), dtype=torch.float64))
+    return cov, {"drift_days": days}

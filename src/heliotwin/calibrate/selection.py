@@ -29,7 +29,8 @@ import numpy as np
 from .pipeline import RunConfig, run_calibration
 
 #: Settings tried, in order (the first is today's ``lm`` default). ``bags``: bootstrap bags of ``lm``;
-#: ``half_life_days``: drift tracking by recency weights (:func:`~heliotwin.calibrate.lm.fit_lm`).
+#: ``half_life_days``: drift tracking by recency weights (:func:`~heliotwin.calibrate.lm.fit_lm`);
+#: ``drift_model``/``process_noise``: the random-walk offset (:mod:`.drift`, q [mrad^2/day]).
 CANDIDATES = (
     {"prior": "run", "bags": 10},
     {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 1.0, "bags": 10},
@@ -42,6 +43,15 @@ CANDIDATES = (
     {"prior": "run", "bags": 10, "half_life_days": 60.0},
     {"prior": "run", "bags": 10, "half_life_days": 20.0},
     {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 2.0, "bags": 10, "half_life_days": 20.0},
+    # the rigid body + a random-walk offset of the axis offsets (drift.py): q [mrad^2/day] fixed, or "auto"
+    # (chronological validation inside each heliostat's training records)
+    {"prior": "run", "bags": 10, "drift_model": "kalman", "process_noise": 0.01},
+    {"prior": "run", "bags": 10, "drift_model": "kalman", "process_noise": 0.03},
+    {"prior": "run", "bags": 10, "drift_model": "kalman", "process_noise": "auto"},
+    {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 2.0, "bags": 10, "drift_model": "kalman",
+     "process_noise": 0.03},
+    {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 2.0, "bags": 10, "drift_model": "kalman",
+     "process_noise": "auto"},
 )
 
 
@@ -49,6 +59,9 @@ def label(candidate: dict) -> str:
     """Short text of a candidate, e.g. ``plant/full/s0.2/w1/b10``."""
     c = candidate
     hl = f"/hl{c['half_life_days']:g}d" if c.get("half_life_days") else ""
+    if c.get("drift_model", "none") == "kalman":
+        pn = c.get("process_noise", "auto")
+        hl += f"/kq{pn:g}" if isinstance(pn, (int, float)) else f"/kq{pn}"
     if c.get("prior", "run") == "run":
         return f"run/b{c.get('bags', 10)}{hl}"
     cov = c.get("covariance", "full")
@@ -62,9 +75,12 @@ def config_of(base: RunConfig, candidate: dict, archive=None) -> RunConfig:
     method_options = dict(base.method_options, bags=int(candidate.get("bags", 10)))
     if candidate.get("half_life_days"):
         method_options["half_life_days"] = float(candidate["half_life_days"])
+    drift = {"drift_model": candidate.get("drift_model", "none"),
+             "process_noise": candidate.get("process_noise", "auto")}
     if candidate.get("prior", "run") == "plant":
-        return replace(base, prior="plant", prior_from=archive, prior_options=opts, method_options=method_options)
-    return replace(base, prior="run", prior_from=None, prior_options={}, method_options=method_options)
+        return replace(base, prior="plant", prior_from=archive, prior_options=opts, method_options=method_options,
+                       **drift)
+    return replace(base, prior="run", prior_from=None, prior_options={}, method_options=method_options, **drift)
 
 
 def eligible(dataset, min_records: int = 50, focal_spot: str = "HeliOS") -> list:
@@ -122,7 +138,7 @@ def select(scores: dict, candidates) -> dict:
 DRIFT_GRID = (0.0, 2.5e-4, 5e-4, 7.5e-4, 1e-3, 1.5e-3, 2e-3)
 
 
-def coverage(inputs: list, drift: float, seed: int = 0, samples: int | None = None) -> float:
+def coverage(inputs: list, drift: float, seed: int = 0, samples: int | None = None, walk_scale: float = 1.0) -> float:
     """Fraction of the records in ``inputs`` (runs' ``interval_inputs``) whose error lies in the 90 % interval."""
     import torch
 
@@ -132,7 +148,8 @@ def coverage(inputs: list, drift: float, seed: int = 0, samples: int | None = No
     for x in inputs:
         if len(x["error"]) == 0:
             continue
-        pred = predictive(x["jacobian"], x["normal"], x["covariance"], x["noise"], drift=drift,
+        cov = x["covariance"] + walk_scale * x["walk"] if x.get("walk") is not None else x["covariance"]
+        pred = predictive(x["jacobian"], x["normal"], cov, x["noise"], drift=drift,
                           samples=samples or SAMPLES, generator=torch.Generator().manual_seed(seed))
         inside += int(((x["error"] >= pred["lower"]) & (x["error"] <= pred["upper"])).sum())
         n += len(x["error"])
@@ -146,6 +163,22 @@ def choose_drift(inputs: list, grid=DRIFT_GRID, target: float = 0.9, samples: in
     cov = {d: coverage(inputs, d, samples=samples) for d in grid}
     best = min(grid, key=lambda d: (abs(cov[d] - target), d))
     return best, cov
+
+
+#: Scales of the random-walk offset's covariance in the interval (:func:`choose_interval`).
+WALK_SCALES = (1.0, 0.3, 0.1, 0.0)
+
+
+def choose_interval(inputs: list, grid=DRIFT_GRID, scales=WALK_SCALES, target: float = 0.9,
+                    samples: int | None = None) -> tuple[float, float, dict]:
+    """:func:`choose_drift` jointly with the scale of the random-walk offset's covariance (runs without a
+    drift state: every scale is the same; ties: smaller drift, then larger scale). Returns
+    (drift [rad], walk_scale, {(drift, scale): coverage})."""
+    has_walk = any(x.get("walk") is not None and bool((x["walk"] != 0).any()) for x in inputs)
+    scales = scales if has_walk else (1.0,)
+    cov = {(d, s): coverage(inputs, d, samples=samples, walk_scale=s) for d in grid for s in scales}
+    best = min(cov, key=lambda k: (abs(cov[k] - target), k[0], -k[1]))
+    return best[0], best[1], cov
 
 
 def nested_cv(dataset, base: RunConfig, candidates=CANDIDATES, *, folds: int = 4, inner_folds: int = 3,
@@ -173,11 +206,11 @@ def nested_cv(dataset, base: RunConfig, candidates=CANDIDATES, *, folds: int = 4
         inner = cross_validated_errors(dataset, base, candidates, rest, folds=inner_folds, seed=seed + 1 + k,
                                        archive=archive, exclude=fold, log=log, collect=collect)
         chosen = select(inner, candidates)
-        drift, _ = choose_drift(collect.get(label(chosen), []))
+        drift, scale, _ = choose_interval(collect.get(label(chosen), []))
         # a run-prior candidate is used on all heliostats at once (training records only; see above)
         run_on = ids if chosen.get("prior", "run") == "run" else fold
         cfg = replace(config_of(base, chosen, archive), heliostats=run_on)
-        cfg = replace(cfg, method_options=dict(cfg.method_options, drift=drift))
+        cfg = replace(cfg, method_options=dict(cfg.method_options, drift=drift, walk_scale=scale))
         rep, _, arrays = run_calibration(cfg, dataset)
         errs = {h: rep["heliostats"][h]["mean_test_mrad"] for h in fold if rep["heliostats"][h].get("status") == "ok"}
         held_out.update(errs)
@@ -185,9 +218,9 @@ def nested_cv(dataset, base: RunConfig, candidates=CANDIDATES, *, folds: int = 4
         mine = [i for i, h in enumerate(iv.get("heliostat", [])) if h in fold]
         if mine:
             sub = {key: (iv[key][mine] if key != "heliostat" else None) for key in iv}
-            inside = coverage([sub], drift)
+            inside = coverage([sub], drift, walk_scale=scale)
             cov_in.append((inside * len(mine), len(mine)))
-        report.append({"held_out": fold, "chosen": label(chosen), "drift_rad": drift,
+        report.append({"held_out": fold, "chosen": label(chosen), "drift_rad": drift, "walk_scale": scale,
                        "inner_median_mrad": {c: median(v.values()) for c, v in inner.items()},
                        "held_out_mean_test_mrad": errs})
         if log:

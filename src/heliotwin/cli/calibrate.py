@@ -80,6 +80,16 @@ def register(subparsers) -> None:
     p.add_argument("--drift-mrad", type=float_range(0.0, 1e3, what="a drift [mrad]"), default=None,
                    help="lm predictive interval: offset drift per component [mrad] added to the Laplace posterior's "
                         "noise (default 0; chosen by cross-validated coverage in benchmarks/bench_carryover.py)")
+    p.add_argument("--drift", choices=("none", "kalman"), default="none",
+                   help="lm drift model: 'kalman' = rigid body + a random-walk offset of the axis offsets, "
+                        "smoothed over the training records; the scenario aims with the offset at the latest "
+                        "training time (default none = static)")
+    p.add_argument("--process-noise", default="auto", metavar="auto|Q",
+                   help="--drift kalman: process noise of the offset [mrad^2/day] per component, or 'auto' "
+                        "(chosen by chronological validation inside the training records; default)")
+    p.add_argument("--drift-basis", choices=("axes", "rotation"), default="axes",
+                   help="--drift kalman: what drifts: the two axis offsets (default) or a small rotation of the "
+                        "whole heliostat")
     p.add_argument("--online-step", type=_COUNT, default=5,
                    help="--split online: refit every this many test records (default 5; 1 = before every record)")
     add_resume_flags(p)
@@ -101,6 +111,9 @@ def register(subparsers) -> None:
     p.add_argument("--sun-elevation", type=float_range(0.0, 90.0, lo_open=True, what="an elevation [deg]"),
                    required=True, help="sun elevation [deg]")
     p.add_argument("--aim", required=True, help="aim point E,N,U [m] in the plant's ENU frame")
+    p.add_argument("--time", default=None,
+                   help="UTC ISO time of the aim (with a --drift kalman calibration: the offset's uncertainty "
+                        "grows with the time since the latest training record)")
     p.add_argument("--json", help="also write the answer as JSON")
     p.set_defaults(func=cmd_aim)
 
@@ -115,9 +128,24 @@ def _config(args, method="lm"):
                     correct_suspicious=not getattr(args, "keep_suspicious", False),
                     progress=not getattr(args, "quiet", True), prior=getattr(args, "prior", "run"),
                     prior_from=getattr(args, "prior_from", None), online_step=getattr(args, "online_step", 5),
-                    method_options=_lm_options(args, method))
+                    method_options=_lm_options(args, method), drift_model=getattr(args, "drift", "none"),
+                    process_noise=_process_noise(getattr(args, "process_noise", "auto")),
+                    drift_basis=getattr(args, "drift_basis", "axes"))
     validate_config(cfg)
     return cfg
+
+
+def _process_noise(text):
+    """``--process-noise``: ``auto`` or a number >= 0 [mrad^2/day] (one-line error otherwise)."""
+    if text is None or str(text).strip().lower() == "auto":
+        return "auto"
+    try:
+        q = float(text)
+    except ValueError:
+        q = float("nan")
+    if not (math.isfinite(q) and q >= 0):
+        raise HeliotwinError(f"--process-noise must be 'auto' or a number >= 0 [mrad^2/day], got {text!r}")
+    return q
 
 
 def _lm_options(args, method) -> dict:
@@ -309,6 +337,18 @@ def _write_split_csv(path, rows) -> None:
             w.writerows(rows)
 
 
+def _aim_time(text):
+    """``--time``: UTC ISO text -> POSIX s (None when not given; one-line error when unparsable)."""
+    if text is None:
+        return None
+    from ..io.records import parse_time
+
+    t = parse_time(text)
+    if not math.isfinite(t):
+        raise HeliotwinError(f"--time must be a UTC ISO time (e.g. 2023-05-01T12:00:00Z), got {text!r}")
+    return t
+
+
 def cmd_aim(args) -> int:
     from ..calibrate.scenario import aim
     from ..io.scenario import load_scenario
@@ -326,7 +366,7 @@ def cmd_aim(args) -> int:
     with output_set([("--scenario", args.scenario)]) as out:
         json_path = out.file(args.json, "--json")
         ans = aim(load_scenario(args.scenario), args.heliostat, math.radians(args.sun_azimuth),
-                  math.radians(args.sun_elevation), point)
+                  math.radians(args.sun_elevation), point, time=_aim_time(getattr(args, "time", None)))
         if json_path:
             write_json(json_path, ans)
     if not args.quiet:
