@@ -89,7 +89,7 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
         ``nfev``, ``status``, ``message`` of the scipy run, and ``cost``.
     """
     if nominal.position.device.type != "cpu":  # scipy's LM runs on the CPU: fit CPU copies, deviations back
-        from ..api import to_device
+        from ..devices import to_device
 
         cpu = lambda t: None if t is None else t.detach().cpu()  # noqa: E731
         delta, info = fit_lm(to_device(nominal, "cpu"), to_device(batch, "cpu"), names=names, prior_sigma=prior_sigma,

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from ..devices import resolve_device
 from ..errors import HeliotwinError
 from ..io import checkpoint as _checkpoint
 from ..io.paint import load_paint
@@ -193,7 +194,7 @@ def select(run: Run) -> None:
     if run.dataset is None:
         run.dataset = load_paint(cfg.paint, plane_tolerance=cfg.plane_tolerance)
     if run.device != "cpu":
-        from ..api import to_device
+        from ..devices import to_device
 
         run.dataset = to_device(run.dataset, run.device)
     all_ids = list(run.dataset.plant.field.ids)
@@ -529,7 +530,7 @@ def run_calibration(cfg: RunConfig, dataset=None, *, device: str = "cpu", progre
         Per-record arrays for the plots (test records: azimuth, elevation, heliostat, nominal and calibrated
         error [mrad]), on the CPU.
     """
-    from ..api import to_device
+    from ..devices import to_device
 
     validate_config(cfg)
     run = Run(cfg, dataset, device=resolve_device(device))
@@ -547,14 +548,6 @@ def run_calibration(cfg: RunConfig, dataset=None, *, device: str = "cpu", progre
     if run.device == "cpu":
         return run.report, run.model, run.arrays
     return run.report, to_device(run.model, "cpu"), to_device(run.arrays, "cpu")
-
-
-def resolve_device(device) -> str:
-    """``"auto"`` -> ``"cuda"`` when torch sees a CUDA device, else ``"cpu"``; anything else as given."""
-    name = str(device)
-    if name == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    return name
 
 
 class _StageBar:

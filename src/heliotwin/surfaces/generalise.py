@@ -451,8 +451,7 @@ def reconstruct_paint_generalising(paint_dir, heliostat_id: str, *, train_first:
     """
     import time
 
-    from ..api import to_device
-    from ..calibrate.pipeline import resolve_device
+    from ..devices import resolve_device, to_device
     from ..io.paint import load_paint
     from .observations import observations_from_records, split_records
 

@@ -174,8 +174,7 @@ def reconstruct_paint(paint_dir, heliostat_id: str, *, train_records=None, train
         ``train``/``test`` Observations, predicted test images (for plots), ``optics``, ``facets``, ``ideal``
         and ``fit_info`` (:class:`~heliotwin.surfaces.training.FitInfo`).
     """
-    from ..api import to_device
-    from ..calibrate.pipeline import resolve_device
+    from ..devices import resolve_device, to_device
     from ..io.paint import load_paint
 
     device = resolve_device(device)
@@ -235,7 +234,7 @@ def reconstruction_checkpoint(path, paint_dir, heliostat_id: str, *, resume: boo
     with the heliostat, the device and ``options`` (the run's keyword arguments: ``settings``, ``sun``,
     ``train_records``, ...) and the inputs (the PAINT folder and ``inputs``, e.g. a scenario or deflectometry
     file). Checkpoint options (``every``, ``min_interval_s``, ``hook``) are keyword arguments too."""
-    from ..calibrate.pipeline import resolve_device
+    from ..devices import resolve_device
 
     ck_opts = {k: options.pop(k) for k in ("every", "min_interval_s", "hook") if k in options}
 
