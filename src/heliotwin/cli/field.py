@@ -399,7 +399,9 @@ def register(sub) -> None:
     p.add_argument("--aim", choices=("equator", "scenario"), default="equator",
                    help="equator: each heliostat aims at the receiver point facing it at mid-height (SolarPILOT "
                         "'simple'); scenario: the scenario's /learned/aimpoints")
-    p.add_argument("--integrator", choices=("gaussian", "mc"), default="gaussian")
+    p.add_argument("--integrator", choices=("gaussian", "conv", "mc"), default="gaussian",
+                   help="receiver map: Gaussian-equivalent footprints, the exact sunshape per footprint class "
+                        "(conv), or Monte Carlo (default: %(default)s)")
     p.add_argument("--resolution", type=_resolution, default=(20, 48), help="COLSxROWS of the receiver map "
                                                                             "(default: 48x20)")
     p.add_argument("--occlusion", choices=("exact", "solarpilot"), default="exact",

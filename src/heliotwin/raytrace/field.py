@@ -39,10 +39,11 @@ weights); the per-heliostat intercept stays the Gaussian one. The unrolled map o
 periodic: Gaussian footprints that reach over its seam continue at the other edge (the Monte-Carlo map does
 not wrap).
 
-Not offered: the exact-sunshape ``conv`` integrator (:mod:`heliotwin.raytrace.conv`). Its kernel is the
-tabulated sun cone projected obliquely onto one target plane for one heliostat image; on the field it
-would need such a kernel per footprint class on the unrolled cylinder (in place of ``grouped`` mode's
-Gaussian class kernels), which is future work.
+With ``integrator="conv"`` the map keeps the *exact* sunshape (limb-darkened, Buie, pillbox) instead of its
+Gaussian-equivalent: the grouped map with, per footprint class, the tabulated angular density of a reflected
+ray (:func:`heliotwin.raytrace.conv.angular_density`) mapped through the class's mean footprint (the density
+is radially symmetric, so the footprint covariance fixes the map from angle to pixels); the per-heliostat
+intercept stays the Gaussian one.
 
 Everything is batched over heliostats (no loop over heliostats or points) and differentiable with
 ``softness`` set (smooth occlusion): w.r.t. aim points, positions and the sun.
@@ -89,7 +90,7 @@ class FieldSettings:
     ----------
     resolution : (int, int)
         Receiver map (rows, cols); for a cylinder the columns run around the circumference.
-    integrator : {"gaussian", "mc"}
+    integrator : {"gaussian", "conv", "mc"}
     flux_samples : int
         Flux samples per facet and direction (per heliostat ``F * flux_samples^2``).
     occlusion_oversampling : int
@@ -347,8 +348,11 @@ def _intercept(mu, cov, ok, target, rows, cols):
     return torch.where(ok, frac, torch.zeros_like(frac))
 
 
-def _grouped_map(mu, cov, weights, rows, cols, groups, n_sigma, group=None):
-    """Footprints in classes of similar covariance: per class a bilinear splat convolved with its mean Gaussian.
+def _grouped_map(mu, cov, weights, rows, cols, groups, n_sigma, group=None, density=None):
+    """Footprints in classes of similar covariance: per class a bilinear splat convolved with its mean Gaussian,
+    or with ``density`` = (angular density [G, G], its half width [rad], the sun's variance [rad^2], the
+    smoothing [px^2] in ``cov``) with the exact sun cone mapped through the class's mean footprint
+    (:func:`_sun_cone_kernels`; the ``conv`` integrator).
 
     ``group`` (ranks each holding a shard of the samples): the class boundaries come from every rank's
     footprints and the class kernels from every rank's members, so the shards' maps sum to the one-process map.
@@ -381,13 +385,19 @@ def _grouped_map(mu, cov, weights, rows, cols, groups, n_sigma, group=None):
         tr = kcov[:, 0, 0] + kcov[:, 1, 1]
         lam = 0.5 * tr + torch.sqrt(0.25 * (kcov[:, 0, 0] - kcov[:, 1, 1]) ** 2 + kcov[:, 0, 1] ** 2)
         half = int(min(max(rows, cols), max(1, math.ceil(n_sigma * float(lam.max().sqrt())))))
+        if density is not None:  # the exact sun cone reaches its tabulated half width [rad] x the largest stretch
+            var = density[2]
+            half = int(min(max(rows, cols), max(1, math.ceil(density[1] * float((lam.max() / var).sqrt())) + 1)))
     canvas = splat_bilinear(lay_mu[..., 0] + half, lay_mu[..., 1] + half, lay_w, rows + 2 * half, cols + 2 * half)
-    # the bilinear splat already blurs by its tent kernel (variance 1/6 px^2): take it out of the class kernel
     eye = torch.eye(2, dtype=cov.dtype, device=cov.device)
-    with torch.no_grad():
-        lam_min = 0.5 * tr - torch.sqrt(0.25 * (kcov[:, 0, 0] - kcov[:, 1, 1]) ** 2 + kcov[:, 0, 1] ** 2)
-        sub = torch.minimum(torch.full_like(lam_min, 1.0 / 6.0), 0.9 * lam_min.clamp_min(0.0))
-    kern = _gaussian_kernels(kcov - sub[:, None, None] * eye, half)
+    if density is not None:
+        kern = _sun_cone_kernels(kcov - density[3] * eye, density, half)
+    else:
+        # the bilinear splat already blurs by its tent kernel (variance 1/6 px^2): take it out of the class kernel
+        with torch.no_grad():
+            lam_min = 0.5 * tr - torch.sqrt(0.25 * (kcov[:, 0, 0] - kcov[:, 1, 1]) ** 2 + kcov[:, 0, 1] ** 2)
+            sub = torch.minimum(torch.full_like(lam_min, 1.0 / 6.0), 0.9 * lam_min.clamp_min(0.0))
+        kern = _gaussian_kernels(kcov - sub[:, None, None] * eye, half)
     return _fft_convolve(canvas, kern, half, rows, cols, summed=True)
 
 
@@ -431,15 +441,49 @@ def _flux_map(points, nw, reflected, weights, target, settings: FieldSettings, p
         total = mu.shape[0]
         if group is not None:
             half, total = _agree(half, total, group)
+    density = None
+    if settings.integrator == "conv":  # the exact sun cone per footprint class: always the grouped map
+        from .conv import angular_density
+
+        dens, half_width = angular_density(s)
+        density, mode = (dens.to(mu.device), half_width, var, float(settings.smoothing)), "grouped"
     if mode == "auto":
         mode = "window" if total * (2 * half + 1) ** 2 <= 2e7 else "grouped"
     if mode == "window":
         img = gaussian_footprints(mu, cov_s, w, rows, cols, 1, mu.shape[0], half)[0]
     elif mode == "grouped":
-        img = _grouped_map(mu, cov_s, w, rows, cols, int(settings.groups), float(settings.n_sigma), group)
+        img = _grouped_map(mu, cov_s, w, rows, cols, int(settings.groups), float(settings.n_sigma), group, density)
     else:
         raise HeliotwinError(f"flux_mode must be 'auto', 'window' or 'grouped', got {mode!r}")
     return img, icpt, extent[0]
+
+
+def _sun_cone_kernels(cov: torch.Tensor, density, half: int, supersample: int = 4) -> torch.Tensor:
+    """Kernels [B, 2h+1, 2h+1] (row = py offset, column = px offset) of the exact sun cone for classes whose
+    mean footprint covariance is ``cov`` [B, 2, 2] [px^2].
+
+    A reflected ray's angular density is radially symmetric (:func:`heliotwin.raytrace.conv.angular_density`:
+    sunshape convolved with the slope-error scatter), and the footprint covariance is ``var J J^T`` for the
+    Jacobian J [px/rad] of the hit w.r.t. the ray angle, so with ``L L^T = cov / var`` a pixel offset x comes
+    from the angle ``L^-1 x`` whatever J's rotation: kernel(x) ~ density(L^-1 x). Each pixel averages
+    ``supersample^2`` points (the box of the pixel, as the Gaussian kernels' smoothing); differentiable in cov.
+    """
+    dens, half_width, var = density[0], float(density[1]), float(density[2])
+    b = cov.shape[0]
+    eye = torch.eye(2, dtype=cov.dtype, device=cov.device)
+    chol = torch.linalg.cholesky(cov / var + 1e-9 * eye)  # [B, 2, 2] [px/rad]
+    sub = (torch.arange(supersample, dtype=cov.dtype, device=cov.device) + 0.5) / supersample - 0.5
+    off = torch.arange(-half, half + 1, dtype=cov.dtype, device=cov.device)
+    fine = (off[:, None] + sub[None, :]).reshape(-1)  # [S*s]
+    dy, dx = torch.meshgrid(fine, fine, indexing="ij")
+    xy = torch.stack((dx.reshape(-1), dy.reshape(-1)), 0).expand(b, 2, -1)  # [B, 2, P] pixel offsets
+    ang = torch.linalg.solve_triangular(chol, xy, upper=False)  # [B, 2, P] [rad]
+    grid = (ang / half_width).transpose(1, 2).reshape(b, fine.numel(), fine.numel(), 2).to(dens.dtype)
+    img = torch.nn.functional.grid_sample(dens.to(grid).expand(b, 1, *dens.shape), grid, mode="bicubic",
+                                          padding_mode="zeros", align_corners=True)[:, 0]
+    side = 2 * half + 1
+    img = img.reshape(b, side, supersample, side, supersample).mean((2, 4)).to(cov.dtype)
+    return img / img.sum((-2, -1), keepdim=True).clamp_min(1e-30)
 
 
 def _agree(half: int, count: int, group) -> tuple[int, int]:
@@ -530,8 +574,8 @@ def field_optics(plant: Plant, sun_direction: torch.Tensor, *, atmosphere: Atmos
     FieldResult
     """
     settings = settings or FieldSettings()
-    if settings.integrator not in ("gaussian", "mc"):
-        raise HeliotwinError(f"unknown field integrator {settings.integrator!r}; expected gaussian or mc")
+    if settings.integrator not in ("gaussian", "conv", "mc"):
+        raise HeliotwinError(f"unknown field integrator {settings.integrator!r}; expected gaussian, conv or mc")
     if settings.occlusion_model not in ("exact", "solarpilot"):
         raise HeliotwinError(f"unknown occlusion model {settings.occlusion_model!r}; expected exact or solarpilot")
     if settings.occlusion_model == "solarpilot" and settings.softness is not None:
