@@ -66,16 +66,22 @@ def _reconstruct_legacy(args) -> int:
             plant=previous.plant if previous else None, device=getattr(args, "device", "cpu"),
             checkpoint=args.checkpoint, **fit_args)
         report["method"] = "legacy"
-        learned = model.surfaces()
-        stage(args, "plotting and writing outputs")
-        report["plots"] = _plot_reconstruction(args, json_path, report, model, learned, extras)
-        if output:
-            _save_learned(args, output, report, model, learned, previous, extras)
-            report["output"] = os.fspath(args.output)
-        write_json(json_path, report)
+        _write_reconstruction(args, json_path, output, report, model, previous, extras, _plot_reconstruction)
     if not args.quiet:
         _print_reconstruction(args.heliostat, report)
     return 0
+
+
+def _write_reconstruction(args, json_path, output, report, model, previous, extras, plot) -> None:
+    """The end of either method: its figures (``plot``), the learned surface into ``output`` (when given) and
+    the JSON report, all into the command's staged output set."""
+    learned = model.surfaces()
+    stage(args, "plotting and writing outputs")
+    report["plots"] = plot(args, json_path, report, model, learned, extras)
+    if output:
+        _save_learned(args, output, report, model, learned, previous, extras)
+        report["output"] = os.fspath(args.output)
+    write_json(json_path, report)
 
 
 def _reconstruct_generalising(args) -> int:
@@ -102,14 +108,9 @@ def _reconstruct_generalising(args) -> int:
             checkpoint=args.checkpoint)
         report["method"] = "generalising"
         report["choices"] = _generalising_choices(report)
-        learned = model.surfaces()
-        stage(args, "plotting and writing outputs")
-        report["plots"] = _plot_generalising(args, json_path, report, model, learned, extras)
-        if output:
+        if output:  # the stored surface records what chose it
             report["settings"] = dict(report["settings"], method="generalising", chosen=report["choices"])
-            _save_learned(args, output, report, model, learned, previous, extras)
-            report["output"] = os.fspath(args.output)
-        write_json(json_path, report)
+        _write_reconstruction(args, json_path, output, report, model, previous, extras, _plot_generalising)
     if not args.quiet:
         _print_generalising(args.heliostat, report)
     return 0
