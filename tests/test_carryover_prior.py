@@ -96,7 +96,8 @@ def test_cli_prior_from_paint_and_scenario(paint_dir, tmp_path, capsys):
     """Real records: AK32 and BE36 with 10 records each, prior from the folder's other heliostats only."""
     js, h5 = tmp_path / "r.json", tmp_path / "cal.h5"
     code, out, err = run_cli(capsys, "calibrate", "--paint", paint_dir, "--heliostats", "AK32,BE36", "--train", "10",
-                             "--test", "30", "--prior-from", paint_dir, "--json", js, "--no-plots", "-o", h5)
+                             "--test", "30", "--prior-from", paint_dir, "--settings", "given", "--json", js,
+                             "--no-plots", "-o", h5)
     assert code == 0, err
     rep = json.loads(js.read_text())
     used = rep["overall"]["method_info"]["prior_heliostats"]

@@ -84,6 +84,9 @@ class RunConfig:
     process_noise: object = "auto"
     #: ``--drift-basis``: which deviations drift (:data:`heliotwin.calibrate.drift.BASES`).
     drift_basis: str = "axes"
+    #: ``--settings``: ``"given"`` (the fields above) or ``"cv"`` (lm settings chosen by leave-heliostats-out
+    #: CV on the ``prior_from`` PAINT folder, :func:`~heliotwin.calibrate.selection.choose_for_run`).
+    settings: str = "given"
 
     def fit_options(self) -> dict:
         """The method's options: ``method_options`` plus the drift model's settings."""
@@ -137,6 +140,14 @@ def validate_config(cfg: RunConfig) -> None:
         pn = cfg.process_noise
         if pn != "auto" and not (isinstance(pn, (int, float)) and math.isfinite(pn) and pn >= 0):
             raise HeliotwinError(f"--process-noise must be 'auto' or a number >= 0 [mrad^2/day], got {pn!r}")
+    if cfg.settings not in ("given", "cv"):
+        raise HeliotwinError(f"--settings must be 'given' or 'cv', got {cfg.settings!r}")
+    if cfg.settings == "cv":
+        if cfg.method != "lm":
+            raise HeliotwinError(f"--settings cv chooses lm settings; --method is {cfg.method}")
+        if not isinstance(cfg.prior_from, (str, os.PathLike)) or not os.path.isdir(cfg.prior_from):
+            raise HeliotwinError("--settings cv needs --prior-from a PAINT folder of the same plant (the heliostats "
+                                 "the settings are chosen on)")
     if cfg.uses_plant_prior() and cfg.method != "lm":
         raise HeliotwinError(f"a plant prior (--prior-from / --prior plant) is implemented for --method lm only, "
                              f"not {cfg.method}")
@@ -221,19 +232,23 @@ def prepare(run: Run) -> None:
             run.skipped_heliostats[hid] = f"too few usable records ({int(counts[h])} < --min-records {need})"
         else:
             run.run_ids.append(hid)
-    config = {k: v for k, v in cfg.__dict__.items() if k not in ("progress",)}
-    config["paint"] = os.fspath(cfg.paint)
-    pf = cfg.prior_from
-    config["prior_from"] = pf if pf is None or isinstance(pf, str) else (getattr(pf, "source", "") or type(pf).__name__)
-    config["validation"] = cfg.n_validation()
-    config["device"] = run.device
-    run.report = {"config": config, "skipped_records": run.skipped_records,
+    run.report = {"config": _config_report(cfg, run.device), "skipped_records": run.skipped_records,
                   "heliostats": {hid: {"status": "skipped", "reason": r} for hid, r in run.skipped_heliostats.items()}}
     if not run.run_ids:
         run.report["overall"] = {"n_heliostats": 0, "median_of_mean_test_mrad": None, "mean_of_mean_test_mrad": None,
                                  "nominal_median_of_mean_test_mrad": None, "note": "no heliostat with enough records",
                                  "seconds": time.perf_counter() - run.t_start}
         run.stop = True
+
+
+def _config_report(cfg: RunConfig, device) -> dict:
+    config = {k: v for k, v in cfg.__dict__.items() if k not in ("progress",)}
+    config["paint"] = os.fspath(cfg.paint)
+    pf = cfg.prior_from
+    config["prior_from"] = pf if pf is None or isinstance(pf, str) else (getattr(pf, "source", "") or type(pf).__name__)
+    config["validation"] = cfg.n_validation()
+    config["device"] = device
+    return config
 
 
 def rebatch(run: Run) -> None:
@@ -271,6 +286,21 @@ def check_properties(run: Run) -> None:
                                                       run.dataset.plant.field.kinematics, seen)
     else:
         run.nominal, run.findings = run.nominal_raw, {}
+
+
+def choose_settings(run: Run) -> None:
+    """``--settings cv``: replace the run's lm settings by those leave-heliostats-out CV chooses on the
+    ``--prior-from`` folder (:func:`~heliotwin.calibrate.selection.choose_for_run`); the report keeps the
+    choice (``settings_choice``) and ``config`` shows the settings that ran."""
+    cfg = run.cfg
+    if cfg.settings != "cv":
+        return
+    from .selection import choose_for_run
+
+    chosen, record = choose_for_run(cfg, run.run_ids, progress=bool(cfg.progress))
+    run.cfg = chosen
+    run.report["config"] = _config_report(chosen, run.device)
+    run.report["settings_choice"] = record
 
 
 def learn_prior(run: Run) -> None:
@@ -495,7 +525,8 @@ def plot_arrays(run: Run) -> None:
 
 #: The steps of :func:`run_calibration`, in order (name, function of :class:`Run`).
 STEPS = (("select", select), ("prepare", prepare), ("rebatch", rebatch), ("split", split),
-         ("check_properties", check_properties), ("learn_prior", learn_prior), ("fit", fit), ("evaluate", evaluate),
+         ("check_properties", check_properties), ("choose_settings", choose_settings),
+         ("learn_prior", learn_prior), ("fit", fit), ("evaluate", evaluate),
          ("online_refit", online_refit), ("predict_intervals", predict_intervals),
          ("report_heliostats", report_heliostats), ("report_overall", report_overall),
          ("report_records", report_records), ("plot_arrays", plot_arrays))

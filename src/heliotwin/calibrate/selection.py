@@ -181,9 +181,11 @@ def choose_interval(inputs: list, grid=DRIFT_GRID, scales=WALK_SCALES, target: f
     return best[0], best[1], cov
 
 
-def nested_cv(dataset, base: RunConfig, candidates=CANDIDATES, *, folds: int = 4, inner_folds: int = 3,
+def nested_cv(dataset, base: RunConfig, candidates=None, *, folds: int = 4, inner_folds: int = 3,
               min_records: int = 50, seed: int = 0, archive=None, log=None) -> dict:
-    """Leave-heliostats-out CV of the whole choice procedure (module docstring).
+    """Leave-heliostats-out CV of the whole choice procedure (module docstring): for each outer fold,
+    :func:`choose_for_run` (what ``heliotwin calibrate --settings cv`` runs) chooses on the other heliostats
+    only, and the chosen settings are scored on the fold.
 
     Returns
     -------
@@ -199,33 +201,131 @@ def nested_cv(dataset, base: RunConfig, candidates=CANDIDATES, *, folds: int = 4
     ids = eligible(dataset, min_records, base.focal_spot)
     held_out, report, cov_in = {}, [], []
     for k, fold in enumerate(folds_of(ids, folds, seed)):
-        rest = [h for h in ids if h not in fold]
         if log:
-            log(f"outer fold {k}: held out {','.join(fold)}; choosing on {len(rest)} heliostats")
-        collect: dict = {}
-        inner = cross_validated_errors(dataset, base, candidates, rest, folds=inner_folds, seed=seed + 1 + k,
-                                       archive=archive, exclude=fold, log=log, collect=collect)
-        chosen = select(inner, candidates)
-        drift, scale, _ = choose_interval(collect.get(label(chosen), []))
+            log(f"outer fold {k}: held out {','.join(fold)}; choosing on {len(ids) - len(fold)} heliostats")
+        cfg, choice = choose_for_run(replace(base, prior_from=base.paint, min_records=min_records), fold, dataset,
+                                     folds=inner_folds, candidates=candidates, archive=archive, seed=seed + 1 + k,
+                                     run_size=len(ids), log=log)
+        chosen = choice["candidate"]
         # a run-prior candidate is used on all heliostats at once (training records only; see above)
         run_on = ids if chosen.get("prior", "run") == "run" else fold
-        cfg = replace(config_of(base, chosen, archive), heliostats=run_on)
-        cfg = replace(cfg, method_options=dict(cfg.method_options, drift=drift, walk_scale=scale))
-        rep, _, arrays = run_calibration(cfg, dataset)
+        rep, _, arrays = run_calibration(replace(cfg, heliostats=run_on, settings="given"), dataset)
         errs = {h: rep["heliostats"][h]["mean_test_mrad"] for h in fold if rep["heliostats"][h].get("status") == "ok"}
         held_out.update(errs)
         iv = arrays.get("interval_inputs") or {}
         mine = [i for i, h in enumerate(iv.get("heliostat", [])) if h in fold]
+        drift, scale = 1e-3 * choice["drift_mrad"], choice["walk_scale"]
         if mine:
             sub = {key: (iv[key][mine] if key != "heliostat" else None) for key in iv}
             inside = coverage([sub], drift, walk_scale=scale)
             cov_in.append((inside * len(mine), len(mine)))
-        report.append({"held_out": fold, "chosen": label(chosen), "drift_rad": drift, "walk_scale": scale,
-                       "inner_median_mrad": {c: median(v.values()) for c, v in inner.items()},
-                       "held_out_mean_test_mrad": errs})
+        report.append({"held_out": fold, "chosen": choice["chosen"], "drift_rad": drift, "walk_scale": scale,
+                       "inner_median_mrad": choice["table"], "held_out_mean_test_mrad": errs})
         if log:
-            log(f"outer fold {k}: chose {label(chosen)}, drift {1e3 * drift:.2f} mrad; held-out errors "
+            log(f"outer fold {k}: chose {choice['chosen']}, drift {choice['drift_mrad']:.2f} mrad; held-out errors "
                 + ", ".join(f"{h} {e:.2f}" for h, e in errs.items()))
     n_cov = sum(n for _, n in cov_in)
     return {"heliostats": held_out, "median_of_mean_test_mrad": median(held_out.values()), "folds": report,
             "interval_90_coverage": sum(c for c, _ in cov_in) / n_cov if n_cov else None}
+
+#: Fewest eligible archive heliostats for choosing settings by leave-heliostats-out CV (4 folds of >= 1).
+MIN_CV_HELIOSTATS = 4
+
+
+def choose_for_run(cfg: RunConfig, calibrated, dataset=None, *, folds: int = 4, candidates=None,
+                   archive=None, seed: int = 0, run_size: int | None = None, log=None,
+                   progress: bool = False) -> tuple[RunConfig, dict]:
+    """``--settings cv``: the run's settings chosen by leave-heliostats-out CV on its ``--prior-from`` archive.
+
+    The procedure of :func:`nested_cv`'s inner loop, applied to a real run: every candidate of
+    :data:`CANDIDATES` is scored by K-fold CV over the archive's heliostats with enough records (the run's
+    split, ``--train`` and ``--test``; an ``online`` run chooses on ``chrono``, like the benchmark), the
+    lowest median wins (:func:`select`), and the predictive interval's offset drift and walk scale are chosen
+    by the CV runs' coverage (:func:`choose_interval`). No record of a ``calibrated`` heliostat enters any of
+    it: they are neither scored nor fitted into any prior (the no-leakage rule of :mod:`.archive`).
+
+    Parameters
+    ----------
+    cfg : RunConfig
+        The run's settings; ``cfg.prior_from`` is a PAINT folder (path) of the same plant.
+    calibrated : list of str
+        The run's heliostat ids.
+    dataset : heliotwin.io.paint.PaintDataset, optional
+        The archive folder, already loaded.
+    candidates : sequence of dict
+        The settings tried (default: :data:`CANDIDATES` at call time).
+    archive : PriorArchive, optional
+        Fits of the archive's heliostats, when already made (the calibrated ones are excluded from every
+        prior either way); ``seed`` seeds the folds.
+    run_size : int, optional
+        Heliostats the chosen settings will be fitted on together (default: the calibrated ones); below
+        :data:`~heliotwin.calibrate.priors.MIN_HELIOSTATS` the run-prior candidates are not tried.
+
+    Returns
+    -------
+    (RunConfig, dict)
+        The run's settings with the chosen candidate (its plant prior from a
+        :class:`~heliotwin.calibrate.archive.PriorArchive` of the archive, calibrated heliostats excluded),
+        and the JSON-ready record of the choice (``table``: candidate -> CV median [mrad], ``chosen``,
+        ``drift_mrad``, ``walk_scale``, ``coverage``, ``heliostats``, ``folds``).
+
+    Raises
+    ------
+    HeliotwinError
+        One line, when the archive has fewer than :data:`MIN_CV_HELIOSTATS` heliostats with enough records
+        outside the calibrated ones, or the method is not ``lm``.
+    """
+    import os
+
+    from ..errors import HeliotwinError
+    from ..io.paint import load_paint
+    from .archive import PriorArchive
+    from .priors import MIN_HELIOSTATS
+
+    if cfg.method != "lm":
+        raise HeliotwinError(f"--settings cv chooses lm settings; --method is {cfg.method}")
+    path = os.fspath(cfg.prior_from)
+    ds = dataset if dataset is not None else load_paint(path, plane_tolerance=cfg.plane_tolerance)
+    calibrated = list(calibrated)
+    ids = [h for h in eligible(ds, cfg.min_records, cfg.focal_spot) if h not in set(calibrated)]
+    if len(ids) < MIN_CV_HELIOSTATS:
+        raise HeliotwinError(f"{path}: --settings cv needs {MIN_CV_HELIOSTATS} heliostats with >= {cfg.min_records} "
+                             f"records outside the calibrated ones, found {len(ids)}")
+    if archive is None:
+        archive = PriorArchive.from_dataset(ds, focal_spot=cfg.focal_spot, source=path, exclude=calibrated)
+    base = replace(cfg, paint=path, heliostats=None, prior="run", prior_from=None, prior_options={},
+                   prior_exclude=[], method_options={}, drift_model="none", process_noise="auto",
+                   split="chrono" if cfg.split == "online" else cfg.split, progress=False, settings="given")
+    collect: dict = {}
+    cands = tuple(CANDIDATES if candidates is None else candidates)
+    if (len(calibrated) if run_size is None else run_size) < MIN_HELIOSTATS:
+        # The run's own field prior needs MIN_HELIOSTATS heliostats; below that it falls back to the nominal
+        # prior, which CV (over the whole archive at once) never scored: only plant-prior candidates apply.
+        cands = tuple(c for c in cands if c.get("prior", "run") == "plant")
+        if not cands:
+            raise HeliotwinError(f"--settings cv: the run calibrates {len(calibrated)} heliostat(s); the candidates "
+                                 f"with the run's own field prior need {MIN_HELIOSTATS} and none uses a plant prior")
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(cands), desc="settings by CV", leave=False, disable=None)
+    scores = {}
+    for cand in cands:
+        scores.update(cross_validated_errors(ds, base, [cand], ids, folds=min(folds, len(ids)), seed=seed,
+                                             archive=archive, exclude=calibrated, log=log, collect=collect))
+        if progress:
+            bar.update(1)
+    if progress:
+        bar.close()
+    chosen = select(scores, cands)
+    drift, scale, cov = choose_interval(collect.get(label(chosen), []))
+    run_cfg = config_of(cfg, chosen, archive)
+    run_cfg = replace(run_cfg, method_options=dict(run_cfg.method_options, drift=drift, walk_scale=scale))
+    record = {"procedure": f"leave-heliostats-out {min(folds, len(ids))}-fold CV on {path} "
+                           f"({base.split}, train {cfg.train}, test {cfg.test}); lowest median of the heliostats' "
+                           "mean test error; interval drift and walk scale by CV coverage closest to 0.9",
+              "archive": path, "heliostats": ids, "excluded": calibrated, "folds": min(folds, len(ids)),
+              "table": {k: median(v.values()) for k, v in scores.items()}, "chosen": label(chosen),
+              "candidate": dict(chosen), "drift_mrad": 1e3 * drift, "walk_scale": scale,
+              "coverage": {f"{1e3 * d:g} mrad, walk x{s:g}": c for (d, s), c in cov.items()}}
+    return run_cfg, record

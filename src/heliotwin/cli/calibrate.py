@@ -90,6 +90,11 @@ def register(subparsers) -> None:
     p.add_argument("--drift-basis", choices=("axes", "rotation"), default="axes",
                    help="--drift kalman: what drifts: the two axis offsets (default) or a small rotation of the "
                         "whole heliostat")
+    p.add_argument("--settings", choices=("auto", "given", "cv"), default="auto",
+                   help="lm settings (prior width, bagging, drift model, interval drift): 'cv' = chosen by "
+                        "leave-heliostats-out cross-validation on the --prior-from PAINT folder's heliostats (never "
+                        "the calibrated ones); 'given' = the flags; 'auto' (default) = cv when --prior-from is a "
+                        "PAINT folder and no lm setting flag is given, else given")
     p.add_argument("--online-step", type=_COUNT, default=5,
                    help="--split online: refit every this many test records (default 5; 1 = before every record)")
     add_resume_flags(p)
@@ -130,9 +135,21 @@ def _config(args, method="lm"):
                     prior_from=getattr(args, "prior_from", None), online_step=getattr(args, "online_step", 5),
                     method_options=_lm_options(args, method), drift_model=getattr(args, "drift", "none"),
                     process_noise=_process_noise(getattr(args, "process_noise", "auto")),
-                    drift_basis=getattr(args, "drift_basis", "axes"))
+                    drift_basis=getattr(args, "drift_basis", "axes"), settings=_settings_mode(args, method))
     validate_config(cfg)
     return cfg
+
+
+def _settings_mode(args, method) -> str:
+    """``--settings auto``: ``cv`` when ``--prior-from`` is a PAINT folder, the method is lm and no lm setting
+    flag fixes a setting by hand; ``given`` otherwise."""
+    mode = getattr(args, "settings", "given") or "given"
+    if mode != "auto":
+        return mode
+    pf = getattr(args, "prior_from", None)
+    by_hand = (getattr(args, "half_life_days", None) is not None or getattr(args, "drift_mrad", None) is not None
+               or getattr(args, "drift", "none") != "none")
+    return "cv" if method == "lm" and pf and os.path.isdir(pf) and not by_hand else "given"
 
 
 def _process_noise(text):

@@ -1,0 +1,76 @@
+"""``--settings cv``: a run's lm settings chosen by leave-heliostats-out CV on its ``--prior-from`` archive."""
+import json
+
+import pytest
+from helpers.cli import assert_one_line_error, run_cli
+
+from heliotwin.calibrate import selection
+from heliotwin.calibrate.pipeline import RunConfig, validate_config
+from heliotwin.errors import HeliotwinError
+
+#: Two cheap candidates (no bagging) that differ in what matters: the run's own field prior or a plant prior.
+RUN = "AK32,BE36,BF55,BH60"  # >= 4: the run's own field prior is a candidate too (priors.MIN_HELIOSTATS)
+TWO = ({"prior": "run", "bags": 0}, {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 1.0, "bags": 0})
+
+
+def test_cv_settings_choose_on_other_heliostats_and_the_run_uses_the_choice(paint_dir, tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(selection, "CANDIDATES", TWO)
+    js = tmp_path / "r.json"
+    code, out, err = run_cli(capsys, "calibrate", "--paint", paint_dir, "--heliostats", RUN, "--train", "10",
+                             "--test", "30", "--prior-from", paint_dir, "--json", js, "--no-plots")
+    assert code == 0, err
+    rep = json.loads(js.read_text())
+    ch = rep["settings_choice"]
+    # no record of a calibrated heliostat decided anything: neither scored nor in a prior
+    assert not set(RUN.split(",")) & set(ch["heliostats"]) and len(ch["heliostats"]) >= 4
+    assert ch["excluded"] == RUN.split(",")
+    assert set(ch["table"]) == {selection.label(c) for c in TWO}
+    assert ch["chosen"] == min(ch["table"], key=ch["table"].get)  # the lowest CV median wins
+    # the run ran with the chosen candidate and the interval drift chosen by CV coverage
+    cfg = rep["config"]
+    assert cfg["method_options"]["drift"] == pytest.approx(1e-3 * ch["drift_mrad"])
+    assert cfg["prior"] == ch["candidate"]["prior"]
+    coverages = list(ch["coverage"].values())
+    assert min(abs(c - 0.9) for c in coverages) == pytest.approx(
+        abs(ch["coverage"][f"{ch['drift_mrad']:g} mrad, walk x{ch['walk_scale']:g}"] - 0.9))
+    if ch["candidate"]["prior"] == "plant":
+        used = rep["overall"]["method_info"]["prior_heliostats"]
+        assert not set(RUN.split(",")) & set(used)
+    for hid in RUN.split(","):
+        r = rep["heliostats"][hid]
+        assert r["mean_test_mrad"] < 3.0 and r["mean_test_mrad"] < r["nominal_mean_test_mrad"] / 5, r
+    assert 0.5 <= rep["overall"]["interval_90_coverage"] <= 1.0
+
+
+def test_a_small_run_is_never_given_a_field_prior_it_cannot_have(paint_dir):
+    """Fewer than 4 calibrated heliostats: the run's own field prior would fall back to the nominal prior, which
+    CV never scored, so only plant-prior candidates are tried."""
+    cfg = RunConfig(paint=str(paint_dir), prior_from=str(paint_dir), settings="cv", train=10, test=30)
+    with pytest.raises(HeliotwinError, match="need 4 and none uses a plant prior"):
+        selection.choose_for_run(cfg, ["AK32", "BE36"], candidates=TWO[:1])
+
+
+def test_settings_flag_resolution_and_errors(paint_dir, tmp_path, capsys):
+    from heliotwin.cli import build_parser
+    from heliotwin.cli.calibrate import _settings_mode
+
+    parse = build_parser().parse_args
+    base = ["calibrate", "--paint", str(paint_dir)]
+    assert _settings_mode(parse(base + ["--prior-from", str(paint_dir)]), "lm") == "cv"
+    assert _settings_mode(parse(base), "lm") == "given"  # no archive to choose on
+    assert _settings_mode(parse(base + ["--prior-from", str(paint_dir), "--drift", "kalman"]), "lm") == "given"
+    assert _settings_mode(parse(base + ["--prior-from", str(paint_dir), "--half-life-days", "20"]), "lm") == "given"
+    assert _settings_mode(parse(base + ["--prior-from", str(tmp_path / "x.h5")]), "lm") == "given"  # a scenario
+    assert _settings_mode(parse(base + ["--prior-from", str(paint_dir), "--settings", "given"]), "lm") == "given"
+    with pytest.raises(HeliotwinError, match="needs --prior-from a PAINT folder"):
+        validate_config(RunConfig(paint=str(paint_dir), settings="cv"))
+    with pytest.raises(HeliotwinError, match="chooses lm settings"):
+        validate_config(RunConfig(paint=str(paint_dir), settings="cv", method="gradient", prior_from=str(paint_dir)))
+    code, out, err = run_cli(capsys, "calibrate", "--paint", paint_dir, "--settings", "cv", "--json",
+                             tmp_path / "r.json")
+    assert_one_line_error(code, err, "--settings cv", "PAINT folder")
+    # an archive with too few heliostats outside the calibrated ones: one line, nothing written
+    code, out, err = run_cli(capsys, "calibrate", "--paint", paint_dir, "--prior-from", paint_dir, "--min-records",
+                             "300", "--json", tmp_path / "r.json")
+    assert_one_line_error(code, err, "--settings cv needs 4 heliostats")
+    assert not (tmp_path / "r.json").exists()
