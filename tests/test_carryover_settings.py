@@ -5,7 +5,7 @@ import pytest
 from helpers.cli import assert_one_line_error, run_cli
 
 from heliotwin.calibrate import selection
-from heliotwin.calibrate.pipeline import RunConfig, validate_config
+from heliotwin.calibrate.pipeline import RunConfig, settings_mode, validate_config
 from heliotwin.errors import HeliotwinError
 
 #: Two cheap candidates (no bagging) that differ in what matters: the run's own field prior or a plant prior.
@@ -62,6 +62,8 @@ def test_settings_flag_resolution_and_errors(paint_dir, tmp_path, capsys):
     assert _settings_mode(parse(base + ["--prior-from", str(paint_dir), "--half-life-days", "20"]), "lm") == "given"
     assert _settings_mode(parse(base + ["--prior-from", str(tmp_path / "x.h5")]), "lm") == "given"  # a scenario
     assert _settings_mode(parse(base + ["--prior-from", str(paint_dir), "--settings", "given"]), "lm") == "given"
+    assert settings_mode("auto", method="gradient", prior_from=str(paint_dir)) == "given"  # cv chooses lm settings
+    assert settings_mode("cv", method="lm") == "cv"  # explicit: validate_config judges it
     with pytest.raises(HeliotwinError, match="needs --prior-from a PAINT folder"):
         validate_config(RunConfig(paint=str(paint_dir), settings="cv"))
     with pytest.raises(HeliotwinError, match="chooses lm settings"):

@@ -224,8 +224,12 @@ def calibrate(paint, *, method: str = "lm", heliostats=None, split: str = "chron
               validation: int | None = None, test: int | None = None, min_records: int = 50,
               focal_spot: str = "HeliOS", seed: int = 0, plane_tolerance: float = 0.1,
               keep_suspicious: bool = False, progress: bool = True, scenario=None, output=None, device: str = "auto",
-              checkpoint=None, resume: bool = False):
+              checkpoint=None, resume: bool = False, prior_from=None, settings: str = "auto"):
     """Calibrate heliostat kinematics from PAINT calibration records (``heliotwin calibrate``'s defaults).
+
+    ``prior_from``: a PAINT folder of the same plant or a scenario holding a prior (lm's plant prior from
+    other heliostats); ``settings``: ``"auto"`` (as the CLI: with a PAINT folder, lm settings chosen by
+    leave-heliostats-out CV on its heliostats), ``"cv"`` or ``"given"``.
 
     ``progress``: tqdm bars (the run's steps, titled ``calibrate <method>``, and the fit loops), or a callable
     ``progress(step_name, index, total)`` called before each step of the run (no bars then).
@@ -243,14 +247,16 @@ def calibrate(paint, *, method: str = "lm", heliostats=None, split: str = "chron
     output : str or None
         The scenario file written (``output``), when asked and something was calibrated.
     """
-    from .calibrate.pipeline import RunConfig, run_calibration, validate_config
+    from .calibrate.pipeline import RunConfig, run_calibration, settings_mode, validate_config
     from .calibrate.scenario import save_calibration
     from .errors import HeliotwinError
 
     cfg = RunConfig(paint=os.fspath(paint), method=method, split=split, train=train, validation=validation,
                     test=test, heliostats=None if heliostats is None else list(heliostats), min_records=min_records,
                     focal_spot=focal_spot, seed=seed, plane_tolerance=plane_tolerance,
-                    correct_suspicious=not keep_suspicious, progress=progress is True)
+                    correct_suspicious=not keep_suspicious, progress=progress is True,
+                    prior_from=None if prior_from is None else os.fspath(prior_from),
+                    settings=settings_mode(settings, method=method, prior_from=prior_from))
     validate_config(cfg)
     ck = None
     if checkpoint is not None:

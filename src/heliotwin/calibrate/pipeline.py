@@ -105,6 +105,16 @@ class RunConfig:
         return max(2, int(round(0.2 * self.train))) if self.train >= 8 else 0
 
 
+def settings_mode(mode: str, *, method: str, prior_from=None, fixed_by_hand: bool = False) -> str:
+    """``--settings auto`` resolved: ``"cv"`` when ``prior_from`` is a PAINT folder (heliostats to choose on),
+    the method is lm and no lm setting was fixed by hand (``fixed_by_hand``); ``"given"`` otherwise. Other
+    modes pass through."""
+    if mode != "auto":
+        return mode
+    folder = isinstance(prior_from, (str, os.PathLike)) and os.path.isdir(prior_from)
+    return "cv" if method == "lm" and folder and not fixed_by_hand else "given"
+
+
 #: Split types of a calibration run: the record splits plus the online protocol (:mod:`.online`).
 RUN_SPLITS = SPLIT_TYPES + ("online",)
 
@@ -297,7 +307,9 @@ def choose_settings(run: Run) -> None:
         return
     from .selection import choose_for_run
 
-    chosen, record = choose_for_run(cfg, run.run_ids, progress=bool(cfg.progress))
+    # The CV runs are not the run's fit: they stay out of its checkpoint (a resumed run repeats them, seeded).
+    with _checkpoint.active(None):
+        chosen, record = choose_for_run(cfg, run.run_ids, progress=bool(cfg.progress))
     run.cfg = chosen
     run.report["config"] = _config_report(chosen, run.device)
     run.report["settings_choice"] = record

@@ -141,15 +141,14 @@ def _config(args, method="lm"):
 
 
 def _settings_mode(args, method) -> str:
-    """``--settings auto``: ``cv`` when ``--prior-from`` is a PAINT folder, the method is lm and no lm setting
-    flag fixes a setting by hand; ``given`` otherwise."""
-    mode = getattr(args, "settings", "given") or "given"
-    if mode != "auto":
-        return mode
-    pf = getattr(args, "prior_from", None)
+    """``--settings``, with ``auto`` resolved (:func:`heliotwin.calibrate.pipeline.settings_mode`): a setting
+    flag given by hand (half-life, interval drift, drift model) keeps the flags."""
+    from ..calibrate.pipeline import settings_mode
+
     by_hand = (getattr(args, "half_life_days", None) is not None or getattr(args, "drift_mrad", None) is not None
                or getattr(args, "drift", "none") != "none")
-    return "cv" if method == "lm" and pf and os.path.isdir(pf) and not by_hand else "given"
+    return settings_mode(getattr(args, "settings", "given") or "given", method=method,
+                         prior_from=getattr(args, "prior_from", None), fixed_by_hand=by_hand)
 
 
 def _process_noise(text):
