@@ -35,7 +35,7 @@ walk's own growth ``q dt`` over the months between training and a chrono test bl
 Usage::
 
     OMP_NUM_THREADS=1 python benchmarks/bench_carryover.py [--paint ../shared/data/paint] [--json carry.json]
-        [--train 10,30] [--folds 4] [--inner-folds 3] [--skip-nested]
+        [--train 10,30] [--folds 4] [--inner-folds 3] [--skip-nested] [--online-cv]
 """
 from __future__ import annotations
 
@@ -68,6 +68,8 @@ def main(argv=None) -> int:
     ap.add_argument("--folds", type=int, default=4)
     ap.add_argument("--inner-folds", type=int, default=3)
     ap.add_argument("--skip-nested", action="store_true")
+    ap.add_argument("--online-cv", action="store_true",
+                    help="also choose the online run's setting by LOHO CV on the online protocol (--settings cv)")
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -121,6 +123,18 @@ def main(argv=None) -> int:
         print(f"online (test = latest 30, each block of {base.online_step} predicted from the {n} records before it): "
               f"chosen {_fmt(rep_online['overall']['median_of_mean_test_mrad'])} mrad, default lm "
               f"{_fmt(rep_online_default['overall']['median_of_mean_test_mrad'])}", flush=True)
+        if args.online_cv:  # the online run's settings chosen on the online protocol, as --settings cv does
+            base_on = replace(base, split="online", online_step=max(base.online_step, S.ONLINE_CV_STEP))
+            print(f"== N={n}: leave-heliostats-out CV of every candidate on the online protocol", flush=True)
+            scores_on = S.cross_validated_errors(ds, base_on, S.CANDIDATES, ids, folds=args.folds, archive=archive,
+                                                 log=print)
+            chosen_on = S.select(scores_on, S.CANDIDATES)
+            rep_on_cv, _, _ = run_calibration(S.config_of(replace(base, split="online"), chosen_on, archive), ds)
+            res["online_cv"] = {"chosen": S.label(chosen_on), "cv_median_mrad": S.median(
+                scores_on[S.label(chosen_on)].values()), **rep_on_cv["overall"]}
+            print(f"online, chosen on the online protocol by LOHO CV: {S.label(chosen_on)}: protocol "
+                  f"{_fmt(rep_on_cv['overall']['median_of_mean_test_mrad'])} mrad (CV "
+                  f"{_fmt(res['online_cv']['cv_median_mrad'])})", flush=True)
         nested = None
         if not args.skip_nested:
             print(f"== N={n}: nested leave-heliostats-out CV of the choice procedure", flush=True)

@@ -228,6 +228,9 @@ def nested_cv(dataset, base: RunConfig, candidates=None, *, folds: int = 4, inne
     return {"heliostats": held_out, "median_of_mean_test_mrad": median(held_out.values()), "folds": report,
             "interval_90_coverage": sum(c for c, _ in cov_in) / n_cov if n_cov else None}
 
+#: Test records per refit in the online CV runs of :func:`choose_for_run` (at least; 3 refits for 30 records).
+ONLINE_CV_STEP = 10
+
 #: Fewest eligible archive heliostats for choosing settings by leave-heliostats-out CV (4 folds of >= 1).
 MIN_CV_HELIOSTATS = 4
 
@@ -239,7 +242,8 @@ def choose_for_run(cfg: RunConfig, calibrated, dataset=None, *, folds: int = 4, 
 
     The procedure of :func:`nested_cv`'s inner loop, applied to a real run: every candidate of
     :data:`CANDIDATES` is scored by K-fold CV over the archive's heliostats with enough records (the run's
-    split, ``--train`` and ``--test``; an ``online`` run chooses on ``chrono``, like the benchmark), the
+    split, ``--train`` and ``--test``: an ``online`` run chooses on the online protocol, refitting every
+    :data:`ONLINE_CV_STEP` test records or the run's ``online_step`` if larger, to bound the cost), the
     lowest median wins (:func:`select`), and the predictive interval's offset drift and walk scale are chosen
     by the CV runs' coverage (:func:`choose_interval`). No record of a ``calibrated`` heliostat enters any of
     it: they are neither scored nor fitted into any prior (the no-leakage rule of :mod:`.archive`).
@@ -295,7 +299,7 @@ def choose_for_run(cfg: RunConfig, calibrated, dataset=None, *, folds: int = 4, 
         archive = PriorArchive.from_dataset(ds, focal_spot=cfg.focal_spot, source=path, exclude=calibrated)
     base = replace(cfg, paint=path, heliostats=None, prior="run", prior_from=None, prior_options={},
                    prior_exclude=[], method_options={}, drift_model="none", process_noise="auto",
-                   split="chrono" if cfg.split == "online" else cfg.split, progress=False, settings="given")
+                   online_step=max(cfg.online_step, ONLINE_CV_STEP), progress=False, settings="given")
     collect: dict = {}
     cands = tuple(CANDIDATES if candidates is None else candidates)
     if (len(calibrated) if run_size is None else run_size) < MIN_HELIOSTATS:
