@@ -24,6 +24,11 @@ walk's covariance in the interval, chosen with ``drift`` by CV coverage):
 | 10 | 1.467 | plant/full/s0.2/w2/b10/kqauto, drift .25, walk x0 | 1.335 | 1.417 | .900 / .927 | .630 / .677 / .630 |
 | 30 | 0.969 | run/b10/hl20d, drift 1.00, walk x1 | 0.903 | 0.903 | 0.885 / 0.879 | 0.662 / 0.796 / 0.545 |
 
+Online settings chosen on the online protocol (``--online-cv``; what ``calibrate --split online --prior-from
+FOLDER`` does by default, ``--settings cv``; CV refits every 10 test records; 1018 s with the table above and
+without the nested CV): N=10 ``run/b10/kq0.03``, protocol 0.610 (CV 0.619); N=30 ``run/b10/kq0.03``, protocol
+0.545 (CV 0.609) -- the random-walk offset, where the chrono choice (half-life 20 d) gives 0.662.
+
 The random-walk offset is chosen at N=10 (CV 1.239 against 1.241 for half-life 20 d; its protocol run picks
 q = 0.1 by validation inside the 10 records) and is the better drift model on the online protocol (N=30:
 0.545 with kq0.03, the best walk candidate by CV, against 0.662 with the chosen half-life; N=10: 0.630
