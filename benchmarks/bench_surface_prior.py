@@ -1,0 +1,218 @@
+"""Plant surface prior in silico under model mismatch: does the plant's facet shape help a heliostat with 1-2 images?
+
+    python benchmarks/bench_surface_prior.py [--sources 4] [--targets 3] [--images 1,2] [--seed 0] \
+        [--steps 40] [--json surface_prior.json]
+
+Plant. AA39's four facets; one *plant pattern* of low-order facet shape drawn once from ``--seed``
+(per facet: canting errors along canting_e / canting_n ~ N(0, 1 mrad), a focus error shared by all facets
+~ N(0, 1.5 mrad) plus N(0, 0.3 mrad) per facet, astigmatism and twist ~ N(0, 0.5 mrad); coefficients of
+:mod:`heliotwin.surfaces.plantprior`, slopes at the facet's half size). Every heliostat = pattern + its own
+low-order deviation (N(0, 0.3 mrad) per coefficient) + the in-silico bumps and waviness of
+:func:`heliotwin.surfaces.insilico.ground_truth_heights` (0.5 mm dome, 0.05 mm waves). The common tilt of all
+facets is removed from the low-order part (spot-centred windows cannot see it). Heliostats stand 40-70 m
+north of the target.
+
+Images (mismatch, as :func:`heliotwin.surfaces.mismatch.run_mismatch_case`): truth rendered with a Gaussian
+sun (2.8 mrad) + 1.2 mrad slope error, camera saturating at 80 % and cutting below 5 %, spot-centred 64 px
+6 m windows; the learner assumes a Buie sun (CSR 0.05) and estimates the camera itself.
+
+Protocol. ``--sources`` heliostats learn their surfaces from 4 images each
+(:func:`~heliotwin.surfaces.generalise.reconstruct_generalising`, no prior); the prior is built from those
+*learned* surfaces (:func:`~heliotwin.surfaces.plantprior.surface_prior`, never from a truth). Then
+``--targets`` new heliostats (not sources) are reconstructed from each count of ``--images`` training
+images with and without the prior, judged on 10 held-out test images each. Reported per image count:
+median test L1 (ideal start without prior / learned without prior / learned with prior), test images where
+the prior's fit beats the no-prior fit (Wilson 95 %), test images improved over the ideal, and the mean
+normal deviation from the truth [mrad] (ideal / without / with). Small budgets (5x5 net, 12x12 samples,
+``--steps`` Adam steps, 3 slope errors, 1 blur mode) so the whole run takes minutes on one thread.
+
+Measured (``python benchmarks/bench_surface_prior.py --json /tmp/sp.json``, 1 thread, seed 0):
+
+MEASURED_TABLE
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import statistics
+import sys
+import time
+
+import torch
+
+from heliotwin.field.plant import SunSettings
+from heliotwin.io.paint import load_paint
+from heliotwin.surfaces.acceptance import wilson_interval
+from heliotwin.surfaces.generalise import GeneraliseSettings, reconstruct_generalising
+from heliotwin.surfaces.insilico import (
+    TRUTH_DEGREE,
+    TRUTH_NET,
+    ground_truth_heights,
+    make_scene,
+    observe,
+    random_suns,
+    surface_metrics,
+)
+from heliotwin.surfaces.learning import LearnableSurface, heights_to_displacement, learnable_surfaces
+from heliotwin.surfaces.mismatch import TRUTH_SUN, camera_truth
+from heliotwin.surfaces.plantprior import NAMES, low_order_coefficients, low_order_heights, surface_prior
+
+PAINT = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "paint")
+MODEL_SUN = SunSettings(sunshape="buie", csr=0.05)
+
+
+def plant_pattern(num_facets: int, gen: torch.Generator) -> torch.Tensor:
+    """The plant's shared low-order facet shape ``[F, K]`` [rad] (module docstring)."""
+    c = torch.zeros(num_facets, len(NAMES), dtype=torch.float64)
+    r = lambda *s: torch.randn(*s, generator=gen, dtype=torch.float64)  # noqa: E731
+    c[:, 0:2] = 1.0e-3 * r(num_facets, 2)
+    c[:, 2] = 1.5e-3 * r(1) + 0.3e-3 * r(num_facets)
+    c[:, 3:5] = 0.5e-3 * r(num_facets, 2)
+    return c
+
+
+def heliostat(plant, pattern: torch.Tensor, distance: float, gen: torch.Generator, individual_rad: float = 0.3e-3):
+    """A scene (:class:`~heliotwin.surfaces.insilico.InSilicoScene`) whose truth = pattern + own deviation + bumps."""
+    scene = make_scene(plant, distance, gen, sun=TRUTH_SUN)  # placement and kinematics; its truth is replaced
+    f = scene.facets.translation.shape[1]
+    c = pattern + individual_rad * torch.randn(pattern.shape, generator=gen, dtype=torch.float64)
+    c[:, 0:2] -= c[:, 0:2].mean(0)  # the common tilt: invisible in spot-centred windows
+    grid = (48, 48)
+    h = low_order_heights(scene.facets, c, grid) + ground_truth_heights(f, gen, grid, bump_mm=0.5, waviness_mm=0.05)
+    d = heights_to_displacement(h, TRUTH_NET, TRUTH_DEGREE)
+    base = LearnableSurface(scene.facets, TRUTH_NET, TRUTH_DEGREE).base
+    scene.truth = learnable_surfaces(scene.facets, base, d, TRUTH_DEGREE)
+    return scene
+
+
+def images(plant, scene, n: int, gen: torch.Generator, first_id: int = 0):
+    """``n`` mismatch images (truth optics, saturating and cutting camera), spot-centred windows."""
+    suns = random_suns(plant.site, n, gen)
+    obs = observe(scene, suns, window="centred", ids=[str(first_id + i) for i in range(n)])
+    obs.images = camera_truth(obs.images, 0.8, 0.05)
+    return obs
+
+
+def settings(steps: int) -> GeneraliseSettings:
+    return GeneraliseSettings(control_points=(5, 5), samples=(12, 12), steps=steps, eval_every=max(1, steps // 4),
+                              slope_grid=(1e-3, 2e-3, 3e-3), blur_grid_px=(0.0, 1.0, 2.0), focus_grid=(None, 1.0, 2.0),
+                              blur_modes=("none",))
+
+
+def run(a) -> dict:
+    plant = load_paint(a.paint, heliostats=["AA39"], with_records=False).plant
+    gen = torch.Generator().manual_seed(a.seed)
+    f = plant.field.facets.translation.shape[1]
+    pattern = plant_pattern(f, gen)
+    s = settings(a.steps)
+    counts = [int(x) for x in a.images.split(",")]
+    t0 = time.perf_counter()
+    # Sources: learned (not true) surfaces of other heliostats, 4 images each.
+    coefs, src_rows = [], []
+    for i in range(a.sources):
+        sc = heliostat(plant, pattern, 40.0 + 10.0 * (i % 4), gen)
+        tr, te = images(plant, sc, 4, gen), images(plant, sc, 4, gen, 4)
+        rep, model, _ = reconstruct_generalising(sc.facets, tr, te, MODEL_SUN, s)
+        with torch.no_grad():
+            c = low_order_coefficients(sc.facets, model.surfaces().control_points, s.degree)
+            ct = low_order_coefficients(sc.facets, sc.truth.control_points, TRUTH_DEGREE)
+        coefs.append(c)
+        src_rows.append({"heliostat": f"S{i}", "median_l1_ideal": rep["median_l1_ideal"],
+                         "median_l1_learned": rep["median_l1_learned"],
+                         "low_order_error_mrad": float((c - ct).pow(2).mean().sqrt() * 1e3)})
+        print(f"source S{i}: median test L1 ideal {rep['median_l1_ideal']:.4f} -> learned "
+              f"{rep['median_l1_learned']:.4f}; low-order rms error {src_rows[-1]['low_order_error_mrad']:.2f} mrad",
+              flush=True)
+    prior = surface_prior(torch.stack(coefs), [r["heliostat"] for r in src_rows])
+    pattern_err = float((prior.mean - pattern).pow(2).mean().sqrt() * 1e3)
+    print(f"prior from {len(coefs)} learned sources: rms(mean - plant pattern) {pattern_err:.2f} mrad; "
+          f"rms pattern {float(pattern.pow(2).mean().sqrt() * 1e3):.2f} mrad; median sigma "
+          f"{float(prior.sigma.median() * 1e3):.2f} mrad", flush=True)
+    rows = []
+    for t in range(a.targets):
+        sc = heliostat(plant, pattern, 45.0 + 10.0 * (t % 3), gen)
+        pool = images(plant, sc, max(counts) + 10, gen)
+        test = pool.subset(list(range(max(counts), max(counts) + 10)))
+        for n in counts:
+            train = pool.subset(list(range(n)))
+            out = {"target": f"T{t}", "images": n}
+            for name, p in (("without", None), ("with", prior)):
+                rep, model, info = reconstruct_generalising(sc.facets, train, test, MODEL_SUN, s, prior=p)
+                m = surface_metrics(sc.facets, model.surfaces(), sc.truth)
+                out[name] = {"test_l1": [r["l1_learned"] for r in rep["test"]],
+                             "test_l1_ideal": [r["l1_ideal"] for r in rep["test"]],
+                             "train_worse_than_ideal": rep["train_worse_than_ideal"],
+                             "normal_deviation_mrad": m["normal_deviation_mrad"],
+                             "ideal_normal_deviation_mrad": surface_metrics(sc.facets, info["ideal"],
+                                                                            sc.truth)["normal_deviation_mrad"],
+                             "prior_weight": rep.get("prior", {}).get("weight"),
+                             "start": rep["optics"]["chosen"]["focus_multiple"], "alpha": rep["acceptance"]["alpha"]}
+            rows.append(out)
+            w, o = out["without"], out["with"]
+            print(f"T{t} {n} image(s): median test L1 ideal {statistics.median(w['test_l1_ideal']):.4f} / without "
+                  f"{statistics.median(w['test_l1']):.4f} / with prior {statistics.median(o['test_l1']):.4f}; normal "
+                  f"dev. {w['ideal_normal_deviation_mrad']:.2f} / {w['normal_deviation_mrad']:.2f} / "
+                  f"{o['normal_deviation_mrad']:.2f} mrad; start {o['start']}, weight {o['prior_weight']}, "
+                  f"alpha {w['alpha']}/{o['alpha']}", flush=True)
+    summary = {}
+    for n in counts:
+        rs = [r for r in rows if r["images"] == n]
+        ideal = [x for r in rs for x in r["without"]["test_l1_ideal"]]
+        wo = [x for r in rs for x in r["without"]["test_l1"]]
+        wi = [x for r in rs for x in r["with"]["test_l1"]]
+        k = sum(b < a_ for a_, b in zip(wo, wi))
+        k_ideal = sum(b < a_ for a_, b in zip(ideal, wi))
+        k_ideal_wo = sum(b < a_ for a_, b in zip(ideal, wo))
+        summary[n] = {"test_images": len(wi), "median_l1_ideal": statistics.median(ideal),
+                      "median_l1_without": statistics.median(wo), "median_l1_with": statistics.median(wi),
+                      "prior_better": k, "prior_better_wilson95": wilson_interval(k, len(wi)),
+                      "with_better_than_ideal": k_ideal, "without_better_than_ideal": k_ideal_wo,
+                      "normal_dev_ideal": statistics.mean(r["without"]["ideal_normal_deviation_mrad"] for r in rs),
+                      "normal_dev_without": statistics.mean(r["without"]["normal_deviation_mrad"] for r in rs),
+                      "normal_dev_with": statistics.mean(r["with"]["normal_deviation_mrad"] for r in rs)}
+    seconds = time.perf_counter() - t0
+    return {"sources": src_rows, "prior_mean_vs_pattern_rms_mrad": pattern_err, "rows": rows, "summary": summary,
+            "seconds": seconds, "threads": torch.get_num_threads(), "seed": a.seed, "steps": a.steps}
+
+
+def markdown(res: dict) -> str:
+    out = ["| images | test imgs | median L1 ideal | without prior | with prior | prior better (Wilson 95 %) | "
+           "better than ideal without / with | normal dev. ideal / without / with [mrad] |",
+           "|---:|---:|---:|---:|---:|---|---|---|"]
+    for n, r in res["summary"].items():
+        lo, hi = r["prior_better_wilson95"]
+        out.append(f"| {n} | {r['test_images']} | {r['median_l1_ideal']:.4f} | {r['median_l1_without']:.4f} | "
+                   f"{r['median_l1_with']:.4f} | {r['prior_better']}/{r['test_images']} [{lo:.2f}, {hi:.2f}] | "
+                   f"{r['without_better_than_ideal']} / {r['with_better_than_ideal']} | {r['normal_dev_ideal']:.2f} / "
+                   f"{r['normal_dev_without']:.2f} / {r['normal_dev_with']:.2f} |")
+    return "\n".join(out)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser()
+    p.add_argument("--paint", default=PAINT)
+    p.add_argument("--sources", type=int, default=4)
+    p.add_argument("--targets", type=int, default=3)
+    p.add_argument("--images", default="1,2")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--steps", type=int, default=40)
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--json")
+    a = p.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    res = run(a)
+    table = markdown(res)
+    print()
+    print(table)
+    print(f"\ntotal {res['seconds']:.0f} s on {a.threads} thread(s)")
+    if a.json:
+        with open(a.json, "w", encoding="utf-8") as fh:
+            json.dump({**res, "summary": {str(k): v for k, v in res["summary"].items()}}, fh, indent=1,
+                      default=lambda x: None if isinstance(x, float) and not math.isfinite(x) else x)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
