@@ -57,7 +57,13 @@ from heliotwin.surfaces.insilico import (
 )
 from heliotwin.surfaces.learning import LearnableSurface, heights_to_displacement, learnable_surfaces
 from heliotwin.surfaces.mismatch import TRUTH_SUN, camera_truth
-from heliotwin.surfaces.plantprior import NAMES, low_order_coefficients, low_order_heights, surface_prior
+from heliotwin.surfaces.plantprior import (
+    NAMES,
+    PRIOR_WEIGHT_GRID,
+    low_order_coefficients,
+    low_order_heights,
+    surface_prior,
+)
 
 PAINT = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "paint")
 MODEL_SUN = SunSettings(sunshape="buie", csr=0.05)
@@ -138,8 +144,12 @@ def run(a) -> dict:
         for n in counts:
             train = pool.subset(list(range(n)))
             out = {"target": f"T{t}", "images": n}
-            for name, p in (("without", None), ("with", prior)):
-                rep, model, info = reconstruct_generalising(sc.facets, train, test, MODEL_SUN, s, prior=p)
+            variants = [("without", None, PRIOR_WEIGHT_GRID), ("with", prior, PRIOR_WEIGHT_GRID)]
+            if a.ablation:  # the rejected rule: the penalty always at the grid's largest weight
+                variants.append(("forced", prior, (max(PRIOR_WEIGHT_GRID),)))
+            for name, p, grid in variants:
+                rep, model, info = reconstruct_generalising(sc.facets, train, test, MODEL_SUN, s, prior=p,
+                                                            prior_grid=grid)
                 m = surface_metrics(sc.facets, model.surfaces(), sc.truth)
                 out[name] = {"test_l1": [r["l1_learned"] for r in rep["test"]],
                              "test_l1_ideal": [r["l1_ideal"] for r in rep["test"]],
@@ -155,7 +165,9 @@ def run(a) -> dict:
                   f"{statistics.median(w['test_l1']):.4f} / with prior {statistics.median(o['test_l1']):.4f}; normal "
                   f"dev. {w['ideal_normal_deviation_mrad']:.2f} / {w['normal_deviation_mrad']:.2f} / "
                   f"{o['normal_deviation_mrad']:.2f} mrad; start {o['start']}, weight {o['prior_weight']}, "
-                  f"alpha {w['alpha']}/{o['alpha']}", flush=True)
+                  f"alpha {w['alpha']}/{o['alpha']}"
+                  + (f"; forced weight: L1 {statistics.median(out['forced']['test_l1']):.4f}, normal dev. "
+                     f"{out['forced']['normal_deviation_mrad']:.2f}" if a.ablation else ""), flush=True)
     summary = {}
     for n in counts:
         rs = [r for r in rows if r["images"] == n]
@@ -171,7 +183,14 @@ def run(a) -> dict:
                       "with_better_than_ideal": k_ideal, "without_better_than_ideal": k_ideal_wo,
                       "normal_dev_ideal": statistics.mean(r["without"]["ideal_normal_deviation_mrad"] for r in rs),
                       "normal_dev_without": statistics.mean(r["without"]["normal_deviation_mrad"] for r in rs),
-                      "normal_dev_with": statistics.mean(r["with"]["normal_deviation_mrad"] for r in rs)}
+                      "normal_dev_with": statistics.mean(r["with"]["normal_deviation_mrad"] for r in rs),
+                      "prior_weights": [r["with"]["prior_weight"] for r in rs],
+                      "starts": [r["with"]["start"] for r in rs]}
+        if a.ablation:
+            so = [x for r in rs for x in r["forced"]["test_l1"]]
+            summary[n].update(median_l1_forced=statistics.median(so),
+                              normal_dev_forced=statistics.mean(r["forced"]["normal_deviation_mrad"]
+                                                                    for r in rs))
     seconds = time.perf_counter() - t0
     return {"sources": src_rows, "prior_mean_vs_pattern_rms_mrad": pattern_err, "rows": rows, "summary": summary,
             "seconds": seconds, "threads": torch.get_num_threads(), "seed": a.seed, "steps": a.steps}
@@ -179,14 +198,20 @@ def run(a) -> dict:
 
 def markdown(res: dict) -> str:
     out = ["| images | test imgs | median L1 ideal | without prior | with prior | prior better (Wilson 95 %) | "
-           "better than ideal without / with | normal dev. ideal / without / with [mrad] |",
-           "|---:|---:|---:|---:|---:|---|---|---|"]
+           "better than ideal without / with | normal dev. ideal / without / with [mrad] | prior weights chosen |",
+           "|---:|---:|---:|---:|---:|---|---|---|---|"]
     for n, r in res["summary"].items():
         lo, hi = r["prior_better_wilson95"]
         out.append(f"| {n} | {r['test_images']} | {r['median_l1_ideal']:.4f} | {r['median_l1_without']:.4f} | "
                    f"{r['median_l1_with']:.4f} | {r['prior_better']}/{r['test_images']} [{lo:.2f}, {hi:.2f}] | "
                    f"{r['without_better_than_ideal']} / {r['with_better_than_ideal']} | {r['normal_dev_ideal']:.2f} / "
-                   f"{r['normal_dev_without']:.2f} / {r['normal_dev_with']:.2f} |")
+                   f"{r['normal_dev_without']:.2f} / {r['normal_dev_with']:.2f} | "
+                   f"{', '.join(f'{w:g}' for w in r['prior_weights'])} |")
+    if any("median_l1_forced" in r for r in res["summary"].values()):
+        out += ["", f"| images | median L1, prior penalty forced to {max(PRIOR_WEIGHT_GRID):g} | normal dev. [mrad] |",
+                "|---:|---:|---:|"]
+        out += [f"| {n} | {r['median_l1_forced']:.4f} | {r['normal_dev_forced']:.2f} |"
+                for n, r in res["summary"].items()]
     return "\n".join(out)
 
 
@@ -194,8 +219,10 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser()
     p.add_argument("--paint", default=PAINT)
     p.add_argument("--sources", type=int, default=4)
-    p.add_argument("--targets", type=int, default=3)
-    p.add_argument("--images", default="1,2")
+    p.add_argument("--targets", type=int, default=6)
+    p.add_argument("--images", default="1,2,3")
+    p.add_argument("--ablation", action="store_true",
+                   help="also: the prior penalty forced to the grid's largest weight (the rejected rule)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--steps", type=int, default=40)
     p.add_argument("--threads", type=int, default=1)

@@ -28,8 +28,11 @@ Steps (:func:`fit_generalising`), each a stated rule:
    images best), and the prior penalty (Mahalanobis distance of the facets' low-order shape from the plant
    mean) enters the loss with a weight chosen in step 4 jointly with the slope-penalty weight from
    :data:`~heliotwin.surfaces.plantprior.PRIOR_WEIGHT_GRID`, which includes 0: the prior is used only when
-   held-out training images say it helps. With fewer than 3 images there is no leave-one-out and, as for
-   the slope weight, the most regularising value of the grid is used. Without a prior every step is as above.
+   held-out training images say it helps. With fewer than 3 images there is no leave-one-out, so no held-out
+   evidence, and the penalty is not used (the grid's smallest weight, 0): the prior then acts through the
+   start candidate only. (Tried and rejected: the grid's largest weight, as for the slope weight; in silico
+   it lost to the start alone, see ``benchmarks/bench_surface_prior.py``.) Without a prior every step is as
+   above.
 
 Shapes: B images, R window pixels per side, F facets. Units: metres, radians; L1 of unit-sum images.
 """
@@ -326,8 +329,8 @@ def _candidates(facets, train, base_sun, camera, s, progress, prior=None, prior_
         else:
             sel = {"slope_weight": s.slope_weight_grid[-1], "steps": s.steps, "drop": [],
                    "note": "no leave-one-out (fewer than 3 images or select=False)"}
-            if prior is not None:  # no held-out evidence: the most regularising weight, as for the slope weight
-                sel["prior_weight"] = float(max(prior_grid))
+            if prior is not None:  # no held-out evidence that the penalty helps: its smallest weight (0)
+                sel["prior_weight"] = float(min(prior_grid))
             score = opt["chosen"]["mean_l1"]
         out.append({"mode": mode, "settings": sm, "optics": opt, "sun": sun, "sigma0": sigma0, "selection": sel,
                     "score": score})
@@ -416,8 +419,9 @@ def fit_generalising(facets: Facets, train: Observations, base_sun: SunSettings,
                            "mahalanobis2": m2,
                            "rule": "penalty weight: jointly with the slope weight and step count by the lowest mean "
                                    "held-out L1 (leave-one-training-image-out; ties to the earlier, 0 first); with "
-                                   "fewer than 3 images the largest weight of the grid. Start: the prior mean's "
-                                   "shape is one candidate of the optics choice (lowest training L1 of the ideal)"}
+                                   "fewer than 3 images (no held-out image) the smallest weight of the grid. Start: "
+                                   "the prior mean's shape is one candidate of the optics choice (lowest training L1 "
+                                   "of the ideal)"}
     return model, {"optics": sun, "start": start, "camera": camera, "sigma": sigma, "report": report,
                    "ideal": ideal, "settings": sm}
 

@@ -128,8 +128,11 @@ def low_order_start(facets: Facets, coefficients: torch.Tensor, num_control_poin
 
     The counterpart of :func:`heliotwin.surfaces.generalise.focused_start` for a prior's mean shape.
     """
+    # A tiny least-squares fit on the CPU (heights_to_displacement builds its bases there), then to the net.
     c = coefficients.detach().cpu().to(torch.float64)
-    h = low_order_heights(facets, c, (32, 32))
+    cpu = Facets(*(getattr(facets, a).detach().cpu().to(torch.float64)
+                   for a in ("translation", "canting_e", "canting_n")))
+    h = low_order_heights(cpu, c, (32, 32))
     d = heights_to_displacement(h, num_control_points, degree)
     base = LearnableSurface(facets, num_control_points, degree).base
     return learnable_surfaces(facets, base, d.to(base), degree).control_points.detach()
