@@ -217,8 +217,8 @@ def test_cli_surface_prior_is_used_reported_and_stored(paint_dir, tmp_path, caps
 
 
 def test_cli_surface_prior_errors_are_one_line(paint_dir, tmp_path, capsys):
-    """Missing file, a scenario without learned surfaces, a prior of another facet count, and leakage (the prior
-    learned from AA39 itself): each one line, no report written."""
+    """Missing file, a scenario without learned surfaces, a prior of another facet count, leakage (the prior
+    learned from AA39 itself), and the legacy method: each one line, no report written."""
     from helpers.cli import assert_one_line_error
 
     from heliotwin.surfaces.plantprior import surface_prior
@@ -237,3 +237,5 @@ def test_cli_surface_prior_errors_are_one_line(paint_dir, tmp_path, capsys):
         code, _, err = _reconstruct(capsys, paint_dir, tmp_path, "--surface-prior-from", path)
         assert_one_line_error(code, err, *needles)
         assert not (tmp_path / "r.json").exists()
+    code, _, err = _reconstruct(capsys, paint_dir, tmp_path, "--method", "legacy", "--surface-prior-from", "x.h5")
+    assert_one_line_error(code, err, "--surface-prior-from", "--method generalising")

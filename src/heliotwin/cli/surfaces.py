@@ -177,8 +177,6 @@ def _surface_prior(args):
     """
     if not args.surface_prior_from:
         return None
-    if args.method != "generalising":
-        raise HeliotwinError("--surface-prior-from needs --method generalising")
     from ..surfaces.plantprior import load_surface_prior
 
     paths = [p.strip() for p in str(args.surface_prior_from).split(",") if p.strip()]
@@ -206,6 +204,9 @@ def _check_method(args) -> None:
                                      f"use --method legacy")
         args.steps = int(args.steps) if _given(args.steps) else None
     else:
+        if getattr(args, "surface_prior_from", None):
+            raise HeliotwinError("--surface-prior-from is not supported with --method legacy; use --method "
+                                 "generalising")
         args.steps = int(args.steps)
     args.loss = str(args.loss)
 
@@ -314,7 +315,9 @@ def _print_generalising(heliostat: str, report: dict) -> None:
           f"{report['median_l1_learned']:.3f}; test improved {report['test_improved']}/{report['test_images']} "
           f"(Wilson 95 % [{lo:.2f}, {hi:.2f}]); training images worse than ideal "
           f"{report['train_worse_than_ideal']}; edge ridge {report['edge_ridge']['edge_max_mrad']:.2f} mrad; "
-          f"{report['seconds']:.1f} s")
+          + (f"surface prior from {len(report['prior']['heliostats'])} heliostats, weight {report['prior']['weight']:g}"
+             f"{', start = its mean' if report['prior']['start_is_prior_mean'] else ''}; " if "prior" in report else "")
+          + f"{report['seconds']:.1f} s")
 
 
 def cmd_predict(args) -> int:

@@ -27,7 +27,9 @@ heliostat has none (its "prior" would be a copy of that heliostat's shape, held 
 
 Penalty (:func:`prior_penalty`): the squared Mahalanobis distance of the surface's coefficients from the
 mean, divided by F K (so a surface 1 sigma off in every coefficient costs 1). Its weight is chosen by
-:func:`heliotwin.surfaces.generalise.loo_select` from :data:`PRIOR_WEIGHT_GRID` (which includes 0).
+:func:`heliotwin.surfaces.generalise.loo_select` from :data:`PRIOR_WEIGHT_GRID` (which includes 0); with
+fewer than 3 training images (no held-out image) it is 0 and the prior enters through the start only
+(:mod:`heliotwin.surfaces.generalise`, step 8).
 
 No leakage: a heliostat being reconstructed never contributes to its own prior. :func:`prior_from_scenarios`
 and :func:`check_leakage` refuse (one line) a prior whose sources include it.
