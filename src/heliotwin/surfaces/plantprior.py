@@ -67,8 +67,9 @@ MIN_SOURCES = 2
 #: Smallest marginal prior sigma [rad]: a few sources can agree by accident; no heliostat is trusted to be
 #: closer than 0.2 mrad (a fraction of the ~1 mrad slope error of glass facets) to the plant mean.
 FLOOR_RAD = 2e-4
-#: Weight of the identity in the correlation matrix: H sources estimate F K = 20 correlations' matrix with
-#: rank <= H - 1, so half of it is the identity.
+#: Weight of the identity in the correlation matrix: H sources estimate an F K x F K (20 x 20 for four facets)
+#: correlation matrix of rank <= H - 1, so half of it is the identity. (Set by that argument, not validated:
+#: the in-silico benchmark chooses the penalty weight by leave-one-out, not this.)
 SHRINK = 0.5
 #: Prior-penalty weights tried by leave-one-training-image-out (0 = no penalty; the penalty is a mean
 #: Mahalanobis^2, so 0.01 per sigma^2 is comparable to a ~0.01 change of the data L1).
