@@ -4,6 +4,7 @@ Usage::
 
     heliotwin reconstruct --paint PAINT_DIR --heliostat AA39 --train-first 3 -o learned.h5 --json report.json
     heliotwin reconstruct --method legacy ... --deflectometry AA39-deflectometry.h5 [--start-from-deflectometry]
+    heliotwin reconstruct --paint PAINT_DIR --heliostat AA39 --surface-prior-from S1.h5,S2.h5 -o learned.h5 ...
     heliotwin predict --scenario learned.h5 --heliostat AA39 --year 2023 --every 30min --json out.json
 
 :func:`register` adds them to the main parser; the library (:mod:`heliotwin.surfaces`) is imported inside
@@ -91,8 +92,12 @@ def _reconstruct_generalising(args) -> int:
 
     train_records = _train_records(args)
     settings = _generalise_settings(args)
+    prior = _surface_prior(args)
     fit_args = dict(method="generalising", train_records=train_records, train_first=args.train_first,
                     settings=settings, alignment=args.alignment)
+    if prior is not None:  # a resumed run must use the same prior (the checkpoint's fingerprint holds it)
+        fit_args["surface_prior"] = {"heliostats": list(prior.heliostats),
+                                     "mean": [float(x) for x in prior.mean.reshape(-1)]}
     # The checkpoint outlives the staged outputs: removed only once they are in place.
     with checkpointed(args, _checkpoint(args, fit_args)), \
             output_set([("--paint", args.paint), ("--scenario", args.scenario)]) as out:
@@ -105,8 +110,9 @@ def _reconstruct_generalising(args) -> int:
             args.paint, args.heliostat, train_first=args.train_first,
             train_records=train_records, settings=settings, alignment=args.alignment, progress=not args.quiet,
             plant=previous.plant if previous else None, device=getattr(args, "device", "cpu"),
-            checkpoint=args.checkpoint)
+            checkpoint=args.checkpoint, prior=prior)
         report["method"] = "generalising"
+        extras["surface_prior"] = prior
         report["choices"] = _generalising_choices(report)
         if output:  # the stored surface records what chose it
             report["settings"] = dict(report["settings"], method="generalising", chosen=report["choices"])
@@ -162,6 +168,21 @@ _LEGACY_ONLY = (
 )
 
 
+def _surface_prior(args):
+    """``--surface-prior-from S1.h5,S2.h5,...`` (before any PAINT file is read): the plant surface prior, or None.
+
+    One scenario holding a stored prior (``/learned/surface_prior``) is used as it is; otherwise the prior is
+    built from the learned surfaces of all the files. Refused (one line) when a file is missing or has no
+    learned surface, when the sources' facet counts differ, or when ``--heliostat`` is among the sources.
+    """
+    if not args.surface_prior_from:
+        return None
+    from ..surfaces.plantprior import load_surface_prior
+
+    paths = [p.strip() for p in str(args.surface_prior_from).split(",") if p.strip()]
+    return load_surface_prior(paths, heliostat_id=args.heliostat)
+
+
 class _Unset(str):
     """A flag's default that says it was not given (equal to the default it stands for)."""
 
@@ -183,6 +204,9 @@ def _check_method(args) -> None:
                                      f"use --method legacy")
         args.steps = int(args.steps) if _given(args.steps) else None
     else:
+        if getattr(args, "surface_prior_from", None):
+            raise HeliotwinError("--surface-prior-from is not supported with --method legacy; use --method "
+                                 "generalising")
         args.steps = int(args.steps)
     args.loss = str(args.loss)
 
@@ -207,10 +231,14 @@ def _generalise_settings(args):
 def _generalising_choices(report: dict) -> dict:
     """What the generalising method chose (JSON): optics, blur mode, penalty weight, steps, drops, acceptance."""
     chosen = report["optics"]["chosen"]
-    return {"focal_length_m": chosen["focal_length_m"], "focus_multiple": chosen["focus_multiple"],
-            "slope_error_rad": report["optics_used"]["slope_error_rad"], "blur_mode": report["blur_mode"],
-            "slope_weight": report["selection"]["slope_weight"], "steps": report["selection"]["steps"],
-            "dropped": [d["record"] for d in report["dropped"]], "acceptance_alpha": report["acceptance"]["alpha"]}
+    out = {"focal_length_m": chosen["focal_length_m"], "focus_multiple": chosen["focus_multiple"],
+           "slope_error_rad": report["optics_used"]["slope_error_rad"], "blur_mode": report["blur_mode"],
+           "slope_weight": report["selection"]["slope_weight"], "steps": report["selection"]["steps"],
+           "dropped": [d["record"] for d in report["dropped"]], "acceptance_alpha": report["acceptance"]["alpha"]}
+    if "prior" in report:
+        out.update(surface_prior_weight=report["prior"]["weight"],
+                   surface_prior_heliostats=report["prior"]["heliostats"])
+    return out
 
 
 def _train_settings(args):
@@ -263,10 +291,11 @@ def _save_learned(args, output, report, model, learned, previous, extras) -> Non
     from ..surfaces.state import save_learned_surface
 
     plant = previous.plant if previous is not None else scenario_from_paint(args.paint)
+    prior = extras.get("surface_prior")
     save_learned_surface(output, plant, args.heliostat, learned, model.displacement.detach(), extras["optics"],
                          previous=previous, train_records=[int(r["record"]) for r in report["train"]],
                          target=extras["test"].targets[0].name, settings=report["settings"],
-                         source=os.path.abspath(args.paint))
+                         source=os.path.abspath(args.paint), surface_prior=None if prior is None else prior.state())
 
 
 def _print_reconstruction(heliostat: str, report: dict) -> None:
@@ -286,7 +315,9 @@ def _print_generalising(heliostat: str, report: dict) -> None:
           f"{report['median_l1_learned']:.3f}; test improved {report['test_improved']}/{report['test_images']} "
           f"(Wilson 95 % [{lo:.2f}, {hi:.2f}]); training images worse than ideal "
           f"{report['train_worse_than_ideal']}; edge ridge {report['edge_ridge']['edge_max_mrad']:.2f} mrad; "
-          f"{report['seconds']:.1f} s")
+          + (f"surface prior from {len(report['prior']['heliostats'])} heliostats, weight {report['prior']['weight']:g}"
+             f"{', start = its mean' if report['prior']['start_is_prior_mean'] else ''}; " if "prior" in report else "")
+          + f"{report['seconds']:.1f} s")
 
 
 def cmd_predict(args) -> int:
@@ -382,6 +413,11 @@ def register(subparsers) -> None:
     p.add_argument("--scenario", help="start from this scenario's plant, e.g. a calibrated one (default: the PAINT "
                                       "folder's nominal plant)")
     p.add_argument("-o", "--output", help="write the plant with the learned surface as a scenario file (.h5)")
+    p.add_argument("--surface-prior-from", metavar="S1.h5,S2.h5,...",
+                   help="generalising: a plant prior on the facets' canting and low-order shape, learned from the "
+                        "learned surfaces in these scenarios (>= 2 other heliostats of the same design), or one "
+                        "scenario holding a stored prior; its weight is chosen by leave-one-training-image-out "
+                        "(0 included); -o stores it under /learned/surface_prior")
     p.add_argument("--json", required=True, help="report JSON to write")
     p.add_argument("--threads", type=int_range(0, 1024, "a thread count"), default=0,
                    help="torch threads (0: leave as is)")

@@ -23,6 +23,16 @@ Steps (:func:`fit_generalising`), each a stated rule:
 6. **Final fit** on the kept images, then the **acceptance rule**
    (:func:`heliotwin.surfaces.acceptance.shrink_to_accept`) over *all* training images, dropped ones included.
 7. **Facet edges**: the slope-deviation penalty with a hinge at 5 mrad (:mod:`heliotwin.surfaces.edges`).
+8. **Plant prior** (optional ``prior``, :class:`heliotwin.surfaces.plantprior.SurfacePrior`): the prior
+   mean's low-order facet shape joins the start candidates of step 1 (kept when its ideal fits the training
+   images best), and the prior penalty (Mahalanobis distance of the facets' low-order shape from the plant
+   mean) enters the loss with a weight chosen in step 4 jointly with the slope-penalty weight from
+   :data:`~heliotwin.surfaces.plantprior.PRIOR_WEIGHT_GRID`, which includes 0: the prior is used only when
+   held-out training images say it helps. With fewer than 3 images there is no leave-one-out, so no held-out
+   evidence, and the penalty is not used (the grid's smallest weight, 0): the prior then acts through the
+   start candidate only. (Tried and rejected: the grid's largest weight, as for the slope weight; in silico
+   it lost to the start alone, see ``benchmarks/bench_surface_prior.py``.) Without a prior every step is as
+   above.
 
 Shapes: B images, R window pixels per side, F facets. Units: metres, radians; L1 of unit-sum images.
 """
@@ -43,6 +53,7 @@ from .imaging import predict_images
 from .learning import LearnableSurface, heights_to_displacement, learnable_surfaces, normal_heights
 from .nuisance import CameraModel, apply_camera, estimate_camera
 from .observations import Observations
+from .plantprior import PRIOR_WEIGHT_GRID, check_facets, check_leakage, describe, prior_penalty
 
 __all__ = ["GeneraliseSettings", "reconstruct_generalising", "summarise",
            "canting_focal_length", "focused_start", "choose_optics", "fit_generalising",
@@ -157,14 +168,23 @@ def evaluate_with_camera(surf, obs: Observations, sun: SunSettings, camera: Came
 
 
 def choose_optics(facets: Facets, train: Observations, base_sun: SunSettings, camera: CameraModel,
-                  s: GeneraliseSettings) -> dict:
-    """Step 1 (module docstring): facet focus x slope error (x per-image blur) by the ideal's training L1."""
+                  s: GeneraliseSettings, prior=None) -> dict:
+    """Step 1 (module docstring): facet focus x slope error (x per-image blur) by the ideal's training L1.
+
+    With a ``prior`` (:class:`~heliotwin.surfaces.plantprior.SurfacePrior`) its mean shape is one more
+    start candidate (``focus_multiple`` ``"prior"``).
+    """
     f_cant = canting_focal_length(facets)
     focus = [None] + [m for m in s.focus_grid if m is not None and f_cant is not None]
+    if prior is not None:
+        focus.append("prior")
     meas = train.images.to(torch.float32)
     scores, best = [], None
     for m in focus:
-        start = focused_start(facets, None if m is None else m * f_cant, s.control_points, s.degree)
+        if m == "prior":
+            start = prior.start(facets, s.control_points, s.degree)
+        else:
+            start = focused_start(facets, None if m is None else m * f_cant, s.control_points, s.degree)
         ideal = LearnableSurface(facets, s.control_points, s.degree, initial=start).surfaces()
         for se in s.slope_grid:
             sun = dataclasses.replace(base_sun, slope_error=float(se))
@@ -174,7 +194,7 @@ def choose_optics(facets: Facets, train: Observations, base_sun: SunSettings, ca
                                                                                        device=pred.device)),
                                                   meas.to(pred)) for b in s.blur_grid_px])  # [G, B]
             l1, ib = per_blur.min(0)
-            row = {"focus_multiple": m, "focal_length_m": None if m is None else m * f_cant,
+            row = {"focus_multiple": m, "focal_length_m": None if m in (None, "prior") else m * f_cant,
                    "slope_error_rad": float(se), "mean_l1": float(l1.mean()),
                    "blur_px": [float(s.blur_grid_px[i]) for i in ib.tolist()]}
             scores.append(row)
@@ -185,8 +205,12 @@ def choose_optics(facets: Facets, train: Observations, base_sun: SunSettings, ca
             "rule": "min mean training L1 of the ideal surface (camera model, best blur per image)"}
 
 
-def _fit(facets, obs, camera, sigma0, sun, start, weight, s, steps, heldout=None):
+def _fit(facets, obs, camera, sigma0, sun, start, weight, s, steps, heldout=None, prior=None, prior_weight=0.0):
     """Adam on the camera-model L1 + regularisers; optional held-out curve ``[(step, l1)]``.
+
+    ``prior`` / ``prior_weight``: the plant prior's penalty
+    (:func:`heliotwin.surfaces.plantprior.prior_penalty`) times that weight joins the loss (weight 0: not
+    evaluated at all, so a fit without a prior is unchanged).
 
     ``heldout``: ``(Observations, CameraModel)`` of one image; its blur follows :func:`blur_for` from the
     current training blurs.
@@ -230,6 +254,8 @@ def _fit(facets, obs, camera, sigma0, sun, start, weight, s, steps, heldout=None
         d = model.displacement / 1e-3
         reg = s.ridge * losses.ridge(d) + s.laplacian * losses.laplacian(d)
         total = data + reg + s.miss * miss + slope_penalty(surf, ref, facets, weight)
+        if prior is not None and prior_weight > 0:
+            total = total + prior_weight * prior_penalty(prior, surf, facets)
         total.backward()
         opt.step()
         sched.step()
@@ -247,29 +273,41 @@ def _fit(facets, obs, camera, sigma0, sun, start, weight, s, steps, heldout=None
     return model, log_sigma.detach().exp(), curve
 
 
-def loo_select(facets, train, camera, sigma0, sun, start, s, progress=False) -> dict:
-    """Step 4-5: leave-one-training-image-out choice of the slope-penalty weight and step count; outliers."""
+def loo_select(facets, train, camera, sigma0, sun, start, s, progress=False, prior=None,
+               prior_grid=PRIOR_WEIGHT_GRID) -> dict:
+    """Step 4-5: leave-one-training-image-out choice of the slope-penalty weight and step count; outliers.
+
+    With a ``prior`` the prior-penalty weight (``prior_grid``, which should include 0) is chosen jointly:
+    the (slope weight, prior weight, step count) with the lowest mean held-out L1; ties go to the earlier
+    grid entry (0 first: a prior that does not help on held-out images is not used).
+    """
     from tqdm.auto import tqdm
 
     n = len(train)
     curves: dict = {}
-    jobs = [(w, k) for w in s.slope_weight_grid for k in range(n)]
-    for w, k in tqdm(jobs, desc="leave-one-out", disable=not progress, leave=False):
+    pgrid = (None,) if prior is None else tuple(float(p) for p in prior_grid)
+    jobs = [(w, p, k) for w in s.slope_weight_grid for p in pgrid for k in range(n)]
+    for w, p, k in tqdm(jobs, desc="leave-one-out", disable=not progress, leave=False):
         keep = [i for i in range(n) if i != k]
         _, _, curve = _fit(facets, train.subset(keep), camera.subset(keep), sigma0[keep], sun, start, w, s, s.steps,
-                           heldout=(train.subset([k]), camera.subset([k])))
-        curves[(w, k)] = curve
+                           heldout=(train.subset([k]), camera.subset([k])), prior=prior, prior_weight=p or 0.0)
+        curves[(w, p, k)] = curve
     table = {}
     for w in s.slope_weight_grid:
-        steps = [st for st, _ in curves[(w, 0)]]
-        for j, st in enumerate(steps):
-            table[(w, st)] = statistics.mean(curves[(w, k)][j][1] for k in range(n))
-    (w_best, st_best) = min(table, key=table.get)
-    j = [st for st, _ in curves[(w_best, 0)]].index(st_best)
-    held = [curves[(w_best, k)][j][1] for k in range(n)]
+        for p in pgrid:
+            steps = [st for st, _ in curves[(w, p, 0)]]
+            for j, st in enumerate(steps):
+                table[(w, p, st)] = statistics.mean(curves[(w, p, k)][j][1] for k in range(n))
+    (w_best, p_best, st_best) = min(table, key=table.get)
+    j = [st for st, _ in curves[(w_best, p_best, 0)]].index(st_best)
+    held = [curves[(w_best, p_best, k)][j][1] for k in range(n)]
     drop, z = robust_outliers(held)
-    return {"slope_weight": w_best, "steps": st_best, "heldout_l1": held, "robust_z": z, "drop": drop,
-            "table": [{"slope_weight": w, "steps": st, "mean_heldout_l1": v} for (w, st), v in table.items()]}
+    if prior is None:
+        return {"slope_weight": w_best, "steps": st_best, "heldout_l1": held, "robust_z": z, "drop": drop,
+                "table": [{"slope_weight": w, "steps": st, "mean_heldout_l1": v} for (w, _, st), v in table.items()]}
+    return {"slope_weight": w_best, "prior_weight": p_best, "steps": st_best, "heldout_l1": held, "robust_z": z,
+            "drop": drop, "table": [{"slope_weight": w, "prior_weight": p, "steps": st, "mean_heldout_l1": v}
+                                    for (w, p, st), v in table.items()]}
 
 
 def _mode_settings(s: GeneraliseSettings, mode: str) -> GeneraliseSettings:
@@ -277,20 +315,22 @@ def _mode_settings(s: GeneraliseSettings, mode: str) -> GeneraliseSettings:
     return s if mode == "per-image" else dataclasses.replace(s, blur_grid_px=(0.0,), blur_lr=0.0)
 
 
-def _candidates(facets, train, base_sun, camera, s, progress) -> list:
+def _candidates(facets, train, base_sun, camera, s, progress, prior=None, prior_grid=PRIOR_WEIGHT_GRID) -> list:
     """Per blur mode: the optics choice and (with >= 3 images) the leave-one-out table."""
     out = []
     for mode in s.blur_modes:
         sm = _mode_settings(s, mode)
-        opt = choose_optics(facets, train, base_sun, camera, sm)
+        opt = choose_optics(facets, train, base_sun, camera, sm, prior)
         sun = dataclasses.replace(base_sun, slope_error=opt["chosen"]["slope_error_rad"])
         sigma0 = torch.tensor(opt["chosen"]["blur_px"], dtype=torch.float32, device=train.images.device)
         if len(train) >= 3 and s.select:
-            sel = loo_select(facets, train, camera, sigma0, sun, opt["start"], sm, progress)
+            sel = loo_select(facets, train, camera, sigma0, sun, opt["start"], sm, progress, prior, prior_grid)
             score = min(r["mean_heldout_l1"] for r in sel["table"])
         else:
             sel = {"slope_weight": s.slope_weight_grid[-1], "steps": s.steps, "drop": [],
                    "note": "no leave-one-out (fewer than 3 images or select=False)"}
+            if prior is not None:  # no held-out evidence that the penalty helps: its smallest weight (0)
+                sel["prior_weight"] = float(min(prior_grid))
             score = opt["chosen"]["mean_l1"]
         out.append({"mode": mode, "settings": sm, "optics": opt, "sun": sun, "sigma0": sigma0, "selection": sel,
                     "score": score})
@@ -298,11 +338,15 @@ def _candidates(facets, train, base_sun, camera, s, progress) -> list:
 
 
 def fit_generalising(facets: Facets, train: Observations, base_sun: SunSettings, s: GeneraliseSettings | None = None,
-                     progress: bool = False) -> tuple[LearnableSurface, dict]:
-    """Steps 1-7 of the module docstring on one heliostat's training images.
+                     progress: bool = False, prior=None, prior_grid=PRIOR_WEIGHT_GRID) -> tuple[LearnableSurface, dict]:
+    """Steps 1-8 of the module docstring on one heliostat's training images.
 
     The per-image blur is itself a choice: ``blur_modes`` ("none", "per-image") are each run through the
     optics choice and leave-one-out, and the mode with the lowest mean held-out L1 is kept.
+
+    ``prior``: a plant prior (:class:`~heliotwin.surfaces.plantprior.SurfacePrior`, step 8) with the
+    heliostat's facet count; ``prior_grid``: its penalty weights tried by leave-one-out (include 0).
+    The report then has ``prior`` (sources, chosen weight, rule, Mahalanobis^2 of start and result).
 
     Returns
     -------
@@ -313,8 +357,10 @@ def fit_generalising(facets: Facets, train: Observations, base_sun: SunSettings,
         [px]) and a JSON-ready ``report`` of every choice.
     """
     s = s or GeneraliseSettings()
+    if prior is not None:
+        check_facets(prior, facets)
     camera = estimate_camera(train.images.to(torch.float32))
-    cands = _candidates(facets, train, base_sun, camera, s, progress)
+    cands = _candidates(facets, train, base_sun, camera, s, progress, prior, prior_grid)
     best = min(cands, key=lambda c: c["score"])
     n = len(train)
     drop = list(best["selection"]["drop"])
@@ -322,13 +368,15 @@ def fit_generalising(facets: Facets, train: Observations, base_sun: SunSettings,
     first = None
     if drop:  # choose everything again without the inconsistent images (they pulled the optics too)
         first = {"blur_mode": best["mode"], "selection": best["selection"]}
-        cands = _candidates(facets, train.subset(keep), base_sun, camera.subset(keep), s, progress)
+        cands = _candidates(facets, train.subset(keep), base_sun, camera.subset(keep), s, progress, prior,
+                            prior_grid)
         best = min(cands, key=lambda c: c["score"])
     sm, sun, start, sel = best["settings"], best["sun"], best["optics"]["start"], best["selection"]
     sigma0 = torch.zeros(n, dtype=torch.float32, device=train.images.device)
     sigma0[keep] = best["sigma0"]
     model, sigma_keep, _ = _fit(facets, train.subset(keep), camera.subset(keep), sigma0[keep], sun, start,
-                                sel["slope_weight"], sm, sel["steps"])
+                                sel["slope_weight"], sm, sel["steps"], prior=prior,
+                                prior_weight=sel.get("prior_weight", 0.0))
     sigma = sigma0.clone()
     sigma[keep] = sigma_keep
     if drop:  # a dropped image's blur follows the rule for unseen images
@@ -362,6 +410,18 @@ def fit_generalising(facets: Facets, train: Observations, base_sun: SunSettings,
                                      "else shrink the deviation from the ideal (largest alpha that passes)"},
               "camera": camera.as_dict(train.ids), "blur_px": dict(zip(train.ids, sigma.tolist())),
               "settings": s.as_dict()}
+    if prior is not None:
+        with torch.no_grad():
+            m2 = {k: float(prior_penalty(prior, surf, facets)) for k, surf in (("start", ideal),
+                                                                             ("learned", model.surfaces()))}
+        report["prior"] = {**describe(prior), "weight": sel["prior_weight"], "grid": [float(p) for p in prior_grid],
+                           "start_is_prior_mean": best["optics"]["chosen"]["focus_multiple"] == "prior",
+                           "mahalanobis2": m2,
+                           "rule": "penalty weight: jointly with the slope weight and step count by the lowest mean "
+                                   "held-out L1 (leave-one-training-image-out; ties to the earlier, 0 first); with "
+                                   "fewer than 3 images (no held-out image) the smallest weight of the grid. Start: "
+                                   "the prior mean's shape is one candidate of the optics choice (lowest training L1 "
+                                   "of the ideal)"}
     return model, {"optics": sun, "start": start, "camera": camera, "sigma": sigma, "report": report,
                    "ideal": ideal, "settings": sm}
 
@@ -393,7 +453,8 @@ def _rows(obs, e_ideal, e_learn) -> list:
 
 def reconstruct_generalising(facets: Facets, train: Observations, test: Observations, base_sun: SunSettings,
                              s: GeneraliseSettings | None = None, progress: bool = False,
-                             reference=None) -> tuple[dict, LearnableSurface, dict]:
+                             reference=None, prior=None, prior_grid=PRIOR_WEIGHT_GRID
+                             ) -> tuple[dict, LearnableSurface, dict]:
     """Fit (:func:`fit_generalising`) and evaluate on test images; JSON-ready report.
 
     Test images: camera model estimated from each measured test image (its cut and plateau: a property of
@@ -403,11 +464,12 @@ def reconstruct_generalising(facets: Facets, train: Observations, test: Observat
     ``train_images`` / ``test_images``: ``{"ideal", "learned"}`` predicted images ``[B, R, R]`` through the
     camera model, for plots.
     ``reference``: the surface the edge ridge is measured against (default: the ideal start).
+    ``prior``, ``prior_grid``: the plant prior, see :func:`fit_generalising`.
     """
     from .edges import edge_ridge_mrad
 
     s = s or GeneraliseSettings()
-    model, info = fit_generalising(facets, train, base_sun, s, progress)
+    model, info = fit_generalising(facets, train, base_sun, s, progress, prior, prior_grid)
     sun, ideal, learned = info["optics"], info["ideal"], model.surfaces()
     cam_te = estimate_camera(test.images.to(torch.float32))
     sig_te = blur_for(train.targets, info["sigma"], test.targets)
@@ -428,7 +490,7 @@ def reconstruct_generalising(facets: Facets, train: Observations, test: Observat
 def reconstruct_paint_generalising(paint_dir, heliostat_id: str, *, train_first: int | None = 3, train_records=None,
                                    settings: GeneraliseSettings | None = None, sun: SunSettings | None = None,
                                    alignment: str = "focal-spot", progress: bool = False, plant=None, device="cpu",
-                                   checkpoint=None) -> tuple[dict, LearnableSurface, dict]:
+                                   checkpoint=None, prior=None) -> tuple[dict, LearnableSurface, dict]:
     """:func:`reconstruct_generalising` on a PAINT heliostat (the split and poses of
     :func:`heliotwin.surfaces.study.reconstruct_paint`; Buie sun, CSR 0.05, slope error chosen as above).
 
@@ -438,6 +500,8 @@ def reconstruct_paint_generalising(paint_dir, heliostat_id: str, *, train_first:
     report come back on the CPU. Under ``checkpoint``
     (:func:`heliotwin.surfaces.study.reconstruction_checkpoint`) every fit saves its state and a resumed
     checkpoint continues it (see :func:`_fit`); the caller removes it once its outputs are written.
+    ``prior``: a plant surface prior (:class:`~heliotwin.surfaces.plantprior.SurfacePrior`); refused (one line)
+    when it was learned from ``heliostat_id`` itself or has another facet count.
 
     Returns
     -------
@@ -458,6 +522,8 @@ def reconstruct_paint_generalising(paint_dir, heliostat_id: str, *, train_first:
     t0 = time.perf_counter()
     device = resolve_device(device)
     s = settings or GeneraliseSettings()
+    if prior is not None:
+        check_leakage(prior, heliostat_id)
     ds = load_paint(paint_dir, heliostats=[heliostat_id])
     source = "paint" if plant is None else "scenario"
     if plant is not None:
@@ -476,7 +542,8 @@ def reconstruct_paint_generalising(paint_dir, heliostat_id: str, *, train_first:
 
     with _checkpoint.active(checkpoint):
         report, model, info = reconstruct_generalising(facets, train, test,
-                                                       sun or SunSettings(sunshape="buie", csr=0.05), s, progress)
+                                                       sun or SunSettings(sunshape="buie", csr=0.05), s, progress,
+                                                       prior=prior)
     report.update(heliostat=heliostat_id, paint=str(paint_dir), alignment=alignment, device=device,
                   plant=source,
                   seconds=time.perf_counter() - t0)

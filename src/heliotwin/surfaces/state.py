@@ -4,7 +4,8 @@
 control points go into the plant's ``/field/surfaces`` (so every reader traces the learned mirror), and
 ``/learned/surfaces/<HID>`` keeps what the geometry cannot hold — the learned displacement along the facet
 normals, the optics chosen on the training images, the training records and settings, the target the
-images were taken on.
+images were taken on. ``/learned/surface_prior`` holds the plant surface prior the latest reconstruction used
+(:mod:`heliotwin.surfaces.plantprior`; a sibling of ``/learned/surfaces``, whose keys are heliostat ids).
 """
 from __future__ import annotations
 
@@ -46,7 +47,7 @@ def surface_state(displacement: torch.Tensor, optics: SunSettings, *, train_reco
 
 def save_learned_surface(path, plant: Plant, heliostat_id: str, surfaces: Surfaces, displacement: torch.Tensor,
                          optics: SunSettings, *, previous=None, train_records=(), target: str = "",
-                         settings: dict | None = None, source: str = ""):
+                         settings: dict | None = None, source: str = "", surface_prior: dict | None = None):
     """Write the plant with one heliostat's learned surface as a scenario (plant″).
 
     Parameters
@@ -65,6 +66,9 @@ def save_learned_surface(path, plant: Plant, heliostat_id: str, surfaces: Surfac
         The scenario ``plant`` came from (learned state and provenance kept).
     train_records, target, settings, source
         Provenance: training record ids, their target, the fit settings, the PAINT folder.
+    surface_prior : dict, optional
+        The plant surface prior used (:meth:`heliotwin.surfaces.plantprior.SurfacePrior.state`), stored under
+        ``/learned/surface_prior`` (replacing one ``previous`` held); None keeps ``previous``'s.
     """
     from ..field.update import with_surfaces
     from ..io.scenario import provenance_entry, save_step
@@ -74,6 +78,10 @@ def save_learned_surface(path, plant: Plant, heliostat_id: str, surfaces: Surfac
     entries[heliostat_id] = surface_state(displacement.reshape(displacement.shape[-3:]), optics,
                                           train_records=train_records, target=target, settings=settings or {})
     learned[KEY] = entries
+    if surface_prior is not None:
+        from .plantprior import KEY as PRIOR_KEY
+
+        learned[PRIOR_KEY] = surface_prior
     step = provenance_entry("reconstruct", heliostat=heliostat_id, source=str(source),
                             records=[int(r) for r in train_records], settings=settings or {})
     return save_step(path, with_surfaces(plant, [heliostat_id], surfaces), previous, learned=learned, step=step)
