@@ -40,6 +40,10 @@ Layout (format ``"heliotwin-scenario"``, version 2; version 1 is version 2 witho
                             Laplace predictive error ``aim`` reports; method lm)
         surfaces/<HID>/     settings (JSON str), displacement [F, nu, nv] (learned offsets along the
                             facet normals [m]), optics (JSON str), train_records [n] (record ids), target
+        surface_prior/      the plant surface prior a reconstruction used (``reconstruct
+                            --surface-prior-from``; :mod:`heliotwin.surfaces.plantprior`): per-facet
+                            low-order shape mean [F, K] (rad) and covariance [F K, F K], its source
+                            heliostats and settings
         aimpoints/          aim points and their motor steps (``heliotwin aimpoints``; see
                             :mod:`heliotwin.optimise.aimpoints`)
     /extras/atmosphere      optional: the attenuation model of a layout-built plant
