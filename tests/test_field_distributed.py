@@ -1,5 +1,6 @@
 """torch.distributed: two gloo processes, each tracing half of the heliostats, give the single-process field."""
 import math
+import os
 
 import pytest
 import torch
@@ -14,6 +15,10 @@ from heliotwin.sun import direction_from_paint_angles
 
 
 def _case(folder):
+    # Each process writes its own copy of the input files (two ranks writing one file race: a rank once read
+    # a plant.toml the other was still writing).
+    folder = os.path.join(folder, f"inputs-{os.getpid()}")
+    os.makedirs(folder, exist_ok=True)
     plant, atm = plant_from_layout(write_layout(folder, dense_field(4, 5, first_row=30.0)), write_plant_toml(folder))
     sun = direction_from_paint_angles(torch.tensor(0.3, dtype=torch.float64),
                                       torch.tensor(math.radians(20.0), dtype=torch.float64))
