@@ -12,7 +12,11 @@ For ``--train`` 10 and 30 (split chrono, test = the latest 30 records, heliostat
 3. the online protocol (``--split online``) with the chosen setting and with the default ``lm``;
 4. the nested leave-heliostats-out CV figure of the whole choice procedure (the honest estimate);
 5. ``overall.interval_90_coverage`` of the protocol run (drift term chosen by CV coverage) and of the
-   nested CV (drift chosen on the inner folds).
+   nested CV (drift chosen on the inner folds);
+6. what any method trained on earlier records is up against (``reference``): the same two settings
+   trained on *every* record before the test block instead of the earliest N, and the protocol run's test
+   error once each heliostat's own mean offset over its test block is removed (an oracle: that offset is
+   only known after the test records exist), with that offset's share of the test MSE.
 
 Measured on ``../shared/data/paint`` (11 heliostats, 1 thread, 931 s), median over heliostats of the mean
 test error [mrad] (``kq``: the random-walk offset of :mod:`heliotwin.calibrate.drift`, q [mrad^2/day] or
@@ -57,6 +61,48 @@ def _fmt(x):
     return "-" if x is None else f"{x:.3f}"
 
 
+def offset_oracle(model, arrays) -> dict:
+    """Test errors of a run with each heliostat's mean residual over its test block removed (an oracle).
+
+    Parameters
+    ----------
+    model : heliotwin.calibrate.model.Calibrated
+        The run's model (its heliostat axis = the run's heliostats).
+    arrays : dict
+        The run's plot arrays (``test``: the test :class:`~heliotwin.io.records.RecordTable`).
+
+    Returns
+    -------
+    dict
+        ``median_of_mean_test_mrad`` with the offset removed, ``median_offset_share`` (median over heliostats
+        of |mean residual|^2 / mean |residual|^2, the part of the test MSE that is one constant offset) and
+        both per heliostat. Residuals are model minus measured normal [rad] (their norm is the pointing
+        error to second order, :func:`heliotwin.calibrate.metrics.normal_residuals`).
+    """
+    import numpy as np
+    import torch
+
+    from heliotwin.calibrate import metrics
+
+    test = arrays["test"]
+    with torch.no_grad():
+        r = metrics.normal_residuals(model.kinematics, test).double()
+    hi = test.heliostat_index
+    per = {}
+    for h, hid in enumerate(model.heliostat_ids):
+        m = hi == h
+        if not bool(model.ok[h]) or int(m.sum()) == 0:
+            continue
+        rh = r[m]
+        mean = rh.mean(0)
+        per[hid] = {"mean_test_mrad_without_offset": float(1e3 * (rh - mean).norm(dim=-1).mean()),
+                    "offset_mrad": float(1e3 * mean.norm()),
+                    "offset_share_of_mse": float(mean.pow(2).sum() / rh.pow(2).sum(-1).mean())}
+    return {"median_of_mean_test_mrad": float(np.median([v["mean_test_mrad_without_offset"] for v in per.values()])),
+            "median_offset_share": float(np.median([v["offset_share_of_mse"] for v in per.values()])),
+            "heliostats": per}
+
+
 def main(argv=None) -> int:
     import torch
 
@@ -99,7 +145,7 @@ def main(argv=None) -> int:
         rep_default, _, _ = run_calibration(base, ds)
         cfg = S.config_of(base, chosen, None)
         cfg = replace(cfg, method_options=dict(cfg.method_options, drift=drift, walk_scale=walk_scale))
-        rep_chosen, _, _ = run_calibration(cfg, ds)
+        rep_chosen, model_chosen, arrays_chosen = run_calibration(cfg, ds)
         res = {"cv_table": {k: {"median_of_mean_test_mrad": S.median(v.values()), "heliostats": v}
                             for k, v in scores.items()},
                "chosen": S.label(chosen), "drift_rad": drift,
@@ -109,6 +155,20 @@ def main(argv=None) -> int:
         print(f"chosen by CV: {S.label(chosen)}; protocol figure "
               f"{_fmt(rep_chosen['overall']['median_of_mean_test_mrad'])} mrad "
               f"(default lm {_fmt(rep_default['overall']['median_of_mean_test_mrad'])})", flush=True)
+        # what the chrono protocol is up against: every earlier record instead of the earliest N, and the
+        # test block's own mean offset removed
+        every = 10 ** 6  # "the earliest N" with N above any history = every record before the test block
+        rep_all_default, _, _ = run_calibration(replace(base, train=every), ds)
+        rep_all_chosen, _, _ = run_calibration(replace(cfg, train=every), ds)
+        oracle = offset_oracle(model_chosen, arrays_chosen)
+        res["reference"] = {"every_earlier_record_default_lm": rep_all_default["overall"],
+                            "every_earlier_record_chosen": rep_all_chosen["overall"],
+                            "chosen_without_test_block_offset": oracle}
+        print(f"reference: every record before the test block: default lm "
+              f"{_fmt(rep_all_default['overall']['median_of_mean_test_mrad'])}, chosen "
+              f"{_fmt(rep_all_chosen['overall']['median_of_mean_test_mrad'])} mrad; chosen with the test block's "
+              f"own mean offset removed {_fmt(oracle['median_of_mean_test_mrad'])} mrad (that offset is "
+              f"{100 * oracle['median_offset_share']:.0f} % of the test MSE, median)", flush=True)
         cfg_on = replace(cfg, split="online")
         rep_online, _, _ = run_calibration(cfg_on, ds)
         rep_online_default, _, _ = run_calibration(replace(base, split="online"), ds)
@@ -150,19 +210,25 @@ def main(argv=None) -> int:
         rows.append((n, rep_default["overall"], rep_chosen["overall"],
                      f"{S.label(chosen)}, drift {1e3 * drift:.2f}, walk x{walk_scale:g}",
                      nested, S.median(scores[S.label(chosen)].values()), rep_online["overall"],
-                     rep_online_default["overall"], rep_online_walk and rep_online_walk["overall"]))
+                     rep_online_default["overall"], rep_online_walk and rep_online_walk["overall"],
+                     res["reference"]))
     out["seconds"] = time.perf_counter() - t0
     write_json(args.json, out)  # before the table: the figures are safe whatever the printing does
     print("\n| N | default lm protocol | chosen setting | chosen protocol | CV of chosen (fixed) | nested LOHO CV |"
-          " coverage90 protocol | coverage90 nested | online chosen | online default lm | online best walk |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
-    for n, d, c, lab, nested, cvfix, on, on_d, on_w in rows:
+          " coverage90 protocol | coverage90 nested | online chosen | online default lm | online best walk |"
+          " every earlier record: default / chosen | chosen, test-block offset removed (its MSE share) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for n, d, c, lab, nested, cvfix, on, on_d, on_w, ref in rows:
         print(f"| {n} | {_fmt(d['median_of_mean_test_mrad'])} | {lab} | {_fmt(c['median_of_mean_test_mrad'])} | "
               f"{_fmt(cvfix)} | {_fmt(nested['median_of_mean_test_mrad']) if nested else '-'} | "
               f"{_fmt(c.get('interval_90_coverage'))} | "
               f"{_fmt(nested.get('interval_90_coverage')) if nested else '-'} | "
               f"{_fmt(on['median_of_mean_test_mrad'])} | {_fmt(on_d['median_of_mean_test_mrad'])} | "
-              f"{_fmt(on_w['median_of_mean_test_mrad']) if on_w else '-'} |")
+              f"{_fmt(on_w['median_of_mean_test_mrad']) if on_w else '-'} | "
+              f"{_fmt(ref['every_earlier_record_default_lm']['median_of_mean_test_mrad'])} / "
+              f"{_fmt(ref['every_earlier_record_chosen']['median_of_mean_test_mrad'])} | "
+              f"{_fmt(ref['chosen_without_test_block_offset']['median_of_mean_test_mrad'])} "
+              f"({100 * ref['chosen_without_test_block_offset']['median_offset_share']:.0f} %) |")
     print(f"wrote {args.json} ({out['seconds']:.0f} s)")
     return 0
 
