@@ -76,3 +76,25 @@ def test_settings_flag_resolution_and_errors(paint_dir, tmp_path, capsys):
                              "300", "--json", tmp_path / "r.json")
     assert_one_line_error(code, err, "--settings cv needs 4 heliostats")
     assert not (tmp_path / "r.json").exists()
+
+
+def test_centroid_source_and_loss_are_candidates_that_reach_the_fit(paint_dir):
+    """The fit's centroid source and loss are chosen by CV like every other setting: each candidate has its own
+    label (scores are keyed by it) and its settings reach the lm fit, which then lands elsewhere."""
+    from heliotwin.calibrate.pipeline import run_calibration
+
+    labels = [selection.label(c) for c in selection.CANDIDATES]
+    assert len(set(labels)) == len(labels)
+    tried = {(c.get("fit_focal_spot"), c.get("loss")) for c in selection.CANDIDATES}
+    assert {("HeliOS", None), (None, "linear"), (None, None)} <= tried
+    base = RunConfig(paint=str(paint_dir), heliostats=["AK32", "BE36", "BF55", "BH60"], train=10, test=30)
+    params = {}
+    for cand in ({"prior": "run", "bags": 0}, {"prior": "run", "bags": 0, "fit_focal_spot": "HeliOS"},
+                 {"prior": "run", "bags": 0, "loss": "linear"}):
+        cfg = selection.config_of(base, cand)
+        assert all(cfg.method_options.get(k) == cand.get(k) for k in ("fit_focal_spot", "loss") if k in cand)
+        rep, _, _ = run_calibration(cfg, None)
+        params[selection.label(cand)] = rep["heliostats"]["AK32"]["parameters"]
+    ref = params["run/b0"]
+    for lab in ("run/b0/fitHeliOS", "run/b0/linear"):  # another centroid source / loss: another fit (> 1 µrad)
+        assert max(abs(params[lab][k] - ref[k]) for k in ref) > 1e-6, lab

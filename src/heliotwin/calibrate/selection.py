@@ -30,7 +30,8 @@ from .pipeline import RunConfig, run_calibration
 
 #: Settings tried, in order (the first is today's ``lm`` default). ``bags``: bootstrap bags of ``lm``;
 #: ``half_life_days``: drift tracking by recency weights (:func:`~heliotwin.calibrate.lm.fit_lm`);
-#: ``drift_model``/``process_noise``: the random-walk offset (:mod:`.drift`, q [mrad^2/day]).
+#: ``drift_model``/``process_noise``: the random-walk offset (:mod:`.drift`, q [mrad^2/day]);
+#: ``fit_focal_spot``/``loss``: the centroids the fit trains on and its loss (default ``UTIS`` / ``soft_l1``).
 CANDIDATES = (
     {"prior": "run", "bags": 10},
     {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 1.0, "bags": 10},
@@ -52,6 +53,13 @@ CANDIDATES = (
      "process_noise": 0.03},
     {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 2.0, "bags": 10, "drift_model": "kalman",
      "process_noise": "auto"},
+    # the fit's centroid source and loss, which were constants chosen on the shared heliostats' records
+    # (inputs.FIT_FOCAL_SPOT, lm.LM_LOSS) and did not carry over to other heliostats: the metric's own
+    # centroids and plain least squares, with each kind of prior
+    {"prior": "run", "bags": 10, "fit_focal_spot": "HeliOS"},
+    {"prior": "run", "bags": 10, "loss": "linear"},
+    {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 2.0, "bags": 10, "fit_focal_spot": "HeliOS"},
+    {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 2.0, "bags": 10, "loss": "linear"},
 )
 
 
@@ -62,6 +70,10 @@ def label(candidate: dict) -> str:
     if c.get("drift_model", "none") == "kalman":
         pn = c.get("process_noise", "auto")
         hl += f"/kq{pn:g}" if isinstance(pn, (int, float)) else f"/kq{pn}"
+    if c.get("fit_focal_spot"):
+        hl += f"/fit{c['fit_focal_spot']}"
+    if c.get("loss"):
+        hl += f"/{c['loss']}"
     if c.get("prior", "run") == "run":
         return f"run/b{c.get('bags', 10)}{hl}"
     cov = c.get("covariance", "full")
@@ -75,6 +87,9 @@ def config_of(base: RunConfig, candidate: dict, archive=None) -> RunConfig:
     method_options = dict(base.method_options, bags=int(candidate.get("bags", 10)))
     if candidate.get("half_life_days"):
         method_options["half_life_days"] = float(candidate["half_life_days"])
+    for key in ("fit_focal_spot", "loss"):  # else the method's defaults (inputs.FIT_FOCAL_SPOT, lm.LM_LOSS)
+        if candidate.get(key):
+            method_options[key] = str(candidate[key])
     drift = {"drift_model": candidate.get("drift_model", "none"),
              "process_noise": candidate.get("process_noise", "auto")}
     if candidate.get("prior", "run") == "plant":
