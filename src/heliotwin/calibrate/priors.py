@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from ..shrinkage import shrunk_covariance
 from .params import kinds
 
 #: Nominal prior of the Stone/Jülich LM fits (physical units). Encoder offsets are unconstrained in practice
@@ -206,19 +207,7 @@ def plant_prior(deviations: torch.Tensor, names, heliostats, *, covariance: str 
     mu = d.median(0).values
     mad = ((d - mu).abs().median(0).values * 1.4826).clamp_min(1e-12)
     clipped = mu + ((d - mu) / mad).clamp(-3.0, 3.0) * mad
-    c = clipped - clipped.mean(0)
-    cov = c.T @ c / max(1, len(d) - 1)
-    fl = sigma_vector(names, floor or FLOOR_SIGMA)
-    var = torch.maximum(cov.diagonal(), fl ** 2)
-    sd_old = cov.diagonal().clamp_min(1e-30).sqrt()
-    corr = cov / (sd_old[:, None] * sd_old[None, :])
-    if covariance == "diag":
-        corr = torch.eye(len(mu), dtype=torch.float64)
-    elif covariance == "full":
-        corr = (1.0 - shrink) * corr + shrink * torch.eye(len(mu), dtype=torch.float64)
-    else:
-        raise ValueError(f"covariance must be 'full' or 'diag', got {covariance!r}")
-    sd = var.sqrt() * widen
-    cov = corr * sd[:, None] * sd[None, :]
+    cov = shrunk_covariance(clipped - clipped.mean(0), sigma_vector(names, floor or FLOOR_SIGMA),
+                            covariance=covariance, shrink=shrink, widen=widen)
     settings = {"covariance": covariance, "shrink": float(shrink), "widen": float(widen), "n_heliostats": len(d)}
-    return PlantPrior(tuple(names), mu, 0.5 * (cov + cov.T), list(heliostats), settings)
+    return PlantPrior(tuple(names), mu, cov, list(heliostats), settings)

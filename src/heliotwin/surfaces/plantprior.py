@@ -52,6 +52,7 @@ import torch
 
 from ..errors import HeliotwinError, InputFileError
 from ..field.plant import Facets, Surfaces
+from ..shrinkage import shrunk_covariance
 from .learning import LearnableSurface, heights_to_displacement, learnable_surfaces, normal_heights
 
 __all__ = ["NAMES", "KEY", "MIN_SOURCES", "FLOOR_RAD", "SHRINK", "PRIOR_WEIGHT_GRID", "SurfacePrior",
@@ -270,20 +271,7 @@ def surface_prior(coefficients: torch.Tensor, heliostats, *, shrink: float = SHR
         raise HeliotwinError(f"a surface prior needs >= {MIN_SOURCES} source heliostats (a spread over heliostats), "
                              f"got {h}")
     mean = c.mean(0)
-    x = (c - mean).reshape(h, -1)
-    cov = x.T @ x / (h - 1)
-    sd_old = cov.diagonal().clamp_min(1e-30).sqrt()
-    eye = torch.eye(x.shape[1], dtype=torch.float64)
-    if covariance == "diag":
-        corr = eye
-    elif covariance == "full":
-        corr = cov / (sd_old[:, None] * sd_old[None, :])
-        corr.diagonal().fill_(1.0)  # a coefficient without spread (all sources agree) is still 1 with itself
-        corr = (1.0 - shrink) * corr + shrink * eye
-    else:
-        raise ValueError(f"covariance must be 'full' or 'diag', got {covariance!r}")
-    sd = cov.diagonal().clamp_min(float(floor) ** 2).sqrt()
-    cov = corr * sd[:, None] * sd[None, :]
+    cov = shrunk_covariance((c - mean).reshape(h, -1), float(floor), covariance=covariance, shrink=shrink)
     settings = {"covariance": covariance, "shrink": float(shrink), "floor_rad": float(floor), "n_heliostats": h,
                 "basis": "per-facet least squares of the normal height: slopes along canting_e/canting_n, "
                          "focus, astigmatism, twist (piston dropped) [rad]"}

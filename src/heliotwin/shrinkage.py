@@ -1,0 +1,54 @@
+"""Covariance of a plant-level prior from few heliostats: sample correlations shrunk towards the identity.
+
+One home for the estimate that both plant priors use: the kinematic deviations
+(:func:`heliotwin.calibrate.priors.plant_prior`) and the facets' low-order surface shape
+(:func:`heliotwin.surfaces.plantprior.surface_prior`). With H ~ 10-30 heliostats a P x P covariance is
+poorly determined, so the sample *correlation* is shrunk towards the identity (a Ledoit-Wolf-style target,
+Ledoit & Wolf 2004, J. Multivariate Anal. 88, 365) and each marginal standard deviation is floored: a
+parameter on which the archive heliostats happen to agree must not become a hard constraint.
+"""
+from __future__ import annotations
+
+import torch
+
+
+def shrunk_covariance(centred: torch.Tensor, floor_sd, *, covariance: str = "full", shrink: float = 0.2,
+                      widen: float = 1.0) -> torch.Tensor:
+    """Shrunk covariance of centred samples.
+
+    Parameters
+    ----------
+    centred : torch.Tensor, [H, P]
+        Samples minus their centre (mean or robust centre), H >= 2.
+    floor_sd : float or torch.Tensor [P]
+        Smallest marginal standard deviation per parameter (units of the samples).
+    covariance : str
+        ``"full"`` (sample correlations, shrunk towards the identity by ``shrink``) or ``"diag"``.
+    shrink : float
+        Weight of the identity in the correlation matrix, in [0, 1].
+    widen : float
+        Multiplies every marginal standard deviation (1 = as estimated).
+
+    Returns
+    -------
+    torch.Tensor, [P, P]
+        Symmetric covariance (dtype and device of ``centred``). A parameter without spread keeps a
+        correlation of 1 with itself and the floor as its standard deviation.
+    """
+    x = centred
+    h, p = x.shape
+    cov = x.T @ x / max(1, h - 1)
+    sd_old = cov.diagonal().clamp_min(1e-30).sqrt()
+    eye = torch.eye(p, dtype=x.dtype, device=x.device)
+    if covariance == "diag":
+        corr = eye
+    elif covariance == "full":
+        corr = cov / (sd_old[:, None] * sd_old[None, :])
+        corr.diagonal().fill_(1.0)  # a parameter all samples agree on is still fully correlated with itself
+        corr = (1.0 - shrink) * corr + shrink * eye
+    else:
+        raise ValueError(f"covariance must be 'full' or 'diag', got {covariance!r}")
+    floor = torch.as_tensor(floor_sd, dtype=x.dtype, device=x.device)
+    sd = torch.maximum(cov.diagonal(), floor ** 2).sqrt() * widen
+    out = corr * sd[:, None] * sd[None, :]
+    return 0.5 * (out + out.T)
