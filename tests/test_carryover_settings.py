@@ -60,7 +60,14 @@ def test_settings_flag_resolution_and_errors(paint_dir, tmp_path, capsys):
     assert _settings_mode(parse(base), "lm") == "given"  # no archive to choose on
     assert _settings_mode(parse(base + ["--prior-from", str(paint_dir), "--drift", "kalman"]), "lm") == "given"
     assert _settings_mode(parse(base + ["--prior-from", str(paint_dir), "--half-life-days", "20"]), "lm") == "given"
-    assert _settings_mode(parse(base + ["--prior-from", str(tmp_path / "x.h5")]), "lm") == "given"  # a scenario
+    assert _settings_mode(parse(base + ["--prior-from", str(tmp_path / "x.h5")]), "lm") == "given"  # no such file
+    (tmp_path / "s.h5").write_bytes(b"")
+    assert _settings_mode(parse(base + ["--prior-from", str(tmp_path / "s.h5")]), "lm") == "stored"  # a scenario
+    with pytest.raises(HeliotwinError, match="--settings stored needs --prior-from a scenario"):
+        validate_config(RunConfig(paint=str(paint_dir), settings="stored", prior_from=str(paint_dir)))
+    with pytest.raises(HeliotwinError, match="applies lm settings"):
+        validate_config(RunConfig(paint=str(paint_dir), settings="stored", method="gradient",
+                                  prior_from=str(tmp_path / "s.h5")))
     assert _settings_mode(parse(base + ["--prior-from", str(paint_dir), "--settings", "given"]), "lm") == "given"
     assert settings_mode("auto", method="gradient", prior_from=str(paint_dir)) == "given"  # cv chooses lm settings
     assert settings_mode("cv", method="lm") == "cv"  # explicit: validate_config judges it
@@ -98,3 +105,55 @@ def test_centroid_source_and_loss_are_candidates_that_reach_the_fit(paint_dir):
     ref = params["run/b0"]
     for lab in ("run/b0/fitHeliOS", "run/b0/linear"):  # another centroid source / loss: another fit (> 1 µrad)
         assert max(abs(params[lab][k] - ref[k]) for k in ref) > 1e-6, lab
+
+
+def test_a_stored_choice_is_reused_only_where_it_is_honest(paint_dir, tmp_path, monkeypatch):
+    """A ``--settings cv`` run stores its choice in the scenario; a later run with ``--prior-from`` that scenario
+    uses it for heliostats the choice never saw, with the same protocol, and says why not otherwise."""
+    from dataclasses import replace
+
+    from heliotwin.calibrate.pipeline import run_calibration
+    from heliotwin.calibrate.scenario import KEY, save_calibration
+    from heliotwin.io.paint import load_paint
+    from heliotwin.io.scenario import load_scenario
+
+    plant_two = ({"prior": "plant", "covariance": "diag", "bags": 0},
+                 {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 1.0, "bags": 0})
+    monkeypatch.setattr(selection, "CANDIDATES", plant_two)
+    ds = load_paint(paint_dir)
+    new = ["BG62", "BH58"]  # held out of the first run's prior *and* of its choice
+    first = RunConfig(paint=str(paint_dir), heliostats=RUN.split(","), train=10, test=30, prior_from=str(paint_dir),
+                      settings="cv", prior_exclude=new)
+    rep, model, _ = run_calibration(first, ds)
+    choice = rep["settings_choice"]
+    assert not set(new) & set(choice["heliostats"]) and choice["split"] == "chrono" and choice["train"] == 10
+    sc = tmp_path / "a.h5"
+    save_calibration(sc, ds.plant, model, focal_spot="HeliOS", settings_choice=choice)
+    assert "settings_choice" in load_scenario(sc).learned[KEY]
+
+    later = RunConfig(paint=str(paint_dir), heliostats=new, train=10, test=30, prior_from=str(sc), settings="stored")
+    validate_config(later)
+    rep2, _, _ = run_calibration(later, ds)
+    used = rep2["settings_choice"]
+    assert used["used"] and used["chosen"] == choice["chosen"]
+    assert rep2["config"]["method_options"]["drift"] == pytest.approx(1e-3 * choice["drift_mrad"])
+    assert rep2["config"]["prior"] == "plant" and rep2["config"]["prior_options"].get("covariance") == \
+        choice["candidate"].get("covariance")
+    assert all(rep2["heliostats"][h]["status"] == "ok" for h in new)
+
+    # another protocol, a heliostat the choice scored, a choice of the run's own prior: the flags, with a reason
+    cfg, rec = selection.stored_choice(replace(later, train=30), new)
+    assert not rec["used"] and "train 10" in rec["reason"] and cfg.settings == "given" and not cfg.method_options
+    scored = choice["heliostats"][0]
+    _, rec = selection.stored_choice(later, [scored])
+    assert not rec["used"] and scored in rec["reason"]
+    choice_run = dict(choice, candidate={"prior": "run", "bags": 0})
+    sc_run = tmp_path / "b.h5"
+    save_calibration(sc_run, ds.plant, model, focal_spot="HeliOS", settings_choice=choice_run)
+    _, rec = selection.stored_choice(replace(later, prior_from=str(sc_run)), new)
+    assert not rec["used"] and "own field prior" in rec["reason"]
+    # a scenario without a choice: the flags
+    sc_none = tmp_path / "c.h5"
+    save_calibration(sc_none, ds.plant, model, focal_spot="HeliOS")
+    _, rec = selection.stored_choice(replace(later, prior_from=str(sc_none)), new)
+    assert not rec["used"] and "no settings choice" in rec["reason"]

@@ -282,7 +282,8 @@ def calibrate(paint, *, method: str = "lm", heliostats=None, split: str = "chron
             seen.setdefault(t.heliostat_ids[h], []).append(int(rid))
     settings = {k: v for k, v in report["config"].items() if k != "method_options"}
     save_calibration(output, ds.plant, model, previous=load_scenario(scenario) if scenario else None,
-                     focal_spot=cfg.focal_spot, records=seen, settings=settings, source=os.path.abspath(paint))
+                     focal_spot=cfg.focal_spot, records=seen, settings=settings, source=os.path.abspath(paint),
+                     settings_choice=report.get("settings_choice"))
     if ck is not None:
         ck.remove()
     return report, model, os.fspath(output)

@@ -107,12 +107,13 @@ class RunConfig:
 
 def settings_mode(mode: str, *, method: str, prior_from=None, fixed_by_hand: bool = False) -> str:
     """``--settings auto`` resolved: ``"cv"`` when ``prior_from`` is a PAINT folder (heliostats to choose on),
-    the method is lm and no lm setting was fixed by hand (``fixed_by_hand``); ``"given"`` otherwise. Other
-    modes pass through."""
+    ``"stored"`` when it is a scenario file (the choice a ``cv`` run stored there, where it applies), for lm
+    with no lm setting fixed by hand (``fixed_by_hand``); ``"given"`` otherwise. Other modes pass through."""
     if mode != "auto":
         return mode
-    folder = isinstance(prior_from, (str, os.PathLike)) and os.path.isdir(prior_from)
-    return "cv" if method == "lm" and folder and not fixed_by_hand else "given"
+    if method != "lm" or fixed_by_hand or not isinstance(prior_from, (str, os.PathLike)):
+        return "given"
+    return "cv" if os.path.isdir(prior_from) else "stored" if os.path.isfile(prior_from) else "given"
 
 
 #: Split types of a calibration run: the record splits plus the online protocol (:mod:`.online`).
@@ -150,17 +151,27 @@ def validate_config(cfg: RunConfig) -> None:
         pn = cfg.process_noise
         if pn != "auto" and not (isinstance(pn, (int, float)) and math.isfinite(pn) and pn >= 0):
             raise HeliotwinError(f"--process-noise must be 'auto' or a number >= 0 [mrad^2/day], got {pn!r}")
-    if cfg.settings not in ("given", "cv"):
-        raise HeliotwinError(f"--settings must be 'given' or 'cv', got {cfg.settings!r}")
+    _validate_settings(cfg)
+    if cfg.uses_plant_prior() and cfg.method != "lm":
+        raise HeliotwinError(f"a plant prior (--prior-from / --prior plant) is implemented for --method lm only, "
+                             f"not {cfg.method}")
+
+
+def _validate_settings(cfg: RunConfig) -> None:
+    """``--settings``: a known mode, and what ``cv`` / ``stored`` need (lm, and a folder / a scenario)."""
+    if cfg.settings not in ("given", "cv", "stored"):
+        raise HeliotwinError(f"--settings must be 'given', 'cv' or 'stored', got {cfg.settings!r}")
+    if cfg.settings == "stored":
+        if cfg.method != "lm":
+            raise HeliotwinError(f"--settings stored applies lm settings; --method is {cfg.method}")
+        if not isinstance(cfg.prior_from, (str, os.PathLike)) or not os.path.isfile(cfg.prior_from):
+            raise HeliotwinError("--settings stored needs --prior-from a scenario file written by a --settings cv run")
     if cfg.settings == "cv":
         if cfg.method != "lm":
             raise HeliotwinError(f"--settings cv chooses lm settings; --method is {cfg.method}")
         if not isinstance(cfg.prior_from, (str, os.PathLike)) or not os.path.isdir(cfg.prior_from):
             raise HeliotwinError("--settings cv needs --prior-from a PAINT folder of the same plant (the heliostats "
                                  "the settings are chosen on)")
-    if cfg.uses_plant_prior() and cfg.method != "lm":
-        raise HeliotwinError(f"a plant prior (--prior-from / --prior plant) is implemented for --method lm only, "
-                             f"not {cfg.method}")
 
 
 def _median(xs):
@@ -300,16 +311,25 @@ def check_properties(run: Run) -> None:
 
 def choose_settings(run: Run) -> None:
     """``--settings cv``: replace the run's lm settings by those leave-heliostats-out CV chooses on the
-    ``--prior-from`` folder (:func:`~heliotwin.calibrate.selection.choose_for_run`); the report keeps the
-    choice (``settings_choice``) and ``config`` shows the settings that ran."""
+    ``--prior-from`` folder (:func:`~heliotwin.calibrate.selection.choose_for_run`); ``--settings stored``:
+    by the choice stored in the ``--prior-from`` scenario where it applies
+    (:func:`~heliotwin.calibrate.selection.stored_choice`). The report keeps the choice (``settings_choice``)
+    and ``config`` shows the settings that ran."""
     cfg = run.cfg
-    if cfg.settings != "cv":
-        return
-    from .selection import choose_for_run
+    if cfg.settings == "stored":
+        from .selection import stored_choice
 
-    # The CV runs are not the run's fit: they stay out of its checkpoint (a resumed run repeats them, seeded).
-    with _checkpoint.active(None):
-        chosen, record = choose_for_run(cfg, run.run_ids, progress=bool(cfg.progress))
+        chosen, record = stored_choice(cfg, list(run.run_ids) + list(cfg.prior_exclude))
+    elif cfg.settings != "cv":
+        return
+    else:
+        from .selection import choose_for_run
+
+        # The CV runs are not the run's fit: they stay out of its checkpoint (a resumed run repeats them, seeded).
+        with _checkpoint.active(None):
+            # prior_exclude: heliostats held out of every prior are held out of the choice too
+            chosen, record = choose_for_run(cfg, list(run.run_ids) + list(cfg.prior_exclude),
+                                            progress=bool(cfg.progress), run_size=len(run.run_ids))
     run.cfg = chosen
     run.report["config"] = _config_report(chosen, run.device)
     run.report["settings_choice"] = record

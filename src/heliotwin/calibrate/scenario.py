@@ -27,7 +27,17 @@ def _calibrated_rows(model) -> list[int]:
     return model.ok.nonzero().flatten().tolist()
 
 
-def calibration_state(model, *, focal_spot: str = "", prior=None) -> dict:
+def storable_choice(record: dict | None) -> dict | None:
+    """The part of a run's ``settings_choice`` report that a later ``--settings stored`` run can reuse: a
+    choice made by CV (``table`` present), or the stored choice a run used; None otherwise."""
+    if not record:
+        return None
+    if "table" in record:
+        return record
+    return record.get("original") if record.get("used") else None
+
+
+def calibration_state(model, *, focal_spot: str = "", prior=None, settings_choice: dict | None = None) -> dict:
     """The ``/learned/calibration`` entry of a calibrated model (calibrated heliostats only).
 
     Parameters
@@ -41,6 +51,10 @@ def calibration_state(model, *, focal_spot: str = "", prior=None) -> dict:
         a plant prior (:class:`~heliotwin.calibrate.priors.PlantPrior`: mean, sigma, covariance [P, P] and the
         heliostats it was learned from). A field prior of the run's own records lists the calibrated
         heliostats as its sources (so ``--prior-from`` refuses it for them).
+    settings_choice : dict, optional
+        The lm settings chosen by leave-heliostats-out CV (:func:`heliotwin.calibrate.selection.choose_for_run`'s
+        record), stored as JSON text for ``--settings stored``
+        (:func:`heliotwin.calibrate.selection.stored_choice`).
 
     Returns
     -------
@@ -76,6 +90,8 @@ def calibration_state(model, *, focal_spot: str = "", prior=None) -> dict:
         state["networks"] = {hid: {"config": json.dumps(net["config"]),
                                    "state": {k: v.detach().cpu() for k, v in net["state"].items()}}
                              for hid, net in networks.items() if hid in ids}
+    if settings_choice:
+        state["settings_choice"] = json.dumps(settings_choice)
     if isinstance(prior, PlantPrior):
         state["prior"] = prior.state()
     elif prior is not None:
@@ -93,7 +109,7 @@ def calibrated_plant(plant: Plant, model) -> Plant:
 
 
 def save_calibration(path, plant: Plant, model, *, previous=None, focal_spot: str = "", records: dict | None = None,
-                     settings: dict | None = None, source: str = ""):
+                     settings: dict | None = None, source: str = "", settings_choice: dict | None = None):
     """Write the calibrated plant as a scenario (plant′ = ``plant`` with the calibrated kinematics).
 
     Parameters
@@ -113,13 +129,16 @@ def save_calibration(path, plant: Plant, model, *, previous=None, focal_spot: st
         The run's settings (JSON values).
     source : str
         Where the records came from (the PAINT folder).
+    settings_choice : dict, optional
+        The run's ``settings_choice`` report; what :func:`storable_choice` keeps of it is stored.
     """
     from ..io.scenario import provenance_entry, save_step
 
     prior = model.extras.get("plant_prior") or model.extras.get("field_prior")
     prior = (prior["mean"], prior["sigma"]) if isinstance(prior, dict) and "mean" in prior else prior
     learned = dict(previous.learned) if previous is not None else {}
-    learned[KEY] = calibration_state(model, focal_spot=focal_spot, prior=prior)
+    learned[KEY] = calibration_state(model, focal_spot=focal_spot, prior=prior,
+                                     settings_choice=storable_choice(settings_choice))
     step = provenance_entry("calibrate", method=str(model.method), source=str(source), records=records or {},
                             calibrated=list(learned[KEY]["heliostats"]), settings=settings or {})
     return save_step(path, calibrated_plant(plant, model), previous, learned=learned, step=step)

@@ -343,8 +343,64 @@ def choose_for_run(cfg: RunConfig, calibrated, dataset=None, *, folds: int = 4, 
     record = {"procedure": f"leave-heliostats-out {min(folds, len(ids))}-fold CV on {path} "
                            f"({base.split}, train {cfg.train}, test {cfg.test}); lowest median of the heliostats' "
                            "mean test error; interval drift and walk scale by CV coverage closest to 0.9",
-              "archive": path, "heliostats": ids, "excluded": calibrated, "folds": min(folds, len(ids)),
+              "archive": path, "split": cfg.split, "train": cfg.train, "test": cfg.test,
+              "heliostats": ids, "excluded": calibrated, "folds": min(folds, len(ids)),
               "table": {k: median(v.values()) for k, v in scores.items()}, "chosen": label(chosen),
               "candidate": dict(chosen), "drift_mrad": 1e3 * drift, "walk_scale": scale,
               "coverage": {f"{1e3 * d:g} mrad, walk x{s:g}": c for (d, s), c in cov.items()}}
     return run_cfg, record
+
+
+def stored_choice(cfg: RunConfig, calibrated) -> tuple[RunConfig, dict]:
+    """``--settings stored``: the settings a ``--settings cv`` run chose and stored in the ``--prior-from``
+    scenario (``/learned/calibration/settings_choice``), applied to this run where that is honest.
+
+    The stored choice is used only when (a) the scenario holds one, (b) it was chosen for this run's protocol
+    (same ``--split`` family: online or not, and the same ``--train``), (c) it used a plant prior (the
+    scenario's stored prior is then exactly the prior that was chosen; a choice of the run's *own* field
+    prior says nothing about a prior learned elsewhere), and (d) none of this run's heliostats was scored by
+    that choice (its CV saw their records: the no-leakage rule of :mod:`.archive`). Otherwise the run keeps
+    its flags and the returned record says why.
+
+    Returns
+    -------
+    (RunConfig, dict)
+        The run's settings and the JSON-ready record (``used``: bool, ``reason`` when not, the stored
+        ``chosen``/``candidate``/``drift_mrad``/``walk_scale`` and where it came from).
+    """
+    import json
+    import os
+
+    from ..errors import InputFileError
+    from ..io.scenario import load_scenario
+    from .scenario import KEY
+
+    path = os.fspath(cfg.prior_from)
+    text = (load_scenario(path).learned.get(KEY) or {}).get("settings_choice")
+    given = replace(cfg, settings="given")
+    if not text:
+        return given, {"used": False, "source": path, "reason": "the scenario holds no settings choice (it was "
+                                                                  "not written by a --settings cv run)"}
+    try:
+        stored = json.loads(text)
+        cand, drift, scale = dict(stored["candidate"]), float(stored["drift_mrad"]), float(stored["walk_scale"])
+    except (TypeError, ValueError, KeyError):
+        raise InputFileError(path, "malformed settings choice", field=f"/learned/{KEY}/settings_choice") from None
+    record = {"used": False, "source": path, **{k: stored.get(k) for k in ("chosen", "candidate", "drift_mrad",
+                                                                           "walk_scale", "split", "train",
+                                                                           "archive", "procedure")}}
+    scored = sorted(set(stored.get("heliostats") or []) & set(calibrated))
+    online = (stored.get("split") == "online", cfg.split == "online")
+    if online[0] != online[1] or stored.get("train") != cfg.train:
+        record["reason"] = (f"chosen for split {stored.get('split')}, train {stored.get('train')}; this run is "
+                            f"split {cfg.split}, train {cfg.train}")
+    elif cand.get("prior", "run") != "plant":
+        record["reason"] = "the stored choice is the run's own field prior, not a prior to carry to other heliostats"
+    elif scored:
+        record["reason"] = f"the stored choice was scored on heliostat(s) {', '.join(scored)} that this run calibrates"
+    else:
+        run_cfg = config_of(given, cand, path)  # the scenario's stored prior is the chosen plant prior
+        run_cfg = replace(run_cfg, method_options=dict(run_cfg.method_options, drift=1e-3 * drift, walk_scale=scale))
+        record.update(used=True, original=stored)  # kept whole: a scenario written by this run stores it again
+        return run_cfg, record
+    return given, record

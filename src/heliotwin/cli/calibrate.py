@@ -90,11 +90,14 @@ def register(subparsers) -> None:
     p.add_argument("--drift-basis", choices=("axes", "rotation"), default="axes",
                    help="--drift kalman: what drifts: the two axis offsets (default) or a small rotation of the "
                         "whole heliostat")
-    p.add_argument("--settings", choices=("auto", "given", "cv"), default="auto",
+    p.add_argument("--settings", choices=("auto", "given", "cv", "stored"), default="auto",
                    help="lm settings (prior width, bagging, drift model, interval drift): 'cv' = chosen by "
                         "leave-heliostats-out cross-validation on the --prior-from PAINT folder's heliostats (never "
-                        "the calibrated ones); 'given' = the flags; 'auto' (default) = cv when --prior-from is a "
-                        "PAINT folder and no lm setting flag is given, else given")
+                        "the calibrated ones); 'stored' = the choice a cv run stored in the --prior-from scenario, "
+                        "where it applies (same split and --train, a plant prior, none of this run's heliostats "
+                        "scored by it; else the flags, and the report says why); 'given' = the flags; 'auto' "
+                        "(default) = cv for a PAINT folder, stored for a scenario, when no lm setting flag is "
+                        "given, else given")
     p.add_argument("--online-step", type=_COUNT, default=5,
                    help="--split online: refit every this many test records (default 5; 1 = before every record)")
     add_resume_flags(p)
@@ -230,7 +233,8 @@ def cmd_calibrate(args) -> int:
         if output:
             settings = dict(report["config"])  # method options too (half-life, drift): they shape the result
             save_calibration(output, ds.plant, model, previous=previous, focal_spot=cfg.focal_spot,
-                             records=_seen_records(arrays), settings=settings, source=os.path.abspath(args.paint))
+                             records=_seen_records(arrays), settings=settings, source=os.path.abspath(args.paint),
+                             settings_choice=report.get("settings_choice"))
             report["output"] = os.fspath(args.output)
         if json_path:
             if not args.no_plots:
