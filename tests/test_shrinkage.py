@@ -37,3 +37,11 @@ def test_a_parameter_without_spread_keeps_its_floor_not_a_fraction_of_it():
     assert float(cov[0, 2]) == 0.0
     with pytest.raises(ValueError, match="covariance must be"):
         shrunk_covariance(x, floor, covariance="nope")
+
+
+def test_whitening_gives_unit_covariance():
+    from heliotwin.shrinkage import whitening
+
+    cov = shrunk_covariance(_samples(), torch.full((3,), 1e-9, dtype=torch.float64), shrink=0.3)
+    w = whitening(cov)
+    assert torch.allclose(w @ cov @ w.T, torch.eye(3, dtype=torch.float64), atol=1e-10)

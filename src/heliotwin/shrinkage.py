@@ -52,3 +52,14 @@ def shrunk_covariance(centred: torch.Tensor, floor_sd, *, covariance: str = "ful
     sd = torch.maximum(cov.diagonal(), floor ** 2).sqrt() * widen
     out = corr * sd[:, None] * sd[None, :]
     return 0.5 * (out + out.T)
+
+
+def whitening(covariance: torch.Tensor) -> torch.Tensor:
+    """``W`` [P, P] with ``W^T W = covariance^-1`` (the inverse Cholesky factor), float64.
+
+    A prior residual ``W (x - mean)`` then has unit covariance: its squared norm is the Mahalanobis distance.
+    ``covariance`` [P, P] must be symmetric positive definite (what :func:`shrunk_covariance` returns).
+    """
+    chol = torch.linalg.cholesky(covariance.double())
+    eye = torch.eye(chol.shape[0], dtype=torch.float64, device=chol.device)
+    return torch.linalg.solve_triangular(chol, eye, upper=False)

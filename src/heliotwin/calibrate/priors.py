@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from ..shrinkage import shrunk_covariance
+from ..shrinkage import shrunk_covariance, whitening
 from .params import kinds
 
 #: Nominal prior of the Stone/Jülich LM fits (physical units). Encoder offsets are unconstrained in practice
@@ -134,9 +134,7 @@ class PlantPrior:
 
     def whitening(self) -> torch.Tensor:
         """``W`` [P, P] with ``W^T W = covariance^-1`` (inverse Cholesky factor): prior residual ``W (d - mean)``."""
-        chol = torch.linalg.cholesky(self.covariance.double())
-        eye = torch.eye(len(self.names), dtype=torch.float64)
-        return torch.linalg.solve_triangular(chol, eye, upper=False)
+        return whitening(self.covariance)
 
     def state(self) -> dict:
         """The ``/learned/calibration/prior`` entry (``sigma`` kept for readers of the diagonal prior)."""

@@ -52,7 +52,7 @@ import torch
 
 from ..errors import HeliotwinError, InputFileError
 from ..field.plant import Facets, Surfaces
-from ..shrinkage import shrunk_covariance
+from ..shrinkage import shrunk_covariance, whitening
 from .learning import LearnableSurface, heights_to_displacement, learnable_surfaces, normal_heights
 
 __all__ = ["NAMES", "KEY", "MIN_SOURCES", "FLOOR_RAD", "SHRINK", "PRIOR_WEIGHT_GRID", "SurfacePrior",
@@ -176,9 +176,7 @@ class SurfacePrior:
 
     def whitening(self) -> torch.Tensor:
         """``W`` [F K, F K] with ``W^T W = covariance^-1`` (inverse Cholesky factor)."""
-        chol = torch.linalg.cholesky(self.covariance.double())
-        eye = torch.eye(chol.shape[0], dtype=torch.float64)
-        return torch.linalg.solve_triangular(chol, eye, upper=False)
+        return whitening(self.covariance)
 
     def mahalanobis2(self, coefficients: torch.Tensor) -> torch.Tensor:
         """Mean squared whitened residual of coefficients ``[F, K]`` (scalar; 1 = one sigma everywhere)."""
