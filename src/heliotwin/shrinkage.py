@@ -1,6 +1,7 @@
-"""Covariance of a plant-level prior from few heliostats: sample correlations shrunk towards the identity.
+"""Plant-level Gaussian priors from few heliostats: sample correlations shrunk towards the identity.
 
-One home for the estimate that both plant priors use: the kinematic deviations
+One home for what both plant priors share (:class:`GaussianPrior`: its fields, whitening and stored form;
+the covariance estimate :func:`shrunk_covariance`): the kinematic deviations
 (:func:`heliotwin.calibrate.priors.plant_prior`) and the facets' low-order surface shape
 (:func:`heliotwin.surfaces.plantprior.surface_prior`). With H ~ 10-30 heliostats a P x P covariance is
 poorly determined, so the sample *correlation* is shrunk towards the identity (a Ledoit-Wolf-style target,
@@ -9,7 +10,12 @@ parameter on which the archive heliostats happen to agree must not become a hard
 """
 from __future__ import annotations
 
+import json
+from dataclasses import dataclass, field
+
 import torch
+
+from .errors import InputFileError
 
 
 def shrunk_covariance(centred: torch.Tensor, floor_sd, *, covariance: str = "full", shrink: float = 0.2,
@@ -63,3 +69,52 @@ def whitening(covariance: torch.Tensor) -> torch.Tensor:
     chol = torch.linalg.cholesky(covariance.double())
     eye = torch.eye(chol.shape[0], dtype=torch.float64, device=chol.device)
     return torch.linalg.solve_triangular(chol, eye, upper=False)
+
+
+@dataclass
+class GaussianPrior:
+    """A prior ``x ~ N(mean, covariance)`` learned from other heliostats (the base of both plant priors).
+
+    Attributes
+    ----------
+    names : tuple of str
+        One per column of ``mean``.
+    mean : torch.Tensor, [P] or [F, K]
+        Physical units of the parameters.
+    covariance : torch.Tensor, [N, N]
+        Over ``mean.reshape(-1)`` (N = ``mean.numel()``), symmetric positive definite.
+    heliostats : list of str
+        The source heliostats (leakage checks compare them with the calibrated / reconstructed ones).
+    settings : dict
+        How it was estimated (JSON values).
+    """
+
+    names: tuple
+    mean: torch.Tensor
+    covariance: torch.Tensor
+    heliostats: list = field(default_factory=list)
+    settings: dict = field(default_factory=dict)
+
+    @property
+    def sigma(self) -> torch.Tensor:
+        """Marginal standard deviation, shaped like ``mean``."""
+        return self.covariance.diagonal().clamp_min(0).sqrt().reshape(self.mean.shape)
+
+    def whitening(self) -> torch.Tensor:
+        """``W`` [N, N] with ``W^T W = covariance^-1`` (inverse Cholesky factor): prior residual ``W (x - mean)``."""
+        return whitening(self.covariance)
+
+    def state(self) -> dict:
+        """The stored entry (``sigma`` kept for readers of a diagonal prior; ``settings`` as JSON text)."""
+        return {"names": [str(n) for n in self.names], "mean": self.mean.detach().double().cpu(),
+                "sigma": self.sigma.detach().double().cpu(), "covariance": self.covariance.detach().double().cpu(),
+                "heliostats": [str(h) for h in self.heliostats], "settings": json.dumps(self.settings)}
+
+
+def check_positive_definite(covariance: torch.Tensor, path, what: str, where: str) -> None:
+    """One-line :class:`~heliotwin.errors.InputFileError` (``what`` covariance, at ``where`` of ``path``) unless
+    ``covariance`` [N, N] has a Cholesky factor."""
+    try:
+        torch.linalg.cholesky(covariance)
+    except RuntimeError:
+        raise InputFileError(path, f"{what} covariance is not positive definite", field=where) from None

@@ -28,11 +28,11 @@ north) are held to the combination the plant shows. It is built by :mod:`.archiv
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 
-from ..shrinkage import shrunk_covariance, whitening
+from ..shrinkage import GaussianPrior, check_positive_definite, shrunk_covariance
 from .params import kinds
 
 #: Nominal prior of the Stone/Jülich LM fits (physical units). Encoder offsets are unconstrained in practice
@@ -99,7 +99,7 @@ PLANT_PRIOR_DEFAULTS = {"covariance": "full", "shrink": 0.2, "widen": 1.0, "min_
 
 
 @dataclass
-class PlantPrior:
+class PlantPrior(GaussianPrior):
     """Hierarchical (plant-level) prior: a heliostat's deviations ~ N(``mean``, ``covariance``).
 
     Each heliostat's parameters are the plant mean plus an individual deviation; the covariance is the
@@ -120,27 +120,6 @@ class PlantPrior:
     settings : dict
         How it was estimated (JSON values).
     """
-
-    names: tuple
-    mean: torch.Tensor
-    covariance: torch.Tensor
-    heliostats: list = field(default_factory=list)
-    settings: dict = field(default_factory=dict)
-
-    @property
-    def sigma(self) -> torch.Tensor:
-        """Marginal standard deviation per parameter [P]."""
-        return self.covariance.diagonal().clamp_min(0).sqrt()
-
-    def whitening(self) -> torch.Tensor:
-        """``W`` [P, P] with ``W^T W = covariance^-1`` (inverse Cholesky factor): prior residual ``W (d - mean)``."""
-        return whitening(self.covariance)
-
-    def state(self) -> dict:
-        """The ``/learned/calibration/prior`` entry (``sigma`` kept for readers of the diagonal prior)."""
-        return {"names": [str(n) for n in self.names], "mean": self.mean.detach().double().cpu(),
-                "sigma": self.sigma.detach().double().cpu(), "covariance": self.covariance.detach().double().cpu(),
-                "heliostats": [str(h) for h in self.heliostats], "settings": json.dumps(self.settings)}
 
     @classmethod
     def from_state(cls, state: dict, path="") -> PlantPrior:
@@ -163,11 +142,7 @@ class PlantPrior:
         if mean.shape != (p,) or cov.shape != (p, p) or not finite:
             raise InputFileError(path, f"calibration prior needs mean [{p}] and covariance [{p}, {p}] of finite "
                                  "numbers", field="/learned/calibration/prior")
-        try:
-            torch.linalg.cholesky(cov)
-        except RuntimeError:
-            raise InputFileError(path, "calibration prior covariance is not positive definite",
-                                 field="/learned/calibration/prior") from None
+        check_positive_definite(cov, path, "calibration prior", "/learned/calibration/prior")
         return cls(names, mean, cov, heliostats, settings)
 
 

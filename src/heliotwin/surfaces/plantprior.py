@@ -46,13 +46,13 @@ Units: metres; coefficients in radians.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 
 from ..errors import HeliotwinError, InputFileError
 from ..field.plant import Facets, Surfaces
-from ..shrinkage import shrunk_covariance, whitening
+from ..shrinkage import GaussianPrior, check_positive_definite, shrunk_covariance
 from .learning import LearnableSurface, heights_to_displacement, learnable_surfaces, normal_heights
 
 __all__ = ["NAMES", "KEY", "MIN_SOURCES", "FLOOR_RAD", "SHRINK", "PRIOR_WEIGHT_GRID", "SurfacePrior",
@@ -143,7 +143,7 @@ def low_order_start(facets: Facets, coefficients: torch.Tensor, num_control_poin
 
 
 @dataclass
-class SurfacePrior:
+class SurfacePrior(GaussianPrior):
     """Plant-level prior on the facets' low-order shape: ``c`` [F, K] ~ N(``mean``, ``covariance``).
 
     Attributes
@@ -159,24 +159,9 @@ class SurfacePrior:
         How it was estimated (JSON values).
     """
 
-    names: tuple
-    mean: torch.Tensor
-    covariance: torch.Tensor
-    heliostats: list = field(default_factory=list)
-    settings: dict = field(default_factory=dict)
-
     @property
     def facet_count(self) -> int:
         return int(self.mean.shape[0])
-
-    @property
-    def sigma(self) -> torch.Tensor:
-        """Marginal standard deviation [F, K] [rad]."""
-        return self.covariance.diagonal().clamp_min(0).sqrt().reshape(self.mean.shape)
-
-    def whitening(self) -> torch.Tensor:
-        """``W`` [F K, F K] with ``W^T W = covariance^-1`` (inverse Cholesky factor)."""
-        return whitening(self.covariance)
 
     def mahalanobis2(self, coefficients: torch.Tensor) -> torch.Tensor:
         """Mean squared whitened residual of coefficients ``[F, K]`` (scalar; 1 = one sigma everywhere)."""
@@ -188,15 +173,6 @@ class SurfacePrior:
         """Control net ``[1, F, nu, nv, 3]`` of the mean shape (the fit's start candidate)."""
         check_facets(self, facets)
         return low_order_start(facets, self.mean, num_control_points, degree)
-
-    def state(self) -> dict:
-        """The ``/learned/surface_prior`` entry (module docstring)."""
-        return {"names": [str(n) for n in self.names], "mean": self.mean.detach().double().cpu(),
-                "sigma": self.sigma.detach().double().cpu(), "covariance": self.covariance.detach().double().cpu(),
-                "heliostats": [str(h) for h in self.heliostats], "settings": json.dumps(self.settings)}
-
-    # Mirrors PlantPrior's name for readers of either prior.
-    as_state = state
 
     @classmethod
     def from_state(cls, state: dict, path="") -> SurfacePrior:
@@ -216,10 +192,7 @@ class SurfacePrior:
         if not ok or not bool(torch.isfinite(cov).all() & torch.isfinite(mean).all()):
             raise InputFileError(path, f"surface prior needs mean [F, {k}] and covariance [F {k}, F {k}] of finite "
                                  "numbers", field=where)
-        try:
-            torch.linalg.cholesky(cov)
-        except RuntimeError:
-            raise InputFileError(path, "surface prior covariance is not positive definite", field=where) from None
+        check_positive_definite(cov, path, "surface prior", where)
         return cls(names, mean, cov, heliostats, settings)
 
 
