@@ -315,24 +315,26 @@ def choose_settings(run: Run) -> None:
     by the choice stored in the ``--prior-from`` scenario where it applies
     (:func:`~heliotwin.calibrate.selection.stored_choice`). The report keeps the choice (``settings_choice``)
     and ``config`` shows the settings that ran."""
+    from .selection import choose_for_run, stored_choice
+
     cfg = run.cfg
-    if cfg.settings == "stored":
-        from .selection import stored_choice
-
-        chosen, record = stored_choice(cfg, list(run.run_ids) + list(cfg.prior_exclude))
-    elif cfg.settings != "cv":
+    if cfg.settings not in ("cv", "stored"):
         return
+    if cfg.settings == "stored":
+        chosen, record = stored_choice(cfg, _held_out(run))
     else:
-        from .selection import choose_for_run
-
         # The CV runs are not the run's fit: they stay out of its checkpoint (a resumed run repeats them, seeded).
         with _checkpoint.active(None):
-            # prior_exclude: heliostats held out of every prior are held out of the choice too
-            chosen, record = choose_for_run(cfg, list(run.run_ids) + list(cfg.prior_exclude),
-                                            progress=bool(cfg.progress), run_size=len(run.run_ids))
+            chosen, record = choose_for_run(cfg, _held_out(run), progress=bool(cfg.progress),
+                                            run_size=len(run.run_ids))
     run.cfg = chosen
     run.report["config"] = _config_report(chosen, run.device)
     run.report["settings_choice"] = record
+
+
+def _held_out(run: Run) -> list:
+    """Heliostats no prior and no settings choice of the run may learn from: its own and ``prior_exclude``."""
+    return list(run.run_ids) + list(run.cfg.prior_exclude)
 
 
 def learn_prior(run: Run) -> None:
@@ -345,7 +347,7 @@ def learn_prior(run: Run) -> None:
     cfg = run.cfg
     if not cfg.uses_plant_prior():
         return
-    source, excluded = cfg.prior_from, list(run.run_ids) + list(cfg.prior_exclude)
+    source, excluded = cfg.prior_from, _held_out(run)
     if source is None:
         source = PriorArchive.from_dataset(run.dataset, focal_spot=cfg.focal_spot, source=os.fspath(cfg.paint),
                                            exclude=excluded)
