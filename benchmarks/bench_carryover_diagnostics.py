@@ -162,6 +162,18 @@ def part_shared(ids, batch, nominal, ridge=0.1):
     return out
 
 
+def _others_offset(residuals, heliostat, day, h, t, window):
+    """Median over the other heliostats (>= 2, each with >= 3 records within ``window`` days of ``t``) of their
+    median residual there, [2] [mrad]; zero when fewer heliostats have records then."""
+    finite = np.isfinite(residuals).all(1)
+    per = []
+    for g in np.unique(heliostat):
+        sel = (heliostat == g) & (np.abs(day - t) <= window) & finite
+        if g != h and sel.sum() >= 3:
+            per.append(np.median(residuals[sel], 0))
+    return np.median(per, 0) if len(per) >= 2 else np.zeros(2)
+
+
 def part_common(ids, batch, nominal, train=30, windows=(5, 15, 30, 60)):
     import torch
 
@@ -178,12 +190,7 @@ def part_common(ids, batch, nominal, train=30, windows=(5, 15, 30, 60)):
         before, after = [], []
         for h in range(len(ids)):
             m = hi[test] == h
-            corr = np.zeros((int(m.sum()), 2))
-            for i, t in enumerate(day[test][m]):
-                per = [np.median(res_all[sel], 0) for g in range(len(ids)) if g != h
-                       for sel in [(hi == g) & (np.abs(day - t) <= w) & np.isfinite(res_all).all(1)] if sel.sum() >= 3]
-                if len(per) >= 2:
-                    corr[i] = np.median(per, 0)
+            corr = np.stack([_others_offset(res_all, hi, day, h, t, w) for t in day[test][m]])
             before.append(np.linalg.norm(res_test[m], axis=1).mean())
             after.append(np.linalg.norm(res_test[m] - corr, axis=1).mean())
         better = int(sum(a < b for a, b in zip(after, before)))
