@@ -5,7 +5,7 @@ import torch
 from helpers.calibrate import TRUE, jueliche_like, scenario_round_trip, simulate, with_weekly_times
 
 from heliotwin.calibrate.hybrid import SECONDS_PER_YEAR, aim_hybrid, features, fit_hybrid_method
-from heliotwin.calibrate.inputs import fit_spots
+from heliotwin.calibrate.inputs import MIN_SOURCE_PAIRS, fit_spots, source_offsets
 from heliotwin.calibrate.lm import fit_lm_method
 from heliotwin.calibrate.params import STONE8, apply_deviations
 from heliotwin.calibrate.scenario import aim, network_entry
@@ -50,6 +50,34 @@ def test_fit_spots_prefers_utis_average_and_metric_source():
     assert fit_spots(b, "HeliOS").spot.equal(b.spot) and fit_spots(b, None) is b
     assert not math.isnan(float(u.spot.sum()))
     assert SECONDS_PER_YEAR > 0
+
+
+
+def test_harmonised_moves_utis_into_the_metric_frame_per_target():
+    """UTIS = HeliOS - a per-target offset + noise: ``harmonised`` recovers the HeliOS frame from the batch's
+    own pairs, keeps HeliOS where a record has no UTIS or its target too few pairs, and lowers the scatter."""
+    kin, b = _batch_with_times(24)
+    g = torch.Generator().manual_seed(5)
+    truth = b.spot.clone()
+    offsets = {"lower": torch.tensor([0.0, 0.0, 0.08], dtype=torch.float64),
+               "upper": torch.tensor([0.03, 0.0, -0.02], dtype=torch.float64),
+               "rare": torch.tensor([0.0, 0.0, 0.5], dtype=torch.float64)}
+    b.target = ["lower"] * 12 + ["upper"] * 10 + ["rare"] * 2  # "rare": fewer pairs than MIN_SOURCE_PAIRS
+    assert 2 < MIN_SOURCE_PAIRS
+    b.source = ["HeliOS"] * 24
+    b.spot = truth + 0.02 * torch.randn(24, 3, generator=g, dtype=torch.float64)  # HeliOS: noisier
+    shift = torch.stack([offsets[t] for t in b.target])
+    b.spot_other = truth - shift + 0.002 * torch.randn(24, 3, generator=g, dtype=torch.float64)
+    b.spot_other[0] = float("nan")  # a record without UTIS keeps its HeliOS centroid
+    est, known = source_offsets(b)
+    assert known.tolist() == [False] + [True] * 21 + [False, False]
+    assert torch.allclose(est[known], shift[known], atol=0.015)  # the median of 11/10 noisy pairs
+    h = fit_spots(b, "harmonised")
+    assert torch.equal(h.spot[0], b.spot[0]) and torch.equal(h.spot[22:], b.spot[22:])
+    err_h = (h.spot[1:22] - truth[1:22]).norm(dim=-1).mean()
+    err_raw = (b.spot[1:22] - truth[1:22]).norm(dim=-1).mean()
+    err_utis = (fit_spots(b, "UTIS").spot[1:22] - truth[1:22]).norm(dim=-1).mean()
+    assert err_h < 0.5 * err_raw and err_h < 0.5 * err_utis  # less scatter than HeliOS, no offset unlike UTIS
 
 
 def _drifting(n, seed, drift):

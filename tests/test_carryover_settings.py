@@ -93,17 +93,18 @@ def test_centroid_source_and_loss_are_candidates_that_reach_the_fit(paint_dir):
     labels = [selection.label(c) for c in selection.CANDIDATES]
     assert len(set(labels)) == len(labels)
     tried = {(c.get("fit_focal_spot"), c.get("loss")) for c in selection.CANDIDATES}
-    assert {("HeliOS", None), (None, "linear"), (None, None)} <= tried
+    assert {("HeliOS", None), ("harmonised", None), (None, "linear"), (None, None)} <= tried
     base = RunConfig(paint=str(paint_dir), heliostats=["AK32", "BE36", "BF55", "BH60"], train=10, test=30)
     params = {}
     for cand in ({"prior": "run", "bags": 0}, {"prior": "run", "bags": 0, "fit_focal_spot": "HeliOS"},
+                 {"prior": "run", "bags": 0, "fit_focal_spot": "harmonised"},
                  {"prior": "run", "bags": 0, "loss": "linear"}):
         cfg = selection.config_of(base, cand)
         assert all(cfg.method_options.get(k) == cand.get(k) for k in ("fit_focal_spot", "loss") if k in cand)
         rep, _, _ = run_calibration(cfg, None)
-        params[selection.label(cand)] = rep["heliostats"]["AK32"]["parameters"]
+        params[selection.label(cand)] = rep["heliostats"]["BE36"]["parameters"]  # BE36 has UTIS and HeliOS
     ref = params["run/b0"]
-    for lab in ("run/b0/fitHeliOS", "run/b0/linear"):  # another centroid source / loss: another fit (> 1 µrad)
+    for lab in ("run/b0/fitHeliOS", "run/b0/fitharmonised", "run/b0/linear"):  # another fit (> 1 µrad)
         assert max(abs(params[lab][k] - ref[k]) for k in ref) > 1e-6, lab
 
 

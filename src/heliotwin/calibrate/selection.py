@@ -31,7 +31,8 @@ from .pipeline import RunConfig, run_calibration
 #: Settings tried, in order (the first is today's ``lm`` default). ``bags``: bootstrap bags of ``lm``;
 #: ``half_life_days``: drift tracking by recency weights (:func:`~heliotwin.calibrate.lm.fit_lm`);
 #: ``drift_model``/``process_noise``: the random-walk offset (:mod:`.drift`, q [mrad^2/day]);
-#: ``fit_focal_spot``/``loss``: the centroids the fit trains on and its loss (default ``UTIS`` / ``soft_l1``).
+#: ``fit_focal_spot``/``loss``: the centroids the fit trains on and its loss (default ``UTIS`` / ``soft_l1``;
+#: ``harmonised``: :func:`~heliotwin.calibrate.inputs.source_offsets`).
 CANDIDATES = (
     {"prior": "run", "bags": 10},
     {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 1.0, "bags": 10},
@@ -60,6 +61,9 @@ CANDIDATES = (
     {"prior": "run", "bags": 10, "loss": "linear"},
     {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 2.0, "bags": 10, "fit_focal_spot": "HeliOS"},
     {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 2.0, "bags": 10, "loss": "linear"},
+    # UTIS moved into the metric's frame by the per-target offset between the two cameras (inputs.source_offsets)
+    {"prior": "run", "bags": 10, "fit_focal_spot": "harmonised"},
+    {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 2.0, "bags": 10, "fit_focal_spot": "harmonised"},
 )
 
 
