@@ -17,6 +17,10 @@ the heliostats with >= 50 records. Figures are medians over heliostats [mrad].
 3. **A plant-wide offset at the same time** (``--part common``): each heliostat's residual on its test
    block (chrono, fit on its earliest N), corrected by the median residual of the *other* heliostats within
    +-W days (from their all-record fits): is the test block's offset common to the plant?
+4. **The two cameras** (``--part sources``): HeliOS - UTIS centroid per target, over every record with both
+   (no fit): the constant that ``fit_focal_spot = "harmonised"`` removes
+   (:func:`heliotwin.calibrate.inputs.source_offsets`; its effect on the protocol is a CV candidate of
+   ``bench_carryover.py``).
 
 Measured on ``../shared/data/paint`` (11 heliostats, 1 thread, 2026-11-22, ~8 min; N=30 in part 3, whose fit
 has the nominal prior only, hence its larger test residual than the benchmark's):
@@ -32,12 +36,18 @@ has the nominal prior only, hence its larger test residual than the benchmark's)
 * common: the others' same-time offset moves the median test residual 1.577 -> 1.571 / 1.578 / 1.549 /
   1.557 (W = 5 / 15 / 30 / 60 d) with 6-7 of 11 heliostats better: the test block's offset is the
   heliostat's own, not the plant's. Not kept.
+* sources: HeliOS sits 7.8 cm above UTIS on the lower target (429 pairs; per-heliostat medians 1.6..16 cm),
+  2.0 cm below on the upper (459) and 4.2 cm above on the multi-focus tower (372); per year 2022/2023/2024
+  the "up" medians are 7.8/8.0/6.3, -2.5/-1.8/-1.6 and 2.5/4.2/4.9 cm. Sideways the heliostats differ more
+  (-11..+12 cm). A camera offset of a few cm is 0.1-0.4 mrad of normal at 50-280 m: real, stable and the
+  plant's, so it is a candidate (``harmonised``) that the CV may choose; see ``bench_carryover.py``.
 * The random 5-fold CV figure (0.637, no time order) against the chrono protocol's ~0.9 is the cost of time:
   what the benchmark's ``reference`` rows split into "more records" and "the test block's own offset".
 
 Usage::
 
-    python benchmarks/bench_carryover_diagnostics.py [--paint ../shared/data/paint] [--part params,shared,common]
+    python benchmarks/bench_carryover_diagnostics.py [--paint ../shared/data/paint]
+        [--part params,shared,common,sources]
 """
 from __future__ import annotations
 
@@ -200,12 +210,51 @@ def part_common(ids, batch, nominal, train=30, windows=(5, 15, 30, 60)):
     return out
 
 
+
+def part_sources(paint, min_pairs=3):
+    """The two cameras' disagreement (HeliOS - UTIS centroid, target-plane right/up [cm]) per target.
+
+    :func:`heliotwin.validate.camera_agreement` (the median over every record with both centroids) over the
+    whole archive, per heliostat (those with >= ``min_pairs`` pairs on the target) and per year. A constant
+    per target is what :func:`heliotwin.calibrate.inputs.source_offsets` removes for ``fit_focal_spot =
+    "harmonised"``.
+    """
+    import datetime
+
+    import torch
+
+    from heliotwin.io.paint import load_paint
+    from heliotwin.validate import camera_agreement
+
+    rec = load_paint(paint).records
+    hi = rec.heliostat_index.numpy()
+    year = np.array([datetime.datetime.fromtimestamp(t, datetime.timezone.utc).year if np.isfinite(t) else 0
+                     for t in rec.time.numpy()])
+
+    def cm(c):
+        return [round(100 * c["right_m"], 1), round(100 * c["up_m"], 1)]
+
+    def split(key):
+        return {int(k): camera_agreement(rec.subset(torch.as_tensor(key == k))) for k in np.unique(key) if k}
+
+    per_heliostat, per_year = split(hi + 1), split(year)  # +1: heliostat 0 is not "no key"
+    out = {}
+    for name, c in camera_agreement(rec).items():
+        per = np.array([cm(v[name]) for v in per_heliostat.values() if v.get(name, {}).get("pairs", 0) >= min_pairs])
+        years = {y: cm(v[name]) for y, v in per_year.items() if name in v}
+        out[name] = {"pairs": c["pairs"], "median_cm": cm(c), "heliostats": len(per),
+                     "per_heliostat_range_cm": [per.min(0).tolist(), per.max(0).tolist()], "per_year_cm": years}
+        print(f"sources {name:26s} {c['pairs']:4d} pairs: HeliOS - UTIS (right, up) median {cm(c)} cm; per "
+              f"heliostat ({len(per)}) right {per[:, 0].min():.1f}..{per[:, 0].max():.1f}, up "
+              f"{per[:, 1].min():.1f}..{per[:, 1].max():.1f} cm; per year {years}", flush=True)
+    return out
+
 def main(argv=None) -> int:
     import torch
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--paint", default=str(DEFAULT_PAINT))
-    ap.add_argument("--part", default="params,shared,common")
+    ap.add_argument("--part", default="params,shared,common,sources")
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -217,6 +266,8 @@ def main(argv=None) -> int:
         part_shared(ids, batch, nominal)
     if "common" in parts:
         part_common(ids, batch, nominal)
+    if "sources" in parts:
+        part_sources(args.paint)
     return 0
 
 

@@ -255,6 +255,12 @@ def test_validate_plot_is_labelled_with_counts(small_paint, tmp_path, capsys):
     assert png.read_bytes()[:4] == b"\x89PNG"
     report = json.loads(js.read_text())
     assert report["heliostats"]["AA39"]["records"] == report["overall"]["records"] > 0
+    code, out, err = run_cli(capsys, "validate", "--paint", small_paint, "--json", js, "--samples", "4", "--no-images")
+    assert code == 0, err
+    cams = json.loads(js.read_text())["camera_agreement"]  # AA39's records with both centroids, per target
+    assert cams and all(c["heliostats"] == 1 and c["pairs"] >= 1 for c in cams.values())
+    line = next(ln for ln in out.splitlines() if ln.startswith("cameras"))
+    assert all(f"{name} ({100 * c['right_m']:+.1f}, {100 * c['up_m']:+.1f})" in line for name, c in cams.items())
 
 
 def test_calibrate_checks_its_outputs_before_reading_anything(tmp_path, capsys):

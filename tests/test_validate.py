@@ -1,8 +1,9 @@
 """Forward model against every real PAINT record (nominal kinematics, ideal surface)."""
 import pytest
+import torch
 
 from heliotwin.io.paint import load_paint
-from heliotwin.validate import validate_dataset
+from heliotwin.validate import camera_agreement, validate_dataset
 
 
 @pytest.fixture(scope="module")
@@ -23,6 +24,21 @@ def test_median_nominal_pointing_error_matches_reference(full_report):
 
 def test_measured_spots_lie_on_their_target_planes(full_report):
     assert full_report["overall"]["max_measured_spot_plane_offset_m"] < 0.1
+
+
+def test_the_two_cameras_disagree_by_a_constant_per_target(full_report, paint_dir):
+    """HeliOS sits ~8 cm above UTIS on the lower target and ~2 cm below on the upper one, in every year of the
+    records: a per-target camera offset (the Jülich survey of each camera, not the heliostats)."""
+    cams = full_report["camera_agreement"]
+    lower, upper = cams["solar_tower_juelich_lower"], cams["solar_tower_juelich_upper"]
+    assert lower["pairs"] > 400 and upper["pairs"] > 400 and lower["heliostats"] >= 10
+    assert 0.05 < lower["up_m"] < 0.11 and -0.04 < upper["up_m"] < -0.005
+    table = load_paint(paint_dir).records
+    years = table.time.numpy() // (365.25 * 86400) + 1970
+    for y in (2022, 2023, 2024):  # the same sign and size each year: a constant, not drift
+        by_year = camera_agreement(table.subset(torch.as_tensor(years == y)))
+        assert 0.05 < by_year["solar_tower_juelich_lower"]["up_m"] < 0.11, y
+        assert by_year["solar_tower_juelich_upper"]["up_m"] < 0.0, y
 
 
 def test_spot_distance_consistent_with_pointing_error(full_report):

@@ -8,6 +8,8 @@ For every calibration record, with the given (default: nominal) kinematics and i
 * focal-spot distance on the target [m]: predicted flux centroid (gaussian integrator) vs measured spot,
   in the target plane; where the predicted spot leaves the target the central reflected ray is used;
 * distance of the measured spot from its target plane [m] (a data-consistency check);
+* per target, how far the two cameras' centroids of the same spot disagree (HeliOS - UTIS, median over the
+  records with both, :func:`camera_agreement`): a constant per target that no kinematic model can explain;
 * for records with a ``flux-centered`` PNG: normalised L1 (images scaled to sum 1, ``sum |a - b|``) and
   zero-mean normalised cross-correlation between the predicted and the measured 6 m x 6 m centred image,
   each centred on its own centroid (as PAINT centres the measured one).
@@ -86,10 +88,42 @@ def validate_dataset(ds: PaintDataset, *, plant: Plant | None = None, sun: SunSe
             bar.update(len(chunk))
     bar.close()
     out = summarise([rows[int(r)] for r in table.record_id])
+    out["camera_agreement"] = camera_agreement(table)
     out["skipped_records"] = list(ds.skipped)
     out["overall"]["skipped_records"] = len(ds.skipped)
     return out
 
+
+
+def camera_agreement(table: RecordTable) -> dict:
+    """Per target, the median HeliOS - UTIS centroid difference over the records that have both.
+
+    Parameters
+    ----------
+    table : RecordTable
+        R records with per-source centroids (``focal_spots``, [R, 2, 3] ENU [m], NaN where absent).
+
+    Returns
+    -------
+    dict
+        Target name -> ``{"pairs", "heliostats", "right_m", "up_m"}``: the number of records with both
+        centroids, of heliostats among them, and the median difference along the target's right and up
+        directions [m]; targets without a pair are left out, as is everything for tables without per-source
+        centroids (synthetic records).
+    """
+    if table.focal_spots is None or len(table) == 0:
+        return {}
+    fs = table.focal_spots
+    both = torch.isfinite(fs).all(-1).all(-1)
+    diff = fs[:, 0] - fs[:, 1]
+    right, up = (diff * table.plane_right).sum(-1), (diff * table.plane_up).sum(-1)
+    out = {}
+    for name in dict.fromkeys(table.target):  # the few targets of a plant
+        on = both & torch.tensor([t == name for t in table.target], dtype=torch.bool, device=both.device)
+        if bool(on.any()):
+            out[name] = {"pairs": int(on.sum()), "heliostats": int(table.heliostat_index[on].unique().numel()),
+                         "right_m": float(right[on].median()), "up_m": float(up[on].median())}
+    return out
 
 def _pointing_errors(chunk: RecordTable, plant: Plant) -> dict:
     """Pointing error [rad] per centroid source, [R] each (NaN where a record lacks that source): the metric

@@ -193,6 +193,11 @@ def cmd_validate(args) -> int:
           f"{_fmt(o.get('median_pointing_error_mrad'))} mrad (median over heliostats), median distance "
           f"{_fmt(o.get('median_distance_m'), '.3f')} m; {o.get('images', 0)} images, median centred L1 "
           f"{_fmt(o.get('median_centered_l1'), '.3f')} -> {args.json}")
+    cams = report.get("camera_agreement") or {}
+    if cams:  # a per-target camera offset is a survey matter, not a heliostat's: worth a line of its own
+        print("cameras, HeliOS - UTIS (right, up) [cm], median per target: " + "; ".join(
+            f"{name} ({100 * c['right_m']:+.1f}, {100 * c['up_m']:+.1f}) over {c['pairs']} records"
+            for name, c in cams.items()))
     return 0
 
 
