@@ -29,7 +29,9 @@ walk's covariance in the interval, chosen with ``drift`` by CV coverage):
 | 30 | 0.969 | run/b10/hl20d, drift 1.00, walk x1 | 0.903 | 0.903 | 0.885 / 0.879 | 0.662 / 0.796 / 0.545 |
 
 Reference rows (2026-11-22, with the centroid-source and loss candidates; ``--online-cv``, 2044 s on one
-core; the table above is unchanged by those candidates except the nested coverage at N=10, .927 -> .921):
+core; the table above is unchanged by those candidates except the nested coverage at N=10, .927 -> .921;
+re-run with the two ``fitharmonised`` candidates, 23 in all, 1838 s: every figure here unchanged, no
+``harmonised`` candidate chosen by the CV, the nested CV or the online CV):
 
 | N | every earlier record: default lm / chosen | test-block offset removed (oracle) | its MSE share |
 |---|---|---|---|
