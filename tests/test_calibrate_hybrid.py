@@ -52,7 +52,6 @@ def test_fit_spots_prefers_utis_average_and_metric_source():
     assert SECONDS_PER_YEAR > 0
 
 
-
 def test_harmonised_moves_utis_into_the_metric_frame_per_target():
     """UTIS = HeliOS - a per-target offset + noise: ``harmonised`` recovers the HeliOS frame from the batch's
     own pairs, keeps HeliOS where a record has no UTIS or its target too few pairs, and lowers the scatter."""
@@ -69,6 +68,7 @@ def test_harmonised_moves_utis_into_the_metric_frame_per_target():
     shift = torch.stack([offsets[t] for t in b.target])
     b.spot_other = truth - shift + 0.002 * torch.randn(24, 3, generator=g, dtype=torch.float64)
     b.spot_other[0] = float("nan")  # a record without UTIS keeps its HeliOS centroid
+    b.focal_spots = torch.stack([b.spot, b.spot_other], 1)  # (HeliOS, UTIS), as the PAINT reader stores them
     est, known = source_offsets(b)
     assert known.tolist() == [False] + [True] * 21 + [False, False]
     assert torch.allclose(est[known], shift[known], atol=0.015)  # the median of 11/10 noisy pairs

@@ -94,36 +94,24 @@ def validate_dataset(ds: PaintDataset, *, plant: Plant | None = None, sun: SunSe
     return out
 
 
-
 def camera_agreement(table: RecordTable) -> dict:
-    """Per target, the median HeliOS - UTIS centroid difference over the records that have both.
-
-    Parameters
-    ----------
-    table : RecordTable
-        R records with per-source centroids (``focal_spots``, [R, 2, 3] ENU [m], NaN where absent).
+    """Per target, the median HeliOS - UTIS centroid difference (:meth:`RecordTable.camera_offsets`) along
+    the target's right and up directions.
 
     Returns
     -------
     dict
-        Target name -> ``{"pairs", "heliostats", "right_m", "up_m"}``: the number of records with both
-        centroids, of heliostats among them, and the median difference along the target's right and up
-        directions [m]; targets without a pair are left out, as is everything for tables without per-source
-        centroids (synthetic records).
+        Target name -> ``{"pairs", "heliostats", "right_m", "up_m"}`` [m]; empty for tables without
+        per-source centroids.
     """
-    if table.focal_spots is None or len(table) == 0:
-        return {}
-    fs = table.focal_spots
-    both = torch.isfinite(fs).all(-1).all(-1)
-    diff = fs[:, 0] - fs[:, 1]
-    right, up = (diff * table.plane_right).sum(-1), (diff * table.plane_up).sum(-1)
     out = {}
-    for name in dict.fromkeys(table.target):  # the few targets of a plant
-        on = both & torch.tensor([t == name for t in table.target], dtype=torch.bool, device=both.device)
-        if bool(on.any()):
-            out[name] = {"pairs": int(on.sum()), "heliostats": int(table.heliostat_index[on].unique().numel()),
-                         "right_m": float(right[on].median()), "up_m": float(up[on].median())}
+    for name, c in table.camera_offsets().items():
+        r = table.target.index(name)  # a target has one plane
+        out[name] = {"pairs": c["pairs"], "heliostats": c["heliostats"],
+                     "right_m": float(c["offset"] @ table.plane_right[r]),
+                     "up_m": float(c["offset"] @ table.plane_up[r])}
     return out
+
 
 def _pointing_errors(chunk: RecordTable, plant: Plant) -> dict:
     """Pointing error [rad] per centroid source, [R] each (NaN where a record lacks that source): the metric

@@ -50,7 +50,7 @@ MIN_SOURCE_PAIRS = 3
 
 
 def source_offsets(batch: RecordTable) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per record, the median (metric source - UTIS) centroid difference on its target, from ``batch`` alone.
+    """Per record, the median HeliOS - UTIS centroid difference on its target, from ``batch`` alone.
 
     The two camera systems disagree by a constant per target: on the Jülich records HeliOS sits about 8 cm
     *above* UTIS on the lower target (median of 429 pairs; 1.6 to 16 cm between heliostats), 2 cm below on
@@ -68,25 +68,26 @@ def source_offsets(batch: RecordTable) -> tuple[torch.Tensor, torch.Tensor]:
     Parameters
     ----------
     batch : RecordTable
-        R records; ``spot`` in the metric's source, ``spot_other`` the other source (NaN where absent).
+        R records; ``spot`` in the metric's source, ``spot_other`` the other source (NaN where absent),
+        ``focal_spots`` both (:meth:`~heliotwin.io.records.RecordTable.camera_offsets`).
 
     Returns
     -------
     shift : torch.Tensor, [R, 3]
         [m] to add to ``spot_other``; zero where ``known`` is False.
     known : torch.Tensor, [R], bool
-        Records whose ``spot_other`` is UTIS and whose target has >= :data:`MIN_SOURCE_PAIRS` such records;
-        elsewhere ``spot`` is kept (a record without UTIS, or a target too rare to estimate its offset).
+        Records whose ``spot`` is HeliOS, ``spot_other`` UTIS, on a target with >= :data:`MIN_SOURCE_PAIRS`
+        records that have both; elsewhere ``spot`` is kept (no UTIS centroid, UTIS is already the metric's,
+        or a target too rare to estimate its offset).
     """
     shift = torch.zeros_like(batch.spot)
     known = torch.zeros(len(batch), dtype=torch.bool, device=batch.spot.device)
     utis = torch.isfinite(batch.spot_other).all(-1) & torch.tensor(
         [s != "UTIS" for s in batch.source], dtype=torch.bool, device=known.device)
-    # a loop over the (few) targets of a plant, not over records or heliostats
-    for name in sorted(set(batch.target)):
-        on = utis & torch.tensor([t == name for t in batch.target], dtype=torch.bool, device=utis.device)
-        if int(on.sum()) >= MIN_SOURCE_PAIRS:
-            shift[on] = (batch.spot[on] - batch.spot_other[on]).median(0).values
+    for name, pairs in batch.camera_offsets().items():  # HeliOS - UTIS per target
+        if pairs["pairs"] >= MIN_SOURCE_PAIRS:
+            on = utis & torch.tensor([t == name for t in batch.target], dtype=torch.bool, device=utis.device)
+            shift[on] = pairs["offset"]
             known |= on
     return shift, known
 

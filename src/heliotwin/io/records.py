@@ -202,6 +202,29 @@ class RecordTable:
         out.source = [prefer if h else SOURCES[1 - p] for h in has.tolist()]
         return out
 
+    def camera_offsets(self) -> dict:
+        """Per target, how far the two cameras' centroids of the same spot lie apart.
+
+        Returns
+        -------
+        dict
+            Target name -> ``{"pairs", "heliostats", "offset"}``: the records with both centroids, the
+            heliostats among them, and the median HeliOS - UTIS centroid over those records, [3] ENU [m]
+            (componentwise, so one bad centroid cannot move it). Targets without a pair are left out, as is
+            everything for tables without per-source centroids (synthetic records).
+        """
+        if self.focal_spots is None or len(self) == 0:
+            return {}
+        both = torch.isfinite(self.focal_spots).all(-1).all(-1)
+        diff = self.focal_spots[:, 0] - self.focal_spots[:, 1]
+        out = {}
+        for name in dict.fromkeys(self.target):  # the few targets of a plant, not records or heliostats
+            on = both & torch.tensor([t == name for t in self.target], dtype=torch.bool, device=both.device)
+            if bool(on.any()):
+                out[name] = {"pairs": int(on.sum()), "heliostats": int(self.heliostat_index[on].unique().numel()),
+                             "offset": diff[on].median(0).values}
+        return out
+
     def of(self, h: int) -> torch.Tensor:
         """Indices (into this batch) of the records of heliostat ``h``."""
         return (self.heliostat_index == h).nonzero().flatten()
