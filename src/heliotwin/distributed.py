@@ -5,8 +5,8 @@ all heliostats still shade and block the shard's rays, so the shard's factors ar
 single-process run. The receiver map is summed over ranks (``all_reduce``) and the per-heliostat factors are
 gathered (``all_gather``, padded to the largest shard), so every rank ends with the whole field's
 :class:`~heliotwin.raytrace.field.FieldResult`. Works with any backend (gloo on CPU, NCCL on GPU); start
-with ``torchrun --nproc-per-node N`` or :func:`torch.multiprocessing.spawn` after
-:func:`torch.distributed.init_process_group`, or let :func:`run_sharded` spawn N local gloo processes.
+with ``torchrun --nproc-per-node N`` or :func:`torch.multiprocessing.spawn` after :func:`init_process_group`
+(this module's: see there why not torch's directly), or let :func:`run_sharded` spawn N local gloo processes.
 
 The map is the single-process one in every ``flux_mode``: the ranks agree on the footprint window, and in
 ``grouped`` mode on the footprint classes and their kernels (all ranks' footprints), so their maps sum to the
@@ -24,10 +24,25 @@ import torch.distributed as dist
 
 from .raytrace.field import FieldResult, field_optics
 
-__all__ = ["shard", "field_optics_sharded", "run_sharded", "run_aimpoints_sharded"]
+__all__ = ["init_process_group", "shard", "field_optics_sharded", "run_sharded", "run_aimpoints_sharded"]
 
 _PER_HELIOSTAT = ("aim", "normal", "cosine", "shading", "tower_shading", "blocking", "attenuation", "intercept",
                   "reflectance", "efficiency", "power_w", "mirror_area")
+
+
+def init_process_group(backend: str = "gloo", **kwargs) -> None:
+    """:func:`torch.distributed.init_process_group` (same arguments), with ``torch._dynamo`` imported first.
+
+    Why: the first ``torch.optim`` optimiser (the aim-point optimiser's Adam) imports ``torch._dynamo``
+    lazily, and imported while a process group exists it keeps references to that group. Then
+    :func:`torch.distributed.destroy_process_group` no longer frees the group; the gloo backend is torn down
+    at interpreter exit instead, where it can abort the process ("terminate called without an active
+    exception", SIGABRT: about one two-rank aim-point run in four with torch 2.13 on CPU). Imported before
+    the group exists, it holds nothing. Call this instead of torch's own under ``torchrun`` too.
+    """
+    import torch._dynamo  # noqa: F401  (imported for its side effect; see above)
+
+    dist.init_process_group(backend, **kwargs)
 
 
 def shard(num_heliostats: int, rank: int, world_size: int) -> torch.Tensor:
@@ -77,7 +92,7 @@ def field_optics_sharded(plant, sun_direction, *, group=None, **kwargs) -> Field
 
 def _run_rank(rank: int, world: int, folder: str, threads: int) -> None:
     torch.set_num_threads(threads)
-    dist.init_process_group("gloo", init_method=f"file://{folder}/store", rank=rank, world_size=world)
+    init_process_group("gloo", init_method=f"file://{folder}/store", rank=rank, world_size=world)
     try:
         job = torch.load(f"{folder}/job.pt", weights_only=False)
         with torch.no_grad():
@@ -108,7 +123,7 @@ def _run_aim_rank(rank: int, world: int, folder: str, threads: int) -> None:
     from .optimise.aimpoints import calibrate_images, optimise_aimpoints
 
     torch.set_num_threads(threads)
-    dist.init_process_group("gloo", init_method=f"file://{folder}/store", rank=rank, world_size=world)
+    init_process_group("gloo", init_method=f"file://{folder}/store", rank=rank, world_size=world)
     try:
         job = torch.load(f"{folder}/job.pt", weights_only=False)
         kw = dict(job["kwargs"])
