@@ -21,6 +21,10 @@ the heliostats with >= 50 records. Figures are medians over heliostats [mrad].
    (no fit): the constant that ``fit_focal_spot = "harmonised"`` removes
    (:func:`heliotwin.calibrate.inputs.source_offsets`; its effect on the protocol is a CV candidate of
    ``bench_carryover.py``).
+5. **A trend that extrapolates** (``--part trend``): each heliostat fitted on every record before its latest
+   30; the test block's residual after removing the median level of the training residuals of the last W
+   days, or their Theil-Sen line extrapolated to each test record's time (a local-linear-trend drift model's
+   forecast, in the most favourable case: no gap between training and test).
 
 Measured on ``../shared/data/paint`` (11 heliostats, 1 thread, 2026-11-22, ~8 min; N=30 in part 3, whose fit
 has the nominal prior only, hence its larger test residual than the benchmark's):
@@ -41,13 +45,17 @@ has the nominal prior only, hence its larger test residual than the benchmark's)
   the "up" medians are 7.8/8.0/6.3, -2.5/-1.8/-1.6 and 2.5/4.2/4.9 cm. Sideways the heliostats differ more
   (-11..+13 cm). A camera offset of a few cm is 0.1-0.4 mrad of normal at 50-280 m: real, stable and the
   plant's, so it is a candidate (``harmonised``) that the CV may choose; see ``bench_carryover.py``.
+* trend (~5 s): latest-30 residual static 1.021, level of the last 30 / 90 / 180 d 0.998 / 0.939 / 0.926,
+  trend 1.827 / 2.223 / 1.515 mrad; the trend beats the level on 2-3 of 11 heliostats. The offset steps and
+  wanders but does not keep going: a trend term (integrated random walk) would extrapolate noise. Not kept;
+  the random walk (level) is what ``calibrate.drift`` models.
 * The random 5-fold CV figure (0.637, no time order) against the chrono protocol's ~0.9 is the cost of time:
   what the benchmark's ``reference`` rows split into "more records" and "the test block's own offset".
 
 Usage::
 
     python benchmarks/bench_carryover_diagnostics.py [--paint ../shared/data/paint]
-        [--part params,shared,common,sources]
+        [--part params,shared,common,sources,trend]
 """
 from __future__ import annotations
 
@@ -249,12 +257,60 @@ def part_sources(paint, min_pairs=3):
     return out
 
 
+def _level_and_trend(day, res, t, window, min_records=5):
+    """Offset [2] [mrad] at the times ``t`` [T] [days] from the residuals ``res`` [n, 2] at ``day`` [n] within
+    ``window`` days of the latest: (median level, robust linear trend extrapolated). Trend = Theil-Sen slope
+    (scipy) per component, through the window's median point."""
+    from scipy.stats import theilslopes
+
+    sel = day >= day.max() - window
+    if sel.sum() < min_records:
+        sel = np.argsort(day)[-min_records:]
+    d, r = day[sel], res[sel]
+    level = np.median(r, 0)
+    trend = np.stack([np.median(r[:, k]) + theilslopes(r[:, k], d)[0] * (t - np.median(d)) for k in range(2)], 1)
+    return np.broadcast_to(level, (len(t), 2)), trend
+
+
+def part_trend(ids, batch, nominal, windows=(30, 90, 180)):
+    """Does the offset move with a trend that extrapolates? Each heliostat's fit on every record before its
+    latest 30, its residuals [mrad] there, and the test block's residual after removing (a) nothing, (b) the
+    median level of the last W days of training residuals, (c) their Theil-Sen line extrapolated to each test
+    record's time. The favourable case for a trend (no gap between training and test)."""
+    import torch
+
+    from heliotwin.calibrate.params import STONE8
+
+    day = batch.time.numpy() / 86400.0
+    out = {w: {"static": [], "level": [], "trend": []} for w in windows}
+    for h, hid in enumerate(ids):
+        early, late = _chrono_rows(batch, h)
+        sub = batch.subset(torch.as_tensor(np.concatenate([early, late])))
+        kin = _fit(nominal, batch.subset(torch.as_tensor(early)), STONE8)
+        res = _residuals_mrad(kin, sub)
+        r_tr, r_te = res[: len(early)], res[len(early):]
+        ok = np.isfinite(r_tr).all(1) & (np.abs(r_tr) < 5).all(1)
+        for w in windows:
+            level, trend = _level_and_trend(day[early][ok], r_tr[ok], day[late], w)
+            out[w]["static"].append(np.linalg.norm(r_te, axis=1).mean())
+            out[w]["level"].append(np.linalg.norm(r_te - level, axis=1).mean())
+            out[w]["trend"].append(np.linalg.norm(r_te - trend, axis=1).mean())
+        print(f"  {hid}: " + ", ".join(f"W={w} {v['static'][-1]:.3f}/{v['level'][-1]:.3f}/{v['trend'][-1]:.3f}"
+                                       for w, v in out.items()), flush=True)
+    for w, v in out.items():
+        better = int(sum(a < b for a, b in zip(v["trend"], v["level"])))
+        print(f"trend W={w:3d} d: latest-30 residual static {np.median(v['static']):.3f}, level "
+              f"{np.median(v['level']):.3f}, trend {np.median(v['trend']):.3f} mrad; trend beats level on {better} "
+              f"of {len(ids)} heliostats", flush=True)
+    return out
+
+
 def main(argv=None) -> int:
     import torch
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--paint", default=str(DEFAULT_PAINT))
-    ap.add_argument("--part", default="params,shared,common,sources")
+    ap.add_argument("--part", default="params,shared,common,sources,trend")
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -268,6 +324,8 @@ def main(argv=None) -> int:
         part_common(ids, batch, nominal)
     if "sources" in parts:
         part_sources(args.paint)
+    if "trend" in parts:
+        part_trend(ids, batch, nominal)
     return 0
 
 
