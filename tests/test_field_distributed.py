@@ -149,8 +149,11 @@ def test_destroy_frees_the_group_after_an_optimiser(tmp_path):
     down at interpreter exit and sometimes aborts the rank (SIGABRT). Only this variable's own reference and
     getrefcount's argument may remain.
     """
-    for ours in (True, False):
-        mp.spawn(_release_worker, args=(1, str(tmp_path), ours), nprocs=1, join=True)
+    mp.spawn(_release_worker, args=(1, str(tmp_path), True), nprocs=1, join=True)
+    try:
+        mp.spawn(_release_worker, args=(1, str(tmp_path), False), nprocs=1, join=True)
+    except mp.ProcessExitedException:
+        pass  # the control rank may abort at exit: the very symptom (it has written its counts by then)
     before, after = map(int, (tmp_path / "refs-1.txt").read_text().split())
     assert after == 2 < before
     # the control: torch's own init keeps references past destroy (if torch fixes this, drop the workaround)
