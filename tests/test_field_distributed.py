@@ -159,3 +159,28 @@ def test_destroy_frees_the_group_after_an_optimiser(tmp_path):
     # the control: torch's own init keeps references past destroy (if torch fixes this, drop the workaround)
     _, torch_after = map(int, (tmp_path / "refs-0.txt").read_text().split())
     assert torch_after > 2, "torch now frees the group itself: heliotwin.distributed.init_process_group can go"
+
+
+def test_aimpoints_command_nproc_2_equals_one_process(tmp_path, capsys):
+    """`aimpoints --nproc 2` (run_aimpoints_sharded: spawned gloo ranks) writes the one-process aim points."""
+    import json
+
+    from helpers.cli import run_cli
+
+    from heliotwin.io.scenario import load_scenario, save_scenario
+
+    plant, atm, _, limit = _aim_case()
+    h5 = tmp_path / "p.h5"
+    save_scenario(plant, h5, extras=atm.to_extras())
+    out = {}
+    for n in (1, 2):
+        js, aimed = tmp_path / f"a{n}.json", tmp_path / f"a{n}.h5"
+        code, _, err = run_cli(capsys, "aimpoints", "--scenario", h5, "--sun-azimuth", math.degrees(0.2),
+                               "--sun-elevation", 45, "--peak-limit", limit, "--iterations", 100, "--nproc", n,
+                               "--no-baselines", "-o", aimed, "--json", js, "--quiet")
+        assert code == 0, err
+        out[n] = (json.loads(js.read_text())["instants"][0]["optimised"],
+                  load_scenario(aimed).learned["aimpoints"]["instants"]["i000"]["aim"])
+    assert out[2][0]["limit_met"] and out[2][0]["violation"] == 0.0
+    assert out[2][0]["peak_flux_w_m2"] == pytest.approx(out[1][0]["peak_flux_w_m2"], rel=1e-5)
+    assert float((out[2][1] - out[1][1]).abs().max()) < 1e-4  # [m]: only the summation order differs
