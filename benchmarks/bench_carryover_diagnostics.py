@@ -282,7 +282,7 @@ def part_trend(ids, batch, nominal, windows=(30, 90, 180)):
     from heliotwin.calibrate.params import STONE8
 
     day = batch.time.numpy() / 86400.0
-    out = {w: {"static": [], "level": [], "trend": []} for w in windows}
+    static, out = [], {w: {"level": [], "trend": []} for w in windows}
     for h, hid in enumerate(ids):
         early, late = _chrono_rows(batch, h)
         sub = batch.subset(torch.as_tensor(np.concatenate([early, late])))
@@ -290,19 +290,19 @@ def part_trend(ids, batch, nominal, windows=(30, 90, 180)):
         res = _residuals_mrad(kin, sub)
         r_tr, r_te = res[: len(early)], res[len(early):]
         ok = np.isfinite(r_tr).all(1) & (np.abs(r_tr) < 5).all(1)
+        static.append(np.linalg.norm(r_te, axis=1).mean())
         for w in windows:
             level, trend = _level_and_trend(day[early][ok], r_tr[ok], day[late], w)
-            out[w]["static"].append(np.linalg.norm(r_te, axis=1).mean())
             out[w]["level"].append(np.linalg.norm(r_te - level, axis=1).mean())
             out[w]["trend"].append(np.linalg.norm(r_te - trend, axis=1).mean())
-        print(f"  {hid}: " + ", ".join(f"W={w} {v['static'][-1]:.3f}/{v['level'][-1]:.3f}/{v['trend'][-1]:.3f}"
-                                       for w, v in out.items()), flush=True)
+        print(f"  {hid}: static {static[-1]:.3f}, " + ", ".join(
+            f"W={w} {v['level'][-1]:.3f}/{v['trend'][-1]:.3f}" for w, v in out.items()), flush=True)
     for w, v in out.items():
         better = int(sum(a < b for a, b in zip(v["trend"], v["level"])))
-        print(f"trend W={w:3d} d: latest-30 residual static {np.median(v['static']):.3f}, level "
+        print(f"trend W={w:3d} d: latest-30 residual static {np.median(static):.3f}, level "
               f"{np.median(v['level']):.3f}, trend {np.median(v['trend']):.3f} mrad; trend beats level on {better} "
               f"of {len(ids)} heliostats", flush=True)
-    return out
+    return {"static": static, **out}
 
 
 def main(argv=None) -> int:
