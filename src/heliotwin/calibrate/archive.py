@@ -17,7 +17,7 @@ prior's mean. The prior carries no record of a calibrated heliostat.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -43,6 +43,13 @@ class PriorArchive:
     names : tuple of str, length P
     source : str
         Where the records came from (a path, for reports).
+    corrected : dict
+        Heliostat id -> the suspicious property values replaced before its fit
+        (:func:`~heliotwin.calibrate.suspicious.check_and_correct`); empty when none.
+    properties : Kinematics or None
+        Nominal kinematics of every heliostat of the archive's plant, with ``property_ids``: the field whose
+        medians judge a run's suspicious property values (:func:`reference_kinematics`).
+    property_ids : list of str
     """
 
     heliostat_ids: list
@@ -50,6 +57,9 @@ class PriorArchive:
     counts: torch.Tensor
     names: tuple = STONE8
     source: str = ""
+    corrected: dict = field(default_factory=dict)
+    properties: Kinematics | None = None
+    property_ids: list = field(default_factory=list)
 
     @classmethod
     def fit(cls, kinematics: Kinematics, records, *, names=STONE8, source: str = "",
@@ -75,12 +85,26 @@ class PriorArchive:
     def from_dataset(cls, dataset, *, focal_spot: str = "HeliOS", min_records: int = priors.MIN_PRIOR_RECORDS,
                      source: str = "", exclude=()) -> PriorArchive:
         """Fit every heliostat of a loaded PAINT folder (:class:`heliotwin.io.paint.PaintDataset`) except
-        ``exclude`` (never fitted: they could not enter a prior for a run that calibrates them anyway)."""
+        ``exclude`` (never fitted: they could not enter a prior for a run that calibrates them anyway).
+
+        Suspicious property values are checked first, as a run checks its own heliostats
+        (:func:`~heliotwin.calibrate.suspicious.check_and_correct`, field medians over the whole plant, every
+        record of the archive heliostat): a heliostat with a wrong actuator value (PAINT's BF41) would
+        otherwise enter the prior with deviations of hundreds of mrad. Winsorising bounds such a heliostat to
+        3 robust sigmas but still lets it widen the covariance and couple the parameters it is wrong in.
+        """
+        from .suspicious import check_and_correct
+
         keep = [h for h in dataset.records.heliostat_ids if h not in set(exclude)]
         table = dataset.records.for_heliostats(keep).with_focal_spot(focal_spot)
+        plant_kin = dataset.plant.field.kinematics
         ids = list(dataset.plant.field.ids)
-        kin = dataset.plant.field.kinematics.index([ids.index(h) for h in table.heliostat_ids])
-        return cls.fit(kin, table, source=source or str(getattr(dataset, "root", "")), min_records=min_records)
+        kin = plant_kin.index([ids.index(h) for h in table.heliostat_ids])
+        kin, findings = check_and_correct(kin, table.heliostat_ids, plant_kin, table)
+        archive = cls.fit(kin, table, source=source or str(getattr(dataset, "root", "")), min_records=min_records)
+        archive.corrected = {h: f["flags"] for h, f in findings.items() if f.get("corrected")}
+        archive.properties, archive.property_ids = plant_kin, ids
+        return archive
 
     def prior(self, exclude=(), *, covariance: str = "full", shrink: float = 0.2, widen: float = 1.0,
               min_records: int = priors.MIN_PRIOR_RECORDS) -> priors.PlantPrior:
@@ -96,7 +120,9 @@ class PriorArchive:
                                  f"{priors.MIN_HELIOSTATS}")
         pp = priors.plant_prior(self.deviations[keep], self.names, [self.heliostat_ids[i] for i in keep],
                                 covariance=covariance, shrink=shrink, widen=widen)
-        pp.settings.update({"min_records": int(min_records), "source": self.source})
+        used = {self.heliostat_ids[i] for i in keep}
+        pp.settings.update({"min_records": int(min_records), "source": self.source,
+                            "corrected_properties": sorted(h for h in self.corrected if h in used)})
         return pp
 
 
@@ -138,3 +164,50 @@ def resolve_prior(source, calibrated, *, settings: dict | None = None) -> priors
     if tuple(source.names) != tuple(STONE8):
         raise HeliotwinError(f"the stored prior is over {', '.join(source.names)}, lm needs the Stone/Jülich 8")
     return source
+
+
+def reference_kinematics(source, skip=()) -> tuple[list, Kinematics | None]:
+    """Property values of the heliostats of a ``--prior-from`` source, for the field medians that judge a
+    run's suspicious property values (:func:`~heliotwin.calibrate.suspicious.check_and_correct`).
+
+    A run on a small PAINT folder (a few heliostats) has too few heliostats of its own for a field median;
+    the prior's plant has more. Only property files are read, never a record.
+
+    Parameters
+    ----------
+    source : str, path, PriorArchive, PlantPrior or None
+        A PAINT folder, a scenario file (its plant's heliostats), a :class:`PriorArchive` or anything else
+        (-> nothing).
+    skip : iterable of str
+        Heliostat ids already in the run's own plant (not counted twice).
+
+    Returns
+    -------
+    ids : list of str
+        The heliostats returned (possibly empty).
+    kinematics : Kinematics or None
+        Their nominal kinematics; None when there are none.
+    """
+    import os
+
+    if isinstance(source, PriorArchive):
+        ids, kin = source.property_ids, source.properties
+    elif isinstance(source, (str, os.PathLike)) and os.path.isdir(source):
+        from ..io.paint import load_paint
+
+        fld = load_paint(source, with_records=False).plant.field
+        ids, kin = list(fld.ids), fld.kinematics
+    elif isinstance(source, (str, os.PathLike)) and os.path.isfile(source):
+        from ..io.scenario import load_scenario
+
+        fld = load_scenario(source).plant.field
+        ids, kin = list(fld.ids), fld.kinematics
+    else:
+        return [], None
+    if kin is None:
+        return [], None
+    skip = set(skip)
+    keep = [i for i, h in enumerate(ids) if h not in skip]
+    if not keep:
+        return [], None
+    return [ids[i] for i in keep], kin.index(keep)

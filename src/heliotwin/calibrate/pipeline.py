@@ -300,11 +300,22 @@ def split(run: Run) -> None:
 
 
 def check_properties(run: Run) -> None:
-    """Suspicious property values, corrected where the training + validation records support it."""
+    """Suspicious property values, corrected where the training + validation records support it.
+
+    The field medians the values are judged against come from every heliostat of the run's plant and, with
+    ``prior_from``, of the prior's plant too (:func:`~heliotwin.calibrate.archive.reference_kinematics`):
+    a run on a folder of a few heliostats would otherwise have no field to compare with.
+    """
     if run.cfg.correct_suspicious:
+        from ..field.plant import Kinematics
+        from .archive import reference_kinematics
+
         seen = RecordTable.concatenate([run.train, run.validation])
-        run.nominal, run.findings = check_and_correct(run.nominal_raw, run.run_ids,
-                                                      run.dataset.plant.field.kinematics, seen)
+        field_kin = run.dataset.plant.field.kinematics
+        _, extra = reference_kinematics(run.cfg.prior_from, skip=run.dataset.plant.field.ids)
+        if extra is not None:
+            field_kin = Kinematics.concatenate([field_kin, extra.to(device=field_kin.initial_angle.device)])
+        run.nominal, run.findings = check_and_correct(run.nominal_raw, run.run_ids, field_kin, seen)
     else:
         run.nominal, run.findings = run.nominal_raw, {}
 
