@@ -117,3 +117,15 @@ def test_lm_headline_on_every_heliostat(dataset):
     ov = report["overall"]
     assert ov["n_heliostats"] >= 10
     assert ov["median_of_mean_test_mrad"] < 1.0 < 15 < ov["nominal_median_of_mean_test_mrad"]
+
+
+def test_a_time_ordered_split_without_record_times_says_why(paint_dir, tmp_path):
+    """A folder without metadata/calibration-metadata.csv has no record times: a chrono split cannot place any
+    record, and the skip reason names the missing file instead of only 'too few training records'."""
+    from heliotwin.calibrate.pipeline import RunConfig, run_calibration
+
+    root = copy_paint(paint_dir, tmp_path, ("BG62",), metadata=False)
+    rep, _, _ = run_calibration(RunConfig(paint=str(root), split="chrono", train=30, test=30))
+    r = rep["heliostats"]["BG62"]
+    assert r["status"] == "skipped" and "calibration-metadata.csv" in r["reason"], r
+    assert r["split"]["dropped_no_time"] == 113

@@ -479,7 +479,12 @@ def _heliostat_report(run: Run, h: int, hid: str, per_h_seconds: float) -> dict:
     ok = bool(model.ok[h])
     rep = {"status": "ok" if ok else "skipped", "split": info}
     if not ok:
-        rep["reason"] = model.reasons.get(hid, f"too few training records ({info['train']} < {MIN_TRAIN})")
+        why = f"too few training records ({info['train']} < {MIN_TRAIN})"
+        if info.get("dropped_no_time"):
+            # a time-ordered split cannot place a record without a time (metadata/calibration-metadata.csv)
+            why += (f"; {info['dropped_no_time']} record(s) have no DateTime in metadata/calibration-metadata.csv, "
+                    f"which the {run.cfg.split} split needs")
+        rep["reason"] = model.reasons.get(hid, why)
     for name, b in list(run.parts.items()) + [("nominal_test", run.test)]:
         e, m = run.errors[name]
         mine = b.heliostat_index == h
