@@ -147,16 +147,23 @@ def test_a_wrong_property_is_corrected_before_its_heliostat_enters_the_prior(pai
 
 
 def test_a_small_folder_judges_its_properties_against_the_prior_plant(paint_dir, tmp_path):
-    """A PAINT folder of two heliostats has no field median of its own (BF41's wrong stroke then goes
-    unnoticed and its calibration misses by ~200 mrad); with ``prior_from`` the prior's plant supplies it."""
+    """A PAINT folder of three heliostats has no field median of its own (BF41's wrong stroke then goes
+    unnoticed and its calibration misses by ~200 mrad); with ``prior_from`` the prior's plant supplies it.
+    Three heliostats are also too few for a field prior, so the plant prior judges AC33's short axis-2
+    stroke: its correction raises the nominal error (53 -> 66 mrad, the fallback rule would refuse it) but
+    needs far more typical deviations, and the calibration is better for it (~1.9 against ~2.8 mrad)."""
     from helpers.paint import copy_paint
 
     from heliotwin.calibrate.pipeline import RunConfig, run_calibration
 
-    root = copy_paint(paint_dir, tmp_path, ("BF41", "BG62"), metadata=True)
+    root = copy_paint(paint_dir, tmp_path, ("BF41", "AC33", "BG62"), metadata=True)
     alone, _, _ = run_calibration(RunConfig(paint=str(root), train=30, test=30))
     assert "suspicious" not in alone["heliostats"]["BF41"] and alone["heliostats"]["BF41"]["mean_test_mrad"] > 50
     rep, _, _ = run_calibration(RunConfig(paint=str(root), train=30, test=30, prior_from=str(paint_dir)))
     r = rep["heliostats"]["BF41"]
     assert r["suspicious"]["corrected"], r["suspicious"]
     assert r["mean_test_mrad"] < 3.0 and rep["heliostats"]["BG62"]["mean_test_mrad"] < 3.0, rep["heliostats"]
+    ac = rep["heliostats"]["AC33"]["suspicious"]
+    assert ac["corrected"] and ac["posterior_cost_after_correction"] < ac["posterior_cost_before"], ac
+    assert ac["nominal_train_mrad_after_correction"] > ac["nominal_train_mrad_before"]  # the fallback would refuse
+    assert rep["heliostats"]["AC33"]["mean_test_mrad"] < 2.3

@@ -3,8 +3,9 @@
 :func:`run_calibration` is what ``heliotwin calibrate`` does; benchmarks and tests call it directly. It
 runs, in order, on one :class:`Run` state: ``select`` (heliostats asked for), ``prepare`` (validated
 records; heliostats with too few are skipped), ``rebatch`` (the run's heliostat axis), ``split``
-(train/validation/test), ``check_properties`` (suspicious property values, corrected where the training
-records support it), ``learn_prior`` (a plant prior from other heliostats, when asked for), ``fit`` (the
+(train/validation/test), ``choose_settings`` (``--settings cv|stored``), ``learn_prior`` (a plant prior
+from other heliostats, when asked for), ``check_properties`` (suspicious property values, corrected where
+the training records support it), ``fit`` (the
 method), ``evaluate`` (pointing error and miss distance of calibrated
 and nominal model), ``online_refit`` (``--split online``: test errors of refits as records arrive),
 ``predict_intervals`` (predictive error and its 90 % interval per test record, for
@@ -211,6 +212,9 @@ class Run:
     fit_seconds: float = 0.0
     errors: dict = field(default_factory=dict)
     plant_prior: object = None
+    #: ``cfg.prior_from`` as given: ``choose_settings`` may replace the config by one without it, but the
+    #: prior's plant still judges the run's property values (``check_properties``).
+    prior_source: object = None
     intervals: dict = field(default_factory=dict)
     interval_inputs: dict = field(default_factory=dict)
     device: str = "cpu"
@@ -223,6 +227,7 @@ class Run:
 def select(run: Run) -> None:
     """The heliostats asked for (``--heliostats``, default all); an unknown id is a one-line error."""
     cfg = run.cfg
+    run.prior_source = cfg.prior_from
     if run.dataset is None:
         run.dataset = load_paint(cfg.paint, plane_tolerance=cfg.plane_tolerance)
     if run.device != "cpu":
@@ -304,7 +309,9 @@ def check_properties(run: Run) -> None:
 
     The field medians the values are judged against come from every heliostat of the run's plant and, with
     ``prior_from``, of the prior's plant too (:func:`~heliotwin.calibrate.archive.reference_kinematics`):
-    a run on a folder of a few heliostats would otherwise have no field to compare with.
+    a run on a folder of a few heliostats would otherwise have no field to compare with. For the same reason
+    the run's plant prior (``learn_prior`` runs first) judges a correction when the run's own heliostats are
+    too few for a field prior.
     """
     if run.cfg.correct_suspicious:
         from ..field.plant import Kinematics
@@ -312,10 +319,13 @@ def check_properties(run: Run) -> None:
 
         seen = RecordTable.concatenate([run.train, run.validation])
         field_kin = run.dataset.plant.field.kinematics
-        _, extra = reference_kinematics(run.cfg.prior_from, skip=run.dataset.plant.field.ids)
+        _, extra = reference_kinematics(run.prior_source, skip=run.dataset.plant.field.ids)
         if extra is not None:
             field_kin = Kinematics.concatenate([field_kin, extra.to(device=field_kin.initial_angle.device)])
-        run.nominal, run.findings = check_and_correct(run.nominal_raw, run.run_ids, field_kin, seen)
+        pp = run.plant_prior
+        fallback = None if pp is None else (pp.mean, pp.sigma)
+        run.nominal, run.findings = check_and_correct(run.nominal_raw, run.run_ids, field_kin, seen,
+                                                      fallback_prior=fallback)
     else:
         run.nominal, run.findings = run.nominal_raw, {}
 
@@ -575,8 +585,8 @@ def plot_arrays(run: Run) -> None:
 
 #: The steps of :func:`run_calibration`, in order (name, function of :class:`Run`).
 STEPS = (("select", select), ("prepare", prepare), ("rebatch", rebatch), ("split", split),
-         ("check_properties", check_properties), ("choose_settings", choose_settings),
-         ("learn_prior", learn_prior), ("fit", fit), ("evaluate", evaluate),
+         ("choose_settings", choose_settings), ("learn_prior", learn_prior),
+         ("check_properties", check_properties), ("fit", fit), ("evaluate", evaluate),
          ("online_refit", online_refit), ("predict_intervals", predict_intervals),
          ("report_heliostats", report_heliostats), ("report_overall", report_overall),
          ("report_records", report_records), ("plot_arrays", plot_arrays))

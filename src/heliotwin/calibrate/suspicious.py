@@ -5,7 +5,10 @@ field's, with matching odd initial angles). A calibration would then spend its p
 gross error and extrapolate badly, or fail outright. The check is two-fold:
 
 1. *Values*: each actuator value is compared with the field median over every heliostat of the plant
-   (relative deviation for lengths/increments, absolute for angles, thresholds :data:`THRESHOLDS`).
+   (relative deviation for lengths/increments, absolute for angles, thresholds :data:`THRESHOLDS`). A run
+   passes the heliostats of its PAINT folder and of its ``--prior-from`` plant, so that a folder of a few
+   heliostats is still judged against a field (:data:`MIN_FIELD`); the prior's archive checks its own
+   heliostats the same way before fitting them (:meth:`.archive.PriorArchive.from_dataset`).
 2. *Records*: the flagged values are replaced by the field medians and the nominal pointing error on the
    heliostat's TRAINING records is compared. The correction is adopted only when it reduces that error by
    :data:`ACCEPT_FACTOR` or more; otherwise the values are reported as unusual but consistent with the
@@ -31,6 +34,7 @@ THRESHOLDS = {"increment": ("relative", 0.25), "offset": ("relative", 0.25), "pi
               "initial_stroke_length": ("relative", 0.5), "initial_angle": ("absolute", 0.2)}
 ACCEPT_FACTOR = 3.0
 NOMINAL_FACTOR = 5.0
+#: Fewest heliostats whose median is a field median (below it nothing is flagged).
 MIN_FIELD = 5
 
 
@@ -104,14 +108,16 @@ def _judge_correction(kin: Kinematics, h: int, flags: list, medians: dict, train
     return entry
 
 
-def check_and_correct(kin: Kinematics, ids, field_kin: Kinematics, train: RecordTable) -> tuple[Kinematics, dict]:
+def check_and_correct(kin: Kinematics, ids, field_kin: Kinematics, train: RecordTable, *,
+                      fallback_prior=None) -> tuple[Kinematics, dict]:
     """Flag suspicious properties and adopt a correction where the training records support it.
 
     The decision compares, for a flagged heliostat, the original and the corrected properties by their
     posterior cost under the field prior (:mod:`~heliotwin.calibrate.priors`, learned from the *other*,
     unflagged heliostats' training records): the variant whose best fit needs the smaller, more
-    field-typical deviations for the same data wins. Without a field prior (too few heliostats), a
-    correction is adopted when it lowers the nominal training error :data:`ACCEPT_FACTOR`-fold.
+    field-typical deviations for the same data wins. When the run has too few heliostats for a field prior,
+    ``fallback_prior`` (the plant prior of ``--prior-from``) takes its place; without either, a correction
+    is adopted when it lowers the nominal training error :data:`ACCEPT_FACTOR`-fold.
 
     Parameters
     ----------
@@ -122,6 +128,9 @@ def check_and_correct(kin: Kinematics, ids, field_kin: Kinematics, train: Record
         Every heliostat of the plant (for the field medians).
     train : RecordTable
         Training records only (validation/test are never looked at).
+    fallback_prior : (torch.Tensor [8], torch.Tensor [8]), optional
+        Mean and sigma of the Stone/Jülich 8 deviations (physical units) learned from other heliostats,
+        used only when the run's own heliostats cannot form a field prior.
 
     Returns
     -------
@@ -144,9 +153,11 @@ def check_and_correct(kin: Kinematics, ids, field_kin: Kinematics, train: Record
     flags = flag_values(kin, ids, medians)
     fp = None
     if flags:
-        usable = (counts >= MIN_TRAIN) & torch.tensor([hid not in flags for hid in ids])
+        usable = (counts >= MIN_TRAIN) & torch.tensor([hid not in flags for hid in ids], device=counts.device)
         loose, _ = fit_lm(kin, train.subset(usable[train.heliostat_index]), names=STONE8, prior_sigma=LOOSE_SIGMA)
         fp = field_prior(loose, usable, STONE8)
+        if fp is None and fallback_prior is not None:
+            fp = tuple(t.to(device=loose.device, dtype=loose.dtype) for t in fallback_prior)
     changes = {f: getattr(kin, f).clone() for f in ACTUATOR_FIELDS}
     for h, hid in enumerate(ids):
         entry = {}
