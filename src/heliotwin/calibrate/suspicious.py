@@ -9,10 +9,11 @@ gross error and extrapolate badly, or fail outright. The check is two-fold:
    passes the heliostats of its PAINT folder and of its ``--prior-from`` plant, so that a folder of a few
    heliostats is still judged against a field (:data:`MIN_FIELD`); the prior's archive checks its own
    heliostats the same way before fitting them (:meth:`.archive.PriorArchive.from_dataset`).
-2. *Records*: the flagged values are replaced by the field medians and the nominal pointing error on the
-   heliostat's TRAINING records is compared. The correction is adopted only when it reduces that error by
-   :data:`ACCEPT_FACTOR` or more; otherwise the values are reported as unusual but consistent with the
-   records (AK32's axis 2 is such a case) and kept.
+2. *Records*: the flagged values are replaced by the field medians and both variants are fitted to the
+   heliostat's TRAINING records. The correction is adopted when its best fit has the lower posterior cost
+   under the field prior (of the run's other heliostats, or the plant prior when they are too few); with
+   neither prior, only when it lowers the nominal training error :data:`ACCEPT_FACTOR`-fold. Otherwise the
+   values are reported as unusual but consistent with the records (AK32's axis 2 is such a case) and kept.
 
 Also flagged: a nominal training error far above the field's (:data:`NOMINAL_FACTOR` x the median).
 """
