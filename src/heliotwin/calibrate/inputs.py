@@ -86,7 +86,7 @@ def source_offsets(batch: RecordTable) -> tuple[torch.Tensor, torch.Tensor]:
         [s != "UTIS" for s in batch.source], dtype=torch.bool, device=known.device)
     for name, pairs in batch.camera_offsets().items():  # HeliOS - UTIS per target
         if pairs["pairs"] >= MIN_SOURCE_PAIRS:
-            on = utis & torch.tensor([t == name for t in batch.target], dtype=torch.bool, device=utis.device)
+            on = utis & batch.on_target(name)
             shift[on] = pairs["offset"]
             known |= on
     return shift, known

@@ -202,6 +202,10 @@ class RecordTable:
         out.source = [prefer if h else SOURCES[1 - p] for h in has.tolist()]
         return out
 
+    def on_target(self, name: str) -> torch.Tensor:
+        """[R] bool: the records whose focal spot lies on target ``name``."""
+        return torch.tensor([t == name for t in self.target], dtype=torch.bool, device=self.spot.device)
+
     def camera_offsets(self) -> dict:
         """Per target, how far the two cameras' centroids of the same spot lie apart.
 
@@ -219,7 +223,7 @@ class RecordTable:
         diff = self.focal_spots[:, 0] - self.focal_spots[:, 1]
         out = {}
         for name in dict.fromkeys(self.target):  # the few targets of a plant, not records or heliostats
-            on = both & torch.tensor([t == name for t in self.target], dtype=torch.bool, device=both.device)
+            on = both & self.on_target(name)
             if bool(on.any()):
                 out[name] = {"pairs": int(on.sum()), "heliostats": int(self.heliostat_index[on].unique().numel()),
                              "offset": diff[on].median(0).values}
