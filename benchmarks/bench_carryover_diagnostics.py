@@ -1,4 +1,4 @@
-"""What else could carry the chrono figure (issue 10)? Three diagnostics, each an idea that was tried and not kept.
+"""What else could carry the chrono figure (issue 10)? Diagnostics, each an idea that was tried and not kept.
 
 Every fit here uses the calibration's own conventions (properties corrected where the records support it,
 :func:`heliotwin.calibrate.suspicious.check_and_correct`; UTIS centroids for fitting,
@@ -25,6 +25,10 @@ the heliostats with >= 50 records. Figures are medians over heliostats [mrad].
    30; the test block's residual after removing the median level of the training residuals of the last W
    days, or their Theil-Sen line extrapolated to each test record's time (a local-linear-trend drift model's
    forecast, in the most favourable case: no gap between training and test).
+6. **The heliostat's place in the field** (``--part position``): is a heliostat's kinematic deviation
+   predicted better by its neighbours (median of the k nearest) or by a plane in (east, north) than by the
+   plant median the plant prior is centred on? Leave-one-heliostat-out over the archive's fits (heliostats
+   with >= 15 records): a spatial prior mean would need this.
 
 Measured on ``../shared/data/paint`` (11 heliostats, 1 thread, 2026-11-22, ~8 min; N=30 in part 3, whose fit
 has the nominal prior only, hence its larger test residual than the benchmark's):
@@ -49,13 +53,17 @@ has the nominal prior only, hence its larger test residual than the benchmark's)
   trend 1.827 / 2.223 / 1.515 mrad; the trend beats the level on 2-3 of 11 heliostats. The offset steps and
   wanders but does not keep going: a trend term (integrated random walk) would extrapolate noise. Not kept;
   the random walk (level) is what ``calibrate.drift`` models.
+* position (2026-11-23, ~1 min, 18 heliostats): whitened squared prediction error (median) 7.66 for the plant
+  median against 12.74 / 9.45 for the 3 / 5 nearest heliostats and 12.78 for a plane in (east, north); per
+  parameter the neighbours win on 2-4 of 8 and lose the rest. Correlations with east or north reach |r| ~0.5
+  on 18 heliostats but do not predict a left-out one. Not kept: the plant prior stays centred on the plant.
 * The random 5-fold CV figure (0.637, no time order) against the chrono protocol's ~0.9 is the cost of time:
   what the benchmark's ``reference`` rows split into "more records" and "the test block's own offset".
 
 Usage::
 
     python benchmarks/bench_carryover_diagnostics.py [--paint ../shared/data/paint]
-        [--part params,shared,common,sources,trend]
+        [--part params,shared,common,sources,trend,position]
 """
 from __future__ import annotations
 
@@ -305,12 +313,54 @@ def part_trend(ids, batch, nominal, windows=(30, 90, 180)):
     return {"static": static, **out}
 
 
+def part_position(paint, min_records=15, neighbours=(3, 5)):
+    """Does a heliostat's place in the field predict its deviations? Leave-one-heliostat-out over the archive.
+
+    Each archive heliostat's fitted Stone/Jülich deviations (:class:`heliotwin.calibrate.archive.PriorArchive`,
+    properties checked) are predicted from the *other* heliostats by the plant median (what the plant prior's
+    mean does), by the median of its k nearest heliostats in the field, and by a plane in (east, north). Score:
+    median over heliostats of |prediction error| per parameter [mrad or 1e-3 of the parameter] and of the
+    error's squared norm whitened by the plant's robust spread (the prior's view; lower = a better prior mean).
+    """
+    from heliotwin.calibrate.archive import PriorArchive
+    from heliotwin.io.paint import load_paint
+
+    ds = load_paint(paint)
+    archive = PriorArchive.from_dataset(ds, source=str(paint))
+    keep = (archive.counts >= min_records).numpy()
+    ids = [h for h, k in zip(archive.heliostat_ids, keep) if k]
+    dev = 1e3 * archive.deviations.double().numpy()[keep]
+    field_ids = list(ds.plant.field.ids)
+    en = ds.plant.field.kinematics.position.double().numpy()[[field_ids.index(h) for h in ids], :2]
+    scale = 1.4826 * np.median(np.abs(dev - np.median(dev, 0)), 0)
+    preds = {"plant median": [], **{f"{k} nearest": [] for k in neighbours}, "plane (E, N)": []}
+    design = np.c_[np.ones(len(ids)), en / 100.0]
+    for i in range(len(ids)):
+        others = np.array([j for j in range(len(ids)) if j != i])
+        preds["plant median"].append(np.median(dev[others], 0))
+        near = others[np.argsort(np.linalg.norm(en[others] - en[i], axis=1))]
+        for k in neighbours:
+            preds[f"{k} nearest"].append(np.median(dev[near[:k]], 0))
+        coef, *_ = np.linalg.lstsq(design[others], dev[others], rcond=None)
+        preds["plane (E, N)"].append(design[i] @ coef)
+    out = {}
+    for name, p in preds.items():
+        err = dev - np.array(p)
+        out[name] = {"median_abs": np.median(np.abs(err), 0).tolist(),
+                     "median_whitened_sq": float(np.median(((err / scale) ** 2).sum(1)))}
+        print(f"position: {name:13s} median |error| " + " ".join(f"{v:6.2f}" for v in out[name]["median_abs"])
+              + f"; whitened squared norm {out[name]['median_whitened_sq']:.2f}", flush=True)
+    print(f"position: {len(ids)} heliostats with >= {min_records} records; parameters {', '.join(archive.names)}",
+          flush=True)
+    return out
+
+
 def main(argv=None) -> int:
     import torch
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--paint", default=str(DEFAULT_PAINT))
-    ap.add_argument("--part", default="params,shared,common,sources,trend")
+    ap.add_argument("--part", default="params,shared,common,sources,trend,position")
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -326,6 +376,8 @@ def main(argv=None) -> int:
         part_sources(args.paint)
     if "trend" in parts:
         part_trend(ids, batch, nominal)
+    if "position" in parts:
+        part_position(args.paint)
     return 0
 
 
