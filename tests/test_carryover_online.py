@@ -56,6 +56,35 @@ def test_online_refits_never_see_what_they_predict_and_follow_a_drift():
     assert err.mean() < 0.5 * chrono.mean(), (err.mean(), chrono.mean())
 
 
+def test_online_intervals_come_from_the_refit_before_each_block():
+    """Correct model, Gaussian centroid noise, the online protocol: each test record's 90 % interval is the one
+    of the refit that predicted it (the first block: the fit on the window before the test block), and about
+    90 % of the test records fall inside their interval."""
+    from heliotwin.calibrate.pipeline import Run, RunConfig, online_refit, predict_intervals, record_intervals
+
+    kin = jueliche_like(4)
+    true = apply_deviations(kin, torch.tensor([[TRUE[n] for n in STONE8]] * 4, dtype=F64), STONE8)
+    batch = with_weekly_times(simulate(true, 60, 11, noise=5e-4))
+    options = {"bags": 0, "field_prior": False, "fit_focal_spot": None}
+    run = Run(RunConfig(paint="synthetic", split="online", train=20, test=40, online_step=10, method_options=options))
+    tr, _, te, _ = online_split(batch, 20, 40)
+    run.nominal, run.batch, run.test = kin, batch, batch.subset(te)
+    online_refit(run)
+    predict_intervals(run)  # the online intervals stay those of the refits
+    iv, err = run.intervals, run.errors["test"][0]
+    assert iv["upper"].shape == (len(te),) and bool(torch.isfinite(iv["upper"]).all())
+    assert 0.8 <= iv["inside"].double().mean().item() <= 0.97, iv["inside"].double().mean()
+    assert len(run.interval_inputs["heliostat"]) == len(te)
+    # test records are in heliostat order, each heliostat's in time order: the first block is its first 10
+    first = torch.cat([torch.arange(10) + 40 * h for h in range(4)])
+    window = fit_lm_method(kin, batch.subset(tr), None, **options)
+    pred, _ = record_intervals(window, batch.subset(te[first]), err[first], 0)
+    assert torch.allclose(iv["upper"][first], pred["upper"]) and torch.equal(iv["inside"][first], pred["inside"])
+    later = torch.cat([torch.arange(30, 40) + 40 * h for h in range(4)])
+    stale, _ = record_intervals(window, batch.subset(te[later]), err[later], 0)
+    assert not torch.allclose(iv["upper"][later], stale["upper"])  # later blocks: later refits
+
+
 def test_cli_online_on_real_records(paint_dir, tmp_path, capsys):
     import json
 
@@ -69,6 +98,9 @@ def test_cli_online_on_real_records(paint_dir, tmp_path, capsys):
     r = rep["heliostats"]["BH60"]
     assert r["split"]["test"] == 10 and r["split"]["train"] == 30 and r["test"]["n"] == 10
     assert r["mean_test_mrad"] < 2.0 and r["nominal_mean_test_mrad"] > 10 * r["mean_test_mrad"]
+    # each test record has the predictive interval of the refit that predicted it
+    assert rep["overall"]["interval_90_coverage"] == r["interval_90_coverage"] >= 0.5
+    assert 0.3 < r["expected_test_mrad"] / r["mean_test_mrad"] < 3.0 and r["interval_90_mrad"][1] > 0
     code, out, err = run_cli(capsys, "calibrate", "--paint", paint_dir, "--method", "gradient", "--half-life-days", "5")
     assert code == 2 and "--method lm only" in err and len(err.strip().splitlines()) == 1
 

@@ -10,7 +10,9 @@ was fitted on records before t. For every heliostat (records without a time are 
   trade fidelity for time: a block of ``step`` records is predicted by the fit on the window before the
   block, never by a fit that saw any of them).
 
-The run's returned model (and the scenario it writes) is the fit on the window before the test block.
+The run's returned model (and the scenario it writes) is the fit on the window before the test block. Each
+test record's predictive interval comes from the refit that predicted it (its posterior, and its
+random-walk offset grown from the window's latest record to the record's time).
 With the drift model (``--drift kalman``, :mod:`.drift`) every refit smooths the random-walk offset over its
 window and predicts the block with the filtered offset at the window's latest record: the filter updates as
 records arrive.
@@ -56,11 +58,14 @@ def _cat(xs) -> torch.Tensor:
     return torch.as_tensor(np.concatenate(xs) if xs else np.zeros(0, int), dtype=torch.long)
 
 
-def online_errors(fit_one, batch, test_idx: torch.Tensor, n_train: int, step: int = 5):
+def online_errors(fit_one, batch, test_idx: torch.Tensor, n_train: int, step: int = 5, on_block=None):
     """Pointing error [rad] and miss distance [m] of every test record (in ``test_idx`` order), each predicted
     by ``fit_one(train batch) -> Calibrated`` on the ``n_train`` records before its block of ``step``.
 
     Every refit is one batched fit over all heliostats that still have test records in that block.
+    ``on_block(model, block records, positions [B] in test_idx order, error [B] [rad])``, when given, is
+    called after each refit with what it predicted (the predictive interval of that block comes from that
+    refit, :func:`heliotwin.calibrate.pipeline.online_refit`).
     """
     order = _ordered(batch)
     pos = {int(g): i for i, g in enumerate(test_idx.tolist())}
@@ -83,6 +88,9 @@ def online_errors(fit_one, batch, test_idx: torch.Tensor, n_train: int, step: in
         e, m = model.pointing_error(pred), model.miss_distance(pred)
         ok = model.ok[pred.heliostat_index]
         e, m = torch.where(ok, e.double(), torch.nan), torch.where(ok, m.double(), torch.nan)
-        for k, g in enumerate(np.concatenate(blk).tolist()):
-            err[pos[int(g)]], miss[pos[int(g)]] = e[k], m[k]
+        where = [pos[int(g)] for g in np.concatenate(blk).tolist()]
+        for k, i in enumerate(where):
+            err[i], miss[i] = e[k], m[k]
+        if on_block is not None:
+            on_block(model, pred, where, e)
     return err, miss

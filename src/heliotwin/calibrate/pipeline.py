@@ -436,8 +436,32 @@ def online_refit(run: Run) -> None:
     def fit_one(train):
         return method(run.nominal, train, None, seed=cfg.seed, progress=False, **options)
 
+    blocks = []
+
+    def interval_of_block(model, records, where, err):
+        pred, inputs = record_intervals(model, records, err, cfg.seed)
+        if pred is not None:
+            blocks.append((where, pred, inputs))
+
     _, _, te, _ = _online_indices(run)
-    run.errors["test"] = online_errors(fit_one, run.batch, te, cfg.train, cfg.online_step)
+    run.errors["test"] = online_errors(fit_one, run.batch, te, cfg.train, cfg.online_step,
+                                       on_block=interval_of_block)
+    if blocks:
+        run.intervals, run.interval_inputs = _assemble_blocks(blocks, len(te))
+
+
+def _assemble_blocks(blocks, n: int) -> tuple[dict, dict]:
+    """The online protocol's intervals in test order from its blocks ``(positions, intervals, inputs)``;
+    records of no block stay NaN / outside."""
+    out = {k: torch.full((n,), float("nan"), dtype=torch.float64) for k in ("expected", "median", "lower", "upper")}
+    out["inside"] = torch.zeros(n, dtype=torch.bool)
+    for where, pred, _ in blocks:
+        at = torch.as_tensor(where, dtype=torch.long)
+        for k, v in pred.items():
+            out[k][at] = v.to(out[k].dtype)
+    inputs = {k: torch.cat([b[2][k] for b in blocks]) for k in blocks[0][2] if k != "heliostat"}
+    inputs["heliostat"] = [h for b in blocks for h in b[2]["heliostat"]]
+    return out, inputs
 
 
 def _online_indices(run: Run):
@@ -446,21 +470,43 @@ def _online_indices(run: Run):
     return online_split(run.batch, run.cfg.train, run.cfg.test)
 
 
-def predict_intervals(run: Run) -> None:
-    """Predictive pointing error of every test record from the model's Laplace posterior (when it has one):
-    ``run.intervals`` = {"expected", "median", "lower", "upper"} [R] (rad, interval ``[0, q_0.9]``),
-    "inside" [R] bool."""
-    post = run.model.extras.get("posterior")
-    test = run.test
-    if not post or test is None or len(test) == 0 or run.cfg.split == "online":  # online: one model per block
-        return
+def record_intervals(model: Calibrated, records: RecordTable, err: torch.Tensor, seed: int = 0):
+    """Predictive pointing error of ``records`` from ``model``'s Laplace posterior (when it has one).
+
+    Parameters
+    ----------
+    model : Calibrated
+        A fitted model whose ``extras["posterior"]`` holds the per-heliostat covariance (lm); its random-walk
+        offset state (``extras["drift_state"]``), when present, grows the offset's covariance from the latest
+        training record to each record's time (:func:`heliotwin.calibrate.drift.predicted_covariance`).
+    records : RecordTable
+        The R records to predict (heliostat axis = the model's).
+    err : torch.Tensor, [R]
+        Their measured pointing error [rad] (for ``inside``).
+    seed : int
+        Seed of the predictive samples.
+
+    Returns
+    -------
+    intervals : dict or None
+        ``expected``, ``median``, ``lower`` (0), ``upper`` (the 90 % quantile) [R] [rad] and ``inside`` [R] bool;
+        None when the model has no posterior.
+    inputs : dict
+        What :func:`heliotwin.calibrate.selection.coverage` needs to re-draw the interval with another offset
+        drift or walk scale (rows of the records whose heliostat the model calibrated): ``jacobian``
+        [R', 3, P], ``normal`` [R', 3], ``covariance`` / ``walk`` [R', P, P], ``noise`` [R'] [rad], ``error``
+        [R'] [rad], ``heliostat`` (R' ids).
+    """
+    post = model.extras.get("posterior")
+    if not post or len(records) == 0:
+        return None, {}
     from .lm import record_jacobian
     from .uncertainty import predictive
 
-    model, hidx = run.model, test.heliostat_index
-    _, jac = record_jacobian(model.nominal.index(hidx), test, model.delta.detach()[hidx], model.names)
-    normal, _ = model.normals(test)
-    err = run.errors["test"][0].double()
+    hidx = records.heliostat_index
+    _, jac = record_jacobian(model.nominal.index(hidx), records, model.delta.detach()[hidx], model.names)
+    normal, _ = model.normals(records)
+    err = err.double()
     keep = model.ok[hidx]
     cov = post["covariance"][hidx]
     state = model.extras.get("drift_state")
@@ -469,19 +515,32 @@ def predict_intervals(run: Run) -> None:
 
         rows = state["columns"].to(cov.device)
         walk = torch.zeros_like(cov)
-        walk[:, rows[:, None], rows[None, :]] = predicted_covariance(state, hidx, test.time).to(cov)
+        walk[:, rows[:, None], rows[None, :]] = predicted_covariance(state, hidx, records.time).to(cov)
     else:
         walk = torch.zeros_like(cov)
-    run.interval_inputs = {"jacobian": jac[keep], "normal": normal.detach()[keep],
-                           "covariance": cov[keep], "walk": walk[keep], "noise": post["noise_rad"][hidx][keep],
-                           "error": err[keep], "heliostat": [run.run_ids[h] for h in hidx[keep].tolist()]}
+    inputs = {"jacobian": jac[keep], "normal": normal.detach()[keep], "covariance": cov[keep], "walk": walk[keep],
+              "noise": post["noise_rad"][hidx][keep], "error": err[keep],
+              "heliostat": [model.heliostat_ids[h] for h in hidx[keep].tolist()]}
     # The posterior predictive samples on the CPU (its draws take a CPU generator): a few thousand numbers.
     jac, normal, err, hidx = jac.cpu(), normal.detach().cpu(), err.cpu(), hidx.cpu()
     full = (cov + float(post.get("walk_scale", 1.0)) * walk).cpu()
     pred = predictive(jac, normal, full, post["noise_rad"].cpu()[hidx],
-                      drift=post.get("drift_rad", 0.0), generator=torch.Generator().manual_seed(run.cfg.seed))
+                      drift=post.get("drift_rad", 0.0), generator=torch.Generator().manual_seed(seed))
     pred["inside"] = (err >= pred["lower"]) & (err <= pred["upper"])
-    run.intervals = pred
+    return pred, inputs
+
+
+def predict_intervals(run: Run) -> None:
+    """Predictive pointing error of every test record from the model's Laplace posterior (when it has one):
+    ``run.intervals`` = {"expected", "median", "lower", "upper"} [R] (rad, interval ``[0, q_0.9]``),
+    "inside" [R] bool; ``run.interval_inputs`` (:func:`record_intervals`). ``--split online`` has them from
+    :func:`online_refit` already: each block of test records is predicted by the refit before it."""
+    test = run.test
+    if test is None or len(test) == 0 or run.cfg.split == "online":
+        return
+    pred, inputs = record_intervals(run.model, test, run.errors["test"][0], run.cfg.seed)
+    if pred is not None:
+        run.intervals, run.interval_inputs = pred, inputs
 
 
 def _heliostat_report(run: Run, h: int, hid: str, per_h_seconds: float) -> dict:
