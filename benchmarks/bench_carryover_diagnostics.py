@@ -90,6 +90,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 from pathlib import Path
 
@@ -335,6 +336,38 @@ def part_trend(ids, batch, nominal, windows=(30, 90, 180)):
     return {"static": static, **out}
 
 
+@functools.lru_cache(maxsize=None)
+def _plant_archive(paint):
+    """The loaded PAINT folder and its :class:`~heliotwin.calibrate.archive.PriorArchive` (read and fitted once
+    for the parts that need them)."""
+    from heliotwin.calibrate.archive import PriorArchive
+    from heliotwin.io.paint import load_paint
+
+    ds = load_paint(paint)
+    return ds, PriorArchive.from_dataset(ds, source=str(paint))
+
+
+def _print_sigma(tag, prior):
+    """One line: a plant prior's marginal sigma per parameter [mrad, or 1e-3 for increments]."""
+    sd = 1e3 * prior.covariance.diagonal().sqrt()
+    print(f"{tag}: sigma " + ", ".join(f"{n} {v:.2f}" for n, v in zip(prior.names, sd.tolist())), flush=True)
+
+
+def _plant_prior_cv(tag, paint, n, candidate):
+    """The benchmark's 4-fold leave-heliostats-out CV (chrono, train ``n``, test 30) of one plant-prior
+    candidate; prints the median and each heliostat, returns {id: mean test error [mrad]}."""
+    from heliotwin.calibrate import selection as S
+    from heliotwin.calibrate.pipeline import RunConfig
+
+    ds, archive = _plant_archive(paint)
+    base = RunConfig(paint=str(paint), method="lm", split="chrono", train=n, test=30, min_records=50)
+    errs = next(iter(S.cross_validated_errors(ds, base, [candidate], S.eligible(ds), folds=4,
+                                              archive=archive).values()))
+    each = ", ".join(f"{h} {e:.2f}" for h, e in sorted(errs.items()))
+    print(f"{tag}: median {S.median(errs.values()):.3f} mrad; {each}", flush=True)
+    return errs
+
+
 def part_position(paint, min_records=15, neighbours=(3, 5)):
     """Does a heliostat's place in the field predict its deviations? Leave-one-heliostat-out over the archive.
 
@@ -344,11 +377,7 @@ def part_position(paint, min_records=15, neighbours=(3, 5)):
     median over heliostats of |prediction error| per parameter [mrad or 1e-3 of the parameter] and of the
     error's squared norm whitened by the plant's robust spread (the prior's view; lower = a better prior mean).
     """
-    from heliotwin.calibrate.archive import PriorArchive
-    from heliotwin.io.paint import load_paint
-
-    ds = load_paint(paint)
-    archive = PriorArchive.from_dataset(ds, source=str(paint))
+    ds, archive = _plant_archive(paint)
     keep = (archive.counts >= min_records).numpy()
     ids = [h for h, k in zip(archive.heliostat_ids, keep) if k]
     dev = 1e3 * archive.deviations.double().numpy()[keep]
@@ -382,31 +411,18 @@ def part_archive(paint, trains=(30, 10), min_records=(9, 30, 50), widths=(1.0, 2
     ``bench_carryover.py``) of the plant prior ``full/s0.2/b10`` built only from archive heliostats with at least
     ``min_records`` records (the default, :data:`heliotwin.calibrate.priors.MIN_PRIOR_RECORDS` = 9, lets
     9-record fits in), for each width; per heliostat and median [mrad]."""
-    from heliotwin.calibrate import selection as S
-    from heliotwin.calibrate.archive import PriorArchive
-    from heliotwin.calibrate.pipeline import RunConfig
-    from heliotwin.io.paint import load_paint
-
-    ds = load_paint(paint)
-    archive = PriorArchive.from_dataset(ds, source=str(paint))
-    ids = S.eligible(ds)
-    out = {}
+    _, archive = _plant_archive(paint)
     for mr in min_records:  # what the threshold does to the prior itself (every archive heliostat, width x1)
         pp = archive.prior(covariance="full", shrink=0.2, widen=1.0, min_records=mr)
-        sd = 1e3 * pp.covariance.diagonal().sqrt()
-        print(f"archive: prior from {len(pp.heliostats)} heliostats with >= {mr} records: sigma [mrad, 1e-3] "
-              + ", ".join(f"{name} {v:.2f}" for name, v in zip(pp.names, sd.tolist())), flush=True)
+        _print_sigma(f"archive: prior from {len(pp.heliostats)} heliostats with >= {mr} records", pp)
+    out = {}
     for n in trains:
-        base = RunConfig(paint=str(paint), method="lm", split="chrono", train=n, test=30, min_records=50)
         for mr in min_records:
             for w in widths:
                 cand = {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": w, "bags": 10,
                         "min_records": mr}
-                errs = next(iter(S.cross_validated_errors(ds, base, [cand], ids, folds=4, archive=archive).values()))
-                out[f"N{n}/min{mr}/w{w:g}"] = errs
-                each = ", ".join(f"{h} {e:.2f}" for h, e in sorted(errs.items()))
-                print(f"archive: N={n} prior from heliostats with >= {mr} records, width x{w:g}: median "
-                      f"{S.median(errs.values()):.3f} mrad; {each}", flush=True)
+                out[f"N{n}/min{mr}/w{w:g}"] = _plant_prior_cv(
+                    f"archive: N={n} prior from heliostats with >= {mr} records, width x{w:g}", paint, n, cand)
     return out
 
 
@@ -423,17 +439,12 @@ def part_deconvolve(paint, trains=(30, 10), widths=(1.0, 2.0)):
     import torch
 
     from heliotwin.calibrate import priors
-    from heliotwin.calibrate import selection as S
-    from heliotwin.calibrate.archive import PriorArchive
     from heliotwin.calibrate.inputs import fit_spots
     from heliotwin.calibrate.lm import laplace
     from heliotwin.calibrate.params import STONE8
-    from heliotwin.calibrate.pipeline import RunConfig
     from heliotwin.calibrate.suspicious import check_and_correct
-    from heliotwin.io.paint import load_paint
 
-    ds = load_paint(paint)
-    archive = PriorArchive.from_dataset(ds, source=str(paint))
+    ds, archive = _plant_archive(paint)
     table = ds.records.for_heliostats(archive.heliostat_ids).with_focal_spot("HeliOS")
     plant_ids = list(ds.plant.field.ids)
     kin = ds.plant.field.kinematics.index([plant_ids.index(h) for h in table.heliostat_ids])
@@ -445,16 +456,13 @@ def part_deconvolve(paint, trains=(30, 10), widths=(1.0, 2.0)):
 
     def deconvolved(deviations, names, heliostats, *, covariance="full", shrink=0.2, widen=1.0, floor=None):
         pp = original(deviations, names, heliostats, covariance=covariance, shrink=shrink, widen=widen, floor=floor)
-        d = deviations.detach().double()
-        mad = ((d - pp.mean).abs().median(0).values * 1.4826).clamp_min(1e-12)
-        centred = pp.mean + ((d - pp.mean) / mad).clamp(-3.0, 3.0) * mad
-        centred = centred - centred.mean(0)
+        _, clipped = priors.winsorised(deviations.detach().double())
+        centred = clipped - clipped.mean(0)
         noise = torch.stack([fit_cov[h] for h in heliostats]).mean(0)
-        w, v = torch.linalg.eigh(centred.T @ centred / (len(d) - 1) - noise)
-        plant = (v * w.clamp_min(0.0)) @ v.T
-        # samples whose covariance is ``plant``: shrinkage, floor and width exactly as the original prior
-        p = plant.shape[0]
-        pseudo = (p - 1) ** 0.5 * (v * w.clamp_min(0.0).sqrt()).T
+        w, v = torch.linalg.eigh(centred.T @ centred / (len(centred) - 1) - noise)
+        # P pseudo-samples whose covariance is the clipped spectrum: shrinkage, floor and width exactly as the
+        # original prior
+        pseudo = (len(w) - 1) ** 0.5 * (v * w.clamp_min(0.0).sqrt()).T
         cov = priors.shrunk_covariance(pseudo, priors.sigma_vector(names, floor or priors.FLOOR_SIGMA),
                                        covariance=covariance, shrink=shrink, widen=widen)
         return priors.PlantPrior(pp.names, pp.mean, cov, pp.heliostats, pp.settings)
@@ -463,20 +471,13 @@ def part_deconvolve(paint, trains=(30, 10), widths=(1.0, 2.0)):
     try:
         priors.plant_prior = deconvolved
         for name, fn in (("as shipped", original), ("deconvolved", deconvolved)):
-            pp = fn(archive.deviations, archive.names, archive.heliostat_ids)
-            sd = 1e3 * pp.covariance.diagonal().sqrt()
-            print(f"deconvolve: prior {name} (all {len(archive.heliostat_ids)} archive heliostats): sigma "
-                  + ", ".join(f"{n} {v:.2f}" for n, v in zip(pp.names, sd.tolist())), flush=True)
-        ids = S.eligible(ds)
+            _print_sigma(f"deconvolve: prior {name} (all {len(archive.heliostat_ids)} archive heliostats)",
+                         fn(archive.deviations, archive.names, archive.heliostat_ids))
         for n in trains:
-            base = RunConfig(paint=str(paint), method="lm", split="chrono", train=n, test=30, min_records=50)
             for w in widths:
                 cand = {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": w, "bags": 10}
-                errs = next(iter(S.cross_validated_errors(ds, base, [cand], ids, folds=4, archive=archive).values()))
-                out[f"N{n}/w{w:g}"] = errs
-                each = ", ".join(f"{h} {e:.2f}" for h, e in sorted(errs.items()))
-                print(f"deconvolve: N={n} deconvolved prior, width x{w:g}: median {S.median(errs.values()):.3f} "
-                      f"mrad; {each}", flush=True)
+                out[f"N{n}/w{w:g}"] = _plant_prior_cv(f"deconvolve: N={n} deconvolved prior, width x{w:g}",
+                                                      paint, n, cand)
     finally:
         priors.plant_prior = original
     return out

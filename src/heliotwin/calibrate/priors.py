@@ -146,6 +146,14 @@ class PlantPrior(GaussianPrior):
         return cls(names, mean, cov, heliostats, settings)
 
 
+def winsorised(deviations: torch.Tensor, limit: float = 3.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-parameter median [P] of ``deviations`` [H, P] and the deviations clipped to ``limit`` robust sigmas
+    (1.4826 MAD) around it [H, P]: what a plant prior's covariance is estimated from."""
+    mu = deviations.median(0).values
+    mad = ((deviations - mu).abs().median(0).values * 1.4826).clamp_min(1e-12)
+    return mu, mu + ((deviations - mu) / mad).clamp(-limit, limit) * mad
+
+
 def plant_prior(deviations: torch.Tensor, names, heliostats, *, covariance: str = "full", shrink: float = 0.2,
                 widen: float = 1.0, floor: dict | None = None) -> PlantPrior:
     """Plant prior from per-heliostat deviations fitted on long histories.
@@ -177,9 +185,7 @@ def plant_prior(deviations: torch.Tensor, names, heliostats, *, covariance: str 
     d = deviations.detach().double()
     if len(d) < MIN_HELIOSTATS:
         raise ValueError(f"a plant prior needs >= {MIN_HELIOSTATS} heliostats, got {len(d)}")
-    mu = d.median(0).values
-    mad = ((d - mu).abs().median(0).values * 1.4826).clamp_min(1e-12)
-    clipped = mu + ((d - mu) / mad).clamp(-3.0, 3.0) * mad
+    mu, clipped = winsorised(d)
     cov = shrunk_covariance(clipped - clipped.mean(0), sigma_vector(names, floor or FLOOR_SIGMA),
                             covariance=covariance, shrink=shrink, widen=widen)
     settings = {"covariance": covariance, "shrink": float(shrink), "widen": float(widen), "n_heliostats": len(d)}
