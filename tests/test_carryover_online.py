@@ -68,7 +68,7 @@ def test_online_intervals_come_from_the_refit_before_each_block():
     options = {"bags": 0, "field_prior": False, "fit_focal_spot": None}
     run = Run(RunConfig(paint="synthetic", split="online", train=20, test=40, online_step=10, method_options=options))
     tr, _, te, _ = online_split(batch, 20, 40)
-    run.nominal, run.batch, run.test = kin, batch, batch.subset(te)
+    run.nominal, run.batch, run.test, run.test_rows = kin, batch, batch.subset(te), te
     online_refit(run)
     predict_intervals(run)  # the online intervals stay those of the refits
     iv, err = run.intervals, run.errors["test"][0]

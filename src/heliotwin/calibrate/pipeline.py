@@ -207,6 +207,8 @@ class Run:
     train: RecordTable | None = None
     validation: RecordTable | None = None
     test: RecordTable | None = None
+    #: Indices of the test records into ``batch`` (the online protocol refits on the records before them).
+    test_rows: torch.Tensor | None = None
     split_info: dict = field(default_factory=dict)
     model: Calibrated | None = None
     fit_seconds: float = 0.0
@@ -302,6 +304,7 @@ def split(run: Run) -> None:
         tr, va, te, run.split_info = split_records(run.batch, cfg.split, cfg.train, cfg.n_validation(), cfg.test,
                                                    seed=cfg.seed)
     run.train, run.validation, run.test = run.batch.subset(tr), run.batch.subset(va), run.batch.subset(te)
+    run.test_rows = te
 
 
 def check_properties(run: Run) -> None:
@@ -443,11 +446,10 @@ def online_refit(run: Run) -> None:
         if pred is not None:
             blocks.append((where, pred, inputs))
 
-    _, _, te, _ = _online_indices(run)
-    run.errors["test"] = online_errors(fit_one, run.batch, te, cfg.train, cfg.online_step,
+    run.errors["test"] = online_errors(fit_one, run.batch, run.test_rows, cfg.train, cfg.online_step,
                                        on_block=interval_of_block)
     if blocks:
-        run.intervals, run.interval_inputs = _assemble_blocks(blocks, len(te))
+        run.intervals, run.interval_inputs = _assemble_blocks(blocks, len(run.test_rows))
 
 
 def _assemble_blocks(blocks, n: int) -> tuple[dict, dict]:
@@ -462,12 +464,6 @@ def _assemble_blocks(blocks, n: int) -> tuple[dict, dict]:
     inputs = {k: torch.cat([b[2][k] for b in blocks]) for k in blocks[0][2] if k != "heliostat"}
     inputs["heliostat"] = [h for b in blocks for h in b[2]["heliostat"]]
     return out, inputs
-
-
-def _online_indices(run: Run):
-    from .online import online_split
-
-    return online_split(run.batch, run.cfg.train, run.cfg.test)
 
 
 def record_intervals(model: Calibrated, records: RecordTable, err: torch.Tensor, seed: int = 0):
