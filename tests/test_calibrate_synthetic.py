@@ -41,6 +41,27 @@ def test_lm_recovers_known_deviations_batched():
     assert err.max().item() < 1e-6
 
 
+def test_lm_fits_a_large_field_in_independent_chunks(monkeypatch):
+    """Above LM_CHUNK heliostats fit_lm solves one problem per chunk (a joint dense problem costs ~H^3): each
+    heliostat still gets its own minimum, the one it gets fitted alone, and one without records stays nominal."""
+    import heliotwin.calibrate.lm as lm
+
+    monkeypatch.setattr(lm, "LM_CHUNK", 2)
+    nominal = jueliche_like(5)
+    delta = torch.tensor([[TRUE[n] * (1 + 0.2 * i) for n in STONE8] for i in range(5)], dtype=torch.float64)
+    records = simulate(apply_deviations(nominal, delta, STONE8), 30, 5, noise=3e-4)
+    train = records.subset(records.heliostat_index != 2)  # heliostat 2 has no record
+    fitted, info = fit_lm(nominal, train)
+    assert info["chunks"] == 2 and bool((fitted[2] == 0).all())
+    for h in (0, 4):
+        alone, _ = fit_lm(nominal, train.subset(train.heliostat_index == h))
+        assert torch.allclose(fitted[h], alone[h], atol=1e-9), (fitted[h] - alone[h]).abs().max()
+    test = simulate(apply_deviations(nominal, delta, STONE8), 20, 6)
+    test = test.subset(test.heliostat_index != 2)
+    err = metrics.pointing_error(apply_deviations(nominal, fitted, STONE8), test)
+    assert err.mean().item() < 1e-3 < 1e-2 < metrics.pointing_error(nominal, test).mean().item(), err.mean()
+
+
 def test_prior_helps_with_noise_and_few_records():
     nominal = jueliche_like(4)
     delta = torch.tensor([[TRUE[n] for n in STONE8]] * 4, dtype=torch.float64)

@@ -1,8 +1,10 @@
 """``lm``: Levenberg-Marquardt (scipy, MINPACK) on the 8-parameter Stone/Jülich error model.
 
-All heliostats of a run are fitted in ONE least-squares problem: their parameters are independent, so the
-Jacobian is block diagonal and the joint minimum is every heliostat's own minimum; one call with an
-analytic (autograd) Jacobian is much faster than H calls. Residuals per record are the three components of
+The heliostats of a run are fitted together, :data:`LM_CHUNK` at a time in one least-squares problem: their
+parameters are independent, so the Jacobian is block diagonal and the joint minimum is every heliostat's
+own minimum; one call with an analytic (autograd) Jacobian is much faster than one call per heliostat, but
+scipy treats the Jacobian as dense, so one problem over a whole plant would cost the cube of its heliostats
+(chunks keep the cost linear). Residuals per record are the three components of
 (model normal - measured normal), whose norm is the pointing error to second order. A Gaussian prior
 (Tikhonov) towards nominal adds ``delta / sigma`` residuals per parameter; with few records this is what
 keeps the ill-conditioned directions (axis tilts versus offsets) from fitting noise.
@@ -26,6 +28,12 @@ from .params import STONE8, apply_deviations, check_names, kinds, units
 
 #: Pointing noise of one centroid record [rad] (camera-target centroids scatter by ~1 mrad).
 NOISE = 1e-3
+
+#: Most heliostats in one least-squares problem of :func:`fit_lm`. scipy's solvers factor the dense Jacobian
+#: [3 R + H P, H P], so a joint problem costs ~H^3 (synthetic, 30 records each, 2 threads: 16 / 32 / 64 / 128
+#: / 256 heliostats took 1.0 / 4.4 / 10 / 81 / 474 s; in chunks 1.4 / 3.7 / 12 / 26 / 49 s, same deviations).
+#: Every folder of ``../shared`` (<= 30 heliostats) fits in one chunk, so its figures are those of one problem.
+LM_CHUNK = 32
 
 
 def record_jacobian(nominal_per_record: Kinematics, batch: RecordTable, delta_rec: torch.Tensor, names):
@@ -107,6 +115,12 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
     na = len(active)
     if na == 0 or len(batch) == 0:
         return torch.zeros(h, p, dtype=torch.float64), {"nfev": 0, "status": 0, "message": "no records", "cost": 0.0}
+    if na > LM_CHUNK:  # independent problems: one per chunk of heliostats (see LM_CHUNK)
+        return _fit_in_chunks(active, lambda chunk: fit_lm(
+            nominal, chunk, names=names, prior_sigma=prior_sigma, prior_mean=prior_mean, noise=noise,
+            max_nfev=max_nfev, loss=loss, f_scale=f_scale, prior_sigma_vector=prior_sigma_vector,
+            prior_whitening=prior_whitening, half_life_days=half_life_days, process_noise=process_noise,
+            drift_basis=drift_basis), batch, h, p)
     prior_cols = (torch.isfinite(sig_vec) & (sig_vec > 0)).nonzero().flatten()
     if prior_whitening is not None:
         w = prior_whitening.detach().double()
@@ -139,6 +153,24 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
     delta = unpack(sol.x)
     return delta, {"nfev": int(sol.nfev), "status": int(sol.status), "message": str(sol.message),
                    "cost": float(sol.cost), "method": method}
+
+
+def _fit_in_chunks(active: torch.Tensor, fit_chunk, batch: RecordTable, h: int, p: int) -> tuple[torch.Tensor, dict]:
+    """:func:`fit_lm` of the heliostats ``active`` [na], :data:`LM_CHUNK` at a time: ``fit_chunk(records)`` fits
+    the records of one chunk (the others have none, so they stay out of its problem). Returns the deviations
+    [H, P] and the runs' summed ``nfev`` / ``cost``, worst ``status``, and ``chunks``."""
+    delta = torch.zeros(h, p, dtype=torch.float64)
+    infos = []
+    for chunk in active.split(LM_CHUNK):
+        member = torch.zeros(h, dtype=torch.bool, device=batch.heliostat_index.device)
+        member[chunk] = True
+        d, info = fit_chunk(batch.subset(member[batch.heliostat_index]))
+        delta[chunk] = d[chunk]
+        infos.append(info)
+    return delta, {"nfev": sum(i["nfev"] for i in infos), "status": min(i["status"] for i in infos),
+                   "message": "; ".join(dict.fromkeys(i["message"] for i in infos)),
+                   "cost": sum(i["cost"] for i in infos), "method": "/".join(dict.fromkeys(i["method"] for i in infos)),
+                   "chunks": len(infos)}
 
 
 def _sigma_vector(names, prior_sigma: dict | None, prior_sigma_vector: torch.Tensor | None) -> torch.Tensor:
