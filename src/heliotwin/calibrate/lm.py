@@ -31,7 +31,8 @@ NOISE = 1e-3
 
 #: Most heliostats in one least-squares problem of :func:`fit_lm`. scipy's solvers factor the dense Jacobian
 #: [3 R + H P, H P], so a joint problem costs ~H^3 (synthetic, 30 records each, 2 threads: 16 / 32 / 64 / 128
-#: / 256 heliostats took 1.0 / 4.4 / 10 / 81 / 474 s; in chunks 1.4 / 3.7 / 12 / 26 / 49 s, same deviations).
+#: / 256 heliostats took 1.0 / 4.4 / 10 / 81 / 474 s; in chunks 1.4 / 3.7 / 12 / 26 / 49 s with the same RMS
+#: deviation error to 3 digits).
 #: Every folder of ``../shared`` (<= 30 heliostats) fits in one chunk, so its figures are those of one problem.
 LM_CHUNK = 32
 
