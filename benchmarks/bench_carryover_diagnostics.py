@@ -356,13 +356,20 @@ def part_trend(ids, batch, nominal, windows=(30, 90, 180)):
 
 
 @functools.lru_cache(maxsize=None)
-def _plant_archive(paint):
-    """The loaded PAINT folder and its :class:`~heliotwin.calibrate.archive.PriorArchive` (read and fitted once
-    for the parts that need them)."""
-    from heliotwin.calibrate.archive import PriorArchive
+def _dataset(paint):
+    """The loaded PAINT folder (read once for the parts that need it)."""
     from heliotwin.io.paint import load_paint
 
-    ds = load_paint(paint)
+    return load_paint(paint)
+
+
+@functools.lru_cache(maxsize=None)
+def _plant_archive(paint):
+    """The loaded PAINT folder and its :class:`~heliotwin.calibrate.archive.PriorArchive` (fitted once for the
+    parts that need it)."""
+    from heliotwin.calibrate.archive import PriorArchive
+
+    ds = _dataset(paint)
     return ds, PriorArchive.from_dataset(ds, source=str(paint))
 
 
@@ -520,7 +527,7 @@ def part_tails(paint, trains=(30, 10), min_records=(9, 30), quantile=0.99, round
     original = lm.stone8_plant_fit
     radius2 = float(chi2.ppf(quantile, len(STONE8)))
 
-    def huber(nominal, batch, prior, **kw):
+    def huber(nominal, batch, prior, **kw):  # stands in for lm.stone8_plant_fit (always called with keywords)
         mean = prior.mean.double().expand(nominal.num_heliostats, len(STONE8)).clone()
         w = prior.whitening()
         scaled = w.expand(nominal.num_heliostats, *w.shape).clone()
@@ -530,18 +537,13 @@ def part_tails(paint, trains=(30, 10), min_records=(9, 30), quantile=0.99, round
             scaled = (radius2 / m2.clamp_min(1e-30)).pow(0.25).clamp(max=1.0)[:, None, None] * w
         return delta
 
-    def patched(nominal, batch, prior, *, loss=lm.LM_LOSS, f_scale=lm.LM_F_SCALE, half_life_days=None,
-                process_noise=0.0, drift_basis="axes"):
-        return huber(nominal, batch, prior, loss=loss, f_scale=f_scale, half_life_days=half_life_days,
-                     process_noise=process_noise, drift_basis=drift_basis)
-
     out = {}
     for n in trains:
         for mr in min_records:
             cand = {"prior": "plant", "covariance": "full", "shrink": 0.2, "widen": 1.0, "bags": 10, "min_records": mr}
             out[f"N{n}/min{mr}/gauss"] = _plant_prior_cv(f"tails: N={n} >= {mr} records, Gaussian", paint, n, cand)
             try:
-                lm.stone8_plant_fit = patched
+                lm.stone8_plant_fit = huber
                 out[f"N{n}/min{mr}/huber"] = _plant_prior_cv(
                     f"tails: N={n} >= {mr} records, Huber beyond chi2 {quantile:g}", paint, n, cand)
             finally:
@@ -565,7 +567,7 @@ def part_shift(paint, cases=((30, {"prior": "run", "bags": 10, "half_life_days":
     from heliotwin.calibrate import selection as S
     from heliotwin.calibrate.pipeline import STEPS, Run, RunConfig, validate_config
 
-    ds, _ = _plant_archive(paint)
+    ds = _dataset(paint)
     ids = S.eligible(ds)
     out = {}
     for n, cand in cases:
