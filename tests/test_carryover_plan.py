@@ -2,8 +2,10 @@
 import json
 import math
 
+import numpy as np
 import torch
 from helpers.calibrate import TRUE, jueliche_like, scenario_round_trip, simulate
+from PIL import Image
 
 from heliotwin.calibrate.lm import fit_lm_method
 from heliotwin.calibrate.params import STONE8, apply_deviations
@@ -34,11 +36,18 @@ def test_plan_proposes_sun_positions_away_from_the_training_sky(tmp_path):
     east = recs.subset(recs.sun_azimuth > 0.6)  # PAINT azimuth: + = east
     model = fit_lm_method(kin, east, None, bags=0, field_prior=False, fit_focal_spot=None)
     sc = scenario_round_trip(tmp_path, kin, model)
-    ans = plan(sc, "S0", year=2023, every="2h", count=3)
+    ans = plan(sc, "S0", year=2023, every="2h", count=3, sky=True)
     assert ans["candidates"] > 100
     rms = [ans["rms_now_mrad"]] + [p["rms_after_mrad"] for p in ans["proposals"]]
     assert all(a > b for a, b in zip(rms, rms[1:])) and rms[-1] < 0.8 * rms[0], rms
     assert ans["proposals"][0]["sun_azimuth_deg"] < 0, ans["proposals"]  # west
+    # The sky map's spread per candidate: its mean square is the objective, and the unseen west is the
+    # least sure part of the sky.
+    sky = ans["sky"]
+    assert len(sky["std_now_mrad"]) == ans["candidates"]
+    assert math.isclose(float((sky["std_now_mrad"] ** 2).mean()), ans["rms_now_mrad"] ** 2, rel_tol=1e-9)
+    west, east = sky["sun_azimuth_deg"] < -30, sky["sun_azimuth_deg"] > 30
+    assert np.median(sky["std_now_mrad"][west]) > 2 * np.median(sky["std_now_mrad"][east])
 
 
 def test_plan_command(tmp_path, capsys):
@@ -53,6 +62,13 @@ def test_plan_command(tmp_path, capsys):
     argv = ["plan", "--scenario", str(tmp_path / "calibrated.h5"), "--heliostat", "S0", "--year", "2023",
             "--every", "3h", "--count", "2", "--json", str(js)]
     assert main(argv) == 0
-    assert len(json.loads(js.read_text())["proposals"]) == 2 and "mrad now" in capsys.readouterr().out
+    report = json.loads(js.read_text())
+    assert len(report["proposals"]) == 2 and "mrad now" in capsys.readouterr().out
+    assert report["plots"] == ["plan-plan.png"] and "sky" not in report
+    with Image.open(tmp_path / "plan-plan.png") as im:
+        assert im.size[0] > 400
+    (tmp_path / "plan-plan.png").unlink()
+    assert main(argv + ["--no-plots"]) == 0
+    assert not (tmp_path / "plan-plan.png").exists() and "plots" not in json.loads(js.read_text())
     assert main(argv[:4] + ["ZZ9", "--year", "2023"]) == 2
     assert "not calibrated" in capsys.readouterr().err

@@ -101,7 +101,7 @@ def greedy_design(precision: torch.Tensor, noise: float, candidates: torch.Tenso
 
 
 def plan(scenario, heliostat_id: str, *, year: int, every: str = "1h", count: int = 5, target: str | None = None,
-         min_elevation_deg: float = 15.0) -> dict:
+         min_elevation_deg: float = 15.0, sky: bool = False) -> dict:
     """Sun positions (times of ``year``) whose records would shrink ``heliostat_id``'s uncertainty most.
 
     Returns
@@ -109,7 +109,11 @@ def plan(scenario, heliostat_id: str, *, year: int, every: str = "1h", count: in
     dict
         ``proposals`` (list of {time (UTC ISO), sun_azimuth_deg, sun_elevation_deg, rms_after_mrad}),
         ``rms_now_mrad`` (root mean predictive variance of the normal over the year's sun positions, from
-        the parameters alone; the per-record noise comes on top), ``target``, ``candidates``.
+        the parameters alone; the per-record noise comes on top), ``target``, ``candidates``. With ``sky``
+        also ``sky``: numpy arrays over the C reachable candidate times, ``sun_azimuth_deg`` [C],
+        ``sun_elevation_deg`` [C] and ``std_now_mrad`` [C] (``sqrt(tr(J Sigma J^T))``: the predictive spread
+        of the normal there; its mean square is ``rms_now_mrad`` squared), for
+        :func:`heliotwin.calibrate.report.plot_plan`.
     """
     from ..field.targets import PlanarTarget
     from ..sun import daylight_times, direction_from_paint_angles
@@ -143,5 +147,11 @@ def plan(scenario, heliostat_id: str, *, year: int, every: str = "1h", count: in
     proposals = [{"time": times[int(keep[k])].isoformat(), "sun_azimuth_deg": math.degrees(float(az[keep[k]])),
                   "sun_elevation_deg": math.degrees(float(el[keep[k]])), "rms_after_mrad": 1e3 * rms[i + 1]}
                  for i, k in enumerate(chosen)]
-    return {"heliostat": heliostat_id, "target": name, "year": int(year), "candidates": int(len(jac)),
-            "rms_now_mrad": 1e3 * rms[0], "proposals": proposals}
+    ans = {"heliostat": heliostat_id, "target": name, "year": int(year), "candidates": int(len(jac)),
+           "rms_now_mrad": 1e3 * rms[0], "proposals": proposals}
+    if sky:
+        std = torch.einsum("tci,ij,tcj->t", jac, cov, jac).clamp_min(0.0).sqrt()
+        ans["sky"] = {"sun_azimuth_deg": torch.rad2deg(az[keep]).numpy(),
+                      "sun_elevation_deg": torch.rad2deg(el[keep]).numpy(), "std_now_mrad": 1e3 * std.numpy()}
+    return ans
+

@@ -21,7 +21,9 @@ over heliostats of which per-heliostat statistic::
 
 Plots (matplotlib, Agg): ``<stem>-sky.png`` test error against sun azimuth and elevation,
 ``<stem>-heliostats.png`` per-heliostat mean test error before/after, ``<stem>-training-size.png``
-test error against the number of training records.
+test error against the number of training records; for ``heliotwin plan --json``, ``<stem>-plan.png``
+(:func:`plot_plan`) the year's candidate sun positions coloured by the predictive spread of the normal, with
+the proposed records numbered.
 """
 from __future__ import annotations
 
@@ -54,6 +56,29 @@ def plot_sky(path, arrays: dict, title: str = "") -> None:
     fig.suptitle(title or "test error against sun position")
     save_figure(fig, path)
 
+
+def plot_plan(path, ans: dict) -> None:
+    """Sky map of a :func:`heliotwin.calibrate.plan.plan` answer computed with ``sky=True``: every candidate
+    time at its sun azimuth (0 = south, + = east) and elevation [deg], coloured by the predictive spread of the
+    normal there now [mrad], and the proposed records numbered in the order they are taken."""
+    grid = ans["sky"]
+    fig = Figure(figsize=(8, 4.5))
+    ax = fig.subplots()
+    sc = ax.scatter(grid["sun_azimuth_deg"], grid["sun_elevation_deg"], c=grid["std_now_mrad"], s=6,
+                    cmap=matplotlib.colormaps["viridis"])
+    fig.colorbar(sc, ax=ax, label="predictive spread of the normal now [mrad]")
+    for i, p in enumerate(ans["proposals"], 1):
+        ax.scatter([p["sun_azimuth_deg"]], [p["sun_elevation_deg"]], s=90, facecolors="none", edgecolors="tab:red")
+        ax.annotate(str(i), (p["sun_azimuth_deg"], p["sun_elevation_deg"]), xytext=(5, 5),
+                    textcoords="offset points", color="tab:red")
+    after = ans["proposals"][-1]["rms_after_mrad"] if ans["proposals"] else np.nan
+    ax.set_xlabel("sun azimuth [deg] (0 = south, +90 = east)")
+    ax.set_ylabel("sun elevation [deg]")
+    ax.invert_xaxis()  # east on the left, as a person facing south sees the sky
+    ax.grid(alpha=0.3)
+    ax.set_title(f"{ans['heliostat']} ({ans['year']}, target {ans['target']}): spread {ans['rms_now_mrad']:.3f} -> "
+                 f"{after:.3f} mrad after {len(ans['proposals'])} records")
+    save_figure(fig, path)
 
 def plot_heliostats(path, report: dict, title: str = "") -> None:
     """Per-heliostat mean test error, nominal vs calibrated (log scale)."""

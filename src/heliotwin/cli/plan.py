@@ -26,21 +26,30 @@ def register(subparsers) -> None:
     p.add_argument("--target", help="planar calibration target to aim at (default: the first by name)")
     p.add_argument("--min-elevation", type=float_range(0.0, 89.0, what="an elevation [deg]"), default=15.0,
                    help="lowest sun elevation [deg] (default 15)")
-    p.add_argument("--json", help="also write the proposals as JSON")
+    p.add_argument("--json", help="also write the proposals as JSON (and the sky map <stem>-plan.png next to it)")
+    p.add_argument("--no-plots", action="store_true", help="do not write the sky map")
     p.set_defaults(func=cmd_plan)
 
 
 def cmd_plan(args) -> int:
     import datetime
+    import os
 
     from ..calibrate.plan import plan
+    from ..calibrate.report import plot_plan
     from ..io.scenario import load_scenario
 
     year = args.year or datetime.datetime.now(datetime.timezone.utc).year
     with output_set([("--scenario", args.scenario)]) as out:
         json_path = out.file(args.json, "--json")
+        plot_path = None if not args.json or args.no_plots else out.file(
+            f"{os.path.splitext(args.json)[0]}-plan.png", "--json")
         ans = plan(load_scenario(args.scenario), args.heliostat, year=year, every=args.every, count=args.count,
-                   target=args.target, min_elevation_deg=args.min_elevation)
+                   target=args.target, min_elevation_deg=args.min_elevation, sky=plot_path is not None)
+        if plot_path:
+            plot_plan(plot_path, ans)
+            ans["plots"] = [os.path.basename(plot_path)]
+        ans.pop("sky", None)
         if json_path:
             write_json(json_path, ans)
     if args.quiet:
