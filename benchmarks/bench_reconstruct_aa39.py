@@ -1,6 +1,6 @@
 """Real AA39: train on its 3 earliest centred images, test on the other 7.
 
-    python benchmarks/bench_reconstruct_aa39.py [--out DIR] [--threads 1] [--skip-legacy] [--rotate]
+    python benchmarks/bench_reconstruct_aa39.py [--out DIR] [--threads 1] [--skip-legacy] [--rotate [--windows 1,3]]
 
 Two methods on the same split:
 
@@ -25,6 +25,27 @@ Measured on AA39 (``--skip-legacy``, one core, ~2 min): median test L1 generalis
 predictor 0.3222 (chosen width 32, 100 steps; per image 0.27 0.41 0.69 0.25 0.28 0.32 0.35), nearest-sun
 image 0.2695, mean training image 0.1863. Three images are too few for the predictor to learn how the spot
 depends on sun and motor steps (its leave-one-out L1 is ~0.75): physics wins on every test image.
+
+``--rotate`` (2026-11-23, 2 threads, 15 min): the same method with every chronological window of 3 of AA39's 10
+images as the training set, the other 7 as test; nothing is chosen from these runs (window 0 is the protocol).
+Median test L1 ideal -> learned, test images improved, largest facet-edge ridge [mrad]:
+
+| window | 0 | 1 | 2 | 3 | 4 | 5 | 6 | 7 |
+|---|---|---|---|---|---|---|---|---|
+| L1 ideal | .205 | .236 | .301 | .214 | .186 | .172 | .200 | .210 |
+| L1 learned | .137 | .165 | .235 | .186 | .181 | .159 | .172 | .175 |
+| improved | 7/7 | 7/7 | 7/7 | 7/7 | 5/7 | 4/7 | 2/7 | 5/7 |
+| ridge | 2.42 | 5.60 | 3.29 | 6.65 | 0.35 | 3.86 | 3.65 | 3.10 |
+
+No training image is worse than the ideal in any window (the acceptance rule), the median test L1 is below the
+ideal's in all 8, and 44 of the 56 test images improve (Wilson 95 % [0.66, 0.87]); window 4 drops 218385 by
+the drop rule. Windows 6-7 train on the three newest images (256 px windows) and test on mostly older ones
+(64 px): fewer test images improve there, although the median does. Windows 1 and 3 leave a facet-edge ridge
+above 5 mrad (maps: DIR/aa39-window<i>-residual-deviation.png, written for every window above 5 mrad). The
+edge penalty is a hinge at 5 mrad, a soft bound, with its weight chosen by leave-one-training-image-out from
+1e-3 / 1e-2 / 1e-1: window 1 chose 1e-3 (the held-out images preferred the weaker penalty), window 3 chose
+1e-2 as the protocol does and its 6.65 mrad is one corner of one facet (facet 1, lower right); every other
+edge stays below ~4 mrad there. Nothing here was changed after these runs.
 """
 from __future__ import annotations
 
@@ -119,21 +140,25 @@ def rotate(a) -> dict:
     from heliotwin.surfaces.generalise import reconstruct_paint_generalising
 
     order = _image_records(a.paint, a.heliostat)
+    windows = range(len(order) - 2) if a.windows is None else [int(w) for w in a.windows.split(",")]
     rows = []
-    for i in range(len(order) - 2):
-        rep, _, _ = reconstruct_paint_generalising(a.paint, a.heliostat, train_first=None,
-                                                   train_records=order[i:i + 3])
+    for i in windows:
+        rep, model, extras = reconstruct_paint_generalising(a.paint, a.heliostat, train_first=None,
+                                                            train_records=order[i:i + 3])
+        if rep["edge_ridge"]["edge_max_mrad"] > 5.0:  # the issue's bound: show the map
+            rep["plots"] = _maps(a.out, f"{a.heliostat.lower()}-window{i}", extras, model)
         rows.append({"train": order[i:i + 3], "median_l1_ideal": rep["median_l1_ideal"],
                      "median_l1_learned": rep["median_l1_learned"],
                      "train_worse_than_ideal": rep["train_worse_than_ideal"],
                      "test_improved": rep["test_improved"], "test_images": rep["test_images"],
                      "edge_ridge_mrad": rep["edge_ridge"]["edge_max_mrad"],
-                     "dropped": [d["record"] for d in rep["dropped"]]})
+                     "dropped": [d["record"] for d in rep["dropped"]], "plots": rep.get("plots", {}),
+                     "chosen": {k: rep["selection"][k] for k in ("slope_weight", "steps")}})
         r = rows[-1]
         print(f"window {i} train {r['train']}: median test L1 {r['median_l1_ideal']:.4f} -> "
               f"{r['median_l1_learned']:.4f}, "
               f"training worse {r['train_worse_than_ideal']}, improved {r['test_improved']}/{r['test_images']}, "
-              f"edge ridge {r['edge_ridge_mrad']:.2f} mrad, dropped {r['dropped']}", flush=True)
+              f"edge ridge {r['edge_ridge_mrad']:.2f} mrad, dropped {r['dropped']}, chosen {r['chosen']}", flush=True)
     k, n = sum(r["test_improved"] for r in rows), sum(r["test_images"] for r in rows)
     lo, hi = wilson_interval(k, n)
     pooled = {"test_improved": k, "test_images": n, "test_improved_wilson95": [lo, hi],
@@ -158,6 +183,7 @@ def main(argv=None) -> int:
     p.add_argument("--skip-legacy", action="store_true")
     p.add_argument("--rotate", action="store_true",
                    help="instead: every chronological window of 3 images as training set (DIR/<hid>-rotate.json)")
+    p.add_argument("--windows", help="with --rotate: only these windows (comma-separated, 0 = the 3 earliest)")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     os.makedirs(a.out, exist_ok=True)
