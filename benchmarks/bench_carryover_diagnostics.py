@@ -729,41 +729,30 @@ def part_average(paint, cases=((10, ({"prior": "run", "bags": 10}, _plant_candid
 def main(argv=None) -> int:
     import torch
 
+    # parts on the all-record fits' inputs (ids, HeliOS batch, checked nominal) and parts on the folder
+    on_fits = {"params": part_params, "shared": part_shared, "common": part_common, "trend": part_trend}
+    on_folder = {"sources": part_sources, "position": part_position, "archive": part_archive,
+                 "deconvolve": part_deconvolve, "tails": part_tails, "shift": part_shift, "weather": part_weather,
+                 "average": part_average}
+    order = ("params", "shared", "common", "sources", "trend", "position", "archive", "deconvolve", "tails", "shift",
+             "weather", "average")
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--paint", default=str(DEFAULT_PAINT))
-    ap.add_argument("--part", default="params,shared,common,sources,trend,position,archive,deconvolve,tails,shift,"
-                                          "weather,average")
+    ap.add_argument("--part", default=",".join(order))
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
-    ids, batch, nominal = _setup(args.paint)
     parts = args.part.split(",")
-    if "params" in parts:
-        part_params(ids, batch, nominal)
-    if "shared" in parts:
-        part_shared(ids, batch, nominal)
-    if "common" in parts:
-        part_common(ids, batch, nominal)
-    if "sources" in parts:
-        part_sources(args.paint)
-    if "trend" in parts:
-        part_trend(ids, batch, nominal)
-    if "position" in parts:
-        part_position(args.paint)
-    if "archive" in parts:
-        part_archive(args.paint)
-    if "deconvolve" in parts:
-        part_deconvolve(args.paint)
-    if "tails" in parts:
-        part_tails(args.paint)
-    if "shift" in parts:
-        part_shift(args.paint)
-    if "weather" in parts:
-        part_weather(args.paint)
-    if "average" in parts:
-        part_average(args.paint)
+    unknown = sorted(set(parts) - set(order))
+    if unknown:
+        ap.error(f"unknown part(s) {', '.join(unknown)}; known: {', '.join(order)}")
+    fits = _setup(args.paint) if on_fits.keys() & set(parts) else None
+    for name in (n for n in order if n in parts):
+        if name in on_fits:
+            on_fits[name](*fits)
+        else:
+            on_folder[name](args.paint)
     return 0
-
 
 if __name__ == "__main__":
     sys.exit(main())
