@@ -154,4 +154,3 @@ def plan(scenario, heliostat_id: str, *, year: int, every: str = "1h", count: in
         ans["sky"] = {"sun_azimuth_deg": torch.rad2deg(az[keep]).numpy(),
                       "sun_elevation_deg": torch.rad2deg(el[keep]).numpy(), "std_now_mrad": 1e3 * std.numpy()}
     return ans
-

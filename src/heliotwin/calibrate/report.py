@@ -80,6 +80,7 @@ def plot_plan(path, ans: dict) -> None:
                  f"{after:.3f} mrad after {len(ans['proposals'])} records")
     save_figure(fig, path)
 
+
 def plot_heliostats(path, report: dict, title: str = "") -> None:
     """Per-heliostat mean test error, nominal vs calibrated (log scale)."""
     rows = [(h, r) for h, r in report["heliostats"].items() if r.get("status") == "ok"]
