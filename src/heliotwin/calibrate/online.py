@@ -89,8 +89,8 @@ def online_errors(fit_one, batch, test_idx: torch.Tensor, n_train: int, step: in
         ok = model.ok[pred.heliostat_index]
         e, m = torch.where(ok, e.double(), torch.nan), torch.where(ok, m.double(), torch.nan)
         where = [pos[int(g)] for g in np.concatenate(blk).tolist()]
-        for k, i in enumerate(where):
-            err[i], miss[i] = e[k], m[k]
+        at = torch.as_tensor(where, dtype=torch.long)
+        err[at], miss[at] = e.to(err), m.to(miss)
         if on_block is not None:
             on_block(model, pred, where, e)
     return err, miss
