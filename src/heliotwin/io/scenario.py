@@ -314,30 +314,54 @@ def save_scenario(plant: Plant, path, extras: dict | None = None, metadata: dict
     return path
 
 
-def save_step(path, plant: Plant, previous: Scenario | None, *, learned: dict, step: dict,
-              metadata: dict | None = None) -> Path:
-    """Write what one step made of a scenario: the new plant, its learned state and one more provenance step.
+def next_scenario(previous: Scenario | None, plant: Plant, *, learned: dict, step: dict,
+                  metadata: dict | None = None) -> Scenario:
+    """What one step makes of a scenario, in memory: the new plant, its learned state and one more provenance
+    step. The one place where a step's provenance is appended (:func:`save_step` writes the result).
 
     Parameters
     ----------
-    path : str or Path
-    plant : Plant
-        The plant after the step (e.g. with calibrated kinematics).
     previous : Scenario or None
         The scenario the step started from (its extras, metadata and provenance are carried over), or
         None when it started from a PAINT folder.
+    plant : Plant
+        The plant after the step (e.g. with calibrated kinematics).
     learned : dict
         The complete learned state after the step (the caller merges ``previous.learned``).
     step : dict
         From :func:`provenance_entry`.
     metadata : dict, optional
         Added to (and overriding) the previous metadata.
+
+    Returns
+    -------
+    Scenario
+        Not yet written (``path`` empty); :func:`write_scenario` writes it.
     """
     meta = {k: v for k, v in (previous.metadata if previous else {}).items() if k not in ("created_by", "created_utc")}
     meta.update(metadata or {})
     provenance = list(previous.provenance if previous else []) + [step]
-    return save_scenario(plant, path, extras=dict(previous.extras) if previous else None, metadata=meta,
-                         learned=learned, provenance=provenance)
+    return Scenario(plant=plant, extras=dict(previous.extras) if previous else {}, metadata=meta, learned=learned,
+                    provenance=provenance)
+
+
+def write_scenario(scenario: Scenario, path) -> Path:
+    """Write an in-memory :class:`Scenario` (e.g. from :func:`next_scenario`) to ``path``, atomically."""
+    return save_scenario(scenario.plant, path, extras=scenario.extras or None, metadata=scenario.metadata,
+                         learned=scenario.learned, provenance=scenario.provenance)
+
+
+def save_step(path, plant: Plant, previous: Scenario | None, *, learned: dict, step: dict,
+              metadata: dict | None = None) -> Path:
+    """Write what one step made of a scenario: :func:`next_scenario`, then :func:`write_scenario`.
+
+    Parameters
+    ----------
+    path : str or Path
+    plant, previous, learned, step, metadata
+        As for :func:`next_scenario`.
+    """
+    return write_scenario(next_scenario(previous, plant, learned=learned, step=step, metadata=metadata), path)
 
 
 def _provenance_json(provenance: list, path) -> str:
