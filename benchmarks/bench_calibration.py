@@ -1,4 +1,4 @@
-"""Benchmark of the calibration methods on the real PAINT records (issue 3).
+"""Benchmark of the calibration methods on the real PAINT records.
 
 1. Every method for ``--train 10`` and ``--train 30`` (split chrono, ``--test 30``) on the heliostats with
    >= 50 records: median over heliostats of each heliostat's mean test error [mrad].

@@ -1,4 +1,4 @@
-"""Accuracy that carries over (issue 10): protocol figure next to the leave-heliostats-out CV figure.
+"""Accuracy that carries over: protocol figure next to the leave-heliostats-out CV figure.
 
 For ``--train`` 10 and 30 (split chrono, test = the latest 30 records, heliostats with >= 50 records):
 

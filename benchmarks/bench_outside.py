@@ -1,4 +1,4 @@
-"""Heliostats nobody tuned on (issue 10): the shipped command, run on heliostats it has never seen.
+"""Heliostats nobody tuned on: the shipped command, run on heliostats it has never seen.
 
 The issue's figures are also measured on Jülich heliostats outside ``../shared``, with
 ``heliotwin calibrate --paint OTHER --prior-from ../shared/data/paint``. Those heliostats are not here, so
@@ -40,9 +40,10 @@ N=30): the median of 11 heliostats moves by a few tenths with the choice of one 
 figure's middle heliostats sit at 1.16-1.33, here at 1.22-1.44; the *mean* is lower here, 1.72 against
 1.84). At N=30 a folder of fewer than 4 heliostats cannot use the run's own field prior
 (``priors.MIN_HELIOSTATS``), and the plant-prior candidates lose to it on the shared heliostats (BF55:
-0.90 under the run prior, 1.6-2.7 under every plant candidate; see ``bench_carryover_diagnostics.py --part
-archive``); with 2 folds the archive keeps only 5-6 long histories to choose on, and one fold chose the
-run prior. Neither target (0.8 / 1.0) is met; the coverage target (0.8-0.97) is, on chrono and online.
+0.90 under the run prior, 1.6-2.7 under every plant candidate; see the diagnostics row
+"archive" in ``docs/carryover.md``); with 2 folds the archive keeps only 5-6 long histories to choose on,
+and one fold chose the run prior. Neither target (0.8 / 1.0) is met; the coverage target (0.8-0.97) is,
+on chrono and online.
 
 Usage::
 
