@@ -40,6 +40,15 @@ def reflect(d: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
     -------
     torch.Tensor, shape (..., 3)
         ``d - 2 (d . n) n``.
+
+    Examples
+    --------
+    Sunlight falling straight down onto a mirror tilted 45° towards the north leaves horizontally, northwards:
+
+    >>> import math, torch
+    >>> n = torch.tensor([0.0, 1.0, 1.0]) / math.sqrt(2.0)
+    >>> [round(x, 6) + 0.0 for x in reflect(torch.tensor([0.0, 0.0, -1.0]), n).tolist()]
+    [0.0, 1.0, 0.0]
     """
     return d - 2.0 * _dot(d, n).unsqueeze(-1) * n
 

@@ -50,6 +50,11 @@ def clamped_knots(num_control_points: int, degree: int, dtype=None, device=None)
     -------
     torch.Tensor, [n + p + 1]
         ``p + 1`` zeros, ``n - p - 1`` uniformly spaced interior knots, ``p + 1`` ones.
+
+    Examples
+    --------
+    >>> clamped_knots(5, 2, dtype=torch.float64).tolist()
+    [0.0, 0.0, 0.0, 0.3333333333333333, 0.6666666666666666, 1.0, 1.0, 1.0]
     """
     n, p = int(num_control_points), int(degree)
     _check_degree(n, p)

@@ -104,6 +104,15 @@ def wgs84_to_enu(lla, reference=JUELICH_REFERENCE) -> torch.Tensor:
     -------
     torch.Tensor, shape (..., 3), float64
         East, north, up [m].
+
+    Examples
+    --------
+    A point 0.001° north of the Jülich reference and 10 m higher is 111.2 m north and 10 m up:
+
+    >>> from heliotwin.site import JUELICH_REFERENCE
+    >>> lat, lon, alt = JUELICH_REFERENCE
+    >>> [round(x, 1) + 0.0 for x in wgs84_to_enu([lat + 0.001, lon, alt + 10.0]).tolist()]
+    [0.0, 111.2, 10.0]
     """
     rot = _enu_rotation(reference)
     d = geodetic_to_ecef(lla) - geodetic_to_ecef(reference)
