@@ -6,8 +6,10 @@ inline plots; a headless run needs no display).
 """
 from __future__ import annotations
 
+import torch
 from matplotlib.figure import Figure
 
+from .io.images import load_measured_image
 from .io.report import save_figure
 
 __all__ = ["draw_flux", "draw_measured_image", "plot_demo", "plot_validation"]
@@ -33,8 +35,6 @@ def draw_flux(ax, flux, title: str, *, measured: dict | None = None) -> None:
 def draw_measured_image(ax, flux, png, *, measured: dict | None = None) -> None:
     """PAINT's whole-target camera image ``png`` on ``ax``, on the extent of ``flux``'s target (PAINT
     orientation: left = east), relative scale (max = 1), with the measured spots marked."""
-    from .io.images import load_measured_image
-
     img = load_measured_image(png, normalise="max")
     ext = flux.extent[0].tolist()
     im = ax.imshow(img.numpy(), extent=(ext[0], ext[1], ext[2], ext[3]), cmap="inferno", vmin=0, vmax=1)
@@ -47,8 +47,6 @@ def draw_measured_image(ax, flux, png, *, measured: dict | None = None) -> None:
 
 
 def _mark_spots(ax, target, report: dict) -> None:
-    import torch
-
     marks = [(src, enu, m) for (src, enu), m in zip(sorted((report.get("measured_spot_enu_m") or {}).items()),
                                                     ("c+", "gx"))]
     if report.get("centroid_enu_m") is not None:

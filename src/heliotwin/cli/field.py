@@ -125,7 +125,7 @@ def cmd_field(args) -> int:
     if args.per_heliostat:
         _write_csv(args.per_heliostat, per_heliostat_rows(result, plant))
     if args.flux:
-        from ..raytrace.flux import to_png
+        from ..io.images import to_png
 
         to_png(result.flux.cpu(), args.flux)
     e = report["field"]["efficiency"]
@@ -321,7 +321,7 @@ def cmd_aimpoints(args) -> int:
                                    "reachable": reachable.cpu(), "power_w": best.power_w,
                                    "peak_flux_w_m2": best.peak_flux_w_m2}
             if out_png:
-                from ..raytrace.flux import to_png
+                from ..io.images import to_png
 
                 to_png(equator.flux.cpu(), os.path.join(out_png, f"i{i:03d}_equator.png"))
                 to_png(best.flux.cpu(), os.path.join(out_png, f"i{i:03d}_optimised.png"))

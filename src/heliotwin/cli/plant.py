@@ -126,7 +126,7 @@ def cmd_trace(args) -> int:
     """Trace one real record with the scenario's plant (default: nominal kinematics, ideal surface)."""
     from ..api import plot_flux, trace_record
     from ..io.scenario import load_records
-    from ..raytrace.flux import to_png
+    from ..io.images import to_png
 
     with output_set([("--paint", args.paint), ("--scenario", args.scenario)]) as out:
         png = out.file(args.out, "--out")
