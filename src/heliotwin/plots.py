@@ -11,8 +11,9 @@ from matplotlib.figure import Figure
 
 from .io.images import load_measured_image
 from .io.report import save_figure
+from .raytrace.field import FACTORS
 
-__all__ = ["draw_flux", "draw_measured_image", "plot_demo", "plot_validation"]
+__all__ = ["draw_flux", "draw_measured_image", "plot_demo", "plot_field_demo", "plot_validation"]
 
 
 def draw_flux(ax, flux, title: str, *, measured: dict | None = None) -> None:
@@ -114,3 +115,62 @@ def plot_validation(report: dict, path) -> None:
     fig.suptitle(f"{settings.get('kinematics', 'nominal')} kinematics, {settings.get('surface', 'ideal')} surface "
                  f"vs measured focal spots")
     save_figure(fig, path, make_folder=True)  # as before: plots make their folder
+
+
+def plot_field_demo(folder, plant, before, aimed, rep, limit: float, time_utc: str) -> None:
+    """The whole-field demo's four figures in ``folder`` (colour bars, titles, units): ``field_efficiency.png``,
+    ``losses.png``, ``flux_equator.png`` and ``flux_optimised.png``.
+
+    Parameters
+    ----------
+    folder : pathlib.Path
+    plant : Plant
+        On the CPU.
+    before : heliotwin.raytrace.field.FieldResult
+        Equator aiming (flux [rows, cols] [W/m^2], efficiency [H]).
+    aimed : heliotwin.optimise.aimpoints.AimResult
+        Optimised aim points (flux [rows, cols] [W/m^2], power [W]).
+    rep : dict
+        The demo's report so far (``sun``, ``field``, ``receiver``, ``losses``).
+    limit : float
+        Peak-flux limit [W/m^2].
+    time_utc : str
+    """
+    pos = plant.field.kinematics.position.numpy()
+    sun = rep["sun"]
+    e = rep["field"]["efficiency_power_weighted"]
+    fig = Figure(figsize=(7, 6))
+    ax = fig.add_subplot()
+    sc = ax.scatter(pos[:, 0], pos[:, 1], c=before.efficiency.numpy(), s=5, cmap="viridis")
+    ax.plot([0.0], [0.0], marker="^", color="k", markersize=8, linestyle="none", label="tower")
+    fig.colorbar(sc, ax=ax, label="optical efficiency per heliostat [-]")
+    ax.set(xlabel="east [m]", ylabel="north [m]", aspect="equal",
+           title=f"{len(pos)} heliostats, {time_utc[:16]} UTC (sun el {sun['elevation_deg']:.1f} deg)\n"
+                 f"field efficiency {e['total']:.3f} (power-weighted)")
+    ax.legend(loc="lower right")
+    save_figure(fig, folder / "field_efficiency.png")
+
+    fig = Figure(figsize=(7, 4))
+    ax = fig.add_subplot()
+    loss = [100.0 * rep["losses"][k]["fraction"] for k in FACTORS]
+    bars = ax.bar(FACTORS, loss, color="tab:red")
+    for b, v, k in zip(bars, loss, FACTORS):
+        ax.annotate(f"{v:.1f} %\n{rep['losses'][k]['power_w'] / 1e6:.2f} MW", (b.get_x() + b.get_width() / 2, v),
+                    ha="center", va="bottom", fontsize=8)
+    ax.set(ylabel="share of DNI x mirror area lost [%]", ylim=(0, max(loss) * 1.3 + 1),
+           title=f"loss breakdown: {rep['receiver']['power_w'] / 1e6:.2f} MW on the receiver "
+                 f"(efficiency {e['total']:.3f})")
+    save_figure(fig, folder / "losses.png")
+
+    vmax = max(float(before.flux.max()), float(aimed.flux.max())) / 1e3
+    ext = before.extent.tolist()
+    for name, flux, label, power in (("flux_equator", before.flux, "equator aiming", rep["receiver"]["power_w"]),
+                                     ("flux_optimised", aimed.flux, "optimised aim points", aimed.power_w)):
+        fig = Figure(figsize=(8, 3))
+        ax = fig.add_subplot()
+        im = ax.imshow(flux.detach().numpy() / 1e3, extent=ext, aspect="auto", vmin=0, vmax=vmax, cmap="inferno")
+        fig.colorbar(im, ax=ax, label="flux [kW/m²]")
+        ax.set(xlabel="arc along the unrolled receiver [m]", ylabel="height [m]",
+               title=f"{label}: peak {float(flux.max()) / 1e3:.0f} kW/m² (limit {limit / 1e3:.0f}), "
+                     f"{power / 1e6:.2f} MW")
+        save_figure(fig, folder / f"{name}.png")

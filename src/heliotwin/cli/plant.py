@@ -43,7 +43,7 @@ def cmd_demo(args) -> int:
         if getattr(args, attr) is not None:
             raise HeliotwinError(f"demo: {flag} belongs to the classic demo (add --classic); the field demo uses "
                                  "the Gaussian field model on a 48x20 receiver map")
-    from ..field.demo import run_field_demo
+    from ..workflows.demo import run_field_demo
 
     with output_set() as out:
         folder = out.folder(args.out, "--out")
@@ -69,7 +69,7 @@ cmd_demo.supports_cuda = True  # both demos run on args.device
 
 def _cmd_demo_classic(args) -> int:
     """Trace the embedded default plant at a spring-equinox noon and write flux PNGs + a JSON summary."""
-    from ..demo import run_demo
+    from ..workflows.demo import run_demo
 
     with output_set() as out:
         folder = out.folder(args.out, "--out")
