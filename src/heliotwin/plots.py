@@ -13,7 +13,7 @@ from .io.images import load_measured_image
 from .io.report import save_figure
 from .raytrace.field import FACTORS
 
-__all__ = ["draw_flux", "draw_measured_image", "plot_demo", "plot_field_demo", "plot_validation"]
+__all__ = ["draw_flux", "draw_measured_image", "plot_flux", "plot_demo", "plot_field_demo", "plot_validation"]
 
 
 def draw_flux(ax, flux, title: str, *, measured: dict | None = None) -> None:
@@ -45,6 +45,47 @@ def draw_measured_image(ax, flux, png, *, measured: dict | None = None) -> None:
     ax.figure.colorbar(im, ax=ax, label="relative intensity [-]")
     if measured:
         _mark_spots(ax, flux.target, {**measured, "centroid_enu_m": None})
+
+
+def plot_flux(flux, path=None, *, title: str | None = None, measured: dict | None = None, ax=None):
+    """A flux image as a figure people read: title, axes in metres on the target, colour bar in kW/m².
+
+    Parameters
+    ----------
+    flux : FluxImage
+        The first image of the batch is drawn.
+    path : str or os.PathLike, optional
+        Write the figure here (atomically; format from the extension).
+    title : str, optional
+        Default: the target's name.
+    measured : dict, optional
+        A :func:`heliotwin.workflows.trace.trace_record` report: its measured focal spots (HeliOS, UTIS) and
+        the predicted centroid are marked, so the figure reads "measured vs predicted"; when the record has
+        PAINT's whole-target camera image (``measured_flux_png``) it is drawn on the left, on the same target
+        extent (relative scale).
+    ax : matplotlib.axes.Axes, optional
+        Draw the prediction into this axes (e.g. a notebook's) instead of a new figure (no camera panel).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        Made without pyplot (no backend is selected, nothing global changes); in a notebook, display it.
+    """
+    camera = (measured or {}).get("measured_flux_png") if ax is None else None
+    if ax is None:
+        fig = Figure(figsize=(12.4, 5.2) if camera else (6.4, 5.2))
+        axes = fig.subplots(1, 2 if camera else 1)
+        ax = axes[-1] if camera else axes
+        if camera:
+            draw_measured_image(axes[0], flux, camera, measured=measured)
+    fig = ax.figure
+    title = title or f"flux on {flux.target.name}"
+    if camera:
+        fig.suptitle(title)
+    draw_flux(ax, flux, "predicted" if camera else title, measured=measured)
+    if path is not None:
+        save_figure(fig, path)
+    return fig
 
 
 def _mark_spots(ax, target, report: dict) -> None:
