@@ -265,3 +265,15 @@ def test_stored_aimpoints_of_a_scenario_without_them_is_one_line():
     plant, _ = demo_field_plant(4)
     with pytest.raises(HeliotwinError, match=r"no aim points in this scenario"):
         stored_aimpoints(Scenario(plant=plant, extras={}, metadata={}, path="p.h5"), torch.tensor([0.0, 0.0, 1.0]))
+
+
+def test_aim_settings_object_equals_the_keywords():
+    from heliotwin.optimise.aimpoints import AimSettings
+
+    plant, atm = demo_field_plant(12)
+    sun = direction_from_time(["2023-06-21T10:00Z"], *plant.site.reference)[0]
+    kw = dict(resolution=(10, 24), iterations=6, rounds=2, lr=0.02)
+    by_keywords = optimise_aimpoints(plant, sun, 1e6, atmosphere=atm, **kw)
+    by_settings = optimise_aimpoints(plant, sun, 1e6, atmosphere=atm, settings=AimSettings(**kw))
+    assert torch.equal(by_keywords.aim, by_settings.aim)
+    assert by_keywords.history == by_settings.history

@@ -77,9 +77,9 @@ from ..field.plant import Plant
 from ..field.targets import CylinderTarget
 from ..raytrace.field import FieldSettings, equator_aim_points, field_optics
 
-__all__ = ["AimResult", "ImageModel", "optimise_aimpoints", "calibrate_images", "to_device", "aiming_factor",
-           "image_size_priority", "evaluate", "check_settings", "uniform_target", "load_target", "target_mismatch",
-           "run_aimpoints_sharded"]
+__all__ = ["AimResult", "AimSettings", "ImageModel", "optimise_aimpoints", "calibrate_images", "to_device",
+           "aiming_factor", "image_size_priority", "evaluate", "check_settings", "uniform_target", "load_target",
+           "target_mismatch", "run_aimpoints_sharded"]
 
 _SQ2 = math.sqrt(2.0)
 
@@ -373,14 +373,57 @@ def _alm(model: ImageModel, x, y, defect, power_defect, limit_int, lam, *, grp, 
     return x.detach(), y.detach()
 
 
+@dataclass
+class AimSettings:
+    """The aim-point optimiser's knobs (:func:`optimise_aimpoints`; the ``aimpoints`` command's defaults).
+
+    Attributes
+    ----------
+    resolution : (int, int)
+        Reporting map (rows, cols) on which the limit is enforced and checked.
+    iterations : int
+        Adam steps on the image model per round.
+    rounds : int
+        Exact checks (one per round) at most.
+    inner : int
+        Multiplier update every ``inner`` steps.
+    lr : float
+        Adam step size [m] (decays to a tenth within each round).
+    rho : float
+        Augmented-Lagrangian weight on the relative excess ``F_c / limit - 1`` [-].
+    margin : float
+        Starting internal margin ``m`` [-].
+    tolerance : float
+        Relative change of the power (or mismatch) below which the rounds stop [-].
+    field_gradient : bool
+        Make the power model first-order exact at every round's start (see :func:`optimise_aimpoints`).
+    softness : float
+        Occlusion width [m] of the smooth field model used by ``field_gradient``.
+    """
+
+    resolution: tuple[int, int] = (20, 48)
+    iterations: int = 300
+    rounds: int = 8
+    inner: int = 10
+    lr: float = 0.03
+    rho: float = 1.0
+    margin: float = 0.005
+    tolerance: float = 1e-3
+    field_gradient: bool = False
+    softness: float = 0.05
+
+
 def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, *, atmosphere: Atmosphere | None = None,
                        resolution=(20, 48), iterations: int = 300, rounds: int = 8, inner: int = 10,
                        lr: float = 0.03, rho: float = 1.0, margin: float = 0.005, tolerance: float = 1e-3,
                        target: torch.Tensor | None = None, group=None, equator=None, model=None,
-                       progress=None, device=None, field_gradient: bool = False, softness: float = 0.05
-                       ) -> AimResult:
+                       progress=None, device=None, field_gradient: bool = False, softness: float = 0.05,
+                       settings: AimSettings | None = None) -> AimResult:
     """Aim points that maximise intercepted power (or match ``target``) with every map cell at or below
     ``peak_limit`` [W/m^2] on the exact model.
+
+    The optimiser's knobs come one by one (keywords) or together as ``settings`` (an :class:`AimSettings`,
+    which then replaces the keywords ``resolution`` .. ``softness``).
 
     Parameters
     ----------
@@ -425,6 +468,9 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, *, at
         Run on this device (the plant, sun and target are moved there; ``equator``/``model`` must already be
         there). Default: where the plant's tensors are.
 
+    settings : AimSettings, optional
+        All the knobs at once.
+
     Returns
     -------
     AimResult
@@ -432,6 +478,11 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, *, at
         margin and whether the check passed; ``iterations`` the Adam steps done.
     """
     t0 = time.perf_counter()
+    if settings is not None:
+        resolution, iterations = settings.resolution, settings.iterations
+        rounds, inner = settings.rounds, settings.inner
+        lr, rho, margin, tolerance = settings.lr, settings.rho, settings.margin, settings.tolerance
+        field_gradient, softness = settings.field_gradient, settings.softness
     if device is not None:
         plant, sun = to_device(plant, device), torch.as_tensor(sun).to(device)
     grp = _Group(group)
