@@ -1,13 +1,13 @@
 """Whole-field commands: ``scenario from-layout``, ``field`` and ``aimpoints``.
 
 ``scenario from-layout LAYOUT.csv --config plant.toml -o plant.h5`` turns a SolarPILOT-style layout and a
-small TOML plant description into a scenario file; ``field`` reports the optical efficiency of every
-heliostat (cosine, shading, blocking, attenuation, intercept, reflectance) and the receiver's power and flux
-map for one sun. Both are thin shells over :mod:`heliotwin.field.layout` and :mod:`heliotwin.raytrace.field`.
-``aimpoints`` optimises aim points under a peak-flux limit for one or several instants
-(:mod:`heliotwin.optimise.aimpoints`; ``--nproc`` shards them over local gloo processes,
-:mod:`heliotwin.distributed`) and writes them, per instant, into ``/learned/aimpoints`` with their motor steps;
-``field --aim scenario`` traces the stored instant whose sun is nearest the requested one.
+small TOML plant description into a scenario file (:mod:`heliotwin.field.layout`); ``field`` reports the
+optical efficiency of every heliostat (cosine, shading, blocking, attenuation, intercept, reflectance) and the
+receiver's power and flux map for one sun, or over a year (:mod:`heliotwin.workflows.field`); ``aimpoints``
+optimises aim points under a peak-flux limit for one or several instants and writes them, per instant, into
+``/learned/aimpoints`` with their motor steps (:mod:`heliotwin.workflows.aimpoints`); ``field --aim scenario``
+traces the stored instant whose sun is nearest the requested one. The commands parse, call the workflow,
+write the outputs and print one line.
 """
 from __future__ import annotations
 
