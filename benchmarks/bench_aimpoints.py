@@ -47,7 +47,6 @@ from pathlib import Path
 import pandas as pd
 import torch
 
-from heliotwin.distributed import run_aimpoints_sharded
 from heliotwin.field.demo import demo_field_plant
 from heliotwin.io.report import save_figure, write_json
 from heliotwin.optimise.aimpoints import (
@@ -56,6 +55,7 @@ from heliotwin.optimise.aimpoints import (
     calibrate_images,
     image_size_priority,
     optimise_aimpoints,
+    run_aimpoints_sharded,
 )
 from heliotwin.sun import direction_from_time
 

@@ -8,7 +8,7 @@
 2. **Blocking, brute force**: for the east sun, the heliostats where SolarPILOT reports no blocking but the
    ray-rectangle test finds some, with the all-pairs check of the worst one.
 3. **Over a year**: the efficiency table and the hourly clear-sky annual energy for 2000 heliostats (time).
-4. **The demo** (``heliotwin demo``'s :func:`heliotwin.field.demo.run_field_demo`): wall time per stage and
+4. **The demo** (``heliotwin demo``'s :func:`heliotwin.workflows.demo.run_field_demo`): wall time per stage and
    its figures (field efficiency, peak before/after aim points, power ratio).
 5. **Speed** of one sun (shading + blocking + 48 x 20 map, and + 256 x 256 map) for generated radial-staggered
    fields of 50 to 10 000 heliostats, and the Monte-Carlo field model's rays per second (256 rays per flux
@@ -229,7 +229,7 @@ def yearly(out: Path, n: int) -> dict:
 
 def demo(out: Path, n: int) -> dict:
     """``heliotwin demo``'s run on ``n`` heliostats: seconds per stage and the headline figures."""
-    from heliotwin.field.demo import run_field_demo
+    from heliotwin.workflows.demo import run_field_demo
 
     t0 = time.perf_counter()
     rep = run_field_demo(out / "demo", num_heliostats=n)

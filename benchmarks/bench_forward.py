@@ -5,7 +5,7 @@ Usage::
     python benchmarks/bench_forward.py [--points 10000] [--rays 10 100] [--resolution 256] [--seed 0]
                                        [--threads 2] [--out bench_forward.json]
 
-Prints a summary and writes the full result (see :func:`heliotwin.raytrace.bench.run_benchmark`) as JSON.
+Prints a summary and writes the full result (see :func:`heliotwin.workflows.bench.run_benchmark`) as JSON.
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ import os
 import sys
 import tempfile
 
-from heliotwin.raytrace.bench import run_benchmark
+from heliotwin.workflows.bench import run_benchmark
 
 
 def main(argv=None) -> int:

@@ -222,3 +222,58 @@ def test_first_order_field_gradient_option_meets_the_limit():
     best = optimise_aimpoints(plant, sun, limit, atmosphere=atm, equator=eq, model=model, field_gradient=True,
                               iterations=150)
     assert best.violation(limit) == 0.0 and best.power_w >= 0.98 * float(eq.power_w.sum())
+
+
+def test_aim_points_round_trip_through_the_scenario_file(tmp_path):
+    """optimise.aimstate writes /learned/aimpoints and reads it back: per instant the same aim points, the
+    nearest stored sun's ones for a sun in between, and motor steps that realise them."""
+    from heliotwin.field.kinematics import inverse
+    from heliotwin.io.scenario import load_scenario, next_scenario, provenance_entry, write_scenario
+    from heliotwin.optimise.aimstate import KEY, aimpoint_state, instant_state, stored_aimpoints
+
+    plant, atm = demo_field_plant(12)
+    rec = plant.target("receiver")
+    suns = [direction_from_time([t], *plant.site.reference)[0] for t in ("2023-06-21T08:00Z", "2023-06-21T14:00Z")]
+    gen = torch.Generator().manual_seed(0)
+    aims = [rec.center.to(torch.float64) + torch.randn(12, 3, generator=gen, dtype=torch.float64) * 0.5
+            for _ in suns]
+    instants = {f"i{i:03d}": instant_state(plant, f"t{i}", aim, sun, power_w=1.0 + i, peak_flux_w_m2=2.0 + i)
+                for i, (aim, sun) in enumerate(zip(aims, suns))}
+    learned = {KEY: aimpoint_state(instants, peak_limit_w_m2=5e5, target="uniform")}
+    sc = next_scenario(None, plant, learned=learned, step=provenance_entry("aimpoints"))
+    write_scenario(sc, tmp_path / "aimed.h5")
+    back = load_scenario(tmp_path / "aimed.h5")
+    for aim, sun in zip(aims, suns):
+        assert torch.equal(stored_aimpoints(back, sun), aim)
+        assert torch.equal(stored_aimpoints(sc, sun), aim)
+    near_first = torch.nn.functional.normalize(0.9 * suns[0] + 0.1 * suns[1], dim=0)
+    assert torch.equal(stored_aimpoints(back, near_first), aims[0])
+    group = back.learned[KEY]
+    assert group["peak_limit_w_m2"] == 5e5 and group["target"] == "uniform"
+    assert torch.equal(torch.as_tensor(group["aim"]), aims[0])
+    steps, reachable = inverse(plant.field.kinematics, aims[1], suns[1][None], strict=False)
+    assert torch.equal(torch.as_tensor(group["instants"]["i001"]["motor_steps"]), steps)
+    assert torch.equal(torch.as_tensor(group["instants"]["i001"]["reachable"]), reachable)
+    assert back.provenance[-1]["step"] == "aimpoints"
+
+
+def test_stored_aimpoints_of_a_scenario_without_them_is_one_line():
+    from heliotwin.errors import HeliotwinError
+    from heliotwin.io.scenario import Scenario
+    from heliotwin.optimise.aimstate import stored_aimpoints
+
+    plant, _ = demo_field_plant(4)
+    with pytest.raises(HeliotwinError, match=r"no aim points in this scenario"):
+        stored_aimpoints(Scenario(plant=plant, extras={}, metadata={}, path="p.h5"), torch.tensor([0.0, 0.0, 1.0]))
+
+
+def test_aim_settings_object_equals_the_keywords():
+    from heliotwin.optimise.aimpoints import AimSettings
+
+    plant, atm = demo_field_plant(12)
+    sun = direction_from_time(["2023-06-21T10:00Z"], *plant.site.reference)[0]
+    kw = dict(resolution=(10, 24), iterations=6, rounds=2, lr=0.02)
+    by_keywords = optimise_aimpoints(plant, sun, 1e6, atmosphere=atm, **kw)
+    by_settings = optimise_aimpoints(plant, sun, 1e6, atmosphere=atm, settings=AimSettings(**kw))
+    assert torch.equal(by_keywords.aim, by_settings.aim)
+    assert by_keywords.history == by_settings.history

@@ -13,10 +13,10 @@ from heliotwin.field.demo import (
     HELIOSTAT_WIDTH,
     demo_field_plant,
     demo_field_positions,
-    run_field_demo,
 )
 from heliotwin.raytrace.field import FACTORS, field_optics, summary
 from heliotwin.sun import direction_from_paint_angles
+from heliotwin.workflows.demo import run_field_demo
 
 
 def test_demo_field_is_a_northern_radial_staggered_field_of_julich_extent():

@@ -7,6 +7,7 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 from helpers.field import dense_field, write_layout, write_plant_toml
+from helpers.release import release_worker
 
 from heliotwin.distributed import field_optics_sharded, init_process_group, shard
 from heliotwin.field.layout import plant_from_layout
@@ -129,19 +130,6 @@ def test_two_gloo_processes_give_the_single_process_aim_points(tmp_path):
         assert got["power"] == pytest.approx(ref.power_w, rel=1e-6)
 
 
-def _release_worker(rank, world, folder, ours):
-    import sys
-
-    (init_process_group if ours else dist.init_process_group)(
-        "gloo", init_method=f"file://{folder}/store-release", rank=rank, world_size=world)
-    group = dist.distributed_c10d._get_default_group()
-    before = sys.getrefcount(group)
-    torch.optim.Adam([torch.zeros(1, requires_grad=True)])  # the first optimiser imports torch._dynamo
-    dist.destroy_process_group()
-    with open(f"{folder}/refs-{int(ours)}.txt", "w") as f:
-        f.write(f"{before} {sys.getrefcount(group)}")
-
-
 def test_destroy_frees_the_group_after_an_optimiser(tmp_path):
     """A fresh rank that builds an optimiser still frees its gloo group at destroy_process_group.
 
@@ -149,9 +137,9 @@ def test_destroy_frees_the_group_after_an_optimiser(tmp_path):
     down at interpreter exit and sometimes aborts the rank (SIGABRT). Only this variable's own reference and
     getrefcount's argument may remain.
     """
-    mp.spawn(_release_worker, args=(1, str(tmp_path), True), nprocs=1, join=True)
+    mp.spawn(release_worker, args=(1, str(tmp_path), init_process_group, 1), nprocs=1, join=True)
     try:
-        mp.spawn(_release_worker, args=(1, str(tmp_path), False), nprocs=1, join=True)
+        mp.spawn(release_worker, args=(1, str(tmp_path), dist.init_process_group, 0), nprocs=1, join=True)
     except mp.ProcessExitedException:
         pass  # the control rank may abort at exit: the very symptom (it has written its counts by then)
     before, after = map(int, (tmp_path / "refs-1.txt").read_text().split())

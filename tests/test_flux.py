@@ -7,15 +7,14 @@ import torch
 
 from heliotwin.errors import InputFileError
 from heliotwin.field.targets import CylinderTarget, PlanarTarget
+from heliotwin.io.images import read_png, to_png
 from heliotwin.raytrace.flux import (
     FluxImage,
     centered_crop,
     cross_correlation,
     normalized_l1,
     pixel_centers,
-    read_png,
     target_extent,
-    to_png,
 )
 
 D64 = torch.float64

@@ -14,8 +14,8 @@ import torch
 from heliotwin.errors import HeliotwinError, InputFileError, ScenarioVersionError
 from heliotwin.field import demo as demo_mod
 from heliotwin.field import kinematics as kin_ops
-from heliotwin.field.demo import demo_plant, demo_targets, receiver_canting
-from heliotwin.field.facets import facet_normals, ideal_surfaces
+from heliotwin.field.demo import demo_plant, demo_targets
+from heliotwin.field.facets import facet_normals, ideal_surfaces, receiver_canting
 from heliotwin.field.plant import Kinematics, Plant, Surfaces
 from heliotwin.field.targets import CylinderTarget, PlanarTarget
 from heliotwin.io import scenario as sc

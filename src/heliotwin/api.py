@@ -9,9 +9,9 @@ Three lines from a PAINT download to a labelled flux figure::
 
 Conventions at this edge: angles in degrees with ``_deg`` in their names (inside the package: radians),
 lengths in metres, powers in watts; every default is the command line's (``heliotwin trace``,
-``heliotwin calibrate``, ``heliotwin reconstruct``; a test checks that they agree). Importing this module
-imports neither torch nor matplotlib and changes no global state (no backend, no seed, no threads): each
-function imports what it needs when called.
+``heliotwin calibrate``, ``heliotwin reconstruct``; a test checks that they agree). Each function calls the
+workflow of the same job (:mod:`heliotwin.workflows`) and re-implements none. Importing this module imports
+torch and the library, and changes no global state (no backend, no seed, no threads).
 
 Functions
 ---------
@@ -21,9 +21,15 @@ and report), :func:`plot_flux` (a titled, labelled figure with a colour bar), :f
 """
 from __future__ import annotations
 
-import math
 import os
-import time
+
+from . import plots
+from .devices import resolve_device
+from .devices import to_device as _move
+from .field.update import select_heliostats
+from .io.scenario import load_records, load_scenario, scenario_from_paint
+from .workflows.trace import TraceSettings
+from .workflows.trace import trace_record as trace_workflow
 
 __all__ = ["load", "field", "trace_record", "plot_flux", "calibrate", "reconstruct", "to_device"]
 
@@ -49,8 +55,6 @@ def load(paint, heliostats=None, *, scenario=None, plane_tolerance: float = 0.1)
         ``.plant`` (the plant), ``.records`` (a :class:`~heliotwin.io.records.RecordTable`), ``.skipped`` (records
         that could not be used, with reasons).
     """
-    from .io.scenario import load_records
-
     ds, _ = load_records(os.fspath(paint), None if scenario is None else os.fspath(scenario),
                          None if heliostats is None else list(heliostats), plane_tolerance=plane_tolerance)
     return ds
@@ -63,15 +67,11 @@ def field(source, heliostats=None):
     -------
     heliotwin.field.plant.Plant
     """
-    from .io.scenario import load_scenario, scenario_from_paint
-
     source = os.fspath(source)
     if os.path.isdir(source):
         return scenario_from_paint(source, None if heliostats is None else list(heliostats))
     plant = load_scenario(source).plant
     if heliostats is not None:
-        from .field.update import select_heliostats
-
         plant = select_heliostats(plant, list(heliostats))
     return plant
 
@@ -79,23 +79,18 @@ def field(source, heliostats=None):
 def to_device(obj, device):
     """``obj`` with every tensor on ``device`` (:func:`heliotwin.devices.to_device`): plants, targets, record
     tables, flux images, networks and containers of them; dtypes kept."""
-    from .devices import to_device as move
-
-    return move(obj, device)
+    return _move(obj, device)
 
 
 def _device(name) -> str:
     """``"auto"`` -> ``"cuda"`` when torch sees a CUDA device, else ``"cpu"``; anything else as given."""
-    from .devices import resolve_device
-
     return resolve_device(name)
 
 
 def trace_record(dataset, record_id: int, *, integrator: str = "mc", rays_per_point: int = 100,
                  resolution: int = 256, samples: int = 50, seed: int = 0, device: str = "auto"):
-    """Trace one calibration record (its sun, motor steps and target) with the dataset's plant.
-
-    The defaults are ``heliotwin trace``'s.
+    """Trace one calibration record (its sun, motor steps and target) with the dataset's plant
+    (:func:`heliotwin.workflows.trace.trace_record`; the defaults are ``heliotwin trace``'s).
 
     Parameters
     ----------
@@ -123,56 +118,9 @@ def trace_record(dataset, record_id: int, *, integrator: str = "mc", rays_per_po
         Powers [W], centroid (ENU [m], WGS84 [deg], target-local [m]; ``None`` when no light reaches the
         target), sun angles [deg] (PAINT: azimuth 0 = south, +90 = east), the measured spots, optics.
     """
-    import torch
-
-    from .field import kinematics as kin_ops
-    from .io.records import SOURCES
-    from .scene import trace, world_surface
-
-    device = _device(device)
-    plant = dataset.plant
-    row = dataset.record(int(record_id))
-    kin, surfaces, target, row_on = to_device((plant.field.kinematics, plant.field.surfaces,
-                                               plant.target(row.target[0]), row), device)
-    t0 = time.perf_counter()
-    with torch.no_grad():
-        pts, nrm, area, R, c = world_surface(kin, surfaces, row_on.heliostat_index, row_on.motor_steps,
-                                             (samples, samples))
-        flux = trace(pts, nrm, area, row_on.sun.to(pts), target, integrator=integrator,
-                     resolution=(resolution, resolution), sun=plant.sun, rays_per_point=rays_per_point,
-                     generator=torch.Generator(device=device).manual_seed(seed))
-    seconds = time.perf_counter() - t0
-    # Reporting happens on the CPU, where the plant's site and targets live.
-    flux, nrm, area, R, c = to_device((flux, nrm, area, R, c), "cpu")
-    s = row.sun
-    # No light on the target: there is no centroid (a zero image's "centroid" would be the target centre).
-    lit = bool(flux.bitmap[0].sum() > 0) and float(flux.intercepted_power_w[0]) > 0
-    centroid = flux.centroid_enu()[0] if lit else None
-    lla = plant.site.to_wgs84(centroid) if lit else None
-    cosines = (nrm[0].to(torch.float64) @ s[0]).clamp_min(0)
-    spots = {src: row.focal_spots[0, k].tolist() for k, src in enumerate(SOURCES)
-             if bool(torch.isfinite(row.focal_spots[0, k]).all())}
-    report = {
-        "heliostat": row.heliostat_ids[int(row.heliostat_index[0])], "record": int(row.record_id[0]),
-        "target": row.target[0], "integrator": integrator, "device": str(device),
-        "rays_per_point": rays_per_point if integrator == "mc" else None, "resolution": resolution,
-        "sun_azimuth_deg": math.degrees(float(row.sun_azimuth[0])),
-        "sun_elevation_deg": math.degrees(float(row.sun_elevation[0])),
-        "motor_steps": row.motor_steps[0].tolist(),
-        "centroid_enu_m": centroid.tolist() if lit else None,
-        "centroid_wgs84": {"latitude_deg": float(lla[0]), "longitude_deg": float(lla[1]),
-                           "altitude_m": float(lla[2])} if lit else None,
-        "centroid_local_m": flux.centroid_local()[0].tolist() if lit else None,
-        "measured_spot_enu_m": spots,
-        "measured_flux_png": row.flux_png[0],
-        "total_power_w": float(flux.total_power_w[0]), "intercepted_power_w": float(flux.intercepted_power_w[0]),
-        "mirror_area_m2": float(area[0].sum()),
-        "mean_incidence_cosine": float((cosines * area[0]).sum() / area[0].sum()),
-        "dni_w_m2": plant.sun.dni, "reflectivity": plant.sun.reflectivity, "sunshape": plant.sun.sunshape,
-        "slope_error_mrad": plant.sun.slope_error * 1e3, "seconds": seconds,
-        "concentrator_enu_m": c[0].tolist(), "mirror_normal_enu": kin_ops.mirror_normal(R)[0].tolist(),
-    }
-    return flux, report
+    settings = TraceSettings(integrator=integrator, rays_per_point=rays_per_point, resolution=resolution,
+                             samples=samples, seed=seed, device=device)
+    return trace_workflow(dataset, record_id, settings)
 
 
 def plot_flux(flux, path=None, *, title: str | None = None, measured: dict | None = None, ax=None):
@@ -198,26 +146,7 @@ def plot_flux(flux, path=None, *, title: str | None = None, measured: dict | Non
     matplotlib.figure.Figure
         Made without pyplot (no backend is selected, nothing global changes); in a notebook, display it.
     """
-    from matplotlib.figure import Figure
-
-    from .io.report import save_figure
-    from .plots import draw_flux, draw_measured_image
-
-    camera = (measured or {}).get("measured_flux_png") if ax is None else None
-    if ax is None:
-        fig = Figure(figsize=(12.4, 5.2) if camera else (6.4, 5.2))
-        axes = fig.subplots(1, 2 if camera else 1)
-        ax = axes[-1] if camera else axes
-        if camera:
-            draw_measured_image(axes[0], flux, camera, measured=measured)
-    fig = ax.figure
-    title = title or f"flux on {flux.target.name}"
-    if camera:
-        fig.suptitle(title)
-    draw_flux(ax, flux, "predicted" if camera else title, measured=measured)
-    if path is not None:
-        save_figure(fig, path)
-    return fig
+    return plots.plot_flux(flux, path, title=title, measured=measured, ax=ax)
 
 
 def calibrate(paint, *, method: str = "lm", heliostats=None, split: str = "chrono", train: int = 30,

@@ -12,19 +12,21 @@ The map is the single-process one in every ``flux_mode``: the ranks agree on the
 ``grouped`` mode on the footprint classes and their kernels (all ranks' footprints), so their maps sum to the
 one-process map up to float rounding.
 
-Aim points (:func:`heliotwin.optimise.aimpoints.optimise_aimpoints` with ``group=``): every rank optimises
-the aim points of its shard; the image-model map and power are all-reduced at every step (so the gradient
-of every heliostat sees the whole field's flux) and the exact checks are :func:`field_optics_sharded`.
-:func:`run_aimpoints_sharded` spawns N local gloo processes for it.
+:func:`run_spawned` runs any module-level ``work(job, group)`` that way; the learners that shard (aim points:
+:func:`heliotwin.optimise.aimpoints.run_aimpoints_sharded`) build on it, this module knows none of them.
 """
 from __future__ import annotations
 
+import tempfile
+
 import torch
+import torch._dynamo  # noqa: F401  (imported for its side effect: see init_process_group)
 import torch.distributed as dist
+import torch.multiprocessing as mp
 
 from .raytrace.field import FieldResult, field_optics
 
-__all__ = ["init_process_group", "shard", "field_optics_sharded", "run_sharded", "run_aimpoints_sharded"]
+__all__ = ["init_process_group", "shard", "gather_rows", "field_optics_sharded", "run_spawned", "run_sharded"]
 
 _PER_HELIOSTAT = ("aim", "normal", "cosine", "shading", "tower_shading", "blocking", "attenuation", "intercept",
                   "reflectance", "efficiency", "power_w", "mirror_area")
@@ -40,8 +42,6 @@ def init_process_group(backend: str = "gloo", **kwargs) -> None:
     exception", SIGABRT: about one two-rank aim-point run in four with torch 2.13 on CPU). Imported before
     the group exists, it holds nothing. Call this instead of torch's own under ``torchrun`` too.
     """
-    import torch._dynamo  # noqa: F401  (imported for its side effect; see above)
-
     dist.init_process_group(backend, **kwargs)
 
 
@@ -52,8 +52,8 @@ def shard(num_heliostats: int, rank: int, world_size: int) -> torch.Tensor:
     return torch.arange(start, start + base + (1 if rank < extra else 0))
 
 
-def _gather(t: torch.Tensor, counts: list[int], group) -> torch.Tensor:
-    """Concatenate every rank's [h_r, ...] tensor in rank order (padded all_gather)."""
+def gather_rows(t: torch.Tensor, counts: list[int], group) -> torch.Tensor:
+    """Concatenate every rank's ``[h_r, ...]`` tensor in rank order (padded all_gather): ``[sum(counts), ...]``."""
     width = max(counts)
     pad = t.new_zeros((width, *t.shape[1:]))
     pad[: t.shape[0]] = t
@@ -85,22 +85,47 @@ def field_optics_sharded(plant, sun_direction, *, group=None, **kwargs) -> Field
     flux = r.flux.detach().clone()
     dist.all_reduce(flux, group=group)
     counts = [len(shard(h, k, world)) for k in range(world)]
-    gathered = {name: _gather(getattr(r, name).detach(), counts, group) for name in _PER_HELIOSTAT}
-    extras = {k: _gather(v.detach(), counts, group) for k, v in r.extras.items()}
+    gathered = {name: gather_rows(getattr(r, name).detach(), counts, group) for name in _PER_HELIOSTAT}
+    extras = {k: gather_rows(v.detach(), counts, group) for k, v in r.extras.items()}
     return FieldResult(**gathered, flux=flux, extent=r.extent, sun=r.sun, dni=r.dni, extras=extras)
 
 
-def _run_rank(rank: int, world: int, folder: str, threads: int) -> None:
+def _trace_shard(job: dict, group) -> FieldResult:
+    with torch.no_grad():
+        return field_optics_sharded(job["plant"], job["sun"], group=group, **job["kwargs"])
+
+
+def _run_rank(rank: int, work, world: int, folder: str, threads: int) -> None:
     torch.set_num_threads(threads)
     init_process_group("gloo", init_method=f"file://{folder}/store", rank=rank, world_size=world)
     try:
         job = torch.load(f"{folder}/job.pt", weights_only=False)
-        with torch.no_grad():
-            result = field_optics_sharded(job["plant"], job["sun"], **job["kwargs"])
+        result = work(job, dist.group.WORLD)
         if rank == 0:
             torch.save(result, f"{folder}/result.pt")
     finally:
         dist.destroy_process_group()
+
+
+def run_spawned(work, job: dict, nproc: int):
+    """Run ``work(job, group)`` on ``nproc`` spawned local gloo processes; rank 0's return value.
+
+    The machine's threads are split evenly over the processes (at least one each).
+
+    Parameters
+    ----------
+    work : callable
+        A module-level function (spawned processes pickle it by name) of the job dict and the world group.
+    job : dict
+        What every rank starts from (saved once with :func:`torch.save`, loaded by each rank).
+    nproc : int
+        Number of processes [-].
+    """
+    threads = max(1, torch.get_num_threads() // int(nproc))
+    with tempfile.TemporaryDirectory() as folder:
+        torch.save(job, f"{folder}/job.pt")
+        mp.spawn(_run_rank, args=(work, int(nproc), folder, threads), nprocs=int(nproc), join=True)
+        return torch.load(f"{folder}/result.pt", weights_only=False)
 
 
 def run_sharded(plant, sun_direction, nproc: int, **kwargs) -> FieldResult:
@@ -108,47 +133,4 @@ def run_sharded(plant, sun_direction, nproc: int, **kwargs) -> FieldResult:
 
     The machine's threads are split evenly over the processes (at least one each).
     """
-    import tempfile
-
-    import torch.multiprocessing as mp
-
-    threads = max(1, torch.get_num_threads() // int(nproc))
-    with tempfile.TemporaryDirectory() as folder:
-        torch.save({"plant": plant, "sun": sun_direction, "kwargs": kwargs}, f"{folder}/job.pt")
-        mp.spawn(_run_rank, args=(int(nproc), folder, threads), nprocs=int(nproc), join=True)
-        return torch.load(f"{folder}/result.pt", weights_only=False)
-
-
-def _run_aim_rank(rank: int, world: int, folder: str, threads: int) -> None:
-    from .optimise.aimpoints import calibrate_images, optimise_aimpoints
-
-    torch.set_num_threads(threads)
-    init_process_group("gloo", init_method=f"file://{folder}/store", rank=rank, world_size=world)
-    try:
-        job = torch.load(f"{folder}/job.pt", weights_only=False)
-        kw = dict(job["kwargs"])
-        group = dist.group.WORLD
-        model, equator = calibrate_images(job["plant"], job["sun"], kw.get("atmosphere"),
-                                          kw.get("resolution", (20, 48)), group=group)
-        result = optimise_aimpoints(job["plant"], job["sun"], job["limit"], group=group, equator=equator,
-                                    model=model, **kw)
-        if rank == 0:
-            torch.save(result, f"{folder}/result.pt")
-    finally:
-        dist.destroy_process_group()
-
-
-def run_aimpoints_sharded(plant, sun_direction, peak_limit: float, nproc: int, **kwargs):
-    """:func:`heliotwin.optimise.aimpoints.optimise_aimpoints` sharded over ``nproc`` spawned local gloo
-    processes (CPU); rank 0's result (every rank holds the same aim points). ``kwargs`` as for it, without
-    ``group``, ``equator``, ``model`` and ``progress``."""
-    import tempfile
-
-    import torch.multiprocessing as mp
-
-    threads = max(1, torch.get_num_threads() // int(nproc))
-    with tempfile.TemporaryDirectory() as folder:
-        torch.save({"plant": plant, "sun": sun_direction, "limit": float(peak_limit), "kwargs": kwargs},
-                   f"{folder}/job.pt")
-        mp.spawn(_run_aim_rank, args=(int(nproc), folder, threads), nprocs=int(nproc), join=True)
-        return torch.load(f"{folder}/result.pt", weights_only=False)
+    return run_spawned(_trace_shard, {"plant": plant, "sun": sun_direction, "kwargs": kwargs}, nproc)

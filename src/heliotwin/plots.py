@@ -6,11 +6,14 @@ inline plots; a headless run needs no display).
 """
 from __future__ import annotations
 
+import torch
 from matplotlib.figure import Figure
 
+from .io.images import load_measured_image
 from .io.report import save_figure
+from .raytrace.field import FACTORS
 
-__all__ = ["draw_flux", "draw_measured_image", "plot_demo", "plot_validation"]
+__all__ = ["draw_flux", "draw_measured_image", "plot_flux", "plot_demo", "plot_field_demo", "plot_validation"]
 
 
 def draw_flux(ax, flux, title: str, *, measured: dict | None = None) -> None:
@@ -33,8 +36,6 @@ def draw_flux(ax, flux, title: str, *, measured: dict | None = None) -> None:
 def draw_measured_image(ax, flux, png, *, measured: dict | None = None) -> None:
     """PAINT's whole-target camera image ``png`` on ``ax``, on the extent of ``flux``'s target (PAINT
     orientation: left = east), relative scale (max = 1), with the measured spots marked."""
-    from .io.images import load_measured_image
-
     img = load_measured_image(png, normalise="max")
     ext = flux.extent[0].tolist()
     im = ax.imshow(img.numpy(), extent=(ext[0], ext[1], ext[2], ext[3]), cmap="inferno", vmin=0, vmax=1)
@@ -46,9 +47,48 @@ def draw_measured_image(ax, flux, png, *, measured: dict | None = None) -> None:
         _mark_spots(ax, flux.target, {**measured, "centroid_enu_m": None})
 
 
-def _mark_spots(ax, target, report: dict) -> None:
-    import torch
+def plot_flux(flux, path=None, *, title: str | None = None, measured: dict | None = None, ax=None):
+    """A flux image as a figure people read: title, axes in metres on the target, colour bar in kW/m².
 
+    Parameters
+    ----------
+    flux : FluxImage
+        The first image of the batch is drawn.
+    path : str or os.PathLike, optional
+        Write the figure here (atomically; format from the extension).
+    title : str, optional
+        Default: the target's name.
+    measured : dict, optional
+        A :func:`heliotwin.workflows.trace.trace_record` report: its measured focal spots (HeliOS, UTIS) and
+        the predicted centroid are marked, so the figure reads "measured vs predicted"; when the record has
+        PAINT's whole-target camera image (``measured_flux_png``) it is drawn on the left, on the same target
+        extent (relative scale).
+    ax : matplotlib.axes.Axes, optional
+        Draw the prediction into this axes (e.g. a notebook's) instead of a new figure (no camera panel).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        Made without pyplot (no backend is selected, nothing global changes); in a notebook, display it.
+    """
+    camera = (measured or {}).get("measured_flux_png") if ax is None else None
+    if ax is None:
+        fig = Figure(figsize=(12.4, 5.2) if camera else (6.4, 5.2))
+        axes = fig.subplots(1, 2 if camera else 1)
+        ax = axes[-1] if camera else axes
+        if camera:
+            draw_measured_image(axes[0], flux, camera, measured=measured)
+    fig = ax.figure
+    title = title or f"flux on {flux.target.name}"
+    if camera:
+        fig.suptitle(title)
+    draw_flux(ax, flux, "predicted" if camera else title, measured=measured)
+    if path is not None:
+        save_figure(fig, path)
+    return fig
+
+
+def _mark_spots(ax, target, report: dict) -> None:
     marks = [(src, enu, m) for (src, enu), m in zip(sorted((report.get("measured_spot_enu_m") or {}).items()),
                                                     ("c+", "gx"))]
     if report.get("centroid_enu_m") is not None:
@@ -116,3 +156,62 @@ def plot_validation(report: dict, path) -> None:
     fig.suptitle(f"{settings.get('kinematics', 'nominal')} kinematics, {settings.get('surface', 'ideal')} surface "
                  f"vs measured focal spots")
     save_figure(fig, path, make_folder=True)  # as before: plots make their folder
+
+
+def plot_field_demo(folder, plant, before, aimed, rep, limit: float, time_utc: str) -> None:
+    """The whole-field demo's four figures in ``folder`` (colour bars, titles, units): ``field_efficiency.png``,
+    ``losses.png``, ``flux_equator.png`` and ``flux_optimised.png``.
+
+    Parameters
+    ----------
+    folder : pathlib.Path
+    plant : Plant
+        On the CPU.
+    before : heliotwin.raytrace.field.FieldResult
+        Equator aiming (flux [rows, cols] [W/m^2], efficiency [H]).
+    aimed : heliotwin.optimise.aimpoints.AimResult
+        Optimised aim points (flux [rows, cols] [W/m^2], power [W]).
+    rep : dict
+        The demo's report so far (``sun``, ``field``, ``receiver``, ``losses``).
+    limit : float
+        Peak-flux limit [W/m^2].
+    time_utc : str
+    """
+    pos = plant.field.kinematics.position.numpy()
+    sun = rep["sun"]
+    e = rep["field"]["efficiency_power_weighted"]
+    fig = Figure(figsize=(7, 6))
+    ax = fig.add_subplot()
+    sc = ax.scatter(pos[:, 0], pos[:, 1], c=before.efficiency.numpy(), s=5, cmap="viridis")
+    ax.plot([0.0], [0.0], marker="^", color="k", markersize=8, linestyle="none", label="tower")
+    fig.colorbar(sc, ax=ax, label="optical efficiency per heliostat [-]")
+    ax.set(xlabel="east [m]", ylabel="north [m]", aspect="equal",
+           title=f"{len(pos)} heliostats, {time_utc[:16]} UTC (sun el {sun['elevation_deg']:.1f} deg)\n"
+                 f"field efficiency {e['total']:.3f} (power-weighted)")
+    ax.legend(loc="lower right")
+    save_figure(fig, folder / "field_efficiency.png")
+
+    fig = Figure(figsize=(7, 4))
+    ax = fig.add_subplot()
+    loss = [100.0 * rep["losses"][k]["fraction"] for k in FACTORS]
+    bars = ax.bar(FACTORS, loss, color="tab:red")
+    for b, v, k in zip(bars, loss, FACTORS):
+        ax.annotate(f"{v:.1f} %\n{rep['losses'][k]['power_w'] / 1e6:.2f} MW", (b.get_x() + b.get_width() / 2, v),
+                    ha="center", va="bottom", fontsize=8)
+    ax.set(ylabel="share of DNI x mirror area lost [%]", ylim=(0, max(loss) * 1.3 + 1),
+           title=f"loss breakdown: {rep['receiver']['power_w'] / 1e6:.2f} MW on the receiver "
+                 f"(efficiency {e['total']:.3f})")
+    save_figure(fig, folder / "losses.png")
+
+    vmax = max(float(before.flux.max()), float(aimed.flux.max())) / 1e3
+    ext = before.extent.tolist()
+    for name, flux, label, power in (("flux_equator", before.flux, "equator aiming", rep["receiver"]["power_w"]),
+                                     ("flux_optimised", aimed.flux, "optimised aim points", aimed.power_w)):
+        fig = Figure(figsize=(8, 3))
+        ax = fig.add_subplot()
+        im = ax.imshow(flux.detach().numpy() / 1e3, extent=ext, aspect="auto", vmin=0, vmax=vmax, cmap="inferno")
+        fig.colorbar(im, ax=ax, label="flux [kW/m²]")
+        ax.set(xlabel="arc along the unrolled receiver [m]", ylabel="height [m]",
+               title=f"{label}: peak {float(flux.max()) / 1e3:.0f} kW/m² (limit {limit / 1e3:.0f}), "
+                     f"{power / 1e6:.2f} MW")
+        save_figure(fig, folder / f"{name}.png")

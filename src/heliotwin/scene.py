@@ -14,10 +14,13 @@ from __future__ import annotations
 
 import torch
 
+from .errors import HeliotwinError
 from .field import facets as facet_ops
 from .field import kinematics as kin_ops
 from .field.plant import Kinematics, Surfaces
+from .field.targets import PlanarTarget
 from .geometry import ray_plane, reflect
+from .raytrace import conv, gaussian, montecarlo
 
 
 def heliostat_frame_surface(surfaces: Surfaces, samples: tuple[int, int] = (32, 32)):
@@ -121,24 +124,15 @@ def trace(points, normals, areas, sun_direction, target, *, integrator: str = "g
     FluxImage
         Flux [W/m^2], ``method`` = the integrator name.
     """
-    from .errors import HeliotwinError
-
     check_integrator(integrator)
     if integrator == "mc":
-        from .raytrace import montecarlo
-
         if generator is None:
             raise HeliotwinError("the Monte-Carlo integrator needs a torch.Generator (pass a seed)")
         return montecarlo.trace_mc(points, normals, areas, sun_direction, target, resolution=resolution, sun=sun,
                                    window=window, rays_per_point=rays_per_point, generator=generator, **kwargs)
     if integrator == "gaussian":
-        from .raytrace import gaussian
-
         return gaussian.trace_gaussian(points, normals, areas, sun_direction, target, resolution=resolution, sun=sun,
                                        window=window, **kwargs)
-    from .field.targets import PlanarTarget
-    from .raytrace import conv
-
     if not isinstance(target, PlanarTarget):
         raise HeliotwinError("the conv integrator supports planar targets only (use 'gaussian' or 'mc')")
     return conv.trace_conv(points, normals, areas, sun_direction, target, resolution=resolution, sun=sun,
@@ -147,8 +141,6 @@ def trace(points, normals, areas, sun_direction, target, *, integrator: str = "g
 
 def check_integrator(name: str) -> str:
     """``name`` if it is one of :data:`INTEGRATORS`, else a one-line :class:`HeliotwinError`."""
-    from .errors import HeliotwinError
-
     if name in INTEGRATORS:
         return name
     hint = " ('analytic' is now 'gaussian' or 'conv')" if name == "analytic" else ""

@@ -12,6 +12,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pandas as pd
+import pvlib
 import torch
 
 from .errors import OutOfRangeError
@@ -78,9 +80,6 @@ def solar_position(times, latitude_deg: float, longitude_deg: float, altitude_m:
     azimuth, elevation : torch.Tensor, shape (T,), float64
         [rad]; azimuth 0 = south, +pi/2 = east; elevation is the refraction-corrected apparent one.
     """
-    import pandas as pd
-    import pvlib
-
     idx = pd.DatetimeIndex(pd.to_datetime(times, utc=True))
     sp = pvlib.solarposition.get_solarposition(idx, latitude_deg, longitude_deg, altitude=altitude_m,
                                                method="nrel_numpy")
@@ -108,8 +107,6 @@ def daylight_times(year: int, every: str, latitude_deg: float, longitude_deg: fl
     times : pandas.DatetimeIndex
     azimuth, elevation : torch.Tensor, shape (T,) [rad], PAINT convention.
     """
-    import pandas as pd
-
     times = pd.date_range(f"{year}-01-01", f"{year + 1}-01-01", freq=every, tz="UTC", inclusive="left")
     az, el = solar_position(times, latitude_deg, longitude_deg, altitude_m)
     keep = el > math.radians(min_elevation_deg)

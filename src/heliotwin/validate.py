@@ -23,6 +23,8 @@ from collections import defaultdict
 import torch
 from tqdm.auto import tqdm
 
+from .calibrate import metrics
+from .devices import resolve_device, to_device
 from .field.plant import Plant, SunSettings
 from .field.targets import PlanarTarget
 from .io.images import CENTERED_WINDOW_M, load_measured_image
@@ -68,8 +70,6 @@ def validate_dataset(ds: PaintDataset, *, plant: Plant | None = None, sun: SunSe
         ``records`` (one dict per record), ``heliostats.<HID>`` medians, ``overall`` medians (the median
         over heliostats of each heliostat's median), ``skipped_records`` (with reasons).
     """
-    from .devices import resolve_device, to_device
-
     plant = plant or ds.plant
     device = resolve_device(device)
     if device != "cpu":
@@ -116,8 +116,6 @@ def camera_agreement(table: RecordTable) -> dict:
 def _pointing_errors(chunk: RecordTable, plant: Plant) -> dict:
     """Pointing error [rad] per centroid source, [R] each (NaN where a record lacks that source): the metric
     of :mod:`heliotwin.calibrate.metrics`, so validate and calibrate report the same number."""
-    from .calibrate import metrics
-
     normal, conc = metrics.model_normals(plant.field.kinematics, chunk)
     out = {}
     for k, src in enumerate(SOURCES):

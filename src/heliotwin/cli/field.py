@@ -1,23 +1,23 @@
 """Whole-field commands: ``scenario from-layout``, ``field`` and ``aimpoints``.
 
 ``scenario from-layout LAYOUT.csv --config plant.toml -o plant.h5`` turns a SolarPILOT-style layout and a
-small TOML plant description into a scenario file; ``field`` reports the optical efficiency of every
-heliostat (cosine, shading, blocking, attenuation, intercept, reflectance) and the receiver's power and flux
-map for one sun. Both are thin shells over :mod:`heliotwin.field.layout` and :mod:`heliotwin.raytrace.field`.
-``aimpoints`` optimises aim points under a peak-flux limit for one or several instants
-(:mod:`heliotwin.optimise.aimpoints`; ``--nproc`` shards them over local gloo processes,
-:mod:`heliotwin.distributed`) and writes them, per instant, into ``/learned/aimpoints`` with their motor steps;
-``field --aim scenario`` traces the stored instant whose sun is nearest the requested one.
+small TOML plant description into a scenario file (:mod:`heliotwin.field.layout`); ``field`` reports the
+optical efficiency of every heliostat (cosine, shading, blocking, attenuation, intercept, reflectance) and the
+receiver's power and flux map for one sun, or over a year (:mod:`heliotwin.workflows.field`); ``aimpoints``
+optimises aim points under a peak-flux limit for one or several instants and writes them, per instant, into
+``/learned/aimpoints`` with their motor steps (:mod:`heliotwin.workflows.aimpoints`); ``field --aim scenario``
+traces the stored instant whose sun is nearest the requested one. The commands parse, call the workflow,
+write the outputs and print one line.
 """
 from __future__ import annotations
 
 import argparse
-import math
+import csv
 import os
 import time
 
 from ..errors import HeliotwinError
-from ..io.report import write_json
+from ..io.report import atomic_path, write_json
 from .common import check_output_folder, positive_int
 
 
@@ -50,139 +50,53 @@ def _resolution(text: str) -> tuple[int, int]:
     return rows, cols
 
 
-def _sun_direction(args, plant):
-    import torch
+def _sun(args, plant):
+    """The one sun of ``--time`` or ``--sun-azimuth/--sun-elevation``."""
+    from ..workflows.field import sun_direction_at
 
-    from ..sun import direction_from_paint_angles, direction_from_time
-
-    if args.time is not None:
-        import pandas as pd
-
-        try:
-            stamp = pd.Timestamp(args.time)
-        except ValueError:
-            raise HeliotwinError(f"--time: cannot parse {args.time!r} (expected ISO UTC, e.g. 2023-06-21T12:00Z)") \
-                from None
-        if stamp.tzinfo is None:
-            stamp = stamp.tz_localize("UTC")
-        s = plant.site
-        d = direction_from_time(pd.DatetimeIndex([stamp]), s.latitude_deg, s.longitude_deg, s.altitude_m,
-                               check_horizon=False)
-        d = torch.as_tensor(d, dtype=torch.float64).reshape(3)
-        if float(d[2]) <= 0:
-            raise HeliotwinError(f"--time: the sun is below the horizon at {args.time} "
-                                 f"(elevation {math.degrees(math.asin(float(d[2]))):.1f} deg)")
-        return d
-    if args.sun_elevation <= 0:
-        raise HeliotwinError(f"--sun-elevation: the sun is below the horizon ({args.sun_elevation} deg)")
-    return direction_from_paint_angles(torch.tensor(math.radians(args.sun_azimuth), dtype=torch.float64),
-                                       torch.tensor(math.radians(args.sun_elevation), dtype=torch.float64))
+    return sun_direction_at(plant, time_utc=args.time, azimuth_deg=args.sun_azimuth, elevation_deg=args.sun_elevation)
 
 
 def cmd_field(args) -> int:
-    import torch
-
-    from ..atmosphere import Atmosphere
+    from ..io.images import to_png
     from ..io.scenario import load_scenario
-    from ..raytrace.field import FieldSettings, field_optics, per_heliostat_rows, summary
+    from ..raytrace.field import per_heliostat_rows
+    from ..workflows.field import FieldRunSettings, field, field_year
 
     for path, flag in ((args.json, "--json"), (args.per_heliostat, "--per-heliostat"), (args.flux, "--flux")):
         check_output_folder(path, flag)
     t0 = time.perf_counter()
     sc = load_scenario(args.scenario)
-    plant = sc.plant
     if args.year is not None:
-        return _field_year(args, sc, t0)
-    if args.dni is not None:
-        if args.dni < 0:
-            raise HeliotwinError(f"--dni: expected a non-negative irradiance, got {args.dni}")
-        plant.sun.dni = float(args.dni)
-    plant = _on_device(plant, args)
-    sun = _sun_direction(args, plant).to(plant.field.kinematics.position.device)
-    aim = None
-    if args.aim == "scenario":
-        aim = _stored_aim(sc, sun)
-    settings = FieldSettings(resolution=args.resolution, integrator=args.integrator, seed=args.seed,
-                             occlusion_model=args.occlusion)
-    t1 = time.perf_counter()
-    kwargs = dict(atmosphere=Atmosphere.from_extras(sc.extras), aim=aim, settings=settings)
-    if args.nproc > 1:
-        from ..distributed import run_sharded
-
-        result = run_sharded(plant, sun, args.nproc, **kwargs)
-    else:
-        with torch.no_grad():
-            result = field_optics(plant, sun, **kwargs)
-    seconds_model = time.perf_counter() - t1
-    seconds = time.perf_counter() - t0
-    report = summary(result, plant)
-    report.update({"scenario": os.path.abspath(args.scenario), "aim": args.aim, "integrator": args.integrator,
-                   "occlusion": args.occlusion,
-                   "resolution": {"cols": args.resolution[1], "rows": args.resolution[0]}, "seconds": seconds,
-                   "seconds_field_model": seconds_model})
+        report = field_year(sc, args.year, args.every, azimuth_step_deg=args.table_azimuth_step)
+        report["seconds"] = time.perf_counter() - t0
+        write_json(args.json, report)
+        print(f"field {args.year}: {report['instants']} daylight instants every {args.every}; annual optical energy "
+              f"{report['annual_optical_energy_mwh']:.1f} MWh of {report['annual_dni_energy_on_mirrors_mwh']:.1f} "
+              f"MWh clear-sky DNI on the mirrors (efficiency {report['mean_efficiency']:.4f}); "
+              f"{report['seconds']:.1f} s")
+        return 0
+    settings = FieldRunSettings(resolution=args.resolution, integrator=args.integrator, occlusion=args.occlusion,
+                                seed=args.seed, aim=args.aim, dni=args.dni, nproc=args.nproc,
+                                device=getattr(args, "device", None))
+    settings.check()
+    report, result = field(sc, _sun(args, sc.plant), settings)
+    report["seconds"] = seconds = time.perf_counter() - t0
     if args.json:
         write_json(args.json, report)
     if args.per_heliostat:
-        _write_csv(args.per_heliostat, per_heliostat_rows(result, plant))
+        _write_csv(args.per_heliostat, per_heliostat_rows(result, sc.plant))
     if args.flux:
-        from ..raytrace.flux import to_png
-
         to_png(result.flux.cpu(), args.flux)
     e = report["field"]["efficiency"]
-    print(f"field: {len(plant.field.ids)} heliostats; efficiency {e['total']:.4f} (cosine {e['cosine']:.4f}, shading "
-          f"{e['shading']:.4f}, blocking {e['blocking']:.4f}, attenuation {e['attenuation']:.4f}, intercept "
+    print(f"field: {len(sc.plant.field.ids)} heliostats; efficiency {e['total']:.4f} (cosine {e['cosine']:.4f}, "
+          f"shading {e['shading']:.4f}, blocking {e['blocking']:.4f}, attenuation {e['attenuation']:.4f}, intercept "
           f"{e['intercept']:.4f}); receiver {report['receiver']['power_w'] / 1e6:.3f} MW, peak "
           f"{report['receiver']['peak_flux_w_m2'] / 1e3:.1f} kW/m2; {seconds:.2f} s")
     return 0
 
 
-def _stored_aim(sc, sun):
-    """The scenario's aim points [H, 3] for the instant whose sun is nearest ``sun`` (one instant: those)."""
-    import torch
-
-    ap = sc.learned.get("aimpoints") or {}
-    if ap.get("aim") is None:
-        raise HeliotwinError(f"{sc.path} [/learned/aimpoints/aim]: no aim points in this scenario (use --aim equator)")
-    choices = list((ap.get("instants") or {}).values()) or [ap]
-    s = sun.detach().cpu().to(torch.float64)
-    best = max(choices, key=lambda c: float(torch.as_tensor(c["sun_direction"], dtype=torch.float64) @ s))
-    return torch.as_tensor(best["aim"], dtype=torch.float64, device=sun.device)
-
-
-def _field_year(args, sc, t0) -> int:
-    """``field --year``: the efficiency table over sun positions and the clear-sky annual optical energy."""
-    import numpy as np
-
-    from ..atmosphere import Atmosphere
-    from ..raytrace.yearly import DEFAULT_ELEVATIONS_DEG, annual_energy, efficiency_table
-
-    try:
-        import pandas as pd
-
-        pd.Timedelta(args.every)
-    except ValueError:
-        raise HeliotwinError(f"--every: cannot parse {args.every!r} (e.g. 1h, 30min)") from None
-    atm = Atmosphere.from_extras(sc.extras)
-    step = float(args.table_azimuth_step)
-    if not 0 < step <= 180:
-        raise HeliotwinError(f"--table-azimuth-step: expected (0, 180] deg, got {step}")
-    table = efficiency_table(sc.plant, atmosphere=atm, azimuths_deg=np.arange(-180.0, 180.0, step),
-                             elevations_deg=DEFAULT_ELEVATIONS_DEG)
-    report = annual_energy(sc.plant, args.year, args.every, atmosphere=atm, table=table)
-    report.update({"scenario": os.path.abspath(args.scenario), "aim": "equator",
-                   "dni_model": "pvlib ineichen clear sky", "seconds": time.perf_counter() - t0})
-    write_json(args.json, report)
-    print(f"field {args.year}: {report['instants']} daylight instants every {args.every}; annual optical energy "
-          f"{report['annual_optical_energy_mwh']:.1f} MWh of {report['annual_dni_energy_on_mirrors_mwh']:.1f} MWh "
-          f"clear-sky DNI on the mirrors (efficiency {report['mean_efficiency']:.4f}); {report['seconds']:.1f} s")
-    return 0
-
-
 def _write_csv(path, rows: list[dict]) -> None:
-    import csv
-
-    from ..io.report import atomic_path
-
     with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
         writer.writeheader()
@@ -190,172 +104,50 @@ def _write_csv(path, rows: list[dict]) -> None:
 
 
 # ------------------------------------------------------------------------------------------- aimpoints
-def _instants(args, plant) -> list[tuple[str, object]]:
-    """``(label, sun direction [3])`` of every instant: ``--time T1,T2,...``, ``--day DATE --every STEP``
-    (daylight instants, sun above 10 deg) or one ``--sun-azimuth/--sun-elevation``."""
-    import pandas as pd
-    import torch
-
-    from ..sun import direction_from_time
-
-    if args.day is not None:
-        try:
-            day = pd.Timestamp(args.day)
-            step = pd.Timedelta(args.every)
-        except ValueError:
-            raise HeliotwinError(f"--day/--every: cannot parse {args.day!r} / {args.every!r} (e.g. 2023-06-21, "
-                                 "1h)") from None
-        day = day.tz_localize("UTC") if day.tzinfo is None else day
-        times = pd.date_range(day.normalize(), day.normalize() + pd.Timedelta("1D"), freq=step, inclusive="left")
-        s = plant.site
-        d = direction_from_time(times, s.latitude_deg, s.longitude_deg, s.altitude_m, check_horizon=False)
-        keep = [(t.isoformat(), torch.as_tensor(v, dtype=torch.float64)) for t, v in zip(times, d)
-                if math.degrees(math.asin(float(v[2]))) > 10.0]
-        if not keep:
-            raise HeliotwinError(f"--day: the sun stays below 10 deg elevation on {args.day}")
-        return keep
-    if args.time is not None:
-        out = []
-        for text in [t.strip() for t in args.time.split(",") if t.strip()]:
-            one = argparse.Namespace(time=text, sun_azimuth=None, sun_elevation=None)
-            out.append((text, _sun_direction(one, plant)))
-        if not out:
-            raise HeliotwinError("--time: no instant given")
-        return out
-    return [(f"azimuth {args.sun_azimuth} deg, elevation {args.sun_elevation} deg", _sun_direction(args, plant))]
-
-
-def _aim_instant(args, plant, sun, atm, limit, target_spec):
-    """Equator, the two heuristics and the optimised aim points at one sun; (report entry, optimised)."""
-    from ..optimise.aimpoints import (
-        aiming_factor,
-        calibrate_images,
-        image_size_priority,
-        load_target,
-        optimise_aimpoints,
-        target_mismatch,
-        uniform_target,
-    )
-
-    t0 = time.perf_counter()
-    model, eq_field = calibrate_images(plant, sun, atm, args.resolution)
-    from ..optimise.aimpoints import AimResult
-
-    equator = AimResult(eq_field.aim, float(eq_field.power_w.sum()), float(eq_field.flux.max()), eq_field.flux)
-    equator.seconds = time.perf_counter() - t0
-    target = None
-    if target_spec == "uniform":
-        target = uniform_target(eq_field.flux)
-    elif target_spec is not None:
-        target = load_target(target_spec, args.resolution)
-    kw = dict(atmosphere=atm, resolution=args.resolution, iterations=args.iterations, target=target,
-              field_gradient=args.field_gradient)
-    if args.nproc > 1:
-        from ..distributed import run_aimpoints_sharded
-
-        best = run_aimpoints_sharded(plant, sun, limit, args.nproc, **kw)
-    else:
-        best = optimise_aimpoints(plant, sun, limit, equator=eq_field, model=model, **kw)
-    baselines = {}
-    if not args.no_baselines:
-        baselines["aiming_factor"] = aiming_factor(plant, sun, limit, atmosphere=atm, resolution=args.resolution,
-                                                   model=model)
-        baselines["image_size_priority"] = image_size_priority(plant, sun, limit, atmosphere=atm,
-                                                               resolution=args.resolution, model=model)
-
-    def entry(r):
-        e = {"power_w": r.power_w, "peak_flux_w_m2": r.peak_flux_w_m2, "violation": r.violation(limit),
-             "limit_met": r.peak_flux_w_m2 <= limit, "power_vs_equator": r.power_w / equator.power_w,
-             "seconds": r.seconds}
-        if target is not None:
-            e["target_mismatch"] = target_mismatch(r.flux, target)
-        return e
-
-    rep = {"sun_direction_enu": sun.tolist(), "sun_elevation_deg": math.degrees(math.asin(float(sun[2]))),
-           "equator": entry(equator)}
-    for name, r in baselines.items():
-        rep[name] = {**entry(r), "k": r.parameter}
-    rep["optimised"] = {**entry(best), "iterations": best.iterations, "rounds": len(best.history),
-                        "final_margin": best.parameter, "history": best.history}
-    for name, r in baselines.items():
-        rep["optimised"][f"power_vs_{name}"] = best.power_w / r.power_w
-    rep["seconds"] = time.perf_counter() - t0
-    return rep, best, equator
+def _print_instant(limit):
+    def show(i, label, rep, best, equator) -> None:
+        o = rep["optimised"]
+        print(f"aimpoints {label}: peak {o['peak_flux_w_m2'] / 1e3:.1f} kW/m2 (limit {limit / 1e3:.1f}, "
+              f"equator {rep['equator']['peak_flux_w_m2'] / 1e3:.1f}), power {o['power_vs_equator']:.4f} "
+              "of equator" + "".join(f", {n} {rep[n]['power_vs_equator']:.4f} (peak "
+                                     f"{rep[n]['peak_flux_w_m2'] / 1e3:.1f})"
+                                     for n in ("aiming_factor", "image_size_priority") if n in rep)
+              + f"; {rep['seconds']:.1f} s")
+    return show
 
 
 def cmd_aimpoints(args) -> int:
     """Optimise aim points for one or several instants under a peak-flux limit; baselines in the same report."""
-    import torch
-
-    from ..atmosphere import Atmosphere
-    from ..field.kinematics import inverse
+    from ..io.images import to_png
     from ..io.report import output_set
-    from ..io.scenario import load_scenario, provenance_entry, save_step
+    from ..io.scenario import load_scenario, write_scenario
+    from ..workflows.aimpoints import AimpointSettings, aimpoints
+    from ..workflows.field import sun_instants
 
-    if args.peak_limit <= 0:
-        raise HeliotwinError(f"--peak-limit: expected a positive flux [W/m2], got {args.peak_limit}")
-    if args.nproc > 1 and str(getattr(args, "device", "cpu")).startswith("cuda"):
-        raise HeliotwinError("--nproc: the local process group is gloo on CPU; use --device cpu with --nproc")
-    t_all = time.perf_counter()
+    settings = AimpointSettings(peak_limit_w_m2=args.peak_limit, resolution=args.resolution,
+                                iterations=args.iterations, target=args.target, field_gradient=args.field_gradient,
+                                baselines=not args.no_baselines, nproc=args.nproc,
+                                device=getattr(args, "device", None))
+    settings.check()  # before any output is staged
     with output_set([("--scenario", args.scenario)]) as out:
         out_h5, out_json = out.file(args.output, "-o"), out.file(args.json, "--json")
         out_png = out.folder(args.flux, "--flux") if args.flux else None
-        sc = load_scenario(args.scenario)
-        plant = _on_device(sc.plant, args)
-        atm = Atmosphere.from_extras(sc.extras)
-        instants = _instants(args, plant)
-        limit = float(args.peak_limit)
-        report = {"scenario": os.path.abspath(args.scenario), "peak_limit_w_m2": limit,
-                  "resolution": {"cols": args.resolution[1], "rows": args.resolution[0]},
-                  "target": args.target or "max-power", "nproc": args.nproc, "instants": []}
-        stored = {}
-        for i, (label, sun) in enumerate(instants):
-            rep, best, equator = _aim_instant(args, plant, sun, atm, limit, args.target)
-            # motor steps through the plant's (possibly calibrated) kinematics; unreachable ones are reported
-            steps, reachable = inverse(plant.field.kinematics, best.aim.to(torch.float64),
-                                       sun.to(best.aim.device, torch.float64)[None], strict=False)
-            rep["optimised"]["motor_steps_reachable"] = int(reachable.sum())
-            report["instants"].append({"instant": label, **rep})
-            stored[f"i{i:03d}"] = {"instant": label, "aim": best.aim.to(torch.float64).cpu(),
-                                   "sun_direction": sun.to(torch.float64).cpu(), "motor_steps": steps.cpu(),
-                                   "reachable": reachable.cpu(), "power_w": best.power_w,
-                                   "peak_flux_w_m2": best.peak_flux_w_m2}
-            if out_png:
-                from ..raytrace.flux import to_png
+        show = None if args.quiet else _print_instant(float(args.peak_limit))
 
+        def on_instant(i, label, rep, best, equator) -> None:
+            if out_png:
                 to_png(equator.flux.cpu(), os.path.join(out_png, f"i{i:03d}_equator.png"))
                 to_png(best.flux.cpu(), os.path.join(out_png, f"i{i:03d}_optimised.png"))
-            if not args.quiet:
-                o = rep["optimised"]
-                print(f"aimpoints {label}: peak {o['peak_flux_w_m2'] / 1e3:.1f} kW/m2 (limit {limit / 1e3:.1f}, "
-                      f"equator {rep['equator']['peak_flux_w_m2'] / 1e3:.1f}), power {o['power_vs_equator']:.4f} "
-                      "of equator" + "".join(f", {n} {rep[n]['power_vs_equator']:.4f} (peak "
-                                                 f"{rep[n]['peak_flux_w_m2'] / 1e3:.1f})"
-                                                 for n in ("aiming_factor", "image_size_priority") if n in rep)
-                      + f"; {rep['seconds']:.1f} s")
-        report.update({k: v for k, v in report["instants"][0].items() if k != "instant"})  # first instant at top
-        report["seconds"] = time.perf_counter() - t_all
-        first = stored["i000"]
-        learned = dict(sc.learned)
-        learned["aimpoints"] = {"aim": first["aim"], "peak_limit_w_m2": limit, "sun_direction": first["sun_direction"],
-                                "method": "augmented-lagrangian on the exact-corrected image model",
-                                "motor_steps": first["motor_steps"], "reachable": first["reachable"],
-                                "target": args.target or "max-power", "instants": stored}
-        step = provenance_entry("aimpoints", peak_limit_w_m2=limit, instants=[lbl for lbl, _ in instants],
-                                iterations=args.iterations, target=args.target or "max-power",
-                                power_w=[s["power_w"] for s in stored.values()],
-                                peak_flux_w_m2=[s["peak_flux_w_m2"] for s in stored.values()])
-        save_step(out_h5, _on_device(plant, None), sc, learned=learned, step=step)
+            if show:
+                show(i, label, rep, best, equator)
+
+        sc = load_scenario(args.scenario)
+        instants = sun_instants(sc.plant, times=args.time, day=args.day, every=args.every,
+                                azimuth_deg=args.sun_azimuth, elevation_deg=args.sun_elevation)
+        aimed, report = aimpoints(sc, instants, settings, on_instant=on_instant)
+        write_scenario(aimed, out_h5)
         write_json(out_json, report)
     return 0
-
-
-def _on_device(plant, args):
-    """The plant on ``args.device`` (None or no ``device``: on the CPU)."""
-    from ..devices import to_device
-
-    device = getattr(args, "device", None) if args is not None else "cpu"
-    return plant if device is None else to_device(plant, device)
 
 
 cmd_field.supports_cuda = True  # the field model runs on args.device

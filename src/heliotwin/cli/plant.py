@@ -43,7 +43,7 @@ def cmd_demo(args) -> int:
         if getattr(args, attr) is not None:
             raise HeliotwinError(f"demo: {flag} belongs to the classic demo (add --classic); the field demo uses "
                                  "the Gaussian field model on a 48x20 receiver map")
-    from ..field.demo import run_field_demo
+    from ..workflows.demo import run_field_demo
 
     with output_set() as out:
         folder = out.folder(args.out, "--out")
@@ -69,7 +69,7 @@ cmd_demo.supports_cuda = True  # both demos run on args.device
 
 def _cmd_demo_classic(args) -> int:
     """Trace the embedded default plant at a spring-equinox noon and write flux PNGs + a JSON summary."""
-    from ..demo import run_demo
+    from ..workflows.demo import run_demo
 
     with output_set() as out:
         folder = out.folder(args.out, "--out")
@@ -110,33 +110,22 @@ def cmd_scenario_from_paint(args) -> int:
 
 
 # ----------------------------------------------------------------------------------------------- trace
-def _describe(sc) -> dict:
-    """What the traced plant is: nominal/calibrated kinematics, ideal/learned surfaces."""
-    if sc is None:
-        return {"kinematics": "nominal", "surface": "ideal"}
-    cal = sc.learned.get("calibration") or {}
-    surfaces = sorted(sc.learned.get("surfaces") or {})
-    return {"scenario": os.path.abspath(sc.path),
-            "kinematics": f"calibrated ({cal.get('method')}) for {len(cal.get('heliostats', []))} heliostats"
-            if cal else "nominal",
-            "surface": f"learned for {', '.join(surfaces)}" if surfaces else "ideal"}
-
-
 def cmd_trace(args) -> int:
     """Trace one real record with the scenario's plant (default: nominal kinematics, ideal surface)."""
-    from ..api import plot_flux, trace_record
+    from ..io.images import to_png
     from ..io.scenario import load_records
-    from ..raytrace.flux import to_png
+    from ..plots import plot_flux
+    from ..workflows.trace import TraceSettings, describe_plant, trace_record
 
     with output_set([("--paint", args.paint), ("--scenario", args.scenario)]) as out:
         png = out.file(args.out, "--out")
         json_path = out.file(args.json, "--json")
         plot_path = out.file(args.plot, "--plot")
         ds, sc = load_records(args.paint, args.scenario, [args.heliostat])
-        flux, report = trace_record(ds, args.record, integrator=args.integrator, rays_per_point=args.rays_per_point,
-                                    resolution=args.resolution, samples=args.samples, seed=args.seed,
-                                    device=args.device)
-        report.update(_describe(sc))
+        settings = TraceSettings(integrator=args.integrator, rays_per_point=args.rays_per_point,
+                                 resolution=args.resolution, samples=args.samples, seed=args.seed, device=args.device)
+        flux, report = trace_record(ds, args.record, settings)
+        report.update(describe_plant(sc))
         to_png(flux.bitmap[0], png)
         if plot_path:
             plot_flux(flux, plot_path, measured=report,
@@ -159,7 +148,8 @@ cmd_trace.supports_cuda = True  # the tracing happens here, on args.device
 # -------------------------------------------------------------------------------------------- validate
 def cmd_validate(args) -> int:
     from ..io.scenario import load_records
-    from ..validate import validate_dataset
+    from ..plots import plot_validation
+    from ..workflows.validate import ValidateSettings, validate
 
     t0 = time.perf_counter()
     with output_set([("--paint", args.paint), ("--scenario", args.scenario)]) as out:
@@ -168,23 +158,12 @@ def cmd_validate(args) -> int:
         stage(args, f"reading {args.paint}")
         ds, sc = load_records(args.paint, args.scenario, csv_list(args.heliostats))
         stage(args, f"tracing {len(ds.records.record_id)} records")
-        report = validate_dataset(ds, resolution=args.resolution, samples=(args.samples, args.samples),
-                                  with_images=not args.no_images, progress=not args.quiet,
-                                  device=getattr(args, "device", "cpu"))
-        if not report["overall"].get("records"):
-            skipped = report.get("skipped_records") or ds.skipped
-            why = f"; first: {skipped[0].get('reason')}" if skipped else ""
-            raise HeliotwinError(f"{args.paint}: no usable record to validate ({len(skipped)} skipped{why})")
-        report["overall"]["seconds"] = time.perf_counter() - t0
-        report["settings"] = {"paint": os.path.abspath(args.paint), **_describe(sc),
-                              "integrator": "gaussian", "resolution": args.resolution,
-                              "device": getattr(args, "device", "cpu"),
-                              "samples_per_facet": args.samples ** 2,
-                              "sunshape": ds.plant.sun.sunshape, "slope_error_mrad": ds.plant.sun.slope_error * 1e3}
+        settings = ValidateSettings(resolution=args.resolution, samples=args.samples, with_images=not args.no_images,
+                                    progress=not args.quiet, device=getattr(args, "device", "cpu"))
+        report = validate(ds, sc, settings, paint_dir=args.paint)
+        report["overall"]["seconds"] = time.perf_counter() - t0  # reading the folder included
         write_json(json_path, report)
         if plot_path and report["heliostats"]:
-            from ..plots import plot_validation
-
             plot_validation(report, plot_path)
     o = report["overall"]
     if args.quiet:
@@ -208,7 +187,7 @@ cmd_validate.supports_cuda = True  # validate_dataset traces on args.device
 def cmd_bench(args) -> int:
     import torch
 
-    from ..raytrace.bench import run_benchmark
+    from ..workflows.bench import run_benchmark
 
     rpp = args.rays_per_point
     with output_set() as out:

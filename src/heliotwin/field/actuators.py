@@ -17,6 +17,12 @@ from __future__ import annotations
 
 import torch
 
+#: Nominal PAINT/Jülich linear actuators, per axis (steps per metre of stroke, metres, radians): the actuators
+#: of the demo plant and of every plant read from a layout.
+ACTUATOR_NOMINAL = dict(increment=(154166.6667, 154166.6667), offset=(0.335308, 0.340771),
+                        pivot_radius=(0.338095, 0.3191), initial_angle=(0.039009536, 0.943922248),
+                        initial_stroke_length=(0.077412795, 0.077522286))
+
 #: Keeps acos away from +/-1 where its derivative is infinite; ~1e-12 rad of angle error at worst.
 _COS_EPS = 1e-12
 

@@ -25,10 +25,12 @@ import math
 import numpy as np
 import torch
 
+from ..atmosphere import Atmosphere
 from ..errors import HeliotwinError
 from ..site import Site
-from .actuators import steps_to_angle
-from .facets import ideal_surfaces
+from .actuators import ACTUATOR_NOMINAL, steps_to_angle
+from .facets import ideal_surfaces, receiver_canting
+from .layout import Layout, PlantConfig, build_plant
 from .plant import Facets, Field, Kinematics, Plant, SunSettings
 from .targets import CylinderTarget, PlanarTarget
 
@@ -82,52 +84,12 @@ FACET_HALF_WIDTH = 0.8025  #: [m] half-span along east (PAINT ``|canting_e|``)
 FACET_HALF_HEIGHT = 0.6375  #: [m] half-span along north (PAINT ``|canting_n|``)
 HELIOSTAT_WIDTH, HELIOSTAT_HEIGHT = 3.22, 2.56  #: [m] PAINT ``width`` / ``height``
 
-#: Nominal PAINT/Jülich linear actuators, per axis.
-ACTUATOR_NOMINAL = dict(increment=(154166.6667, 154166.6667), offset=(0.335308, 0.340771),
-                        pivot_radius=(0.338095, 0.3191), initial_angle=(0.039009536, 0.943922248),
-                        initial_stroke_length=(0.077412795, 0.077522286))
 CONCENTRATOR_TRANSLATION = (0.0, 0.175, 0.0)  #: [m] joint 2 -> concentrator, heliostat frame
 
 # Field layout
 _ROW0_NORTH, _ROW_SPACING0, _ROW_SPACING_GROWTH = 22.0, 4.6, 0.04  # [m], [m], [m/m]
 _COLUMN_SPACING, _HALF_WIDTH, _FIELD_DEPTH = 4.4, 60.0, 150.0  # [m]
 _CENTRE_COLUMN = 36  # PAINT-like column number of the slot on the tower meridian
-
-
-def receiver_canting(translation: torch.Tensor, half_width: float, half_height: float,
-                     focal_length: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Canting span vectors of facets tilted to focus at ``focal_length`` (on-axis "receiver canting").
-
-    Each flat facet's normal is set to the normal of the paraboloid ``z = (x^2 + y^2) / (4 f)`` at the
-    facet centre, ``normalize(-t_x / (2 f), -t_y / (2 f), 1)``, by the rotation ``R_N(beta) R_E(alpha)``
-    (PAINT's construction: ``canting_e`` keeps a zero north component).
-
-    Parameters
-    ----------
-    translation : torch.Tensor, [..., F, 3]
-        Facet centres, heliostat frame [m].
-    half_width, half_height : float
-        Half-spans along east / north [m].
-    focal_length : torch.Tensor, [...]
-        Focal distance per heliostat [m].
-
-    Returns
-    -------
-    canting_e, canting_n : torch.Tensor, [..., F, 3]
-        Half-span vectors [m] (lengths ``half_width`` / ``half_height``).
-    """
-    f = focal_length[..., None]
-    n = torch.stack((-translation[..., 0] / (2 * f), -translation[..., 1] / (2 * f),
-                     torch.ones_like(translation[..., 0])), dim=-1)
-    n = n / torch.linalg.vector_norm(n, dim=-1, keepdim=True)
-    sin_a = -n[..., 1]
-    cos_a = torch.sqrt(1.0 - sin_a * sin_a)
-    beta = torch.atan2(n[..., 0], n[..., 2])
-    sin_b, cos_b = torch.sin(beta), torch.cos(beta)
-    zero = torch.zeros_like(sin_a)
-    e = torch.stack((cos_b, zero, -sin_b), dim=-1)  # R_N(beta) R_E(alpha) e_x
-    nn = torch.stack((sin_b * sin_a, cos_a, cos_b * sin_a), dim=-1)  # R_N(beta) R_E(alpha) e_y
-    return half_width * e, half_height * nn
 
 
 def _row_letters(k: int) -> str:
@@ -313,9 +275,6 @@ def demo_field_plant(num_heliostats: int = 2000):
     plant : Plant
     atmosphere : heliotwin.atmosphere.Atmosphere
     """
-    from ..atmosphere import Atmosphere
-    from .layout import Layout, PlantConfig, build_plant
-
     pos = demo_field_positions(num_heliostats, max_east=135.0 if num_heliostats <= 2200 else None)
     ids = [f"R{i:05d}" for i in range(pos.shape[0])]
     sun = SunSettings(sunshape="limb-darkened", slope_error=1.53e-3, dni=900.0, reflectivity=0.9)
@@ -324,171 +283,3 @@ def demo_field_plant(num_heliostats: int = 2000):
     config = PlantConfig(Site(), HELIOSTAT_WIDTH, HELIOSTAT_HEIGHT, (2, 2), "on-axis", None, receiver, sun,
                          Atmosphere())
     return build_plant(Layout(ids, pos, list(range(len(ids))), "demo"), config), config.atmosphere
-
-
-def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-20T11:30:00Z",
-                   peak_limit_fraction: float = 0.75, iterations: int | None = None,
-                   progress: bool = False, device: str = "cpu") -> dict:
-    """The demo as the whole field: efficiency map, loss breakdown, receiver flux before/after aim points.
-
-    On :func:`demo_field_plant` at ``time_utc``: the field model with exact shading and blocking
-    (:func:`heliotwin.raytrace.field.field_optics`, Gaussian footprints on the 48 x 20 receiver map) at
-    equator aiming, then :func:`heliotwin.optimise.aimpoints.optimise_aimpoints` for a peak limit of
-    ``peak_limit_fraction`` times equator aiming's peak (re-judged with exact occlusion).
-
-    Parameters
-    ----------
-    out : path
-        Folder (created when missing) for ``field_efficiency.png`` (per-heliostat efficiency),
-        ``losses.png`` (power-weighted loss breakdown), ``flux_equator.png`` and ``flux_optimised.png``
-        (receiver maps [kW/m^2]), ``heliostats.csv`` (per-heliostat factors, the ``field`` command's
-        columns) and ``summary.json``.
-    num_heliostats : int
-    time_utc : str
-        Instant of the sun position (pvlib at the Jülich reference); the sun must be up.
-    peak_limit_fraction : float
-        In (0, 1].
-    iterations : int, optional
-        Image-model steps per round of the aim-point optimiser (default: the optimiser's).
-    progress : bool
-        A progress bar over the stages.
-    device : str
-        Where the field model and the aim points run (``auto``: CUDA when present); results on the CPU.
-
-    Returns
-    -------
-    dict
-        The summary (also written as JSON): the ``field`` command's report (``field.efficiency`` unweighted as
-        SolarPILOT and power-weighted, ``receiver``), ``losses`` (per factor: power-weighted fraction and
-        [W]), ``aim_points`` (limit, peaks before/after, violation, power ratio), ``seconds`` per stage.
-    """
-    import time
-    from pathlib import Path
-
-    import pandas as pd
-    from tqdm.auto import tqdm
-
-    from ..io.report import write_json
-    from ..optimise.aimpoints import optimise_aimpoints
-    from ..raytrace.field import field_optics, per_heliostat_rows, summary
-    from ..sun import direction_from_time
-
-    if not 0.0 < float(peak_limit_fraction) <= 1.0:
-        raise HeliotwinError(f"run_field_demo: peak_limit_fraction must be in (0, 1], got {peak_limit_fraction!r}")
-    t_start = time.perf_counter()
-    folder = Path(out)
-    seconds = {}
-    bar = tqdm(total=4, desc="demo: whole field", unit="stage", disable=not progress)
-    from ..devices import resolve_device, to_device
-
-    plant, atm = demo_field_plant(num_heliostats)
-    s = plant.site
-    sun = direction_from_time(pd.DatetimeIndex([pd.Timestamp(time_utc)]), s.latitude_deg, s.longitude_deg,
-                              s.altitude_m)[0]
-    device = resolve_device(device)
-    plant_cpu, plant, sun = plant, to_device(plant, device), sun.to(device)
-    t0 = time.perf_counter()
-    with torch.no_grad():
-        before = to_device(field_optics(plant, sun, atmosphere=atm), "cpu")
-    seconds["field_model"] = time.perf_counter() - t0
-    rep = summary(before, plant_cpu)
-    bar.update()
-    limit = float(peak_limit_fraction) * rep["receiver"]["peak_flux_w_m2"]
-    t0 = time.perf_counter()
-    steps = {} if iterations is None else {"iterations": int(iterations)}
-    aimed = to_device(optimise_aimpoints(plant, sun, limit, atmosphere=atm, **steps), "cpu")
-    seconds["aim_points"] = time.perf_counter() - t0
-    bar.update()
-    folder.mkdir(parents=True, exist_ok=True)
-    rep["losses"] = _loss_breakdown(before)
-    t0 = time.perf_counter()
-    _demo_figures(folder, plant_cpu, before, aimed, rep, limit, time_utc)
-    _write_rows(folder / "heliostats.csv", per_heliostat_rows(before, plant_cpu))
-    seconds["outputs"] = time.perf_counter() - t0
-    bar.update()
-    seconds["total"] = time.perf_counter() - t_start
-    rep.update({"plant": "embedded Jülich-like field (heliotwin.field.demo.demo_field_plant)", "time_utc": time_utc,
-                "aim_points": {
-                    "peak_limit_w_m2": limit, "equator_peak_w_m2": rep["receiver"]["peak_flux_w_m2"],
-                    "optimised_peak_w_m2": aimed.peak_flux_w_m2, "violation": aimed.violation(limit),
-                    "equator_power_w": rep["receiver"]["power_w"], "optimised_power_w": aimed.power_w,
-                    "power_vs_equator": aimed.power_w / rep["receiver"]["power_w"], "iterations": aimed.iterations},
-                "seconds": seconds,
-                "files": ["field_efficiency.png", "losses.png", "flux_equator.png", "flux_optimised.png",
-                          "heliostats.csv", "summary.json"]})
-    write_json(folder / "summary.json", rep)
-    bar.update()
-    bar.close()
-    return rep
-
-
-def _loss_breakdown(result) -> dict:
-    """Per factor of the chain (cosine, shading, blocking, attenuation, intercept, reflectance): the
-    power-weighted fraction lost at that stage and the power [W] it costs (they add up to DNI x area - power)."""
-    from ..raytrace.field import FACTORS
-
-    stage = result.dni * result.mirror_area.to(torch.float64)
-    out = {}
-    for name in FACTORS:
-        f = getattr(result, name).to(torch.float64)
-        lost = float((stage * (1.0 - f)).sum())
-        out[name] = {"fraction": lost / max(float(stage.sum()), 1e-30), "power_w": lost}
-        stage = stage * f
-    out["tower_shading_unweighted_mean"] = float(result.tower_shading.mean())
-    return out
-
-
-def _write_rows(path, rows: list[dict]) -> None:
-    import csv
-
-    with open(path, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-
-
-def _demo_figures(folder, plant, before, aimed, rep, limit: float, time_utc: str) -> None:
-    """The four demo figures (colour bars, titles, units)."""
-    from matplotlib.figure import Figure
-
-    from ..io.report import save_figure
-    from ..raytrace.field import FACTORS
-
-    pos = plant.field.kinematics.position.numpy()
-    sun = rep["sun"]
-    e = rep["field"]["efficiency_power_weighted"]
-    fig = Figure(figsize=(7, 6))
-    ax = fig.add_subplot()
-    sc = ax.scatter(pos[:, 0], pos[:, 1], c=before.efficiency.numpy(), s=5, cmap="viridis")
-    ax.plot([0.0], [0.0], marker="^", color="k", markersize=8, linestyle="none", label="tower")
-    fig.colorbar(sc, ax=ax, label="optical efficiency per heliostat [-]")
-    ax.set(xlabel="east [m]", ylabel="north [m]", aspect="equal",
-           title=f"{len(pos)} heliostats, {time_utc[:16]} UTC (sun el {sun['elevation_deg']:.1f} deg)\n"
-                 f"field efficiency {e['total']:.3f} (power-weighted)")
-    ax.legend(loc="lower right")
-    save_figure(fig, folder / "field_efficiency.png")
-
-    fig = Figure(figsize=(7, 4))
-    ax = fig.add_subplot()
-    loss = [100.0 * rep["losses"][k]["fraction"] for k in FACTORS]
-    bars = ax.bar(FACTORS, loss, color="tab:red")
-    for b, v, k in zip(bars, loss, FACTORS):
-        ax.annotate(f"{v:.1f} %\n{rep['losses'][k]['power_w'] / 1e6:.2f} MW", (b.get_x() + b.get_width() / 2, v),
-                    ha="center", va="bottom", fontsize=8)
-    ax.set(ylabel="share of DNI x mirror area lost [%]", ylim=(0, max(loss) * 1.3 + 1),
-           title=f"loss breakdown: {rep['receiver']['power_w'] / 1e6:.2f} MW on the receiver "
-                 f"(efficiency {e['total']:.3f})")
-    save_figure(fig, folder / "losses.png")
-
-    vmax = max(float(before.flux.max()), float(aimed.flux.max())) / 1e3
-    ext = before.extent.tolist()
-    for name, flux, label, power in (("flux_equator", before.flux, "equator aiming", rep["receiver"]["power_w"]),
-                                     ("flux_optimised", aimed.flux, "optimised aim points", aimed.power_w)):
-        fig = Figure(figsize=(8, 3))
-        ax = fig.add_subplot()
-        im = ax.imshow(flux.detach().numpy() / 1e3, extent=ext, aspect="auto", vmin=0, vmax=vmax, cmap="inferno")
-        fig.colorbar(im, ax=ax, label="flux [kW/m²]")
-        ax.set(xlabel="arc along the unrolled receiver [m]", ylabel="height [m]",
-               title=f"{label}: peak {float(flux.max()) / 1e3:.0f} kW/m² (limit {limit / 1e3:.0f}), "
-                     f"{power / 1e6:.2f} MW")
-        save_figure(fig, folder / f"{name}.png")

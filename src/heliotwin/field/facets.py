@@ -147,6 +147,42 @@ def surface_points(surfaces: Surfaces, samples: tuple[int, int] = (32, 32)
     return pts.reshape(h, -1, 3), nrm.reshape(h, -1, 3), area.reshape(h, -1)
 
 
+def receiver_canting(translation: torch.Tensor, half_width: float, half_height: float,
+                     focal_length: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Canting span vectors of facets tilted to focus at ``focal_length`` (on-axis "receiver canting").
+
+    Each flat facet's normal is set to the normal of the paraboloid ``z = (x^2 + y^2) / (4 f)`` at the
+    facet centre, ``normalize(-t_x / (2 f), -t_y / (2 f), 1)``, by the rotation ``R_N(beta) R_E(alpha)``
+    (PAINT's construction: ``canting_e`` keeps a zero north component).
+
+    Parameters
+    ----------
+    translation : torch.Tensor, [..., F, 3]
+        Facet centres, heliostat frame [m].
+    half_width, half_height : float
+        Half-spans along east / north [m].
+    focal_length : torch.Tensor, [...]
+        Focal distance per heliostat [m].
+
+    Returns
+    -------
+    canting_e, canting_n : torch.Tensor, [..., F, 3]
+        Half-span vectors [m] (lengths ``half_width`` / ``half_height``).
+    """
+    f = focal_length[..., None]
+    n = torch.stack((-translation[..., 0] / (2 * f), -translation[..., 1] / (2 * f),
+                     torch.ones_like(translation[..., 0])), dim=-1)
+    n = n / torch.linalg.vector_norm(n, dim=-1, keepdim=True)
+    sin_a = -n[..., 1]
+    cos_a = torch.sqrt(1.0 - sin_a * sin_a)
+    beta = torch.atan2(n[..., 0], n[..., 2])
+    sin_b, cos_b = torch.sin(beta), torch.cos(beta)
+    zero = torch.zeros_like(sin_a)
+    e = torch.stack((cos_b, zero, -sin_b), dim=-1)  # R_N(beta) R_E(alpha) e_x
+    nn = torch.stack((sin_b * sin_a, cos_a, cos_b * sin_a), dim=-1)  # R_N(beta) R_E(alpha) e_y
+    return half_width * e, half_height * nn
+
+
 _PAINT_KEYS = (("translation_vector", "translation"), ("canting_e", "canting_e"), ("canting_n", "canting_n"))
 
 

@@ -29,7 +29,7 @@ default). Errors are one line naming the file and the field (``plant.toml [recei
 
 The heliostats become a :class:`~heliotwin.field.plant.Plant` with nominal Jülich linear actuators (the
 kinematics only matter to commands that convert aim points to motor steps), the facets tiling the mirror
-(flat or canted on-axis, :func:`heliotwin.field.demo.receiver_canting`), ideal NURBS surfaces, the receiver
+(flat or canted on-axis, :func:`heliotwin.field.facets.receiver_canting`), ideal NURBS surfaces, the receiver
 as the target named ``"receiver"``, and the sun/mirror optics in :class:`~heliotwin.field.plant.SunSettings`.
 The atmosphere is returned separately (:class:`heliotwin.atmosphere.Atmosphere`; scenario files keep it in
 ``/extras/atmosphere``).
@@ -48,8 +48,8 @@ from ..atmosphere import ATMOSPHERE_MODELS, Atmosphere
 from ..errors import InputFileError
 from ..site import Site
 from ..sunshape import SUNSHAPES
-from .demo import ACTUATOR_NOMINAL, receiver_canting
-from .facets import ideal_surfaces
+from .actuators import ACTUATOR_NOMINAL
+from .facets import ideal_surfaces, receiver_canting
 from .plant import Facets, Field, Kinematics, Plant, SunSettings
 from .targets import CylinderTarget, PlanarTarget
 

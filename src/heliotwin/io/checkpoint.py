@@ -35,6 +35,8 @@ import os
 import tempfile
 import time
 
+import torch
+
 from ..errors import HeliotwinError
 from .report import _new_file_mode
 
@@ -133,8 +135,6 @@ class Checkpoint:
             self.resumed = True
 
     def _read(self) -> dict:
-        import torch
-
         try:
             data = torch.load(self.path, map_location="cpu", weights_only=True)
         except Exception as exc:  # noqa: BLE001 -- any unreadable file is the same one-line error
@@ -177,8 +177,6 @@ class Checkpoint:
             self.hook(event, key, step)
 
     def _write(self) -> None:
-        import torch
-
         folder = os.path.dirname(os.path.abspath(self.path))
         fd, tmp = tempfile.mkstemp(prefix=".heliotwin-ckpt-", dir=folder)
         try:

@@ -26,6 +26,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import h5py
 import numpy as np
 import torch
 
@@ -144,8 +145,6 @@ def write_deflectometry(path, facets_points_normals: Sequence[tuple[torch.Tensor
     HeliotwinError
         Empty input or shapes other than [N, 3] / mismatched N.
     """
-    import h5py
-
     path = Path(path)
     if len(facets_points_normals) == 0:
         raise HeliotwinError("write_deflectometry: need at least one facet")

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import os
 
+import h5py
+
 from ..errors import InputFileError
 
 
@@ -23,8 +25,6 @@ def open_for_reading(path):
     InputFileError
         ``file not found`` (also for a folder) or ``not an HDF5 file (...)``, naming the file.
     """
-    import h5py  # local: keeps `import heliotwin` light
-
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise InputFileError(path, "file not found")

@@ -2,25 +2,30 @@
 
 Every comparison of a measured image with a prediction (surface learning, image-based calibration,
 validation) goes through :func:`load_measured_image`, so they all see the same pixels: the PNG read as
-luminance (:func:`heliotwin.raytrace.flux.read_png`), NaNs and negatives set to 0, area-resampled to the
+luminance (:func:`read_png`), NaNs and negatives set to 0, area-resampled to the
 comparison grid (a 256x256 PAINT image becomes an exact 4x4 box average at 64x64), an optional background
 floor removed, and the scale chosen by the caller (unit sum for normalised L1, unit max for display, or
 the PNG's own relative scale).
 
 Shapes: ``[rows, cols]`` images (PAINT orientation: row 0 at the top, column 0 at the east edge).
+PNG files in and out (:func:`read_png`, :func:`to_png`) live here too; the window side
+:data:`CENTERED_WINDOW_M` is the optics' constant (:mod:`heliotwin.raytrace.flux`), re-exported for readers.
 """
 from __future__ import annotations
 
+import warnings
+
+import numpy as np
 import torch
 import torch.nn.functional as F
+from PIL import Image, UnidentifiedImageError
 
-from ..errors import InputFileError
+from ..errors import HeliotwinError, InputFileError
+from ..raytrace.flux import CENTERED_WINDOW_M
+from .report import atomic_path
 
 __all__ = ["CENTERED_WINDOW_M", "NORMALISATIONS", "MAX_IMAGE_PIXELS", "MIN_IMAGE_SIDE", "check_image_file",
-           "load_measured_image", "subtract_background"]
-
-#: Side [m] of PAINT's ``-flux-centered.png`` window (square, centred on the measured spot's centroid).
-CENTERED_WINDOW_M = 6.0
+           "load_measured_image", "read_png", "subtract_background", "to_png"]
 
 #: Scalings :func:`load_measured_image` offers: unit sum, unit max, or the PNG's relative scale (None).
 NORMALISATIONS = ("sum", "max", None)
@@ -41,10 +46,6 @@ def check_image_file(path) -> tuple[int, int]:
         Missing, not an image, or outside :data:`MIN_IMAGE_SIDE` .. :data:`MAX_IMAGE_PIXELS` (checked before
         a pixel is decoded, so a crafted 14000x14000 PNG costs nothing).
     """
-    import warnings
-
-    from PIL import Image, UnidentifiedImageError
-
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
@@ -120,8 +121,6 @@ def load_measured_image(source, resolution=None, *, normalise: str | None = None
         One line naming the file: unreadable, too large or too small (:func:`check_image_file`), not square
         when ``square``, non-finite, empty (all zero) or uniform (no spot) after the background is removed.
     """
-    from ..raytrace.flux import read_png
-
     if normalise not in NORMALISATIONS:
         raise ValueError(f"normalise must be one of {NORMALISATIONS}, got {normalise!r}")
     if isinstance(source, torch.Tensor):
@@ -154,3 +153,57 @@ def load_measured_image(source, resolution=None, *, normalise: str | None = None
     elif normalise == "max":
         img = img / img.max()
     return img
+
+
+def to_png(bitmap: torch.Tensor, path) -> None:
+    """Write a bitmap as a max-normalised 8-bit grayscale PNG, atomically (temp file + rename).
+
+    Parameters
+    ----------
+    bitmap : torch.Tensor, shape (rows, cols)
+        Any non-negative values (e.g. W/m^2); an all-zero image is written black.
+    path : str or os.PathLike
+    """
+    a = bitmap.detach().to(torch.float64).cpu()
+    if a.dim() != 2:
+        raise HeliotwinError(f"to_png expects a 2-D bitmap, got shape {tuple(a.shape)}")
+    a = torch.nan_to_num(a, nan=0.0, posinf=0.0, neginf=0.0).clamp(min=0.0)
+    m = float(a.max()) if a.numel() else 0.0
+    img = (a / m * 255.0).round() if m > 0 else torch.zeros_like(a)
+    arr = img.clamp(0, 255).to(torch.uint8).numpy()
+    with atomic_path(path) as tmp:
+        Image.fromarray(arr).save(tmp, format="PNG")  # uint8 2-D -> mode "L"
+
+
+def read_png(path) -> torch.Tensor:
+    """Read a (grayscale or colour) PNG as luminance in [0, 1].
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Returns
+    -------
+    torch.Tensor, shape (rows, cols), float32
+        8-bit images are divided by 255, 16-bit ones by 65535; colour images are converted to luminance.
+
+    Raises
+    ------
+    InputFileError
+        If the file is missing or not a readable image.
+    """
+    try:
+        with Image.open(path) as img:
+            img.load()
+            if img.mode in ("I;16", "I;16B", "I;16L", "I"):
+                arr = np.asarray(img, dtype=np.float64)
+                scale = 65535.0 if img.mode.startswith("I;16") or arr.max(initial=0) > 255 else 255.0
+                arr = arr / scale
+            else:
+                arr = np.asarray(img.convert("L"), dtype=np.float64) / 255.0
+    except FileNotFoundError:
+        raise InputFileError(path, "file not found") from None
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
+        detail = str(exc).splitlines()[0] if str(exc) else ""
+        raise InputFileError(path, f"unreadable image ({type(exc).__name__}: {detail})") from None
+    return torch.from_numpy(np.ascontiguousarray(arr)).to(torch.float32)

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import torch
 
 from ..errors import InputFileError
+from ..field import facets as facet_ops
 from ..field.plant import Facets, Field, Kinematics, Plant, Site, SunSettings
 from ..field.targets import CylinderTarget, PlanarTarget
 from ..site import wgs84_to_enu
@@ -556,8 +557,6 @@ def load_paint(root, heliostats=None, *, surface_control_points=(4, 4), surface_
     focal_spot, plane_tolerance
         See :func:`heliotwin.io.records.build_record_table`, which judges every record.
     """
-    from ..field import facets as facet_ops
-
     root = str(root)
     site, targets = read_tower(find_tower_file(root))
     available = list_heliostats(root)

@@ -75,10 +75,13 @@ import h5py
 import numpy as np
 import torch
 
+from .. import __version__
 from ..errors import HeliotwinError, InputFileError, ScenarioVersionError
 from ..field.plant import Facets, Field, Kinematics, Plant, SunSettings, Surfaces
 from ..field.targets import CylinderTarget, PlanarTarget
+from ..field.update import select_heliostats
 from ..site import Site
+from .paint import list_heliostats, load_paint
 from .report import atomic_path
 
 #: Root attribute ``format`` of every scenario file.
@@ -291,8 +294,6 @@ def save_scenario(plant: Plant, path, extras: dict | None = None, metadata: dict
     InputFileError
         The destination cannot be written (missing folder, permissions, disk full).
     """
-    from .. import __version__
-
     path = Path(path)
     _validate_plant(plant, path, writing=True)
     provenance_json = _provenance_json(provenance or [], path)
@@ -384,8 +385,6 @@ def provenance_entry(step: str, **fields) -> dict:
         What a reader needs to reproduce the step: ``method``, ``source`` (PAINT folder), ``records``
         (ids used for training), ``settings``.
     """
-    from .. import __version__
-
     return {"step": step, "utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "heliotwin": __version__, **fields}
 
@@ -736,8 +735,6 @@ def scenario_from_paint(paint_dir, heliostats=None, **kwargs) -> Plant:
     Plant
         Ideal (flat, canted) surfaces; float64 geometry.
     """
-    from .paint import load_paint
-
     return load_paint(paint_dir, heliostats, with_records=False, **kwargs).plant
 
 
@@ -761,9 +758,6 @@ def load_records(paint_dir, scenario=None, heliostats=None, *, plane_tolerance: 
         Plant and record table (heliostat axis = the plant's heliostats).
     scenario : Scenario or None
     """
-    from ..field.update import select_heliostats
-    from .paint import list_heliostats, load_paint
-
     sc = load_scenario(scenario) if isinstance(scenario, (str, os.PathLike)) else scenario
     if sc is None:
         return load_paint(paint_dir, heliostats, plane_tolerance=plane_tolerance), None

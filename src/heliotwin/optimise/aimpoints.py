@@ -39,6 +39,7 @@ Sharding (:mod:`heliotwin.distributed`): with a process group every rank holds t
 contiguous shard of heliostats; image maps and powers are all-reduced at every step, the exact check is
 :func:`heliotwin.distributed.field_optics_sharded`; the multipliers and every decision use the reduced
 values, so all ranks take the same steps as one process (up to the summation order).
+:func:`run_aimpoints_sharded` spawns N local gloo processes for it.
 
 Baselines:
 
@@ -63,17 +64,22 @@ import time
 import warnings
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
+import torch.distributed as dist
 
+from .. import sunshape as _ss
 from ..atmosphere import Atmosphere
 from ..devices import to_device
+from ..distributed import field_optics_sharded, gather_rows, run_spawned, shard
 from ..errors import HeliotwinError
 from ..field.plant import Plant
 from ..field.targets import CylinderTarget
 from ..raytrace.field import FieldSettings, equator_aim_points, field_optics
 
-__all__ = ["AimResult", "ImageModel", "optimise_aimpoints", "calibrate_images", "to_device", "aiming_factor",
-           "image_size_priority", "evaluate", "check_settings", "uniform_target", "load_target", "target_mismatch"]
+__all__ = ["AimResult", "AimSettings", "ImageModel", "optimise_aimpoints", "calibrate_images", "to_device",
+           "aiming_factor", "image_size_priority", "evaluate", "check_settings", "uniform_target", "load_target",
+           "target_mismatch", "run_aimpoints_sharded"]
 
 _SQ2 = math.sqrt(2.0)
 
@@ -105,23 +111,17 @@ class _Group:
         if group is None:
             self.rank, self.world = 0, 1
         else:
-            import torch.distributed as dist
-
             self.rank, self.world = dist.get_rank(group), dist.get_world_size(group)
 
     def rows(self, h: int, device) -> torch.Tensor:
         if self.group is None:
             return torch.arange(h, device=device)
-        from ..distributed import shard
-
         return shard(h, self.rank, self.world).to(device)
 
     def sum(self, t: torch.Tensor) -> torch.Tensor:
         """Sum over ranks, keeping the gradient of this rank's part (straight-through)."""
         if self.group is None:
             return t
-        import torch.distributed as dist
-
         total = t.detach().clone()
         dist.all_reduce(total, group=self.group)
         return t + (total - t.detach())
@@ -129,16 +129,12 @@ class _Group:
     def gather(self, t: torch.Tensor, h: int) -> torch.Tensor:
         if self.group is None:
             return t
-        from ..distributed import _gather, shard
-
-        return _gather(t.detach(), [len(shard(h, k, self.world)) for k in range(self.world)], self.group)
+        return gather_rows(t.detach(), [len(shard(h, k, self.world)) for k in range(self.world)], self.group)
 
     def field(self, plant, sun, atmosphere, aim, settings):
         with torch.no_grad():
             if self.group is None:
                 return field_optics(plant, sun, atmosphere=atmosphere, aim=aim, settings=settings)
-            from ..distributed import field_optics_sharded
-
             return field_optics_sharded(plant, sun, group=self.group, atmosphere=atmosphere, aim=aim,
                                         settings=settings)
 
@@ -269,8 +265,6 @@ def calibrate_images(plant: Plant, sun, atmosphere, resolution, *, group=None, e
     eq_aim = equator_aim_points(rec, pos)
     ex = equator if equator is not None else grp.field(plant, sun, atmosphere, eq_aim, check_settings(resolution))
     x0, _ = _local(rec, eq_aim)
-    from .. import sunshape as _ss
-
     s = plant.sun
     beam = math.sqrt(_ss.second_moment(s.sunshape, sigma=float(s.sigma), radius=float(s.radius), csr=float(s.csr),
                                        slope_error=float(s.slope_error)))
@@ -301,8 +295,6 @@ def uniform_target(equator_flux: torch.Tensor) -> torch.Tensor:
 def load_target(path, resolution) -> torch.Tensor:
     """A target flux map (or shape) from a ``.npy`` or ``.csv`` file, [rows, cols] as the reporting grid (row
     0 = top), non-negative; returned normalised to unit sum (only the shape counts)."""
-    import numpy as np
-
     rows, cols = (int(r) for r in resolution)
     text = str(path)
     try:
@@ -381,14 +373,57 @@ def _alm(model: ImageModel, x, y, defect, power_defect, limit_int, lam, *, grp, 
     return x.detach(), y.detach()
 
 
+@dataclass
+class AimSettings:
+    """The aim-point optimiser's knobs (:func:`optimise_aimpoints`; the ``aimpoints`` command's defaults).
+
+    Attributes
+    ----------
+    resolution : (int, int)
+        Reporting map (rows, cols) on which the limit is enforced and checked.
+    iterations : int
+        Adam steps on the image model per round.
+    rounds : int
+        Exact checks (one per round) at most.
+    inner : int
+        Multiplier update every ``inner`` steps.
+    lr : float
+        Adam step size [m] (decays to a tenth within each round).
+    rho : float
+        Augmented-Lagrangian weight on the relative excess ``F_c / limit - 1`` [-].
+    margin : float
+        Starting internal margin ``m`` [-].
+    tolerance : float
+        Relative change of the power (or mismatch) below which the rounds stop [-].
+    field_gradient : bool
+        Make the power model first-order exact at every round's start (see :func:`optimise_aimpoints`).
+    softness : float
+        Occlusion width [m] of the smooth field model used by ``field_gradient``.
+    """
+
+    resolution: tuple[int, int] = (20, 48)
+    iterations: int = 300
+    rounds: int = 8
+    inner: int = 10
+    lr: float = 0.03
+    rho: float = 1.0
+    margin: float = 0.005
+    tolerance: float = 1e-3
+    field_gradient: bool = False
+    softness: float = 0.05
+
+
 def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, *, atmosphere: Atmosphere | None = None,
                        resolution=(20, 48), iterations: int = 300, rounds: int = 8, inner: int = 10,
                        lr: float = 0.03, rho: float = 1.0, margin: float = 0.005, tolerance: float = 1e-3,
                        target: torch.Tensor | None = None, group=None, equator=None, model=None,
-                       progress=None, device=None, field_gradient: bool = False, softness: float = 0.05
-                       ) -> AimResult:
+                       progress=None, device=None, field_gradient: bool = False, softness: float = 0.05,
+                       settings: AimSettings | None = None) -> AimResult:
     """Aim points that maximise intercepted power (or match ``target``) with every map cell at or below
     ``peak_limit`` [W/m^2] on the exact model.
+
+    The optimiser's knobs come one by one (keywords) or together as ``settings`` (an :class:`AimSettings`,
+    which then replaces the keywords ``resolution`` .. ``softness``).
 
     Parameters
     ----------
@@ -433,6 +468,9 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, *, at
         Run on this device (the plant, sun and target are moved there; ``equator``/``model`` must already be
         there). Default: where the plant's tensors are.
 
+    settings : AimSettings, optional
+        All the knobs at once.
+
     Returns
     -------
     AimResult
@@ -440,6 +478,11 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, *, at
         margin and whether the check passed; ``iterations`` the Adam steps done.
     """
     t0 = time.perf_counter()
+    if settings is not None:
+        resolution, iterations = settings.resolution, settings.iterations
+        rounds, inner = settings.rounds, settings.inner
+        lr, rho, margin, tolerance = settings.lr, settings.rho, settings.margin, settings.tolerance
+        field_gradient, softness = settings.field_gradient, settings.softness
     if device is not None:
         plant, sun = to_device(plant, device), torch.as_tensor(sun).to(device)
     grp = _Group(group)
@@ -513,6 +556,23 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, *, at
 
 
 # ------------------------------------------------------------------------------------------ baselines
+def _optimise_shard(job: dict, group) -> AimResult:
+    """One rank of :func:`run_aimpoints_sharded`: image model and aim points of this rank's shard."""
+    kw = dict(job["kwargs"])
+    model, equator = calibrate_images(job["plant"], job["sun"], kw.get("atmosphere"), kw.get("resolution", (20, 48)),
+                                      group=group)
+    return optimise_aimpoints(job["plant"], job["sun"], job["limit"], group=group, equator=equator, model=model,
+                              **kw)
+
+
+def run_aimpoints_sharded(plant, sun_direction, peak_limit: float, nproc: int, **kwargs) -> AimResult:
+    """:func:`optimise_aimpoints` sharded over ``nproc`` spawned local gloo processes (CPU); rank 0's result
+    (every rank holds the same aim points). ``kwargs`` as for it, without ``group``, ``equator``, ``model``
+    and ``progress``."""
+    job = {"plant": plant, "sun": sun_direction, "limit": float(peak_limit), "kwargs": kwargs}
+    return run_spawned(_optimise_shard, job, nproc)
+
+
 def _bisect(evaluate_at, limit, lo, hi, steps, increasing):
     """Bisection for the parameter nearest the spill-free end that meets the limit on the exact check.
 
@@ -546,8 +606,6 @@ def aiming_factor(plant: Plant, sun: torch.Tensor, peak_limit: float, *, atmosph
     :class:`ImageModel` when given; else the Gaussian beam spread times the slant range plus a quarter of
     the mirror height). ``k`` is the smallest value in [0, 1] that meets the limit (bisection), or 1.
     """
-    from .. import sunshape as _ss
-
     t0 = time.perf_counter()
     rec = plant.target("receiver")
     pos = plant.field.kinematics.position.to(torch.float64)

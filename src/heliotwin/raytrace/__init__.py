@@ -14,24 +14,23 @@ Images
 ------
 :class:`FluxImage`
     The result: bitmap [B, rows, cols] in W/m^2 (PAINT orientation) plus target, extent and powers.
-:func:`centered_crop`, :func:`to_png`, :func:`read_png`, :func:`normalized_l1`, :func:`cross_correlation`
-    PAINT-style image handling and comparison.
+:func:`centered_crop`, :func:`normalized_l1`, :func:`cross_correlation`
+    PAINT-style image handling and comparison (PNG files in and out: :mod:`heliotwin.io.images`).
 """
 from .conv import render_centered, trace_conv
-from .flux import FluxImage, centered_crop, cross_correlation, normalized_l1, read_png, target_extent, to_png
+from .flux import CENTERED_WINDOW_M, FluxImage, centered_crop, cross_correlation, normalized_l1, target_extent
 from .gaussian import trace_gaussian
 from .montecarlo import trace_mc
 from .splat import projective_splat, splat_bilinear, splat_hard
 
 __all__ = [
+    "CENTERED_WINDOW_M",
     "FluxImage",
     "centered_crop",
     "cross_correlation",
     "normalized_l1",
-    "read_png",
     "render_centered",
     "target_extent",
-    "to_png",
     "trace_conv",
     "trace_gaussian",
     "trace_mc",

@@ -30,7 +30,7 @@ the per-point vs mean footprint). The Monte-Carlo tracer remains the independent
 
 Centred window
 --------------
-PAINT's ``-flux-centered.png`` is a 6 m x 6 m window (:data:`heliotwin.io.images.CENTERED_WINDOW_M`)
+PAINT's ``-flux-centered.png`` is a 6 m x 6 m window (:data:`heliotwin.raytrace.flux.CENTERED_WINDOW_M`)
 centred on the *measured* spot's own centroid. We do the same with the prediction (window centred on the
 predicted power-weighted centroid of the hits, which a centrally symmetric kernel leaves unchanged), so a
 tracking error never reads as surface shape.
@@ -51,8 +51,7 @@ from ..errors import HeliotwinError
 from ..field.plant import SunSettings
 from ..field.targets import PlanarTarget
 from ..geometry import ray_plane, reflect
-from ..io.images import CENTERED_WINDOW_M
-from .flux import FluxImage
+from .flux import CENTERED_WINDOW_M, FluxImage
 from .splat import splat_bilinear
 
 __all__ = ["reflect_to_plane", "angular_density", "footprint_kernel", "mean_footprint_kernel", "render_centered",
@@ -349,7 +348,7 @@ def trace_conv(points, normals, areas, sun_direction, target: PlanarTarget, *, r
         Default ``SunSettings()``.
     window : (x0, y0, width, height), optional
         Square local window [m] (its centre is held fixed). Default: the PAINT-style window of
-        :data:`~heliotwin.io.images.CENTERED_WINDOW_M` centred on the predicted centroid.
+        :data:`~heliotwin.raytrace.flux.CENTERED_WINDOW_M` centred on the predicted centroid.
     kernel : torch.Tensor, [B, 2R, 2R], optional
         Precomputed :func:`mean_footprint_kernel`.
     dtype : torch.dtype

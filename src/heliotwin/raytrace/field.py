@@ -54,6 +54,7 @@ import math
 from dataclasses import dataclass, field, replace
 
 import torch
+import torch.distributed as dist
 
 from .. import sunshape as _sunshape
 from ..atmosphere import Atmosphere, attenuation
@@ -62,9 +63,10 @@ from ..field.facets import surface_points
 from ..field.plant import Plant
 from ..field.targets import CylinderTarget, PlanarTarget
 from ..geometry import orthonormal_frame, ray_cylinder, reflect, safe_normalize
+from .conv import angular_density
 from .flux import target_extent
 from .gaussian import _cylinder_moments, _fft_convolve, _gaussian_kernels, _projective_moments, gaussian_footprints
-from .montecarlo import planar_coefficients
+from .montecarlo import planar_coefficients, trace_mc
 from .occlusion import (
     OccluderSet,
     mirror_frame,
@@ -424,8 +426,6 @@ def _flux_map(points, nw, reflected, weights, target, settings: FieldSettings, p
     mu = torch.where(ok.unsqueeze(-1), mu, torch.full_like(mu, -1e9))
     cov_s = cov + float(settings.smoothing) * eye
     if settings.integrator == "mc":
-        from .montecarlo import trace_mc
-
         img = trace_mc(points.unsqueeze(0), nw.unsqueeze(0), (weights / (_power_scale(plant, nw, sun))).unsqueeze(0),
                        sun.unsqueeze(0), target, resolution=(rows, cols), sun=plant.sun,
                        rays_per_point=int(settings.rays_per_point),
@@ -443,8 +443,6 @@ def _flux_map(points, nw, reflected, weights, target, settings: FieldSettings, p
             half, total = _agree(half, total, group)
     density = None
     if settings.integrator == "conv":  # the exact sun cone per footprint class: always the grouped map
-        from .conv import angular_density
-
         dens, half_width = angular_density(s)
         density, mode = (dens.to(mu.device), half_width, var, float(settings.smoothing)), "grouped"
     if mode == "auto":
@@ -488,8 +486,6 @@ def _sun_cone_kernels(cov: torch.Tensor, density, half: int, supersample: int = 
 
 def _agree(half: int, count: int, group) -> tuple[int, int]:
     """The largest window half-size and the summed sample count over the ranks of ``group``."""
-    import torch.distributed as dist
-
     device = "cuda" if dist.get_backend(group) == "nccl" else "cpu"
     t = torch.tensor([half, count], dtype=torch.long, device=device)
     dist.all_reduce(t[:1], op=dist.ReduceOp.MAX, group=group)
@@ -499,8 +495,6 @@ def _agree(half: int, count: int, group) -> tuple[int, int]:
 
 def _gather_all(t: torch.Tensor, group) -> torch.Tensor:
     """Every rank's rows of ``t`` [n_r, ...] concatenated in rank order (no gradient)."""
-    import torch.distributed as dist
-
     world = dist.get_world_size(group)
     n = torch.tensor([t.shape[0]], dtype=torch.long, device=t.device)
     counts = [torch.zeros_like(n) for _ in range(world)]
@@ -515,8 +509,6 @@ def _gather_all(t: torch.Tensor, group) -> torch.Tensor:
 
 def _sum_all(t: torch.Tensor, group) -> torch.Tensor:
     """``t`` summed over the ranks; the gradient flows to this rank's own term."""
-    import torch.distributed as dist
-
     total = t.detach().clone()
     dist.all_reduce(total, group=group)
     return t + (total - t.detach())

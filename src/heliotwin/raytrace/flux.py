@@ -1,4 +1,4 @@
-"""Flux images on a target: the :class:`FluxImage` container, PAINT-style crops, PNG IO and image metrics.
+"""Flux images on a target: the :class:`FluxImage` container, PAINT-style crops and image metrics.
 
 Orientation (PAINT, see ``docs/conventions.md``): a bitmap is ``[..., rows, cols]`` in W/m^2 with row 0
 at the top edge (largest local ``y``) and column 0 at the left edge (smallest local ``x``, i.e. east for a
@@ -10,24 +10,24 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..errors import HeliotwinError, InputFileError
+from ..errors import HeliotwinError
 from ..field.targets import CylinderTarget, PlanarTarget
-from ..io.images import CENTERED_WINDOW_M
 
 __all__ = [
+    "CENTERED_WINDOW_M",
     "FluxImage",
     "target_extent",
     "pixel_centers",
     "centered_crop",
-    "to_png",
-    "read_png",
     "normalized_l1",
     "cross_correlation",
 ]
+
+#: Side [m] of PAINT's ``-flux-centered.png`` window (square, centred on the measured spot's centroid).
+CENTERED_WINDOW_M = 6.0
 
 
 def _size(value, n: int) -> torch.Tensor:
@@ -207,66 +207,6 @@ def centered_crop(bitmap_or_flux, target: PlanarTarget | CylinderTarget | None, 
     out = F.grid_sample(bitmap.unsqueeze(1), grid, mode="bilinear", padding_mode="zeros", align_corners=False)
     out = out.squeeze(1)
     return out.squeeze(0) if squeeze else out
-
-
-def to_png(bitmap: torch.Tensor, path) -> None:
-    """Write a bitmap as a max-normalised 8-bit grayscale PNG, atomically (temp file + rename).
-
-    Parameters
-    ----------
-    bitmap : torch.Tensor, shape (rows, cols)
-        Any non-negative values (e.g. W/m^2); an all-zero image is written black.
-    path : str or os.PathLike
-    """
-    from PIL import Image
-
-    a = bitmap.detach().to(torch.float64).cpu()
-    if a.dim() != 2:
-        raise HeliotwinError(f"to_png expects a 2-D bitmap, got shape {tuple(a.shape)}")
-    a = torch.nan_to_num(a, nan=0.0, posinf=0.0, neginf=0.0).clamp(min=0.0)
-    m = float(a.max()) if a.numel() else 0.0
-    img = (a / m * 255.0).round() if m > 0 else torch.zeros_like(a)
-    arr = img.clamp(0, 255).to(torch.uint8).numpy()
-    from ..io.report import atomic_path
-
-    with atomic_path(path) as tmp:
-        Image.fromarray(arr).save(tmp, format="PNG")  # uint8 2-D -> mode "L"
-
-
-def read_png(path) -> torch.Tensor:
-    """Read a (grayscale or colour) PNG as luminance in [0, 1].
-
-    Parameters
-    ----------
-    path : str or os.PathLike
-
-    Returns
-    -------
-    torch.Tensor, shape (rows, cols), float32
-        8-bit images are divided by 255, 16-bit ones by 65535; colour images are converted to luminance.
-
-    Raises
-    ------
-    InputFileError
-        If the file is missing or not a readable image.
-    """
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(path) as img:
-            img.load()
-            if img.mode in ("I;16", "I;16B", "I;16L", "I"):
-                arr = np.asarray(img, dtype=np.float64)
-                scale = 65535.0 if img.mode.startswith("I;16") or arr.max(initial=0) > 255 else 255.0
-                arr = arr / scale
-            else:
-                arr = np.asarray(img.convert("L"), dtype=np.float64) / 255.0
-    except FileNotFoundError:
-        raise InputFileError(path, "file not found") from None
-    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
-        detail = str(exc).splitlines()[0] if str(exc) else ""
-        raise InputFileError(path, f"unreadable image ({type(exc).__name__}: {detail})") from None
-    return torch.from_numpy(np.ascontiguousarray(arr)).to(torch.float32)
 
 
 def normalized_l1(a: torch.Tensor, b: torch.Tensor, eps: float = 1e-30) -> torch.Tensor:

@@ -19,9 +19,13 @@ import math
 import time
 
 import numpy as np
+import pandas as pd
+import pvlib
 import torch
 
 from ..atmosphere import Atmosphere
+from ..devices import resolve_device, to_device
+from ..field.facets import surface_points
 from ..field.plant import Plant
 from ..sun import daylight_times, direction_from_paint_angles
 from .field import FACTORS, FieldSettings, field_optics
@@ -110,8 +114,6 @@ def interpolate_efficiency(table: dict, azimuth: torch.Tensor, elevation: torch.
 
 def clear_sky_dni(times, plant: Plant) -> np.ndarray:
     """pvlib Ineichen clear-sky DNI [W/m^2] at the plant's site for UTC ``times`` (pandas DatetimeIndex)."""
-    import pvlib
-
     s = plant.site
     loc = pvlib.location.Location(s.latitude_deg, s.longitude_deg, altitude=s.altitude_m)
     return loc.get_clearsky(times, model="ineichen")["dni"].to_numpy()
@@ -139,8 +141,6 @@ def annual_energy(plant: Plant, year: int, every: str = "1h", *, atmosphere: Atm
         ``annual_optical_energy_mwh``, ``annual_dni_energy_on_mirrors_mwh`` (DNI x area), ``mean_efficiency``
         (DNI-weighted), ``instants``, ``mirror_area_m2``, ``table`` (lists), ``seconds``.
     """
-    import pandas as pd
-
     t0 = time.perf_counter()
     table = table or efficiency_table(plant, atmosphere=atmosphere, device=device)
     s = plant.site
@@ -162,13 +162,9 @@ def _on_device(plant: Plant, device) -> Plant:
     """``plant`` on ``device`` (None: where it is; ``"auto"``: CUDA when present)."""
     if device is None:
         return plant
-    from ..devices import resolve_device, to_device
-
     return to_device(plant, resolve_device(device))
 
 
 def _mirror_area(plant: Plant) -> float:
     """Total mirror area [m^2] (the sampled facet areas, as the field model uses them)."""
-    from ..field.facets import surface_points
-
     return float(surface_points(plant.field.surfaces, (4, 4))[2].sum())

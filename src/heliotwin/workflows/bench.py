@@ -1,4 +1,4 @@
-"""Forward / backward throughput and time-to-accuracy benchmark of the tracers (``heliotwin bench``).
+"""The ``bench`` workflow: forward / backward throughput and time-to-accuracy of the tracers (``heliotwin bench``).
 
 The scene is synthetic and self-contained: one focused square heliostat (``surface_points`` points on a
 4 m x 4 m paraboloid-like mirror, focal length = slant range) about 110 m north of an 8 m x 8 m
@@ -14,11 +14,12 @@ import time
 
 import torch
 
+from ..devices import resolve_device, to_device
 from ..field.plant import SunSettings
 from ..field.targets import PlanarTarget
-from .flux import normalized_l1
-from .gaussian import trace_gaussian
-from .montecarlo import trace_mc
+from ..raytrace.flux import normalized_l1
+from ..raytrace.gaussian import trace_gaussian
+from ..raytrace.montecarlo import trace_mc
 
 __all__ = ["run_benchmark", "benchmark_scene"]
 
@@ -145,8 +146,6 @@ def run_benchmark(surface_points: int = 10000, rays_per_point=(10, 100), resolut
 
 
 def _run(surface_points, rays_per_point, resolution, seed, repeats, time_to_accuracy, device="cpu"):
-    from ..devices import resolve_device, to_device
-
     device = resolve_device(device)
     ks = [int(rays_per_point)] if isinstance(rays_per_point, int) else [int(k) for k in rays_per_point]
     pts, nrm, areas, sun_dir, target = to_device(benchmark_scene(surface_points), device)

@@ -1,0 +1,113 @@
+"""Aim points as learned state: the ``/learned/aimpoints`` group of a scenario, written and read here only.
+
+Layout of the group (one dict in :attr:`heliotwin.io.scenario.Scenario.learned` under :data:`KEY`)::
+
+    aim [H, 3] ENU [m], sun_direction [3], motor_steps [H, 2], reachable [H] (bool)   the first instant
+    peak_limit_w_m2, method, target                                                 the run's settings
+    instants/<iNNN>/{instant, aim, sun_direction, motor_steps, reachable, power_w, peak_flux_w_m2}
+
+The first instant is repeated at the top so that a reader of one instant needs no index. Motor steps come
+from the plant's (possibly calibrated) kinematics (:func:`heliotwin.field.kinematics.inverse`); heliostats
+that cannot reach their aim point keep the closest steps and are marked ``reachable = False``.
+"""
+from __future__ import annotations
+
+import torch
+
+from ..errors import HeliotwinError
+from ..field.kinematics import inverse
+from ..field.plant import Plant
+
+__all__ = ["KEY", "METHOD", "instant_state", "aimpoint_state", "stored_aimpoints"]
+
+#: Name of the learned group.
+KEY = "aimpoints"
+#: How the stored aim points were found.
+METHOD = "augmented-lagrangian on the exact-corrected image model"
+
+
+def instant_state(plant: Plant, label: str, aim: torch.Tensor, sun_direction: torch.Tensor, *,
+                  power_w: float, peak_flux_w_m2: float) -> dict:
+    """One instant's entry of the learned group, with the motor steps that realise ``aim``.
+
+    Parameters
+    ----------
+    plant : Plant
+        Its kinematics turn the aim points into motor steps.
+    label : str
+        The instant (an ISO time or a sun position in words).
+    aim : torch.Tensor, [H, 3]
+        Aim points, ENU [m].
+    sun_direction : torch.Tensor, [3]
+        Unit vector towards the sun (ENU).
+    power_w, peak_flux_w_m2 : float
+        Receiver power [W] and peak flux [W/m^2] at these aim points.
+
+    Returns
+    -------
+    dict
+        ``instant``, ``aim`` [H, 3], ``sun_direction`` [3], ``motor_steps`` [H, 2], ``reachable`` [H] (CPU,
+        float64), ``power_w``, ``peak_flux_w_m2``.
+    """
+    aim = aim.to(torch.float64)
+    steps, reachable = inverse(plant.field.kinematics, aim, sun_direction.to(aim.device, torch.float64)[None],
+                               strict=False)
+    return {"instant": label, "aim": aim.cpu(), "sun_direction": sun_direction.to(torch.float64).cpu(),
+            "motor_steps": steps.cpu(), "reachable": reachable.cpu(), "power_w": power_w,
+            "peak_flux_w_m2": peak_flux_w_m2}
+
+
+def aimpoint_state(instants: dict, *, peak_limit_w_m2: float, target: str = "max-power",
+                   method: str = METHOD) -> dict:
+    """The ``/learned/aimpoints`` group from per-instant entries (:func:`instant_state`), keyed ``iNNN``.
+
+    Parameters
+    ----------
+    instants : dict
+        ``{"i000": entry, "i001": ...}`` in time order (at least one).
+    peak_limit_w_m2 : float
+        The limit every map cell was held to [W/m^2].
+    target : str
+        ``"max-power"``, ``"uniform"`` or the target map's file.
+    method : str
+
+    Returns
+    -------
+    dict
+        The group (store it as ``learned[KEY]``).
+    """
+    if not instants:
+        raise HeliotwinError("aimpoint_state: no instant to store")
+    first = next(iter(instants.values()))
+    return {"aim": first["aim"], "peak_limit_w_m2": float(peak_limit_w_m2), "sun_direction": first["sun_direction"],
+            "method": method, "motor_steps": first["motor_steps"], "reachable": first["reachable"],
+            "target": target, "instants": instants}
+
+
+def stored_aimpoints(scenario, sun_direction: torch.Tensor) -> torch.Tensor:
+    """The scenario's aim points for the stored instant whose sun is nearest ``sun_direction``.
+
+    Parameters
+    ----------
+    scenario : heliotwin.io.scenario.Scenario
+    sun_direction : torch.Tensor, [3]
+        Unit vector towards the sun (ENU); the result is on its device.
+
+    Returns
+    -------
+    torch.Tensor, [H, 3], float64
+        Aim points, ENU [m] (a scenario with one instant: those, whatever the sun).
+
+    Raises
+    ------
+    HeliotwinError
+        The scenario holds no aim points.
+    """
+    group = scenario.learned.get(KEY) or {}
+    if group.get("aim") is None:
+        raise HeliotwinError(f"{scenario.path} [/learned/aimpoints/aim]: no aim points in this scenario "
+                             "(use --aim equator)")
+    choices = list((group.get("instants") or {}).values()) or [group]
+    s = sun_direction.detach().cpu().to(torch.float64)
+    best = max(choices, key=lambda c: float(torch.as_tensor(c["sun_direction"], dtype=torch.float64) @ s))
+    return torch.as_tensor(best["aim"], dtype=torch.float64, device=sun_direction.device)

@@ -1,0 +1,177 @@
+"""The ``aimpoints`` workflow: aim points under a peak-flux limit at one or several instants, stored in the scenario.
+
+Per instant: equator aiming, the two published heuristics (aiming factor, image-size priority) and the
+optimised aim points (:func:`heliotwin.optimise.aimpoints.optimise_aimpoints`, optionally sharded over local
+gloo processes), all judged on the exact field model; the optimised ones, with their motor steps through the
+plant's kinematics, become the scenario's ``/learned/aimpoints`` (:mod:`heliotwin.optimise.aimstate`).
+"""
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+
+from ..atmosphere import Atmosphere
+from ..devices import to_device
+from ..errors import HeliotwinError
+from ..io.scenario import Scenario, next_scenario, provenance_entry
+from ..optimise.aimpoints import (
+    AimResult,
+    aiming_factor,
+    calibrate_images,
+    image_size_priority,
+    load_target,
+    optimise_aimpoints,
+    run_aimpoints_sharded,
+    target_mismatch,
+    uniform_target,
+)
+from ..optimise.aimstate import KEY, aimpoint_state, instant_state
+
+__all__ = ["AimpointSettings", "aimpoints"]
+
+
+@dataclass
+class AimpointSettings:
+    """What :func:`aimpoints` runs (the ``aimpoints`` command's defaults).
+
+    Attributes
+    ----------
+    peak_limit_w_m2 : float
+        Limit on every receiver map cell [W/m^2].
+    resolution : (int, int)
+        Receiver map ``(rows, cols)``.
+    iterations : int
+        Image-model steps per round.
+    target : str, optional
+        ``"uniform"`` or a CSV/NPY target map (None: maximise power).
+    field_gradient : bool
+        Add the smooth field model's power gradient each round.
+    baselines : bool
+        Also run the aiming-factor and image-size-priority heuristics.
+    nproc : int
+        Local gloo processes to shard the heliostats over (1: none; CPU only).
+    device : str, optional
+        Where the models run (None: where the plant is).
+    """
+
+    peak_limit_w_m2: float
+    resolution: tuple[int, int] = (20, 48)
+    iterations: int = 300
+    target: str | None = None
+    field_gradient: bool = False
+    baselines: bool = True
+    nproc: int = 1
+    device: str | None = None
+
+    def check(self) -> None:
+        """One-line :class:`HeliotwinError` for settings no run can use (a caller may check before staging
+        outputs; :func:`aimpoints` checks again)."""
+        if float(self.peak_limit_w_m2) <= 0:
+            raise HeliotwinError(f"--peak-limit: expected a positive flux [W/m2], got {self.peak_limit_w_m2}")
+        if self.nproc > 1 and str(self.device or "cpu").startswith("cuda"):
+            raise HeliotwinError("--nproc: the local process group is gloo on CPU; use --device cpu with --nproc")
+
+
+def _instant(plant, sun, atm, settings: AimpointSettings):
+    """Equator, the two heuristics and the optimised aim points at one sun: (report entry, optimised, equator)."""
+    limit, resolution = float(settings.peak_limit_w_m2), settings.resolution
+    t0 = time.perf_counter()
+    model, eq_field = calibrate_images(plant, sun, atm, resolution)
+    equator = AimResult(eq_field.aim, float(eq_field.power_w.sum()), float(eq_field.flux.max()), eq_field.flux)
+    equator.seconds = time.perf_counter() - t0
+    target = None
+    if settings.target == "uniform":
+        target = uniform_target(eq_field.flux)
+    elif settings.target is not None:
+        target = load_target(settings.target, resolution)
+    kw = dict(atmosphere=atm, resolution=resolution, iterations=settings.iterations, target=target,
+              field_gradient=settings.field_gradient)
+    if settings.nproc > 1:
+        best = run_aimpoints_sharded(plant, sun, limit, settings.nproc, **kw)
+    else:
+        best = optimise_aimpoints(plant, sun, limit, equator=eq_field, model=model, **kw)
+    baselines = {}
+    if settings.baselines:
+        baselines["aiming_factor"] = aiming_factor(plant, sun, limit, atmosphere=atm, resolution=resolution,
+                                                   model=model)
+        baselines["image_size_priority"] = image_size_priority(plant, sun, limit, atmosphere=atm,
+                                                               resolution=resolution, model=model)
+
+    def entry(r):
+        e = {"power_w": r.power_w, "peak_flux_w_m2": r.peak_flux_w_m2, "violation": r.violation(limit),
+             "limit_met": r.peak_flux_w_m2 <= limit, "power_vs_equator": r.power_w / equator.power_w,
+             "seconds": r.seconds}
+        if target is not None:
+            e["target_mismatch"] = target_mismatch(r.flux, target)
+        return e
+
+    rep = {"sun_direction_enu": sun.tolist(), "sun_elevation_deg": math.degrees(math.asin(float(sun[2]))),
+           "equator": entry(equator)}
+    for name, r in baselines.items():
+        rep[name] = {**entry(r), "k": r.parameter}
+    rep["optimised"] = {**entry(best), "iterations": best.iterations, "rounds": len(best.history),
+                        "final_margin": best.parameter, "history": best.history}
+    for name, r in baselines.items():
+        rep["optimised"][f"power_vs_{name}"] = best.power_w / r.power_w
+    rep["seconds"] = time.perf_counter() - t0
+    return rep, best, equator
+
+
+def aimpoints(scenario: Scenario, instants: list[tuple[str, torch.Tensor]], settings: AimpointSettings, *,
+              on_instant: Callable | None = None) -> tuple[Scenario, dict]:
+    """Aim points under ``settings.peak_limit_w_m2`` at every instant; the scenario with them learned.
+
+    Parameters
+    ----------
+    scenario : Scenario
+        Plant (its kinematics give the motor steps) and atmosphere (``extras``).
+    instants : list of (str, torch.Tensor [3])
+        Label and unit sun direction (ENU) of every instant, e.g. from
+        :func:`heliotwin.workflows.field.sun_instants`.
+    settings : AimpointSettings
+    on_instant : callable, optional
+        ``on_instant(i, label, entry, optimised, equator)`` after each instant (progress lines, flux maps):
+        ``entry`` is the instant's report, ``optimised`` and ``equator`` the :class:`AimResult` s.
+
+    Returns
+    -------
+    scenario : Scenario
+        In memory (:func:`heliotwin.io.scenario.write_scenario` writes it): the plant on the CPU, the
+        learned state with ``/learned/aimpoints`` (:func:`heliotwin.optimise.aimstate.aimpoint_state`), one
+        more provenance step.
+    report : dict
+        ``peak_limit_w_m2``, ``resolution``, ``target``, ``nproc``, ``instants`` (per instant: equator,
+        baselines, optimised with ``motor_steps_reachable``), the first instant's entries at the top, and
+        ``seconds``.
+    """
+    settings.check()
+    limit = float(settings.peak_limit_w_m2)
+    t_all = time.perf_counter()
+    plant = scenario.plant if settings.device is None else to_device(scenario.plant, settings.device)
+    atm = Atmosphere.from_extras(scenario.extras)
+    target = settings.target or "max-power"
+    report = {"scenario": os.path.abspath(scenario.path) if scenario.path else None, "peak_limit_w_m2": limit,
+              "resolution": {"cols": settings.resolution[1], "rows": settings.resolution[0]},
+              "target": target, "nproc": settings.nproc, "instants": []}
+    stored = {}
+    for i, (label, sun) in enumerate(instants):
+        rep, best, equator = _instant(plant, sun, atm, settings)
+        stored[f"i{i:03d}"] = instant_state(plant, label, best.aim, sun, power_w=best.power_w,
+                                            peak_flux_w_m2=best.peak_flux_w_m2)
+        rep["optimised"]["motor_steps_reachable"] = int(stored[f"i{i:03d}"]["reachable"].sum())
+        report["instants"].append({"instant": label, **rep})
+        if on_instant is not None:
+            on_instant(i, label, rep, best, equator)
+    report.update({k: v for k, v in report["instants"][0].items() if k != "instant"})  # first instant at top
+    report["seconds"] = time.perf_counter() - t_all
+    learned = {**scenario.learned, KEY: aimpoint_state(stored, peak_limit_w_m2=limit, target=target)}
+    step = provenance_entry("aimpoints", peak_limit_w_m2=limit, instants=[lbl for lbl, _ in instants],
+                            iterations=settings.iterations, target=target,
+                            power_w=[s["power_w"] for s in stored.values()],
+                            peak_flux_w_m2=[s["peak_flux_w_m2"] for s in stored.values()])
+    return next_scenario(scenario, to_device(plant, "cpu"), learned=learned, step=step), report

@@ -1,0 +1,225 @@
+"""The ``field`` workflow: a plant's optical efficiency at one sun, or over a year, and the sun positions asked for.
+
+:func:`field` runs the field model (:func:`heliotwin.raytrace.field.field_optics`, optionally sharded over
+local processes) on a scenario's plant at one sun, with equator aiming or the scenario's stored aim points
+(:func:`heliotwin.optimise.aimstate.stored_aimpoints`); :func:`field_year` tabulates the efficiency over sun
+positions and integrates the clear-sky annual optical energy. Neither learns anything, so neither returns a
+new scenario. :func:`sun_direction_at` and :func:`sun_instants` turn the user's times or angles into sun
+directions (the ``field`` and ``aimpoints`` commands' ``--time``, ``--day``, ``--sun-azimuth``).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+import torch
+
+from ..atmosphere import Atmosphere
+from ..devices import to_device
+from ..distributed import run_sharded
+from ..errors import HeliotwinError
+from ..optimise.aimstate import stored_aimpoints
+from ..raytrace.field import FieldResult, FieldSettings, field_optics, summary
+from ..raytrace.yearly import DEFAULT_ELEVATIONS_DEG, annual_energy, efficiency_table
+from ..sun import direction_from_paint_angles, direction_from_time
+
+__all__ = ["FieldRunSettings", "field", "field_year", "sun_direction_at", "sun_instants"]
+
+
+@dataclass
+class FieldRunSettings:
+    """What :func:`field` runs (the ``field`` command's defaults).
+
+    Attributes
+    ----------
+    resolution : (int, int)
+        Receiver map ``(rows, cols)``.
+    integrator : {"gaussian", "conv", "mc"}
+    occlusion : {"exact", "solarpilot"}
+    seed : int
+        Monte-Carlo seed.
+    aim : {"equator", "scenario"}
+        Equator aiming, or the scenario's stored aim points for the nearest stored sun.
+    dni : float, optional
+        Direct normal irradiance [W/m^2] (default: the scenario's).
+    nproc : int
+        Local gloo processes to shard the heliostats over (1: none).
+    device : str, optional
+        Where the field model runs (None: where the plant is).
+    """
+
+    resolution: tuple[int, int] = (20, 48)
+    integrator: str = "gaussian"
+    occlusion: str = "exact"
+    seed: int = 0
+    aim: str = "equator"
+    dni: float | None = None
+    nproc: int = 1
+    device: str | None = None
+
+    def check(self) -> None:
+        """One-line :class:`HeliotwinError` for settings no run can use (:func:`field` checks them too)."""
+        if self.dni is not None and self.dni < 0:
+            raise HeliotwinError(f"--dni: expected a non-negative irradiance, got {self.dni}")
+
+
+def sun_direction_at(plant, *, time_utc: str | None = None, azimuth_deg: float | None = None,
+                     elevation_deg: float | None = None) -> torch.Tensor:
+    """The sun direction at a UTC time (pvlib at the plant's site) or from PAINT angles.
+
+    Parameters
+    ----------
+    plant : Plant
+    time_utc : str, optional
+        ISO time (naive: UTC); takes precedence over the angles.
+    azimuth_deg, elevation_deg : float, optional
+        PAINT convention [deg] (0 = south, +90 = east).
+
+    Returns
+    -------
+    torch.Tensor, [3], float64
+        Unit vector towards the sun (ENU).
+
+    Raises
+    ------
+    HeliotwinError
+        Unparsable time, or the sun below the horizon.
+    """
+    if time_utc is not None:
+        try:
+            stamp = pd.Timestamp(time_utc)
+        except ValueError:
+            raise HeliotwinError(f"--time: cannot parse {time_utc!r} (expected ISO UTC, e.g. 2023-06-21T12:00Z)") \
+                from None
+        if stamp.tzinfo is None:
+            stamp = stamp.tz_localize("UTC")
+        s = plant.site
+        d = direction_from_time(pd.DatetimeIndex([stamp]), s.latitude_deg, s.longitude_deg, s.altitude_m,
+                                check_horizon=False)
+        d = torch.as_tensor(d, dtype=torch.float64).reshape(3)
+        if float(d[2]) <= 0:
+            raise HeliotwinError(f"--time: the sun is below the horizon at {time_utc} "
+                                 f"(elevation {math.degrees(math.asin(float(d[2]))):.1f} deg)")
+        return d
+    if elevation_deg <= 0:
+        raise HeliotwinError(f"--sun-elevation: the sun is below the horizon ({elevation_deg} deg)")
+    return direction_from_paint_angles(torch.tensor(math.radians(azimuth_deg), dtype=torch.float64),
+                                       torch.tensor(math.radians(elevation_deg), dtype=torch.float64))
+
+
+def sun_instants(plant, *, times: str | None = None, day: str | None = None, every: str = "1h",
+                 azimuth_deg: float | None = None,
+                 elevation_deg: float | None = None) -> list[tuple[str, torch.Tensor]]:
+    """``(label, sun direction [3])`` of every instant asked for: the daylight instants of ``day`` every
+    ``every`` (sun above 10 deg), the comma-separated UTC ``times``, or one sun from PAINT angles [deg]."""
+    if day is not None:
+        try:
+            start = pd.Timestamp(day)
+            step = pd.Timedelta(every)
+        except ValueError:
+            raise HeliotwinError(f"--day/--every: cannot parse {day!r} / {every!r} (e.g. 2023-06-21, "
+                                 "1h)") from None
+        start = start.tz_localize("UTC") if start.tzinfo is None else start
+        stamps = pd.date_range(start.normalize(), start.normalize() + pd.Timedelta("1D"), freq=step, inclusive="left")
+        s = plant.site
+        d = direction_from_time(stamps, s.latitude_deg, s.longitude_deg, s.altitude_m, check_horizon=False)
+        keep = [(t.isoformat(), torch.as_tensor(v, dtype=torch.float64)) for t, v in zip(stamps, d)
+                if math.degrees(math.asin(float(v[2]))) > 10.0]
+        if not keep:
+            raise HeliotwinError(f"--day: the sun stays below 10 deg elevation on {day}")
+        return keep
+    if times is not None:
+        out = [(text, sun_direction_at(plant, time_utc=text)) for text in [t.strip() for t in times.split(",")
+                                                                            if t.strip()]]
+        if not out:
+            raise HeliotwinError("--time: no instant given")
+        return out
+    return [(f"azimuth {azimuth_deg} deg, elevation {elevation_deg} deg",
+             sun_direction_at(plant, azimuth_deg=azimuth_deg, elevation_deg=elevation_deg))]
+
+
+def field(scenario, sun: torch.Tensor, settings: FieldRunSettings | None = None) -> tuple[dict, FieldResult]:
+    """The field model on the scenario's plant at one sun.
+
+    Parameters
+    ----------
+    scenario : heliotwin.io.scenario.Scenario
+        Plant, atmosphere (``extras``) and, for ``settings.aim == "scenario"``, stored aim points.
+    sun : torch.Tensor, [3]
+        Unit vector towards the sun (ENU), e.g. from :func:`sun_direction_at`.
+    settings : FieldRunSettings, optional
+
+    Returns
+    -------
+    report : dict
+        :func:`heliotwin.raytrace.field.summary` plus ``scenario`` (its file), ``aim``, ``integrator``,
+        ``occlusion``, ``resolution``, ``seconds`` and ``seconds_field_model`` [s].
+    result : FieldResult
+        Per-heliostat factors [H] and the receiver map [rows, cols] [W/m^2].
+    """
+    t0 = time.perf_counter()
+    settings = settings or FieldRunSettings()
+    plant = scenario.plant
+    settings.check()
+    if settings.dni is not None:
+        plant = dataclasses.replace(plant, sun=dataclasses.replace(plant.sun, dni=float(settings.dni)))
+    if settings.device is not None:
+        plant = to_device(plant, settings.device)
+    sun = sun.to(plant.field.kinematics.position.device)
+    aim = stored_aimpoints(scenario, sun) if settings.aim == "scenario" else None
+    model = FieldSettings(resolution=settings.resolution, integrator=settings.integrator, seed=settings.seed,
+                          occlusion_model=settings.occlusion)
+    t1 = time.perf_counter()
+    kwargs = dict(atmosphere=Atmosphere.from_extras(scenario.extras), aim=aim, settings=model)
+    if settings.nproc > 1:
+        result = run_sharded(plant, sun, settings.nproc, **kwargs)
+    else:
+        with torch.no_grad():
+            result = field_optics(plant, sun, **kwargs)
+    seconds_model = time.perf_counter() - t1
+    report = summary(result, plant)
+    report.update({"scenario": os.path.abspath(scenario.path) if scenario.path else None, "aim": settings.aim,
+                   "integrator": settings.integrator, "occlusion": settings.occlusion,
+                   "resolution": {"cols": settings.resolution[1], "rows": settings.resolution[0]},
+                   "seconds": time.perf_counter() - t0, "seconds_field_model": seconds_model})
+    return report, result
+
+
+def field_year(scenario, year: int, every: str = "1h", *, azimuth_step_deg: float = 15.0) -> dict:
+    """The efficiency table over sun positions and the clear-sky annual optical energy (equator aiming).
+
+    Parameters
+    ----------
+    scenario : heliotwin.io.scenario.Scenario
+    year : int
+    every : str
+        pandas frequency of the instants (``"1h"``, ``"30min"``).
+    azimuth_step_deg : float
+        Azimuth step [deg] of the efficiency table, in (0, 180].
+
+    Returns
+    -------
+    dict
+        :func:`heliotwin.raytrace.yearly.annual_energy`'s report plus ``scenario``, ``aim``, ``dni_model`` and
+        ``seconds`` [s].
+    """
+    t0 = time.perf_counter()
+    try:
+        pd.Timedelta(every)
+    except ValueError:
+        raise HeliotwinError(f"--every: cannot parse {every!r} (e.g. 1h, 30min)") from None
+    atm = Atmosphere.from_extras(scenario.extras)
+    step = float(azimuth_step_deg)
+    if not 0 < step <= 180:
+        raise HeliotwinError(f"--table-azimuth-step: expected (0, 180] deg, got {step}")
+    table = efficiency_table(scenario.plant, atmosphere=atm, azimuths_deg=np.arange(-180.0, 180.0, step),
+                             elevations_deg=DEFAULT_ELEVATIONS_DEG)
+    report = annual_energy(scenario.plant, year, every, atmosphere=atm, table=table)
+    report.update({"scenario": os.path.abspath(scenario.path) if scenario.path else None, "aim": "equator",
+                   "dni_model": "pvlib ineichen clear sky", "seconds": time.perf_counter() - t0})
+    return report
