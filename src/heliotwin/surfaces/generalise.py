@@ -41,18 +41,24 @@ from __future__ import annotations
 import copy
 import dataclasses
 import statistics
+import time
 from dataclasses import dataclass
 
 import torch
+from tqdm.auto import tqdm
 
+from ..devices import resolve_device, to_device
 from ..field.plant import Facets, SunSettings
+from ..field.update import select_heliostats
+from ..io import checkpoint as _checkpoint
+from ..io.paint import load_paint
 from . import losses
-from .acceptance import robust_outliers, shrink_to_accept
-from .edges import slope_penalty
+from .acceptance import robust_outliers, shrink_to_accept, wilson_interval
+from .edges import edge_ridge_mrad, slope_penalty
 from .imaging import predict_images
 from .learning import LearnableSurface, heights_to_displacement, learnable_surfaces, normal_heights
 from .nuisance import CameraModel, apply_camera, estimate_camera
-from .observations import Observations
+from .observations import Observations, observations_from_records, split_records
 from .plantprior import PRIOR_WEIGHT_GRID, check_facets, check_leakage, describe, prior_penalty
 
 __all__ = ["GeneraliseSettings", "reconstruct_generalising", "summarise",
@@ -220,8 +226,6 @@ def _fit(facets, obs, camera, sigma0, sun, start, weight, s, steps, heldout=None
     and schedule states, footprint kernels, held-out curve); a resumed fit goes on after its last saved step
     and a finished one is restored, not rerun.
     """
-    from ..io import checkpoint as _checkpoint
-
     model = LearnableSurface(facets, s.control_points, s.degree, initial=start, fix_gauge=True,
                              gauge_tilt=obs.centers is None)
     ref = normal_heights(facets, model.surfaces().control_points.detach(), s.degree, (16, 16))[1].detach()
@@ -281,8 +285,6 @@ def loo_select(facets, train, camera, sigma0, sun, start, s, progress=False, pri
     the (slope weight, prior weight, step count) with the lowest mean held-out L1; ties go to the earlier
     grid entry (0 first: a prior that does not help on held-out images is not used).
     """
-    from tqdm.auto import tqdm
-
     n = len(train)
     curves: dict = {}
     pgrid = (None,) if prior is None else tuple(float(p) for p in prior_grid)
@@ -428,8 +430,6 @@ def fit_generalising(facets: Facets, train: Observations, base_sun: SunSettings,
 
 def summarise(train_rows: list, test_rows: list) -> dict:
     """Headline figures: medians, training images worse than ideal, test images improved with a Wilson 95 % CI."""
-    from .acceptance import wilson_interval
-
     k = sum(r["l1_learned"] < r["l1_ideal"] for r in test_rows)
     n = len(test_rows)
     lo, hi = wilson_interval(k, n)
@@ -466,8 +466,6 @@ def reconstruct_generalising(facets: Facets, train: Observations, test: Observat
     ``reference``: the surface the edge ridge is measured against (default: the ideal start).
     ``prior``, ``prior_grid``: the plant prior, see :func:`fit_generalising`.
     """
-    from .edges import edge_ridge_mrad
-
     s = s or GeneraliseSettings()
     model, info = fit_generalising(facets, train, base_sun, s, progress, prior, prior_grid)
     sun, ideal, learned = info["optics"], info["ideal"], model.surfaces()
@@ -513,12 +511,6 @@ def reconstruct_paint_generalising(paint_dir, heliostat_id: str, *, train_first:
         ``facets``, ``train``, ``test``, ``info`` (see :func:`fit_generalising` and
         :func:`reconstruct_generalising`), ``optics`` (SunSettings used), ``ideal`` (Surfaces).
     """
-    import time
-
-    from ..devices import resolve_device, to_device
-    from ..io.paint import load_paint
-    from .observations import observations_from_records, split_records
-
     t0 = time.perf_counter()
     device = resolve_device(device)
     s = settings or GeneraliseSettings()
@@ -527,8 +519,6 @@ def reconstruct_paint_generalising(paint_dir, heliostat_id: str, *, train_first:
     ds = load_paint(paint_dir, heliostats=[heliostat_id])
     source = "paint" if plant is None else "scenario"
     if plant is not None:
-        from ..field.update import select_heliostats
-
         ds = ds.on_plant(select_heliostats(plant, [heliostat_id]))
     plant = ds.plant if device == "cpu" else to_device(ds.plant, device)
     tr, te = split_records(ds.records_of(heliostat_id), train_records, train_first)
@@ -538,8 +528,6 @@ def reconstruct_paint_generalising(paint_dir, heliostat_id: str, *, train_first:
         train, test = train.to(device), test.to(device)
     facets = Facets(*(getattr(plant.field.facets, a)[:1].to(torch.float64)
                       for a in ("translation", "canting_e", "canting_n")))
-    from ..io import checkpoint as _checkpoint
-
     with _checkpoint.active(checkpoint):
         report, model, info = reconstruct_generalising(facets, train, test,
                                                        sun or SunSettings(sunshape="buie", csr=0.05), s, progress,

@@ -11,10 +11,12 @@ from __future__ import annotations
 import torch
 from matplotlib.figure import Figure
 
+from ..field import facets as facet_ops
 from ..field.plant import Facets
 from ..geometry import angle_between
 from ..io.images import CENTERED_WINDOW_M
 from ..io.report import save_figure
+from .edges import residual_map_mrad
 from .learning import normal_heights
 
 __all__ = ["normal_deviation_map", "plot_normal_deviation", "plot_flux_comparison", "plot_residual_deviation"]
@@ -29,8 +31,6 @@ def normal_deviation_map(facets: Facets, control_points: torch.Tensor, degree, r
     torch.Tensor, [F, su, sv]
         [mrad].
     """
-    from ..field import facets as facet_ops
-
     _, n = normal_heights(facets, control_points, degree, samples)
     if reference is None:
         ref = facet_ops.facet_normals(facets.canting_e, facets.canting_n)[0].to(n)[:, None, None, :].expand_as(n)
@@ -116,8 +116,6 @@ def plot_residual_deviation(learned, reference, facets: Facets, path, title: str
     facets : Facets
         ``[1, F, 3]`` [m].
     """
-    from .edges import residual_map_mrad
-
     res = residual_map_mrad(learned, reference, facets).detach().cpu()
     fig = Figure(figsize=(2.0 * res.shape[0] + 0.8, 2.4))
     axes = fig.subplots(1, res.shape[0], squeeze=False)[0]

@@ -20,10 +20,14 @@ import time
 
 import torch
 
+from ..devices import resolve_device, to_device
 from ..errors import HeliotwinError
 from ..field.plant import Facets, SunSettings
+from ..field.update import select_heliostats
 from ..io import checkpoint as _checkpoint
+from ..io.paint import load_paint
 from . import losses
+from .deflectometry import compare_surfaces, deflectometry_surface
 from .imaging import evaluate_images, trace_mc_centered
 from .learning import LearnableSurface
 from .observations import Observations, observations_from_records, split_records
@@ -108,8 +112,6 @@ def _evaluate(ideal, learned, train, test, optics, s, evaluate_mc) -> dict:
 
 
 def _deflectometry_report(path, fit, defl, facets, ideal, learned, test, optics, s, rows, started_from) -> dict:
-    from .deflectometry import compare_surfaces
-
     e_defl = evaluate_images(defl, test, optics, samples=s.samples, resolution=s.resolution, size_m=s.size_m)
     for row, v in zip(rows, e_defl["l1"]):
         row["l1_deflectometry"] = v
@@ -174,16 +176,11 @@ def reconstruct_paint(paint_dir, heliostat_id: str, *, train_records=None, train
         ``train``/``test`` Observations, predicted test images (for plots), ``optics``, ``facets``, ``ideal``
         and ``fit_info`` (:class:`~heliotwin.surfaces.training.FitInfo`).
     """
-    from ..devices import resolve_device, to_device
-    from ..io.paint import load_paint
-
     device = resolve_device(device)
     t0 = time.perf_counter()
     s = settings or TrainSettings()
     ds = load_paint(paint_dir, heliostats=[heliostat_id])
     if plant is not None:
-        from ..field.update import select_heliostats
-
         ds = ds.on_plant(select_heliostats(plant, [heliostat_id]))
     plant = ds.plant if device == "cpu" else to_device(ds.plant, device)
     train_recs, test_recs = split_records(ds.records_of(heliostat_id), train_records, train_first)
@@ -194,8 +191,6 @@ def reconstruct_paint(paint_dir, heliostat_id: str, *, train_records=None, train
     facets = Facets(*(getattr(plant.field.facets, a)[:1] for a in ("translation", "canting_e", "canting_n")))
     defl = defl_fit = None
     if deflectometry is not None:
-        from .deflectometry import deflectometry_surface
-
         defl, defl_fit = deflectometry_surface(deflectometry, Facets(*(t.to(torch.float64) for t in facets)))
     elif start_from_deflectometry:
         raise HeliotwinError("start_from_deflectometry needs a deflectometry file")
@@ -234,8 +229,6 @@ def reconstruction_checkpoint(path, paint_dir, heliostat_id: str, *, resume: boo
     with the heliostat, the device and ``options`` (the run's keyword arguments: ``settings``, ``sun``,
     ``train_records``, ...) and the inputs (the PAINT folder and ``inputs``, e.g. a scenario or deflectometry
     file). Checkpoint options (``every``, ``min_interval_s``, ``hook``) are keyword arguments too."""
-    from ..devices import resolve_device
-
     ck_opts = {k: options.pop(k) for k in ("every", "min_interval_s", "hook") if k in options}
 
     def plain(v):
