@@ -49,16 +49,14 @@ from tqdm.auto import tqdm
 
 from ..devices import resolve_device, to_device
 from ..field.plant import Facets, SunSettings
-from ..field.update import select_heliostats
 from ..io import checkpoint as _checkpoint
-from ..io.paint import load_paint
 from . import losses
 from .acceptance import robust_outliers, shrink_to_accept, wilson_interval
 from .edges import edge_ridge_mrad, slope_penalty
 from .imaging import predict_images
 from .learning import LearnableSurface, heights_to_displacement, learnable_surfaces, normal_heights
 from .nuisance import CameraModel, apply_camera, estimate_camera
-from .observations import Observations, observations_from_records, split_records
+from .observations import Observations, paint_observations
 from .plantprior import PRIOR_WEIGHT_GRID, check_facets, check_leakage, describe, prior_penalty
 
 __all__ = ["GeneraliseSettings", "reconstruct_generalising", "summarise",
@@ -496,7 +494,7 @@ def reconstruct_paint_generalising(paint_dir, heliostat_id: str, *, train_first:
     :func:`~heliotwin.surfaces.study.reconstruct_paint`: its kinematics pose the heliostat. ``device``
     (``"cpu"``, ``"cuda"``, ``"auto"``) is where the surface is learned and evaluated; the model, extras and
     report come back on the CPU. Under ``checkpoint``
-    (:func:`heliotwin.surfaces.study.reconstruction_checkpoint`) every fit saves its state and a resumed
+    (:func:`heliotwin.workflows.reconstruct.reconstruction_checkpoint`) every fit saves its state and a resumed
     checkpoint continues it (see :func:`_fit`); the caller removes it once its outputs are written.
     ``prior``: a plant surface prior (:class:`~heliotwin.surfaces.plantprior.SurfacePrior`); refused (one line)
     when it was learned from ``heliostat_id`` itself or has another facet count.
@@ -516,16 +514,10 @@ def reconstruct_paint_generalising(paint_dir, heliostat_id: str, *, train_first:
     s = settings or GeneraliseSettings()
     if prior is not None:
         check_leakage(prior, heliostat_id)
-    ds = load_paint(paint_dir, heliostats=[heliostat_id])
     source = "paint" if plant is None else "scenario"
-    if plant is not None:
-        ds = ds.on_plant(select_heliostats(plant, [heliostat_id]))
-    plant = ds.plant if device == "cpu" else to_device(ds.plant, device)
-    tr, te = split_records(ds.records_of(heliostat_id), train_records, train_first)
-    train = observations_from_records(plant, 0, tr, s.resolution, 0.0, alignment)
-    test = observations_from_records(plant, 0, te, s.resolution, 0.0, alignment)
-    if device != "cpu":  # the measured images are read on the CPU
-        train, test = train.to(device), test.to(device)
+    _, plant, train, test = paint_observations(paint_dir, heliostat_id, plant=plant, device=device,
+                                               train_records=train_records, train_first=train_first,
+                                               resolution=s.resolution, alignment=alignment)
     facets = Facets(*(getattr(plant.field.facets, a)[:1].to(torch.float64)
                       for a in ("translation", "canting_e", "canting_n")))
     with _checkpoint.active(checkpoint):

@@ -14,7 +14,6 @@ Units: metres, radians; L1 of unit-sum images (0 identical, 2 disjoint).
 from __future__ import annotations
 
 import dataclasses
-import os
 import statistics
 import time
 
@@ -23,17 +22,15 @@ import torch
 from ..devices import resolve_device, to_device
 from ..errors import HeliotwinError
 from ..field.plant import Facets, SunSettings
-from ..field.update import select_heliostats
 from ..io import checkpoint as _checkpoint
-from ..io.paint import load_paint
 from . import losses
 from .deflectometry import compare_surfaces, deflectometry_surface
 from .imaging import evaluate_images, trace_mc_centered
 from .learning import LearnableSurface
-from .observations import Observations, observations_from_records, split_records
+from .observations import Observations, paint_observations
 from .training import TrainSettings, train_with_early_stopping
 
-__all__ = ["reconstruct_paint", "reconstruction_checkpoint", "choose_slope_error", "SLOPE_ERROR_GRID", "SHARP_SUN"]
+__all__ = ["reconstruct_paint", "choose_slope_error", "SLOPE_ERROR_GRID", "SHARP_SUN"]
 
 #: Slope errors [rad] tried when fitting the ideal baseline's optics to the training images.
 SLOPE_ERROR_GRID = (0.5e-3, 1.0e-3, 1.5e-3, 2.0e-3, 2.5e-3, 3.0e-3)
@@ -158,9 +155,9 @@ def reconstruct_paint(paint_dir, heliostat_id: str, *, train_records=None, train
     the heliostat (``alignment="motor"`` then uses the calibrated kinematics at the recorded motor steps).
 
     ``device`` (``"cpu"``, ``"cuda"``, ``"auto"`` = CUDA when present) is where the surface is learned and
-    evaluated; the model, images and report come back on the CPU. Under ``checkpoint``
-    (:func:`reconstruction_checkpoint`) every fit saves its state and a resumed checkpoint continues it
-    (:mod:`heliotwin.surfaces.training`); the caller removes it once its outputs are written.
+    evaluated; the model, images and report come back on the CPU. Under an active ``checkpoint`` (a
+    :class:`~heliotwin.io.checkpoint.Checkpoint`) every fit saves its state and a resumed checkpoint continues
+    it (:mod:`heliotwin.surfaces.training`); the caller removes it once its outputs are written.
 
     ``deflectometry`` (a PAINT deflectometry HDF5 path): its NURBS fit is traced on the test images like the
     ideal and learned surfaces, and the learned surface is compared with it in mm and mrad (report key
@@ -179,15 +176,9 @@ def reconstruct_paint(paint_dir, heliostat_id: str, *, train_records=None, train
     device = resolve_device(device)
     t0 = time.perf_counter()
     s = settings or TrainSettings()
-    ds = load_paint(paint_dir, heliostats=[heliostat_id])
-    if plant is not None:
-        ds = ds.on_plant(select_heliostats(plant, [heliostat_id]))
-    plant = ds.plant if device == "cpu" else to_device(ds.plant, device)
-    train_recs, test_recs = split_records(ds.records_of(heliostat_id), train_records, train_first)
-    train = observations_from_records(plant, 0, train_recs, s.resolution, background, alignment)
-    test = observations_from_records(plant, 0, test_recs, s.resolution, background, alignment)
-    if device != "cpu":  # the measured images are read on the CPU
-        train, test = train.to(device), test.to(device)
+    ds, plant, train, test = paint_observations(paint_dir, heliostat_id, plant=plant, device=device,
+                                                train_records=train_records, train_first=train_first,
+                                                resolution=s.resolution, background=background, alignment=alignment)
     facets = Facets(*(getattr(plant.field.facets, a)[:1] for a in ("translation", "canting_e", "canting_n")))
     defl = defl_fit = None
     if deflectometry is not None:
@@ -221,22 +212,3 @@ def reconstruct_paint(paint_dir, heliostat_id: str, *, train_records=None, train
         model, extras = model.cpu(), to_device(extras, "cpu")
         extras["train"], extras["test"] = train.to("cpu"), test.to("cpu")
     return report, model, ds, extras
-
-
-def reconstruction_checkpoint(path, paint_dir, heliostat_id: str, *, resume: bool = False, device="cpu",
-                              inputs=(), **options) -> _checkpoint.Checkpoint:
-    """The :class:`~heliotwin.io.checkpoint.Checkpoint` of a :func:`reconstruct_paint` run at ``path``, tagged
-    with the heliostat, the device and ``options`` (the run's keyword arguments: ``settings``, ``sun``,
-    ``train_records``, ...) and the inputs (the PAINT folder and ``inputs``, e.g. a scenario or deflectometry
-    file). Checkpoint options (``every``, ``min_interval_s``, ``hook``) are keyword arguments too."""
-    ck_opts = {k: options.pop(k) for k in ("every", "min_interval_s", "hook") if k in options}
-
-    def plain(v):
-        if dataclasses.is_dataclass(v) and not isinstance(v, type):
-            return dataclasses.asdict(v)
-        return v
-
-    settings = {"command": "reconstruct", "heliostat": heliostat_id, "device": resolve_device(device),
-                "paint": os.path.abspath(os.fspath(paint_dir)), **{k: plain(v) for k, v in options.items()}}
-    files = [paint_dir] + [p for p in inputs if p is not None]
-    return _checkpoint.Checkpoint(path, _checkpoint.make_tag(settings, files), resume=resume, **ck_opts)
