@@ -143,7 +143,7 @@ def test_an_interrupted_fit_resumes_to_the_uninterrupted_surface(tmp_path):
     ref, ref_info = fit_generalising(facets, obs, sun, s)
 
     def stop(event, key, step):
-        if event == "step" and key == "generalise/1" and step == 3:
+        if event == "step" and key == "fit/1" and step == 3:
             raise _Stop
 
     path = tmp_path / "run.ckpt"
@@ -154,8 +154,8 @@ def test_an_interrupted_fit_resumes_to_the_uninterrupted_surface(tmp_path):
                     hook=lambda e, k, st: seen.append((k, st)) if e == "step" else None)
     with active(ck):
         model, info = fit_generalising(facets, obs, sun, s)
-    assert ("generalise/0", 1) not in seen and ("generalise/1", 3) not in seen  # restored, not rerun
-    assert ("generalise/1", 4) in seen
+    assert ("fit/0", 1) not in seen and ("fit/1", 3) not in seen  # restored, not rerun
+    assert ("fit/1", 4) in seen
     assert torch.equal(model.displacement_mm, ref.displacement_mm)
     assert info["report"]["selection"] == ref_info["report"]["selection"]
     assert info["report"]["acceptance"] == ref_info["report"]["acceptance"]
@@ -271,7 +271,7 @@ def test_cli_generalising_interrupted_resumes_to_the_same_report(paint_dir, tmp_
     assert code == 0, err
 
     def hook(event, key, step):
-        if event == "step" and key == "generalise/1" and step == 2:
+        if event == "step" and key == "fit/1" and step == 2:
             raise _Interrupt
 
     out = tmp_path / "run.json"

@@ -38,7 +38,6 @@ Shapes: B images, R window pixels per side, F facets. Units: metres, radians; L1
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
 import statistics
 import time
@@ -47,6 +46,7 @@ from dataclasses import dataclass
 import torch
 from tqdm.auto import tqdm
 
+from ..calibrate.fitloop import State, early_stopping_fit
 from ..devices import resolve_device, to_device
 from ..field.plant import Facets, SunSettings
 from ..io import checkpoint as _checkpoint
@@ -209,8 +209,45 @@ def choose_optics(facets: Facets, train: Observations, base_sun: SunSettings, ca
             "rule": "min mean training L1 of the ideal surface (camera model, best blur per image)"}
 
 
+class _FitState:
+    """The live state of one :func:`_fit` (what its checkpoint saves): surface, log-blur, the footprint-kernel
+    cache (filled from the first step's surface, so a resumed fit renders as the uninterrupted one), the
+    held-out curve and the steps taken."""
+
+    def __init__(self, model: LearnableSurface, log_sigma: torch.Tensor):
+        self.model, self.log_sigma, self.kernels, self.curve, self.steps = model, log_sigma, {}, [], 0
+
+    def dump(self) -> dict:
+        return {"steps": self.steps, "model": {k: v.detach().clone() for k, v in self.model.state_dict().items()},
+                "log_sigma": self.log_sigma.detach().clone(), "kernels": dict(self.kernels),
+                "curve": [[a, b] for a, b in self.curve]}
+
+    def load(self, data: dict) -> None:
+        self.model.load_state_dict(data["model"])
+        with torch.no_grad():
+            self.log_sigma.copy_(data["log_sigma"])
+        self.kernels.clear()
+        self.kernels.update(data["kernels"])
+        self.curve[:] = [(int(a), float(b)) for a, b in data["curve"]]
+        self.steps = int(data["steps"])
+
+
+def _loop_state(live: _FitState) -> State:
+    """:class:`~heliotwin.calibrate.fitloop.State` of a surface fit: one "heliostat" whose kept state is the final
+    one (the held-out curve is what the caller chooses from, not a best state)."""
+    def keep(best, rows):
+        if bool(rows.any()):
+            best.update(live.dump())
+
+    return State(snapshot=live.dump, keep=keep, live=live, dump=lambda obj: obj.dump() if obj is live else dict(obj),
+                 load=lambda obj, data: obj.load(data) if obj is live else obj.update(data))
+
+
 def _fit(facets, obs, camera, sigma0, sun, start, weight, s, steps, heldout=None, prior=None, prior_weight=0.0):
     """Adam on the camera-model L1 + regularisers; optional held-out curve ``[(step, l1)]``.
+
+    The steps run in the fit loop of calibration (:func:`heliotwin.calibrate.fitloop.early_stopping_fit`, one
+    "heliostat", validation every ``eval_every`` steps, the final state kept): it checkpoints and resumes them.
 
     ``prior`` / ``prior_weight``: the plant prior's penalty
     (:func:`heliotwin.surfaces.plantprior.prior_penalty`) times that weight joins the loss (weight 0: not
@@ -219,10 +256,18 @@ def _fit(facets, obs, camera, sigma0, sun, start, weight, s, steps, heldout=None
     ``heldout``: ``(Observations, CameraModel)`` of one image; its blur follows :func:`blur_for` from the
     current training blurs.
 
-    Under an active :mod:`heliotwin.io.checkpoint` every fit claims a key (``generalise/0``, ``generalise/1``,
-    ... in the deterministic order of :func:`fit_generalising`) and saves its state (surface, log-blur, Adam
-    and schedule states, footprint kernels, held-out curve); a resumed fit goes on after its last saved step
-    and a finished one is restored, not rerun.
+    Under an active :mod:`heliotwin.io.checkpoint` every fit claims a key (``fit/0``, ``fit/1``, ... in the
+    deterministic order of :func:`fit_generalising`) and saves its state (surface, log-blur, Adam state,
+    footprint kernels, held-out curve); a resumed fit goes on after its last saved step and a finished one is
+    restored, not rerun.
+
+    Returns
+    -------
+    model : LearnableSurface
+    sigma : torch.Tensor, [B]
+        Learned per-image blur [px].
+    curve : list of (int, float)
+        Held-out L1 every ``eval_every`` steps (empty without ``heldout``).
     """
     model = LearnableSurface(facets, s.control_points, s.degree, initial=start, fix_gauge=True,
                              gauge_tilt=obs.centers is None)
@@ -231,27 +276,15 @@ def _fit(facets, obs, camera, sigma0, sun, start, weight, s, steps, heldout=None
     log_sigma = torch.log(sigma0.to(device=dev, dtype=torch.float32).clamp_min(0.1)).clone().requires_grad_(True)
     params = [p for p in model.parameters() if p.requires_grad]
     opt = torch.optim.Adam([{"params": params, "lr": s.lr}, {"params": [log_sigma], "lr": s.blur_lr}])
+    # Chainable: a resumed fit's schedule goes on from the learning rate restored into the optimiser.
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=s.decay)
     meas = obs.images.to(torch.float32)
-    kernels: dict = {}  # filled from the first step's surface: part of the saved state
-    curve = []
-    ck = _checkpoint.current()
-    key = ck.claim("generalise") if ck is not None else None
-    saved = ck.get(key) if key is not None else None
-    first = 0
-    if saved is not None:
-        model.load_state_dict(saved["model"])
-        with torch.no_grad():
-            log_sigma.copy_(saved["log_sigma"])
-        opt.load_state_dict(saved["opt"])
-        sched.load_state_dict(saved["sched"])
-        kernels.update(saved["kernels"])
-        curve = [(int(a), float(b)) for a, b in saved["curve"]]
-        first = int(saved["step"])
-    for step in range(first, int(steps)):
+    live = _FitState(model, log_sigma)
+
+    def step() -> float:
         opt.zero_grad(set_to_none=True)
         surf = model.surfaces()
-        pred, miss = _render(surf, obs, sun, s, kernels)
+        pred, miss = _render(surf, obs, sun, s, live.kernels)
         data = losses.l1(apply_camera(pred, camera, log_sigma.exp()), meas.to(pred)).mean()
         d = model.displacement / 1e-3
         reg = s.ridge * losses.ridge(d) + s.laplacian * losses.laplacian(d)
@@ -261,18 +294,24 @@ def _fit(facets, obs, camera, sigma0, sun, start, weight, s, steps, heldout=None
         total.backward()
         opt.step()
         sched.step()
-        if heldout is not None and (step + 1) % s.eval_every == 0:
-            hobs, hcam = heldout
-            sig = blur_for(obs.targets, log_sigma.detach().exp(), hobs.targets)
-            curve.append((step + 1, evaluate_with_camera(model.surfaces(), hobs, sun, hcam, sig, s)["l1"][0]))
-        if key is not None:
-            if step + 1 == int(steps) or ck.due(step + 1):
-                ck.put(key, {"step": step + 1, "model": {k: v.detach().clone() for k, v in model.state_dict().items()},
-                             "log_sigma": log_sigma.detach().clone(), "opt": copy.deepcopy(opt.state_dict()),
-                             "sched": sched.state_dict(), "kernels": dict(kernels),
-                             "curve": [[a, b] for a, b in curve]})
-            ck.notify("step", key, step + 1)
-    return model, log_sigma.detach().exp(), curve
+        live.steps += 1
+        return float(data.detach())
+
+    def heldout_l1() -> torch.Tensor:
+        # Only on the eval_every grid (not at the start, nor at a last step off the grid): the curve's steps
+        # are the step counts the leave-one-out choice compares.
+        at = live.steps
+        if heldout is None or at == 0 or at % s.eval_every != 0:
+            return torch.full((1,), float("inf"))
+        hobs, hcam = heldout
+        sig = blur_for(obs.targets, log_sigma.detach().exp(), hobs.targets)
+        l1 = evaluate_with_camera(model.surfaces(), hobs, sun, hcam, sig, s)["l1"][0]
+        live.curve.append((at, l1))
+        return torch.full((1,), float(l1))
+
+    early_stopping_fit(step, heldout_l1, _loop_state(live), int(steps), validated=torch.zeros(1, dtype=torch.bool),
+                       check_every=s.eval_every if heldout is not None else max(1, int(steps)))
+    return model, log_sigma.detach().exp(), live.curve
 
 
 def loo_select(facets, train, camera, sigma0, sun, start, s, progress=False, prior=None,
