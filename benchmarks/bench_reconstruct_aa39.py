@@ -148,7 +148,7 @@ def rotate(a) -> dict:
     rows = []
     for i in windows:
         rep, model, extras = _generalising(a, train_records=tuple(order[i:i + 3]))
-        if rep["edge_ridge"]["edge_max_mrad"] > 5.0:  # the bound: show the map
+        if rep["edge_ridge"]["edge_max_mrad"] > 5.0:  # the facet-edge bound (edges.RIDGE): show the map
             rep["plots"] = _maps(a.out, f"{a.heliostat.lower()}-window{i}", extras, model)
         rows.append({"train": order[i:i + 3], "median_l1_ideal": rep["median_l1_ideal"],
                      "median_l1_learned": rep["median_l1_learned"],

@@ -29,7 +29,8 @@ from .io.scenario import load_scenario
 from .workflows.reconstruct import ReconstructionSettings, reconstruction_checkpoint
 from .workflows.reconstruct import reconstruct as reconstruct_surface
 
-__all__ = ["load", "field", "trace_record", "plot_flux", "calibrate", "reconstruct", "to_device"]
+__all__ = ["load", "field", "trace_record", "plot_flux", "calibrate", "reconstruct", "ReconstructionSettings",
+           "to_device"]
 
 
 def load(paint, heliostats=None, *, scenario=None, plane_tolerance: float = 0.1):

@@ -7,9 +7,10 @@ Usage::
     heliotwin reconstruct --paint PAINT_DIR --heliostat AA39 --surface-prior-from S1.h5,S2.h5 -o learned.h5 ...
     heliotwin predict --scenario learned.h5 --heliostat AA39 --year 2023 --every 30min --json out.json
 
-:func:`register` adds them to the main parser; the library (:mod:`heliotwin.surfaces`) is imported inside
-the command functions, so ``--help`` stays torch-free. Output folders are checked before training, so a
-typo costs seconds, not a training run.
+:func:`register` adds them to the main parser. Each command parses its flags into the workflow's settings and
+calls the workflow (:mod:`heliotwin.workflows.reconstruct`, :mod:`heliotwin.workflows.predict`), imported inside
+the command functions so that ``--help`` stays torch-free; it then writes the staged outputs. Output folders are
+checked before training, so a typo costs seconds, not a training run.
 """
 from __future__ import annotations
 

@@ -163,7 +163,8 @@ def _render(surf, obs, sun, s, kernels=None):
 
 def evaluate_with_camera(surf, obs: Observations, sun: SunSettings, camera: CameraModel, sigma: torch.Tensor,
                          s: GeneraliseSettings) -> dict:
-    """Per-image L1 with the camera model (``l1``) and of the raw model image (``l1_raw``); predicted images."""
+    """Per-image L1 with the camera model (``l1``) and of the raw model image (``l1_raw``), lists of length B;
+    predicted images through the camera model (``images``, ``[B, R, R]``). ``sigma``: per-image blur ``[B]`` [px]."""
     with torch.no_grad():
         pred, _ = _render(surf, obs, sun, s)
         meas = obs.images.to(pred)

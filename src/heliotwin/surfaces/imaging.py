@@ -66,6 +66,7 @@ def _world_samples(surfaces: Surfaces, obs: Observations, samples, delta):
 
 
 def check_learning_integrator(integrator: str) -> None:
+    """One-line :class:`HeliotwinError` unless ``integrator`` is one of :data:`LEARNING_INTEGRATORS`."""
     check_integrator(integrator)
     if integrator not in LEARNING_INTEGRATORS:
         raise HeliotwinError(f"surface learning renders with {' or '.join(LEARNING_INTEGRATORS)}, got {integrator!r}")

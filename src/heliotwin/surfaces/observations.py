@@ -155,6 +155,11 @@ def observations_from_records(plant, heliostat_index: int, records: RecordTable,
 
     ``alignment="focal-spot"`` aims the heliostat at each record's measured focal spot (``records.spot``:
     HeliOS, else UTIS); ``"motor"`` uses the plant's kinematics at the recorded motor steps.
+
+    Returns
+    -------
+    Observations
+        B = len(records) images ``[B, R, R]`` (R = ``resolution``) with poses ``[B, 3, 3]``, ``[B, 3]`` [m].
     """
     kin = plant.field.kinematics.index(heliostat_index)
     sun = records.sun

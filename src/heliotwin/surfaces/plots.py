@@ -69,7 +69,8 @@ def plot_normal_deviation(facets: Facets, control_points: torch.Tensor, degree, 
 
 def plot_flux_comparison(measured: torch.Tensor, ideal: torch.Tensor, learned: torch.Tensor, labels, path,
                          l1_ideal=None, l1_learned=None, window_m: float = CENTERED_WINDOW_M, title: str = "") -> None:
-    """Rows = test images; columns = measured / ideal / learned, each normalised to its own maximum.
+    """Rows = test images; columns = measured / ideal / learned (each ``[B, R, R]``, any scale), each normalised
+    to its own maximum; ``window_m`` [m] the window side.
 
     Every panel shows the spot-centred window in metres on the target (PAINT orientation: image left = east),
     with one colour bar for the relative flux; the L1 of sum-normalised images against the measured one is
