@@ -176,9 +176,10 @@ def test_fit_never_leaves_a_training_image_worse_than_the_ideal():
 def test_aa39_generalising_meets_the_issue_figures(paint_dir):
     """Real AA39 (3 earliest images train, 7 test): no training image worse than the ideal, median test L1
     below the legacy 0.146, most test images improved, no residual edge ridge above 5 mrad (~4 min)."""
-    from heliotwin.surfaces.generalise import reconstruct_paint_generalising
+    from heliotwin.workflows.reconstruct import ReconstructionSettings, reconstruct
 
-    rep, _, _ = reconstruct_paint_generalising(paint_dir, "AA39", train_first=3)
+    _, rep, _ = reconstruct(None, paint_dir, "AA39", ReconstructionSettings(train_first=3, device="cpu"),
+                            progress=False)
     assert rep["train_worse_than_ideal"] == 0
     assert rep["median_l1_learned"] < 0.146 and rep["median_l1_learned_raw"] < 0.146
     assert rep["test_improved_wilson95"][0] > 0.5

@@ -40,28 +40,25 @@ from __future__ import annotations
 
 import dataclasses
 import statistics
-import time
 from dataclasses import dataclass
 
 import torch
 from tqdm.auto import tqdm
 
 from ..calibrate.fitloop import State, early_stopping_fit
-from ..devices import resolve_device, to_device
 from ..field.plant import Facets, SunSettings
-from ..io import checkpoint as _checkpoint
 from . import losses
 from .acceptance import robust_outliers, shrink_to_accept, wilson_interval
 from .edges import edge_ridge_mrad, slope_penalty
 from .imaging import predict_images
 from .learning import LearnableSurface, heights_to_displacement, learnable_surfaces, normal_heights
 from .nuisance import CameraModel, apply_camera, estimate_camera
-from .observations import Observations, paint_observations
-from .plantprior import PRIOR_WEIGHT_GRID, check_facets, check_leakage, describe, prior_penalty
+from .observations import Observations
+from .plantprior import PRIOR_WEIGHT_GRID, check_facets, describe, prior_penalty
 
 __all__ = ["GeneraliseSettings", "reconstruct_generalising", "summarise",
            "canting_focal_length", "focused_start", "choose_optics", "fit_generalising",
-           "blur_for", "evaluate_with_camera", "loo_select", "reconstruct_paint_generalising"]
+           "blur_for", "evaluate_with_camera", "loo_select"]
 
 
 @dataclass
@@ -521,55 +518,3 @@ def reconstruct_generalising(facets: Facets, train: Observations, test: Observat
               "optics_used": {"sunshape": sun.sunshape, "csr": sun.csr, "slope_error_rad": sun.slope_error},
               **info["report"]}
     return report, model, info
-
-
-def reconstruct_paint_generalising(paint_dir, heliostat_id: str, *, train_first: int | None = 3, train_records=None,
-                                   settings: GeneraliseSettings | None = None, sun: SunSettings | None = None,
-                                   alignment: str = "focal-spot", progress: bool = False, plant=None, device="cpu",
-                                   checkpoint=None, prior=None) -> tuple[dict, LearnableSurface, dict]:
-    """:func:`reconstruct_generalising` on a PAINT heliostat (the split and poses of
-    :func:`heliotwin.surfaces.study.reconstruct_paint`; Buie sun, CSR 0.05, slope error chosen as above).
-
-    ``plant`` (e.g. a calibrated scenario's) replaces the PAINT folder's nominal plant, as in
-    :func:`~heliotwin.surfaces.study.reconstruct_paint`: its kinematics pose the heliostat. ``device``
-    (``"cpu"``, ``"cuda"``, ``"auto"``) is where the surface is learned and evaluated; the model, extras and
-    report come back on the CPU. Under ``checkpoint``
-    (:func:`heliotwin.workflows.reconstruct.reconstruction_checkpoint`) every fit saves its state and a resumed
-    checkpoint continues it (see :func:`_fit`); the caller removes it once its outputs are written.
-    ``prior``: a plant surface prior (:class:`~heliotwin.surfaces.plantprior.SurfacePrior`); refused (one line)
-    when it was learned from ``heliostat_id`` itself or has another facet count.
-
-    Returns
-    -------
-    report : dict
-        :func:`reconstruct_generalising`'s, plus ``heliostat``, ``paint``, ``alignment``, ``device``,
-        ``seconds``.
-    model : LearnableSurface
-    extras : dict
-        ``facets``, ``train``, ``test``, ``info`` (see :func:`fit_generalising` and
-        :func:`reconstruct_generalising`), ``optics`` (SunSettings used), ``ideal`` (Surfaces).
-    """
-    t0 = time.perf_counter()
-    device = resolve_device(device)
-    s = settings or GeneraliseSettings()
-    if prior is not None:
-        check_leakage(prior, heliostat_id)
-    source = "paint" if plant is None else "scenario"
-    _, plant, train, test = paint_observations(paint_dir, heliostat_id, plant=plant, device=device,
-                                               train_records=train_records, train_first=train_first,
-                                               resolution=s.resolution, alignment=alignment)
-    facets = Facets(*(getattr(plant.field.facets, a)[:1].to(torch.float64)
-                      for a in ("translation", "canting_e", "canting_n")))
-    with _checkpoint.active(checkpoint):
-        report, model, info = reconstruct_generalising(facets, train, test,
-                                                       sun or SunSettings(sunshape="buie", csr=0.05), s, progress,
-                                                       prior=prior)
-    report.update(heliostat=heliostat_id, paint=str(paint_dir), alignment=alignment, device=device,
-                  plant=source,
-                  seconds=time.perf_counter() - t0)
-    extras = {"facets": facets, "train": train, "test": test, "info": info, "optics": info["optics"],
-              "ideal": info["ideal"]}
-    if device != "cpu":
-        model, extras = model.cpu(), to_device(extras, "cpu")
-        extras["train"], extras["test"] = train.to("cpu"), test.to("cpu")
-    return report, model, extras

@@ -21,18 +21,23 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import time
 from dataclasses import dataclass
 
-from ..devices import resolve_device
+import torch
+
+from ..devices import resolve_device, to_device
 from ..errors import HeliotwinError
+from ..field.plant import Facets, SunSettings
 from ..io import checkpoint as _checkpoint
 from ..io.deflectometry import read_deflectometry
 from ..io.scenario import Scenario, scenario_from_paint
-from ..surfaces.generalise import GeneraliseSettings, reconstruct_paint_generalising
+from ..surfaces.generalise import GeneraliseSettings, reconstruct_generalising
 from ..surfaces.learning import parse_grid
-from ..surfaces.plantprior import load_surface_prior
+from ..surfaces.observations import paint_observations
+from ..surfaces.plantprior import check_leakage, load_surface_prior
 from ..surfaces.state import with_learned_surface
-from ..surfaces.study import reconstruct_paint
+from ..surfaces.study import reconstruct_observed
 from ..surfaces.training import TrainSettings
 
 __all__ = ["ReconstructionSettings", "reconstruct", "reconstruction_checkpoint", "METHODS"]
@@ -208,27 +213,33 @@ def reconstruct(scenario: Scenario | None, paint, heliostat: str, settings: Reco
     s = settings or ReconstructionSettings()
     s.check()
     prior = load_surface_prior(list(s.surface_prior_from), heliostat_id=heliostat) if s.surface_prior_from else None
+    if prior is not None:
+        check_leakage(prior, heliostat)
     if s.deflectometry:
         read_deflectometry(s.deflectometry)  # fail fast (one line naming the file) before training
     learner = s.learner()
     device = resolve_device(s.device)
+    t0 = time.perf_counter()
     plant = scenario.plant if scenario is not None else None
-    common = dict(train_records=list(s.train_records) if s.train_records else None, train_first=s.train_first,
-                  settings=learner, alignment=s.alignment, progress=progress, plant=plant, device=device,
-                  checkpoint=checkpoint)
+    _, on_device, train, test = paint_observations(
+        paint, heliostat, plant=plant, device=device, train_records=list(s.train_records) if s.train_records else None,
+        train_first=s.train_first, resolution=learner.resolution, background=s.background, alignment=s.alignment)
+    with _checkpoint.active(checkpoint):
+        if s.method == "generalising":
+            report, model, fit = _generalising(on_device, train, test, learner, prior, progress)
+            report.update(heliostat=heliostat, paint=str(paint), alignment=s.alignment, device=device,
+                          plant="paint" if plant is None else "scenario", seconds=time.perf_counter() - t0)
+        else:
+            report, model, fit = _legacy(on_device, train, test, learner, s, progress)
+            report = {"heliostat": heliostat, "paint": str(paint), **report, "seconds": time.perf_counter() - t0}
+    report["method"] = s.method
     if s.method == "generalising":
-        report, model, fit = reconstruct_paint_generalising(os.fspath(paint), heliostat, prior=prior, **common)
-        report["method"] = "generalising"
         report["choices"] = _generalising_choices(report)
         # the stored surface records what chose it
         report["settings"] = dict(report["settings"], method="generalising", chosen=report["choices"])
-    else:
-        slope = None if s.slope_error_mrad is None else s.slope_error_mrad * 1e-3
-        report, model, _, fit = reconstruct_paint(os.fspath(paint), heliostat, slope_error=slope,
-                                                  background=s.background, evaluate_mc=s.evaluate_mc,
-                                                  deflectometry=s.deflectometry,
-                                                  start_from_deflectometry=s.start_from_deflectometry, **common)
-        report["method"] = "legacy"
+    if device != "cpu":  # results come back on the CPU
+        model, fit = model.cpu(), to_device(fit, "cpu")
+        fit["train"], fit["test"] = train.to("cpu"), test.to("cpu")
     fit = dict(fit, model=model, surface_prior=prior)
     base_plant = plant if plant is not None else scenario_from_paint(paint)
     nxt = with_learned_surface(scenario, base_plant, heliostat, model.surfaces(), model.displacement.detach(),
@@ -236,6 +247,29 @@ def reconstruct(scenario: Scenario | None, paint, heliostat: str, settings: Reco
                                target=fit["test"].targets[0].name, settings=report["settings"],
                                source=os.path.abspath(paint), surface_prior=None if prior is None else prior.state())
     return nxt, report, fit
+
+
+def _facets(plant, dtype=None) -> Facets:
+    """The facets ``[1, F, 3]`` [m] of a one-heliostat plant (``dtype``: converted)."""
+    parts = (getattr(plant.field.facets, a)[:1] for a in ("translation", "canting_e", "canting_n"))
+    return Facets(*(t if dtype is None else t.to(dtype) for t in parts))
+
+
+def _generalising(plant, train, test, learner: GeneraliseSettings, prior, progress) -> tuple[dict, object, dict]:
+    facets = _facets(plant, torch.float64)
+    report, model, info = reconstruct_generalising(facets, train, test, SunSettings(sunshape="buie", csr=0.05),
+                                                   learner, progress, prior=prior)
+    return report, model, {"facets": facets, "train": train, "test": test, "info": info, "optics": info["optics"],
+                           "ideal": info["ideal"]}
+
+
+def _legacy(plant, train, test, learner: TrainSettings, s: ReconstructionSettings,
+            progress) -> tuple[dict, object, dict]:
+    slope = None if s.slope_error_mrad is None else s.slope_error_mrad * 1e-3
+    return reconstruct_observed(_facets(plant), train, test, learner, slope_error=slope, evaluate_mc=s.evaluate_mc,
+                                progress=progress, deflectometry=s.deflectometry,
+                                start_from_deflectometry=s.start_from_deflectometry, alignment=s.alignment,
+                                background=s.background)
 
 
 def _generalising_choices(report: dict) -> dict:
