@@ -36,6 +36,7 @@ import torch
 
 from heliotwin.io.paint import load_paint
 from heliotwin.surfaces.insilico import insilico_settings, run_case
+from heliotwin.surfaces.mismatch import run_mismatch_case
 
 PAINT = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "paint")
 
@@ -67,8 +68,6 @@ def mean_over_seeds(rows) -> str:
 
 
 def mismatch(a) -> int:
-    from heliotwin.surfaces.mismatch import run_mismatch_case
-
     plant = load_paint(a.paint, heliostats=["AA39"], with_records=False).plant
     n = int(a.images.split(",")[0])
     rows = []

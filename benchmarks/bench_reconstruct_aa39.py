@@ -4,14 +4,17 @@
 
 Two methods on the same split:
 
-* ``generalising`` (:func:`heliotwin.surfaces.generalise.reconstruct_paint_generalising`): camera model
+Both through :func:`heliotwin.workflows.reconstruct.reconstruct` (what ``heliotwin reconstruct`` runs), the
+method a setting:
+
+* ``generalising`` (the default, :mod:`heliotwin.surfaces.generalise`): camera model
   (cut + saturation from each image), per-image blur (kept only if leave-one-out prefers it), L1 loss,
   residual-slope edge penalty and step count chosen by leave-one-training-image-out, outlier drop, acceptance
   rule. Writes DIR/<hid>-generalising.json, the normal-deviation map DIR/<hid>-normal-deviation.png (from
   the flat canted ideal) and the residual map DIR/<hid>-residual-deviation.png (beyond each facet's tilt +
   quadratic shape: where edge ridges would show).
-* ``legacy``: :func:`heliotwin.surfaces.study.reconstruct_paint` with its defaults (what ``heliotwin
-  reconstruct`` runs: KL loss, early stopping on the latest training image), for the before/after table.
+* ``legacy`` (``--method legacy``, :mod:`heliotwin.surfaces.study`) with its defaults (KL loss, early stopping
+  on the latest training image), for the before/after table.
 
 Prints per-image L1 (ideal vs learned; with the camera model and raw), training images worse than the ideal,
 test images improved with a Wilson 95 % interval, and the largest edge ridge. Summary in DIR/<hid>-bench.json.
@@ -56,16 +59,30 @@ import sys
 
 import torch
 
+from heliotwin.io.paint import load_paint
+from heliotwin.surfaces import losses
+from heliotwin.surfaces.acceptance import wilson_interval
+from heliotwin.surfaces.baselines import predict_flux, select_flux_predictor
+from heliotwin.surfaces.edges import edge_ridge_mrad
+from heliotwin.surfaces.observations import split_record_ids
+from heliotwin.surfaces.plots import plot_normal_deviation, plot_residual_deviation
+from heliotwin.workflows.reconstruct import ReconstructionSettings, reconstruct
+
 PAINT = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "paint")
 
 
-def _legacy(a) -> dict:
-    from heliotwin.surfaces.edges import edge_ridge_mrad
-    from heliotwin.surfaces.study import reconstruct_paint
+def _generalising(a, **split) -> tuple[dict, object, dict]:
+    """The default reconstruction on the CPU: report, learned model, in-memory fit (for maps and baselines)."""
+    _, rep, fit = reconstruct(None, a.paint, a.heliostat, ReconstructionSettings(device="cpu", **split),
+                              progress=False)
+    return rep, fit["model"], fit
 
-    r, model, _, extras = reconstruct_paint(a.paint, a.heliostat, train_first=3, evaluate_mc=False, progress=False)
+
+def _legacy(a) -> dict:
+    settings = ReconstructionSettings(method="legacy", train_first=3, evaluate_mc=False, device="cpu")
+    _, r, fit = reconstruct(None, a.paint, a.heliostat, settings, progress=False)
     test = r["test"]
-    ridge = edge_ridge_mrad(model.surfaces(), extras["ideal"], extras["facets"])
+    ridge = edge_ridge_mrad(fit["model"].surfaces(), fit["ideal"], fit["facets"])
     return {"median_l1_ideal": r["median_l1_ideal"], "median_l1_learned": r["median_l1_learned"],
             "train_worse_than_ideal": sum(t["l1_learned"] > t["l1_ideal"] for t in r["train"]),
             "test_improved": sum(t["l1_learned"] < t["l1_ideal"] for t in test), "test_images": len(test),
@@ -74,8 +91,6 @@ def _legacy(a) -> dict:
 
 def _motor_steps(paint, heliostat, ids) -> torch.Tensor:
     """Motor steps ``[B, 2]`` of the records ``ids`` (Observations carry poses, not the raw steps)."""
-    from heliotwin.io.paint import load_paint
-
     recs = load_paint(paint, heliostats=[heliostat]).records_of(heliostat)
     row = {str(r): i for i, r in enumerate(recs.record_id.tolist())}
     return recs.motor_steps[[row[str(i)] for i in ids]]
@@ -86,9 +101,6 @@ def _data_driven(extras, paint, heliostat) -> dict:
     training image of the nearest sun direction, by the mean training image (centred windows, unit sum), or
     by the NeRF-style coordinate MLP of :mod:`heliotwin.surfaces.baselines` conditioned on the unit sun
     vector and the two motor steps (width and step count chosen by leave-one-training-image-out, seed 0)."""
-    from heliotwin.surfaces import losses
-    from heliotwin.surfaces.baselines import predict_flux, select_flux_predictor
-
     tr, te = extras["train"], extras["test"]
     mt, me = losses.normalize(tr.images.double()), losses.normalize(te.images.double())
     nearest = (te.sun @ tr.sun.T).argmax(-1)
@@ -104,8 +116,6 @@ def _data_driven(extras, paint, heliostat) -> dict:
 
 
 def _maps(out, hid, extras, model) -> dict:
-    from heliotwin.surfaces.plots import plot_normal_deviation, plot_residual_deviation
-
     facets, learned, ideal = extras["facets"], model.surfaces(), extras["info"]["ideal"]
     total = os.path.join(out, f"{hid}-normal-deviation.png")
     plot_normal_deviation(facets, learned.control_points.detach(), model.degree, total,
@@ -117,9 +127,6 @@ def _maps(out, hid, extras, model) -> dict:
 
 def _image_records(paint, heliostat) -> list[int]:
     """The heliostat's record ids with a centred image, in time order (the order ``train_first`` uses)."""
-    from heliotwin.io.paint import load_paint
-    from heliotwin.surfaces.observations import split_record_ids
-
     recs = load_paint(paint, heliostats=[heliostat]).records_of(heliostat)
     ids = [int(r) for r in recs.record_id.tolist()]
     n = sum(bool(x) for x in recs.flux_centered_png)
@@ -136,16 +143,12 @@ def rotate(a) -> dict:
     the ideal, test images improved, and the largest edge ridge; pooled: test images improved (Wilson 95 %)
     and windows with a training image worse than the ideal.
     """
-    from heliotwin.surfaces.acceptance import wilson_interval
-    from heliotwin.surfaces.generalise import reconstruct_paint_generalising
-
     order = _image_records(a.paint, a.heliostat)
     windows = range(len(order) - 2) if a.windows is None else [int(w) for w in a.windows.split(",")]
     rows = []
     for i in windows:
-        rep, model, extras = reconstruct_paint_generalising(a.paint, a.heliostat, train_first=None,
-                                                            train_records=order[i:i + 3])
-        if rep["edge_ridge"]["edge_max_mrad"] > 5.0:  # the issue's bound: show the map
+        rep, model, extras = _generalising(a, train_records=tuple(order[i:i + 3]))
+        if rep["edge_ridge"]["edge_max_mrad"] > 5.0:  # the facet-edge bound (edges.RIDGE): show the map
             rep["plots"] = _maps(a.out, f"{a.heliostat.lower()}-window{i}", extras, model)
         rows.append({"train": order[i:i + 3], "median_l1_ideal": rep["median_l1_ideal"],
                      "median_l1_learned": rep["median_l1_learned"],
@@ -173,8 +176,6 @@ def rotate(a) -> dict:
 
 
 def main(argv=None) -> int:
-    from heliotwin.surfaces.generalise import reconstruct_paint_generalising
-
     p = argparse.ArgumentParser()
     p.add_argument("--paint", default=PAINT)
     p.add_argument("--heliostat", default="AA39")
@@ -192,7 +193,7 @@ def main(argv=None) -> int:
         with open(os.path.join(a.out, f"{hid}-rotate.json"), "w", encoding="utf-8") as fh:
             json.dump(rotate(a), fh, indent=1)
         return 0
-    rep, model, extras = reconstruct_paint_generalising(a.paint, a.heliostat, train_first=3)
+    rep, model, extras = _generalising(a, train_first=3)
     rep["plots"] = _maps(a.out, hid, extras, model)
     print(f"{'set':>5} {'record':>8} {'L1 ideal':>9} {'L1 learn':>9} {'raw ideal':>9} {'raw learn':>9}")
     for name in ("train", "test"):

@@ -13,6 +13,7 @@ import pytest
 import heliotwin
 from heliotwin import api
 from heliotwin.cli import build_parser
+from heliotwin.workflows.reconstruct import ReconstructionSettings
 
 SRC = Path(heliotwin.__file__).resolve().parents[1]
 
@@ -31,14 +32,16 @@ def _defaults(*command):
 @pytest.mark.parametrize("func, command, renamed", [
     (api.trace_record, ("trace",), {}),
     (api.calibrate, ("calibrate",), {}),
-    (api.reconstruct, ("reconstruct",), {"slope_error_mrad": "slope_error"}),
+    (ReconstructionSettings, ("reconstruct",), {"slope_error_mrad": "slope_error"}),
 ])
 def test_api_defaults_are_the_cli_defaults(func, command, renamed):
     cli = _defaults(*command)
     special = {("reconstruct", "slope_error"): ("auto", None), ("calibrate", "progress"): (False, True),
                ("reconstruct", "progress"): (None, True),
                # the CLI shows legacy's step default; unset, each method takes its own (as the API's None)
-               ("reconstruct", "steps"): (200, None)}
+               ("reconstruct", "steps"): (200, None),
+               # likewise the loss: legacy's default shown, unset (None) for the method that takes none
+               ("reconstruct", "loss"): ("kl", None)}
     checked = 0
     for name, p in inspect.signature(func).parameters.items():
         dest = renamed.get(name, name)

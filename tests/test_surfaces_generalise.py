@@ -143,7 +143,7 @@ def test_an_interrupted_fit_resumes_to_the_uninterrupted_surface(tmp_path):
     ref, ref_info = fit_generalising(facets, obs, sun, s)
 
     def stop(event, key, step):
-        if event == "step" and key == "generalise/1" and step == 3:
+        if event == "step" and key == "fit/1" and step == 3:
             raise _Stop
 
     path = tmp_path / "run.ckpt"
@@ -154,8 +154,8 @@ def test_an_interrupted_fit_resumes_to_the_uninterrupted_surface(tmp_path):
                     hook=lambda e, k, st: seen.append((k, st)) if e == "step" else None)
     with active(ck):
         model, info = fit_generalising(facets, obs, sun, s)
-    assert ("generalise/0", 1) not in seen and ("generalise/1", 3) not in seen  # restored, not rerun
-    assert ("generalise/1", 4) in seen
+    assert ("fit/0", 1) not in seen and ("fit/1", 3) not in seen  # restored, not rerun
+    assert ("fit/1", 4) in seen
     assert torch.equal(model.displacement_mm, ref.displacement_mm)
     assert info["report"]["selection"] == ref_info["report"]["selection"]
     assert info["report"]["acceptance"] == ref_info["report"]["acceptance"]
@@ -176,9 +176,10 @@ def test_fit_never_leaves_a_training_image_worse_than_the_ideal():
 def test_aa39_generalising_meets_the_issue_figures(paint_dir):
     """Real AA39 (3 earliest images train, 7 test): no training image worse than the ideal, median test L1
     below the legacy 0.146, most test images improved, no residual edge ridge above 5 mrad (~4 min)."""
-    from heliotwin.surfaces.generalise import reconstruct_paint_generalising
+    from heliotwin.workflows.reconstruct import ReconstructionSettings, reconstruct
 
-    rep, _, _ = reconstruct_paint_generalising(paint_dir, "AA39", train_first=3)
+    _, rep, _ = reconstruct(None, paint_dir, "AA39", ReconstructionSettings(train_first=3, device="cpu"),
+                            progress=False)
     assert rep["train_worse_than_ideal"] == 0
     assert rep["median_l1_learned"] < 0.146 and rep["median_l1_learned_raw"] < 0.146
     assert rep["test_improved_wilson95"][0] > 0.5
@@ -271,7 +272,7 @@ def test_cli_generalising_interrupted_resumes_to_the_same_report(paint_dir, tmp_
     assert code == 0, err
 
     def hook(event, key, step):
-        if event == "step" and key == "generalise/1" and step == 2:
+        if event == "step" and key == "fit/1" and step == 2:
             raise _Interrupt
 
     out = tmp_path / "run.json"

@@ -9,7 +9,7 @@ from helpers.surfaces import small_scene
 from heliotwin.errors import HeliotwinError, InputFileError
 from heliotwin.field.demo import demo_plant
 from heliotwin.field.plant import SunSettings
-from heliotwin.io.scenario import load_scenario, save_scenario
+from heliotwin.io.scenario import load_scenario, save_scenario, write_scenario
 from heliotwin.surfaces.generalise import GeneraliseSettings, fit_generalising, focused_start
 from heliotwin.surfaces.imaging import predict_images
 from heliotwin.surfaces.learning import LearnableSurface, learnable_surfaces
@@ -26,7 +26,7 @@ from heliotwin.surfaces.plantprior import (
     prior_penalty,
     surface_prior,
 )
-from heliotwin.surfaces.state import save_learned_surface
+from heliotwin.surfaces.state import with_learned_surface
 
 
 def _coef(seed, scale=1e-3, f=4):
@@ -87,8 +87,8 @@ def _scenario_with_learned(tmp_path, name, heliostats, seed, plant=None):
         facets = type(fac)(*(getattr(fac, a)[h:h + 1] for a in ("translation", "canting_e", "canting_n")))
         model = LearnableSurface(facets, (4, 4), (2, 2), initial=low_order_start(facets, _coef(seed + i), (4, 4),
                                                                                    (2, 2)))
-        save_learned_surface(path, previous.plant if previous else plant, plant.field.ids[h], model.surfaces(),
-                             model.displacement.detach(), SunSettings(), previous=previous)
+        write_scenario(with_learned_surface(previous, previous.plant if previous else plant, plant.field.ids[h],
+                                            model.surfaces(), model.displacement.detach(), SunSettings()), path)
         previous = load_scenario(path)
     return path, plant
 

@@ -6,9 +6,9 @@ import torch
 from heliotwin.errors import HeliotwinError
 from heliotwin.field.demo import demo_plant
 from heliotwin.field.plant import SunSettings
-from heliotwin.io.scenario import load_scenario
+from heliotwin.io.scenario import load_scenario, write_scenario
 from heliotwin.surfaces.learning import LearnableSurface
-from heliotwin.surfaces.state import learned_surface, save_learned_surface
+from heliotwin.surfaces.state import learned_surface, with_learned_surface
 
 
 def _facets_of(plant, h):
@@ -25,9 +25,9 @@ def test_learned_surface_round_trip_keeps_the_rest_of_the_plant(tmp_path):
     with torch.no_grad():
         model.displacement_mm.normal_(0.0, 0.3, generator=torch.Generator().manual_seed(1))
     optics = SunSettings(sunshape="buie", csr=0.05, slope_error=2e-3)
-    path = save_learned_surface(tmp_path / "s.h5", plant, hid, model.surfaces(), model.displacement.detach(),
-                                optics, train_records=[11, 12, 13], target="receiver", settings={"loss": "kl"},
-                                source="/data/paint")
+    path = write_scenario(with_learned_surface(None, plant, hid, model.surfaces(), model.displacement.detach(),
+                                               optics, train_records=[11, 12, 13], target="receiver",
+                                               settings={"loss": "kl"}, source="/data/paint"), tmp_path / "s.h5")
     sc = load_scenario(path)
     item = learned_surface(sc, hid)
     assert torch.allclose(item["surfaces"].control_points, model.surfaces().control_points.detach(), atol=0)

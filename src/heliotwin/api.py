@@ -31,7 +31,12 @@ from .io.scenario import load_records, load_scenario, scenario_from_paint
 from .workflows.trace import TraceSettings
 from .workflows.trace import trace_record as trace_workflow
 
-__all__ = ["load", "field", "trace_record", "plot_flux", "calibrate", "reconstruct", "to_device"]
+from .io.scenario import load_scenario
+from .workflows.reconstruct import ReconstructionSettings, reconstruction_checkpoint
+from .workflows.reconstruct import reconstruct as reconstruct_surface
+
+__all__ = ["load", "field", "trace_record", "plot_flux", "calibrate", "reconstruct", "ReconstructionSettings",
+           "to_device"]
 
 
 def load(paint, heliostats=None, *, scenario=None, plane_tolerance: float = 0.1):
@@ -218,79 +223,37 @@ def calibrate(paint, *, method: str = "lm", heliostats=None, split: str = "chron
     return report, model, os.fspath(output)
 
 
-def reconstruct(paint, heliostat: str, *, method: str = "generalising", train_records=None,
-                train_first: int | None = None, control_points: str = "7x7", degree: int = 3,
-                integrator: str = "conv", loss: str = "kl", steps: int | None = None,
-                slope_error_mrad: float | None = None, background: float = 0.0, alignment: str = "focal-spot",
-                evaluate_mc: bool = True, progress: bool = True, deflectometry=None, scenario=None,
-                device: str = "auto", checkpoint=None, resume: bool = False):
-    """Learn one heliostat's mirror surface from its centred flux images (``heliotwin reconstruct``'s defaults).
+def reconstruct(paint, heliostat: str, settings: ReconstructionSettings | None = None, *, scenario=None,
+                checkpoint=None, resume: bool = False, progress: bool = True):
+    """Learn one heliostat's mirror surface from its centred flux images (``heliotwin reconstruct``).
 
-    ``method``: ``generalising`` (camera model, leave-one-out choices, acceptance; see
-    :mod:`heliotwin.surfaces.generalise`) or ``legacy`` (KL loss, early stopping; the only one that takes
-    ``loss``, ``integrator="mc"``, ``background``, ``deflectometry`` and ``evaluate_mc``). ``steps=None``: the
-    method's default (legacy 200 optimiser steps, generalising a 300-step leave-one-out budget).
-    ``slope_error_mrad=None`` fits the slope error on the training images (the CLI's ``auto``). ``device``,
-    ``checkpoint`` and ``resume`` as in :func:`calibrate` (the model comes back on the CPU).
+    Parameters
+    ----------
+    paint : str or os.PathLike
+        PAINT download folder.
+    heliostat : str
+    settings : heliotwin.workflows.reconstruct.ReconstructionSettings, optional
+        The learner (``method``: ``generalising`` or ``legacy``) and its options; the defaults are the command
+        line's (a test checks that they agree).
+    scenario : str or os.PathLike, optional
+        Start from this scenario's plant (e.g. a calibrated one).
+    checkpoint, resume
+        As in :func:`calibrate` (the model comes back on the CPU).
+    progress : bool
+        tqdm bars.
 
     Returns
     -------
     report : dict
         Per-record normalised L1 of ideal and learned surfaces on test images and IMP (see the glossary).
     model : heliotwin.surfaces.learning.LearnableSurface
-        ``model.surfaces()`` is the learned NURBS surface.
+        ``model.surfaces()`` is the learned NURBS surface, ``control_points`` [1, F, nu, nv, 3] [m].
     """
-    from .errors import HeliotwinError
-    from .io.scenario import load_scenario
-    from .surfaces.learning import parse_grid
-
-    if method not in ("generalising", "legacy"):
-        raise HeliotwinError(f"reconstruct: method must be 'generalising' or 'legacy', got {method!r}")
-    if method == "generalising":
-        legacy_only = {"loss": loss != "kl", "integrator": integrator != "conv", "background": background > 0,
-                       "deflectometry": deflectometry is not None}
-        given = [k for k, v in legacy_only.items() if v]
-        if given:
-            raise HeliotwinError(f"reconstruct: {', '.join(given)} only apply to method='legacy'")
-        from .surfaces.generalise import GeneraliseSettings, reconstruct_paint_generalising
-
-        base = GeneraliseSettings()
-        n = int(steps or base.steps)
-        kw = dict(control_points=parse_grid(control_points), degree=(degree, degree), steps=n,
-                  eval_every=min(base.eval_every, max(1, n // 2)))
-        if slope_error_mrad is not None:
-            kw["slope_grid"] = (slope_error_mrad * 1e-3,)
-        settings = GeneraliseSettings(**kw)
-        fit_args = dict(method="generalising", train_records=train_records, train_first=train_first,
-                        settings=settings, alignment=alignment)
-    else:
-        from .surfaces.training import TrainSettings
-
-        settings = TrainSettings(control_points=parse_grid(control_points), degree=(degree, degree),
-                                 integrator=integrator, loss=loss, steps=int(steps or 200))
-        fit_args = dict(train_records=train_records, train_first=train_first, settings=settings,
-                        slope_error=None if slope_error_mrad is None else slope_error_mrad * 1e-3,
-                        background=background, alignment=alignment, deflectometry=deflectometry,
-                        start_from_deflectometry=False)
-    ck = None
-    if checkpoint is not None:
-        from .surfaces.study import reconstruction_checkpoint
-
-        ck = reconstruction_checkpoint(checkpoint, paint, heliostat, resume=resume, device=_device(device),
-                                       inputs=[scenario, deflectometry], **fit_args)
-    plant = load_scenario(scenario).plant if scenario is not None else None
-    if method == "generalising":
-        fit_args.pop("method")
-        report, model, _ = reconstruct_paint_generalising(os.fspath(paint), heliostat, progress=progress,
-                                                          plant=plant, device=_device(device), checkpoint=ck,
-                                                          **fit_args)
-        report["method"] = "generalising"
-    else:
-        from .surfaces.study import reconstruct_paint
-
-        report, model, _, _ = reconstruct_paint(os.fspath(paint), heliostat, evaluate_mc=evaluate_mc,
-                                                progress=progress, plant=plant, device=_device(device),
-                                                checkpoint=ck, **fit_args)
+    s = settings or ReconstructionSettings()
+    ck = None if checkpoint is None else reconstruction_checkpoint(checkpoint, paint, heliostat, s,
+                                                                   scenario_path=scenario, resume=resume)
+    previous = load_scenario(scenario) if scenario is not None else None
+    _, report, fit = reconstruct_surface(previous, paint, heliostat, s, checkpoint=ck, progress=progress)
     if ck is not None:
         ck.remove()
-    return report, model
+    return report, fit["model"]

@@ -7,9 +7,10 @@ Usage::
     heliotwin reconstruct --paint PAINT_DIR --heliostat AA39 --surface-prior-from S1.h5,S2.h5 -o learned.h5 ...
     heliotwin predict --scenario learned.h5 --heliostat AA39 --year 2023 --every 30min --json out.json
 
-:func:`register` adds them to the main parser; the library (:mod:`heliotwin.surfaces`) is imported inside
-the command functions, so ``--help`` stays torch-free. Output folders are checked before training, so a
-typo costs seconds, not a training run.
+:func:`register` adds them to the main parser. Each command parses its flags into the workflow's settings and
+calls the workflow (:mod:`heliotwin.workflows.reconstruct`, :mod:`heliotwin.workflows.predict`), imported inside
+the command functions so that ``--help`` stays torch-free; it then writes the staged outputs. Output folders are
+checked before training, so a typo costs seconds, not a training run.
 """
 from __future__ import annotations
 
@@ -32,111 +33,68 @@ __all__ = ["register"]
 
 
 def cmd_reconstruct(args) -> int:
+    """``heliotwin reconstruct``: :func:`heliotwin.workflows.reconstruct.reconstruct`, then its figures, the
+    scenario (``-o``) and the report (``--json``), all staged."""
+    from ..io.scenario import load_scenario, write_scenario
+    from ..workflows.reconstruct import reconstruct, reconstruction_checkpoint
+
     _set_threads(args.threads)
-    _check_method(args)
-    if args.method == "generalising":
-        return _reconstruct_generalising(args)
-    return _reconstruct_legacy(args)
-
-
-def _reconstruct_legacy(args) -> int:
-    from ..io.scenario import load_scenario
-    from ..surfaces.study import reconstruct_paint
-
+    settings = _settings(args)
+    settings.check()  # before any file is read
+    path = checkpoint_file(args)
+    args.checkpoint = None if path is None else reconstruction_checkpoint(
+        path, args.paint, args.heliostat, settings, scenario_path=args.scenario, resume=args.resume,
+        min_interval_s=args.checkpoint_interval)
+    if args.checkpoint is not None and args.checkpoint.resumed:
+        stage(args, f"resuming from {path}")
     inputs = [("--paint", args.paint), ("--scenario", args.scenario), ("--deflectometry", args.deflectometry)]
-    train_records = _train_records(args)
-    slope = None if args.slope_error == "auto" else args.slope_error * 1e-3
-    fit_args = dict(train_records=train_records, train_first=args.train_first, settings=_train_settings(args),
-                    slope_error=slope, background=args.background, alignment=args.alignment,
-                    deflectometry=args.deflectometry, start_from_deflectometry=args.start_from_deflectometry)
     # The checkpoint outlives the staged outputs: removed only once they are in place.
-    with checkpointed(args, _checkpoint(args, fit_args)), output_set(inputs) as out:
-        json_path = out.file(args.json, "--json")
-        output = out.file(args.output, "-o")
-        if args.start_from_deflectometry and not args.deflectometry:
-            raise HeliotwinError("--start-from-deflectometry needs --deflectometry FILE")
-        if args.deflectometry:
-            from ..io.deflectometry import read_deflectometry
-
-            read_deflectometry(args.deflectometry)  # fail fast (one-line error naming the file) before training
-        previous = load_scenario(args.scenario) if args.scenario else None
-        stage(args, f"learning {args.heliostat}'s surface ({args.integrator}, <= {args.steps} steps) on "
-                    f"{getattr(args, 'device', 'cpu')}, then evaluating")
-        report, model, ds, extras = reconstruct_paint(
-            args.paint, args.heliostat, evaluate_mc=not args.no_mc, progress=not args.quiet,
-            plant=previous.plant if previous else None, device=getattr(args, "device", "cpu"),
-            checkpoint=args.checkpoint, **fit_args)
-        report["method"] = "legacy"
-        _write_reconstruction(args, json_path, output, report, model, previous, extras, _plot_reconstruction)
-    if not args.quiet:
-        _print_reconstruction(args.heliostat, report)
-    return 0
-
-
-def _write_reconstruction(args, json_path, output, report, model, previous, extras, plot) -> None:
-    """The end of either method: its figures (``plot``), the learned surface into ``output`` (when given) and
-    the JSON report, all into the command's staged output set."""
-    learned = model.surfaces()
-    stage(args, "plotting and writing outputs")
-    report["plots"] = plot(args, json_path, report, model, learned, extras)
-    if output:
-        _save_learned(args, output, report, model, learned, previous, extras)
-        report["output"] = os.fspath(args.output)
-    write_json(json_path, report)
-
-
-def _reconstruct_generalising(args) -> int:
-    """``--method generalising`` (:func:`heliotwin.surfaces.generalise.reconstruct_paint_generalising`)."""
-    from ..io.scenario import load_scenario
-    from ..surfaces.generalise import reconstruct_paint_generalising
-
-    train_records = _train_records(args)
-    settings = _generalise_settings(args)
-    prior = _surface_prior(args)
-    fit_args = dict(method="generalising", train_records=train_records, train_first=args.train_first,
-                    settings=settings, alignment=args.alignment)
-    if prior is not None:  # a resumed run must use the same prior (the checkpoint's fingerprint holds it)
-        fit_args["surface_prior"] = {"heliostats": list(prior.heliostats),
-                                     "mean": [float(x) for x in prior.mean.reshape(-1)]}
-    # The checkpoint outlives the staged outputs: removed only once they are in place.
-    with checkpointed(args, _checkpoint(args, fit_args)), \
-            output_set([("--paint", args.paint), ("--scenario", args.scenario)]) as out:
+    with checkpointed(args, args.checkpoint), output_set(inputs) as out:
         json_path = out.file(args.json, "--json")
         output = out.file(args.output, "-o")
         previous = load_scenario(args.scenario) if args.scenario else None
-        stage(args, f"learning {args.heliostat}'s surface (generalising: optics, leave-one-out over "
-                    f"<= {settings.steps} steps, acceptance) on {getattr(args, 'device', 'cpu')}, then evaluating")
-        report, model, extras = reconstruct_paint_generalising(
-            args.paint, args.heliostat, train_first=args.train_first,
-            train_records=train_records, settings=settings, alignment=args.alignment, progress=not args.quiet,
-            plant=previous.plant if previous else None, device=getattr(args, "device", "cpu"),
-            checkpoint=args.checkpoint, prior=prior)
-        report["method"] = "generalising"
-        extras["surface_prior"] = prior
-        report["choices"] = _generalising_choices(report)
-        if output:  # the stored surface records what chose it
-            report["settings"] = dict(report["settings"], method="generalising", chosen=report["choices"])
-        _write_reconstruction(args, json_path, output, report, model, previous, extras, _plot_generalising)
+        stage(args, _stage_text(args, settings))
+        scenario, report, fit = reconstruct(previous, args.paint, args.heliostat, settings,
+                                            checkpoint=args.checkpoint, progress=not args.quiet)
+        stage(args, "plotting and writing outputs")
+        plot = _plot_generalising if settings.method == "generalising" else _plot_reconstruction
+        report["plots"] = plot(args, json_path, report, fit)
+        if output:
+            write_scenario(scenario, output)
+            report["output"] = os.fspath(args.output)
+        write_json(json_path, report)
     if not args.quiet:
-        _print_generalising(args.heliostat, report)
+        (_print_generalising if settings.method == "generalising" else _print_reconstruction)(args.heliostat, report)
     return 0
 
 
 cmd_reconstruct.supports_cuda = True  # the learner follows args.device
 
 
-def _checkpoint(args, fit_args: dict):
-    """The run's checkpoint next to its main output (None without one); also ``args.checkpoint``."""
-    from ..surfaces.study import reconstruction_checkpoint
+def _settings(args):
+    """:class:`~heliotwin.workflows.reconstruct.ReconstructionSettings` from the flags (a flag left at its default
+    is None where the learners' defaults differ: ``--steps``, ``--loss``)."""
+    from ..workflows.reconstruct import ReconstructionSettings
 
-    path = checkpoint_file(args)
-    args.checkpoint = None if path is None else reconstruction_checkpoint(
-        path, args.paint, args.heliostat, resume=args.resume, device=getattr(args, "device", "cpu"),
-        inputs=[args.scenario, getattr(args, "deflectometry", None)], min_interval_s=args.checkpoint_interval,
-        **fit_args)
-    if args.checkpoint is not None and args.checkpoint.resumed:
-        stage(args, f"resuming from {path}")
-    return args.checkpoint
+    prior = None
+    if args.surface_prior_from:
+        prior = tuple(p.strip() for p in str(args.surface_prior_from).split(","))
+    return ReconstructionSettings(
+        method=args.method, train_records=_train_records(args), train_first=args.train_first,
+        control_points=args.control_points, degree=args.degree, steps=int(args.steps) if _given(args.steps) else None,
+        slope_error_mrad=None if args.slope_error == "auto" else args.slope_error, alignment=args.alignment,
+        loss=str(args.loss) if _given(args.loss) else None, integrator=args.integrator, background=args.background,
+        deflectometry=args.deflectometry, start_from_deflectometry=args.start_from_deflectometry,
+        evaluate_mc=not args.no_mc, surface_prior_from=prior, device=getattr(args, "device", "cpu"))
+
+
+def _stage_text(args, settings) -> str:
+    learner, device = settings.learner(), getattr(args, "device", "cpu")
+    if settings.method == "generalising":
+        return (f"learning {args.heliostat}'s surface (generalising: optics, leave-one-out over <= {learner.steps} "
+                f"steps, acceptance) on {device}, then evaluating")
+    return (f"learning {args.heliostat}'s surface ({args.integrator}, <= {learner.steps} steps) on {device}, "
+            f"then evaluating")
 
 
 def _set_threads(threads: int) -> None:
@@ -146,41 +104,14 @@ def _set_threads(threads: int) -> None:
         torch.set_num_threads(threads)
 
 
-def _train_records(args) -> list[int] | None:
-    if args.train_records and args.train_first is not None:
-        raise HeliotwinError("use either --train-records or --train-first, not both")
+def _train_records(args) -> tuple[int, ...] | None:
     if not args.train_records:
         return None
     try:
-        return [int(x) for x in args.train_records.split(",") if x.strip()]
+        return tuple(int(x) for x in args.train_records.split(",") if x.strip())
     except ValueError:
         raise HeliotwinError(f"--train-records: expected comma-separated record ids, "
                              f"got {args.train_records!r}") from None
-
-
-#: Flags of the legacy learner that ``--method generalising`` does not take: (flag, is it set?, why).
-_LEGACY_ONLY = (
-    ("--loss", lambda a: _given(a.loss), "it fits the L1 of unit-sum images after the camera model"),
-    ("--integrator", lambda a: a.integrator != "conv", "it renders with the conv integrator"),
-    ("--background", lambda a: a.background > 0, "it models each image's background cut instead"),
-    ("--deflectometry", lambda a: a.deflectometry is not None, "deflectometry comparison is legacy-only"),
-    ("--start-from-deflectometry", lambda a: a.start_from_deflectometry, "it starts from the canting focus"),
-)
-
-
-def _surface_prior(args):
-    """``--surface-prior-from S1.h5,S2.h5,...`` (before any PAINT file is read): the plant surface prior, or None.
-
-    One scenario holding a stored prior (``/learned/surface_prior``) is used as it is; otherwise the prior is
-    built from the learned surfaces of all the files. Refused (one line) when a file is missing or has no
-    learned surface, when the sources' facet counts differ, or when ``--heliostat`` is among the sources.
-    """
-    if not args.surface_prior_from:
-        return None
-    from ..surfaces.plantprior import load_surface_prior
-
-    paths = [p.strip() for p in str(args.surface_prior_from).split(",") if p.strip()]
-    return load_surface_prior(paths, heliostat_id=args.heliostat)
 
 
 class _Unset(str):
@@ -195,107 +126,43 @@ def _given(value) -> bool:
     return not isinstance(value, (_Unset, _UnsetInt))
 
 
-def _check_method(args) -> None:
-    """One line for a flag the chosen method does not take (before any file is read); plain values after."""
-    if args.method == "generalising":
-        for flag, given, why in _LEGACY_ONLY:
-            if given(args):
-                raise HeliotwinError(f"{flag} is not supported with --method generalising ({why}); "
-                                     f"use --method legacy")
-        args.steps = int(args.steps) if _given(args.steps) else None
-    else:
-        if getattr(args, "surface_prior_from", None):
-            raise HeliotwinError("--surface-prior-from is not supported with --method legacy; use --method "
-                                 "generalising")
-        args.steps = int(args.steps)
-    args.loss = str(args.loss)
-
-
-def _generalise_settings(args):
-    """:class:`~heliotwin.surfaces.generalise.GeneraliseSettings` from the flags: ``--control-points``,
-    ``--degree``; ``--steps`` is the leave-one-out step budget (held-out L1 every ``min(30, steps // 2)`` steps,
-    so even a small budget leaves the step count a choice);
-    a numeric ``--slope-error`` fixes the slope-error grid to that value."""
-    from ..surfaces.generalise import GeneraliseSettings
-    from ..surfaces.learning import parse_grid
-
-    base = GeneraliseSettings()
-    steps = args.steps or base.steps
-    kw = dict(control_points=parse_grid(args.control_points), degree=(args.degree, args.degree), steps=steps,
-              eval_every=min(base.eval_every, max(1, steps // 2)))
-    if args.slope_error != "auto":
-        kw["slope_grid"] = (args.slope_error * 1e-3,)
-    return GeneraliseSettings(**kw)
-
-
-def _generalising_choices(report: dict) -> dict:
-    """What the generalising method chose (JSON): optics, blur mode, penalty weight, steps, drops, acceptance."""
-    chosen = report["optics"]["chosen"]
-    out = {"focal_length_m": chosen["focal_length_m"], "focus_multiple": chosen["focus_multiple"],
-           "slope_error_rad": report["optics_used"]["slope_error_rad"], "blur_mode": report["blur_mode"],
-           "slope_weight": report["selection"]["slope_weight"], "steps": report["selection"]["steps"],
-           "dropped": [d["record"] for d in report["dropped"]], "acceptance_alpha": report["acceptance"]["alpha"]}
-    if "prior" in report:
-        out.update(surface_prior_weight=report["prior"]["weight"],
-                   surface_prior_heliostats=report["prior"]["heliostats"])
-    return out
-
-
-def _train_settings(args):
-    from ..surfaces.learning import parse_grid
-    from ..surfaces.training import TrainSettings
-
-    return TrainSettings(control_points=parse_grid(args.control_points), degree=(args.degree, args.degree),
-                         integrator=args.integrator, loss=args.loss, steps=args.steps)
-
-
-def _plot_reconstruction(args, json_path, report, model, learned, extras) -> dict:
+def _plot_reconstruction(args, json_path, report, fit) -> dict:
     """The normal-deviation map and the test-image comparison, next to the ``--json`` report (written next to
     the staged ``json_path``; the report names them next to the user's ``--json``)."""
     from ..surfaces.plots import plot_flux_comparison, plot_normal_deviation
 
+    model = fit["model"]
     names = {"normal_deviation": "-normal-deviation.png", "flux": "-flux.png"}
     staged = {k: os.path.splitext(os.fspath(json_path))[0] + v for k, v in names.items()}
-    plot_normal_deviation(extras["facets"], learned.control_points, model.degree, staged["normal_deviation"],
+    plot_normal_deviation(fit["facets"], model.surfaces().control_points, model.degree, staged["normal_deviation"],
                           title=f"{args.heliostat}: learned normal deviation from ideal [mrad]")
-    plot_flux_comparison(extras["test"].images, extras["ideal_images"], extras["learned_images"],
-                         extras["test"].ids, staged["flux"], [r["l1_ideal"] for r in report["test"]],
+    plot_flux_comparison(fit["test"].images, fit["ideal_images"], fit["learned_images"],
+                         fit["test"].ids, staged["flux"], [r["l1_ideal"] for r in report["test"]],
                          [r["l1_learned"] for r in report["test"]])
     return {k: os.path.splitext(os.fspath(args.json))[0] + v for k, v in names.items()}
 
 
-def _plot_generalising(args, json_path, report, model, learned, extras) -> dict:
+def _plot_generalising(args, json_path, report, fit) -> dict:
     """Measured vs predicted test images (through the camera model), the normal-deviation map and the residual
     map beyond each facet's tilt + quadratic shape (where edge ridges show), next to the ``--json`` report."""
     from ..surfaces.plots import plot_flux_comparison, plot_normal_deviation, plot_residual_deviation
 
+    model = fit["model"]
+    learned = model.surfaces()
     names = {"normal_deviation": "-normal-deviation.png", "residual_deviation": "-residual-deviation.png",
              "flux": "-flux.png"}
     staged = {k: os.path.splitext(os.fspath(json_path))[0] + v for k, v in names.items()}
-    plot_normal_deviation(extras["facets"], learned.control_points.detach(), model.degree,
+    plot_normal_deviation(fit["facets"], learned.control_points.detach(), model.degree,
                           staged["normal_deviation"],
                           title=f"{args.heliostat}: learned normal deviation from the flat canted ideal [mrad]")
-    plot_residual_deviation(learned, extras["ideal"], extras["facets"], staged["residual_deviation"],
+    plot_residual_deviation(learned, fit["ideal"], fit["facets"], staged["residual_deviation"],
                             title=f"{args.heliostat}: residual normal deviation [mrad]")
-    images = extras["info"]["test_images"]
-    plot_flux_comparison(extras["test"].images, images["ideal"], images["learned"], extras["test"].ids,
+    images = fit["info"]["test_images"]
+    plot_flux_comparison(fit["test"].images, images["ideal"], images["learned"], fit["test"].ids,
                          staged["flux"], [r["l1_ideal"] for r in report["test"]],
                          [r["l1_learned"] for r in report["test"]],
                          title="centred flux: measured vs ideal vs learned (camera model)")
     return {k: os.path.splitext(os.fspath(args.json))[0] + v for k, v in names.items()}
-
-
-def _save_learned(args, output, report, model, learned, previous, extras) -> None:
-    """plant″: the scenario's plant (or the PAINT folder's) with this heliostat's learned surface."""
-    from ..io.scenario import scenario_from_paint
-    from ..surfaces.state import save_learned_surface
-
-    plant = previous.plant if previous is not None else scenario_from_paint(args.paint)
-    prior = extras.get("surface_prior")
-    save_learned_surface(output, plant, args.heliostat, learned, model.displacement.detach(), extras["optics"],
-                         previous=previous, train_records=[int(r["record"]) for r in report["train"]],
-                         target=extras["test"].targets[0].name, settings=report["settings"],
-                         source=os.path.abspath(args.paint), surface_prior=None if prior is None else prior.state())
 
 
 def _print_reconstruction(heliostat: str, report: dict) -> None:
@@ -321,49 +188,22 @@ def _print_generalising(heliostat: str, report: dict) -> None:
 
 
 def cmd_predict(args) -> int:
+    """``heliotwin predict``: :func:`heliotwin.workflows.predict.predict` into the ``--json`` report."""
     from ..io.scenario import load_scenario
+    from ..workflows.predict import PredictionSettings, predict
 
     _set_threads(args.threads)
+    settings = PredictionSettings(year=args.year, every=args.every, target=args.target,
+                                  device=getattr(args, "device", "cpu"))
     with output_set([("--scenario", args.scenario)]) as outputs:
         json_path = outputs.file(args.json, "--json")
-        out = _predict(args, load_scenario(args.scenario))
+        _, out = predict(load_scenario(args.scenario), args.heliostat, settings, progress=not args.quiet)
         write_json(json_path, out)
     if not args.quiet:
         st = out["statistics"]["l1_ideal_vs_learned"]
-        print(f"{args.heliostat}: {out['instants']} instants; L1(ideal, learned) median "
+        print(f"{out['heliostat']}: {out['instants']} instants; L1(ideal, learned) median "
               f"{'n/a' if st.get('median') is None else format(st['median'], '.3f')}")
     return 0
-
-
-def _predict(args, sc) -> dict:
-    """The yearly prediction of ``args.heliostat`` (default: the only learned surface) in scenario ``sc``."""
-    from ..surfaces.predict import summarize, yearly_flux
-    from ..surfaces.state import learned_surface
-
-    learned = sorted(sc.learned.get("surfaces") or {})
-    if args.heliostat is None:
-        if len(learned) != 1:
-            raise HeliotwinError(f"{args.scenario}: {len(learned)} learned surfaces ({', '.join(learned) or 'none'}); "
-                                 f"choose one with --heliostat")
-        args.heliostat = learned[0]
-    item = learned_surface(sc, args.heliostat)
-    plant = sc.plant
-    name = args.target or item["target"]
-    target = plant.target(name)
-    site = (plant.site.latitude_deg, plant.site.longitude_deg, plant.site.altitude_m)
-    kin = plant.field.kinematics.index([plant.field.index_of(args.heliostat)])
-    surfaces, ideal = item["surfaces"], item["ideal"]
-    device = getattr(args, "device", "cpu")
-    if device != "cpu":
-        from ..api import to_device
-
-        kin, target, surfaces, ideal = to_device((kin, target, surfaces, ideal), device)
-    series = yearly_flux(kin, target, site, surfaces, ideal, item["optics"],
-                         year=args.year, every=args.every, progress=not args.quiet)
-    optics = item["optics"]
-    return {"heliostat": args.heliostat, "target": name, "year": args.year, "every": args.every,
-            "instants": len(series["time"]), "statistics": summarize(series), "series": series,
-            "optics": {"sunshape": optics.sunshape, "slope_error_rad": optics.slope_error}, "device": device}
 
 
 cmd_predict.supports_cuda = True  # yearly_flux follows the device of the plant pieces moved to args.device

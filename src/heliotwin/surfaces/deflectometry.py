@@ -1,4 +1,4 @@
-"""Deflectometry as a surface for tracing, and surface-vs-surface comparison (issue item 8).
+"""Deflectometry as a surface for tracing, and surface-vs-surface comparison.
 
 PAINT deflectometry HDF5 (:func:`heliotwin.io.deflectometry.read_deflectometry`) is fitted per facet with a
 NURBS net (:func:`heliotwin.io.deflectometry.fit_deflectometry`); the net can be traced like any other
@@ -46,7 +46,8 @@ def deflectometry_surface(path, facets: Facets, num_control_points=(8, 8), degre
 
 
 def compare_surfaces(facets: Facets, a: Surfaces, b: Surfaces, grid=(48, 48)) -> dict:
-    """Difference of two surfaces of one heliostat on each facet's parameter grid.
+    """Difference of two surfaces of one heliostat (``control_points`` [1, F, nu, nv, 3] [m], ``facets`` [1, F, 3]
+    [m]) on each facet's parameter grid.
 
     Returns
     -------

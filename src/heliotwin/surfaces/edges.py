@@ -12,7 +12,7 @@ the slope deviation ``dn = n - n0`` from the start surface ``n0``:
 * the **residual** ``r = dn - low-order``: bumps, waves and edge ridges. Penalised
   ``w * mean(|r|^2) / (1 mrad)^2 + HINGE_WEIGHT * mean(relu(|r|^2 - RIDGE^2)) / (1 mrad)^2``,
   ``w`` chosen by leave-one-training-image-out validation; the hinge makes residual slopes beyond
-  ``RIDGE`` (5 mrad, the issue's limit) expensive, so they appear only where the images pay for them.
+  ``RIDGE`` (5 mrad, the facet-edge limit) expensive, so they appear only where the images pay for them.
 
 ``|dn|`` is the chord of the angle (equal to it to third order; no square root, finite gradient at 0).
 
@@ -32,7 +32,7 @@ from .learning import normal_heights
 __all__ = ["slope_penalty", "edge_ridge_mrad", "deviation_map_mrad", "residual_map_mrad", "high_order",
            "RIDGE_RAD", "HINGE_WEIGHT", "EDGE_BAND"]
 
-#: Largest slope deviation accepted without the images demanding it [rad] (the issue's 5 mrad).
+#: Largest slope deviation accepted without the images demanding it [rad] (5 mrad).
 RIDGE_RAD = 5e-3
 #: Weight of the hinge above ``RIDGE_RAD`` (per mrad^2; large against the data loss's ~1e-3 per mrad^2 scale).
 HINGE_WEIGHT = 1.0

@@ -38,26 +38,27 @@ Shapes: B images, R window pixels per side, F facets. Units: metres, radians; L1
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
 import statistics
 from dataclasses import dataclass
 
 import torch
+from tqdm.auto import tqdm
 
+from ..calibrate.fitloop import State, early_stopping_fit
 from ..field.plant import Facets, SunSettings
 from . import losses
-from .acceptance import robust_outliers, shrink_to_accept
-from .edges import slope_penalty
+from .acceptance import robust_outliers, shrink_to_accept, wilson_interval
+from .edges import edge_ridge_mrad, slope_penalty
 from .imaging import predict_images
 from .learning import LearnableSurface, heights_to_displacement, learnable_surfaces, normal_heights
 from .nuisance import CameraModel, apply_camera, estimate_camera
 from .observations import Observations
-from .plantprior import PRIOR_WEIGHT_GRID, check_facets, check_leakage, describe, prior_penalty
+from .plantprior import PRIOR_WEIGHT_GRID, check_facets, describe, prior_penalty
 
 __all__ = ["GeneraliseSettings", "reconstruct_generalising", "summarise",
            "canting_focal_length", "focused_start", "choose_optics", "fit_generalising",
-           "blur_for", "evaluate_with_camera", "loo_select", "reconstruct_paint_generalising"]
+           "blur_for", "evaluate_with_camera", "loo_select"]
 
 
 @dataclass
@@ -159,7 +160,8 @@ def _render(surf, obs, sun, s, kernels=None):
 
 def evaluate_with_camera(surf, obs: Observations, sun: SunSettings, camera: CameraModel, sigma: torch.Tensor,
                          s: GeneraliseSettings) -> dict:
-    """Per-image L1 with the camera model (``l1``) and of the raw model image (``l1_raw``); predicted images."""
+    """Per-image L1 with the camera model (``l1``) and of the raw model image (``l1_raw``), lists of length B;
+    predicted images through the camera model (``images``, ``[B, R, R]``). ``sigma``: per-image blur ``[B]`` [px]."""
     with torch.no_grad():
         pred, _ = _render(surf, obs, sun, s)
         meas = obs.images.to(pred)
@@ -205,8 +207,45 @@ def choose_optics(facets: Facets, train: Observations, base_sun: SunSettings, ca
             "rule": "min mean training L1 of the ideal surface (camera model, best blur per image)"}
 
 
+class _FitState:
+    """The live state of one :func:`_fit` (what its checkpoint saves): surface, log-blur, the footprint-kernel
+    cache (filled from the first step's surface, so a resumed fit renders as the uninterrupted one), the
+    held-out curve and the steps taken."""
+
+    def __init__(self, model: LearnableSurface, log_sigma: torch.Tensor):
+        self.model, self.log_sigma, self.kernels, self.curve, self.steps = model, log_sigma, {}, [], 0
+
+    def dump(self) -> dict:
+        return {"steps": self.steps, "model": {k: v.detach().clone() for k, v in self.model.state_dict().items()},
+                "log_sigma": self.log_sigma.detach().clone(), "kernels": dict(self.kernels),
+                "curve": [[a, b] for a, b in self.curve]}
+
+    def load(self, data: dict) -> None:
+        self.model.load_state_dict(data["model"])
+        with torch.no_grad():
+            self.log_sigma.copy_(data["log_sigma"])
+        self.kernels.clear()
+        self.kernels.update(data["kernels"])
+        self.curve[:] = [(int(a), float(b)) for a, b in data["curve"]]
+        self.steps = int(data["steps"])
+
+
+def _loop_state(live: _FitState) -> State:
+    """:class:`~heliotwin.calibrate.fitloop.State` of a surface fit: one "heliostat" whose kept state is the final
+    one (the held-out curve is what the caller chooses from, not a best state)."""
+    def keep(best, rows):
+        if bool(rows.any()):
+            best.update(live.dump())
+
+    return State(snapshot=live.dump, keep=keep, live=live, dump=lambda obj: obj.dump() if obj is live else dict(obj),
+                 load=lambda obj, data: obj.load(data) if obj is live else obj.update(data))
+
+
 def _fit(facets, obs, camera, sigma0, sun, start, weight, s, steps, heldout=None, prior=None, prior_weight=0.0):
     """Adam on the camera-model L1 + regularisers; optional held-out curve ``[(step, l1)]``.
+
+    The steps run in the fit loop of calibration (:func:`heliotwin.calibrate.fitloop.early_stopping_fit`, one
+    "heliostat", validation every ``eval_every`` steps, the final state kept): it checkpoints and resumes them.
 
     ``prior`` / ``prior_weight``: the plant prior's penalty
     (:func:`heliotwin.surfaces.plantprior.prior_penalty`) times that weight joins the loss (weight 0: not
@@ -215,13 +254,19 @@ def _fit(facets, obs, camera, sigma0, sun, start, weight, s, steps, heldout=None
     ``heldout``: ``(Observations, CameraModel)`` of one image; its blur follows :func:`blur_for` from the
     current training blurs.
 
-    Under an active :mod:`heliotwin.io.checkpoint` every fit claims a key (``generalise/0``, ``generalise/1``,
-    ... in the deterministic order of :func:`fit_generalising`) and saves its state (surface, log-blur, Adam
-    and schedule states, footprint kernels, held-out curve); a resumed fit goes on after its last saved step
-    and a finished one is restored, not rerun.
-    """
-    from ..io import checkpoint as _checkpoint
+    Under an active :mod:`heliotwin.io.checkpoint` every fit claims a key (``fit/0``, ``fit/1``, ... in the
+    deterministic order of :func:`fit_generalising`) and saves its state (surface, log-blur, Adam state,
+    footprint kernels, held-out curve); a resumed fit goes on after its last saved step and a finished one is
+    restored, not rerun.
 
+    Returns
+    -------
+    model : LearnableSurface
+    sigma : torch.Tensor, [B]
+        Learned per-image blur [px].
+    curve : list of (int, float)
+        Held-out L1 every ``eval_every`` steps (empty without ``heldout``).
+    """
     model = LearnableSurface(facets, s.control_points, s.degree, initial=start, fix_gauge=True,
                              gauge_tilt=obs.centers is None)
     ref = normal_heights(facets, model.surfaces().control_points.detach(), s.degree, (16, 16))[1].detach()
@@ -229,27 +274,15 @@ def _fit(facets, obs, camera, sigma0, sun, start, weight, s, steps, heldout=None
     log_sigma = torch.log(sigma0.to(device=dev, dtype=torch.float32).clamp_min(0.1)).clone().requires_grad_(True)
     params = [p for p in model.parameters() if p.requires_grad]
     opt = torch.optim.Adam([{"params": params, "lr": s.lr}, {"params": [log_sigma], "lr": s.blur_lr}])
+    # Chainable: a resumed fit's schedule goes on from the learning rate restored into the optimiser.
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=s.decay)
     meas = obs.images.to(torch.float32)
-    kernels: dict = {}  # filled from the first step's surface: part of the saved state
-    curve = []
-    ck = _checkpoint.current()
-    key = ck.claim("generalise") if ck is not None else None
-    saved = ck.get(key) if key is not None else None
-    first = 0
-    if saved is not None:
-        model.load_state_dict(saved["model"])
-        with torch.no_grad():
-            log_sigma.copy_(saved["log_sigma"])
-        opt.load_state_dict(saved["opt"])
-        sched.load_state_dict(saved["sched"])
-        kernels.update(saved["kernels"])
-        curve = [(int(a), float(b)) for a, b in saved["curve"]]
-        first = int(saved["step"])
-    for step in range(first, int(steps)):
+    live = _FitState(model, log_sigma)
+
+    def step() -> float:
         opt.zero_grad(set_to_none=True)
         surf = model.surfaces()
-        pred, miss = _render(surf, obs, sun, s, kernels)
+        pred, miss = _render(surf, obs, sun, s, live.kernels)
         data = losses.l1(apply_camera(pred, camera, log_sigma.exp()), meas.to(pred)).mean()
         d = model.displacement / 1e-3
         reg = s.ridge * losses.ridge(d) + s.laplacian * losses.laplacian(d)
@@ -259,18 +292,24 @@ def _fit(facets, obs, camera, sigma0, sun, start, weight, s, steps, heldout=None
         total.backward()
         opt.step()
         sched.step()
-        if heldout is not None and (step + 1) % s.eval_every == 0:
-            hobs, hcam = heldout
-            sig = blur_for(obs.targets, log_sigma.detach().exp(), hobs.targets)
-            curve.append((step + 1, evaluate_with_camera(model.surfaces(), hobs, sun, hcam, sig, s)["l1"][0]))
-        if key is not None:
-            if step + 1 == int(steps) or ck.due(step + 1):
-                ck.put(key, {"step": step + 1, "model": {k: v.detach().clone() for k, v in model.state_dict().items()},
-                             "log_sigma": log_sigma.detach().clone(), "opt": copy.deepcopy(opt.state_dict()),
-                             "sched": sched.state_dict(), "kernels": dict(kernels),
-                             "curve": [[a, b] for a, b in curve]})
-            ck.notify("step", key, step + 1)
-    return model, log_sigma.detach().exp(), curve
+        live.steps += 1
+        return float(data.detach())
+
+    def heldout_l1() -> torch.Tensor:
+        # Only on the eval_every grid (not at the start, nor at a last step off the grid): the curve's steps
+        # are the step counts the leave-one-out choice compares.
+        at = live.steps
+        if heldout is None or at == 0 or at % s.eval_every != 0:
+            return torch.full((1,), float("inf"))
+        hobs, hcam = heldout
+        sig = blur_for(obs.targets, log_sigma.detach().exp(), hobs.targets)
+        l1 = evaluate_with_camera(model.surfaces(), hobs, sun, hcam, sig, s)["l1"][0]
+        live.curve.append((at, l1))
+        return torch.full((1,), float(l1))
+
+    early_stopping_fit(step, heldout_l1, _loop_state(live), int(steps), validated=torch.zeros(1, dtype=torch.bool),
+                       check_every=s.eval_every if heldout is not None else max(1, int(steps)))
+    return model, log_sigma.detach().exp(), live.curve
 
 
 def loo_select(facets, train, camera, sigma0, sun, start, s, progress=False, prior=None,
@@ -281,8 +320,6 @@ def loo_select(facets, train, camera, sigma0, sun, start, s, progress=False, pri
     the (slope weight, prior weight, step count) with the lowest mean held-out L1; ties go to the earlier
     grid entry (0 first: a prior that does not help on held-out images is not used).
     """
-    from tqdm.auto import tqdm
-
     n = len(train)
     curves: dict = {}
     pgrid = (None,) if prior is None else tuple(float(p) for p in prior_grid)
@@ -428,8 +465,6 @@ def fit_generalising(facets: Facets, train: Observations, base_sun: SunSettings,
 
 def summarise(train_rows: list, test_rows: list) -> dict:
     """Headline figures: medians, training images worse than ideal, test images improved with a Wilson 95 % CI."""
-    from .acceptance import wilson_interval
-
     k = sum(r["l1_learned"] < r["l1_ideal"] for r in test_rows)
     n = len(test_rows)
     lo, hi = wilson_interval(k, n)
@@ -466,8 +501,6 @@ def reconstruct_generalising(facets: Facets, train: Observations, test: Observat
     ``reference``: the surface the edge ridge is measured against (default: the ideal start).
     ``prior``, ``prior_grid``: the plant prior, see :func:`fit_generalising`.
     """
-    from .edges import edge_ridge_mrad
-
     s = s or GeneraliseSettings()
     model, info = fit_generalising(facets, train, base_sun, s, progress, prior, prior_grid)
     sun, ideal, learned = info["optics"], info["ideal"], model.surfaces()
@@ -485,71 +518,3 @@ def reconstruct_generalising(facets: Facets, train: Observations, test: Observat
               "optics_used": {"sunshape": sun.sunshape, "csr": sun.csr, "slope_error_rad": sun.slope_error},
               **info["report"]}
     return report, model, info
-
-
-def reconstruct_paint_generalising(paint_dir, heliostat_id: str, *, train_first: int | None = 3, train_records=None,
-                                   settings: GeneraliseSettings | None = None, sun: SunSettings | None = None,
-                                   alignment: str = "focal-spot", progress: bool = False, plant=None, device="cpu",
-                                   checkpoint=None, prior=None) -> tuple[dict, LearnableSurface, dict]:
-    """:func:`reconstruct_generalising` on a PAINT heliostat (the split and poses of
-    :func:`heliotwin.surfaces.study.reconstruct_paint`; Buie sun, CSR 0.05, slope error chosen as above).
-
-    ``plant`` (e.g. a calibrated scenario's) replaces the PAINT folder's nominal plant, as in
-    :func:`~heliotwin.surfaces.study.reconstruct_paint`: its kinematics pose the heliostat. ``device``
-    (``"cpu"``, ``"cuda"``, ``"auto"``) is where the surface is learned and evaluated; the model, extras and
-    report come back on the CPU. Under ``checkpoint``
-    (:func:`heliotwin.surfaces.study.reconstruction_checkpoint`) every fit saves its state and a resumed
-    checkpoint continues it (see :func:`_fit`); the caller removes it once its outputs are written.
-    ``prior``: a plant surface prior (:class:`~heliotwin.surfaces.plantprior.SurfacePrior`); refused (one line)
-    when it was learned from ``heliostat_id`` itself or has another facet count.
-
-    Returns
-    -------
-    report : dict
-        :func:`reconstruct_generalising`'s, plus ``heliostat``, ``paint``, ``alignment``, ``device``,
-        ``seconds``.
-    model : LearnableSurface
-    extras : dict
-        ``facets``, ``train``, ``test``, ``info`` (see :func:`fit_generalising` and
-        :func:`reconstruct_generalising`), ``optics`` (SunSettings used), ``ideal`` (Surfaces).
-    """
-    import time
-
-    from ..devices import resolve_device, to_device
-    from ..io.paint import load_paint
-    from .observations import observations_from_records, split_records
-
-    t0 = time.perf_counter()
-    device = resolve_device(device)
-    s = settings or GeneraliseSettings()
-    if prior is not None:
-        check_leakage(prior, heliostat_id)
-    ds = load_paint(paint_dir, heliostats=[heliostat_id])
-    source = "paint" if plant is None else "scenario"
-    if plant is not None:
-        from ..field.update import select_heliostats
-
-        ds = ds.on_plant(select_heliostats(plant, [heliostat_id]))
-    plant = ds.plant if device == "cpu" else to_device(ds.plant, device)
-    tr, te = split_records(ds.records_of(heliostat_id), train_records, train_first)
-    train = observations_from_records(plant, 0, tr, s.resolution, 0.0, alignment)
-    test = observations_from_records(plant, 0, te, s.resolution, 0.0, alignment)
-    if device != "cpu":  # the measured images are read on the CPU
-        train, test = train.to(device), test.to(device)
-    facets = Facets(*(getattr(plant.field.facets, a)[:1].to(torch.float64)
-                      for a in ("translation", "canting_e", "canting_n")))
-    from ..io import checkpoint as _checkpoint
-
-    with _checkpoint.active(checkpoint):
-        report, model, info = reconstruct_generalising(facets, train, test,
-                                                       sun or SunSettings(sunshape="buie", csr=0.05), s, progress,
-                                                       prior=prior)
-    report.update(heliostat=heliostat_id, paint=str(paint_dir), alignment=alignment, device=device,
-                  plant=source,
-                  seconds=time.perf_counter() - t0)
-    extras = {"facets": facets, "train": train, "test": test, "info": info, "optics": info["optics"],
-              "ideal": info["ideal"]}
-    if device != "cpu":
-        model, extras = model.cpu(), to_device(extras, "cpu")
-        extras["train"], extras["test"] = train.to("cpu"), test.to("cpu")
-    return report, model, extras

@@ -20,6 +20,7 @@ from ..field.targets import PlanarTarget
 from ..io.images import CENTERED_WINDOW_M
 from ..raytrace.conv import mean_footprint_kernel, render_centered
 from ..raytrace.flux import cross_correlation
+from ..raytrace.montecarlo import trace_mc
 from ..scene import check_integrator, to_world
 from . import losses
 from .observations import Observations
@@ -65,6 +66,7 @@ def _world_samples(surfaces: Surfaces, obs: Observations, samples, delta):
 
 
 def check_learning_integrator(integrator: str) -> None:
+    """One-line :class:`HeliotwinError` unless ``integrator`` is one of :data:`LEARNING_INTEGRATORS`."""
     check_integrator(integrator)
     if integrator not in LEARNING_INTEGRATORS:
         raise HeliotwinError(f"surface learning renders with {' or '.join(LEARNING_INTEGRATORS)}, got {integrator!r}")
@@ -122,8 +124,6 @@ def predict_images(surfaces: Surfaces, obs: Observations, sun: SunSettings, *, s
                               resolution=resolution, kernel=kern, center=fixed)
         img = res.image
         if integrator == "mc":
-            from ..raytrace.montecarlo import trace_mc
-
             c = res.center.detach().to(torch.float64)
             win = torch.stack((c[:, 0] - size_m / 2, c[:, 1] - size_m / 2, torch.full_like(c[:, 0], size_m),
                                torch.full_like(c[:, 0], size_m)), -1)
@@ -169,8 +169,6 @@ def trace_mc_centered(surfaces: Surfaces, obs: Observations, sun: SunSettings, *
     torch.Tensor, [B, R, R]
         Flux [W/m^2].
     """
-    from ..raytrace.montecarlo import trace_mc
-
     with torch.no_grad():
         pw, nw, ar, sund = _world_samples(surfaces, obs, samples, None)
         gen = torch.Generator(device=pw.device).manual_seed(int(seed))

@@ -31,6 +31,7 @@ from ..field import kinematics as kin_ops
 from ..field.plant import Facets, Kinematics, SunSettings, Surfaces
 from ..field.targets import PlanarTarget
 from ..geometry import angle_between
+from ..sun import daylight_times, direction_from_paint_angles
 from . import losses
 from .imaging import predict_images
 from .learning import LearnableSurface, heights_to_displacement, learnable_surfaces, normal_heights
@@ -120,8 +121,6 @@ def make_scene(plant, distance: float, generator: torch.Generator, sun: SunSetti
 
 def random_suns(site, n: int, generator: torch.Generator, year: int = 2023, min_elevation_deg: float = 15.0):
     """``n`` random daylight sun directions of a year, [n, 3] (pvlib positions drawn with ``generator``)."""
-    from ..sun import daylight_times, direction_from_paint_angles
-
     _, az, el = daylight_times(year, "60min", site.latitude_deg, site.longitude_deg, site.altitude_m,
                                min_elevation_deg=min_elevation_deg)
     idx = torch.randperm(az.numel(), generator=generator)[:n]

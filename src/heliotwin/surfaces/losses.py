@@ -63,7 +63,8 @@ IMAGE_LOSSES = {"l1": l1, "l2": l2, "kl": kl}
 
 
 def image_loss(name: str, pred: torch.Tensor, meas: torch.Tensor) -> torch.Tensor:
-    """Mean over images of the named loss (``l1``, ``l2``, ``kl``)."""
+    """Mean over images of the named loss (``l1``, ``l2``, ``kl``): scalar, of ``[B, R, C]`` images (any scale;
+    normalised to unit sum inside each loss)."""
     try:
         fn = IMAGE_LOSSES[name.lower()]
     except KeyError:

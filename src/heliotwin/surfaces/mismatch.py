@@ -18,6 +18,7 @@ import torch
 from ..field.plant import SunSettings
 from .generalise import GeneraliseSettings, reconstruct_generalising
 from .insilico import make_scene, observe, random_suns, surface_metrics
+from .training import blur_images
 
 __all__ = ["camera_truth", "add_halo", "run_mismatch_case", "TRUTH_SUN"]
 
@@ -34,8 +35,6 @@ def camera_truth(images: torch.Tensor, saturation: float, cut: float) -> torch.T
 
 def add_halo(images: torch.Tensor, fraction: float = 0.5, sigma_px: float = 8.0) -> torch.Tensor:
     """``(1 - fraction) I + fraction blur(I)`` (same power): a broad diffuse halo, ``[B, R, C]``."""
-    from .training import blur_images
-
     wide = blur_images(images, sigma_px)
     wide = wide * images.sum((-2, -1), keepdim=True) / wide.sum((-2, -1), keepdim=True).clamp_min(1e-30)
     return (1 - fraction) * images + fraction * wide

@@ -5,7 +5,8 @@ targets). :func:`observations_from_records` builds them from calibration records
 measured focal spot, or from the motor steps; image from the one measured-image loader,
 :func:`heliotwin.io.images.load_measured_image`). :func:`split_record_ids` is the train/test split over
 plain record columns (id, time, image path), so it can be fed from any record table;
-:func:`split_records` applies it to record objects.
+:func:`split_records` applies it to record objects. :func:`paint_observations` does all of it for one PAINT
+heliostat (the one data path of the surface learner).
 
 Shapes: B images; R window pixels per side. Units: metres, radians.
 """
@@ -15,12 +16,16 @@ from dataclasses import dataclass, field
 
 import torch
 
+from ..devices import to_device
 from ..errors import HeliotwinError
 from ..field import kinematics as kin_ops
+from ..field.update import select_heliostats
 from ..io.images import load_measured_image
+from ..io.paint import PaintDataset, load_paint
 from ..io.records import RecordTable
 
-__all__ = ["Observations", "observations_from_records", "split_record_ids", "split_records", "load_centered_image"]
+__all__ = ["Observations", "observations_from_records", "split_record_ids", "split_records", "load_centered_image",
+           "paint_observations"]
 
 
 @dataclass
@@ -150,6 +155,11 @@ def observations_from_records(plant, heliostat_index: int, records: RecordTable,
 
     ``alignment="focal-spot"`` aims the heliostat at each record's measured focal spot (``records.spot``:
     HeliOS, else UTIS); ``"motor"`` uses the plant's kinematics at the recorded motor steps.
+
+    Returns
+    -------
+    Observations
+        B = len(records) images ``[B, R, R]`` (R = ``resolution``) with poses ``[B, 3, 3]``, ``[B, 3]`` [m].
     """
     kin = plant.field.kinematics.index(heliostat_index)
     sun = records.sun
@@ -166,3 +176,47 @@ def observations_from_records(plant, heliostat_index: int, records: RecordTable,
         raise HeliotwinError("every record needs a '-flux-centered.png' image")
     images = torch.stack([load_centered_image(p, resolution, background) for p in records.flux_centered_png])
     return Observations(sun, rot, conc, targets, images, [str(r) for r in records.record_id.tolist()])
+
+
+def paint_observations(paint_dir, heliostat_id: str, *, plant=None, device: str = "cpu", train_records=None,
+                       train_first: int | None = None, resolution: int = 64, background: float = 0.0,
+                       alignment: str = "focal-spot") -> tuple[PaintDataset, object, Observations, Observations]:
+    """One PAINT heliostat's training and test observations (:func:`split_records`,
+    :func:`observations_from_records`).
+
+    Parameters
+    ----------
+    paint_dir : path
+        PAINT folder.
+    heliostat_id : str
+    plant : Plant, optional
+        Replaces the folder's nominal plant (e.g. a calibrated scenario's): its kinematics pose the heliostat.
+    device : {"cpu", "cuda"}
+        Where the plant and observations go (the images are read on the CPU).
+    train_records, train_first
+        The split (:func:`split_record_ids`).
+    resolution : int
+        R, window pixels per side.
+    background : float
+        Subtracted from each image, fraction of its max.
+    alignment : {"focal-spot", "motor"}
+
+    Returns
+    -------
+    dataset : PaintDataset
+        The heliostat's records on the (nominal or given) plant, on the CPU.
+    plant : Plant
+        One heliostat, on ``device``.
+    train, test : Observations
+        ``[B, R, R]`` images with poses, on ``device``; ``train`` in time order.
+    """
+    ds = load_paint(paint_dir, heliostats=[heliostat_id])
+    if plant is not None:
+        ds = ds.on_plant(select_heliostats(plant, [heliostat_id]))
+    on_device = ds.plant if device == "cpu" else to_device(ds.plant, device)
+    tr, te = split_records(ds.records_of(heliostat_id), train_records, train_first)
+    train = observations_from_records(on_device, 0, tr, resolution, background, alignment)
+    test = observations_from_records(on_device, 0, te, resolution, background, alignment)
+    if device != "cpu":
+        train, test = train.to(device), test.to(device)
+    return ds, on_device, train, test

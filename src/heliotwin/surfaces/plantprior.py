@@ -1,4 +1,4 @@
-"""A plant-level prior on facet canting and low-order shape, learned across heliostats (issue #10, item 1).
+"""A plant-level prior on facet canting and low-order shape, learned across heliostats.
 
 Heliostats of one plant share their facet design, their canting jig and their installation crew, so the
 *low-order* shape of each facet -- its tilt (canting error) and its focus, astigmatism and twist -- repeats
@@ -46,14 +46,19 @@ Units: metres; coefficients in radians.
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass
 
 import torch
 
 from ..errors import HeliotwinError, InputFileError
 from ..field.plant import Facets, Surfaces
+from ..io.scenario import load_scenario
 from ..shrinkage import GaussianPrior, check_positive_definite, shrunk_covariance
 from .learning import LearnableSurface, heights_to_displacement, learnable_surfaces, normal_heights
+from .state import KEY as SURFACES
+from .state import PRIOR_KEY as KEY
+from .state import learned_surface
 
 __all__ = ["NAMES", "KEY", "MIN_SOURCES", "FLOOR_RAD", "SHRINK", "PRIOR_WEIGHT_GRID", "SurfacePrior",
            "low_order_coefficients", "low_order_heights", "low_order_start", "surface_prior", "prior_penalty",
@@ -61,8 +66,6 @@ __all__ = ["NAMES", "KEY", "MIN_SOURCES", "FLOOR_RAD", "SHRINK", "PRIOR_WEIGHT_G
 
 #: Coefficient names, all [rad]: slope along canting_e / canting_n, focus, astigmatism, twist (at distance L).
 NAMES = ("slope_e", "slope_n", "focus", "astigmatism", "twist")
-#: The ``Scenario.learned`` key of a stored surface prior.
-KEY = "surface_prior"
 #: Fewest source heliostats (a spread over heliostats needs two; see the module docstring).
 MIN_SOURCES = 2
 #: Smallest marginal prior sigma [rad]: a few sources can agree by accident; no heliostat is trusted to be
@@ -271,12 +274,6 @@ def prior_from_scenarios(paths, exclude=(), **kwargs) -> SurfacePrior:
     a file without learned surfaces, a heliostat in two files, a source in ``exclude`` (leakage), different
     facet counts, fewer than :data:`MIN_SOURCES` sources. ``kwargs`` go to :func:`surface_prior`.
     """
-    import os
-
-    from ..io.scenario import load_scenario
-    from .state import KEY as SURFACES
-    from .state import learned_surface
-
     coefs, ids, where = [], [], {}
     exclude = {str(e) for e in exclude}
     for path in paths:
@@ -317,14 +314,10 @@ def load_surface_prior(paths, heliostat_id: str | None = None) -> SurfacePrior:
     """``--surface-prior-from``: one scenario holding a stored prior (``/learned/surface_prior``) is read as it
     is; otherwise the prior is built from the learned surfaces of all ``paths``
     (:func:`prior_from_scenarios`). Either way the reconstructed ``heliostat_id`` must not be a source."""
-    import os
-
     paths = [p for p in paths if str(p).strip()]
     if not paths:
         raise HeliotwinError("--surface-prior-from: give one or more scenario files (comma-separated)")
     if len(paths) == 1 and os.path.isfile(paths[0]):
-        from ..io.scenario import load_scenario
-
         sc = load_scenario(paths[0])
         if sc.learned.get(KEY):
             prior = SurfacePrior.from_state(sc.learned[KEY], paths[0])

@@ -11,10 +11,12 @@ from __future__ import annotations
 import torch
 from matplotlib.figure import Figure
 
+from ..field import facets as facet_ops
 from ..field.plant import Facets
 from ..geometry import angle_between
 from ..io.images import CENTERED_WINDOW_M
 from ..io.report import save_figure
+from .edges import residual_map_mrad
 from .learning import normal_heights
 
 __all__ = ["normal_deviation_map", "plot_normal_deviation", "plot_flux_comparison", "plot_residual_deviation"]
@@ -29,8 +31,6 @@ def normal_deviation_map(facets: Facets, control_points: torch.Tensor, degree, r
     torch.Tensor, [F, su, sv]
         [mrad].
     """
-    from ..field import facets as facet_ops
-
     _, n = normal_heights(facets, control_points, degree, samples)
     if reference is None:
         ref = facet_ops.facet_normals(facets.canting_e, facets.canting_n)[0].to(n)[:, None, None, :].expand_as(n)
@@ -69,7 +69,8 @@ def plot_normal_deviation(facets: Facets, control_points: torch.Tensor, degree, 
 
 def plot_flux_comparison(measured: torch.Tensor, ideal: torch.Tensor, learned: torch.Tensor, labels, path,
                          l1_ideal=None, l1_learned=None, window_m: float = CENTERED_WINDOW_M, title: str = "") -> None:
-    """Rows = test images; columns = measured / ideal / learned, each normalised to its own maximum.
+    """Rows = test images; columns = measured / ideal / learned (each ``[B, R, R]``, any scale), each normalised
+    to its own maximum; ``window_m`` [m] the window side.
 
     Every panel shows the spot-centred window in metres on the target (PAINT orientation: image left = east),
     with one colour bar for the relative flux; the L1 of sum-normalised images against the measured one is
@@ -116,8 +117,6 @@ def plot_residual_deviation(learned, reference, facets: Facets, path, title: str
     facets : Facets
         ``[1, F, 3]`` [m].
     """
-    from .edges import residual_map_mrad
-
     res = residual_map_mrad(learned, reference, facets).detach().cpu()
     fig = Figure(figsize=(2.0 * res.shape[0] + 0.8, 2.4))
     axes = fig.subplots(1, res.shape[0], squeeze=False)[0]

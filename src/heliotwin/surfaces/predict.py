@@ -15,6 +15,7 @@ import math
 import statistics
 
 import torch
+from tqdm.auto import tqdm
 
 from ..errors import HeliotwinError
 from ..field import kinematics as kin_ops
@@ -62,8 +63,6 @@ def yearly_flux(kinematics: Kinematics, target: PlanarTarget, site: tuple, learn
     ``l1_ideal_vs_learned``, ``peak_learned_w_m2``, ``peak_ideal_w_m2``, ``power_w`` and, with ``truth``,
     ``l1_ideal``, ``l1_learned``, ``imp``.
     """
-    from tqdm.auto import tqdm
-
     times, az, el = daylight_times(year, every, site[0], site[1], site[2], min_elevation_deg=min_elevation_deg)
     if len(times) == 0:
         raise HeliotwinError(f"no daylight instants in {year} every {every}")

@@ -17,9 +17,15 @@ import torch
 from ..errors import HeliotwinError, InputFileError
 from ..field import facets as facet_ops
 from ..field.plant import Plant, SunSettings, Surfaces
+from ..field.update import with_surfaces
+from ..io.scenario import Scenario, next_scenario, provenance_entry
+
+__all__ = ["KEY", "PRIOR_KEY", "surface_state", "with_learned_surface", "learned_surface"]
 
 #: The key of learned surfaces under ``Scenario.learned``.
 KEY = "surfaces"
+#: The ``Scenario.learned`` key of a stored plant surface prior (:mod:`heliotwin.surfaces.plantprior`).
+PRIOR_KEY = "surface_prior"
 
 
 def surface_state(displacement: torch.Tensor, optics: SunSettings, *, train_records, target: str,
@@ -45,14 +51,17 @@ def surface_state(displacement: torch.Tensor, optics: SunSettings, *, train_reco
             "target": str(target), "settings": json.dumps(settings, allow_nan=False)}
 
 
-def save_learned_surface(path, plant: Plant, heliostat_id: str, surfaces: Surfaces, displacement: torch.Tensor,
-                         optics: SunSettings, *, previous=None, train_records=(), target: str = "",
-                         settings: dict | None = None, source: str = "", surface_prior: dict | None = None):
-    """Write the plant with one heliostat's learned surface as a scenario (plant″).
+def with_learned_surface(previous: Scenario | None, plant: Plant, heliostat_id: str, surfaces: Surfaces,
+                         displacement: torch.Tensor, optics: SunSettings, *, train_records=(), target: str = "",
+                         settings: dict | None = None, source: str = "",
+                         surface_prior: dict | None = None) -> Scenario:
+    """The scenario after one heliostat's surface was learned (plant″), in memory; the caller writes it
+    (:func:`heliotwin.io.scenario.write_scenario`).
 
     Parameters
     ----------
-    path : str or Path
+    previous : heliotwin.io.scenario.Scenario or None
+        The scenario ``plant`` came from (learned state and provenance kept), None for a PAINT folder's plant.
     plant : Plant
         The whole plant the step started from (a scenario's or the PAINT folder's).
     heliostat_id : str
@@ -62,29 +71,28 @@ def save_learned_surface(path, plant: Plant, heliostat_id: str, surfaces: Surfac
         Learned offsets along the facet normals [m].
     optics : SunSettings
         Optics chosen for (and used in) the fit.
-    previous : heliotwin.io.scenario.Scenario, optional
-        The scenario ``plant`` came from (learned state and provenance kept).
     train_records, target, settings, source
-        Provenance: training record ids, their target, the fit settings, the PAINT folder.
+        Provenance: training record ids, their target, the fit settings (JSON values), the PAINT folder.
     surface_prior : dict, optional
         The plant surface prior used (:meth:`heliotwin.surfaces.plantprior.SurfacePrior.state`), stored under
         ``/learned/surface_prior`` (replacing one ``previous`` held); None keeps ``previous``'s.
-    """
-    from ..field.update import with_surfaces
-    from ..io.scenario import provenance_entry, save_step
 
+    Returns
+    -------
+    heliotwin.io.scenario.Scenario
+        With the learned control points in ``plant.field.surfaces``, the entry under
+        ``learned["surfaces"][heliostat_id]`` and one ``"reconstruct"`` provenance step; not written.
+    """
     learned = dict(previous.learned) if previous is not None else {}
     entries = dict(learned.get(KEY) or {})
     entries[heliostat_id] = surface_state(displacement.reshape(displacement.shape[-3:]), optics,
                                           train_records=train_records, target=target, settings=settings or {})
     learned[KEY] = entries
     if surface_prior is not None:
-        from .plantprior import KEY as PRIOR_KEY
-
         learned[PRIOR_KEY] = surface_prior
     step = provenance_entry("reconstruct", heliostat=heliostat_id, source=str(source),
                             records=[int(r) for r in train_records], settings=settings or {})
-    return save_step(path, with_surfaces(plant, [heliostat_id], surfaces), previous, learned=learned, step=step)
+    return next_scenario(previous, with_surfaces(plant, [heliostat_id], surfaces), learned=learned, step=step)
 
 
 def learned_surface(scenario, heliostat_id: str) -> dict:

@@ -1,5 +1,6 @@
-"""The PAINT surface-reconstruction study: learn a heliostat's surface from its earliest centred images,
-evaluate on the others, and report.
+"""The legacy surface learner's study (``reconstruct --method legacy``): learn a heliostat's surface from its
+training images with a chosen image loss and early stopping, evaluate on the test images, and report.
+:func:`heliotwin.workflows.reconstruct.reconstruct` loads the observations and calls :func:`reconstruct_observed`.
 
 Protocol. The records with ``-flux-centered.png`` images are split by time
 (:func:`heliotwin.surfaces.observations.split_records`); the poses aim the heliostat at each record's measured
@@ -14,7 +15,6 @@ Units: metres, radians; L1 of unit-sum images (0 identical, 2 disjoint).
 from __future__ import annotations
 
 import dataclasses
-import os
 import statistics
 import time
 
@@ -22,14 +22,14 @@ import torch
 
 from ..errors import HeliotwinError
 from ..field.plant import Facets, SunSettings
-from ..io import checkpoint as _checkpoint
 from . import losses
+from .deflectometry import compare_surfaces, deflectometry_surface
 from .imaging import evaluate_images, trace_mc_centered
 from .learning import LearnableSurface
-from .observations import Observations, observations_from_records, split_records
+from .observations import Observations
 from .training import TrainSettings, train_with_early_stopping
 
-__all__ = ["reconstruct_paint", "reconstruction_checkpoint", "choose_slope_error", "SLOPE_ERROR_GRID", "SHARP_SUN"]
+__all__ = ["reconstruct_observed", "choose_slope_error", "SLOPE_ERROR_GRID", "SHARP_SUN"]
 
 #: Slope errors [rad] tried when fitting the ideal baseline's optics to the training images.
 SLOPE_ERROR_GRID = (0.5e-3, 1.0e-3, 1.5e-3, 2.0e-3, 2.5e-3, 3.0e-3)
@@ -108,8 +108,6 @@ def _evaluate(ideal, learned, train, test, optics, s, evaluate_mc) -> dict:
 
 
 def _deflectometry_report(path, fit, defl, facets, ideal, learned, test, optics, s, rows, started_from) -> dict:
-    from .deflectometry import compare_surfaces
-
     e_defl = evaluate_images(defl, test, optics, samples=s.samples, resolution=s.resolution, size_m=s.size_m)
     for row, v in zip(rows, e_defl["l1"]):
         row["l1_deflectometry"] = v
@@ -119,12 +117,10 @@ def _deflectometry_report(path, fit, defl, facets, ideal, learned, test, optics,
             "median_l1_deflectometry": statistics.median(e_defl["l1"])}
 
 
-def _report(heliostat_id, paint_dir, train, test, ev, optics, scores, s, info, model, alignment, background):
+def _report(train, test, ev, optics, scores, s, info, model, alignment, background):
     rows = _test_rows(test, ev["ideal"], ev["learned"], ev["sharp"], ev["mc"])
     d_mm = model.displacement.detach() * 1e3
     return {
-        "heliostat": heliostat_id,
-        "paint": str(paint_dir),
         "train": [{"record": int(r), "l1_ideal": a, "l1_learned": b}
                   for r, a, b in zip(train.ids, ev["train_ideal"]["l1"], ev["train_learned"]["l1"])],
         "test": rows,
@@ -144,58 +140,49 @@ def _report(heliostat_id, paint_dir, train, test, ev, optics, scores, s, info, m
     }
 
 
-def reconstruct_paint(paint_dir, heliostat_id: str, *, train_records=None, train_first: int | None = None,
-                      settings: TrainSettings | None = None, sun: SunSettings | None = None,
-                      slope_error: float | None = None, background: float = 0.0, alignment: str = "focal-spot",
-                      evaluate_mc: bool = True, progress: bool = True, deflectometry=None,
-                      start_from_deflectometry: bool = False, plant=None, device="cpu", checkpoint=None
-                      ) -> tuple[dict, LearnableSurface, object, dict]:
-    """Learn a heliostat's surface from its earliest centred images; evaluate on the others.
+def reconstruct_observed(facets: Facets, train: Observations, test: Observations,
+                         settings: TrainSettings | None = None, *, sun: SunSettings | None = None,
+                         slope_error: float | None = None, evaluate_mc: bool = True, progress: bool = True,
+                         deflectometry=None, start_from_deflectometry: bool = False, alignment: str = "focal-spot",
+                         background: float = 0.0) -> tuple[dict, LearnableSurface, dict]:
+    """Learn a heliostat's surface from its training images (:func:`train_with_early_stopping`); evaluate on
+    the test images.
 
-    ``plant`` (e.g. a calibrated scenario's) replaces the PAINT folder's nominal plant: its kinematics pose
-    the heliostat (``alignment="motor"`` then uses the calibrated kinematics at the recorded motor steps).
+    Parameters
+    ----------
+    facets : Facets
+        One heliostat, ``[1, F, 3]`` [m].
+    train, test : Observations
+        Images ``[B, R, R]`` with poses (:func:`heliotwin.surfaces.observations.paint_observations`).
+    settings : TrainSettings
+    sun : SunSettings, optional
+        Base optics (default Buie, CSR 0.05); the slope error is ``slope_error`` [rad] or, when None, chosen
+        by the ideal surface's training L1 (:func:`choose_slope_error`).
+    evaluate_mc : bool
+        Also compare the test images traced by the Monte-Carlo tracer.
+    deflectometry : path, optional
+        A PAINT deflectometry HDF5 file: its NURBS fit is traced on the test images like the ideal and learned
+        surfaces and the learned surface is compared with it in mm and mrad (report key ``deflectometry``);
+        with ``start_from_deflectometry`` the learning starts from it instead of flat.
+    alignment, background
+        How the observations were made (reported).
 
-    ``device`` (``"cpu"``, ``"cuda"``, ``"auto"`` = CUDA when present) is where the surface is learned and
-    evaluated; the model, images and report come back on the CPU. Under ``checkpoint``
-    (:func:`reconstruction_checkpoint`) every fit saves its state and a resumed checkpoint continues it
-    (:mod:`heliotwin.surfaces.training`); the caller removes it once its outputs are written.
-
-    ``deflectometry`` (a PAINT deflectometry HDF5 path): its NURBS fit is traced on the test images like the
-    ideal and learned surfaces, and the learned surface is compared with it in mm and mrad (report key
-    ``deflectometry``); with ``start_from_deflectometry`` the learning starts from it instead of flat.
+    Under an active :mod:`heliotwin.io.checkpoint` every fit saves its state and a resumed checkpoint continues
+    it (:mod:`heliotwin.surfaces.training`). The learner follows the device of ``facets`` and the observations.
 
     Returns
     -------
     report : dict
-        JSON-ready (per test record L1 / cross-correlation for ideal and learned, median IMP, seconds, settings).
+        JSON-ready (per test record L1 / cross-correlation for ideal and learned, median IMP, settings,
+        ``fit_seconds``).
     model : LearnableSurface
-    dataset : PaintDataset
     extras : dict
-        ``train``/``test`` Observations, predicted test images (for plots), ``optics``, ``facets``, ``ideal``
-        and ``fit_info`` (:class:`~heliotwin.surfaces.training.FitInfo`).
+        ``train``/``test`` Observations, predicted ideal/learned test images ``[B, R, R]`` (for plots),
+        ``optics``, ``facets``, ``ideal`` and ``fit_info`` (:class:`~heliotwin.surfaces.training.FitInfo`).
     """
-    from ..devices import resolve_device, to_device
-    from ..io.paint import load_paint
-
-    device = resolve_device(device)
-    t0 = time.perf_counter()
     s = settings or TrainSettings()
-    ds = load_paint(paint_dir, heliostats=[heliostat_id])
-    if plant is not None:
-        from ..field.update import select_heliostats
-
-        ds = ds.on_plant(select_heliostats(plant, [heliostat_id]))
-    plant = ds.plant if device == "cpu" else to_device(ds.plant, device)
-    train_recs, test_recs = split_records(ds.records_of(heliostat_id), train_records, train_first)
-    train = observations_from_records(plant, 0, train_recs, s.resolution, background, alignment)
-    test = observations_from_records(plant, 0, test_recs, s.resolution, background, alignment)
-    if device != "cpu":  # the measured images are read on the CPU
-        train, test = train.to(device), test.to(device)
-    facets = Facets(*(getattr(plant.field.facets, a)[:1] for a in ("translation", "canting_e", "canting_n")))
     defl = defl_fit = None
     if deflectometry is not None:
-        from .deflectometry import deflectometry_surface
-
         defl, defl_fit = deflectometry_surface(deflectometry, Facets(*(t.to(torch.float64) for t in facets)))
     elif start_from_deflectometry:
         raise HeliotwinError("start_from_deflectometry needs a deflectometry file")
@@ -208,42 +195,17 @@ def reconstruct_paint(paint_dir, heliostat_id: str, *, train_records=None, train
     t_fit = time.perf_counter()
     init = dict(initial=defl.control_points, initial_degree=(defl.degree_u, defl.degree_v)) \
         if start_from_deflectometry else {}
-    with _checkpoint.active(checkpoint):
-        model, info = train_with_early_stopping(facets, train, optics, s, progress, **init)
+    model, info = train_with_early_stopping(facets, train, optics, s, progress, **init)
     fit_seconds = time.perf_counter() - t_fit
     ideal = LearnableSurface(facets, s.control_points, s.degree).surfaces()
     learned = model.surfaces()
     ev = _evaluate(ideal, learned, train, test, optics, s, evaluate_mc)
-    report = _report(heliostat_id, paint_dir, train, test, ev, optics, scores, s, info, model, alignment, background)
-    report.update(seconds=time.perf_counter() - t0, fit_seconds=fit_seconds)
+    report = _report(train, test, ev, optics, scores, s, info, model, alignment, background)
+    report.update(fit_seconds=fit_seconds)
     if defl is not None:
         report["deflectometry"] = _deflectometry_report(deflectometry, defl_fit, defl, facets, ideal, learned, test,
                                                         optics, s, report["test"], start_from_deflectometry)
     extras = {"train": train, "test": test, "ideal_images": ev["ideal"]["images"],
               "learned_images": ev["learned"]["images"], "optics": optics, "facets": facets, "ideal": ideal,
               "fit_info": info}
-    if device != "cpu":
-        model, extras = model.cpu(), to_device(extras, "cpu")
-        extras["train"], extras["test"] = train.to("cpu"), test.to("cpu")
-    return report, model, ds, extras
-
-
-def reconstruction_checkpoint(path, paint_dir, heliostat_id: str, *, resume: bool = False, device="cpu",
-                              inputs=(), **options) -> _checkpoint.Checkpoint:
-    """The :class:`~heliotwin.io.checkpoint.Checkpoint` of a :func:`reconstruct_paint` run at ``path``, tagged
-    with the heliostat, the device and ``options`` (the run's keyword arguments: ``settings``, ``sun``,
-    ``train_records``, ...) and the inputs (the PAINT folder and ``inputs``, e.g. a scenario or deflectometry
-    file). Checkpoint options (``every``, ``min_interval_s``, ``hook``) are keyword arguments too."""
-    from ..devices import resolve_device
-
-    ck_opts = {k: options.pop(k) for k in ("every", "min_interval_s", "hook") if k in options}
-
-    def plain(v):
-        if dataclasses.is_dataclass(v) and not isinstance(v, type):
-            return dataclasses.asdict(v)
-        return v
-
-    settings = {"command": "reconstruct", "heliostat": heliostat_id, "device": resolve_device(device),
-                "paint": os.path.abspath(os.fspath(paint_dir)), **{k: plain(v) for k, v in options.items()}}
-    files = [paint_dir] + [p for p in inputs if p is not None]
-    return _checkpoint.Checkpoint(path, _checkpoint.make_tag(settings, files), resume=resume, **ck_opts)
+    return report, model, extras

@@ -36,6 +36,7 @@ from dataclasses import asdict, dataclass, field
 
 import torch
 import torch.nn.functional as F
+from tqdm.auto import tqdm
 
 from ..errors import HeliotwinError
 from ..field.plant import Facets, SunSettings
@@ -312,8 +313,6 @@ class _AdamRun:
 
 def _fit_adam(model, facets, train, validation, sun, s, progress) -> tuple[LearnableSurface, FitInfo]:
     """Adam with exponential decay and early stopping on ``validation`` (see :class:`TrainSettings`)."""
-    from tqdm.auto import tqdm
-
     meas = losses.normalize(train.images.to(torch.float32))
     val_meas = None if validation is None or len(validation) == 0 else losses.normalize(validation.images.float())
     delta = None
