@@ -28,12 +28,10 @@ from .devices import resolve_device
 from .devices import to_device as _move
 from .field.update import select_heliostats
 from .io.scenario import load_records, load_scenario, scenario_from_paint
-from .workflows.trace import TraceSettings
-from .workflows.trace import trace_record as trace_workflow
-
-from .io.scenario import load_scenario
 from .workflows.reconstruct import ReconstructionSettings, reconstruction_checkpoint
 from .workflows.reconstruct import reconstruct as reconstruct_surface
+from .workflows.trace import TraceSettings
+from .workflows.trace import trace_record as trace_workflow
 
 __all__ = ["load", "field", "trace_record", "plot_flux", "calibrate", "reconstruct", "ReconstructionSettings",
            "to_device"]
