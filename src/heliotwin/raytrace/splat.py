@@ -282,13 +282,18 @@ def _grad_maps(g: torch.Tensor, ws: _Workspace) -> torch.Tensor:
     live in the workspace ``ws``."""
     ns, rows, cols = g.shape
     m = ns * (rows + 2) * (cols + 2)
-    gp = torch.nn.functional.pad(g.unsqueeze(1), (1, 1, 1, 1), mode="replicate").squeeze(1)
     flat = ws.get("maps", (2, m + 1, 2), g.dtype, g.device).zero_()
     maps = flat[:, :m].view(2, ns, rows + 2, cols + 2, 2)
-    maps[0, ..., 0] = gp  # A
-    maps[0, :, :-1, :-1, 1] = gp[:, 1:, 1:] - gp[:, 1:, :-1] - gp[:, :-1, 1:] + gp[:, :-1, :-1]  # D
-    maps[1, :, :-1, :, 0] = gp[:, 1:, :] - gp[:, :-1, :]  # Cy
-    maps[1, :, :, :-1, 1] = gp[:, :, 1:] - gp[:, :, :-1]  # Bx
+    gp = maps[0, ..., 0]  # A: g with replicate padding
+    gp[:, 1:-1, 1:-1] = g
+    gp[:, 0, 1:-1] = g[:, 0]
+    gp[:, -1, 1:-1] = g[:, -1]
+    gp[:, :, 0] = gp[:, :, 1]
+    gp[:, :, -1] = gp[:, :, -2]
+    d = torch.sub(gp[:, 1:, 1:], gp[:, 1:, :-1], out=maps[0, :, :-1, :-1, 1])  # D
+    d.sub_(gp[:, :-1, 1:]).add_(gp[:, :-1, :-1])
+    torch.sub(gp[:, 1:, :], gp[:, :-1, :], out=maps[1, :, :-1, :, 0])  # Cy
+    torch.sub(gp[:, :, 1:], gp[:, :, :-1], out=maps[1, :, :, :-1, 1])  # Bx
     return torch.view_as_complex(flat)
 
 
