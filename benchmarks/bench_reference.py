@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import statistics
 import subprocess
 import sys
@@ -81,6 +82,7 @@ def main(argv=None) -> int:
     head = _git("rev-parse", "--short", "HEAD")
     dirty = bool(_git("status", "--porcelain", "--untracked-files=no"))
     trees = [{"label": f"working tree ({head}{', modified' if dirty else ''})", "commit": head, "path": ROOT}]
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # e.g. `timeout`: still remove the worktrees
     tmp = Path(tempfile.mkdtemp(prefix="heliotwin-bench-ref-"))
     added: list[Path] = []
     try:

@@ -227,7 +227,7 @@ _SCRATCH = _CpuScratch()
 
 
 def release_scratch() -> None:
-    """Free the scratch buffers the splats keep between calls (at most a few hundred MB, see
+    """Free the scratch buffers the splats keep between calls (at most 192 MB, see
     :class:`_CpuScratch`); the next call allocates them again."""
     _SCRATCH.clear()
 
