@@ -28,7 +28,10 @@ needed and all gradients stay finite (no boolean indexing, no division by tiny n
 
 Rays are processed in chunks of at most ``max_rays_per_chunk`` (default 2^17, ~25 reusable buffers of that
 size) with in-place ops. The backward pass recomputes the per-ray quantities from the per-point inputs;
-the forward pass only keeps the int32 landing index of up to :data:`INDEX_CACHE_RAYS` rays. By default the
+the forward pass only keeps the int32 landing index of up to :data:`INDEX_CACHE_RAYS` rays. On the CPU the
+chunk buffers, the moment accumulators and the landing index are kept from one call to the next (bounded;
+:func:`release_scratch` frees them): fresh buffers on every call would cost a page fault per 4 KiB whenever
+the C allocator hands out new pages, which depends on the heap's history, not on this code. By default the
 chunks run in the calling thread and each op uses PyTorch's intra-op threads; ``workers=n`` runs them on
 ``n`` worker threads with one intra-op thread each instead (no OpenMP barriers: degrades more gracefully
 when other processes compete for the cores, but scales worse on an idle machine).
@@ -46,7 +49,7 @@ from concurrent.futures import ThreadPoolExecutor
 import torch
 
 __all__ = ["splat_bilinear", "splat_hard", "projective_splat", "projective_splat_hard", "DEFAULT_MAX_RAYS_PER_CHUNK",
-           "DEN_EPS"]
+           "DEN_EPS", "release_scratch"]
 
 #: Rays per chunk (memory: ~25 float32 buffers of this size per worker; 2^17 measured fastest on 2 cores).
 DEFAULT_MAX_RAYS_PER_CHUNK = 2 ** 17
@@ -127,6 +130,10 @@ class _Workspace:
         self._bufs: dict[tuple, torch.Tensor] = {}
         self._views: dict[tuple, torch.Tensor] = {}
 
+    @property
+    def nbytes(self) -> int:
+        return sum(b.numel() * b.element_size() for b in self._bufs.values())
+
     def get(self, name: str, shape, dtype, device) -> torch.Tensor:
         key = (name, tuple(shape), dtype)
         view = self._views.get(key)
@@ -141,41 +148,152 @@ class _Workspace:
             buf = torch.empty(max(numel, 1), dtype=dtype, device=device)
             self._bufs[bkey] = buf
             self._views = {k: v for k, v in self._views.items() if (k[0], k[2]) != bkey}
+        if len(self._views) >= _MAX_VIEWS:  # many distinct chunk shapes over the calls: start afresh
+            self._views.clear()
         view = buf[:numel].view(*shape)
         self._views[key] = view
         return view
 
 
-def _compose(acc: torch.Tensor, ns: int, rows: int, cols: int) -> torch.Tensor:
+#: Idle CPU scratch memory kept between calls: workspaces (bytes, all together) and landing-index buffers.
+_KEEP_WORKSPACE_BYTES = 2 ** 27
+_KEEP_INDEX_BYTES = 2 ** 26
+_MAX_VIEWS = 256
+
+
+class _CpuScratch:
+    """Scratch memory reused from one call to the next (CPU only).
+
+    Every call of the splats needs ~25 chunk-sized buffers per worker (tens of MB in all) and, with
+    gradients, the landing-index cache. Allocated afresh per call, whether they cost anything depends on
+    the C allocator's state: glibc serves blocks of this size from the heap or by ``mmap`` depending on its
+    dynamic mmap/trim thresholds, i.e. on what the process allocated and freed before (imports, other
+    code); served by fresh pages, every call pays a page fault and the kernel's zeroing for each 4 KiB,
+    which halves the tracer's throughput. Kept here, the buffers are touched once and then reused, so the
+    speed no longer depends on the heap's history. Bounded by ``_KEEP_WORKSPACE_BYTES`` /
+    ``_KEEP_INDEX_BYTES`` (larger or surplus buffers are simply freed); :func:`release_scratch` frees
+    everything. Other devices are left to their own (caching) allocators. Thread-safe: a buffer is lent to
+    one call at a time.
+    """
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._workspaces: list[_Workspace] = []
+        self._indices: list[torch.Tensor] = []
+
+    def workspaces(self, n: int, device) -> list:
+        if torch.device(device).type != "cpu":
+            return [_Workspace() for _ in range(n)]
+        with self._lock:
+            got = [self._workspaces.pop() for _ in range(min(n, len(self._workspaces)))]
+        return got + [_Workspace() for _ in range(n - len(got))]
+
+    def give_workspaces(self, wss: list, device) -> None:
+        if torch.device(device).type != "cpu":
+            return
+        with self._lock:
+            kept = sum(w.nbytes for w in self._workspaces)
+            for w in wss:
+                nb = w.nbytes
+                if kept + nb <= _KEEP_WORKSPACE_BYTES:
+                    self._workspaces.append(w)
+                    kept += nb
+
+    def index(self, numel: int, device) -> torch.Tensor:
+        """A flat int32 buffer of ``numel`` elements (contents undefined)."""
+        if torch.device(device).type == "cpu":
+            with self._lock:
+                for i, buf in enumerate(self._indices):
+                    if buf.numel() >= numel:
+                        return self._indices.pop(i)[:numel]
+        return torch.empty(numel, dtype=torch.int32, device=device)
+
+    def give_index(self, buf: torch.Tensor) -> None:
+        if buf.device.type != "cpu":
+            return
+        base = buf if buf._base is None else buf._base
+        with self._lock:
+            kept = sum(b.numel() * 4 for b in self._indices)
+            if kept + base.numel() * 4 <= _KEEP_INDEX_BYTES:
+                self._indices.append(base)
+
+    def clear(self) -> None:
+        with self._lock:
+            self._workspaces.clear()
+            self._indices.clear()
+
+
+_SCRATCH = _CpuScratch()
+
+
+def release_scratch() -> None:
+    """Free the scratch buffers the splats keep between calls (at most 192 MB, see
+    :class:`_CpuScratch`); the next call allocates them again."""
+    _SCRATCH.clear()
+
+
+class _IndexCache:
+    """The forward pass's int32 landing index of the first ``size`` rays of a call (flat ray order: point
+    chunk by point chunk, k-slice by k-slice), kept for the backward pass in one (reused) buffer."""
+
+    def __init__(self, total_rays: int, device):
+        self.size = min(int(total_rays), INDEX_CACHE_RAYS)
+        self.buf = _SCRATCH.index(self.size, device) if self.size > 0 else None
+
+    @staticmethod
+    def _start(s, e, k0, k_total):
+        return s * k_total + (e - s) * k0
+
+    def slot(self, s, e, k0, k1, k_total):
+        """The view that holds chunk (s..e, k0..k1), or None beyond the budget."""
+        a = self._start(s, e, k0, k_total)
+        b = a + (e - s) * (k1 - k0)
+        return None if self.buf is None or b > self.size else self.buf[a:b]
+
+    def release(self):
+        if self.buf is not None:
+            _SCRATCH.give_index(self.buf)
+        self.buf = None
+
+
+def _compose(acc: torch.Tensor, ns: int, rows: int, cols: int, ws: _Workspace) -> torch.Tensor:
     """Bitmap [ns, rows, cols] from the complex moment accumulators acc [2, ns*(rows+2)*(cols+2)] =
     (S0 + i Sxy, Sy + i Sx) on the padded grid: bilinear recombination, then the one-pixel ring is folded
-    onto the edge pixels."""
+    onto the edge pixels. The result is a view of workspace memory (``ws``): copy it out."""
     r = torch.view_as_real(acc[:, :ns * (rows + 2) * (cols + 2)])  # the last element is the trash bin
-    s0, sxy, sy, sx = (t.reshape(ns, rows + 2, cols + 2) for t in (r[0, :, 0], r[0, :, 1], r[1, :, 0], r[1, :, 1]))
-    pad = s0 - sx - sy + sxy
-    pad[:, :, 1:] += (sx - sxy)[:, :, :-1]
-    pad[:, 1:, :] += (sy - sxy)[:, :-1, :]
+    s0, sxy, sy, sx = (t.view(ns, rows + 2, cols + 2) for t in (r[0, :, 0], r[0, :, 1], r[1, :, 0], r[1, :, 1]))
+    shape, dt, dev = s0.shape, s0.dtype, s0.device
+    pad = torch.sub(s0, sx, out=ws.get("pad", shape, dt, dev)).sub_(sy).add_(sxy)
+    t = ws.get("pad_t", shape, dt, dev)
+    pad[:, :, 1:] += torch.sub(sx, sxy, out=t)[:, :, :-1]
+    pad[:, 1:, :] += torch.sub(sy, sxy, out=t)[:, :-1, :]
     pad[:, 1:, 1:] += sxy[:, :-1, :-1]
     # fold the ring: rows first (with the corner columns), then columns
     pad[:, 1, :] += pad[:, 0, :]
     pad[:, rows, :] += pad[:, rows + 1, :]
     pad[:, :, 1] += pad[:, :, 0]
     pad[:, :, cols] += pad[:, :, cols + 1]
-    return pad[:, 1:rows + 1, 1:cols + 1].contiguous()
+    return pad[:, 1:rows + 1, 1:cols + 1]
 
 
-def _grad_maps(g: torch.Tensor) -> torch.Tensor:
+def _grad_maps(g: torch.Tensor, ws: _Workspace) -> torch.Tensor:
     """Adjoint of :func:`_compose`: complex maps [2, ns*(rows+2)*(cols+2) + 1] = (A + i D, Cy + i Bx) from the
-    grad [ns, rows, cols] (the fold's adjoint is replicate padding); the trash bin at the end is 0."""
+    grad [ns, rows, cols] (the fold's adjoint is replicate padding); the trash bin at the end is 0. The maps
+    live in the workspace ``ws``."""
     ns, rows, cols = g.shape
     m = ns * (rows + 2) * (cols + 2)
-    gp = torch.nn.functional.pad(g.unsqueeze(1), (1, 1, 1, 1), mode="replicate").squeeze(1)
-    flat = g.new_zeros(2, m + 1, 2)
+    flat = ws.get("maps", (2, m + 1, 2), g.dtype, g.device).zero_()
     maps = flat[:, :m].view(2, ns, rows + 2, cols + 2, 2)
-    maps[0, ..., 0] = gp  # A
-    maps[0, :, :-1, :-1, 1] = gp[:, 1:, 1:] - gp[:, 1:, :-1] - gp[:, :-1, 1:] + gp[:, :-1, :-1]  # D
-    maps[1, :, :-1, :, 0] = gp[:, 1:, :] - gp[:, :-1, :]  # Cy
-    maps[1, :, :, :-1, 1] = gp[:, :, 1:] - gp[:, :, :-1]  # Bx
+    gp = maps[0, ..., 0]  # A: g with replicate padding
+    gp[:, 1:-1, 1:-1] = g
+    gp[:, 0, 1:-1] = g[:, 0]
+    gp[:, -1, 1:-1] = g[:, -1]
+    gp[:, :, 0] = gp[:, :, 1]
+    gp[:, :, -1] = gp[:, :, -2]
+    d = torch.sub(gp[:, 1:, 1:], gp[:, 1:, :-1], out=maps[0, :, :-1, :-1, 1])  # D
+    d.sub_(gp[:, :-1, 1:]).add_(gp[:, :-1, :-1])
+    torch.sub(gp[:, 1:, :], gp[:, :-1, :], out=maps[1, :, :-1, :, 0])  # Cy
+    torch.sub(gp[:, :, 1:], gp[:, :, :-1], out=maps[1, :, :, :-1, 1])  # Bx
     return torch.view_as_complex(flat)
 
 
@@ -246,13 +364,13 @@ def _bounds_check(ws, q2, bad, bounds):
     bad.addcmul_(t[0], t[0]).addcmul_(t[1], t[1])
 
 
-def _flat_index(ws, v2, width, offset, bad, trash):
+def _flat_index(ws, v2, width, offset, bad, trash, i32_out=None):
     """Fractions f2 = (fy, fx) and flat int64 index ``floor(vy) * width + floor(vx)`` of v2 >= 0 (consumed);
     rays with ``bad > 0`` get the index ``trash`` (a bin that is discarded / whose gradient maps are 0), so
     no per-ray masking is needed anywhere else.
 
     The index is formed in floating point (exact below 2^24) and converted via int32 (much faster than a
-    direct float -> int64 conversion).
+    direct float -> int64 conversion); the int32 copy goes to ``i32_out`` when given.
     """
     shape, dt, dev = v2.shape[1:], v2.dtype, v2.device
     f2 = torch.frac(v2, out=ws.get("f2", v2.shape, dt, dev))
@@ -261,11 +379,11 @@ def _flat_index(ws, v2, width, offset, bad, trash):
     if offset is not None:
         flat.add_(offset)
     flat.add_(bad.sign_(), alpha=float(trash) + 1.0).clamp_(max=float(trash))
-    i32 = ws.get("i32", shape, torch.int32, dev).copy_(flat)
+    i32 = (ws.get("i32", shape, torch.int32, dev) if i32_out is None else i32_out.view(shape)).copy_(flat)
     return f2, ws.get("i64", shape, torch.int64, dev).copy_(i32), i32
 
 
-def _land(ws, q2, bad, rows, cols, trash, offset=None, keep=False):
+def _land(ws, q2, bad, rows, cols, trash, offset=None, keep=False, i32_out=None):
     """Landing test and padded-grid index/fractions of rays at q2 = (qy, qx) (``bad`` is consumed).
 
     q2 is consumed unless ``keep``. Returns f2 = (fy, fx) [2, n, k], the flat int64 index [n, k] into the
@@ -275,7 +393,7 @@ def _land(ws, q2, bad, rows, cols, trash, offset=None, keep=False):
     v = _clamp2(q2, (0.5, 0.5), (rows + 0.5, cols + 0.5), out=ws.get("v2", shape, dt, dev))
     d = torch.sub(q2, v, out=ws.get("t2", shape, dt, dev)) if keep else q2.sub_(v)
     bad.addcmul_(d[0], d[0]).addcmul_(d[1], d[1])  # 0 iff the ray lands on the bitmap
-    return _flat_index(ws, v, cols + 2, offset, bad, trash)
+    return _flat_index(ws, v, cols + 2, offset, bad, trash, i32_out)
 
 
 def _land_hard(ws, q2, bad, rows, cols, trash, offset=None):
@@ -355,19 +473,31 @@ def _to_c3(coef):
 
 def _proj_forward(c3, weights, pattern, bounds, rows, cols, n_samples, pps, max_rays, workers, hard=False,
                   cache=None):
+    dev = c3.device
+    wss = _SCRATCH.workspaces(max(1, workers), dev)
+    out = _proj_forward_ws(wss, c3, weights, pattern, bounds, rows, cols, n_samples, pps, max_rays, workers, hard,
+                           cache)
+    _SCRATCH.give_workspaces(wss, dev)
+    return out
+
+
+def _accumulators(wss, shape, dtype, device):
+    """Zeroed moment accumulators, one per worker (workspace memory)."""
+    return [ws.get("acc", shape, dtype, device).zero_() for ws in wss]
+
+
+def _proj_forward_ws(wss, c3, weights, pattern, bounds, rows, cols, n_samples, pps, max_rays, workers, hard, cache):
     dt, dev = c3.dtype, c3.device
     k_total = pattern.shape[1]
     out = torch.zeros(n_samples, rows, cols, dtype=dt, device=dev)
-    nslots = max(1, workers)
     for b0, b1 in _blocks(n_samples, rows, cols):
         ns = b1 - b0
         if hard:
             trash = ns * rows * cols
-            accs = [torch.zeros(1, trash + 1, dtype=dt, device=dev) for _ in range(nslots)]
+            accs = _accumulators(wss, (1, trash + 1), dt, dev)
         else:
             trash = ns * (rows + 2) * (cols + 2)
-            accs = [torch.zeros(2, trash + 1, dtype=dt.to_complex(), device=dev) for _ in range(nslots)]
-        wss = [_Workspace() for _ in range(nslots)]
+            accs = _accumulators(wss, (2, trash + 1), dt.to_complex(), dev)
         tasks = []
         for s, e in _point_chunks(b0 * pps, b1 * pps, k_total, max_rays):
             def task(j, s=s, e=e):
@@ -384,17 +514,15 @@ def _proj_forward(c3, weights, pattern, bounds, rows, cols, n_samples, pps, max_
                         idx = _land_hard(ws, q2, bad, rows, cols, trash, off_hard)
                         acc[0].index_add_(0, idx.view(-1), w.expand(idx.shape).reshape(-1))
                         continue
-                    f2, idx, i32 = _land(ws, q2, bad, rows, cols, trash, off)
+                    slot = None if cache is None else cache.slot(s, e, k0, k1, k_total)
+                    f2, idx, _ = _land(ws, q2, bad, rows, cols, trash, off, i32_out=slot)
                     acc.index_add_(1, idx.view(-1), _moments(ws, w, f2))
-                    if cache is not None and cache["left"] >= i32.numel():
-                        cache["left"] -= i32.numel()
-                        cache[(s, k0)] = i32.clone()
             tasks.append(task)
         _run(tasks, workers)
         acc = accs[0]
         for other in accs[1:]:
             acc += other
-        out[b0:b1] = acc[0, :trash].view(ns, rows, cols) if hard else _compose(acc, ns, rows, cols)
+        out[b0:b1] = acc[0, :trash].view(ns, rows, cols) if hard else _compose(acc, ns, rows, cols, wss[0])
     return out
 
 
@@ -402,7 +530,7 @@ class _ProjectiveSplat(torch.autograd.Function):
     @staticmethod
     def forward(ctx, coef, weights, pattern, bounds, rows, cols, n_samples, pps, max_rays, workers):
         c3 = _to_c3(coef)
-        cache = {"left": INDEX_CACHE_RAYS} if any(ctx.needs_input_grad[:2]) else None
+        cache = _IndexCache(coef.shape[0] * pattern.shape[1], coef.device) if any(ctx.needs_input_grad[:2]) else None
         out = _proj_forward(c3, weights, pattern, bounds, rows, cols, n_samples, pps, max_rays, workers,
                             cache=cache)
         ctx.save_for_backward(coef, weights, pattern, bounds)
@@ -414,21 +542,32 @@ class _ProjectiveSplat(torch.autograd.Function):
     def backward(ctx, grad_out):
         coef, weights, pattern, bounds = ctx.saved_tensors
         rows, cols, n_samples, pps, max_rays, workers = ctx.cfg
-        cache = ctx.cache or {}
         need_c, need_w = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
         if not (need_c or need_w):
             return (None,) * 10
+        cache, ctx.cache = ctx.cache, None  # a second backward (retain_graph) recomputes the index
+        dev = coef.device
+        nslots = max(1, workers)
+        wss = _SCRATCH.workspaces(nslots, dev)
+        grads = _ProjectiveSplat._backward(wss, cache, grad_out, coef, weights, pattern, bounds, rows, cols, n_samples,
+                                           pps, max_rays, workers, need_c, need_w)
+        _SCRATCH.give_workspaces(wss, dev)
+        if cache is not None:
+            cache.release()
+        return grads + (None,) * 8
+
+    @staticmethod
+    def _backward(wss, cache, grad_out, coef, weights, pattern, bounds, rows, cols, n_samples, pps, max_rays, workers,
+                  need_c, need_w):
         dt, dev = coef.dtype, coef.device
         c3 = _to_c3(coef)
         grad3 = torch.zeros_like(c3)
         grad_w = torch.zeros_like(weights)
         grad_out = grad_out.to(dt).contiguous()
         k_total = pattern.shape[1]
-        nslots = max(1, workers)
         for b0, b1 in _blocks(n_samples, rows, cols):
-            maps = _grad_maps(grad_out[b0:b1])
+            maps = _grad_maps(grad_out[b0:b1], wss[0])
             trash = maps.shape[1] - 1
-            wss = [_Workspace() for _ in range(nslots)]
             tasks = []
             for s, e in _point_chunks(b0 * pps, b1 * pps, k_total, max_rays):
                 def task(j, s=s, e=e):
@@ -439,11 +578,11 @@ class _ProjectiveSplat(torch.autograd.Function):
                     for k0, k1 in _k_slices(k_total, max_rays):
                         pat = pattern[:, k0:k1]
                         n, k = e - s, k1 - k0
-                        cached = cache.get((s, k0))
+                        cached = None if cache is None else cache.slot(s, e, k0, k1, k_total)
                         if cached is not None:  # forward's index: landing rays have q2 = v2, f2 = frac(q2)
                             q2, inv, _ = _project(ws, c, pat, with_bad=False)
                             f2 = torch.frac(q2, out=ws.get("f2", q2.shape, dt, dev))
-                            idx = ws.get("i64", (n, k), torch.int64, dev).copy_(cached)
+                            idx = ws.get("i64", (n, k), torch.int64, dev).copy_(cached.view(n, k))
                         else:
                             q2, inv, bad = _project(ws, c, pat)
                             if bnd is not None:
@@ -466,7 +605,7 @@ class _ProjectiveSplat(torch.autograd.Function):
             grad_c[:, 0] = grad3[1]
             grad_c[:, 1] = grad3[0]
             torch.add(grad3[2], grad3[0], out=grad_c[:, 2]).add_(grad3[1])
-        return grad_c, grad_w if need_w else None, None, None, None, None, None, None, None, None
+        return grad_c, grad_w if need_w else None
 
 
 def projective_splat(coef: torch.Tensor, weights: torch.Tensor, pattern: torch.Tensor, rows: int, cols: int,
@@ -560,12 +699,11 @@ class _BilinearSplat(torch.autograd.Function):
         dt, dev = px.dtype, px.device
         fpx, fpy, fw = px.reshape(-1, 1), py.reshape(-1, 1), w.reshape(-1, 1)
         out = torch.zeros(n_samples, rows, cols, dtype=dt, device=dev)
-        nslots = max(1, workers)
+        wss = _SCRATCH.workspaces(max(1, workers), dev)
         for b0, b1 in _blocks(n_samples, rows, cols):
             ns = b1 - b0
             trash = ns * (rows + 2) * (cols + 2)
-            accs = [torch.zeros(2, trash + 1, dtype=dt.to_complex(), device=dev) for _ in range(nslots)]
-            wss = [_Workspace() for _ in range(nslots)]
+            accs = _accumulators(wss, (2, trash + 1), dt.to_complex(), dev)
             tasks = []
             for s, e in _explicit_chunks(ns * m, max_rays):
                 def task(j, s=s + b0 * m, e=e + b0 * m):
@@ -580,7 +718,8 @@ class _BilinearSplat(torch.autograd.Function):
             acc = accs[0]
             for other in accs[1:]:
                 acc += other
-            out[b0:b1] = _compose(acc, ns, rows, cols)
+            out[b0:b1] = _compose(acc, ns, rows, cols, wss[0])
+        _SCRATCH.give_workspaces(wss, dev)
         ctx.save_for_backward(px, py, w)
         ctx.cfg = (rows, cols, max_rays, workers)
         return out
@@ -598,12 +737,11 @@ class _BilinearSplat(torch.autograd.Function):
         gw = torch.zeros_like(w).view(-1, 1)
         fpx, fpy, fw = px.reshape(-1, 1), py.reshape(-1, 1), w.reshape(-1, 1)
         grad_out = grad_out.to(dt).contiguous()
-        nslots = max(1, workers)
+        wss = _SCRATCH.workspaces(max(1, workers), dev)
         for b0, b1 in _blocks(n_samples, rows, cols):
             ns = b1 - b0
-            maps = _grad_maps(grad_out[b0:b1])
+            maps = _grad_maps(grad_out[b0:b1], wss[0])
             trash = maps.shape[1] - 1
-            wss = [_Workspace() for _ in range(nslots)]
             tasks = []
             for s, e in _explicit_chunks(ns * m, max_rays):
                 def task(j, s=s + b0 * m, e=e + b0 * m):
@@ -620,6 +758,7 @@ class _BilinearSplat(torch.autograd.Function):
                         gpx[s:e] = g3[1]
                 tasks.append(task)
             _run(tasks, workers)
+        _SCRATCH.give_workspaces(wss, dev)
         return (gpx.view_as(px) if need_p else None, gpy.view_as(py) if need_p else None,
                 gw.view_as(w) if need_w else None, None, None, None, None)
 
