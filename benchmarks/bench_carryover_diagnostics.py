@@ -1,9 +1,9 @@
 """What else could carry the chrono figure (issue 10)? Diagnostics, each an idea that was tried and not kept.
 
 Every fit here uses the calibration's own conventions (properties corrected where the records support it,
-:func:`heliotwin.calibrate.suspicious.check_and_correct`; UTIS centroids for fitting,
+:func:`heliotwin.calibrate.protocol.suspicious.check_and_correct`; UTIS centroids for fitting,
 :func:`heliotwin.calibrate.inputs.fit_spots`; the robust ``soft_l1`` loss; the nominal Stone/Jülich prior
-of :func:`heliotwin.calibrate.lm.fit_lm`); errors are scored on HeliOS centroids as the benchmark does, on
+of :func:`heliotwin.calibrate.methods.lm.fit_lm`); errors are scored on HeliOS centroids as the benchmark does, on
 the heliostats with >= 50 records. Figures are medians over heliostats [mrad].
 
 1. **Parameter sets** (``--part params``): the Stone/Jülich 8 against the 8 + the actuator geometry
@@ -52,7 +52,7 @@ has the nominal prior only, hence its larger test residual than the benchmark's)
 * params: random 5-fold CV 0.637 / 0.638 / 0.637 and every earlier record -> latest 30 1.051 / 0.984 / 0.967
   for Stone 8 / + actuators / all 26. The second figure's median moves only because AK32 is the median
   heliostat and the one that gains (1.051 -> 0.967; its axis-2 actuator values are unusual but consistent
-  with its records, see :mod:`heliotwin.calibrate.suspicious`); every other heliostat changes by < 0.05 and
+  with its records, see :mod:`heliotwin.calibrate.protocol.suspicious`); every other heliostat changes by < 0.05 and
   BG23 gets worse (1.830 -> 1.878). Not kept: more rigid-body parameters do not carry over.
 * shared: latest-30 residual 0.724 -> 0.720 (degree 2) and 0.715 (degree 3) after the other heliostats'
   correction, with the heliostat's own fit on those records: at most ~0.01 mrad for a plant-level
@@ -142,8 +142,8 @@ ACTUATORS = ("pivot_radius_1", "pivot_radius_2", "offset_1", "offset_2")
 
 
 def _setup(paint):
-    from heliotwin.calibrate import selection as S
-    from heliotwin.calibrate.suspicious import check_and_correct
+    from heliotwin.calibrate.protocol import selection as S
+    from heliotwin.calibrate.protocol.suspicious import check_and_correct
     from heliotwin.io.paint import load_paint
 
     ds = load_paint(paint)
@@ -157,7 +157,7 @@ def _setup(paint):
 
 def _fit(nominal, batch, names):
     from heliotwin.calibrate.inputs import fit_spots
-    from heliotwin.calibrate.lm import LM_F_SCALE, LM_LOSS, fit_lm
+    from heliotwin.calibrate.methods.lm import LM_F_SCALE, LM_LOSS, fit_lm
     from heliotwin.calibrate.params import apply_deviations
 
     delta, _ = fit_lm(nominal, fit_spots(batch), names=names, loss=LM_LOSS, f_scale=LM_F_SCALE)
@@ -385,9 +385,9 @@ def _dataset(paint):
 
 def _protocol_run(paint, n, candidate):
     """The benchmark protocol's run (chrono, train ``n``, test the latest 30, heliostats with >= 50 records)
-    of one candidate, fitted and evaluated: a :class:`heliotwin.calibrate.pipeline.Run`."""
-    from heliotwin.calibrate import selection as S
-    from heliotwin.calibrate.pipeline import STEPS, Run, RunConfig, validate_config
+    of one candidate, fitted and evaluated: a :class:`heliotwin.calibrate.protocol.pipeline.Run`."""
+    from heliotwin.calibrate.protocol import selection as S
+    from heliotwin.calibrate.protocol.pipeline import STEPS, Run, RunConfig, validate_config
 
     ds = _dataset(paint)
     cfg = S.config_of(RunConfig(paint=str(paint), method="lm", split="chrono", train=n, test=30, min_records=50,
@@ -403,9 +403,9 @@ def _protocol_run(paint, n, candidate):
 
 @functools.lru_cache(maxsize=None)
 def _plant_archive(paint):
-    """The loaded PAINT folder and its :class:`~heliotwin.calibrate.archive.PriorArchive` (fitted once for the
+    """The loaded PAINT folder and its :class:`~heliotwin.calibrate.protocol.archive.PriorArchive` (fitted once for the
     parts that need it)."""
-    from heliotwin.calibrate.archive import PriorArchive
+    from heliotwin.calibrate.protocol.archive import PriorArchive
 
     ds = _dataset(paint)
     return ds, PriorArchive.from_dataset(ds, source=str(paint))
@@ -420,13 +420,13 @@ def _print_sigma(tag, prior):
 def _plant_prior_cv(tag, paint, n, candidate):
     """The benchmark's 4-fold leave-heliostats-out CV (chrono, train ``n``, test 30) of one plant-prior
     candidate; prints the median and each heliostat, returns {id: mean test error [mrad]}."""
-    from heliotwin.calibrate import selection as S
-    from heliotwin.calibrate.pipeline import RunConfig
+    from heliotwin.calibrate.protocol import selection as S
+    from heliotwin.calibrate.protocol.pipeline import RunConfig, run_calibration
 
     ds, archive = _plant_archive(paint)
     base = RunConfig(paint=str(paint), method="lm", split="chrono", train=n, test=30, min_records=50)
-    errs = next(iter(S.cross_validated_errors(ds, base, [candidate], S.eligible(ds), folds=4,
-                                              archive=archive).values()))
+    errs = next(iter(S.cross_validated_errors(ds, base, [candidate], S.eligible(ds), runner=run_calibration,
+                                              folds=4, archive=archive).values()))
     each = ", ".join(f"{h} {e:.2f}" for h, e in sorted(errs.items()))
     print(f"{tag}: median {S.median(errs.values()):.3f} mrad; {each}", flush=True)
     return errs
@@ -435,7 +435,7 @@ def _plant_prior_cv(tag, paint, n, candidate):
 def part_position(paint, min_records=15, neighbours=(3, 5)):
     """Does a heliostat's place in the field predict its deviations? Leave-one-heliostat-out over the archive.
 
-    Each archive heliostat's fitted Stone/Jülich deviations (:class:`heliotwin.calibrate.archive.PriorArchive`,
+    Each archive heliostat's fitted Stone/Jülich deviations (:class:`heliotwin.calibrate.protocol.archive.PriorArchive`,
     properties checked) are predicted from the *other* heliostats by the plant median (what the plant prior's
     mean does), by the median of its k nearest heliostats in the field, and by a plane in (east, north). Score:
     median over heliostats of |prediction error| per parameter [mrad or 1e-3 of the parameter] and of the
@@ -504,9 +504,9 @@ def part_deconvolve(paint, trains=(30, 10), widths=(1.0, 2.0)):
 
     from heliotwin.calibrate import priors
     from heliotwin.calibrate.inputs import fit_spots
-    from heliotwin.calibrate.lm import laplace
+    from heliotwin.calibrate.methods.lm import laplace
     from heliotwin.calibrate.params import STONE8
-    from heliotwin.calibrate.suspicious import check_and_correct
+    from heliotwin.calibrate.protocol.suspicious import check_and_correct
 
     ds, archive = _plant_archive(paint)
     table = ds.records.for_heliostats(archive.heliostat_ids).with_focal_spot("HeliOS")
@@ -559,7 +559,7 @@ def part_tails(paint, trains=(30, 10), min_records=(9, 30), quantile=0.99, round
     """
     from scipy.stats import chi2
 
-    from heliotwin.calibrate import lm
+    from heliotwin.calibrate.methods import lm
     from heliotwin.calibrate.params import STONE8
 
     original = lm.stone8_plant_fit
@@ -602,7 +602,7 @@ def part_shift(paint, cases=((30, {"prior": "run", "bags": 10, "half_life_days":
     """
     import torch
 
-    from heliotwin.calibrate import selection as S
+    from heliotwin.calibrate.protocol import selection as S
 
     out = {}
     for n, cand in cases:
@@ -645,7 +645,7 @@ def part_weather(paint, cases=((30, {"prior": "run", "bags": 10, "half_life_days
     import torch
 
     from heliotwin.calibrate import metrics
-    from heliotwin.calibrate import selection as S
+    from heliotwin.calibrate.protocol import selection as S
 
     out = {}
     for n, cand in cases:
@@ -703,7 +703,7 @@ def part_average(paint, cases=((10, ({"prior": "run", "bags": 10}, _plant_candid
     import torch
 
     from heliotwin.calibrate import metrics
-    from heliotwin.calibrate import selection as S
+    from heliotwin.calibrate.protocol import selection as S
 
     out = {}
     for n, cands in cases:

@@ -163,7 +163,7 @@ def test_calibrate_reports_its_stages_to_a_progress_callback(paint_dir, tmp_path
     """Every named step of the run, in order, to a callable ``progress`` (the CLI shows them as a tqdm bar)."""
     from helpers.paint import copy_paint
 
-    from heliotwin.calibrate.pipeline import STEPS
+    from heliotwin.calibrate.protocol.pipeline import STEPS
 
     root = copy_paint(paint_dir, tmp_path, ("AK46",), metadata=True)
     seen = []

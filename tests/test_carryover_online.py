@@ -2,9 +2,9 @@
 import torch
 from helpers.calibrate import TRUE, jueliche_like, simulate, with_weekly_times
 
-from heliotwin.calibrate.lm import fit_lm_method
-from heliotwin.calibrate.online import online_errors, online_split
+from heliotwin.calibrate.methods.lm import fit_lm_method
 from heliotwin.calibrate.params import STONE8, apply_deviations
+from heliotwin.calibrate.protocol.online import online_errors, online_split
 from heliotwin.io.records import RecordTable
 
 F64 = torch.float64
@@ -60,7 +60,7 @@ def test_online_intervals_come_from_the_refit_before_each_block():
     """Correct model, Gaussian centroid noise, the online protocol: each test record's 90 % interval is the one
     of the refit that predicted it (the first block: the fit on the window before the test block), and about
     90 % of the test records fall inside their interval."""
-    from heliotwin.calibrate.pipeline import Run, RunConfig, online_refit, predict_intervals, record_intervals
+    from heliotwin.calibrate.protocol.pipeline import Run, RunConfig, online_refit, predict_intervals, record_intervals
 
     kin = jueliche_like(4)
     true = apply_deviations(kin, torch.tensor([[TRUE[n] for n in STONE8]] * 4, dtype=F64), STONE8)
@@ -108,7 +108,7 @@ def test_cli_online_on_real_records(paint_dir, tmp_path, capsys):
 def test_recency_weights_track_a_drifting_offset():
     """Chrono on drifting records: weighting the training records by recency (half-life 3 weeks) predicts the
     next records better than the static fit; weights halve every half-life, records without time weigh 1."""
-    from heliotwin.calibrate.lm import recency_weights
+    from heliotwin.calibrate.methods.lm import recency_weights
 
     kin, batch = drifting_records(chunks=6, per_chunk=10)
     w = recency_weights(batch, 7.0)

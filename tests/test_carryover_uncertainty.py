@@ -6,10 +6,10 @@ import pytest
 import torch
 from helpers.calibrate import TRUE, jueliche_like, scenario_round_trip, simulate
 
-from heliotwin.calibrate import selection
-from heliotwin.calibrate.lm import fit_lm_method
+from heliotwin.calibrate.methods.lm import fit_lm_method
 from heliotwin.calibrate.params import STONE8, apply_deviations
-from heliotwin.calibrate.pipeline import Run, RunConfig, evaluate, predict_intervals
+from heliotwin.calibrate.protocol import selection
+from heliotwin.calibrate.protocol.pipeline import Run, RunConfig, evaluate, predict_intervals
 from heliotwin.calibrate.scenario import aim
 from heliotwin.calibrate.uncertainty import predictive
 

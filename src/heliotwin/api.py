@@ -247,7 +247,8 @@ def calibrate(paint, *, method: str = "lm", heliostats=None, split: str = "chron
     output : str or None
         The scenario file written (``output``), when asked and something was calibrated.
     """
-    from .calibrate.pipeline import RunConfig, run_calibration, settings_mode, validate_config
+    from .calibrate.protocol.config import RunConfig, settings_mode, validate_config
+    from .calibrate.protocol.pipeline import run_calibration
     from .calibrate.scenario import save_calibration
     from .errors import HeliotwinError
 
@@ -260,7 +261,7 @@ def calibrate(paint, *, method: str = "lm", heliostats=None, split: str = "chron
     validate_config(cfg)
     ck = None
     if checkpoint is not None:
-        from .calibrate.pipeline import calibration_checkpoint
+        from .calibrate.protocol.pipeline import calibration_checkpoint
 
         ck = calibration_checkpoint(cfg, checkpoint, device=_device(device), resume=resume,
                                     inputs=[scenario] if scenario is not None else [])

@@ -23,6 +23,7 @@ from collections import defaultdict
 import torch
 from tqdm.auto import tqdm
 
+from .calibrate import metrics
 from .field.plant import Plant, SunSettings
 from .field.targets import PlanarTarget
 from .io.images import CENTERED_WINDOW_M, load_measured_image
@@ -116,8 +117,6 @@ def camera_agreement(table: RecordTable) -> dict:
 def _pointing_errors(chunk: RecordTable, plant: Plant) -> dict:
     """Pointing error [rad] per centroid source, [R] each (NaN where a record lacks that source): the metric
     of :mod:`heliotwin.calibrate.metrics`, so validate and calibrate report the same number."""
-    from .calibrate import metrics
-
     normal, conc = metrics.model_normals(plant.field.kinematics, chunk)
     out = {}
     for k, src in enumerate(SOURCES):

@@ -26,6 +26,8 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import torch
+from torch.optim.optimizer import register_optimizer_step_pre_hook
+from tqdm import tqdm
 
 from ..errors import HeliotwinError
 from ..field.plant import Kinematics
@@ -213,8 +215,6 @@ class _Optimisers:
 
     @contextlib.contextmanager
     def watching(self):
-        from torch.optim.optimizer import register_optimizer_step_pre_hook
-
         def before(opt, args, kwargs):
             if not any(o is opt for o in self.seen):
                 self.seen.append(opt)
@@ -285,8 +285,6 @@ def _median_mrad(err: torch.Tensor):
 def _iterations(iterations: int, progress: bool, desc: str, first: int = 1):
     it = range(first, iterations + 1)
     if progress:
-        from tqdm import tqdm
-
         it = tqdm(it, desc=desc, leave=False, initial=first - 1, total=iterations)
     return it
 

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ..errors import InputFileError
 from ..shrinkage import GaussianPrior, check_positive_definite, shrunk_covariance
 from .params import kinds
 
@@ -124,8 +125,6 @@ class PlantPrior(GaussianPrior):
     @classmethod
     def from_state(cls, state: dict, path="") -> PlantPrior:
         """Read a stored prior; one with only ``sigma`` (a diagonal field prior) becomes a diagonal covariance."""
-        from ..errors import InputFileError
-
         try:
             names = tuple(str(n) for n in state["names"])
             mean = torch.as_tensor(state["mean"], dtype=torch.float64).reshape(-1)

@@ -127,7 +127,7 @@ def register(subparsers) -> None:
 
 
 def _config(args, method="lm"):
-    from ..calibrate.pipeline import RunConfig, validate_config
+    from ..calibrate.protocol.config import RunConfig, validate_config
 
     cfg = RunConfig(paint=args.paint, method=method, split=args.split, train=args.train,
                     validation=args.validation, test=args.test, heliostats=_ids(args.heliostats),
@@ -144,9 +144,9 @@ def _config(args, method="lm"):
 
 
 def _settings_mode(args, method) -> str:
-    """``--settings``, with ``auto`` resolved (:func:`heliotwin.calibrate.pipeline.settings_mode`): a setting
+    """``--settings``, with ``auto`` resolved (:func:`heliotwin.calibrate.protocol.config.settings_mode`): a setting
     flag given by hand (half-life, interval drift, drift model) keeps the flags."""
-    from ..calibrate.pipeline import settings_mode
+    from ..calibrate.protocol.config import settings_mode
 
     by_hand = (getattr(args, "half_life_days", None) is not None or getattr(args, "drift_mrad", None) is not None
                or getattr(args, "drift", "none") != "none")
@@ -206,7 +206,7 @@ def _seen_records(arrays: dict) -> dict:
 
 
 def cmd_calibrate(args) -> int:
-    from ..calibrate.pipeline import run_calibration
+    from ..calibrate.protocol.pipeline import run_calibration
     from ..calibrate.report import write_plots
     from ..calibrate.scenario import save_calibration
 
@@ -249,7 +249,7 @@ def cmd_calibrate(args) -> int:
 
 def _checkpoint(args, cfg, device):
     """The run's checkpoint next to its main output (None without one); also ``args.checkpoint``."""
-    from ..calibrate.pipeline import calibration_checkpoint
+    from ..calibrate.protocol.pipeline import calibration_checkpoint
 
     path = checkpoint_file(args)
     args.checkpoint = None if path is None else calibration_checkpoint(
@@ -268,7 +268,7 @@ def _training_size_curves(cfg, ds, median_test_mrad) -> dict:
     curve's shape is what a plant engineer reads, and bagging would make it ~10x slower."""
     from dataclasses import replace
 
-    from ..calibrate.pipeline import run_calibration
+    from ..calibrate.protocol.pipeline import run_calibration
 
     sizes = sorted({n for n in (5, 10, 20, 30, 40, 60, 100) if n < cfg.train} | {cfg.train})
     pts = []
@@ -310,7 +310,7 @@ def cmd_split(args) -> int:
 def _split(args, cfg, json_path, csv_path) -> int:
     import torch
 
-    from ..calibrate.splits import split_records
+    from ..calibrate.protocol.splits import split_records
 
     ds, _ = _load(args.paint)
     ids = cfg.heliostats or list(ds.plant.field.ids)

@@ -31,10 +31,15 @@ from __future__ import annotations
 
 import torch
 
-from ..errors import HeliotwinError
-from ..io.records import RecordTable
-from . import metrics, priors
-from .fitloop import (
+from ... import scene
+from ...errors import HeliotwinError
+from ...field.plant import SunSettings
+from ...io.images import load_measured_image
+from ...io.records import RecordTable
+from ...raytrace.flux import normalized_l1, pixel_centers, target_extent
+from ...raytrace.gaussian import trace_gaussian
+from .. import metrics, priors
+from ..fitloop import (
     actuator_barrier,
     box_and_validity,
     early_stopping_fit,
@@ -42,11 +47,11 @@ from .fitloop import (
     prior_and_start,
     tensor_state,
 )
+from ..inputs import FIT_FOCAL_SPOT
+from ..model import Calibrated
+from ..params import STONE8, actuators_valid, apply_deviations, check_names
 from .gradient import prealign
-from .inputs import FIT_FOCAL_SPOT
 from .lm import field_prior_extras
-from .model import Calibrated
-from .params import STONE8, actuators_valid, apply_deviations, check_names
 
 #: Learned by default: the Stone/Jülich 8 plus the mirror's rotation about its own normal (invisible to
 #: centroids, visible in the image).
@@ -60,8 +65,6 @@ MISS_WEIGHT = 100.0
 
 def load_image(entry, resolution) -> torch.Tensor:
     """A measured image as a unit-sum bitmap [rows, cols] at the render resolution (area resampling)."""
-    from ..io.images import load_measured_image
-
     return load_measured_image(entry, resolution, normalise="sum")
 
 
@@ -70,8 +73,6 @@ class ImageTerms:
 
     def __init__(self, batch: RecordTable, images: dict, surfaces, targets: dict, sun, *, resolution=(64, 64),
                  samples=(16, 16), mode: str = "convolve"):
-        from ..raytrace.flux import pixel_centers, target_extent
-
         self.mode = mode  # one heliostat per sample: one mean footprint (FFT) is accurate and ~20x faster
         self.resolution = tuple(resolution)
         self.samples = tuple(samples)
@@ -117,10 +118,6 @@ class ImageTerms:
 
     def terms(self, kin) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Pixel [M], alignment [M] (rad) and miss [M] terms for calibrated kinematics ``kin`` (H heliostats)."""
-        from .. import scene
-        from ..raytrace.flux import normalized_l1
-        from ..raytrace.gaussian import trace_gaussian
-
         m, like = len(self), kin.position  # terms follow the kinematics' dtype and device
         pix, ali, mis = like.new_zeros(m), like.new_zeros(m), like.new_zeros(m)
         b = self.batch
@@ -244,8 +241,6 @@ def fit_images_method(nominal, train, validation, *, seed=0, progress=False, ima
     if surfaces is None or targets is None:
         raise HeliotwinError("method 'images' needs the mirror surfaces and targets (run it through "
                              "heliotwin.calibrate.pipeline / `heliotwin calibrate`)")
-    from ..field.plant import SunSettings
-
     images = dict(images or {})
     sun = sun or SunSettings()
     h = nominal.num_heliostats

@@ -32,147 +32,27 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
-from ..devices import resolve_device
-from ..errors import HeliotwinError
-from ..io import checkpoint as _checkpoint
-from ..io.paint import load_paint
-from ..io.records import RecordTable, normalise_source
-from . import metrics
-from .inputs import MIN_TRAIN
-from .methods import get_method
-from .model import Calibrated, nominal_model
-from .splits import SPLIT_TYPES, split_records
+from ...devices import resolve_device, to_device
+from ...errors import HeliotwinError
+from ...field.plant import Kinematics, Surfaces
+from ...io import checkpoint as _checkpoint
+from ...io.paint import load_paint
+from ...io.records import RecordTable
+from .. import metrics
+from ..drift import predicted_covariance
+from ..inputs import MIN_TRAIN
+from ..methods import get_method
+from ..metrics import record_jacobian
+from ..model import Calibrated, nominal_model
+from ..uncertainty import predictive
+from .archive import PriorArchive, load_prior_source, reference_kinematics, resolve_prior
+from .config import RunConfig, validate_config
+from .online import online_errors, online_split
+from .selection import choose_for_run, stored_choice
+from .splits import split_records
 from .suspicious import check_and_correct
-
-
-@dataclass
-class RunConfig:
-    """Options of a calibration run (the CLI's flags)."""
-
-    paint: str
-    method: str = "lm"
-    split: str = "chrono"
-    train: int = 30
-    validation: int | None = None
-    test: int | None = 30
-    heliostats: list | None = None
-    min_records: int = 50
-    focal_spot: str = "HeliOS"
-    seed: int = 0
-    plane_tolerance: float = 0.1
-    correct_suspicious: bool = True
-    progress: bool = False
-    method_options: dict = field(default_factory=dict)
-    #: ``"run"``: the method's own prior (lm: field prior of the run's training records); ``"plant"``: a plant
-    #: prior learned from the heliostats of the PAINT folder that are NOT calibrated (see :mod:`.archive`).
-    prior: str = "run"
-    #: ``--prior-from``: a PAINT folder or scenario path, or an already built
-    #: :class:`~heliotwin.calibrate.archive.PriorArchive` / :class:`~heliotwin.calibrate.priors.PlantPrior`;
-    #: implies ``prior="plant"``.
-    prior_from: object = None
-    #: Settings of the plant prior (:meth:`~heliotwin.calibrate.archive.PriorArchive.prior`).
-    prior_options: dict = field(default_factory=dict)
-    #: Heliostats that must not enter the plant prior besides the calibrated ones (cross-validation folds).
-    prior_exclude: list = field(default_factory=list)
-    #: ``--split online``: test records predicted per refit (see :mod:`.online`).
-    online_step: int = 5
-    #: ``--drift``: ``"none"`` (static rigid body) or ``"kalman"`` (rigid body + random-walk offset of the two
-    #: axis offsets, :mod:`.drift`; lm only).
-    drift_model: str = "none"
-    #: ``--process-noise``: the walk's process noise [mrad^2/day] per component, or ``"auto"`` (chosen by
-    #: chronological validation inside the training records, :func:`~heliotwin.calibrate.lm.choose_process_noise`).
-    process_noise: object = "auto"
-    #: ``--drift-basis``: which deviations drift (:data:`heliotwin.calibrate.drift.BASES`).
-    drift_basis: str = "axes"
-    #: ``--settings``: ``"given"`` (the fields above) or ``"cv"`` (lm settings chosen by leave-heliostats-out
-    #: CV on the ``prior_from`` PAINT folder, :func:`~heliotwin.calibrate.selection.choose_for_run`).
-    settings: str = "given"
-
-    def fit_options(self) -> dict:
-        """The method's options: ``method_options`` plus the drift model's settings."""
-        opts = dict(self.method_options)
-        if self.drift_model != "none":
-            opts.update(drift_model=self.drift_model, process_noise=self.process_noise, drift_basis=self.drift_basis)
-        return opts
-
-    def uses_plant_prior(self) -> bool:
-        return self.prior == "plant" or self.prior_from is not None
-
-    def n_validation(self) -> int:
-        """Validation records carved out of ``train``: default 20 % (at least 2 when train >= 8, else 0)."""
-        if self.validation is not None:
-            return int(self.validation)
-        return max(2, int(round(0.2 * self.train))) if self.train >= 8 else 0
-
-
-def settings_mode(mode: str, *, method: str, prior_from=None, fixed_by_hand: bool = False) -> str:
-    """``--settings auto`` resolved: ``"cv"`` when ``prior_from`` is a PAINT folder (heliostats to choose on),
-    ``"stored"`` when it is a scenario file (the choice a ``cv`` run stored there, where it applies), for lm
-    with no lm setting fixed by hand (``fixed_by_hand``); ``"given"`` otherwise. Other modes pass through."""
-    if mode != "auto":
-        return mode
-    if method != "lm" or fixed_by_hand or not isinstance(prior_from, (str, os.PathLike)):
-        return "given"
-    return "cv" if os.path.isdir(prior_from) else "stored" if os.path.isfile(prior_from) else "given"
-
-
-#: Split types of a calibration run: the record splits plus the online protocol (:mod:`.online`).
-RUN_SPLITS = SPLIT_TYPES + ("online",)
-
-
-def validate_config(cfg: RunConfig) -> None:
-    if cfg.split not in RUN_SPLITS:
-        raise HeliotwinError(f"unknown split type {cfg.split!r}; known: {', '.join(RUN_SPLITS)}")
-    if cfg.online_step < 1:
-        raise HeliotwinError(f"--online-step must be >= 1, got {cfg.online_step}")
-    get_method(cfg.method)
-    normalise_source(cfg.focal_spot)
-    if cfg.train < 1:
-        raise HeliotwinError(f"--train must be >= 1, got {cfg.train}")
-    v = cfg.n_validation()
-    if v < 0 or v >= cfg.train:
-        raise HeliotwinError(f"--validation must be in [0, train) (validation is carved out of --train {cfg.train}), "
-                             f"got {v}")
-    if cfg.test is not None and cfg.test < 1:
-        raise HeliotwinError(f"--test must be >= 1, got {cfg.test}")
-    if cfg.min_records < 0:
-        raise HeliotwinError(f"--min-records must be >= 0, got {cfg.min_records}")
-    if cfg.prior not in ("run", "plant"):
-        raise HeliotwinError(f"--prior must be 'run' or 'plant', got {cfg.prior!r}")
-    if cfg.drift_model not in ("none", "kalman"):
-        raise HeliotwinError(f"--drift must be 'none' or 'kalman', got {cfg.drift_model!r}")
-    if cfg.drift_model != "none":
-        if cfg.method != "lm":
-            raise HeliotwinError(f"--drift {cfg.drift_model} is implemented for --method lm only, not {cfg.method}")
-        if cfg.drift_basis not in ("axes", "rotation"):
-            raise HeliotwinError(f"--drift-basis must be 'axes' or 'rotation', got {cfg.drift_basis!r}")
-        if cfg.method_options.get("half_life_days"):
-            raise HeliotwinError("--drift kalman and --half-life-days are two drift models: give one")
-        pn = cfg.process_noise
-        if pn != "auto" and not (isinstance(pn, (int, float)) and math.isfinite(pn) and pn >= 0):
-            raise HeliotwinError(f"--process-noise must be 'auto' or a number >= 0 [mrad^2/day], got {pn!r}")
-    _validate_settings(cfg)
-    if cfg.uses_plant_prior() and cfg.method != "lm":
-        raise HeliotwinError(f"a plant prior (--prior-from / --prior plant) is implemented for --method lm only, "
-                             f"not {cfg.method}")
-
-
-def _validate_settings(cfg: RunConfig) -> None:
-    """``--settings``: a known mode, and what ``cv`` / ``stored`` need (lm, and a folder / a scenario)."""
-    if cfg.settings not in ("given", "cv", "stored"):
-        raise HeliotwinError(f"--settings must be 'given', 'cv' or 'stored', got {cfg.settings!r}")
-    if cfg.settings == "stored":
-        if cfg.method != "lm":
-            raise HeliotwinError(f"--settings stored applies lm settings; --method is {cfg.method}")
-        if not isinstance(cfg.prior_from, (str, os.PathLike)) or not os.path.isfile(cfg.prior_from):
-            raise HeliotwinError("--settings stored needs --prior-from a scenario file written by a --settings cv run")
-    if cfg.settings == "cv":
-        if cfg.method != "lm":
-            raise HeliotwinError(f"--settings cv chooses lm settings; --method is {cfg.method}")
-        if not isinstance(cfg.prior_from, (str, os.PathLike)) or not os.path.isdir(cfg.prior_from):
-            raise HeliotwinError("--settings cv needs --prior-from a PAINT folder of the same plant (the heliostats "
-                                 "the settings are chosen on)")
 
 
 def _median(xs):
@@ -233,8 +113,6 @@ def select(run: Run) -> None:
     if run.dataset is None:
         run.dataset = load_paint(cfg.paint, plane_tolerance=cfg.plane_tolerance)
     if run.device != "cpu":
-        from ..devices import to_device
-
         run.dataset = to_device(run.dataset, run.device)
     all_ids = list(run.dataset.plant.field.ids)
     if cfg.heliostats:
@@ -297,8 +175,6 @@ def split(run: Run) -> None:
     """Train/validation/test records per heliostat (validation carved out of ``--train``)."""
     cfg = run.cfg
     if cfg.split == "online":
-        from .online import online_split
-
         tr, va, te, run.split_info = online_split(run.batch, cfg.train, cfg.test)
     else:
         tr, va, te, run.split_info = split_records(run.batch, cfg.split, cfg.train, cfg.n_validation(), cfg.test,
@@ -317,9 +193,6 @@ def check_properties(run: Run) -> None:
     too few for a field prior.
     """
     if run.cfg.correct_suspicious:
-        from ..field.plant import Kinematics
-        from .archive import reference_kinematics
-
         seen = RecordTable.concatenate([run.train, run.validation])
         field_kin = run.dataset.plant.field.kinematics
         _, extra = reference_kinematics(run.prior_source, skip=run.dataset.plant.field.ids)
@@ -338,9 +211,8 @@ def choose_settings(run: Run) -> None:
     ``--prior-from`` folder (:func:`~heliotwin.calibrate.selection.choose_for_run`); ``--settings stored``:
     by the choice stored in the ``--prior-from`` scenario where it applies
     (:func:`~heliotwin.calibrate.selection.stored_choice`). The report keeps the choice (``settings_choice``)
-    and ``config`` shows the settings that ran."""
-    from .selection import choose_for_run, stored_choice
-
+    and ``config`` shows the settings that ran. The CV scores every candidate with :func:`run_calibration`,
+    handed down as its ``runner``."""
     cfg = run.cfg
     if cfg.settings not in ("cv", "stored"):
         return
@@ -349,7 +221,7 @@ def choose_settings(run: Run) -> None:
     else:
         # The CV runs are not the run's fit: they stay out of its checkpoint (a resumed run repeats them, seeded).
         with _checkpoint.active(None):
-            chosen, record = choose_for_run(cfg, _held_out(run), progress=bool(cfg.progress),
+            chosen, record = choose_for_run(cfg, _held_out(run), runner=run_calibration, progress=bool(cfg.progress),
                                             run_size=len(run.run_ids))
     run.cfg = chosen
     run.report["config"] = _config_report(chosen, run.device)
@@ -366,8 +238,6 @@ def learn_prior(run: Run) -> None:
 
     Leakage rule (:mod:`.archive`): the run's heliostats (and ``prior_exclude``) never enter the prior.
     """
-    from .archive import PriorArchive, load_prior_source, resolve_prior
-
     cfg = run.cfg
     if not cfg.uses_plant_prior():
         return
@@ -382,8 +252,6 @@ def learn_prior(run: Run) -> None:
 
 def _image_context(ds, run_ids) -> dict:
     """What the ``images`` method needs beyond records: flux-image paths, surfaces, targets, sun."""
-    from ..field.plant import Surfaces
-
     plant = ds.plant
     all_ids = list(plant.field.ids)
     srf = plant.field.surfaces
@@ -428,8 +296,6 @@ def online_refit(run: Run) -> None:
     """``--split online``: replace the test errors by those of refits on the records before each test block."""
     if run.cfg.split != "online" or run.test is None or len(run.test) == 0:
         return
-    from .online import online_errors
-
     cfg = run.cfg
     options = cfg.fit_options()
     if run.plant_prior is not None:
@@ -496,9 +362,6 @@ def record_intervals(model: Calibrated, records: RecordTable, err: torch.Tensor,
     post = model.extras.get("posterior")
     if not post or len(records) == 0:
         return None, {}
-    from .lm import record_jacobian
-    from .uncertainty import predictive
-
     hidx = records.heliostat_index
     _, jac = record_jacobian(model.nominal.index(hidx), records, model.delta.detach()[hidx], model.names)
     normal, _ = model.normals(records)
@@ -507,8 +370,6 @@ def record_intervals(model: Calibrated, records: RecordTable, err: torch.Tensor,
     cov = post["covariance"][hidx]
     state = model.extras.get("drift_state")
     if state is not None:  # the offset's uncertainty at the latest training time, grown by q dt (drift.py)
-        from .drift import predicted_covariance
-
         rows = state["columns"].to(cov.device)
         walk = torch.zeros_like(cov)
         walk[:, rows[:, None], rows[None, :]] = predicted_covariance(state, hidx, records.time).to(cov)
@@ -676,8 +537,6 @@ def run_calibration(cfg: RunConfig, dataset=None, *, device: str = "cpu", progre
         Per-record arrays for the plots (test records: azimuth, elevation, heliostat, nominal and calibrated
         error [mrad]), on the CPU.
     """
-    from ..devices import to_device
-
     validate_config(cfg)
     run = Run(cfg, dataset, device=resolve_device(device))
     show = cfg.progress if progress is None else progress
@@ -704,8 +563,6 @@ class _StageBar:
         self.callback = progress if callable(progress) else None
         self.total, self.index, self.bar = total, 0, None
         if progress is True:
-            from tqdm.auto import tqdm
-
             self.bar = tqdm(total=total, desc=desc, leave=False, disable=None)  # None: off when not a terminal
 
     def stage(self, name: str) -> None:

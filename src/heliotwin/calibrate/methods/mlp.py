@@ -19,13 +19,17 @@ from __future__ import annotations
 import math
 
 import torch
+from tqdm import tqdm
 
-from ..io.records import RecordTable
-from . import metrics
-from .fitloop import early_stopping_fit, net_state
+from ...field import kinematics as K
+from ...io.records import RecordTable
+from ...site import Site
+from ...sun import daylight_times, direction_from_paint_angles
+from .. import metrics
+from ..fitloop import early_stopping_fit, net_state
+from ..inputs import trainable
+from ..model import Calibrated
 from .gradient import fit_gradient_method
-from .inputs import trainable
-from .model import Calibrated
 from .nets import BatchedMLP
 
 
@@ -63,9 +67,6 @@ class MLPModel(Calibrated):
 
 def _simulate(rigid_model: Calibrated, train: RecordTable, site, every: str, year: int, gen: torch.Generator):
     """Simulated (sun, aim, steps) per heliostat from the rigid body over a year of sun positions."""
-    from ..field import kinematics as K
-    from ..sun import daylight_times, direction_from_paint_angles
-
     _, az, el = daylight_times(year, every, site.latitude_deg, site.longitude_deg, site.altitude_m,
                                min_elevation_deg=8.0)
     sun = direction_from_paint_angles(az, el).to(train.spot)
@@ -95,8 +96,6 @@ def _pretrain(net, x_sim, hidx, y_sim, steps: int, lr: float, huber, progress: b
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
     it = range(steps)
     if progress:
-        from tqdm import tqdm
-
         it = tqdm(it, desc="mlp pretrain", leave=False)
     for _ in it:
         opt.zero_grad()
@@ -119,8 +118,6 @@ def fit_mlp_method(nominal, train, validation, *, seed=0, progress=False, hidden
     ``rigid_options`` go to the ``gradient`` fit of the rigid body (pretraining data and fallback). The
     networks follow the nominal kinematics' dtype and device; every random draw takes ``seed``.
     """
-    from ..site import Site
-
     h, like = nominal.num_heliostats, nominal.position
     rigid = fit_gradient_method(nominal, train, validation, seed=seed, progress=progress, **(rigid_options or {}))
     ok = rigid.ok & trainable(train)
@@ -187,8 +184,6 @@ def aim_mlp(net_entry: dict, kin, sun: torch.Tensor, target: torch.Tensor) -> to
     """Motor steps straight from a stored MLP (one heliostat)."""
     cfg = net_entry["config"]
     if not cfg.get("use_net", True):
-        from ..field import kinematics as K
-
         return K.inverse(kin, target, sun, strict=False)[0]
     net = BatchedMLP.from_state(cfg, net_entry["state"])
     ref = torch.tensor(cfg["reference"], dtype=torch.float64)

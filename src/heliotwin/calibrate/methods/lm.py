@@ -18,13 +18,17 @@ from __future__ import annotations
 import torch
 from scipy.optimize import least_squares
 
-from ..field.plant import Kinematics
-from ..io.checkpoint import resumable_range
-from ..io.records import RecordTable
-from . import metrics, priors
-from .inputs import FIT_FOCAL_SPOT, fit_spots, trainable
-from .model import Calibrated
-from .params import STONE8, apply_deviations, check_names, kinds, units
+from ...devices import to_device
+from ...field.plant import Kinematics
+from ...io.checkpoint import resumable_range
+from ...io.records import RecordTable
+from .. import metrics, priors
+from ..drift import Q_GRID, smooth, split_for_choice, whitener, with_offset
+from ..inputs import FIT_FOCAL_SPOT, fit_spots, trainable
+from ..metrics import record_jacobian
+from ..model import Calibrated
+from ..params import STONE8, apply_deviations, check_names, kinds, units
+from ..uncertainty import posterior
 
 #: Pointing noise of one centroid record [rad] (camera-target centroids scatter by ~1 mrad).
 NOISE = 1e-3
@@ -35,21 +39,6 @@ NOISE = 1e-3
 #: deviation error to 3 digits).
 #: Every folder of ``../shared`` (<= 30 heliostats) fits in one chunk, so its figures are those of one problem.
 LM_CHUNK = 32
-
-
-def record_jacobian(nominal_per_record: Kinematics, batch: RecordTable, delta_rec: torch.Tensor, names):
-    """Residuals [R, 3] and their derivative w.r.t. each record's own parameters [R, 3, P].
-
-    A record depends only on its heliostat's parameters, so three backward passes (one per residual
-    component, summed over records) give every record's gradient at once.
-    """
-    d = delta_rec.detach().clone().requires_grad_(True)
-    r = metrics.normal_residuals(apply_deviations(nominal_per_record, d, names), batch, per_record=True)
-    jac = []
-    for c in range(3):
-        (g,) = torch.autograd.grad(r[:, c].sum(), d, retain_graph=c < 2)
-        jac.append(g)
-    return r.detach(), torch.stack(jac, 1)
 
 
 def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma: dict | None = None,
@@ -98,8 +87,6 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
         ``nfev``, ``status``, ``message`` of the scipy run, and ``cost``.
     """
     if nominal.position.device.type != "cpu":  # scipy's LM runs on the CPU: fit CPU copies, deviations back
-        from ..devices import to_device
-
         cpu = lambda t: None if t is None else t.detach().cpu()  # noqa: E731
         delta, info = fit_lm(to_device(nominal, "cpu"), to_device(batch, "cpu"), names=names, prior_sigma=prior_sigma,
                              prior_mean=cpu(prior_mean), noise=noise, max_nfev=max_nfev, loss=loss, f_scale=f_scale,
@@ -136,8 +123,6 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
     weights = recency_weights(batch, half_life_days) if half_life_days else None
     whiten = None
     if process_noise and process_noise > 0:
-        from .drift import whitener
-
         if weights is not None:
             raise ValueError("half_life_days and process_noise are two drift models: give one")
         whiten = whitener(nominal, batch, process_noise, noise, basis=drift_basis)
@@ -369,8 +354,6 @@ def laplace(nominal: Kinematics, batch: RecordTable, delta: torch.Tensor, prior_
 
     Returns ``{"covariance": [H, 8, 8], "noise_rad": [H], "drift_rad": float}``.
     """
-    from .uncertainty import posterior
-
     h = nominal.num_heliostats
     hidx = batch.heliostat_index
     if len(batch) == 0:
@@ -432,8 +415,6 @@ def fit_lm_method(nominal, train, validation, *, seed=0, progress=False, field_p
                           "half_life_days": half_life_days, "drift_model": drift_model,
                           "prior": "plant" if plant_prior is not None else ("field" if fp is not None else "nominal")}}
     if drift_model == "kalman":
-        from .drift import smooth, with_offset
-
         state = smooth(nominal, fit_on, delta, q, NOISE, basis=drift_basis)
         state["offset"][~ok] = 0.0
         state.pop("smoothed")
@@ -476,8 +457,6 @@ def choose_process_noise(nominal, fit_on: RecordTable, ok, *, plant_prior=None, 
 
     Returns (q, {q: median validation error [mrad]}).
     """
-    from .drift import Q_GRID, smooth, split_for_choice, with_offset
-
     grid = Q_GRID if grid is None else grid
     fit_rows, val_rows = split_for_choice(fit_on)
     early, late = fit_on.subset(fit_rows), fit_on.subset(val_rows)

@@ -17,16 +17,21 @@ prior's mean. The prior carries no record of a calibrated heliostat.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 
 import torch
 
-from ..errors import HeliotwinError
-from ..field.plant import Kinematics
-from . import priors
-from .inputs import fit_spots
-from .lm import LM_F_SCALE, LM_LOSS, fit_lm
-from .params import STONE8
+from ...errors import HeliotwinError
+from ...field.plant import Kinematics
+from ...io.paint import load_paint
+from ...io.scenario import load_scenario
+from .. import priors
+from ..inputs import fit_spots
+from ..methods.lm import LM_F_SCALE, LM_LOSS, fit_lm
+from ..params import STONE8
+from ..scenario import KEY
+from .suspicious import check_and_correct
 
 
 @dataclass
@@ -93,8 +98,6 @@ class PriorArchive:
         otherwise enter the prior with deviations of hundreds of mrad. Winsorising bounds such a heliostat to
         3 robust sigmas but still lets it widen the covariance and couple the parameters it is wrong in.
         """
-        from .suspicious import check_and_correct
-
         keep = [h for h in dataset.records.heliostat_ids if h not in set(exclude)]
         table = dataset.records.for_heliostats(keep).with_focal_spot(focal_spot)
         plant_kin = dataset.plant.field.kinematics
@@ -129,18 +132,11 @@ class PriorArchive:
 def load_prior_source(path, plane_tolerance: float = 0.1, exclude=()):
     """``--prior-from PATH``: a PAINT folder (-> :class:`PriorArchive`, its heliostats in ``exclude`` not
     fitted) or a scenario with a stored prior (-> :class:`~heliotwin.calibrate.priors.PlantPrior`)."""
-    import os
-
     if os.path.isdir(path):
-        from ..io.paint import load_paint
-
         return PriorArchive.from_dataset(load_paint(path, plane_tolerance=plane_tolerance), source=os.fspath(path),
                                          exclude=exclude)
     if not os.path.isfile(path):
         raise HeliotwinError(f"{path}: --prior-from needs a PAINT folder or a scenario file")
-    from ..io.scenario import load_scenario
-    from .scenario import KEY
-
     sc = load_scenario(path)
     state = (sc.learned.get(KEY) or {}).get("prior")
     if not state:
@@ -188,18 +184,12 @@ def reference_kinematics(source, skip=()) -> tuple[list, Kinematics | None]:
     kinematics : Kinematics or None
         Their nominal kinematics; None when there are none.
     """
-    import os
-
     if isinstance(source, PriorArchive):
         ids, kin = source.property_ids, source.properties
     elif isinstance(source, (str, os.PathLike)) and os.path.isdir(source):
-        from ..io.paint import load_paint
-
         fld = load_paint(source, with_records=False).plant.field
         ids, kin = list(fld.ids), fld.kinematics
     elif isinstance(source, (str, os.PathLike)) and os.path.isfile(source):
-        from ..io.scenario import load_scenario
-
         fld = load_scenario(source).plant.field
         ids, kin = list(fld.ids), fld.kinematics
     else:
