@@ -385,20 +385,17 @@ def _dataset(paint):
 
 def _protocol_run(paint, n, candidate):
     """The benchmark protocol's run (chrono, train ``n``, test the latest 30, heliostats with >= 50 records)
-    of one candidate, fitted and evaluated: a :class:`heliotwin.calibrate.protocol.pipeline.Run`."""
+    of one candidate: its ``model``, ``train`` and ``test`` records and ``run_ids`` (the model's heliostats)."""
+    from types import SimpleNamespace
+
     from heliotwin.calibrate.protocol import selection as S
-    from heliotwin.calibrate.protocol.pipeline import STEPS, Run, RunConfig, validate_config
+    from heliotwin.calibrate.protocol.pipeline import RunConfig, run_calibration
 
     ds = _dataset(paint)
     cfg = S.config_of(RunConfig(paint=str(paint), method="lm", split="chrono", train=n, test=30, min_records=50,
                                 heliostats=S.eligible(ds)), candidate)
-    validate_config(cfg)
-    run = Run(cfg, ds)
-    for name, step in STEPS:
-        step(run)
-        if name == "evaluate":
-            return run
-    raise RuntimeError("the pipeline has no evaluate step")
+    _, model, arrays = run_calibration(cfg, ds)
+    return SimpleNamespace(model=model, train=arrays["train"], test=arrays["test"], run_ids=arrays["heliostat_ids"])
 
 
 @functools.lru_cache(maxsize=None)

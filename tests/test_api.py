@@ -13,6 +13,7 @@ import pytest
 import heliotwin
 from heliotwin import api
 from heliotwin.cli import build_parser
+from heliotwin.workflows.calibrate import CalibrationSettings
 
 SRC = Path(heliotwin.__file__).resolve().parents[1]
 
@@ -31,6 +32,7 @@ def _defaults(*command):
 @pytest.mark.parametrize("func, command, renamed", [
     (api.trace_record, ("trace",), {}),
     (api.calibrate, ("calibrate",), {}),
+    (CalibrationSettings, ("calibrate",), {}),  # api.calibrate's settings (its keywords)
     (api.reconstruct, ("reconstruct",), {"slope_error_mrad": "slope_error"}),
 ])
 def test_api_defaults_are_the_cli_defaults(func, command, renamed):

@@ -22,8 +22,8 @@ fits (``lm``), :data:`CHAIN_SIGMA` for the gradient fits of the whole chain (``g
 The *plant prior* (:class:`PlantPrior`, :func:`plant_prior`) is the hierarchical version learned from
 *other* heliostats with long histories instead of the run's own first records: mean + a full covariance
 (shrunk towards its diagonal), so the near-degenerate pairs (axis-2 initial angle <-> first-joint tilt
-north) are held to the combination the plant shows. It is built by :mod:`.archive` and used by ``lm`` with
-``--prior plant`` / ``--prior-from``.
+north) are held to the combination the plant shows. It is built by :mod:`heliotwin.calibrate.protocol.archive` and used
+by ``lm`` with ``--prior plant`` / ``--prior-from``.
 """
 from __future__ import annotations
 
@@ -94,8 +94,8 @@ def field_prior(first_pass: torch.Tensor, usable: torch.Tensor, names, *, floor:
 #: parameters, so that its loose fit is determined by data rather than by the loose prior).
 MIN_PRIOR_RECORDS = 9
 
-#: Default settings of a plant prior (see :meth:`PriorArchive.prior`); :mod:`.selection` chooses among
-#: alternatives by leave-heliostats-out cross-validation.
+#: Default settings of a plant prior (see :meth:`PriorArchive.prior`); :mod:`heliotwin.calibrate.protocol.selection`
+#: chooses among alternatives by leave-heliostats-out cross-validation.
 PLANT_PRIOR_DEFAULTS = {"covariance": "full", "shrink": 0.2, "widen": 1.0, "min_records": MIN_PRIOR_RECORDS}
 
 

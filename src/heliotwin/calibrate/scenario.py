@@ -59,9 +59,9 @@ def calibration_state(model, *, focal_spot: str = "", prior=None, settings_choic
         heliostats it was learned from). A field prior of the run's own records lists the calibrated
         heliostats as its sources (so ``--prior-from`` refuses it for them).
     settings_choice : dict, optional
-        The lm settings chosen by leave-heliostats-out CV (:func:`heliotwin.calibrate.selection.choose_for_run`'s
-        record), stored as JSON text for ``--settings stored``
-        (:func:`heliotwin.calibrate.selection.stored_choice`).
+        The lm settings chosen by leave-heliostats-out CV
+        (:func:`heliotwin.calibrate.protocol.selection.choose_for_run`'s record), stored as JSON text for
+        ``--settings stored`` (:func:`heliotwin.calibrate.protocol.selection.stored_choice`).
 
     Returns
     -------

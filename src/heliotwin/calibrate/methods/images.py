@@ -18,7 +18,7 @@ and the deviations are learned with the published three-term loss:
 
 Records without an image contribute the ordinary centroid term (model minus measured mirror normal, as
 in ``gradient``); records with an image contribute their centroid term too. Pre-alignment: the
-Stone/Jülich LM fit with the field prior (:func:`~heliotwin.calibrate.lm.stone8_field_fit`), so the
+Stone/Jülich LM fit with the field prior (:func:`~heliotwin.calibrate.methods.lm.stone8_field_fit`), so the
 rendered spots start on their targets. Prior: field prior on the Stone/Jülich 8, the chain's nominal
 prior (:data:`~heliotwin.calibrate.priors.CHAIN_SIGMA`) on the rest. Optimiser: L-BFGS (or Adam) in
 natural units (mrad, mm, 0.1 %), early-stopped per heliostat on the validation loss (same three terms +
@@ -240,7 +240,7 @@ def fit_images_method(nominal, train, validation, *, seed=0, progress=False, ima
     """
     if surfaces is None or targets is None:
         raise HeliotwinError("method 'images' needs the mirror surfaces and targets (run it through "
-                             "heliotwin.calibrate.pipeline / `heliotwin calibrate`)")
+                             "heliotwin.calibrate.protocol.pipeline / `heliotwin calibrate`)")
     images = dict(images or {})
     sun = sun or SunSettings()
     h = nominal.num_heliostats

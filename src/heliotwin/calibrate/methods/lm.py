@@ -75,9 +75,9 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
         ``0.5 ** (a / half_life_days)`` (records without a time weigh 1), so the fit follows where a slowly
         drifting offset is *now* rather than its average over the training period.
     process_noise : float
-        Random-walk offset of the two axis offsets [rad^2/day] (:mod:`.drift`): the residuals are fitted in
-        generalised least squares, whitened by their covariance under that walk (0 = the static fit).
-        Excludes ``half_life_days``. ``drift_basis``: which deviations drift (:data:`.drift.BASES`).
+        Random-walk offset of the two axis offsets [rad^2/day] (:mod:`heliotwin.calibrate.drift`): the residuals are
+        fitted in generalised least squares, whitened by their covariance under that walk (0 = the static fit).
+        Excludes ``half_life_days``. ``drift_basis``: which deviations drift (:data:`heliotwin.calibrate.drift.BASES`).
 
     Returns
     -------
@@ -350,7 +350,8 @@ def _prior_precision(plant_prior, fp) -> torch.Tensor:
 
 def laplace(nominal: Kinematics, batch: RecordTable, delta: torch.Tensor, prior_precision: torch.Tensor,
             drift: float = 0.0) -> dict:
-    """Laplace posterior of the Stone/Jülich 8 around ``delta`` [H, 8] on the fit's records (:mod:`.uncertainty`).
+    """Laplace posterior of the Stone/Jülich 8 around ``delta`` [H, 8] on the fit's records
+    (:mod:`heliotwin.calibrate.uncertainty`).
 
     Returns ``{"covariance": [H, 8, 8], "noise_rad": [H], "drift_rad": float}``.
     """
@@ -378,16 +379,17 @@ def fit_lm_method(nominal, train, validation, *, seed=0, progress=False, field_p
     over :data:`LM_BAGS` bootstrap resamples (bagging: with 10 records one outlier or one unlucky sun
     position otherwise decides the extrapolation).
 
-    With ``plant_prior`` (:class:`~heliotwin.calibrate.priors.PlantPrior`, learned from *other* heliostats;
-    see :mod:`.archive`) the field prior of the run's own training records is replaced by it.
+    With ``plant_prior`` (:class:`~heliotwin.calibrate.priors.PlantPrior`, learned from *other* heliostats; see
+    :mod:`heliotwin.calibrate.protocol.archive`) the field prior of the run's own training records is replaced
+    by it.
 
     ``extras["posterior"]``: the Laplace posterior of every heliostat's deviations around the fit
-    (:mod:`.uncertainty`; ``drift`` [rad] is the offset drift added to the predictive noise, chosen by
-    cross-validated coverage). ``half_life_days`` down-weights old records (drift tracking, :func:`fit_lm`).
+    (:mod:`heliotwin.calibrate.uncertainty`; ``drift`` [rad] is the offset drift added to the predictive noise, chosen
+    by cross-validated coverage). ``half_life_days`` down-weights old records (drift tracking, :func:`fit_lm`).
 
     ``drift_model="kalman"``: the rigid body + a random-walk offset of the two axis offsets with
-    ``process_noise`` [mrad^2/day] (:mod:`.drift`; ``"auto"``: chosen by chronological validation inside the
-    training records, :func:`choose_process_noise`). The static part is fitted in generalised least
+    ``process_noise`` [mrad^2/day] (:mod:`heliotwin.calibrate.drift`; ``"auto"``: chosen by chronological validation
+    inside the training records, :func:`choose_process_noise`). The static part is fitted in generalised least
     squares, the offset smoothed over the training records; the returned ``delta`` is the static part + the
     offset at the latest training time (what aims the heliostat *now*), ``extras["drift_state"]`` holds that
     offset, its covariance, time and ``q``. ``walk_scale`` scales the walk's covariance in the predictive

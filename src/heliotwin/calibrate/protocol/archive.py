@@ -50,7 +50,7 @@ class PriorArchive:
         Where the records came from (a path, for reports).
     corrected : dict
         Heliostat id -> the suspicious property values replaced before its fit
-        (:func:`~heliotwin.calibrate.suspicious.check_and_correct`); empty when none.
+        (:func:`~heliotwin.calibrate.protocol.suspicious.check_and_correct`); empty when none.
     properties : Kinematics or None
         Nominal kinematics of every heliostat of the archive's plant, with ``property_ids``: the field whose
         medians judge a run's suspicious property values (:func:`reference_kinematics`).
@@ -93,7 +93,7 @@ class PriorArchive:
         ``exclude`` (never fitted: they could not enter a prior for a run that calibrates them anyway).
 
         Suspicious property values are checked first, as a run checks its own heliostats
-        (:func:`~heliotwin.calibrate.suspicious.check_and_correct`, field medians over the whole plant, every
+        (:func:`~heliotwin.calibrate.protocol.suspicious.check_and_correct`, field medians over the whole plant, every
         record of the archive heliostat): a heliostat with a wrong actuator value (PAINT's BF41) would
         otherwise enter the prior with deviations of hundreds of mrad. Winsorising bounds such a heliostat to
         3 robust sigmas but still lets it widen the covariance and couple the parameters it is wrong in.
@@ -113,7 +113,8 @@ class PriorArchive:
               min_records: int = priors.MIN_PRIOR_RECORDS) -> priors.PlantPrior:
         """Plant prior from every archive heliostat except ``exclude`` (and those with < ``min_records``).
 
-        Raises a one-line :class:`HeliotwinError` when fewer than :data:`~.priors.MIN_HELIOSTATS` remain.
+        Raises a one-line :class:`HeliotwinError` when fewer than :data:`~heliotwin.calibrate.priors.MIN_HELIOSTATS`
+        remain.
         """
         exclude = set(exclude)
         keep = [i for i, h in enumerate(self.heliostat_ids) if h not in exclude and int(self.counts[i]) >= min_records]
@@ -164,7 +165,7 @@ def resolve_prior(source, calibrated, *, settings: dict | None = None) -> priors
 
 def reference_kinematics(source, skip=()) -> tuple[list, Kinematics | None]:
     """Property values of the heliostats of a ``--prior-from`` source, for the field medians that judge a
-    run's suspicious property values (:func:`~heliotwin.calibrate.suspicious.check_and_correct`).
+    run's suspicious property values (:func:`~heliotwin.calibrate.protocol.suspicious.check_and_correct`).
 
     A run on a small PAINT folder (a few heliostats) has too few heliostats of its own for a field median;
     the prior's plant has more. Only property files are read, never a record.

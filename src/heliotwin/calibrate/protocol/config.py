@@ -39,25 +39,26 @@ class RunConfig:
     #: prior learned from the heliostats of the PAINT folder that are NOT calibrated (see :mod:`.archive`).
     prior: str = "run"
     #: ``--prior-from``: a PAINT folder or scenario path, or an already built
-    #: :class:`~heliotwin.calibrate.archive.PriorArchive` / :class:`~heliotwin.calibrate.priors.PlantPrior`;
+    #: :class:`~heliotwin.calibrate.protocol.archive.PriorArchive` / :class:`~heliotwin.calibrate.priors.PlantPrior`;
     #: implies ``prior="plant"``.
     prior_from: object = None
-    #: Settings of the plant prior (:meth:`~heliotwin.calibrate.archive.PriorArchive.prior`).
+    #: Settings of the plant prior (:meth:`~heliotwin.calibrate.protocol.archive.PriorArchive.prior`).
     prior_options: dict = field(default_factory=dict)
     #: Heliostats that must not enter the plant prior besides the calibrated ones (cross-validation folds).
     prior_exclude: list = field(default_factory=list)
     #: ``--split online``: test records predicted per refit (see :mod:`.online`).
     online_step: int = 5
     #: ``--drift``: ``"none"`` (static rigid body) or ``"kalman"`` (rigid body + random-walk offset of the two
-    #: axis offsets, :mod:`.drift`; lm only).
+    #: axis offsets, :mod:`heliotwin.calibrate.drift`; lm only).
     drift_model: str = "none"
     #: ``--process-noise``: the walk's process noise [mrad^2/day] per component, or ``"auto"`` (chosen by
-    #: chronological validation inside the training records, :func:`~heliotwin.calibrate.lm.choose_process_noise`).
+    #: chronological validation inside the training records,
+    #: :func:`~heliotwin.calibrate.methods.lm.choose_process_noise`).
     process_noise: object = "auto"
     #: ``--drift-basis``: which deviations drift (:data:`heliotwin.calibrate.drift.BASES`).
     drift_basis: str = "axes"
     #: ``--settings``: ``"given"`` (the fields above) or ``"cv"`` (lm settings chosen by leave-heliostats-out
-    #: CV on the ``prior_from`` PAINT folder, :func:`~heliotwin.calibrate.selection.choose_for_run`).
+    #: CV on the ``prior_from`` PAINT folder, :func:`~heliotwin.calibrate.protocol.selection.choose_for_run`).
     settings: str = "given"
 
     def fit_options(self) -> dict:

@@ -1,8 +1,8 @@
 """Which record next: sun positions whose calibration record would shrink a heliostat's uncertainty most.
 
-From the Laplace posterior of a calibration (:mod:`.uncertainty`, stored in ``/learned/calibration``):
-precision ``Lambda = Sigma^-1`` over the heliostat's P deviations and residual noise ``s``. A new record at
-sun position c adds ``J_c^T J_c / s^2`` to ``Lambda`` (``J_c`` [3, P]: derivative of the mirror normal at
+From the Laplace posterior of a calibration (:mod:`heliotwin.calibrate.uncertainty`, stored in
+``/learned/calibration``): precision ``Lambda = Sigma^-1`` over the heliostat's P deviations and residual noise ``s``. A
+new record at sun position c adds ``J_c^T J_c / s^2`` to ``Lambda`` (``J_c`` [3, P]: derivative of the mirror normal at
 the motor steps that aim the sun at the calibration target). What a plant cares about is the error of the
 normal over the sun positions it will aim at, so the objective is the mean predictive variance of the
 normal over a reference set of sun positions (the year's daylight grid),

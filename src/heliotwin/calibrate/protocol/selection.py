@@ -50,8 +50,8 @@ from .config import RunConfig
 Runner = Callable[[RunConfig, object], tuple]
 
 #: Settings tried, in order (the first is today's ``lm`` default). ``bags``: bootstrap bags of ``lm``;
-#: ``half_life_days``: drift tracking by recency weights (:func:`~heliotwin.calibrate.lm.fit_lm`);
-#: ``drift_model``/``process_noise``: the random-walk offset (:mod:`.drift`, q [mrad^2/day]);
+#: ``half_life_days``: drift tracking by recency weights (:func:`~heliotwin.calibrate.methods.lm.fit_lm`);
+#: ``drift_model``/``process_noise``: the random-walk offset (:mod:`heliotwin.calibrate.drift`, q [mrad^2/day]);
 #: ``fit_focal_spot``/``loss``: the centroids the fit trains on and its loss (default ``UTIS`` / ``soft_l1``;
 #: ``harmonised``: :func:`~heliotwin.calibrate.inputs.source_offsets`).
 CANDIDATES = (
@@ -306,7 +306,7 @@ def choose_for_run(cfg: RunConfig, calibrated, dataset=None, *, runner: Runner, 
     -------
     (RunConfig, dict)
         The run's settings with the chosen candidate (its plant prior from a
-        :class:`~heliotwin.calibrate.archive.PriorArchive` of the archive, calibrated heliostats excluded),
+        :class:`~heliotwin.calibrate.protocol.archive.PriorArchive` of the archive, calibrated heliostats excluded),
         and the JSON-ready record of the choice (``table``: candidate -> CV median [mrad], ``chosen``,
         ``drift_mrad``, ``walk_scale``, ``coverage``, ``heliostats``, ``folds``).
 
