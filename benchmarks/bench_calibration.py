@@ -27,7 +27,7 @@ DEFAULT_PAINT = Path(__file__).resolve().parents[2] / "shared" / "data" / "paint
 
 
 def main(argv=None) -> int:
-    from heliotwin.calibrate.pipeline import RunConfig, run_calibration
+    from heliotwin.calibrate.protocol.pipeline import RunConfig, run_calibration
     from heliotwin.calibrate.report import plot_training_size
     from heliotwin.io.paint import load_paint
     from heliotwin.io.report import write_json

@@ -2,10 +2,10 @@
 
 For ``--train`` 10 and 30 (split chrono, test = the latest 30 records, heliostats with >= 50 records):
 
-1. every candidate setting of :data:`heliotwin.calibrate.selection.CANDIDATES` under K-fold
+1. every candidate setting of :data:`heliotwin.calibrate.protocol.selection.CANDIDATES` under K-fold
    leave-heliostats-out CV on all heliostats (the table of what was tried; plant priors never contain the
    calibrated fold);
-2. the setting :func:`~heliotwin.calibrate.selection.select` chooses from that table, and its *protocol*
+2. the setting :func:`~heliotwin.calibrate.protocol.selection.select` chooses from that table, and its *protocol*
    figure: one ordinary run over all heliostats (``heliotwin calibrate --prior plant`` when a plant prior is
    chosen: the prior then comes from the folder's heliostats with < 50 records only), plus the default
    ``lm`` for comparison;
@@ -29,11 +29,11 @@ walk's covariance in the interval, chosen with ``drift`` by CV coverage):
 | 30 | 0.969 | run/b10/hl20d, drift 1.00, walk x1 | 0.903 | 0.903 | 0.885 / 0.879 | 0.662 / 0.796 / 0.545 |
 
 Since 2026-11-22 (second run that day, ``--online-cv``, 1834 s on one core) the archive checks its own
-heliostats' property values before fitting them (:meth:`heliotwin.calibrate.archive.PriorArchive.from_dataset`):
-BF41's wrong initial stroke had entered every plant prior as a 300-450 mrad outlier (winsorised to 3
-robust sigmas). That changed only the plant-prior rows: N=10 chosen kqauto -> kq0.03 (CV 1.239 -> 1.205),
-protocol 1.335 -> 1.336, nested 1.417 -> 1.178, coverage .900 / .921 -> .888 / .873; N=30 and the online
-choices (run prior) are unchanged.
+heliostats' property values before fitting them
+(:meth:`heliotwin.calibrate.protocol.archive.PriorArchive.from_dataset`): BF41's wrong initial stroke had
+entered every plant prior as a 300-450 mrad outlier (winsorised to 3 robust sigmas). That changed only the
+plant-prior rows: N=10 chosen kqauto -> kq0.03 (CV 1.239 -> 1.205), protocol 1.335 -> 1.336, nested
+1.417 -> 1.178, coverage .900 / .921 -> .888 / .873; N=30 and the online choices (run prior) are unchanged.
 
 Reference rows (2026-11-22, with the centroid-source and loss candidates; ``--online-cv``, 2044 s on one
 core; the table above is unchanged by those candidates except the nested coverage at N=10, .927 -> .921;
@@ -124,9 +124,9 @@ def offset_oracle(model, arrays) -> dict:
 def main(argv=None) -> int:
     import torch
 
-    from heliotwin.calibrate import selection as S
-    from heliotwin.calibrate.archive import PriorArchive
-    from heliotwin.calibrate.pipeline import RunConfig, run_calibration
+    from heliotwin.calibrate.protocol import selection as S
+    from heliotwin.calibrate.protocol.archive import PriorArchive
+    from heliotwin.calibrate.protocol.pipeline import RunConfig, run_calibration
     from heliotwin.io.paint import load_paint
     from heliotwin.io.report import write_json
 
@@ -154,8 +154,8 @@ def main(argv=None) -> int:
         base = RunConfig(paint=args.paint, method="lm", split="chrono", train=n, test=30, min_records=50)
         print(f"\n== N={n}: leave-heliostats-out {args.folds}-fold CV of every candidate", flush=True)
         collect: dict = {}
-        scores = S.cross_validated_errors(ds, base, S.CANDIDATES, ids, folds=args.folds, archive=archive,
-                                          log=print, collect=collect)
+        scores = S.cross_validated_errors(ds, base, S.CANDIDATES, ids, runner=run_calibration, folds=args.folds,
+                                          archive=archive, log=print, collect=collect)
         chosen = S.select(scores, S.CANDIDATES)
         drift, walk_scale, drift_cov = S.choose_interval(collect[S.label(chosen)])
         print("coverage of the 90 % interval vs (offset drift [mrad], walk scale) (CV runs of the chosen setting): "
@@ -209,8 +209,8 @@ def main(argv=None) -> int:
         if args.online_cv:  # the online run's settings chosen on the online protocol, as --settings cv does
             base_on = replace(base, split="online", online_step=max(base.online_step, S.ONLINE_CV_STEP))
             print(f"== N={n}: leave-heliostats-out CV of every candidate on the online protocol", flush=True)
-            scores_on = S.cross_validated_errors(ds, base_on, S.CANDIDATES, ids, folds=args.folds, archive=archive,
-                                                 log=print)
+            scores_on = S.cross_validated_errors(ds, base_on, S.CANDIDATES, ids, runner=run_calibration,
+                                                 folds=args.folds, archive=archive, log=print)
             chosen_on = S.select(scores_on, S.CANDIDATES)
             rep_on_cv, _, _ = run_calibration(S.config_of(replace(base, split="online"), chosen_on, archive), ds)
             res["online_cv"] = {"chosen": S.label(chosen_on), "cv_median_mrad": S.median(
@@ -221,8 +221,8 @@ def main(argv=None) -> int:
         nested = None
         if not args.skip_nested:
             print(f"== N={n}: nested leave-heliostats-out CV of the choice procedure", flush=True)
-            nested = S.nested_cv(ds, base, folds=args.folds, inner_folds=args.inner_folds, archive=archive,
-                                 log=print)
+            nested = S.nested_cv(ds, base, runner=run_calibration, folds=args.folds, inner_folds=args.inner_folds,
+                                 archive=archive, log=print)
             res["nested_cv"] = nested
         out["train"][str(n)] = res
         rows.append((n, rep_default["overall"], rep_chosen["overall"],

@@ -3,7 +3,7 @@
 The issue's figures are also measured on Jülich heliostats outside ``../shared``, with
 ``heliotwin calibrate --paint OTHER --prior-from ../shared/data/paint``. Those heliostats are not here, so
 this script makes them: the heliostats with >= 50 records are split into K folds (the same seeded folds as
-:func:`heliotwin.calibrate.selection.folds_of`), each fold becomes a PAINT download of its own (links to the
+:func:`heliotwin.calibrate.protocol.selection.folds_of`), each fold becomes a PAINT download of its own (links to the
 tower file, the metadata and its heliostats' folders), and the *command line* is run on it with
 ``--prior-from`` the whole shared folder. The run excludes its own heliostats from that archive, so every
 heliostat is calibrated by a prior, a property check and a settings choice (``--settings cv``, the default
@@ -139,7 +139,7 @@ def pooled(reports) -> dict:
 def main(argv=None) -> int:
     from tqdm import tqdm
 
-    from heliotwin.calibrate import selection as S
+    from heliotwin.calibrate.protocol import selection as S
     from heliotwin.io.paint import load_paint
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -13,6 +13,7 @@ import pytest
 import heliotwin
 from heliotwin import api
 from heliotwin.cli import build_parser
+from heliotwin.workflows.calibrate import CalibrationSettings
 from heliotwin.workflows.reconstruct import ReconstructionSettings
 
 SRC = Path(heliotwin.__file__).resolve().parents[1]
@@ -32,6 +33,7 @@ def _defaults(*command):
 @pytest.mark.parametrize("func, command, renamed", [
     (api.trace_record, ("trace",), {}),
     (api.calibrate, ("calibrate",), {}),
+    (CalibrationSettings, ("calibrate",), {}),  # api.calibrate's settings (its keywords)
     (ReconstructionSettings, ("reconstruct",), {"slope_error_mrad": "slope_error"}),
 ])
 def test_api_defaults_are_the_cli_defaults(func, command, renamed):
@@ -168,7 +170,7 @@ def test_calibrate_reports_its_stages_to_a_progress_callback(paint_dir, tmp_path
     """Every named step of the run, in order, to a callable ``progress`` (the CLI shows them as a tqdm bar)."""
     from helpers.paint import copy_paint
 
-    from heliotwin.calibrate.pipeline import STEPS
+    from heliotwin.calibrate.protocol.pipeline import STEPS
 
     root = copy_paint(paint_dir, tmp_path, ("AK46",), metadata=True)
     seen = []

@@ -22,7 +22,7 @@ FLOORS = (
     ("data edge", ("io",)),
     ("figures", ("plots",)),
     ("learning and acting", ("calibrate", "surfaces", "optimise", "distributed", "validate")),
-    ("workflows", ("workflows", "demo")),
+    ("workflows", ("workflows",)),
     ("public API", ("api",)),
     ("command line", ("cli", "__main__")),
 )

@@ -7,8 +7,8 @@ from helpers.calibrate import TRUE, jueliche_like, simulate
 
 from heliotwin.calibrate import metrics
 from heliotwin.calibrate.fitloop import box_and_validity, early_stopping_fit, tensor_state
-from heliotwin.calibrate.gradient import fit_gradient
 from heliotwin.calibrate.methods import METHODS, get_method
+from heliotwin.calibrate.methods.gradient import fit_gradient
 from heliotwin.calibrate.params import STONE8, apply_deviations
 from heliotwin.errors import HeliotwinError
 
@@ -71,7 +71,7 @@ def test_registry_is_plain_and_complete():
 
     assert set(METHODS) == set(METHOD_CHOICES)
     for name, fit in METHODS.items():
-        assert fit.__module__ == f"heliotwin.calibrate.{name}" and get_method(name) is fit
+        assert fit.__module__ == f"heliotwin.calibrate.methods.{name}" and get_method(name) is fit
     with pytest.raises(HeliotwinError, match="known: lm"):
         get_method("nope")
 

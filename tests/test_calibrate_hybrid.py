@@ -4,9 +4,9 @@ import math
 import torch
 from helpers.calibrate import TRUE, jueliche_like, scenario_round_trip, simulate, with_weekly_times
 
-from heliotwin.calibrate.hybrid import SECONDS_PER_YEAR, aim_hybrid, features, fit_hybrid_method
 from heliotwin.calibrate.inputs import MIN_SOURCE_PAIRS, fit_spots, source_offsets
-from heliotwin.calibrate.lm import fit_lm_method
+from heliotwin.calibrate.methods.hybrid import SECONDS_PER_YEAR, aim_hybrid, features, fit_hybrid_method
+from heliotwin.calibrate.methods.lm import fit_lm_method
 from heliotwin.calibrate.params import STONE8, apply_deviations
 from heliotwin.calibrate.scenario import aim, network_entry
 from heliotwin.field import kinematics as K

@@ -4,7 +4,7 @@ from helpers.calibrate import TARGET as CENTROID_TARGET
 from helpers.calibrate import TRUE, jueliche_like, simulate
 
 from heliotwin import scene
-from heliotwin.calibrate.images import IMAGE_PARAMETERS, fit_images_method
+from heliotwin.calibrate.methods.images import IMAGE_PARAMETERS, fit_images_method
 from heliotwin.calibrate.params import STONE8, apply_deviations
 from heliotwin.field.facets import ideal_surfaces
 from heliotwin.field.plant import Facets, SunSettings

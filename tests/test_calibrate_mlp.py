@@ -3,7 +3,7 @@ import torch
 from helpers.calibrate import TRUE, jueliche_like, scenario_round_trip, simulate
 
 from heliotwin.calibrate import metrics
-from heliotwin.calibrate.mlp import aim_mlp, fit_mlp_method
+from heliotwin.calibrate.methods.mlp import aim_mlp, fit_mlp_method
 from heliotwin.calibrate.params import STONE8, apply_deviations
 from heliotwin.calibrate.scenario import aim, network_entry
 from heliotwin.field import kinematics as K

@@ -13,7 +13,7 @@ def dataset(paint_dir):
 
 
 def run(dataset, **kw):
-    from heliotwin.calibrate.pipeline import RunConfig, run_calibration
+    from heliotwin.calibrate.protocol.pipeline import RunConfig, run_calibration
 
     cfg = RunConfig(paint=str(dataset.root), **kw)
     return run_calibration(cfg, dataset)
@@ -122,7 +122,7 @@ def test_lm_headline_on_every_heliostat(dataset):
 def test_a_time_ordered_split_without_record_times_says_why(paint_dir, tmp_path):
     """A folder without metadata/calibration-metadata.csv has no record times: a chrono split cannot place any
     record, and the skip reason names the missing file instead of only 'too few training records'."""
-    from heliotwin.calibrate.pipeline import RunConfig, run_calibration
+    from heliotwin.calibrate.protocol.pipeline import RunConfig, run_calibration
 
     root = copy_paint(paint_dir, tmp_path, ("BG62",), metadata=False)
     rep, _, _ = run_calibration(RunConfig(paint=str(root), split="chrono", train=30, test=30))

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from heliotwin.calibrate.splits import (
+from heliotwin.calibrate.protocol.splits import (
     SPLIT_TYPES,
     coverage,
     knn_mean_distance,

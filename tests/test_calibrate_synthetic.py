@@ -6,8 +6,8 @@ import torch
 from helpers.calibrate import TRUE, jueliche_like, simulate
 
 from heliotwin.calibrate import metrics
-from heliotwin.calibrate.gradient import fit_gradient
-from heliotwin.calibrate.lm import fit_lm
+from heliotwin.calibrate.methods.gradient import fit_gradient
+from heliotwin.calibrate.methods.lm import fit_lm
 from heliotwin.calibrate.params import STONE8, actuator_margin, apply_deviations, read_deviations
 from heliotwin.geometry import angle_between
 
@@ -44,7 +44,7 @@ def test_lm_recovers_known_deviations_batched():
 def test_lm_fits_a_large_field_in_independent_chunks(monkeypatch):
     """Above LM_CHUNK heliostats fit_lm solves one problem per chunk (a joint dense problem costs ~H^3): each
     heliostat still gets its own minimum, the one it gets fitted alone, and one without records stays nominal."""
-    import heliotwin.calibrate.lm as lm
+    import heliotwin.calibrate.methods.lm as lm
 
     monkeypatch.setattr(lm, "LM_CHUNK", 2)
     nominal = jueliche_like(5)

@@ -5,7 +5,7 @@ import torch
 from helpers.calibrate import TRUE, jueliche_like, scenario_round_trip, simulate
 
 from heliotwin.calibrate import drift as D
-from heliotwin.calibrate.lm import fit_lm_method
+from heliotwin.calibrate.methods.lm import fit_lm_method
 from heliotwin.calibrate.params import STONE8, apply_deviations
 from heliotwin.io.records import RecordTable
 
@@ -150,7 +150,7 @@ def test_choose_interval_shrinks_a_walk_that_overstates_the_drift():
     is below 1 and its coverage is near 0.9; runs without a walk keep scale 1."""
     import math
 
-    from heliotwin.calibrate import selection
+    from heliotwin.calibrate.protocol import selection
 
     g = torch.Generator().manual_seed(0)
     n, s = 1000, 1e-3

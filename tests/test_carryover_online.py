@@ -2,9 +2,9 @@
 import torch
 from helpers.calibrate import TRUE, jueliche_like, simulate, with_weekly_times
 
-from heliotwin.calibrate.lm import fit_lm_method
-from heliotwin.calibrate.online import online_errors, online_split
+from heliotwin.calibrate.methods.lm import fit_lm_method
 from heliotwin.calibrate.params import STONE8, apply_deviations
+from heliotwin.calibrate.protocol.online import online_errors, online_split
 from heliotwin.io.records import RecordTable
 
 F64 = torch.float64
@@ -60,17 +60,24 @@ def test_online_intervals_come_from_the_refit_before_each_block():
     """Correct model, Gaussian centroid noise, the online protocol: each test record's 90 % interval is the one
     of the refit that predicted it (the first block: the fit on the window before the test block), and about
     90 % of the test records fall inside their interval."""
-    from heliotwin.calibrate.pipeline import Run, RunConfig, online_refit, predict_intervals, record_intervals
+    from heliotwin.calibrate.protocol.pipeline import (
+        Evaluation,
+        RunConfig,
+        Split,
+        online_refit,
+        predict_intervals,
+        record_intervals,
+    )
 
     kin = jueliche_like(4)
     true = apply_deviations(kin, torch.tensor([[TRUE[n] for n in STONE8]] * 4, dtype=F64), STONE8)
     batch = with_weekly_times(simulate(true, 60, 11, noise=5e-4))
     options = {"bags": 0, "field_prior": False, "fit_focal_spot": None}
-    run = Run(RunConfig(paint="synthetic", split="online", train=20, test=40, online_step=10, method_options=options))
-    tr, _, te, _ = online_split(batch, 20, 40)
-    run.nominal, run.batch, run.test, run.test_rows = kin, batch, batch.subset(te), te
-    online_refit(run)
-    predict_intervals(run)  # the online intervals stay those of the refits
+    cfg = RunConfig(paint="synthetic", split="online", train=20, test=40, online_step=10, method_options=options)
+    tr, va, te, _ = online_split(batch, 20, 40)
+    parts = Split(batch.subset(tr), batch.subset(va), batch.subset(te), te)
+    run = online_refit(cfg, kin, batch, parts, None, Evaluation({}))
+    run = predict_intervals(cfg, None, parts, run)  # the online intervals stay those of the refits
     iv, err = run.intervals, run.errors["test"][0]
     assert iv["upper"].shape == (len(te),) and bool(torch.isfinite(iv["upper"]).all())
     assert 0.8 <= iv["inside"].double().mean().item() <= 0.97, iv["inside"].double().mean()
@@ -108,7 +115,7 @@ def test_cli_online_on_real_records(paint_dir, tmp_path, capsys):
 def test_recency_weights_track_a_drifting_offset():
     """Chrono on drifting records: weighting the training records by recency (half-life 3 weeks) predicts the
     next records better than the static fit; weights halve every half-life, records without time weigh 1."""
-    from heliotwin.calibrate.lm import recency_weights
+    from heliotwin.calibrate.methods.lm import recency_weights
 
     kin, batch = drifting_records(chunks=6, per_chunk=10)
     w = recency_weights(batch, 7.0)

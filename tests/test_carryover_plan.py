@@ -7,9 +7,9 @@ import torch
 from helpers.calibrate import TRUE, jueliche_like, scenario_round_trip, simulate
 from PIL import Image
 
-from heliotwin.calibrate.lm import fit_lm_method
+from heliotwin.calibrate.methods.lm import fit_lm_method
 from heliotwin.calibrate.params import STONE8, apply_deviations
-from heliotwin.calibrate.plan import greedy_design, plan
+from heliotwin.calibrate.protocol.plan import greedy_design, plan
 
 F64 = torch.float64
 

@@ -7,10 +7,10 @@ from helpers.calibrate import TRUE, jueliche_like, scenario_round_trip, simulate
 from helpers.cli import assert_one_line_error, run_cli
 
 from heliotwin.calibrate import metrics
-from heliotwin.calibrate.archive import PriorArchive, resolve_prior
-from heliotwin.calibrate.lm import fit_lm, fit_lm_method
+from heliotwin.calibrate.methods.lm import fit_lm, fit_lm_method
 from heliotwin.calibrate.params import STONE8, apply_deviations
 from heliotwin.calibrate.priors import PlantPrior, plant_prior
+from heliotwin.calibrate.protocol.archive import PriorArchive, resolve_prior
 from heliotwin.errors import HeliotwinError
 
 F64 = torch.float64
@@ -154,7 +154,7 @@ def test_a_small_folder_judges_its_properties_against_the_prior_plant(paint_dir,
     needs far more typical deviations, and the calibration is better for it (~1.9 against ~2.8 mrad)."""
     from helpers.paint import copy_paint
 
-    from heliotwin.calibrate.pipeline import RunConfig, run_calibration
+    from heliotwin.calibrate.protocol.pipeline import RunConfig, run_calibration
 
     root = copy_paint(paint_dir, tmp_path, ("BF41", "AC33", "BG62"), metadata=True)
     alone, _, _ = run_calibration(RunConfig(paint=str(root), train=30, test=30))

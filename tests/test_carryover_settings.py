@@ -4,8 +4,9 @@ import json
 import pytest
 from helpers.cli import assert_one_line_error, run_cli
 
-from heliotwin.calibrate import selection
-from heliotwin.calibrate.pipeline import RunConfig, settings_mode, validate_config
+from heliotwin.calibrate.protocol import selection
+from heliotwin.calibrate.protocol.config import RunConfig, settings_mode, validate_config
+from heliotwin.calibrate.protocol.pipeline import run_calibration
 from heliotwin.errors import HeliotwinError
 
 #: Two cheap candidates (no bagging) that differ in what matters: the run's own field prior or a plant prior.
@@ -47,7 +48,7 @@ def test_a_small_run_is_never_given_a_field_prior_it_cannot_have(paint_dir):
     CV never scored, so only plant-prior candidates are tried."""
     cfg = RunConfig(paint=str(paint_dir), prior_from=str(paint_dir), settings="cv", train=10, test=30)
     with pytest.raises(HeliotwinError, match="need 4 and none uses a plant prior"):
-        selection.choose_for_run(cfg, ["AK32", "BE36"], candidates=TWO[:1])
+        selection.choose_for_run(cfg, ["AK32", "BE36"], runner=run_calibration, candidates=TWO[:1])
 
 
 def test_settings_flag_resolution_and_errors(paint_dir, tmp_path, capsys):
@@ -88,8 +89,6 @@ def test_settings_flag_resolution_and_errors(paint_dir, tmp_path, capsys):
 def test_centroid_source_and_loss_are_candidates_that_reach_the_fit(paint_dir):
     """The fit's centroid source and loss are chosen by CV like every other setting: each candidate has its own
     label (scores are keyed by it) and its settings reach the lm fit, which then lands elsewhere."""
-    from heliotwin.calibrate.pipeline import run_calibration
-
     labels = [selection.label(c) for c in selection.CANDIDATES]
     assert len(set(labels)) == len(labels)
     tried = {(c.get("fit_focal_spot"), c.get("loss")) for c in selection.CANDIDATES}
@@ -113,7 +112,6 @@ def test_a_stored_choice_is_reused_only_where_it_is_honest(paint_dir, tmp_path, 
     uses it for heliostats the choice never saw, with the same protocol, and says why not otherwise."""
     from dataclasses import replace
 
-    from heliotwin.calibrate.pipeline import run_calibration
     from heliotwin.calibrate.scenario import KEY, save_calibration
     from heliotwin.io.paint import load_paint
     from heliotwin.io.scenario import load_scenario

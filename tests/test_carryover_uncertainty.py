@@ -6,10 +6,10 @@ import pytest
 import torch
 from helpers.calibrate import TRUE, jueliche_like, scenario_round_trip, simulate
 
-from heliotwin.calibrate import selection
-from heliotwin.calibrate.lm import fit_lm_method
+from heliotwin.calibrate.methods.lm import fit_lm_method
 from heliotwin.calibrate.params import STONE8, apply_deviations
-from heliotwin.calibrate.pipeline import Run, RunConfig, evaluate, predict_intervals
+from heliotwin.calibrate.protocol import selection
+from heliotwin.calibrate.protocol.pipeline import RunConfig, Split, evaluate, predict_intervals
 from heliotwin.calibrate.scenario import aim
 from heliotwin.calibrate.uncertainty import predictive
 
@@ -38,11 +38,8 @@ def _run(n_train: int, seed: int):
     true = apply_deviations(kin, torch.tensor([[TRUE[n] for n in STONE8]] * 4, dtype=F64), STONE8)
     train, test = simulate(true, n_train, seed, noise=5e-4), simulate(true, 80, seed + 1, noise=5e-4)
     model = fit_lm_method(kin, train, None, bags=0, field_prior=False, fit_focal_spot=None)
-    run = Run(RunConfig(paint="synthetic"))
-    run.model, run.nominal_raw, run.run_ids = model, kin, list(model.heliostat_ids)
-    run.train, run.validation, run.test = train, train.subset(torch.zeros(len(train), dtype=torch.bool)), test
-    evaluate(run)
-    predict_intervals(run)
+    parts = Split(train, train.subset(torch.zeros(len(train), dtype=torch.bool)), test)
+    run = predict_intervals(RunConfig(paint="synthetic"), model, parts, evaluate(model, kin, parts))
     return run, kin, model
 
 

@@ -77,7 +77,7 @@ def test_cuda_on_a_cpu_only_command_is_refused():
 
 def test_the_fit_commands_run_on_the_cuda_capable_path_on_the_cpu(small_paint, tmp_path, capsys):
     """``--device cpu`` goes through the same device plumbing (plant moved, results back) as cuda would."""
-    from heliotwin.calibrate.pipeline import resolve_device
+    from heliotwin.calibrate.protocol.pipeline import resolve_device
 
     assert resolve_device("auto") == ("cuda" if CUDA else "cpu")
     js = tmp_path / "v.json"

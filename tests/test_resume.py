@@ -16,9 +16,9 @@ from helpers.calibrate import TRUE, jueliche_like, simulate
 from helpers.cli import assert_one_line_error, run_cli
 from helpers.surfaces import small_scene
 
-from heliotwin.calibrate.gradient import fit_gradient_method
-from heliotwin.calibrate.hybrid import fit_hybrid_method
-from heliotwin.calibrate.lm import fit_lm_method
+from heliotwin.calibrate.methods.gradient import fit_gradient_method
+from heliotwin.calibrate.methods.hybrid import fit_hybrid_method
+from heliotwin.calibrate.methods.lm import fit_lm_method
 from heliotwin.calibrate.params import STONE8, apply_deviations
 from heliotwin.errors import HeliotwinError
 from heliotwin.field.plant import SunSettings
@@ -336,7 +336,7 @@ def test_sigterm_during_reconstruct_keeps_the_checkpoint_and_resume_finishes(tmp
 
 
 def test_library_settings_hash_ignores_progress():
-    from heliotwin.calibrate.pipeline import RunConfig, calibration_checkpoint
+    from heliotwin.calibrate.protocol.pipeline import RunConfig, calibration_checkpoint
 
     tags = set()
     for progress in (True, False):

@@ -22,12 +22,16 @@ and report), :func:`plot_flux` (a titled, labelled figure with a colour bar), :f
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 
 from . import plots
 from .devices import resolve_device
 from .devices import to_device as _move
+from .errors import HeliotwinError
 from .field.update import select_heliostats
-from .io.scenario import load_records, load_scenario, scenario_from_paint
+from .io.scenario import load_records, load_scenario, scenario_from_paint, write_scenario
+from .workflows.calibrate import CalibrationSettings, calibration_checkpoint
+from .workflows.calibrate import calibrate as calibrate_kinematics
 from .workflows.reconstruct import ReconstructionSettings, reconstruction_checkpoint
 from .workflows.reconstruct import reconstruct as reconstruct_surface
 from .workflows.trace import TraceSettings
@@ -152,73 +156,60 @@ def plot_flux(flux, path=None, *, title: str | None = None, measured: dict | Non
     return plots.plot_flux(flux, path, title=title, measured=measured, ax=ax)
 
 
-def calibrate(paint, *, method: str = "lm", heliostats=None, split: str = "chrono", train: int = 30,
-              validation: int | None = None, test: int | None = None, min_records: int = 50,
-              focal_spot: str = "HeliOS", seed: int = 0, plane_tolerance: float = 0.1,
-              keep_suspicious: bool = False, progress: bool = True, scenario=None, output=None, device: str = "auto",
-              checkpoint=None, resume: bool = False, prior_from=None, settings: str = "auto"):
+def calibrate(paint, config=None, *, scenario=None, output=None, device: str = "auto", progress=True,
+              checkpoint=None, resume: bool = False, **options):
     """Calibrate heliostat kinematics from PAINT calibration records (``heliotwin calibrate``'s defaults).
 
-    ``prior_from``: a PAINT folder of the same plant or a scenario holding a prior (lm's plant prior from
-    other heliostats); ``settings``: ``"auto"`` (as the CLI: with a PAINT folder, lm settings chosen by
-    leave-heliostats-out CV on its heliostats), ``"cv"`` or ``"given"``.
-
-    ``progress``: tqdm bars (the run's steps, titled ``calibrate <method>``, and the fit loops), or a callable
-    ``progress(step_name, index, total)`` called before each step of the run (no bars then).
-    ``device``: ``"auto"`` (CUDA when present, as the CLI), ``"cpu"`` or ``"cuda"``; the model comes back on
-    the CPU. ``checkpoint``: a file where the fit saves its state as it goes (e.g. ``"run.ckpt"``); after an
-    interruption, the same call with ``resume=True`` continues from it and reaches the same result (refused,
-    one line, when the settings or inputs differ). The file is removed when the call succeeds.
+    Parameters
+    ----------
+    paint : str or os.PathLike
+        PAINT download folder.
+    config : heliotwin.workflows.calibrate.CalibrationSettings, optional
+        The calibration's settings, one per ``heliotwin calibrate`` flag with the same name and default
+        (method, heliostats, split, train, validation, test, min_records, focal_spot, seed, plane_tolerance,
+        keep_suspicious, prior, prior_from, half_life_days, drift_mrad, drift, process_noise, drift_basis,
+        settings, online_step, curve); default: the command line's.
+    **options
+        Any of those settings by keyword, replacing ``config``'s (e.g. ``heliostats=["BH60"], train=10``).
+        ``prior_from``: a PAINT folder of the same plant or a scenario holding a prior (lm's plant prior from
+        other heliostats); ``settings``: ``"auto"`` (as the CLI: with a PAINT folder, lm settings chosen by
+        leave-heliostats-out CV on its heliostats), ``"cv"``, ``"stored"`` or ``"given"``.
+    scenario : str or os.PathLike, optional
+        Start from this scenario's plant (default: the PAINT folder's nominal plant).
+    output : str or os.PathLike, optional
+        Write the calibrated scenario there (when something was calibrated; else a one-line error).
+    device : {"auto", "cpu", "cuda"}
+        ``"auto"``: CUDA when present, as the CLI; the model comes back on the CPU.
+    progress : bool or callable
+        tqdm bars (the run's steps, titled ``calibrate <method>``, and the fit loops), or a callable
+        ``progress(step_name, index, total)`` called before each step of the run (no bars then).
+    checkpoint : str or os.PathLike, optional
+        A file where the fit saves its state as it goes (e.g. ``"run.ckpt"``); after an interruption, the same
+        call with ``resume=True`` continues from it and reaches the same result (refused, one line, when the
+        settings or inputs differ). The file is removed when the call succeeds.
 
     Returns
     -------
     report : dict
         Per-heliostat and overall pointing errors [mrad] on held-out test records (see ``docs/glossary.md``).
-    model : heliotwin.calibrate.methods.Calibrated or None
+    model : heliotwin.calibrate.model.Calibrated or None
         None when no heliostat could be calibrated.
     output : str or None
         The scenario file written (``output``), when asked and something was calibrated.
     """
-    from .calibrate.pipeline import RunConfig, run_calibration, settings_mode, validate_config
-    from .calibrate.scenario import save_calibration
-    from .errors import HeliotwinError
-
-    cfg = RunConfig(paint=os.fspath(paint), method=method, split=split, train=train, validation=validation,
-                    test=test, heliostats=None if heliostats is None else list(heliostats), min_records=min_records,
-                    focal_spot=focal_spot, seed=seed, plane_tolerance=plane_tolerance,
-                    correct_suspicious=not keep_suspicious, progress=progress is True,
-                    prior_from=None if prior_from is None else os.fspath(prior_from),
-                    settings=settings_mode(settings, method=method, prior_from=prior_from))
-    validate_config(cfg)
+    settings = replace(config or CalibrationSettings(), **options)
     ck = None
     if checkpoint is not None:
-        from .calibrate.pipeline import calibration_checkpoint
-
-        ck = calibration_checkpoint(cfg, checkpoint, device=_device(device), resume=resume,
-                                    inputs=[scenario] if scenario is not None else [])
-    ds = load(paint, scenario=scenario, plane_tolerance=plane_tolerance)
-    report, model, arrays = run_calibration(cfg, ds, device=_device(device), checkpoint=ck,
-                                            progress=progress if callable(progress) else None)
-    if output is None:
-        if ck is not None:
-            ck.remove()
-        return report, model, None
-    if model is None or not bool(model.ok.any()):
-        raise HeliotwinError(f"no heliostat could be calibrated; {os.fspath(output)} not written")
-    from .io.scenario import load_scenario
-
-    seen: dict = {}
-    for name in ("train", "validation"):
-        t = arrays.get(name)
-        for h, rid in zip(t.heliostat_index.tolist(), t.record_id.tolist()) if t is not None else ():
-            seen.setdefault(t.heliostat_ids[h], []).append(int(rid))
-    settings = {k: v for k, v in report["config"].items() if k != "method_options"}
-    save_calibration(output, ds.plant, model, previous=load_scenario(scenario) if scenario else None,
-                     focal_spot=cfg.focal_spot, records=seen, settings=settings, source=os.path.abspath(paint),
-                     settings_choice=report.get("settings_choice"))
+        ck = calibration_checkpoint(settings, paint, checkpoint, scenario=scenario, device=_device(device),
+                                    resume=resume)
+    result = calibrate_kinematics(scenario, paint, settings, device=_device(device), progress=progress, checkpoint=ck)
+    if output is not None:
+        if result.scenario is None:
+            raise HeliotwinError(f"no heliostat could be calibrated; {os.fspath(output)} not written")
+        write_scenario(result.scenario, output)
     if ck is not None:
         ck.remove()
-    return report, model, os.fspath(output)
+    return result.report, result.model, None if output is None else os.fspath(output)
 
 
 def reconstruct(paint, heliostat: str, settings: ReconstructionSettings | None = None, *, scenario=None,

@@ -16,7 +16,7 @@ columns of the record Jacobian for the two axis offsets, noise ``s`` per compone
 
 * The static part is then a generalised least-squares fit: marginalising ``b``, the residuals of a
   heliostat have covariance ``Sigma = A K A^T + s^2 I`` [3n, 3n]; :func:`whitener` gives
-  ``W = s L^-1`` (``Sigma = L L^T``), and :func:`~heliotwin.calibrate.lm.fit_lm` fits ``W r`` instead of
+  ``W = s L^-1`` (``Sigma = L L^T``), and :func:`~heliotwin.calibrate.methods.lm.fit_lm` fits ``W r`` instead of
   ``r`` (``q = 0``: ``W = I``, the static fit exactly). Old records weigh less because the offset they saw
   may have moved since: the principled form of the half-life weights.
 * The offset given the residuals (:func:`smooth`): the Gaussian conditional ``E[b | r] = K A^T Sigma^-1 y``
@@ -24,10 +24,10 @@ columns of the record Jacobian for the two axis offsets, noise ``s`` per compone
   batched form: n <= a few hundred records per heliostat, all heliostats at once) and, at the latest
   training time t_l, the filtered state with its covariance ``P_l``. A later record at t is predicted with
   ``b(t_l)`` and covariance ``P_l + q (t - t_l) I`` (the random walk's growth), which
-  :func:`heliotwin.calibrate.pipeline.predict_intervals` adds to the Laplace posterior.
+  :func:`heliotwin.calibrate.protocol.pipeline.predict_intervals` adds to the Laplace posterior.
 
 Records without a time cannot be placed on the walk: their offset rows are zero (they inform the static
-part only). ``q`` is chosen by leave-heliostats-out CV (:data:`heliotwin.calibrate.selection.CANDIDATES`) or
+part only). ``q`` is chosen by leave-heliostats-out CV (:data:`heliotwin.calibrate.protocol.selection.CANDIDATES`) or
 by chronological validation inside the training records (``process_noise="auto"``, :func:`choose_q`).
 """
 from __future__ import annotations
@@ -35,6 +35,7 @@ from __future__ import annotations
 import torch
 
 from ..io.records import RecordTable
+from .metrics import record_jacobian
 from .params import STONE8
 
 #: The deviations that drift, per basis: ``"axes"``: the two axis (encoder zero) offsets; ``"rotation"``: a
@@ -89,8 +90,6 @@ def offset_jacobian(nominal, batch: RecordTable, delta: torch.Tensor | None = No
                     basis: str = "axes") -> torch.Tensor:
     """``A`` [R, 3, 2]: derivative of each record's residual w.r.t. its heliostat's two axis offsets [1/rad]
     at deviations ``delta`` [H, 8] (default zero = nominal)."""
-    from .lm import record_jacobian
-
     hidx = batch.heliostat_index
     dev = nominal.position.device
     d = torch.zeros(nominal.num_heliostats, len(STONE8), dtype=torch.float64, device=dev) if delta is None \
@@ -120,7 +119,7 @@ def _sigma(a: torch.Tensor, k: torch.Tensor, noise: float) -> torch.Tensor:
 
 
 def whitener(nominal, batch: RecordTable, q: float, noise: float, basis: str = "axes"):
-    """The GLS whitening of :func:`~heliotwin.calibrate.lm.fit_lm` (module docstring).
+    """The GLS whitening of :func:`~heliotwin.calibrate.methods.lm.fit_lm` (module docstring).
 
     Parameters
     ----------
@@ -164,8 +163,6 @@ def smooth(nominal, batch: RecordTable, delta: torch.Tensor, q: float, noise: fl
         (rad, at the heliostat's latest training time), ``covariance`` [H, 2, 2] (rad^2), ``time`` [H]
         (POSIX s of that latest record; NaN without one), ``q`` (rad^2/day).
     """
-    from .lm import record_jacobian
-
     hidx = batch.heliostat_index
     h = batch.num_heliostats
     res, jac = record_jacobian(nominal.index(hidx), batch, delta.detach().double()[hidx], STONE8)

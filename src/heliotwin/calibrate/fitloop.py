@@ -1,7 +1,7 @@
 """The one fit loop of every per-heliostat, early-stopped fit in ``calibrate`` (gradient, images, hybrid, mlp).
 
 All heliostats of a run are fitted at once: the loss is a sum of independent per-heliostat terms, so one
-optimiser over a tensor (or a :class:`~heliotwin.calibrate.nets.BatchedMLP`) with a leading heliostat axis
+optimiser over a tensor (or a :class:`~heliotwin.calibrate.methods.nets.BatchedMLP`) with a leading heliostat axis
 equals H separate fits. What differs between heliostats is *when to stop*: every ``check_every``
 iterations the validation error of each heliostat is evaluated and its best state so far is kept
 (:func:`early_stopping_fit`); heliostats without validation records keep the final state.
@@ -26,6 +26,8 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import torch
+from torch.optim.optimizer import register_optimizer_step_pre_hook
+from tqdm import tqdm
 
 from ..errors import HeliotwinError
 from ..field.plant import Kinematics
@@ -197,7 +199,7 @@ def tensor_state(x: torch.Tensor) -> State:
 
 
 def net_state(net) -> State:
-    """:class:`State` of a :class:`~heliotwin.calibrate.nets.BatchedMLP` (one network per heliostat)."""
+    """:class:`State` of a :class:`~heliotwin.calibrate.methods.nets.BatchedMLP` (one network per heliostat)."""
     return State(lambda: copy.deepcopy(net), lambda best, rows: best.copy_rows(net, rows), net,
                  lambda obj: {k: v.detach().clone() for k, v in obj.state_dict().items()},
                  lambda obj, data: obj.load_state_dict(data))
@@ -213,8 +215,6 @@ class _Optimisers:
 
     @contextlib.contextmanager
     def watching(self):
-        from torch.optim.optimizer import register_optimizer_step_pre_hook
-
         def before(opt, args, kwargs):
             if not any(o is opt for o in self.seen):
                 self.seen.append(opt)
@@ -285,8 +285,6 @@ def _median_mrad(err: torch.Tensor):
 def _iterations(iterations: int, progress: bool, desc: str, first: int = 1):
     it = range(first, iterations + 1)
     if progress:
-        from tqdm import tqdm
-
         it = tqdm(it, desc=desc, leave=False, initial=first - 1, total=iterations)
     return it
 

@@ -59,11 +59,12 @@ def source_offsets(batch: RecordTable) -> tuple[torch.Tensor, torch.Tensor]:
     centroids scatter less, so ``harmonised`` fits UTIS shifted by that difference: the smaller noise, in the
     frame the metric scores. The difference is the plant's (pooled over the batch's heliostats, median per
     target, so one bad centroid cannot move it) and uses only the records given (a training batch never sees
-    test records). Whether it beats plain UTIS is left to the CV (:data:`~.selection.CANDIDATES`): on the
-    shared heliostats it does not (CV N=30 1.069 against 0.969 mrad, run prior): in an exploratory run, moving
-    the training centroids by ~0.1 mrad of normal moved the test-block predictions of BE36 and BF55 by ~0.5,
-    the way their test blocks' own offsets already lay: a small shift of the training data lands on weakly
-    determined parameters that the extrapolation to new sun positions amplifies.
+    test records). Whether it beats plain UTIS is left to the CV
+    (:data:`~heliotwin.calibrate.protocol.selection.CANDIDATES`): on the shared heliostats it does not (CV N=30 1.069
+    against 0.969 mrad, run prior): in an exploratory run, moving the training centroids by ~0.1 mrad of normal moved
+    the test-block predictions of BE36 and BF55 by ~0.5, the way their test blocks' own offsets already lay: a small
+    shift of the training data lands on weakly determined parameters that the extrapolation to new sun positions
+    amplifies.
 
     Parameters
     ----------

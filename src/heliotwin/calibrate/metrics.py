@@ -8,7 +8,9 @@ measured focal spot. The angle is :func:`heliotwin.geometry.angle_between` (``at
 
 :func:`pointing_error` (kinematics with a heliostat axis + a :class:`~heliotwin.io.records.RecordTable`)
 is what calibration, its report and validation all use; models whose normals do not come from rigid-body
-kinematics (hybrid, MLP) go through :func:`pointing_error_of_normals`.
+kinematics (hybrid, MLP) go through :func:`pointing_error_of_normals`. :func:`record_jacobian` (the residuals
+and their derivative w.r.t. the deviations of :mod:`.params`) is what the LM fit, the drift model and the
+predictive intervals linearise.
 """
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ from ..field import kinematics as K
 from ..field.plant import Kinematics
 from ..geometry import angle_between, ray_plane, reflect
 from ..io.records import RecordTable
+from .params import apply_deviations
 
 
 def per_record_kinematics(kin: Kinematics, batch: RecordTable) -> Kinematics:
@@ -56,6 +59,39 @@ def normal_residuals(kin: Kinematics, batch: RecordTable, *, per_record: bool = 
     """Model minus measured normal, [R, 3]; its norm equals the pointing error to second order (rad)."""
     n, c = model_normals(kin, batch, per_record=per_record)
     return n - measured_normals(batch, c)
+
+
+def record_jacobian(nominal_per_record: Kinematics, batch: RecordTable, delta_rec: torch.Tensor, names):
+    """Residuals [R, 3] and their derivative w.r.t. each record's own parameters [R, 3, P].
+
+    A record depends only on its heliostat's parameters, so three backward passes (one per residual
+    component, summed over records) give every record's gradient at once.
+
+    Parameters
+    ----------
+    nominal_per_record : Kinematics
+        R entries, one per record (its heliostat's kinematics).
+    batch : RecordTable
+        R records.
+    delta_rec : torch.Tensor, [R, P]
+        Each record's heliostat's deviations (rad, m, relative; see :mod:`.params`).
+    names : sequence of str, length P
+        The deviations' names.
+
+    Returns
+    -------
+    residuals : torch.Tensor, [R, 3]
+        :func:`normal_residuals` (model minus measured normal), detached.
+    jacobian : torch.Tensor, [R, 3, P]
+        Per natural unit of each parameter (1/rad, 1/m, 1 per relative increment).
+    """
+    d = delta_rec.detach().clone().requires_grad_(True)
+    r = normal_residuals(apply_deviations(nominal_per_record, d, names), batch, per_record=True)
+    jac = []
+    for c in range(3):
+        (g,) = torch.autograd.grad(r[:, c].sum(), d, retain_graph=c < 2)
+        jac.append(g)
+    return r.detach(), torch.stack(jac, 1)
 
 
 def pointing_error_of_normals(normal: torch.Tensor, concentrator: torch.Tensor, batch: RecordTable) -> torch.Tensor:

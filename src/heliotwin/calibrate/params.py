@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import torch
 
+from ..errors import HeliotwinError
 from ..field.actuators import law_of_cosines_valid
 from ..field.plant import Kinematics
 
@@ -70,8 +71,6 @@ def units(names, dtype=torch.float64, device=None) -> torch.Tensor:
 
 def check_names(names) -> tuple:
     """Validate parameter names (one-line error listing the known ones)."""
-    from ..errors import HeliotwinError
-
     bad = [n for n in names if n not in _BY_NAME]
     if bad:
         raise HeliotwinError(f"unknown calibration parameter(s) {', '.join(bad)}; known: {', '.join(NAMES)}")

@@ -22,8 +22,8 @@ fits (``lm``), :data:`CHAIN_SIGMA` for the gradient fits of the whole chain (``g
 The *plant prior* (:class:`PlantPrior`, :func:`plant_prior`) is the hierarchical version learned from
 *other* heliostats with long histories instead of the run's own first records: mean + a full covariance
 (shrunk towards its diagonal), so the near-degenerate pairs (axis-2 initial angle <-> first-joint tilt
-north) are held to the combination the plant shows. It is built by :mod:`.archive` and used by ``lm`` with
-``--prior plant`` / ``--prior-from``.
+north) are held to the combination the plant shows. It is built by :mod:`heliotwin.calibrate.protocol.archive` and used
+by ``lm`` with ``--prior plant`` / ``--prior-from``.
 """
 from __future__ import annotations
 
@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ..errors import InputFileError
 from ..shrinkage import GaussianPrior, check_positive_definite, shrunk_covariance
 from .params import kinds
 
@@ -93,8 +94,8 @@ def field_prior(first_pass: torch.Tensor, usable: torch.Tensor, names, *, floor:
 #: parameters, so that its loose fit is determined by data rather than by the loose prior).
 MIN_PRIOR_RECORDS = 9
 
-#: Default settings of a plant prior (see :meth:`PriorArchive.prior`); :mod:`.selection` chooses among
-#: alternatives by leave-heliostats-out cross-validation.
+#: Default settings of a plant prior (see :meth:`PriorArchive.prior`); :mod:`heliotwin.calibrate.protocol.selection`
+#: chooses among alternatives by leave-heliostats-out cross-validation.
 PLANT_PRIOR_DEFAULTS = {"covariance": "full", "shrink": 0.2, "widen": 1.0, "min_records": MIN_PRIOR_RECORDS}
 
 
@@ -124,8 +125,6 @@ class PlantPrior(GaussianPrior):
     @classmethod
     def from_state(cls, state: dict, path="") -> PlantPrior:
         """Read a stored prior; one with only ``sigma`` (a diagonal field prior) becomes a diagonal covariance."""
-        from ..errors import InputFileError
-
         try:
             names = tuple(str(n) for n in state["names"])
             mean = torch.as_tensor(state["mean"], dtype=torch.float64).reshape(-1)

@@ -58,7 +58,7 @@ def plot_sky(path, arrays: dict, title: str = "") -> None:
 
 
 def plot_plan(path, ans: dict) -> None:
-    """Sky map of a :func:`heliotwin.calibrate.plan.plan` answer computed with ``sky=True``: every candidate
+    """Sky map of a :func:`heliotwin.calibrate.protocol.plan.plan` answer computed with ``sky=True``: every candidate
     time at its sun azimuth (0 = south, + = east) and elevation [deg], coloured by the predictive spread of the
     normal there now [mrad], and the proposed records numbered in the order they are taken."""
     grid = ans["sky"]

@@ -14,9 +14,16 @@ from dataclasses import fields
 import torch
 
 from ..errors import HeliotwinError, InputFileError
+from ..field import kinematics as K
 from ..field.plant import Kinematics, Plant
 from ..field.update import with_kinematics
+from ..io.scenario import Scenario, next_scenario, provenance_entry, write_scenario
+from ..sun import direction_from_paint_angles
+from .methods.hybrid import aim_hybrid
+from .methods.mlp import aim_mlp
+from .params import STONE8, apply_deviations
 from .priors import PlantPrior
+from .uncertainty import LEVEL, predictive
 
 #: The key of a calibration under ``Scenario.learned``.
 KEY = "calibration"
@@ -52,9 +59,9 @@ def calibration_state(model, *, focal_spot: str = "", prior=None, settings_choic
         heliostats it was learned from). A field prior of the run's own records lists the calibrated
         heliostats as its sources (so ``--prior-from`` refuses it for them).
     settings_choice : dict, optional
-        The lm settings chosen by leave-heliostats-out CV (:func:`heliotwin.calibrate.selection.choose_for_run`'s
-        record), stored as JSON text for ``--settings stored``
-        (:func:`heliotwin.calibrate.selection.stored_choice`).
+        The lm settings chosen by leave-heliostats-out CV
+        (:func:`heliotwin.calibrate.protocol.selection.choose_for_run`'s record), stored as JSON text for
+        ``--settings stored`` (:func:`heliotwin.calibrate.protocol.selection.stored_choice`).
 
     Returns
     -------
@@ -76,8 +83,6 @@ def calibration_state(model, *, focal_spot: str = "", prior=None, settings_choic
     ds = model.extras.get("drift_state")
     if ds:  # the random-walk offset (drift.py): already inside "deviations"; its state lets aim grow the
         # uncertainty with the time since the latest training record, and a later run start from it
-        from .drift import STONE8
-
         state["drift"] = {"model": "kalman",
                           "names": [STONE8[c] for c in ds["columns"].tolist()],
                           "offset": ds["offset"].detach()[ok].to(torch.float64).cpu(),
@@ -108,13 +113,14 @@ def calibrated_plant(plant: Plant, model) -> Plant:
     return with_kinematics(plant, [model.heliostat_ids[h] for h in ok], model.kinematics.index(ok))
 
 
-def save_calibration(path, plant: Plant, model, *, previous=None, focal_spot: str = "", records: dict | None = None,
-                     settings: dict | None = None, source: str = "", settings_choice: dict | None = None):
-    """Write the calibrated plant as a scenario (plant′ = ``plant`` with the calibrated kinematics).
+def calibrated_scenario(plant: Plant, model, *, previous: Scenario | None = None, focal_spot: str = "",
+                        records: dict | None = None, settings: dict | None = None, source: str = "",
+                        settings_choice: dict | None = None) -> Scenario:
+    """The calibrated plant as a scenario, in memory (plant′ = ``plant`` with the calibrated kinematics, the
+    calibration under ``/learned/calibration`` and one ``calibrate`` provenance step).
 
     Parameters
     ----------
-    path : str or Path
     plant : Plant
         The plant the calibration started from (nominal PAINT plant or a scenario's).
     model : heliotwin.calibrate.model.Calibrated
@@ -131,9 +137,12 @@ def save_calibration(path, plant: Plant, model, *, previous=None, focal_spot: st
         Where the records came from (the PAINT folder).
     settings_choice : dict, optional
         The run's ``settings_choice`` report; what :func:`storable_choice` keeps of it is stored.
-    """
-    from ..io.scenario import provenance_entry, save_step
 
+    Returns
+    -------
+    heliotwin.io.scenario.Scenario
+        Not yet written (:func:`heliotwin.io.scenario.write_scenario` writes it).
+    """
     prior = model.extras.get("plant_prior") or model.extras.get("field_prior")
     prior = (prior["mean"], prior["sigma"]) if isinstance(prior, dict) and "mean" in prior else prior
     learned = dict(previous.learned) if previous is not None else {}
@@ -141,7 +150,12 @@ def save_calibration(path, plant: Plant, model, *, previous=None, focal_spot: st
                                      settings_choice=storable_choice(settings_choice))
     step = provenance_entry("calibrate", method=str(model.method), source=str(source), records=records or {},
                             calibrated=list(learned[KEY]["heliostats"]), settings=settings or {})
-    return save_step(path, calibrated_plant(plant, model), previous, learned=learned, step=step)
+    return next_scenario(previous, calibrated_plant(plant, model), learned=learned, step=step)
+
+
+def save_calibration(path, plant: Plant, model, **options):
+    """Write :func:`calibrated_scenario` (same ``options``) to ``path``; returns the path written."""
+    return write_scenario(calibrated_scenario(plant, model, **options), path)
 
 
 def network_entry(learned: dict, heliostat_id: str, path="") -> dict | None:
@@ -184,9 +198,6 @@ def aim(scenario, heliostat_id: str, sun_azimuth: float, sun_elevation: float, a
         for a rigid-body calibration with a stored posterior also ``expected_error_mrad`` and
         ``error_interval_90_mrad`` (``[0, q_0.9]`` of the pointing error, :func:`expected_error`).
     """
-    from ..field import kinematics as K
-    from ..sun import direction_from_paint_angles
-
     plant = scenario.plant
     h = plant.field.index_of(heliostat_id)
     kin = plant.field.kinematics.index([h])
@@ -202,12 +213,8 @@ def aim(scenario, heliostat_id: str, sun_azimuth: float, sun_elevation: float, a
     net = network_entry(scenario.learned, heliostat_id, scenario.path) if calibrated else None
     kind = (net or {}).get("config", {}).get("kind")
     if kind == "mlp":
-        from .mlp import aim_mlp
-
         steps = aim_mlp(net, kin, sun, target)
     elif kind == "hybrid":
-        from .hybrid import aim_hybrid
-
         steps = aim_hybrid(net, kin, sun, target)
     else:
         steps, _ = K.inverse(kin, target, sun, strict=False)
@@ -226,10 +233,6 @@ def expected_error(cal: dict, heliostat_id: str, steps: torch.Tensor, path="", t
     ``cal`` is the ``/learned/calibration`` entry; the normal's Jacobian w.r.t. the heliostat's deviations
     is taken at the stored fit (nominal kinematics + deviations), see :mod:`heliotwin.calibrate.uncertainty`.
     """
-    from ..field import kinematics as K
-    from .params import apply_deviations
-    from .uncertainty import LEVEL, predictive
-
     where = f"/learned/{KEY}/posterior"
     try:
         j = list(cal["heliostats"]).index(heliostat_id)

@@ -21,7 +21,7 @@ record that is *better* than its 5 % quantile as a miss, and its coverage is not
 ``tau`` (``drift``) is an offset per component that the training records cannot show: the Laplace
 posterior knows the noise of the training records and the geometry of extrapolation, not the drift or steps
 of the offset over months (the issue's analysis: 57-72 % of the test MSE is the test block's mean offset).
-It is chosen by leave-heliostats-out coverage (:func:`heliotwin.calibrate.selection.choose_drift`), never
+It is chosen by leave-heliostats-out coverage (:func:`heliotwin.calibrate.protocol.selection.choose_drift`), never
 on the test records of the heliostat it is applied to; 0 = the plain Laplace approximation.
 """
 from __future__ import annotations

@@ -9,6 +9,7 @@ import argparse
 import csv
 import math
 import os
+from dataclasses import fields, replace
 
 from ..errors import HeliotwinError
 from ..io.report import atomic_path, output_set, write_json
@@ -126,134 +127,72 @@ def register(subparsers) -> None:
     p.set_defaults(func=cmd_aim)
 
 
-def _config(args, method="lm"):
-    from ..calibrate.pipeline import RunConfig, validate_config
+def _settings(args, method: str | None = None):
+    """The :class:`~heliotwin.workflows.calibrate.CalibrationSettings` of parsed ``calibrate`` / ``split``
+    flags (a flag a command lacks keeps its default; ``method`` replaces ``--method``)."""
+    from ..workflows.calibrate import CalibrationSettings
 
-    cfg = RunConfig(paint=args.paint, method=method, split=args.split, train=args.train,
-                    validation=args.validation, test=args.test, heliostats=_ids(args.heliostats),
-                    min_records=args.min_records, focal_spot=args.focal_spot, seed=args.seed,
-                    plane_tolerance=getattr(args, "plane_tolerance", 0.1),
-                    correct_suspicious=not getattr(args, "keep_suspicious", False),
-                    progress=not getattr(args, "quiet", True), prior=getattr(args, "prior", "run"),
-                    prior_from=getattr(args, "prior_from", None), online_step=getattr(args, "online_step", 5),
-                    method_options=_lm_options(args, method), drift_model=getattr(args, "drift", "none"),
-                    process_noise=_process_noise(getattr(args, "process_noise", "auto")),
-                    drift_basis=getattr(args, "drift_basis", "axes"), settings=_settings_mode(args, method))
-    validate_config(cfg)
-    return cfg
+    given = {f.name: getattr(args, f.name) for f in fields(CalibrationSettings) if hasattr(args, f.name)}
+    given.update(heliostats=_ids(args.heliostats), curve=False, **({"method": method} if method else {}))
+    return CalibrationSettings(**given)
+
+
+def _config(args, method: str | None = None):
+    """The checked run config of the flags (:func:`heliotwin.workflows.calibrate.run_config`; one-line errors)."""
+    from ..workflows.calibrate import run_config
+
+    return run_config(_settings(args, method), args.paint)
 
 
 def _settings_mode(args, method) -> str:
-    """``--settings``, with ``auto`` resolved (:func:`heliotwin.calibrate.pipeline.settings_mode`): a setting
-    flag given by hand (half-life, interval drift, drift model) keeps the flags."""
-    from ..calibrate.pipeline import settings_mode
+    """``--settings``, with ``auto`` resolved (:func:`heliotwin.workflows.calibrate.resolved_settings_mode`): a
+    setting flag given by hand (half-life, interval drift, drift model) keeps the flags."""
+    from ..workflows.calibrate import resolved_settings_mode
 
-    by_hand = (getattr(args, "half_life_days", None) is not None or getattr(args, "drift_mrad", None) is not None
-               or getattr(args, "drift", "none") != "none")
-    return settings_mode(getattr(args, "settings", "given") or "given", method=method,
-                         prior_from=getattr(args, "prior_from", None), fixed_by_hand=by_hand)
-
-
-def _process_noise(text):
-    """``--process-noise``: ``auto`` or a number >= 0 [mrad^2/day] (one-line error otherwise)."""
-    if text is None or str(text).strip().lower() == "auto":
-        return "auto"
-    try:
-        q = float(text)
-    except ValueError:
-        q = float("nan")
-    if not (math.isfinite(q) and q >= 0):
-        raise HeliotwinError(f"--process-noise must be 'auto' or a number >= 0 [mrad^2/day], got {text!r}")
-    return q
-
-
-def _lm_options(args, method) -> dict:
-    """``--half-life-days`` / ``--drift-mrad`` as lm method options (one-line error for other methods)."""
-    opts = {}
-    hl, drift = getattr(args, "half_life_days", None), getattr(args, "drift_mrad", None)
-    if hl is not None:
-        if not (math.isfinite(hl) and hl > 0):
-            raise HeliotwinError(f"--half-life-days must be a positive number, got {hl}")
-        opts["half_life_days"] = hl
-    if drift is not None:
-        if not (math.isfinite(drift) and drift >= 0):
-            raise HeliotwinError(f"--drift-mrad must be >= 0, got {drift}")
-        opts["drift"] = 1e-3 * drift
-    if opts and method != "lm":
-        raise HeliotwinError(f"--half-life-days / --drift-mrad apply to --method lm only, not {method}")
-    return opts
-
-
-def _load(paint, scenario=None, plane_tolerance: float = 0.1):
-    """The PAINT records, on the scenario's plant when one is given; returns (dataset, scenario or None)."""
-    from ..io.scenario import load_records
-
-    if not os.path.isdir(paint):
-        raise HeliotwinError(f"{paint}: PAINT folder not found")
-    return load_records(paint, scenario, plane_tolerance=plane_tolerance)
-
-
-def _seen_records(arrays: dict) -> dict:
-    """Heliostat id -> record ids a method saw (training + validation), for the provenance."""
-    out: dict = {}
-    for name in ("train", "validation"):
-        t = arrays.get(name)
-        if t is None:
-            continue
-        for h, rid in zip(t.heliostat_index.tolist(), t.record_id.tolist()):
-            out.setdefault(t.heliostat_ids[h], []).append(int(rid))
-    return out
+    return resolved_settings_mode(_settings(args, method))
 
 
 def cmd_calibrate(args) -> int:
-    from ..calibrate.pipeline import run_calibration
     from ..calibrate.report import write_plots
-    from ..calibrate.scenario import save_calibration
+    from ..io.scenario import write_scenario
+    from ..workflows.calibrate import calibrate, run_config
 
-    cfg = _config(args, args.method)
+    settings = replace(_settings(args), curve=bool(args.curve and args.json and not args.no_plots))
+    run_config(settings, args.paint)  # one-line errors before any output is staged
     device = getattr(args, "device", "cpu")
     # The checkpoint outlives the staged outputs: removed only once they are in place.
-    with checkpointed(args, _checkpoint(args, cfg, device)), \
+    with checkpointed(args, _checkpoint(args, settings, device)), \
             output_set([("--paint", args.paint), ("--scenario", args.scenario)]) as out:
         output, json_path = out.file(args.output, "-o"), out.file(args.json, "--json")
-        stage(args, f"reading {args.paint}")
-        ds, previous = _load(args.paint, args.scenario, cfg.plane_tolerance)
-        stage(args, f"calibrating ({cfg.method}, {cfg.split} split) on {device}")
-        report, model, arrays = run_calibration(cfg, ds, device=device, checkpoint=args.checkpoint)
-        ov = report["overall"]
-        calibrated = model is not None and bool(model.ok.any())
-        if args.output and not calibrated:
+        result = calibrate(args.scenario, args.paint, settings, device=device, progress=not args.quiet,
+                           checkpoint=args.checkpoint, stage=lambda text: stage(args, text))
+        report = result.report
+        if args.output and result.scenario is None:
             _print_table(report)
             raise HeliotwinError(f"no heliostat could be calibrated (see the table above); {args.output} not written")
-        curves = None
-        if args.curve and args.json and not args.no_plots and calibrated:
-            stage(args, "training-size curve (lm refits)")
-            curves = _training_size_curves(cfg, ds, ov["median_of_mean_test_mrad"])
         stage(args, "writing outputs")
         if output:
-            settings = dict(report["config"])  # method options too (half-life, drift): they shape the result
-            save_calibration(output, ds.plant, model, previous=previous, focal_spot=cfg.focal_spot,
-                             records=_seen_records(arrays), settings=settings, source=os.path.abspath(args.paint),
-                             settings_choice=report.get("settings_choice"))
+            write_scenario(result.scenario, output)
             report["output"] = os.fspath(args.output)
         if json_path:
             if not args.no_plots:
-                report["plots"] = [os.path.basename(p) for p in write_plots(json_path, report, arrays, curves)]
-            if curves:
-                report["training_size_curve"] = {k: [list(p) for p in v] for k, v in curves.items()}
+                report["plots"] = [os.path.basename(p) for p in write_plots(json_path, report, result.arrays,
+                                                                            result.curves)]
+            if result.curves:
+                report["training_size_curve"] = {k: [list(p) for p in v] for k, v in result.curves.items()}
             write_json(json_path, report)
     if not args.quiet:
         _print_table(report)
     return 0
 
 
-def _checkpoint(args, cfg, device):
+def _checkpoint(args, settings, device):
     """The run's checkpoint next to its main output (None without one); also ``args.checkpoint``."""
-    from ..calibrate.pipeline import calibration_checkpoint
+    from ..workflows.calibrate import calibration_checkpoint
 
     path = checkpoint_file(args)
     args.checkpoint = None if path is None else calibration_checkpoint(
-        cfg, path, device=device, resume=args.resume, inputs=[args.scenario] if args.scenario else [],
+        settings, args.paint, path, scenario=args.scenario, device=device, resume=args.resume,
         min_interval_s=args.checkpoint_interval)
     if args.checkpoint is not None and args.checkpoint.resumed:
         stage(args, f"resuming from {path}")
@@ -261,22 +200,6 @@ def _checkpoint(args, cfg, device):
 
 
 cmd_calibrate.supports_cuda = True  # the fit follows args.device (run_calibration moves the plant there)
-
-
-def _training_size_curves(cfg, ds, median_test_mrad) -> dict:
-    """Error vs training size from cheap lm refits on the same split rule and test set. Unbagged: the
-    curve's shape is what a plant engineer reads, and bagging would make it ~10x slower."""
-    from dataclasses import replace
-
-    from ..calibrate.pipeline import run_calibration
-
-    sizes = sorted({n for n in (5, 10, 20, 30, 40, 60, 100) if n < cfg.train} | {cfg.train})
-    pts = []
-    for n in sizes:
-        r, _, _ = run_calibration(replace(cfg, method="lm", train=n, validation=None, progress=False,
-                                          method_options={"bags": 0}), ds)
-        pts.append((n, r["overall"]["median_of_mean_test_mrad"]))
-    return {"lm (refits, unbagged)": pts, cfg.method: [(cfg.train, median_test_mrad)]}
 
 
 def _fmt(x, nd=2):
@@ -310,9 +233,10 @@ def cmd_split(args) -> int:
 def _split(args, cfg, json_path, csv_path) -> int:
     import torch
 
-    from ..calibrate.splits import split_records
+    from ..calibrate.protocol.splits import split_records
+    from ..workflows.calibrate import load_paint_records
 
-    ds, _ = _load(args.paint)
+    ds, _ = load_paint_records(args.paint)
     ids = cfg.heliostats or list(ds.plant.field.ids)
     unknown = [h for h in ids if h not in ds.plant.field.ids]
     if unknown:

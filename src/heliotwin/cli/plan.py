@@ -1,6 +1,6 @@
 """``heliotwin plan``: which calibration records to take next for one heliostat.
 
-:func:`register` adds the command; the library (:mod:`heliotwin.calibrate.plan`) is imported inside the
+:func:`register` adds the command; the library (:mod:`heliotwin.calibrate.protocol.plan`) is imported inside the
 command function so that ``--help`` stays torch-free.
 """
 from __future__ import annotations
@@ -35,7 +35,7 @@ def cmd_plan(args) -> int:
     import datetime
     import os
 
-    from ..calibrate.plan import plan
+    from ..calibrate.protocol.plan import plan
     from ..calibrate.report import plot_plan
     from ..io.scenario import load_scenario
 

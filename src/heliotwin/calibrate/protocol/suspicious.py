@@ -21,13 +21,13 @@ from __future__ import annotations
 
 import torch
 
-from ..field.plant import ACTUATOR_FIELDS, Kinematics
-from ..io.records import RecordTable
-from . import metrics
-from .inputs import MIN_TRAIN
-from .lm import fit_lm
-from .params import STONE8
-from .priors import LOOSE_SIGMA, field_prior
+from ...field.plant import ACTUATOR_FIELDS, Kinematics
+from ...io.records import RecordTable
+from .. import metrics
+from ..inputs import MIN_TRAIN
+from ..methods.lm import fit_lm
+from ..params import STONE8
+from ..priors import LOOSE_SIGMA, field_prior
 
 #: (kind of test, threshold): relative deviation from the field median for lengths/increment, absolute
 #: [rad] for the initial angle.

@@ -17,15 +17,20 @@ local Jacobian, not the answer).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, replace
 
 import torch
+from tqdm import tqdm
 
-from ..io.records import RecordTable
-from . import metrics
-from .fitloop import early_stopping_fit, net_state
+from ...field import kinematics as K
+from ...io.records import RecordTable
+from ...site import Site
+from ...sun import daylight_times, direction_from_paint_angles
+from .. import metrics
+from ..fitloop import early_stopping_fit, net_state
+from ..inputs import trainable
+from ..model import Calibrated
 from .gradient import fit_gradient_method
-from .inputs import trainable
-from .model import Calibrated
 from .nets import BatchedMLP
 
 
@@ -63,9 +68,6 @@ class MLPModel(Calibrated):
 
 def _simulate(rigid_model: Calibrated, train: RecordTable, site, every: str, year: int, gen: torch.Generator):
     """Simulated (sun, aim, steps) per heliostat from the rigid body over a year of sun positions."""
-    from ..field import kinematics as K
-    from ..sun import daylight_times, direction_from_paint_angles
-
     _, az, el = daylight_times(year, every, site.latitude_deg, site.longitude_deg, site.altitude_m,
                                min_elevation_deg=8.0)
     sun = direction_from_paint_angles(az, el).to(train.spot)
@@ -95,8 +97,6 @@ def _pretrain(net, x_sim, hidx, y_sim, steps: int, lr: float, huber, progress: b
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
     it = range(steps)
     if progress:
-        from tqdm import tqdm
-
         it = tqdm(it, desc="mlp pretrain", leave=False)
     for _ in it:
         opt.zero_grad()
@@ -111,26 +111,59 @@ def _normalised_steps(kin, steps: torch.Tensor) -> torch.Tensor:
     return (steps - kin.min_steps) / (kin.max_steps - kin.min_steps)
 
 
-def fit_mlp_method(nominal, train, validation, *, seed=0, progress=False, hidden=32, depth=2, every="6h",
-                   year=2023, pretrain_steps=500, finetune_steps=300, lr=1e-2, site=None,
-                   rigid_options: dict | None = None) -> MLPModel:
+@dataclass(frozen=True)
+class MLPSettings:
+    """Settings of the ``mlp`` method (:func:`fit_mlp_method`; each field is also one of its keywords).
+
+    Attributes
+    ----------
+    hidden, depth : int
+        Width and number of hidden layers of each heliostat's network.
+    every : str
+        Spacing of the simulated sun positions of the pretraining year (e.g. ``"6h"``).
+    year : int
+        The pretraining year.
+    pretrain_steps, finetune_steps : int
+        Optimiser steps on the simulated records, then on the real training records (early stopping).
+    lr : float
+        Pretraining learning rate (fine-tuning: a fifth of it).
+    site : Site or None
+        Where the sun positions are computed (default: :class:`~heliotwin.site.Site`'s).
+    rigid_options : dict or None
+        Keywords of the ``gradient`` fit of the rigid body (pretraining data and fallback).
+    """
+
+    hidden: int = 32
+    depth: int = 2
+    every: str = "6h"
+    year: int = 2023
+    pretrain_steps: int = 500
+    finetune_steps: int = 300
+    lr: float = 1e-2
+    site: Site | None = None
+    rigid_options: dict | None = None
+
+
+def fit_mlp_method(nominal, train, validation, *, seed: int = 0, progress: bool = False,
+                   settings: MLPSettings | None = None, **options) -> MLPModel:
     """``mlp``: per-heliostat networks from (sun, aim) to motor steps (see module docstring).
 
-    ``rigid_options`` go to the ``gradient`` fit of the rigid body (pretraining data and fallback). The
-    networks follow the nominal kinematics' dtype and device; every random draw takes ``seed``.
+    ``settings`` (:class:`MLPSettings`, default its defaults) and/or its fields by keyword (``options``,
+    replacing ``settings``'s). The networks follow the nominal kinematics' dtype and device; every random draw
+    takes ``seed``.
     """
-    from ..site import Site
-
+    s = replace(settings or MLPSettings(), **options)
+    hidden, depth, lr = s.hidden, s.depth, s.lr
     h, like = nominal.num_heliostats, nominal.position
-    rigid = fit_gradient_method(nominal, train, validation, seed=seed, progress=progress, **(rigid_options or {}))
+    rigid = fit_gradient_method(nominal, train, validation, seed=seed, progress=progress, **(s.rigid_options or {}))
     ok = rigid.ok & trainable(train)
     gen = torch.Generator().manual_seed(int(seed))
     reference = train.plane_center[0] if len(train) else like.new_zeros(3)
-    hidx, sun, aim, steps = _simulate(rigid, train, site or Site(), every, year, gen)
+    hidx, sun, aim, steps = _simulate(rigid, train, s.site or Site(), s.every, s.year, gen)
     net = BatchedMLP(h, 5, 2, hidden, depth, gen, dtype=like.dtype).to(like.device)
     huber = torch.nn.HuberLoss(delta=0.01)
     _pretrain(net, _inputs(sun, aim, reference), hidx, _normalised_steps(nominal.index(hidx), steps),
-              pretrain_steps, lr, huber, progress)
+              s.pretrain_steps, lr, huber, progress)
     # Fine-tune on the real training records; early stopping on validation (state per heliostat).
     x_tr = _inputs(train.sun, train.spot, reference)
     y_tr = _normalised_steps(nominal.index(train.heliostat_index), train.motor_steps)
@@ -154,7 +187,7 @@ def fit_mlp_method(nominal, train, validation, *, seed=0, progress=False, hidden
 
     pretrain_err = val_err()
     validated = validation.counts() > 0 if has_val else torch.zeros(h, dtype=torch.bool, device=like.device)
-    log = early_stopping_fit(step, val_err, net_state(net), finetune_steps, validated=validated, check_every=10,
+    log = early_stopping_fit(step, val_err, net_state(net), s.finetune_steps, validated=validated, check_every=10,
                              progress=progress, desc="mlp finetune")
     best, best_err = log.best, log.best_error
     model.extras["net"] = best
@@ -187,8 +220,6 @@ def aim_mlp(net_entry: dict, kin, sun: torch.Tensor, target: torch.Tensor) -> to
     """Motor steps straight from a stored MLP (one heliostat)."""
     cfg = net_entry["config"]
     if not cfg.get("use_net", True):
-        from ..field import kinematics as K
-
         return K.inverse(kin, target, sun, strict=False)[0]
     net = BatchedMLP.from_state(cfg, net_entry["state"])
     ref = torch.tensor(cfg["reference"], dtype=torch.float64)

@@ -23,17 +23,19 @@ the report says which did and why.
 from __future__ import annotations
 
 import math
+import time
 
 import torch
 
-from ..io.records import RecordTable
-from . import metrics
-from .fitloop import early_stopping_fit, net_state
-from .inputs import FIT_FOCAL_SPOT, fit_spots, restrict, trainable
+from ...field import kinematics as K
+from ...io.records import RecordTable
+from .. import metrics
+from ..fitloop import early_stopping_fit, net_state
+from ..inputs import FIT_FOCAL_SPOT, fit_spots, restrict, trainable
+from ..model import Calibrated
+from ..params import STONE8, apply_deviations, kinds
 from .lm import stone8_field_fit
-from .model import Calibrated
 from .nets import BatchedMLP
-from .params import STONE8, apply_deviations, kinds
 
 #: Physical size of one network output unit per kind (see module docstring).
 OUTPUT_SCALE = {"angle": 0.01, "tilt": 0.01, "translation": 1.0, "actuator_length": 1.0, "increment": 0.01}
@@ -217,17 +219,12 @@ def aim_hybrid(net_entry: dict, kin, sun: torch.Tensor, target: torch.Tensor) ->
 
     ``kin`` is the static calibrated kinematics (1 heliostat); network deviations are added on top.
     """
-    from ..field import kinematics as K
-    from ..io.records import RecordTable
-
     cfg = net_entry["config"]
     steps, _ = K.inverse(kin, target, sun, strict=False)
     if not cfg.get("use_net"):
         return steps
     net = BatchedMLP.from_state(cfg, net_entry["state"])
     scale = torch.tensor(cfg["scale"], dtype=torch.float64)
-    import time
-
     now = time.time()
     z = torch.zeros(1, dtype=torch.float64)
     for _ in range(5):

@@ -16,10 +16,10 @@ from __future__ import annotations
 
 import torch
 
-from ..field.plant import Kinematics
-from ..io.records import RecordTable
-from . import metrics, priors
-from .fitloop import (
+from ...field.plant import Kinematics
+from ...io.records import RecordTable
+from .. import metrics, priors
+from ..fitloop import (
     actuator_barrier,
     box_and_validity,
     early_stopping_fit,
@@ -27,10 +27,10 @@ from .fitloop import (
     prior_and_start,
     tensor_state,
 )
-from .inputs import FIT_FOCAL_SPOT, fit_spots, restrict, trainable
+from ..inputs import FIT_FOCAL_SPOT, fit_spots, restrict, trainable
+from ..model import Calibrated
+from ..params import ALL, REDUNDANT, STONE8, actuators_valid, apply_deviations, check_names, kinds
 from .lm import field_prior_extras, stone8_field_fit
-from .model import Calibrated
-from .params import ALL, REDUNDANT, STONE8, actuators_valid, apply_deviations, check_names, kinds
 
 #: The learnable deviations of the chain (all but the two invisible ones).
 GRADIENT_PARAMETERS = tuple(n for n in ALL if n not in REDUNDANT)

@@ -13,8 +13,8 @@ was fitted on records before t. For every heliostat (records without a time are 
 The run's returned model (and the scenario it writes) is the fit on the window before the test block. Each
 test record's predictive interval comes from the refit that predicted it (its posterior, and its
 random-walk offset grown from the window's latest record to the record's time).
-With the drift model (``--drift kalman``, :mod:`.drift`) every refit smooths the random-walk offset over its
-window and predicts the block with the filtered offset at the window's latest record: the filter updates as
+With the drift model (``--drift kalman``, :mod:`heliotwin.calibrate.drift`) every refit smooths the random-walk offset
+over its window and predicts the block with the filtered offset at the window's latest record: the filter updates as
 records arrive.
 """
 from __future__ import annotations
@@ -65,7 +65,7 @@ def online_errors(fit_one, batch, test_idx: torch.Tensor, n_train: int, step: in
     Every refit is one batched fit over all heliostats that still have test records in that block.
     ``on_block(model, block records, positions [B] in test_idx order, error [B] [rad])``, when given, is
     called after each refit with what it predicted (the predictive interval of that block comes from that
-    refit, :func:`heliotwin.calibrate.pipeline.online_refit`).
+    refit, :func:`heliotwin.calibrate.protocol.pipeline.online_refit`).
     """
     order = _ordered(batch)
     pos = {int(g): i for i, g in enumerate(test_idx.tolist())}

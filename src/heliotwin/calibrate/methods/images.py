@@ -18,7 +18,7 @@ and the deviations are learned with the published three-term loss:
 
 Records without an image contribute the ordinary centroid term (model minus measured mirror normal, as
 in ``gradient``); records with an image contribute their centroid term too. Pre-alignment: the
-Stone/Jülich LM fit with the field prior (:func:`~heliotwin.calibrate.lm.stone8_field_fit`), so the
+Stone/Jülich LM fit with the field prior (:func:`~heliotwin.calibrate.methods.lm.stone8_field_fit`), so the
 rendered spots start on their targets. Prior: field prior on the Stone/Jülich 8, the chain's nominal
 prior (:data:`~heliotwin.calibrate.priors.CHAIN_SIGMA`) on the rest. Optimiser: L-BFGS (or Adam) in
 natural units (mrad, mm, 0.1 %), early-stopped per heliostat on the validation loss (same three terms +
@@ -29,12 +29,19 @@ The images and the mirror surfaces come from the pipeline (``images={record_id: 
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
+
 import torch
 
-from ..errors import HeliotwinError
-from ..io.records import RecordTable
-from . import metrics, priors
-from .fitloop import (
+from ... import scene
+from ...errors import HeliotwinError
+from ...field.plant import SunSettings
+from ...io.images import load_measured_image
+from ...io.records import RecordTable
+from ...raytrace.flux import normalized_l1, pixel_centers, target_extent
+from ...raytrace.gaussian import trace_gaussian
+from .. import metrics, priors
+from ..fitloop import (
     actuator_barrier,
     box_and_validity,
     early_stopping_fit,
@@ -42,11 +49,11 @@ from .fitloop import (
     prior_and_start,
     tensor_state,
 )
+from ..inputs import FIT_FOCAL_SPOT
+from ..model import Calibrated
+from ..params import STONE8, actuators_valid, apply_deviations, check_names
 from .gradient import prealign
-from .inputs import FIT_FOCAL_SPOT
 from .lm import field_prior_extras
-from .model import Calibrated
-from .params import STONE8, actuators_valid, apply_deviations, check_names
 
 #: Learned by default: the Stone/Jülich 8 plus the mirror's rotation about its own normal (invisible to
 #: centroids, visible in the image).
@@ -60,8 +67,6 @@ MISS_WEIGHT = 100.0
 
 def load_image(entry, resolution) -> torch.Tensor:
     """A measured image as a unit-sum bitmap [rows, cols] at the render resolution (area resampling)."""
-    from ..io.images import load_measured_image
-
     return load_measured_image(entry, resolution, normalise="sum")
 
 
@@ -70,8 +75,6 @@ class ImageTerms:
 
     def __init__(self, batch: RecordTable, images: dict, surfaces, targets: dict, sun, *, resolution=(64, 64),
                  samples=(16, 16), mode: str = "convolve"):
-        from ..raytrace.flux import pixel_centers, target_extent
-
         self.mode = mode  # one heliostat per sample: one mean footprint (FFT) is accurate and ~20x faster
         self.resolution = tuple(resolution)
         self.samples = tuple(samples)
@@ -117,10 +120,6 @@ class ImageTerms:
 
     def terms(self, kin) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Pixel [M], alignment [M] (rad) and miss [M] terms for calibrated kinematics ``kin`` (H heliostats)."""
-        from .. import scene
-        from ..raytrace.flux import normalized_l1
-        from ..raytrace.gaussian import trace_gaussian
-
         m, like = len(self), kin.position  # terms follow the kinematics' dtype and device
         pix, ali, mis = like.new_zeros(m), like.new_zeros(m), like.new_zeros(m)
         b = self.batch
@@ -165,17 +164,76 @@ def _centroid_loss_per_heliostat(kin_nominal, delta, names, batch: RecordTable, 
     return delta.new_zeros(h).index_add(0, batch.heliostat_index, (r * r).sum(-1) / noise ** 2)
 
 
+@dataclass(frozen=True)
+class ImageFitSettings:
+    """Settings of the image fit (:func:`fit_images`; each field is also one of its keywords).
+
+    Attributes
+    ----------
+    noise : float
+        Pointing noise of one centroid record [rad] the centroid and alignment terms are weighed against.
+    pixel_weight, miss_weight, centroid_weight : float
+        Weights of the pixel term (normalised L1), the miss term and the centroid term per record.
+    iterations : int
+        LBFGS outer iterations (each up to ``lbfgs_inner`` evaluations) or Adam steps.
+    lr : float
+        Learning rate (per natural unit of the deviations).
+    resolution : (int, int)
+        Rendered and measured bitmap rows, columns.
+    samples : (int, int)
+        Mirror samples per heliostat and direction of the Gaussian tracer.
+    check_every : int
+        Validation every this many iterations (early stopping).
+    optimizer : str
+        ``"lbfgs"`` or ``"adam"``.
+    lbfgs_inner : int
+        LBFGS evaluations per outer iteration.
+    """
+
+    noise: float = 1e-3
+    pixel_weight: float = PIXEL_WEIGHT
+    miss_weight: float = MISS_WEIGHT
+    centroid_weight: float = 1.0
+    iterations: int = 15
+    lr: float = 1.0
+    resolution: tuple = (64, 64)
+    samples: tuple = (16, 16)
+    check_every: int = 1
+    optimizer: str = "lbfgs"
+    lbfgs_inner: int = 10
+
+
 def fit_images(nominal, train: RecordTable, validation: RecordTable | None, images: dict, surfaces, targets: dict,
                sun, *, names=IMAGE_PARAMETERS, init: torch.Tensor | None = None, prior_mean=None, prior_sigma=None,
-               noise: float = 1e-3, pixel_weight: float = PIXEL_WEIGHT, miss_weight: float = MISS_WEIGHT,
-               centroid_weight: float = 1.0, iterations: int = 15, lr: float = 1.0, resolution=(64, 64),
-               samples=(16, 16), check_every: int = 1, optimizer: str = "lbfgs", lbfgs_inner: int = 10,
-               progress: bool = False) -> tuple[torch.Tensor, dict]:
+               progress: bool = False, settings: ImageFitSettings | None = None,
+               **options) -> tuple[torch.Tensor, dict]:
     """Learn deviations from images (+ centroids) by LBFGS (or Adam); see the module docstring.
 
-    ``iterations`` counts LBFGS outer iterations (each up to ``lbfgs_inner`` evaluations) or Adam steps.
     The prior defaults to :data:`~heliotwin.calibrate.priors.CHAIN_SIGMA`; bounds, validity restore and the
     per-heliostat early stopping on the validation loss are the loop of :mod:`~heliotwin.calibrate.fitloop`.
+
+    Parameters
+    ----------
+    nominal : Kinematics
+        H heliostats.
+    train, validation : RecordTable
+        Records over the same heliostat axis (validation may be None).
+    images : dict
+        Record id -> measured flux image (path or entry for :func:`load_image`).
+    surfaces : Surfaces
+        The H heliostats' mirror surfaces.
+    targets : dict
+        Target name -> target (planar targets are rendered).
+    sun : SunSettings
+    names : sequence of str, length P
+        Deviations learned (:mod:`heliotwin.calibrate.params`).
+    init, prior_mean : torch.Tensor, [H, P], optional
+        Start and prior centre (physical units; default zero).
+    prior_sigma : dict or torch.Tensor [P], optional
+        Prior standard deviation per kind or per parameter.
+    settings : ImageFitSettings, optional
+    **options
+        Any field of :class:`ImageFitSettings` by keyword, replacing ``settings``'s.
 
     Returns
     -------
@@ -183,15 +241,17 @@ def fit_images(nominal, train: RecordTable, validation: RecordTable | None, imag
     info : dict
         ``image_records`` (train, validation), ``loss_history``, per-term means before/after, ``skipped_images``.
     """
+    s = replace(settings or ImageFitSettings(), **options)
+    noise, centroid_weight = s.noise, s.centroid_weight
     names = check_names(names)
     h = nominal.num_heliostats
     sigma = priors.CHAIN_SIGMA if prior_sigma is None else prior_sigma
     unit, mu, inv_sig, bound, x = prior_and_start(names, h, sigma, prior_mean, init, like=nominal.position)
-    tr_img = ImageTerms(train, images, surfaces, targets, sun, resolution=resolution, samples=samples)
+    tr_img = ImageTerms(train, images, surfaces, targets, sun, resolution=s.resolution, samples=s.samples)
     has_val = validation is not None and len(validation) > 0
-    va_img = ImageTerms(validation, images, surfaces, targets, sun, resolution=resolution,
-                        samples=samples) if has_val else None
-    kw = dict(noise=noise, pixel_weight=pixel_weight, miss_weight=miss_weight)
+    va_img = ImageTerms(validation, images, surfaces, targets, sun, resolution=s.resolution,
+                        samples=s.samples) if has_val else None
+    kw = dict(noise=noise, pixel_weight=s.pixel_weight, miss_weight=s.miss_weight)
 
     def objective(xx):
         delta = xx * unit
@@ -220,10 +280,10 @@ def fit_images(nominal, train: RecordTable, validation: RecordTable | None, imag
         return {k: float(v.mean()) for k, v in t.items()}
 
     before = mean_terms()
-    opt, closure = make_optimizer(x, objective, optimizer, lr, lbfgs_max_iter=lbfgs_inner)
+    opt, closure = make_optimizer(x, objective, s.optimizer, s.lr, lbfgs_max_iter=s.lbfgs_inner)
     validated = validation.counts() > 0 if has_val else torch.zeros(h, dtype=torch.bool, device=x.device)
-    log = early_stopping_fit(lambda: opt.step(closure), val_loss, tensor_state(x), iterations, validated=validated,
-                             check_every=check_every, progress=progress, desc="images",
+    log = early_stopping_fit(lambda: opt.step(closure), val_loss, tensor_state(x), s.iterations, validated=validated,
+                             check_every=s.check_every, progress=progress, desc="images",
                              project=box_and_validity(x, bound, lambda xx: actuators_valid(
                                  apply_deviations(nominal, xx * unit, names))))
     x.data = log.best.clone()
@@ -240,12 +300,12 @@ def fit_images_method(nominal, train, validation, *, seed=0, progress=False, ima
     """``images``: Stone/Jülich pre-alignment on centroids, then image (+ centroid) loss through the tracer.
 
     Heliostats without image records are fitted on their centroids alone (same loss without image terms).
+    ``images``, ``surfaces``, ``targets``, ``sun``: as for :func:`fit_images` (the pipeline passes the run's);
+    ``options``: ``settings`` (an :class:`ImageFitSettings`) and/or its fields by keyword.
     """
     if surfaces is None or targets is None:
         raise HeliotwinError("method 'images' needs the mirror surfaces and targets (run it through "
-                             "heliotwin.calibrate.pipeline / `heliotwin calibrate`)")
-    from ..field.plant import SunSettings
-
+                             "heliotwin.calibrate.protocol.pipeline / `heliotwin calibrate`)")
     images = dict(images or {})
     sun = sun or SunSettings()
     h = nominal.num_heliostats
@@ -266,4 +326,4 @@ def fit_images_method(nominal, train, validation, *, seed=0, progress=False, ima
     return Calibrated("images", list(train.heliostat_ids), nominal, names, delta, ok, extras=extras)
 
 
-__all__ = ["fit_images_method", "fit_images", "ImageTerms", "IMAGE_PARAMETERS", "load_image"]
+__all__ = ["fit_images_method", "fit_images", "ImageFitSettings", "ImageTerms", "IMAGE_PARAMETERS", "load_image"]

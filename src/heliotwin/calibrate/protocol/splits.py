@@ -45,7 +45,7 @@ from datetime import datetime, timezone
 import numpy as np
 import torch
 
-from ..errors import HeliotwinError
+from ...errors import HeliotwinError
 
 SPLIT_TYPES = ("chrono", "isolation", "region", "azimuth", "solstice", "balanced", "high_variance")
 

@@ -5,13 +5,15 @@ the run's H heliostats, ``train``/``validation`` are batches over the same helio
 carved out of the ``--train`` records). Heliostats without enough training records
 (:data:`~heliotwin.calibrate.inputs.MIN_TRAIN`) come back with ``ok = False``.
 
-Each method lives in its own module; the pieces they share live below them (:mod:`.inputs`: usable
-heliostats and fit centroids; :mod:`.lm`: the Stone/Jülich pre-alignment; :mod:`.fitloop`: the
-early-stopping loop), so this registry imports them all without a cycle.
+Each method lives in its own module of this package; the pieces they share live below them, at
+:mod:`heliotwin.calibrate`'s top level (:mod:`~heliotwin.calibrate.inputs`: usable heliostats and fit
+centroids; :mod:`~heliotwin.calibrate.fitloop`: the early-stopping loop; :mod:`~heliotwin.calibrate.model`:
+what they return) or in :mod:`.lm` (the Stone/Jülich pre-alignment every method starts from), so this
+registry imports them all without a cycle.
 """
 from __future__ import annotations
 
-from ..errors import HeliotwinError
+from ...errors import HeliotwinError
 from .gradient import fit_gradient_method
 from .hybrid import fit_hybrid_method
 from .images import fit_images_method

@@ -1,8 +1,8 @@
 """Which record next: sun positions whose calibration record would shrink a heliostat's uncertainty most.
 
-From the Laplace posterior of a calibration (:mod:`.uncertainty`, stored in ``/learned/calibration``):
-precision ``Lambda = Sigma^-1`` over the heliostat's P deviations and residual noise ``s``. A new record at
-sun position c adds ``J_c^T J_c / s^2`` to ``Lambda`` (``J_c`` [3, P]: derivative of the mirror normal at
+From the Laplace posterior of a calibration (:mod:`heliotwin.calibrate.uncertainty`, stored in
+``/learned/calibration``): precision ``Lambda = Sigma^-1`` over the heliostat's P deviations and residual noise ``s``. A
+new record at sun position c adds ``J_c^T J_c / s^2`` to ``Lambda`` (``J_c`` [3, P]: derivative of the mirror normal at
 the motor steps that aim the sun at the calibration target). What a plant cares about is the error of the
 normal over the sun positions it will aim at, so the objective is the mean predictive variance of the
 normal over a reference set of sun positions (the year's daylight grid),
@@ -20,9 +20,13 @@ from dataclasses import fields
 
 import torch
 
-from ..errors import HeliotwinError
-from ..field.plant import Kinematics
-from .scenario import KEY
+from ...errors import HeliotwinError
+from ...field import kinematics as K
+from ...field.plant import Kinematics
+from ...field.targets import PlanarTarget
+from ...sun import daylight_times, direction_from_paint_angles
+from ..params import apply_deviations
+from ..scenario import KEY
 
 
 def normal_jacobians(nominal: Kinematics, delta: torch.Tensor, names, aim_point: torch.Tensor,
@@ -45,9 +49,6 @@ def normal_jacobians(nominal: Kinematics, delta: torch.Tensor, names, aim_point:
         At the reachable sun positions only.
     reachable : torch.Tensor, [T], bool
     """
-    from ..field import kinematics as K
-    from .params import apply_deviations
-
     t = len(sun)
     kin_t = nominal.index([0] * t)
     d = delta.double().reshape(1, -1).expand(t, -1).clone()
@@ -115,9 +116,6 @@ def plan(scenario, heliostat_id: str, *, year: int, every: str = "1h", count: in
         of the normal there; its mean square is ``rms_now_mrad`` squared), for
         :func:`heliotwin.calibrate.report.plot_plan`.
     """
-    from ..field.targets import PlanarTarget
-    from ..sun import daylight_times, direction_from_paint_angles
-
     cal = scenario.learned.get(KEY) or {}
     if heliostat_id not in (cal.get("heliostats") or []):
         raise HeliotwinError(f"{scenario.path}: heliostat {heliostat_id} is not calibrated in this scenario")

@@ -17,16 +17,21 @@ prior's mean. The prior carries no record of a calibrated heliostat.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 
 import torch
 
-from ..errors import HeliotwinError
-from ..field.plant import Kinematics
-from . import priors
-from .inputs import fit_spots
-from .lm import LM_F_SCALE, LM_LOSS, fit_lm
-from .params import STONE8
+from ...errors import HeliotwinError
+from ...field.plant import Kinematics
+from ...io.paint import load_paint
+from ...io.scenario import load_scenario
+from .. import priors
+from ..inputs import fit_spots
+from ..methods.lm import LM_F_SCALE, LM_LOSS, fit_lm
+from ..params import STONE8
+from ..scenario import KEY
+from .suspicious import check_and_correct
 
 
 @dataclass
@@ -45,7 +50,7 @@ class PriorArchive:
         Where the records came from (a path, for reports).
     corrected : dict
         Heliostat id -> the suspicious property values replaced before its fit
-        (:func:`~heliotwin.calibrate.suspicious.check_and_correct`); empty when none.
+        (:func:`~heliotwin.calibrate.protocol.suspicious.check_and_correct`); empty when none.
     properties : Kinematics or None
         Nominal kinematics of every heliostat of the archive's plant, with ``property_ids``: the field whose
         medians judge a run's suspicious property values (:func:`reference_kinematics`).
@@ -88,13 +93,11 @@ class PriorArchive:
         ``exclude`` (never fitted: they could not enter a prior for a run that calibrates them anyway).
 
         Suspicious property values are checked first, as a run checks its own heliostats
-        (:func:`~heliotwin.calibrate.suspicious.check_and_correct`, field medians over the whole plant, every
+        (:func:`~heliotwin.calibrate.protocol.suspicious.check_and_correct`, field medians over the whole plant, every
         record of the archive heliostat): a heliostat with a wrong actuator value (PAINT's BF41) would
         otherwise enter the prior with deviations of hundreds of mrad. Winsorising bounds such a heliostat to
         3 robust sigmas but still lets it widen the covariance and couple the parameters it is wrong in.
         """
-        from .suspicious import check_and_correct
-
         keep = [h for h in dataset.records.heliostat_ids if h not in set(exclude)]
         table = dataset.records.for_heliostats(keep).with_focal_spot(focal_spot)
         plant_kin = dataset.plant.field.kinematics
@@ -110,7 +113,8 @@ class PriorArchive:
               min_records: int = priors.MIN_PRIOR_RECORDS) -> priors.PlantPrior:
         """Plant prior from every archive heliostat except ``exclude`` (and those with < ``min_records``).
 
-        Raises a one-line :class:`HeliotwinError` when fewer than :data:`~.priors.MIN_HELIOSTATS` remain.
+        Raises a one-line :class:`HeliotwinError` when fewer than :data:`~heliotwin.calibrate.priors.MIN_HELIOSTATS`
+        remain.
         """
         exclude = set(exclude)
         keep = [i for i, h in enumerate(self.heliostat_ids) if h not in exclude and int(self.counts[i]) >= min_records]
@@ -129,18 +133,11 @@ class PriorArchive:
 def load_prior_source(path, plane_tolerance: float = 0.1, exclude=()):
     """``--prior-from PATH``: a PAINT folder (-> :class:`PriorArchive`, its heliostats in ``exclude`` not
     fitted) or a scenario with a stored prior (-> :class:`~heliotwin.calibrate.priors.PlantPrior`)."""
-    import os
-
     if os.path.isdir(path):
-        from ..io.paint import load_paint
-
         return PriorArchive.from_dataset(load_paint(path, plane_tolerance=plane_tolerance), source=os.fspath(path),
                                          exclude=exclude)
     if not os.path.isfile(path):
         raise HeliotwinError(f"{path}: --prior-from needs a PAINT folder or a scenario file")
-    from ..io.scenario import load_scenario
-    from .scenario import KEY
-
     sc = load_scenario(path)
     state = (sc.learned.get(KEY) or {}).get("prior")
     if not state:
@@ -168,7 +165,7 @@ def resolve_prior(source, calibrated, *, settings: dict | None = None) -> priors
 
 def reference_kinematics(source, skip=()) -> tuple[list, Kinematics | None]:
     """Property values of the heliostats of a ``--prior-from`` source, for the field medians that judge a
-    run's suspicious property values (:func:`~heliotwin.calibrate.suspicious.check_and_correct`).
+    run's suspicious property values (:func:`~heliotwin.calibrate.protocol.suspicious.check_and_correct`).
 
     A run on a small PAINT folder (a few heliostats) has too few heliostats of its own for a field median;
     the prior's plant has more. Only property files are read, never a record.
@@ -188,18 +185,12 @@ def reference_kinematics(source, skip=()) -> tuple[list, Kinematics | None]:
     kinematics : Kinematics or None
         Their nominal kinematics; None when there are none.
     """
-    import os
-
     if isinstance(source, PriorArchive):
         ids, kin = source.property_ids, source.properties
     elif isinstance(source, (str, os.PathLike)) and os.path.isdir(source):
-        from ..io.paint import load_paint
-
         fld = load_paint(source, with_records=False).plant.field
         ids, kin = list(fld.ids), fld.kinematics
     elif isinstance(source, (str, os.PathLike)) and os.path.isfile(source):
-        from ..io.scenario import load_scenario
-
         fld = load_scenario(source).plant.field
         ids, kin = list(fld.ids), fld.kinematics
     else:

@@ -18,19 +18,40 @@ on heliostats that no choice looked at:
 
 Heliostats with fewer than ``min_records`` usable records are never calibrated or tested here, but their
 records feed the plant priors (they are the plant's other heliostats).
+
+Every function here that calibrates takes the run itself as ``runner``: a function ``runner(cfg, dataset) ->
+(report, model, arrays)`` (:func:`heliotwin.calibrate.protocol.pipeline.run_calibration`). The choice of a
+run's settings is a step of that run (``choose_settings``), so the pipeline hands itself down rather than
+this module reaching back up for it.
 """
 from __future__ import annotations
 
+import json
 import math
+import os
 from dataclasses import replace
+from typing import Callable
 
 import numpy as np
+import torch
+from tqdm.auto import tqdm
 
-from .pipeline import RunConfig, run_calibration
+from ...errors import HeliotwinError, InputFileError
+from ...io.paint import load_paint
+from ...io.scenario import load_scenario
+from ..priors import MIN_HELIOSTATS
+from ..scenario import KEY
+from ..uncertainty import SAMPLES, predictive
+from .archive import PriorArchive
+from .config import RunConfig
+
+#: ``runner(cfg, dataset) -> (report, model, arrays)``: one calibration run
+#: (:func:`heliotwin.calibrate.protocol.pipeline.run_calibration`).
+Runner = Callable[[RunConfig, object], tuple]
 
 #: Settings tried, in order (the first is today's ``lm`` default). ``bags``: bootstrap bags of ``lm``;
-#: ``half_life_days``: drift tracking by recency weights (:func:`~heliotwin.calibrate.lm.fit_lm`);
-#: ``drift_model``/``process_noise``: the random-walk offset (:mod:`.drift`, q [mrad^2/day]);
+#: ``half_life_days``: drift tracking by recency weights (:func:`~heliotwin.calibrate.methods.lm.fit_lm`);
+#: ``drift_model``/``process_noise``: the random-walk offset (:mod:`heliotwin.calibrate.drift`, q [mrad^2/day]);
 #: ``fit_focal_spot``/``loss``: the centroids the fit trains on and its loss (default ``UTIS`` / ``soft_l1``;
 #: ``harmonised``: :func:`~heliotwin.calibrate.inputs.source_offsets`).
 CANDIDATES = (
@@ -115,13 +136,13 @@ def folds_of(heliostats, k: int, seed: int) -> list:
     return [[heliostats[i] for i in order[j::k]] for j in range(k) if order[j::k]]
 
 
-def cross_validated_errors(dataset, base: RunConfig, candidates, heliostats, *, folds: int, seed: int = 0,
-                           archive=None, exclude=(), log=None, collect: dict | None = None) -> dict:
+def cross_validated_errors(dataset, base: RunConfig, candidates, heliostats, *, runner: Runner, folds: int,
+                           seed: int = 0, archive=None, exclude=(), log=None, collect: dict | None = None) -> dict:
     """Per candidate (its :func:`label`), heliostat id -> mean test error [mrad] under K-fold over heliostats.
 
-    Fold k is calibrated in one run (``base`` settings, ``heliostats=fold k``); the plant prior excludes fold
-    k (the run's heliostats) and every id in ``exclude``. ``collect`` (optional) receives, per candidate, the
-    list of the runs' predictive-interval inputs (for :func:`choose_drift`).
+    Fold k is calibrated in one run of ``runner`` (``base`` settings, ``heliostats=fold k``); the plant prior
+    excludes fold k (the run's heliostats) and every id in ``exclude``. ``collect`` (optional) receives, per
+    candidate, the list of the runs' predictive-interval inputs (for :func:`choose_drift`).
     """
     out = {}
     for cand in candidates:
@@ -131,7 +152,7 @@ def cross_validated_errors(dataset, base: RunConfig, candidates, heliostats, *, 
         groups = [list(heliostats)] if cand.get("prior", "run") == "run" else folds_of(list(heliostats), folds, seed)
         for fold in groups:
             cfg = replace(config_of(base, cand, archive), heliostats=fold, prior_exclude=list(exclude))
-            rep, _, arrays = run_calibration(cfg, dataset)
+            rep, _, arrays = runner(cfg, dataset)
             errs.update({h: r["mean_test_mrad"] for h, r in rep["heliostats"].items()
                          if h in fold and r.get("status") == "ok"})
             if collect is not None and arrays.get("interval_inputs"):
@@ -159,10 +180,6 @@ DRIFT_GRID = (0.0, 2.5e-4, 5e-4, 7.5e-4, 1e-3, 1.5e-3, 2e-3)
 
 def coverage(inputs: list, drift: float, seed: int = 0, samples: int | None = None, walk_scale: float = 1.0) -> float:
     """Fraction of the records in ``inputs`` (runs' ``interval_inputs``) whose error lies in the 90 % interval."""
-    import torch
-
-    from .uncertainty import SAMPLES, predictive
-
     inside, n = 0, 0
     for x in inputs:
         if len(x["error"]) == 0:
@@ -200,7 +217,7 @@ def choose_interval(inputs: list, grid=DRIFT_GRID, scales=WALK_SCALES, target: f
     return best[0], best[1], cov
 
 
-def nested_cv(dataset, base: RunConfig, candidates=None, *, folds: int = 4, inner_folds: int = 3,
+def nested_cv(dataset, base: RunConfig, candidates=None, *, runner: Runner, folds: int = 4, inner_folds: int = 3,
               min_records: int = 50, seed: int = 0, archive=None, log=None) -> dict:
     """Leave-heliostats-out CV of the whole choice procedure (module docstring): for each outer fold,
     :func:`choose_for_run` (what ``heliotwin calibrate --settings cv`` runs) chooses on the other heliostats
@@ -213,8 +230,6 @@ def nested_cv(dataset, base: RunConfig, candidates=None, *, folds: int = 4, inne
         figure), ``interval_90_coverage`` (held-out records inside their 90 % interval, drift chosen on the
         inner folds), ``folds`` (per outer fold: held-out ids, chosen candidate and drift, inner medians).
     """
-    from .archive import PriorArchive
-
     if archive is None:
         archive = PriorArchive.from_dataset(dataset, focal_spot=base.focal_spot, source=str(base.paint))
     ids = eligible(dataset, min_records, base.focal_spot)
@@ -223,12 +238,12 @@ def nested_cv(dataset, base: RunConfig, candidates=None, *, folds: int = 4, inne
         if log:
             log(f"outer fold {k}: held out {','.join(fold)}; choosing on {len(ids) - len(fold)} heliostats")
         cfg, choice = choose_for_run(replace(base, prior_from=base.paint, min_records=min_records), fold, dataset,
-                                     folds=inner_folds, candidates=candidates, archive=archive, seed=seed + 1 + k,
-                                     run_size=len(ids), log=log)
+                                     runner=runner, folds=inner_folds, candidates=candidates, archive=archive,
+                                     seed=seed + 1 + k, run_size=len(ids), log=log)
         chosen = choice["candidate"]
         # a run-prior candidate is used on all heliostats at once (training records only; see above)
         run_on = ids if chosen.get("prior", "run") == "run" else fold
-        rep, _, arrays = run_calibration(replace(cfg, heliostats=run_on, settings="given"), dataset)
+        rep, _, arrays = runner(replace(cfg, heliostats=run_on, settings="given"), dataset)
         errs = {h: rep["heliostats"][h]["mean_test_mrad"] for h in fold if rep["heliostats"][h].get("status") == "ok"}
         held_out.update(errs)
         iv = arrays.get("interval_inputs") or {}
@@ -254,7 +269,7 @@ ONLINE_CV_STEP = 10
 MIN_CV_HELIOSTATS = 4
 
 
-def choose_for_run(cfg: RunConfig, calibrated, dataset=None, *, folds: int = 4, candidates=None,
+def choose_for_run(cfg: RunConfig, calibrated, dataset=None, *, runner: Runner, folds: int = 4, candidates=None,
                    archive=None, seed: int = 0, run_size: int | None = None, log=None,
                    progress: bool = False) -> tuple[RunConfig, dict]:
     """``--settings cv``: the run's settings chosen by leave-heliostats-out CV on its ``--prior-from`` archive.
@@ -275,6 +290,9 @@ def choose_for_run(cfg: RunConfig, calibrated, dataset=None, *, folds: int = 4, 
         The run's heliostat ids.
     dataset : heliotwin.io.paint.PaintDataset, optional
         The archive folder, already loaded.
+    runner : callable
+        One calibration run, ``runner(cfg, dataset) -> (report, model, arrays)`` (:data:`Runner`): what scores
+        each candidate on each fold.
     candidates : sequence of dict
         The settings tried (default: :data:`CANDIDATES` at call time).
     archive : PriorArchive, optional
@@ -288,7 +306,7 @@ def choose_for_run(cfg: RunConfig, calibrated, dataset=None, *, folds: int = 4, 
     -------
     (RunConfig, dict)
         The run's settings with the chosen candidate (its plant prior from a
-        :class:`~heliotwin.calibrate.archive.PriorArchive` of the archive, calibrated heliostats excluded),
+        :class:`~heliotwin.calibrate.protocol.archive.PriorArchive` of the archive, calibrated heliostats excluded),
         and the JSON-ready record of the choice (``table``: candidate -> CV median [mrad], ``chosen``,
         ``drift_mrad``, ``walk_scale``, ``coverage``, ``heliostats``, ``folds``).
 
@@ -298,13 +316,6 @@ def choose_for_run(cfg: RunConfig, calibrated, dataset=None, *, folds: int = 4, 
         One line, when the archive has fewer than :data:`MIN_CV_HELIOSTATS` heliostats with enough records
         outside the calibrated ones, or the method is not ``lm``.
     """
-    import os
-
-    from ..errors import HeliotwinError
-    from ..io.paint import load_paint
-    from .archive import PriorArchive
-    from .priors import MIN_HELIOSTATS
-
     if cfg.method != "lm":
         raise HeliotwinError(f"--settings cv chooses lm settings; --method is {cfg.method}")
     path = os.fspath(cfg.prior_from)
@@ -329,13 +340,11 @@ def choose_for_run(cfg: RunConfig, calibrated, dataset=None, *, folds: int = 4, 
             raise HeliotwinError(f"--settings cv: the run calibrates {len(calibrated)} heliostat(s); the candidates "
                                  f"with the run's own field prior need {MIN_HELIOSTATS} and none uses a plant prior")
     if progress:
-        from tqdm.auto import tqdm
-
         bar = tqdm(total=len(cands), desc="settings by CV", leave=False, disable=None)
     scores = {}
     for cand in cands:
-        scores.update(cross_validated_errors(ds, base, [cand], ids, folds=min(folds, len(ids)), seed=seed,
-                                             archive=archive, exclude=calibrated, log=log, collect=collect))
+        scores.update(cross_validated_errors(ds, base, [cand], ids, runner=runner, folds=min(folds, len(ids)),
+                                             seed=seed, archive=archive, exclude=calibrated, log=log, collect=collect))
         if progress:
             bar.update(1)
     if progress:
@@ -372,13 +381,6 @@ def stored_choice(cfg: RunConfig, calibrated) -> tuple[RunConfig, dict]:
         The run's settings and the JSON-ready record (``used``: bool, ``reason`` when not, the stored
         ``chosen``/``candidate``/``drift_mrad``/``walk_scale`` and where it came from).
     """
-    import json
-    import os
-
-    from ..errors import InputFileError
-    from ..io.scenario import load_scenario
-    from .scenario import KEY
-
     path = os.fspath(cfg.prior_from)
     text = (load_scenario(path).learned.get(KEY) or {}).get("settings_choice")
     given = replace(cfg, settings="given")

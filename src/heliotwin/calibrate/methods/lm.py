@@ -15,16 +15,22 @@ bagging).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
+
 import torch
 from scipy.optimize import least_squares
 
-from ..field.plant import Kinematics
-from ..io.checkpoint import resumable_range
-from ..io.records import RecordTable
-from . import metrics, priors
-from .inputs import FIT_FOCAL_SPOT, fit_spots, trainable
-from .model import Calibrated
-from .params import STONE8, apply_deviations, check_names, kinds, units
+from ...devices import to_device
+from ...field.plant import Kinematics
+from ...io.checkpoint import resumable_range
+from ...io.records import RecordTable
+from .. import metrics, priors
+from ..drift import Q_GRID, smooth, split_for_choice, whitener, with_offset
+from ..inputs import FIT_FOCAL_SPOT, fit_spots, trainable
+from ..metrics import record_jacobian
+from ..model import Calibrated
+from ..params import STONE8, apply_deviations, check_names, kinds, units
+from ..uncertainty import posterior
 
 #: Pointing noise of one centroid record [rad] (camera-target centroids scatter by ~1 mrad).
 NOISE = 1e-3
@@ -35,21 +41,6 @@ NOISE = 1e-3
 #: deviation error to 3 digits).
 #: Every folder of ``../shared`` (<= 30 heliostats) fits in one chunk, so its figures are those of one problem.
 LM_CHUNK = 32
-
-
-def record_jacobian(nominal_per_record: Kinematics, batch: RecordTable, delta_rec: torch.Tensor, names):
-    """Residuals [R, 3] and their derivative w.r.t. each record's own parameters [R, 3, P].
-
-    A record depends only on its heliostat's parameters, so three backward passes (one per residual
-    component, summed over records) give every record's gradient at once.
-    """
-    d = delta_rec.detach().clone().requires_grad_(True)
-    r = metrics.normal_residuals(apply_deviations(nominal_per_record, d, names), batch, per_record=True)
-    jac = []
-    for c in range(3):
-        (g,) = torch.autograd.grad(r[:, c].sum(), d, retain_graph=c < 2)
-        jac.append(g)
-    return r.detach(), torch.stack(jac, 1)
 
 
 def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma: dict | None = None,
@@ -86,9 +77,9 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
         ``0.5 ** (a / half_life_days)`` (records without a time weigh 1), so the fit follows where a slowly
         drifting offset is *now* rather than its average over the training period.
     process_noise : float
-        Random-walk offset of the two axis offsets [rad^2/day] (:mod:`.drift`): the residuals are fitted in
-        generalised least squares, whitened by their covariance under that walk (0 = the static fit).
-        Excludes ``half_life_days``. ``drift_basis``: which deviations drift (:data:`.drift.BASES`).
+        Random-walk offset of the two axis offsets [rad^2/day] (:mod:`heliotwin.calibrate.drift`): the residuals are
+        fitted in generalised least squares, whitened by their covariance under that walk (0 = the static fit).
+        Excludes ``half_life_days``. ``drift_basis``: which deviations drift (:data:`heliotwin.calibrate.drift.BASES`).
 
     Returns
     -------
@@ -98,8 +89,6 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
         ``nfev``, ``status``, ``message`` of the scipy run, and ``cost``.
     """
     if nominal.position.device.type != "cpu":  # scipy's LM runs on the CPU: fit CPU copies, deviations back
-        from ..devices import to_device
-
         cpu = lambda t: None if t is None else t.detach().cpu()  # noqa: E731
         delta, info = fit_lm(to_device(nominal, "cpu"), to_device(batch, "cpu"), names=names, prior_sigma=prior_sigma,
                              prior_mean=cpu(prior_mean), noise=noise, max_nfev=max_nfev, loss=loss, f_scale=f_scale,
@@ -136,8 +125,6 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
     weights = recency_weights(batch, half_life_days) if half_life_days else None
     whiten = None
     if process_noise and process_noise > 0:
-        from .drift import whitener
-
         if weights is not None:
             raise ValueError("half_life_days and process_noise are two drift models: give one")
         whiten = whitener(nominal, batch, process_noise, noise, basis=drift_basis)
@@ -365,12 +352,11 @@ def _prior_precision(plant_prior, fp) -> torch.Tensor:
 
 def laplace(nominal: Kinematics, batch: RecordTable, delta: torch.Tensor, prior_precision: torch.Tensor,
             drift: float = 0.0) -> dict:
-    """Laplace posterior of the Stone/Jülich 8 around ``delta`` [H, 8] on the fit's records (:mod:`.uncertainty`).
+    """Laplace posterior of the Stone/Jülich 8 around ``delta`` [H, 8] on the fit's records
+    (:mod:`heliotwin.calibrate.uncertainty`).
 
     Returns ``{"covariance": [H, 8, 8], "noise_rad": [H], "drift_rad": float}``.
     """
-    from .uncertainty import posterior
-
     h = nominal.num_heliostats
     hidx = batch.heliostat_index
     if len(batch) == 0:
@@ -382,11 +368,51 @@ def laplace(nominal: Kinematics, batch: RecordTable, delta: torch.Tensor, prior_
     return {"covariance": cov, "noise_rad": noise, "drift_rad": float(drift)}
 
 
-def fit_lm_method(nominal, train, validation, *, seed=0, progress=False, field_prior=True,
-                  fit_focal_spot=FIT_FOCAL_SPOT, loss=LM_LOSS, f_scale=LM_F_SCALE, bags=LM_BAGS,
-                  plant_prior: priors.PlantPrior | None = None, drift: float = 0.0,
-                  half_life_days: float | None = None, drift_model: str = "none",
-                  process_noise: float | str = 0.0, drift_basis: str = "axes", walk_scale: float = 1.0) -> Calibrated:
+@dataclass(frozen=True)
+class LMSettings:
+    """Settings of the ``lm`` method (:func:`fit_lm_method`; each field is also one of its keywords).
+
+    Attributes
+    ----------
+    field_prior : bool
+        Without a plant prior: the field prior of the run's own training records (two-pass fit,
+        :func:`stone8_field_fit`); False: the nominal Stone/Jülich prior.
+    fit_focal_spot : str or None
+        Centroids the fit trains on (:func:`~heliotwin.calibrate.inputs.fit_spots`; None: the records' own).
+    loss, f_scale :
+        The robust loss of scipy's ``least_squares`` and its scale [rad] per residual.
+    bags : int
+        Bootstrap bags averaged (0: one fit on all records).
+    drift : float
+        Predictive interval: offset drift per component [rad] added to the Laplace posterior's noise.
+    walk_scale : float
+        Predictive interval: scale of the random-walk offset's covariance (``drift_model="kalman"``).
+    half_life_days : float or None
+        Drift tracking by recency weights [days] (:func:`fit_lm`).
+    drift_model : str
+        ``"none"`` (static rigid body) or ``"kalman"`` (rigid body + a random-walk offset).
+    process_noise : float or str
+        The walk's process noise [mrad^2/day] per component, or ``"auto"`` (:func:`choose_process_noise`).
+    drift_basis : str
+        Which deviations drift (:data:`heliotwin.calibrate.drift.BASES`).
+    """
+
+    field_prior: bool = True
+    fit_focal_spot: str | None = FIT_FOCAL_SPOT
+    loss: str = LM_LOSS
+    f_scale: float = LM_F_SCALE
+    bags: int = LM_BAGS
+    drift: float = 0.0
+    walk_scale: float = 1.0
+    half_life_days: float | None = None
+    drift_model: str = "none"
+    process_noise: float | str = 0.0
+    drift_basis: str = "axes"
+
+
+def fit_lm_method(nominal: Kinematics, train: RecordTable, validation: RecordTable | None, *, seed: int = 0,
+                  progress: bool = False, plant_prior: priors.PlantPrior | None = None,
+                  settings: LMSettings | None = None, **options) -> Calibrated:
     """``lm``: the Stone/Jülich 8 by Levenberg-Marquardt on every record it may see (train + validation).
 
     LM has no iteration count to stop early, so the validation records are used for fitting too (they
@@ -395,46 +421,61 @@ def fit_lm_method(nominal, train, validation, *, seed=0, progress=False, field_p
     over :data:`LM_BAGS` bootstrap resamples (bagging: with 10 records one outlier or one unlucky sun
     position otherwise decides the extrapolation).
 
-    With ``plant_prior`` (:class:`~heliotwin.calibrate.priors.PlantPrior`, learned from *other* heliostats;
-    see :mod:`.archive`) the field prior of the run's own training records is replaced by it.
+    Parameters
+    ----------
+    nominal : Kinematics
+        The run's H heliostats.
+    train, validation : RecordTable
+        Records over the same heliostat axis (validation may be None or empty).
+    seed : int
+        Seed of the bootstrap bags.
+    progress : bool
+        Unused (LM shows no loop); the methods' common signature.
+    plant_prior : PlantPrior, optional
+        Learned from *other* heliostats (:class:`~heliotwin.calibrate.priors.PlantPrior`, see
+        :mod:`heliotwin.calibrate.protocol.archive`): replaces the field prior of the run's own records.
+    settings : LMSettings, optional
+        Default: :class:`LMSettings`'s defaults.
+    **options
+        Any field of :class:`LMSettings` by keyword, replacing ``settings``'s (e.g. ``bags=0``).
 
-    ``extras["posterior"]``: the Laplace posterior of every heliostat's deviations around the fit
-    (:mod:`.uncertainty`; ``drift`` [rad] is the offset drift added to the predictive noise, chosen by
-    cross-validated coverage). ``half_life_days`` down-weights old records (drift tracking, :func:`fit_lm`).
+    Returns
+    -------
+    Calibrated
+        ``delta`` [H, 8] over :data:`~heliotwin.calibrate.params.STONE8`; ``extras["posterior"]``: the
+        Laplace posterior of every heliostat's deviations around the fit (:mod:`heliotwin.calibrate.uncertainty`;
+        covariance [H, 8, 8], noise [H] [rad], the interval's ``drift`` [rad] and ``walk_scale``).
 
+    Notes
+    -----
     ``drift_model="kalman"``: the rigid body + a random-walk offset of the two axis offsets with
-    ``process_noise`` [mrad^2/day] (:mod:`.drift`; ``"auto"``: chosen by chronological validation inside the
-    training records, :func:`choose_process_noise`). The static part is fitted in generalised least
-    squares, the offset smoothed over the training records; the returned ``delta`` is the static part + the
-    offset at the latest training time (what aims the heliostat *now*), ``extras["drift_state"]`` holds that
-    offset, its covariance, time and ``q``. ``walk_scale`` scales the walk's covariance in the predictive
-    interval (chosen with ``drift`` by cross-validated coverage: a real offset does not wander without bound
-    as a random walk would over the months of a chrono test block).
+    ``process_noise`` [mrad^2/day] (:mod:`heliotwin.calibrate.drift`; ``"auto"``: chosen by chronological
+    validation inside the training records, :func:`choose_process_noise`). The static part is fitted in
+    generalised least squares, the offset smoothed over the training records; the returned ``delta`` is the
+    static part + the offset at the latest training time (what aims the heliostat *now*),
+    ``extras["drift_state"]`` holds that offset, its covariance, time and ``q``. ``walk_scale`` scales the
+    walk's covariance in the predictive interval (chosen with ``drift`` by cross-validated coverage: a real
+    offset does not wander without bound as a random walk would over the months of a chrono test block).
     """
-    if drift_model not in ("none", "kalman"):
-        raise ValueError(f"drift_model must be 'none' or 'kalman', got {drift_model!r}")
+    s = replace(settings or LMSettings(), **options)
+    if s.drift_model not in ("none", "kalman"):
+        raise ValueError(f"drift_model must be 'none' or 'kalman', got {s.drift_model!r}")
     seen = RecordTable.concatenate([train, validation]) if validation is not None and len(validation) else train
     ok = trainable(seen)
-    fit_on = fit_spots(seen.subset(ok[seen.heliostat_index]), fit_focal_spot)
-    q_choice = None
-    if drift_model == "kalman" and process_noise == "auto":
-        process_noise, q_choice = choose_process_noise(nominal, fit_on, ok, plant_prior=plant_prior,
-                                                       field_prior=field_prior, loss=loss, f_scale=f_scale,
-                                                       basis=drift_basis)
-    q = 1e-6 * float(process_noise) if drift_model == "kalman" else 0.0  # mrad^2/day -> rad^2/day
-    delta, fp = _static_fit(nominal, fit_on, ok, plant_prior=plant_prior, field_prior=field_prior, loss=loss,
-                            f_scale=f_scale, half_life_days=half_life_days, q=q, bags=bags, seed=seed,
-                            basis=drift_basis)
+    fit_on = fit_spots(seen.subset(ok[seen.heliostat_index]), s.fit_focal_spot)
+    process_noise, q_choice = s.process_noise, None
+    if s.drift_model == "kalman" and process_noise == "auto":
+        process_noise, q_choice = choose_process_noise(nominal, fit_on, ok, s, plant_prior=plant_prior)
+    q = 1e-6 * float(process_noise) if s.drift_model == "kalman" else 0.0  # mrad^2/day -> rad^2/day
+    delta, fp = _static_fit(nominal, fit_on, ok, s, plant_prior=plant_prior, q=q, seed=seed)
     extras = {"field_prior": field_prior_extras(fp),
-              "posterior": dict(laplace(nominal, fit_on, delta, _prior_precision(plant_prior, fp), drift),
-                                walk_scale=float(walk_scale)),
-              "summary": {"bags": bags, "fit_focal_spot": fit_focal_spot, "loss": loss,
-                          "half_life_days": half_life_days, "drift_model": drift_model,
+              "posterior": dict(laplace(nominal, fit_on, delta, _prior_precision(plant_prior, fp), s.drift),
+                                walk_scale=float(s.walk_scale)),
+              "summary": {"bags": s.bags, "fit_focal_spot": s.fit_focal_spot, "loss": s.loss,
+                          "half_life_days": s.half_life_days, "drift_model": s.drift_model,
                           "prior": "plant" if plant_prior is not None else ("field" if fp is not None else "nominal")}}
-    if drift_model == "kalman":
-        from .drift import smooth, with_offset
-
-        state = smooth(nominal, fit_on, delta, q, NOISE, basis=drift_basis)
+    if s.drift_model == "kalman":
+        state = smooth(nominal, fit_on, delta, q, NOISE, basis=s.drift_basis)
         state["offset"][~ok] = 0.0
         state.pop("smoothed")
         state["static_deviations"] = delta
@@ -442,8 +483,8 @@ def fit_lm_method(nominal, train, validation, *, seed=0, progress=False, field_p
         extras["summary"]["process_noise_mrad2_per_day"] = float(process_noise)
         if q_choice is not None:
             extras["summary"]["process_noise_choice"] = q_choice
-        extras["summary"]["drift_basis"] = drift_basis
-        delta = with_offset(delta, state["offset"], drift_basis)
+        extras["summary"]["drift_basis"] = s.drift_basis
+        delta = with_offset(delta, state["offset"], s.drift_basis)
     if plant_prior is not None:
         extras["plant_prior"] = plant_prior
         extras["summary"]["prior_heliostats"] = list(plant_prior.heliostats)
@@ -451,33 +492,30 @@ def fit_lm_method(nominal, train, validation, *, seed=0, progress=False, field_p
     return Calibrated("lm", list(train.heliostat_ids), nominal, STONE8, delta, ok, extras=extras)
 
 
-def _static_fit(nominal, fit_on, ok, *, plant_prior, field_prior, loss, f_scale, half_life_days, q, bags, seed,
-                basis="axes"):
-    """Bagged static (or GLS under a random-walk offset with ``q`` [rad^2/day]) fit, [H, 8] and field prior."""
+def _static_fit(nominal, fit_on, ok, s: LMSettings, *, plant_prior, q: float, seed: int):
+    """Bagged static (or GLS under a random-walk offset with ``q`` [rad^2/day]) fit of ``s``, [H, 8] and field
+    prior."""
+    fit = dict(loss=s.loss, f_scale=s.f_scale, half_life_days=s.half_life_days, process_noise=q,
+               drift_basis=s.drift_basis)
     if plant_prior is not None:
-        delta, fp = bagged(lambda b: (stone8_plant_fit(nominal, b, plant_prior, loss=loss, f_scale=f_scale,
-                                                       half_life_days=half_life_days, process_noise=q,
-                                                       drift_basis=basis), None),
-                           fit_on, bags, seed)
+        delta, fp = bagged(lambda b: (stone8_plant_fit(nominal, b, plant_prior, **fit), None), fit_on, s.bags, seed)
     else:
-        delta, fp = bagged(lambda b: stone8_field_fit(nominal, b, ok, field_prior=field_prior, loss=loss,
-                                                      f_scale=f_scale, half_life_days=half_life_days,
-                                                      process_noise=q, drift_basis=basis),
-                           fit_on, bags, seed)
+        delta, fp = bagged(lambda b: stone8_field_fit(nominal, b, ok, field_prior=s.field_prior, **fit),
+                           fit_on, s.bags, seed)
     delta[~ok] = 0.0
     return delta, fp
 
 
-def choose_process_noise(nominal, fit_on: RecordTable, ok, *, plant_prior=None, field_prior=True, loss=LM_LOSS,
-                         f_scale=LM_F_SCALE, grid=None, basis: str = "axes") -> tuple[float, dict]:
+def choose_process_noise(nominal, fit_on: RecordTable, ok, settings: LMSettings | None = None, *, plant_prior=None,
+                         grid=None) -> tuple[float, dict]:
     """``process_noise="auto"``: the q [mrad^2/day] of :data:`~heliotwin.calibrate.drift.Q_GRID` whose fit on
     each heliostat's earlier training records best predicts its latest quarter (median over heliostats of
-    the mean error; ties: the smaller q). Validation stays inside the records the method may see.
+    the mean error; ties: the smaller q). Validation stays inside the records the method may see. The fits
+    are ``settings``'s (prior, loss, drift basis), unbagged and without recency weights.
 
     Returns (q, {q: median validation error [mrad]}).
     """
-    from .drift import Q_GRID, smooth, split_for_choice, with_offset
-
+    s = replace(settings or LMSettings(), bags=0, half_life_days=None)
     grid = Q_GRID if grid is None else grid
     fit_rows, val_rows = split_for_choice(fit_on)
     early, late = fit_on.subset(fit_rows), fit_on.subset(val_rows)
@@ -486,10 +524,9 @@ def choose_process_noise(nominal, fit_on: RecordTable, ok, *, plant_prior=None, 
     scores = {}
     for qm in grid:
         q = 1e-6 * float(qm)
-        d, _ = _static_fit(nominal, early, ok, plant_prior=plant_prior, field_prior=field_prior, loss=loss,
-                           f_scale=f_scale, half_life_days=None, q=q, bags=0, seed=0, basis=basis)
+        d, _ = _static_fit(nominal, early, ok, s, plant_prior=plant_prior, q=q, seed=0)
         if q > 0:
-            d = with_offset(d, smooth(nominal, early, d, q, NOISE, basis=basis)["offset"], basis)
+            d = with_offset(d, smooth(nominal, early, d, q, NOISE, basis=s.drift_basis)["offset"], s.drift_basis)
         err = metrics.pointing_error(apply_deviations(nominal, d, STONE8), late)
         per_h = metrics.per_heliostat_mean(err.detach(), late.heliostat_index, late.num_heliostats)
         scores[float(qm)] = float(1e3 * per_h[torch.isfinite(per_h)].median())

@@ -1,0 +1,283 @@
+"""The calibrate workflow: a scenario and calibration records -> the calibrated scenario and its report.
+
+``heliotwin calibrate`` (:func:`heliotwin.cli.calibrate.cmd_calibrate`) and :func:`heliotwin.api.calibrate`
+are both :func:`calibrate` with their own way of taking options and of writing outputs:
+
+* :class:`CalibrationSettings` holds the options, one field per command-line flag (named as its argparse
+  ``dest``), with the command line's defaults; :func:`run_config` turns them into the run's
+  :class:`~heliotwin.calibrate.protocol.config.RunConfig` (checked: one-line errors before any work).
+* :func:`calibrate` loads the records (on the starting scenario's plant), runs the calibration
+  (:func:`~heliotwin.calibrate.protocol.pipeline.run_calibration`), optionally the error-vs-training-size
+  curve, and returns the calibrated scenario **in memory** (one ``calibrate`` provenance step, appended by
+  :func:`heliotwin.io.scenario.next_scenario`) with the report; the caller writes what it wants where it
+  wants (the scenario with :func:`heliotwin.io.scenario.write_scenario`, the plots with
+  :func:`heliotwin.calibrate.report.write_plots`).
+* :func:`calibration_checkpoint`: the checkpoint of a run of these settings (``--resume``).
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, replace
+from typing import Callable
+
+from ..calibrate.model import Calibrated
+from ..calibrate.protocol import pipeline
+from ..calibrate.protocol.config import RunConfig, settings_mode, validate_config
+from ..calibrate.scenario import calibrated_scenario
+from ..errors import HeliotwinError
+from ..io.checkpoint import Checkpoint
+from ..io.paint import PaintDataset
+from ..io.scenario import Scenario, load_records, load_scenario
+
+__all__ = ["CalibrationSettings", "Calibration", "calibrate", "run_config", "resolved_settings_mode",
+           "calibration_checkpoint", "training_size_curves", "seen_records", "load_paint_records"]
+
+
+@dataclass(frozen=True)
+class CalibrationSettings:
+    """The options of a calibration (``heliotwin calibrate``'s flags, same names, same defaults).
+
+    Attributes
+    ----------
+    method : str
+        ``lm``, ``gradient``, ``hybrid``, ``mlp`` or ``images``.
+    heliostats : sequence of str or None
+        Heliostat ids (None: every heliostat of the records).
+    split : str
+        Split type (:data:`heliotwin.calibrate.protocol.config.RUN_SPLITS`).
+    train, validation, test : int or None
+        Records per heliostat: seen by the method (validation included), carved out of ``train`` for
+        validation (None: 20 % of it, 0 below 8), held out for the test (None: every other record).
+    min_records : int
+        Heliostats with fewer usable records are skipped.
+    focal_spot : str
+        Centroid source scored on (``HeliOS`` or ``UTIS``).
+    seed : int
+    plane_tolerance : float
+        Largest distance [m] of a focal spot from its target plane.
+    keep_suspicious : bool
+        Report suspicious property values but never replace them.
+    prior, prior_from :
+        lm's prior: ``"run"`` or ``"plant"``; ``prior_from`` a PAINT folder of the same plant or a scenario
+        holding a prior learned from other heliostats.
+    half_life_days : float or None
+        lm drift tracking by recency weights [days].
+    drift_mrad : float or None
+        lm predictive interval: offset drift per component [mrad].
+    drift, process_noise, drift_basis :
+        lm drift model (``"none"`` / ``"kalman"``), its process noise [mrad^2/day] or ``"auto"``, and what
+        drifts (``"axes"`` / ``"rotation"``).
+    settings : str
+        ``"auto"``, ``"given"``, ``"cv"`` or ``"stored"`` (:func:`resolved_settings_mode`).
+    online_step : int
+        ``split="online"``: refit every this many test records.
+    curve : bool
+        Also run the error-vs-training-size experiment (lm refits) when something was calibrated.
+    """
+
+    method: str = "lm"
+    heliostats: tuple | list | None = None
+    split: str = "chrono"
+    train: int = 30
+    validation: int | None = None
+    test: int | None = None
+    min_records: int = 50
+    focal_spot: str = "HeliOS"
+    seed: int = 0
+    plane_tolerance: float = 0.1
+    keep_suspicious: bool = False
+    prior: str = "run"
+    prior_from: str | os.PathLike | None = None
+    half_life_days: float | None = None
+    drift_mrad: float | None = None
+    drift: str = "none"
+    process_noise: str | float = "auto"
+    drift_basis: str = "axes"
+    settings: str = "auto"
+    online_step: int = 5
+    curve: bool = False
+
+
+def _process_noise(value):
+    """``process_noise``: ``auto`` or a number >= 0 [mrad^2/day] (one-line error otherwise)."""
+    if value is None or str(value).strip().lower() == "auto":
+        return "auto"
+    try:
+        q = float(value)
+    except ValueError:
+        q = float("nan")
+    if not (math.isfinite(q) and q >= 0):
+        raise HeliotwinError(f"--process-noise must be 'auto' or a number >= 0 [mrad^2/day], got {value!r}")
+    return q
+
+
+def _lm_options(settings: CalibrationSettings) -> dict:
+    """``half_life_days`` / ``drift_mrad`` as lm method options (one-line error for other methods)."""
+    opts = {}
+    hl, drift = settings.half_life_days, settings.drift_mrad
+    if hl is not None:
+        if not (math.isfinite(hl) and hl > 0):
+            raise HeliotwinError(f"--half-life-days must be a positive number, got {hl}")
+        opts["half_life_days"] = hl
+    if drift is not None:
+        if not (math.isfinite(drift) and drift >= 0):
+            raise HeliotwinError(f"--drift-mrad must be >= 0, got {drift}")
+        opts["drift"] = 1e-3 * drift
+    if opts and settings.method != "lm":
+        raise HeliotwinError(f"--half-life-days / --drift-mrad apply to --method lm only, not {settings.method}")
+    return opts
+
+
+def resolved_settings_mode(settings: CalibrationSettings) -> str:
+    """``settings.settings`` with ``auto`` resolved (:func:`~heliotwin.calibrate.protocol.config.settings_mode`):
+    an lm setting fixed by hand (half-life, interval drift, drift model) keeps the given settings."""
+    by_hand = settings.half_life_days is not None or settings.drift_mrad is not None or settings.drift != "none"
+    return settings_mode(settings.settings or "given", method=settings.method, prior_from=settings.prior_from,
+                         fixed_by_hand=by_hand)
+
+
+def _path(value):
+    return os.fspath(value) if isinstance(value, os.PathLike) else value
+
+
+def run_config(settings: CalibrationSettings, paint, *, progress: bool = False) -> RunConfig:
+    """The checked :class:`~heliotwin.calibrate.protocol.config.RunConfig` of ``settings`` on the PAINT folder
+    ``paint`` (one-line :class:`~heliotwin.errors.HeliotwinError` for a bad option); ``progress``: the
+    methods' own tqdm bars."""
+    s = settings
+    cfg = RunConfig(paint=os.fspath(paint), method=s.method, split=s.split, train=s.train, validation=s.validation,
+                    test=s.test, heliostats=None if s.heliostats is None else list(s.heliostats),
+                    min_records=s.min_records, focal_spot=s.focal_spot, seed=s.seed, plane_tolerance=s.plane_tolerance,
+                    correct_suspicious=not s.keep_suspicious, progress=progress is True, prior=s.prior,
+                    prior_from=_path(s.prior_from), online_step=s.online_step, method_options=_lm_options(s),
+                    drift_model=s.drift, process_noise=_process_noise(s.process_noise), drift_basis=s.drift_basis,
+                    settings=resolved_settings_mode(s))
+    validate_config(cfg)
+    return cfg
+
+
+def calibration_checkpoint(settings: CalibrationSettings, paint, path, *, scenario=None, device: str = "cpu",
+                           resume: bool = False, **options) -> Checkpoint:
+    """The checkpoint at ``path`` of a calibration of ``settings`` on ``paint``, starting from ``scenario`` (a
+    path is one of the run's inputs): :func:`heliotwin.calibrate.protocol.pipeline.calibration_checkpoint`.
+    A checkpoint of other settings or inputs is refused (one line) before any work."""
+    inputs = [scenario] if isinstance(scenario, (str, os.PathLike)) else []
+    return pipeline.calibration_checkpoint(run_config(settings, paint), path, device=device, resume=resume,
+                                           inputs=inputs, **options)
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """What :func:`calibrate` returns; unpacks as ``scenario, report = calibrate(...)``.
+
+    Attributes
+    ----------
+    scenario : Scenario or None
+        The calibrated scenario, in memory; None when no heliostat could be calibrated.
+    report : dict
+        The JSON report (:mod:`heliotwin.calibrate.report`).
+    model : Calibrated or None
+        The calibrated model over the run's heliostats, on the CPU (None when none could run).
+    arrays : dict
+        Per-record arrays for the plots (:func:`heliotwin.calibrate.report.write_plots`).
+    curves : dict or None
+        The error-vs-training-size curve (``settings.curve``): label -> [(records, median [mrad])].
+    """
+
+    scenario: Scenario | None
+    report: dict
+    model: Calibrated | None
+    arrays: dict
+    curves: dict | None = None
+
+    def __iter__(self):
+        return iter((self.scenario, self.report))
+
+
+def seen_records(arrays: dict) -> dict:
+    """Heliostat id -> record ids a method saw (training + validation), for the provenance."""
+    out: dict = {}
+    for name in ("train", "validation"):
+        t = arrays.get(name)
+        if t is None:
+            continue
+        for h, rid in zip(t.heliostat_index.tolist(), t.record_id.tolist()):
+            out.setdefault(t.heliostat_ids[h], []).append(int(rid))
+    return out
+
+
+def training_size_curves(cfg: RunConfig, dataset: PaintDataset, median_test_mrad) -> dict:
+    """Error vs training size from cheap lm refits on the same split rule and test set. Unbagged: the
+    curve's shape is what a plant engineer reads, and bagging would make it ~10x slower.
+
+    Returns label -> [(training records, median over heliostats of the mean test error [mrad])]; ``cfg``'s
+    own method at its ``train`` is ``median_test_mrad``."""
+    sizes = sorted({n for n in (5, 10, 20, 30, 40, 60, 100) if n < cfg.train} | {cfg.train})
+    pts = []
+    for n in sizes:
+        r, _, _ = pipeline.run_calibration(replace(cfg, method="lm", train=n, validation=None, progress=False,
+                                                   method_options={"bags": 0}), dataset)
+        pts.append((n, r["overall"]["median_of_mean_test_mrad"]))
+    return {"lm (refits, unbagged)": pts, cfg.method: [(cfg.train, median_test_mrad)]}
+
+
+def load_paint_records(paint, scenario=None, plane_tolerance: float = 0.1) -> tuple:
+    """The records of the PAINT folder ``paint`` on ``scenario``'s plant (a Scenario, a path or None: the
+    folder's nominal plant), :func:`heliotwin.io.scenario.load_records`; returns (dataset, Scenario or None).
+    A missing folder is a one-line error."""
+    if not os.path.isdir(paint):
+        raise HeliotwinError(f"{paint}: PAINT folder not found")
+    return load_records(paint, scenario, plane_tolerance=plane_tolerance)
+
+
+def calibrate(scenario, records_or_paint, settings: CalibrationSettings = CalibrationSettings(), *,
+              device: str = "cpu", progress: bool | Callable = False, checkpoint: Checkpoint | None = None,
+              stage: Callable[[str], None] | None = None) -> Calibration:
+    """Calibrate the kinematics of ``scenario``'s plant from calibration records.
+
+    Parameters
+    ----------
+    scenario : Scenario, str, os.PathLike or None
+        The plant to start from (a scenario file's path is read); None: the PAINT folder's nominal plant.
+    records_or_paint : str, os.PathLike or heliotwin.io.paint.PaintDataset
+        The PAINT folder (its records are put on the scenario's plant,
+        :func:`heliotwin.io.scenario.load_records`), or its records already loaded on that plant.
+    settings : CalibrationSettings
+    device : str
+        Where to compute (``"cpu"``, ``"cuda"``, ``"auto"``); the model comes back on the CPU.
+    progress : bool or callable
+        tqdm bars, or ``progress(step_name, index, total)`` before each step of the run.
+    checkpoint : heliotwin.io.checkpoint.Checkpoint, optional
+        From :func:`calibration_checkpoint`; the caller removes it once its outputs are written.
+    stage : callable, optional
+        ``stage(text)`` names each stage reached (reading, calibrating, training-size curve).
+
+    Returns
+    -------
+    Calibration
+        ``scenario, report = calibrate(...)``; also ``model``, ``arrays`` (plots) and ``curves``.
+    """
+    stage = stage or (lambda text: None)
+    paint = records_or_paint.root if isinstance(records_or_paint, PaintDataset) else os.fspath(records_or_paint)
+    cfg = run_config(settings, paint, progress=progress)
+    if isinstance(records_or_paint, PaintDataset):
+        dataset = records_or_paint
+        previous = load_scenario(scenario) if isinstance(scenario, (str, os.PathLike)) else scenario
+    else:
+        stage(f"reading {paint}")
+        dataset, previous = load_paint_records(paint, scenario, cfg.plane_tolerance)
+    stage(f"calibrating ({cfg.method}, {cfg.split} split) on {device}")
+    report, model, arrays = pipeline.run_calibration(cfg, dataset, device=device, checkpoint=checkpoint,
+                                                     progress=progress if callable(progress) else None)
+    if model is None or not bool(model.ok.any()):
+        return Calibration(None, report, model, arrays)
+    curves = None
+    if settings.curve:
+        stage("training-size curve (lm refits)")
+        curves = training_size_curves(cfg, dataset, report["overall"]["median_of_mean_test_mrad"])
+    # The run's settings, method options included (half-life, drift: they shape the result).
+    new = calibrated_scenario(dataset.plant, model, previous=previous, focal_spot=cfg.focal_spot,
+                              records=seen_records(arrays), settings=dict(report["config"]),
+                              source=os.path.abspath(paint), settings_choice=report.get("settings_choice"))
+    return Calibration(new, report, model, arrays, curves)
