@@ -21,7 +21,11 @@ FLOORS = (
     ("optics", ("raytrace", "scene")),
     ("data edge", ("io",)),
     ("figures", ("plots",)),
-    ("learning and acting", ("calibrate", "surfaces", "optimise", "distributed", "validate")),
+    # calibration by role: shared parts < methods (and what reads their results) < protocol
+    ("calibration's shared parts", ("calibrate",)),
+    ("calibration methods", ("calibrate.methods", "calibrate.scenario", "calibrate.report")),
+    ("calibration protocol", ("calibrate.protocol",)),
+    ("learning and acting", ("surfaces", "optimise", "distributed", "validate")),
     ("workflows", ("workflows",)),
     ("public API", ("api",)),
     ("command line", ("cli", "__main__")),
@@ -182,6 +186,7 @@ def test_the_checks_can_fail():
     """The checks above see what they must: a circle, an upward arrow and a local import in made-up trees."""
     assert circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
     assert floor_of("field.plant") < floor_of("raytrace.flux") < floor_of("io.images") < floor_of("cli.field")
+    assert floor_of("calibrate.params") < floor_of("calibrate.methods.lm") < floor_of("calibrate.protocol.pipeline")
     tree = ast.parse("def f():\n    from .x import y\n")
     assert any(isinstance(n, ast.ImportFrom) for n in ast.walk(tree.body[0]))
 

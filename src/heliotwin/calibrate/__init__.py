@@ -1,4 +1,4 @@
-"""Kinematic calibration from real calibration records (issue 3), grouped by role.
+"""Kinematic calibration from real calibration records, grouped by role.
 
 Three groups, each importing only the ones above it in this list:
 

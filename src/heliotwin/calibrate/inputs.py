@@ -55,7 +55,7 @@ def source_offsets(batch: RecordTable) -> tuple[torch.Tensor, torch.Tensor]:
     The two camera systems disagree by a constant per target: on the Jülich records HeliOS sits about 8 cm
     *above* UTIS on the lower target (median of 429 pairs; 1.6 to 16 cm between heliostats), 2 cm below on
     the upper one and 4 cm above on the multi-focus tower, alike in 2022, 2023 and 2024; the sideways part
-    varies more between heliostats (``benchmarks/bench_carryover_diagnostics.py --part sources``). UTIS
+    varies more between heliostats (``docs/carryover.md``, the row on harmonised UTIS). UTIS
     centroids scatter less, so ``harmonised`` fits UTIS shifted by that difference: the smaller noise, in the
     frame the metric scores. The difference is the plant's (pooled over the batch's heliostats, median per
     target, so one bad centroid cannot move it) and uses only the records given (a training batch never sees
