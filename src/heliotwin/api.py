@@ -130,30 +130,9 @@ def trace_record(dataset, record_id: int, *, integrator: str = "mc", rays_per_po
     return trace_workflow(dataset, record_id, settings)
 
 
-def plot_flux(flux, path=None, *, title: str | None = None, measured: dict | None = None, ax=None):
-    """A flux image as a figure people read: title, axes in metres on the target, colour bar in kW/m².
-
-    Parameters
-    ----------
-    flux : FluxImage
-        The first image of the batch is drawn.
-    path : str or os.PathLike, optional
-        Write the figure here (atomically; format from the extension).
-    title : str, optional
-        Default: the target's name.
-    measured : dict, optional
-        A :func:`trace_record` report: its measured focal spots (HeliOS, UTIS) and the predicted centroid are
-        marked, so the figure reads "measured vs predicted"; when the record has PAINT's whole-target camera
-        image (``measured_flux_png``) it is drawn on the left, on the same target extent (relative scale).
-    ax : matplotlib.axes.Axes, optional
-        Draw the prediction into this axes (e.g. a notebook's) instead of a new figure (no camera panel).
-
-    Returns
-    -------
-    matplotlib.figure.Figure
-        Made without pyplot (no backend is selected, nothing global changes); in a notebook, display it.
-    """
-    return plots.plot_flux(flux, path, title=title, measured=measured, ax=ax)
+#: A flux image as a figure people read (:func:`heliotwin.plots.plot_flux`: title, axes in metres on the target,
+#: colour bar in kW/m², the measured spots of a :func:`trace_record` report marked).
+plot_flux = plots.plot_flux
 
 
 def calibrate(paint, config=None, *, scenario=None, output=None, device: str = "auto", progress=True,

@@ -281,36 +281,18 @@ def _write_split_csv(path, rows) -> None:
             w.writerows(rows)
 
 
-def _aim_time(text):
-    """``--time``: UTC ISO text -> POSIX s (None when not given; one-line error when unparsable)."""
-    if text is None:
-        return None
-    from ..io.records import parse_time
-
-    t = parse_time(text)
-    if not math.isfinite(t):
-        raise HeliotwinError(f"--time must be a UTC ISO time (e.g. 2023-05-01T12:00:00Z), got {text!r}")
-    return t
-
-
 def cmd_aim(args) -> int:
-    from ..calibrate.scenario import aim
     from ..io.scenario import load_scenario
+    from ..workflows.plan import AimRequest, aim
 
     try:
-        point = [float(x) for x in args.aim.split(",")]
+        point = tuple(float(x) for x in args.aim.split(","))
     except ValueError:
         raise HeliotwinError(f"--aim needs E,N,U in metres, got {args.aim!r}") from None
-    if len(point) != 3 or not all(math.isfinite(x) for x in point):
-        raise HeliotwinError(f"--aim needs three finite numbers E,N,U, got {args.aim!r}")
-    if not (0.0 < args.sun_elevation <= 90.0):
-        raise HeliotwinError(f"--sun-elevation {args.sun_elevation} deg: the sun must be above the horizon")
-    if not math.isfinite(args.sun_azimuth):
-        raise HeliotwinError("--sun-azimuth must be finite")
+    request = AimRequest(args.sun_azimuth, args.sun_elevation, point, getattr(args, "time", None))
     with output_set([("--scenario", args.scenario)]) as out:
         json_path = out.file(args.json, "--json")
-        ans = aim(load_scenario(args.scenario), args.heliostat, math.radians(args.sun_azimuth),
-                  math.radians(args.sun_elevation), point, time=_aim_time(getattr(args, "time", None)))
+        _, ans = aim(load_scenario(args.scenario), args.heliostat, request)
         if json_path:
             write_json(json_path, ans)
     if not args.quiet:

@@ -32,20 +32,19 @@ def register(subparsers) -> None:
 
 
 def cmd_plan(args) -> int:
-    import datetime
     import os
 
-    from ..calibrate.protocol.plan import plan
     from ..calibrate.report import plot_plan
     from ..io.scenario import load_scenario
+    from ..workflows.plan import PlanSettings, plan
 
-    year = args.year or datetime.datetime.now(datetime.timezone.utc).year
     with output_set([("--scenario", args.scenario)]) as out:
         json_path = out.file(args.json, "--json")
         plot_path = None if not args.json or args.no_plots else out.file(
             f"{os.path.splitext(args.json)[0]}-plan.png", "--json")
-        ans = plan(load_scenario(args.scenario), args.heliostat, year=year, every=args.every, count=args.count,
-                   target=args.target, min_elevation_deg=args.min_elevation, sky=plot_path is not None)
+        settings = PlanSettings(year=args.year, every=args.every, count=args.count, target=args.target,
+                                min_elevation=args.min_elevation, sky=plot_path is not None)
+        _, ans = plan(load_scenario(args.scenario), args.heliostat, settings)
         if plot_path:
             plot_plan(plot_path, ans)
             ans["plots"] = [os.path.basename(plot_path)]

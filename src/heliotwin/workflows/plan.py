@@ -1,0 +1,117 @@
+"""Questions asked of a calibrated plant: where to point a heliostat now (``heliotwin aim``) and which records
+to take next (``heliotwin plan``).
+
+Both read a scenario and learn nothing, so the scenario comes back unchanged (no provenance step); the
+report is the answer. Inputs are checked here, once, with one-line errors that name the option.
+"""
+from __future__ import annotations
+
+import datetime
+import math
+from dataclasses import dataclass
+
+from ..calibrate.protocol.plan import plan as plan_records
+from ..calibrate.scenario import aim as aim_heliostat
+from ..errors import HeliotwinError
+from ..io.records import parse_time
+from ..io.scenario import Scenario
+
+__all__ = ["PlanSettings", "plan", "AimRequest", "aim"]
+
+
+@dataclass(frozen=True)
+class PlanSettings:
+    """Options of ``heliotwin plan`` (same names and defaults).
+
+    Attributes
+    ----------
+    year : int or None
+        Year whose daylight sun positions are the candidates (None: the current UTC year).
+    every : str
+        Candidate spacing (pandas frequency, e.g. ``"1h"``).
+    count : int
+        Records to propose.
+    target : str or None
+        Planar calibration target (None: the first by name).
+    min_elevation : float
+        Lowest sun elevation of a candidate [deg].
+    sky : bool
+        Also return the predictive spread at every candidate (``report["sky"]``, numpy arrays) for a sky map.
+    """
+
+    year: int | None = None
+    every: str = "1h"
+    count: int = 5
+    target: str | None = None
+    min_elevation: float = 15.0
+    sky: bool = False
+
+
+def plan(scenario: Scenario, heliostat: str, settings: PlanSettings = PlanSettings()) -> tuple[Scenario, dict]:
+    """The sun positions whose calibration records would shrink ``heliostat``'s pointing uncertainty most.
+
+    Returns
+    -------
+    scenario : Scenario
+        Unchanged.
+    report : dict
+        :func:`heliotwin.calibrate.protocol.plan.plan`'s answer (proposals with UTC times, sun angles [deg] and
+        the predictive spread after each [mrad]).
+    """
+    year = settings.year or datetime.datetime.now(datetime.timezone.utc).year
+    report = plan_records(scenario, heliostat, year=year, every=settings.every, count=settings.count,
+                          target=settings.target, min_elevation_deg=settings.min_elevation, sky=settings.sky)
+    return scenario, report
+
+
+@dataclass(frozen=True)
+class AimRequest:
+    """One ``heliotwin aim`` question.
+
+    Attributes
+    ----------
+    sun_azimuth, sun_elevation : float
+        [deg], PAINT convention (azimuth 0 = south, +90 = east); the sun must be above the horizon.
+    aim_point : sequence of 3 float
+        ENU [m].
+    time : str or None
+        UTC ISO time of the aim (drift models predict the offset then); None: the latest training time.
+    """
+
+    sun_azimuth: float
+    sun_elevation: float
+    aim_point: tuple
+    time: str | None = None
+
+
+def _check(request: AimRequest) -> tuple[list, float | None]:
+    point = list(request.aim_point)
+    if len(point) != 3 or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in point):
+        raise HeliotwinError(f"--aim needs three finite numbers E,N,U, got {request.aim_point!r}")
+    if not (0.0 < request.sun_elevation <= 90.0):
+        raise HeliotwinError(f"--sun-elevation {request.sun_elevation} deg: the sun must be above the horizon")
+    if not math.isfinite(request.sun_azimuth):
+        raise HeliotwinError("--sun-azimuth must be finite")
+    if request.time is None:
+        return point, None
+    t = parse_time(request.time)
+    if not math.isfinite(t):
+        raise HeliotwinError(f"--time must be a UTC ISO time (e.g. 2023-05-01T12:00:00Z), got {request.time!r}")
+    return point, t
+
+
+def aim(scenario: Scenario, heliostat: str, request: AimRequest) -> tuple[Scenario, dict]:
+    """Motor steps that put the sun's reflection on the aim point with the scenario's (calibrated) plant.
+
+    Returns
+    -------
+    scenario : Scenario
+        Unchanged.
+    report : dict
+        :func:`heliotwin.calibrate.scenario.aim`'s answer: ``motor_steps`` [2], ``reachable``, ``method`` and,
+        for a rigid-body calibration with a posterior, the expected error and its 90 % interval [mrad].
+    """
+    point, t = _check(request)
+    report = aim_heliostat(scenario, heliostat, math.radians(request.sun_azimuth),
+                           math.radians(request.sun_elevation), point, time=t)
+    return scenario, report
