@@ -137,7 +137,7 @@ def test_cli_drift_flags_become_run_settings():
 
 
 def test_cli_aim_time_flag():
-    from heliotwin.cli.calibrate import _aim_time
+    from heliotwin.workflows.plan import aim_time as _aim_time
     from heliotwin.errors import HeliotwinError
 
     assert _aim_time(None) is None and _aim_time("2023-05-01T12:00:00Z") == pytest.approx(1682942400.0)

@@ -16,7 +16,7 @@ from ..errors import HeliotwinError
 from ..io.records import parse_time
 from ..io.scenario import Scenario
 
-__all__ = ["PlanSettings", "plan", "AimRequest", "aim"]
+__all__ = ["PlanSettings", "plan", "AimRequest", "aim", "aim_time"]
 
 
 @dataclass(frozen=True)
@@ -84,6 +84,16 @@ class AimRequest:
     time: str | None = None
 
 
+def aim_time(text: str | None) -> float | None:
+    """``--time``: UTC ISO text -> POSIX time [s] (None when not given; one-line error when unparsable)."""
+    if text is None:
+        return None
+    t = parse_time(text)
+    if not math.isfinite(t):
+        raise HeliotwinError(f"--time must be a UTC ISO time (e.g. 2023-05-01T12:00:00Z), got {text!r}")
+    return t
+
+
 def _check(request: AimRequest) -> tuple[list, float | None]:
     point = list(request.aim_point)
     if len(point) != 3 or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in point):
@@ -92,12 +102,7 @@ def _check(request: AimRequest) -> tuple[list, float | None]:
         raise HeliotwinError(f"--sun-elevation {request.sun_elevation} deg: the sun must be above the horizon")
     if not math.isfinite(request.sun_azimuth):
         raise HeliotwinError("--sun-azimuth must be finite")
-    if request.time is None:
-        return point, None
-    t = parse_time(request.time)
-    if not math.isfinite(t):
-        raise HeliotwinError(f"--time must be a UTC ISO time (e.g. 2023-05-01T12:00:00Z), got {request.time!r}")
-    return point, t
+    return point, aim_time(request.time)
 
 
 def aim(scenario: Scenario, heliostat: str, request: AimRequest) -> tuple[Scenario, dict]:
