@@ -137,8 +137,8 @@ def test_cli_drift_flags_become_run_settings():
 
 
 def test_cli_aim_time_flag():
-    from heliotwin.workflows.plan import aim_time as _aim_time
     from heliotwin.errors import HeliotwinError
+    from heliotwin.workflows.plan import aim_time as _aim_time
 
     assert _aim_time(None) is None and _aim_time("2023-05-01T12:00:00Z") == pytest.approx(1682942400.0)
     with pytest.raises(HeliotwinError, match="--time"):
