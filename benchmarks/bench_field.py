@@ -121,11 +121,11 @@ def blocking_disagreement(out: Path) -> dict:
     worst = plant.field.ids.index(missed[0]) if missed else None
     check = None
     if worst is not None:
-        from heliotwin.raytrace.field import _samples
+        from heliotwin.raytrace.field import tracked_mirror_samples
         from heliotwin.raytrace.occlusion import OccluderSet
 
         occ = OccluderSet(plant.field.kinematics.position, res.normal, plant.field.width, plant.field.height)
-        pts, nrm, _ = _samples(plant, res.normal, 16, torch.float64)
+        pts, nrm, _ = tracked_mirror_samples(plant, res.normal, 16, torch.float64)
         refl = -sun + 2 * (nrm * sun).sum(-1, keepdim=True) * nrm
         free = brute_force_unoccluded(pts, refl, occ.center, occ.normal, occ.width_axis, occ.height_axis,
                                       plant.field.width, plant.field.height)[worst]
@@ -248,7 +248,7 @@ def demo(out: Path, n: int) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", required=True)
-    ap.add_argument("--sizes", default="50,500,2000,10000", help="empty: skip the speed runs")
+    ap.add_argument("--sizes", default="50,500,2000,10000", help="empty or 0: skip the speed runs")
     ap.add_argument("--year-heliostats", type=int, default=2000, help="0: skip the yearly run")
     ap.add_argument("--demo-heliostats", type=int, default=2000, help="0: skip the demo run")
     args = ap.parse_args(argv)
@@ -271,7 +271,7 @@ def main(argv=None) -> int:
         e = exact[key]
         print(f"  {key:19s} shading {sh} || {e['shading_ours']:.4f};  blocking {bl} || "
               f"{e['blocking_whole_mirror_ours']:.4f}, {e['blocking_ours']:.4f}")
-    sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
+    sizes = [int(s) for s in args.sizes.split(",") if s.strip() and int(s) > 0]  # "" or 0: skip
     if sizes:
         report["speed"] = speed(out, sizes)
     if args.demo_heliostats:

@@ -78,6 +78,7 @@ from .occlusion import (
 from .splat import splat_bilinear
 
 __all__ = ["FieldSettings", "FieldResult", "equator_aim_points", "tracking_normals", "field_optics", "summary",
+           "tracked_mirror_samples",
            "per_heliostat_rows", "FACTORS"]
 
 #: Per-heliostat factors whose product is the optical efficiency (SolarPILOT's breakdown).
@@ -214,9 +215,30 @@ def tracking_normals(position: torch.Tensor, aim: torch.Tensor, sun_direction: t
     return safe_normalize(sun_direction.to(position) + safe_normalize(aim - position))
 
 
-def _samples(plant: Plant, normal: torch.Tensor, per_direction: int, dtype, rows: torch.Tensor | None = None):
-    """World mirror samples [h, N, 3] (float64 points, ``dtype`` normals) and areas [h, N] of the tracked
-    heliostats ``rows`` (default all; ``normal`` [h, 3] is theirs)."""
+def tracked_mirror_samples(plant: Plant, normal: torch.Tensor, per_direction: int, dtype,
+                           rows: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """World mirror samples of heliostats tracking with mirror normals ``normal``.
+
+    Parameters
+    ----------
+    plant : Plant
+    normal : torch.Tensor, shape (h, 3)
+        Unit mirror normals of the heliostats ``rows`` (of all heliostats when ``rows`` is None).
+    per_direction : int
+        Samples per facet and direction (``F * per_direction^2`` per heliostat).
+    dtype : torch.dtype
+        Of the returned normals.
+    rows : torch.Tensor, shape (h,), optional
+        Heliostat indices (default: all).
+
+    Returns
+    -------
+    points : torch.Tensor, shape (h, N, 3), float64
+        ENU [m].
+    normals : torch.Tensor, shape (h, N, 3), ``dtype``
+    areas : torch.Tensor, shape (h, N)
+        Mirror area per sample [m^2].
+    """
     sf = plant.field.surfaces
     if rows is not None:
         sf = replace(sf, control_points=sf.control_points[rows],
@@ -247,7 +269,7 @@ def _occlusion(plant: Plant, normal, aim, sun, settings: FieldSettings, rows: to
     nf = fl.facets.translation.shape[1]
     h = rows.shape[0]
     m, k = int(settings.flux_samples), int(settings.occlusion_oversampling)
-    pw, nw, area = _samples(plant, normal[rows], m * k, normal.dtype, rows)
+    pw, nw, area = tracked_mirror_samples(plant, normal[rows], m * k, normal.dtype, rows)
     pos = fl.kinematics.position.to(normal)
     occ = OccluderSet(pos, normal, fl.width.to(normal), fl.height.to(normal))
     s = sun.to(normal)
@@ -591,7 +613,7 @@ def field_optics(plant: Plant, sun_direction: torch.Tensor, *, atmosphere: Atmos
     slant = torch.linalg.vector_norm(aim - pos, dim=-1)
     att = attenuation(slant, atmosphere)
     m = int(settings.flux_samples)
-    pw, nw, area = _samples(plant, normal, m, settings.dtype, rows)
+    pw, nw, area = tracked_mirror_samples(plant, normal, m, settings.dtype, rows)
     nw64 = nw.to(f64)
     cos_p = (nw64 * sun).sum(-1).clamp_min(0.0)
     rho, dni = float(plant.sun.reflectivity), float(plant.sun.dni)
