@@ -10,6 +10,7 @@ from helpers.cli import run_cli
 
 from heliotwin.field.demo import demo_field_plant
 from heliotwin.optimise.aimpoints import (
+    AimSettings,
     ImageModel,
     aiming_factor,
     calibrate_images,
@@ -149,7 +150,7 @@ def test_optimiser_runs_on_the_requested_device(device):
     sun = direction_from_time(pd.DatetimeIndex([pd.Timestamp(TIME)]), s.latitude_deg, s.longitude_deg,
                               s.altitude_m)[0]
     limit = 0.8 * float(calibrate_images(plant, sun, atm, (20, 48))[1].flux.max())
-    best = optimise_aimpoints(plant, sun, limit, atmosphere=atm, iterations=100, device=device)
+    best = optimise_aimpoints(plant, sun, limit, AimSettings(iterations=100), atmosphere=atm, device=device)
     assert best.aim.device.type == device
     assert best.violation(limit) == 0.0
 
@@ -219,8 +220,8 @@ def test_first_order_field_gradient_option_meets_the_limit():
                               s.longitude_deg, s.altitude_m)[0]
     model, eq = calibrate_images(plant, sun, atm, (20, 48))
     limit = float(eq.flux.max()) / EXCESS
-    best = optimise_aimpoints(plant, sun, limit, atmosphere=atm, equator=eq, model=model, field_gradient=True,
-                              iterations=150)
+    best = optimise_aimpoints(plant, sun, limit, AimSettings(field_gradient=True, iterations=150), atmosphere=atm,
+                              equator=eq, model=model)
     assert best.violation(limit) == 0.0 and best.power_w >= 0.98 * float(eq.power_w.sum())
 
 
@@ -267,13 +268,3 @@ def test_stored_aimpoints_of_a_scenario_without_them_is_one_line():
         stored_aimpoints(Scenario(plant=plant, extras={}, metadata={}, path="p.h5"), torch.tensor([0.0, 0.0, 1.0]))
 
 
-def test_aim_settings_object_equals_the_keywords():
-    from heliotwin.optimise.aimpoints import AimSettings
-
-    plant, atm = demo_field_plant(12)
-    sun = direction_from_time(["2023-06-21T10:00Z"], *plant.site.reference)[0]
-    kw = dict(resolution=(10, 24), iterations=6, rounds=2, lr=0.02)
-    by_keywords = optimise_aimpoints(plant, sun, 1e6, atmosphere=atm, **kw)
-    by_settings = optimise_aimpoints(plant, sun, 1e6, atmosphere=atm, settings=AimSettings(**kw))
-    assert torch.equal(by_keywords.aim, by_settings.aim)
-    assert by_keywords.history == by_settings.history

@@ -84,14 +84,14 @@ def test_field_command_nproc_2_equals_one_process(tmp_path, capsys):
 
 
 def _aim_worker(rank, world, folder):
-    from heliotwin.optimise.aimpoints import calibrate_images, optimise_aimpoints
+    from heliotwin.optimise.aimpoints import AimSettings, calibrate_images, optimise_aimpoints
 
     torch.set_num_threads(1)
     init_process_group("gloo", init_method=f"file://{folder}/store-aim", rank=rank, world_size=world)
     try:
         plant, atm, sun, limit = _aim_case()
         model, eq = calibrate_images(plant, sun, atm, (20, 48), group=dist.group.WORLD)
-        r = optimise_aimpoints(plant, sun, limit, atmosphere=atm, iterations=100, group=dist.group.WORLD,
+        r = optimise_aimpoints(plant, sun, limit, AimSettings(iterations=100), atmosphere=atm, group=dist.group.WORLD,
                                equator=eq, model=model)
         torch.save({"aim": r.aim, "peak": r.peak_flux_w_m2, "power": r.power_w, "history": r.history},
                    f"{folder}/aim{rank}.pt")
@@ -113,11 +113,11 @@ def _aim_case():
 
 def test_two_gloo_processes_give_the_single_process_aim_points(tmp_path):
     """Sharded aim-point optimisation (map and power all-reduced every step): the one-process aim points."""
-    from heliotwin.optimise.aimpoints import optimise_aimpoints
+    from heliotwin.optimise.aimpoints import AimSettings, optimise_aimpoints
 
     mp.spawn(_aim_worker, args=(2, str(tmp_path)), nprocs=2, join=True)
     plant, atm, sun, limit = _aim_case()
-    ref = optimise_aimpoints(plant, sun, limit, atmosphere=atm, iterations=100)
+    ref = optimise_aimpoints(plant, sun, limit, AimSettings(iterations=100), atmosphere=atm)
     assert ref.violation(limit) == 0.0
     for rank in range(2):
         got = torch.load(tmp_path / f"aim{rank}.pt")

@@ -373,7 +373,7 @@ def _alm(model: ImageModel, x, y, defect, power_defect, limit_int, lam, *, grp, 
     return x.detach(), y.detach()
 
 
-@dataclass
+@dataclass(frozen=True)
 class AimSettings:
     """The aim-point optimiser's knobs (:func:`optimise_aimpoints`; the ``aimpoints`` command's defaults).
 
@@ -413,17 +413,14 @@ class AimSettings:
     softness: float = 0.05
 
 
-def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, *, atmosphere: Atmosphere | None = None,
-                       resolution=(20, 48), iterations: int = 300, rounds: int = 8, inner: int = 10,
-                       lr: float = 0.03, rho: float = 1.0, margin: float = 0.005, tolerance: float = 1e-3,
-                       target: torch.Tensor | None = None, group=None, equator=None, model=None,
-                       progress=None, device=None, field_gradient: bool = False, softness: float = 0.05,
-                       settings: AimSettings | None = None) -> AimResult:
+def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, settings: AimSettings = AimSettings(), *,
+                       atmosphere: Atmosphere | None = None, target: torch.Tensor | None = None, group=None,
+                       equator=None, model=None, progress=None, device=None) -> AimResult:
     """Aim points that maximise intercepted power (or match ``target``) with every map cell at or below
     ``peak_limit`` [W/m^2] on the exact model.
 
-    The optimiser's knobs come one by one (keywords) or together as ``settings`` (an :class:`AimSettings`,
-    which then replaces the keywords ``resolution`` .. ``softness``).
+    The optimiser's knobs (map resolution, Adam steps, rounds, step size, penalty, margin, tolerance, the
+    field-gradient correction) are one :class:`AimSettings`.
 
     Parameters
     ----------
@@ -433,24 +430,12 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, *, at
         Unit vector towards the sun.
     peak_limit : float
         [W/m^2].
+    settings : AimSettings
+        The optimiser's knobs (default: the ``aimpoints`` command's). With ``field_gradient`` the power model
+        is also made first-order exact at every round's start: the difference between the smooth
+        differentiable field model's power gradient (shading, blocking, cosine, attenuation, intercept;
+        occlusion width ``softness`` [m]) and the image model's is added (one field-model backward per round).
     atmosphere : Atmosphere, optional
-    resolution : (int, int)
-        Reporting map (rows, cols) on which the limit is enforced and checked.
-    iterations : int
-        Adam steps on the image model per round.
-    rounds : int
-        Exact checks (one per round) at most.
-    inner : int
-        Multiplier update every ``inner`` steps.
-    lr : float
-        Adam step size [m] (decays to a tenth within each round).
-    rho : float
-        Augmented-Lagrangian weight on the relative excess ``F_c / limit - 1``.
-    margin : float
-        Starting internal margin ``m``: the rounds enforce ``(1 - m) peak_limit``; it grows by the exact check's
-        excess whenever that check fails.
-    tolerance : float
-        Stop once the check passed and the power (or mismatch) changed less than this (relative).
     target : torch.Tensor, [rows, cols], optional
         A target shape (unit sum; :func:`uniform_target`, :func:`load_target`): minimise
         ``|F/sum F - target|^2 / |target|^2 - 0.1 P / P_eq`` instead of maximising power.
@@ -460,16 +445,10 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, *, at
         The exact equator result and a calibrated :class:`ImageModel` (from :func:`calibrate_images`).
     progress : callable, optional
         Called with a one-line string after each round.
-    field_gradient : bool
-        Also make the power model first-order exact at every round's start: add the difference between the
-        smooth differentiable field model's power gradient (shading, blocking, cosine, attenuation, intercept;
-        occlusion width ``softness`` [m]) and the image model's (one field-model backward pass per round).
     device : str or torch.device, optional
         Run on this device (the plant, sun and target are moved there; ``equator``/``model`` must already be
         there). Default: where the plant's tensors are.
 
-    settings : AimSettings, optional
-        All the knobs at once.
 
     Returns
     -------
@@ -478,11 +457,10 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, *, at
         margin and whether the check passed; ``iterations`` the Adam steps done.
     """
     t0 = time.perf_counter()
-    if settings is not None:
-        resolution, iterations = settings.resolution, settings.iterations
-        rounds, inner = settings.rounds, settings.inner
-        lr, rho, margin, tolerance = settings.lr, settings.rho, settings.margin, settings.tolerance
-        field_gradient, softness = settings.field_gradient, settings.softness
+    resolution, iterations = settings.resolution, settings.iterations
+    rounds, inner = settings.rounds, settings.inner
+    lr, rho, margin, tolerance = settings.lr, settings.rho, settings.margin, settings.tolerance
+    field_gradient, softness = settings.field_gradient, settings.softness
     if device is not None:
         plant, sun = to_device(plant, device), torch.as_tensor(sun).to(device)
     grp = _Group(group)
@@ -558,18 +536,19 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, *, at
 # ------------------------------------------------------------------------------------------ baselines
 def _optimise_shard(job: dict, group) -> AimResult:
     """One rank of :func:`run_aimpoints_sharded`: image model and aim points of this rank's shard."""
-    kw = dict(job["kwargs"])
-    model, equator = calibrate_images(job["plant"], job["sun"], kw.get("atmosphere"), kw.get("resolution", (20, 48)),
+    kw, settings = dict(job["kwargs"]), job["settings"]
+    model, equator = calibrate_images(job["plant"], job["sun"], kw.get("atmosphere"), settings.resolution,
                                       group=group)
-    return optimise_aimpoints(job["plant"], job["sun"], job["limit"], group=group, equator=equator, model=model,
-                              **kw)
+    return optimise_aimpoints(job["plant"], job["sun"], job["limit"], settings, group=group, equator=equator,
+                              model=model, **kw)
 
 
-def run_aimpoints_sharded(plant, sun_direction, peak_limit: float, nproc: int, **kwargs) -> AimResult:
+def run_aimpoints_sharded(plant, sun_direction, peak_limit: float, nproc: int, settings: AimSettings = AimSettings(),
+                          **kwargs) -> AimResult:
     """:func:`optimise_aimpoints` sharded over ``nproc`` spawned local gloo processes (CPU); rank 0's result
-    (every rank holds the same aim points). ``kwargs`` as for it, without ``group``, ``equator``, ``model``
-    and ``progress``."""
-    job = {"plant": plant, "sun": sun_direction, "limit": float(peak_limit), "kwargs": kwargs}
+    (every rank holds the same aim points). ``settings`` and ``kwargs`` as for it, without ``group``,
+    ``equator``, ``model`` and ``progress``."""
+    job = {"plant": plant, "sun": sun_direction, "limit": float(peak_limit), "settings": settings, "kwargs": kwargs}
     return run_spawned(_optimise_shard, job, nproc)
 
 

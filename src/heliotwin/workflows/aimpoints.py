@@ -21,6 +21,7 @@ from ..errors import HeliotwinError
 from ..io.scenario import Scenario, next_scenario, provenance_entry
 from ..optimise.aimpoints import (
     AimResult,
+    AimSettings,
     aiming_factor,
     calibrate_images,
     image_size_priority,
@@ -89,12 +90,12 @@ def _instant(plant, sun, atm, settings: AimpointSettings):
         target = uniform_target(eq_field.flux)
     elif settings.target is not None:
         target = load_target(settings.target, resolution)
-    kw = dict(atmosphere=atm, resolution=resolution, iterations=settings.iterations, target=target,
-              field_gradient=settings.field_gradient)
+    knobs = AimSettings(resolution=resolution, iterations=settings.iterations, field_gradient=settings.field_gradient)
     if settings.nproc > 1:
-        best = run_aimpoints_sharded(plant, sun, limit, settings.nproc, **kw)
+        best = run_aimpoints_sharded(plant, sun, limit, settings.nproc, knobs, atmosphere=atm, target=target)
     else:
-        best = optimise_aimpoints(plant, sun, limit, equator=eq_field, model=model, **kw)
+        best = optimise_aimpoints(plant, sun, limit, knobs, atmosphere=atm, target=target, equator=eq_field,
+                                  model=model)
     baselines = {}
     if settings.baselines:
         baselines["aiming_factor"] = aiming_factor(plant, sun, limit, atmosphere=atm, resolution=resolution,

@@ -22,7 +22,7 @@ from ..field import kinematics as kin_ops
 from ..field.demo import demo_field_plant, demo_plant
 from ..io.images import to_png
 from ..io.report import write_json
-from ..optimise.aimpoints import optimise_aimpoints
+from ..optimise.aimpoints import AimSettings, optimise_aimpoints
 from ..plots import plot_demo, plot_field_demo
 from ..raytrace.field import FACTORS, field_optics, per_heliostat_rows, summary
 from ..raytrace.flux import FluxImage
@@ -88,8 +88,8 @@ def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-
     bar.update()
     limit = float(peak_limit_fraction) * rep["receiver"]["peak_flux_w_m2"]
     t0 = time.perf_counter()
-    steps = {} if iterations is None else {"iterations": int(iterations)}
-    aimed = to_device(optimise_aimpoints(plant, sun, limit, atmosphere=atm, **steps), "cpu")
+    knobs = AimSettings() if iterations is None else AimSettings(iterations=int(iterations))
+    aimed = to_device(optimise_aimpoints(plant, sun, limit, knobs, atmosphere=atm), "cpu")
     seconds["aim_points"] = time.perf_counter() - t0
     bar.update()
     folder.mkdir(parents=True, exist_ok=True)
