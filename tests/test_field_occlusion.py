@@ -8,7 +8,7 @@ from helpers.field import brute_force_unoccluded, dense_field, write_layout, wri
 
 from heliotwin.field.layout import plant_from_layout
 from heliotwin.geometry import reflect
-from heliotwin.raytrace.field import _samples, equator_aim_points, tracking_normals
+from heliotwin.raytrace.field import equator_aim_points, tracked_mirror_samples, tracking_normals
 from heliotwin.raytrace.occlusion import OccluderSet, occluder_candidates, solarpilot_interference, unoccluded
 from heliotwin.sun import direction_from_paint_angles
 
@@ -28,7 +28,7 @@ def _rays(plant, sun, samples=6):
     aim = equator_aim_points(plant.targets["receiver"], pos)
     n = tracking_normals(pos, aim, sun)
     occ = OccluderSet(pos, n, plant.field.width, plant.field.height)
-    pts, nrm, _ = _samples(plant, n, samples, torch.float64)
+    pts, nrm, _ = tracked_mirror_samples(plant, n, samples, torch.float64)
     return occ, pts, reflect(-sun.expand_as(nrm), nrm), aim
 
 

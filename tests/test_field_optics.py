@@ -199,11 +199,11 @@ def test_tower_shadow_matches_a_direct_ray_test_on_every_point(solarpilot):
     """The tower (receiver radius, up to its top) shades the heliostats behind it at a low southern sun; the
     bounding pre-test keeps exactly the direct all-heliostat ray-cylinder result."""
     from heliotwin.geometry import ray_cylinder
-    from heliotwin.raytrace.field import _samples, _tower_shading
+    from heliotwin.raytrace.field import _tower_shading, tracked_mirror_samples
 
     plant = solarpilot[0]
     res = solarpilot[1][WINTER][0]
-    pts, nrm, area = _samples(plant, res.normal, 8, torch.float64)
+    pts, nrm, area = tracked_mirror_samples(plant, res.normal, 8, torch.float64)
     lit = area * (nrm * res.sun).sum(-1).clamp_min(0)
     rec = plant.targets["receiver"]
     t, hit, _ = ray_cylinder(pts, res.sun.expand_as(pts), rec.axis_point, rec.up, rec.radius)
