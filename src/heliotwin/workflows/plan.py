@@ -83,6 +83,10 @@ class AimRequest:
     aim_point: tuple
     time: str | None = None
 
+    def __post_init__(self):
+        # checked on construction, so a bad question is refused before any file is read
+        _check(self)
+
 
 def aim_time(text: str | None) -> float | None:
     """``--time``: UTC ISO text -> POSIX time [s] (None when not given; one-line error when unparsable)."""
@@ -116,7 +120,7 @@ def aim(scenario: Scenario, heliostat: str, request: AimRequest) -> tuple[Scenar
         :func:`heliotwin.calibrate.scenario.aim`'s answer: ``motor_steps`` [2], ``reachable``, ``method`` and,
         for a rigid-body calibration with a posterior, the expected error and its 90 % interval [mrad].
     """
-    point, t = _check(request)
+    point, t = list(request.aim_point), aim_time(request.time)
     report = aim_heliostat(scenario, heliostat, math.radians(request.sun_azimuth),
                            math.radians(request.sun_elevation), point, time=t)
     return scenario, report
