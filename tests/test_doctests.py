@@ -7,7 +7,8 @@ import importlib
 import pytest
 
 #: Modules whose docstrings carry examples; each must have at least one.
-MODULES = ("heliotwin.geometry", "heliotwin.site", "heliotwin.nurbs")
+MODULES = ("heliotwin.geometry", "heliotwin.site", "heliotwin.nurbs", "heliotwin.io.scenario",
+           "heliotwin.workflows.plan")
 
 
 @pytest.mark.parametrize("name", MODULES)

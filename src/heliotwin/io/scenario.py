@@ -338,6 +338,17 @@ def next_scenario(previous: Scenario | None, plant: Plant, *, learned: dict, ste
     -------
     Scenario
         Not yet written (``path`` empty); :func:`write_scenario` writes it.
+
+    Examples
+    --------
+    Each step appends one provenance entry to what the previous scenario carried:
+
+    >>> from heliotwin.field.demo import demo_field_plant
+    >>> plant, _ = demo_field_plant(4)
+    >>> calibrated = next_scenario(None, plant, learned={}, step=provenance_entry("calibrate", method="lm"))
+    >>> learned = next_scenario(calibrated, plant, learned={}, step=provenance_entry("reconstruct"))
+    >>> [(p["step"], p.get("method")) for p in learned.provenance]
+    [('calibrate', 'lm'), ('reconstruct', None)]
     """
     meta = {k: v for k, v in (previous.metadata if previous else {}).items() if k not in ("created_by", "created_utc")}
     meta.update(metadata or {})

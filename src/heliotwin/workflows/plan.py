@@ -76,6 +76,17 @@ class AimRequest:
         ENU [m].
     time : str or None
         UTC ISO time of the aim (drift models predict the offset then); None: the latest training time.
+
+    Examples
+    --------
+    A question is checked when it is made, before any scenario is read:
+
+    >>> AimRequest(sun_azimuth=10.0, sun_elevation=40.0, aim_point=(0.0, 0.0, 50.0)).time is None
+    True
+    >>> AimRequest(sun_azimuth=10.0, sun_elevation=-5.0, aim_point=(0.0, 0.0, 50.0))
+    Traceback (most recent call last):
+    ...
+    heliotwin.errors.HeliotwinError: --sun-elevation -5.0 deg: the sun must be above the horizon
     """
 
     sun_azimuth: float
