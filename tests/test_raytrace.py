@@ -368,6 +368,42 @@ def test_gradcheck_projective_splat():
             (coef, w))
 
 
+def test_splat_scratch_reuse_keeps_calls_apart():
+    """The splats keep their CPU buffers between calls (speed must not hang on the allocator's state): two
+    forwards alive at once, then one backward, give each call's own image and gradients, as fresh calls do
+    after :func:`release_scratch`."""
+    from heliotwin.raytrace.splat import release_scratch
+
+    pts, nrm, areas, sun, tgt = oblique_setup(side=2.0, m=3)
+    mirror = prepare_mirror(pts, nrm, areas, sun, SunSettings(), D64)
+    u, v = _rotated_frames(mirror.reflected, gen(1))
+    coef0, _ = planar_coefficients(mirror.points, mirror.reflected, u, v, tgt, target_extent(tgt, 1), 12, 10)
+    g = gen(3)
+    pattern = torch.cat((torch.ones(1, 40, dtype=D64), torch.randn(2, 40, generator=g, dtype=D64) * 0.02))
+    weights = (torch.rand(9, generator=g, dtype=D64), torch.rand(9, generator=g, dtype=D64))
+    coefs = (coef0.reshape(9, 3, 3), coef0.reshape(9, 3, 3) * (1 + 0.05 * torch.rand(9, 3, 3, generator=g)))
+    probe = torch.rand(12, 10, generator=g, dtype=D64)
+
+    def leaf(t):
+        return t.detach().clone().requires_grad_(True)
+
+    alone = []
+    for c, w in zip(coefs, weights):
+        release_scratch()
+        c, w = leaf(c), leaf(w)
+        img = projective_splat(c, w, pattern, 12, 10, 1, 9, max_rays_per_chunk=64)
+        (img * probe).sum().backward()
+        alone.append((img.detach(), c.grad, w.grad))
+    leaves = [(leaf(c), leaf(w)) for c, w in zip(coefs, weights)]
+    imgs = [projective_splat(c, w, pattern, 12, 10, 1, 9, max_rays_per_chunk=64) for c, w in leaves]
+    sum((img * probe).sum() for img in imgs).backward()
+    for img, (c, w), (img0, gc0, gw0) in zip(imgs, leaves, alone):
+        assert torch.equal(img.detach(), img0)
+        assert torch.allclose(c.grad, gc0, rtol=1e-12, atol=1e-12)
+        assert torch.allclose(w.grad, gw0, rtol=1e-12, atol=1e-12)
+    assert not torch.equal(alone[0][0], alone[1][0])  # the two calls really differ
+
+
 def test_gradcheck_trace_mc_end_to_end():
     pts, nrm, areas, sun, tgt = oblique_setup(side=2.0, m=2)
     p = pts.clone().requires_grad_(True)
