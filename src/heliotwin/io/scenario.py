@@ -318,7 +318,7 @@ def save_scenario(plant: Plant, path, extras: dict | None = None, metadata: dict
 def next_scenario(previous: Scenario | None, plant: Plant, *, learned: dict, step: dict,
                   metadata: dict | None = None) -> Scenario:
     """What one step makes of a scenario, in memory: the new plant, its learned state and one more provenance
-    step. The one place where a step's provenance is appended (:func:`save_step` writes the result).
+    step. The one place where a step's provenance is appended (:func:`write_scenario` writes the result).
 
     Parameters
     ----------
@@ -361,19 +361,6 @@ def write_scenario(scenario: Scenario, path) -> Path:
     """Write an in-memory :class:`Scenario` (e.g. from :func:`next_scenario`) to ``path``, atomically."""
     return save_scenario(scenario.plant, path, extras=scenario.extras or None, metadata=scenario.metadata,
                          learned=scenario.learned, provenance=scenario.provenance)
-
-
-def save_step(path, plant: Plant, previous: Scenario | None, *, learned: dict, step: dict,
-              metadata: dict | None = None) -> Path:
-    """Write what one step made of a scenario: :func:`next_scenario`, then :func:`write_scenario`.
-
-    Parameters
-    ----------
-    path : str or Path
-    plant, previous, learned, step, metadata
-        As for :func:`next_scenario`.
-    """
-    return write_scenario(next_scenario(previous, plant, learned=learned, step=step, metadata=metadata), path)
 
 
 def _provenance_json(provenance: list, path) -> str:
