@@ -9,7 +9,7 @@ from heliotwin.calibrate.params import STONE8, apply_deviations
 from heliotwin.field.facets import ideal_surfaces
 from heliotwin.field.plant import Facets, SunSettings
 from heliotwin.field.targets import PlanarTarget
-from heliotwin.raytrace.gaussian import trace_gaussian
+from heliotwin.raytrace.gaussian import FootprintSettings, trace_gaussian
 
 F64 = torch.float64
 TARGET = PlanarTarget.from_center_normal("synthetic_target", [0.0, -3.24, 20.0], [0.0, 1.0, 0.0], 8.0, 8.0)
@@ -40,7 +40,8 @@ def test_images_learn_rotation_about_the_mirror_normal():
 
     assert float(metrics.pointing_error(n0, batch).max()) < 1e-9
     pw, nw, ar, _, _ = scene.world_surface(kin_true, srf, batch.heliostat_index, batch.motor_steps, samples=SAMPLES)
-    flux = trace_gaussian(pw, nw, ar, batch.sun.float(), TARGET, resolution=RES, sun=SUN, mode="convolve")
+    flux = trace_gaussian(pw, nw, ar, batch.sun.float(), TARGET, resolution=RES, sun=SUN,
+                          footprint=FootprintSettings(mode="convolve"))
     images = {int(batch.record_id[i]): flux.bitmap[i] for i in range(len(batch) - 2)}  # 2 records: centroid only
     model = fit_images_method(kin, batch, None, images=images, surfaces=srf, targets={TARGET.name: TARGET}, sun=SUN,
                               field_prior=False, iterations=8, resolution=RES, samples=SAMPLES)

@@ -8,7 +8,15 @@ from heliotwin.errors import HeliotwinError
 from heliotwin.field import facets as facet_ops
 from heliotwin.field.plant import SunSettings
 from heliotwin.field.targets import CylinderTarget, PlanarTarget
-from heliotwin.raytrace import normalized_l1, projective_splat, splat_bilinear, trace_gaussian, trace_mc
+from heliotwin.raytrace import (
+    FootprintSettings,
+    RaySampling,
+    normalized_l1,
+    projective_splat,
+    splat_bilinear,
+    trace_gaussian,
+    trace_mc,
+)
 from heliotwin.raytrace.conv import mean_footprint_kernel, render_centered
 from heliotwin.raytrace.flux import target_extent
 from heliotwin.raytrace.montecarlo import _rotated_frames, planar_coefficients, prepare_mirror
@@ -85,7 +93,7 @@ def test_power_balance_large_target(method):
     big = PlanarTarget.from_center_normal("big", [0.0, 0.0, 10.0], [0.0, 1.0, 0.0], 30.0, 30.0)
     optics = SunSettings(sunshape="buie", csr=0.1, slope_error=2e-3, dni=DNI, reflectivity=RHO)
     if method == "mc":
-        f = trace_mc(pts, nrm, areas, sun, big, resolution=128, sun=optics, rays_per_point=200, generator=gen())
+        f = trace_mc(pts, nrm, areas, sun, big, resolution=128, sun=optics, sampling=RaySampling(200), generator=gen())
     else:
         f = trace_gaussian(pts, nrm, areas, sun, big, resolution=128, sun=optics)
     expected = DNI * RHO * float(areas.sum())
@@ -104,7 +112,7 @@ def test_incidence_cosine_scales_power():
     powers = []
     for theta in (0.0, 0.3, 0.6):
         s = torch.tensor([0.0, -math.cos(theta), math.sin(theta)], dtype=D64)
-        f = trace_mc(pts, nrm, areas, s, big, resolution=64, sun=optics, rays_per_point=50, generator=gen())
+        f = trace_mc(pts, nrm, areas, s, big, resolution=64, sun=optics, sampling=RaySampling(50), generator=gen())
         powers.append(float(f.intercepted_power_w[0]))
         assert float(f.total_power_w[0]) == pytest.approx(DNI * RHO * float(areas.sum()) * math.cos(theta), rel=1e-6)
     assert powers[1] / powers[0] == pytest.approx(math.cos(0.3), rel=1e-3)
@@ -116,7 +124,7 @@ def test_shaded_points_contribute_nothing_without_nan():
     nrm = nrm.clone()
     nrm[:18] = -nrm[:18]  # half of the points face away from the sun
     nrm.requires_grad_(True)
-    f = trace_mc(pts, nrm, areas, sun, tgt, resolution=64, rays_per_point=20, generator=gen(),
+    f = trace_mc(pts, nrm, areas, sun, tgt, resolution=64, sampling=RaySampling(20), generator=gen(),
                  sun=SunSettings(dni=DNI, reflectivity=RHO))
     assert float(f.total_power_w[0].detach()) == pytest.approx(DNI * RHO * float(areas[18:].sum()))
     f.bitmap.sum().backward()
@@ -134,8 +142,8 @@ def test_pillbox_spot_size_perpendicular_incidence():
     pts, nrm, areas, sun, _ = facing_setup(dist=dist, side=side, m=10)
     tgt = PlanarTarget.from_center_normal("t", [0.0, 0.0, 10.0], [0.0, 1.0, 0.0], 2.0, 2.0)
     optics = SunSettings(sunshape="pillbox", radius=R, slope_error=0.0, dni=DNI, reflectivity=RHO)
-    f = trace_mc(pts, nrm, areas, sun, tgt, resolution=200, sun=optics, rays_per_point=20000, generator=gen(1),
-                 stratified=True)
+    f = trace_mc(pts, nrm, areas, sun, tgt, resolution=200, sun=optics, sampling=RaySampling(20000, stratified=True),
+                 generator=gen(1))
     rho = dist * math.tan(R)
     px = 2.0 / 200
     cx, cy, vx, vy = spot_moments(f)
@@ -166,7 +174,7 @@ def test_symmetric_setup_gives_symmetric_bitmap():
     b = fa.bitmap[0]
     assert torch.allclose(b, b.flip(-1), rtol=1e-4, atol=1e-3 * float(b.max()))
     assert torch.allclose(b, b.flip(-2), rtol=1e-4, atol=1e-3 * float(b.max()))
-    fm = trace_mc(pts, nrm, areas, sun, tgt, resolution=64, sun=optics, rays_per_point=4000, generator=gen())
+    fm = trace_mc(pts, nrm, areas, sun, tgt, resolution=64, sun=optics, sampling=RaySampling(4000), generator=gen())
     bm = fm.bitmap[0]
     assert float(normalized_l1(bm, bm.flip(-1))) < 0.03
     assert float(normalized_l1(bm, bm.flip(-2))) < 0.03
@@ -175,13 +183,13 @@ def test_symmetric_setup_gives_symmetric_bitmap():
 def test_image_left_is_east_and_top_is_up():
     optics = SunSettings(sunshape="gaussian", sigma=2e-3, slope_error=0.0)
     pts, nrm, areas, sun, tgt = facing_setup(dist=50.0, side=1.0, m=8, offset=(2.0, 0.0))  # mirror 2 m east
-    f = trace_mc(pts, nrm, areas, sun, tgt, resolution=64, sun=optics, rays_per_point=200, generator=gen())
+    f = trace_mc(pts, nrm, areas, sun, tgt, resolution=64, sun=optics, sampling=RaySampling(200), generator=gen())
     b = f.bitmap[0]
     assert float(b[:, :32].sum()) > 0.99 * float(b.sum())  # left half = east
     assert float(f.centroid_local()[0, 0]) == pytest.approx(-2.0, abs=0.02)  # local x along right = west
     assert float(f.centroid_enu()[0, 0]) == pytest.approx(2.0, abs=0.02)  # east in ENU
     pts, nrm, areas, sun, tgt = facing_setup(dist=50.0, side=1.0, m=8, offset=(0.0, 2.0))  # mirror 2 m up
-    f = trace_mc(pts, nrm, areas, sun, tgt, resolution=64, sun=optics, rays_per_point=200, generator=gen())
+    f = trace_mc(pts, nrm, areas, sun, tgt, resolution=64, sun=optics, sampling=RaySampling(200), generator=gen())
     assert float(f.bitmap[0, :32].sum()) > 0.99 * float(f.bitmap.sum())  # top rows = up
 
 
@@ -193,15 +201,16 @@ def test_image_left_is_east_and_top_is_up():
 def test_gaussian_matches_converged_mc_gaussian(mode):
     pts, nrm, areas, sun, tgt = oblique_setup(dist=100.0, side=2.0, m=16)
     optics = SunSettings(sunshape="gaussian", sigma=2.51e-3, slope_error=1e-3)
-    fa = trace_gaussian(pts, nrm, areas, sun, tgt, resolution=128, sun=optics, mode=mode)
+    fa = trace_gaussian(pts, nrm, areas, sun, tgt, resolution=128, sun=optics, footprint=FootprintSettings(mode=mode))
     ref = torch.zeros(1, 128, 128)
     for seed in range(4):
-        ref += trace_mc(pts, nrm, areas, sun, tgt, resolution=128, sun=optics, rays_per_point=8000,
-                        generator=gen(seed), stratified=True).bitmap
+        ref += trace_mc(pts, nrm, areas, sun, tgt, resolution=128, sun=optics,
+                        sampling=RaySampling(8000, stratified=True),
+                        generator=gen(seed)).bitmap
     l1 = float(normalized_l1(fa.bitmap, ref))
     assert l1 <= 0.02
     # sanity: the comparison can fail (a 20 % wider sun is clearly detected)
-    wide = trace_gaussian(pts, nrm, areas, sun, tgt, resolution=128, mode=mode,
+    wide = trace_gaussian(pts, nrm, areas, sun, tgt, resolution=128, footprint=FootprintSettings(mode=mode),
                           sun=SunSettings(sunshape="gaussian", sigma=3.0e-3, slope_error=1e-3))
     assert float(normalized_l1(wide.bitmap, ref)) > 2 * l1
 
@@ -210,8 +219,9 @@ def test_gaussian_modes_agree_and_auto_choice():
     """One heliostat: the shared-covariance convolution equals the per-point windows (second-order error)."""
     pts, nrm, areas, sun, tgt = oblique_setup(dist=60.0, side=3.0, m=12)
     optics = SunSettings(sunshape="gaussian", sigma=2.51e-3, slope_error=1e-3)
-    w = trace_gaussian(pts, nrm, areas, sun, tgt, resolution=96, sun=optics, mode="window")
-    c = trace_gaussian(pts, nrm, areas, sun, tgt, resolution=96, sun=optics, mode="convolve")
+    w = trace_gaussian(pts, nrm, areas, sun, tgt, resolution=96, sun=optics, footprint=FootprintSettings(mode="window"))
+    c = trace_gaussian(pts, nrm, areas, sun, tgt, resolution=96, sun=optics,
+                       footprint=FootprintSettings(mode="convolve"))
     a = trace_gaussian(pts, nrm, areas, sun, tgt, resolution=96, sun=optics)
     assert float(normalized_l1(w.bitmap, c.bitmap)) < 0.01
     assert torch.equal(a.bitmap, c.bitmap)
@@ -221,24 +231,24 @@ def test_gaussian_modes_agree_and_auto_choice():
     nn = torch.cat((nrm, nrm))
     aa = torch.cat((areas, areas))
     a2 = trace_gaussian(far, nn, aa, sun, tgt, resolution=96, sun=optics)
-    w2 = trace_gaussian(far, nn, aa, sun, tgt, resolution=96, sun=optics, mode="window")
+    w2 = trace_gaussian(far, nn, aa, sun, tgt, resolution=96, sun=optics, footprint=FootprintSettings(mode="window"))
     assert torch.equal(a2.bitmap, w2.bitmap)
 
 
 def test_projective_and_generic_paths_agree():
     pts, nrm, areas, sun, tgt = oblique_setup(side=2.0, m=10)
     optics = SunSettings(sunshape="buie")
-    a = trace_mc(pts, nrm, areas, sun, tgt, resolution=96, sun=optics, rays_per_point=300, generator=gen(3))
-    b = trace_mc(pts, nrm, areas, sun, tgt, resolution=96, sun=optics, rays_per_point=300, generator=gen(3),
-                 method="generic")
+    a = trace_mc(pts, nrm, areas, sun, tgt, resolution=96, sun=optics, sampling=RaySampling(300), generator=gen(3))
+    b = trace_mc(pts, nrm, areas, sun, tgt, resolution=96, sun=optics, sampling=RaySampling(300, method="generic"),
+                 generator=gen(3))
     assert torch.allclose(a.bitmap, b.bitmap, rtol=1e-3, atol=1e-4 * float(a.bitmap.max()))
 
 
 def test_determinism():
     pts, nrm, areas, sun, tgt = oblique_setup(side=2.0, m=10)
-    a = trace_mc(pts, nrm, areas, sun, tgt, resolution=64, rays_per_point=100, generator=gen(11))
-    b = trace_mc(pts, nrm, areas, sun, tgt, resolution=64, rays_per_point=100, generator=gen(11))
-    c = trace_mc(pts, nrm, areas, sun, tgt, resolution=64, rays_per_point=100, generator=gen(12))
+    a = trace_mc(pts, nrm, areas, sun, tgt, resolution=64, sampling=RaySampling(100), generator=gen(11))
+    b = trace_mc(pts, nrm, areas, sun, tgt, resolution=64, sampling=RaySampling(100), generator=gen(11))
+    c = trace_mc(pts, nrm, areas, sun, tgt, resolution=64, sampling=RaySampling(100), generator=gen(12))
     assert torch.equal(a.bitmap, b.bitmap)
     assert not torch.equal(a.bitmap, c.bitmap)
 
@@ -247,15 +257,18 @@ def test_chunking_and_batches():
     """Chunks spanning several samples give the same bitmaps as one chunk; B can be large."""
     pts, nrm, areas, sun, tgt = oblique_setup(side=2.0, m=6)
     pts = torch.stack([pts + torch.tensor([0.0, 0.0, 0.05 * i], dtype=D64) for i in range(7)])
-    kw = dict(resolution=(40, 48), rays_per_point=30)
-    a = trace_mc(pts, nrm, areas, sun, tgt, generator=gen(2), max_rays_per_chunk=10 ** 7, **kw)
-    b = trace_mc(pts, nrm, areas, sun, tgt, generator=gen(2), max_rays_per_chunk=500, **kw)
-    c = trace_mc(pts, nrm, areas, sun, tgt, generator=gen(2), max_rays_per_chunk=500, workers=2, **kw)
+    kw = dict(resolution=(40, 48))
+    a = trace_mc(pts, nrm, areas, sun, tgt, generator=gen(2), sampling=RaySampling(30, max_rays_per_chunk=10 ** 7),
+                 **kw)
+    b = trace_mc(pts, nrm, areas, sun, tgt, generator=gen(2), sampling=RaySampling(30, max_rays_per_chunk=500), **kw)
+    c = trace_mc(pts, nrm, areas, sun, tgt, generator=gen(2),
+                 sampling=RaySampling(30, max_rays_per_chunk=500, workers=2), **kw)
     assert a.bitmap.shape == (7, 40, 48)
     assert torch.allclose(a.bitmap, b.bitmap, rtol=1e-5, atol=1e-5 * float(a.bitmap.max()))
     assert torch.allclose(a.bitmap, c.bitmap, rtol=1e-5, atol=1e-5 * float(a.bitmap.max()))
     many = pts[:1].expand(300, -1, -1)
-    f = trace_mc(many, nrm, areas, sun.expand(300, 3), tgt, generator=gen(), max_rays_per_chunk=4096, **kw)
+    f = trace_mc(many, nrm, areas, sun.expand(300, 3), tgt, generator=gen(),
+                 sampling=RaySampling(30, max_rays_per_chunk=4096), **kw)
     assert f.bitmap.shape == (300, 40, 48)
     assert torch.allclose(f.intercepted_power_w, f.intercepted_power_w[0].expand(300), rtol=0.05)
 
@@ -272,37 +285,37 @@ def test_batched_planar_target():
         fi = trace_gaussian(pts, nrm, areas, sun, t, resolution=48)
         assert torch.allclose(fb.bitmap[i], fi.bitmap[0], rtol=1e-4, atol=1e-4 * float(fi.bitmap.max()))
         assert torch.allclose(fb.centroid_enu()[i], fi.centroid_enu()[0], atol=1e-4)
-    fm = trace_mc(p2, nrm, areas, sun, both, resolution=48, rays_per_point=500, generator=gen())
+    fm = trace_mc(p2, nrm, areas, sun, both, resolution=48, sampling=RaySampling(500), generator=gen())
     assert torch.allclose(fm.centroid_local(), fb.centroid_local(), atol=0.02)
 
 
 def test_window_matches_full_image():
     """Tracing into a pixel-aligned window reproduces the full image's pixels there (same rays)."""
     pts, nrm, areas, sun, tgt = oblique_setup(side=2.0, m=8)
-    full = trace_mc(pts, nrm, areas, sun, tgt, resolution=80, rays_per_point=200, generator=gen(4))
+    full = trace_mc(pts, nrm, areas, sun, tgt, resolution=80, sampling=RaySampling(200), generator=gen(4))
     px = 8.0 / 80
     win = (-4.0 + 20 * px, 4.0 - 60 * px, 40 * px, 40 * px)  # columns 20..59, rows 20..59
-    part = trace_mc(pts, nrm, areas, sun, tgt, resolution=40, rays_per_point=200, generator=gen(4), window=win)
+    part = trace_mc(pts, nrm, areas, sun, tgt, resolution=40, sampling=RaySampling(200), generator=gen(4), window=win)
     assert torch.allclose(part.extent[0], torch.tensor([-2.0, 2.0, -2.0, 2.0], dtype=D64))
     inner_full = full.bitmap[0, 21:59, 21:59]
     inner_part = part.bitmap[0, 1:39, 1:39]
     assert torch.allclose(inner_part, inner_full, rtol=1e-3, atol=1e-3 * float(full.bitmap.max()))
     # a window larger than the target: flux only on the target
-    big = trace_mc(pts, nrm, areas, sun, tgt, resolution=120, rays_per_point=200, generator=gen(4),
+    big = trace_mc(pts, nrm, areas, sun, tgt, resolution=120, sampling=RaySampling(200), generator=gen(4),
                    window=(-6.0, -6.0, 12.0, 12.0))
     assert float(big.bitmap[0, :, :19].sum()) == 0.0 and float(big.bitmap[0, :19].sum()) == 0.0
     assert float(big.intercepted_power_w[0]) == pytest.approx(float(full.intercepted_power_w[0]), rel=1e-3)
     gauss = SunSettings(sunshape="gaussian", sigma=2.5e-3)
     an = trace_gaussian(pts, nrm, areas, sun, tgt, resolution=40, window=win, sun=gauss)
-    mc = trace_mc(pts, nrm, areas, sun, tgt, resolution=40, rays_per_point=5000, generator=gen(4), window=win,
-                  sun=gauss, stratified=True)
+    mc = trace_mc(pts, nrm, areas, sun, tgt, resolution=40, sampling=RaySampling(5000, stratified=True),
+                  generator=gen(4), window=win, sun=gauss)
     assert float(normalized_l1(an.bitmap, mc.bitmap)) < 0.03
 
 
 def test_hard_splat_conserves_power():
     pts, nrm, areas, sun, tgt = oblique_setup(side=2.0, m=10)
-    a = trace_mc(pts, nrm, areas, sun, tgt, resolution=64, rays_per_point=300, generator=gen(5))
-    h = trace_mc(pts, nrm, areas, sun, tgt, resolution=64, rays_per_point=300, generator=gen(5), splat="hard")
+    a = trace_mc(pts, nrm, areas, sun, tgt, resolution=64, sampling=RaySampling(300), generator=gen(5))
+    h = trace_mc(pts, nrm, areas, sun, tgt, resolution=64, sampling=RaySampling(300, splat="hard"), generator=gen(5))
     assert float(h.intercepted_power_w[0]) == pytest.approx(float(a.intercepted_power_w[0]), rel=1e-4)
     assert torch.allclose(h.centroid_local(), a.centroid_local(), atol=2e-3)
     assert not h.bitmap.requires_grad
@@ -327,8 +340,8 @@ def test_cylinder_power_and_centroid():
     n = (to_t + sun) / (to_t + sun).norm()
     nrm = n.expand_as(pts)
     optics = SunSettings(sunshape="gaussian", sigma=2.5e-3, slope_error=1e-3, dni=DNI, reflectivity=RHO)
-    f = trace_mc(pts, nrm, areas, sun, cyl, resolution=(96, 64), sun=optics, rays_per_point=2000, generator=gen(),
-                 stratified=True)
+    f = trace_mc(pts, nrm, areas, sun, cyl, resolution=(96, 64), sun=optics,
+                 sampling=RaySampling(2000, stratified=True), generator=gen())
     expected = DNI * RHO * float(areas.sum()) * float(nrm[0] @ sun)
     assert float(f.intercepted_power_w[0]) == pytest.approx(expected, rel=1e-3)
     assert float((f.centroid_enu()[0] - cyl.center).norm()) < 0.05
@@ -410,7 +423,7 @@ def test_gradcheck_trace_mc_end_to_end():
     n = nrm.clone().requires_grad_(True)
 
     def fn(pp, nn):
-        return trace_mc(pp, nn, areas, sun, tgt, resolution=(10, 12), rays_per_point=5, generator=gen(3),
+        return trace_mc(pp, nn, areas, sun, tgt, resolution=(10, 12), sampling=RaySampling(5), generator=gen(3),
                         dtype=D64).bitmap
 
     assert torch.autograd.gradcheck(fn, (p, n), atol=1e-5)
@@ -424,7 +437,8 @@ def test_gradcheck_gaussian(mode):
     s = sun.clone().requires_grad_(True)
 
     def fn(pp, nn, ss):
-        return trace_gaussian(pp, nn, areas, ss, tgt, resolution=(12, 10), dtype=D64, mode=mode,
+        return trace_gaussian(pp, nn, areas, ss, tgt, resolution=(12, 10), dtype=D64,
+                              footprint=FootprintSettings(mode=mode),
                               sun=SunSettings(sunshape="gaussian", sigma=4e-3)).bitmap
 
     assert torch.autograd.gradcheck(fn, (p, n, s), atol=1e-5, fast_mode=(mode == "convolve"))
@@ -444,11 +458,13 @@ def test_no_nan_gradients_in_degenerate_cases():
     nrm = torch.tensor([[0.0, -s2, s2], [0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [s2, 0.0, s2], [0.0, -s2, s2],
                         [0.0, s2, s2]], dtype=D64, requires_grad=True)
     areas = torch.ones(6, dtype=D64)
-    for fn in (lambda: trace_mc(pts, nrm, areas, sun, tgt, resolution=32, rays_per_point=50, generator=gen()),
-               lambda: trace_mc(pts, nrm, areas, sun, tgt, resolution=32, rays_per_point=50, generator=gen(),
-                                method="generic"),
-               lambda: trace_gaussian(pts, nrm, areas, sun, tgt, resolution=32, mode="window"),
-               lambda: trace_gaussian(pts, nrm, areas, sun, tgt, resolution=32, mode="convolve")):
+    for fn in (lambda: trace_mc(pts, nrm, areas, sun, tgt, resolution=32, sampling=RaySampling(50), generator=gen()),
+               lambda: trace_mc(pts, nrm, areas, sun, tgt, resolution=32, sampling=RaySampling(50, method="generic"),
+                                generator=gen()),
+               lambda: trace_gaussian(pts, nrm, areas, sun, tgt, resolution=32,
+                                      footprint=FootprintSettings(mode="window")),
+               lambda: trace_gaussian(pts, nrm, areas, sun, tgt, resolution=32,
+                                      footprint=FootprintSettings(mode="convolve"))):
         pts.grad = nrm.grad = None
         f = fn()
         assert torch.isfinite(f.bitmap).all()

@@ -12,6 +12,8 @@ P surface points per heliostat.
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 
 from .errors import HeliotwinError
@@ -100,10 +102,12 @@ INTEGRATORS = ("mc", "gaussian", "conv")
 
 
 def trace(points, normals, areas, sun_direction, target, *, integrator: str = "gaussian", resolution=(256, 256),
-          sun=None, window=None, rays_per_point: int = 100, generator: torch.Generator | None = None, **kwargs):
+          sun=None, window=None, rays_per_point: int | None = None, generator: torch.Generator | None = None,
+          **kwargs):
     """The one integrator dispatcher: ``"mc"``, ``"gaussian"`` or ``"conv"`` -> FluxImage.
 
-    ``"mc"``: :func:`heliotwin.raytrace.trace_mc` (needs ``generator``; uses ``rays_per_point``);
+    ``"mc"``: :func:`heliotwin.raytrace.trace_mc` (needs ``generator``; ``rays_per_point`` K, default 100,
+    overrides that of a ``sampling=RaySampling(...)`` passed along);
     ``"gaussian"``: :func:`heliotwin.raytrace.trace_gaussian` (Gaussian-equivalent sun, any target);
     ``"conv"``: :func:`heliotwin.raytrace.trace_conv` (exact tabulated sunshape, planar targets, square
     windows; default window the PAINT-style centred one). Other parameters are those of the integrator.
@@ -128,8 +132,11 @@ def trace(points, normals, areas, sun_direction, target, *, integrator: str = "g
     if integrator == "mc":
         if generator is None:
             raise HeliotwinError("the Monte-Carlo integrator needs a torch.Generator (pass a seed)")
+        sampling = kwargs.pop("sampling", None) or montecarlo.RaySampling()
+        if rays_per_point is not None:
+            sampling = replace(sampling, rays_per_point=int(rays_per_point))
         return montecarlo.trace_mc(points, normals, areas, sun_direction, target, resolution=resolution, sun=sun,
-                                   window=window, rays_per_point=rays_per_point, generator=generator, **kwargs)
+                                   window=window, sampling=sampling, generator=generator, **kwargs)
     if integrator == "gaussian":
         return gaussian.trace_gaussian(points, normals, areas, sun_direction, target, resolution=resolution, sun=sun,
                                        window=window, **kwargs)

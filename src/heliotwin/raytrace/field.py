@@ -66,7 +66,7 @@ from ..geometry import orthonormal_frame, ray_cylinder, reflect, safe_normalize
 from .conv import angular_density
 from .flux import target_extent
 from .gaussian import _cylinder_moments, _fft_convolve, _gaussian_kernels, _projective_moments, gaussian_footprints
-from .montecarlo import planar_coefficients, trace_mc
+from .montecarlo import RaySampling, planar_coefficients, trace_mc
 from .occlusion import (
     OccluderSet,
     mirror_frame,
@@ -450,7 +450,7 @@ def _flux_map(points, nw, reflected, weights, target, settings: FieldSettings, p
     if settings.integrator == "mc":
         img = trace_mc(points.unsqueeze(0), nw.unsqueeze(0), (weights / (_power_scale(plant, nw, sun))).unsqueeze(0),
                        sun.unsqueeze(0), target, resolution=(rows, cols), sun=plant.sun,
-                       rays_per_point=int(settings.rays_per_point),
+                       sampling=RaySampling(int(settings.rays_per_point)),
                        generator=torch.Generator().manual_seed(int(settings.seed)), dtype=dt)
         return img.bitmap[0], icpt, extent[0]
     if isinstance(target, CylinderTarget) and target.opening_angle >= 2 * math.pi - 1e-9:

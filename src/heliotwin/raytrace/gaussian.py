@@ -38,6 +38,7 @@ For the cylindrical receiver the footprint lives in the tangent plane at the cen
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 from torch.utils.checkpoint import checkpoint
@@ -51,9 +52,49 @@ from .flux import FluxImage, target_extent
 from .montecarlo import _resolution, planar_coefficients, prepare_mirror
 from .splat import splat_bilinear
 
-__all__ = ["trace_gaussian", "gaussian_footprints"]
+__all__ = ["trace_gaussian", "FootprintSettings", "gaussian_footprints"]
 
 _EPS = 1e-9
+
+
+@dataclass(frozen=True)
+class FootprintSettings:
+    """How the Gaussian integrator lays each mirror point's sun-cone footprint on the target (defaults: the
+    evaluation mode picked per call, 3.5 standard deviations of support, the Monte-Carlo splat's tent kernel).
+
+    Attributes
+    ----------
+    mode : {"auto", "window", "convolve"}
+        ``window``: every point's own Gaussian evaluated on a ``(2h+1)^2`` pixel window (exact per-point
+        covariance, cost P (2h+1)^2). ``convolve``: the points' mean hits are bilinearly splatted and each
+        sample's image is convolved (FFT) with one Gaussian of the power-weighted mean covariance (cost
+        ~P + pixels log pixels; the splat's tent kernel plays the role of ``smoothing=1/6``). ``auto``
+        convolves when, in every sample, no point's covariance differs from the mean by more than
+        ``convolve_tolerance`` (relative Frobenius / trace) -- e.g. one heliostat per sample, where the
+        error is second order in that spread.
+    n_sigma : float
+        Window / kernel half-size in footprint standard deviations [1].
+    max_half_window : int
+        Cap on the window half-size [px] in ``window`` mode (wider footprints are truncated, then
+        renormalised); ``convolve`` mode caps at the bitmap size instead.
+    smoothing : float
+        Variance [px^2] added to every footprint; 1/6 reproduces the Monte-Carlo bilinear splat kernel.
+    convolve_tolerance : float
+        Relative covariance spread [1] below which ``auto`` convolves (see ``mode``).
+    max_pixels_per_chunk : int
+        Memory bound of ``window`` mode (points x window pixels per chunk).
+    """
+
+    mode: str = "auto"
+    n_sigma: float = 3.5
+    max_half_window: int = 64
+    smoothing: float = 1.0 / 6.0
+    convolve_tolerance: float = 0.1
+    max_pixels_per_chunk: int = 2 ** 21
+
+    def __post_init__(self):
+        if self.mode not in ("auto", "window", "convolve"):
+            raise HeliotwinError(f"mode must be 'auto', 'window' or 'convolve', got {self.mode!r}")
 
 
 def _projective_moments(coef: torch.Tensor):
@@ -233,9 +274,7 @@ def _target_bounds(target, extent: torch.Tensor, rows: int, cols: int, dtype) ->
 
 def trace_gaussian(points, normals, areas, sun_direction, target: PlanarTarget | CylinderTarget, *,
                    resolution=(256, 256), sun: SunSettings | None = None, window=None, clip_to_target: bool = True,
-                   mode: str = "auto", n_sigma: float = 3.5, max_half_window: int = 64, smoothing: float = 1.0 / 6.0,
-                   convolve_tolerance: float = 0.1, max_pixels_per_chunk: int = 2 ** 21,
-                   dtype: torch.dtype = torch.float32) -> FluxImage:
+                   footprint: FootprintSettings | None = None, dtype: torch.dtype = torch.float32) -> FluxImage:
     """Noise-free flux image: each mirror point's sun-cone footprint as a Gaussian on the target.
 
     Parameters
@@ -254,25 +293,9 @@ def trace_gaussian(points, normals, areas, sun_direction, target: PlanarTarget |
         Local rectangle [m] to image instead of the whole target (``(x0, y0)`` = lower-left corner).
     clip_to_target : bool
         With a window beyond the target, drop flux outside the physical target.
-    mode : {"auto", "window", "convolve"}
-        ``window``: every point's own Gaussian evaluated on a ``(2h+1)^2`` pixel window (exact per-point
-        covariance, cost P (2h+1)^2). ``convolve``: the points' mean hits are bilinearly splatted and each
-        sample's image is convolved (FFT) with one Gaussian of the power-weighted mean covariance (cost
-        ~P + pixels log pixels; the splat's tent kernel plays the role of ``smoothing=1/6``). ``auto``
-        convolves when, in every sample, no point's covariance differs from the mean by more than
-        ``convolve_tolerance`` (relative Frobenius / trace) -- e.g. one heliostat per sample, where the
-        error is second order in that spread.
-    n_sigma : float
-        Window / kernel half-size in footprint standard deviations.
-    max_half_window : int
-        Cap on the window half-size [px] in ``window`` mode (wider footprints are truncated, then
-        renormalised); ``convolve`` mode caps at the bitmap size instead.
-    smoothing : float
-        Variance [px^2] added to every footprint; 1/6 reproduces the Monte-Carlo bilinear splat kernel.
-    convolve_tolerance : float
-        See ``mode``.
-    max_pixels_per_chunk : int
-        Memory bound of ``window`` mode.
+    footprint : FootprintSettings, optional
+        Evaluation mode (window / convolve / auto), support, added smoothing [px^2], memory bound (default
+        ``FootprintSettings()``).
     dtype : torch.dtype
         Precision of the footprint evaluation and bitmap.
 
@@ -282,9 +305,9 @@ def trace_gaussian(points, normals, areas, sun_direction, target: PlanarTarget |
         ``method="gaussian"``.
     """
     sun = sun or SunSettings()
+    fp = footprint or FootprintSettings()
+    mode, n_sigma, smoothing = fp.mode, fp.n_sigma, fp.smoothing
     rows, cols = _resolution(resolution)
-    if mode not in ("auto", "window", "convolve"):
-        raise HeliotwinError(f"mode must be 'auto', 'window' or 'convolve', got {mode!r}")
     mirror = prepare_mirror(points, normals, areas, sun_direction, sun, dtype)
     b, p = mirror.batch, mirror.num_points
     extent = target_extent(target, b, window).to(mirror.points.device)
@@ -315,14 +338,14 @@ def trace_gaussian(points, normals, areas, sun_direction, target: PlanarTarget |
             tr = (cov_mean[:, 0, 0] + cov_mean[:, 1, 1]).clamp(min=1e-30).view(b, 1)
             spread = torch.linalg.matrix_norm(cov0 - cov_mean.unsqueeze(1)) / tr
             spread = torch.where(ok & (weights > 0), spread, torch.zeros_like(spread))
-            mode = "convolve" if float(spread.max()) <= convolve_tolerance else "window"
+            mode = "convolve" if float(spread.max()) <= fp.convolve_tolerance else "window"
     bounds = _target_bounds(target, extent, rows, cols, dtype) if window is not None and clip_to_target else None
     if mode == "window":
         cov = cov0 + float(smoothing) * eye
-        half = int(min(int(max_half_window), max(1, math.ceil(float(n_sigma) * _max_sigma(cov, ok)))))
+        half = int(min(int(fp.max_half_window), max(1, math.ceil(float(n_sigma) * _max_sigma(cov, ok)))))
         bitmap = gaussian_footprints(mu.reshape(b * p, 2).to(dtype), cov.reshape(b * p, 2, 2).to(dtype),
                                      weights.reshape(b * p).to(dtype), rows, cols, b, p, half, bounds,
-                                     max_pixels_per_chunk)
+                                     fp.max_pixels_per_chunk)
     else:
         kcov = cov_mean + max(float(smoothing) - 1.0 / 6.0, 0.0) * eye
         half = int(min(max(rows, cols), max(1, math.ceil(float(n_sigma) * _max_sigma(kcov, wsum > 0)))))

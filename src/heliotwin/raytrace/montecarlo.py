@@ -54,10 +54,49 @@ from ..geometry import orthonormal_frame, ray_cylinder, ray_plane, reflect, safe
 from .flux import FluxImage, target_extent
 from .splat import DEFAULT_MAX_RAYS_PER_CHUNK, projective_splat, projective_splat_hard, splat_bilinear, splat_hard
 
-__all__ = ["trace_mc", "offset_pattern", "planar_coefficients", "MirrorBatch", "prepare_mirror"]
+__all__ = ["trace_mc", "RaySampling", "offset_pattern", "planar_coefficients", "MirrorBatch", "prepare_mirror"]
 
 _F64 = torch.float64  # positions (only differences of them are taken in the ray precision)
 
+
+@dataclass(frozen=True)
+class RaySampling:
+    """How the Monte-Carlo tracer draws, lands and bins its rays (defaults: 100 rays per mirror point, one
+    shared random offset pattern, bilinear splat, the projective fast path where the target allows it).
+
+    Attributes
+    ----------
+    rays_per_point : int
+        K, rays drawn per mirror point (the image noise falls as ``1 / sqrt(K)``).
+    stratified : bool
+        Latin-hypercube stratification of the shared offset pattern.
+    splat : {"bilinear", "hard"}
+        Bilinear (differentiable) or nearest-pixel (not differentiable) binning.
+    method : {"auto", "projective", "generic"}
+        ``auto``: projective for planar targets, generic for the cylinder.
+    max_rays_per_chunk : int
+        Bound on rays processed at once (memory: ~25 buffers of this many float32 per worker, plus the
+        int32 landing index of up to ``splat.INDEX_CACHE_RAYS`` rays kept for the backward pass).
+    workers : int, optional
+        None (default): chunks run in the calling thread, ops use PyTorch's intra-op threads. ``n``: chunks
+        run on ``n`` worker threads with one intra-op thread each (more robust when other processes
+        compete for the cores).
+    """
+
+    rays_per_point: int = 100
+    stratified: bool = False
+    splat: str = "bilinear"
+    method: str = "auto"
+    max_rays_per_chunk: int = DEFAULT_MAX_RAYS_PER_CHUNK
+    workers: int | None = None
+
+    def __post_init__(self):
+        if int(self.rays_per_point) <= 0:
+            raise HeliotwinError(f"rays_per_point must be positive, got {self.rays_per_point!r}")
+        if self.splat not in ("bilinear", "hard"):
+            raise HeliotwinError(f"splat must be 'bilinear' or 'hard', got {self.splat!r}")
+        if self.method not in ("auto", "projective", "generic"):
+            raise HeliotwinError(f"unknown method {self.method!r}; expected 'auto', 'projective' or 'generic'")
 
 
 @dataclass
@@ -253,11 +292,9 @@ def _resolution(resolution) -> tuple[int, int]:
 
 
 def trace_mc(points, normals, areas, sun_direction, target: PlanarTarget | CylinderTarget, *,
-             resolution=(256, 256), sun: SunSettings | None = None, rays_per_point: int = 100,
-             generator: torch.Generator | None = None, window=None, splat: str = "bilinear",
-             clip_to_target: bool = True, stratified: bool = False,
-             max_rays_per_chunk: int = DEFAULT_MAX_RAYS_PER_CHUNK, dtype: torch.dtype = torch.float32,
-             method: str = "auto", workers: int | None = None) -> FluxImage:
+             resolution=(256, 256), sun: SunSettings | None = None, sampling: RaySampling | None = None,
+             generator: torch.Generator | None = None, window=None, clip_to_target: bool = True,
+             dtype: torch.dtype = torch.float32) -> FluxImage:
     """Monte-Carlo flux image of mirror points on a target.
 
     Parameters
@@ -273,29 +310,17 @@ def trace_mc(points, normals, areas, sun_direction, target: PlanarTarget | Cylin
     resolution : int or (rows, cols)
     sun : SunSettings, optional
         Sunshape, slope error, DNI [W/m^2], reflectivity (default ``SunSettings()``).
-    rays_per_point : int
-        K.
+    sampling : RaySampling, optional
+        Rays per point, stratification, splat, path, chunking and worker threads (default ``RaySampling()``:
+        K = 100).
     generator : torch.Generator
         Required; all randomness comes from it (same seed -> identical bitmap).
-    window : (x0, y0, width, height) or torch.Tensor (4,) or (B, 4), optional
+    window : (x0, y0, width, height) or torch.Tensor, shape (4,) or (B, 4), optional
         Trace into this local rectangle [m] (``(x0, y0)`` = lower-left corner) instead of the whole target.
-    splat : {"bilinear", "hard"}
-        Bilinear (differentiable) or nearest-pixel (not differentiable) binning.
     clip_to_target : bool
         With a window reaching beyond the target, drop rays that miss the physical target.
-    stratified : bool
-        Latin-hypercube stratification of the shared offset pattern.
-    max_rays_per_chunk : int
-        Bound on rays processed at once (memory: ~25 buffers of this many float32 per worker, plus the
-        int32 landing index of up to ``splat.INDEX_CACHE_RAYS`` rays kept for the backward pass).
     dtype : torch.dtype
         Ray / bitmap precision (float32 default, float64 for gradchecks).
-    method : {"auto", "projective", "generic"}
-        ``auto``: projective for planar targets, generic for the cylinder.
-    workers : int, optional
-        None (default): chunks run in the calling thread, ops use PyTorch's intra-op threads. ``n``: chunks
-        run on ``n`` worker threads with one intra-op thread each (more robust when other processes
-        compete for the cores).
 
     Returns
     -------
@@ -306,17 +331,16 @@ def trace_mc(points, normals, areas, sun_direction, target: PlanarTarget | Cylin
     if generator is None:
         raise HeliotwinError("trace_mc needs an explicit torch.Generator (no global seeding)")
     sun = sun or SunSettings()
+    sampling = sampling or RaySampling()
     rows, cols = _resolution(resolution)
-    k = int(rays_per_point)
-    if k <= 0:
-        raise HeliotwinError(f"rays_per_point must be positive, got {rays_per_point!r}")
-    if splat not in ("bilinear", "hard"):
-        raise HeliotwinError(f"splat must be 'bilinear' or 'hard', got {splat!r}")
+    k = int(sampling.rays_per_point)
+    splat, method = sampling.splat, sampling.method
+    max_rays_per_chunk, workers = sampling.max_rays_per_chunk, sampling.workers
     mirror = prepare_mirror(points, normals, areas, sun_direction, sun, dtype)
     b, p = mirror.batch, mirror.num_points
     extent = target_extent(target, b, window).to(mirror.points.device)
     pixel_area = (extent[:, 1] - extent[:, 0]) / cols * (extent[:, 3] - extent[:, 2]) / rows
-    pattern = offset_pattern(k, generator, sun, stratified, dtype).to(mirror.points.device)
+    pattern = offset_pattern(k, generator, sun, sampling.stratified, dtype).to(mirror.points.device)
     u, v = _rotated_frames(mirror.reflected, generator)
     if method == "auto":
         method = "projective" if isinstance(target, PlanarTarget) else "generic"
@@ -335,11 +359,9 @@ def trace_mc(points, normals, areas, sun_direction, target: PlanarTarget | Cylin
             bitmap = projective_splat_hard(coef, wflat, pattern, rows, cols, b, p, bounds, max_rays_per_chunk, workers)
         else:
             bitmap = projective_splat(coef, wflat, pattern, rows, cols, b, p, bounds, max_rays_per_chunk, workers)
-    elif method == "generic":
-        bitmap = _trace_generic(mirror, u, v, weights, pattern, target, extent, rows, cols, window is not None and
-                                clip_to_target, splat, max_rays_per_chunk, dtype, workers)
-    else:
-        raise HeliotwinError(f"unknown method {method!r}; expected 'auto', 'projective' or 'generic'")
+    else:  # generic (RaySampling admits no other name)
+        bitmap = _trace_generic(mirror, u, v, weights, pattern, target, extent, rows, cols,
+                                window is not None and clip_to_target, sampling, dtype)
     intercepted = bitmap.sum((-2, -1)) * pixel_area.to(bitmap)
     return FluxImage(bitmap, target, extent, mirror.power.to(_F64).sum(-1), intercepted, "mc")
 
@@ -360,7 +382,8 @@ def _local_hits(origins, dirs, target):
     raise AssertionError
 
 
-def _trace_generic(mirror, u, v, weights, pattern, target, extent, rows, cols, clip, splat, max_rays, dtype, workers):
+def _trace_generic(mirror, u, v, weights, pattern, target, extent, rows, cols, clip, sampling: RaySampling, dtype):
+    splat, max_rays, workers = sampling.splat, sampling.max_rays_per_chunk, sampling.workers
     b, p = mirror.batch, mirror.num_points
     k = pattern.shape[1]
     dev = mirror.points.device

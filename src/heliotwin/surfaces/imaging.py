@@ -20,7 +20,7 @@ from ..field.targets import PlanarTarget
 from ..io.images import CENTERED_WINDOW_M
 from ..raytrace.conv import mean_footprint_kernel, render_centered
 from ..raytrace.flux import cross_correlation
-from ..raytrace.montecarlo import trace_mc
+from ..raytrace.montecarlo import RaySampling, trace_mc
 from ..scene import check_integrator, to_world
 from . import losses
 from .observations import Observations
@@ -129,7 +129,7 @@ def predict_images(surfaces: Surfaces, obs: Observations, sun: SunSettings, *, s
                                torch.full_like(c[:, 0], size_m)), -1)
             gen = generator or torch.Generator(device=pw.device).manual_seed(0)
             img = trace_mc(pw[idx], nw[idx], ar[idx], sund[idx], target, resolution=(resolution, resolution), sun=sun,
-                           rays_per_point=rays_per_point, generator=gen, window=win, clip_to_target=False).bitmap
+                           sampling=RaySampling(rays_per_point), generator=gen, window=win, clip_to_target=False).bitmap
         for j, i in enumerate(idx):
             images[i] = img[j]
             centers[i] = res.center[j]
@@ -178,6 +178,6 @@ def trace_mc_centered(surfaces: Surfaces, obs: Observations, sun: SunSettings, *
             c = centers[i].to(torch.float64)
             window = (float(c[0]) - size_m / 2, float(c[1]) - size_m / 2, size_m, size_m)
             img = trace_mc(pw[i], nw[i], ar[i], sund[i], obs.targets[i], resolution=(resolution, resolution), sun=sun,
-                           rays_per_point=rays_per_point, generator=gen, window=window, clip_to_target=False)
+                           sampling=RaySampling(rays_per_point), generator=gen, window=window, clip_to_target=False)
             out.append(img.bitmap[0])
         return torch.stack(out)

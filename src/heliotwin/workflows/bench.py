@@ -19,7 +19,7 @@ from ..field.plant import SunSettings
 from ..field.targets import PlanarTarget
 from ..raytrace.flux import normalized_l1
 from ..raytrace.gaussian import trace_gaussian
-from ..raytrace.montecarlo import trace_mc
+from ..raytrace.montecarlo import RaySampling, trace_mc
 
 __all__ = ["run_benchmark", "benchmark_scene"]
 
@@ -159,8 +159,8 @@ def _run(surface_points, rays_per_point, resolution, seed, repeats, time_to_accu
     for k in ks:
         def fwd():
             with torch.no_grad():
-                trace_mc(pts, nrm, areas, sun_dir, target, resolution=resolution, sun=optics, rays_per_point=k,
-                         generator=gen)
+                trace_mc(pts, nrm, areas, sun_dir, target, resolution=resolution, sun=optics,
+                         sampling=RaySampling(k), generator=gen)
 
         n_leaf = nrm.clone().requires_grad_(True)
         p_leaf = pts.clone().requires_grad_(True)
@@ -168,7 +168,7 @@ def _run(surface_points, rays_per_point, resolution, seed, repeats, time_to_accu
         def fwd_bwd():
             n_leaf.grad = p_leaf.grad = None
             f = trace_mc(p_leaf, n_leaf, areas, sun_dir, target, resolution=resolution, sun=optics,
-                         rays_per_point=k, generator=gen)
+                         sampling=RaySampling(k), generator=gen)
             (f.bitmap * weights).sum().backward()
 
         rays = p * k
@@ -216,7 +216,7 @@ def _time_to_accuracy(pts, nrm, areas, sun_dir, target, resolution, seed, repeat
         for i in range(ref_runs):
             gen = torch.Generator(device=device).manual_seed(10_000 + seed + i)
             f = trace_mc(pts, nrm, areas, sun_dir, target, resolution=resolution, sun=optics,
-                         rays_per_point=ref_rays_per_point, generator=gen, stratified=True)
+                         sampling=RaySampling(ref_rays_per_point, stratified=True), generator=gen)
             h = i % 2
             halves[h] = f.bitmap if halves[h] is None else halves[h] + f.bitmap
     if device.type == "cuda":
@@ -240,7 +240,7 @@ def _time_to_accuracy(pts, nrm, areas, sun_dir, target, resolution, seed, repeat
         def mc():
             with torch.no_grad():
                 return trace_mc(pts, nrm, areas, sun_dir, target, resolution=resolution, sun=optics,
-                                rays_per_point=k, generator=gen)
+                                sampling=RaySampling(k), generator=gen)
 
         t_mc = _best_time(mc, 3 if k <= 1000 else 1, device=device)
         l1 = float(normalized_l1(mc().bitmap, ref)[0])

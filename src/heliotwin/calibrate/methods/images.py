@@ -39,7 +39,7 @@ from ...field.plant import SunSettings
 from ...io.images import load_measured_image
 from ...io.records import RecordTable
 from ...raytrace.flux import normalized_l1, pixel_centers, target_extent
-from ...raytrace.gaussian import trace_gaussian
+from ...raytrace.gaussian import FootprintSettings, trace_gaussian
 from .. import metrics, priors
 from ..fitloop import (
     actuator_barrier,
@@ -129,7 +129,7 @@ class ImageTerms:
             pw, nw, ar, _, conc = scene.world_surface(kin, self.surfaces, b.heliostat_index[j], b.motor_steps[j],
                                                       samples=self.samples)
             fl = trace_gaussian(pw, nw, ar, b.sun[j].float(), t, resolution=self.resolution, sun=self.sun,
-                                mode=self.mode)
+                                footprint=FootprintSettings(mode=self.mode))
             render = fl.bitmap
             p = normalized_l1(render, self.measured[j].to(render)).to(like)
             cen = fl.centroid_local().to(like)
