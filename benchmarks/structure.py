@@ -1,6 +1,8 @@
 """The package's shape in figures, for a commit or the working tree: lines and modules per package, functions
-over 60 lines, the largest parameter lists, imports inside functions, and the length of every CLI command body.
-(Import circles and arrows back up a floor are a test: ``tests/test_architecture.py``.)
+over 60 lines, the largest parameter lists, imports inside functions, the length of every CLI command body,
+and the share of public docstrings that state shapes and units (the rule: :func:`docstring_findings`).
+(Import circles and arrows back up a floor are a test: ``tests/test_architecture.py``; the docstrings of the
+floors already done are one too: ``tests/test_docstrings.py``, which uses the rule below.)
 
 Usage::
 
@@ -13,6 +15,7 @@ from __future__ import annotations
 import argparse
 import ast
 import json
+import re
 import subprocess
 from collections import Counter
 from pathlib import Path
@@ -31,6 +34,82 @@ def sources(ref: str | None) -> dict[str, str]:
     return {n[len(PACKAGE) + 1:]: subprocess.run(["git", "-C", str(ROOT), "show", f"{ref}:{n}"], check=True,
                                                  capture_output=True, text=True).stdout
             for n in names if n.endswith(".py")}
+
+
+# ---------------------------------------------------------------------------------------------------------
+# docstrings: shapes and units
+# ---------------------------------------------------------------------------------------------------------
+
+#: A shape: ``(N, 3)``, ``(B, P)``, ``(N,)``, ``(..., 3)``, ``[B, rows, cols]``, ``()`` after "shape", or the
+#: words scalar / 0-d.
+_SHAPE = re.compile(r"\((?:\s*(?:[\w.*+\-]+|\.\.\.)\s*,)+\s*(?:[\w.*+\-]+|\.\.\.)?\s*\)"
+                    r"|\[(?:\s*(?:[\w.*+\-]+|\.\.\.)\s*,)+\s*(?:[\w.*+\-]+|\.\.\.)\s*\]"
+                    r"|shape\s*\(\)|\bscalar\b|\b0-d\b", re.IGNORECASE)
+#: A unit in brackets: ``[m]``, ``[W/m^2]``, ``[rad]``, ``[px^2]``, ``[deg]``, ``[1]`` (dimensionless) ...
+_UNIT_TOKENS = {"m", "mm", "cm", "km", "rad", "mrad", "deg", "°", "W", "kW", "MW", "GW", "Wh", "kWh", "MWh",
+                "GWh", "J", "MJ", "s", "ms", "h", "min", "d", "K", "°C", "px", "Pa", "hPa", "sr", "%", "Hz",
+                "kg", "step", "steps", "UTC"}
+_BRACKET = re.compile(r"\[([^\[\],]{1,16})\]")
+#: Argument names that carry a physical quantity (so the docstring must give at least one unit).
+_PHYSICAL = re.compile(r"(^|_)(points?|positions?|pos|distances?|dist|radius|width|height|length|size|areas?|"
+                       r"angles?|azimuths?|elevations?|zenith|latitude|longitude|lat|lon|altitude|power|flux|dni|"
+                       r"irradiance|energy|times?|temperature|pressure|slope_error|sigma|csr|extent|window|"
+                       r"translation|offsets?|aim|aimpoints?|deg|rad|m)($|_)")
+
+
+def _is_unit(text: str) -> bool:
+    text = text.strip()
+    if text == "1":
+        return True
+    tokens = [t.rstrip("0123456789²³") for t in re.split(r"[\s/*·^()\-]+", text) if t]
+    tokens = [t for t in tokens if t]
+    return bool(tokens) and all(t in _UNIT_TOKENS for t in tokens)
+
+
+def _public_functions(tree: ast.Module):
+    """Module-level functions and the methods of module-level classes whose names (and class) are public."""
+    for node in tree.body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and not node.name.startswith("_"):
+            yield node.name, node
+        elif isinstance(node, ast.ClassDef) and not node.name.startswith("_"):
+            for fn in node.body:
+                if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)) and not fn.name.startswith("_"):
+                    yield f"{node.name}.{fn.name}", fn
+
+
+def docstring_findings(fn: ast.FunctionDef) -> list[str]:
+    """What a public function's docstring lacks under the rule (empty: it passes).
+
+    The rule: (1) there is a docstring; (2) a function that takes or returns a tensor (an annotation, or its
+    docstring, names ``Tensor``) states at least one shape -- ``(N, 3)``, ``[B, P]``, ``(N,)``, ``shape ()``
+    or "scalar"; (3) a function with an argument named after a physical quantity (points, distance,
+    azimuth, power, flux, dni, time, ... see ``_PHYSICAL``) gives at least one unit in brackets -- ``[m]``,
+    ``[W/m^2]``, ``[rad]``, ``[1]``. It is a floor, not a proof: it checks that shapes and units are
+    written, not that every argument has its own.
+    """
+    doc = ast.get_docstring(fn)
+    if not doc:
+        return ["no docstring"]
+    missing = []
+    args = [a for a in (*fn.args.posonlyargs, *fn.args.args, *fn.args.kwonlyargs) if a.arg not in ("self", "cls")]
+    notes = " ".join(ast.unparse(a.annotation) for a in args if a.annotation is not None)
+    notes += " " + (ast.unparse(fn.returns) if fn.returns is not None else "")
+    if ("Tensor" in notes or "tensor" in doc.lower()) and not _SHAPE.search(doc):
+        missing.append("no shape")
+    if any(_PHYSICAL.search(a.arg) for a in args) and not any(_is_unit(m) for m in _BRACKET.findall(doc)):
+        missing.append("no unit")
+    return missing
+
+
+def docstring_report(files: dict[str, str], skip=("cli/",)) -> dict[str, list[str]]:
+    """``"path:function" -> findings`` for every public function of the modules (cli/ left out)."""
+    out = {}
+    for path, text in files.items():
+        if path.startswith(skip) or path == "__main__.py":
+            continue
+        for name, fn in _public_functions(ast.parse(text)):
+            out[f"{path}:{name}"] = docstring_findings(fn)
+    return out
 
 
 def measure(files: dict[str, str]) -> dict:
@@ -59,7 +138,21 @@ def measure(files: dict[str, str]) -> dict:
             "largest_parameter_lists": [f"{w} ({n})" for n, w in sorted(params, reverse=True)[:10]],
             "imports_inside_functions": sum(local.values()),
             "imports_inside_functions_per_package": {k: v for k, v in sorted(local.items()) if v},
-            "cli_command_lines": dict(sorted(commands.items(), key=lambda kv: -kv[1]))}
+            "cli_command_lines": dict(sorted(commands.items(), key=lambda kv: -kv[1])),
+            **_docstring_figures(files)}
+
+
+def _docstring_figures(files: dict[str, str]) -> dict:
+    report = docstring_report(files)
+    total, good = Counter(), Counter()
+    for where, findings in report.items():
+        package = where.split("/")[0] if "/" in where.split(":")[0] else where.split(":")[0].removesuffix(".py")
+        total[package] += 1
+        good[package] += not findings
+    n, ok = sum(total.values()), sum(good.values())
+    return {"public_functions": n,
+            "docstrings_with_shapes_and_units": f"{ok}/{n} ({100.0 * ok / max(n, 1):.0f}%)",
+            "docstrings_with_shapes_and_units_per_module": {k: f"{good[k]}/{total[k]}" for k in sorted(total)}}
 
 
 def main(argv=None) -> None:

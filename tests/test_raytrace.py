@@ -554,3 +554,14 @@ def test_dispatcher_names_and_errors():
         assert len(str(exc.value).splitlines()) == 1 and "gaussian" in str(exc.value)
     with pytest.raises(HeliotwinError, match="square"):
         trace(pts, nrm, areas, sun, tgt, integrator="conv", resolution=(32, 16))
+
+
+def test_settings_refuse_bad_options_at_construction():
+    """A bad ray or footprint option is named when the settings are built, before any tracing."""
+    for bad, match in ((dict(rays_per_point=0), "rays_per_point"), (dict(splat="nearest"), "splat"),
+                       (dict(method="fast"), "method")):
+        with pytest.raises(HeliotwinError, match=match):
+            RaySampling(**bad)
+    with pytest.raises(HeliotwinError, match="mode"):
+        FootprintSettings(mode="exact")
+    assert RaySampling().rays_per_point == 100 and FootprintSettings().smoothing == pytest.approx(1.0 / 6.0)
