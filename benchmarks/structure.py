@@ -40,11 +40,12 @@ def sources(ref: str | None) -> dict[str, str]:
 # docstrings: shapes and units
 # ---------------------------------------------------------------------------------------------------------
 
-#: A shape: ``(N, 3)``, ``(B, P)``, ``(N,)``, ``(..., 3)``, ``[B, rows, cols]``, ``()`` after "shape", or the
-#: words scalar / 0-d.
+#: A shape: ``(N, 3)``, ``(B, P)``, ``(N,)``, ``(..., 3)``, ``(...)``, ``[B, rows, cols]``, ``shape ()`` /
+#: ``shape (N)`` / ``shape [N]``, "same shape", or the words scalar / 0-d (and, see :func:`_has_shape`, ``[N]``).
 _SHAPE = re.compile(r"\((?:\s*(?:[\w.*+\-]+|\.\.\.)\s*,)+\s*(?:[\w.*+\-]+|\.\.\.)?\s*\)"
                     r"|\[(?:\s*(?:[\w.*+\-]+|\.\.\.)\s*,)+\s*(?:[\w.*+\-]+|\.\.\.)\s*\]"
-                    r"|shape\s*\(\)|\bscalar\b|\b0-d\b", re.IGNORECASE)
+                    r"|\(\s*\.\.\.\s*\)|shape\s*\(\s*[\w.*+\-]*\s*\)|shape\s*\[[^\]]*\]|same shape|\bscalar\b|\b0-d\b",
+                    re.IGNORECASE)
 #: A unit in brackets: ``[m]``, ``[W/m^2]``, ``[rad]``, ``[px^2]``, ``[deg]``, ``[1]`` (dimensionless) ...
 _UNIT_TOKENS = {"m", "mm", "cm", "km", "rad", "mrad", "deg", "°", "W", "kW", "MW", "GW", "Wh", "kWh", "MWh",
                 "GWh", "J", "MJ", "s", "ms", "h", "min", "d", "K", "°C", "px", "Pa", "hPa", "sr", "%", "Hz",
@@ -57,13 +58,43 @@ _PHYSICAL = re.compile(r"(^|_)(points?|positions?|pos|distances?|dist|radius|wid
                        r"translation|offsets?|aim|aimpoints?|deg|rad|m)($|_)")
 
 
+def _is_physical(name: str) -> bool:
+    """A quantity with a unit, not a count of things (``num_control_points``, ``rays_per_point``)."""
+    return bool(_PHYSICAL.search(name)) and not (name.startswith(("num_", "n_")) or "_per_" in name)
+
+
+def _has_shape(text: str) -> bool:
+    """A shape pattern, or a one-axis shape in brackets that is not a unit (``[N]``, ``[3]``, ``[n + p + 1]``)."""
+    return bool(_SHAPE.search(text)) or any(re.fullmatch(r"[\w.*+\- ]+", m) and not _is_unit(m)
+                                            for m in _BRACKET.findall(text))
+
+
 def _is_unit(text: str) -> bool:
     text = text.strip()
-    if text == "1":
+    if text in ("1", "-"):
         return True
     tokens = [t.rstrip("0123456789²³") for t in re.split(r"[\s/*·^()\-]+", text) if t]
     tokens = [t for t in tokens if t]
     return bool(tokens) and all(t in _UNIT_TOKENS for t in tokens)
+
+
+_ENTRY = re.compile(r"^(\s*)([\w*][\w, *]*?)\s+:\s+(.+)$")
+
+
+def _typed_entries(doc: str):
+    """``(name, text)`` of each numpy-style ``name : type`` entry (type line plus its indented description)."""
+    entries, current, indent = [], None, None
+    for line in doc.splitlines():
+        m = _ENTRY.match(line)
+        if m and (indent is None or len(m.group(1)) <= indent):
+            indent = len(m.group(1))
+            current = [m.group(2), m.group(3)]
+            entries.append(current)
+        elif current is not None and line.strip() and len(line) - len(line.lstrip()) > indent:
+            current[1] += "\n" + line.strip()
+        elif current is not None and line.strip():
+            current = None
+    return [(name, text) for name, text in entries]
 
 
 def _public_functions(tree: ast.Module):
@@ -81,10 +112,12 @@ def docstring_findings(fn: ast.FunctionDef) -> list[str]:
     """What a public function's docstring lacks under the rule (empty: it passes).
 
     The rule: (1) there is a docstring; (2) a function that takes or returns a tensor (an annotation, or its
-    docstring, names ``Tensor``) states at least one shape -- ``(N, 3)``, ``[B, P]``, ``(N,)``, ``shape ()``
-    or "scalar"; (3) a function with an argument named after a physical quantity (points, distance,
-    azimuth, power, flux, dni, time, ... see ``_PHYSICAL``) gives at least one unit in brackets -- ``[m]``,
-    ``[W/m^2]``, ``[rad]``, ``[1]``. It is a floor, not a proof: it checks that shapes and units are
+    docstring, names ``Tensor``) states at least one shape -- ``(N, 3)``, ``[B, P]``, ``(N,)``, ``[N]``, ``()``
+    or "scalar" -- and so does every numpy-style ``name : type`` entry whose type names a tensor; (3) a
+    function with an argument named after a physical quantity (points, distance,
+    azimuth, power, flux, dni, time, ... see ``_PHYSICAL``; counts such as ``num_control_points`` are not)
+    gives at least one unit in brackets -- ``[m]``, ``[W/m^2]``, ``[rad]``, ``[1]`` or ``[-]``. It is a floor, not a
+    proof: it checks that shapes and units are
     written, not that every argument has its own.
     """
     doc = ast.get_docstring(fn)
@@ -94,9 +127,11 @@ def docstring_findings(fn: ast.FunctionDef) -> list[str]:
     args = [a for a in (*fn.args.posonlyargs, *fn.args.args, *fn.args.kwonlyargs) if a.arg not in ("self", "cls")]
     notes = " ".join(ast.unparse(a.annotation) for a in args if a.annotation is not None)
     notes += " " + (ast.unparse(fn.returns) if fn.returns is not None else "")
-    if ("Tensor" in notes or "tensor" in doc.lower()) and not _SHAPE.search(doc):
+    if ("Tensor" in notes or "tensor" in doc.lower()) and not _has_shape(doc):
         missing.append("no shape")
-    if any(_PHYSICAL.search(a.arg) for a in args) and not any(_is_unit(m) for m in _BRACKET.findall(doc)):
+    missing += [f"no shape for {name}" for name, entry in _typed_entries(doc)
+                if "tensor" in entry.splitlines()[0].lower() and not _has_shape(entry)]
+    if any(_is_physical(a.arg) for a in args) and not any(_is_unit(m) for m in _BRACKET.findall(doc)):
         missing.append("no unit")
     return missing
 

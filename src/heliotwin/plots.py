@@ -18,7 +18,7 @@ __all__ = ["draw_flux", "draw_measured_image", "plot_flux", "plot_demo", "plot_f
 
 def draw_flux(ax, flux, title: str, *, measured: dict | None = None) -> None:
     """Draw the first image of a :class:`~heliotwin.raytrace.flux.FluxImage` on ``ax``: title, axes in metres
-    on the target (as seen from the field: left = east), colour bar in kW/m².
+    on the target (as seen from the field: left = east), colour bar in [kW/m^2] (the bitmap is in [W/m^2]).
 
     ``measured`` (a ``trace`` report) marks the measured focal spots (HeliOS, UTIS) and the predicted
     centroid, so the figure reads as measured vs predicted.
@@ -35,7 +35,7 @@ def draw_flux(ax, flux, title: str, *, measured: dict | None = None) -> None:
 
 def draw_measured_image(ax, flux, png, *, measured: dict | None = None) -> None:
     """PAINT's whole-target camera image ``png`` on ``ax``, on the extent of ``flux``'s target (PAINT
-    orientation: left = east), relative scale (max = 1), with the measured spots marked."""
+    orientation: left = east; axes [m]), relative scale [1] (max = 1), with the measured spots marked."""
     img = load_measured_image(png, normalise="max")
     ext = flux.extent[0].tolist()
     im = ax.imshow(img.numpy(), extent=(ext[0], ext[1], ext[2], ext[3]), cmap="inferno", vmin=0, vmax=1)
@@ -48,12 +48,12 @@ def draw_measured_image(ax, flux, png, *, measured: dict | None = None) -> None:
 
 
 def plot_flux(flux, path=None, *, title: str | None = None, measured: dict | None = None, ax=None):
-    """A flux image as a figure people read: title, axes in metres on the target, colour bar in kW/m².
+    """A flux image as a figure people read: title, axes [m] on the target, colour bar in [kW/m^2].
 
     Parameters
     ----------
     flux : FluxImage
-        The first image of the batch is drawn.
+        The first image of the batch (bitmap (B, rows, cols) [W/m^2]) is drawn.
     path : str or os.PathLike, optional
         Write the figure here (atomically; format from the extension).
     title : str, optional
@@ -106,7 +106,12 @@ def _imshow_flux(ax, flux, title):
 
 
 def plot_demo(plant, per_heliostat, receiver_flux, spot, path) -> None:
-    """Field layout coloured by cosine efficiency, receiver flux and one calibration spot."""
+    """Field layout coloured by cosine efficiency, receiver flux and one calibration spot, saved to ``path``.
+
+    ``per_heliostat``: one dict per heliostat with ``position_enu_m`` [m] and ``cosine_efficiency`` [1];
+    ``receiver_flux`` and ``spot``: :class:`~heliotwin.raytrace.flux.FluxImage` (bitmaps [W/m^2], the first
+    image drawn in [kW/m^2]).
+    """
     fig = Figure(figsize=(17, 5))
     axes = fig.subplots(1, 3)
     xs = [p["position_enu_m"][0] for p in per_heliostat]

@@ -97,7 +97,7 @@ class GaussianPrior:
 
     @property
     def sigma(self) -> torch.Tensor:
-        """Marginal standard deviation, shaped like ``mean``."""
+        """Marginal standard deviation, same shape as ``mean`` ([P] or [F, K]; the parameters' units)."""
         return self.covariance.diagonal().clamp_min(0).sqrt().reshape(self.mean.shape)
 
     def whitening(self) -> torch.Tensor:

@@ -92,7 +92,8 @@ def solar_position(times, latitude_deg: float, longitude_deg: float, altitude_m:
 
 def direction_from_time(times, latitude_deg: float, longitude_deg: float, altitude_m: float = 0.0,
                         *, check_horizon: bool = True) -> torch.Tensor:
-    """ENU unit vectors towards the sun at UTC ``times``, shape (T, 3), float64 (see :func:`solar_position`)."""
+    """ENU unit vectors towards the sun at UTC ``times`` (T of them), shape (T, 3), float64, for a site at
+    ``latitude_deg``, ``longitude_deg`` [deg] and ``altitude_m`` [m] (see :func:`solar_position`)."""
     az, el = solar_position(times, latitude_deg, longitude_deg, altitude_m)
     return direction_from_paint_angles(az, el, check_horizon=check_horizon)
 

@@ -173,6 +173,7 @@ class Checkpoint:
         self.notify("saved", key, entry.get("step"))
 
     def notify(self, event: str, key: str, step) -> None:
+        """Tell the ``hook`` (if any) that loop ``key`` reached ``event`` (``"step"`` / ``"saved"``) at ``step``."""
         if self.hook is not None:
             self.hook(event, key, step)
 
@@ -217,7 +218,7 @@ def resumable_range(kind: str, total: int, dump, load):
     """``range(total)`` of a loop whose iterations are long (e.g. one Levenberg-Marquardt fit each), under the
     active checkpoint: the state after the last finished iteration is restored (``load(state)``) and the loop
     goes on from there; after every iteration ``dump()`` (a copy of the state: tensors, numbers, containers) is
-    saved. Without an active checkpoint it is ``range(total)``.
+    saved. Without an active checkpoint it is ``range(total)``. Yields the iteration indices (scalar ints).
     """
     ck = current()
     key = ck.claim(kind) if ck is not None else None

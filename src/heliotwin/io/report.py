@@ -105,7 +105,8 @@ def _cannot_write(path: str, exc: OSError, tmp: str | None) -> InputFileError:
 
 
 def json_safe(obj):
-    """A strict-JSON copy of ``obj``: tensors/arrays to lists, numpy scalars to Python, NaN/inf to ``None``,
+    """A strict-JSON copy of ``obj``: tensors/arrays of any shape ``(...)`` to nested lists (0-d ones to numbers),
+    numpy scalars to Python, NaN/inf to ``None``,
     paths to strings, tuples to lists, dict keys to strings.
 
     Anything else JSON cannot hold (sets, arbitrary objects) is left as is, so :func:`json.dump` raises

@@ -120,10 +120,12 @@ class MirrorBatch:
 
     @property
     def batch(self) -> int:
+        """B, the number of samples."""
         return int(self.points.shape[0])
 
     @property
     def num_points(self) -> int:
+        """P, the mirror points per sample."""
         return int(self.points.shape[1])
 
 

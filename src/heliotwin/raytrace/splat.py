@@ -663,8 +663,9 @@ def projective_splat_hard(coef: torch.Tensor, weights: torch.Tensor, pattern: to
                           workers: int | None = None) -> torch.Tensor:
     """Nearest-pixel version of :func:`projective_splat` (one scatter per chunk; not differentiable).
 
-    Parameters and result as in :func:`projective_splat`; each landing ray deposits its whole weight in
-    the pixel that contains it.
+    Parameters and result as in :func:`projective_splat` (``coef`` (n_samples * points_per_sample, 3, 3),
+    result (n_samples, rows, cols) [W/m^2]); each landing ray deposits its whole weight in the pixel that
+    contains it.
     """
     dt = coef.dtype
     c3 = _to_c3(coef.detach().reshape(-1, 3, 3))
@@ -780,8 +781,8 @@ def splat_bilinear(px: torch.Tensor, py: torch.Tensor, weights: torch.Tensor, ro
     px, py : torch.Tensor, shape (B, ...) or (M,)
         Column / row pixel coordinates (pixel centres at integers; see module docs). NaN counts as off
         the bitmap.
-    weights : torch.Tensor, broadcastable to ``px``
-        Deposited value per point (e.g. W/m^2 per ray).
+    weights : torch.Tensor, shape (B, ...) or (M,), broadcastable to ``px``
+        Deposited value per point (e.g. [W/m^2] per ray).
     rows, cols : int
         Bitmap size.
     max_rays_per_chunk : int
@@ -808,7 +809,8 @@ def splat_hard(px: torch.Tensor, py: torch.Tensor, weights: torch.Tensor, rows: 
     ----------
     px, py : torch.Tensor, shape (B, ...) or (M,)
         Pixel coordinates (centres at integers).
-    weights : torch.Tensor, broadcastable to ``px``
+    weights : torch.Tensor, shape (B, ...) or (M,), broadcastable to ``px``
+        Deposited value per point.
     rows, cols : int
 
     Returns
