@@ -73,6 +73,22 @@ def field(source, heliostats=None):
     Returns
     -------
     heliotwin.field.plant.Plant
+        Kinematics ``position`` [H, 3] ENU [m], facets, surfaces, targets, site and sun.
+
+    Examples
+    --------
+    A scenario file written from the demo plant, read back whole or for one heliostat:
+
+    >>> import os, tempfile
+    >>> from heliotwin.field.demo import demo_plant
+    >>> from heliotwin.io.scenario import save_scenario
+    >>> folder = tempfile.TemporaryDirectory()
+    >>> path = save_scenario(demo_plant(3), os.path.join(folder.name, "plant.h5"))
+    >>> field(path).field.ids
+    ['AK29', 'AM42', 'AQ49']
+    >>> tuple(field(path, heliostats=["AM42"]).field.kinematics.position.shape)
+    (1, 3)
+    >>> folder.cleanup()
     """
     source = os.fspath(source)
     if os.path.isdir(source):
@@ -85,7 +101,13 @@ def field(source, heliostats=None):
 
 def to_device(obj, device):
     """``obj`` with every tensor on ``device`` (:func:`heliotwin.devices.to_device`): plants, targets, record
-    tables, flux images, networks and containers of them; dtypes kept."""
+    tables, flux images, networks and containers of them; shapes and dtypes kept.
+
+    >>> import torch
+    >>> moved = to_device({"flux": torch.zeros(2, 3), "ids": ["AM43"]}, "cpu")
+    >>> moved["flux"].device.type, tuple(moved["flux"].shape), moved["flux"].dtype, moved["ids"]
+    ('cpu', (2, 3), torch.float32, ['AM43'])
+    """
     return _move(obj, device)
 
 

@@ -50,7 +50,17 @@ class TraceSettings:
 
 def describe_plant(scenario) -> dict:
     """What a scenario's plant is: ``kinematics`` nominal or calibrated (method, heliostat count), ``surface``
-    ideal or learned (for which heliostats), and the ``scenario`` file; None: the nominal PAINT plant."""
+    ideal or learned (for which heliostats), and the ``scenario`` file; None: the nominal PAINT plant.
+
+    >>> describe_plant(None)
+    {'kinematics': 'nominal', 'surface': 'ideal'}
+    >>> from heliotwin.field.demo import demo_plant
+    >>> from heliotwin.io.scenario import Scenario
+    >>> learned = {"calibration": {"method": "lm", "heliostats": ["AM43", "AQ49"]}, "surfaces": {"AM43": {}}}
+    >>> described = describe_plant(Scenario(demo_plant(2), learned=learned, path="calibrated.h5"))
+    >>> described["kinematics"], described["surface"], described["scenario"].endswith("calibrated.h5")
+    ('calibrated (lm) for 2 heliostats', 'learned for AM43', True)
+    """
     if scenario is None:
         return {"kinematics": "nominal", "surface": "ideal"}
     cal = scenario.learned.get("calibration") or {}
