@@ -9,7 +9,7 @@ the Gaussian with covariance ``Sigma = sigma^2 J J^T + s I`` [px^2], where ``s``
 the variance of the one-pixel tent kernel that the Monte-Carlo bilinear splat applies, so both integrators
 estimate the same image.
 
-Two evaluation modes (``mode=``):
+Two evaluation modes (:class:`FootprintSettings` ``mode``):
 
 ``window``
     Each point's Gaussian is evaluated at the pixel centres of a square window of ``(2 h + 1)^2`` pixels

@@ -32,7 +32,7 @@ behind the target get weight 0.
 
 Generic path
 ------------
-For the cylindrical receiver (or ``method="generic"``) per-ray 3-D directions are intersected with
+For the cylindrical receiver (or ``RaySampling(method="generic")``) per-ray 3-D directions are intersected with
 :func:`heliotwin.geometry.ray_cylinder` / :func:`~heliotwin.geometry.ray_plane`, converted to the target's
 unrolled ``(arc, axial)`` / ``(x, y)`` coordinates and splatted with
 :func:`~heliotwin.raytrace.splat.splat_bilinear`; chunks are checkpointed so memory stays bounded with
