@@ -386,8 +386,7 @@ def _local_hits(origins, dirs, target):
 
 def _trace_generic(mirror, u, v, weights, pattern, target, extent, rows, cols, clip, sampling: RaySampling, dtype):
     splat, max_rays, workers = sampling.splat, sampling.max_rays_per_chunk, sampling.workers
-    b, p = mirror.batch, mirror.num_points
-    k = pattern.shape[1]
+    b, p, k = mirror.batch, mirror.num_points, pattern.shape[1]
     dev = mirror.points.device
     ext = extent.to(dtype)
     planar = isinstance(target, PlanarTarget)

@@ -6,6 +6,22 @@ local processes) on a scenario's plant at one sun, with equator aiming or the sc
 positions and integrates the clear-sky annual optical energy. Neither learns anything, so neither returns a
 new scenario. :func:`sun_direction_at` and :func:`sun_instants` turn the user's times or angles into sun
 directions (the ``field`` and ``aimpoints`` commands' ``--time``, ``--day``, ``--sun-azimuth``).
+
+Four heliostats of the demo plant under a southern sun, a coarse receiver map; the power-weighted factors
+chain to the field's efficiency, receiver power over DNI times mirror area:
+
+>>> from heliotwin.field.demo import demo_plant
+>>> from heliotwin.io.scenario import Scenario
+>>> plant = demo_plant(4)
+>>> sun = sun_direction_at(plant, azimuth_deg=0.0, elevation_deg=30.0)
+>>> report, result = field(Scenario(plant), sun, FieldRunSettings(resolution=(8, 16)))
+>>> tuple(result.flux.shape), tuple(result.power_w.shape)
+((8, 16), (4,))
+>>> total = report["field"]["efficiency_power_weighted"]["total"]
+>>> abs(report["receiver"]["power_w"] / (report["dni_w_m2"] * report["mirror_area_m2"]) - total) < 1e-9
+True
+>>> 0.5 < total < 1.0
+True
 """
 from __future__ import annotations
 
@@ -173,24 +189,6 @@ def field(scenario, sun: torch.Tensor, settings: FieldRunSettings | None = None)
         ``occlusion``, ``resolution``, ``seconds`` and ``seconds_field_model`` [s].
     result : FieldResult
         Per-heliostat factors [H] and the receiver map [rows, cols] [W/m^2].
-
-    Examples
-    --------
-    Four heliostats of the demo plant under a southern sun, a coarse receiver map; the power-weighted
-    factors chain to the field's efficiency, receiver power over DNI times mirror area:
-
-    >>> from heliotwin.field.demo import demo_plant
-    >>> from heliotwin.io.scenario import Scenario
-    >>> plant = demo_plant(4)
-    >>> sun = sun_direction_at(plant, azimuth_deg=0.0, elevation_deg=30.0)
-    >>> report, result = field(Scenario(plant), sun, FieldRunSettings(resolution=(8, 16)))
-    >>> tuple(result.flux.shape), tuple(result.power_w.shape)
-    ((8, 16), (4,))
-    >>> total = report["field"]["efficiency_power_weighted"]["total"]
-    >>> abs(report["receiver"]["power_w"] / (report["dni_w_m2"] * report["mirror_area_m2"]) - total) < 1e-9
-    True
-    >>> 0.5 < total < 1.0
-    True
     """
     t0 = time.perf_counter()
     settings = settings or FieldRunSettings()
