@@ -51,6 +51,8 @@ _UNIT_TOKENS = {"m", "mm", "cm", "km", "rad", "mrad", "deg", "°", "W", "kW", "M
                 "GWh", "J", "MJ", "s", "ms", "h", "min", "d", "K", "°C", "px", "Pa", "hPa", "sr", "%", "Hz",
                 "kg", "step", "steps", "UTC"}
 _BRACKET = re.compile(r"\[([^\[\],]{1,16})\]")
+#: An entry typed as a count or a flag (``int``, ``(int, int)``, ``tuple of int``, ``bool``): no unit needed.
+_COUNT = re.compile(r"(int|\(int, int\)|tuple of int|bool)\b")
 #: Argument names that carry a physical quantity (so the docstring must give at least one unit).
 _PHYSICAL = re.compile(r"(^|_)(points?|positions?|pos|distances?|dist|radius|width|height|length|size|areas?|"
                        r"angles?|azimuths?|elevations?|zenith|latitude|longitude|lat|lon|altitude|power|flux|dni|"
@@ -60,7 +62,7 @@ _PHYSICAL = re.compile(r"(^|_)(points?|positions?|pos|distances?|dist|radius|wid
 
 def _is_physical(name: str) -> bool:
     """A quantity with a unit, not a count of things (``num_control_points``, ``rays_per_point``)."""
-    return bool(_PHYSICAL.search(name)) and not (name.startswith(("num_", "n_")) or "_per_" in name)
+    return bool(_PHYSICAL.search(name)) and not (name.startswith(("num_", "n_", "chunk", "batch")) or "_per_" in name)
 
 
 def _has_shape(text: str) -> bool:
@@ -116,9 +118,10 @@ def docstring_findings(fn: ast.FunctionDef) -> list[str]:
     or "scalar" -- and so does every numpy-style ``name : type`` entry whose type names a tensor; (3) a
     function with an argument named after a physical quantity (points, distance,
     azimuth, power, flux, dni, time, ... see ``_PHYSICAL``; counts such as ``num_control_points`` are not)
-    gives at least one unit in brackets -- ``[m]``, ``[W/m^2]``, ``[rad]``, ``[1]`` or ``[-]``. It is a floor, not a
-    proof: it checks that shapes and units are
-    written, not that every argument has its own.
+    gives at least one unit in brackets -- ``[m]``, ``[W/m^2]``, ``[rad]``, ``[1]`` or ``[-]`` -- and so does
+    every ``name : type`` entry of such an argument (or returned quantity). It is a floor, not a proof: it
+    checks that shapes and units are written where it can see tensors and physical names, not that they are
+    right, and an undocumented argument of a function that has a docstring goes unseen.
     """
     doc = ast.get_docstring(fn)
     if not doc:
@@ -133,6 +136,9 @@ def docstring_findings(fn: ast.FunctionDef) -> list[str]:
                 if "tensor" in entry.splitlines()[0].lower() and not _has_shape(entry)]
     if any(_is_physical(a.arg) for a in args) and not any(_is_unit(m) for m in _BRACKET.findall(doc)):
         missing.append("no unit")
+    missing += [f"no unit for {name}" for name, entry in _typed_entries(doc)
+                if any(_is_physical(n.strip()) for n in name.split(",")) and not _COUNT.match(entry)
+                and not any(_is_unit(m) for m in _BRACKET.findall(entry))]
     return missing
 
 

@@ -19,14 +19,14 @@ SRC = ROOT / "src" / "heliotwin"
 
 #: Modules (relative to ``src/heliotwin``) whose public docstrings all state shapes and units. The floors
 #: in order: building blocks; optics (the integrators, splats, images, yearly energy; the scene glue); the
-#: data edge (all of io but the PAINT reader, the record table and the scenario file); figures.
+#: data edge (all of io but the PAINT reader, the record table and the scenario file); figures; the public API.
 DONE = (
     "errors.py", "devices.py", "geometry.py", "site.py", "sun.py", "sunshape.py", "nurbs.py", "atmosphere.py",
     "shrinkage.py",
     "raytrace/montecarlo.py", "raytrace/gaussian.py", "raytrace/conv.py", "raytrace/splat.py", "raytrace/flux.py",
     "raytrace/yearly.py", "scene.py",
     "io/checkpoint.py", "io/deflectometry.py", "io/hdf5.py", "io/images.py", "io/report.py",
-    "plots.py",
+    "plots.py", "api.py",
 )
 
 
@@ -54,8 +54,9 @@ def _findings(code: str) -> list[str]:
 
 
 def test_the_rule_catches_what_it_names():
-    """The rule itself: a missing docstring, a tensor without a shape and a distance without a unit are
-    named; a counted argument (``num_points``) needs no unit, and a documented function passes."""
+    """The rule itself: a missing docstring, a tensor without a shape and a distance without a unit (in the
+    docstring, or in the distance's own entry) are named; a count (``num_points``, an ``int`` entry) needs
+    no unit, and a documented function passes."""
     assert _findings("def f(x):\n    pass\n") == ["no docstring"]
     assert "no shape" in _findings('def f(x: torch.Tensor):\n    """Doubles x."""\n')
     assert _findings('def f(distance):\n    """How far."""\n') == ["no unit"]
@@ -65,3 +66,6 @@ def test_the_rule_catches_what_it_names():
              '        Unit.\n    """\n')
     assert _findings(entry) == ["no shape for normals"]
     assert _findings(entry.replace("normals : torch.Tensor", "normals : torch.Tensor, [N, 3]")) == []
+    ranged = ('def f(distance, size):\n    """Ranges [m].\n\n    Parameters\n    ----------\n'
+              '    distance : float\n        Slant range.\n    size : int\n        Pixels.\n    """\n')
+    assert _findings(ranged) == ["no unit for distance"]

@@ -142,7 +142,7 @@ def trace_record(dataset, record_id: int, *, integrator: str = "mc", rays_per_po
     Returns
     -------
     flux : heliotwin.raytrace.flux.FluxImage
-        Batch of one, on the CPU.
+        Batch of one, bitmap [1, resolution, resolution] [W/m^2], on the CPU.
     report : dict
         Powers [W], centroid (ENU [m], WGS84 [deg], target-local [m]; ``None`` when no light reaches the
         target), sun angles [deg] (PAINT: azimuth 0 = south, +90 = east), the measured spots, optics.

@@ -181,6 +181,7 @@ def plot_field_demo(folder, plant, before, aimed, rep, limit: float, time_utc: s
     limit : float
         Peak-flux limit [W/m^2].
     time_utc : str
+        The instant [UTC] named in the title (ISO).
     """
     pos = plant.field.kinematics.position.numpy()
     sun = rep["sun"]

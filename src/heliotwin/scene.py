@@ -48,7 +48,7 @@ def to_world(R_world_heliostat: torch.Tensor, concentrator: torch.Tensor, points
     concentrator : torch.Tensor, [B, 3]
         ENU [m].
     points, normals : torch.Tensor, [B, P, 3]
-        Heliostat frame.
+        Heliostat frame [m] / unit.
     dtype : torch.dtype
         Output dtype (rays are float32; the rotation itself is done in the inputs' precision).
 

@@ -69,7 +69,7 @@ def solar_position(times, latitude_deg: float, longitude_deg: float, altitude_m:
     Parameters
     ----------
     times : array-like of datetimes, pandas DatetimeIndex or ISO strings
-        UTC instants (naive values are taken as UTC).
+        Instants [UTC] (naive values are taken as UTC).
     latitude_deg, longitude_deg : float
         Site [deg].
     altitude_m : float
@@ -106,6 +106,7 @@ def daylight_times(year: int, every: str, latitude_deg: float, longitude_deg: fl
     Returns
     -------
     times : pandas.DatetimeIndex
+        T instants [UTC].
     azimuth, elevation : torch.Tensor, shape (T,) [rad], PAINT convention.
     """
     times = pd.date_range(f"{year}-01-01", f"{year + 1}-01-01", freq=every, tz="UTC", inclusive="left")

@@ -159,6 +159,7 @@ def buie_radial_cdf(theta: torch.Tensor, csr: float = 0.05) -> torch.Tensor:
     theta : torch.Tensor, shape (...)
         [rad].
     csr : float
+        Circumsolar ratio chi [-].
 
     Returns
     -------
@@ -334,7 +335,7 @@ def second_moment(sunshape: str, *, sigma: float = 2.51e-3, radius: float = SOLA
     ----------
     sunshape : {"gaussian", "pillbox", "buie", "limb-darkened"}
     sigma, radius, csr : float
-        As in :func:`sample`.
+        As in :func:`sample` ([rad], [rad], [-]).
     slope_error : float
         Mirror slope error per axis [rad]; adds ``(2 slope_error)^2``.
 
@@ -368,7 +369,7 @@ def radial_profile(sunshape: str, theta: torch.Tensor, *, sigma: float = 2.51e-3
     theta : torch.Tensor, shape (...)
         Angle from the sun centre [rad].
     sigma, radius, csr : float
-        As in :func:`sample`.
+        As in :func:`sample` ([rad], [rad], [-]).
 
     Returns
     -------

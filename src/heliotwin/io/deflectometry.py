@@ -279,7 +279,7 @@ def fit_deflectometry(measurements: Sequence[tuple[torch.Tensor, torch.Tensor]],
     Returns
     -------
     control_points : torch.Tensor, [F, nu, nv, 3], float64
-        Heliostat-frame control nets (non-rational); stack over heliostats for
+        Heliostat-frame control nets [m] (non-rational); stack over heliostats for
         :class:`~heliotwin.field.plant.Surfaces`.
     report : DeflectometryFit
         Residuals of the fit per facet.

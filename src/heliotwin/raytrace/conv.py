@@ -155,7 +155,7 @@ def footprint_kernel(sun: SunSettings, mean_ray: torch.Tensor, distance: torch.T
     pixel : float
         Pixel side [m].
     size : int
-        Kernel side in pixels (even; the centre is pixel ``size // 2``).
+        Kernel side [px] (even; the centre is pixel ``size // 2``).
     supersample : int
         Sub-samples per pixel and axis.
 
@@ -229,7 +229,7 @@ def mean_footprint_kernel(points: torch.Tensor, normals: torch.Tensor, areas: to
     pixel : float
         Pixel side [m] (window side / resolution).
     size : int
-        Kernel side in pixels (``2 * resolution`` for :func:`render_centered`).
+        Kernel side [px] (``2 * resolution`` for :func:`render_centered`).
     supersample : int
         Sub-samples per pixel and axis.
 

@@ -169,7 +169,7 @@ def centered_crop(bitmap_or_flux, target: PlanarTarget | CylinderTarget | None, 
     Parameters
     ----------
     bitmap_or_flux : FluxImage or torch.Tensor, shape (B, rows, cols) or (rows, cols)
-        A raw bitmap is taken to cover the whole target.
+        Flux [W/m^2] (or any per-pixel value); a raw bitmap is taken to cover the whole target.
     target : PlanarTarget or CylinderTarget or None
         Needed for a raw bitmap (its extent); ignored for a FluxImage.
     center_local : torch.Tensor, shape (B, 2) or (2,)

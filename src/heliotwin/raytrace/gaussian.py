@@ -164,7 +164,7 @@ def gaussian_footprints(mu: torch.Tensor, cov: torch.Tensor, weights: torch.Tens
     rows, cols : int
     n_samples, points_per_sample : int
     half_window : int
-        ``h``: each Gaussian is evaluated on ``(2h+1)^2`` pixels around its nearest pixel.
+        ``h`` [px]: each Gaussian is evaluated on ``(2h+1)^2`` pixels around its nearest pixel.
     bounds : torch.Tensor, shape (n_samples, 4), optional
         Pixel-coordinate region ``(lo_x, hi_x, lo_y, hi_y)`` outside which pixels are dropped (the
         target inside a larger window).
