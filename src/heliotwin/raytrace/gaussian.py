@@ -272,6 +272,36 @@ def _target_bounds(target, extent: torch.Tensor, rows: int, cols: int, dtype) ->
                        -1).to(dtype)
 
 
+def _central_moments(mirror, target, extent: torch.Tensor, rows: int, cols: int):
+    """Mean hit [B, P, 2] [px], Jacobian d(px)/d(a, b) [B, P, 2, 2] and validity [B, P] of each point's
+    central reflected ray, on a planar target or the cylinder's tangent plane."""
+    u, v = orthonormal_frame(mirror.reflected)
+    if isinstance(target, PlanarTarget):
+        coef, in_front = planar_coefficients(mirror.points, mirror.reflected, u, v, target, extent, rows, cols)
+        mu, jac, ok = _projective_moments(coef)
+        return mu, jac, ok & in_front
+    if isinstance(target, CylinderTarget):
+        return _cylinder_moments(mirror.points, mirror.reflected, u, v, target, extent, rows, cols)
+    raise HeliotwinError(f"unsupported target type {type(target).__name__}")
+
+
+def _convolved_image(mu, weights, kcov, lit, n_sigma: float, rows: int, cols: int, bounds, dtype):
+    """``convolve`` mode: mean hits mu [B, P, 2] [px] splatted bilinearly with weights [B, P], convolved with
+    each sample's Gaussian kcov [B, 2, 2] [px^2] (support ``n_sigma`` standard deviations over the lit
+    samples ``lit`` [B]); pixels outside ``bounds`` [B, 4] dropped. Returns [B, rows, cols]."""
+    half = int(min(max(rows, cols), max(1, math.ceil(n_sigma * _max_sigma(kcov, lit)))))
+    canvas = splat_bilinear((mu[..., 0] + half).to(dtype), (mu[..., 1] + half).to(dtype), weights.to(dtype),
+                            rows + 2 * half, cols + 2 * half)
+    bitmap = _fft_convolve(canvas, _gaussian_kernels(kcov.to(dtype), half), half, rows, cols)
+    if bounds is not None:
+        c = torch.arange(cols, dtype=dtype, device=bitmap.device)
+        r = torch.arange(rows, dtype=dtype, device=bitmap.device)
+        inx = (c >= bounds[:, :1]) & (c <= bounds[:, 1:2])
+        iny = (r >= bounds[:, 2:3]) & (r <= bounds[:, 3:4])
+        bitmap = bitmap * (iny.unsqueeze(-1) & inx.unsqueeze(-2)).to(dtype)
+    return bitmap
+
+
 def trace_gaussian(points, normals, areas, sun_direction, target: PlanarTarget | CylinderTarget, *,
                    resolution=(256, 256), sun: SunSettings | None = None, window=None, clip_to_target: bool = True,
                    footprint: FootprintSettings | None = None, dtype: torch.dtype = torch.float32) -> FluxImage:
@@ -312,15 +342,7 @@ def trace_gaussian(points, normals, areas, sun_direction, target: PlanarTarget |
     b, p = mirror.batch, mirror.num_points
     extent = target_extent(target, b, window).to(mirror.points.device)
     pixel_area = (extent[:, 1] - extent[:, 0]) / cols * (extent[:, 3] - extent[:, 2]) / rows
-    u, v = orthonormal_frame(mirror.reflected)
-    if isinstance(target, PlanarTarget):
-        coef, in_front = planar_coefficients(mirror.points, mirror.reflected, u, v, target, extent, rows, cols)
-        mu, jac, ok = _projective_moments(coef)
-        ok = ok & in_front
-    elif isinstance(target, CylinderTarget):
-        mu, jac, ok = _cylinder_moments(mirror.points, mirror.reflected, u, v, target, extent, rows, cols)
-    else:
-        raise HeliotwinError(f"unsupported target type {type(target).__name__}")
+    mu, jac, ok = _central_moments(mirror, target, extent, rows, cols)
     var = _sunshape.second_moment(sun.sunshape, sigma=float(sun.sigma), radius=float(sun.radius),
                                   csr=float(sun.csr), slope_error=float(sun.slope_error))
     eye = torch.eye(2, dtype=jac.dtype, device=jac.device)
@@ -348,15 +370,6 @@ def trace_gaussian(points, normals, areas, sun_direction, target: PlanarTarget |
                                      fp.max_pixels_per_chunk)
     else:
         kcov = cov_mean + max(float(smoothing) - 1.0 / 6.0, 0.0) * eye
-        half = int(min(max(rows, cols), max(1, math.ceil(float(n_sigma) * _max_sigma(kcov, wsum > 0)))))
-        canvas = splat_bilinear((mu[..., 0] + half).to(dtype), (mu[..., 1] + half).to(dtype), weights.to(dtype),
-                                rows + 2 * half, cols + 2 * half)
-        bitmap = _fft_convolve(canvas, _gaussian_kernels(kcov.to(dtype), half), half, rows, cols)
-        if bounds is not None:
-            c = torch.arange(cols, dtype=dtype, device=bitmap.device)
-            r = torch.arange(rows, dtype=dtype, device=bitmap.device)
-            inx = (c >= bounds[:, :1]) & (c <= bounds[:, 1:2])
-            iny = (r >= bounds[:, 2:3]) & (r <= bounds[:, 3:4])
-            bitmap = bitmap * (iny.unsqueeze(-1) & inx.unsqueeze(-2)).to(dtype)
+        bitmap = _convolved_image(mu, weights, kcov, wsum > 0, float(n_sigma), rows, cols, bounds, dtype)
     intercepted = bitmap.sum((-2, -1)) * pixel_area.to(bitmap)
     return FluxImage(bitmap, target, extent, mirror.power.to(torch.float64).sum(-1), intercepted, "gaussian")
