@@ -94,7 +94,8 @@ import torch
 from heliotwin.field.plant import SunSettings
 from heliotwin.io.paint import load_paint
 from heliotwin.surfaces.acceptance import wilson_interval
-from heliotwin.surfaces.generalise import SurfaceSettings, reconstruct_generalising
+from heliotwin.surfaces.fit import SurfaceSettings
+from heliotwin.surfaces.generalise import reconstruct_generalising
 from heliotwin.surfaces.insilico import (
     TRUTH_DEGREE,
     TRUTH_NET,

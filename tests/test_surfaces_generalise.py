@@ -175,7 +175,8 @@ def test_fit_never_leaves_a_training_image_worse_than_the_ideal():
 @pytest.mark.slow
 def test_aa39_generalising_meets_the_issue_figures(paint_dir):
     """Real AA39 (3 earliest images train, 7 test): no training image worse than the ideal, median test L1
-    below the retired legacy learner's 0.146, most test images improved, no residual edge ridge above 5 mrad (~4 min)."""
+    below the retired legacy learner's 0.146, most test images improved, no residual edge ridge above 5 mrad
+    (~4 min)."""
     from heliotwin.workflows.reconstruct import ReconstructionSettings, reconstruct
 
     _, rep, _ = reconstruct(None, paint_dir, "AA39", ReconstructionSettings(train_first=3, device="cpu"),
