@@ -1,4 +1,9 @@
-"""Surface learning that carries over to unseen images: every setting chosen inside the training images.
+"""The surface learner: learning that carries over to unseen images, every setting chosen inside the training images.
+
+It is the one surface learner of the library (:func:`reconstruct_generalising` is its study entry: fit, then
+evaluate on test images, one report-row shape). Its settings are one class
+(:class:`~heliotwin.surfaces.fit.SurfaceSettings`); each of its fits (leave-one-out and final) is one
+:func:`~heliotwin.surfaces.fit.fit_surface`, run in calibration's fit loop.
 
 Steps (:func:`fit_generalising`), each a stated rule:
 
@@ -6,7 +11,7 @@ Steps (:func:`fit_generalising`), each a stated rule:
    the surface is asked to absorb anything. Candidates: flat canted facets, or facets curved to a focal
    length that is a multiple of the one the heliostat's *canting* implies (:func:`canting_focal_length`:
    the facets' tilt towards the centre, ``f = r / (2 tilt)``, median over facets and axes), times slope
-   errors of :data:`SurfaceSettings.slope_grid`; each with every training image's best blur of
+   errors of ``SurfaceSettings.slope_grid``; each with every training image's best blur of
    ``blur_grid_px`` and the camera model (:mod:`heliotwin.surfaces.nuisance`). The combination with the
    lowest mean training L1 of the ideal surface is kept; the ideal baseline uses it too.
 2. **Image nuisance**: per image the camera cut and saturation (estimated from that measured image) and one
