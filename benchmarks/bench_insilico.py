@@ -1,16 +1,17 @@
 """In-silico study: distance x training-image count table (the published protocol).
 
     python benchmarks/bench_insilico.py [--distances 25,50,100,200] [--images 1,2,4,8,16] [--seeds 0] \
-        [--window aim|centred] [--steps 1500] [--grid 1e-5,3e-5,1e-4,3e-4] [--threads 2] \
+        [--window aim|centred] [--steps 1500] [--grid 1e-5,3e-5,1e-4,3e-4] [--cv last|loo] [--threads 2] \
         [--json insilico.json] [--markdown insilico.md]
 
 Prints one row per cell: mean normal deviation [mrad], piston-free height RMS [mm], mean test L1 of the ideal
 and learned surfaces and IMP = L1(ideal)/L1(learned) - 1 (see heliotwin.surfaces.insilico), the Laplacian
 weight chosen on the held-out latest training image, loss evaluations and seconds; then the same table as
-markdown. Settings: :func:`heliotwin.surfaces.insilico.insilico_settings` (L-BFGS + blur continuation, L2 loss,
-gauge-fixed), 7x7 degree-3 facets, 32x32 samples per facet, 64x64 px 6 m windows fixed on the aim point (known
-kinematics; ``--window centred`` for spot-centred ones), 5 test images per cell. With several ``--seeds`` each
-cell is run per seed and the markdown table also gives the mean over seeds.
+markdown. Settings: :func:`heliotwin.surfaces.insilico.insilico_settings` (the surface learner's one settings
+class with L-BFGS + blur continuation, L2 loss; gauge-fixed), 7x7 degree-3 facets, 32x32 samples per facet,
+64x64 px 6 m windows fixed on the aim point (known kinematics; ``--window centred`` for spot-centred ones), 5 test
+images per cell. With several ``--seeds`` each cell is run per seed and the markdown table also gives the mean
+over seeds.
 
 Model mismatch (``--mismatch``): :func:`heliotwin.surfaces.mismatch.run_mismatch_case` per distance and seed --
 truth rendered with a Gaussian sun (2.8 mrad) + 1.2 mrad slope error, a camera saturating at 80 % of the
@@ -35,7 +36,7 @@ import time
 import torch
 
 from heliotwin.io.paint import load_paint
-from heliotwin.surfaces.insilico import insilico_settings, run_case
+from heliotwin.surfaces.insilico import LAPLACIAN_GRID, insilico_settings, run_case
 from heliotwin.surfaces.mismatch import run_mismatch_case
 
 PAINT = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "paint")
@@ -104,9 +105,8 @@ def main(argv=None) -> int:
     p.add_argument("--window", default="aim", choices=("aim", "centred"),
                    help="windows fixed on the aim point (known kinematics) or centred on each spot")
     p.add_argument("--steps", type=int, default=default.steps, help="cap on loss evaluations per fit")
-    p.add_argument("--grid", default=",".join(f"{w:g}" for w in default.laplacian_grid),
+    p.add_argument("--grid", default=",".join(f"{w:g}" for w in LAPLACIAN_GRID),
                    help="Laplacian weights tried on the held-out training image")
-    p.add_argument("--coarse", default="", help="coarse-to-fine: start on this net (e.g. 4x4), refine to 7x7")
     p.add_argument("--cv", default="last", choices=("last", "loo"),
                    help="Laplacian-weight validation: latest training image held out, or leave-one-out over all")
     p.add_argument("--threads", type=int, default=2)
@@ -119,13 +119,8 @@ def main(argv=None) -> int:
     if a.mismatch:
         return mismatch(a)
     plant = load_paint(a.paint, heliostats=["AA39"], with_records=False).plant
-    extra = {"laplacian_cv": a.cv}
-    if a.coarse:
-        from heliotwin.surfaces.learning import parse_grid
-
-        extra.update(control_points=parse_grid(a.coarse), refine_to=(7, 7))
-    settings = insilico_settings(steps=a.steps, laplacian_grid=tuple(float(x) for x in a.grid.split(",") if x),
-                                 **extra)
+    settings = insilico_settings(steps=a.steps)
+    grid = tuple(float(x) for x in a.grid.split(",") if x)
     rows = []
     t0 = time.perf_counter()
     print(f"{'dist':>5} {'imgs':>4} {'seed':>4} {'n_dev mrad':>10} {'h_rms mm':>9} {'L1 ideal':>9} {'L1 learn':>9} "
@@ -133,7 +128,8 @@ def main(argv=None) -> int:
     for d in (float(x) for x in a.distances.split(",")):
         for n in (int(x) for x in a.images.split(",")):
             for seed in (int(x) for x in a.seeds.split(",")):
-                r = run_case(plant, d, n, seed=seed, settings=settings, window=a.window)
+                r = run_case(plant, d, n, seed=seed, settings=settings, window=a.window, laplacian_grid=grid,
+                             laplacian_cv=a.cv)
                 rows.append(r)
                 li = sum(r["test_l1_ideal"]) / len(r["test_l1_ideal"])
                 ll = sum(r["test_l1_learned"]) / len(r["test_l1_learned"])
@@ -144,11 +140,11 @@ def main(argv=None) -> int:
     print()
     print(table)
     print(f"\ntotal {time.perf_counter() - t0:.0f} s on {a.threads} thread(s); window {a.window}; "
-          f"settings {settings.as_dict()}")
+          f"settings {settings.as_dict()}; Laplacian grid {list(grid)} ({a.cv})")
     if a.json:
         with open(a.json, "w", encoding="utf-8") as fh:
-            json.dump({"settings": settings.as_dict(), "seeds": a.seeds, "window": a.window, "rows": rows}, fh,
-                      indent=2)
+            json.dump({"settings": settings.as_dict(), "laplacian_grid": list(grid), "laplacian_cv": a.cv,
+                       "seeds": a.seeds, "window": a.window, "rows": rows}, fh, indent=2)
     if a.markdown:
         with open(a.markdown, "w", encoding="utf-8") as fh:
             fh.write(table + "\n")

@@ -94,7 +94,8 @@ import torch
 from heliotwin.field.plant import SunSettings
 from heliotwin.io.paint import load_paint
 from heliotwin.surfaces.acceptance import wilson_interval
-from heliotwin.surfaces.generalise import GeneraliseSettings, reconstruct_generalising
+from heliotwin.surfaces.fit import SurfaceSettings
+from heliotwin.surfaces.generalise import reconstruct_generalising
 from heliotwin.surfaces.insilico import (
     TRUTH_DEGREE,
     TRUTH_NET,
@@ -150,10 +151,10 @@ def images(plant, scene, n: int, gen: torch.Generator, first_id: int = 0):
     return obs
 
 
-def settings(steps: int) -> GeneraliseSettings:
-    return GeneraliseSettings(control_points=(5, 5), samples=(12, 12), steps=steps, eval_every=max(1, steps // 4),
-                              slope_grid=(1e-3, 2e-3, 3e-3), blur_grid_px=(0.0, 1.0, 2.0), focus_grid=(None, 1.0, 2.0),
-                              blur_modes=("none",))
+def settings(steps: int) -> SurfaceSettings:
+    return SurfaceSettings(control_points=(5, 5), samples=(12, 12), steps=steps, eval_every=max(1, steps // 4),
+                           slope_grid=(1e-3, 2e-3, 3e-3), blur_grid_px=(0.0, 1.0, 2.0), focus_grid=(None, 1.0, 2.0),
+                           blur_modes=("none",))
 
 
 def run(a) -> dict:

@@ -39,11 +39,7 @@ def _defaults(*command):
 def test_api_defaults_are_the_cli_defaults(func, command, renamed):
     cli = _defaults(*command)
     special = {("reconstruct", "slope_error"): ("auto", None), ("calibrate", "progress"): (False, True),
-               ("reconstruct", "progress"): (None, True),
-               # the CLI shows legacy's step default; unset, each method takes its own (as the API's None)
-               ("reconstruct", "steps"): (200, None),
-               # likewise the loss: legacy's default shown, unset (None) for the method that takes none
-               ("reconstruct", "loss"): ("kl", None)}
+               ("reconstruct", "progress"): (None, True)}
     checked = 0
     for name, p in inspect.signature(func).parameters.items():
         dest = renamed.get(name, name)

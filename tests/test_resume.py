@@ -2,7 +2,8 @@
 
 Interruptions are deterministic: the checkpoint's test hook raises after a chosen step of a chosen loop
 (between two saves, so the resumed run redoes some steps), as Ctrl-C would. Synthetic data (no real data)
-for the library loops; the CLI tests use a copy of two real heliostats.
+for the library loops; the CLI tests use a copy of two real heliostats (the reconstruct CLI's own resume test is in
+test_surfaces_generalise.py).
 """
 from __future__ import annotations
 
@@ -23,9 +24,11 @@ from heliotwin.calibrate.params import STONE8, apply_deviations
 from heliotwin.errors import HeliotwinError
 from heliotwin.field.plant import SunSettings
 from heliotwin.io.checkpoint import Checkpoint, active, checkpoint_path, make_tag
+from heliotwin.surfaces.fit import SurfaceSettings, fit_surface
 from heliotwin.surfaces.imaging import predict_images
+from heliotwin.surfaces.insilico import choose_laplacian
 from heliotwin.surfaces.learning import LearnableSurface, learnable_surfaces
-from heliotwin.surfaces.training import TrainSettings, fit_surface, train_with_early_stopping
+from heliotwin.surfaces.nuisance import estimate_camera
 
 
 class Interrupt(KeyboardInterrupt):
@@ -126,40 +129,40 @@ def dome_scene():
     return facets, obs, sun
 
 
-def test_surface_adam_fit_with_mc_and_refinement_resumed_equals_the_uninterrupted_fit(tmp_path, dome_scene):
-    """Adam with the Monte-Carlo integrator (one draw per step: the generator state is checkpointed),
-    a coarse-to-fine refinement before the interruption, and early stopping on a held-out image."""
+def test_surface_adam_fit_with_camera_and_heldout_curve_resumed_equals_the_uninterrupted_fit(tmp_path, dome_scene):
+    """The learner's Adam fit (camera model, learned per-image blur, slope penalty, held-out curve) in the fit
+    loop: interrupted between two saves, resumed, it takes the same steps to the same surface and curve."""
     facets, obs, sun = dome_scene
-    s = TrainSettings(control_points=(3, 3), refine_to=(5, 5), refine_at=4, degree=(2, 2), samples=(8, 8),
-                      resolution=32, loss="l1", steps=14, lr=0.3, eval_every=3, integrator="mc", rays_per_point=4)
+    s = SurfaceSettings(control_points=(4, 4), degree=(2, 2), samples=(8, 8), resolution=32, size_m=4.0, steps=14,
+                        lr=0.3, eval_every=3)
+    cam = estimate_camera(obs.images.to(torch.float32))
 
     def fit():
-        return fit_surface(facets, obs.subset([0, 1]), sun, s, validation=obs.subset([2]), progress=False)
+        return fit_surface(facets, obs.subset([0, 1]), sun, s, camera=cam.subset([0, 1]), sigma0=torch.ones(2),
+                           slope_weight=1e-2, heldout=(obs.subset([2]), cam.subset([2])))
 
-    ref, ref_info = fit()
-    (out, info), _ = _interrupted_then_resumed(tmp_path, fit, "surface/0", 8, every=3)
-    assert out.num_control_points == ref.num_control_points == (5, 5)
-    # The same steps on the same values (identical logs); the refined net's final surface agrees to float
-    # round-off (the refinement's basis is rebuilt on resume).
-    torch.testing.assert_close(out.displacement, ref.displacement, rtol=0, atol=1e-15)
-    assert info.log == ref_info.log and info.steps_run == ref_info.steps_run
+    ref = fit()
+    out, seen = _interrupted_then_resumed(tmp_path, fit, "fit/0", 8, every=3)
+    assert [s for k, s in seen if k == "fit/0"][0] == 7  # continued after the last save (step 6)
+    assert torch.equal(out.model.displacement, ref.model.displacement) and torch.equal(out.sigma, ref.sigma)
+    assert out.curve == ref.curve and [st for st, _ in out.curve] == [3, 6, 9, 12]
 
 
 def test_surface_lbfgs_study_resumed_equals_the_uninterrupted_one(tmp_path, dome_scene):
     """L-BFGS rounds with a Laplacian weight chosen by held-out fits (many fits, each its own key)."""
     facets, obs, sun = dome_scene
-    s = TrainSettings(control_points=(3, 3), degree=(2, 2), samples=(8, 8), resolution=32, loss="l1",
-                      optimizer="lbfgs", continuation=(1.5,), continuation_iters=4, lbfgs_round=6, steps=16,
-                      laplacian_grid=(1e-3, 1e-2))
+    s = SurfaceSettings(control_points=(3, 3), degree=(2, 2), samples=(8, 8), resolution=32, loss="l1",
+                        optimizer="lbfgs", continuation=(1.5,), continuation_iters=4, lbfgs_round=6, steps=16)
 
     def fit():
-        return train_with_early_stopping(facets, obs, sun, s, progress=False)
+        chosen, record = choose_laplacian(facets, obs, sun, s, (1e-3, 1e-2))
+        return fit_surface(facets, obs, sun, chosen), record
 
-    ref, ref_info = fit()
-    (out, info), seen = _interrupted_then_resumed(tmp_path, fit, "surface/1", 1)
-    assert torch.equal(out.displacement, ref.displacement)
-    assert info.selection == ref_info.selection
-    assert not any(k == "surface/0" for k, _ in seen)
+    ref, ref_record = fit()
+    (out, record), seen = _interrupted_then_resumed(tmp_path, fit, "fit/1", 2, every=1)
+    assert torch.equal(out.model.displacement, ref.model.displacement) and out.log == ref.log
+    assert record == ref_record
+    assert not any(k == "fit/0" for k, _ in seen) and ("fit/1", 3) in seen  # fit/0 restored, fit/1 continued
 
 
 def test_changed_settings_stale_and_corrupt_checkpoints_are_one_line_errors(tmp_path):
@@ -246,39 +249,6 @@ def test_cli_calibrate_interrupted_resumes_to_the_same_report(tmp_path, two_heli
         assert a["heliostats"][hid]["test"] == rep["test"]
 
 
-def _reconstruct(capsys, paint, out, *extra):
-    return run_cli(capsys, "reconstruct", "--paint", paint, "--heliostat", "AA39", "--steps", "12", "--control-points",
-                   "4x4", "--degree", "2", "--no-mc", "--slope-error", "1", "--checkpoint-interval", "0", "--json", out,
-                   "--device", "cpu", "--method", "legacy", *extra)
-
-
-@pytest.mark.slow  # three real reconstructions with plots (~15 s)
-def test_cli_reconstruct_interrupted_resumes_to_the_same_report(tmp_path, two_heliostats, capsys, monkeypatch):
-    """``reconstruct`` (held-out-image fit, then the refit) interrupted in its second fit: exit 130 with the
-    checkpoint kept; ``--resume`` restores the first fit and reaches the uninterrupted run's report."""
-    from heliotwin.io import checkpoint as ckmod
-
-    ref = tmp_path / "ref.json"
-    code, _, err = _reconstruct(capsys, two_heliostats, ref)
-    assert code == 0, err
-    out = tmp_path / "run.json"
-    real_init = ckmod.Checkpoint.__init__
-    monkeypatch.setattr(ckmod.Checkpoint, "__init__",
-                        lambda self, *a, **kw: real_init(self, *a, **dict(kw, hook=_stop_at("surface/1", 5))))
-    code, _, err = _reconstruct(capsys, two_heliostats, out)
-    monkeypatch.undo()
-    assert code == 130 and "--resume" in err.splitlines()[-1]
-    assert not out.exists() and os.path.exists(checkpoint_path(out))
-    code, _, err = _reconstruct(capsys, two_heliostats, out, "--steps", "13", "--resume")
-    assert_one_line_error(code, err, "other settings")
-    code, _, err = _reconstruct(capsys, two_heliostats, out, "--resume")
-    assert code == 0, err
-    assert not os.path.exists(checkpoint_path(out))
-    a, b = json.loads(out.read_text()), json.loads(ref.read_text())
-    assert a["test"] == b["test"] and a["early_stopping"] == b["early_stopping"]
-    assert a["displacement_mm"] == b["displacement_mm"]
-
-
 def test_cli_refuses_a_corrupt_or_unresumed_checkpoint_before_any_work(tmp_path, capsys):
     """Checked before the PAINT folder is even read: a corrupt checkpoint, a checkpoint without --resume and
     --resume without an output are one line each (exit 2), and the file is left alone."""
@@ -312,8 +282,8 @@ def test_sigterm_during_reconstruct_keeps_the_checkpoint_and_resume_finishes(tmp
     env = dict(os.environ, PYTHONPATH=str(src), OMP_NUM_THREADS="1", HELIOTWIN_DEBUG="0")
     out = tmp_path / "run.json"
     argv = [sys.executable, "-m", "heliotwin", "reconstruct", "--paint", str(two_heliostats), "--heliostat", "AA39",
-            "--steps", "400", "--control-points", "4x4", "--degree", "2", "--no-mc", "--slope-error", "1",
-            "--checkpoint-interval", "0", "--json", str(out), "--quiet", "--method", "legacy"]
+            "--steps", "40", "--control-points", "4x4", "--degree", "2", "--slope-error", "1",
+            "--checkpoint-interval", "0", "--json", str(out), "--quiet"]
     proc = subprocess.Popen(argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     t0 = time.monotonic()
     while not os.path.exists(checkpoint_path(out)):

@@ -69,7 +69,7 @@ def test_cli_deflectometry_bad_file_one_line_error(paint_dir, tmp_path, capsys):
     bad.write_text("not hdf5")
     out_json = tmp_path / "r.json"
     rc = main(["reconstruct", "--paint", str(paint_dir), "--heliostat", "AA39", "--deflectometry", str(bad),
-               "--json", str(out_json), "--quiet", "--no-mc", "--method", "legacy"])
+               "--json", str(out_json), "--quiet"])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and len(err.splitlines()) == 1 and "defl.h5" in err
     assert not out_json.exists()

@@ -10,7 +10,7 @@ from heliotwin.surfaces import losses
 from heliotwin.surfaces.acceptance import ALPHAS, robust_outliers, shrink_to_accept, wilson_interval
 from heliotwin.surfaces.edges import edge_ridge_mrad, high_order, slope_penalty
 from heliotwin.surfaces.generalise import (
-    GeneraliseSettings,
+    SurfaceSettings,
     canting_focal_length,
     evaluate_with_camera,
     fit_generalising,
@@ -123,9 +123,9 @@ def _small_fit_case():
         img, _, _ = predict_images(truth.surfaces(), obs, SunSettings(sunshape="gaussian", sigma=2.5e-3),
                                    samples=(6, 6), resolution=16, size_m=4.0)
     obs.images = camera_truth(img, 0.8, 0.05)
-    s = GeneraliseSettings(control_points=(4, 4), degree=(2, 2), samples=(6, 6), resolution=16, size_m=4.0,
-                           focus_grid=(None,), slope_grid=(1e-3, 2e-3), blur_grid_px=(0.0, 1.0),
-                           slope_weight_grid=(1e-2,), steps=4, eval_every=2, blur_modes=("none",))
+    s = SurfaceSettings(control_points=(4, 4), degree=(2, 2), samples=(6, 6), resolution=16, size_m=4.0,
+                        focus_grid=(None,), slope_grid=(1e-3, 2e-3), blur_grid_px=(0.0, 1.0),
+                        slope_weight_grid=(1e-2,), steps=4, eval_every=2, blur_modes=("none",))
     return facets, obs, s
 
 
@@ -175,7 +175,8 @@ def test_fit_never_leaves_a_training_image_worse_than_the_ideal():
 @pytest.mark.slow
 def test_aa39_generalising_meets_the_issue_figures(paint_dir):
     """Real AA39 (3 earliest images train, 7 test): no training image worse than the ideal, median test L1
-    below the legacy 0.146, most test images improved, no residual edge ridge above 5 mrad (~4 min)."""
+    below the retired legacy learner's 0.146, most test images improved, no residual edge ridge above 5 mrad
+    (~4 min)."""
     from heliotwin.workflows.reconstruct import ReconstructionSettings, reconstruct
 
     _, rep, _ = reconstruct(None, paint_dir, "AA39", ReconstructionSettings(train_first=3, device="cpu"),
@@ -189,13 +190,13 @@ def test_aa39_generalising_meets_the_issue_figures(paint_dir):
 def _reconstruct_generalising(capsys, paint_dir, tmp_path, *extra):
     from helpers.cli import run_cli
 
-    return run_cli(capsys, "reconstruct", "--method", "generalising", "--paint", paint_dir, "--heliostat", "AA39",
+    return run_cli(capsys, "reconstruct", "--paint", paint_dir, "--heliostat", "AA39",
                    "--steps", "4", "--control-points", "4x4", "--degree", "2", "--slope-error", "2", "--quiet",
                    "--json", tmp_path / "r.json", *extra)
 
 
 def test_cli_generalising_on_a_scenario_stores_an_accepted_surface(paint_dir, tmp_path, capsys):
-    """``reconstruct --method generalising --scenario S -o`` on real AA39 with a 4-step budget (~8 s): no
+    """``reconstruct --scenario S -o`` on real AA39 with a 4-step budget (~8 s): no
     training image worse than the ideal, the choices and per-image rows reported, and the learned surface
     (the accepted one) stored under /learned/surfaces/AA39 with the method's provenance."""
     import json
@@ -212,7 +213,7 @@ def test_cli_generalising_on_a_scenario_stores_an_accepted_surface(paint_dir, tm
                                              "-o", tmp_path / "b.h5")
     assert code == 0, err
     rep = json.loads((tmp_path / "r.json").read_text())
-    assert rep["method"] == "generalising" and rep["plant"] == "scenario"
+    assert rep["plant"] == "scenario"
     assert len(rep["train"]) == 3 and len(rep["test"]) == 7
     assert rep["train_worse_than_ideal"] == 0
     assert all(r["l1_learned"] <= r["l1_ideal"] + 1e-6 for r in rep["train"])
@@ -226,7 +227,7 @@ def test_cli_generalising_on_a_scenario_stores_an_accepted_surface(paint_dir, tm
     sc = load_scenario(tmp_path / "b.h5")
     assert sc.provenance[-1]["step"] == "reconstruct" and list(sc.learned["surfaces"]) == ["AA39"]
     item = learned_surface(sc, "AA39")
-    assert item["settings"]["method"] == "generalising" and item["settings"]["chosen"] == rep["choices"]
+    assert item["settings"]["chosen"] == rep["choices"]
     assert item["optics"].slope_error == pytest.approx(2e-3) and item["train_records"] == [
         int(r["record"]) for r in rep["train"]]
     cp = item["surfaces"].control_points
@@ -239,12 +240,14 @@ def test_cli_generalising_on_a_scenario_stores_an_accepted_surface(paint_dir, tm
 @pytest.mark.parametrize("flags, needle", [(["--loss", "kl"], "--loss"),
                                            (["--integrator", "mc"], "--integrator"),
                                            (["--background", "0.1"], "--background"),
-                                           (["--deflectometry", "d.h5"], "--deflectometry")])
-def test_cli_generalising_refuses_legacy_only_flags_in_one_line(tmp_path, capsys, flags, needle):
+                                           (["--start-from-deflectometry"], "--start-from-deflectometry"),
+                                           (["--method", "legacy"], "--method legacy")])
+def test_cli_refuses_the_retired_learners_flags_in_one_line(tmp_path, capsys, flags, needle):
+    """The retired legacy learner's flags: one line saying what replaces them, before any file is read."""
     from helpers.cli import assert_one_line_error
 
     code, _, err = _reconstruct_generalising(capsys, tmp_path / "missing", tmp_path, *flags)
-    assert_one_line_error(code, err, needle, "--method generalising")
+    assert_one_line_error(code, err, needle, "retired legacy learner")
     assert code == 2 and not (tmp_path / "r.json").exists()
 
 

@@ -10,7 +10,7 @@ import torch
 
 from heliotwin.cli import main
 from heliotwin.io.paint import load_paint
-from heliotwin.surfaces.observations import load_centered_image, observations_from_records, split_records
+from heliotwin.surfaces.observations import load_centered_image, observations_from_records, split_record_ids
 
 
 def test_aa39_centred_records_split_and_orientation(paint_dir):
@@ -19,7 +19,8 @@ def test_aa39_centred_records_split_and_orientation(paint_dir):
     assert len(records) == 18
     with_img = records.select(with_centered_image=True)
     assert len(with_img) == 10
-    train, test = split_records(records, train_first=3)
+    tr, te = split_record_ids(records.record_id.tolist(), records.datetime, records.flux_centered_png, train_first=3)
+    train, test = records.subset(tr), records.subset(te)
     # No DateTime for AA39 in the metadata: the earliest are by id.
     assert train.record_id.tolist() == [86520, 151375, 202558]
     assert len(test) == 7 and not set(train.record_id.tolist()) & set(test.record_id.tolist())

@@ -10,7 +10,7 @@ from heliotwin.errors import HeliotwinError, InputFileError
 from heliotwin.field.demo import demo_plant
 from heliotwin.field.plant import SunSettings
 from heliotwin.io.scenario import load_scenario, save_scenario, write_scenario
-from heliotwin.surfaces.generalise import GeneraliseSettings, fit_generalising, focused_start
+from heliotwin.surfaces.generalise import SurfaceSettings, fit_generalising, focused_start
 from heliotwin.surfaces.imaging import predict_images
 from heliotwin.surfaces.learning import LearnableSurface, learnable_surfaces
 from heliotwin.surfaces.mismatch import camera_truth
@@ -141,9 +141,9 @@ def test_the_prior_pulls_a_one_image_fit_toward_the_truth():
     prior = surface_prior(sources, [f"S{i}" for i in range(4)])
     coef = pattern + _coef(300, 0.2e-3)
     truth, obs.images = _truth_and_images(facets, obs, coef, 1)
-    s = GeneraliseSettings(control_points=(4, 4), degree=(2, 2), samples=(8, 8), resolution=24, size_m=4.0,
-                           focus_grid=(None,), slope_grid=(1e-3,), blur_grid_px=(0.0,), steps=30, eval_every=10,
-                           blur_modes=("none",))
+    s = SurfaceSettings(control_points=(4, 4), degree=(2, 2), samples=(8, 8), resolution=24, size_m=4.0,
+                        focus_grid=(None,), slope_grid=(1e-3,), blur_grid_px=(0.0,), steps=30, eval_every=10,
+                        blur_modes=("none",))
     sun = SunSettings(sunshape="buie", csr=0.05)
     errs = {}
     for name, p in (("without", None), ("with", prior)):
@@ -161,20 +161,21 @@ def test_the_prior_pulls_a_one_image_fit_toward_the_truth():
 def test_the_penalty_holds_the_low_order_shape_near_the_prior_mean():
     """One Adam fit (before the acceptance rule) of a heliostat unlike the prior: with the penalty it ends
     much nearer the prior mean, in Mahalanobis distance, than with weight 0 from the same start."""
-    from heliotwin.surfaces.generalise import _fit
+    from heliotwin.surfaces.fit import fit_surface
     from heliotwin.surfaces.nuisance import estimate_camera
 
     facets, obs, _ = small_scene(distance=20.0, n=1)
     sources = torch.stack([_coef(400) + _coef(500 + i, 0.2e-3) for i in range(3)])
     prior = surface_prior(sources, ["S0", "S1", "S2"])
     _, obs.images = _truth_and_images(facets, obs, _coef(600, 2e-3), 2)
-    s = GeneraliseSettings(control_points=(4, 4), degree=(2, 2), samples=(8, 8), resolution=24, size_m=4.0,
-                           steps=30, blur_lr=0.0)
+    s = SurfaceSettings(control_points=(4, 4), degree=(2, 2), samples=(8, 8), resolution=24, size_m=4.0,
+                        steps=30, blur_lr=0.0)
     sun = SunSettings(sunshape="buie", csr=0.05, slope_error=1e-3)
     cam = estimate_camera(obs.images.to(torch.float32))
     m2 = {}
     for w in (0.0, 0.1):
-        model, _, _ = _fit(facets, obs, cam, torch.zeros(1), sun, None, 1e-2, s, s.steps, prior=prior, prior_weight=w)
+        model = fit_surface(facets, obs, sun, s, camera=cam, sigma0=torch.zeros(1), slope_weight=1e-2, prior=prior,
+                            prior_weight=w).model
         m2[w] = float(prior_penalty(prior, model.surfaces(), facets).detach())
     assert m2[0.1] < 0.5 * m2[0.0], m2
 
@@ -218,7 +219,7 @@ def test_cli_surface_prior_is_used_reported_and_stored(paint_dir, tmp_path, caps
 
 def test_cli_surface_prior_errors_are_one_line(paint_dir, tmp_path, capsys):
     """Missing file, a scenario without learned surfaces, a prior of another facet count, leakage (the prior
-    learned from AA39 itself), and the legacy method: each one line, no report written."""
+    learned from AA39 itself), and the retired legacy method: each one line, no report written."""
     from helpers.cli import assert_one_line_error
 
     from heliotwin.surfaces.plantprior import surface_prior
@@ -238,4 +239,4 @@ def test_cli_surface_prior_errors_are_one_line(paint_dir, tmp_path, capsys):
         assert_one_line_error(code, err, *needles)
         assert not (tmp_path / "r.json").exists()
     code, _, err = _reconstruct(capsys, paint_dir, tmp_path, "--method", "legacy", "--surface-prior-from", "x.h5")
-    assert_one_line_error(code, err, "--surface-prior-from", "--method generalising")
+    assert_one_line_error(code, err, "--method legacy", "retired", "one learner")

@@ -1,4 +1,5 @@
-"""A tiny in-silico reconstruction: the learned surface recovers a known bump better than the ideal one."""
+"""Tiny in-silico reconstructions with the one surface fit (Adam and L-BFGS): the learned surface recovers a known
+bump better than the ideal one."""
 from __future__ import annotations
 
 import torch
@@ -6,11 +7,11 @@ from helpers.surfaces import small_scene
 
 from heliotwin.field.plant import SunSettings
 from heliotwin.surfaces import losses
+from heliotwin.surfaces.fit import SurfaceSettings, fit_surface
 from heliotwin.surfaces.imaging import predict_images
 from heliotwin.surfaces.insilico import surface_metrics
 from heliotwin.surfaces.learning import LearnableSurface, learnable_surfaces
 from heliotwin.surfaces.observations import Observations
-from heliotwin.surfaces.training import TrainSettings, fit_surface
 
 
 def test_tiny_reconstruction_recovers_bump():
@@ -26,9 +27,11 @@ def test_tiny_reconstruction_recovers_bump():
     with torch.no_grad():
         obs.images, _, _ = predict_images(truth, obs, sun, samples=(16, 16), resolution=32)
     train, test = obs.subset([0, 1]), obs.subset([2])
-    settings = TrainSettings(control_points=net, degree=deg, samples=(12, 12), resolution=32, steps=50, lr=0.3,
-                             decay=0.99, laplacian=1e-3, loss="l1")
-    model, _ = fit_surface(facets, train, sun, settings, progress=False)
+    settings = SurfaceSettings(control_points=net, degree=deg, samples=(12, 12), resolution=32, steps=50, lr=0.3,
+                               decay=0.99, laplacian=1e-3, loss="l1")
+    fit = fit_surface(facets, train, sun, settings)
+    model = fit.model
+    assert fit.evaluations == 50 and fit.sigma is None and fit.curve == []  # no camera model, no held-out image
     ideal = LearnableSurface(facets, net, deg).surfaces()
     with torch.no_grad():
         li = float(losses.l1(predict_images(ideal, test, sun, samples=(16, 16), resolution=32)[0], test.images).mean())
@@ -40,8 +43,8 @@ def test_tiny_reconstruction_recovers_bump():
     assert m_learned["normal_deviation_mrad"] < 0.7 * m_ideal["normal_deviation_mrad"], (m_learned, m_ideal)
 
 
-def test_lbfgs_coarse_to_fine_and_leave_one_out_weight_choice():
-    from heliotwin.surfaces.training import train_with_early_stopping
+def test_lbfgs_with_a_leave_one_out_weight_choice_ends_by_its_rules():
+    from heliotwin.surfaces.insilico import choose_laplacian
 
     facets, obs, _ = small_scene(distance=20.0, n=3)
     sun = SunSettings(sunshape="buie", slope_error=0.5e-3)
@@ -50,14 +53,19 @@ def test_lbfgs_coarse_to_fine_and_leave_one_out_weight_choice():
     truth = learnable_surfaces(facets, LearnableSurface(facets, (5, 5), (2, 2)).base, d_true, (2, 2))
     with torch.no_grad():
         obs.images, _, _ = predict_images(truth, obs, sun, samples=(12, 12), resolution=32)
-    s = TrainSettings(control_points=(3, 3), refine_to=(5, 5), degree=(2, 2), samples=(10, 10), resolution=32,
-                      loss="l1", optimizer="lbfgs", fix_gauge=True, continuation=(1.5,), continuation_iters=5,
-                      lbfgs_round=10, steps=30, laplacian_grid=(1e-3, 1e-2), laplacian_cv="loo")
-    model, info = train_with_early_stopping(facets, obs, sun, s, progress=False)
-    assert model.num_control_points == (5, 5)
-    chosen = info.selection
+    s = SurfaceSettings(control_points=(5, 5), degree=(2, 2), samples=(10, 10), resolution=32, loss="l1",
+                        optimizer="lbfgs", continuation=(1.5,), continuation_iters=5, lbfgs_round=10, steps=30)
+    s, chosen = choose_laplacian(facets, obs, sun, s, (1e-3, 1e-2), cv="loo")
     assert chosen["laplacian_cv"] == "loo" and len(chosen["holdout"]) == 3
     assert set(chosen["laplacian_scores"]) == {1e-3, 1e-2}
+    assert s.laplacian == min(chosen["laplacian_scores"], key=chosen["laplacian_scores"].get)
+    fit = fit_surface(facets, obs, sun, s)
+    model, log = fit.model, fit.log
+    # The blur continuation first, then sharp rounds until the evaluation budget or the tolerance ends the fit.
+    assert log[0]["blur_px"] == 1.5 and all(e["blur_px"] == 0.0 for e in log[1:])
+    assert log[-1]["step"] == fit.evaluations
+    sharp = [e["total"] for e in log[1:]]
+    assert fit.evaluations >= 30 or sharp[-2] - sharp[-1] <= s.tolerance * abs(sharp[-1])
     ideal = LearnableSurface(facets, (5, 5), (2, 2)).surfaces()
     assert surface_metrics(facets, model.surfaces(), truth)["normal_deviation_mrad"] < \
         surface_metrics(facets, ideal, truth)["normal_deviation_mrad"]
@@ -94,10 +102,10 @@ def test_common_tilt_is_learned_in_fixed_windows_and_invisible_in_centred_ones()
     l1_centred = float(losses.l1(centred_ideal, obs.images).mean())
     l1_fixed = float(losses.l1(fixed_ideal, fixed.images).mean())
     assert l1_fixed > 5 * l1_centred, (l1_centred, l1_fixed)
-    s = TrainSettings(control_points=net, degree=deg, samples=(12, 12), resolution=32, loss="l1", optimizer="lbfgs",
-                      fix_gauge=True, continuation=(), lbfgs_round=40, steps=80, laplacian=1e-3)
-    learned_fixed, _ = fit_surface(facets, fixed, sun, s, progress=False)
-    learned_centred, _ = fit_surface(facets, obs, sun, s, progress=False)
+    s = SurfaceSettings(control_points=net, degree=deg, samples=(12, 12), resolution=32, loss="l1", optimizer="lbfgs",
+                        continuation=(), lbfgs_round=40, steps=80, laplacian=1e-3)
+    learned_fixed = fit_surface(facets, fixed, sun, s).model
+    learned_centred = fit_surface(facets, obs, sun, s).model
     assert not learned_fixed.gauge_tilt and learned_centred.gauge_tilt
     assert surface_metrics(facets, learned_fixed.surfaces(), truth)["normal_deviation_mrad"] < 0.2
     assert surface_metrics(facets, learned_centred.surfaces(), truth)["normal_deviation_mrad"] > 0.9

@@ -1,41 +1,37 @@
-"""The reconstruct workflow's settings: one settings object, the learner a choice inside it."""
+"""The reconstruct workflow's settings: one settings object, one learner."""
 from __future__ import annotations
+
+import dataclasses
 
 import pytest
 
 from heliotwin.errors import HeliotwinError
-from heliotwin.surfaces.generalise import GeneraliseSettings
-from heliotwin.surfaces.training import TrainSettings
+from heliotwin.surfaces.fit import SurfaceSettings
 from heliotwin.workflows.reconstruct import ReconstructionSettings
 
 
-def test_each_method_gets_its_learner_settings_from_the_one_settings_object():
+def test_the_learner_settings_come_from_the_one_settings_object():
     g = ReconstructionSettings().learner()
-    assert isinstance(g, GeneraliseSettings) and g == GeneraliseSettings()  # the defaults are the learner's
+    assert isinstance(g, SurfaceSettings) and g == SurfaceSettings()  # the defaults are the learner's
     small = ReconstructionSettings(steps=4, control_points="4x4", degree=2, slope_error_mrad=1.5).learner()
     assert (small.steps, small.eval_every, small.control_points, small.degree) == (4, 2, (4, 4), (2, 2))
     assert small.slope_grid == (1.5e-3,)
-    legacy = ReconstructionSettings(method="legacy", integrator="mc", loss="l1").learner()
-    assert isinstance(legacy, TrainSettings)
-    assert (legacy.steps, legacy.loss, legacy.integrator) == (200, "l1", "mc")
-    assert ReconstructionSettings(method="legacy").learner().loss == "kl"
+    assert not {"method", "loss", "integrator", "background"} & {f.name for f in dataclasses.fields(
+        ReconstructionSettings)}
 
 
-@pytest.mark.parametrize("changes, needle", [
-    (dict(loss="kl"), "--loss"), (dict(integrator="mc"), "--integrator"), (dict(background=0.1), "--background"),
-    (dict(deflectometry="d.h5"), "--deflectometry"), (dict(start_from_deflectometry=True), "--start-from"),
-    (dict(method="legacy", surface_prior_from=("a.h5",)), "--surface-prior-from"),
-    (dict(method="legacy", start_from_deflectometry=True), "needs --deflectometry"),
-    (dict(method="nope"), "method must be"),
-])
-def test_an_option_the_chosen_learner_does_not_take_is_one_line(changes, needle):
-    with pytest.raises(HeliotwinError, match=needle) as exc:
-        ReconstructionSettings(**changes).check()
+def test_inconsistent_options_and_unknown_learner_settings_are_one_line():
+    with pytest.raises(HeliotwinError, match="--train-records or --train-first") as exc:
+        ReconstructionSettings(train_records=(1, 2), train_first=3).check()
     assert "\n" not in str(exc.value)
+    with pytest.raises(HeliotwinError, match="unknown optimizer 'sgd'"):
+        SurfaceSettings(optimizer="sgd")
+    with pytest.raises(HeliotwinError, match="unknown image loss 'l3'"):
+        SurfaceSettings(loss="l3")
 
 
-def test_the_checkpoint_fingerprint_follows_every_fit_setting_but_not_the_evaluation():
-    base = ReconstructionSettings(method="legacy")
-    assert base.fingerprint() == ReconstructionSettings(method="legacy", evaluate_mc=False).fingerprint()
-    assert base.fingerprint() != ReconstructionSettings(method="legacy", steps=13).fingerprint()
-    assert ReconstructionSettings().fingerprint() != ReconstructionSettings(control_points="5x5").fingerprint()
+def test_the_checkpoint_fingerprint_follows_every_fit_setting_but_not_the_device():
+    base = ReconstructionSettings()
+    assert base.fingerprint() == ReconstructionSettings(device="cpu").fingerprint()
+    assert base.fingerprint() != ReconstructionSettings(steps=13).fingerprint()
+    assert base.fingerprint() != ReconstructionSettings(control_points="5x5").fingerprint()

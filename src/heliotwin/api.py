@@ -223,8 +223,7 @@ def reconstruct(paint, heliostat: str, settings: ReconstructionSettings | None =
         PAINT download folder.
     heliostat : str
     settings : heliotwin.workflows.reconstruct.ReconstructionSettings, optional
-        The learner (``method``: ``generalising`` or ``legacy``) and its options; the defaults are the command
-        line's (a test checks that they agree).
+        The learner's options; the defaults are the command line's (a test checks that they agree).
     scenario : str or os.PathLike, optional
         Start from this scenario's plant (e.g. a calibrated one).
     checkpoint, resume

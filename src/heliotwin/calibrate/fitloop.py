@@ -17,6 +17,13 @@ Checkpoints. Under an active :mod:`heliotwin.io.checkpoint` (``calibrate --resum
 bookkeeping, the state of every optimiser that steps inside it (found by torch's global optimiser-step
 hooks, so no method has to hand its optimiser over) and of the generators it is given. A resumed run
 restores a finished loop instead of running it, and continues an unfinished one after its last saved step.
+
+Surface fits run in the same loop (:mod:`heliotwin.surfaces.fit`, one "heliostat"). They use two options that
+no calibration method sets (so calibration's loop is unchanged): an early end (:class:`EarlyEnd`: patience on
+the validation error, a relative tolerance on the training loss, or a condition of the caller's) and steps
+that build a fresh optimiser every call (``optimiser_states=False``: L-BFGS rounds whose history is reset, so
+no optimiser state is saved or restored). A ``swap`` changes the step function, and with it the optimiser,
+at a given iteration (e.g. Adam, then L-BFGS); the checkpoint then holds the optimiser of the running phase.
 """
 from __future__ import annotations
 
@@ -231,12 +238,85 @@ class _Optimisers:
         return [copy.deepcopy(o.state_dict()) for o in self.seen]
 
 
-def _entry(it: int, state: State, log, optimisers: _Optimisers, generators) -> dict:
+@dataclass
+class EarlyEnd:
+    """When a loop may end before its iteration budget (every rule off by default).
+
+    Attributes
+    ----------
+    patience : int, optional
+        End after this many validation checks in a row in which no heliostat's best validation error fell by
+        more than ``min_delta``.
+    min_delta : float
+        What counts as a better validation error (same units as the error).
+    tolerance : float, optional
+        End when a step's training loss (what ``step`` returned) is lower than the previous counted step's by
+        at most ``tolerance`` times its magnitude (relative; the first counted step never ends the loop).
+    after : int
+        Iterations before this one are not counted by ``tolerance`` (e.g. a warm-up or continuation phase).
+    done : callable, optional
+        ``done() -> bool``, asked after every step: a condition of the caller's (e.g. a spent budget of loss
+        evaluations).
+    """
+
+    patience: int | None = None
+    min_delta: float = 0.0
+    tolerance: float | None = None
+    after: int = 0
+    done: Callable | None = None
+
+
+@dataclass
+class _Ending:
+    """The early end's bookkeeping (checkpointed with the loop)."""
+
+    rule: EarlyEnd
+    bad_checks: int = 0
+    previous: float = float("inf")
+    ended: bool = False
+
+    def after_step(self, it: int, loss) -> None:
+        if self.rule.tolerance is not None and loss is not None and it >= self.rule.after:
+            value = float(loss.detach()) if isinstance(loss, torch.Tensor) else float(loss)
+            if self.previous - value <= self.rule.tolerance * abs(value):
+                self.ended = True
+            else:
+                self.previous = value
+        if self.rule.done is not None and self.rule.done():
+            self.ended = True
+
+    def after_check(self, improved: bool) -> None:
+        if self.rule.patience is None:
+            return
+        self.bad_checks = 0 if improved else self.bad_checks + 1
+        self.ended = self.ended or self.bad_checks >= self.rule.patience
+
+    def dump(self) -> dict:
+        return {"bad_checks": self.bad_checks, "previous": self.previous, "ended": self.ended}
+
+    def load(self, data: dict) -> None:
+        self.bad_checks, self.previous = int(data["bad_checks"]), float(data["previous"])
+        self.ended = bool(data["ended"])
+
+
+@dataclass
+class Swap:
+    """From iteration ``at + 1`` on the loop calls ``step`` instead of its own step function (a new optimiser:
+    e.g. Adam first, then L-BFGS from Adam's end point). ``step`` builds its optimiser on its first call."""
+
+    at: int
+    step: Callable
+
+
+def _entry(it: int, state: State, log, optimisers: _Optimisers, generators, ending: _Ending | None = None) -> dict:
     """The checkpoint entry of a loop after iteration ``it``."""
-    return {"step": int(it), "live": state.dump(state.live), "best": state.dump(log.best),
-            "best_error": log.best_error.detach().clone(), "best_iteration": log.best_iteration.clone(),
-            "history": [(int(i), m) for i, m in log.history], "losses": list(log.losses),
-            "optimisers": optimisers.dump(), "generators": [g.get_state() for g in generators]}
+    out = {"step": int(it), "live": state.dump(state.live), "best": state.dump(log.best),
+           "best_error": log.best_error.detach().clone(), "best_iteration": log.best_iteration.clone(),
+           "history": [(int(i), m) for i, m in log.history], "losses": list(log.losses),
+           "optimisers": optimisers.dump(), "generators": [g.get_state() for g in generators]}
+    if ending is not None:
+        out["early_end"] = ending.dump()
+    return out
 
 
 def _restore(saved: dict, state: State, log, generators) -> int:
@@ -268,6 +348,8 @@ class FitLog:
     history : list of (iteration, median over heliostats of the validation error [mrad] or None)
     losses : list of float
         Training loss per iteration (what ``step`` returned).
+    ended_at : int
+        The last iteration run (``iterations`` unless an :class:`EarlyEnd` rule ended the loop).
     """
 
     best: object
@@ -275,6 +357,7 @@ class FitLog:
     best_iteration: torch.Tensor
     history: list = field(default_factory=list)
     losses: list = field(default_factory=list)
+    ended_at: int | None = None
 
 
 def _median_mrad(err: torch.Tensor):
@@ -292,7 +375,8 @@ def _iterations(iterations: int, progress: bool, desc: str, first: int = 1):
 def early_stopping_fit(step: Callable, validation_error: Callable, state: State, iterations: int, *,
                        validated: torch.Tensor, check_every: int = 1, project: Callable | None = None,
                        stop_at: torch.Tensor | None = None, progress: bool = False, desc: str = "fit",
-                       generators=()) -> FitLog:
+                       generators=(), early_end: EarlyEnd | None = None, swap: Swap | None = None,
+                       optimiser_states: bool = True) -> FitLog:
     """Run ``iterations`` optimiser steps and keep every heliostat's best state on validation.
 
     Parameters
@@ -319,6 +403,18 @@ def early_stopping_fit(step: Callable, validation_error: Callable, state: State,
         tqdm bar titled ``desc``.
     generators : sequence of torch.Generator
         Generators ``step`` draws from (their states are checkpointed with the loop's).
+    early_end : EarlyEnd, optional
+        Rules to end before ``iterations`` (default: run them all). The loop then validates once more after
+        its last step, and ``best_iteration`` of heliostats without validation is that step.
+    swap : Swap, optional
+        Change the step function (and so the optimiser) after iteration ``swap.at``.
+    optimiser_states : bool
+        False when ``step`` builds a fresh optimiser on every call (nothing to checkpoint or restore).
+
+    Returns
+    -------
+    FitLog
+        ``ended_at``: the last iteration run.
     """
     ck = _checkpoint.current()
     key = ck.claim("fit") if ck is not None and state.dump is not None else None
@@ -326,43 +422,80 @@ def early_stopping_fit(step: Callable, validation_error: Callable, state: State,
     best_err = validation_error()
     best_it = torch.zeros(len(best_err), dtype=torch.long, device=best_err.device)
     log = FitLog(best, best_err, best_it, history=[(0, _median_mrad(best_err))])
+    ending = None if early_end is None else _Ending(early_end)
     saved = ck.get(key) if key is not None else None
-    optimisers = _Optimisers(saved["optimisers"] if saved is not None else None)
+    optimisers = _Optimisers(saved["optimisers"] if saved is not None and optimiser_states else None)
     done = _restore(saved, state, log, generators) if saved is not None else 0
+    if saved is not None and ending is not None:
+        ending.load(saved["early_end"])
     if done and getattr(project, "sync", None) is not None:
         project.sync()
-    with optimisers.watching() if key is not None else contextlib.nullcontext():
-        _steps(step, validation_error, state, iterations, log, check_every, project, stop_at,
-               _iterations(iterations, progress, desc, done + 1), ck, key, optimisers, generators)
+    first = iterations + 1 if ending is not None and ending.ended else done + 1
+    steps = _Steps(step, swap, optimisers if key is not None and optimiser_states else None)
+    with optimisers.watching() if key is not None and optimiser_states else contextlib.nullcontext():
+        last = _steps(steps, validation_error, state, iterations, log, check_every, project, stop_at,
+                      _iterations(iterations, progress, desc, first), ck, key, optimisers, generators, ending)
+    log.ended_at = last if last is not None else (done if ending is not None and ending.ended else iterations)
     if stop_at is None:
         final = ~validated.to(best_it.device)
         state.keep(log.best, final)
-        log.best_iteration[final] = iterations
+        log.best_iteration[final] = log.ended_at
     return log
 
 
+class _Steps:
+    """The step function of iteration ``it`` (before or after a :class:`Swap`). At the swap the optimisers seen
+    so far leave the checkpoint: it holds the running phase's (loaded into it on resume)."""
+
+    def __init__(self, step, swap: Swap | None, optimisers: _Optimisers | None):
+        self.step, self.swap, self.optimisers = step, swap, optimisers
+
+    def __call__(self, it: int):
+        if self.swap is not None and it > self.swap.at:
+            if it == self.swap.at + 1 and self.optimisers is not None:
+                self.optimisers.seen.clear()
+            return self.swap.step()
+        return self.step()
+
+
 def _steps(step, validation_error, state, iterations, log, check_every, project, stop_at, its, ck, key, optimisers,
-           generators) -> None:
-    """The iterations ``its`` of :func:`early_stopping_fit` (saving the loop's state when a checkpoint is due)."""
+           generators, ending: _Ending | None = None):
+    """The iterations ``its`` of :func:`early_stopping_fit` (saving the loop's state when a checkpoint is due);
+    returns the last iteration run (None if none ran)."""
     best = log.best
+    last = None
     for it in its:
-        loss = step()
+        last = it
+        loss = step(it)
         if loss is not None:
             log.losses.append(float(loss.detach()) if isinstance(loss, torch.Tensor) else float(loss))
         if project is not None:
             project()
-        if it % check_every == 0 or it == iterations:
+        if ending is not None:
+            ending.after_step(it, loss)
+        if it % check_every == 0 or it == iterations or (ending is not None and ending.ended):
             err = validation_error()
-            better = (stop_at >= it) if stop_at is not None else err < log.best_error
+            if stop_at is not None:
+                better = stop_at >= it
+            elif ending is not None and ending.rule.min_delta:
+                better = err < log.best_error - ending.rule.min_delta
+            else:
+                better = err < log.best_error
             state.keep(best, better)
             log.best_error = torch.where(better, err, log.best_error)
             log.best_iteration[better] = it
             log.history.append((it, _median_mrad(err)))
+            if ending is not None:
+                ending.after_check(bool(better.any()))
+        finished = it == iterations or (ending is not None and ending.ended)
         if key is not None:
-            if it == iterations or ck.due(it):
-                ck.put(key, _entry(it, state, log, optimisers, generators))
+            if finished or ck.due(it):
+                ck.put(key, _entry(it, state, log, optimisers, generators, ending))
             ck.notify("step", key, it)
+        if finished:
+            break
+    return last
 
 
 __all__ = ["BOUNDS", "MIN_MARGIN", "BARRIER_WEIGHT", "actuator_barrier", "make_optimizer", "prior_and_start",
-           "box_and_validity", "State", "tensor_state", "net_state", "FitLog", "early_stopping_fit"]
+           "box_and_validity", "State", "tensor_state", "net_state", "FitLog", "EarlyEnd", "Swap", "early_stopping_fit"]

@@ -3,7 +3,7 @@
 Usage::
 
     heliotwin reconstruct --paint PAINT_DIR --heliostat AA39 --train-first 3 -o learned.h5 --json report.json
-    heliotwin reconstruct --method legacy ... --deflectometry AA39-deflectometry.h5 [--start-from-deflectometry]
+    heliotwin reconstruct ... --deflectometry AA39-deflectometry.h5
     heliotwin reconstruct --paint PAINT_DIR --heliostat AA39 --surface-prior-from S1.h5,S2.h5 -o learned.h5 ...
     heliotwin predict --scenario learned.h5 --heliostat AA39 --year 2023 --every 30min --json out.json
 
@@ -11,9 +11,14 @@ Usage::
 calls the workflow (:mod:`heliotwin.workflows.reconstruct`, :mod:`heliotwin.workflows.predict`), imported inside
 the command functions so that ``--help`` stays torch-free; it then writes the staged outputs. Output folders are
 checked before training, so a typo costs seconds, not a training run.
+
+``reconstruct`` has one learner. The flags of the retired second learner (``--method legacy``, ``--loss``,
+``--integrator mc``, ``--background``, ``--start-from-deflectometry``) are refused in one line that says what
+replaces them; ``--method generalising``, ``--integrator conv`` and ``--no-mc`` are accepted and change nothing.
 """
 from __future__ import annotations
 
+import argparse
 import os
 
 from ..errors import HeliotwinError
@@ -57,44 +62,53 @@ def cmd_reconstruct(args) -> int:
         scenario, report, fit = reconstruct(previous, args.paint, args.heliostat, settings,
                                             checkpoint=args.checkpoint, progress=not args.quiet)
         stage(args, "plotting and writing outputs")
-        plot = _plot_generalising if settings.method == "generalising" else _plot_reconstruction
-        report["plots"] = plot(args, json_path, report, fit)
+        report["plots"] = _plot_reconstruction(args, json_path, report, fit)
         if output:
             write_scenario(scenario, output)
             report["output"] = os.fspath(args.output)
         write_json(json_path, report)
     if not args.quiet:
-        (_print_generalising if settings.method == "generalising" else _print_reconstruction)(args.heliostat, report)
+        _print_reconstruction(args.heliostat, report)
     return 0
 
 
 cmd_reconstruct.supports_cuda = True  # the learner follows args.device
 
 
+#: Flags of the retired second learner: (flag, was it given?, what replaces it).
+_RETIRED = (
+    ("--method legacy", lambda a: a.method == "legacy", "reconstruct has one learner (the former default); "
+     "the in-silico study's L-BFGS settings are heliotwin.surfaces.insilico.insilico_settings"),
+    ("--loss", lambda a: a.loss is not None, "the learner fits the L1 of unit-sum images after the camera model"),
+    ("--integrator mc", lambda a: a.integrator == "mc", "the learner renders with the conv integrator"),
+    ("--background", lambda a: bool(a.background), "the learner models each image's background cut"),
+    ("--start-from-deflectometry", lambda a: a.start_from_deflectometry,
+     "the learner starts from the canting focus or a plant prior's mean; --deflectometry FILE compares with it"),
+)
+
+
 def _settings(args):
-    """:class:`~heliotwin.workflows.reconstruct.ReconstructionSettings` from the flags (a flag left at its default
-    is None where the learners' defaults differ: ``--steps``, ``--loss``)."""
+    """:class:`~heliotwin.workflows.reconstruct.ReconstructionSettings` from the flags (one line for a retired
+    flag)."""
     from ..workflows.reconstruct import ReconstructionSettings
 
+    for flag, given, instead in _RETIRED:
+        if given(args):
+            raise HeliotwinError(f"{flag} was an option of the retired legacy learner: {instead}")
     prior = None
     if args.surface_prior_from:
         prior = tuple(p.strip() for p in str(args.surface_prior_from).split(","))
     return ReconstructionSettings(
-        method=args.method, train_records=_train_records(args), train_first=args.train_first,
-        control_points=args.control_points, degree=args.degree, steps=int(args.steps) if _given(args.steps) else None,
-        slope_error_mrad=None if args.slope_error == "auto" else args.slope_error, alignment=args.alignment,
-        loss=str(args.loss) if _given(args.loss) else None, integrator=args.integrator, background=args.background,
-        deflectometry=args.deflectometry, start_from_deflectometry=args.start_from_deflectometry,
-        evaluate_mc=not args.no_mc, surface_prior_from=prior, device=getattr(args, "device", "cpu"))
+        train_records=_train_records(args), train_first=args.train_first, control_points=args.control_points,
+        degree=args.degree, steps=args.steps, slope_error_mrad=None if args.slope_error == "auto" else args.slope_error,
+        alignment=args.alignment, deflectometry=args.deflectometry, surface_prior_from=prior,
+        device=getattr(args, "device", "cpu"))
 
 
 def _stage_text(args, settings) -> str:
     learner, device = settings.learner(), getattr(args, "device", "cpu")
-    if settings.method == "generalising":
-        return (f"learning {args.heliostat}'s surface (generalising: optics, leave-one-out over <= {learner.steps} "
-                f"steps, acceptance) on {device}, then evaluating")
-    return (f"learning {args.heliostat}'s surface ({args.integrator}, <= {learner.steps} steps) on {device}, "
-            f"then evaluating")
+    return (f"learning {args.heliostat}'s surface (optics, leave-one-out over <= {learner.steps} steps, "
+            f"acceptance) on {device}, then evaluating")
 
 
 def _set_threads(threads: int) -> None:
@@ -114,35 +128,7 @@ def _train_records(args) -> tuple[int, ...] | None:
                              f"got {args.train_records!r}") from None
 
 
-class _Unset(str):
-    """A flag's default that says it was not given (equal to the default it stands for)."""
-
-
-class _UnsetInt(int):
-    """An integer flag's default that says it was not given (equal to the default it stands for)."""
-
-
-def _given(value) -> bool:
-    return not isinstance(value, (_Unset, _UnsetInt))
-
-
 def _plot_reconstruction(args, json_path, report, fit) -> dict:
-    """The normal-deviation map and the test-image comparison, next to the ``--json`` report (written next to
-    the staged ``json_path``; the report names them next to the user's ``--json``)."""
-    from ..surfaces.plots import plot_flux_comparison, plot_normal_deviation
-
-    model = fit["model"]
-    names = {"normal_deviation": "-normal-deviation.png", "flux": "-flux.png"}
-    staged = {k: os.path.splitext(os.fspath(json_path))[0] + v for k, v in names.items()}
-    plot_normal_deviation(fit["facets"], model.surfaces().control_points, model.degree, staged["normal_deviation"],
-                          title=f"{args.heliostat}: learned normal deviation from ideal [mrad]")
-    plot_flux_comparison(fit["test"].images, fit["ideal_images"], fit["learned_images"],
-                         fit["test"].ids, staged["flux"], [r["l1_ideal"] for r in report["test"]],
-                         [r["l1_learned"] for r in report["test"]])
-    return {k: os.path.splitext(os.fspath(args.json))[0] + v for k, v in names.items()}
-
-
-def _plot_generalising(args, json_path, report, fit) -> dict:
     """Measured vs predicted test images (through the camera model), the normal-deviation map and the residual
     map beyond each facet's tilt + quadratic shape (where edge ridges show), next to the ``--json`` report."""
     from ..surfaces.plots import plot_flux_comparison, plot_normal_deviation, plot_residual_deviation
@@ -166,25 +152,19 @@ def _plot_generalising(args, json_path, report, fit) -> dict:
 
 
 def _print_reconstruction(heliostat: str, report: dict) -> None:
-    print(f"{heliostat}: median test L1 ideal {report['median_l1_ideal']:.3f} -> learned "
-          f"{report['median_l1_learned']:.3f} (median IMP {100 * report['median_imp']:+.0f} %), "
-          f"{report['seconds']:.1f} s")
-    if "deflectometry" in report:
-        c = report["deflectometry"]["learned_vs_deflectometry"]
-        print(f"learned vs deflectometry: {c['normal_deviation_mrad']:.3f} mrad mean normal deviation, "
-              f"{c['height_rms_mm']:.3f} mm height RMS; median test L1 deflectometry "
-              f"{report['deflectometry']['median_l1_deflectometry']:.3f}")
-
-
-def _print_generalising(heliostat: str, report: dict) -> None:
     lo, hi = report["test_improved_wilson95"]
-    print(f"{heliostat} (generalising): median test L1 ideal {report['median_l1_ideal']:.3f} -> learned "
+    print(f"{heliostat}: median test L1 ideal {report['median_l1_ideal']:.3f} -> learned "
           f"{report['median_l1_learned']:.3f}; test improved {report['test_improved']}/{report['test_images']} "
           f"(Wilson 95 % [{lo:.2f}, {hi:.2f}]); training images worse than ideal "
           f"{report['train_worse_than_ideal']}; edge ridge {report['edge_ridge']['edge_max_mrad']:.2f} mrad; "
           + (f"surface prior from {len(report['prior']['heliostats'])} heliostats, weight {report['prior']['weight']:g}"
              f"{', start = its mean' if report['prior']['start_is_prior_mean'] else ''}; " if "prior" in report else "")
           + f"{report['seconds']:.1f} s")
+    if "deflectometry" in report:
+        c = report["deflectometry"]["learned_vs_deflectometry"]
+        print(f"learned vs deflectometry: {c['normal_deviation_mrad']:.3f} mrad mean normal deviation, "
+              f"{c['height_rms_mm']:.3f} mm height RMS; median test L1 deflectometry "
+              f"{report['deflectometry']['median_l1_deflectometry']:.3f}")
 
 
 def cmd_predict(args) -> int:
@@ -228,33 +208,25 @@ def register(subparsers) -> None:
                    help="train on the K earliest records with centred images (default 3)")
     p.add_argument("--control-points", default="7x7", help="control points per facet, e.g. 7x7")
     p.add_argument("--degree", type=int_range(1, 5, "a NURBS degree"), default=3, help="NURBS degree (both directions)")
-    p.add_argument("--integrator", choices=("conv", "mc"), default="conv",
-                   help="renderer of the training images: exact-sunshape convolution or Monte Carlo (default conv)")
-    p.add_argument("--method", choices=("generalising", "legacy"), default="generalising",
-                   help="legacy: KL loss with early stopping on the latest training image; generalising: "
-                        "camera model, optics chosen on the training images, settings "
-                        "and step count by leave-one-training-image-out, outlier drop, acceptance rule (no "
-                        "training image worse than the ideal) (default %(default)s)")
-    p.add_argument("--loss", choices=("kl", "l1", "l2"), default=_Unset("kl"), help="legacy: image loss (default kl)")
-    p.add_argument("--steps", type=positive_int, default=_UnsetInt(200),
-                   help="maximum optimiser steps (legacy, default 200); generalising: the leave-one-out step "
-                        "budget (default 300)")
+    p.add_argument("--steps", type=positive_int, default=None,
+                   help="the leave-one-out step budget (default 300)")
     p.add_argument("--slope-error", type=_slope_error, default="auto",
                    help="mirror slope error [mrad] or 'auto' (chosen on the training images)")
-    p.add_argument("--background", type=float_range(0.0, 1.0, what="a fraction"), default=0.0,
-                   help="background to subtract, fraction of image max")
     p.add_argument("--alignment", choices=("focal-spot", "motor"), default="focal-spot")
-    p.add_argument("--no-mc", action="store_true",
-                   help="skip the Monte-Carlo evaluation (legacy; generalising has none)")
-    p.add_argument("--deflectometry", help="PAINT deflectometry HDF5: trace its NURBS fit on the test images and "
+    p.add_argument("--deflectometry", help="PAINT deflectometry HDF5: evaluate its NURBS fit on the test images and "
                                           "compare the learned surface with it (mm, mrad)")
-    p.add_argument("--start-from-deflectometry", action="store_true",
-                   help="start the learning from the deflectometry surface instead of flat")
+    # Accepted for old scripts: these change nothing, or are refused in one line (_RETIRED).
+    p.add_argument("--method", choices=("generalising", "legacy"), default="generalising", help=argparse.SUPPRESS)
+    p.add_argument("--integrator", choices=("conv", "mc"), default="conv", help=argparse.SUPPRESS)
+    p.add_argument("--loss", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--background", type=float, default=0.0, help=argparse.SUPPRESS)
+    p.add_argument("--start-from-deflectometry", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--no-mc", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--scenario", help="start from this scenario's plant, e.g. a calibrated one (default: the PAINT "
                                       "folder's nominal plant)")
     p.add_argument("-o", "--output", help="write the plant with the learned surface as a scenario file (.h5)")
     p.add_argument("--surface-prior-from", metavar="S1.h5,S2.h5,...",
-                   help="generalising: a plant prior on the facets' canting and low-order shape, learned from the "
+                   help="a plant prior on the facets' canting and low-order shape, learned from the "
                         "learned surfaces in these scenarios (>= 2 other heliostats of the same design), or one "
                         "scenario holding a stored prior; its weight is chosen by leave-one-training-image-out "
                         "(0 included); -o stores it under /learned/surface_prior")

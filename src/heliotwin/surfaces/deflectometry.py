@@ -10,14 +10,17 @@ Shapes: F facets; (nu, nv) control points; (su, sv) comparison grid per facet.
 """
 from __future__ import annotations
 
+import statistics
+
 import torch
 
 from ..field.plant import Facets, Surfaces
 from ..geometry import angle_between
 from ..io.deflectometry import fit_deflectometry, read_deflectometry
+from .fit import evaluate_with_camera
 from .learning import normal_heights
 
-__all__ = ["deflectometry_surface", "compare_surfaces"]
+__all__ = ["deflectometry_surface", "compare_surfaces", "deflectometry_report"]
 
 
 def deflectometry_surface(path, facets: Facets, num_control_points=(8, 8), degree=(3, 3)) -> tuple[Surfaces, dict]:
@@ -70,3 +73,24 @@ def compare_surfaces(facets: Facets, a: Surfaces, b: Surfaces, grid=(48, 48)) ->
             "height_rms_mm": float(dh.pow(2).mean().sqrt()), "height_max_mm": float(dh.abs().max()),
             "facet_normal_deviation_mrad": ang.mean((-2, -1)).tolist(),
             "facet_height_rms_mm": dh.pow(2).mean((-2, -1)).sqrt().tolist()}
+
+
+def deflectometry_report(path, facets: Facets, learned: Surfaces, ideal: Surfaces, test, info: dict, settings,
+                         rows: list) -> dict:
+    """The deflectometry file at ``path`` beside a reconstruction: its NURBS fit evaluated on the test images as
+    the ideal and learned surfaces are (same optics, camera model and blur, from the learner's ``info``:
+    :func:`heliotwin.surfaces.generalise.reconstruct_generalising`), and compared with both surfaces.
+
+    Adds ``l1_deflectometry`` to each test row of ``rows``; returns ``{"file", "fit" (per-facet fit residuals),
+    "learned_vs_deflectometry", "ideal_vs_deflectometry" (:func:`compare_surfaces`: mrad, mm),
+    "median_l1_deflectometry"}``.
+    """
+    f64 = Facets(*(t.to(torch.float64) for t in facets))
+    defl, fit = deflectometry_surface(path, f64)
+    defl = Surfaces(defl.control_points.to(f64.translation.device), defl.degree_u, defl.degree_v)
+    l1 = evaluate_with_camera(defl, test, info["optics"], info["test_camera"], info["test_sigma"], settings)["l1"]
+    for row, v in zip(rows, l1):
+        row["l1_deflectometry"] = v
+    return {"file": str(path), "fit": fit, "learned_vs_deflectometry": compare_surfaces(f64, learned, defl),
+            "ideal_vs_deflectometry": compare_surfaces(f64, ideal, defl),
+            "median_l1_deflectometry": statistics.median(l1)}

@@ -1,4 +1,9 @@
-"""Surface learning that carries over to unseen images: every setting chosen inside the training images.
+"""The surface learner: learning that carries over to unseen images, every setting chosen inside the training images.
+
+It is the one surface learner of the library (:func:`reconstruct_generalising` is its study entry: fit, then
+evaluate on test images, one report-row shape). Its settings are one class
+(:class:`~heliotwin.surfaces.fit.SurfaceSettings`); each of its fits (leave-one-out and final) is one
+:func:`~heliotwin.surfaces.fit.fit_surface`, run in calibration's fit loop.
 
 Steps (:func:`fit_generalising`), each a stated rule:
 
@@ -6,7 +11,7 @@ Steps (:func:`fit_generalising`), each a stated rule:
    the surface is asked to absorb anything. Candidates: flat canted facets, or facets curved to a focal
    length that is a multiple of the one the heliostat's *canting* implies (:func:`canting_focal_length`:
    the facets' tilt towards the centre, ``f = r / (2 tilt)``, median over facets and axes), times slope
-   errors of :data:`GeneraliseSettings.slope_grid`; each with every training image's best blur of
+   errors of ``SurfaceSettings.slope_grid``; each with every training image's best blur of
    ``blur_grid_px`` and the camera model (:mod:`heliotwin.surfaces.nuisance`). The combination with the
    lowest mean training L1 of the ideal surface is kept; the ideal baseline uses it too.
 2. **Image nuisance**: per image the camera cut and saturation (estimated from that measured image) and one
@@ -40,71 +45,23 @@ from __future__ import annotations
 
 import dataclasses
 import statistics
-from dataclasses import dataclass
 
 import torch
 from tqdm.auto import tqdm
 
-from ..calibrate.fitloop import State, early_stopping_fit
 from ..field.plant import Facets, SunSettings
 from . import losses
 from .acceptance import robust_outliers, shrink_to_accept, wilson_interval
-from .edges import edge_ridge_mrad, slope_penalty
-from .imaging import predict_images
-from .learning import LearnableSurface, heights_to_displacement, learnable_surfaces, normal_heights
+from .edges import edge_ridge_mrad
+from .fit import SurfaceSettings, blur_for, evaluate_with_camera, fit_surface, render
+from .learning import LearnableSurface, heights_to_displacement, learnable_surfaces
 from .nuisance import CameraModel, apply_camera, estimate_camera
 from .observations import Observations
 from .plantprior import PRIOR_WEIGHT_GRID, check_facets, describe, prior_penalty
 
-__all__ = ["GeneraliseSettings", "reconstruct_generalising", "summarise",
+__all__ = ["SurfaceSettings", "reconstruct_generalising", "summarise",
            "canting_focal_length", "focused_start", "choose_optics", "fit_generalising",
            "blur_for", "evaluate_with_camera", "loo_select"]
-
-
-@dataclass
-class GeneraliseSettings:
-    """Settings of :func:`fit_generalising` (grids searched by the stated rules; nothing tuned to a heliostat).
-
-    Attributes
-    ----------
-    control_points, degree, samples : (int, int)
-    focus_grid : tuple of float or None
-        Facet focal lengths as multiples of the canting focal length; ``None`` = flat facets.
-    slope_grid : tuple of float
-        Slope errors [rad].
-    blur_grid_px : tuple of float
-        Per-image blur candidates [px] for the optics choice (then learned).
-    slope_weight_grid : tuple of float
-        Weights of the slope-deviation penalty (per mrad^2) tried by leave-one-out.
-    steps, lr, decay, eval_every : Adam budget, learning rate [mm per step], decay per step, held-out cadence.
-    ridge, laplacian, miss : float
-        Fixed regulariser weights as in :class:`heliotwin.surfaces.training.TrainSettings`.
-    blur_lr : float
-        Adam learning rate of the per-image log-blur.
-    """
-
-    control_points: tuple = (7, 7)
-    degree: tuple = (3, 3)
-    samples: tuple = (24, 24)
-    resolution: int = 64
-    size_m: float = 6.0
-    focus_grid: tuple = (None, 1.0, 2.0, 4.0)
-    slope_grid: tuple = (0.5e-3, 1.0e-3, 1.5e-3, 2.0e-3, 2.5e-3, 3.0e-3, 4.0e-3, 5.0e-3)
-    blur_grid_px: tuple = (0.0, 1.0, 2.0, 3.0, 4.0)
-    slope_weight_grid: tuple = (1e-3, 1e-2, 1e-1)
-    steps: int = 300
-    lr: float = 0.8
-    decay: float = 0.99
-    eval_every: int = 30
-    ridge: float = 1e-4
-    laplacian: float = 1e-2
-    miss: float = 1.0
-    blur_lr: float = 0.05
-    blur_modes: tuple = ("none", "per-image")
-    select: bool = True
-
-    def as_dict(self) -> dict:
-        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(self).items()}
 
 
 def canting_focal_length(facets: Facets) -> float | None:
@@ -142,35 +99,8 @@ def focused_start(facets: Facets, focal_length: float | None, num_control_points
     return learnable_surfaces(facets, base, d.to(base), degree).control_points.detach()
 
 
-def blur_for(train_targets: list, train_sigma: torch.Tensor, targets: list) -> torch.Tensor:
-    """Blur [px] for images on ``targets``: median of the training images' blur on the same target, else all."""
-    names = [t.name for t in train_targets]
-    out = []
-    for t in targets:
-        same = [float(s) for n, s in zip(names, train_sigma) if n == t.name]
-        out.append(statistics.median(same or [float(s) for s in train_sigma]))
-    return torch.tensor(out, dtype=torch.float32, device=train_sigma.device)
-
-
-def _render(surf, obs, sun, s, kernels=None):
-    pred, _, miss = predict_images(surf, obs, sun, samples=s.samples, resolution=s.resolution, size_m=s.size_m,
-                                   kernels=kernels)
-    return pred, miss
-
-
-def evaluate_with_camera(surf, obs: Observations, sun: SunSettings, camera: CameraModel, sigma: torch.Tensor,
-                         s: GeneraliseSettings) -> dict:
-    """Per-image L1 with the camera model (``l1``) and of the raw model image (``l1_raw``), lists of length B;
-    predicted images through the camera model (``images``, ``[B, R, R]``). ``sigma``: per-image blur ``[B]`` [px]."""
-    with torch.no_grad():
-        pred, _ = _render(surf, obs, sun, s)
-        meas = obs.images.to(pred)
-        cam = apply_camera(pred, camera, sigma)
-        return {"l1": losses.l1(cam, meas).tolist(), "l1_raw": losses.l1(pred, meas).tolist(), "images": cam}
-
-
 def choose_optics(facets: Facets, train: Observations, base_sun: SunSettings, camera: CameraModel,
-                  s: GeneraliseSettings, prior=None) -> dict:
+                  s: SurfaceSettings, prior=None) -> dict:
     """Step 1 (module docstring): facet focus x slope error (x per-image blur) by the ideal's training L1.
 
     With a ``prior`` (:class:`~heliotwin.surfaces.plantprior.SurfacePrior`) its mean shape is one more
@@ -191,7 +121,7 @@ def choose_optics(facets: Facets, train: Observations, base_sun: SunSettings, ca
         for se in s.slope_grid:
             sun = dataclasses.replace(base_sun, slope_error=float(se))
             with torch.no_grad():
-                pred, _ = _render(ideal, train, sun, s)
+                pred, _ = render(ideal, train, sun, s)
                 per_blur = torch.stack([losses.l1(apply_camera(pred, camera, torch.full((len(train),), float(b),
                                                                                        device=pred.device)),
                                                   meas.to(pred)) for b in s.blur_grid_px])  # [G, B]
@@ -205,111 +135,6 @@ def choose_optics(facets: Facets, train: Observations, base_sun: SunSettings, ca
     return {"canting_focal_length_m": f_cant, "chosen": {k: v for k, v in best.items() if k != "start"},
             "start": best["start"], "scores": scores,
             "rule": "min mean training L1 of the ideal surface (camera model, best blur per image)"}
-
-
-class _FitState:
-    """The live state of one :func:`_fit` (what its checkpoint saves): surface, log-blur, the footprint-kernel
-    cache (filled from the first step's surface, so a resumed fit renders as the uninterrupted one), the
-    held-out curve and the steps taken."""
-
-    def __init__(self, model: LearnableSurface, log_sigma: torch.Tensor):
-        self.model, self.log_sigma, self.kernels, self.curve, self.steps = model, log_sigma, {}, [], 0
-
-    def dump(self) -> dict:
-        return {"steps": self.steps, "model": {k: v.detach().clone() for k, v in self.model.state_dict().items()},
-                "log_sigma": self.log_sigma.detach().clone(), "kernels": dict(self.kernels),
-                "curve": [[a, b] for a, b in self.curve]}
-
-    def load(self, data: dict) -> None:
-        self.model.load_state_dict(data["model"])
-        with torch.no_grad():
-            self.log_sigma.copy_(data["log_sigma"])
-        self.kernels.clear()
-        self.kernels.update(data["kernels"])
-        self.curve[:] = [(int(a), float(b)) for a, b in data["curve"]]
-        self.steps = int(data["steps"])
-
-
-def _loop_state(live: _FitState) -> State:
-    """:class:`~heliotwin.calibrate.fitloop.State` of a surface fit: one "heliostat" whose kept state is the final
-    one (the held-out curve is what the caller chooses from, not a best state)."""
-    def keep(best, rows):
-        if bool(rows.any()):
-            best.update(live.dump())
-
-    return State(snapshot=live.dump, keep=keep, live=live, dump=lambda obj: obj.dump() if obj is live else dict(obj),
-                 load=lambda obj, data: obj.load(data) if obj is live else obj.update(data))
-
-
-def _fit(facets, obs, camera, sigma0, sun, start, weight, s, steps, heldout=None, prior=None, prior_weight=0.0):
-    """Adam on the camera-model L1 + regularisers; optional held-out curve ``[(step, l1)]``.
-
-    The steps run in the fit loop of calibration (:func:`heliotwin.calibrate.fitloop.early_stopping_fit`, one
-    "heliostat", validation every ``eval_every`` steps, the final state kept): it checkpoints and resumes them.
-
-    ``prior`` / ``prior_weight``: the plant prior's penalty
-    (:func:`heliotwin.surfaces.plantprior.prior_penalty`) times that weight joins the loss (weight 0: not
-    evaluated at all, so a fit without a prior is unchanged).
-
-    ``heldout``: ``(Observations, CameraModel)`` of one image; its blur follows :func:`blur_for` from the
-    current training blurs.
-
-    Under an active :mod:`heliotwin.io.checkpoint` every fit claims a key (``fit/0``, ``fit/1``, ... in the
-    deterministic order of :func:`fit_generalising`) and saves its state (surface, log-blur, Adam state,
-    footprint kernels, held-out curve); a resumed fit goes on after its last saved step and a finished one is
-    restored, not rerun.
-
-    Returns
-    -------
-    model : LearnableSurface
-    sigma : torch.Tensor, [B]
-        Learned per-image blur [px].
-    curve : list of (int, float)
-        Held-out L1 every ``eval_every`` steps (empty without ``heldout``).
-    """
-    model = LearnableSurface(facets, s.control_points, s.degree, initial=start, fix_gauge=True,
-                             gauge_tilt=obs.centers is None)
-    ref = normal_heights(facets, model.surfaces().control_points.detach(), s.degree, (16, 16))[1].detach()
-    dev = obs.images.device
-    log_sigma = torch.log(sigma0.to(device=dev, dtype=torch.float32).clamp_min(0.1)).clone().requires_grad_(True)
-    params = [p for p in model.parameters() if p.requires_grad]
-    opt = torch.optim.Adam([{"params": params, "lr": s.lr}, {"params": [log_sigma], "lr": s.blur_lr}])
-    # Chainable: a resumed fit's schedule goes on from the learning rate restored into the optimiser.
-    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=s.decay)
-    meas = obs.images.to(torch.float32)
-    live = _FitState(model, log_sigma)
-
-    def step() -> float:
-        opt.zero_grad(set_to_none=True)
-        surf = model.surfaces()
-        pred, miss = _render(surf, obs, sun, s, live.kernels)
-        data = losses.l1(apply_camera(pred, camera, log_sigma.exp()), meas.to(pred)).mean()
-        d = model.displacement / 1e-3
-        reg = s.ridge * losses.ridge(d) + s.laplacian * losses.laplacian(d)
-        total = data + reg + s.miss * miss + slope_penalty(surf, ref, facets, weight)
-        if prior is not None and prior_weight > 0:
-            total = total + prior_weight * prior_penalty(prior, surf, facets)
-        total.backward()
-        opt.step()
-        sched.step()
-        live.steps += 1
-        return float(data.detach())
-
-    def heldout_l1() -> torch.Tensor:
-        # Only on the eval_every grid (not at the start, nor at a last step off the grid): the curve's steps
-        # are the step counts the leave-one-out choice compares.
-        at = live.steps
-        if heldout is None or at == 0 or at % s.eval_every != 0:
-            return torch.full((1,), float("inf"))
-        hobs, hcam = heldout
-        sig = blur_for(obs.targets, log_sigma.detach().exp(), hobs.targets)
-        l1 = evaluate_with_camera(model.surfaces(), hobs, sun, hcam, sig, s)["l1"][0]
-        live.curve.append((at, l1))
-        return torch.full((1,), float(l1))
-
-    early_stopping_fit(step, heldout_l1, _loop_state(live), int(steps), validated=torch.zeros(1, dtype=torch.bool),
-                       check_every=s.eval_every if heldout is not None else max(1, int(steps)))
-    return model, log_sigma.detach().exp(), live.curve
 
 
 def loo_select(facets, train, camera, sigma0, sun, start, s, progress=False, prior=None,
@@ -326,9 +151,9 @@ def loo_select(facets, train, camera, sigma0, sun, start, s, progress=False, pri
     jobs = [(w, p, k) for w in s.slope_weight_grid for p in pgrid for k in range(n)]
     for w, p, k in tqdm(jobs, desc="leave-one-out", disable=not progress, leave=False):
         keep = [i for i in range(n) if i != k]
-        _, _, curve = _fit(facets, train.subset(keep), camera.subset(keep), sigma0[keep], sun, start, w, s, s.steps,
-                           heldout=(train.subset([k]), camera.subset([k])), prior=prior, prior_weight=p or 0.0)
-        curves[(w, p, k)] = curve
+        curves[(w, p, k)] = fit_surface(facets, train.subset(keep), sun, s, start=start, camera=camera.subset(keep),
+                                        sigma0=sigma0[keep], slope_weight=w, prior=prior, prior_weight=p or 0.0,
+                                        heldout=(train.subset([k]), camera.subset([k]))).curve
     table = {}
     for w in s.slope_weight_grid:
         for p in pgrid:
@@ -347,7 +172,7 @@ def loo_select(facets, train, camera, sigma0, sun, start, s, progress=False, pri
                                     for (w, p, st), v in table.items()]}
 
 
-def _mode_settings(s: GeneraliseSettings, mode: str) -> GeneraliseSettings:
+def _mode_settings(s: SurfaceSettings, mode: str) -> SurfaceSettings:
     # "none": no per-image blur (the surface and the global slope error explain the spot); "per-image": learned.
     return s if mode == "per-image" else dataclasses.replace(s, blur_grid_px=(0.0,), blur_lr=0.0)
 
@@ -374,7 +199,7 @@ def _candidates(facets, train, base_sun, camera, s, progress, prior=None, prior_
     return out
 
 
-def fit_generalising(facets: Facets, train: Observations, base_sun: SunSettings, s: GeneraliseSettings | None = None,
+def fit_generalising(facets: Facets, train: Observations, base_sun: SunSettings, s: SurfaceSettings | None = None,
                      progress: bool = False, prior=None, prior_grid=PRIOR_WEIGHT_GRID) -> tuple[LearnableSurface, dict]:
     """Steps 1-8 of the module docstring on one heliostat's training images.
 
@@ -393,7 +218,7 @@ def fit_generalising(facets: Facets, train: Observations, base_sun: SunSettings,
         ``optics`` (SunSettings), ``start`` (control net or None), ``camera``, ``sigma`` (per training image
         [px]) and a JSON-ready ``report`` of every choice.
     """
-    s = s or GeneraliseSettings()
+    s = s or SurfaceSettings()
     if prior is not None:
         check_facets(prior, facets)
     camera = estimate_camera(train.images.to(torch.float32))
@@ -411,9 +236,10 @@ def fit_generalising(facets: Facets, train: Observations, base_sun: SunSettings,
     sm, sun, start, sel = best["settings"], best["sun"], best["optics"]["start"], best["selection"]
     sigma0 = torch.zeros(n, dtype=torch.float32, device=train.images.device)
     sigma0[keep] = best["sigma0"]
-    model, sigma_keep, _ = _fit(facets, train.subset(keep), camera.subset(keep), sigma0[keep], sun, start,
-                                sel["slope_weight"], sm, sel["steps"], prior=prior,
-                                prior_weight=sel.get("prior_weight", 0.0))
+    final = fit_surface(facets, train.subset(keep), sun, sm, start=start, camera=camera.subset(keep),
+                        sigma0=sigma0[keep], slope_weight=sel["slope_weight"], prior=prior,
+                        prior_weight=sel.get("prior_weight", 0.0), steps=sel["steps"])
+    model, sigma_keep = final.model, final.sigma
     sigma = sigma0.clone()
     sigma[keep] = sigma_keep
     if drop:  # a dropped image's blur follows the rule for unseen images
@@ -476,7 +302,7 @@ def summarise(train_rows: list, test_rows: list) -> dict:
             "train_worse_than_ideal_raw": sum(r["l1_learned_raw"] > r["l1_ideal_raw"] + 1e-6 for r in train_rows),
             "test_improved": k, "test_images": n, "test_improved_wilson95": [lo, hi],
             "test_improved_raw": sum(r["l1_learned_raw"] < r["l1_ideal_raw"] for r in test_rows),
-            # IMP = L1(ideal) / L1(learned) - 1 (docs/glossary.md), as the legacy report gives it
+            # IMP = L1(ideal) / L1(learned) - 1 (docs/glossary.md)
             "median_imp": statistics.median(r["l1_ideal"] / max(r["l1_learned"], 1e-12) - 1.0 for r in test_rows)}
 
 
@@ -487,7 +313,7 @@ def _rows(obs, e_ideal, e_learn) -> list:
 
 
 def reconstruct_generalising(facets: Facets, train: Observations, test: Observations, base_sun: SunSettings,
-                             s: GeneraliseSettings | None = None, progress: bool = False,
+                             s: SurfaceSettings | None = None, progress: bool = False,
                              reference=None, prior=None, prior_grid=PRIOR_WEIGHT_GRID
                              ) -> tuple[dict, LearnableSurface, dict]:
     """Fit (:func:`fit_generalising`) and evaluate on test images; JSON-ready report.
@@ -497,11 +323,11 @@ def reconstruct_generalising(facets: Facets, train: Observations, test: Observat
     to a test image). ``l1_*`` are with the camera model, ``l1_*_raw`` of the raw model images; the ideal
     uses the same optics, start and nuisance, so the difference measures shape. ``info`` (third result) gets
     ``train_images`` / ``test_images``: ``{"ideal", "learned"}`` predicted images ``[B, R, R]`` through the
-    camera model, for plots.
+    camera model, for plots; ``test_camera`` and ``test_sigma`` (``[B]`` [px]): the test images' camera model.
     ``reference``: the surface the edge ridge is measured against (default: the ideal start).
     ``prior``, ``prior_grid``: the plant prior, see :func:`fit_generalising`.
     """
-    s = s or GeneraliseSettings()
+    s = s or SurfaceSettings()
     model, info = fit_generalising(facets, train, base_sun, s, progress, prior, prior_grid)
     sun, ideal, learned = info["optics"], info["ideal"], model.surfaces()
     cam_te = estimate_camera(test.images.to(torch.float32))
@@ -512,6 +338,7 @@ def reconstruct_generalising(facets: Facets, train: Observations, test: Observat
         e_learn = evaluate_with_camera(learned, obs, sun, cam, sig, info["settings"])
         ev[name] = _rows(obs, e_ideal, e_learn)
         info[f"{name}_images"] = {"ideal": e_ideal["images"], "learned": e_learn["images"]}  # with the camera model
+    info["test_camera"], info["test_sigma"] = cam_te, sig_te
     report = {"train": ev["train"], "test": ev["test"], **summarise(ev["train"], ev["test"]),
               "edge_ridge": edge_ridge_mrad(learned, reference or ideal, facets),
               "test_camera": cam_te.as_dict(test.ids), "test_blur_px": dict(zip(test.ids, sig_te.tolist())),

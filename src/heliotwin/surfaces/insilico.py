@@ -20,6 +20,7 @@ Every random draw takes a ``torch.Generator`` seeded from ``seed``.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -33,30 +34,74 @@ from ..field.targets import PlanarTarget
 from ..geometry import angle_between
 from ..sun import daylight_times, direction_from_paint_angles
 from . import losses
-from .imaging import predict_images
+from .fit import SurfaceSettings, fit_surface
+from .imaging import evaluate_images, predict_images
 from .learning import LearnableSurface, heights_to_displacement, learnable_surfaces, normal_heights
 from .observations import Observations
-from .training import TrainSettings, train_with_early_stopping
 
-__all__ = ["ground_truth_heights", "make_scene", "run_case", "surface_metrics", "InSilicoScene", "insilico_settings"]
+__all__ = ["ground_truth_heights", "make_scene", "run_case", "surface_metrics", "InSilicoScene", "insilico_settings",
+           "choose_laplacian", "LAPLACIAN_GRID"]
+
+#: Laplacian weights the study chooses from on held-out training images.
+LAPLACIAN_GRID = (1e-5, 3e-5, 1e-4, 3e-4)
 
 
-def insilico_settings(**changes) -> TrainSettings:
-    """Training settings of the in-silico study.
+def insilico_settings(**changes) -> SurfaceSettings:
+    """The surface learner's settings for the in-silico study (:class:`~heliotwin.surfaces.fit.SurfaceSettings`).
 
     L-BFGS to convergence after a blur continuation (3, 1.5 px) on the L2 image loss (smooth: with L1's
     kink at zero residual the quasi-Newton line search stalls after a few hundred evaluations, short of the
-    minimum), facet pistons projected out (and the common tilt too for centred windows), 32x32 mirror
-    samples per facet (24x24 leaves a discretisation error of L1 ~1e-3 at 50 m, a third of the residual
-    the fit reaches), and the Laplacian weight chosen among (1e-5, 3e-5, 1e-4, 3e-4) by the L1 on the
-    held-out latest *training* image (the 5 test images are never used for any choice). ``steps`` caps the
-    loss evaluations. The same settings are used for every cell of the table.
+    minimum), facet pistons projected out (and the common tilt too for centred windows; the learner always
+    fixes this gauge), 32x32 mirror samples per facet (24x24 leaves a discretisation error of L1 ~1e-3 at
+    50 m, a third of the residual the fit reaches), and the Laplacian weight chosen among
+    :data:`LAPLACIAN_GRID` by the L1 on the held-out latest *training* image (:func:`choose_laplacian`; the 5
+    test images are never used for any choice). ``steps`` caps the loss evaluations. The same settings are
+    used for every cell of the table. The known optics need no optics choice and the synthetic images no
+    camera model.
     """
-    base = dict(loss="l2", optimizer="lbfgs", fix_gauge=True, continuation=(3.0, 1.5), continuation_iters=60,
-                lbfgs_round=200, tolerance=1e-3, steps=1500, samples=(32, 32), laplacian=1e-4,
-                laplacian_grid=(1e-5, 3e-5, 1e-4, 3e-4))
+    base = dict(loss="l2", optimizer="lbfgs", continuation=(3.0, 1.5), continuation_iters=60, lbfgs_round=200,
+                tolerance=1e-3, steps=1500, samples=(32, 32), laplacian=1e-4)
     base.update(changes)
-    return TrainSettings(**base)
+    return SurfaceSettings(**base)
+
+
+def choose_laplacian(facets: Facets, train: Observations, sun: SunSettings, settings: SurfaceSettings,
+                     grid=LAPLACIAN_GRID, cv: str = "last") -> tuple[SurfaceSettings, dict]:
+    """The Laplacian weight of ``grid`` with the lowest held-out L1 (needs >= 2 training images).
+
+    ``cv="last"`` holds out the latest training image only; ``"loo"`` leave-one-out over all training images
+    (each held out once, mean held-out L1), a less noisy choice that does not hinge on one sun position. Ties
+    go to the earlier weight of the grid.
+
+    Returns
+    -------
+    settings : SurfaceSettings
+        ``settings`` with the chosen ``laplacian``.
+    record : dict
+        JSON-ready: ``holdout`` (record id, or ids for "loo"), ``laplacian_scores`` (weight -> mean held-out
+        L1), ``laplacian_cv``.
+    """
+    n = len(train)
+    if cv == "loo":
+        folds = list(range(n))
+    elif cv == "last":
+        folds = [n - 1]
+    else:
+        raise HeliotwinError(f"unknown laplacian cv {cv!r}; expected last or loo")
+    scores = {}
+    for w in grid:
+        fold_l1 = []
+        for k in folds:
+            head, held = train.subset([i for i in range(n) if i != k]), train.subset([k])
+            fit = fit_surface(facets, head, sun, dataclasses.replace(settings, laplacian=float(w)))
+            fold_l1.append(float(torch.tensor(evaluate_images(
+                fit.model.surfaces(), held, sun, samples=settings.samples, resolution=settings.resolution,
+                size_m=settings.size_m)["l1"]).mean()))
+        scores[float(w)] = sum(fold_l1) / len(fold_l1)
+    best = min(scores, key=scores.get)
+    record = dict(holdout=[train.ids[k] for k in folds] if len(folds) > 1 else train.ids[-1],
+                  laplacian_scores=scores, laplacian_cv=cv)
+    return dataclasses.replace(settings, laplacian=best), record
 
 TRUTH_NET = (15, 15)
 TRUTH_DEGREE = (3, 3)
@@ -160,8 +205,12 @@ def surface_metrics(facets: Facets, learned: Surfaces, truth: Surfaces, grid=(48
 
 
 def run_case(plant, distance: float, num_train: int, seed: int = 0, num_test: int = 5,
-             settings: TrainSettings | None = None, progress: bool = False, window: str = "aim") -> dict:
-    """One cell of the distance x image-count table (``window``: see :func:`observe`).
+             settings: SurfaceSettings | None = None, progress: bool = False, window: str = "aim",
+             laplacian_grid=LAPLACIAN_GRID, laplacian_cv: str = "last") -> dict:
+    """One cell of the distance x image-count table (``window``: see :func:`observe`): the Laplacian weight by
+    :func:`choose_laplacian` (with >= 2 training images and a non-empty ``laplacian_grid``), then one
+    :func:`~heliotwin.surfaces.fit.fit_surface` on all training images. ``progress`` is accepted and unused
+    (the fits are short).
 
     Returns
     -------
@@ -175,9 +224,12 @@ def run_case(plant, distance: float, num_train: int, seed: int = 0, num_test: in
     test = observe(scene, suns[num_train:], window=window)
     s = settings or insilico_settings()
     t0 = time.perf_counter()
-    model, info = train_with_early_stopping(scene.facets, train, scene.sun, s, progress=progress)
+    chosen: dict = {}
+    if laplacian_grid and len(train) >= 2:
+        s, chosen = choose_laplacian(scene.facets, train, scene.sun, s, laplacian_grid, laplacian_cv)
+    fit = fit_surface(scene.facets, train, scene.sun, s)
     seconds = time.perf_counter() - t0
-    learned = model.surfaces()
+    learned = fit.model.surfaces()
     ideal = LearnableSurface(scene.facets, s.control_points, s.degree).surfaces()
     with torch.no_grad():
         kw = dict(samples=s.samples, resolution=s.resolution, size_m=s.size_m)
@@ -192,8 +244,6 @@ def run_case(plant, distance: float, num_train: int, seed: int = 0, num_test: in
             "normal_deviation_mrad": m["normal_deviation_mrad"], "height_rms_mm": m["height_rms_mm"],
             "ideal_normal_deviation_mrad": m0["normal_deviation_mrad"], "ideal_height_rms_mm": m0["height_rms_mm"],
             "test_l1_ideal": l1_i, "test_l1_learned": l1_l, "imp": mean_i / max(mean_l, 1e-12) - 1.0,
-            "seconds": seconds, "early_stopping_best_step": info.best_step,
-            "laplacian": info.selection.get("laplacian", s.laplacian),
-            "laplacian_scores": info.selection.get("laplacian_scores"),
-            "optimizer": s.optimizer, "loss_evaluations": info.steps_run,
+            "seconds": seconds, "laplacian": s.laplacian, "laplacian_scores": chosen.get("laplacian_scores"),
+            "optimizer": s.optimizer, "loss_evaluations": fit.evaluations,
             "torch_threads": torch.get_num_threads()}

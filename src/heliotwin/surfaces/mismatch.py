@@ -16,9 +16,9 @@ import time
 import torch
 
 from ..field.plant import SunSettings
-from .generalise import GeneraliseSettings, reconstruct_generalising
+from .fit import blur_images
+from .generalise import SurfaceSettings, reconstruct_generalising
 from .insilico import make_scene, observe, random_suns, surface_metrics
-from .training import blur_images
 
 __all__ = ["camera_truth", "add_halo", "run_mismatch_case", "TRUTH_SUN"]
 
@@ -42,7 +42,7 @@ def add_halo(images: torch.Tensor, fraction: float = 0.5, sigma_px: float = 8.0)
 
 def run_mismatch_case(plant, distance: float = 50.0, num_train: int = 4, num_test: int = 10, seed: int = 0,
                       truth_sun: SunSettings = TRUTH_SUN, saturation: float = 0.8, cut: float = 0.05,
-                      window: str = "centred", settings: GeneraliseSettings | None = None,
+                      window: str = "centred", settings: SurfaceSettings | None = None,
                       progress: bool = False, halo: int | None = None) -> dict:
     """One in-silico case under mismatch; the generalising report plus surface recovery metrics.
 

@@ -3,10 +3,16 @@
 :class:`Observations` is the data the learner sees (B images with their sun directions, mirror poses and
 targets). :func:`observations_from_records` builds them from calibration records (pose aimed at the
 measured focal spot, or from the motor steps; image from the one measured-image loader,
-:func:`heliotwin.io.images.load_measured_image`). :func:`split_record_ids` is the train/test split over
-plain record columns (id, time, image path), so it can be fed from any record table;
-:func:`split_records` applies it to record objects. :func:`paint_observations` does all of it for one PAINT
-heliostat (the one data path of the surface learner).
+:func:`heliotwin.io.images.load_measured_image`). :func:`split_record_ids` is the one train/test split of surface
+learning, over plain record columns (id, time, image path), so it can be fed from any record table.
+:func:`paint_observations` does all of it for one PAINT heliostat (the one data path of the surface learner).
+
+Calibration splits records differently, on purpose
+(:func:`heliotwin.calibrate.protocol.splits.split_records`): every heliostat of a plant at once, every record
+(no image needed), into train / validation / test by a named rule (chronological, random, sun-distance) with
+counts and a seed. A surface split is one heliostat's records *with a centred image*: the K earliest (or given
+ids) train, all the others test, no validation set (the learner holds out training images itself), and an
+error when no test image is left.
 
 Shapes: B images; R window pixels per side. Units: metres, radians.
 """
@@ -24,7 +30,7 @@ from ..io.images import load_measured_image
 from ..io.paint import PaintDataset, load_paint
 from ..io.records import RecordTable
 
-__all__ = ["Observations", "observations_from_records", "split_record_ids", "split_records", "load_centered_image",
+__all__ = ["Observations", "observations_from_records", "split_record_ids", "load_centered_image",
            "paint_observations"]
 
 
@@ -135,20 +141,6 @@ def split_record_ids(record_ids, times, image_paths, train_records=None,
     return sorted(train, key=key.get), test
 
 
-def split_records(records: RecordTable, train_records=None, train_first: int | None = None
-                  ) -> tuple[RecordTable, RecordTable]:
-    """:func:`split_record_ids` applied to one heliostat's rows of the record table.
-
-    Returns
-    -------
-    train, test : RecordTable
-        ``train`` in time order, ``test`` in table order.
-    """
-    tr, te = split_record_ids(records.record_id.tolist(), records.datetime, records.flux_centered_png,
-                              train_records, train_first)
-    return records.subset(tr), records.subset(te)
-
-
 def observations_from_records(plant, heliostat_index: int, records: RecordTable, resolution: int = 64,
                               background: float = 0.0, alignment: str = "focal-spot") -> Observations:
     """Poses and measured images of calibration records (rows of the record table, each with a centred image).
@@ -181,7 +173,7 @@ def observations_from_records(plant, heliostat_index: int, records: RecordTable,
 def paint_observations(paint_dir, heliostat_id: str, *, plant=None, device: str = "cpu", train_records=None,
                        train_first: int | None = None, resolution: int = 64, background: float = 0.0,
                        alignment: str = "focal-spot") -> tuple[PaintDataset, object, Observations, Observations]:
-    """One PAINT heliostat's training and test observations (:func:`split_records`,
+    """One PAINT heliostat's training and test observations (:func:`split_record_ids`,
     :func:`observations_from_records`).
 
     Parameters
@@ -214,9 +206,11 @@ def paint_observations(paint_dir, heliostat_id: str, *, plant=None, device: str 
     if plant is not None:
         ds = ds.on_plant(select_heliostats(plant, [heliostat_id]))
     on_device = ds.plant if device == "cpu" else to_device(ds.plant, device)
-    tr, te = split_records(ds.records_of(heliostat_id), train_records, train_first)
-    train = observations_from_records(on_device, 0, tr, resolution, background, alignment)
-    test = observations_from_records(on_device, 0, te, resolution, background, alignment)
+    records = ds.records_of(heliostat_id)
+    tr, te = split_record_ids(records.record_id.tolist(), records.datetime, records.flux_centered_png, train_records,
+                              train_first)
+    train = observations_from_records(on_device, 0, records.subset(tr), resolution, background, alignment)
+    test = observations_from_records(on_device, 0, records.subset(te), resolution, background, alignment)
     if device != "cpu":
         train, test = train.to(device), test.to(device)
     return ds, on_device, train, test

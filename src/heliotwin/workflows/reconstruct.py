@@ -2,18 +2,10 @@
 
 :func:`reconstruct` is the one entry (the command line's ``heliotwin reconstruct``, :func:`heliotwin.api.reconstruct`
 and the benchmarks call it): ``Scenario × PAINT folder × heliostat × ReconstructionSettings → (Scenario′,
-report, fit)``. The learner is a setting (:attr:`ReconstructionSettings.method`):
-
-* ``"generalising"`` (default, :mod:`heliotwin.surfaces.generalise`): camera model, optics chosen on the training
-  images, settings and step count by leave-one-training-image-out, outlier drop, acceptance rule; optionally a
-  plant surface prior (:mod:`heliotwin.surfaces.plantprior`).
-* ``"legacy"`` (:mod:`heliotwin.surfaces.study`): a chosen image loss (KL by default) with early stopping on the
-  latest training image; the learner of the in-silico study, and the only one that takes the Monte-Carlo
-  training integrator, a background cut, and a PAINT deflectometry file (traced beside the ideal and learned
-  surfaces and compared with the learned one, or used as the start).
-
-:meth:`ReconstructionSettings.check` refuses (one line) an option the chosen learner does not take, so the
-command line and the API share one table of what each learner accepts.
+report, fit)``. There is one learner (:mod:`heliotwin.surfaces.generalise`): camera model, optics chosen on the
+training images, settings and step count by leave-one-training-image-out, outlier drop, acceptance rule;
+optionally a plant surface prior (:mod:`heliotwin.surfaces.plantprior`) and a PAINT deflectometry file the learned
+surface is compared with (:func:`heliotwin.surfaces.deflectometry.deflectometry_report`).
 
 Units: metres, radians (``slope_error_mrad`` in mrad); L1 of unit-sum images.
 """
@@ -32,21 +24,15 @@ from ..field.plant import Facets, SunSettings
 from ..io import checkpoint as _checkpoint
 from ..io.deflectometry import read_deflectometry
 from ..io.scenario import Scenario, scenario_from_paint
-from ..surfaces.generalise import GeneraliseSettings, reconstruct_generalising
+from ..surfaces.deflectometry import deflectometry_report
+from ..surfaces.fit import SurfaceSettings
+from ..surfaces.generalise import reconstruct_generalising
 from ..surfaces.learning import parse_grid
 from ..surfaces.observations import paint_observations
 from ..surfaces.plantprior import check_leakage, load_surface_prior
 from ..surfaces.state import with_learned_surface
-from ..surfaces.study import reconstruct_observed
-from ..surfaces.training import TrainSettings
 
-__all__ = ["ReconstructionSettings", "reconstruct", "reconstruction_checkpoint", "METHODS"]
-
-#: The learners :func:`reconstruct` can run.
-METHODS = ("generalising", "legacy")
-
-#: Step budget of each learner when :attr:`ReconstructionSettings.steps` is None.
-DEFAULT_STEPS = {"generalising": GeneraliseSettings.steps, "legacy": 200}
+__all__ = ["ReconstructionSettings", "reconstruct", "reconstruction_checkpoint"]
 
 
 @dataclass
@@ -55,8 +41,6 @@ class ReconstructionSettings:
 
     Attributes
     ----------
-    method : {"generalising", "legacy"}
-        The learner (module docstring).
     train_records : tuple of int, optional
         Record ids to train on (each with a centred image); the others with images are the test set.
     train_first : int, optional
@@ -66,35 +50,24 @@ class ReconstructionSettings:
     degree : int
         NURBS degree in both directions.
     steps : int, optional
-        Legacy: most optimiser steps (default 200); generalising: the leave-one-out step budget (default 300,
-        held-out L1 every ``min(30, steps // 2)`` steps).
+        The leave-one-out step budget (default :attr:`SurfaceSettings.steps`, 300; held-out L1 every
+        ``min(30, steps // 2)`` steps).
     slope_error_mrad : float, optional
         Mirror slope error [mrad]; None chooses it on the training images.
     alignment : {"focal-spot", "motor"}
         Pose of each image: aimed at the measured focal spot, or the plant's kinematics at the motor steps.
-    loss : {"kl", "l1", "l2"}, optional
-        Legacy only: image loss (None: ``"kl"``).
-    integrator : {"conv", "mc"}
-        Renderer of the training images (``"mc"``: legacy only).
-    background : float
-        Legacy only: background subtracted from each image, fraction of its max.
     deflectometry : str, optional
-        Legacy only: a PAINT deflectometry HDF5 file, traced on the test images and compared with the learned
-        surface (report key ``deflectometry``).
-    start_from_deflectometry : bool
-        Legacy only: start the learning from the deflectometry surface instead of flat.
-    evaluate_mc : bool
-        Legacy only: also evaluate the test images with the Monte-Carlo tracer.
+        A PAINT deflectometry HDF5 file: its NURBS fit is evaluated on the test images like the ideal and learned
+        surfaces and compared with the learned surface in mm and mrad (report key ``deflectometry``).
     surface_prior_from : tuple of str, optional
-        Generalising only: scenario files whose learned surfaces (>= 2 other heliostats of the same design) give
-        a plant prior on the facets' canting and low-order shape, or one scenario holding a stored prior
-        (:func:`heliotwin.surfaces.plantprior.load_surface_prior`); refused when it was learned from the
-        heliostat being reconstructed.
+        Scenario files whose learned surfaces (>= 2 other heliostats of the same design) give a plant prior on the
+        facets' canting and low-order shape, or one scenario holding a stored prior
+        (:func:`heliotwin.surfaces.plantprior.load_surface_prior`); refused when it was learned from the heliostat
+        being reconstructed.
     device : {"auto", "cpu", "cuda"}
         Where the surface is learned and evaluated (results come back on the CPU).
     """
 
-    method: str = "generalising"
     train_records: tuple | None = None
     train_first: int | None = None
     control_points: str | tuple = "7x7"
@@ -102,63 +75,32 @@ class ReconstructionSettings:
     steps: int | None = None
     slope_error_mrad: float | None = None
     alignment: str = "focal-spot"
-    loss: str | None = None
-    integrator: str = "conv"
-    background: float = 0.0
     deflectometry: str | None = None
-    start_from_deflectometry: bool = False
-    evaluate_mc: bool = True
     surface_prior_from: tuple | None = None
     device: str = "auto"
 
     def check(self) -> None:
-        """One-line :class:`HeliotwinError` for an option the chosen method does not take (before any file is
-        read)."""
-        if self.method not in METHODS:
-            raise HeliotwinError(f"reconstruct: method must be 'generalising' or 'legacy', got {self.method!r}")
+        """One-line :class:`HeliotwinError` for inconsistent options (before any file is read)."""
         if self.train_records and self.train_first is not None:
             raise HeliotwinError("use either --train-records or --train-first, not both")
-        if self.method == "generalising":
-            for flag, given, why in _LEGACY_ONLY:
-                if given(self):
-                    raise HeliotwinError(f"{flag} is not supported with --method generalising ({why}); "
-                                         f"use --method legacy")
-        elif self.surface_prior_from:
-            raise HeliotwinError("--surface-prior-from is not supported with --method legacy; use --method "
-                                 "generalising")
-        if self.start_from_deflectometry and not self.deflectometry:
-            raise HeliotwinError("--start-from-deflectometry needs --deflectometry FILE")
 
-    def learner(self) -> GeneraliseSettings | TrainSettings:
-        """The chosen learner's own settings (:class:`GeneraliseSettings` or :class:`TrainSettings`)."""
-        net, degree = parse_grid(self.control_points), (int(self.degree), int(self.degree))
-        steps = int(self.steps or DEFAULT_STEPS[self.method])
-        if self.method == "legacy":
-            return TrainSettings(control_points=net, degree=degree, integrator=self.integrator,
-                                 loss=self.loss or "kl", steps=steps)
-        base = GeneraliseSettings()
-        kw = dict(control_points=net, degree=degree, steps=steps, eval_every=min(base.eval_every, max(1, steps // 2)))
+    def learner(self) -> SurfaceSettings:
+        """The learner's settings (:class:`~heliotwin.surfaces.fit.SurfaceSettings`)."""
+        base = SurfaceSettings()
+        steps = int(self.steps or base.steps)
+        kw = dict(control_points=parse_grid(self.control_points), degree=(int(self.degree), int(self.degree)),
+                  steps=steps, eval_every=min(base.eval_every, max(1, steps // 2)))
         if self.slope_error_mrad is not None:
             kw["slope_grid"] = (self.slope_error_mrad * 1e-3,)
-        return GeneraliseSettings(**kw)
+        return SurfaceSettings(**kw)
 
     def fingerprint(self) -> dict:
         """What a checkpoint of this run is tagged with (everything that changes the fit; not ``device``, which
-        the tag holds on its own, nor the evaluation-only ``evaluate_mc``; the files named here are
-        fingerprinted as inputs by :func:`reconstruction_checkpoint`)."""
-        out = {k: v for k, v in dataclasses.asdict(self).items() if k not in ("device", "evaluate_mc")}
+        the tag holds on its own; the files named here are fingerprinted as inputs by
+        :func:`reconstruction_checkpoint`)."""
+        out = {k: v for k, v in dataclasses.asdict(self).items() if k != "device"}
         out["learner"] = dataclasses.asdict(self.learner())
         return out
-
-
-#: Options of the legacy learner that the generalising one does not take: (flag, is it set?, why).
-_LEGACY_ONLY = (
-    ("--loss", lambda s: s.loss is not None, "it fits the L1 of unit-sum images after the camera model"),
-    ("--integrator", lambda s: s.integrator != "conv", "it renders with the conv integrator"),
-    ("--background", lambda s: s.background > 0, "it models each image's background cut instead"),
-    ("--deflectometry", lambda s: s.deflectometry is not None, "deflectometry comparison is legacy-only"),
-    ("--start-from-deflectometry", lambda s: s.start_from_deflectometry, "it starts from the canting focus"),
-)
 
 
 def reconstruction_checkpoint(path, paint, heliostat: str, settings: ReconstructionSettings, *,
@@ -202,13 +144,13 @@ def reconstruct(scenario: Scenario | None, paint, heliostat: str, settings: Reco
         The next scenario (not written): the plant with the learned control points, the learned-surface entry
         (:func:`heliotwin.surfaces.state.with_learned_surface`) and one ``"reconstruct"`` provenance step.
     report : dict
-        JSON-ready: per test (and training) image L1 of the ideal and the learned surface, medians, what the
-        learner chose (``choices`` for generalising), ``method``, ``seconds``.
+        JSON-ready (:func:`heliotwin.surfaces.generalise.reconstruct_generalising`): per test (and training) image L1
+        of the ideal and the learned surface, medians, what the learner chose (``choices``), ``seconds``.
     fit : dict
         In memory, for figures and notebooks: ``model`` (:class:`~heliotwin.surfaces.learning.LearnableSurface`,
         ``model.surfaces()`` the learned surface ``[1, F, nu, nv, 3]`` [m]), ``facets``, ``train``/``test``
-        observations, ``ideal`` (Surfaces), ``optics``, and the learner's predicted images (legacy:
-        ``ideal_images``/``learned_images`` ``[B, R, R]``; generalising: ``info["test_images"]``).
+        observations, ``ideal`` (Surfaces), ``optics``, and the learner's ``info`` (predicted test images
+        through the camera model: ``info["test_images"]``, ``{"ideal", "learned"}`` ``[B, R, R]``).
     """
     s = settings or ReconstructionSettings()
     s.check()
@@ -223,20 +165,20 @@ def reconstruct(scenario: Scenario | None, paint, heliostat: str, settings: Reco
     plant = scenario.plant if scenario is not None else None
     _, on_device, train, test = paint_observations(
         paint, heliostat, plant=plant, device=device, train_records=list(s.train_records) if s.train_records else None,
-        train_first=s.train_first, resolution=learner.resolution, background=s.background, alignment=s.alignment)
+        train_first=s.train_first, resolution=learner.resolution, alignment=s.alignment)
+    facets = _facets(on_device, torch.float64)
     with _checkpoint.active(checkpoint):
-        if s.method == "generalising":
-            report, model, fit = _generalising(on_device, train, test, learner, prior, progress)
-            report.update(heliostat=heliostat, paint=str(paint), alignment=s.alignment, device=device,
-                          plant="paint" if plant is None else "scenario", seconds=time.perf_counter() - t0)
-        else:
-            report, model, fit = _legacy(on_device, train, test, learner, s, progress)
-            report = {"heliostat": heliostat, "paint": str(paint), **report, "seconds": time.perf_counter() - t0}
-    report["method"] = s.method
-    if s.method == "generalising":
-        report["choices"] = _generalising_choices(report)
-        # the stored surface records what chose it
-        report["settings"] = dict(report["settings"], method="generalising", chosen=report["choices"])
+        report, model, info = reconstruct_generalising(facets, train, test, SunSettings(sunshape="buie", csr=0.05),
+                                                       learner, progress, prior=prior)
+    fit = {"facets": facets, "train": train, "test": test, "info": info, "optics": info["optics"],
+           "ideal": info["ideal"]}
+    if s.deflectometry:
+        report["deflectometry"] = deflectometry_report(s.deflectometry, facets, model.surfaces(), info["ideal"],
+                                                       test, info, learner, report["test"])
+    report.update(heliostat=heliostat, paint=str(paint), alignment=s.alignment, device=device,
+                  plant="paint" if plant is None else "scenario", seconds=time.perf_counter() - t0)
+    report["choices"] = _choices(report)
+    report["settings"] = dict(report["settings"], chosen=report["choices"])  # the stored surface records its choices
     if device != "cpu":  # results come back on the CPU
         model, fit = model.cpu(), to_device(fit, "cpu")
         fit["train"], fit["test"] = train.to("cpu"), test.to("cpu")
@@ -255,25 +197,8 @@ def _facets(plant, dtype=None) -> Facets:
     return Facets(*(t if dtype is None else t.to(dtype) for t in parts))
 
 
-def _generalising(plant, train, test, learner: GeneraliseSettings, prior, progress) -> tuple[dict, object, dict]:
-    facets = _facets(plant, torch.float64)
-    report, model, info = reconstruct_generalising(facets, train, test, SunSettings(sunshape="buie", csr=0.05),
-                                                   learner, progress, prior=prior)
-    return report, model, {"facets": facets, "train": train, "test": test, "info": info, "optics": info["optics"],
-                           "ideal": info["ideal"]}
-
-
-def _legacy(plant, train, test, learner: TrainSettings, s: ReconstructionSettings,
-            progress) -> tuple[dict, object, dict]:
-    slope = None if s.slope_error_mrad is None else s.slope_error_mrad * 1e-3
-    return reconstruct_observed(_facets(plant), train, test, learner, slope_error=slope, evaluate_mc=s.evaluate_mc,
-                                progress=progress, deflectometry=s.deflectometry,
-                                start_from_deflectometry=s.start_from_deflectometry, alignment=s.alignment,
-                                background=s.background)
-
-
-def _generalising_choices(report: dict) -> dict:
-    """What the generalising method chose (JSON): optics, blur mode, penalty weight, steps, drops, acceptance."""
+def _choices(report: dict) -> dict:
+    """What the learner chose (JSON): optics, blur mode, penalty weight, steps, drops, acceptance."""
     chosen = report["optics"]["chosen"]
     out = {"focal_length_m": chosen["focal_length_m"], "focus_multiple": chosen["focus_multiple"],
            "slope_error_rad": report["optics_used"]["slope_error_rad"], "blur_mode": report["blur_mode"],
