@@ -230,7 +230,7 @@ def receiver_extent(receiver) -> list[float]:
 
 
 def plot_receiver_flux(maps: dict, receiver, path=None, *, limit_w_m2: float | None = None,
-                       title: str | None = None, powers_w: dict | None = None):
+                       title: str | None = None, powers_w: dict | None = None, vmax_w_m2: float | None = None):
     """Receiver flux maps side by side on ONE colour scale, so that before and after compare by eye.
 
     Parameters
@@ -248,6 +248,9 @@ def plot_receiver_flux(maps: dict, receiver, path=None, *, limit_w_m2: float | N
         Figure title.
     powers_w : dict, optional
         Panel label -> receiver power [W], printed in the panel title.
+    vmax_w_m2 : float, optional
+        Top of the colour scale [W/m^2] (default: the largest value of all panels, or the limit when higher):
+        give the same value to figures drawn one by one so that they compare.
 
     Returns
     -------
@@ -258,7 +261,8 @@ def plot_receiver_flux(maps: dict, receiver, path=None, *, limit_w_m2: float | N
     arrays = {k: (v.detach().cpu().numpy() if torch.is_tensor(v) else np.asarray(v)).astype(float) / 1e3
               for k, v in maps.items()}
     ext = receiver_extent(receiver)
-    vmax = max([float(a.max()) for a in arrays.values()] + [limit_w_m2 / 1e3 if limit_w_m2 else 0.0]) or 1.0
+    vmax = max([float(a.max()) for a in arrays.values()] + [limit_w_m2 / 1e3 if limit_w_m2 else 0.0]
+               + [vmax_w_m2 / 1e3 if vmax_w_m2 else 0.0]) or 1.0
     n = len(arrays)
     width = ext[1] - ext[0]
     fig = Figure(figsize=(min(6.5 * n, 20), 3.6 if width > 2 * (ext[3] - ext[2]) else 4.8), layout="constrained")

@@ -28,7 +28,7 @@ from ..raytrace.field import FieldResult, FieldSettings, field_optics, summary
 from ..raytrace.yearly import DEFAULT_ELEVATIONS_DEG, annual_energy, efficiency_table
 from ..sun import direction_from_paint_angles, direction_from_time
 
-__all__ = ["FieldRunSettings", "field", "field_year", "sun_direction_at", "sun_instants"]
+__all__ = ["FieldRunSettings", "field", "field_year", "flux_map_fields", "sun_direction_at", "sun_instants"]
 
 
 @dataclass
@@ -183,11 +183,19 @@ def field(scenario, sun: torch.Tensor, settings: FieldRunSettings | None = None)
             result = field_optics(plant, sun, **kwargs)
     seconds_model = time.perf_counter() - t1
     report = summary(result, plant)
+    report["receiver"].update(flux_map_fields(result))
     report.update({"scenario": os.path.abspath(scenario.path) if scenario.path else None, "aim": settings.aim,
                    "integrator": settings.integrator, "occlusion": settings.occlusion,
                    "resolution": {"cols": settings.resolution[1], "rows": settings.resolution[0]},
                    "seconds": time.perf_counter() - t0, "seconds_field_model": seconds_model})
     return report, result
+
+
+def flux_map_fields(result: FieldResult) -> dict:
+    """The receiver map for a JSON report: ``flux_map_w_m2`` [rows][cols] (row 0 = top) and
+    ``flux_map_extent_m`` ``[arc_min, arc_max, height_min, height_max]`` (the same numbers as ``--flux-csv``)."""
+    return {"flux_map_w_m2": result.flux.detach().cpu().to(torch.float64).tolist(),
+            "flux_map_extent_m": [float(v) for v in result.extent.detach().cpu()]}
 
 
 def field_year(scenario, year: int, every: str = "1h", *, azimuth_step_deg: float = 15.0) -> dict:
