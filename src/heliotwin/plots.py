@@ -208,18 +208,15 @@ def plot_field_demo(folder, plant, before, aimed, rep, limit: float, time_utc: s
                  f"(efficiency {e['total']:.3f})")
     save_figure(fig, folder / "losses.png")
 
-    vmax = max(float(before.flux.max()), float(aimed.flux.max())) / 1e3
-    ext = before.extent.tolist()
-    for name, flux, label, power in (("flux_equator", before.flux, "equator aiming", rep["receiver"]["power_w"]),
-                                     ("flux_optimised", aimed.flux, "optimised aim points", aimed.power_w)):
-        fig = Figure(figsize=(8, 3))
-        ax = fig.add_subplot()
-        im = ax.imshow(flux.detach().numpy() / 1e3, extent=ext, aspect="auto", vmin=0, vmax=vmax, cmap="inferno")
-        fig.colorbar(im, ax=ax, label="flux [kW/m²]")
-        ax.set(xlabel="arc along the unrolled receiver [m]", ylabel="height [m]",
-               title=f"{label}: peak {float(flux.max()) / 1e3:.0f} kW/m² (limit {limit / 1e3:.0f}), "
-                     f"{power / 1e6:.2f} MW")
-        save_figure(fig, folder / f"{name}.png")
+    receiver = plant.targets["receiver"]
+    maps = {"equator aiming": before.flux, "optimised aim points": aimed.flux}
+    powers = {"equator aiming": rep["receiver"]["power_w"], "optimised aim points": aimed.power_w}
+    vmax = max(float(before.flux.max()), float(aimed.flux.max()))
+    plot_receiver_flux(maps, receiver, folder / "flux_before_after.png", limit_w_m2=limit, powers_w=powers,
+                       title=f"{len(pos)} heliostats, {time_utc[:16]} UTC: peak-flux limit {limit / 1e3:.0f} kW/m²")
+    for name, label in (("flux_equator", "equator aiming"), ("flux_optimised", "optimised aim points")):
+        plot_receiver_flux({label: maps[label]}, receiver, folder / f"{name}.png", limit_w_m2=limit,
+                           powers_w=powers, vmax_w_m2=vmax)
 
 
 # --------------------------------------------------------------------------------------- receiver maps
@@ -292,11 +289,10 @@ def plot_receiver_flux(maps: dict, receiver, path=None, *, limit_w_m2: float | N
         else:
             ax.set_xlabel("across the receiver, 'right' [m]")
     axes[0].set_ylabel("height on the receiver [m]")
-    bar = fig.colorbar(im, ax=list(axes), label="flux [kW/m²]", shrink=0.95)
+    label = "flux [kW/m²]" + (f"  (dashed: limit {limit_w_m2 / 1e3:.0f})" if limit_w_m2 else "")
+    bar = fig.colorbar(im, ax=list(axes), label=label, shrink=0.95)
     if limit_w_m2:
         bar.ax.axhline(limit_w_m2 / 1e3, color="cyan", ls="--", lw=1.5)
-        bar.ax.text(1.05, limit_w_m2 / 1e3 / vmax, f" limit {limit_w_m2 / 1e3:.0f}", transform=bar.ax.transAxes,
-                    va="bottom", fontsize=8, color="tab:cyan")
         axes[-1].plot([], [], color="cyan", ls="--", label=f"limit {limit_w_m2 / 1e3:.0f} kW/m²")
     axes[-1].legend(loc="lower right", fontsize=8, framealpha=0.6)
     if title:

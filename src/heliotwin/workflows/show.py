@@ -45,7 +45,7 @@ def _learned_summary(learned: dict) -> dict:
                            "heliostats": sorted(cal.get("heliostats", []))[:1000] if cal else []},
             "surfaces": {"learned_for": surfaces},
             "aimpoints": {"instants": len(instants),
-                          "labels": [str(v.get("label", k)) for k, v in instants.items()][:100],
+                          "labels": [str(v.get("instant", k)) for k, v in instants.items()][:100],
                           "peak_limit_w_m2": aim.get("peak_limit_w_m2")},
             "other": sorted(k for k in learned if k not in ("calibration", "surfaces", "aimpoints"))}
 
