@@ -123,3 +123,26 @@ def test_demo_writes_a_scenario_to_go_on_from(tmp_path, capsys):
     again, _ = plant_from_layout(tmp_path / "sp.csv", tmp_path / "sp.toml")
     torch.testing.assert_close(again.field.kinematics.position, sc.plant.field.kinematics.position, atol=1e-5,
                                rtol=0)
+
+
+def test_validate_keeps_calibrated_and_nominal_heliostats_apart():
+    """A partly learned plant: the calibrated heliostats' medians are not mixed with the nominal ones', and
+    the report says what each metric computes (its centred L1 is not reconstruct's)."""
+    from types import SimpleNamespace
+
+    from heliotwin.workflows.validate import METRICS, split_by_state
+
+    def h(err, l1):
+        return {"median_pointing_error_mrad": err, "median_distance_m": err / 10, "median_centered_l1": l1,
+                "median_centered_cross_correlation": None}
+
+    report = {"heliostats": {"AK32": h(0.6, None), "BH60": h(0.8, None), "AA39": h(3.0, 0.205), "BF41": h(5.0, None)}}
+    scenario = SimpleNamespace(learned={"calibration": {"method": "lm", "heliostats": ["AK32", "BH60"]},
+                                        "surfaces": {"AA39": {}}})
+    split_by_state(report, scenario)
+    assert report["by_state"]["calibrated"]["heliostats"] == ["AK32", "BH60"]
+    assert report["by_state"]["calibrated"]["median_pointing_error_mrad"] == pytest.approx(0.7)
+    assert report["by_state"]["nominal"]["median_pointing_error_mrad"] == pytest.approx(4.0)
+    assert report["by_state"]["nominal"]["median_centered_l1"] == pytest.approx(0.205)
+    assert report["heliostats"]["AA39"] | {} == {**h(3.0, 0.205), "kinematics": "nominal", "surface": "learned"}
+    assert "camera model" in METRICS["median_centered_l1"] and "l1_learned" in METRICS["median_centered_l1"]

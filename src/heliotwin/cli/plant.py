@@ -230,19 +230,27 @@ def cmd_validate(args) -> int:
         write_json(json_path, report)
         if plot_path and report["heliostats"]:
             plot_validation(report, plot_path)
+    if not args.quiet:
+        _print_validate_summary(args, report)
+    return 0
+
+
+def _print_validate_summary(args, report: dict) -> None:
     o = report["overall"]
-    if args.quiet:
-        return 0
     print(f"validate: {o.get('records', 0)} records, {o.get('heliostats', 0)} heliostats; median pointing error "
           f"{_fmt(o.get('median_pointing_error_mrad'))} mrad (median over heliostats), median distance "
           f"{_fmt(o.get('median_distance_m'), '.3f')} m; {o.get('images', 0)} images, median centred L1 "
           f"{_fmt(o.get('median_centered_l1'), '.3f')} -> {args.json}")
+    for name, g in (report.get("by_state") or {}).items():
+        if g["heliostats"] and report["by_state"]["calibrated"]["heliostats"]:  # only worth a line when mixed
+            print(f"  {name} kinematics: {len(g['heliostats'])} heliostats, median pointing error "
+                  f"{_fmt(g['median_pointing_error_mrad'])} mrad, median centred L1 "
+                  f"{_fmt(g['median_centered_l1'], '.3f')}")
     cams = report.get("camera_agreement") or {}
     if cams:  # a per-target camera offset is a survey matter, not a heliostat's: worth a line of its own
         print("cameras, HeliOS - UTIS (right, up) [cm], median per target: " + "; ".join(
             f"{name} ({100 * c['right_m']:+.1f}, {100 * c['up_m']:+.1f}) over {c['pairs']} records"
             for name, c in cams.items()))
-    return 0
 
 
 cmd_validate.supports_cuda = True  # validate_dataset traces on args.device

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import sys
 import time
 from dataclasses import dataclass
 
@@ -39,6 +40,7 @@ from ..surfaces.plantprior import check_leakage, load_surface_prior
 from ..surfaces.state import with_learned_surface
 from ..surfaces.study import reconstruct_observed
 from ..surfaces.training import TrainSettings
+from .show import kinematics_note
 
 __all__ = ["ReconstructionSettings", "reconstruct", "reconstruction_checkpoint", "METHODS"]
 
@@ -221,6 +223,9 @@ def reconstruct(scenario: Scenario | None, paint, heliostat: str, settings: Reco
     device = resolve_device(s.device)
     t0 = time.perf_counter()
     plant = scenario.plant if scenario is not None else None
+    note = kinematics_note(scenario, heliostat)  # a surface learned on nominal kinematics must say so, up front
+    if progress and "no calibration" in note:
+        print(f"heliotwin reconstruct: {note}", file=sys.stderr, flush=True)
     _, on_device, train, test = paint_observations(
         paint, heliostat, plant=plant, device=device, train_records=list(s.train_records) if s.train_records else None,
         train_first=s.train_first, resolution=learner.resolution, background=s.background, alignment=s.alignment)
@@ -233,6 +238,7 @@ def reconstruct(scenario: Scenario | None, paint, heliostat: str, settings: Reco
             report, model, fit = _legacy(on_device, train, test, learner, s, progress)
             report = {"heliostat": heliostat, "paint": str(paint), **report, "seconds": time.perf_counter() - t0}
     report["method"] = s.method
+    report["kinematics"] = note
     if s.method == "generalising":
         report["choices"] = _generalising_choices(report)
         # the stored surface records what chose it

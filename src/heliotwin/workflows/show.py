@@ -19,7 +19,7 @@ from ..io.export import export_solarpilot, export_soltrace
 from ..io.scenario import Scenario
 from ..raytrace.field import FieldSettings, field_optics
 
-__all__ = ["describe_scenario", "export_plant", "format_description"]
+__all__ = ["describe_scenario", "export_plant", "format_description", "kinematics_note"]
 
 #: The keys of a step that say how it was run (printed after the step's name).
 _STEP_KEYS = ("method", "command", "source", "paint", "heliostats", "instants", "peak_limit_w_m2", "target")
@@ -48,6 +48,20 @@ def _learned_summary(learned: dict) -> dict:
                           "labels": [str(v.get("instant", k)) for k, v in instants.items()][:100],
                           "peak_limit_w_m2": aim.get("peak_limit_w_m2")},
             "other": sorted(k for k in learned if k not in ("calibration", "surfaces", "aimpoints"))}
+
+
+def kinematics_note(scenario: Scenario | None, heliostat: str) -> str:
+    """One line: are ``heliostat``'s kinematics calibrated in ``scenario``, or does a step on it run on nominal
+    kinematics (and why)? E.g. ``"AA39: no calibration in a.h5 (calibrated: AK32, BH60, ...); nominal
+    kinematics"``."""
+    cal = ((scenario.learned if scenario is not None else {}) or {}).get("calibration") or {}
+    done = list(cal.get("heliostats", []))
+    if heliostat in done:
+        return f"{heliostat}: calibrated kinematics ({cal.get('method')}) from {scenario.path or 'the scenario'}"
+    where = f"in {scenario.path}" if scenario is not None and scenario.path else "(no scenario)"
+    listed = f" (calibrated: {', '.join(done[:5])}{', ...' if len(done) > 5 else ''})" if done else ""
+    return (f"{heliostat}: no calibration {where}{listed}; this step runs on its nominal kinematics (a "
+            "heliostat needs enough records with a time and a focal spot to be calibrated)")
 
 
 def describe_scenario(scenario: Scenario) -> dict:
