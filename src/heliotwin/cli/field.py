@@ -83,6 +83,7 @@ def _write_field_outputs(args, sc, report, result) -> None:
 
 def cmd_field(args) -> int:
     from ..io.scenario import load_scenario
+    from ..io.weather import read_dni_series
     from ..workflows.field import FieldRunSettings, field, field_year
 
     for path, flag in ((args.json, "--json"), (args.per_heliostat, "--per-heliostat"), (args.flux, "--flux")):
@@ -90,12 +91,13 @@ def cmd_field(args) -> int:
     t0 = time.perf_counter()
     sc = load_scenario(args.scenario)
     if args.year is not None:
-        report = field_year(sc, args.year, args.every, azimuth_step_deg=args.table_azimuth_step)
+        report = field_year(sc, args.year, args.every, azimuth_step_deg=args.table_azimuth_step,
+                            weather=read_dni_series(args.weather) if getattr(args, "weather", None) else None)
         report["seconds"] = time.perf_counter() - t0
         write_json(args.json, report)
         print(f"field {args.year}: {report['instants']} daylight instants every {args.every}; annual optical energy "
               f"{report['annual_optical_energy_mwh']:.1f} MWh of {report['annual_dni_energy_on_mirrors_mwh']:.1f} "
-              f"MWh clear-sky DNI on the mirrors (efficiency {report['mean_efficiency']:.4f}); "
+              f"MWh DNI on the mirrors ({report['dni_model']}; efficiency {report['mean_efficiency']:.4f}); "
               f"{report['seconds']:.1f} s")
         return 0
     settings = FieldRunSettings(resolution=args.resolution, integrator=args.integrator, occlusion=args.occlusion,
@@ -223,6 +225,9 @@ def register(sub) -> None:
     p.add_argument("--table-azimuth-step", type=float, default=15.0, help="with --year: azimuth step [deg] of the "
                                                                           "efficiency table (default: %(default)s)")
     p.add_argument("--dni", type=float, help="direct normal irradiance [W/m2] (default: the scenario's)")
+    p.add_argument("--weather", metavar="CSV", help="with --year: measured or typical-year DNI instead of clear sky "
+                                                    "(SAM/TMY weather file, PAINT's calibration-weather.csv, or any "
+                                                    "CSV with a time and a dni [W/m2] column)")
     p.add_argument("--aim", choices=("equator", "scenario"), default="equator",
                    help="equator: each heliostat aims at the receiver point facing it at mid-height (SolarPILOT "
                         "'simple'); scenario: the scenario's /learned/aimpoints")
