@@ -146,3 +146,17 @@ def test_validate_keeps_calibrated_and_nominal_heliostats_apart():
     assert report["by_state"]["nominal"]["median_centered_l1"] == pytest.approx(0.205)
     assert report["heliostats"]["AA39"] | {} == {**h(3.0, 0.205), "kinematics": "nominal", "surface": "learned"}
     assert "camera model" in METRICS["median_centered_l1"] and "l1_learned" in METRICS["median_centered_l1"]
+
+
+def test_prediction_figure_draws_the_year_with_units():
+    from heliotwin.plots import plot_prediction
+
+    rep = {"heliostat": "AA39", "target": "t", "year": 2023, "every": "1h", "instants": 2,
+           "series": {"time": ["2023-06-21T10:00:00+00:00", "2023-06-21T11:00:00+00:00"], "power_w": [3e3, 4e3],
+                      "peak_learned_w_m2": [5e4, 6e4], "peak_ideal_w_m2": [7e4, 8e4],
+                      "l1_ideal_vs_learned": [0.1, 0.2]}}
+    fig = plot_prediction(rep)
+    ax = fig.axes
+    assert [a.get_ylabel() for a in ax] == ["power on the target [kW]", "peak flux [kW/m²]",
+                                           "L1 of the unit-sum images [-]"]
+    assert list(ax[0].lines[0].get_ydata()) == [3.0, 4.0] and len(ax[1].lines) == 2

@@ -89,3 +89,17 @@ def test_field_year_with_weather_names_its_source(small, tmp_path):
     rep = field_year(sc, 2023, azimuth_step_deg=60.0, weather=series)
     assert "w.csv" in rep["dni_model"] and rep["instants"] > 20
     assert 0.5 < rep["mean_efficiency"] < 0.95
+
+
+def test_predicted_energy_scales_each_instant_by_its_dni(tmp_path):
+    from heliotwin.workflows.predict import prediction_energy
+
+    plant, _ = demo_field_plant(4)
+    series = {"time": ["2023-06-21T10:00:00+00:00", "2023-06-21T11:00:00+00:00", "2023-06-21T12:00:00+00:00"],
+              "power_w": [1000.0, 1000.0, 1000.0]}
+    local = pd.date_range("2023-06-21 09:00", periods=5, freq="1h")
+    w = _sam(tmp_path / "w.csv", local, [0.0, 450.0, 450.0, 450.0, 0.0])
+    e = prediction_energy(series, plant, 900.0, "1h", str(w))
+    assert e["energy_kwh"] == pytest.approx(1.5) and series["dni_w_m2"] == [450.0] * 3
+    clear = prediction_energy(dict(series), plant, 900.0, "1h", None)
+    assert clear["dni_source"].startswith("pvlib") and 2.0 < clear["energy_kwh"] < 3.5  # ~800-900 W/m2 at noon
