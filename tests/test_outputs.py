@@ -160,3 +160,24 @@ def test_prediction_figure_draws_the_year_with_units():
     assert [a.get_ylabel() for a in ax] == ["power on the target [kW]", "peak flux [kW/m²]",
                                            "L1 of the unit-sum images [-]"]
     assert list(ax[0].lines[0].get_ydata()) == [3.0, 4.0] and len(ax[1].lines) == 2
+
+
+def test_api_field_and_aimpoints_call_the_workflows(layout_scenario, tmp_path, capsys):
+    from heliotwin import api
+
+    rep, result = api.field_efficiency(layout_scenario, sun_azimuth_deg=0, sun_elevation_deg=50)
+    code, _, _ = run_cli(capsys, "field", "--scenario", layout_scenario, "--sun-azimuth", 0, "--sun-elevation", 50,
+                         "--json", tmp_path / "f.json")
+    cli = json.loads((tmp_path / "f.json").read_text())
+    assert rep["receiver"]["power_w"] == pytest.approx(cli["receiver"]["power_w"], rel=1e-9)
+    sc = load_scenario(layout_scenario)
+    limit = 0.8 * rep["receiver"]["peak_flux_w_m2"]
+    aimed, arep, maps = api.optimise_aimpoints(sc, limit, sun_azimuth_deg=0, sun_elevation_deg=50,
+                                               settings=api.AimpointSettings(1.0, iterations=40, baselines=False),
+                                               output=tmp_path / "aimed.h5")
+    assert arep["optimised"]["peak_flux_w_m2"] <= limit * 1.001 and len(maps) == 1
+    assert float(maps[0]["equator aiming"].max()) == pytest.approx(rep["receiver"]["peak_flux_w_m2"], rel=1e-6)
+    fig = api.plot_receiver_flux(maps[0], sc.plant.targets["receiver"], limit_w_m2=limit)
+    assert len([a for a in fig.axes if a.images]) == 2
+    written = api.export_plant(tmp_path / "aimed.h5", solarpilot=tmp_path / "sp.csv")
+    assert written["solarpilot_config"].endswith("sp.toml") and (tmp_path / "sp.toml").exists()
