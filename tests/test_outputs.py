@@ -181,3 +181,25 @@ def test_api_field_and_aimpoints_call_the_workflows(layout_scenario, tmp_path, c
     assert len([a for a in fig.axes if a.images]) == 2
     written = api.export_plant(tmp_path / "aimed.h5", solarpilot=tmp_path / "sp.csv")
     assert written["solarpilot_config"].endswith("sp.toml") and (tmp_path / "sp.toml").exists()
+
+
+def test_progress_is_a_line_per_stage_in_a_log_and_silent_when_quiet():
+    import io
+
+    from heliotwin.progress import Stages
+
+    log, err = io.StringIO(), io.StringIO()
+    with Stages(2, "heliotwin demo", stream=err, lines=log) as bar:
+        bar.start("field model")
+        bar.step("field model")
+        bar.start("aim points")
+        bar.step("aim points")
+    lines = log.getvalue().splitlines()
+    assert lines[0] == "heliotwin demo: 1/2 field model ..."
+    assert lines[3].startswith("heliotwin demo: 2/2 aim points done")
+    assert err.getvalue() == ""  # no bar's carriage returns in a log, nothing on stderr
+    quiet = io.StringIO()
+    with Stages(2, "x", enabled=False, stream=io.StringIO(), lines=quiet) as bar:
+        bar.start("a")
+        bar.step("a")
+    assert quiet.getvalue() == ""

@@ -84,12 +84,15 @@ def _write_field_outputs(args, sc, report, result) -> None:
 def cmd_field(args) -> int:
     from ..io.scenario import load_scenario
     from ..io.weather import read_dni_series
+    from ..progress import Stages
     from ..workflows.field import FieldRunSettings, field, field_year
 
     for path, flag in ((args.json, "--json"), (args.per_heliostat, "--per-heliostat"), (args.flux, "--flux")):
         check_output_folder(path, flag)
     t0 = time.perf_counter()
+    bar = Stages(2, "heliotwin field", enabled=not args.quiet)
     sc = load_scenario(args.scenario)
+    bar.start("efficiency table over the year" if args.year is not None else "field model")
     if args.year is not None:
         report = field_year(sc, args.year, args.every, azimuth_step_deg=args.table_azimuth_step,
                             weather=read_dni_series(args.weather) if getattr(args, "weather", None) else None)
@@ -105,8 +108,10 @@ def cmd_field(args) -> int:
                                 device=getattr(args, "device", None))
     settings.check()
     report, result = field(sc, _sun(args, sc.plant), settings)
+    bar.step("field model")
     report["seconds"] = seconds = time.perf_counter() - t0
     _write_field_outputs(args, sc, report, result)
+    bar.step("outputs")
     e = report["field"]["efficiency"]
     print(f"field: {len(sc.plant.field.ids)} heliostats; efficiency {e['total']:.4f} (cosine {e['cosine']:.4f}, "
           f"shading {e['shading']:.4f}, blocking {e['blocking']:.4f}, attenuation {e['attenuation']:.4f}, intercept "

@@ -26,6 +26,7 @@ from ..io.scenario import next_scenario, provenance_entry, write_scenario
 from ..optimise.aimpoints import AimSettings, optimise_aimpoints
 from ..optimise.aimstate import KEY, aimpoint_state, instant_state
 from ..plots import plot_demo, plot_field_demo
+from ..progress import Stages
 from ..raytrace.field import FACTORS, field_optics, per_heliostat_rows, summary
 from ..raytrace.flux import FluxImage
 from ..scene import trace, world_surface
@@ -61,7 +62,8 @@ def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-
     iterations : int, optional
         Image-model steps per round of the aim-point optimiser (default: the optimiser's).
     progress : bool
-        A progress bar over the stages.
+        Progress over the stages (:class:`heliotwin.progress.Stages`: a bar on a terminal, a line per stage
+        otherwise).
     device : str
         Where the field model and the aim points run (``auto``: CUDA when present); results on the CPU.
 
@@ -77,7 +79,8 @@ def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-
     t_start = time.perf_counter()
     folder = Path(out)
     seconds = {}
-    bar = tqdm(total=4, desc="demo: whole field", unit="stage", disable=not progress)
+    bar = Stages(4, "heliotwin demo", enabled=progress)
+    bar.start(f"field model ({num_heliostats} heliostats)")
     plant, atm = demo_field_plant(num_heliostats)
     s = plant.site
     sun = direction_from_time(pd.DatetimeIndex([pd.Timestamp(time_utc)]), s.latitude_deg, s.longitude_deg,
@@ -89,13 +92,15 @@ def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-
         before = to_device(field_optics(plant, sun, atmosphere=atm), "cpu")
     seconds["field_model"] = time.perf_counter() - t0
     rep = summary(before, plant_cpu)
-    bar.update()
+    bar.step("field model")
+    bar.start("aim points")
     limit = float(peak_limit_fraction) * rep["receiver"]["peak_flux_w_m2"]
     t0 = time.perf_counter()
     knobs = AimSettings() if iterations is None else AimSettings(iterations=int(iterations))
     aimed = to_device(optimise_aimpoints(plant, sun, limit, knobs, atmosphere=atm), "cpu")
     seconds["aim_points"] = time.perf_counter() - t0
-    bar.update()
+    bar.step("aim points")
+    bar.start("figures and plant.h5")
     folder.mkdir(parents=True, exist_ok=True)
     rep["losses"] = _loss_breakdown(before)
     t0 = time.perf_counter()
@@ -104,7 +109,8 @@ def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-
     write_scenario(_demo_scenario(plant_cpu, atm, aimed, sun.cpu(), limit, time_utc, num_heliostats),
                    folder / "plant.h5")
     seconds["outputs"] = time.perf_counter() - t0
-    bar.update()
+    bar.step("figures and plant.h5")
+    bar.start("summary")
     seconds["total"] = time.perf_counter() - t_start
     rep.update({"plant": "embedded Jülich-like field (heliotwin.field.demo.demo_field_plant)", "time_utc": time_utc,
                 "aim_points": {
@@ -116,7 +122,7 @@ def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-
                 "files": ["field_efficiency.png", "losses.png", "flux_equator.png", "flux_optimised.png",
                           "flux_before_after.png", "heliostats.csv", "plant.h5", "summary.json"]})
     write_json(folder / "summary.json", rep)
-    bar.update()
+    bar.step("summary")
     bar.close()
     return rep
 
