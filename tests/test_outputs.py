@@ -203,3 +203,16 @@ def test_progress_is_a_line_per_stage_in_a_log_and_silent_when_quiet():
         bar.start("a")
         bar.step("a")
     assert quiet.getvalue() == ""
+
+
+def test_a_step_on_an_uncalibrated_heliostat_says_it_runs_on_nominal_kinematics():
+    from types import SimpleNamespace
+
+    from heliotwin.workflows.show import kinematics_note
+
+    sc = SimpleNamespace(path="a.h5", learned={"calibration": {"method": "lm", "heliostats": ["AK32", "BH60"]}})
+    note = kinematics_note(sc, "AA39")
+    assert note.startswith("AA39: no calibration in a.h5 (calibrated: AK32, BH60)") and "nominal kinematics" in note
+    assert "\n" not in note
+    assert kinematics_note(sc, "AK32") == "AK32: calibrated kinematics (lm) from a.h5"
+    assert "no calibration (no scenario)" in kinematics_note(None, "AA39")

@@ -130,6 +130,8 @@ def format_description(d: dict) -> str:
                                if lr["aimpoints"]["instants"] else "none stored (equator aiming)"),
              "/learned groups: " + (", ".join(d["learned_groups"][:12]) or "none")
              + (" ..." if len(d["learned_groups"]) > 12 else ""),
+             "created by: " + " ".join(str(d["metadata"].get(k)) for k in ("created_by_command", "created_by",
+                                                                          "created_utc") if d["metadata"].get(k)),
              f"provenance ({len(d['provenance'])} steps):"]
     for i, s in enumerate(d["provenance"], 1):
         how = ", ".join(f"{key}={s[key]}" for key in _STEP_KEYS if key in s)
