@@ -136,7 +136,7 @@ def _print_instant(limit):
               "of equator" + "".join(f", {n} {rep[n]['power_vs_equator']:.4f} (peak "
                                      f"{rep[n]['peak_flux_w_m2'] / 1e3:.1f})"
                                      for n in ("aiming_factor", "image_size_priority") if n in rep)
-              + f"; {rep['seconds']:.1f} s")
+              + f"; {rep['seconds']:.1f} s", flush=True)
     return show
 
 
@@ -186,6 +186,9 @@ def cmd_aimpoints(args) -> int:
         sc = load_scenario(args.scenario)
         instants = sun_instants(sc.plant, times=args.time, day=args.day, every=args.every,
                                 azimuth_deg=args.sun_azimuth, elevation_deg=args.sun_elevation)
+        if show:  # a line before the long part; one more per instant as each finishes
+            print(f"aimpoints: {len(sc.plant.field.ids)} heliostats, {len(instants)} instant(s), limit "
+                  f"{float(args.peak_limit) / 1e3:.1f} kW/m2 ...", flush=True)
         aimed, report = aimpoints(sc, instants, settings, on_instant=on_instant)
         write_scenario(aimed, out_h5)
         write_json(out_json, report)
