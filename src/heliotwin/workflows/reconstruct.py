@@ -224,8 +224,8 @@ def reconstruct(scenario: Scenario | None, paint, heliostat: str, settings: Reco
     t0 = time.perf_counter()
     plant = scenario.plant if scenario is not None else None
     note = kinematics_note(scenario, heliostat)  # a surface learned on nominal kinematics must say so, up front
-    if progress and "no calibration" in note:
-        print(f"heliotwin reconstruct: {note}", file=sys.stderr, flush=True)
+    if progress and "no calibration" in note:  # stdout: a failing run's stderr holds only its one-line error
+        print(f"heliotwin reconstruct: {note}", file=sys.stdout, flush=True)
     _, on_device, train, test = paint_observations(
         paint, heliostat, plant=plant, device=device, train_records=list(s.train_records) if s.train_records else None,
         train_first=s.train_first, resolution=learner.resolution, background=s.background, alignment=s.alignment)
