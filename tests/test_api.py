@@ -117,25 +117,6 @@ def test_to_device_moves_every_tensor_and_keeps_dtypes(paint_dir):
     assert bool((moved[1].sun == ds.records.sun).all())
 
 
-def test_getting_started_notebook_runs_on_the_shared_data(paint_dir, tmp_path, monkeypatch):
-    """Every code cell of docs/getting-started.ipynb, in order, as a kernel would run it (no Jupyter needed);
-    its figure is written and its calibration improves on the nominal kinematics."""
-    import json
-
-    nb = json.loads((SRC.parent / "docs" / "getting-started.ipynb").read_text(encoding="utf-8"))
-    assert nb["nbformat"] == 4
-    monkeypatch.setenv("HELIOTWIN_PAINT", str(paint_dir))
-    monkeypatch.chdir(tmp_path)
-    namespace: dict = {"__name__": "__main__"}
-    cells = [c for c in nb["cells"] if c["cell_type"] == "code"]
-    assert len(cells) >= 4
-    for i, cell in enumerate(cells):
-        exec(compile("".join(cell["source"]), f"getting-started.ipynb[{i}]", "exec"), namespace)
-    assert (tmp_path / "getting-started-flux.png").read_bytes()[:4] == b"\x89PNG"
-    overall = namespace["overall"]
-    assert overall["median_of_mean_test_mrad"] < overall["nominal_median_of_mean_test_mrad"]
-
-
 def test_to_device_copies_networks():
     import torch
 

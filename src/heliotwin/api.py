@@ -17,7 +17,10 @@ Functions
 ---------
 :func:`load` (records on a plant), :func:`field` (the plant alone), :func:`trace_record` (one record's flux
 and report), :func:`plot_flux` (a titled, labelled figure with a colour bar), :func:`calibrate` (kinematics),
-:func:`reconstruct` (a mirror surface), :func:`to_device` (move plant pieces between CPU and GPU).
+:func:`reconstruct` (a mirror surface), :func:`to_device` (move plant pieces between CPU and GPU);
+the whole field: :func:`field_efficiency` (one sun), :func:`optimise_aimpoints` (aim points under a peak limit),
+:func:`plot_receiver_flux` (maps on one scale), :func:`export_plant` (SolarPILOT / SolTrace),
+:func:`read_weather` (a DNI time series).
 """
 from __future__ import annotations
 
@@ -30,15 +33,22 @@ from .devices import to_device as _move
 from .errors import HeliotwinError
 from .field.update import select_heliostats
 from .io.scenario import load_records, load_scenario, scenario_from_paint, write_scenario
+from .io.weather import read_dni_series
+from .workflows.aimpoints import AimpointSettings
+from .workflows.aimpoints import aimpoints as aimpoints_workflow
 from .workflows.calibrate import CalibrationSettings, calibration_checkpoint
 from .workflows.calibrate import calibrate as calibrate_kinematics
+from .workflows.field import FieldRunSettings, sun_direction_at, sun_instants
+from .workflows.field import field as field_workflow
 from .workflows.reconstruct import ReconstructionSettings, reconstruction_checkpoint
 from .workflows.reconstruct import reconstruct as reconstruct_surface
+from .workflows.show import export_plant as export_workflow
 from .workflows.trace import TraceSettings
 from .workflows.trace import trace_record as trace_workflow
 
 __all__ = ["load", "field", "trace_record", "plot_flux", "calibrate", "reconstruct", "ReconstructionSettings",
-           "to_device"]
+           "to_device", "field_efficiency", "FieldRunSettings", "optimise_aimpoints", "AimpointSettings",
+           "plot_receiver_flux", "export_plant", "read_weather"]
 
 
 def load(paint, heliostats=None, *, scenario=None, plane_tolerance: float = 0.1):
@@ -246,3 +256,105 @@ def reconstruct(paint, heliostat: str, settings: ReconstructionSettings | None =
     if ck is not None:
         ck.remove()
     return report, fit["model"]
+
+
+# ------------------------------------------------------------------------------------ the whole field
+def _scenario(source):
+    """A :class:`~heliotwin.io.scenario.Scenario` from a path (``.h5``) or as given."""
+    return load_scenario(os.fspath(source)) if isinstance(source, (str, os.PathLike)) else source
+
+
+def field_efficiency(scenario, *, time_utc: str | None = None, sun_azimuth_deg: float | None = None,
+                     sun_elevation_deg: float | None = None, settings: FieldRunSettings | None = None):
+    """The whole field at one sun (:func:`heliotwin.workflows.field.field`, ``heliotwin field``'s defaults).
+
+    Parameters
+    ----------
+    scenario : Scenario or path
+        E.g. ``heliotwin scenario from-layout``'s or ``heliotwin demo``'s ``plant.h5``.
+    time_utc : str, optional
+        ISO UTC time (sun from pvlib at the plant's site); else ``sun_azimuth_deg``/``sun_elevation_deg``
+        (PAINT convention: 0 = south, +90 = east).
+    settings : FieldRunSettings, optional
+        Resolution, integrator, occlusion model, aiming (``"equator"``/``"scenario"``), DNI.
+
+    Returns
+    -------
+    report : dict
+        Field averages, losses per factor, receiver power [W], peak [W/m^2] and the map
+        (``receiver.flux_map_w_m2``, ``receiver.flux_map_extent_m``).
+    result : heliotwin.raytrace.field.FieldResult
+        Per-heliostat factors [H] and the map ``flux`` [rows, cols] [W/m^2];
+        ``api.plot_receiver_flux({"equator": result.flux}, plant.targets["receiver"])`` draws it.
+    """
+    sc = _scenario(scenario)
+    sun = sun_direction_at(sc.plant, time_utc=time_utc, azimuth_deg=sun_azimuth_deg, elevation_deg=sun_elevation_deg)
+    return field_workflow(sc, sun, settings)
+
+
+def optimise_aimpoints(scenario, peak_limit_w_m2: float, *, time_utc: str | None = None,
+                       sun_azimuth_deg: float | None = None, sun_elevation_deg: float | None = None,
+                       settings: AimpointSettings | None = None, output=None):
+    """Aim points under a peak-flux limit at one or several instants (:func:`heliotwin.workflows.aimpoints.
+    aimpoints`, ``heliotwin aimpoints``'s defaults).
+
+    Parameters
+    ----------
+    scenario : Scenario or path
+    peak_limit_w_m2 : float
+        Limit on every receiver map cell [W/m^2].
+    time_utc : str, optional
+        One or several comma-separated ISO UTC times; else the sun angles [deg] (PAINT convention).
+    settings : AimpointSettings, optional
+        Everything but the limit (its ``peak_limit_w_m2`` is replaced by the argument).
+    output : path, optional
+        Write the new scenario here (with ``/learned/aimpoints``).
+
+    Returns
+    -------
+    scenario : Scenario
+        The plant with the aim points learned (``field_efficiency(..., settings=FieldRunSettings(aim="scenario"))``
+        traces them).
+    report : dict
+        Per instant: equator aiming, the baselines and the optimised aim points (power [W], peak [W/m^2]).
+    maps : list of dict
+        Per instant ``{"equator aiming": flux, "optimised aim points": flux}`` [rows, cols] [W/m^2], ready for
+        :func:`plot_receiver_flux` with the limit.
+    """
+    sc = _scenario(scenario)
+    s = replace(settings, peak_limit_w_m2=float(peak_limit_w_m2)) if settings else AimpointSettings(
+        peak_limit_w_m2=float(peak_limit_w_m2))
+    instants = sun_instants(sc.plant, times=time_utc, azimuth_deg=sun_azimuth_deg, elevation_deg=sun_elevation_deg)
+    maps = []
+    aimed, report = aimpoints_workflow(sc, instants, s, on_instant=lambda i, label, rep, best, eq: maps.append(
+        {"equator aiming": eq.flux.cpu(), "optimised aim points": best.flux.cpu()}))
+    if output is not None:
+        write_scenario(aimed, output)
+    return aimed, report, maps
+
+
+def plot_receiver_flux(maps: dict, receiver, path=None, *, limit_w_m2: float | None = None, title: str | None = None):
+    """Receiver flux maps side by side on one colour scale [kW/m^2], axes in metres (and degrees around a
+    cylinder), the limit as a dashed contour (:func:`heliotwin.plots.plot_receiver_flux`); returns the Figure."""
+    return plots.plot_receiver_flux(maps, receiver, path, limit_w_m2=limit_w_m2, title=title)
+
+
+def export_plant(scenario, *, solarpilot=None, solarpilot_config=None, soltrace=None, time_utc: str | None = None,
+                 sun_azimuth_deg: float | None = None, sun_elevation_deg: float | None = None) -> dict:
+    """The plant for SolarPILOT (layout table + the TOML ``heliotwin scenario from-layout`` reads back) and/or
+    SolTrace (``.stinput``, mirrors facing the sun given by ``time_utc`` or the angles), as ``heliotwin scenario
+    export`` (:func:`heliotwin.workflows.show.export_plant`). Returns what was written."""
+    sc = _scenario(scenario)
+    timed = time_utc is not None or sun_azimuth_deg is not None
+    sun = sun_direction_at(sc.plant, time_utc=time_utc, azimuth_deg=sun_azimuth_deg,
+                           elevation_deg=sun_elevation_deg) if timed else None
+    pair = None
+    if solarpilot is not None:
+        pair = (solarpilot, solarpilot_config or os.path.splitext(os.fspath(solarpilot))[0] + ".toml")
+    return export_workflow(sc, solarpilot=pair, soltrace=soltrace, sun=sun)
+
+
+def read_weather(path):
+    """A DNI time series (SAM/typical-year file, PAINT's calibration weather, or a time + dni CSV;
+    :func:`heliotwin.io.weather.read_dni_series`): ``.times`` (UTC), ``.dni`` [W/m^2], ``.step_hours``."""
+    return read_dni_series(os.fspath(path))

@@ -6,14 +6,19 @@ inline plots; a headless run needs no display).
 """
 from __future__ import annotations
 
+import numpy as np
+import pandas as pd
 import torch
 from matplotlib.figure import Figure
 
+from .field.targets import CylinderTarget
 from .io.images import load_measured_image
 from .io.report import save_figure
 from .raytrace.field import FACTORS
+from .raytrace.flux import target_extent
 
-__all__ = ["draw_flux", "draw_measured_image", "plot_flux", "plot_demo", "plot_field_demo", "plot_validation"]
+__all__ = ["draw_flux", "draw_measured_image", "plot_flux", "plot_demo", "plot_field_demo", "plot_validation",
+           "plot_receiver_flux", "receiver_extent", "plot_prediction"]
 
 
 def draw_flux(ax, flux, title: str, *, measured: dict | None = None) -> None:
@@ -209,15 +214,132 @@ def plot_field_demo(folder, plant, before, aimed, rep, limit: float, time_utc: s
                  f"(efficiency {e['total']:.3f})")
     save_figure(fig, folder / "losses.png")
 
-    vmax = max(float(before.flux.max()), float(aimed.flux.max())) / 1e3
-    ext = before.extent.tolist()
-    for name, flux, label, power in (("flux_equator", before.flux, "equator aiming", rep["receiver"]["power_w"]),
-                                     ("flux_optimised", aimed.flux, "optimised aim points", aimed.power_w)):
-        fig = Figure(figsize=(8, 3))
-        ax = fig.add_subplot()
-        im = ax.imshow(flux.detach().numpy() / 1e3, extent=ext, aspect="auto", vmin=0, vmax=vmax, cmap="inferno")
-        fig.colorbar(im, ax=ax, label="flux [kW/m²]")
-        ax.set(xlabel="arc along the unrolled receiver [m]", ylabel="height [m]",
-               title=f"{label}: peak {float(flux.max()) / 1e3:.0f} kW/m² (limit {limit / 1e3:.0f}), "
-                     f"{power / 1e6:.2f} MW")
-        save_figure(fig, folder / f"{name}.png")
+    receiver = plant.targets["receiver"]
+    maps = {"equator aiming": before.flux, "optimised aim points": aimed.flux}
+    powers = {"equator aiming": rep["receiver"]["power_w"], "optimised aim points": aimed.power_w}
+    vmax = max(float(before.flux.max()), float(aimed.flux.max()))
+    plot_receiver_flux(maps, receiver, folder / "flux_before_after.png", limit_w_m2=limit, powers_w=powers,
+                       title=f"{len(pos)} heliostats, {time_utc[:16]} UTC: peak-flux limit {limit / 1e3:.0f} kW/m²")
+    for name, label in (("flux_equator", "equator aiming"), ("flux_optimised", "optimised aim points")):
+        plot_receiver_flux({label: maps[label]}, receiver, folder / f"{name}.png", limit_w_m2=limit,
+                           powers_w=powers, vmax_w_m2=vmax)
+
+
+# --------------------------------------------------------------------------------------- receiver maps
+def receiver_extent(receiver) -> list[float]:
+    """``[arc_min, arc_max, height_min, height_max]`` [m] of the receiver map of ``receiver`` (a cylinder
+    unrolled along its arc, or a planar receiver's own right/up axes), as the field model draws it."""
+    return [float(v) for v in target_extent(receiver, 1)[0].cpu()]
+
+
+def plot_receiver_flux(maps: dict, receiver, path=None, *, limit_w_m2: float | None = None,
+                       title: str | None = None, powers_w: dict | None = None, vmax_w_m2: float | None = None):
+    """Receiver flux maps side by side on ONE colour scale, so that before and after compare by eye.
+
+    Parameters
+    ----------
+    maps : dict
+        Panel label -> flux map [rows, cols] [W/m^2] (torch or numpy; row 0 = top of the receiver).
+    receiver : CylinderTarget or PlanarTarget
+        Gives the axes: the arc along the unrolled cylinder [m] (and, on a cylinder, the angle around it
+        [deg] on the top axis) or the planar receiver's width [m]; height [m] up.
+    path : str or os.PathLike, optional
+        Write the figure here (atomically; format from the extension).
+    limit_w_m2 : float, optional
+        The peak-flux limit: drawn as a dashed contour on every panel, named in the colour bar.
+    title : str, optional
+        Figure title.
+    powers_w : dict, optional
+        Panel label -> receiver power [W], printed in the panel title.
+    vmax_w_m2 : float, optional
+        Top of the colour scale [W/m^2] (default: the largest value of all panels, or the limit when higher):
+        give the same value to figures drawn one by one so that they compare.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        Made without pyplot. Each panel's title gives its peak [kW/m^2] and its cell of the peak; the colour
+        bar is in kW/m^2 from 0 to the largest value of all panels (or the limit, when higher).
+    """
+    arrays = {k: (v.detach().cpu().numpy() if torch.is_tensor(v) else np.asarray(v)).astype(float) / 1e3
+              for k, v in maps.items()}
+    ext = receiver_extent(receiver)
+    vmax = max([float(a.max()) for a in arrays.values()] + [limit_w_m2 / 1e3 if limit_w_m2 else 0.0]
+               + [vmax_w_m2 / 1e3 if vmax_w_m2 else 0.0]) or 1.0
+    n = len(arrays)
+    width = ext[1] - ext[0]
+    fig = Figure(figsize=(min(6.5 * n, 20), 3.6 if width > 2 * (ext[3] - ext[2]) else 4.8), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(1, n, sharey=True))
+    im = None
+    for ax, (label, a) in zip(axes, arrays.items()):
+        im = ax.imshow(a, extent=ext, aspect="auto", vmin=0.0, vmax=vmax, cmap="inferno", interpolation="nearest")
+        rows, cols = a.shape
+        r, c = np.unravel_index(int(np.argmax(a)), a.shape)
+        px = ext[0] + (c + 0.5) * (ext[1] - ext[0]) / cols
+        py = ext[3] - (r + 0.5) * (ext[3] - ext[2]) / rows
+        ax.plot(px, py, marker="+", color="cyan", ms=10, mew=1.5, ls="none", label="peak")
+        if limit_w_m2 and float(a.max()) > 0:
+            xs = ext[0] + (np.arange(cols) + 0.5) * (ext[1] - ext[0]) / cols
+            ys = ext[3] - (np.arange(rows) + 0.5) * (ext[3] - ext[2]) / rows
+            if a.min() < limit_w_m2 / 1e3 < a.max():
+                ax.contour(xs, ys, a, levels=[limit_w_m2 / 1e3], colors="cyan", linestyles="--", linewidths=1.2)
+        power = (powers_w or {}).get(label)
+        ax.set_title(f"{label}: peak {float(a.max()):.0f} kW/m²" + (f", {power / 1e6:.2f} MW" if power else ""),
+                     fontsize=10)
+        if isinstance(receiver, CylinderTarget):
+            ax.set_xlabel("arc along the unrolled receiver [m]")
+            radius = float(receiver.radius)
+            top = ax.secondary_xaxis("top", functions=(lambda x, r=radius: np.degrees(x / r),
+                                                       lambda d, r=radius: np.radians(d) * r))
+            top.set_xlabel("angle around the receiver axis [deg]", fontsize=8)
+        else:
+            ax.set_xlabel("across the receiver, 'right' [m]")
+    axes[0].set_ylabel("height on the receiver [m]")
+    label = "flux [kW/m²]" + (f"  (dashed: limit {limit_w_m2 / 1e3:.0f})" if limit_w_m2 else "")
+    bar = fig.colorbar(im, ax=list(axes), label=label, shrink=0.95)
+    if limit_w_m2:
+        bar.ax.axhline(limit_w_m2 / 1e3, color="cyan", ls="--", lw=1.5)
+        axes[-1].plot([], [], color="cyan", ls="--", label=f"limit {limit_w_m2 / 1e3:.0f} kW/m²")
+    axes[-1].legend(loc="lower right", fontsize=8, framealpha=0.6)
+    if title:
+        fig.suptitle(title)
+    if path is not None:
+        save_figure(fig, path, tight=False)
+    return fig
+
+
+def plot_prediction(report: dict, path=None):
+    """A year of one heliostat's predicted flux (:func:`heliotwin.workflows.predict.predict`'s report): the
+    power on the target [kW], the peak flux [kW/m^2] of the learned and the ideal surface, and how far
+    the two images differ (L1 of unit-sum images) at every daylight instant, so the seasons read at a glance.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        Made without pyplot.
+    """
+    series = report.get("series") or {}
+    times = pd.to_datetime(series.get("time", []), utc=True).tz_convert(None)
+    fig = Figure(figsize=(10, 7), layout="constrained")
+    axes = fig.subplots(3, 1, sharex=True)
+    panels = ((("power_w", "learned surface"),), (("peak_learned_w_m2", "learned surface"),
+                                                   ("peak_ideal_w_m2", "ideal surface")),
+              (("l1_ideal_vs_learned", "ideal vs learned"),))
+    labels = ("power on the target [kW]", "peak flux [kW/m²]", "L1 of the unit-sum images [-]")
+    scales = (1e-3, 1e-3, 1.0)
+    for ax, keys, label, scale in zip(axes, panels, labels, scales):
+        for key, name in keys:
+            values = series.get(key)
+            if values is not None and len(times):
+                ax.plot(times, np.asarray(values, dtype=float) * scale, ".", ms=2, label=name)
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+        if len(keys) > 1:
+            ax.legend(fontsize=8, markerscale=4)
+    axes[-1].set_xlabel("date (UTC)")
+    fig.suptitle(f"{report.get('heliostat')} on {report.get('target')}, {report.get('year')}, every "
+                 f"{report.get('every')} ({report.get('instants')} daylight instants)")
+    if path is not None:
+        save_figure(fig, path, tight=False)
+    return fig
+

@@ -17,7 +17,7 @@ import os
 import time
 
 from ..errors import HeliotwinError
-from ..io.report import atomic_path, write_json
+from ..io.report import atomic_path, output_set, write_json
 from .common import check_output_folder, positive_int
 
 
@@ -57,23 +57,50 @@ def _sun(args, plant):
     return sun_direction_at(plant, time_utc=args.time, azimuth_deg=args.sun_azimuth, elevation_deg=args.sun_elevation)
 
 
-def cmd_field(args) -> int:
-    from ..io.images import to_png
-    from ..io.scenario import load_scenario
+def _write_field_outputs(args, sc, report, result) -> None:
+    """The one-sun outputs, all written or none: JSON, per-heliostat CSV, the flux figure (axes in metres and
+    degrees, kW/m^2) and the numeric map (CSV)."""
+    from ..io.export import write_flux_map_csv
+    from ..plots import plot_receiver_flux
     from ..raytrace.field import per_heliostat_rows
+
+    with output_set([("--scenario", args.scenario)]) as out:
+        paths = {flag: out.file(path, flag) for flag, path in (("--json", args.json), ("--per-heliostat",
+                 args.per_heliostat), ("--flux", args.flux), ("--flux-csv", getattr(args, "flux_csv", None)))}
+        if paths["--json"]:
+            write_json(paths["--json"], report)
+        if paths["--per-heliostat"]:
+            _write_csv(paths["--per-heliostat"], per_heliostat_rows(result, sc.plant))
+        if paths["--flux"]:
+            r = report["receiver"]
+            plot_receiver_flux({f"{args.aim} aiming": result.flux.cpu()}, sc.plant.targets["receiver"],
+                               paths["--flux"], powers_w={f"{args.aim} aiming": r["power_w"]},
+                               title=f"receiver flux: {len(sc.plant.field.ids)} heliostats, DNI "
+                                     f"{args.dni or sc.plant.sun.dni:.0f} W/m²")
+        if paths["--flux-csv"]:
+            write_flux_map_csv(paths["--flux-csv"], result.flux.cpu(), result.extent.cpu().tolist())
+
+
+def cmd_field(args) -> int:
+    from ..io.scenario import load_scenario
+    from ..io.weather import read_dni_series
+    from ..progress import Stages
     from ..workflows.field import FieldRunSettings, field, field_year
 
     for path, flag in ((args.json, "--json"), (args.per_heliostat, "--per-heliostat"), (args.flux, "--flux")):
         check_output_folder(path, flag)
     t0 = time.perf_counter()
+    bar = Stages(2, "heliotwin field", enabled=not args.quiet)
     sc = load_scenario(args.scenario)
+    bar.start("efficiency table over the year" if args.year is not None else "field model")
     if args.year is not None:
-        report = field_year(sc, args.year, args.every, azimuth_step_deg=args.table_azimuth_step)
+        report = field_year(sc, args.year, args.every, azimuth_step_deg=args.table_azimuth_step,
+                            weather=read_dni_series(args.weather) if getattr(args, "weather", None) else None)
         report["seconds"] = time.perf_counter() - t0
         write_json(args.json, report)
         print(f"field {args.year}: {report['instants']} daylight instants every {args.every}; annual optical energy "
               f"{report['annual_optical_energy_mwh']:.1f} MWh of {report['annual_dni_energy_on_mirrors_mwh']:.1f} "
-              f"MWh clear-sky DNI on the mirrors (efficiency {report['mean_efficiency']:.4f}); "
+              f"MWh DNI on the mirrors ({report['dni_model']}; efficiency {report['mean_efficiency']:.4f}); "
               f"{report['seconds']:.1f} s")
         return 0
     settings = FieldRunSettings(resolution=args.resolution, integrator=args.integrator, occlusion=args.occlusion,
@@ -81,13 +108,10 @@ def cmd_field(args) -> int:
                                 device=getattr(args, "device", None))
     settings.check()
     report, result = field(sc, _sun(args, sc.plant), settings)
+    bar.step("field model")
     report["seconds"] = seconds = time.perf_counter() - t0
-    if args.json:
-        write_json(args.json, report)
-    if args.per_heliostat:
-        _write_csv(args.per_heliostat, per_heliostat_rows(result, sc.plant))
-    if args.flux:
-        to_png(result.flux.cpu(), args.flux)
+    _write_field_outputs(args, sc, report, result)
+    bar.step("outputs")
     e = report["field"]["efficiency"]
     print(f"field: {len(sc.plant.field.ids)} heliostats; efficiency {e['total']:.4f} (cosine {e['cosine']:.4f}, "
           f"shading {e['shading']:.4f}, blocking {e['blocking']:.4f}, attenuation {e['attenuation']:.4f}, intercept "
@@ -112,14 +136,32 @@ def _print_instant(limit):
               "of equator" + "".join(f", {n} {rep[n]['power_vs_equator']:.4f} (peak "
                                      f"{rep[n]['peak_flux_w_m2'] / 1e3:.1f})"
                                      for n in ("aiming_factor", "image_size_priority") if n in rep)
-              + f"; {rep['seconds']:.1f} s")
+              + f"; {rep['seconds']:.1f} s", flush=True)
     return show
+
+
+def _write_aim_maps(folder, i: int, label: str, receiver, equator, optimised, limit: float) -> None:
+    """Per instant: equator vs optimised side by side on one colour scale with the limit contour
+    (``iNNN_before_after.png``), each alone on that same scale (``iNNN_equator.png``, ``iNNN_optimised.png``)
+    and both numeric maps (``iNNN_equator.csv``, ``iNNN_optimised.csv`` [W/m2])."""
+    from ..io.export import write_flux_map_csv
+    from ..plots import plot_receiver_flux, receiver_extent
+
+    maps = {"equator aiming": equator.flux.cpu(), "optimised aim points": optimised.flux.cpu()}
+    powers = {"equator aiming": equator.power_w, "optimised aim points": optimised.power_w}
+    scale = max(float(m.max()) for m in maps.values())
+    stem = os.path.join(folder, f"i{i:03d}")
+    plot_receiver_flux(maps, receiver, f"{stem}_before_after.png", limit_w_m2=limit, powers_w=powers,
+                       title=f"aim points at {label}: peak limit {limit / 1e3:.0f} kW/m²")
+    for (name, flux), short in zip(maps.items(), ("equator", "optimised")):
+        # alone, but on the pair's scale: the two files compare by eye too
+        plot_receiver_flux({name: flux}, receiver, f"{stem}_{short}.png", limit_w_m2=limit, powers_w=powers,
+                           vmax_w_m2=scale, title=f"{label}")
+        write_flux_map_csv(f"{stem}_{short}.csv", flux, receiver_extent(receiver))
 
 
 def cmd_aimpoints(args) -> int:
     """Optimise aim points for one or several instants under a peak-flux limit; baselines in the same report."""
-    from ..io.images import to_png
-    from ..io.report import output_set
     from ..io.scenario import load_scenario, write_scenario
     from ..workflows.aimpoints import AimpointSettings, aimpoints
     from ..workflows.field import sun_instants
@@ -136,14 +178,17 @@ def cmd_aimpoints(args) -> int:
 
         def on_instant(i, label, rep, best, equator) -> None:
             if out_png:
-                to_png(equator.flux.cpu(), os.path.join(out_png, f"i{i:03d}_equator.png"))
-                to_png(best.flux.cpu(), os.path.join(out_png, f"i{i:03d}_optimised.png"))
+                _write_aim_maps(out_png, i, label, sc.plant.targets["receiver"], equator, best,
+                                float(args.peak_limit))
             if show:
                 show(i, label, rep, best, equator)
 
         sc = load_scenario(args.scenario)
         instants = sun_instants(sc.plant, times=args.time, day=args.day, every=args.every,
                                 azimuth_deg=args.sun_azimuth, elevation_deg=args.sun_elevation)
+        if show:  # a line before the long part; one more per instant as each finishes
+            print(f"aimpoints: {len(sc.plant.field.ids)} heliostats, {len(instants)} instant(s), limit "
+                  f"{float(args.peak_limit) / 1e3:.1f} kW/m2 ...", flush=True)
         aimed, report = aimpoints(sc, instants, settings, on_instant=on_instant)
         write_scenario(aimed, out_h5)
         write_json(out_json, report)
@@ -188,6 +233,9 @@ def register(sub) -> None:
     p.add_argument("--table-azimuth-step", type=float, default=15.0, help="with --year: azimuth step [deg] of the "
                                                                           "efficiency table (default: %(default)s)")
     p.add_argument("--dni", type=float, help="direct normal irradiance [W/m2] (default: the scenario's)")
+    p.add_argument("--weather", metavar="CSV", help="with --year: measured or typical-year DNI instead of clear sky "
+                                                    "(SAM/TMY weather file, PAINT's calibration-weather.csv, or any "
+                                                    "CSV with a time and a dni [W/m2] column)")
     p.add_argument("--aim", choices=("equator", "scenario"), default="equator",
                    help="equator: each heliostat aims at the receiver point facing it at mid-height (SolarPILOT "
                         "'simple'); scenario: the scenario's /learned/aimpoints")
@@ -204,7 +252,10 @@ def register(sub) -> None:
                                                          "(torch.distributed, gloo)")
     p.add_argument("--json", required=True, help="JSON report")
     p.add_argument("--per-heliostat", help="CSV, one row per heliostat")
-    p.add_argument("--flux", help="receiver flux map PNG")
+    p.add_argument("--flux", help="receiver flux figure (PNG/PDF/SVG): axes in metres along the unrolled receiver "
+                                  "and degrees around it, colour bar in kW/m2, the peak marked")
+    p.add_argument("--flux-csv", help="the numeric receiver map [W/m2] as a CSV matrix (first row: arc of each "
+                                      "column's cell centre [m]; first column: height of each row [m], top first)")
     p.set_defaults(func=_checked(cmd_field))
 
     p = sub.add_parser("aimpoints", help="aim points under a peak-flux limit, one or several instants",
@@ -234,7 +285,10 @@ def register(sub) -> None:
     p.add_argument("--no-baselines", action="store_true", help="skip the aiming-factor and image-size baselines")
     p.add_argument("-o", "--output", required=True, help="scenario file to write (.h5)")
     p.add_argument("--json", required=True, help="JSON report")
-    p.add_argument("--flux", help="folder for the flux maps (PNG) before and after, per instant")
+    p.add_argument("--flux", help="folder for the receiver flux maps per instant: equator vs optimised side by side on "
+                                  "one scale with the limit contour (iNNN_before_after.png), each alone on that "
+                                  "scale (iNNN_equator.png, iNNN_optimised.png) and the numeric maps [W/m2] "
+                                  "(iNNN_equator.csv, iNNN_optimised.csv)")
     p.set_defaults(func=_checked(cmd_aimpoints))
 
 

@@ -36,21 +36,27 @@ def cmd_plan(args) -> int:
 
     from ..calibrate.report import plot_plan
     from ..io.scenario import load_scenario
+    from ..progress import Stages
     from ..workflows.plan import PlanSettings, plan
 
+    bar = Stages(2, "heliotwin plan", enabled=not args.quiet)
     with output_set([("--scenario", args.scenario)]) as out:
         json_path = out.file(args.json, "--json")
         plot_path = None if not args.json or args.no_plots else out.file(
             f"{os.path.splitext(args.json)[0]}-plan.png", "--json")
         settings = PlanSettings(year=args.year, every=args.every, count=args.count, target=args.target,
                                 min_elevation=args.min_elevation, sky=plot_path is not None)
+        bar.start("candidate sun positions and proposals")
         _, ans = plan(load_scenario(args.scenario), args.heliostat, settings)
+        bar.step("proposals")
         if plot_path:
             plot_plan(plot_path, ans)
             ans["plots"] = [os.path.basename(plot_path)]
         ans.pop("sky", None)
         if json_path:
             write_json(json_path, ans)
+        bar.step("outputs")
+    bar.close()
     if args.quiet:
         return 0
     print(f"{ans['heliostat']}: predictive spread of the normal over {ans['year']}'s sun positions "

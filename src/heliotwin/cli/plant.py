@@ -109,6 +109,71 @@ def cmd_scenario_from_paint(args) -> int:
     return 0
 
 
+def cmd_scenario_show(args) -> int:
+    """What a scenario file holds: plant, what is learned, /learned groups, provenance (``--json`` as JSON)."""
+    from ..io.scenario import load_scenario
+    from ..workflows.show import describe_scenario, format_description
+
+    described = describe_scenario(load_scenario(args.file))
+    if args.json == "-":
+        import json
+
+        print(json.dumps(described, indent=1, default=str))
+        return 0
+    if args.json:
+        with output_set([("FILE", args.file)]) as out:
+            write_json(out.file(args.json, "--json"), described)
+    if not args.quiet:
+        print(format_description(described))
+    return 0
+
+
+def cmd_scenario_export(args) -> int:
+    """The scenario's plant for SolarPILOT (layout table + TOML) and/or SolTrace (input file at one sun)."""
+    from ..io.scenario import load_scenario
+    from ..workflows.field import sun_direction_at
+    from ..workflows.show import export_plant
+
+    if not (args.solarpilot or args.soltrace):
+        raise HeliotwinError("scenario export: nothing to write (give --solarpilot LAYOUT.csv and/or --soltrace "
+                             "FILE.stinput)")
+    if args.sun_azimuth is not None and args.sun_elevation is None:
+        raise HeliotwinError("--sun-azimuth needs --sun-elevation")
+    sc = load_scenario(args.file)
+    timed = args.time is not None or args.sun_azimuth is not None
+    sun = sun_direction_at(sc.plant, time_utc=args.time, azimuth_deg=args.sun_azimuth,
+                           elevation_deg=args.sun_elevation) if timed else None
+    if args.soltrace and sun is None:
+        raise HeliotwinError("--soltrace: SolTrace's mirrors face one sun; give --time or "
+                             "--sun-azimuth/--sun-elevation")
+    with output_set([("FILE", args.file)]) as out:
+        layout = out.file(args.solarpilot, "--solarpilot")
+        config = out.file(args.config_out or (os.path.splitext(args.solarpilot)[0] + ".toml" if args.solarpilot
+                                              else None), "--config-out")
+        written = export_plant(sc, solarpilot=(layout, config) if layout else None,
+                               soltrace=out.file(args.soltrace, "--soltrace"), sun=sun)
+    if not args.quiet:
+        print(f"export: {written['heliostats']} heliostats -> " + ", ".join(
+            str(getattr(args, k)) for k in ("solarpilot", "config_out", "soltrace") if getattr(args, k))
+            + (f" (+ {os.path.splitext(args.solarpilot)[0]}.toml)" if args.solarpilot and not args.config_out else ""))
+    return 0
+
+
+def cmd_examples(args) -> int:
+    """List the shipped example inputs, or copy them into a folder."""
+    from ..examples import EXAMPLES, copy_examples, example_path
+
+    if args.copy:
+        if not os.path.isdir(args.copy):
+            raise HeliotwinError(f"--copy {args.copy}: not a folder (create it first)")
+        for path in copy_examples(args.copy):
+            print(path)
+        return 0
+    for name, what in EXAMPLES.items():
+        print(f"{example_path(name)}  # {what}")
+    return 0
+
+
 # ----------------------------------------------------------------------------------------------- trace
 def cmd_trace(args) -> int:
     """Trace one real record with the scenario's plant (default: nominal kinematics, ideal surface)."""
@@ -165,19 +230,27 @@ def cmd_validate(args) -> int:
         write_json(json_path, report)
         if plot_path and report["heliostats"]:
             plot_validation(report, plot_path)
+    if not args.quiet:
+        _print_validate_summary(args, report)
+    return 0
+
+
+def _print_validate_summary(args, report: dict) -> None:
     o = report["overall"]
-    if args.quiet:
-        return 0
     print(f"validate: {o.get('records', 0)} records, {o.get('heliostats', 0)} heliostats; median pointing error "
           f"{_fmt(o.get('median_pointing_error_mrad'))} mrad (median over heliostats), median distance "
           f"{_fmt(o.get('median_distance_m'), '.3f')} m; {o.get('images', 0)} images, median centred L1 "
           f"{_fmt(o.get('median_centered_l1'), '.3f')} -> {args.json}")
+    for name, g in (report.get("by_state") or {}).items():
+        if g["heliostats"] and report["by_state"]["calibrated"]["heliostats"]:  # only worth a line when mixed
+            print(f"  {name} kinematics: {len(g['heliostats'])} heliostats, median pointing error "
+                  f"{_fmt(g['median_pointing_error_mrad'])} mrad, median centred L1 "
+                  f"{_fmt(g['median_centered_l1'], '.3f')}")
     cams = report.get("camera_agreement") or {}
     if cams:  # a per-target camera offset is a survey matter, not a heliostat's: worth a line of its own
         print("cameras, HeliOS - UTIS (right, up) [cm], median per target: " + "; ".join(
             f"{name} ({100 * c['right_m']:+.1f}, {100 * c['up_m']:+.1f}) over {c['pairs']} records"
             for name, c in cams.items()))
-    return 0
 
 
 cmd_validate.supports_cuda = True  # validate_dataset traces on args.device
@@ -250,6 +323,36 @@ def register(sub) -> None:
     q.add_argument("-o", "--output", required=True, help="scenario file to write (.h5)")
     q.set_defaults(func=cmd_scenario_from_paint)
     field.register_scenario_action(ssub)
+    q = ssub.add_parser("show", help="what a scenario file holds: plant, what is learned, provenance",
+                        description="Print the plant's size and targets, what has been learned (calibrated "
+                                    "kinematics and for which heliostats, learned surfaces, stored aim points), the "
+                                    "/learned groups and every provenance step with its date and how it ran.")
+    q.add_argument("file", metavar="FILE", help="scenario file (.h5)")
+    q.add_argument("--json", help="also write this as JSON here ('-': JSON on stdout instead of the text)")
+    q.add_argument("--quiet", action="store_true", help="no text (with --json)")
+    q.set_defaults(func=cmd_scenario_show)
+    q = ssub.add_parser("export", help="the plant for SolarPILOT (layout + TOML) and SolTrace (input file)",
+                        description="Write the scenario's plant as SolarPILOT's per-heliostat layout table (id, "
+                                    "x/y/z_location, x/y/z_aimpoint [m]) with the TOML plant description that "
+                                    "'heliotwin scenario from-layout' reads back, and/or as a SolTrace input file "
+                                    "(.stinput) with every mirror oriented for one sun (equator aiming). Learned "
+                                    "kinematics and surfaces stay in the scenario: the formats hold pivots and ideal "
+                                    "mirrors.")
+    q.add_argument("file", metavar="FILE", help="scenario file (.h5)")
+    q.add_argument("--solarpilot", metavar="LAYOUT.csv", help="SolarPILOT layout table to write")
+    q.add_argument("--config-out", metavar="PLANT.toml", help="plant description to write (default: next to "
+                                                              "--solarpilot, .toml)")
+    q.add_argument("--soltrace", metavar="FILE.stinput", help="SolTrace input file to write (needs a sun)")
+    q.add_argument("--time", help="UTC time (ISO) of the sun the mirrors face")
+    q.add_argument("--sun-azimuth", type=float, help="[deg], PAINT convention (0 = south, +90 = east)")
+    q.add_argument("--sun-elevation", type=float, help="[deg] (with --sun-azimuth)")
+    q.set_defaults(func=cmd_scenario_export)
+
+    p = sub.add_parser("examples", help="the example layout and plant description shipped with heliotwin",
+                       description="List the example inputs shipped in the package (a 300-heliostat layout CSV and "
+                                   "its TOML plant description), or copy them into a folder to start from.")
+    p.add_argument("--copy", metavar="DIR", help="copy the examples into this (existing) folder")
+    p.set_defaults(func=cmd_examples)
 
     p = sub.add_parser("trace", help="trace one real calibration record",
                        description="Trace a PAINT record (its sun, motor steps and target) with nominal kinematics "

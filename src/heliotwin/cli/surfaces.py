@@ -173,16 +173,22 @@ def cmd_predict(args) -> int:
     from ..workflows.predict import PredictionSettings, predict
 
     _set_threads(args.threads)
+    from ..plots import plot_prediction
+
     settings = PredictionSettings(year=args.year, every=args.every, target=args.target,
-                                  device=getattr(args, "device", "cpu"))
-    with output_set([("--scenario", args.scenario)]) as outputs:
+                                  device=getattr(args, "device", "cpu"), weather=getattr(args, "weather", None))
+    with output_set([("--scenario", args.scenario), ("--weather", getattr(args, "weather", None))]) as outputs:
         json_path = outputs.file(args.json, "--json")
+        plot_path = outputs.file(getattr(args, "plot", None), "--plot")
         _, out = predict(load_scenario(args.scenario), args.heliostat, settings, progress=not args.quiet)
         write_json(json_path, out)
+        if plot_path:
+            plot_prediction(out, plot_path)
     if not args.quiet:
         st = out["statistics"]["l1_ideal_vs_learned"]
         print(f"{out['heliostat']}: {out['instants']} instants; L1(ideal, learned) median "
-              f"{'n/a' if st.get('median') is None else format(st['median'], '.3f')}")
+              f"{'n/a' if st.get('median') is None else format(st['median'], '.3f')}; "
+              f"{out['energy']['energy_kwh']:.0f} kWh on the target under {out['energy']['dni_source']}")
     return 0
 
 
@@ -237,15 +243,26 @@ def register(subparsers) -> None:
     add_resume_flags(p)
     p.set_defaults(func=cmd_reconstruct)
 
-    q = subparsers.add_parser("predict", help="yearly flux prediction of a learned heliostat")
+    q = subparsers.add_parser(
+        "predict", help="yearly flux prediction of a learned heliostat",
+        description="For every daylight instant of a year (every --every, sun above 5 deg), aim the heliostat at its "
+                    "target's centre through the scenario's kinematics and predict its flux image with the learned "
+                    "and with the ideal surface: power on the target [W], peak flux [W/m2] of both, and how far "
+                    "the two images differ (L1 of unit-sum images). The report keeps the series and their "
+                    "statistics, and the year's energy on the target [kWh] under clear-sky DNI or --weather; "
+                    "--plot draws the series over the year.")
     q.add_argument("--scenario", required=True, help="scenario with a learned surface (from reconstruct -o)")
     q.add_argument("--heliostat", help="heliostat id (default: the scenario's only learned surface)")
     q.add_argument("--year", type=int_range(1900, 2100, "a year"), default=2023)
     q.add_argument("--every", type=frequency, default="30min",
                    help="time step between 1min and 31d, e.g. 30min, 1h (default: %(default)s)")
     q.add_argument("--target", help="target name (default: the training images' target)")
-    q.add_argument("--json", required=True)
-    q.add_argument("--threads", type=int_range(0, 1024, "a thread count"), default=0)
+    q.add_argument("--json", required=True, help="JSON report (series per instant, statistics, energy)")
+    q.add_argument("--plot", help="figure (PNG/PDF/SVG): power, peak flux and L1 over the year")
+    q.add_argument("--weather", metavar="CSV", help="DNI time series for the energy (SAM/TMY weather file, PAINT's "
+                                                    "calibration-weather.csv, or a time + dni CSV); default: clear sky")
+    q.add_argument("--threads", type=int_range(0, 1024, "a thread count"), default=0,
+                   help="torch threads (0: torch's default)")
     q.add_argument("--quiet", action="store_true", help="no progress bars and no summary line")
     q.set_defaults(func=cmd_predict)
 

@@ -241,7 +241,8 @@ class OutputSet:
         """Declare an output folder (created when missing; existing files in it are replaced one by one)."""
         path = os.fspath(path).rstrip(os.sep) or os.sep
         parent = self._check(path, flag, is_folder=True)
-        staged = os.path.join(self._stage(parent), os.path.basename(path))
+        # basename of the absolute path: "." or "sub/.." name a real folder, not a staging entry "."
+        staged = os.path.join(self._stage(parent), os.path.basename(os.path.abspath(path)))
         os.mkdir(staged)
         return staged
 

@@ -22,8 +22,11 @@ from ..field import kinematics as kin_ops
 from ..field.demo import demo_field_plant, demo_plant
 from ..io.images import to_png
 from ..io.report import write_json
+from ..io.scenario import next_scenario, provenance_entry, write_scenario
 from ..optimise.aimpoints import AimSettings, optimise_aimpoints
+from ..optimise.aimstate import KEY, aimpoint_state, instant_state
 from ..plots import plot_demo, plot_field_demo
+from ..progress import Stages
 from ..raytrace.field import FACTORS, field_optics, per_heliostat_rows, summary
 from ..raytrace.flux import FluxImage
 from ..scene import trace, world_surface
@@ -47,8 +50,10 @@ def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-
     out : path
         Folder (created when missing) for ``field_efficiency.png`` (per-heliostat efficiency),
         ``losses.png`` (power-weighted loss breakdown), ``flux_equator.png`` and ``flux_optimised.png``
-        (receiver maps [kW/m^2]), ``heliostats.csv`` (per-heliostat factors, the ``field`` command's
-        columns) and ``summary.json``.
+        (receiver maps [kW/m^2] on one scale) and ``flux_before_after.png`` (both side by side with the
+        limit contour), ``heliostats.csv`` (per-heliostat factors, the ``field`` command's columns),
+        ``plant.h5`` (the plant as a scenario with the optimised aim points, to go on from) and
+        ``summary.json``.
     num_heliostats : int
     time_utc : str
         Instant of the sun position (pvlib at the Jülich reference); the sun must be up.
@@ -57,7 +62,8 @@ def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-
     iterations : int, optional
         Image-model steps per round of the aim-point optimiser (default: the optimiser's).
     progress : bool
-        A progress bar over the stages.
+        Progress over the stages (:class:`heliotwin.progress.Stages`: a bar on a terminal, a line per stage
+        otherwise).
     device : str
         Where the field model and the aim points run (``auto``: CUDA when present); results on the CPU.
 
@@ -73,7 +79,8 @@ def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-
     t_start = time.perf_counter()
     folder = Path(out)
     seconds = {}
-    bar = tqdm(total=4, desc="demo: whole field", unit="stage", disable=not progress)
+    bar = Stages(4, "heliotwin demo", enabled=progress)
+    bar.start(f"field model ({num_heliostats} heliostats)")
     plant, atm = demo_field_plant(num_heliostats)
     s = plant.site
     sun = direction_from_time(pd.DatetimeIndex([pd.Timestamp(time_utc)]), s.latitude_deg, s.longitude_deg,
@@ -85,20 +92,25 @@ def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-
         before = to_device(field_optics(plant, sun, atmosphere=atm), "cpu")
     seconds["field_model"] = time.perf_counter() - t0
     rep = summary(before, plant_cpu)
-    bar.update()
+    bar.step("field model")
+    bar.start("aim points")
     limit = float(peak_limit_fraction) * rep["receiver"]["peak_flux_w_m2"]
     t0 = time.perf_counter()
     knobs = AimSettings() if iterations is None else AimSettings(iterations=int(iterations))
     aimed = to_device(optimise_aimpoints(plant, sun, limit, knobs, atmosphere=atm), "cpu")
     seconds["aim_points"] = time.perf_counter() - t0
-    bar.update()
+    bar.step("aim points")
+    bar.start("figures and plant.h5")
     folder.mkdir(parents=True, exist_ok=True)
     rep["losses"] = _loss_breakdown(before)
     t0 = time.perf_counter()
     plot_field_demo(folder, plant_cpu, before, aimed, rep, limit, time_utc)
     _write_rows(folder / "heliostats.csv", per_heliostat_rows(before, plant_cpu))
+    write_scenario(_demo_scenario(plant_cpu, atm, aimed, sun.cpu(), limit, time_utc, num_heliostats),
+                   folder / "plant.h5")
     seconds["outputs"] = time.perf_counter() - t0
-    bar.update()
+    bar.step("figures and plant.h5")
+    bar.start("summary")
     seconds["total"] = time.perf_counter() - t_start
     rep.update({"plant": "embedded Jülich-like field (heliotwin.field.demo.demo_field_plant)", "time_utc": time_utc,
                 "aim_points": {
@@ -108,11 +120,27 @@ def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-
                     "power_vs_equator": aimed.power_w / rep["receiver"]["power_w"], "iterations": aimed.iterations},
                 "seconds": seconds,
                 "files": ["field_efficiency.png", "losses.png", "flux_equator.png", "flux_optimised.png",
-                          "heliostats.csv", "summary.json"]})
+                          "flux_before_after.png", "heliostats.csv", "plant.h5", "summary.json"]})
     write_json(folder / "summary.json", rep)
-    bar.update()
+    bar.step("summary")
     bar.close()
     return rep
+
+
+def _demo_scenario(plant, atmosphere, aimed, sun, limit: float, time_utc: str, num_heliostats: int):
+    """The demo's plant as a scenario a user can go on from (``field --scenario plant.h5 --aim scenario``,
+    ``aimpoints``, ``scenario export``): the atmosphere in ``/extras``, the optimised aim points of the demo's
+    instant in ``/learned/aimpoints``, one provenance step naming the command."""
+    entry = instant_state(plant, time_utc, aimed.aim.cpu(), sun, power_w=aimed.power_w,
+                          peak_flux_w_m2=aimed.peak_flux_w_m2)
+    learned = {KEY: aimpoint_state({"i000": entry}, peak_limit_w_m2=limit)}
+    step = provenance_entry("demo", command=f"heliotwin demo --heliostats {num_heliostats} --time {time_utc}",
+                            plant="heliotwin.field.demo.demo_field_plant", instants=[time_utc],
+                            peak_limit_w_m2=limit)
+    scenario = next_scenario(None, plant, learned=learned, step=step,
+                             metadata={"created_by_command": "heliotwin demo"})
+    scenario.extras = atmosphere.to_extras()
+    return scenario
 
 
 def _loss_breakdown(result) -> dict:

@@ -39,12 +39,13 @@ from ..atmosphere import Atmosphere
 from ..devices import to_device
 from ..distributed import run_sharded
 from ..errors import HeliotwinError
+from ..field.facets import surface_points
 from ..optimise.aimstate import stored_aimpoints
 from ..raytrace.field import FieldResult, FieldSettings, field_optics, summary
-from ..raytrace.yearly import DEFAULT_ELEVATIONS_DEG, annual_energy, efficiency_table
-from ..sun import direction_from_paint_angles, direction_from_time
+from ..raytrace.yearly import DEFAULT_ELEVATIONS_DEG, annual_energy, efficiency_table, interpolate_efficiency
+from ..sun import direction_from_paint_angles, direction_from_time, solar_position
 
-__all__ = ["FieldRunSettings", "field", "field_year", "sun_direction_at", "sun_instants"]
+__all__ = ["FieldRunSettings", "field", "field_year", "flux_map_fields", "sun_direction_at", "sun_instants"]
 
 
 @dataclass
@@ -211,6 +212,7 @@ def field(scenario, sun: torch.Tensor, settings: FieldRunSettings | None = None)
             result = field_optics(plant, sun, **kwargs)
     seconds_model = time.perf_counter() - t1
     report = summary(result, plant)
+    report["receiver"].update(flux_map_fields(result))
     report.update({"scenario": os.path.abspath(scenario.path) if scenario.path else None, "aim": settings.aim,
                    "integrator": settings.integrator, "occlusion": settings.occlusion,
                    "resolution": {"cols": settings.resolution[1], "rows": settings.resolution[0]},
@@ -218,7 +220,57 @@ def field(scenario, sun: torch.Tensor, settings: FieldRunSettings | None = None)
     return report, result
 
 
-def field_year(scenario, year: int, every: str = "1h", *, azimuth_step_deg: float = 15.0) -> dict:
+def flux_map_fields(result: FieldResult) -> dict:
+    """The receiver map for a JSON report: ``flux_map_w_m2`` [rows][cols] (row 0 = top) and
+    ``flux_map_extent_m`` ``[arc_min, arc_max, height_min, height_max]`` (the same numbers as ``--flux-csv``)."""
+    return {"flux_map_w_m2": result.flux.detach().cpu().to(torch.float64).tolist(),
+            "flux_map_extent_m": [float(v) for v in result.extent.detach().cpu()]}
+
+
+def weather_energy(plant, series, table: dict, year: int | None = None) -> dict:
+    """Optical energy on the receiver under a DNI time series (:func:`heliotwin.io.weather.read_dni_series`).
+
+    Every instant with the sun up contributes ``DNI x mirror area x efficiency(sun) x step`` (efficiency
+    interpolated in ``table``, :func:`heliotwin.raytrace.yearly.interpolate_efficiency`). A typical-year file
+    whose instants all lie outside ``year`` is moved into it (month, day and time kept; its sun positions are
+    then those of ``year``).
+
+    Returns
+    -------
+    dict
+        ``annual_optical_energy_mwh``, ``annual_dni_energy_on_mirrors_mwh``, ``mean_efficiency`` (DNI-weighted),
+        ``instants`` (sun up), ``step_hours``, ``dni_source`` (file, kind, rows dropped, year moved),
+        ``mirror_area_m2``, ``table``.
+    """
+    times = series.times
+    moved = None
+    if year is not None and not (times.year == int(year)).any():
+        moved = int(times.year[0])
+        times = pd.DatetimeIndex([t.replace(year=int(year)) if not (t.month == 2 and t.day == 29) else pd.NaT
+                                  for t in times])
+    keep = ~times.isna()
+    times, dni = times[keep], series.dni[np.asarray(keep)]
+    s = plant.site
+    az, el = solar_position(times, s.latitude_deg, s.longitude_deg, s.altitude_m)
+    up = (el > 0).numpy()
+    eta = interpolate_efficiency(table, az[up], el[up]).numpy()
+    area = _mirror_area(plant)
+    e_mirror = float((dni[up] * area).sum() * series.step_hours) / 1e6
+    e_rx = float((dni[up] * area * eta).sum() * series.step_hours) / 1e6
+    return {"year": None if year is None else int(year), "instants": int(up.sum()), "step_hours": series.step_hours,
+            "mirror_area_m2": area, "annual_dni_energy_on_mirrors_mwh": e_mirror, "annual_optical_energy_mwh": e_rx,
+            "mean_efficiency": e_rx / e_mirror if e_mirror > 0 else None,
+            "dni_source": {"file": os.path.abspath(series.path), "kind": series.kind, "rows": int(len(series.dni)),
+                           "rows_dropped": series.dropped, "moved_from_year": moved, **series.info},
+            "table": {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in table.items()}}
+
+
+def _mirror_area(plant) -> float:
+    """Total mirror area [m^2]: the sampled facet areas, as the field model and the clear-sky energy use them."""
+    return float(surface_points(plant.field.surfaces, (4, 4))[2].sum())
+
+
+def field_year(scenario, year: int, every: str = "1h", *, azimuth_step_deg: float = 15.0, weather=None) -> dict:
     """The efficiency table over sun positions and the clear-sky annual optical energy (equator aiming).
 
     Parameters
@@ -229,12 +281,15 @@ def field_year(scenario, year: int, every: str = "1h", *, azimuth_step_deg: floa
         pandas frequency of the instants (``"1h"``, ``"30min"``).
     azimuth_step_deg : float
         Azimuth step [deg] of the efficiency table, in (0, 180].
+    weather : heliotwin.io.weather.DniSeries, optional
+        Measured or typical-year DNI (``field --weather CSV``) instead of pvlib's clear sky
+        (:func:`weather_energy`; ``every`` is then the file's own step).
 
     Returns
     -------
     dict
-        :func:`heliotwin.raytrace.yearly.annual_energy`'s report plus ``scenario``, ``aim``, ``dni_model`` and
-        ``seconds`` [s].
+        :func:`heliotwin.raytrace.yearly.annual_energy`'s (or :func:`weather_energy`'s) report plus
+        ``scenario``, ``aim``, ``dni_model`` and ``seconds`` [s].
     """
     t0 = time.perf_counter()
     try:
@@ -247,7 +302,12 @@ def field_year(scenario, year: int, every: str = "1h", *, azimuth_step_deg: floa
         raise HeliotwinError(f"--table-azimuth-step: expected (0, 180] deg, got {step}")
     table = efficiency_table(scenario.plant, atmosphere=atm, azimuths_deg=np.arange(-180.0, 180.0, step),
                              elevations_deg=DEFAULT_ELEVATIONS_DEG)
-    report = annual_energy(scenario.plant, year, every, atmosphere=atm, table=table)
+    if weather is not None:
+        report = weather_energy(scenario.plant, weather, table, year)
+        dni_model = f"measured/typical-year DNI from {os.path.basename(weather.path)} ({weather.kind})"
+    else:
+        report = annual_energy(scenario.plant, year, every, atmosphere=atm, table=table)
+        dni_model = "pvlib ineichen clear sky"
     report.update({"scenario": os.path.abspath(scenario.path) if scenario.path else None, "aim": "equator",
-                   "dni_model": "pvlib ineichen clear sky", "seconds": time.perf_counter() - t0})
+                   "dni_model": dni_model, "seconds": time.perf_counter() - t0})
     return report

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import sys
 import time
 from dataclasses import dataclass
 
@@ -31,6 +32,7 @@ from ..surfaces.learning import parse_grid
 from ..surfaces.observations import paint_observations
 from ..surfaces.plantprior import check_leakage, load_surface_prior
 from ..surfaces.state import with_learned_surface
+from .show import kinematics_note
 
 __all__ = ["ReconstructionSettings", "reconstruct", "reconstruction_checkpoint"]
 
@@ -163,6 +165,9 @@ def reconstruct(scenario: Scenario | None, paint, heliostat: str, settings: Reco
     device = resolve_device(s.device)
     t0 = time.perf_counter()
     plant = scenario.plant if scenario is not None else None
+    note = kinematics_note(scenario, heliostat)  # a surface learned on nominal kinematics must say so, up front
+    if progress and "no calibration" in note:  # stdout: a failing run's stderr holds only its one-line error
+        print(f"heliotwin reconstruct: {note}", file=sys.stdout, flush=True)
     _, on_device, train, test = paint_observations(
         paint, heliostat, plant=plant, device=device, train_records=list(s.train_records) if s.train_records else None,
         train_first=s.train_first, resolution=learner.resolution, alignment=s.alignment)
@@ -177,6 +182,7 @@ def reconstruct(scenario: Scenario | None, paint, heliostat: str, settings: Reco
                                                        test, info, learner, report["test"])
     report.update(heliostat=heliostat, paint=str(paint), alignment=s.alignment, device=device,
                   plant="paint" if plant is None else "scenario", seconds=time.perf_counter() - t0)
+    report["kinematics"] = note
     report["choices"] = _choices(report)
     report["settings"] = dict(report["settings"], chosen=report["choices"])  # the stored surface records its choices
     if device != "cpu":  # results come back on the CPU

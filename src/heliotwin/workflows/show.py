@@ -1,0 +1,178 @@
+"""The ``scenario show`` and ``scenario export`` workflows: what a scenario file holds, and the plant in the
+formats of other tools.
+
+:func:`describe_scenario` reads nothing but the scenario: plant size, targets, optics, what has been learned
+(calibrated kinematics, learned surfaces, aim points) with the ``/learned`` groups, and the provenance steps
+with their dates and commands, as a JSON-ready dict (``heliotwin scenario show FILE [--json]``).
+:func:`export_plant` writes the plant for SolarPILOT (layout table + TOML) and SolTrace (input file at one
+sun, mirror normals from the field model); neither learns anything, so neither returns a new scenario.
+"""
+from __future__ import annotations
+
+import math
+import os
+
+import torch
+
+from ..atmosphere import Atmosphere
+from ..io.export import export_solarpilot, export_soltrace
+from ..io.scenario import Scenario
+from ..raytrace.field import FieldSettings, field_optics
+
+__all__ = ["describe_scenario", "export_plant", "format_description", "kinematics_note"]
+
+#: The keys of a step that say how it was run (printed after the step's name).
+_STEP_KEYS = ("method", "command", "source", "paint", "heliostats", "instants", "peak_limit_w_m2", "target")
+
+
+def _groups(tree: dict, prefix: str = "/learned") -> list[str]:
+    out = []
+    for k, v in tree.items():
+        path = f"{prefix}/{k}"
+        if isinstance(v, dict):
+            out.append(path)
+            if len(out) < 200:
+                out += [g for g in _groups(v, path) if g.count("/") <= 4]
+    return out
+
+
+def _learned_summary(learned: dict) -> dict:
+    cal = learned.get("calibration") or {}
+    surfaces = sorted(learned.get("surfaces") or {})
+    aim = learned.get("aimpoints") or {}
+    instants = aim.get("instants") or {}
+    return {"kinematics": {"calibrated": bool(cal), "method": cal.get("method"),
+                           "heliostats": sorted(cal.get("heliostats", []))[:1000] if cal else []},
+            "surfaces": {"learned_for": surfaces},
+            "aimpoints": {"instants": len(instants),
+                          "labels": [str(v.get("instant", k)) for k, v in instants.items()][:100],
+                          "peak_limit_w_m2": aim.get("peak_limit_w_m2")},
+            "other": sorted(k for k in learned if k not in ("calibration", "surfaces", "aimpoints"))}
+
+
+def kinematics_note(scenario: Scenario | None, heliostat: str) -> str:
+    """One line: are ``heliostat``'s kinematics calibrated in ``scenario``, or does a step on it run on nominal
+    kinematics (and why)? E.g. ``"AA39: no calibration in a.h5 (calibrated: AK32, BH60, ...); nominal
+    kinematics"``."""
+    cal = ((scenario.learned if scenario is not None else {}) or {}).get("calibration") or {}
+    done = list(cal.get("heliostats", []))
+    if heliostat in done:
+        return f"{heliostat}: calibrated kinematics ({cal.get('method')}) from {scenario.path or 'the scenario'}"
+    where = f"in {scenario.path}" if scenario is not None and scenario.path else "(no scenario)"
+    listed = f" (calibrated: {', '.join(done[:5])}{', ...' if len(done) > 5 else ''})" if done else ""
+    return (f"{heliostat}: no calibration {where}{listed}; this step runs on its nominal kinematics (a "
+            "heliostat needs enough records with a time and a focal spot to be calibrated)")
+
+
+def describe_scenario(scenario: Scenario) -> dict:
+    """What a scenario file holds, JSON-ready.
+
+    Returns
+    -------
+    dict
+        ``file``, ``format_version``, ``plant`` (heliostats, ids (first 20), targets with kind and size [m],
+        site [deg, m], sun and optics, field extent [m]), ``learned`` (kinematics calibrated or nominal
+        and for which heliostats, learned surfaces, aim-point instants, other groups), ``learned_groups``
+        (the ``/learned`` HDF5 groups), ``extras`` (names), ``metadata`` and ``provenance`` (per step:
+        ``step``, ``utc``, ``heliotwin`` version and the keys that say how it ran).
+    """
+    plant = scenario.plant
+    pos = plant.field.kinematics.position.detach().cpu().to(torch.float64)
+    dist = torch.linalg.vector_norm(pos[:, :2], dim=-1) if len(pos) else torch.zeros(1)
+    targets = {}
+    for name, t in plant.targets.items():
+        size = {"width_m": float(t.width), "height_m": float(t.height)}
+        if t.kind == "cylinder":
+            size.update(radius_m=float(t.radius), opening_angle_deg=math.degrees(float(t.opening_angle)))
+        targets[name] = {"kind": t.kind, **size, "center_enu_m": [round(float(v), 3) for v in t.center]}
+    s = plant.sun
+    steps = []
+    for p in scenario.provenance:
+        step = {k: p.get(k) for k in ("step", "utc", "heliotwin") if k in p}
+        step.update({k: p[k] for k in _STEP_KEYS if k in p and not isinstance(p[k], (dict,))})
+        if isinstance(step.get("heliostats"), list) and len(step["heliostats"]) > 20:
+            step["heliostats"] = f"{len(step['heliostats'])} heliostats"
+        steps.append(step)
+    return {"file": os.path.abspath(scenario.path) if scenario.path else None,
+            "format_version": scenario.version,
+            "plant": {"heliostats": len(plant.field.ids), "ids": list(plant.field.ids[:20]),
+                      "site": {"latitude_deg": plant.site.latitude_deg, "longitude_deg": plant.site.longitude_deg,
+                               "altitude_m": plant.site.altitude_m},
+                      "targets": targets,
+                      "field_radius_m": [float(dist.min()), float(dist.max())],
+                      "sun": {"sunshape": s.sunshape, "dni_w_m2": s.dni, "reflectivity": s.reflectivity,
+                              "slope_error_mrad": s.slope_error * 1e3}},
+            "learned": _learned_summary(scenario.learned),
+            "learned_groups": _groups(scenario.learned),
+            "extras": sorted(scenario.extras),
+            "metadata": {k: v for k, v in scenario.metadata.items() if isinstance(v, (str, int, float, bool))},
+            "provenance": steps}
+
+
+def format_description(d: dict) -> str:
+    """:func:`describe_scenario`'s dict as the lines ``heliotwin scenario show`` prints."""
+    p, lr = d["plant"], d["learned"]
+    k, sun = lr["kinematics"], p["sun"]
+    ids = ", ".join(p["ids"][:5]) + (", ..." if p["heliostats"] > 5 else "")
+    targets = ", ".join(f"{n} ({t['kind']} {t['width_m']:.2f} x {t['height_m']:.2f} m)"
+                        for n, t in p["targets"].items())
+    lines = [f"{d['file']} (format {d['format_version']})",
+             f"plant: {p['heliostats']} heliostats ({ids}), {p['field_radius_m'][0]:.0f}-"
+             f"{p['field_radius_m'][1]:.0f} m from the tower; targets: {targets}",
+             f"sun: {sun['sunshape']}, DNI {sun['dni_w_m2']:.0f} W/m2, reflectivity {sun['reflectivity']}, "
+             f"slope error {sun['slope_error_mrad']:.2f} mrad",
+             "kinematics: " + (f"calibrated ({k['method']}) for {len(k['heliostats'])} heliostats: "
+                               f"{', '.join(k['heliostats'][:10])}{' ...' if len(k['heliostats']) > 10 else ''}"
+                               if k["calibrated"] else "nominal (not calibrated)"),
+             "surfaces: " + (f"learned for {', '.join(lr['surfaces']['learned_for'])}"
+                             if lr["surfaces"]["learned_for"] else "ideal (none learned)"),
+             "aim points: " + (f"{lr['aimpoints']['instants']} instants ({', '.join(lr['aimpoints']['labels'][:4])})"
+                               if lr["aimpoints"]["instants"] else "none stored (equator aiming)"),
+             "/learned groups: " + (", ".join(d["learned_groups"][:12]) or "none")
+             + (" ..." if len(d["learned_groups"]) > 12 else ""),
+             "created by: " + " ".join(str(d["metadata"].get(k)) for k in ("created_by_command", "created_by",
+                                                                          "created_utc") if d["metadata"].get(k)),
+             f"provenance ({len(d['provenance'])} steps):"]
+    for i, s in enumerate(d["provenance"], 1):
+        how = ", ".join(f"{key}={s[key]}" for key in _STEP_KEYS if key in s)
+        lines.append(f"  {i}. {s.get('utc', '?')}  {s.get('step', '?')}"
+                     f"{f' ({how})' if how else ''}  [heliotwin {s.get('heliotwin', '?')}]")
+    return "\n".join(lines)
+
+
+def export_plant(scenario: Scenario, *, solarpilot: tuple | None = None, soltrace=None, sun=None) -> dict:
+    """Write the scenario's plant for SolarPILOT and/or SolTrace (:mod:`heliotwin.io.export`).
+
+    Parameters
+    ----------
+    scenario : Scenario
+    solarpilot : (layout path, TOML path), optional
+        SolarPILOT's per-heliostat table (positions; aim points of equator aiming at ``sun``, else the
+        receiver centre) and the TOML that ``scenario from-layout`` reads back.
+    soltrace : path, optional
+        SolTrace input file at ``sun`` (needed then): mirror normals of equator aiming from the field model.
+    sun : torch.Tensor, [3], optional
+        Unit vector towards the sun (ENU).
+
+    Returns
+    -------
+    dict
+        What was written (``solarpilot_layout``, ``solarpilot_config``, ``soltrace``) and ``heliostats``.
+    """
+    plant, atm = scenario.plant, Atmosphere.from_extras(scenario.extras)
+    result = None
+    if sun is not None:
+        with torch.no_grad():
+            result = field_optics(plant, sun, atmosphere=atm, settings=FieldSettings(resolution=(8, 16)))
+    src = os.path.abspath(scenario.path) if scenario.path else ""
+    out = {"heliostats": len(plant.field.ids)}
+    if solarpilot:
+        export_solarpilot(plant, solarpilot[0], solarpilot[1], atmosphere=atm,
+                          aim=None if result is None else result.aim, source=src)
+        out.update(solarpilot_layout=str(solarpilot[0]), solarpilot_config=str(solarpilot[1]))
+    if soltrace:
+        if result is None:
+            raise ValueError("export_plant: SolTrace needs a sun (the mirrors are oriented for one sun)")
+        export_soltrace(plant, soltrace, sun, result.normal, source=src)
+        out["soltrace"] = str(soltrace)
+    return out
