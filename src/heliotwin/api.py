@@ -273,8 +273,8 @@ def field_efficiency(scenario, *, time_utc: str | None = None, sun_azimuth_deg: 
     scenario : Scenario or path
         E.g. ``heliotwin scenario from-layout``'s or ``heliotwin demo``'s ``plant.h5``.
     time_utc : str, optional
-        ISO UTC time (sun from pvlib at the plant's site); else ``sun_azimuth_deg``/``sun_elevation_deg``
-        (PAINT convention: 0 = south, +90 = east).
+        ISO UTC time [UTC] (sun from pvlib at the plant's site); else ``sun_azimuth_deg`` [deg] and
+        ``sun_elevation_deg`` [deg] (PAINT convention: 0 = south, +90 = east).
     settings : FieldRunSettings, optional
         Resolution, integrator, occlusion model, aiming (``"equator"``/``"scenario"``), DNI.
 
@@ -343,7 +343,9 @@ def export_plant(scenario, *, solarpilot=None, solarpilot_config=None, soltrace=
                  sun_azimuth_deg: float | None = None, sun_elevation_deg: float | None = None) -> dict:
     """The plant for SolarPILOT (layout table + the TOML ``heliotwin scenario from-layout`` reads back) and/or
     SolTrace (``.stinput``, mirrors facing the sun given by ``time_utc`` or the angles), as ``heliotwin scenario
-    export`` (:func:`heliotwin.workflows.show.export_plant`). Returns what was written."""
+    export`` (:func:`heliotwin.workflows.show.export_plant`). ``time_utc`` is an ISO time [UTC];
+    ``sun_azimuth_deg`` [deg] (0 = south, +90 = east) and ``sun_elevation_deg`` [deg] give the sun instead.
+    Returns what was written."""
     sc = _scenario(scenario)
     timed = time_utc is not None or sun_azimuth_deg is not None
     sun = sun_direction_at(sc.plant, time_utc=time_utc, azimuth_deg=sun_azimuth_deg,
