@@ -1,0 +1,319 @@
+"""A twin that stays current (``heliotwin update``): the online protocol as updates, agreement with a full
+refit, the time of one day of a 2,000-heliostat plant, and the step alarms.
+
+(a) ``online``: on a PAINT folder (default ``../shared/data/paint``), every heliostat with >= 50 records is
+    calibrated on the 30 records before its test block (``calibrate --split online --train 30 --test 30
+    --drift kalman --process-noise 0.03``, the random-walk setting the online CV chose), then its 30 test
+    records are assimilated one by one by :func:`heliotwin.workflows.update.update`; each is scored *before*
+    it is assimilated (median over heliostats of the mean error [mrad]). The same calibration run's own
+    figure (refits every 5 records on the sliding window: the online protocol, 0.545 mrad in
+    ``bench_carryover.py``) is printed next to it.
+(b) ``agreement``: the updated plant against a full refit on every record it has seen (window + test block,
+    same settings): angle between the two models' mirror normals at the assimilated records' motor steps
+    [mrad], per heliostat, for heliostats without a step alarm (the batch refit assumes no step); once for
+    the default refit (bagged, robust) and once for a refit of the filter's own model (unbagged, plain least
+    squares: the linear-Gaussian model says the two agree).
+(c) ``timing``: a 2,000-heliostat plant generated in code (:func:`heliotwin.field.demo.demo_plant`, known
+    deviations), a calibration state from 30 simulated records each (Laplace posterior at the truth + its
+    error), then one day of records (``--records-per-day`` each, one a daylight hour) assimilated by
+    ``update``: wall time of the update call.
+(d) ``alarms``: ``--alarm-heliostats`` simulated heliostats, a year of records (one every ``--every-days``),
+    clean (noise only, a slow random-walk offset) or with a step of ``--step-mrad`` in the axis offsets at a
+    random time; detection within ``--within`` records after the step, false alarms per heliostat-year on
+    the clean ones. The threshold comes from the calibration records' leave-one-out residuals (validation),
+    never from the stream it judges.
+
+Usage::
+
+    OMP_NUM_THREADS=2 python benchmarks/bench_update.py [--paint ../shared/data/paint] [--json update.json]
+        [--parts online,agreement,timing,alarms] [--threads 2]
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+
+DEFAULT_PAINT = Path(__file__).resolve().parents[2] / "shared" / "data" / "paint"
+DAY = 86400.0
+
+
+def _median(xs):
+    import numpy as np
+
+    xs = [x for x in xs if x is not None and math.isfinite(x)]
+    return float(np.median(xs)) if xs else None
+
+
+def online_and_agreement(paint: str, parts: set) -> dict:
+    """(a) and (b) on a PAINT folder."""
+    import torch
+
+    from heliotwin.calibrate import metrics
+    from heliotwin.calibrate.methods.lm import fit_lm_method
+    from heliotwin.calibrate.params import STONE8, apply_deviations
+    from heliotwin.workflows.calibrate import CalibrationSettings, calibrate, load_paint_records
+    from heliotwin.workflows.update import seen_record_ids, update
+
+    t0 = time.perf_counter()
+    settings = CalibrationSettings(split="online", train=30, test=30, min_records=50, prior="run", drift="kalman",
+                                   process_noise=0.03, settings="given", online_step=5)
+    dataset, _ = load_paint_records(paint)
+    cal = calibrate(None, dataset, settings)
+    t_cal = time.perf_counter() - t0
+    refit_online = cal.report["overall"]["median_of_mean_test_mrad"]
+    t1 = time.perf_counter()
+    upd = update(cal.scenario, dataset)
+    t_upd = time.perf_counter() - t1
+    rep = upd.report
+    out = {"calibration_online_refits_mrad": refit_online,
+           "update_online_mrad": rep["overall"]["median_of_mean_predicted_error_mrad"],
+           "records": rep["overall"]["records"], "alarms": rep["alarms"], "threshold": rep["threshold"],
+           "heliostats": rep["heliostats"], "seconds_calibrate": t_cal, "seconds_update": t_upd}
+    print(f"(a) online protocol, N=30: refits every 5 records {refit_online:.3f} mrad; as updates record by record "
+          f"{out['update_online_mrad']:.3f} mrad ({out['records']} records, {len(rep['alarms'])} alarms, threshold "
+          f"d2 {rep['threshold']['threshold']:.1f}, kappa {rep['threshold']['kappa']:.2f}); "
+          f"calibrate {t_cal:.0f} s, update {t_upd:.2f} s", flush=True)
+    if "agreement" not in parts:
+        return out
+    new = upd.scenario
+    learned = new.learned["calibration"]
+    ids = list(learned["heliostats"])
+    seen = seen_record_ids(new)
+    table = dataset.records
+    ok_rows = torch.as_tensor([int(r) in seen for r in table.record_id.tolist()]) & torch.as_tensor(
+        [table.heliostat_ids[int(h)] in ids for h in table.heliostat_index.tolist()])
+    seen_tab = table.subset(ok_rows).for_heliostats(ids)
+    nominal = cal.model.nominal.index([cal.model.heliostat_ids.index(h) for h in ids])
+    updated = apply_deviations(nominal, torch.as_tensor(learned["deviations"]), STONE8)
+    alarmed = {a["heliostat"] for a in rep["alarms"]}
+    hist = upd.history
+    assimilated = table.subset(torch.isin(table.record_id, hist["record_id"])).for_heliostats(ids)
+    out["agreement"] = {}
+    for label, opts in (("default refit (bagged, soft_l1)", {}),
+                        ("refit of the filter's model (unbagged, least squares)", {"bags": 0, "loss": "linear"})):
+        model = fit_lm_method(nominal, seen_tab, None, drift_model="kalman", process_noise=0.03, **opts)
+        with torch.no_grad():
+            n_u, _ = metrics.model_normals(updated, assimilated)
+            n_r, _ = metrics.model_normals(model.kinematics, assimilated)
+        from heliotwin.geometry import angle_between
+
+        diff = 1e3 * angle_between(n_u, n_r)
+        per = metrics.per_heliostat_mean(diff, assimilated.heliostat_index, len(ids))
+        err_r = metrics.per_heliostat_mean(1e3 * model.pointing_error(assimilated), assimilated.heliostat_index,
+                                           len(ids))
+        err_u = metrics.per_heliostat_mean(1e3 * metrics.pointing_error(updated, assimilated),
+                                           assimilated.heliostat_index, len(ids))
+        rows = {h: {"mean_normal_difference_mrad": float(per[j]), "refit_in_sample_mrad": float(err_r[j]),
+                    "update_in_sample_mrad": float(err_u[j]), "alarm": h in alarmed} for j, h in enumerate(ids)}
+        quiet = [v["mean_normal_difference_mrad"] for h, v in rows.items() if h not in alarmed]
+        out["agreement"][label] = {"median_mrad_no_alarm": _median(quiet), "max_mrad_no_alarm": max(quiet),
+                                   "heliostats": rows}
+        print(f"(b) {label}: mean |n_update - n_refit| per heliostat without alarm: median {_median(quiet):.3f}, "
+              f"max {max(quiet):.3f} mrad ({len(quiet)} heliostats)", flush=True)
+    return out
+
+
+def synthetic_plant(h: int, seed: int):
+    """A demo plant of ``h`` heliostats, true deviations [H, 8] (Stone/Jülich, typical sizes) and a target."""
+    import torch
+
+    from heliotwin.field.demo import demo_plant
+
+    plant = demo_plant(h, seed=seed)
+    target = plant.targets["solar_tower_juelich_upper"]
+    g = torch.Generator().manual_seed(seed)
+    scale = torch.tensor([3e-3, 3e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3], dtype=torch.float64)
+    truth = torch.randn(h, 8, generator=g, dtype=torch.float64) * scale
+    return plant, truth, target
+
+
+def simulate_records(kin, truth_per_record, hidx, times, target, noise: float, g, record_start: int = 0):
+    """Records of heliostats ``hidx`` [R] at ``times`` [R] (POSIX s) with deviations ``truth_per_record``
+    [R, 8]: sun from the time of day and year (a rough ephemeris: enough for varied geometry), steps that put
+    the spot at the target's centre +-1 m under the true kinematics, and the measured spot moved by a
+    pointing noise of ``noise`` [rad]."""
+    import torch
+
+    from heliotwin.calibrate.params import STONE8, apply_deviations
+    from heliotwin.field import kinematics as K
+    from heliotwin.io.records import RecordTable
+    from heliotwin.sun import direction_from_paint_angles
+
+    r = len(hidx)
+    hour = (times % DAY) / 3600.0
+    doy = (times / DAY) % 365.0
+    decl = 0.409 * torch.sin(2 * math.pi * (doy - 80) / 365)
+    lat = math.radians(50.9)
+    ha = (hour - 12.0) * math.pi / 12
+    el = torch.asin(math.sin(lat) * torch.sin(decl) + math.cos(lat) * torch.cos(decl) * torch.cos(ha))
+    az = torch.atan2(torch.sin(ha), torch.cos(ha) * math.sin(lat) - torch.tan(decl) * math.cos(lat))  # 0 = south
+    el = el.clamp_min(0.2)
+    az = -az  # PAINT: +pi/2 = east (morning)
+    sun = direction_from_paint_angles(az, el, check_horizon=False)
+    jit = (torch.rand(r, 2, generator=g, dtype=torch.float64) - 0.5) * 2
+    aim = target.to_world(jit)
+    true_kin = apply_deviations(kin.index(hidx), truth_per_record, STONE8)
+    steps, _ = K.inverse(true_kin, aim, sun, strict=False)
+    dist = (aim - true_kin.position).norm(dim=-1, keepdim=True)
+    spot = aim + (target.to_world(torch.randn(r, 2, generator=g, dtype=torch.float64)) - target.center) \
+        * noise * 2 * dist
+    return RecordTable.from_arrays([], hidx, az, el, steps, spot, target, time=times,
+                                   record_id=torch.arange(record_start, record_start + r))
+
+
+def synthetic_scenario(plant, truth, target, n_train: int, noise: float, start: float, seed: int):
+    """A calibrated scenario of ``plant`` as an lm calibration on ``n_train`` simulated records per heliostat
+    (a week apart before ``start``) would leave it: the Laplace posterior of those records (nominal prior) and
+    deviations drawn from it around the truth (a fit's error, without the cost of fitting 2,000 heliostats).
+    Returns (scenario, training records)."""
+    import torch
+
+    from heliotwin.calibrate import priors
+    from heliotwin.calibrate.methods.lm import laplace
+    from heliotwin.calibrate.model import Calibrated
+    from heliotwin.calibrate.params import STONE8
+    from heliotwin.calibrate.scenario import calibrated_scenario
+
+    h = truth.shape[0]
+    g = torch.Generator().manual_seed(seed + 1)
+    kin = plant.field.kinematics
+    hidx = torch.arange(h).repeat_interleave(n_train)
+    k = torch.arange(n_train, dtype=torch.float64).repeat(h)
+    times = start - (n_train - k) * 7 * DAY + (8 + 8 * torch.rand(len(hidx), generator=g, dtype=torch.float64)) * 3600
+    train = simulate_records(kin, truth[hidx], hidx, times, target, noise, g)
+    train.heliostat_ids = list(plant.field.ids)
+    prec = torch.diag(1.0 / priors.sigma_vector(STONE8, priors.STONE8_SIGMA).double() ** 2)
+    post = laplace(kin, train, truth, prec)
+    chol = torch.linalg.cholesky(post["covariance"])
+    delta = truth + (chol @ torch.randn(h, 8, 1, generator=g, dtype=torch.float64))[..., 0]
+    model = Calibrated("lm", list(plant.field.ids), kin, STONE8, delta, torch.ones(h, dtype=torch.bool),
+                       extras={"posterior": dict(post, walk_scale=1.0)})
+    ids = {plant.field.ids[j]: train.record_id[hidx == j].tolist() for j in range(h)}
+    return calibrated_scenario(plant, model, records=ids, source="synthetic"), train
+
+
+def timing(h: int, per_day: int, seed: int = 0) -> dict:
+    """(c): one day of ``per_day`` records per heliostat of an ``h``-heliostat plant, assimilated."""
+    import torch
+
+    from heliotwin.workflows.update import update
+
+    t0 = time.perf_counter()
+    plant, truth, target = synthetic_plant(h, seed)
+    start = 1.7e9
+    sc, _ = synthetic_scenario(plant, truth, target, 30, 1e-3, start, seed)
+    t_setup = time.perf_counter() - t0
+    g = torch.Generator().manual_seed(seed + 2)
+    hidx = torch.arange(h).repeat_interleave(per_day)
+    times = start + 8 * 3600 + torch.arange(per_day, dtype=torch.float64).repeat(h) * 3600
+    day = simulate_records(plant.field.kinematics, truth[hidx], hidx, times, target, 1e-3, g, record_start=10 ** 7)
+    day.heliostat_ids = list(plant.field.ids)
+    t1 = time.perf_counter()
+    upd = update(sc, day)
+    seconds = time.perf_counter() - t1
+    rep = upd.report
+    out = {"heliostats": h, "records": rep["overall"]["records"], "seconds": seconds, "setup_seconds": t_setup,
+           "alarms": len(rep["alarms"]), "median_predicted_error_mrad": rep["overall"][
+               "median_of_mean_predicted_error_mrad"]}
+    print(f"(c) one day of a {h}-heliostat plant ({out['records']} records, {per_day} per heliostat): update "
+          f"{seconds:.2f} s (set-up {t_setup:.0f} s; {out['alarms']} alarms)", flush=True)
+    return out
+
+
+def alarms(h: int, every_days: float, step_mrad: float, within: int, seed: int = 0, q_mrad2: float = 0.003) -> dict:
+    """(d): detection of injected steps and false alarms on clean synthetic streams."""
+    import torch
+
+    from heliotwin.io.records import RecordTable
+    from heliotwin.workflows.update import update
+
+    plant, truth, target = synthetic_plant(h, seed + 10)
+    start = 1.7e9
+    sc, train = synthetic_scenario(plant, truth, target, 30, 1e-3, start, seed)
+    g = torch.Generator().manual_seed(seed + 3)
+    n = int(365 / every_days)
+    hidx = torch.arange(h).repeat_interleave(n)
+    k = torch.arange(n, dtype=torch.float64).repeat(h)
+    hour = 8 + 8 * torch.rand(len(hidx), generator=g, dtype=torch.float64)
+    times = start + (k + 1) * every_days * DAY + hour * 3600
+    # a slow random-walk offset of the axis offsets (q [mrad^2/day]) on every heliostat, and a step on half
+    walk = torch.randn(h, n, 2, generator=g, dtype=torch.float64).mul(math.sqrt(1e-6 * q_mrad2 * every_days))
+    walk = walk.cumsum(1)
+    stepped = torch.arange(h) % 2 == 1
+    at = torch.randint(n // 4, 3 * n // 4, (h,), generator=g)
+    angle = 2 * math.pi * torch.rand(h, generator=g, dtype=torch.float64)
+    jump = 1e-3 * step_mrad * torch.stack([torch.cos(angle), torch.sin(angle)], -1)
+    after = (torch.arange(n)[None, :] >= at[:, None]) & stepped[:, None]
+    offset = walk + after[..., None] * jump[:, None, :]
+    dev = truth[hidx].clone()
+    dev[:, :2] += offset.reshape(-1, 2)
+    recs = simulate_records(plant.field.kinematics, dev, hidx, times, target, 1e-3, g, record_start=10 ** 7)
+    recs.heliostat_ids = list(plant.field.ids)
+    # the calibration's own records come along (as in a PAINT folder): the threshold's validation records
+    upd = update(sc, RecordTable.concatenate([train, recs]))
+    hist = upd.history
+    alarm = torch.zeros(h, n, dtype=torch.bool)
+    order = (hist["record_id"] - 10 ** 7).long()
+    alarm.view(-1)[order] = hist["alarm"]
+    pos = torch.arange(n)[None, :]
+    window = (pos >= at[:, None]) & (pos < at[:, None] + within)
+    detected = (alarm & window).any(1)[stepped]
+    clean_alarms = alarm[~stepped].sum()
+    pre_step_alarms = (alarm & (pos < at[:, None]))[stepped].sum()
+    clean_years = (~stepped).sum() * n * every_days / 365 + (at[stepped]).sum() * every_days / 365
+    # how well the state follows: error of the prediction of the records after the step
+    err = torch.zeros(h, n, dtype=torch.float64)
+    err.view(-1)[order] = hist["predicted_error"]
+    follow = [float(1e3 * err[stepped][:, None].new_tensor([float(err[j, at[j] + i]) for j in
+                                                             stepped.nonzero().flatten().tolist()]).median())
+              for i in range(min(6, n // 4))]
+    out = {"heliostats": h, "records_per_heliostat": n, "step_mrad": step_mrad, "within_records": within,
+           "detected_share": float(detected.double().mean()),
+           "false_alarms_per_heliostat_year": float((clean_alarms + pre_step_alarms) / clean_years),
+           "threshold": upd.report["threshold"],
+           "median_error_after_step_mrad": follow}
+    print(f"(d) steps of {step_mrad:g} mrad: {100 * out['detected_share']:.0f} % detected within {within} records; "
+          f"false alarms {out['false_alarms_per_heliostat_year']:.3f} per heliostat-year "
+          f"(threshold d2 {out['threshold']['threshold']:.1f}); median predicted error at records 0.. after the "
+          f"step: {', '.join(f'{x:.2f}' for x in follow)} mrad", flush=True)
+    return out
+
+
+def main(argv=None) -> int:
+    import torch
+
+    from heliotwin.io.report import write_json
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--paint", default=str(DEFAULT_PAINT))
+    ap.add_argument("--json", default="bench_update.json")
+    ap.add_argument("--parts", default="online,agreement,timing,alarms")
+    ap.add_argument("--heliostats", type=int, default=2000, help="(c) plant size")
+    ap.add_argument("--records-per-day", type=int, default=5, help="(c) records per heliostat in the day")
+    ap.add_argument("--alarm-heliostats", type=int, default=200)
+    ap.add_argument("--every-days", type=float, default=3.0)
+    ap.add_argument("--step-mrad", type=float, default=3.0)
+    ap.add_argument("--within", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=1)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    parts = set(args.parts.split(","))
+    out = {}
+    t0 = time.perf_counter()
+    if parts & {"online", "agreement"}:
+        out["online"] = online_and_agreement(args.paint, parts)
+    if "timing" in parts:
+        out["timing"] = timing(args.heliostats, args.records_per_day)
+    if "alarms" in parts:
+        out["alarms"] = alarms(args.alarm_heliostats, args.every_days, args.step_mrad, args.within)
+    out["seconds"] = time.perf_counter() - t0
+    write_json(args.json, out)
+    print(f"wrote {args.json} ({out['seconds']:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
