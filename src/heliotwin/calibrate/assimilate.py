@@ -21,12 +21,13 @@ gives exactly the batch least-squares posterior of all of them (tested).
 
 Step alarms. Under the model the normalised innovation ``d^2 = z^T S^-1 z`` is chi-square with 2 degrees of
 freedom; a record whose ``d^2`` exceeds :func:`alarm_threshold` raises an alarm for its heliostat, and the
-state is *re-opened* before the record is assimilated: the drifting columns' variance grows by
-``max(reopen^2, |z|^2)`` so that the record moves the offset to where it now is (a jump is followed within a
-record or two instead of being averaged away over months). The threshold comes from a target false-alarm
-rate per record and the normalised leave-one-out residuals of records the calibration saw
-(:func:`leave_one_out_d2`): real residuals have heavier tails than the Gaussian, and the threshold scales
-the chi-square quantile by how much wider their bulk is (never narrower).
+state is *re-opened*: the drifting columns' variance grows by ``max(reopen^2, |z|^2)``. The alarming record
+itself is not assimilated (one record cannot tell a step from an outlier of its centroid); the next records,
+weighed against the open offset, move it to where it now is if the jump is real and leave it where it was if
+not, so a jump is followed from the record after the alarm on instead of being averaged away over months.
+The threshold comes from a target false-alarm rate per record and the normalised leave-one-out residuals of
+records the calibration saw (:func:`leave_one_out_d2`): real residuals have heavier tails than the Gaussian,
+and the threshold scales the chi-square quantile by how much wider their bulk is (never narrower).
 
 Moderate outliers (``d^2`` above the chi-square's 95 % quantile, below the alarm) are down-weighted as a
 Huber M-estimate does (their noise is inflated until ``d^2`` equals that quantile), as the batch fit's robust
@@ -331,12 +332,8 @@ def assimilate(nominal: Kinematics, records: RecordTable, state: FilterState,
         var = s2[h].clone()
         _, _, d2 = kalman_update(m0, p0, z, hm, var)
         alarm = d2 > float(options.threshold)
-        if bool(alarm.any()):
-            grow = torch.clamp((z ** 2).sum(-1), min=float(options.reopen) ** 2)
-            p0 = p0 + torch.where(alarm, grow, torch.zeros_like(grow))[:, None, None] * ee
-        if options.robust:
-            _, _, d2_open = kalman_update(m0, p0, z, hm, var)
-            var = var * torch.clamp(d2_open / HUBER_D2, min=1.0)
+        if options.robust:  # Huber: a moderate outlier counts as if it were at the 95 % quantile
+            var = var * torch.clamp(d2 / HUBER_D2, min=1.0)
         m = m0
         for _ in range(max(1, int(options.iterations))):  # iterated EKF: relinearise at the updated mean
             if m is not m0:
@@ -345,6 +342,12 @@ def assimilate(nominal: Kinematics, records: RecordTable, state: FilterState,
             else:
                 z_lin = z
             m, p, _ = kalman_update(m0, p0, z_lin, hm, var)
+        if bool(alarm.any()):
+            # re-open the offset; the alarming record itself is not assimilated: one record cannot tell a
+            # step from an outlier, the next ones (now weighed against an open offset) decide
+            grow = torch.clamp((z ** 2).sum(-1), min=float(options.reopen) ** 2)
+            m = torch.where(alarm[:, None], m0, m)
+            p = torch.where(alarm[:, None, None], p0 + grow[:, None, None] * ee, p)
         mean[h], cov[h] = m, p
         time[h] = torch.where(torch.isfinite(t), t, time[h])
         out["row"].append(rows)
