@@ -46,7 +46,7 @@ from ..io.paint import PaintDataset, list_heliostats
 from ..io.records import RecordTable
 from ..io.scenario import Scenario, load_records, load_scenario, next_scenario, provenance_entry
 
-__all__ = ["UpdateSettings", "Update", "update", "state_history", "seen_record_ids", "ASSIMILATION_KEY",
+__all__ = ["UpdateSettings", "Update", "update", "state_history", "seen_record_ids", "filter_state", "ASSIMILATION_KEY",
            "HISTORY_VERSION", "DEFAULT_PROCESS_NOISE"]
 
 #: Key of the assimilation state under ``Scenario.learned``.
@@ -220,6 +220,29 @@ def _state(cal: dict, names: tuple, path, n: int, q_given: float | None, seen_ti
                        names=names)
 
 
+def filter_state(scenario: Scenario, records: RecordTable, process_noise: float | None = None) -> FilterState:
+    """The filter state an update of ``scenario`` starts from (:class:`~heliotwin.calibrate.assimilate.FilterState`,
+    heliostat axis = the calibrated heliostats): the deviations, their posterior covariance plus the random-walk
+    offset's, the state's time (the drift state's, else the latest seen record's in ``records``), the residual
+    noise and q.
+
+    Parameters
+    ----------
+    records : RecordTable
+        Records on the calibrated heliostats' axis (seen ones give the time when the calibration has none).
+    process_noise : float, optional
+        q [mrad^2/day] replacing the stored one.
+    """
+    cal, ids, names = _calibration(scenario)
+    seen = seen_record_ids(scenario)
+    seen_rows = torch.as_tensor(np.isin(records.record_id.numpy(), np.array(sorted(seen), dtype=np.int64)))
+    t = _with_time(records)
+    ok = seen_rows & torch.isfinite(t)
+    seen_time = torch.full((len(ids),), float("nan"), dtype=torch.float64)
+    seen_time = seen_time.scatter_reduce(0, records.heliostat_index[ok], t[ok], reduce="amax", include_self=False)
+    return _state(cal, names, scenario.path, len(ids), process_noise, seen_time)
+
+
 def _on_axis(table: RecordTable, ids: list) -> RecordTable:
     """The records of ``ids`` re-indexed onto that list (heliostats without records are fine)."""
     pos = {h: i for i, h in enumerate(ids)}
@@ -371,12 +394,7 @@ def update(scenario, records_or_paint, settings: UpdateSettings = UpdateSettings
     table, source = _records(records_or_paint, previous, ids, settings.plane_tolerance)
     t0 = _time.perf_counter()
     seen_ids = seen_record_ids(previous)
-    seen_rows = torch.as_tensor(np.isin(table.record_id.numpy(), np.array(sorted(seen_ids), dtype=np.int64)))
-    t = _with_time(table)
-    seen_time = torch.full((len(ids),), float("nan"), dtype=torch.float64)
-    ok = seen_rows & torch.isfinite(t)
-    seen_time = seen_time.scatter_reduce(0, table.heliostat_index[ok], t[ok], reduce="amax", include_self=False)
-    state = _state(cal, names, previous.path, len(ids), q_given, seen_time)
+    state = filter_state(previous, table, q_given)
     new_rows, seen_idx, counts = _split(table, seen_ids, state.time)
     fit_table = fit_spots(table, settings.fit_focal_spot)
     assim_prev = previous.learned.get(ASSIMILATION_KEY)
