@@ -126,6 +126,21 @@ def test_an_injected_step_raises_an_alarm_and_the_state_follows_it():
     torch.testing.assert_close(new.mean[0], truth[0], atol=1.5e-3, rtol=0)
 
 
+def test_a_step_no_single_record_shows_is_found_by_the_records_together():
+    """A 1.8 mrad step at 0.5 mrad noise: no record is beyond the threshold alone, two in a row are."""
+    h, n = 3, 16
+    kin, truth, train, post = _calibrated(h)
+    state = _state(kin, truth, post)
+    threshold = alarm_threshold(1e-3, leave_one_out_d2(kin, train, state), tests=3)["threshold"]
+    stream = _stream(kin, truth, h, n, 5e-4, seed=7, step=(1, 6, [1.5e-3, -1e-3]))
+    _, hist = assimilate(kin, stream, state, AssimilationOptions(threshold=threshold, window=3))
+    k = (hist["record_id"] - 10 ** 6) % n
+    assert hist["alarm"].sum() == 1
+    i = int(hist["alarm"].nonzero()[0, 0])
+    assert int(hist["heliostat"][i]) == 1 and int(k[i]) == 7 and int(hist["window"][i]) >= 2
+    assert bool((hist["d2"][(hist["heliostat"] == 1) & (k >= 6) & (k <= 7)] < threshold).all())
+
+
 def test_no_alarm_on_clean_records_at_the_chosen_threshold():
     h, n = 4, 40
     kin, truth, train, post = _calibrated(h, seed=3)
@@ -176,6 +191,7 @@ def test_update_round_trips_state_and_history_and_never_reassimilates(tmp_path):
     assert [p["step"] for p in second.provenance] == ["calibrate", "update", "update"]
     torch.testing.assert_close(torch.as_tensor(second.learned["calibration"]["deviations"]),
                                torch.as_tensor(cal["deviations"]))
+    assert tuple(torch.as_tensor(back.learned["assimilation"]["window"]["g"]).shape) == (2, 2, 2)
     # aim reads the updated posterior (the walk grows from the state's time)
     ans = aim(back, "S0", 0.3, 0.6, [0.0, -3.24, 40.0], time=1.6e9 + 30 * DAY)
     assert 0 < ans["expected_error_mrad"] < 5 and ans["drift_days"] == pytest.approx(25.0, abs=1.0)
@@ -227,3 +243,59 @@ def test_cli_refuses_bad_input_with_one_line(tmp_path, capsys):
     assert not (tmp_path / "out.h5").exists()
     code, _, err = run_cli(capsys, "history", "--scenario", path, "--heliostat", "S0")
     assert_one_line_error(code, err, "cal.h5", "/learned/assimilation")
+
+
+def test_real_records_are_predicted_before_they_are_assimilated(paint_dir):
+    """AK46's later PAINT records, each predicted by the state before it, after an lm fit on its earliest 20."""
+    from heliotwin.calibrate.methods.lm import fit_lm_method
+    from heliotwin.io.scenario import load_records
+
+    ds, _ = load_records(paint_dir, None, ["AK46"])
+    recs = ds.records
+    order = torch.argsort(recs.time)
+    train = recs.subset(order[:20])
+    model = fit_lm_method(ds.plant.field.kinematics, train, None, bags=0)
+    sc = calibrated_scenario(ds.plant, model, records={"AK46": train.record_id.tolist()}, source=str(paint_dir))
+    new, report = update(sc, ds)
+    assert report["counts"]["seen"] == 20 and report["overall"]["records"] == report["counts"]["new"] >= 25
+    # as well as a chrono calibration predicts later records of this heliostat (~1.3 mrad), and no worse
+    # than the fit without updates predicts them
+    mine = report["overall"]["median_of_mean_predicted_error_mrad"]
+    later = recs.subset(order[20:])
+    static = 1e3 * float(model.pointing_error(later).mean())
+    assert mine < 2.0 and mine < static + 0.05
+    assert update(new, ds).report["counts"]["new"] == 0
+
+
+@pytest.mark.slow  # an lm calibration with bagging and two command-line runs (~45 s)
+def test_calibrate_then_update_on_real_records_by_command_line(paint_dir, tmp_path, capsys):
+    """PAINT records: an lm calibration on each heliostat's earliest records, then ``heliotwin update`` assimilates
+    every later record (and none it saw), ``heliotwin history`` reads the state back, and a second update of
+    the same folder finds nothing new."""
+    import json
+
+    from helpers.paint import copy_paint
+
+    from heliotwin import api
+
+    root = copy_paint(paint_dir, tmp_path, ("AK46", "BG23"), metadata=True)
+    cal = tmp_path / "cal.h5"
+    report, _, _ = api.calibrate(root, train=20, test=10, min_records=20, settings="given", device="cpu",
+                                 progress=False, output=cal)
+    code, out, err = run_cli(capsys, "update", "--scenario", cal, "--paint", root, "-o", tmp_path / "u.h5",
+                             "--json", tmp_path / "u.json")
+    assert code == 0, err
+    rep = json.loads((tmp_path / "u.json").read_text())
+    c = rep["counts"]
+    assert c["seen"] == 40 and c["new"] == rep["overall"]["records"] > 40 and c["new"] + c["seen"] + c[
+        "older_than_state"] + c["without_time"] == c["records"]
+    # the records are predicted before they are assimilated: as well as a calibration predicts its test block
+    assert rep["overall"]["median_of_mean_predicted_error_mrad"] < 2.0
+    assert "assimilated" in out
+    code, out, err = run_cli(capsys, "history", "--scenario", tmp_path / "u.h5", "--heliostat", "BG23", "--json",
+                             tmp_path / "h.json")
+    assert code == 0, err
+    hist = json.loads((tmp_path / "h.json").read_text())
+    assert len(hist["time"]) == rep["heliostats"]["BG23"]["records"] and hist["time"] == sorted(hist["time"])
+    again, scenario, _ = api.update(tmp_path / "u.h5", root)
+    assert again["counts"]["new"] == 0 and [p["step"] for p in scenario.provenance][-2:] == ["update", "update"]

@@ -29,6 +29,14 @@ The threshold comes from a target false-alarm rate per record and the normalised
 records the calibration saw (:func:`leave_one_out_d2`): real residuals have heavier tails than the Gaussian,
 and the threshold scales the chi-square quantile by how much wider their bulk is (never narrower).
 
+A step smaller than the record noise shows in several records before one of them is far enough out: the
+step tests of a record are the generalised likelihood ratios (Willsky & Jones 1976) of one constant jump ``b``
+of the drifting columns over the latest k = 1..``window`` records, ``g^T F^-1 g`` with ``g = sum H_b^T S^-1
+z`` and ``F = sum H_b^T S^-1 H_b`` (``H_b``: the drifting columns of ``H``); k = 1 is ``d^2``, each is
+chi-square (2 dof) under the model, so the threshold is the quantile of the rate divided by the number of
+tests. A jump that several records show is real: the offset is re-opened by ``max(reopen^2, |F^-1 g|^2)`` and
+the record assimilated at full weight.
+
 Moderate outliers (``d^2`` above the chi-square's 95 % quantile, below the alarm) are down-weighted as a
 Huber M-estimate does (their noise is inflated until ``d^2`` equals that quantile), as the batch fit's robust
 loss does.
@@ -61,6 +69,9 @@ FALSE_ALARM_RATE = 1e-3
 #: Smallest re-opening of the drifting columns at an alarm [rad] (per column, standard deviation).
 REOPEN = 2e-3
 
+#: Records of the step tests' longest window (:func:`assimilate`).
+WINDOW = 3
+
 #: Floor of the in-sample residual covariance (share of s^2) in :func:`leave_one_out_d2` (high leverage).
 _LEVERAGE_FLOOR = 0.05
 
@@ -84,6 +95,9 @@ class FilterState:
         Columns of ``mean`` that walk (e.g. the two axis offsets).
     names : tuple of str
         The deviations' names (:mod:`heliotwin.calibrate.params`).
+    window_g, window_f : torch.Tensor, [H, W - 1, B] and [H, W - 1, B, B], optional
+        The step test's evidence of each heliostat's latest ``W - 1`` records (oldest first; B drifting
+        columns): ``H_b^T S^-1 z`` and ``H_b^T S^-1 H_b`` (:func:`assimilate`); None: none yet.
     """
 
     mean: torch.Tensor
@@ -93,6 +107,8 @@ class FilterState:
     process_noise: float
     drift_columns: tuple
     names: tuple
+    window_g: torch.Tensor | None = None
+    window_f: torch.Tensor | None = None
 
     def drift_embedding(self) -> torch.Tensor:
         """``E E^T`` [P, P]: 1 on the diagonal of the drifting columns."""
@@ -183,11 +199,14 @@ def kalman_update(mean: torch.Tensor, cov: torch.Tensor, z: torch.Tensor, h: tor
     return mean + (gain @ z[:, :, None])[..., 0], new_cov, d2
 
 
-def alarm_threshold(false_alarm_rate: float = FALSE_ALARM_RATE, validation_d2: torch.Tensor | None = None) -> dict:
-    """The ``d^2`` above which a record raises a step alarm.
+def alarm_threshold(false_alarm_rate: float = FALSE_ALARM_RATE, validation_d2: torch.Tensor | None = None,
+                    tests: int = 1) -> dict:
+    """The statistic above which a record raises a step alarm.
 
-    The chi-square (2 dof) quantile of ``1 - false_alarm_rate`` (``-2 ln rate``), scaled by how much wider
-    the bulk of normalised residuals on validation records is than the chi-square's: ``kappa`` = their 90 %
+    The chi-square (2 dof) quantile of ``1 - false_alarm_rate / tests`` (``-2 ln(rate / tests)``: each record
+    is judged by ``tests`` step tests, :func:`assimilate`'s windows, each chi-square under the model), scaled by
+    how much wider the bulk of normalised residuals on validation records is than the chi-square's: ``kappa`` =
+    their 90 %
     quantile over the chi-square's (``-2 ln 0.1``), at least 1. Without validation values ``kappa`` = 1.
 
     Parameters
@@ -211,8 +230,8 @@ def alarm_threshold(false_alarm_rate: float = FALSE_ALARM_RATE, validation_d2: t
         n = int(v.numel())
         if n >= 10:
             kappa = max(1.0, float(torch.quantile(v, 0.9)) / (-2.0 * math.log(0.1)))
-    return {"threshold": kappa * -2.0 * math.log(float(false_alarm_rate)), "kappa": kappa,
-            "false_alarm_rate": float(false_alarm_rate), "validation_records": n}
+    return {"threshold": kappa * -2.0 * math.log(float(false_alarm_rate) / max(1, int(tests))), "kappa": kappa,
+            "false_alarm_rate": float(false_alarm_rate), "tests": max(1, int(tests)), "validation_records": n}
 
 
 def leave_one_out_d2(nominal: Kinematics, records: RecordTable, state: FilterState) -> torch.Tensor:
@@ -256,12 +275,15 @@ class AssimilationOptions:
         Linearisations per record (1: the extended Kalman filter; more: the iterated one).
     robust : bool
         Down-weight records above :data:`HUBER_D2` (module docstring).
+    window : int
+        Step tests over the latest 1..``window`` records (module docstring; 1: the single-record test only).
     """
 
     threshold: float = float("inf")
     reopen: float = REOPEN
     iterations: int = 2
     robust: bool = True
+    window: int = WINDOW
 
 
 def rounds(records: RecordTable) -> torch.Tensor:
@@ -302,8 +324,9 @@ def assimilate(nominal: Kinematics, records: RecordTable, state: FilterState,
     history : dict of [R] tensors (in assimilation order)
         ``row`` (into ``records``), ``heliostat`` (index), ``record_id``, ``time`` [s], ``mean`` [R, P] and
         ``variance`` [R, P] after the record, ``innovation`` [R, 2] (rad, tangent plane, at the prior),
-        ``d2`` (normalised innovation), ``alarm`` (bool), ``predicted_error`` (pointing error of the
-        record predicted by the state before it [rad]).
+        ``d2`` (normalised innovation), ``statistic`` (the largest step test) and ``window`` (its records),
+        ``alarm`` (bool), ``predicted_error`` (pointing error of the record predicted by the state before it
+        [rad]).
     """
     dev, dt_ = state.mean.device, torch.float64
     mean, cov = state.mean.double().clone(), state.covariance.double().clone()
@@ -313,8 +336,16 @@ def assimilate(nominal: Kinematics, records: RecordTable, state: FilterState,
     spot = records.spot if score_spot is None else score_spot
     rec_t = records.time.double() if records.time is not None else torch.full((len(records),), float("nan"),
                                                                               device=dev)
+    cols = torch.as_tensor(list(state.drift_columns), dtype=torch.long, device=dev)
+    nb, w = len(cols), max(1, int(options.window))
+    ring_g, ring_f = state.window_g, state.window_f
+    if ring_g is None or ring_f is None or tuple(ring_g.shape) != (mean.shape[0], w - 1, nb):
+        ring_g = torch.zeros(mean.shape[0], w - 1, nb, dtype=dt_, device=dev)
+        ring_f = torch.zeros(mean.shape[0], w - 1, nb, nb, dtype=dt_, device=dev)
+    ring_g, ring_f = ring_g.double().clone(), ring_f.double().clone()
+    eye_b = torch.eye(nb, dtype=dt_, device=dev)
     out: dict = {k: [] for k in ("row", "heliostat", "record_id", "time", "mean", "variance", "innovation", "d2",
-                                 "alarm", "predicted_error")}
+                                 "statistic", "window", "alarm", "predicted_error")}
     for rows in rounds(records):  # rounds: a handful per day (records per heliostat), not heliostats
         rows = rows[rows >= 0].to(dev)
         if len(rows) == 0:
@@ -330,10 +361,28 @@ def assimilate(nominal: Kinematics, records: RecordTable, state: FilterState,
         score = replace(batch, spot=spot[rows])
         predicted = pointing_error_of_normals(normal.double(), conc.double(), score)
         var = s2[h].clone()
-        _, _, d2 = kalman_update(m0, p0, z, hm, var)
-        alarm = d2 > float(options.threshold)
+        # step tests: a constant jump b of the drifting columns over the latest k = 1..w records (generalised
+        # likelihood ratio, Willsky & Jones 1976): g = sum H_b^T S^-1 z, F = sum H_b^T S^-1 H_b, g^T F^-1 g
+        sinv = torch.linalg.inv(hm @ p0 @ hm.transpose(1, 2) + var[:, None, None] * torch.eye(2, dtype=dt_, device=dev))
+        hb = hm[:, :, cols]
+        gi = torch.einsum("rkb,rkl,rl->rb", hb, sinv, z)
+        fi = hb.transpose(1, 2) @ sinv @ hb
+        g = torch.cat([gi[:, None], gi[:, None] + ring_g[h].flip(1).cumsum(1)], 1)  # [B, w, nb], newest first
+        f = torch.cat([fi[:, None], fi[:, None] + ring_f[h].flip(1).cumsum(1)], 1)
+        ridge = 1e-9 * torch.diagonal(f, dim1=-2, dim2=-1).sum(-1).clamp_min(1e-300)[..., None, None] * eye_b
+        jump = torch.linalg.solve(f + ridge, g[..., None])[..., 0]  # the step's estimate per window, [B, w, nb]
+        stat_k = (g * jump).sum(-1)
+        stat, k_best = stat_k.max(1)
+        d2 = stat_k[:, 0]
+        alarm = stat > float(options.threshold)
+        single = alarm & (k_best == 0)
+        several = alarm & (k_best > 0)
+        size = jump[torch.arange(len(rows), device=dev), k_best].pow(2).sum(-1)
+        grow = torch.where(single, (z ** 2).sum(-1), size).clamp_min(float(options.reopen) ** 2)
+        # a jump seen by several records is real: re-open, then assimilate this record at full weight
+        p_use = torch.where(several[:, None, None], p0 + grow[:, None, None] * ee, p0)
         if options.robust:  # Huber: a moderate outlier counts as if it were at the 95 % quantile
-            var = var * torch.clamp(d2 / HUBER_D2, min=1.0)
+            var = torch.where(several, var, var * torch.clamp(d2 / HUBER_D2, min=1.0))
         m = m0
         for _ in range(max(1, int(options.iterations))):  # iterated EKF: relinearise at the updated mean
             if m is not m0:
@@ -341,13 +390,15 @@ def assimilate(nominal: Kinematics, records: RecordTable, state: FilterState,
                 z_lin = zi + torch.einsum("rkp,rp->rk", hm, m - m0)  # the measurement about m0, linearised at m
             else:
                 z_lin = z
-            m, p, _ = kalman_update(m0, p0, z_lin, hm, var)
-        if bool(alarm.any()):
-            # re-open the offset; the alarming record itself is not assimilated: one record cannot tell a
-            # step from an outlier, the next ones (now weighed against an open offset) decide
-            grow = torch.clamp((z ** 2).sum(-1), min=float(options.reopen) ** 2)
-            m = torch.where(alarm[:, None], m0, m)
-            p = torch.where(alarm[:, None, None], p0 + grow[:, None, None] * ee, p)
+            m, p, _ = kalman_update(m0, p_use, z_lin, hm, var)
+        # one record alone cannot tell a step from an outlier of its centroid: re-open the offset without
+        # assimilating it; the next records, weighed against the open offset, decide
+        m = torch.where(single[:, None], m0, m)
+        p = torch.where(single[:, None, None], p0 + grow[:, None, None] * ee, p)
+        if w > 1:
+            keep = (~alarm).double()  # after an alarm the evidence starts afresh
+            ring_g[h] = torch.cat([ring_g[h][:, 1:], gi[:, None]], 1) * keep[:, None, None]
+            ring_f[h] = torch.cat([ring_f[h][:, 1:], fi[:, None]], 1) * keep[:, None, None, None]
         mean[h], cov[h] = m, p
         time[h] = torch.where(torch.isfinite(t), t, time[h])
         out["row"].append(rows)
@@ -358,6 +409,8 @@ def assimilate(nominal: Kinematics, records: RecordTable, state: FilterState,
         out["variance"].append(torch.diagonal(p, dim1=1, dim2=2))
         out["innovation"].append(z)
         out["d2"].append(d2)
+        out["statistic"].append(stat)
+        out["window"].append(k_best + 1)
         out["alarm"].append(alarm)
         out["predicted_error"].append(predicted.double())
     p = mean.shape[-1]
@@ -365,9 +418,10 @@ def assimilate(nominal: Kinematics, records: RecordTable, state: FilterState,
              "record_id": torch.zeros(0, dtype=torch.long), "time": torch.zeros(0, dtype=dt_),
              "mean": torch.zeros(0, p, dtype=dt_), "variance": torch.zeros(0, p, dtype=dt_),
              "innovation": torch.zeros(0, 2, dtype=dt_), "d2": torch.zeros(0, dtype=dt_),
+             "statistic": torch.zeros(0, dtype=dt_), "window": torch.zeros(0, dtype=torch.long),
              "alarm": torch.zeros(0, dtype=torch.bool), "predicted_error": torch.zeros(0, dtype=dt_)}
     history = {k: (torch.cat(v) if v else empty[k].to(dev)) for k, v in out.items()}
-    return replace(state, mean=mean, covariance=cov, time=time), history
+    return replace(state, mean=mean, covariance=cov, time=time, window_g=ring_g, window_f=ring_f), history
 
 
 __all__ = ["FilterState", "AssimilationOptions", "tangent_basis", "linearise", "kalman_update", "alarm_threshold",

@@ -29,6 +29,7 @@ import torch
 from ..calibrate.assimilate import (
     FALSE_ALARM_RATE,
     REOPEN,
+    WINDOW,
     AssimilationOptions,
     FilterState,
     alarm_threshold,
@@ -57,8 +58,8 @@ HISTORY_VERSION = 1
 #: setting chosen on the online protocol by leave-heliostats-out CV (benchmarks/bench_carryover.py, kq0.03).
 DEFAULT_PROCESS_NOISE = 0.03
 _DRIFT_NAMES = ("initial_angle_1", "initial_angle_2")
-_HISTORY_FIELDS = ("heliostat", "record_id", "time", "mean", "variance", "innovation", "d2", "alarm",
-                   "predicted_error", "update")
+_HISTORY_FIELDS = ("heliostat", "record_id", "time", "mean", "variance", "innovation", "d2", "statistic", "window",
+                   "alarm", "predicted_error", "update")
 
 
 @dataclass(frozen=True)
@@ -79,6 +80,8 @@ class UpdateSettings:
         Linearisations per record (iterated extended Kalman filter).
     robust : bool
         Down-weight moderate outliers (Huber), as the batch fit's robust loss does.
+    window : int
+        Step tests over each heliostat's latest 1..window records (1: a record far out on its own only).
     fit_focal_spot : str or None
         Centroids assimilated (as the ``lm`` fit: :data:`~heliotwin.calibrate.inputs.FIT_FOCAL_SPOT`); the
         prediction error is scored on the calibration's ``focal_spot``.
@@ -91,6 +94,7 @@ class UpdateSettings:
     reopen_mrad: float = 1e3 * REOPEN
     iterations: int = 2
     robust: bool = True
+    window: int = WINDOW
     fit_focal_spot: str | None = FIT_FOCAL_SPOT
     plane_tolerance: float = 0.1
 
@@ -124,6 +128,8 @@ def _check_settings(s: UpdateSettings) -> float | None:
         raise HeliotwinError(f"--reopen-mrad must be a number >= 0, got {s.reopen_mrad}")
     if int(s.iterations) < 1:
         raise HeliotwinError(f"--iterations must be >= 1, got {s.iterations}")
+    if int(s.window) < 1:
+        raise HeliotwinError(f"--window must be >= 1, got {s.window}")
     if s.process_noise is None or str(s.process_noise).strip().lower() == "stored":
         return None
     try:
@@ -240,7 +246,17 @@ def filter_state(scenario: Scenario, records: RecordTable, process_noise: float 
     ok = seen_rows & torch.isfinite(t)
     seen_time = torch.full((len(ids),), float("nan"), dtype=torch.float64)
     seen_time = seen_time.scatter_reduce(0, records.heliostat_index[ok], t[ok], reduce="amax", include_self=False)
-    return _state(cal, names, scenario.path, len(ids), process_noise, seen_time)
+    state = _state(cal, names, scenario.path, len(ids), process_noise, seen_time)
+    window = (scenario.learned.get(ASSIMILATION_KEY) or {}).get("window") or {}
+    if window.get("heliostats") == list(ids):  # the same calibration's heliostats: its evidence carries on
+        try:
+            g = torch.as_tensor(window["g"], dtype=torch.float64)
+            f = torch.as_tensor(window["f"], dtype=torch.float64)
+        except (KeyError, TypeError, ValueError, RuntimeError):
+            raise InputFileError(scenario.path, "malformed step-test window",
+                                 field=f"/learned/{ASSIMILATION_KEY}/window") from None
+        state = replace(state, window_g=g, window_f=f)
+    return state
 
 
 def _on_axis(table: RecordTable, ids: list) -> RecordTable:
@@ -279,7 +295,7 @@ def _threshold(previous: dict | None, settings: UpdateSettings, nominal, seen: R
                 "false_alarm_rate": float(torch.as_tensor(previous.get("false_alarm_rate", 0.0)).reshape(-1)[0]),
                 "stored": True}
     d2 = leave_one_out_d2(nominal, seen, state) if len(seen) else None
-    return {**alarm_threshold(settings.false_alarm_rate, d2), "stored": False}
+    return {**alarm_threshold(settings.false_alarm_rate, d2, tests=settings.window), "stored": False}
 
 
 def _with_time(table: RecordTable) -> torch.Tensor:
@@ -309,7 +325,8 @@ def _merged_history(previous: dict | None, ids: list, hist: dict, number: int) -
     remap = torch.tensor([pos[h] for h in ids], dtype=torch.long)
     rows = {"heliostat": remap[hist["heliostat"]], "record_id": hist["record_id"].long(), "time": hist["time"],
             "mean": hist["mean"], "variance": hist["variance"], "innovation": hist["innovation"], "d2": hist["d2"],
-            "alarm": hist["alarm"], "predicted_error": hist["predicted_error"],
+            "statistic": hist["statistic"], "window": hist["window"].long(), "alarm": hist["alarm"],
+            "predicted_error": hist["predicted_error"],
             "update": torch.full((len(hist["d2"]),), number, dtype=torch.long)}
     old = (previous or {}).get("history") or {}
     merged = {}
@@ -344,6 +361,9 @@ def _learned(previous: Scenario, cal: dict, ids: list, state: FilterState, old_s
                                  "kappa": torch.tensor([threshold["kappa"]], dtype=torch.float64),
                                  "false_alarm_rate": torch.tensor([threshold["false_alarm_rate"]], dtype=torch.float64),
                                  "parameter_names": names, **merged}
+    if state.window_g is not None:  # the step tests' evidence of each heliostat's latest records
+        learned[ASSIMILATION_KEY]["window"] = {"heliostats": list(ids), "g": state.window_g.detach().cpu(),
+                                               "f": state.window_f.detach().cpu()}
     return learned
 
 
@@ -402,7 +422,8 @@ def update(scenario, records_or_paint, settings: UpdateSettings = UpdateSettings
     fit_posterior = replace(state, covariance=_tensor(cal, f"/learned/{KEY}", previous.path, "posterior", "covariance"))
     threshold = _threshold(assim_prev, settings, nominal, fit_table.subset(seen_idx), fit_posterior)
     options = AssimilationOptions(threshold=threshold["threshold"], reopen=1e-3 * settings.reopen_mrad,
-                                  iterations=int(settings.iterations), robust=bool(settings.robust))
+                                  iterations=int(settings.iterations), robust=bool(settings.robust),
+                                  window=int(settings.window))
     new = fit_table.subset(new_rows)
     on = (lambda x: x) if torch.device(device).type == "cpu" else (lambda x: to_device(x, device))
     new_state, hist = assimilate(on(nominal), on(new), on(state), options, score_spot=on(table.spot[new_rows]))
