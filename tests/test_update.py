@@ -192,6 +192,13 @@ def test_update_round_trips_state_and_history_and_never_reassimilates(tmp_path):
     torch.testing.assert_close(torch.as_tensor(second.learned["calibration"]["deviations"]),
                                torch.as_tensor(cal["deviations"]))
     assert tuple(torch.as_tensor(back.learned["assimilation"]["window"]["g"]).shape) == (2, 2, 2)
+    assert rep2["threshold"]["stored"]
+    # a new calibration restarts the update's threshold and step evidence (the history stays)
+    from heliotwin.io.scenario import next_scenario, provenance_entry
+
+    recal = next_scenario(back, back.plant, learned=dict(back.learned), step=provenance_entry("calibrate", records={}))
+    third, rep3 = update(recal, table)
+    assert not rep3["threshold"]["stored"] and len(state_history(third, "S1")["time"]) == 5
     # aim reads the updated posterior (the walk grows from the state's time)
     ans = aim(back, "S0", 0.3, 0.6, [0.0, -3.24, 40.0], time=1.6e9 + 30 * DAY)
     assert 0 < ans["expected_error_mrad"] < 5 and ans["drift_days"] == pytest.approx(25.0, abs=1.0)
@@ -299,3 +306,20 @@ def test_calibrate_then_update_on_real_records_by_command_line(paint_dir, tmp_pa
     assert len(hist["time"]) == rep["heliostats"]["BG23"]["records"] and hist["time"] == sorted(hist["time"])
     again, scenario, _ = api.update(tmp_path / "u.h5", root)
     assert again["counts"]["new"] == 0 and [p["step"] for p in scenario.provenance][-2:] == ["update", "update"]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_assimilation_on_cuda_matches_the_cpu():
+    h, n = 2, 6
+    kin, truth, train, post = _calibrated(h)
+    state = _state(kin, truth, post)
+    stream = _stream(kin, truth, h, n, 5e-4, seed=2, step=(1, 2, [6e-3, 0.0]))
+    options = AssimilationOptions(threshold=16.0)
+    cpu_state, cpu_hist = assimilate(kin, stream, state, options)
+    from heliotwin.devices import to_device
+
+    gpu_state, gpu_hist = assimilate(to_device(kin, "cuda"), to_device(stream, "cuda"), to_device(state, "cuda"),
+                                     options)
+    assert gpu_state.mean.device.type == "cuda"
+    torch.testing.assert_close(gpu_state.mean.cpu(), cpu_state.mean, atol=1e-9, rtol=0)
+    assert torch.equal(gpu_hist["alarm"].cpu(), cpu_hist["alarm"])

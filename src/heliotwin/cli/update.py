@@ -33,6 +33,8 @@ def register(subparsers) -> None:
                    help="smallest re-opening of the axis offsets at an alarm [mrad] (default 2)")
     p.add_argument("--iterations", type=int_range(1, 20, "an iteration count"), default=2,
                    help="linearisations per record (iterated extended Kalman filter; default 2)")
+    p.add_argument("--window", type=int_range(1, 50, "a record count"), default=3,
+                   help="step tests over each heliostat's latest 1..WINDOW records (default 3)")
     p.add_argument("--plane-tolerance", type=float_range(0.0, None, lo_open=True, what="a distance [m]"),
                    default=0.1, help="largest distance [m] of a focal spot from its target plane (default 0.1)")
     p.set_defaults(func=cmd_update)
@@ -53,7 +55,7 @@ def cmd_update(args) -> int:
     from ..workflows.update import UpdateSettings, update
 
     settings = UpdateSettings(false_alarm_rate=args.false_alarm_rate, process_noise=args.process_noise,
-                              reopen_mrad=args.reopen_mrad, iterations=args.iterations,
+                              reopen_mrad=args.reopen_mrad, iterations=args.iterations, window=args.window,
                               plane_tolerance=args.plane_tolerance)
     same = all(os.path.exists(f) for f in (args.output, args.scenario)) and os.path.samefile(args.output,
                                                                                           args.scenario)

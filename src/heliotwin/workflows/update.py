@@ -141,6 +141,21 @@ def _check_settings(s: UpdateSettings) -> float | None:
     return q
 
 
+def _calibrations(scenario: Scenario) -> int:
+    """How many ``calibrate`` steps the scenario's provenance holds (a new one restarts the update's state)."""
+    return sum(1 for p in scenario.provenance or [] if isinstance(p, dict) and p.get("step") == "calibrate")
+
+
+def _current(scenario: Scenario) -> dict | None:
+    """``/learned/assimilation`` when it belongs to the scenario's current calibration (None after a
+    recalibration: its threshold and step-test evidence were about the replaced one; the history stays)."""
+    st = scenario.learned.get(ASSIMILATION_KEY)
+    if not isinstance(st, dict):
+        return None
+    stamp = int(torch.as_tensor(st.get("calibrations", -1)).reshape(-1)[0])
+    return st if stamp == _calibrations(scenario) else None
+
+
 def seen_record_ids(scenario: Scenario) -> set:
     """Record ids some provenance step lists as seen (``calibrate``'s training records, updates' records)."""
     seen = set()
@@ -247,7 +262,7 @@ def filter_state(scenario: Scenario, records: RecordTable, process_noise: float 
     seen_time = torch.full((len(ids),), float("nan"), dtype=torch.float64)
     seen_time = seen_time.scatter_reduce(0, records.heliostat_index[ok], t[ok], reduce="amax", include_self=False)
     state = _state(cal, names, scenario.path, len(ids), process_noise, seen_time)
-    window = (scenario.learned.get(ASSIMILATION_KEY) or {}).get("window") or {}
+    window = (_current(scenario) or {}).get("window") or {}
     if window.get("heliostats") == list(ids):  # the same calibration's heliostats: its evidence carries on
         try:
             g = torch.as_tensor(window["g"], dtype=torch.float64)
@@ -360,6 +375,7 @@ def _learned(previous: Scenario, cal: dict, ids: list, state: FilterState, old_s
                                  "threshold": torch.tensor([threshold["threshold"]], dtype=torch.float64),
                                  "kappa": torch.tensor([threshold["kappa"]], dtype=torch.float64),
                                  "false_alarm_rate": torch.tensor([threshold["false_alarm_rate"]], dtype=torch.float64),
+                                 "calibrations": torch.tensor([_calibrations(previous)]),
                                  "parameter_names": names, **merged}
     if state.window_g is not None:  # the step tests' evidence of each heliostat's latest records
         learned[ASSIMILATION_KEY]["window"] = {"heliostats": list(ids), "g": state.window_g.detach().cpu(),
@@ -417,7 +433,7 @@ def update(scenario, records_or_paint, settings: UpdateSettings = UpdateSettings
     state = filter_state(previous, table, q_given)
     new_rows, seen_idx, counts = _split(table, seen_ids, state.time)
     fit_table = fit_spots(table, settings.fit_focal_spot)
-    assim_prev = previous.learned.get(ASSIMILATION_KEY)
+    assim_prev = _current(previous)
     # validation under the fit's own posterior (the Laplace posterior of those records, without the walk's)
     fit_posterior = replace(state, covariance=_tensor(cal, f"/learned/{KEY}", previous.path, "posterior", "covariance"))
     threshold = _threshold(assim_prev, settings, nominal, fit_table.subset(seen_idx), fit_posterior)
