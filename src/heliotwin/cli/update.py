@@ -76,8 +76,8 @@ def cmd_update(args) -> int:
               f"error before each: median of the heliostats' means {'-' if err is None else f'{err:.3f}'} mrad; "
               f"{o['alarms']} step alarm(s)")
         for a in report["alarms"]:
-            print(f"  step alarm: {a['heliostat']} record {a['record_id']} (d2 {a['d2']:.1f} > "
-                  f"{report['threshold']['threshold']:.1f})")
+            print(f"  step alarm: {a['heliostat']} record {a['record_id']} (step statistic {a['statistic']:.1f} over "
+                  f"{a['window']} record(s) > {report['threshold']['threshold']:.1f})")
     return 0
 
 
