@@ -17,7 +17,8 @@ Functions
 ---------
 :func:`load` (records on a plant), :func:`field` (the plant alone), :func:`trace_record` (one record's flux
 and report), :func:`plot_flux` (a titled, labelled figure with a colour bar), :func:`calibrate` (kinematics),
-:func:`reconstruct` (a mirror surface), :func:`to_device` (move plant pieces between CPU and GPU);
+:func:`update` (assimilate new records into a calibration), :func:`reconstruct` (a mirror surface),
+:func:`to_device` (move plant pieces between CPU and GPU);
 the whole field: :func:`field_efficiency` (one sun), :func:`optimise_aimpoints` (aim points under a peak limit),
 :func:`plot_receiver_flux` (maps on one scale), :func:`export_plant` (SolarPILOT / SolTrace),
 :func:`read_weather` (a DNI time series).
@@ -45,10 +46,12 @@ from .workflows.reconstruct import reconstruct as reconstruct_surface
 from .workflows.show import export_plant as export_workflow
 from .workflows.trace import TraceSettings
 from .workflows.trace import trace_record as trace_workflow
+from .workflows.update import UpdateSettings
+from .workflows.update import update as update_workflow
 
 __all__ = ["load", "field", "trace_record", "plot_flux", "calibrate", "reconstruct", "ReconstructionSettings",
            "to_device", "field_efficiency", "FieldRunSettings", "optimise_aimpoints", "AimpointSettings",
-           "plot_receiver_flux", "export_plant", "read_weather"]
+           "plot_receiver_flux", "export_plant", "read_weather", "update"]
 
 
 def load(paint, heliostats=None, *, scenario=None, plane_tolerance: float = 0.1):
@@ -221,6 +224,38 @@ def calibrate(paint, config=None, *, scenario=None, output=None, device: str = "
     if ck is not None:
         ck.remove()
     return result.report, result.model, None if output is None else os.fspath(output)
+
+
+def update(scenario, paint, config: UpdateSettings | None = None, *, output=None, **options):
+    """Assimilate the calibration records a calibrated scenario has not seen yet (``heliotwin update``'s defaults).
+
+    Parameters
+    ----------
+    scenario : str, os.PathLike or heliotwin.io.scenario.Scenario
+        A scenario calibrated with ``lm`` (``api.calibrate(..., output=...)``) or updated before.
+    paint : str or os.PathLike
+        PAINT folder with the new records (records the scenario has seen are recognised by id and skipped).
+    config : heliotwin.workflows.update.UpdateSettings, optional
+        One setting per ``heliotwin update`` flag with the same name and default (false_alarm_rate,
+        process_noise, reopen_mrad, iterations, plane_tolerance, ...).
+    output : str or os.PathLike, optional
+        Write the updated scenario there.
+    **options
+        Any of those settings by keyword (e.g. ``false_alarm_rate=1e-4``).
+
+    Returns
+    -------
+    report : dict
+        Records assimilated, each heliostat's mean predicted error [mrad] before each record, step alarms.
+    scenario : heliotwin.io.scenario.Scenario
+        The updated scenario (its per-heliostat history: :func:`heliotwin.workflows.update.state_history`).
+    output : str or None
+        The scenario file written, when asked.
+    """
+    result = update_workflow(scenario, paint, replace(config or UpdateSettings(), **options))
+    if output is not None:
+        write_scenario(result.scenario, output)
+    return result.report, result.scenario, None if output is None else os.fspath(output)
 
 
 def reconstruct(paint, heliostat: str, settings: ReconstructionSettings | None = None, *, scenario=None,

@@ -6,6 +6,7 @@ Layout: :mod:`.common` (error reporting, argument types), then one module per co
 
 * :mod:`.plant` -- ``demo``, ``scenario from-paint``, ``trace``, ``validate``, ``bench``
 * :mod:`.calibrate` -- ``calibrate``, ``split``, ``aim``
+* :mod:`.update` -- ``update``, ``history``
 * :mod:`.surfaces` -- ``reconstruct``, ``predict``
 
 The groups are ordinary imports: a command whose module fails to import breaks ``heliotwin`` loudly instead
@@ -23,13 +24,13 @@ import argparse
 import sys
 
 from .. import __version__
-from . import calibrate, field, plan, plant, surfaces
+from . import calibrate, field, plan, plant, surfaces, update
 from .common import ArgumentParser, run_command
 
 __all__ = ["build_parser", "main", "run_command"]
 
 #: Command groups in the order of ``heliotwin --help``.
-GROUPS = (plant, calibrate, plan, surfaces, field)
+GROUPS = (plant, calibrate, plan, update, surfaces, field)
 
 
 def build_parser() -> argparse.ArgumentParser:

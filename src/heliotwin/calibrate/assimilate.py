@@ -1,0 +1,428 @@
+"""A twin that stays current: new calibration records assimilated as a posterior update, not a refit.
+
+The state of a calibrated heliostat is its Gaussian posterior over the Stone/Jülich deviations *now*,
+``x ~ N(m, P)`` (``m`` [P], ``P`` [P, P]; rad, relative for increments): the Laplace posterior of the last
+fit (:mod:`heliotwin.calibrate.uncertainty`) plus, with the drift model, the random-walk offset's covariance
+(:mod:`heliotwin.calibrate.drift`). Between records the drifting deviations (the axis offsets) walk:
+
+    P <- P + q dt E E^T,     dt [days] since the state's time, q [rad^2/day], E the drifting columns,
+
+and a record is one (iterated) extended Kalman update (Sarkka, *Bayesian Filtering and Smoothing*, ch. 5 and
+7; Bell & Cathey 1993 for the iterated form). The record's residual ``r(x) = n_model(x) - n_measured`` [3]
+lies in the mirror's tangent plane; projected on an orthonormal tangent basis ``T`` [2, 3] of the model
+normal it is a 2-d measurement
+
+    z = -T r(m) = H (x - m) + e,     H = T dr/dx [2, P],   e ~ N(0, s^2 I_2),
+
+with ``s`` the heliostat's residual noise per component. Innovation covariance ``S = H P H^T + s^2 I``, gain
+``K = P H^T S^-1``, ``m <- m + K z``, ``P <- (I - K H) P (I - K H)^T + s^2 K K^T`` (Joseph form: stays
+symmetric positive definite over thousands of updates). For a linear model, assimilating records one by one
+gives exactly the batch least-squares posterior of all of them (tested).
+
+Step alarms. Under the model the normalised innovation ``d^2 = z^T S^-1 z`` is chi-square with 2 degrees of
+freedom; a record whose ``d^2`` exceeds :func:`alarm_threshold` raises an alarm for its heliostat, and the
+state is *re-opened*: the drifting columns' variance grows by ``max(reopen^2, |z|^2)``. The alarming record
+itself is not assimilated (one record cannot tell a step from an outlier of its centroid); the next records,
+weighed against the open offset, move it to where it now is if the jump is real and leave it where it was if
+not, so a jump is followed from the record after the alarm on instead of being averaged away over months.
+The threshold comes from a target false-alarm rate per record and the normalised leave-one-out residuals of
+records the calibration saw (:func:`leave_one_out_d2`): real residuals have heavier tails than the Gaussian,
+and the threshold scales the chi-square quantile by how much wider their bulk is (never narrower).
+
+A step smaller than the record noise shows in several records before one of them is far enough out: the
+step tests of a record are the generalised likelihood ratios (Willsky & Jones 1976) of one constant jump ``b``
+of the drifting columns over the latest k = 1..``window`` records, ``g^T F^-1 g`` with ``g = sum H_b^T S^-1
+z`` and ``F = sum H_b^T S^-1 H_b`` (``H_b``: the drifting columns of ``H``); k = 1 is ``d^2``, each is
+chi-square (2 dof) under the model, so the threshold is the quantile of the rate divided by the number of
+tests. A jump that several records show is real: the offset is re-opened by ``max(reopen^2, |F^-1 g|^2)`` and
+the record assimilated at full weight.
+
+Moderate outliers (``d^2`` above the chi-square's 95 % quantile, below the alarm) are down-weighted as a
+Huber M-estimate does (their noise is inflated until ``d^2`` equals that quantile), as the batch fit's robust
+loss does.
+
+Every function works on all heliostats at once: the records of an update are processed in *rounds* (round k
+= every heliostat's k-th new record, in time order), each round one batched linearisation and one batched
+update over the heliostats; there is no loop over heliostats.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import torch
+
+from ..field.plant import Kinematics
+from ..io.records import RecordTable
+from .drift import padded_index
+from .metrics import model_normals, pointing_error_of_normals, record_jacobian
+from .params import apply_deviations
+
+_DAY = 86400.0
+
+#: chi-square (2 dof) quantile above which a record is down-weighted (Huber): 95 %.
+HUBER_D2 = -2.0 * math.log(0.05)
+
+#: Default false-alarm rate per clean record of the step alarm.
+FALSE_ALARM_RATE = 1e-3
+
+#: Smallest re-opening of the drifting columns at an alarm [rad] (per column, standard deviation).
+REOPEN = 2e-3
+
+#: Records of the step tests' longest window (:func:`assimilate`).
+WINDOW = 3
+
+#: Floor of the in-sample residual covariance (share of s^2) in :func:`leave_one_out_d2` (high leverage).
+_LEVERAGE_FLOOR = 0.05
+
+
+@dataclass
+class FilterState:
+    """The Gaussian state of H heliostats.
+
+    Attributes
+    ----------
+    mean : torch.Tensor, [H, P]
+        Deviations now (rad, m; relative for increments), ordered as ``names``.
+    covariance : torch.Tensor, [H, P, P]
+    time : torch.Tensor, [H]
+        POSIX s of the state (NaN: unknown; the first record then adds no process noise).
+    noise : torch.Tensor, [H]
+        Residual noise per component of a record [rad].
+    process_noise : float
+        ``q`` [rad^2/day] of the drifting columns' random walk.
+    drift_columns : tuple of int
+        Columns of ``mean`` that walk (e.g. the two axis offsets).
+    names : tuple of str
+        The deviations' names (:mod:`heliotwin.calibrate.params`).
+    window_g, window_f : torch.Tensor, [H, W - 1, B] and [H, W - 1, B, B], optional
+        The step test's evidence of each heliostat's latest ``W - 1`` records (oldest first; B drifting
+        columns): ``H_b^T S^-1 z`` and ``H_b^T S^-1 H_b`` (:func:`assimilate`); None: none yet.
+    """
+
+    mean: torch.Tensor
+    covariance: torch.Tensor
+    time: torch.Tensor
+    noise: torch.Tensor
+    process_noise: float
+    drift_columns: tuple
+    names: tuple
+    window_g: torch.Tensor | None = None
+    window_f: torch.Tensor | None = None
+
+    def drift_embedding(self) -> torch.Tensor:
+        """``E E^T`` [P, P]: 1 on the diagonal of the drifting columns."""
+        p = self.mean.shape[-1]
+        e = torch.zeros(p, p, dtype=self.mean.dtype, device=self.mean.device)
+        cols = torch.as_tensor(list(self.drift_columns), dtype=torch.long, device=self.mean.device)
+        e[cols, cols] = 1.0
+        return e
+
+
+def tangent_basis(normal: torch.Tensor) -> torch.Tensor:
+    """Orthonormal basis of the plane normal to each unit vector, [R, 2, 3] (``normal`` [R, 3], ENU).
+
+    The first vector is horizontal (east-north plane) unless the normal is near vertical; continuous and
+    well conditioned for every normal a heliostat takes."""
+    n = normal / normal.norm(dim=-1, keepdim=True)
+    up = torch.zeros_like(n)
+    up[:, 2] = 1.0
+    east = torch.zeros_like(n)
+    east[:, 0] = 1.0
+    ref = torch.where((n[:, 2].abs() > 0.9)[:, None], east, up)
+    a = torch.linalg.cross(ref, n)
+    a = a / a.norm(dim=-1, keepdim=True)
+    b = torch.linalg.cross(n, a)
+    return torch.stack([a, b], 1)
+
+
+def linearise(nominal: Kinematics, records: RecordTable, mean: torch.Tensor, names) -> tuple:
+    """Tangent-plane measurement of R records at deviations ``mean`` [R, P] (each record's heliostat's).
+
+    Parameters
+    ----------
+    nominal : Kinematics
+        R entries, one per record.
+    records : RecordTable
+        R records (the fit's centroids).
+
+    Returns
+    -------
+    z : torch.Tensor, [R, 2]
+        ``-T r``: measured minus model normal in the tangent plane [rad].
+    h : torch.Tensor, [R, 2, P]
+        ``T dr/dx``.
+    normal, concentrator : torch.Tensor, [R, 3]
+        The model mirror normal and concentrator at ``mean`` (ENU; m).
+    """
+    res, jac = record_jacobian(nominal, records, mean, names)
+    with torch.no_grad():
+        normal, conc = model_normals(apply_deviations(nominal, mean, names), records, per_record=True)
+    t = tangent_basis(normal.double())
+    z = -torch.einsum("rkc,rc->rk", t, res.double())
+    h = torch.einsum("rkc,rcp->rkp", t, jac.double())
+    return z, h, normal, conc
+
+
+def kalman_update(mean: torch.Tensor, cov: torch.Tensor, z: torch.Tensor, h: torch.Tensor,
+                  noise_var: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One linear Kalman update of B states at once.
+
+    Parameters
+    ----------
+    mean : torch.Tensor, [B, P]
+    cov : torch.Tensor, [B, P, P]
+    z : torch.Tensor, [B, M]
+        Innovation (measurement minus prediction at ``mean``).
+    h : torch.Tensor, [B, M, P]
+        Measurement matrix.
+    noise_var : torch.Tensor, [B]
+        Measurement noise variance per component (``R = noise_var I_M``).
+
+    Returns
+    -------
+    mean, cov : the posterior ([B, P], [B, P, P], Joseph form);
+    d2 : torch.Tensor, [B]
+        Normalised innovation ``z^T S^-1 z`` (at the prior).
+    """
+    m = z.shape[-1]
+    eye_m = torch.eye(m, dtype=cov.dtype, device=cov.device)
+    eye_p = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+    ph = cov @ h.transpose(1, 2)  # [B, P, M]
+    s = h @ ph + noise_var[:, None, None] * eye_m
+    chol = torch.linalg.cholesky(s)
+    gain = torch.cholesky_solve(ph.transpose(1, 2), chol).transpose(1, 2)  # P H^T S^-1, [B, P, M]
+    d2 = (z[:, None, :] @ torch.cholesky_solve(z[:, :, None], chol))[:, 0, 0]
+    a = eye_p - gain @ h
+    new_cov = a @ cov @ a.transpose(1, 2) + noise_var[:, None, None] * gain @ gain.transpose(1, 2)
+    new_cov = 0.5 * (new_cov + new_cov.transpose(1, 2))
+    return mean + (gain @ z[:, :, None])[..., 0], new_cov, d2
+
+
+def alarm_threshold(false_alarm_rate: float = FALSE_ALARM_RATE, validation_d2: torch.Tensor | None = None,
+                    tests: int = 1) -> dict:
+    """The statistic above which a record raises a step alarm.
+
+    The chi-square (2 dof) quantile of ``1 - false_alarm_rate / tests`` (``-2 ln(rate / tests)``: each record
+    is judged by ``tests`` step tests, :func:`assimilate`'s windows, each chi-square under the model), scaled by
+    how much wider the bulk of normalised residuals on validation records is than the chi-square's: ``kappa`` =
+    their 90 %
+    quantile over the chi-square's (``-2 ln 0.1``), at least 1. Without validation values ``kappa`` = 1.
+
+    Parameters
+    ----------
+    false_alarm_rate : float
+        Target share of clean records that raise an alarm, in (0, 1).
+    validation_d2 : torch.Tensor, [N], optional
+        Normalised residuals of records no update will judge (:func:`leave_one_out_d2`).
+
+    Returns
+    -------
+    dict
+        ``threshold`` (d^2), ``kappa``, ``false_alarm_rate``, ``validation_records``.
+    """
+    if not (0.0 < float(false_alarm_rate) < 1.0):
+        raise ValueError(f"false_alarm_rate must be in (0, 1), got {false_alarm_rate}")
+    kappa, n = 1.0, 0
+    if validation_d2 is not None:
+        v = validation_d2.detach().double().reshape(-1)
+        v = v[torch.isfinite(v)]
+        n = int(v.numel())
+        if n >= 10:
+            kappa = max(1.0, float(torch.quantile(v, 0.9)) / (-2.0 * math.log(0.1)))
+    return {"threshold": kappa * -2.0 * math.log(float(false_alarm_rate) / max(1, int(tests))), "kappa": kappa,
+            "false_alarm_rate": float(false_alarm_rate), "tests": max(1, int(tests)), "validation_records": n}
+
+
+def leave_one_out_d2(nominal: Kinematics, records: RecordTable, state: FilterState) -> torch.Tensor:
+    """Normalised leave-one-out residuals ``d^2`` [R] of records a calibration saw, under its posterior.
+
+    For record i of heliostat h with tangent residual ``z_i`` and ``H_i``, the in-sample residual has
+    covariance ``s^2 I - H_i P H_i^T`` (floored at 5 % of ``s^2`` for high leverage); ``z_i^T C_i^-1 z_i`` is
+    the record's normalised error as predicted by a fit without it (Cook & Weisberg 1982).
+
+    Parameters
+    ----------
+    nominal : Kinematics
+        The state's H heliostats.
+    records : RecordTable
+        R records on the same heliostat axis.
+    """
+    if len(records) == 0:
+        return torch.zeros(0, dtype=torch.float64)
+    hidx = records.heliostat_index
+    z, h, _, _ = linearise(nominal.index(hidx), records, state.mean[hidx], state.names)
+    s2 = state.noise.double()[hidx] ** 2
+    eye = torch.eye(2, dtype=torch.float64, device=z.device)
+    c = s2[:, None, None] * eye - h @ state.covariance[hidx] @ h.transpose(1, 2)
+    ev, vec = torch.linalg.eigh(0.5 * (c + c.transpose(1, 2)))
+    ev = torch.maximum(ev, _LEVERAGE_FLOOR * s2[:, None])
+    w = torch.einsum("rkj,rk->rj", vec, z)
+    return (w ** 2 / ev).sum(-1)
+
+
+@dataclass(frozen=True)
+class AssimilationOptions:
+    """How records are assimilated (:func:`assimilate`).
+
+    Attributes
+    ----------
+    threshold : float
+        ``d^2`` of a step alarm (:func:`alarm_threshold`); ``inf``: no alarms.
+    reopen : float
+        Smallest re-opening of the drifting columns at an alarm [rad] (standard deviation per column).
+    iterations : int
+        Linearisations per record (1: the extended Kalman filter; more: the iterated one).
+    robust : bool
+        Down-weight records above :data:`HUBER_D2` (module docstring).
+    window : int
+        Step tests over the latest 1..``window`` records (module docstring; 1: the single-record test only).
+    """
+
+    threshold: float = float("inf")
+    reopen: float = REOPEN
+    iterations: int = 2
+    robust: bool = True
+    window: int = WINDOW
+
+
+def rounds(records: RecordTable) -> torch.Tensor:
+    """Rows of ``records`` per round, [K, H] (-1: the heliostat has no k-th record): round k holds every
+    heliostat's k-th record in time order (records without a time last, in table order)."""
+    dev = records.heliostat_index.device
+    if len(records) == 0:
+        return torch.zeros(0, records.num_heliostats, dtype=torch.long, device=dev)
+    t = records.time.double() if records.time is not None else torch.full((len(records),), float("nan"), device=dev)
+    key = torch.nan_to_num(t, nan=float("inf"))
+    order = torch.argsort(key, stable=True)
+    index, mask = padded_index(records.subset(order))
+    rows = torch.where(mask, order[index.clamp_min(0)], torch.full_like(index, -1))
+    return rows.T.contiguous()
+
+
+def assimilate(nominal: Kinematics, records: RecordTable, state: FilterState,
+               options: AssimilationOptions = AssimilationOptions(), score_spot: torch.Tensor | None = None
+               ) -> tuple[FilterState, dict]:
+    """Assimilate new records into the state of their heliostats (module docstring), all heliostats at once.
+
+    Parameters
+    ----------
+    nominal : Kinematics
+        The state's H heliostats (the deviations are relative to these).
+    records : RecordTable
+        R new records on the same heliostat axis, with the centroids the state is fitted on.
+    state : FilterState
+        H heliostats (not modified).
+    options : AssimilationOptions
+    score_spot : torch.Tensor, [R, 3], optional
+        The centroids the prediction error is scored on (ENU m; default ``records.spot``).
+
+    Returns
+    -------
+    state : FilterState
+        After the last record of each heliostat.
+    history : dict of [R] tensors (in assimilation order)
+        ``row`` (into ``records``), ``heliostat`` (index), ``record_id``, ``time`` [s], ``mean`` [R, P] and
+        ``variance`` [R, P] after the record, ``innovation`` [R, 2] (rad, tangent plane, at the prior),
+        ``d2`` (normalised innovation), ``statistic`` (the largest step test) and ``window`` (its records),
+        ``alarm`` (bool), ``predicted_error`` (pointing error of the record predicted by the state before it
+        [rad]).
+    """
+    dev, dt_ = state.mean.device, torch.float64
+    mean, cov = state.mean.double().clone(), state.covariance.double().clone()
+    time = state.time.double().clone()
+    ee = state.drift_embedding().double()
+    s2 = state.noise.double() ** 2
+    spot = records.spot if score_spot is None else score_spot
+    rec_t = records.time.double() if records.time is not None else torch.full((len(records),), float("nan"),
+                                                                              device=dev)
+    cols = torch.as_tensor(list(state.drift_columns), dtype=torch.long, device=dev)
+    nb, w = len(cols), max(1, int(options.window))
+    ring_g, ring_f = state.window_g, state.window_f
+    if ring_g is None or ring_f is None or tuple(ring_g.shape) != (mean.shape[0], w - 1, nb):
+        ring_g = torch.zeros(mean.shape[0], w - 1, nb, dtype=dt_, device=dev)
+        ring_f = torch.zeros(mean.shape[0], w - 1, nb, nb, dtype=dt_, device=dev)
+    ring_g, ring_f = ring_g.double().clone(), ring_f.double().clone()
+    eye_b = torch.eye(nb, dtype=dt_, device=dev)
+    out: dict = {k: [] for k in ("row", "heliostat", "record_id", "time", "mean", "variance", "innovation", "d2",
+                                 "statistic", "window", "alarm", "predicted_error")}
+    for rows in rounds(records):  # rounds: a handful per day (records per heliostat), not heliostats
+        rows = rows[rows >= 0].to(dev)
+        if len(rows) == 0:
+            continue
+        batch = records.subset(rows)
+        h = batch.heliostat_index
+        kin = nominal.index(h)
+        t = rec_t[rows]
+        days = torch.nan_to_num((t - time[h]) / _DAY, nan=0.0).clamp_min(0.0)
+        m0 = mean[h]
+        p0 = cov[h] + float(state.process_noise) * days[:, None, None] * ee
+        z, hm, normal, conc = linearise(kin, batch, m0, state.names)
+        score = replace(batch, spot=spot[rows])
+        predicted = pointing_error_of_normals(normal.double(), conc.double(), score)
+        var = s2[h].clone()
+        # step tests: a constant jump b of the drifting columns over the latest k = 1..w records (generalised
+        # likelihood ratio, Willsky & Jones 1976): g = sum H_b^T S^-1 z, F = sum H_b^T S^-1 H_b, g^T F^-1 g
+        sinv = torch.linalg.inv(hm @ p0 @ hm.transpose(1, 2) + var[:, None, None] * torch.eye(2, dtype=dt_, device=dev))
+        hb = hm[:, :, cols]
+        gi = torch.einsum("rkb,rkl,rl->rb", hb, sinv, z)
+        fi = hb.transpose(1, 2) @ sinv @ hb
+        g = torch.cat([gi[:, None], gi[:, None] + ring_g[h].flip(1).cumsum(1)], 1)  # [B, w, nb], newest first
+        f = torch.cat([fi[:, None], fi[:, None] + ring_f[h].flip(1).cumsum(1)], 1)
+        ridge = 1e-9 * torch.diagonal(f, dim1=-2, dim2=-1).sum(-1).clamp_min(1e-300)[..., None, None] * eye_b
+        jump = torch.linalg.solve(f + ridge, g[..., None])[..., 0]  # the step's estimate per window, [B, w, nb]
+        stat_k = (g * jump).sum(-1)
+        stat, k_best = stat_k.max(1)
+        d2 = stat_k[:, 0]
+        alarm = stat > float(options.threshold)
+        single = alarm & (k_best == 0)
+        several = alarm & (k_best > 0)
+        size = jump[torch.arange(len(rows), device=dev), k_best].pow(2).sum(-1)
+        grow = torch.where(single, (z ** 2).sum(-1), size).clamp_min(float(options.reopen) ** 2)
+        # a jump seen by several records is real: re-open, then assimilate this record at full weight
+        p_use = torch.where(several[:, None, None], p0 + grow[:, None, None] * ee, p0)
+        if options.robust:  # Huber: a moderate outlier counts as if it were at the 95 % quantile
+            var = torch.where(several, var, var * torch.clamp(d2 / HUBER_D2, min=1.0))
+        m = m0
+        for _ in range(max(1, int(options.iterations))):  # iterated EKF: relinearise at the updated mean
+            if m is not m0:
+                zi, hm, _, _ = linearise(kin, batch, m, state.names)
+                z_lin = zi + torch.einsum("rkp,rp->rk", hm, m - m0)  # the measurement about m0, linearised at m
+            else:
+                z_lin = z
+            m, p, _ = kalman_update(m0, p_use, z_lin, hm, var)
+        # one record alone cannot tell a step from an outlier of its centroid: re-open the offset without
+        # assimilating it; the next records, weighed against the open offset, decide
+        m = torch.where(single[:, None], m0, m)
+        p = torch.where(single[:, None, None], p0 + grow[:, None, None] * ee, p)
+        if w > 1:
+            keep = (~alarm).double()  # after an alarm the evidence starts afresh
+            ring_g[h] = torch.cat([ring_g[h][:, 1:], gi[:, None]], 1) * keep[:, None, None]
+            ring_f[h] = torch.cat([ring_f[h][:, 1:], fi[:, None]], 1) * keep[:, None, None, None]
+        mean[h], cov[h] = m, p
+        time[h] = torch.where(torch.isfinite(t), t, time[h])
+        out["row"].append(rows)
+        out["heliostat"].append(h)
+        out["record_id"].append(batch.record_id)
+        out["time"].append(t)
+        out["mean"].append(m)
+        out["variance"].append(torch.diagonal(p, dim1=1, dim2=2))
+        out["innovation"].append(z)
+        out["d2"].append(d2)
+        out["statistic"].append(stat)
+        out["window"].append(k_best + 1)
+        out["alarm"].append(alarm)
+        out["predicted_error"].append(predicted.double())
+    p = mean.shape[-1]
+    empty = {"row": torch.zeros(0, dtype=torch.long), "heliostat": torch.zeros(0, dtype=torch.long),
+             "record_id": torch.zeros(0, dtype=torch.long), "time": torch.zeros(0, dtype=dt_),
+             "mean": torch.zeros(0, p, dtype=dt_), "variance": torch.zeros(0, p, dtype=dt_),
+             "innovation": torch.zeros(0, 2, dtype=dt_), "d2": torch.zeros(0, dtype=dt_),
+             "statistic": torch.zeros(0, dtype=dt_), "window": torch.zeros(0, dtype=torch.long),
+             "alarm": torch.zeros(0, dtype=torch.bool), "predicted_error": torch.zeros(0, dtype=dt_)}
+    history = {k: (torch.cat(v) if v else empty[k].to(dev)) for k, v in out.items()}
+    return replace(state, mean=mean, covariance=cov, time=time, window_g=ring_g, window_f=ring_f), history
+
+
+__all__ = ["FilterState", "AssimilationOptions", "tangent_basis", "linearise", "kalman_update", "alarm_threshold",
+           "leave_one_out_d2", "rounds", "assimilate", "HUBER_D2", "FALSE_ALARM_RATE", "REOPEN"]

@@ -1,0 +1,104 @@
+"""``heliotwin update`` (assimilate the records a calibrated plant has not seen yet) and ``heliotwin history``
+(one heliostat's state across updates).
+
+:func:`register` adds both commands; the library (:mod:`heliotwin.workflows.update`) is imported inside the
+command functions so that ``--help`` stays torch-free.
+"""
+from __future__ import annotations
+
+from ..io.report import output_set, write_json
+from .common import float_range, int_range, stage
+
+
+def register(subparsers) -> None:
+    """Add ``update`` and ``history`` to an argparse subparsers object."""
+    p = subparsers.add_parser("update", help="assimilate new calibration records into a calibrated scenario "
+                                             "(posterior update, step alarms)",
+                              description="Assimilate the calibration records a calibrated plant has not seen yet "
+                                          "as a posterior update of each heliostat's state (not a refit). A record "
+                                          "far outside its predictive interval raises a step alarm and re-opens "
+                                          "that heliostat's offset.")
+    p.add_argument("--scenario", required=True, help="calibrated scenario (calibrate --method lm -o, or an update)")
+    p.add_argument("--paint", required=True, help="PAINT folder with the new records (seen ones are skipped by id)")
+    p.add_argument("-o", "--output", required=True, help="updated scenario file (.h5)")
+    p.add_argument("--in-place", action="store_true", help="allow -o to be the input scenario (replaced atomically)")
+    p.add_argument("--json", help="also write the report as JSON")
+    p.add_argument("--false-alarm-rate", type=float_range(0.0, 1.0, lo_open=True, what="a rate"), default=1e-3,
+                   help="target share of clean records raising a step alarm (default 1e-3; chooses the threshold "
+                        "at the first update)")
+    p.add_argument("--process-noise", default="stored",
+                   help="random-walk process noise of the axis offsets [mrad^2/day], or 'stored' (the "
+                        "calibration's; default)")
+    p.add_argument("--reopen-mrad", type=float_range(0.0, 100.0, what="an angle [mrad]"), default=2.0,
+                   help="smallest re-opening of the axis offsets at an alarm [mrad] (default 2)")
+    p.add_argument("--iterations", type=int_range(1, 20, "an iteration count"), default=2,
+                   help="linearisations per record (iterated extended Kalman filter; default 2)")
+    p.add_argument("--window", type=int_range(1, 50, "a record count"), default=3,
+                   help="step tests over each heliostat's latest 1..WINDOW records (default 3)")
+    p.add_argument("--plane-tolerance", type=float_range(0.0, None, lo_open=True, what="a distance [m]"),
+                   default=0.1, help="largest distance [m] of a focal spot from its target plane (default 0.1)")
+    p.set_defaults(func=cmd_update)
+
+    h = subparsers.add_parser("history", help="one heliostat's state history across updates",
+                              description="Print (and optionally write as JSON) the state history of one "
+                                          "heliostat stored by 'heliotwin update'.")
+    h.add_argument("--scenario", required=True, help="updated scenario (heliotwin update -o)")
+    h.add_argument("--heliostat", required=True, help="heliostat id")
+    h.add_argument("--json", help="also write the history as JSON")
+    h.set_defaults(func=cmd_history)
+
+
+def cmd_update(args) -> int:
+    import os
+
+    from ..io.scenario import write_scenario
+    from ..workflows.update import UpdateSettings, update
+
+    settings = UpdateSettings(false_alarm_rate=args.false_alarm_rate, process_noise=args.process_noise,
+                              reopen_mrad=args.reopen_mrad, iterations=args.iterations, window=args.window,
+                              plane_tolerance=args.plane_tolerance)
+    same = all(os.path.exists(f) for f in (args.output, args.scenario)) and os.path.samefile(args.output,
+                                                                                          args.scenario)
+    inputs = [("--paint", args.paint)] + ([] if args.in_place and same else [("--scenario", args.scenario)])
+    with output_set(inputs) as out:
+        output, json_path = out.file(args.output, "-o"), out.file(args.json, "--json")
+        stage(args, f"assimilating new records of {args.paint}")
+        scenario, report = update(args.scenario, args.paint, settings)
+        write_scenario(scenario, output)
+        report["output"] = os.fspath(args.output)
+        if json_path:
+            write_json(json_path, report)
+    if not args.quiet:
+        c, o = report["counts"], report["overall"]
+        err = o["median_of_mean_predicted_error_mrad"]
+        print(f"{o['records']} new records of {report['heliostats_updated']} heliostats assimilated ({c['seen']} seen "
+              f"before, {c['older_than_state']} older than the state, {c['without_time']} without a time); predicted "
+              f"error before each: median of the heliostats' means {'-' if err is None else f'{err:.3f}'} mrad; "
+              f"{o['alarms']} step alarm(s)")
+        for a in report["alarms"]:
+            print(f"  step alarm: {a['heliostat']} record {a['record_id']} (step statistic {a['statistic']:.1f} over "
+                  f"{a['window']} record(s) > {report['threshold']['threshold']:.1f})")
+    return 0
+
+
+def cmd_history(args) -> int:
+    import datetime as dt
+
+    from ..workflows.update import state_history
+
+    with output_set([("--scenario", args.scenario)]) as out:
+        json_path = out.file(args.json, "--json")
+        hist = state_history(args.scenario, args.heliostat)
+        if json_path:
+            write_json(json_path, {k: (v.tolist() if hasattr(v, "tolist") else v) for k, v in hist.items()})
+    if args.quiet:
+        return 0
+    names = hist["parameter_names"]
+    cols = [names.index(n) for n in ("initial_angle_1", "initial_angle_2") if n in names]
+    print(f"{hist['heliostat']}: {len(hist['time'])} assimilated record(s)")
+    for i in range(len(hist["time"])):
+        when = dt.datetime.fromtimestamp(float(hist["time"][i]), dt.timezone.utc).isoformat(timespec="minutes")
+        offs = ", ".join(f"{1e3 * hist['mean'][i][c]:+.3f}+-{1e3 * hist['variance'][i][c] ** 0.5:.3f}" for c in cols)
+        print(f"  {when} record {int(hist['record_id'][i])}: predicted error {1e3 * hist['predicted_error'][i]:.3f} "
+              f"mrad, d2 {hist['d2'][i]:.1f}{'  STEP ALARM' if hist['alarm'][i] else ''}; axis offsets [mrad] {offs}")
+    return 0
