@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import statistics
+from dataclasses import dataclass
 
 import torch
 from tqdm.auto import tqdm
@@ -27,14 +28,56 @@ from . import losses
 from .imaging import predict_images
 from .observations import Observations
 
-__all__ = ["yearly_flux", "summarize"]
+__all__ = ["yearly_flux", "YearSampling", "CenteredImaging", "summarize"]
+
+
+@dataclass(frozen=True)
+class YearSampling:
+    """Which instants of a year :func:`yearly_flux` visits.
+
+    Attributes
+    ----------
+    year : int
+    every : str
+        pandas frequency, e.g. ``"30min"``.
+    min_elevation_deg : float
+        Instants with the sun lower than this [deg] are left out.
+    """
+
+    year: int = 2023
+    every: str = "30min"
+    min_elevation_deg: float = 5.0
+
+
+@dataclass(frozen=True)
+class CenteredImaging:
+    """How :func:`yearly_flux` renders each instant (the centred window of the PAINT images).
+
+    Attributes
+    ----------
+    samples : (int, int)
+        Surface samples per facet (u, v).
+    resolution : int
+        Window pixels per side (R).
+    size_m : float
+        Window side [m].
+    chunk : int
+        Instants rendered per batch (memory bound).
+    kernel_supersample : int
+        Sub-samples per pixel and axis of the sun-cone footprint kernel (training uses 4; 2 changes the
+        images by < 1e-3 in L1 and is 4x cheaper -- the kernel is the dominant cost of a yearly run).
+    """
+
+    samples: tuple = (24, 24)
+    resolution: int = 64
+    size_m: float = CENTERED_WINDOW_M
+    chunk: int = 48
+    kernel_supersample: int = 2
 
 
 def yearly_flux(kinematics: Kinematics, target: PlanarTarget, site: tuple, learned: Surfaces, ideal: Surfaces,
-                sun: SunSettings, *, year: int = 2023, every: str = "30min", truth: Surfaces | None = None,
-                samples=(24, 24), resolution: int = 64, size_m: float = CENTERED_WINDOW_M, chunk: int = 48,
-                kernel_supersample: int = 2,
-                min_elevation_deg: float = 5.0, progress: bool = True) -> dict:
+                sun: SunSettings, *, when: YearSampling = YearSampling(), imaging: CenteredImaging = CenteredImaging(),
+                truth: Surfaces | None = None, progress: bool = True) -> dict:
     """Flux of one heliostat on ``target`` over a year.
 
     Parameters
@@ -46,16 +89,12 @@ def yearly_flux(kinematics: Kinematics, target: PlanarTarget, site: tuple, learn
     learned, ideal : Surfaces
         ``[1, F, nu, nv, 3]``.
     sun : SunSettings
-    year : int
-    every : str
-        pandas frequency, e.g. ``"30min"``.
+    when : YearSampling
+        Year, time step and lowest sun.
+    imaging : CenteredImaging
+        Samples, window and batch size of the renders.
     truth : Surfaces, optional
         Ground truth (in silico): enables IMP.
-    chunk : int
-        Instants rendered per batch.
-    kernel_supersample : int
-        Sub-samples per pixel and axis of the sun-cone footprint kernel (training uses 4; 2 changes the
-        images by < 1e-3 in L1 and is 4x cheaper -- the kernel is the dominant cost of a yearly run).
 
     Returns
     -------
@@ -63,14 +102,17 @@ def yearly_flux(kinematics: Kinematics, target: PlanarTarget, site: tuple, learn
     ``l1_ideal_vs_learned``, ``peak_learned_w_m2``, ``peak_ideal_w_m2``, ``power_w`` and, with ``truth``,
     ``l1_ideal``, ``l1_learned``, ``imp``.
     """
-    times, az, el = daylight_times(year, every, site[0], site[1], site[2], min_elevation_deg=min_elevation_deg)
+    times, az, el = daylight_times(when.year, when.every, site[0], site[1], site[2],
+                                   min_elevation_deg=when.min_elevation_deg)
     if len(times) == 0:
-        raise HeliotwinError(f"no daylight instants in {year} every {every}")
+        raise HeliotwinError(f"no daylight instants in {when.year} every {when.every}")
     sund = direction_from_paint_angles(az, el).to(kinematics.position.device)  # pvlib's angles are on the CPU
     out = {k: [] for k in ("l1_ideal_vs_learned", "peak_learned_w_m2", "peak_ideal_w_m2", "power_w")}
     if truth is not None:
         out.update({"l1_ideal": [], "l1_learned": [], "imp": []})
-    kw = dict(samples=samples, resolution=resolution, size_m=size_m, kernel_supersample=kernel_supersample)
+    kw = dict(samples=imaging.samples, resolution=imaging.resolution, size_m=imaging.size_m,
+              kernel_supersample=imaging.kernel_supersample)
+    chunk = imaging.chunk
     for start in tqdm(range(0, len(times), chunk), desc="year", disable=not progress, leave=False):
         sl = slice(start, start + chunk)
         s = sund[sl]
@@ -85,7 +127,7 @@ def yearly_flux(kinematics: Kinematics, target: PlanarTarget, site: tuple, learn
             out["l1_ideal_vs_learned"] += losses.l1(img_i, img_l).tolist()
             out["peak_learned_w_m2"] += img_l.amax((-2, -1)).tolist()
             out["peak_ideal_w_m2"] += img_i.amax((-2, -1)).tolist()
-            pix = (size_m / resolution) ** 2
+            pix = (imaging.size_m / imaging.resolution) ** 2
             out["power_w"] += (img_l.sum((-2, -1)) * pix).tolist()
             if truth is not None:
                 img_t, _, _ = predict_images(truth, obs, sun, kernels=kernels, **kw)

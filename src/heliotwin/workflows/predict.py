@@ -18,7 +18,7 @@ from ..errors import HeliotwinError
 from ..io.scenario import Scenario
 from ..io.weather import read_dni_series
 from ..raytrace.yearly import clear_sky_dni
-from ..surfaces.predict import summarize, yearly_flux
+from ..surfaces.predict import YearSampling, summarize, yearly_flux
 from ..surfaces.state import KEY, learned_surface
 
 __all__ = ["PredictionSettings", "predict", "learned_heliostat", "prediction_energy"]
@@ -102,8 +102,8 @@ def predict(scenario: Scenario, heliostat: str | None = None, settings: Predicti
     device = resolve_device(s.device)
     if device != "cpu":
         kin, target, surfaces, ideal = to_device((kin, target, surfaces, ideal), device)
-    series = yearly_flux(kin, target, site, surfaces, ideal, item["optics"], year=s.year, every=s.every,
-                         progress=progress)
+    series = yearly_flux(kin, target, site, surfaces, ideal, item["optics"],
+                         when=YearSampling(year=s.year, every=s.every), progress=progress)
     optics = item["optics"]
     energy = prediction_energy(series, plant, float(getattr(optics, "dni", plant.sun.dni)), s.every, s.weather)
     return scenario, {"heliostat": heliostat, "target": name, "year": s.year, "every": s.every,
