@@ -64,6 +64,7 @@ class Stages:
                   file=self.lines, flush=True)
 
     def close(self) -> None:
+        """End the bar (a terminal gets its final newline); the plain lines need no ending. Idempotent."""
         self.bar.close()
 
     def __enter__(self):

@@ -128,13 +128,15 @@ def fit_flux_predictor(train_inputs: torch.Tensor, train_images: torch.Tensor, *
     Parameters
     ----------
     train_inputs : torch.Tensor, [N, D]
-        Conditioning per image (e.g. unit sun vector and motor steps); standardised here over the N rows.
+        Conditioning per image (e.g. unit sun vector [1] and motor positions [steps]); standardised here over
+        the N rows, so any units do.
     train_images : torch.Tensor, [N, H, W]
-        Measured images, any scale (each is normalised to unit sum; negatives clipped to 0).
+        Measured images, any scale (each is normalised to unit sum, so [1]; negatives clipped to 0).
     generator : torch.Generator, optional
         Draws the initial weights; default ``torch.Generator().manual_seed(seed)``.
     steps, width, layers, frequencies, lr
-        Adam steps (full batch), hidden width, hidden layers, Fourier bands L, learning rate.
+        Adam steps (full batch), hidden width (neurons per layer, a count, not a length), hidden layers,
+        Fourier bands L, learning rate.
     validation : tuple (inputs [V, D], images [V, H, W]), optional
         Held-out images scored at each step in ``checkpoints`` (for model selection).
     checkpoints : iterable of int
@@ -143,7 +145,7 @@ def fit_flux_predictor(train_inputs: torch.Tensor, train_images: torch.Tensor, *
     Returns
     -------
     FluxPredictor
-        Or, with ``validation``, ``(model, {step: mean held-out L1})``.
+        Or, with ``validation``, ``(model, {step: mean held-out L1 [1]})`` (L1 of unit-sum images).
     """
     x, y = _prepare(train_inputs, train_images)
     shape = tuple(y.shape[-2:])

@@ -130,6 +130,7 @@ class SurfaceSettings:
             raise HeliotwinError(f"unknown image loss {self.loss!r}; expected one of {', '.join(losses.IMAGE_LOSSES)}")
 
     def as_dict(self) -> dict:
+        """The settings as plain JSON values (tuples as lists), keyed by field name, for reports and checkpoints."""
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(self).items()}
 
 
@@ -159,7 +160,8 @@ class SurfaceFit:
 
 
 def blur_images(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
-    """Separable Gaussian blur of ``[B, R, C]`` images (zero padding); identity for ``sigma_px <= 0``."""
+    """Separable Gaussian blur of ``[B, R, C]`` images (zero padding), same shape out; identity for
+    ``sigma_px <= 0``. ``sigma_px``: the kernel's standard deviation [px], one for all B images (cut at 3 sigma)."""
     if sigma_px <= 0:
         return images
     k = int(math.ceil(3.0 * sigma_px))
@@ -171,7 +173,10 @@ def blur_images(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
 
 
 def blur_for(train_targets: list, train_sigma: torch.Tensor, targets: list) -> torch.Tensor:
-    """Blur [px] for images on ``targets``: median of the training images' blur on the same target, else all."""
+    """Blur [px] for images on ``targets``: median of the training images' blur on the same target, else all.
+
+    ``train_sigma`` ``(N,)`` [px] belongs to the N ``train_targets``; the result is ``(M,)`` [px], one per entry
+    of ``targets`` (float32, on ``train_sigma``'s device)."""
     names = [t.name for t in train_targets]
     out = []
     for t in targets:

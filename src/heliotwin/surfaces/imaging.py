@@ -46,10 +46,13 @@ def predict_images(surfaces: Surfaces, obs: Observations, sun: SunSettings, *, s
     Parameters
     ----------
     surfaces : Surfaces
-        One heliostat (``[1, F, nu, nv, 3]``).
+        One heliostat (control points ``[1, F, nu, nv, 3]`` [m], heliostat frame).
     obs : Observations
+        The B recordings (poses, sun directions, targets; optional fixed window centres).
     sun : SunSettings
+        Sunshape, DNI and reflectivity of the rays.
     samples : (int, int)
+        Mirror samples per facet and direction (N = F * samples[0] * samples[1]).
     resolution, size_m : int, float
         Window pixels per side and side [m].
     kernels : dict, optional
@@ -64,8 +67,9 @@ def predict_images(surfaces: Surfaces, obs: Observations, sun: SunSettings, *, s
         Flux [W/m^2].
     centers : torch.Tensor, [B, 2]
         Window centres (local target coordinates [m]).
-    miss : torch.Tensor, []
-        Soft miss penalty [m^2].
+    miss : torch.Tensor, shape ()
+        Soft miss penalty [m^2]: power-weighted mean squared overshoot of hits beyond the window, averaged over
+        the B images (a scalar, differentiable).
     """
     pw, nw, ar, sund = _world_samples(surfaces, obs, samples)
     b = len(obs)

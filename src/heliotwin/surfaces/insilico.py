@@ -148,7 +148,28 @@ class InSilicoScene:
 
 def make_scene(plant, distance: float, generator: torch.Generator, sun: SunSettings | None = None,
                target_name: str = "solar_tower_juelich_lower", **truth_kwargs) -> InSilicoScene:
-    """AA39-like heliostat ``distance`` m (horizontal) north of ``target_name`` with a defective truth surface."""
+    """AA39-like heliostat ``distance`` m (horizontal) north of ``target_name`` with a defective truth surface.
+
+    Parameters
+    ----------
+    plant : Plant
+        Supplies the first heliostat's facets and kinematics and the target.
+    distance : float
+        Horizontal offset [m] of the heliostat from the target centre, along the side the target faces
+        (north for the Jülich targets); its height stays the kinematics' own.
+    generator : torch.Generator
+        Draws the truth surface (:func:`ground_truth_heights`).
+    sun : SunSettings, optional
+        Default: Buie sunshape with a slope error of 1 mrad.
+    target_name : str
+    **truth_kwargs
+        Passed to :func:`ground_truth_heights` (``bump_mm`` [mm], ``waviness_mm`` [mm], ``wavelength_m`` [m] ...).
+
+    Returns
+    -------
+    InSilicoScene
+        Facets and truth in float64; the truth's control points ``[1, F, 15, 15, 3]`` [m], heliostat frame.
+    """
     fld = plant.field
     facets = Facets(*(getattr(fld.facets, a)[:1].to(torch.float64) for a in ("translation", "canting_e", "canting_n")))
     target = plant.target(target_name)
@@ -165,7 +186,11 @@ def make_scene(plant, distance: float, generator: torch.Generator, sun: SunSetti
 
 
 def random_suns(site, n: int, generator: torch.Generator, year: int = 2023, min_elevation_deg: float = 15.0):
-    """``n`` random daylight sun directions of a year, [n, 3] (pvlib positions drawn with ``generator``)."""
+    """``n`` random daylight sun directions of ``year``: ENU unit vectors towards the sun, ``(n, 3)`` float64.
+
+    The candidates are the hourly pvlib positions at ``site`` with the elevation above ``min_elevation_deg``
+    [deg]; ``generator`` draws ``n`` of them without replacement (so ``n`` is at most their count).
+    """
     _, az, el = daylight_times(year, "60min", site.latitude_deg, site.longitude_deg, site.altitude_m,
                                min_elevation_deg=min_elevation_deg)
     idx = torch.randperm(az.numel(), generator=generator)[:n]
@@ -173,7 +198,9 @@ def random_suns(site, n: int, generator: torch.Generator, year: int = 2023, min_
 
 
 def observe(scene: InSilicoScene, suns: torch.Tensor, samples=(48, 48), ids=None, window: str = "aim") -> Observations:
-    """Synthetic images of the truth surface for sun directions [B, 3].
+    """Synthetic images of the truth surface for sun directions ``suns`` ``(B, 3)`` (ENU unit vectors towards the
+    sun, [1]): the returned :class:`Observations` hold the images ``(B, 64, 64)`` [W/m^2] in 6 m windows,
+    rendered noise-free with ``samples`` mirror samples per facet and direction; ``ids`` default to "0", "1" ...
 
     ``window="aim"``: the kinematics are known (as in the published study, whose loss is on the image of
     the whole target), so the window is fixed on the aim point and the spot's offset in it is data.
@@ -212,10 +239,15 @@ def run_case(plant, distance: float, num_train: int, seed: int = 0, num_test: in
     :func:`~heliotwin.surfaces.fit.fit_surface` on all training images. ``progress`` is accepted and unused
     (the fits are short).
 
+    ``distance`` is the heliostat's horizontal offset from the target [m] (:func:`make_scene`); ``seed`` seeds
+    the one generator behind the truth surface and the ``num_train + num_test`` sun positions.
+
     Returns
     -------
     dict
-        distance, images, metrics of the learned and (for reference) the ideal surface, test L1s, IMP, seconds.
+        ``distance_m`` [m], image counts, ``normal_deviation_mrad`` [mrad] and ``height_rms_mm`` [mm] of the
+        learned and (for reference, ``ideal_*``) the ideal surface, per-test-image L1s [1] (lists of length
+        ``num_test``), ``imp`` [1], the chosen ``laplacian`` and its scores, ``seconds`` [s] of the fits.
     """
     gen = torch.Generator().manual_seed(int(seed))
     scene = make_scene(plant, distance, gen)

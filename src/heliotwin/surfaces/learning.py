@@ -78,10 +78,15 @@ def normal_heights(facets: Facets, control_points: torch.Tensor, degree: tuple[i
     Parameters
     ----------
     facets : Facets
-        ``[1, F, 3]``.
+        ``[1, F, 3]`` placement [m] (translations) of the heliostat's F facets.
     control_points : torch.Tensor, [1, F, nu, nv, 3]
+        The surface's NURBS control net [m], heliostat frame.
     degree : (int, int)
+        NURBS degree (p, q) in u and v.
     samples : (int, int)
+        (su, sv) midpoint samples per facet and direction.
+    weights : torch.Tensor, [1, F, nu, nv], optional
+        Rational weights [1]; default all ones.
 
     Returns
     -------
@@ -237,6 +242,7 @@ class LearnableSurface(nn.Module):
         return learnable_surfaces(self.facets, self.base, self.displacement, self.degree, self.log_weights)
 
     def forward(self) -> Surfaces:
+        """The same as :meth:`surfaces` (so the module can be called): control points ``[1, F, nu, nv, 3]`` [m]."""
         return self.surfaces()
 
     @torch.no_grad()

@@ -73,17 +73,21 @@ def image_loss(name: str, pred: torch.Tensor, meas: torch.Tensor) -> torch.Tenso
 
 
 def ridge(d_mm: torch.Tensor) -> torch.Tensor:
-    """Mean squared displacement [mm^2]."""
+    """Mean squared displacement [mm^2], a scalar ``()``, of displacements ``d_mm`` ``[..., F, nu, nv]`` [mm]."""
     return d_mm.pow(2).mean()
 
 
 def lasso(d_mm: torch.Tensor, smooth: float = 1e-3) -> torch.Tensor:
-    """Mean absolute displacement [mm] (``sqrt(d^2 + s^2) - s``: a subgradient that is defined at 0)."""
+    """Mean absolute displacement [mm], a scalar ``()``, of displacements ``d_mm`` ``[..., F, nu, nv]`` [mm]
+    (``sqrt(d^2 + s^2) - s`` with ``smooth`` = s [mm]: a subgradient that is defined at 0)."""
     return (torch.sqrt(d_mm * d_mm + smooth * smooth) - smooth).mean()
 
 
 def laplacian(d_mm: torch.Tensor) -> torch.Tensor:
-    """Mean squared discrete Laplacian of the displacement on each facet's control grid [mm^2].
+    """Mean squared discrete Laplacian of the displacement on each facet's control grid [mm^2], a scalar ``()``.
+
+    ``d_mm``: displacements ``[..., F, nu, nv]`` [mm] (nu, nv >= 2); the 5-point stencil is in grid steps, so
+    the result does not depend on the facet's size.
 
     The grid is padded by linear extrapolation, so planes (facet tilts, pistons) cost nothing -- ridge
     handles those -- while bumps and ripples do, including at the free edges.
@@ -107,7 +111,8 @@ def threshold_background(image: torch.Tensor, level: float = 0.02) -> torch.Tens
     Parameters
     ----------
     image : torch.Tensor, [..., rows, cols]
+        Any scale; the result has the same shape.
     level : float
-        Fraction of each image's maximum.
+        Fraction of each image's maximum [1], subtracted from that image before clipping at 0.
     """
     return subtract_background(image, level)

@@ -34,7 +34,9 @@ def camera_truth(images: torch.Tensor, saturation: float, cut: float) -> torch.T
 
 
 def add_halo(images: torch.Tensor, fraction: float = 0.5, sigma_px: float = 8.0) -> torch.Tensor:
-    """``(1 - fraction) I + fraction blur(I)`` (same power): a broad diffuse halo, ``[B, R, C]``."""
+    """``(1 - fraction) I + fraction blur(I)`` (same power): a broad diffuse halo on ``[B, R, C]`` images, same
+    shape out. ``fraction`` [1] of each image's power goes into the halo, a Gaussian blur of ``sigma_px`` [px]
+    (:func:`~heliotwin.surfaces.fit.blur_images`) rescaled to the image's own sum."""
     wide = blur_images(images, sigma_px)
     wide = wide * images.sum((-2, -1), keepdim=True) / wide.sum((-2, -1), keepdim=True).clamp_min(1e-30)
     return (1 - fraction) * images + fraction * wide
@@ -46,8 +48,19 @@ def run_mismatch_case(plant, distance: float = 50.0, num_train: int = 4, num_tes
                       progress: bool = False, halo: int | None = None) -> dict:
     """One in-silico case under mismatch; the generalising report plus surface recovery metrics.
 
-    ``halo``: index of a training image that gets a broad diffuse halo (:func:`add_halo`) -- an inconsistent
-    image the outlier rule should drop.
+    ``distance``: the heliostat's horizontal offset from the target [m]
+    (:func:`~heliotwin.surfaces.insilico.make_scene`); ``saturation`` and ``cut``: the truth camera's levels as
+    fractions of each image's max [1] (:func:`camera_truth`); ``window``: "centred" (spot-centred windows,
+    PAINT's) or "aim" (fixed on the aim point), both 6 m wide. ``halo``: index of a training image that gets a
+    broad diffuse halo (:func:`add_halo`) -- an inconsistent image the outlier rule should drop.
+
+    Returns
+    -------
+    dict
+        The report of :func:`~heliotwin.surfaces.generalise.reconstruct_generalising`, plus ``seconds`` [s],
+        ``recovery`` (learned and ideal normal deviation [mrad] and height RMS [mm] against the truth) and
+        ``case`` (the inputs above, ``distance_m`` [m], the truth sun's ``sigma_rad`` and ``slope_error_rad``
+        [rad]).
     """
     gen = torch.Generator().manual_seed(int(seed))
     scene = make_scene(plant, distance, gen, sun=truth_sun)

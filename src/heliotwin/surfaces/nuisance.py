@@ -47,7 +47,7 @@ class CameraModel:
     Attributes
     ----------
     threshold : torch.Tensor, [B]
-        Background cut (fraction of the max).
+        Background cut, fraction of each image's max [1] (float32).
     n_saturated : torch.Tensor, [B], int64
         Measured plateau pixels.
     """
@@ -56,10 +56,13 @@ class CameraModel:
     n_saturated: torch.Tensor
 
     def subset(self, idx) -> "CameraModel":
+        """The camera model of the images ``idx`` (a sequence of k indices into B): tensors ``(k,)``, in that order."""
         idx = list(idx)
         return CameraModel(self.threshold[idx], self.n_saturated[idx])
 
     def as_dict(self, ids) -> dict:
+        """JSON-ready ``{id: {"threshold": fraction of the max [1], "saturated_pixels": count}}``, one entry per
+        image, keyed by ``str`` of the B ``ids`` (in the order of the ``(B,)`` tensors)."""
         return {str(i): {"threshold": float(t), "saturated_pixels": int(n)}
                 for i, t, n in zip(ids, self.threshold, self.n_saturated)}
 
@@ -71,6 +74,11 @@ def estimate_camera(measured: torch.Tensor) -> CameraModel:
     ----------
     measured : torch.Tensor, [B, R, C]
         Any scale, non-negative.
+
+    Returns
+    -------
+    CameraModel
+        ``threshold`` ``[B]`` [1] (float32) and ``n_saturated`` ``[B]`` (int64).
     """
     m = measured / measured.amax((-2, -1), keepdim=True).clamp_min(1e-30)
     pos = m > 0
@@ -87,9 +95,11 @@ def estimate_camera(measured: torch.Tensor) -> CameraModel:
 
 
 def gaussian_blur(images: torch.Tensor, sigma_px: torch.Tensor) -> torch.Tensor:
-    """Per-image Gaussian blur, differentiable in ``sigma_px`` ``[B]`` (fixed support ``BLUR_RADIUS_PX``).
+    """Per-image Gaussian blur of ``images`` ``[B, R, C]`` (same shape out, zero padding), differentiable in
+    ``sigma_px`` ``[B]`` [px], the standard deviation per image (fixed support ``BLUR_RADIUS_PX`` [px]).
 
-    ``sigma_px <= 0.05`` leaves the image unchanged (a delta kernel).
+    ``sigma_px`` is clamped to at least 0.05 px, where the kernel is a delta to float precision, so
+    ``sigma_px <= 0.05`` leaves the image unchanged.
     """
     r = BLUR_RADIUS_PX
     x = torch.arange(-r, r + 1, dtype=images.dtype, device=images.device)

@@ -76,6 +76,7 @@ class Observations:
                             list(self.ids), mv(self.centers))
 
     def subset(self, idx) -> "Observations":
+        """The observations ``idx`` (a sequence of k indices into B), in that order: tensors ``(k, ...)``."""
         idx = list(idx)
         return Observations(self.sun[idx], self.rotation[idx], self.concentrator[idx], [self.targets[i] for i in idx],
                             None if self.images is None else self.images[idx], [self.ids[i] for i in idx],
@@ -87,7 +88,7 @@ def load_centered_image(path, resolution: int = 64, background: float = 0.0) -> 
 
     :func:`heliotwin.io.images.load_measured_image` with ``square=True``: 256x256 images (newer releases) are
     box-averaged to 64x64 so that every image is compared on the same 9.4 cm pixels; ``background``
-    (fraction of the max) is subtracted and clipped at 0.
+    (fraction of the max [1]) is subtracted and clipped at 0.
     """
     return load_measured_image(path, resolution, background=background, square=True)
 
@@ -105,7 +106,7 @@ def split_record_ids(record_ids, times, image_paths, train_records=None,
     ----------
     record_ids : sequence of int, length N
     times : sequence of str or None, length N
-        ISO DateTime (UTC) per record, or None/"" where unknown.
+        ISO DateTime [UTC] per record, or None/"" where unknown (only their order is used).
     image_paths : sequence of str or None, length N
         Centred image per record (None/"": none; such records are in neither set).
     train_records : iterable of int, optional
@@ -190,7 +191,7 @@ def paint_observations(paint_dir, heliostat_id: str, *, plant=None, device: str 
     resolution : int
         R, window pixels per side.
     background : float
-        Subtracted from each image, fraction of its max.
+        Subtracted from each image, fraction of its max [1].
     alignment : {"focal-spot", "motor"}
 
     Returns

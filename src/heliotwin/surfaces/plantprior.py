@@ -164,6 +164,7 @@ class SurfacePrior(GaussianPrior):
 
     @property
     def facet_count(self) -> int:
+        """F, the number of facets the prior covers (rows of ``mean``)."""
         return int(self.mean.shape[0])
 
     def mahalanobis2(self, coefficients: torch.Tensor) -> torch.Tensor:

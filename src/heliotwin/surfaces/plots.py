@@ -26,6 +26,9 @@ def normal_deviation_map(facets: Facets, control_points: torch.Tensor, degree, r
                          reference_degree=None, samples=(48, 48)) -> torch.Tensor:
     """Angle between a surface's normals and the reference's (default: flat canted facet normal).
 
+    ``control_points`` (and ``reference``): nets ``[1, F, nu, nv, 3]`` [m], heliostat frame, of NURBS degree
+    ``degree`` (``reference_degree``, default ``degree``); sampled at ``samples`` = (su, sv) per facet.
+
     Returns
     -------
     torch.Tensor, [F, su, sv]
@@ -43,6 +46,8 @@ def plot_normal_deviation(facets: Facets, control_points: torch.Tensor, degree, 
     """Per-facet map of the normal deviation [mrad] from the ideal facet, arranged like the heliostat.
 
     Facets are placed by their centre (east right, north up, seen from above the mirror lying flat).
+    ``control_points``: the surface's net ``[1, F, nu, nv, 3]`` [m], heliostat frame, of NURBS ``degree``
+    (p, q); ``facets``: its ``[1, F, 3]`` placement [m]. Writes the figure to ``path``.
     """
     dev = normal_deviation_map(facets, control_points, degree).detach().cpu()
     tr = facets.translation[0].detach().cpu()
