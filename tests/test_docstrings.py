@@ -19,14 +19,22 @@ SRC = ROOT / "src" / "heliotwin"
 
 #: Modules (relative to ``src/heliotwin``) whose public docstrings all state shapes and units. The floors
 #: in order: building blocks; optics (the integrators, splats, images, yearly energy; the scene glue); the
-#: data edge (all of io but the PAINT reader, the record table and the scenario file); figures; the public API.
+#: data edge (all of io but the PAINT reader, the record table and the scenario file); figures; surface
+#: learning (all of surfaces/) and forward-model validation; the public API and its helpers (progress, the
+#: shipped examples).
 DONE = (
     "errors.py", "devices.py", "geometry.py", "site.py", "sun.py", "sunshape.py", "nurbs.py", "atmosphere.py",
     "shrinkage.py",
     "raytrace/montecarlo.py", "raytrace/gaussian.py", "raytrace/conv.py", "raytrace/splat.py", "raytrace/flux.py",
     "raytrace/yearly.py", "scene.py",
     "io/checkpoint.py", "io/deflectometry.py", "io/hdf5.py", "io/images.py", "io/report.py",
-    "plots.py", "api.py",
+    "plots.py",
+    "surfaces/__init__.py", "surfaces/acceptance.py", "surfaces/baselines.py", "surfaces/deflectometry.py",
+    "surfaces/edges.py", "surfaces/fit.py", "surfaces/generalise.py", "surfaces/imaging.py",
+    "surfaces/insilico.py", "surfaces/learning.py", "surfaces/losses.py", "surfaces/mismatch.py",
+    "surfaces/nuisance.py", "surfaces/observations.py", "surfaces/plantprior.py", "surfaces/plots.py",
+    "surfaces/predict.py", "surfaces/state.py", "validate.py",
+    "api.py", "progress.py", "examples/__init__.py",
 )
 
 

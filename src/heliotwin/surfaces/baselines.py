@@ -59,8 +59,9 @@ class FluxPredictor:
 def fourier_encoding(coords: torch.Tensor, frequencies: int) -> torch.Tensor:
     """NeRF positional encoding ``γ(p) = (p, sin(2^k π p), cos(2^k π p))_{k<L}``, ``[.., 2] -> [.., 2 + 4L]``.
 
-    ``coords`` are pixel centres in ``[-1, 1]`` (so the highest frequency has a period of ``2^(1-L)`` of the
-    half-width: 4 pixels for L = 6 on 64 pixels).
+    ``coords`` are pixel centres in ``[-1, 1]`` (so the highest band, ``k = L - 1``, has a period of
+    ``2^(2-L)`` in ``p``, i.e. ``2^(1-L)`` of the image's side: 2 pixels, the Nyquist limit, for L = 6 on 64
+    pixels).
     """
     out = [coords]
     for k in range(frequencies):  # L (<= ~10) bands, each batched over every pixel

@@ -186,7 +186,9 @@ def blur_for(train_targets: list, train_sigma: torch.Tensor, targets: list) -> t
 
 
 def render(surf, obs: Observations, sun: SunSettings, s: SurfaceSettings, kernels=None):
-    """Model images ``[B, R, R]`` of ``surf`` for ``obs`` (conv integrator) and the miss penalty (scalar)."""
+    """Model images ``[B, R, R]`` [W/m^2] of ``surf`` for ``obs`` (conv integrator, ``s``'s window and samples) and
+    the miss penalty [m^2] (scalar); ``kernels``: the footprint-kernel cache of
+    :func:`~heliotwin.surfaces.imaging.predict_images`."""
     pred, _, miss = predict_images(surf, obs, sun, samples=s.samples, resolution=s.resolution, size_m=s.size_m,
                                    kernels=kernels)
     return pred, miss

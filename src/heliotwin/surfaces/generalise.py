@@ -144,6 +144,11 @@ def loo_select(facets, train, camera, sigma0, sun, start, s, progress=False, pri
     With a ``prior`` the prior-penalty weight (``prior_grid``, which should include 0) is chosen jointly:
     the (slope weight, prior weight, step count) with the lowest mean held-out L1; ties go to the earlier
     grid entry (0 first: a prior that does not help on held-out images is not used).
+
+    ``train``: the B training images; ``camera`` their camera model; ``sigma0`` ``[B]`` [px] their starting
+    blurs; ``start`` the starting net ``[1, F, nu, nv, 3]`` [m] (None: flat canted facets); ``sun`` the
+    chosen optics. Returns the chosen ``slope_weight`` (and ``prior_weight``), ``steps``, the B held-out
+    L1s [1] under that choice, their robust z-scores, the indices to ``drop`` and the whole ``table``.
     """
     n = len(train)
     curves: dict = {}

@@ -168,13 +168,14 @@ class SurfacePrior(GaussianPrior):
         return int(self.mean.shape[0])
 
     def mahalanobis2(self, coefficients: torch.Tensor) -> torch.Tensor:
-        """Mean squared whitened residual of coefficients ``[F, K]`` (scalar; 1 = one sigma everywhere)."""
+        """Mean squared whitened residual of coefficients ``[F, K]`` [rad] (scalar [1]; 1 = one sigma everywhere)."""
         r = (coefficients - self.mean.to(coefficients)).reshape(-1)
         z = self.whitening().to(r) @ r
         return z.pow(2).mean()
 
     def start(self, facets: Facets, num_control_points, degree) -> torch.Tensor:
-        """Control net ``[1, F, nu, nv, 3]`` of the mean shape (the fit's start candidate)."""
+        """Control net ``[1, F, nu, nv, 3]`` [m] of the mean shape on ``facets`` (``[1, F, 3]``), the fit's start
+        candidate, with ``num_control_points`` (nu, nv) and NURBS ``degree`` (p, q)."""
         check_facets(self, facets)
         return low_order_start(facets, self.mean, num_control_points, degree)
 
@@ -207,14 +208,16 @@ def prior_penalty(prior: SurfacePrior, surf: Surfaces, facets: Facets, samples=S
     ----------
     prior : SurfacePrior
     surf : Surfaces
-        One heliostat, ``control_points`` [1, F, nu, nv, 3].
+        One heliostat, ``control_points`` [1, F, nu, nv, 3] [m].
     facets : Facets
-        ``[1, F, 3]``.
+        ``[1, F, 3]`` placement [m].
+    samples : (int, int)
+        Normal-height samples per facet side.
 
     Returns
     -------
     torch.Tensor, scalar
-        Differentiable in ``surf.control_points`` (and weights).
+        [1]; differentiable in ``surf.control_points`` (and weights).
     """
     c = low_order_coefficients(facets, surf.control_points, (surf.degree_u, surf.degree_v), samples, surf.weights)
     return prior.mahalanobis2(c)

@@ -86,9 +86,11 @@ def yearly_flux(kinematics: Kinematics, target: PlanarTarget, site: tuple, learn
         One heliostat.
     target : PlanarTarget
     site : (lat_deg, lon_deg, alt_m)
+        Latitude and longitude [deg], altitude [m].
     learned, ideal : Surfaces
-        ``[1, F, nu, nv, 3]``.
+        Control points ``[1, F, nu, nv, 3]`` [m], heliostat frame.
     sun : SunSettings
+        Sunshape, slope error, DNI and reflectivity (the flux scales with DNI x reflectivity).
     when : YearSampling
         Year, time step and lowest sun.
     imaging : CenteredImaging
@@ -98,9 +100,10 @@ def yearly_flux(kinematics: Kinematics, target: PlanarTarget, site: tuple, learn
 
     Returns
     -------
-    dict of lists (length T): ``time`` (ISO UTC), ``sun_azimuth_deg``, ``sun_elevation_deg``,
-    ``l1_ideal_vs_learned``, ``peak_learned_w_m2``, ``peak_ideal_w_m2``, ``power_w`` and, with ``truth``,
-    ``l1_ideal``, ``l1_learned``, ``imp``.
+    dict of lists (length T): ``time`` (ISO [UTC]), ``sun_azimuth_deg`` [deg] (PAINT convention: 0 = south,
+    +90 = east), ``sun_elevation_deg`` [deg], ``l1_ideal_vs_learned`` [1] (of unit-sum images),
+    ``peak_learned_w_m2``, ``peak_ideal_w_m2`` [W/m^2], ``power_w`` [W] (learned surface, inside the window)
+    and, with ``truth``, ``l1_ideal``, ``l1_learned``, ``imp`` [1].
     """
     times, az, el = daylight_times(when.year, when.every, site[0], site[1], site[2],
                                    min_elevation_deg=when.min_elevation_deg)

@@ -101,8 +101,9 @@ def learned_surface(scenario, heliostat_id: str) -> dict:
     Returns
     -------
     dict
-        ``surfaces`` and ``ideal`` (:class:`Surfaces`, 1 heliostat), ``optics`` (:class:`SunSettings`),
-        ``target`` (name), ``train_records`` (list of int), ``settings`` (dict).
+        ``surfaces`` and ``ideal`` (:class:`Surfaces`, 1 heliostat: control points ``[1, F, nu, nv, 3]`` [m],
+        heliostat frame), ``facets`` (:class:`~heliotwin.field.plant.Facets`, ``[1, F, 3]`` [m]), ``optics``
+        (:class:`SunSettings`), ``target`` (name), ``train_records`` (list of int), ``settings`` (dict).
     """
     plant: Plant = scenario.plant
     entries = scenario.learned.get(KEY) or {}
