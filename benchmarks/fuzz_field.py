@@ -35,12 +35,13 @@ import json
 import math
 import os
 import random
+import resource
+import select
 import shutil
 import signal
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -95,8 +96,10 @@ SPECIAL_TOMLS = {
 }
 
 
-class Hang(BaseException):
-    """A run that did not end within its time (raised by the alarm; passes through the CLI's safety net)."""
+#: What one in-process case may take beyond what is loaded: address space, and bytes per file written.
+MEMORY_BYTES = 6 * 2**30
+CAMPAIGN_PID = os.getpid()
+FILE_BYTES = 512 * 2**20
 
 
 # ------------------------------------------------------------------------------------------------ helpers
@@ -132,56 +135,70 @@ def layout_text(xyz, ids=None) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run_inprocess(argv, timeout: float = 60.0, fifo: Path | None = None) -> tuple:
-    """(exit status or 'hang'/'traceback', stdout, stderr) of ``heliotwin argv`` in this process."""
-    from heliotwin.cli import main
-
-    out, err = io.StringIO(), io.StringIO()
-    fired = threading.Event()
-    done = threading.Event()
-
-    def alarm(signum, frame):
-        raise Hang()
-
-    def unblock():  # a reader blocked on a FIFO's open() gets a writer (and garbage), then an end of file
-        if done.wait(timeout / 2):
-            return
-        fired.set()
-        while not done.is_set():
-            try:
-                fd = os.open(fifo, os.O_WRONLY | os.O_NONBLOCK)
-            except OSError:
-                time.sleep(0.05)
-                continue
-            with contextlib.suppress(OSError):
-                os.write(fd, b"garbage\n")
-            os.close(fd)
-            time.sleep(0.05)
-
-    helper = threading.Thread(target=unblock, daemon=True) if fifo is not None else None
-    old = signal.signal(signal.SIGALRM, alarm)
-    signal.alarm(int(timeout))
-    if helper:
-        helper.start()
+def _vm_bytes() -> int:
     try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            code = main([str(a) for a in argv])
-    except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else 2
-    except Hang:
-        code = "hang"
-    except BaseException as exc:  # noqa: BLE001 -- what escaped the command line's safety net
-        code = "traceback"
-        err.write(f"Traceback (escaped): {type(exc).__name__}: {exc}\n")
-    finally:
-        signal.alarm(0)
-        signal.signal(signal.SIGALRM, old)
-        done.set()
-        if helper:
-            helper.join()
-    if fired.is_set() and code != "hang":
-        code = "hang"
-    return code, out.getvalue(), err.getvalue()
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmSize:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
+def run_inprocess(argv, timeout: float = 60.0, fifo: Path | None = None) -> tuple:
+    """(exit status or 'hang'/'traceback', stdout, stderr) of ``heliotwin argv`` in a forked copy of this process.
+
+    The fork has torch imported already (cheap to start), its own memory (a run that exhausts it cannot take
+    the campaign along), at most :data:`MEMORY_BYTES` more address space and :data:`FILE_BYTES` per file
+    written, and is killed when it does not end within ``timeout`` s (a hang).
+    """
+    read_end, write_end = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: run, report, exit without running the parent's cleanups
+        os.close(read_end)
+        code, out, err = "traceback", io.StringIO(), io.StringIO()
+        try:
+            resource.setrlimit(resource.RLIMIT_AS, (_vm_bytes() + MEMORY_BYTES,) * 2)
+            resource.setrlimit(resource.RLIMIT_FSIZE, (FILE_BYTES,) * 2)
+            signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG instead
+            from heliotwin.cli import main
+
+            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+                code = main([str(a) for a in argv])
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else 2
+        except BaseException as exc:  # noqa: BLE001 -- what escaped the command line's safety net
+            err.write(f"Traceback (escaped): {type(exc).__name__}: {' '.join(str(exc).split())}\n")
+        with contextlib.suppress(BaseException):
+            data = json.dumps([code, out.getvalue()[-20000:], err.getvalue()[-20000:]]).encode()
+            with os.fdopen(write_end, "wb") as fh:
+                fh.write(data)
+        os._exit(0)
+    os.close(write_end)
+    chunks, deadline = [], time.monotonic() + timeout
+    with os.fdopen(read_end, "rb") as fh:
+        os.set_blocking(fh.fileno(), False)
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                break
+            ready, _, _ = select.select([fh], [], [], min(left, 1.0))
+            if ready:
+                block = fh.read()
+                if not block:
+                    break
+                chunks.append(block)
+    if time.monotonic() >= deadline:
+        with contextlib.suppress(OSError):
+            os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+        return "hang", "", ""
+    _, status = os.waitpid(pid, 0)
+    try:
+        code, out, err = json.loads(b"".join(chunks).decode())
+    except ValueError:
+        return "traceback", "", f"Traceback: the run died ({os.waitstatus_to_exitcode(status)})"
+    return code, out, err
 
 
 def run_subprocess(argv, cwd: Path, timeout: float = 300.0) -> tuple:
@@ -267,8 +284,12 @@ class Campaign:
         if subprocess_:
             code, out, err = run_subprocess(argv, d, timeout)
         else:
-            with contextlib.chdir(d) if hasattr(contextlib, "chdir") else _chdir(d):
+            with _chdir(d):
                 code, out, err = run_inprocess(argv, timeout, fifo=d / fifo if fifo else None)
+        if os.getpid() != CAMPAIGN_PID:  # a forked case that came back here must not run the campaign twice
+            os._exit(70)
+        if self.n % 100 == 0:
+            print(f"  {self.n} cases", flush=True)
         self.judge(name, argv, code, out, err, d, before, outs, efiles, time.perf_counter() - t0)
         if followup and code == 0:
             followup(d)

@@ -678,8 +678,9 @@ def _validate_plant(plant: Plant, path, *, writing: bool = False) -> None:
             c.tensor(f"/targets/{key}/{name}", getattr(t, name), (3,), finite=True)
             if name != "center" and float(torch.linalg.vector_norm(getattr(t, name).to(torch.float64))) < 1e-9:
                 c.fail(f"/targets/{key}/{name}", "expected a non-zero direction")
+        stored = {f.name for f in dataclasses.fields(t)} if dataclasses.is_dataclass(t) else set()
         for name in ("width", "height", "radius", "opening_angle"):
-            v = getattr(t, name, None)
+            v = getattr(t, name, None) if name in stored else None
             hi = 2 * math.pi + 1e-9 if name == "opening_angle" else 1e4
             if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= hi):
                 c.fail(f"/targets/{key}@{name}", f"expected a finite value in (0, {hi:g}], got {v!r}")
