@@ -286,8 +286,8 @@ def field_year(scenario, year: int, every: str = "1h", *, azimuth_step_deg: floa
     if step > pd.Timedelta("366D"):
         raise HeliotwinError(f"--every {_text(step)}: longer than the year")
     if step % pd.Timedelta("1D") == pd.Timedelta(0):
-        raise HeliotwinError(f"--every {_text(step)}: a whole number of days puts every instant at the same time of day "
-                             "(e.g. all at night); use hours or minutes (1h, 30min, 25h)")
+        raise HeliotwinError(f"--every {_text(step)}: a whole number of days puts every instant at the same time "
+                             "of day (e.g. all at night); use hours or minutes (1h, 30min, 25h)")
     atm = Atmosphere.from_extras(scenario.extras)
     step = float(azimuth_step_deg)
     if not 0 < step <= 180:
