@@ -19,7 +19,7 @@ import time
 
 from ..errors import HeliotwinError
 from ..io.report import atomic_path, output_set, write_json
-from .common import EXIT_NOT_MET, float_range, frequency, int_range, positive_int, seed_int
+from .common import EXIT_NOT_MET, float_range, int_range, positive_int, seed_int
 
 
 # ---------------------------------------------------------------------------------- scenario from-layout
@@ -218,7 +218,7 @@ def register(sub) -> None:
     when.add_argument("--year", type=_YEAR, help="efficiency table over sun positions and the annual optical energy "
                                                "under pvlib's clear-sky DNI (equator aiming)")
     p.add_argument("--sun-elevation", type=_ELEVATION, help="[deg] (with --sun-azimuth)")
-    p.add_argument("--every", type=frequency, default="1h", help="with --year: time step, 1min..31d, not a whole "
+    p.add_argument("--every", default="1h", help="with --year: time step, 1min..366d, not a whole "
                    "number of days (every instant would fall at the same time of day; default: %(default)s)")
     p.add_argument("--table-azimuth-step", type=_AZIMUTH_STEP, default=15.0,
                    help="with --year: azimuth step [deg] of the efficiency table (default: %(default)s)")
@@ -256,7 +256,7 @@ def register(sub) -> None:
     when.add_argument("--sun-azimuth", type=_AZIMUTH, help="[deg], PAINT convention (0 = south, +90 = east)")
     when.add_argument("--time", help="UTC time(s), ISO, comma-separated for several instants")
     when.add_argument("--day", help="UTC date: every --every over the day with the sun above 10 deg")
-    p.add_argument("--every", type=frequency, default="1h", help="with --day: time step, 1min..1d (default: "
+    p.add_argument("--every", default="1h", help="with --day: time step, 1min..1d (default: "
                                                                    "%(default)s)")
     p.add_argument("--sun-elevation", type=_ELEVATION, help="[deg] (with --sun-azimuth)")
     p.add_argument("--peak-limit", type=_PEAK_LIMIT, required=True, help="[W/m2] on every map cell; exit status 3 "

@@ -128,8 +128,8 @@ def _step(every: str, flag: str = "--every") -> pd.Timedelta:
         step = pd.Timedelta(every)
     except (ValueError, TypeError, OverflowError):
         raise HeliotwinError(f"{flag}: cannot parse {every!r} (e.g. 1h, 30min)") from None
-    if step.total_seconds() <= 0:
-        raise HeliotwinError(f"{flag}: expected a positive time step, got {every!r}")
+    if step < pd.Timedelta("1min"):
+        raise HeliotwinError(f"{flag}: expected a time step of at least 1min, got {every!r}")
     return step
 
 
