@@ -21,6 +21,7 @@ import contextlib
 import ctypes
 import ctypes.util
 import os
+import shutil
 import signal
 import tempfile
 import threading
@@ -103,19 +104,25 @@ def _trace_shard(job: dict, group) -> FieldResult:
         return field_optics_sharded(job["plant"], job["sun"], group=group, **job["kwargs"])
 
 
-def _die_with_parent(parent: int) -> None:
+def _die_with_parent(parent: int, folder: str) -> None:
     """End this worker when the parent goes away (killed, or exiting without ending it): the kernel's
-    parent-death signal on Linux, and a watchdog thread everywhere (the parent id changes when it dies)."""
+    parent-death signal on Linux, and a watchdog thread everywhere (the parent id changes when it dies). A
+    worker that finds its parent gone also removes the shared folder, which a killed parent could not."""
     with contextlib.suppress(Exception):
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
         libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    if os.getppid() != parent:  # the parent already died between spawn and here
+
+    def orphaned() -> None:
+        shutil.rmtree(folder, ignore_errors=True)
         os._exit(1)
+
+    if os.getppid() != parent:  # the parent died while this worker was starting
+        orphaned()
 
     def watch() -> None:
         while os.getppid() == parent:
             time.sleep(0.5)
-        os._exit(1)
+        orphaned()
 
     threading.Thread(target=watch, daemon=True).start()
 
@@ -123,7 +130,7 @@ def _die_with_parent(parent: int) -> None:
 def _run_rank(rank: int, work, world: int, folder: str, threads: int, parent: int) -> None:
     # Ctrl-C reaches the whole process group: the parent alone decides, and ends the workers itself.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _die_with_parent(parent)
+    _die_with_parent(parent, folder)
     torch.set_num_threads(threads)
     try:
         init_process_group("gloo", init_method=f"file://{folder}/store", rank=rank, world_size=world)
