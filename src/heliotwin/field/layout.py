@@ -68,8 +68,8 @@ CANTINGS = ("flat", "on-axis")
 _REQUIRED = object()
 _ALIASES = {"x": ("x", "x_location"), "y": ("y", "y_location"), "z": ("z", "z_location"), "id": ("id",)}
 #: Physical bounds of a plant description: beyond them a value is a typo or a unit mistake.
-MAX_MIRROR_M = 50.0  # heliostat width/height [m] (the largest built are about 12 m)
-MAX_RECEIVER_M = 1000.0  # receiver radius/width/height [m]
+MIN_MIRROR_M, MAX_MIRROR_M = 0.05, 50.0  # heliostat width/height [m] (the largest built are about 12 m)
+MIN_RECEIVER_M, MAX_RECEIVER_M = 0.1, 1000.0  # receiver radius/width/height [m]
 MAX_DISTANCE_M = 20_000.0  # heliostats and receiver from the tower base [m] (the attenuation model holds to a few km)
 MAX_FACETS_PER_SIDE = 64
 
@@ -373,8 +373,8 @@ def read_plant_config(path) -> PlantConfig:
     t.done()
 
     t = _Table(path, "heliostat", doc.get("heliostat", {}))
-    width = t.number("width", lo=0, lo_open=True, hi=MAX_MIRROR_M)
-    height = t.number("height", lo=0, lo_open=True, hi=MAX_MIRROR_M)
+    width = t.number("width", lo=MIN_MIRROR_M, hi=MAX_MIRROR_M)
+    height = t.number("height", lo=MIN_MIRROR_M, hi=MAX_MIRROR_M)
     facets = t.vector("facets", 2, [1, 1], integer=True)
     if min(facets) < 1 or max(facets) > MAX_FACETS_PER_SIDE:
         t.fail("facets", f"expected two integers in 1..{MAX_FACETS_PER_SIDE}, got {facets}")
@@ -407,7 +407,7 @@ def read_plant_config(path) -> PlantConfig:
 
 def _receiver_config(t: _Table) -> dict:
     kind = t.choice("type", RECEIVER_TYPES)
-    out = {"type": kind, "center": t.vector("center", 3), "height": t.number("height", lo=0, lo_open=True,
+    out = {"type": kind, "center": t.vector("center", 3), "height": t.number("height", lo=MIN_RECEIVER_M,
                                                                               hi=MAX_RECEIVER_M)}
     if max(abs(c) for c in out["center"]) > MAX_DISTANCE_M:
         t.fail("center", f"expected a point within {MAX_DISTANCE_M:g} m of the tower base, got {out['center']}")
@@ -419,12 +419,12 @@ def _receiver_config(t: _Table) -> dict:
         t.fail("normal", "expected a non-zero vector")
     out["normal"] = normal
     if kind == "cylinder":
-        out["radius"] = t.number("radius", lo=0, lo_open=True, hi=MAX_RECEIVER_M)
-        out["opening_angle"] = math.radians(t.number("opening_angle_deg", 360.0, lo=0, lo_open=True, hi=360))
+        out["radius"] = t.number("radius", lo=MIN_RECEIVER_M, hi=MAX_RECEIVER_M)
+        out["opening_angle"] = math.radians(t.number("opening_angle_deg", 360.0, lo=1, hi=360))
         if normal is not None and abs(normal[2]) > 1e-9 * math.hypot(*normal):
             t.fail("normal", "a cylinder's aperture normal must be horizontal (the axis is vertical)")
     else:
-        out["width"] = t.number("width", lo=0, lo_open=True, hi=MAX_RECEIVER_M)
+        out["width"] = t.number("width", lo=MIN_RECEIVER_M, hi=MAX_RECEIVER_M)
         if normal is None:
             t.fail("normal", "missing (planar receivers need their normal, towards the field)")
     t.done()

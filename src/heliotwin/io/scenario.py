@@ -78,7 +78,7 @@ import torch
 from .. import __version__
 from ..atmosphere import ATMOSPHERE_MODELS, Atmosphere
 from ..errors import HeliotwinError, InputFileError, ScenarioVersionError
-from ..field.layout import check_attenuation, require_regular_file
+from ..field.layout import MAX_DISTANCE_M, MAX_MIRROR_M, MIN_MIRROR_M, check_attenuation, require_regular_file
 from ..field.plant import Facets, Field, Kinematics, Plant, SunSettings, Surfaces
 from ..field.targets import CylinderTarget, PlanarTarget
 from ..field.update import select_heliostats
@@ -482,7 +482,10 @@ def _read_dataclass(r: _Reader, group: h5py.Group, cls, optional=()):
 
 
 def _read_metadata(r: _Reader, group: h5py.Group) -> dict:
-    json_keys = set(json.loads(r.attr(group, "_json_keys", str))) if "_json_keys" in group.attrs else set()
+    try:
+        json_keys = set(json.loads(r.attr(group, "_json_keys", str))) if "_json_keys" in group.attrs else set()
+    except (TypeError, ValueError):
+        r.fail("/metadata@_json_keys", "expected a JSON list of attribute names")
     out = {}
     for key, value in group.attrs.items():
         if key == "_json_keys":
@@ -676,8 +679,11 @@ def _validate_plant(plant: Plant, path, *, writing: bool = False) -> None:
     for key, t in plant.targets.items():
         for name in ("center", "normal", "right", "up"):
             c.tensor(f"/targets/{key}/{name}", getattr(t, name), (3,), finite=True)
-            if name != "center" and float(torch.linalg.vector_norm(getattr(t, name).to(torch.float64))) < 1e-9:
-                c.fail(f"/targets/{key}/{name}", "expected a non-zero direction")
+            norm = float(torch.linalg.vector_norm(getattr(t, name).to(torch.float64)))
+            if name != "center" and abs(norm - 1.0) > 1e-6:
+                c.fail(f"/targets/{key}/{name}", f"expected a unit vector, got length {norm:.6g}")
+            if name == "center" and norm > MAX_DISTANCE_M:
+                c.fail(f"/targets/{key}/{name}", f"expected a point within {MAX_DISTANCE_M:g} m, got {norm:.3g} m away")
         stored = {f.name for f in dataclasses.fields(t)} if dataclasses.is_dataclass(t) else set()
         for name in ("width", "height", "radius", "opening_angle"):
             v = getattr(t, name, None) if name in stored else None
@@ -693,8 +699,9 @@ def _validate_plant(plant: Plant, path, *, writing: bool = False) -> None:
     h = len(fl.ids)
     c.tensor("/field/width", fl.width, (h,), finite=True)
     c.tensor("/field/height", fl.height, (h,), finite=True)
-    if h and not bool(((fl.width > 0) & (fl.height > 0)).all()):
-        c.fail("/field/width", "expected positive mirror widths and heights [m]")
+    for name, t in (("width", fl.width), ("height", fl.height)):
+        if h and not bool(((t >= MIN_MIRROR_M) & (t <= MAX_MIRROR_M)).all()):
+            c.fail(f"/field/{name}", f"expected mirror sizes in [{MIN_MIRROR_M:g}, {MAX_MIRROR_M:g}] m")
     if len(fl.renovation) not in (0, h) or not all(isinstance(x, str) for x in fl.renovation):
         c.fail("/field/renovation", f"expected 0 or {h} strings, got {len(fl.renovation)} entries")
     _validate_kinematics(c, fl.kinematics, h)
@@ -805,6 +812,19 @@ def _validate_mirrors(c: _PlantCheck, fl: Field, h: int) -> None:
             c.fail(f"/field/surfaces@{name}", f"expected an int in [1, {n - 1}] for {n} control points, got {d!r}")
     if sf.weights is not None:
         c.tensor("/field/surfaces/weights", sf.weights, tuple(cp[:-1]), finite=True)
+        if sf.weights.numel() and not bool((sf.weights > 0).all()):
+            c.fail("/field/surfaces/weights", "expected positive NURBS weights")
+    # Each facet's control net spans a real surface: not collapsed to a point, not larger than a mirror.
+    if sf.control_points.numel():
+        net = sf.control_points.detach().to(torch.float64).flatten(2, 3)  # [H, F, nu*nv, 3]
+        extent = (net.amax(2) - net.amin(2))[..., :2].amax(-1)  # [H, F] largest in-plane side [m]
+        if not bool(((extent > 1e-4) & (extent <= 2 * MAX_MIRROR_M)).all()):
+            c.fail("/field/surfaces/control_points", "expected every facet's control net to span between 0.1 mm "
+                   f"and {2 * MAX_MIRROR_M:g} m in its plane")
+    for name in ("translation", "canting_e", "canting_n"):
+        t = getattr(fac, name)
+        if t.numel() and float(t.abs().max()) > MAX_MIRROR_M:
+            c.fail(f"/field/facets/{name}", f"expected facet offsets within {MAX_MIRROR_M:g} m of the pivot")
 
 
 # ======================================================================================= from PAINT
