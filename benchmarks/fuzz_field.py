@@ -689,7 +689,11 @@ def sigterm_case(c: Campaign, base, name, argv, outs):
         out, err = proc.communicate()
         code = "hang"
     seconds = time.time() - t0
-    alive = [w for w in workers if os.path.exists(f"/proc/{w}") and _not_zombie(w)]
+    deadline = time.time() + 5.0  # the workers end with the command, within 5 s
+    while time.time() < deadline and any(_not_zombie(w) for w in workers):
+        time.sleep(0.1)
+    alive = [w for w in workers if _not_zombie(w)]
+    print(f"  {name}: exit {code} {seconds:.1f} s after SIGTERM; workers alive 5 s later: {len(alive)}", flush=True)
     if code != "hang" and (seconds > 5.0 or alive):
         err += f"\n(ended after {seconds:.1f} s; workers alive: {alive})"
         code = "hang"
