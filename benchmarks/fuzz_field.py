@@ -686,6 +686,9 @@ def sigterm_case(c: Campaign, base, name, argv, outs):
         code = proc.returncode
     except subprocess.TimeoutExpired:
         proc.kill()
+        for w in workers:  # orphaned workers hold the command's pipes open
+            with contextlib.suppress(OSError):
+                os.kill(w, signal.SIGKILL)
         out, err = proc.communicate()
         code = "hang"
     seconds = time.time() - t0
