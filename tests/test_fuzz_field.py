@@ -479,3 +479,26 @@ def test_a_worker_error_is_one_line_and_leaves_no_error_file():
         run_spawned(_raise_input_error, {"n": 0}, 1)
     assert str(info.value) == "rank 0: a bad value"
     assert set(glob.glob(os.path.join(tempfile.gettempdir(), "pytorch-errorfile-*"))) <= before
+
+
+# ------------------------------------------------------------------------------------------------ README
+def test_every_command_example_in_the_readme_parses():
+    """A README example the parser refuses (the ``aim --time`` one once lacked ``--aim``) is a broken promise.
+
+    Optional parts (``[--nproc 2]``) are left out; the values are only parsed, nothing runs."""
+    import re
+    import shlex
+
+    from heliotwin.cli import _join_signed_values, build_parser
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
+    commands = [line.split(" #")[0].strip()
+                for block in re.findall(r"^```[a-z]*\n(.*?)^```", readme, re.S | re.M)
+                for line in block.replace("\\\n", " ").splitlines() if line.strip().startswith("heliotwin ")]
+    assert len(commands) >= 20 and any(c.startswith("heliotwin aim ") and "--time" in c for c in commands)
+    for command in commands:
+        argv = shlex.split(re.sub(r"\[[^\]]*\]", "", command))[1:]
+        try:
+            build_parser().parse_args(_join_signed_values(argv))
+        except SystemExit:
+            pytest.fail(f"README example refused: {command}")
