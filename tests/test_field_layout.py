@@ -102,7 +102,7 @@ BAD_TOML = [
     ('type = "cylinder"', "type = 'tower'", "receiver.type", "unknown value 'tower'"),
     ("[receiver]", "[receiver", None, "malformed TOML"),
     ("reflectivity = 0.9", "reflectivity = 0.9\nreflectivty = 0.8", "heliostat.reflectivty", "unknown key"),
-    ("width = 3.22", "width = -3.22", "heliostat.width", "expected a value > 0"),
+    ("width = 3.22", "width = -3.22", "heliostat.width", "expected a value >= 0.05"),
     ('shape = "limb-darkened"', "shape = 'square'", "sun.shape", "unknown value"),
     ("coefficients = [0.006789", "coefficients = ['a', 0.006789", "atmosphere.coefficients", "expected a list"),
     ("radius = 4.1\n", "", "receiver.radius", "missing"),

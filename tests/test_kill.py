@@ -95,3 +95,65 @@ def test_signal_during_demo_leaves_no_output_folder(tmp_path, sig, code):
     assert proc.returncode == code, err
     assert len(err.strip().splitlines()) == 1
     assert list(tmp_path.iterdir()) == []
+
+
+def _children(pid: int) -> list[int]:
+    """Live (non-zombie) processes whose parent is ``pid``, from /proc."""
+    out = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid and fields[0] != "Z":
+            out.append(int(entry.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return (Path("/proc") / str(pid) / "stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+# Slow (a scenario of 1200 heliostats, then a command that spawns two torch processes: about a minute on the
+# busy 2-core machine). The signal waits for a deterministic event: the workers' process-group store exists.
+@pytest.mark.slow
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads the process tree from /proc")
+@pytest.mark.parametrize("command", ["field", "aimpoints"])
+def test_sigterm_with_nproc_ends_the_workers_with_the_command(tmp_path, command):
+    """SIGTERM while two ranks work: exit 143 with one line, the workers gone within 5 s of the command's end,
+    their folder removed, no output."""
+    from helpers.field import dense_field, write_layout, write_plant_toml
+
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    write_layout(tmp_path, dense_field(30, 40) if command == "field" else dense_field(2, 3))
+    write_plant_toml(tmp_path)
+    env = dict(_env(), TMPDIR=str(temp))
+    subprocess.run([sys.executable, "-m", "heliotwin", "scenario", "from-layout", str(tmp_path / "layout.csv"),
+                    "--config", str(tmp_path / "plant.toml"), "-o", str(tmp_path / "p.h5"), "--quiet"], env=env,
+                   check=True)
+    sun = ["--sun-azimuth", "10", "--sun-elevation", "40", "--nproc", "2", "--resolution", "8x4", "--quiet"]
+    argv = (["field", "--integrator", "mc", "--json", "f.json"] if command == "field" else
+            ["aimpoints", "--peak-limit", "1e6", "--iterations", "1000000", "--no-baselines", "-o", "o.h5",
+             "--json", "o.json"])
+    before = sorted(p.name for p in tmp_path.iterdir())
+    proc = subprocess.Popen([sys.executable, "-m", "heliotwin", *argv, "--scenario", "p.h5", *sun], cwd=tmp_path,
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _wait_for(lambda: any(temp.glob("heliotwin-ranks-*/store")), proc, timeout=300)
+    time.sleep(1.0)
+    workers = [w for c in _children(proc.pid) for w in [c, *_children(c)]]
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err
+    assert err.strip() == "heliotwin: terminated; nothing was written"
+    deadline = time.monotonic() + 5.0
+    while any(_alive(w) for w in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not [w for w in workers if _alive(w)]
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+    assert not list(temp.glob("heliotwin-ranks-*")) and not list(temp.glob("pytorch-errorfile-*"))

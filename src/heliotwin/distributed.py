@@ -17,13 +17,22 @@ one-process map up to float rounding.
 """
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import ctypes.util
+import os
+import shutil
+import signal
 import tempfile
+import threading
+import time
 
 import torch
 import torch._dynamo  # noqa: F401  (imported for its side effect: see init_process_group)
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
+from .errors import HeliotwinError
 from .raytrace.field import FieldResult, field_optics
 
 __all__ = ["init_process_group", "shard", "gather_rows", "field_optics_sharded", "run_spawned", "run_sharded"]
@@ -95,22 +104,90 @@ def _trace_shard(job: dict, group) -> FieldResult:
         return field_optics_sharded(job["plant"], job["sun"], group=group, **job["kwargs"])
 
 
-def _run_rank(rank: int, work, world: int, folder: str, threads: int) -> None:
+def _die_with_parent(parent: int, folder: str) -> None:
+    """End this worker when the parent goes away (killed, or exiting without ending it): the kernel's
+    parent-death signal on Linux, and a watchdog thread everywhere (the parent id changes when it dies). A
+    worker that finds its parent gone also removes the shared folder, which a killed parent could not."""
+    with contextlib.suppress(Exception):
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+
+    def orphaned() -> None:
+        shutil.rmtree(folder, ignore_errors=True)
+        os._exit(1)
+
+    if os.getppid() != parent:  # the parent died while this worker was starting
+        orphaned()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        orphaned()
+
+    threading.Thread(target=watch, daemon=True).start()
+
+
+def _run_rank(rank: int, work, world: int, folder: str, threads: int, parent: int) -> None:
+    # Ctrl-C reaches the whole process group: the parent alone decides, and ends the workers itself.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _die_with_parent(parent, folder)
     torch.set_num_threads(threads)
-    init_process_group("gloo", init_method=f"file://{folder}/store", rank=rank, world_size=world)
     try:
-        job = torch.load(f"{folder}/job.pt", weights_only=False)
-        result = work(job, dist.group.WORLD)
-        if rank == 0:
-            torch.save(result, f"{folder}/result.pt")
-    finally:
-        dist.destroy_process_group()
+        init_process_group("gloo", init_method=f"file://{folder}/store", rank=rank, world_size=world)
+        try:
+            job = torch.load(f"{folder}/job.pt", weights_only=False)  # written by the parent just now
+            result = work(job, dist.group.WORLD)
+            if rank == 0:
+                torch.save(result, f"{folder}/result.pt")
+        finally:
+            dist.destroy_process_group()
+    except BaseException as exc:  # noqa: BLE001 -- reported to the parent as one line, never as a traceback
+        kind = "input" if isinstance(exc, HeliotwinError) else "internal"
+        text = " ".join(str(exc).split()) or type(exc).__name__
+        with open(f"{folder}/error-{rank}.txt", "w", encoding="utf-8") as fh:
+            fh.write(f"{kind}\t{type(exc).__name__}\t{text}")
+        os._exit(1)
+
+
+def _worker_error(folder: str, world: int, processes) -> BaseException | None:
+    """The first worker's error (as the exception to raise in the parent), or None when all ended well."""
+    for rank in range(world):
+        path = os.path.join(folder, f"error-{rank}.txt")
+        if os.path.exists(path):
+            with open(path, encoding="utf-8") as fh:
+                kind, name, text = (fh.read().split("\t", 2) + ["", ""])[:3]
+            if kind == "input":
+                return HeliotwinError(text)
+            return RuntimeError(f"worker {rank}: {name}: {text}")
+    for rank, p in enumerate(processes):
+        if p.exitcode:
+            how = f"signal {-p.exitcode}" if p.exitcode < 0 else f"exit status {p.exitcode}"
+            return RuntimeError(f"worker {rank} ended with {how}")
+    return None
+
+
+def _end(processes, grace: float = 2.0) -> None:
+    """Terminate the workers still running (SIGTERM, then SIGKILL after ``grace`` s) and reap them all."""
+    for p in processes:
+        if p.is_alive():
+            p.terminate()
+    deadline = time.monotonic() + grace
+    for p in processes:
+        p.join(max(0.0, deadline - time.monotonic()))
+    for p in processes:
+        if p.is_alive():
+            p.kill()
+            p.join()
 
 
 def run_spawned(work, job: dict, nproc: int):
     """Run ``work(job, group)`` on ``nproc`` spawned local gloo processes; rank 0's return value.
 
-    The machine's threads are split evenly over the processes (at least one each).
+    The machine's threads are split evenly over the processes (at least one each). The workers end with the
+    parent: an error in one ends the others (raised here as one line: a
+    :class:`~heliotwin.errors.HeliotwinError` as itself, anything else as ``RuntimeError``), Ctrl-C or
+    SIGTERM in the parent ends them before the exception goes on, and a parent killed outright takes them
+    along (parent-death signal, and a watchdog). Their shared folder is removed only once all have ended.
 
     Parameters
     ----------
@@ -121,11 +198,27 @@ def run_spawned(work, job: dict, nproc: int):
     nproc : int
         Number of processes [-].
     """
-    threads = max(1, torch.get_num_threads() // int(nproc))
-    with tempfile.TemporaryDirectory() as folder:
+    nproc = int(nproc)
+    threads = max(1, torch.get_num_threads() // nproc)
+    context = mp.get_context("spawn")
+    with tempfile.TemporaryDirectory(prefix="heliotwin-ranks-") as folder:
         torch.save(job, f"{folder}/job.pt")
-        mp.spawn(_run_rank, args=(work, int(nproc), folder, threads), nprocs=int(nproc), join=True)
-        return torch.load(f"{folder}/result.pt", weights_only=False)
+        processes = []
+        try:
+            for rank in range(nproc):
+                p = context.Process(target=_run_rank, args=(rank, work, nproc, folder, threads, os.getpid()))
+                p.start()
+                processes.append(p)
+            while any(p.is_alive() for p in processes):
+                if any(p.exitcode for p in processes):  # one failed: the others would wait for it forever
+                    break
+                processes[0].join(0.1)
+        finally:
+            _end(processes)
+        error = _worker_error(folder, nproc, processes)
+        if error is not None:
+            raise error
+        return torch.load(f"{folder}/result.pt", weights_only=False)  # written by rank 0 just now
 
 
 def run_sharded(plant, sun_direction, nproc: int, **kwargs) -> FieldResult:

@@ -15,8 +15,9 @@ of disappearing from it. Library modules never import this package. Building the
 
 Every command has ``--help`` and ``--debug``. Every error is printed as one line (``heliotwin: error: ...``
 naming the file and field): exit code 2 for bad input, 1 for an internal error (the traceback only with
-``--debug`` or ``HELIOTWIN_DEBUG=1``), 130/143 for Ctrl-C/SIGTERM; no partial output file is left behind
-(see :mod:`.common` for the exit codes).
+``--debug`` or ``HELIOTWIN_DEBUG=1``), 3 when what was asked is not met (``aim``: the aim point is outside the
+actuator range; ``aimpoints``: ``--peak-limit`` not held at some instant, outputs still written), 130/143 for
+Ctrl-C/SIGTERM; no partial output file is left behind (see :mod:`.common` for the exit codes).
 """
 from __future__ import annotations
 

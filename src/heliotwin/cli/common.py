@@ -7,7 +7,9 @@ Exit codes (documented in the README):
 * 0 -- success;
 * 1 -- internal error (a bug: please report it; ``--debug`` or ``HELIOTWIN_DEBUG=1`` shows the traceback);
 * 2 -- bad input: a file, a field or an argument the user can fix (one line naming it);
-* 3 -- ``aim`` only: the aim point is outside the actuator range;
+* 3 -- the run ended but what was asked is not met: ``aim``'s aim point is outside the actuator range, or
+  ``aimpoints`` could not hold the peak-flux limit at some instant (its outputs are written: the best it
+  found, with ``limit_met: false`` in the report, and a console line saying so);
 * 130 / 143 -- interrupted by Ctrl-C (SIGINT) / terminated (SIGTERM); nothing is left behind.
 """
 from __future__ import annotations
@@ -29,9 +31,10 @@ __all__ = ["ArgumentParser", "run_command", "resolve_device", "stage", "add_resu
            "checkpointed", "debug_requested", "Terminated", "csv_list",
            "int_list", "positive_int", "int_range", "float_range", "finite_float", "seed_int", "frequency",
            "utc_time", "check_output_folder", "EXIT_OK", "EXIT_INTERNAL", "EXIT_INPUT", "EXIT_INTERRUPTED",
-           "EXIT_TERMINATED"]
+           "EXIT_TERMINATED", "EXIT_NOT_MET", "check_input_files", "OUT_OF_MEMORY"]
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT = 0, 1, 2
+EXIT_NOT_MET = 3  # aim point out of the actuator range (aim); peak-flux limit not met (aimpoints)
 EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143  # 128 + SIGINT, 128 + SIGTERM (the shell's convention)
 
 
@@ -55,8 +58,25 @@ def _is_user_key_error(exc: KeyError) -> bool:
     return len(exc.args) == 1 and isinstance(exc.args[0], str) and " " in exc.args[0].strip()
 
 
+#: The one message of every allocation that fails (Python's ``MemoryError``, torch's "can't allocate").
+OUT_OF_MEMORY = "out of memory (try fewer heliostats, rays or a lower --resolution)"
+
+
+def _is_allocation_failure(exc: BaseException) -> bool:
+    """torch reports a failed allocation as a ``RuntimeError`` (CPU: "can't allocate memory", "not enough
+    memory"; CUDA: ``torch.OutOfMemoryError``), numpy as ``numpy.core._exceptions._ArrayMemoryError``."""
+    if isinstance(exc, MemoryError) or type(exc).__name__ in ("OutOfMemoryError", "_ArrayMemoryError"):
+        return True
+    text = str(exc).lower()
+    return isinstance(exc, RuntimeError) and any(
+        s in text for s in ("can't allocate memory", "not enough memory", "out of memory", "bad_alloc"))
+
+
 def _classify(exc: BaseException) -> tuple[int, str]:
     """Exit status and the one-line message of an exception that reached the command line's edge."""
+    if _is_allocation_failure(exc):
+        detail = " ".join(str(exc).split()) if isinstance(exc, MemoryError) and str(exc) else ""
+        return EXIT_INTERNAL, f"{OUT_OF_MEMORY}{': ' + detail if detail else ''}"
     if isinstance(exc, KeyError) and _is_user_key_error(exc):
         return EXIT_INPUT, exc.args[0]  # str(KeyError) would add quotes around the message
     if isinstance(exc, (HeliotwinError, NotImplementedError)):
@@ -66,8 +86,6 @@ def _classify(exc: BaseException) -> tuple[int, str]:
         if exc.filename is not None and exc.strerror:
             return EXIT_INPUT, f"{exc.filename}: {exc.strerror}"
         return EXIT_INPUT, str(exc) or type(exc).__name__
-    if isinstance(exc, MemoryError):
-        return EXIT_INTERNAL, "out of memory (try fewer heliostats, rays or a lower --resolution)"
     if isinstance(exc, RecursionError):
         return EXIT_INTERNAL, "internal error: recursion too deep (rerun with --debug; please report it)"
     text = " ".join(str(exc).split())
@@ -105,6 +123,7 @@ def run_command(args, prefix: str = "heliotwin: ") -> int:
     debug = debug_requested(args)
     try:
         with _sigterm_as_interrupt():
+            check_input_files(args)
             if getattr(args, "device", None) is not None:
                 args.device = resolve_device(args.device, getattr(args.func, "supports_cuda", False),
                                              getattr(args, "command", None))
@@ -125,6 +144,43 @@ def run_command(args, prefix: str = "heliotwin: ") -> int:
         lines = [ln for ln in str(message).splitlines() if ln.strip()]
         print(f"{prefix}error: {lines[0] if lines else message}", file=sys.stderr)
         return code
+
+
+def _named_paths(args):
+    """``(flag, text)`` of every string argument (and every string in a list argument) of a parsed command."""
+    for dest, value in sorted(vars(args).items()):
+        if dest in ("func", "command") or callable(value):
+            continue
+        flag = "--" + dest.replace("_", "-")
+        for v in value if isinstance(value, (list, tuple)) else [value]:
+            if isinstance(v, str) and v and "\x00" not in v:
+                yield flag, v
+
+
+def check_input_files(args) -> None:
+    """Refuse, before anything is opened, a path argument that names a FIFO, a device or a socket.
+
+    Reading one blocks until some other process writes (a FIFO) or never ends (a device), so a command handed
+    one would hang instead of failing. Every string argument that names an existing path is checked (inputs
+    and outputs alike: an output is replaced by a rename, which a device cannot be), and so is the checkpoint a
+    ``--resume`` would read. Folders and missing paths are left to the commands.
+    """
+    import stat
+
+    named = list(_named_paths(args))
+    if getattr(args, "resume", False):
+        main = getattr(args, "output", None) or getattr(args, "json", None)
+        if isinstance(main, str):
+            named.append(("--resume", f"{main}.ckpt"))
+    for flag, text in named:
+        try:
+            mode = os.stat(text).st_mode
+        except (OSError, ValueError):
+            continue
+        if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+            kind = ("a FIFO (named pipe)" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode)
+                    else "a device")
+            raise HeliotwinError(f"{flag} {text}: is {kind}, not a regular file (reading it could wait forever)")
 
 
 def resolve_device(name: str, supports_cuda: bool, command: str | None = None) -> str:

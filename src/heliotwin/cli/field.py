@@ -14,11 +14,12 @@ from __future__ import annotations
 import argparse
 import csv
 import os
+import sys
 import time
 
 from ..errors import HeliotwinError
 from ..io.report import atomic_path, output_set, write_json
-from .common import check_output_folder, positive_int
+from .common import EXIT_NOT_MET, float_range, int_range, positive_int, seed_int
 
 
 # ---------------------------------------------------------------------------------- scenario from-layout
@@ -26,15 +27,18 @@ def cmd_scenario_from_layout(args) -> int:
     from ..field.layout import plant_from_layout
     from ..io.scenario import provenance_entry, save_scenario
 
-    check_output_folder(args.output, "-o")
-    plant, atmosphere = plant_from_layout(args.layout, args.config)
-    meta = {"source": os.path.abspath(args.layout), "config": os.path.abspath(args.config),
-            "created_by_command": "heliotwin scenario from-layout"}
-    step = provenance_entry("from-layout", layout=os.path.abspath(args.layout), config=os.path.abspath(args.config))
-    save_scenario(plant, args.output, extras=atmosphere.to_extras(), metadata=meta, provenance=[step])
+    with output_set([("LAYOUT", args.layout), ("--config", args.config)]) as out:
+        output = out.file(args.output, "-o")
+        plant, atmosphere = plant_from_layout(args.layout, args.config)
+        meta = {"source": os.path.abspath(args.layout), "config": os.path.abspath(args.config),
+                "created_by_command": "heliotwin scenario from-layout"}
+        step = provenance_entry("from-layout", layout=os.path.abspath(args.layout),
+                                config=os.path.abspath(args.config))
+        save_scenario(plant, output, extras=atmosphere.to_extras(), metadata=meta, provenance=[step])
     rec = plant.targets["receiver"]
-    print(f"scenario: {len(plant.field.ids)} heliostats, {rec.kind} receiver, sun {plant.sun.sunshape} -> "
-          f"{args.output}")
+    if not args.quiet:
+        print(f"scenario: {len(plant.field.ids)} heliostats, {rec.kind} receiver, sun {plant.sun.sunshape} -> "
+              f"{args.output}")
     return 0
 
 
@@ -50,6 +54,16 @@ def _resolution(text: str) -> tuple[int, int]:
     return rows, cols
 
 
+# Ranges of the numeric arguments: a sun, an irradiance or a limit outside them is a typo or a unit mistake.
+_AZIMUTH = float_range(-360.0, 360.0, what="an azimuth [deg]")
+_ELEVATION = float_range(-90.0, 90.0, what="an elevation [deg]")
+_AZIMUTH_STEP = float_range(0.0, 180.0, lo_open=True, what="an azimuth step [deg]")
+_DNI = float_range(0.0, 1500.0, what="a direct normal irradiance [W/m2]")  # the solar constant is 1361 W/m2
+_PEAK_LIMIT = float_range(0.0, 1e9, lo_open=True, what="a flux limit [W/m2]")
+_YEAR = int_range(1900, 2100, "a year")
+_NPROC = int_range(1, 256, "a process count")
+
+
 def _sun(args, plant):
     """The one sun of ``--time`` or ``--sun-azimuth/--sun-elevation``."""
     from ..workflows.field import sun_direction_at
@@ -57,28 +71,41 @@ def _sun(args, plant):
     return sun_direction_at(plant, time_utc=args.time, azimuth_deg=args.sun_azimuth, elevation_deg=args.sun_elevation)
 
 
-def _write_field_outputs(args, sc, report, result) -> None:
-    """The one-sun outputs, all written or none: JSON, per-heliostat CSV, the flux figure (axes in metres and
-    degrees, kW/m^2) and the numeric map (CSV)."""
+def _field_line(report, heliostats: int) -> str:
+    e, r = report["field"]["efficiency"], report["receiver"]
+    return (f"field: {heliostats} heliostats; efficiency {e['total']:.4f} (cosine {e['cosine']:.4f}, shading "
+            f"{e['shading']:.4f}, blocking {e['blocking']:.4f}, attenuation {e['attenuation']:.4f}, intercept "
+            f"{e['intercept']:.4f}); receiver {r['power_w'] / 1e6:.3f} MW, peak {r['peak_flux_w_m2'] / 1e3:.1f} "
+            f"kW/m2; {report['seconds']:.2f} s")
+
+
+def _year_line(args, report) -> str:
+    return (f"field {args.year}: {report['instants']} daylight instants every {args.every}; annual optical energy "
+            f"{report['annual_optical_energy_mwh']:.1f} MWh of {report['annual_dni_energy_on_mirrors_mwh']:.1f} MWh "
+            f"DNI on the mirrors ({report['dni_model']}; efficiency {report['mean_efficiency']:.4f}); "
+            f"{report['seconds']:.1f} s")
+
+
+def _write_field_outputs(args, sc, report, result, paths: dict) -> None:
+    """The one-sun outputs into their staged paths: JSON, per-heliostat CSV, the flux figure (axes in metres
+    and degrees, kW/m^2) and the numeric map (CSV)."""
     from ..io.export import write_flux_map_csv
     from ..plots import plot_receiver_flux
     from ..raytrace.field import per_heliostat_rows
 
-    with output_set([("--scenario", args.scenario)]) as out:
-        paths = {flag: out.file(path, flag) for flag, path in (("--json", args.json), ("--per-heliostat",
-                 args.per_heliostat), ("--flux", args.flux), ("--flux-csv", getattr(args, "flux_csv", None)))}
-        if paths["--json"]:
-            write_json(paths["--json"], report)
-        if paths["--per-heliostat"]:
-            _write_csv(paths["--per-heliostat"], per_heliostat_rows(result, sc.plant))
-        if paths["--flux"]:
-            r = report["receiver"]
-            plot_receiver_flux({f"{args.aim} aiming": result.flux.cpu()}, sc.plant.targets["receiver"],
-                               paths["--flux"], powers_w={f"{args.aim} aiming": r["power_w"]},
-                               title=f"receiver flux: {len(sc.plant.field.ids)} heliostats, DNI "
-                                     f"{args.dni or sc.plant.sun.dni:.0f} W/m²")
-        if paths["--flux-csv"]:
-            write_flux_map_csv(paths["--flux-csv"], result.flux.cpu(), result.extent.cpu().tolist())
+    write_json(paths["--json"], report)
+    if result is None:  # --year: the report alone
+        return
+    if paths["--per-heliostat"]:
+        _write_csv(paths["--per-heliostat"], per_heliostat_rows(result, sc.plant))
+    if paths["--flux"]:
+        r = report["receiver"]
+        plot_receiver_flux({f"{args.aim} aiming": result.flux.cpu()}, sc.plant.targets["receiver"],
+                           paths["--flux"], powers_w={f"{args.aim} aiming": r["power_w"]},
+                           title=f"receiver flux: {len(sc.plant.field.ids)} heliostats, DNI "
+                                 f"{args.dni or sc.plant.sun.dni:.0f} W/m²")
+    if paths["--flux-csv"]:
+        write_flux_map_csv(paths["--flux-csv"], result.flux.cpu(), result.extent.cpu().tolist())
 
 
 def cmd_field(args) -> int:
@@ -87,36 +114,30 @@ def cmd_field(args) -> int:
     from ..progress import Stages
     from ..workflows.field import FieldRunSettings, field, field_year
 
-    for path, flag in ((args.json, "--json"), (args.per_heliostat, "--per-heliostat"), (args.flux, "--flux")):
-        check_output_folder(path, flag)
     t0 = time.perf_counter()
     bar = Stages(2, "heliotwin field", enabled=not args.quiet)
-    sc = load_scenario(args.scenario)
-    bar.start("efficiency table over the year" if args.year is not None else "field model")
-    if args.year is not None:
-        report = field_year(sc, args.year, args.every, azimuth_step_deg=args.table_azimuth_step,
-                            weather=read_dni_series(args.weather) if getattr(args, "weather", None) else None)
-        report["seconds"] = time.perf_counter() - t0
-        write_json(args.json, report)
-        print(f"field {args.year}: {report['instants']} daylight instants every {args.every}; annual optical energy "
-              f"{report['annual_optical_energy_mwh']:.1f} MWh of {report['annual_dni_energy_on_mirrors_mwh']:.1f} "
-              f"MWh DNI on the mirrors ({report['dni_model']}; efficiency {report['mean_efficiency']:.4f}); "
-              f"{report['seconds']:.1f} s")
-        return 0
     settings = FieldRunSettings(resolution=args.resolution, integrator=args.integrator, occlusion=args.occlusion,
                                 seed=args.seed, aim=args.aim, dni=args.dni, nproc=args.nproc,
-                                device=getattr(args, "device", None))
-    settings.check()
-    report, result = field(sc, _sun(args, sc.plant), settings)
-    bar.step("field model")
-    report["seconds"] = seconds = time.perf_counter() - t0
-    _write_field_outputs(args, sc, report, result)
-    bar.step("outputs")
-    e = report["field"]["efficiency"]
-    print(f"field: {len(sc.plant.field.ids)} heliostats; efficiency {e['total']:.4f} (cosine {e['cosine']:.4f}, "
-          f"shading {e['shading']:.4f}, blocking {e['blocking']:.4f}, attenuation {e['attenuation']:.4f}, intercept "
-          f"{e['intercept']:.4f}); receiver {report['receiver']['power_w'] / 1e6:.3f} MW, peak "
-          f"{report['receiver']['peak_flux_w_m2'] / 1e3:.1f} kW/m2; {seconds:.2f} s")
+                                device=getattr(args, "device", None))  # checked here, before any output is staged
+    with output_set([("--scenario", args.scenario), ("--weather", getattr(args, "weather", None))]) as out:
+        paths = {flag: out.file(path, flag) for flag, path in (("--json", args.json), ("--per-heliostat",
+                 args.per_heliostat), ("--flux", args.flux), ("--flux-csv", getattr(args, "flux_csv", None)))}
+        if args.year is not None and (paths["--per-heliostat"] or paths["--flux"] or paths["--flux-csv"]):
+            raise HeliotwinError("field --year writes the --json report only (no --per-heliostat, --flux, --flux-csv)")
+        sc, result = load_scenario(args.scenario), None
+        bar.start("efficiency table over the year" if args.year is not None else "field model")
+        if args.year is not None:
+            weather = read_dni_series(args.weather) if getattr(args, "weather", None) else None
+            report = field_year(sc, args.year, args.every, azimuth_step_deg=args.table_azimuth_step, weather=weather)
+        else:
+            report, result = field(sc, _sun(args, sc.plant), settings)
+        bar.step("field model")
+        report["seconds"] = time.perf_counter() - t0
+        line = _year_line(args, report) if args.year is not None else _field_line(report, len(sc.plant.field.ids))
+        _write_field_outputs(args, sc, report, result, paths)
+        bar.step("outputs")
+    if not args.quiet:
+        print(line)
     return 0
 
 
@@ -192,7 +213,20 @@ def cmd_aimpoints(args) -> int:
         aimed, report = aimpoints(sc, instants, settings, on_instant=on_instant)
         write_scenario(aimed, out_h5)
         write_json(out_json, report)
-    return 0
+    return _limit_verdict(report, float(args.peak_limit))
+
+
+def _limit_verdict(report: dict, limit: float) -> int:
+    """Exit status 3 with one line on stderr when the optimised aim points exceed the limit at some instant."""
+    unmet = [(e["instant"], e["optimised"]["peak_flux_w_m2"]) for e in report["instants"]
+             if not e["optimised"]["limit_met"]]
+    if not unmet:
+        return 0
+    label, peak = max(unmet, key=lambda u: u[1])
+    print(f"heliotwin: aimpoints: the peak-flux limit {limit / 1e3:.1f} kW/m2 is not met at {len(unmet)} of "
+          f"{len(report['instants'])} instants (worst: {peak / 1e3:.1f} kW/m2 at {label}); the outputs hold the "
+          f"best aim points found (exit status {EXIT_NOT_MET})", file=sys.stderr)
+    return EXIT_NOT_MET
 
 
 cmd_field.supports_cuda = True  # the field model runs on args.device
@@ -223,16 +257,17 @@ def register(sub) -> None:
                                    "flux map [W/m2].")
     p.add_argument("--scenario", required=True, help="scenario file (from-layout, from-paint, or a learned plant)")
     when = p.add_mutually_exclusive_group(required=True)
-    when.add_argument("--sun-azimuth", type=float, help="[deg], PAINT convention: 0 = south, +90 = east "
+    when.add_argument("--sun-azimuth", type=_AZIMUTH, help="[deg], PAINT convention: 0 = south, +90 = east "
                                                         "(SolarPILOT azimuth = 180 - this)")
     when.add_argument("--time", help="UTC time (ISO), sun position from pvlib at the scenario's site")
-    when.add_argument("--year", type=int, help="efficiency table over sun positions and the annual optical energy "
+    when.add_argument("--year", type=_YEAR, help="efficiency table over sun positions and the annual optical energy "
                                                "under pvlib's clear-sky DNI (equator aiming)")
-    p.add_argument("--sun-elevation", type=float, help="[deg] (with --sun-azimuth)")
-    p.add_argument("--every", default="1h", help="with --year: time step (default: %(default)s)")
-    p.add_argument("--table-azimuth-step", type=float, default=15.0, help="with --year: azimuth step [deg] of the "
-                                                                          "efficiency table (default: %(default)s)")
-    p.add_argument("--dni", type=float, help="direct normal irradiance [W/m2] (default: the scenario's)")
+    p.add_argument("--sun-elevation", type=_ELEVATION, help="[deg] (with --sun-azimuth)")
+    p.add_argument("--every", default="1h", help="with --year: time step, 1min..366d, not a whole "
+                   "number of days (every instant would fall at the same time of day; default: %(default)s)")
+    p.add_argument("--table-azimuth-step", type=_AZIMUTH_STEP, default=15.0,
+                   help="with --year: azimuth step [deg] of the efficiency table (default: %(default)s)")
+    p.add_argument("--dni", type=_DNI, help="direct normal irradiance [W/m2], 0..1500 (default: the scenario's)")
     p.add_argument("--weather", metavar="CSV", help="with --year: measured or typical-year DNI instead of clear sky "
                                                     "(SAM/TMY weather file, PAINT's calibration-weather.csv, or any "
                                                     "CSV with a time and a dni [W/m2] column)")
@@ -247,8 +282,9 @@ def register(sub) -> None:
     p.add_argument("--occlusion", choices=("exact", "solarpilot"), default="exact",
                    help="exact: shading and blocking ray-tested on the mirrors (default); solarpilot: SolarPILOT's "
                         "analytic per-pair estimate, to compare with its reports (docs/physics.md)")
-    p.add_argument("--seed", type=int, default=0, help="Monte-Carlo seed")
-    p.add_argument("--nproc", type=positive_int, default=1, help="shard the heliostats over N local processes "
+    p.add_argument("--seed", type=seed_int, default=0, help="Monte-Carlo seed")
+    p.add_argument("--nproc", type=_NPROC, default=1, help="shard the heliostats over N local processes, at "
+                   "most one per heliostat "
                                                          "(torch.distributed, gloo)")
     p.add_argument("--json", required=True, help="JSON report")
     p.add_argument("--per-heliostat", help="CSV, one row per heliostat")
@@ -268,17 +304,20 @@ def register(sub) -> None:
                                    "scenario with /learned/aimpoints (use with field --aim scenario).")
     p.add_argument("--scenario", required=True)
     when = p.add_mutually_exclusive_group(required=True)
-    when.add_argument("--sun-azimuth", type=float, help="[deg], PAINT convention (0 = south, +90 = east)")
+    when.add_argument("--sun-azimuth", type=_AZIMUTH, help="[deg], PAINT convention (0 = south, +90 = east)")
     when.add_argument("--time", help="UTC time(s), ISO, comma-separated for several instants")
     when.add_argument("--day", help="UTC date: every --every over the day with the sun above 10 deg")
-    p.add_argument("--every", default="1h", help="with --day: time step (default: %(default)s)")
-    p.add_argument("--sun-elevation", type=float, help="[deg] (with --sun-azimuth)")
-    p.add_argument("--peak-limit", type=float, required=True, help="[W/m2] on every map cell")
+    p.add_argument("--every", default="1h", help="with --day: time step, 1min..1d (default: "
+                                                                   "%(default)s)")
+    p.add_argument("--sun-elevation", type=_ELEVATION, help="[deg] (with --sun-azimuth)")
+    p.add_argument("--peak-limit", type=_PEAK_LIMIT, required=True, help="[W/m2] on every map cell; exit status 3 "
+                   "when the aim points found cannot hold it at some instant (outputs still written)")
     p.add_argument("--target", help="'uniform' (flat over the height) or a CSV/NPY map on the receiver grid (rows x "
                                     "cols, row 0 = top; only its shape counts): match it under the limit")
     p.add_argument("--resolution", type=_resolution, default=(20, 48), help="COLSxROWS (default: 48x20)")
     p.add_argument("--iterations", type=positive_int, default=300, help="image-model steps per round")
-    p.add_argument("--nproc", type=positive_int, default=1, help="shard the heliostats over N local processes "
+    p.add_argument("--nproc", type=_NPROC, default=1, help="shard the heliostats over N local processes, at "
+                   "most one per heliostat "
                                                                  "(torch.distributed, gloo)")
     p.add_argument("--field-gradient", action="store_true", help="add the smooth field model's power gradient "
                    "(shading, blocking, cosine) to the image model each round (one backward pass per round)")

@@ -38,13 +38,15 @@ from __future__ import annotations
 
 import csv
 import math
+import os
+import stat
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from ..atmosphere import ATMOSPHERE_MODELS, Atmosphere
+from ..atmosphere import ATMOSPHERE_MODELS, Atmosphere, attenuation
 from ..errors import InputFileError
 from ..site import Site
 from ..sunshape import SUNSHAPES
@@ -59,12 +61,120 @@ else:  # pragma: no cover - Python 3.10 only
     import tomli as tomllib
 
 __all__ = ["Layout", "PlantConfig", "read_layout", "read_plant_config", "plant_from_layout", "build_plant",
-           "RECEIVER_TYPES", "CANTINGS"]
+           "RECEIVER_TYPES", "CANTINGS", "require_regular_file", "check_spacing", "check_attenuation", "check_memory"]
 
 RECEIVER_TYPES = ("cylinder", "planar")
 CANTINGS = ("flat", "on-axis")
 _REQUIRED = object()
 _ALIASES = {"x": ("x", "x_location"), "y": ("y", "y_location"), "z": ("z", "z_location"), "id": ("id",)}
+#: Physical bounds of a plant description: beyond them a value is a typo or a unit mistake.
+MIN_MIRROR_M, MAX_MIRROR_M = 0.05, 50.0  # heliostat width/height [m] (the largest built are about 12 m)
+MIN_RECEIVER_M, MAX_RECEIVER_M = 0.1, 1000.0  # receiver radius/width/height [m]
+MAX_DISTANCE_M = 20_000.0  # heliostats and receiver from the tower base [m] (the attenuation model holds to a few km)
+MAX_FACETS_PER_SIDE = 64
+
+
+def require_regular_file(path, what: str = "file") -> None:
+    """Refuse a FIFO, device or socket before opening it (reading one could block forever); one line.
+
+    A missing path or a folder passes: the reader's own ``open`` says what is wrong with those.
+    """
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        raise InputFileError(path, f"is not a regular file (a FIFO, device or socket); expected a {what}")
+
+
+def check_spacing(position: torch.Tensor, min_distance: float, path, ids=None, lines=None) -> None:
+    """Refuse two heliostats whose pivots are closer than ``min_distance`` [m] (their mirrors would collide).
+
+    ``position``: (H, 3) pivots, ENU [m]. Uses a grid of cells ``min_distance / sqrt(2)`` wide in (east,
+    north): two pivots in one cell are always too close, so a valid field has at most one pivot per cell and
+    each pivot is compared with the pivots of the 5 x 5 cells around it only (sorted cell keys and a binary
+    search: O(H log H), no all-pairs distance matrix).
+    """
+    h = position.shape[0]
+    if h < 2 or not min_distance > 0:
+        return
+    cell = min_distance / math.sqrt(2.0)
+    xy = position[:, :2].to(torch.float64)
+    ij = torch.floor((xy - xy.min(0).values) / cell).to(torch.int64)
+    span = int(ij[:, 1].max()) + 5
+    key = ij[:, 0] * span + ij[:, 1]
+    order = torch.argsort(key)
+    sorted_key = key[order]
+    pairs = []
+    same = torch.nonzero(sorted_key[1:] == sorted_key[:-1]).flatten()
+    if same.numel():
+        pairs.append(torch.stack((order[same], order[same + 1]), dim=-1))
+    for di in range(-2, 3):
+        for dj in range(-2, 3):
+            if (di, dj) <= (0, 0):  # each neighbour pair once; the cell itself is covered above
+                continue
+            want = key + di * span + dj
+            at = torch.searchsorted(sorted_key, want).clamp_max(h - 1)
+            hit = sorted_key[at] == want
+            if bool(hit.any()):
+                pairs.append(torch.stack((torch.nonzero(hit).flatten(), order[at[hit]]), dim=-1))
+    if not pairs:
+        return
+    pairs = torch.cat(pairs)
+    dist = torch.linalg.vector_norm(xy[pairs[:, 0]] - xy[pairs[:, 1]], dim=-1)
+    bad = torch.nonzero(dist < min_distance).flatten()
+    if bad.numel():
+        k = int(bad[torch.argmin(dist[bad])])
+        a, b = sorted(int(v) for v in pairs[k])
+        def name(i: int) -> str:
+            return ids[i] if ids is not None else f"#{i}"
+
+        where = f"line {lines[b]}" if lines is not None else None
+        raise InputFileError(path, f"heliostats {name(a)} and {name(b)} are {float(dist[k]):.2f} m apart: their "
+                             f"mirrors would collide (pivots must be at least {min_distance:.2f} m apart, the "
+                             "mirror's smaller side)", field=where)
+
+
+def check_attenuation(atmosphere: Atmosphere, slant_range: torch.Tensor, path, field: str, ids=None) -> None:
+    """Refuse an atmosphere whose transmitted fraction leaves [0, 1] at some heliostat's slant range.
+
+    ``slant_range``: (H,) heliostat-to-receiver distances [m]; ``field`` names the coefficients in ``path``.
+    """
+    if slant_range.numel() == 0:
+        return
+    values = attenuation(slant_range.to(torch.float64), atmosphere)
+    bad = torch.nonzero(~((values >= 0.0) & (values <= 1.0))).flatten()
+    if bad.numel():
+        i = int(bad[0])
+        who = f"heliostat {ids[i]}" if ids is not None else f"heliostat #{i}"
+        raise InputFileError(path, f"attenuation {float(values[i]):.4g} at {who}'s slant range "
+                             f"{float(slant_range[i]):.1f} m is outside [0, 1] (coefficients "
+                             f"{list(atmosphere.coefficients)}, slant range in km)", field=field)
+
+
+def check_memory(heliostats: int, facets, num_control_points, path) -> None:
+    """Raise ``MemoryError`` (the command line's out-of-memory message) for a plant that cannot fit in memory.
+
+    A plant's mirrors alone take ``H x F x (nu x nv + 9) x 3`` float64 values; the field model needs several
+    times that. Refused when that estimate exceeds the machine's physical memory.
+    """
+    f = int(facets[0]) * int(facets[1])
+    need = 8 * 8 * 3 * int(heliostats) * f * (int(num_control_points[0]) * int(num_control_points[1]) + 9)
+    try:
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        total = 64 * 2**30
+    if need > total:
+        raise MemoryError(f"{path}: {heliostats} heliostats x {f} facets need about {need / 2**30:.0f} GiB "
+                          f"(this machine has {total / 2**30:.0f} GiB)")
+
+
+def _check_far(layout: Layout) -> None:
+    far = torch.nonzero(torch.linalg.vector_norm(layout.position, dim=-1) > MAX_DISTANCE_M).flatten()
+    if far.numel():
+        i = int(far[0])
+        raise InputFileError(layout.path, f"heliostat {layout.ids[i]} is {float(layout.position[i].norm()):.3g} m "
+                             f"from the tower base (at most {MAX_DISTANCE_M:g} m)", field=f"line {layout.lines[i]}")
 
 
 @dataclass
@@ -98,10 +208,12 @@ def read_layout(path) -> Layout:
         number, a short row, duplicate ids, no heliostat (message names the line and column).
     """
     path = Path(path)
+    require_regular_file(path, "layout")
     try:
         text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
-        raise InputFileError(path, f"cannot read layout ({exc.__class__.__name__}: {exc})") from None
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else " ".join(str(exc).split())
+        raise InputFileError(path, f"cannot read layout ({exc.__class__.__name__}: {reason})") from None
     rows = [(n, line) for n, line in enumerate(text.splitlines(), start=1)
             if line.strip() and not line.lstrip().startswith("#")]
     if not rows:
@@ -135,6 +247,8 @@ def read_layout(path) -> Layout:
             i = column["id"]
             if i >= len(cells) or not cells[i]:
                 raise InputFileError(path, "missing id", field=f"line {n}, id")
+            if not cells[i].isprintable():
+                raise InputFileError(path, f"id {cells[i]!r} holds a control character", field=f"line {n}, id")
             ids.append(cells[i])
         else:
             ids.append(f"H{len(ids):04d}")
@@ -236,32 +350,38 @@ def read_plant_config(path) -> PlantConfig:
         type, sunshape, canting or atmosphere model (one line naming ``[section.key]``).
     """
     path = Path(path)
+    require_regular_file(path, "plant description")
     try:
         with open(path, "rb") as fh:
             doc = tomllib.load(fh)
     except OSError as exc:
         raise InputFileError(path, f"cannot read ({exc.__class__.__name__}: {exc.strerror or exc})") from None
+    except UnicodeDecodeError:
+        raise InputFileError(path, "not UTF-8 text (expected a TOML plant description)") from None
     except tomllib.TOMLDecodeError as exc:
-        raise InputFileError(path, f"malformed TOML ({exc})") from None
+        raise InputFileError(path, f"malformed TOML ({' '.join(str(exc).split())})") from None
+    except RecursionError:
+        raise InputFileError(path, "malformed TOML (nested too deeply)") from None
     for section in doc:
         if section not in ("site", "heliostat", "receiver", "sun", "atmosphere"):
             raise InputFileError(path, "unknown section (expected site, heliostat, receiver, sun, atmosphere)",
                                  field=section)
     t = _Table(path, "site", doc.get("site", {}))
     site = Site(t.number("latitude", lo=-90, hi=90), t.number("longitude", lo=-180, hi=180),
-                t.number("altitude", 0.0), str(t.data.get("name", path.stem)))
+                t.number("altitude", 0.0, lo=-500, hi=9000), str(t.data.get("name", path.stem)))
     t.used.add("name")
     t.done()
 
     t = _Table(path, "heliostat", doc.get("heliostat", {}))
-    width, height = t.number("width", lo=0, lo_open=True), t.number("height", lo=0, lo_open=True)
+    width = t.number("width", lo=MIN_MIRROR_M, hi=MAX_MIRROR_M)
+    height = t.number("height", lo=MIN_MIRROR_M, hi=MAX_MIRROR_M)
     facets = t.vector("facets", 2, [1, 1], integer=True)
-    if min(facets) < 1:
-        t.fail("facets", f"expected two positive integers, got {facets}")
+    if min(facets) < 1 or max(facets) > MAX_FACETS_PER_SIDE:
+        t.fail("facets", f"expected two integers in 1..{MAX_FACETS_PER_SIDE}, got {facets}")
     canting = t.choice("canting", CANTINGS, "flat")
-    focal = t.number("focal_length", None, lo=0, lo_open=True)
+    focal = t.number("focal_length", None, lo=0, lo_open=True, hi=1e5)
     reflectivity = t.number("reflectivity", 0.9, lo=0, hi=1)
-    slope = t.number("slope_error_mrad", 1.53, lo=0) * 1e-3
+    slope = t.number("slope_error_mrad", 1.53, lo=0, hi=100) * 1e-3
     t.done()
 
     if "receiver" not in doc:
@@ -270,33 +390,41 @@ def read_plant_config(path) -> PlantConfig:
 
     t = _Table(path, "sun", doc.get("sun", {}))
     shape = t.choice("shape", SUNSHAPES, "limb-darkened")
-    sun = SunSettings(sunshape=shape, sigma=t.number("sigma_mrad", 2.51, lo=0, lo_open=True) * 1e-3,
-                      radius=t.number("radius_mrad", 4.65, lo=0, lo_open=True) * 1e-3,
+    sun = SunSettings(sunshape=shape, sigma=t.number("sigma_mrad", 2.51, lo=0, lo_open=True, hi=100) * 1e-3,
+                      radius=t.number("radius_mrad", 4.65, lo=0, lo_open=True, hi=100) * 1e-3,
                       csr=t.number("csr", 0.05, lo=0, lo_open=True, hi=0.999), slope_error=slope,
-                      dni=t.number("dni", 1000.0, lo=0), reflectivity=reflectivity)
+                      dni=t.number("dni", 1000.0, lo=0, hi=1500), reflectivity=reflectivity)
     t.done()
 
     t = _Table(path, "atmosphere", doc.get("atmosphere", {}))
-    atmosphere = Atmosphere(t.choice("model", ATMOSPHERE_MODELS, "polynomial"),
-                            tuple(t.vector("coefficients", None, list(Atmosphere().coefficients))))
+    coefficients = t.vector("coefficients", None, list(Atmosphere().coefficients))
+    if len(coefficients) > 8:
+        t.fail("coefficients", f"expected at most 8 polynomial coefficients, got {len(coefficients)}")
+    atmosphere = Atmosphere(t.choice("model", ATMOSPHERE_MODELS, "polynomial"), tuple(coefficients))
     t.done()
     return PlantConfig(site, width, height, tuple(facets), canting, focal, receiver, sun, atmosphere)
 
 
 def _receiver_config(t: _Table) -> dict:
     kind = t.choice("type", RECEIVER_TYPES)
-    out = {"type": kind, "center": t.vector("center", 3), "height": t.number("height", lo=0, lo_open=True)}
+    out = {"type": kind, "center": t.vector("center", 3), "height": t.number("height", lo=MIN_RECEIVER_M,
+                                                                              hi=MAX_RECEIVER_M)}
+    if max(abs(c) for c in out["center"]) > MAX_DISTANCE_M:
+        t.fail("center", f"expected a point within {MAX_DISTANCE_M:g} m of the tower base, got {out['center']}")
+    if out["center"][2] - out["height"] / 2 <= 0:
+        t.fail("center", f"the receiver reaches below the ground (centre height {out['center'][2]:g} m, half height "
+                         f"{out['height'] / 2:g} m)")
     normal = t.vector("normal", 3, None)
     if normal is not None and math.hypot(*normal) == 0.0:
         t.fail("normal", "expected a non-zero vector")
     out["normal"] = normal
     if kind == "cylinder":
-        out["radius"] = t.number("radius", lo=0, lo_open=True)
-        out["opening_angle"] = math.radians(t.number("opening_angle_deg", 360.0, lo=0, lo_open=True, hi=360))
+        out["radius"] = t.number("radius", lo=MIN_RECEIVER_M, hi=MAX_RECEIVER_M)
+        out["opening_angle"] = math.radians(t.number("opening_angle_deg", 360.0, lo=1, hi=360))
         if normal is not None and abs(normal[2]) > 1e-9 * math.hypot(*normal):
             t.fail("normal", "a cylinder's aperture normal must be horizontal (the axis is vertical)")
     else:
-        out["width"] = t.number("width", lo=0, lo_open=True)
+        out["width"] = t.number("width", lo=MIN_RECEIVER_M, hi=MAX_RECEIVER_M)
         if normal is None:
             t.fail("normal", "missing (planar receivers need their normal, towards the field)")
     t.done()
@@ -388,8 +516,15 @@ def plant_from_layout(layout_path, config_path, *, num_control_points=(4, 4)) ->
     """
     config = read_plant_config(config_path)
     layout = read_layout(layout_path)
+    _check_far(layout)
     _check_outside_tower(layout, config, config_path)
-    return build_plant(layout, config, num_control_points=num_control_points), config.atmosphere
+    check_spacing(layout.position, min(config.width, config.height), layout.path, layout.ids, layout.lines)
+    check_memory(len(layout.ids), config.facets, num_control_points, layout.path)
+    plant = build_plant(layout, config, num_control_points=num_control_points)
+    rec = plant.targets["receiver"]
+    slant = torch.linalg.vector_norm((rec.center if rec.kind == "planar" else rec.axis_point) - layout.position, dim=-1)
+    check_attenuation(config.atmosphere, slant, config_path, "atmosphere.coefficients", layout.ids)
+    return plant, config.atmosphere
 
 
 def build_plant(layout: Layout, config: PlantConfig, *, num_control_points=(4, 4)) -> Plant:

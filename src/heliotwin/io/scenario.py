@@ -76,7 +76,9 @@ import numpy as np
 import torch
 
 from .. import __version__
+from ..atmosphere import ATMOSPHERE_MODELS, Atmosphere
 from ..errors import HeliotwinError, InputFileError, ScenarioVersionError
+from ..field.layout import MAX_DISTANCE_M, MAX_MIRROR_M, MIN_MIRROR_M, check_attenuation, require_regular_file
 from ..field.plant import Facets, Field, Kinematics, Plant, SunSettings, Surfaces
 from ..field.targets import CylinderTarget, PlanarTarget
 from ..field.update import select_heliostats
@@ -480,7 +482,10 @@ def _read_dataclass(r: _Reader, group: h5py.Group, cls, optional=()):
 
 
 def _read_metadata(r: _Reader, group: h5py.Group) -> dict:
-    json_keys = set(json.loads(r.attr(group, "_json_keys", str))) if "_json_keys" in group.attrs else set()
+    try:
+        json_keys = set(json.loads(r.attr(group, "_json_keys", str))) if "_json_keys" in group.attrs else set()
+    except (TypeError, ValueError):
+        r.fail("/metadata@_json_keys", "expected a JSON list of attribute names")
     out = {}
     for key, value in group.attrs.items():
         if key == "_json_keys":
@@ -613,6 +618,7 @@ def load_scenario(path) -> Scenario:
         raise InputFileError(path, "file not found")
     if path.is_dir():
         raise InputFileError(path, "is a folder, expected a scenario file (.h5)")
+    require_regular_file(path, "scenario file (.h5)")
     try:
         is_hdf5 = h5py.is_hdf5(path)
     except OSError as exc:
@@ -630,6 +636,8 @@ def load_scenario(path) -> Scenario:
     except (OSError, KeyError, RuntimeError) as exc:  # h5py's low-level failures (corrupt/truncated file)
         raise InputFileError(path, f"cannot read HDF5 ({_one_line(exc)})") from None
     _validate_plant(plant, path)
+    _validate_extras(extras, plant, path)
+    _validate_learned(learned, len(plant.field.ids), path)
     return Scenario(plant, extras, metadata, version, str(path), learned, provenance)
 
 
@@ -670,19 +678,110 @@ def _validate_plant(plant: Plant, path, *, writing: bool = False) -> None:
             c.fail(f"/site@{name}", f"expected a finite number, got {v!r}")
     for key, t in plant.targets.items():
         for name in ("center", "normal", "right", "up"):
-            c.tensor(f"/targets/{key}/{name}", getattr(t, name), (3,))
+            c.tensor(f"/targets/{key}/{name}", getattr(t, name), (3,), finite=True)
+            norm = float(torch.linalg.vector_norm(getattr(t, name).to(torch.float64)))
+            if name != "center" and abs(norm - 1.0) > 1e-6:
+                c.fail(f"/targets/{key}/{name}", f"expected a unit vector, got length {norm:.6g}")
+            if name == "center" and norm > MAX_DISTANCE_M:
+                c.fail(f"/targets/{key}/{name}", f"expected a point within {MAX_DISTANCE_M:g} m, got {norm:.3g} m away")
+        stored = {f.name for f in dataclasses.fields(t)} if dataclasses.is_dataclass(t) else set()
+        for name in ("width", "height", "radius", "opening_angle"):
+            v = getattr(t, name, None) if name in stored else None
+            hi = 2 * math.pi + 1e-9 if name == "opening_angle" else 1e4
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= hi):
+                c.fail(f"/targets/{key}@{name}", f"expected a finite value in (0, {hi:g}], got {v!r}")
+    _validate_sun(c, plant.sun)
     fl = plant.field
     if not isinstance(fl.ids, (list, tuple)) or not all(isinstance(i, str) for i in fl.ids):
         c.fail("/field/ids", "expected a list of str")
     if len(set(fl.ids)) != len(fl.ids):
         c.fail("/field/ids", "duplicate heliostat ids")
     h = len(fl.ids)
-    c.tensor("/field/width", fl.width, (h,))
-    c.tensor("/field/height", fl.height, (h,))
+    c.tensor("/field/width", fl.width, (h,), finite=True)
+    c.tensor("/field/height", fl.height, (h,), finite=True)
+    for name, t in (("width", fl.width), ("height", fl.height)):
+        if h and not bool(((t >= MIN_MIRROR_M) & (t <= MAX_MIRROR_M)).all()):
+            c.fail(f"/field/{name}", f"expected mirror sizes in [{MIN_MIRROR_M:g}, {MAX_MIRROR_M:g}] m")
     if len(fl.renovation) not in (0, h) or not all(isinstance(x, str) for x in fl.renovation):
         c.fail("/field/renovation", f"expected 0 or {h} strings, got {len(fl.renovation)} entries")
     _validate_kinematics(c, fl.kinematics, h)
     _validate_mirrors(c, fl, h)
+
+
+#: Physical ranges of the sun and mirror optics: (low, high, low excluded).
+_SUN_RANGES = {"sigma": (0.0, 0.1, True), "radius": (0.0, 0.1, True), "csr": (0.0, 1.0, False),
+               "slope_error": (0.0, 0.1, False), "dni": (0.0, 1500.0, False), "reflectivity": (0.0, 1.0, False)}
+
+
+def _validate_sun(c: _PlantCheck, sun) -> None:
+    for name, (lo, hi, lo_open) in _SUN_RANGES.items():
+        v = getattr(sun, name, None)
+        bad = isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v > hi or \
+            (v <= lo if lo_open else v < lo)
+        if bad:
+            c.fail(f"/sun@{name}", f"expected a value in {'(' if lo_open else '['}{lo:g}, {hi:g}], got {v!r}")
+
+
+def _validate_extras(extras: dict, plant: Plant, path) -> None:
+    """The atmosphere of ``/extras/atmosphere``: finite coefficients whose transmitted fraction stays in [0, 1]
+    at every heliostat's slant range to every target."""
+    entry = extras.get("atmosphere")
+    if not entry:
+        return
+    where = "/extras/atmosphere/coefficients"
+    try:
+        atm = Atmosphere.from_extras(extras)
+    except (TypeError, ValueError, KeyError, AttributeError):
+        raise InputFileError(path, "expected a model name and a list of numbers", field="/extras/atmosphere") \
+            from None
+    if atm.model not in ATMOSPHERE_MODELS:
+        raise InputFileError(path, f"unknown model {atm.model!r} (known: {', '.join(ATMOSPHERE_MODELS)})",
+                             field="/extras/atmosphere/model")
+    if not atm.coefficients or len(atm.coefficients) > 8 or not all(math.isfinite(c) for c in atm.coefficients):
+        raise InputFileError(path, f"expected 1 to 8 finite numbers, got {list(atm.coefficients)}", field=where)
+    pos = plant.field.kinematics.position.to(torch.float64)
+    for t in plant.targets.values():
+        slant = torch.linalg.vector_norm(t.center.to(torch.float64) - pos, dim=-1)
+        check_attenuation(atm, slant, path, where, plant.field.ids)
+
+
+def _validate_learned(learned: dict, h: int, path) -> None:
+    """The learned groups this floor knows the layout of; ``/learned/aimpoints`` (written by
+    :mod:`heliotwin.optimise.aimstate`): per instant ``aim`` [H, 3] and ``motor_steps`` [H, 2] finite,
+    ``sun_direction`` [3] a finite direction above the horizon, ``reachable`` [H]; a positive finite limit."""
+    group = learned.get("aimpoints")
+    if group is None:
+        return
+    where = "/learned/aimpoints"
+    if not isinstance(group, dict):
+        raise InputFileError(path, "expected a group", field=where)
+    instants = group.get("instants")
+    if instants is not None and (not isinstance(instants, dict) or not instants):
+        raise InputFileError(path, "expected a group of instants", field=f"{where}/instants")
+    entries = [(where, group)] + [(f"{where}/instants/{k}", v) for k, v in sorted((instants or {}).items())]
+    for at, entry in entries:
+        if not isinstance(entry, dict):
+            raise InputFileError(path, "expected a group", field=at)
+        for name, shape in (("aim", (h, 3)), ("sun_direction", (3,)), ("motor_steps", (h, 2)), ("reachable", (h,))):
+            v = entry.get(name)
+            if v is None:
+                raise InputFileError(path, "missing dataset", field=f"{at}/{name}")
+            try:
+                t = torch.as_tensor(v, dtype=torch.float64)
+            except (TypeError, ValueError, RuntimeError):
+                raise InputFileError(path, "expected a numeric array", field=f"{at}/{name}") from None
+            if tuple(t.shape) != shape:
+                raise InputFileError(path, f"expected shape {list(shape)}, got {list(t.shape)}", field=f"{at}/{name}")
+            if not bool(torch.isfinite(t).all()):
+                raise InputFileError(path, "contains NaN/inf", field=f"{at}/{name}")
+            if name == "sun_direction" and not (abs(float(t.norm()) - 1.0) < 1e-6 and float(t[2]) > 0):
+                raise InputFileError(path, "expected a unit vector towards a sun above the horizon",
+                                     field=f"{at}/{name}")
+        if at == where:
+            v = entry.get("peak_limit_w_m2")
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise InputFileError(path, f"expected a positive finite flux [W/m2], got {v!r}",
+                                     field=f"{where}@peak_limit_w_m2")
 
 
 def _validate_kinematics(c: _PlantCheck, kin: Kinematics, h: int) -> None:
@@ -713,6 +812,19 @@ def _validate_mirrors(c: _PlantCheck, fl: Field, h: int) -> None:
             c.fail(f"/field/surfaces@{name}", f"expected an int in [1, {n - 1}] for {n} control points, got {d!r}")
     if sf.weights is not None:
         c.tensor("/field/surfaces/weights", sf.weights, tuple(cp[:-1]), finite=True)
+        if sf.weights.numel() and not bool((sf.weights > 0).all()):
+            c.fail("/field/surfaces/weights", "expected positive NURBS weights")
+    # Each facet's control net spans a real surface: not collapsed to a point, not larger than a mirror.
+    if sf.control_points.numel():
+        net = sf.control_points.detach().to(torch.float64).flatten(2, 3)  # [H, F, nu*nv, 3]
+        extent = (net.amax(2) - net.amin(2))[..., :2].amax(-1)  # [H, F] largest in-plane side [m]
+        if not bool(((extent > 1e-4) & (extent <= 2 * MAX_MIRROR_M)).all()):
+            c.fail("/field/surfaces/control_points", "expected every facet's control net to span between 0.1 mm "
+                   f"and {2 * MAX_MIRROR_M:g} m in its plane")
+    for name in ("translation", "canting_e", "canting_n"):
+        t = getattr(fac, name)
+        if t.numel() and float(t.abs().max()) > MAX_MIRROR_M:
+            c.fail(f"/field/facets/{name}", f"expected facet offsets within {MAX_MIRROR_M:g} m of the pivot")
 
 
 # ======================================================================================= from PAINT

@@ -32,6 +32,7 @@ from ..optimise.aimpoints import (
     uniform_target,
 )
 from ..optimise.aimstate import KEY, aimpoint_state, instant_state
+from .field import check_map_resolution
 
 __all__ = ["AimpointSettings", "aimpoints"]
 
@@ -69,11 +70,19 @@ class AimpointSettings:
     nproc: int = 1
     device: str | None = None
 
+    def __post_init__(self):
+        self.check()  # refused when made, before any file is read or output staged
+
     def check(self) -> None:
         """One-line :class:`HeliotwinError` for settings no run can use (a caller may check before staging
         outputs; :func:`aimpoints` checks again)."""
-        if float(self.peak_limit_w_m2) <= 0:
-            raise HeliotwinError(f"--peak-limit: expected a positive flux [W/m2], got {self.peak_limit_w_m2}")
+        limit = self.peak_limit_w_m2
+        if isinstance(limit, bool) or not isinstance(limit, (int, float)) or not math.isfinite(limit) or limit <= 0:
+            raise HeliotwinError(f"--peak-limit: expected a finite positive flux [W/m2], got {limit!r}")
+        check_map_resolution(self.resolution)
+        for name, v in (("--iterations", self.iterations), ("--nproc", self.nproc)):
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise HeliotwinError(f"{name}: expected a positive integer, got {v!r}")
         if self.nproc > 1 and str(self.device or "cpu").startswith("cuda"):
             raise HeliotwinError("--nproc: the local process group is gloo on CPU; use --device cpu with --nproc")
 
@@ -91,8 +100,9 @@ def _instant(plant, sun, atm, settings: AimpointSettings):
     elif settings.target is not None:
         target = load_target(settings.target, resolution)
     knobs = AimSettings(resolution=resolution, iterations=settings.iterations, field_gradient=settings.field_gradient)
-    if settings.nproc > 1:
-        best = run_aimpoints_sharded(plant, sun, limit, settings.nproc, knobs, atmosphere=atm, target=target)
+    nproc = min(settings.nproc, len(plant.field.ids))  # at most one process per heliostat
+    if nproc > 1:
+        best = run_aimpoints_sharded(plant, sun, limit, nproc, knobs, atmosphere=atm, target=target)
     else:
         best = optimise_aimpoints(plant, sun, limit, knobs, atmosphere=atm, target=target, equator=eq_field,
                                   model=model)

@@ -45,7 +45,8 @@ from ..raytrace.field import FieldResult, FieldSettings, field_optics, summary
 from ..raytrace.yearly import DEFAULT_ELEVATIONS_DEG, annual_energy, efficiency_table, interpolate_efficiency
 from ..sun import direction_from_paint_angles, direction_from_time, solar_position
 
-__all__ = ["FieldRunSettings", "field", "field_year", "flux_map_fields", "sun_direction_at", "sun_instants"]
+__all__ = ["FieldRunSettings", "field", "field_year", "flux_map_fields", "sun_direction_at", "sun_instants",
+           "check_irradiance", "check_map_resolution", "check_sun_angles", "MAX_MAP_CELLS", "MAX_DNI"]
 
 
 @dataclass
@@ -79,10 +80,74 @@ class FieldRunSettings:
     nproc: int = 1
     device: str | None = None
 
+    def __post_init__(self):
+        self.check()  # refused when made, before any file is read or output staged
+
     def check(self) -> None:
         """One-line :class:`HeliotwinError` for settings no run can use (:func:`field` checks them too)."""
-        if self.dni is not None and self.dni < 0:
-            raise HeliotwinError(f"--dni: expected a non-negative irradiance, got {self.dni}")
+        check_irradiance(self.dni)
+        check_map_resolution(self.resolution)
+        if isinstance(self.nproc, bool) or not isinstance(self.nproc, int) or self.nproc < 1:
+            raise HeliotwinError(f"--nproc: expected a positive number of processes, got {self.nproc!r}")
+
+
+#: Most receiver map cells of a run: beyond, the maps alone exceed the memory of a workstation.
+MAX_MAP_CELLS = 4096 * 4096
+#: Highest direct normal irradiance accepted [W/m^2] (the solar constant is 1361 W/m^2).
+MAX_DNI = 1500.0
+
+
+def check_irradiance(dni) -> None:
+    """``dni`` [W/m^2] is None (the scenario's) or a finite value in [0, :data:`MAX_DNI`]; else one line."""
+    if dni is None:
+        return
+    if isinstance(dni, bool) or not isinstance(dni, (int, float)) or not math.isfinite(dni) or \
+            not 0.0 <= dni <= MAX_DNI:
+        raise HeliotwinError(f"--dni: expected a direct normal irradiance in [0, {MAX_DNI:g}] W/m2, got {dni!r}")
+
+
+def check_map_resolution(resolution) -> None:
+    """``(rows, cols)`` of a receiver map: positive integers; too many cells is the out-of-memory error."""
+    try:
+        rows, cols = (int(v) for v in resolution)
+        ok = all(not isinstance(v, bool) and int(v) == v for v in resolution)
+    except (TypeError, ValueError):
+        rows = cols = 0
+        ok = False
+    if not ok or rows < 1 or cols < 1:
+        raise HeliotwinError(f"--resolution: expected two positive integers (rows, cols), got {resolution!r}")
+    if rows * cols > MAX_MAP_CELLS:
+        raise MemoryError(f"a {cols}x{rows} receiver map has more than {MAX_MAP_CELLS} cells")
+
+
+def check_sun_angles(azimuth_deg, elevation_deg) -> None:
+    """PAINT sun angles [deg]: finite, azimuth within +-360, elevation above the horizon and at most 90."""
+    for name, v, lo, hi in (("--sun-azimuth", azimuth_deg, -360.0, 360.0),
+                            ("--sun-elevation", elevation_deg, -90.0, 90.0)):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not lo <= v <= hi:
+            raise HeliotwinError(f"{name}: expected a finite angle in [{lo:g}, {hi:g}] deg, got {v!r}")
+    if elevation_deg <= 0:
+        raise HeliotwinError(f"--sun-elevation: the sun is below the horizon ({elevation_deg} deg)")
+
+
+def _text(step: pd.Timedelta) -> str:
+    """A time step as a user writes it: ``31d``, ``7h``, ``90min``."""
+    minutes = int(step.total_seconds() // 60)
+    for unit, size in (("d", 1440), ("h", 60)):
+        if minutes % size == 0:
+            return f"{minutes // size}{unit}"
+    return f"{minutes}min"
+
+
+def _step(every: str, flag: str = "--every") -> pd.Timedelta:
+    """A positive time step from pandas text (``"1h"``, ``"30min"``); one line when it is not one."""
+    try:
+        step = pd.Timedelta(every)
+    except (ValueError, TypeError, OverflowError):
+        raise HeliotwinError(f"{flag}: cannot parse {every!r} (e.g. 1h, 30min)") from None
+    if step < pd.Timedelta("1min"):
+        raise HeliotwinError(f"{flag}: expected a time step of at least 1min, got {every!r}")
+    return step
 
 
 def sun_direction_at(plant, *, time_utc: str | None = None, azimuth_deg: float | None = None,
@@ -122,7 +187,9 @@ def sun_direction_at(plant, *, time_utc: str | None = None, azimuth_deg: float |
     if time_utc is not None:
         try:
             stamp = pd.Timestamp(time_utc)
-        except ValueError:
+            if pd.isna(stamp) or not 1900 <= stamp.year <= 2100:
+                raise ValueError(time_utc)
+        except (ValueError, TypeError, OverflowError):
             raise HeliotwinError(f"--time: cannot parse {time_utc!r} (expected ISO UTC, e.g. 2023-06-21T12:00Z)") \
                 from None
         if stamp.tzinfo is None:
@@ -135,8 +202,7 @@ def sun_direction_at(plant, *, time_utc: str | None = None, azimuth_deg: float |
             raise HeliotwinError(f"--time: the sun is below the horizon at {time_utc} "
                                  f"(elevation {math.degrees(math.asin(float(d[2]))):.1f} deg)")
         return d
-    if elevation_deg <= 0:
-        raise HeliotwinError(f"--sun-elevation: the sun is below the horizon ({elevation_deg} deg)")
+    check_sun_angles(azimuth_deg, elevation_deg)
     return direction_from_paint_angles(torch.tensor(math.radians(azimuth_deg), dtype=torch.float64),
                                        torch.tensor(math.radians(elevation_deg), dtype=torch.float64))
 
@@ -149,10 +215,14 @@ def sun_instants(plant, *, times: str | None = None, day: str | None = None, eve
     if day is not None:
         try:
             start = pd.Timestamp(day)
-            step = pd.Timedelta(every)
-        except ValueError:
-            raise HeliotwinError(f"--day/--every: cannot parse {day!r} / {every!r} (e.g. 2023-06-21, "
-                                 "1h)") from None
+            if pd.isna(start) or not 1900 <= start.year <= 2100:
+                raise ValueError(day)
+        except (ValueError, TypeError, OverflowError):
+            raise HeliotwinError(f"--day: cannot parse {day!r} (expected a UTC date between 1900 and 2100, e.g. "
+                                 "2023-06-21)") from None
+        step = _step(every)
+        if step > pd.Timedelta("1D"):
+            raise HeliotwinError(f"--every {_text(step)}: longer than the day of --day (at most 1d: one instant)")
         start = start.tz_localize("UTC") if start.tzinfo is None else start
         stamps = pd.date_range(start.normalize(), start.normalize() + pd.Timedelta("1D"), freq=step, inclusive="left")
         s = plant.site
@@ -205,8 +275,9 @@ def field(scenario, sun: torch.Tensor, settings: FieldRunSettings | None = None)
                           occlusion_model=settings.occlusion)
     t1 = time.perf_counter()
     kwargs = dict(atmosphere=Atmosphere.from_extras(scenario.extras), aim=aim, settings=model)
-    if settings.nproc > 1:
-        result = run_sharded(plant, sun, settings.nproc, **kwargs)
+    nproc = min(settings.nproc, len(plant.field.ids))  # at most one process per heliostat
+    if nproc > 1:
+        result = run_sharded(plant, sun, nproc, **kwargs)
     else:
         with torch.no_grad():
             result = field_optics(plant, sun, **kwargs)
@@ -292,10 +363,14 @@ def field_year(scenario, year: int, every: str = "1h", *, azimuth_step_deg: floa
         ``scenario``, ``aim``, ``dni_model`` and ``seconds`` [s].
     """
     t0 = time.perf_counter()
-    try:
-        pd.Timedelta(every)
-    except ValueError:
-        raise HeliotwinError(f"--every: cannot parse {every!r} (e.g. 1h, 30min)") from None
+    if isinstance(year, bool) or not isinstance(year, int) or not 1900 <= year <= 2100:
+        raise HeliotwinError(f"--year: expected a year in 1900..2100, got {year!r}")
+    step = _step(every)
+    if step > pd.Timedelta("366D"):
+        raise HeliotwinError(f"--every {_text(step)}: longer than the year")
+    if step % pd.Timedelta("1D") == pd.Timedelta(0):
+        raise HeliotwinError(f"--every {_text(step)}: a whole number of days puts every instant at the same time "
+                             "of day (e.g. all at night); use hours or minutes (1h, 30min, 25h)")
     atm = Atmosphere.from_extras(scenario.extras)
     step = float(azimuth_step_deg)
     if not 0 < step <= 180:
@@ -308,6 +383,8 @@ def field_year(scenario, year: int, every: str = "1h", *, azimuth_step_deg: floa
     else:
         report = annual_energy(scenario.plant, year, every, atmosphere=atm, table=table)
         dni_model = "pvlib ineichen clear sky"
+    if not report.get("instants"):
+        raise HeliotwinError(f"--year {year} --every {every}: no instant with the sun above the horizon")
     report.update({"scenario": os.path.abspath(scenario.path) if scenario.path else None, "aim": "equator",
                    "dni_model": dni_model, "seconds": time.perf_counter() - t0})
     return report

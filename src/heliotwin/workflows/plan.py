@@ -10,11 +10,14 @@ import datetime
 import math
 from dataclasses import dataclass
 
+import pandas as pd
+
 from ..calibrate.protocol.plan import plan as plan_records
 from ..calibrate.scenario import aim as aim_heliostat
 from ..errors import HeliotwinError
 from ..io.records import parse_time
 from ..io.scenario import Scenario
+from ..sun import daylight_times
 
 __all__ = ["PlanSettings", "plan", "AimRequest", "aim", "aim_time"]
 
@@ -46,6 +49,26 @@ class PlanSettings:
     min_elevation: float = 15.0
     sky: bool = False
 
+    def __post_init__(self):
+        # checked on construction, so bad settings are refused before any file is read
+        if self.year is not None and (isinstance(self.year, bool) or not isinstance(self.year, int)
+                                      or not 1900 <= self.year <= 2100):
+            raise HeliotwinError(f"--year: expected a year in 1900..2100, got {self.year!r}")
+        try:
+            step = pd.Timedelta(self.every)
+        except (ValueError, TypeError, OverflowError):
+            raise HeliotwinError(f"--every: cannot parse {self.every!r} (e.g. 1h, 30min)") from None
+        if not pd.Timedelta("1min") <= step <= pd.Timedelta("31D"):
+            raise HeliotwinError(f"--every {self.every}: expected a time step between 1min and 31d")
+        if step % pd.Timedelta("1D") == pd.Timedelta(0):
+            raise HeliotwinError(f"--every {self.every}: a whole number of days puts every candidate at the same "
+                                 "time of day; use hours or minutes (1h, 30min, 25h)")
+        if isinstance(self.count, bool) or not isinstance(self.count, int) or not 1 <= self.count <= 1000:
+            raise HeliotwinError(f"--count: expected 1..1000 records, got {self.count!r}")
+        e = self.min_elevation
+        if isinstance(e, bool) or not isinstance(e, (int, float)) or not math.isfinite(e) or not 0 <= e <= 89:
+            raise HeliotwinError(f"--min-elevation: expected an elevation in [0, 89] deg, got {e!r}")
+
 
 def plan(scenario: Scenario, heliostat: str, settings: PlanSettings = PlanSettings()) -> tuple[Scenario, dict]:
     """The sun positions whose calibration records would shrink ``heliostat``'s pointing uncertainty most.
@@ -59,6 +82,12 @@ def plan(scenario: Scenario, heliostat: str, settings: PlanSettings = PlanSettin
         the predictive spread after each [mrad]).
     """
     year = settings.year or datetime.datetime.now(datetime.timezone.utc).year
+    site = scenario.plant.site
+    times, _, _ = daylight_times(year, settings.every, site.latitude_deg, site.longitude_deg, site.altitude_m,
+                                 settings.min_elevation)
+    if len(times) == 0:
+        raise HeliotwinError(f"plan: no candidate time in {year} every {settings.every} with the sun above "
+                             f"{settings.min_elevation:g} deg at {site.latitude_deg:g} deg latitude")
     report = plan_records(scenario, heliostat, year=year, every=settings.every, count=settings.count,
                           target=settings.target, min_elevation_deg=settings.min_elevation, sky=settings.sky)
     return scenario, report
