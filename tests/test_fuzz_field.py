@@ -206,15 +206,15 @@ def test_no_output_replaces_an_input_or_another_output(work, capsys, argv, needl
 def test_field_writes_all_its_outputs_or_none(work, capsys, monkeypatch):
     """The flux map fails after the report and the CSV were produced: none of the three is written, and an
     older report stays as it was."""
-    import heliotwin.io.images as images
+    import heliotwin.plots as plots
 
     (work / "f.json").write_text("old\n")
     work.check = _rebase(work)
 
-    def broken(*args, **kwargs):
-        raise OSError(28, "No space left on device", str(args[1]))
+    def broken(*args, **kwargs):  # plot_receiver_flux(maps, receiver, path, ...)
+        raise OSError(28, "No space left on device", str(args[2]))
 
-    monkeypatch.setattr(images, "to_png", broken)
+    monkeypatch.setattr(plots, "plot_receiver_flux", broken)
     code, _, err = run_cli(capsys, "field", "--scenario", "p.h5", *SUN, *FAST, "--json", "f.json",
                            "--per-heliostat", "h.csv", "--flux", "m.png")
     assert code == 2 and "No space left" in err
