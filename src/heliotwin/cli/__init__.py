@@ -7,6 +7,7 @@ Layout: :mod:`.common` (error reporting, argument types), then one module per co
 * :mod:`.plant` -- ``demo``, ``scenario from-paint``, ``trace``, ``validate``, ``bench``
 * :mod:`.calibrate` -- ``calibrate``, ``split``, ``aim``
 * :mod:`.surfaces` -- ``reconstruct``, ``predict``
+* :mod:`.simulate` -- ``simulate``, ``score``
 
 The groups are ordinary imports: a command whose module fails to import breaks ``heliotwin`` loudly instead
 of disappearing from it. Library modules never import this package. Building the parser imports no torch
@@ -23,13 +24,13 @@ import argparse
 import sys
 
 from .. import __version__
-from . import calibrate, field, plan, plant, surfaces
+from . import calibrate, field, plan, plant, simulate, surfaces
 from .common import ArgumentParser, run_command
 
 __all__ = ["build_parser", "main", "run_command"]
 
 #: Command groups in the order of ``heliotwin --help``.
-GROUPS = (plant, calibrate, plan, surfaces, field)
+GROUPS = (plant, calibrate, plan, surfaces, field, simulate)
 
 
 def build_parser() -> argparse.ArgumentParser:

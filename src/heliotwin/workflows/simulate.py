@@ -1,0 +1,66 @@
+"""The ``simulate`` and ``score`` workflows: an in-silico plant written as a PAINT folder with its truth, and
+how close a learned scenario comes to that truth.
+
+:func:`simulate` draws the plant and its calibration history (:func:`heliotwin.simulate.simulate_plant`),
+writes the PAINT folder (atomically; every reader reads it unchanged) and returns the truth scenario in
+memory (the true kinematics at the end of the history as ``/learned/calibration``, method ``truth``, and the
+static deviations, drift and steps under ``/learned/simulation``) with a report; the caller writes the
+scenario. :func:`score` compares a scenario with a truth scenario (:func:`heliotwin.simulate.score`).
+"""
+from __future__ import annotations
+
+import os
+import time
+
+from ..calibrate.priors import PlantPrior
+from ..errors import InputFileError
+from ..io.scenario import Scenario, load_scenario
+from ..simulate import SimulationSettings, simulate_plant, truth_scenario, write_paint_folder
+from ..simulate import score as score_plant
+
+__all__ = ["SimulationSettings", "simulate", "score", "prior_from_scenario"]
+
+
+def prior_from_scenario(path) -> PlantPrior:
+    """The plant prior stored in a scenario (``/learned/calibration/prior``, e.g. ``calibrate --prior plant``)."""
+    sc = load_scenario(path)
+    state = (sc.learned.get("calibration") or {}).get("prior")
+    if not state:
+        raise InputFileError(path, "holds no calibration prior", field="/learned/calibration/prior")
+    return PlantPrior.from_state(state, path)
+
+
+def simulate(settings: SimulationSettings, out, *, prior: PlantPrior | None = None) -> tuple[Scenario, dict]:
+    """Simulate a plant and write its PAINT folder at ``out`` (absent or empty).
+
+    Parameters
+    ----------
+    settings : SimulationSettings
+    out : path
+        The PAINT folder to write.
+    prior : PlantPrior, optional
+        Distribution of the true static deviations (default: the simulator's fixed plant-like one).
+
+    Returns
+    -------
+    truth : Scenario
+        In memory (one ``simulate`` provenance step); write it with :func:`heliotwin.io.scenario.write_scenario`.
+    report : dict
+        Counts (heliostats, records, dropped, steps), ``seconds_simulate`` and ``seconds_write`` [s].
+    """
+    t0 = time.perf_counter()
+    sim = simulate_plant(settings, prior=prior)
+    t1 = time.perf_counter()
+    folder = write_paint_folder(sim, out)
+    t2 = time.perf_counter()
+    report = dict(sim.report, folder=os.path.abspath(folder), seed=settings.seed,
+                  prior="given" if prior is not None else "default", seconds_simulate=t1 - t0, seconds_write=t2 - t1)
+    return truth_scenario(sim, source=os.path.abspath(folder)), report
+
+
+def score(truth: Scenario, scenario: Scenario, *, suns: int = 16, seed: int = 0, flux: bool = True
+          ) -> tuple[Scenario, dict]:
+    """Score ``scenario`` against ``truth`` (unchanged scenario back; the report is the answer)."""
+    report = score_plant(truth, scenario, suns=suns, seed=seed, flux=flux)
+    report.update(truth=truth.path or None, scenario=scenario.path or None)
+    return scenario, report
