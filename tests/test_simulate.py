@@ -13,6 +13,7 @@ from helpers.cli import assert_one_line_error, run_cli
 
 from heliotwin.calibrate.metrics import pointing_error
 from heliotwin.calibrate.params import apply_deviations
+from heliotwin.io.images import read_png
 from heliotwin.io.paint import load_paint
 from heliotwin.io.scenario import load_scenario, write_scenario
 from heliotwin.simulate import SimulationSettings, simulate_plant, truth_scenario, write_paint_folder
@@ -186,3 +187,20 @@ def test_cli_simulate_then_score(tmp_path, capsys):
     # A folder that holds something is never written over.
     code, _, err = run_cli(capsys, "simulate", "--heliostats", 2, "--years", 0.1, "--out", out)
     assert_one_line_error(code, err, str(out), "--out")
+
+
+def test_images_of_a_few_heliostats_from_their_true_surfaces(tmp_path):
+    sim = simulate_plant(SimulationSettings(heliostats=4, seed=8, years=0.5, images=1, images_per_heliostat=3,
+                                            **STATIC))
+    assert len(sim.images) == 3 and len(sim.report["image_heliostats"]) == 1
+    table = load_paint(write_paint_folder(sim, tmp_path / "p")).records
+    paths = [p for p in table.flux_centered_png if p]
+    assert len(paths) == 3 and all(f"{int(r)}-flux-centered.png" in p for r, p in
+                                   zip(table.record_id, table.flux_centered_png) if p)
+    image = read_png(paths[0])
+    assert image.shape == (64, 64) and float(image.max()) == 1.0
+    assert float((image == 1.0).float().mean()) > 0.002  # a saturated plateau
+    assert float((image == 0.0).float().mean()) > 0.3  # the background is cut to zero
+    # Only the imaged heliostat's surface is defective: its normals are mrad off the ideal ones.
+    got = score(truth_scenario(sim), dataclasses.replace(truth_scenario(sim), plant=sim.plant), suns=2, flux=False)
+    assert got["surface_mrad"]["max"] > 0.5 and got["surface_mrad"]["median"] < 1e-6

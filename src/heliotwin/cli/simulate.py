@@ -29,6 +29,8 @@ def register(subparsers) -> None:
                    help="centroid noise per coordinate, as the angle at the heliostat (default 0.15 mrad)")
     p.add_argument("--step-rate", type=float_range(0.0, 100.0, what="a rate [1/year]"), default=0.2,
                    help="offset steps per heliostat-year (default 0.2)")
+    p.add_argument("--images", type=int_range(0, 1000, "a heliostat count"), default=0,
+                   help="heliostats with defective true surfaces whose records get flux-centred images (default 0)")
     p.add_argument("--layout", help="layout CSV (x,y,z[,id] ENU m) with the heliostat positions")
     p.add_argument("--paint-tower", help="PAINT tower file whose site and targets to use")
     p.add_argument("--prior-from", help="scenario holding a plant prior (calibrate --prior plant) to draw the "
@@ -69,7 +71,7 @@ def cmd_simulate(args) -> int:
         settings = SimulationSettings(heliostats=args.heliostats, seed=args.seed, years=args.years,
                                       start=args.start, records_per_month=args.records_per_month,
                                       centroid_noise_mrad=args.noise_mrad, step_rate_per_year=args.step_rate,
-                                      layout=args.layout, paint_tower=args.paint_tower)
+                                      images=args.images, layout=args.layout, paint_tower=args.paint_tower)
         prior = prior_from_scenario(args.prior_from) if args.prior_from else None
         truth, report = simulate(settings, folder, prior=prior)
         write_scenario(truth, truth_path)

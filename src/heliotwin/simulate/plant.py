@@ -51,10 +51,11 @@ from ..field import kinematics as K
 from ..field.demo import demo_plant
 from ..field.facets import ideal_surfaces, receiver_canting
 from ..field.layout import read_layout
-from ..field.plant import Kinematics, Plant
+from ..field.plant import Kinematics, Plant, Surfaces
 from ..geometry import ray_plane, reflect
 from ..io.paint import read_tower
 from ..sun import direction_from_paint_angles, paint_angles_from_direction, solar_position
+from . import images as imaging
 
 #: Standard deviation of each true static deviation (rad; relative for increments), zero mean (module notes).
 DEFAULT_SIGMA = {"initial_angle_1": 3e-3, "initial_angle_2": 3e-3, "joint_tilt_1_n": 1e-3, "joint_tilt_1_u": 1e-3,
@@ -103,6 +104,10 @@ class SimulationSettings:
         The plant's controller aims with its own earlier calibration: the true static kinematics with this
         error [mrad] on each encoder offset (the motor steps are whatever it commanded, so this only sets
         how far from the target centre the spots land, and which miss the target).
+    images : int
+        Heliostats with a defective true surface whose records get flux-centred images (:mod:`.images`).
+    images_per_heliostat : int
+        Most images per such heliostat (a random subset of its records).
     layout : str or None
         Layout CSV (``x,y,z[,id]`` ENU [m]): the heliostat positions instead of the demo field's.
     paint_tower : str or None
@@ -124,6 +129,8 @@ class SimulationSettings:
     step_rate_per_year: float = 0.2
     step_size_mrad: float = 1.0
     controller_error_mrad: float = 1.0
+    images: int = 0
+    images_per_heliostat: int = 10
     layout: str | None = None
     paint_tower: str | None = None
 
@@ -136,7 +143,8 @@ class SimulationSettings:
                  ("utis_missing", 0 <= self.utis_missing <= 1), ("time_missing", 0 <= self.time_missing <= 1),
                  ("drift_mrad_per_sqrt_day", self.drift_mrad_per_sqrt_day >= 0),
                  ("step_rate_per_year", self.step_rate_per_year >= 0), ("step_size_mrad", self.step_size_mrad >= 0),
-                 ("controller_error_mrad", self.controller_error_mrad >= 0)]
+                 ("controller_error_mrad", self.controller_error_mrad >= 0), ("images", self.images >= 0),
+                 ("images_per_heliostat", self.images_per_heliostat >= 1)]
         for name, ok in rules:
             if not ok:
                 raise HeliotwinError(f"simulate: {name} = {getattr(self, name)!r} is out of range")
@@ -208,6 +216,10 @@ class SimulatedPlant:
     settings : SimulationSettings
     report : dict
         Counts (scheduled, unreachable, off target, months at capacity).
+    surfaces : Surfaces or None
+        True surfaces [H, ...] when images were rendered (else the plant's ideal ones are the truth).
+    images : dict
+        Record id -> flux-centred camera image [R, R] (max 1).
     """
 
     plant: Plant
@@ -220,6 +232,8 @@ class SimulatedPlant:
     camera_offsets: dict
     settings: SimulationSettings
     report: dict = field(default_factory=dict)
+    surfaces: Surfaces | None = None
+    images: dict = field(default_factory=dict)
 
     def true_kinematics(self, drift: torch.Tensor | None = None) -> Kinematics:
         """True kinematics [H] with the drifting deviations ``drift`` [H, 2] (default: at the end time)."""
@@ -507,5 +521,33 @@ def simulate_plant(settings: SimulationSettings = SimulationSettings(), *, prior
               "dropped_below_min_elevation": int((~torch.from_numpy(day)).sum()),
               "months": sched["months"], "months_at_capacity": sched["months_at_capacity"],
               "steps": int(len(steps["time"])), "targets": planar}
-    return SimulatedPlant(plant, tuple(names), static, steps, float(t_end), end_drift, records,
-                          {n: cam_enu[i] for i, n in enumerate(planar)}, settings, report)
+    sim = SimulatedPlant(plant, tuple(names), static, steps, float(t_end), end_drift, records,
+                         {n: cam_enu[i] for i, n in enumerate(planar)}, settings, report)
+    if settings.images:
+        _add_images(sim, rng)
+    return sim
+
+
+def _add_images(sim: SimulatedPlant, rng: np.random.Generator) -> None:
+    """Defective true surfaces for ``settings.images`` heliostats and camera images of some of their records."""
+    s, rec, plant = sim.settings, sim.records, sim.plant
+    h = len(plant.field.ids)
+    chosen = sorted(rng.choice(h, size=min(s.images, h), replace=False).tolist())
+    gen = torch.Generator().manual_seed(int(rng.integers(2**62)))
+    sim.surfaces = imaging.true_surfaces(plant.field.facets, chosen, gen)
+    for k in chosen:  # a few heliostats; each one's records are rendered in one batch
+        rows = (rec.heliostat_index == k).nonzero().flatten().numpy()
+        if not len(rows):
+            continue
+        rows = torch.from_numpy(np.sort(rng.choice(rows, size=min(s.images_per_heliostat, len(rows)),
+                                                   replace=False)))
+        idx = rec.heliostat_index[rows]
+        kin = true_kinematics(plant.field.kinematics.index(idx), sim.static[idx], sim.names, rec.drift[rows])
+        sun = direction_from_paint_angles(rec.sun_azimuth[rows], rec.sun_elevation[rows], check_horizon=False)
+        one = Surfaces(sim.surfaces.control_points[k:k + 1], sim.surfaces.degree_u, sim.surfaces.degree_v)
+        imgs = imaging.render(one, kin, rec.motor_steps[rows], sun, [plant.targets[rec.target[i]] for i in
+                                                                    rows.tolist()], plant.sun, rng)
+        for r, img in zip(rec.record_id[rows].tolist(), imgs):
+            sim.images[int(r)] = img
+    sim.report["images"] = len(sim.images)
+    sim.report["image_heliostats"] = [plant.field.ids[k] for k in chosen]

@@ -7,7 +7,7 @@
   sun's reflection on an aim point; the *true* heliostat at those steps has some mirror normal; the error is
   its angle to the normal that would have hit the aim point (so the truth scores exactly 0);
 * **surface normal error** [mrad]: area-weighted RMS angle between the learned and the true surface normals
-  of each heliostat (when both have surfaces of the same resolution);
+  of each heliostat, at the same parameter samples of each facet (any NURBS nets);
 * **receiver flux**: the flux map the learned twin predicts (learned plant, intended aim points) against the
   one the true plant delivers (true plant, aimed by the learned model), as a relative L1 difference.
 """
@@ -81,11 +81,11 @@ def _stats(values: torch.Tensor) -> dict:
 
 
 def surface_errors(true_surfaces, learned_surfaces, samples=(8, 8)) -> torch.Tensor | None:
-    """Area-weighted RMS normal angle [H] [rad] between two heliostat surface sets (None when their control
-    grids differ in shape or degree)."""
+    """Area-weighted RMS normal angle [H] [rad] between two heliostat surface sets, compared at the same
+    parameter samples of each facet (so nets of other sizes or degrees compare too); None when the heliostat or
+    facet counts differ."""
     a, b = true_surfaces.control_points, learned_surfaces.control_points
-    if a.shape != b.shape or (true_surfaces.degree_u, true_surfaces.degree_v) != (learned_surfaces.degree_u,
-                                                                                  learned_surfaces.degree_v):
+    if a.shape[:2] != b.shape[:2]:
         return None
     _, nt, area = surface_points(true_surfaces, samples)
     _, nl, _ = surface_points(learned_surfaces, samples)

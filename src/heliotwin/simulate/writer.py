@@ -22,6 +22,7 @@ import torch
 from ..errors import HeliotwinError, InputFileError
 from ..field.plant import Kinematics
 from ..field.targets import PlanarTarget
+from ..io.images import to_png
 from ..io.records import SOURCES
 from ..io.scenario import Scenario, next_scenario, provenance_entry
 from ..site import enu_to_wgs84
@@ -142,6 +143,9 @@ def _write(sim: SimulatedPlant, root: str) -> None:
         with open(os.path.join(root, hid, "Calibration", f"{ids[i]}-calibration-properties.json"), "w",
                   encoding="utf-8") as fh:
             fh.write(json.dumps(doc))
+    for rid, img in sim.images.items():
+        hid = fl.ids[hidx[ids.index(rid)]]
+        to_png(img, os.path.join(root, hid, "Calibration", f"{rid}-flux-centered.png"))
     os.makedirs(os.path.join(root, "metadata"))
     when = pd.to_datetime(rec.time.numpy(), unit="s", utc=True).strftime("%Y-%m-%d %H:%M:%S+00:00")
     keep = rec.has_time.tolist()
@@ -177,8 +181,9 @@ def truth_scenario(sim: SimulatedPlant, source: str = "") -> Scenario:
     """The true plant (kinematics at the end of the history) as an in-memory scenario."""
     learned, kin = truth_learned(sim)
     plant = sim.plant
+    surfaces = sim.surfaces if sim.surfaces is not None else plant.field.surfaces
     true_plant = type(plant)(plant.site, plant.targets, type(plant.field)(
-        plant.field.ids, kin, plant.field.facets, plant.field.surfaces, plant.field.width, plant.field.height,
+        plant.field.ids, kin, plant.field.facets, surfaces, plant.field.width, plant.field.height,
         plant.field.renovation), plant.sun)
     if kin.num_heliostats != len(plant.field.ids):
         raise HeliotwinError("simulate: truth and plant disagree on the heliostats")
