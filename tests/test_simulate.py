@@ -5,14 +5,17 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import tempfile
 
 import numpy as np
 import pytest
 import torch
 from helpers.cli import assert_one_line_error, run_cli
 
+from heliotwin.calibrate.methods.lm import fit_lm
 from heliotwin.calibrate.metrics import pointing_error
-from heliotwin.calibrate.params import apply_deviations
+from heliotwin.calibrate.params import STONE8, apply_deviations
+from heliotwin.calibrate.priors import LOOSE_SIGMA
 from heliotwin.io.images import read_png
 from heliotwin.io.paint import load_paint
 from heliotwin.io.scenario import load_scenario, write_scenario
@@ -34,6 +37,19 @@ def small():
 @pytest.fixture(scope="module")
 def small_folder(small, tmp_path_factory):
     return write_paint_folder(small, tmp_path_factory.mktemp("sim") / "plant")
+
+
+def load_paint_records(sim):
+    """The simulated records as the reader's table (through a written folder)."""
+    with tempfile.TemporaryDirectory() as d:
+        return load_paint(write_paint_folder(sim, f"{d}/plant")).records
+
+
+def load_scenario_like(sim, kinematics):
+    """The truth scenario of ``sim`` with other kinematics (what a calibration would write)."""
+    truth = truth_scenario(sim)
+    return dataclasses.replace(truth, plant=dataclasses.replace(
+        truth.plant, field=dataclasses.replace(truth.plant.field, kinematics=kinematics)))
 
 
 def _by_id(sim, table):
@@ -161,14 +177,32 @@ def test_truth_scenario_round_trips_and_holds_the_deviations(small, tmp_path):
     assert score(sc, sc, suns=4, flux=False)["pointing_mrad"]["max"] < 1e-9
 
 
-def test_lm_calibration_recovers_the_truth(small, small_folder):
-    scenario, report = calibrate(None, small_folder, CalibrationSettings(method="lm", min_records=20, train=30))
-    assert report["overall"]["n_heliostats"] == 12
-    got = score(truth_scenario(small), scenario, suns=16, flux=False)
+def test_lm_fit_recovers_the_truth(small):
+    """The lm engine alone (one batched fit of every heliostat on its records): the truth within the noise."""
+    table = load_paint_records(small)
+    nominal = small.plant.field.kinematics
+    delta, _ = fit_lm(nominal, table, names=STONE8, prior_sigma=LOOSE_SIGMA)
+    fitted = load_scenario_like(small, apply_deviations(nominal, delta, STONE8))
+    truth = truth_scenario(small)
+    got = score(truth, fitted, suns=16, flux=False)
     noise = small.settings.centroid_noise_mrad
+    assert got["pointing_per_heliostat_mrad"]["median"] < 1.5 * noise and got["pointing_mrad"]["p95"] < 4 * noise
+    assert score(truth, load_scenario_like(small, nominal), suns=16, flux=False)["pointing_mrad"]["median"] > 3.0
+
+
+@pytest.mark.slow
+def test_lm_calibration_recovers_the_truth(tmp_path):
+    """The calibrate workflow with its defaults (bagging, field prior, chronological split)."""
+    sim = simulate_plant(SimulationSettings(heliostats=4, seed=6, years=0.8, records_per_month=5, **STATIC))
+    folder = write_paint_folder(sim, tmp_path / "plant")
+    scenario, report = calibrate(None, folder, CalibrationSettings(method="lm", min_records=20, train=30))
+    assert report["overall"]["n_heliostats"] == 4
+    truth = truth_scenario(sim)
+    got = score(truth, scenario, suns=16, flux=False)
+    noise = sim.settings.centroid_noise_mrad
     assert got["pointing_per_heliostat_mrad"]["median"] < 2 * noise
     assert got["pointing_mrad"]["p95"] < 5 * noise
-    nominal = score(truth_scenario(small), dataclasses.replace(scenario, plant=small.plant), suns=16, flux=False)
+    nominal = score(truth, dataclasses.replace(scenario, plant=sim.plant), suns=16, flux=False)
     assert nominal["pointing_mrad"]["median"] > 10 * got["pointing_mrad"]["median"]
 
 

@@ -33,8 +33,8 @@ def register(subparsers) -> None:
                    help="heliostats with defective true surfaces whose records get flux-centred images (default 0)")
     p.add_argument("--layout", help="layout CSV (x,y,z[,id] ENU m) with the heliostat positions")
     p.add_argument("--paint-tower", help="PAINT tower file whose site and targets to use")
-    p.add_argument("--prior-from", help="scenario holding a plant prior (calibrate --prior plant) to draw the "
-                                        "true deviations from")
+    p.add_argument("--prior-from", help="draw the true deviations from the plant prior of a PAINT folder (learned "
+                                        "from its heliostats' records) or of a scenario that stores one")
     p.add_argument("--out", required=True, help="PAINT folder to write (must not exist or be empty)")
     p.add_argument("--truth", help="truth scenario file (default: OUT/truth.h5)")
     p.add_argument("--json", help="also write the report as JSON")
@@ -58,7 +58,7 @@ def cmd_simulate(args) -> int:
 
     from ..errors import InputFileError
     from ..io.scenario import write_scenario
-    from ..workflows.simulate import SimulationSettings, prior_from_scenario, simulate
+    from ..workflows.simulate import SimulationSettings, prior_from, simulate
 
     if os.path.exists(args.out) and (not os.path.isdir(args.out) or os.listdir(args.out)):
         raise InputFileError(args.out, "exists and is not an empty folder; write a simulated plant to a new one",
@@ -72,7 +72,7 @@ def cmd_simulate(args) -> int:
                                       start=args.start, records_per_month=args.records_per_month,
                                       centroid_noise_mrad=args.noise_mrad, step_rate_per_year=args.step_rate,
                                       images=args.images, layout=args.layout, paint_tower=args.paint_tower)
-        prior = prior_from_scenario(args.prior_from) if args.prior_from else None
+        prior = prior_from(args.prior_from) if args.prior_from else None
         truth, report = simulate(settings, folder, prior=prior)
         write_scenario(truth, truth_path)
         report.update(folder=os.path.abspath(args.out), truth=os.path.abspath(args.truth or

@@ -7,9 +7,9 @@ any learned plant against that truth.
   :func:`truth_scenario`);
 * :mod:`.score` -- pointing, surface and flux errors of a learned scenario against the truth (:func:`score`).
 """
-from .plant import DEFAULT_SIGMA, SimulatedPlant, SimulationSettings, simulate_plant
+from .plant import SimulatedPlant, SimulationSettings, paint_prior, simulate_plant
 from .score import score
 from .writer import truth_scenario, write_paint_folder
 
-__all__ = ["DEFAULT_SIGMA", "SimulatedPlant", "SimulationSettings", "simulate_plant", "score", "truth_scenario",
+__all__ = ["SimulatedPlant", "SimulationSettings", "paint_prior", "simulate_plant", "score", "truth_scenario",
            "write_paint_folder"]

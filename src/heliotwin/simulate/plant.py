@@ -5,8 +5,8 @@
 * **the plant** -- the embedded Jülich-like demo field (:func:`heliotwin.field.demo.demo_plant`), optionally
   moved onto the positions of a layout CSV and/or the targets of a PAINT tower file;
 * **true static deviations** of the 8 Stone/Jülich parameters (:data:`heliotwin.calibrate.params.STONE8`) per
-  heliostat, from a Gaussian plant prior: :data:`DEFAULT_SIGMA` (module notes) or a learned
-  :class:`~heliotwin.calibrate.priors.PlantPrior` passed in;
+  heliostat, from a Gaussian plant prior: the one learned from PAINT's Jülich records (:func:`paint_prior`,
+  embedded) or any :class:`~heliotwin.calibrate.priors.PlantPrior` passed in;
 * **drift** of the two encoder offsets (``initial_angle_1/2``): a random walk plus steps at a Poisson rate per
   heliostat-year with Gaussian sizes (a motor exchange, a re-referenced encoder);
 * **the calibration schedule** of a tower: daytime only (sun above ``min_elevation_deg``), one heliostat per
@@ -22,11 +22,10 @@ Notes
 -----
 Default magnitudes and where they come from (PAINT's Jülich records, ``../shared/data/paint``):
 
-* static deviations, :data:`DEFAULT_SIGMA`: encoder offsets 3 mrad, tilts 1 mrad, gear ratios 0.2 %. The
-  nominal PAINT kinematics point a few mrad off (their untouched pointing errors are several mrad), and the
-  lm fits' own prior scales (``calibrate.priors.STONE8_SIGMA``: tilts 3 mrad, increments 0.5 %; floors
-  1 mrad) bound the spread. Pass a plant prior (``--prior-from`` a scenario holding one) to use the learned
-  covariance instead.
+* static deviations: the plant prior of PAINT's 25 Jülich heliostats with enough records (:data:`PAINT_PRIOR_MEAN`
+  etc.; what ``--prior-from ../shared/data/paint`` learns): means of -10 to +11 mrad, spreads of 5-14 mrad
+  (47 mrad for the poorly determined first-axis tilt about up), gear ratios 0.1-0.2 %, so the nominal
+  kinematics point ~10 mrad off as PAINT's do. ``--prior-from`` takes another PAINT folder or a stored prior.
 * centroid noise 0.15 mrad (per in-plane coordinate, as the angle the error subtends at the heliostat).
 * UTIS missing in 26 % of records, timestamps missing in 1.4 % (444 and 23 of PAINT's 1704 records); the
   median HeliOS - UTIS offset per target is 2-9 cm (-4, 0, 8 cm; -3, 0, -2 cm; 0, 0, 4 cm for the three
@@ -57,9 +56,27 @@ from ..io.paint import read_tower
 from ..sun import direction_from_paint_angles, paint_angles_from_direction, solar_position
 from . import images as imaging
 
-#: Standard deviation of each true static deviation (rad; relative for increments), zero mean (module notes).
-DEFAULT_SIGMA = {"initial_angle_1": 3e-3, "initial_angle_2": 3e-3, "joint_tilt_1_n": 1e-3, "joint_tilt_1_u": 1e-3,
-                 "joint_tilt_2_n": 1e-3, "concentrator_tilt_e": 1e-3, "increment_1": 2e-3, "increment_2": 2e-3}
+#: The plant prior learned from PAINT's Jülich records (``../shared/data/paint``: 25 heliostats with >= 9 records,
+#: one loose lm fit each, :class:`heliotwin.calibrate.protocol.archive.PriorArchive`, full covariance shrunk 0.2
+#: towards its diagonal; two heliostats' suspicious actuator values corrected first), over :data:`STONE8`:
+#: mean and standard deviation [mrad; 1e-3 relative for increments], and the correlation (rounded to 0.01).
+PAINT_PRIOR_MEAN = (-9.932, -2.149, -1.157, 11.295, -0.474, 9.308, -0.018, -0.841)
+PAINT_PRIOR_SD = (5.447, 13.867, 9.678, 46.668, 5.208, 5.909, 1.944, 1.214)
+PAINT_PRIOR_CORRELATION = (
+    (1.0, -0.18, 0.21, 0.29, -0.08, -0.59, 0.23, 0.34), (-0.18, 1.0, -0.2, -0.02, -0.27, 0.13, -0.25, -0.14),
+    (0.21, -0.2, 1.0, -0.07, -0.35, -0.29, -0.06, 0.1), (0.29, -0.02, -0.07, 1.0, -0.18, -0.04, 0.34, 0.01),
+    (-0.08, -0.27, -0.35, -0.18, 1.0, 0.04, -0.15, -0.01), (-0.59, 0.13, -0.29, -0.04, 0.04, 1.0, 0.12, -0.36),
+    (0.23, -0.25, -0.06, 0.34, -0.15, 0.12, 1.0, -0.14), (0.34, -0.14, 0.1, 0.01, -0.01, -0.36, -0.14, 1.0))
+
+
+def paint_prior() -> PlantPrior:
+    """:data:`PAINT_PRIOR_MEAN` / ``_SD`` / ``_CORRELATION`` as a :class:`PlantPrior` (physical units)."""
+    sd = torch.tensor(PAINT_PRIOR_SD, dtype=torch.float64) * 1e-3
+    cov = torch.tensor(PAINT_PRIOR_CORRELATION, dtype=torch.float64) * sd[:, None] * sd[None, :]
+    return PlantPrior(STONE8, torch.tensor(PAINT_PRIOR_MEAN, dtype=torch.float64) * 1e-3, cov, [],
+                      {"source": "PAINT Juelich records (embedded)"})
+
+
 #: The deviations that drift and step: the two encoder offsets.
 DRIFTING = ("initial_angle_1", "initial_angle_2")
 #: Spacing [s] of the grid on which the sun is computed (NREL SPA); records interpolate it (cubic spline of
@@ -285,18 +302,13 @@ def nominal_plant(settings: SimulationSettings) -> Plant:
 
 
 def draw_static(rng: np.random.Generator, h: int, prior: PlantPrior | None = None) -> tuple[torch.Tensor, tuple]:
-    """True static deviations [H, P] and their names: N(prior mean, prior covariance), or :data:`DEFAULT_SIGMA`
-    (zero mean, independent) without a prior."""
-    if prior is None:
-        names = STONE8
-        mean = np.zeros(len(names))
-        chol = np.diag([DEFAULT_SIGMA[n] for n in names])
-    else:
-        names = tuple(prior.names)
-        mean = prior.mean.double().numpy()
-        chol = np.linalg.cholesky(prior.covariance.double().numpy())
+    """True static deviations [H, P] ~ N(prior mean, prior covariance) and their names (default prior:
+    :func:`paint_prior`)."""
+    prior = prior or paint_prior()
+    names = tuple(prior.names)
+    chol = np.linalg.cholesky(prior.covariance.double().numpy())
     z = rng.standard_normal((h, len(names)))
-    return torch.from_numpy(mean + z @ chol.T), names
+    return torch.from_numpy(prior.mean.double().numpy() + z @ chol.T), names
 
 
 # --------------------------------------------------------------------------------------------- schedule
@@ -446,7 +458,7 @@ def simulate_plant(settings: SimulationSettings = SimulationSettings(), *, prior
     ----------
     settings : SimulationSettings
     prior : PlantPrior, optional
-        Distribution of the static deviations (default: :data:`DEFAULT_SIGMA`).
+        Distribution of the static deviations (default: :func:`paint_prior`).
 
     Returns
     -------

@@ -13,21 +13,24 @@ import os
 import time
 
 from ..calibrate.priors import PlantPrior
+from ..calibrate.protocol.archive import PriorArchive, load_prior_source
 from ..errors import InputFileError
-from ..io.scenario import Scenario, load_scenario
+from ..io.scenario import Scenario
 from ..simulate import SimulationSettings, simulate_plant, truth_scenario, write_paint_folder
 from ..simulate import score as score_plant
 
-__all__ = ["SimulationSettings", "simulate", "score", "prior_from_scenario"]
+__all__ = ["SimulationSettings", "simulate", "score", "prior_from"]
 
 
-def prior_from_scenario(path) -> PlantPrior:
-    """The plant prior stored in a scenario (``/learned/calibration/prior``, e.g. ``calibrate --prior plant``)."""
-    sc = load_scenario(path)
-    state = (sc.learned.get("calibration") or {}).get("prior")
-    if not state:
-        raise InputFileError(path, "holds no calibration prior", field="/learned/calibration/prior")
-    return PlantPrior.from_state(state, path)
+def prior_from(path) -> PlantPrior:
+    """A plant prior as ``calibrate --prior-from`` takes it: learned from every heliostat of a PAINT folder with
+    enough records (:class:`~heliotwin.calibrate.protocol.archive.PriorArchive`), or stored in a scenario
+    (``/learned/calibration/prior``)."""
+    if not os.path.exists(path):
+        raise InputFileError(path, "not found; --prior-from needs a PAINT folder or a scenario file",
+                             field="--prior-from")
+    source = load_prior_source(path)
+    return source.prior() if isinstance(source, PriorArchive) else source
 
 
 def simulate(settings: SimulationSettings, out, *, prior: PlantPrior | None = None) -> tuple[Scenario, dict]:
@@ -39,7 +42,7 @@ def simulate(settings: SimulationSettings, out, *, prior: PlantPrior | None = No
     out : path
         The PAINT folder to write.
     prior : PlantPrior, optional
-        Distribution of the true static deviations (default: the simulator's fixed plant-like one).
+        Distribution of the true static deviations (default: the one learned from PAINT's Jülich records).
 
     Returns
     -------
