@@ -17,10 +17,10 @@ from heliotwin.calibrate.metrics import pointing_error
 from heliotwin.calibrate.params import STONE8, apply_deviations
 from heliotwin.calibrate.priors import LOOSE_SIGMA
 from heliotwin.io.images import read_png
-from heliotwin.io.paint import load_paint
+from heliotwin.io.paint import HELIOSTAT_DIR, load_paint
 from heliotwin.io.scenario import load_scenario, write_scenario
 from heliotwin.simulate import SimulationSettings, simulate_plant, truth_scenario, write_paint_folder
-from heliotwin.simulate.plant import DRIFTING, draw_steps, drift_at, true_kinematics
+from heliotwin.simulate.plant import DRIFTING, draw_steps, drift_at, nominal_plant, true_kinematics
 from heliotwin.simulate.score import score
 from heliotwin.workflows.calibrate import CalibrationSettings, calibrate
 
@@ -238,3 +238,20 @@ def test_images_of_a_few_heliostats_from_their_true_surfaces(tmp_path):
     # Only the imaged heliostat's surface is defective: its normals are mrad off the ideal ones.
     got = score(truth_scenario(sim), dataclasses.replace(truth_scenario(sim), plant=sim.plant), suns=2, flux=False)
     assert got["surface_mrad"]["max"] > 0.5 and got["surface_mrad"]["median"] < 1e-6
+
+
+def test_large_plants_stand_on_the_radial_field_and_layouts_are_honoured(tmp_path):
+    plant = nominal_plant(SimulationSettings(heliostats=450, seed=1))
+    ids, pos = plant.field.ids, plant.field.kinematics.position
+    assert len(set(ids)) == 450 and all(HELIOSTAT_DIR.match(h) for h in ids)
+    assert float(pos[:, 1].min()) > 10.0 and 25.0 < float(pos[:, :2].norm(dim=-1).min())
+    assert float(pos[:, :2].norm(dim=-1).max()) < 400.0
+    assert float(torch.cdist(pos[:, :2], pos[:, :2]).add(torch.eye(450) * 1e9).min()) > 3.0  # no two collide
+    csv = tmp_path / "layout.csv"
+    csv.write_text("id,x,y,z\nA,-10,40,1.6\nB,0,50,1.6\nC,12,60,1.7\nD,5,80,1.5\n")
+    sim = simulate_plant(SimulationSettings(seed=2, years=0.3, layout=str(csv)))
+    ds = load_paint(write_paint_folder(sim, tmp_path / "p"))
+    assert ds.plant.field.ids == ["AA00", "AA01", "AA02", "AA03"] and len(ds.records) > 0
+    assert torch.allclose(ds.plant.field.kinematics.position,
+                          torch.tensor([[-10.0, 40, 1.6], [0, 50, 1.6], [12, 60, 1.7], [5, 80, 1.5]],
+                                       dtype=torch.float64), atol=1e-6)

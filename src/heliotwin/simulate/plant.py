@@ -47,7 +47,7 @@ from ..calibrate.params import STONE8, apply_deviations
 from ..calibrate.priors import PlantPrior
 from ..errors import HeliotwinError
 from ..field import kinematics as K
-from ..field.demo import demo_plant
+from ..field.demo import demo_field_positions, demo_plant
 from ..field.facets import ideal_surfaces, receiver_canting
 from ..field.layout import read_layout
 from ..field.plant import Kinematics, Plant, Surfaces
@@ -270,35 +270,70 @@ def _paint_id(i: int) -> str:
     return chr(ord("A") + (i // 2600) % 26) + chr(ord("A") + (i // 100) % 26) + f"{i % 100:02d}"
 
 
+#: Up to this many heliostats the demo field's Jülich-like rows within 150 m of the tower hold the plant (PAINT-like
+#: ids such as ``AA39``); larger plants stand on the radial-staggered demo field (:func:`demo_field_positions`).
+JUELICH_ROWS_MAX = 400
+
+
+def _moved(plant: Plant, position: torch.Tensor, ids: list) -> Plant:
+    """``plant``'s heliostats moved to ``position`` [H, 3] ENU [m] and renamed, facets re-canted to the new
+    slant range to the receiver."""
+    kin = plant.field.kinematics.replace(position=position.to(torch.float64))
+    fac = plant.field.facets
+    slant = torch.linalg.vector_norm(plant.targets["receiver"].center - kin.position, dim=-1)
+    ce, cn = receiver_canting(fac.translation, float(fac.canting_e[0, 0].norm()), float(fac.canting_n[0, 0].norm()),
+                              slant)
+    fac = replace(fac, canting_e=ce, canting_n=cn)
+    cp = plant.field.surfaces.control_points
+    surf = ideal_surfaces(fac, num_control_points=tuple(cp.shape[2:4]),
+                          degree=(plant.field.surfaces.degree_u, plant.field.surfaces.degree_v))
+    return replace(plant, field=replace(plant.field, ids=list(ids), kinematics=kin, facets=fac, surfaces=surf))
+
+
 def nominal_plant(settings: SimulationSettings) -> Plant:
-    """The nominal plant: the demo field, moved onto ``settings.layout``'s positions (ids become PAINT-style
-    ``AA00``, ``AA01``, ... in layout order), with ``settings.paint_tower``'s site and targets."""
+    """The nominal plant: the demo field (Jülich-like rows up to :data:`JUELICH_ROWS_MAX` heliostats, the
+    radial-staggered field beyond, ids ``AA00``, ``AA01``, ...), or ``settings.layout``'s positions (ids in layout
+    order), with ``settings.paint_tower``'s site and targets. Each heliostat keeps the demo's Jülich-like
+    variations (pivot height, actuator zero points, motor ranges)."""
     if settings.layout:
         layout = read_layout(settings.layout)
         n = len(layout.ids)
-        if n > 26 * 26 * 100:
-            raise HeliotwinError(f"{settings.layout}: {n} heliostats exceed PAINT's id pattern (at most 67600)")
-        plant = demo_plant(n, settings.seed)
-        pos = layout.position.to(torch.float64)
-        kin = plant.field.kinematics.replace(position=pos)
-        fac = plant.field.facets
-        slant = torch.linalg.vector_norm(plant.targets["receiver"].center - pos, dim=-1)
-        ce, cn = receiver_canting(fac.translation, float(fac.canting_e[0, 0].norm()),
-                                  float(fac.canting_n[0, 0].norm()), slant)
-        fac = replace(fac, canting_e=ce, canting_n=cn)
-        cp = plant.field.surfaces.control_points
-        surf = ideal_surfaces(fac, num_control_points=tuple(cp.shape[2:4]),
-                              degree=(plant.field.surfaces.degree_u, plant.field.surfaces.degree_v))
-        plant = replace(plant, field=replace(plant.field, ids=[_paint_id(i) for i in range(n)], kinematics=kin,
-                                             facets=fac, surfaces=surf))
+        position = layout.position.to(torch.float64)
     else:
-        plant = demo_plant(int(settings.heliostats), settings.seed)
+        n = int(settings.heliostats)
+        position = None
+    if n > 26 * 26 * 100:
+        raise HeliotwinError(f"simulate: {n} heliostats exceed PAINT's id pattern (at most 67600)")
+    plant = demo_plant(n, settings.seed) if n <= JUELICH_ROWS_MAX else _demo_variations(n, settings.seed)
+    if position is None and n > JUELICH_ROWS_MAX:
+        position = demo_field_positions(n, max_east=135.0 if n <= 2200 else None)
+        position = position + torch.stack([torch.zeros(n), torch.zeros(n), plant.field.kinematics.position[:, 2]], -1)
+    if position is not None:
+        plant = _moved(plant, position, [_paint_id(i) for i in range(n)])
     if settings.paint_tower:
         site, targets = read_tower(settings.paint_tower)
         plant = replace(plant, site=site, targets=targets)
     if not any(t.kind == "planar" for t in plant.targets.values()):
         raise HeliotwinError("simulate: the tower has no planar calibration target")
     return plant
+
+
+def _demo_variations(n: int, seed: int) -> Plant:
+    """A demo plant of ``n`` heliostats for its per-heliostat variations only (positions are replaced): drawn
+    in blocks of :data:`JUELICH_ROWS_MAX` so that any ``n`` fits the demo's row layout."""
+    blocks = [demo_plant(min(JUELICH_ROWS_MAX, n - a), seed + a) for a in range(0, n, JUELICH_ROWS_MAX)]
+    if len(blocks) == 1:
+        return blocks[0]
+    first = blocks[0]
+    kin = Kinematics.concatenate([b.field.kinematics for b in blocks])
+    fac = type(first.field.facets)(*(torch.cat([getattr(b.field.facets, a) for b in blocks])
+                                     for a in ("translation", "canting_e", "canting_n")))
+    sf = first.field.surfaces
+    surf = Surfaces(torch.cat([b.field.surfaces.control_points for b in blocks]), sf.degree_u, sf.degree_v)
+    fl = replace(first.field, ids=[_paint_id(i) for i in range(n)], kinematics=kin, facets=fac, surfaces=surf,
+                 width=torch.cat([b.field.width for b in blocks]), height=torch.cat([b.field.height for b in blocks]),
+                 renovation=[""] * n)
+    return replace(first, field=fl)
 
 
 def draw_static(rng: np.random.Generator, h: int, prior: PlantPrior | None = None) -> tuple[torch.Tensor, tuple]:
