@@ -2,8 +2,9 @@
 
 :func:`simulate_plant` draws everything from one seed (a private ``numpy.random.Generator``; no global state):
 
-* **the plant** -- the embedded Jülich-like demo field (:func:`heliotwin.field.demo.demo_plant`), optionally
-  moved onto the positions of a layout CSV and/or the targets of a PAINT tower file;
+* **the plant** -- the embedded Jülich-like demo field (:func:`heliotwin.field.demo.demo_plant`; the
+  radial-staggered demo field beyond :data:`JUELICH_ROWS_MAX` heliostats), or the positions of a layout CSV,
+  optionally with the site and targets of a PAINT tower file;
 * **true static deviations** of the 8 Stone/Jülich parameters (:data:`heliotwin.calibrate.params.STONE8`) per
   heliostat, from a Gaussian plant prior: the one learned from PAINT's Jülich records (:func:`paint_prior`,
   embedded) or any :class:`~heliotwin.calibrate.priors.PlantPrior` passed in;
@@ -11,10 +12,13 @@
   heliostat-year with Gaussian sizes (a motor exchange, a re-referenced encoder);
 * **the calibration schedule** of a tower: daytime only (sun above ``min_elevation_deg``), one heliostat per
   planar calibration target per time slot, each heliostat a Poisson number of records per month;
-* **the records**: the controller aims at the target centre with the *nominal* kinematics (the file's),
-  motor steps are rounded to whole steps, the *true* heliostat (static + drift at that instant) reflects the
-  sun's centre onto the target plane, and two cameras measure the spot with centroid noise; the second
-  camera (UTIS) has a per-target offset and is missing at a rate, the timestamp is missing at a rate.
+* **the records**: the plant's controller aims at the target centre with its own earlier calibration (the
+  true static kinematics with ``controller_error_mrad`` on each encoder offset), motor steps are rounded to
+  whole steps, the *true* heliostat (static + drift at that instant) reflects the sun's centre onto the target
+  plane, and two cameras measure the spot with centroid noise; the second camera (UTIS) has a per-target
+  offset and is missing at a rate, the timestamp is missing at a rate. A spot off its target, a pose outside
+  the motor range or a sun below ``min_elevation_deg`` gives no record (counted in the report);
+* optionally **flux-centred images** of a few heliostats with defective true surfaces (:mod:`.images`).
 
 Everything is batched over heliostats and records (loops run over months and record chunks only).
 
