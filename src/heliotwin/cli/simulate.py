@@ -7,7 +7,7 @@ stays torch-free.
 from __future__ import annotations
 
 from ..io.report import output_set, write_json
-from .common import float_range, int_range
+from .common import float_range, int_range, seed_int
 
 
 def register(subparsers) -> None:
@@ -19,7 +19,7 @@ def register(subparsers) -> None:
                                           "command reads, and the truth as a scenario (default OUT/truth.h5).")
     p.add_argument("--heliostats", type=int_range(1, 67600, "a heliostat count"), default=100,
                    help="heliostats of the demo field (default 100; ignored with --layout)")
-    p.add_argument("--seed", type=int, default=0, help="seed of every random draw (default 0)")
+    p.add_argument("--seed", type=seed_int, default=0, help="seed of every random draw (default 0)")
     p.add_argument("--years", type=float_range(0.01, 50.0, what="years"), default=3.0,
                    help="length of the calibration history (default 3)")
     p.add_argument("--records-per-month", type=float_range(0.01, 1000.0, what="records per month"), default=2.8,
@@ -47,7 +47,7 @@ def register(subparsers) -> None:
     s.add_argument("--truth", required=True, help="truth scenario (heliotwin simulate)")
     s.add_argument("--scenario", required=True, help="scenario to score (calibrate -o, update, reconstruct ...)")
     s.add_argument("--suns", type=int_range(1, 10000, "a sun count"), default=16, help="sun positions (default 16)")
-    s.add_argument("--seed", type=int, default=0, help="seed of the sun positions (default 0)")
+    s.add_argument("--seed", type=seed_int, default=0, help="seed of the sun positions (default 0)")
     s.add_argument("--no-flux", action="store_true", help="skip the receiver flux comparison")
     s.add_argument("--json", help="also write the report as JSON")
     s.set_defaults(func=cmd_score)

@@ -169,6 +169,10 @@ class SimulationSettings:
         for name, ok in rules:
             if not ok:
                 raise HeliotwinError(f"simulate: {name} = {getattr(self, name)!r} is out of range")
+        try:
+            pd.Timestamp(self.start, tz="UTC")
+        except (ValueError, TypeError):
+            raise HeliotwinError(f"simulate: start = {self.start!r} is not a date (e.g. 2021-01-01)") from None
 
 
 @dataclass
