@@ -34,12 +34,13 @@ Measured on a busy 2-core machine (shared with seven other jobs; 1 thread; re-me
 stage                              100 hel.      500 hel.      2000 hel. (202,676 rec.)
 =================================  ============  ============  ==========================
 simulate (draw + write folder)     4.4 s         15.6 s        2.5 s draw + 109 s write
-read, no record cache              1.2 s         8.5 s         15.8 s (23.0 s writing it)
-read_cached                        0.2 s         1.0 s         4.1 s
+read, no record cache              1.2 s         8.5 s         10.5 s (10.2 s writing it)
+read_cached                        0.2 s         1.0 s         3.3 s
 =================================  ============  ============  ==========================
 
 The 2000-heliostat column was measured by hand (``heliotwin simulate --heliostats 2000 --records-per-month 3``,
-then :func:`heliotwin.io.paint.load_paint` with ``cache=False`` / ``True``); the reader before the record
+then :func:`heliotwin.io.paint.load_paint` with ``cache=False`` / ``True``; the 100/500 columns are from before
+the bracket-count shortcut of the JSON depth check); the reader before the record
 cache and the batched parser took 28.0 s for 200 of those heliostats (18,869 records; ~300 s for the folder).
 Drawing alone (:func:`heliotwin.simulate.simulate_plant`, no files): 100 / 500 / 2000 / 10000 heliostats in
 2.7 / 2.9 / 8.6 / 36.5 s (9,685 / 47,604 / 189,789 / 871,800 records, peak RSS 400-960 MiB). ``calibrate`` with

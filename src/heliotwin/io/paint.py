@@ -73,7 +73,8 @@ def read_json(path) -> dict:
         if size > MAX_JSON_BYTES:
             raise InputFileError(path, f"{size} bytes; a PAINT JSON file is at most {MAX_JSON_BYTES} bytes")
         with open(path, encoding="utf-8") as fh:
-            data = json.load(fh)
+            text = fh.read()
+        data = json.loads(text)
     except FileNotFoundError:
         raise InputFileError(path, "file not found") from None
     except UnicodeDecodeError as exc:
@@ -86,7 +87,8 @@ def read_json(path) -> dict:
         raise InputFileError(path, f"malformed JSON ({' '.join(str(exc).split())})") from None
     except OSError as exc:
         raise InputFileError(path, f"cannot read ({exc.strerror})") from None
-    if _depth(data, MAX_JSON_DEPTH) > MAX_JSON_DEPTH:
+    # Nesting deeper than the limit needs more opening brackets than the limit: most files need no walk.
+    if text.count("[") + text.count("{") > MAX_JSON_DEPTH and _depth(data, MAX_JSON_DEPTH) > MAX_JSON_DEPTH:
         raise InputFileError(path, f"nested deeper than {MAX_JSON_DEPTH} levels; not a PAINT file")
     if not isinstance(data, dict):
         raise InputFileError(path, "expected a JSON object at top level")
