@@ -87,6 +87,10 @@ def test_folder_is_read_unchanged_by_the_paint_reader(small, small_folder):
     has = rec.has_time[row]
     assert torch.equal(table.time[has], rec.time[row][has]) and bool(table.time[~has].isnan().all())
     assert table.target == [rec.target[i] for i in row.tolist()]
+    # Weather rows where drawn (the reader's five columns), none elsewhere.
+    wx = rec.weather[row][:, :5]
+    assert torch.allclose(table.weather.nan_to_num(), wx.nan_to_num(), atol=1e-4)
+    assert 0.2 < float(torch.isfinite(table.weather[:, 0]).float().mean()) < 0.5
 
 
 def test_true_kinematics_explain_every_record_up_to_the_noise(tmp_path):

@@ -86,6 +86,12 @@ DRIFTING = ("initial_angle_1", "initial_angle_2")
 #: Spacing [s] of the grid on which the sun is computed (NREL SPA); records interpolate it (cubic spline of
 #: the direction: error ~1e-7 rad at 20 minutes, far below the centroid noise).
 SUN_GRID_SECONDS = 1200
+#: Weather of a record with a weather row: column -> (distribution, parameters); wind speed [m/s] is |normal|,
+#: direction [deg] uniform, DNI [W/m^2] uniform over a calibration day's range, temperature [degC] and
+#: pressure [hPa] normal, humidity [%] uniform.
+WEATHER = {"wind_speed": ("absnormal", 3.0, 2.0), "wind_direction": ("uniform", 0.0, 360.0),
+           "dni": ("uniform", 300.0, 950.0), "temperature": ("normal", 15.0, 8.0),
+           "humidity": ("uniform", 30.0, 90.0), "pressure": ("normal", 1005.0, 8.0)}
 #: Records are generated in chunks of this many (bounded memory: ~1 kB per record in flight).
 CHUNK = 100_000
 
@@ -125,6 +131,9 @@ class SimulationSettings:
         The plant's controller aims with its own earlier calibration: the true static kinematics with this
         error [mrad] on each encoder offset (the motor steps are whatever it commanded, so this only sets
         how far from the target centre the spots land, and which miss the target).
+    weather_fraction : float
+        Fraction of records with a weather row (PAINT: 590 of 1704); the values are plausible for Jülich
+        (:data:`WEATHER`), not fitted to PAINT's.
     images : int
         Heliostats with a defective true surface whose records get flux-centred images (:mod:`.images`).
     images_per_heliostat : int
@@ -150,6 +159,7 @@ class SimulationSettings:
     step_rate_per_year: float = 0.2
     step_size_mrad: float = 1.0
     controller_error_mrad: float = 1.0
+    weather_fraction: float = 0.35
     images: int = 0
     images_per_heliostat: int = 10
     layout: str | None = None
@@ -165,6 +175,7 @@ class SimulationSettings:
                  ("drift_mrad_per_sqrt_day", self.drift_mrad_per_sqrt_day >= 0),
                  ("step_rate_per_year", self.step_rate_per_year >= 0), ("step_size_mrad", self.step_size_mrad >= 0),
                  ("controller_error_mrad", self.controller_error_mrad >= 0), ("images", self.images >= 0),
+                 ("weather_fraction", 0 <= self.weather_fraction <= 1),
                  ("images_per_heliostat", self.images_per_heliostat >= 1)]
         for name, ok in rules:
             if not ok:
@@ -199,6 +210,8 @@ class SimulatedRecords:
         False where the metadata row is left out (a missing timestamp).
     drift : [R, 2]
         The drifting deviations (:data:`DRIFTING`) at the record's instant [rad].
+    weather : [R, 6] or None
+        :data:`WEATHER`'s columns; NaN rows for records without a weather row.
     """
 
     record_id: torch.Tensor
@@ -212,6 +225,7 @@ class SimulatedRecords:
     focal_spots: torch.Tensor
     has_time: torch.Tensor
     drift: torch.Tensor
+    weather: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.record_id.shape[0])
@@ -565,11 +579,17 @@ def simulate_plant(settings: SimulationSettings = SimulationSettings(), *, prior
     spots[utis_gone, 1] = float("nan")
     has_time = torch.from_numpy(rng.random(r) >= settings.time_missing)
     keep_np = keep.numpy()
+    weather = np.full((r, len(WEATHER)), np.nan)
+    has_weather = rng.random(r) < settings.weather_fraction
+    m = int(has_weather.sum())
+    for j, (kind, a, b) in enumerate(WEATHER.values()):
+        draw = rng.uniform(a, b, m) if kind == "uniform" else rng.normal(a, b, m)
+        weather[has_weather, j] = np.abs(draw) if kind == "absnormal" else draw
     records = SimulatedRecords(
         record_id=torch.arange(r, dtype=torch.long) + 100_000, heliostat_index=hidx_all[keep],
         time=torch.from_numpy(ts[keep_np]), target=[planar[i] for i in tgk.tolist()],
         sun_azimuth=az[keep], sun_elevation=el[keep], motor_steps=cat["steps"][keep], true_spot=spot,
-        focal_spots=spots, has_time=has_time, drift=drift[keep])
+        focal_spots=spots, has_time=has_time, drift=drift[keep], weather=torch.from_numpy(weather))
     report = {"heliostats": h, "scheduled": int(len(hs)), "records": r,
               "dropped_unreachable": int((~cat["ok"].bool()).sum()) if len(hs) else 0,
               "dropped_off_target": int((cat["ok"].bool() & ~on_target).sum()) if len(hs) else 0,

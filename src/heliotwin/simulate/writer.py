@@ -26,7 +26,7 @@ from ..io.images import to_png
 from ..io.records import SOURCES
 from ..io.scenario import Scenario, next_scenario, provenance_entry
 from ..site import enu_to_wgs84
-from .plant import DRIFTING, SimulatedPlant
+from .plant import DRIFTING, WEATHER, SimulatedPlant
 
 TRUTH_KEY = "simulation"
 
@@ -153,6 +153,15 @@ def _write(sim: SimulatedPlant, root: str) -> None:
         w = csv.writer(fh)
         w.writerow(["Id", "HeliostatId", "Azimuth", "Elevation", "DateTime"])
         w.writerows([ids[i], fl.ids[hidx[i]], az[i], el[i], when[i]] for i in range(r) if keep[i])
+    if rec.weather is not None:
+        wx = rec.weather.tolist()
+        stamp = pd.to_datetime(rec.time.numpy(), unit="s", utc=True).strftime("%Y-%m-%dT%H:%M:%SZ")
+        with open(os.path.join(root, "metadata", "calibration-weather.csv"), "w", newline="",
+                  encoding="utf-8") as fh:
+            w = csv.writer(fh)
+            w.writerow(["Id", "HeliostatId", "DateTime", *WEATHER])
+            w.writerows([ids[i], fl.ids[hidx[i]], stamp[i], *(f"{v:.4f}" for v in wx[i])] for i in range(r)
+                        if not math.isnan(wx[i][0]))
 
 
 def truth_learned(sim: SimulatedPlant) -> tuple[dict, Kinematics]:
