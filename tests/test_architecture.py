@@ -25,7 +25,7 @@ FLOORS = (
     ("calibration's shared parts", ("calibrate",)),
     ("calibration methods", ("calibrate.methods", "calibrate.scenario", "calibrate.report")),
     ("calibration protocol", ("calibrate.protocol",)),
-    ("learning and acting", ("surfaces", "optimise", "distributed", "validate")),
+    ("learning and acting", ("surfaces", "optimise", "distributed", "validate", "simulate")),
     ("workflows", ("workflows",)),
     ("public API", ("api",)),
     ("command line", ("cli", "__main__")),

@@ -22,7 +22,8 @@ SRC = Path(heliotwin.__file__).resolve().parent
 #: Every command a user can run. A group that fails to import must fail these tests, not vanish from --help.
 COMMANDS = {("demo",), ("scenario", "from-paint"), ("scenario", "from-layout"), ("trace",), ("validate",), ("bench",),
             ("calibrate",), ("split",), ("aim",), ("plan",), ("reconstruct",), ("predict",), ("field",),
-            ("aimpoints",), ("scenario", "show"), ("scenario", "export"), ("examples",), ("update",), ("history",)}
+            ("aimpoints",), ("scenario", "show"), ("scenario", "export"), ("examples",), ("update",), ("history",),
+            ("simulate",), ("score",)}
 
 
 def _leaf_commands(parser, prefix=()):

@@ -8,6 +8,7 @@ Layout: :mod:`.common` (error reporting, argument types), then one module per co
 * :mod:`.calibrate` -- ``calibrate``, ``split``, ``aim``
 * :mod:`.update` -- ``update``, ``history``
 * :mod:`.surfaces` -- ``reconstruct``, ``predict``
+* :mod:`.simulate` -- ``simulate``, ``score``
 
 The groups are ordinary imports: a command whose module fails to import breaks ``heliotwin`` loudly instead
 of disappearing from it. Library modules never import this package. Building the parser imports no torch
@@ -25,13 +26,13 @@ import argparse
 import sys
 
 from .. import __version__
-from . import calibrate, field, plan, plant, surfaces, update
+from . import calibrate, field, plan, plant, simulate, surfaces, update
 from .common import ArgumentParser, run_command
 
 __all__ = ["build_parser", "main", "run_command"]
 
 #: Command groups in the order of ``heliotwin --help``.
-GROUPS = (plant, calibrate, plan, update, surfaces, field)
+GROUPS = (plant, calibrate, plan, update, surfaces, field, simulate)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -16,12 +16,15 @@ from __future__ import annotations
 
 import csv
 import glob
+import hashlib
 import json
 import math
 import os
 import re
+import tempfile
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 
 from ..errors import InputFileError
@@ -29,7 +32,7 @@ from ..field import facets as facet_ops
 from ..field.plant import Facets, Field, Kinematics, Plant, Site, SunSettings
 from ..field.targets import CylinderTarget, PlanarTarget
 from ..site import wgs84_to_enu
-from .records import RecordTable, build_record_table
+from .records import SOURCES, WEATHER_KEYS, RawRecords, RecordTable, build_record_table, parse_time, raw_from_records
 
 HELIOSTAT_DIR = re.compile(r"^[A-Z]{2}[0-9]{2}$")
 FOCAL_SPOT_SOURCES = ("HeliOS", "UTIS")
@@ -70,7 +73,8 @@ def read_json(path) -> dict:
         if size > MAX_JSON_BYTES:
             raise InputFileError(path, f"{size} bytes; a PAINT JSON file is at most {MAX_JSON_BYTES} bytes")
         with open(path, encoding="utf-8") as fh:
-            data = json.load(fh)
+            text = fh.read()
+        data = json.loads(text)
     except FileNotFoundError:
         raise InputFileError(path, "file not found") from None
     except UnicodeDecodeError as exc:
@@ -83,7 +87,8 @@ def read_json(path) -> dict:
         raise InputFileError(path, f"malformed JSON ({' '.join(str(exc).split())})") from None
     except OSError as exc:
         raise InputFileError(path, f"cannot read ({exc.strerror})") from None
-    if _depth(data, MAX_JSON_DEPTH) > MAX_JSON_DEPTH:
+    # Nesting deeper than the limit needs more opening brackets than the limit: most files need no walk.
+    if text.count("[") + text.count("{") > MAX_JSON_DEPTH and _depth(data, MAX_JSON_DEPTH) > MAX_JSON_DEPTH:
         raise InputFileError(path, f"nested deeper than {MAX_JSON_DEPTH} levels; not a PAINT file")
     if not isinstance(data, dict):
         raise InputFileError(path, "expected a JSON object at top level")
@@ -541,7 +546,8 @@ def list_heliostats(root) -> list[str]:
 
 
 def load_paint(root, heliostats=None, *, surface_control_points=(4, 4), surface_degree=(2, 2),
-               with_records: bool = True, focal_spot: str = "HeliOS", plane_tolerance: float = 0.1) -> PaintDataset:
+               with_records: bool = True, focal_spot: str = "HeliOS", plane_tolerance: float = 0.1,
+               cache: bool | None = None) -> PaintDataset:
     """Read a PAINT folder into a :class:`Plant` (ideal flat canted surfaces) and its records.
 
     Parameters
@@ -556,6 +562,10 @@ def load_paint(root, heliostats=None, *, surface_control_points=(4, 4), surface_
         Also read every calibration record.
     focal_spot, plane_tolerance
         See :func:`heliotwin.io.records.build_record_table`, which judges every record.
+    cache : bool or None
+        Keep the parsed records in the record cache (:func:`record_cache_path`) and re-open them from it while
+        no record, image, metadata or tower file of the folder changed. None: only for folders of at least
+        :data:`CACHE_MIN_RECORDS` records (unless ``HELIOTWIN_CACHE=0``).
     """
     root = str(root)
     site, targets = read_tower(find_tower_file(root))
@@ -581,15 +591,228 @@ def load_paint(root, heliostats=None, *, surface_control_points=(4, 4), surface_
     fld = Field(ids, kin, fac, surfaces, torch.tensor([props[h].width for h in ids], dtype=torch.float64),
                 torch.tensor([props[h].height for h in ids], dtype=torch.float64), [props[h].renovation for h in ids])
     plant = Plant(site, targets, fld, SunSettings())
-    records = []
-    if with_records:
-        times, weather = read_metadata(root)
-        for h in ids:
-            files = glob.glob(os.path.join(root, h, "Calibration", "*-calibration-properties.json"))
-            for f in sorted(files, key=_record_number):
-                r = read_calibration_record(f, site, h, known_targets=targets)
-                r.datetime = times.get(r.record_id)
-                r.weather = weather.get(r.record_id)
-                records.append(r)
-    table, skipped = build_record_table(plant, records, focal_spot=focal_spot, plane_tolerance=plane_tolerance)
+    raw = read_records(root, ids, site, targets, cache=cache) if with_records else []
+    table, skipped = build_record_table(plant, raw, focal_spot=focal_spot, plane_tolerance=plane_tolerance)
     return PaintDataset(root, plant, table, skipped, props)
+
+
+# ------------------------------------------------------------------------------------ fast record reading
+#: Folders with at least this many record files keep a record cache by default (``load_paint(cache=None)``).
+CACHE_MIN_RECORDS = 5000
+#: Layout version of a record cache file; a file of another version is never read.
+CACHE_VERSION = 1
+
+
+def _listing(root: str, ids) -> list[tuple[str, list, set, list]]:
+    """Per heliostat: its Calibration folder, the record files in reading order (ascending record id), every
+    file name there, and ``(name, size, mtime_ns)`` of every file (the cache key's part)."""
+    out = []
+    for h in ids:
+        folder = os.path.join(root, h, "Calibration")
+        try:
+            entries = list(os.scandir(folder))
+        except (FileNotFoundError, NotADirectoryError):  # no records (what a glob of it finds)
+            out.append((folder, [], set(), []))
+            continue
+        except OSError as exc:
+            raise InputFileError(folder, f"cannot read ({exc.strerror})") from None
+        names = {e.name for e in entries}
+        files = sorted((e.name for e in entries if e.name.endswith("-calibration-properties.json")
+                        and not e.name.startswith(".")), key=_record_number)
+        stats = []
+        for e in sorted(entries, key=lambda e: e.name):
+            try:
+                st = e.stat()
+                stats.append((e.name, st.st_size, st.st_mtime_ns))
+            except OSError:
+                stats.append((e.name, -1, -1))
+        out.append((folder, files, names, stats))
+    return out
+
+
+def _parse_record(data: dict, path: str, known_targets) -> tuple:
+    """The fields of a parsed record file, validated like :func:`read_calibration_record` (raises a plain
+    ``ValueError`` on anything it would reject; the caller then lets that function word the error)."""
+    rid = int(os.path.basename(path).split("-")[0])
+    mp = data["motor_position"]
+    steps = (mp["axis_1_motor_position"], mp["axis_2_motor_position"])
+    target = data["target_name"]
+    spots = data["focal_spot"]
+    az, el = data["sun_azimuth"], data["sun_elevation"]
+    if not (all(_finite_number(x) for x in (*steps, az, el)) and isinstance(target, str) and isinstance(spots, dict)
+            and (known_targets is None or target in known_targets) and 0.0 < float(el) <= 90.0):
+        raise ValueError("invalid record")
+    lla = [None, None]
+    for k, src in enumerate(FOCAL_SPOT_SOURCES):
+        v = spots.get(src)
+        if v is not None:
+            if not (isinstance(v, (list, tuple)) and len(v) == 3 and all(_finite_number(x) for x in v)
+                    and -90.0 <= v[0] <= 90.0 and -180.0 <= v[1] <= 180.0):
+                raise ValueError("invalid focal spot")
+            lla[k] = [float(x) for x in v]
+    if lla == [None, None]:
+        raise ValueError("no focal spot")
+    return rid, float(steps[0]), float(steps[1]), target, lla, math.radians(az), math.radians(el)
+
+
+def _read_one_by_one(listing, ids, site: Site, targets: dict, times: dict, weather: dict) -> RawRecords:
+    """Every record through :func:`read_calibration_record` (the reference reader: it words the first bad file
+    in reading order)."""
+    records = []
+    for h, (folder, files, _, _) in zip(ids, listing):
+        for name in files:
+            r = read_calibration_record(os.path.join(folder, name), site, h, known_targets=targets)
+            r.datetime = times.get(r.record_id)
+            r.weather = weather.get(r.record_id)
+            records.append(r)
+    return raw_from_records(records)
+
+
+def _parse_all(listing, ids, site: Site, targets: dict, times: dict, weather: dict) -> RawRecords:
+    """Every record of ``ids`` as :class:`RawRecords`: parsed file by file, converted to ENU in one batch.
+
+    Any file this fast path does not accept (or an implausibly far centroid) sends the whole folder through
+    :func:`_read_one_by_one`, so errors and edge cases are exactly those of :func:`read_calibration_record`.
+    """
+    paths, hidx, rows = [], [], []
+    try:
+        for hi, (folder, files, _, _) in enumerate(listing):
+            for name in files:
+                path = os.path.join(folder, name)
+                rows.append(_parse_record(read_json(path), path, targets))
+                paths.append(path)
+                hidx.append(hi)
+    except (InputFileError, ValueError, KeyError, TypeError, AttributeError, OverflowError):
+        return _read_one_by_one(listing, ids, site, targets, times, weather)
+    n = len(rows)
+    lla = np.full((n, len(SOURCES), 3), np.nan)
+    for k in range(len(SOURCES)):
+        have = [i for i, r in enumerate(rows) if r[4][k] is not None]
+        if have:
+            lla[have, k] = [rows[i][4][k] for i in have]
+    present = ~np.isnan(lla[..., 0])
+    enu = torch.full((n, len(SOURCES), 3), float("nan"), dtype=torch.float64)
+    if present.any():
+        enu[torch.from_numpy(present)] = wgs84_to_enu(torch.from_numpy(lla[present]), site.reference)
+    far = (torch.hypot(enu[..., 0], enu[..., 1]) > MAX_PLANT_RADIUS_M) | (enu[..., 2].abs() > MAX_PLANT_HEIGHT_M)
+    if bool(far.any()):
+        return _read_one_by_one(listing, ids, site, targets, times, weather)
+    rid = [r[0] for r in rows]
+    dt = [times.get(x) for x in rid]
+    nan5 = [float("nan")] * len(WEATHER_KEYS)
+    wx = [[float(weather[x].get(k, float("nan"))) for k in WEATHER_KEYS] if weather.get(x) else nan5 for x in rid]
+    f64 = dict(dtype=torch.float64)
+    folders = [listing[h][0] for h in hidx]
+    png = [os.path.join(f, f"{x}-flux.png") if f"{x}-flux.png" in listing[h][2] else None
+           for f, x, h in zip(folders, rid, hidx)]
+    cpng = [os.path.join(f, f"{x}-flux-centered.png") if f"{x}-flux-centered.png" in listing[h][2] else None
+            for f, x, h in zip(folders, rid, hidx)]
+    return RawRecords(
+        heliostat_ids=list(ids), heliostat_index=torch.tensor(hidx, dtype=torch.long),
+        record_id=torch.tensor(rid, dtype=torch.long), sun_azimuth=torch.tensor([r[5] for r in rows], **f64),
+        sun_elevation=torch.tensor([r[6] for r in rows], **f64),
+        motor_steps=torch.tensor([[r[1], r[2]] for r in rows], **f64).reshape(n, 2), target=[r[3] for r in rows],
+        focal_spots=enu, present=torch.from_numpy(present), time=torch.tensor([parse_time(x) for x in dt], **f64),
+        weather=torch.tensor(wx, **f64).reshape(n, len(WEATHER_KEYS)), datetime=dt, flux_png=png,
+        flux_centered_png=cpng, path=paths)
+
+
+def record_cache_path(root, ids) -> str:
+    """Where the record cache of heliostats ``ids`` of the PAINT folder ``root`` lives: under
+    ``$HELIOTWIN_CACHE_DIR`` (default ``$XDG_CACHE_HOME/heliotwin/paint-records``, ``~/.cache/...``), one
+    ``.npz`` per folder and heliostat list."""
+    base = os.environ.get("HELIOTWIN_CACHE_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "heliotwin",
+        "paint-records")
+    name = hashlib.sha256("\0".join([os.path.abspath(str(root)), *ids]).encode()).hexdigest()[:32]
+    return os.path.join(base, f"{name}.npz")
+
+
+def _cache_key(root: str, ids, listing) -> str:
+    """Digest of everything the parsed records depend on: the format version, the folder, the heliostats, and
+    name, size and modification time of the tower file, the metadata CSVs and every file of every
+    Calibration folder (records and images)."""
+    def stat(path):
+        try:
+            st = os.stat(path)
+            return [st.st_size, st.st_mtime_ns]
+        except OSError:
+            return None
+    meta = [stat(os.path.join(root, "metadata", f)) for f in ("calibration-metadata.csv", "calibration-weather.csv")]
+    tower = find_tower_file(root)
+    parts = [CACHE_VERSION, os.path.abspath(root), list(ids), os.path.basename(tower), stat(tower), meta,
+             [entry[3] for entry in listing]]
+    return hashlib.sha256(json.dumps(parts).encode()).hexdigest()
+
+
+def _save_cache(path: str, key: str, raw: RawRecords) -> None:
+    """Write the cache atomically; a cache that cannot be written is simply not written."""
+    strings = lambda v: np.array(["" if x is None else x for x in v], dtype=str)  # noqa: E731
+    arrays = {"key": np.array(key), "heliostat_ids": np.array(raw.heliostat_ids, dtype=str)}
+    for name in ("heliostat_index", "record_id", "sun_azimuth", "sun_elevation", "motor_steps", "focal_spots",
+                 "present", "time", "weather"):
+        arrays[name] = getattr(raw, name).numpy()
+    for name in ("target", "datetime", "flux_png", "flux_centered_png", "path"):
+        v = getattr(raw, name)
+        arrays[name] = strings(v)
+        arrays[name + "_none"] = np.array([x is None for x in v], dtype=bool)
+    try:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=".records-", suffix=".npz", dir=os.path.dirname(path))
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, **arrays)
+        os.replace(tmp, path)
+    except OSError:
+        try:
+            os.unlink(tmp)
+        except (OSError, UnboundLocalError):
+            pass
+
+
+def _load_cache(path: str, key: str) -> RawRecords | None:
+    """The cached records when the file exists, reads cleanly and its key matches; None otherwise."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if str(z["key"]) != key:
+                return None
+            d = {k: z[k] for k in z.files}
+    except (OSError, ValueError, KeyError, EOFError):
+        return None
+
+    def strings(name):
+        return [None if none else str(x) for x, none in zip(d[name].tolist(), d[name + "_none"].tolist())]
+    try:
+        return RawRecords(heliostat_ids=[str(x) for x in d["heliostat_ids"].tolist()],
+                          **{k: torch.from_numpy(d[k]) for k in ("heliostat_index", "record_id", "sun_azimuth",
+                                                                 "sun_elevation", "motor_steps", "focal_spots",
+                                                                 "present", "time", "weather")},
+                          **{k: strings(k) for k in ("target", "datetime", "flux_png", "flux_centered_png", "path")})
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
+def read_records(root, ids, site: Site, targets: dict, *, cache: bool | None = None) -> RawRecords:
+    """Every calibration record of heliostats ``ids`` of a PAINT folder, parsed (not yet judged), with the
+    metadata's time and weather: from the record cache when it matches the folder's files, else from the
+    files (then the cache is written when ``cache`` allows, see :func:`load_paint`).
+
+    Raises
+    ------
+    InputFileError
+        As :func:`read_calibration_record` and :func:`read_metadata` (the first bad file in reading order).
+    """
+    root = str(root)
+    listing = _listing(root, ids)
+    files = sum(len(entry[1]) for entry in listing)
+    use = cache if cache is not None else (files >= CACHE_MIN_RECORDS and os.environ.get("HELIOTWIN_CACHE") != "0")
+    if use:
+        key = _cache_key(root, ids, listing)
+        path = record_cache_path(root, ids)
+        hit = _load_cache(path, key)
+        if hit is not None:
+            return hit
+    times, weather = read_metadata(root)
+    raw = _parse_all(listing, ids, site, targets, times, weather)
+    if use and _cache_key(root, ids, _listing(root, ids)) == key:  # nothing changed while reading
+        _save_cache(path, key, raw)
+    return raw

@@ -322,6 +322,81 @@ def _reason_to_skip(rec, target, kin, h: int, plane_tolerance: float) -> tuple[s
     return None
 
 
+@dataclass
+class RawRecords:
+    """Parsed, not yet judged calibration records as arrays (what :func:`build_record_table` judges).
+
+    The PAINT reader fills it straight from the files (and its cache stores it); :func:`raw_from_records`
+    makes it from :class:`~heliotwin.io.paint.CalibrationRecord` objects.
+
+    Attributes
+    ----------
+    heliostat_ids : list of str
+        The heliostats the records belong to (``heliostat_index`` points into it).
+    heliostat_index, record_id : [R] long
+    sun_azimuth, sun_elevation : [R] float64
+        [rad], PAINT convention.
+    motor_steps : [R, 2] float64
+    target : list of str, R
+    focal_spots : [R, 2, 3] float64
+        ENU [m] per source of :data:`SOURCES`; NaN where ``present`` is False.
+    present : [R, 2] bool
+        Which sources the record has.
+    time : [R] float64
+        UTC POSIX seconds of ``datetime`` (NaN without one).
+    weather : [R, 5] float64
+        :data:`WEATHER_KEYS`, NaN where absent.
+    datetime, flux_png, flux_centered_png, path : list of (str or None), R
+    """
+
+    heliostat_ids: list
+    heliostat_index: torch.Tensor
+    record_id: torch.Tensor
+    sun_azimuth: torch.Tensor
+    sun_elevation: torch.Tensor
+    motor_steps: torch.Tensor
+    target: list
+    focal_spots: torch.Tensor
+    present: torch.Tensor
+    time: torch.Tensor
+    weather: torch.Tensor
+    datetime: list
+    flux_png: list
+    flux_centered_png: list
+    path: list
+
+    def __len__(self) -> int:
+        return int(self.record_id.shape[0])
+
+
+def raw_from_records(records) -> RawRecords:
+    """:class:`RawRecords` of a list of :class:`~heliotwin.io.paint.CalibrationRecord` (reading order)."""
+    f64 = dict(dtype=torch.float64)
+    n = len(records)
+    hids = list(dict.fromkeys(r.heliostat_id for r in records))
+    at = {h: i for i, h in enumerate(hids)}
+    spots = torch.full((n, len(SOURCES), 3), float("nan"), **f64)
+    present = torch.zeros(n, len(SOURCES), dtype=torch.bool)
+    for k, src in enumerate(SOURCES):
+        rows = [i for i, r in enumerate(records) if src in r.focal_spot]
+        if rows:
+            spots[rows, k] = torch.stack([torch.as_tensor(records[i].focal_spot[src], **f64).reshape(3)
+                                          for i in rows])
+            present[rows, k] = True
+    return RawRecords(
+        heliostat_ids=hids, heliostat_index=torch.tensor([at[r.heliostat_id] for r in records], dtype=torch.long),
+        record_id=torch.tensor([int(r.record_id) for r in records], dtype=torch.long),
+        sun_azimuth=torch.tensor([r.sun_azimuth for r in records], **f64),
+        sun_elevation=torch.tensor([r.sun_elevation for r in records], **f64),
+        motor_steps=torch.tensor([list(r.motor_steps) for r in records], **f64).reshape(n, 2),
+        target=[r.target for r in records], focal_spots=spots, present=present,
+        time=torch.tensor([parse_time(r.datetime) for r in records], **f64),
+        weather=torch.tensor([[float((r.weather or {}).get(k, float("nan"))) for k in WEATHER_KEYS]
+                              for r in records], **f64).reshape(n, len(WEATHER_KEYS)),
+        datetime=[r.datetime for r in records], flux_png=[r.flux_png for r in records],
+        flux_centered_png=[r.flux_centered_png for r in records], path=[str(r.path) for r in records])
+
+
 def build_record_table(plant, records, *, focal_spot: str = "HeliOS", plane_tolerance: float = 0.1
                        ) -> tuple[RecordTable, list[dict]]:
     """Validate raw records once and put the usable ones into one table over the plant's heliostats.
@@ -330,7 +405,7 @@ def build_record_table(plant, records, *, focal_spot: str = "HeliOS", plane_tole
     ----------
     plant : heliotwin.field.plant.Plant
         Provides targets and the kinematics' motor ranges; the table's heliostat axis is ``plant.field.ids``.
-    records : list of heliotwin.io.paint.CalibrationRecord
+    records : list of heliotwin.io.paint.CalibrationRecord, or RawRecords
         As read from the files (parsed, not yet judged).
     focal_spot : str
         Preferred centroid source for ``spot`` (``HeliOS`` or ``UTIS``); a record without a usable one falls
@@ -352,65 +427,92 @@ def build_record_table(plant, records, *, focal_spot: str = "HeliOS", plane_tole
     ------
     InputFileError
         Two records with the same id (naming both files), or a non-finite / negative tolerance.
+
+    Notes
+    -----
+    Judged in batch (tensors over all records); only the dropped records go one by one through
+    :func:`_reason_to_skip`, which words why.
     """
     if not (isinstance(plane_tolerance, (int, float)) and math.isfinite(plane_tolerance) and plane_tolerance >= 0):
         raise HeliotwinError(f"plane tolerance must be a finite number >= 0 m, got {plane_tolerance!r}")
     prefer = normalise_source(focal_spot)
+    raw = records if isinstance(records, RawRecords) else raw_from_records(list(records))
+    table, skipped = _table_from_raw(plant, raw, float(plane_tolerance))
+    return table.with_focal_spot(prefer), skipped
+
+
+class _Record:
+    """The fields of one raw record that :func:`_reason_to_skip` reads (for the dropped ones only)."""
+
+    def __init__(self, raw: RawRecords, i: int):
+        self.target = raw.target[i]
+        self.motor_steps = tuple(raw.motor_steps[i].tolist())
+        self.sun_azimuth, self.sun_elevation = float(raw.sun_azimuth[i]), float(raw.sun_elevation[i])
+        self.focal_spot = {src: raw.focal_spots[i, k] for k, src in enumerate(SOURCES) if bool(raw.present[i, k])}
+
+
+def _check_duplicates(raw: RawRecords) -> None:
+    first: dict = {}
+    for i, rid in enumerate(raw.record_id.tolist()):
+        if rid in first:
+            raise InputFileError(raw.path[i], f"duplicate record id {rid} (also in {raw.path[first[rid]]})", field="id")
+        first[rid] = i
+
+
+def _table_from_raw(plant, raw: RawRecords, tolerance: float) -> tuple[RecordTable, list[dict]]:
+    """The usable records of ``raw`` as a table on ``plant`` (HeliOS in ``spot``) and the dropped ones."""
+    f64 = dict(dtype=torch.float64)
+    _check_duplicates(raw)
     ids = list(plant.field.ids)
     pos = {h: i for i, h in enumerate(ids)}
     kin = plant.field.kinematics
-    first_path: dict = {}
-    rows, skipped = [], []
-    for rec in records:
-        if rec.record_id in first_path:
-            raise InputFileError(rec.path, f"duplicate record id {rec.record_id} (also in {first_path[rec.record_id]})",
-                                 field="id")
-        first_path[rec.record_id] = rec.path
-        if rec.heliostat_id not in pos:
+    n = len(raw)
+    to_plant = torch.tensor([pos.get(h, -1) for h in raw.heliostat_ids] or [0], dtype=torch.long)
+    h = to_plant[raw.heliostat_index] if n else torch.zeros(0, dtype=torch.long)
+    names = list(dict.fromkeys(raw.target))
+    tix = torch.tensor([names.index(t) for t in raw.target] if len(names) > 1 else [0] * n, dtype=torch.long)
+    targets = [plant.targets.get(t) for t in names]
+    planar = [t is not None and getattr(t, "kind", "") == "planar" for t in targets]
+    zero = torch.zeros(3, **f64)
+    centers = torch.stack([t.center.to(**f64) if p else zero for t, p in zip(targets, planar)] or [zero])
+    normals = torch.stack([t.normal.to(**f64) if p else zero for t, p in zip(targets, planar)] or [zero])
+    in_plant = h >= 0
+    hp = h.clamp_min(0)
+    usable_target = torch.tensor(planar or [False], dtype=torch.bool)[tix] if n else torch.zeros(0, dtype=torch.bool)
+    has_spot = raw.present.any(-1)
+    finite = (torch.isfinite(raw.motor_steps).all(-1) & torch.isfinite(raw.sun_azimuth)
+              & torch.isfinite(raw.sun_elevation) & (torch.isfinite(raw.focal_spots).all(-1) | ~raw.present).all(-1))
+    steps = raw.motor_steps
+    in_range = ((steps >= kin.min_steps[hp].to(**f64)) & (steps <= kin.max_steps[hp].to(**f64))).all(-1)
+    dist = ((raw.focal_spots - centers[tix].unsqueeze(1)) * normals[tix].unsqueeze(1)).sum(-1)
+    within = raw.present & (dist.abs() <= tolerance)
+    ok = usable_target & has_spot & finite & in_range & within.any(-1)
+    skipped = []
+    for i in (in_plant & ~ok).nonzero().flatten().tolist():  # the dropped records only: word why
+        why = _reason_to_skip(_Record(raw, i), targets[int(tix[i])], kin, int(h[i]), tolerance)
+        if why is None:  # the batch and the reasons disagree on an edge case: the reasons decide
+            ok[i] = True
             continue
-        target = plant.targets.get(rec.target)
-        why = _reason_to_skip(rec, target, kin, pos[rec.heliostat_id], plane_tolerance)
-        if why is not None:
-            skipped.append({"record_id": int(rec.record_id), "heliostat_id": rec.heliostat_id, "reason": why[0],
-                            "path": str(rec.path), "field": why[1]})
-            continue
-        spots = torch.full((len(SOURCES), 3), float("nan"), dtype=torch.float64)
-        for k, src in enumerate(SOURCES):
-            if src in rec.focal_spot:
-                v = torch.as_tensor(rec.focal_spot[src], dtype=torch.float64)
-                if abs(float(target.distance_to_plane(v))) <= plane_tolerance:
-                    spots[k] = v
-        rows.append((pos[rec.heliostat_id], rec, target, spots))
-    return _table_from_rows(ids, rows).with_focal_spot(prefer), skipped
+        skipped.append({"record_id": int(raw.record_id[i]), "heliostat_id": ids[int(h[i])], "reason": why[0],
+                        "path": str(raw.path[i]), "field": why[1]})
+    keep = (in_plant & ok).nonzero().flatten()
+    rows = keep.tolist()
+    spots = torch.where(within[keep].unsqueeze(-1), raw.focal_spots[keep], torch.full_like(raw.focal_spots[keep],
+                                                                                          float("nan")))
+    tk = tix[keep]
+    m = len(rows)
 
+    def plane(attr):
+        return torch.stack([getattr(t, attr).to(**f64) if p else zero for t, p in zip(targets, planar)] or [zero])[tk]
 
-def _table_from_rows(ids: list, rows: list) -> RecordTable:
-    f64 = dict(dtype=torch.float64)
-    n = len(rows)
-
-    def stack(values, shape):
-        return torch.stack(values).to(torch.float64) if n else torch.zeros(0, *shape, **f64)
-
-    az = torch.tensor([r.sun_azimuth for _, r, _, _ in rows], **f64)
-    el = torch.tensor([r.sun_elevation for _, r, _, _ in rows], **f64)
-    spots = stack([s for _, _, _, s in rows], (len(SOURCES), 3))
-    return RecordTable(
-        heliostat_ids=ids,
-        heliostat_index=torch.tensor([h for h, _, _, _ in rows], dtype=torch.long),
-        record_id=torch.tensor([int(r.record_id) for _, r, _, _ in rows], dtype=torch.long),
-        sun_azimuth=az, sun_elevation=el,
-        sun=direction_from_paint_angles(az, el, check_horizon=False) if n else torch.zeros(0, 3, **f64),
-        motor_steps=stack([torch.tensor(r.motor_steps, **f64) for _, r, _, _ in rows], (2,)),
-        spot=spots[:, 0].clone(),
-        plane_center=stack([t.center for _, _, t, _ in rows], (3,)),
-        plane_normal=stack([t.normal for _, _, t, _ in rows], (3,)),
-        plane_right=stack([t.right for _, _, t, _ in rows], (3,)),
-        plane_up=stack([t.up for _, _, t, _ in rows], (3,)),
-        time=torch.tensor([parse_time(r.datetime) for _, r, _, _ in rows], **f64),
-        weather=torch.tensor([[float((r.weather or {}).get(k, float("nan"))) for k in WEATHER_KEYS]
-                              for _, r, _, _ in rows], **f64).reshape(n, len(WEATHER_KEYS)),
-        target=[r.target for _, r, _, _ in rows], source=[SOURCES[0]] * n, spot_other=spots[:, 1].clone(),
-        focal_spots=spots,
-        flux_png=[r.flux_png for _, r, _, _ in rows], flux_centered_png=[r.flux_centered_png for _, r, _, _ in rows],
-        datetime=[r.datetime for _, r, _, _ in rows], path=[r.path for _, r, _, _ in rows],
-    )
+    az, el = raw.sun_azimuth[keep], raw.sun_elevation[keep]
+    table = RecordTable(
+        heliostat_ids=ids, heliostat_index=h[keep], record_id=raw.record_id[keep], sun_azimuth=az, sun_elevation=el,
+        sun=direction_from_paint_angles(az, el, check_horizon=False) if m else torch.zeros(0, 3, **f64),
+        motor_steps=raw.motor_steps[keep], spot=spots[:, 0].clone(), plane_center=plane("center"),
+        plane_normal=plane("normal"), plane_right=plane("right"), plane_up=plane("up"), time=raw.time[keep],
+        weather=raw.weather[keep], target=[raw.target[i] for i in rows], source=[SOURCES[0]] * m,
+        spot_other=spots[:, 1].clone(), focal_spots=spots, flux_png=[raw.flux_png[i] for i in rows],
+        flux_centered_png=[raw.flux_centered_png[i] for i in rows], datetime=[raw.datetime[i] for i in rows],
+        path=[raw.path[i] for i in rows])
+    return table, skipped

@@ -1,0 +1,201 @@
+"""Write a simulated plant as a PAINT folder (the layout :mod:`heliotwin.io.paint` reads) and its truth scenario.
+
+The folder is written into a hidden sibling and renamed into place at the end, so a failure never leaves a
+half-written plant; an existing non-empty folder is refused. Conventions follow PAINT's Jülich download:
+WGS84 ``[latitude, longitude, altitude]`` (latitude first) about the site's ENU origin, sun azimuth from
+south (east positive) and elevation in degrees, motor positions in whole steps, the metadata CSV's DateTime
+in UTC (a record with a missing timestamp has no metadata row).
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import shutil
+import tempfile
+from dataclasses import fields
+
+import pandas as pd
+import torch
+
+from ..errors import HeliotwinError, InputFileError
+from ..field.plant import Kinematics
+from ..field.targets import PlanarTarget
+from ..io.images import to_png
+from ..io.records import SOURCES
+from ..io.scenario import Scenario, next_scenario, provenance_entry
+from ..site import enu_to_wgs84
+from .plant import DRIFTING, WEATHER, SimulatedPlant
+
+TRUTH_KEY = "simulation"
+
+
+def _lla(site, enu: torch.Tensor) -> torch.Tensor:
+    return enu_to_wgs84(enu, torch.tensor([site.latitude_deg, site.longitude_deg, site.altitude_m],
+                                          dtype=torch.float64))
+
+
+def tower_json(plant) -> dict:
+    """The tower file's content for ``plant``'s site and targets (corners rebuilt from each target's frame)."""
+    site = plant.site
+    out = {"power_plant_properties": {"ID": site.name or "SIMULATED",
+                                      "coordinates": [site.latitude_deg, site.longitude_deg, site.altitude_m]}}
+    for name, t in plant.targets.items():
+        c, r, u = t.center.double(), t.right.double(), t.up.double()
+        if isinstance(t, PlanarTarget):
+            hw, hh = t.width / 2, t.height / 2
+            mid = c
+            keys = ("upper_left", "upper_right", "lower_left", "lower_right")
+        else:
+            half = t.opening_angle / 2
+            mid = c - t.radius * (1.0 - math.cos(half)) * t.normal.double()
+            hw, hh = t.radius * math.sin(half), t.height / 2
+            keys = tuple(f"receiver_outer_{k}" for k in ("upper_left", "upper_right", "lower_left", "lower_right"))
+        corners = torch.stack([mid - r * hw + u * hh, mid + r * hw + u * hh,
+                               mid - r * hw - u * hh, mid + r * hw - u * hh])
+        lla = _lla(site, torch.cat([corners, c.unsqueeze(0)])).tolist()
+        coords = dict(zip(keys, lla[:4]))
+        spec = {"type": "planar" if isinstance(t, PlanarTarget) else "convex_cylinder",
+                "normal_vector": t.normal.double().tolist(), "coordinates": coords}
+        if isinstance(t, PlanarTarget):
+            coords["center"] = lla[4]
+        else:
+            spec["radius"] = float(t.radius)
+            spec["opening_angle"] = math.degrees(t.opening_angle)
+        out[name] = spec
+    return out
+
+
+def _properties(kin: Kinematics, facets, width, height, lla, h: int) -> dict:
+    acts = []
+    for a in range(2):
+        acts.append({"type_axis": "linear" if bool(kin.linear[h, a]) else "ideal",
+                     "min_increment": float(kin.min_steps[h, a]), "max_increment": float(kin.max_steps[h, a]),
+                     "increment": float(kin.increment[h, a]), "offset_shift": 0,
+                     "initial_stroke_length": float(kin.initial_stroke_length[h, a]),
+                     "offset": float(kin.offset[h, a]), "pivot_radius": float(kin.pivot_radius[h, a]),
+                     "radius_shift": 0, "clockwise_axis_movement": int(bool(kin.clockwise[h, a])),
+                     "initial_angle": float(kin.initial_angle[h, a]),
+                     "min_movement_angle": float(kin.min_angle[h, a]), "max_movement_angle": float(kin.max_angle[h, a]),
+                     "movement_speed": 0})
+    kp = {"actuators": acts}
+    for j in range(2):
+        for i, ax in enumerate("enu"):
+            kp[f"joint_translation_{ax}_{j + 1}"] = float(kin.joint_translation[h, j, i])
+    for i, ax in enumerate("enu"):
+        kp[f"concentrator_translation_{ax}"] = float(kin.concentrator_translation[h, i])
+    fac = [{"translation_vector": facets.translation[h, f].tolist(), "canting_e": facets.canting_e[h, f].tolist(),
+            "canting_n": facets.canting_n[h, f].tolist()} for f in range(facets.translation.shape[1])]
+    return {"heliostat_position": lla, "height": float(height), "width": float(width),
+            "initial_orientation": [0.0, -1.0, 0.0], "kinematic_properties": kp,
+            "facet_properties": {"canting_type": "receiver canting", "number_of_facets": len(fac), "facets": fac},
+            "renovation": ""}
+
+
+def write_paint_folder(sim: SimulatedPlant, folder) -> str:
+    """Write ``sim`` as a PAINT folder at ``folder`` (absent or empty), atomically; returns the folder."""
+    folder = os.path.abspath(os.fspath(folder))
+    if os.path.exists(folder) and (not os.path.isdir(folder) or os.listdir(folder)):
+        raise InputFileError(folder, "exists and is not an empty folder; a simulated plant is written to a new one",
+                             field="--out")
+    parent = os.path.dirname(folder)
+    if not os.path.isdir(parent):
+        raise InputFileError(folder, f"output folder {parent} does not exist (create it first)", field="--out")
+    tmp = tempfile.mkdtemp(prefix=".heliotwin-simulate-", dir=parent)
+    try:
+        _write(sim, tmp)
+        os.chmod(tmp, 0o755)
+        os.replace(tmp, folder)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return folder
+
+
+def _write(sim: SimulatedPlant, root: str) -> None:
+    plant, rec = sim.plant, sim.records
+    site = plant.site
+    name = site.name or "SIMULATED"
+    with open(os.path.join(root, f"{name}-tower-measurements.json"), "w", encoding="utf-8") as fh:
+        json.dump(tower_json(plant), fh, indent=2)
+    fl = plant.field
+    kin = fl.kinematics
+    pos_lla = _lla(site, kin.position.double()).tolist()
+    for h, hid in enumerate(fl.ids):
+        os.makedirs(os.path.join(root, hid, "Properties"))
+        os.makedirs(os.path.join(root, hid, "Calibration"))
+        with open(os.path.join(root, hid, "Properties", f"{hid}-heliostat-properties.json"), "w",
+                  encoding="utf-8") as fh:
+            json.dump(_properties(kin, fl.facets, fl.width[h], fl.height[h], pos_lla[h], h), fh, indent=2)
+    r = len(rec)
+    spots = _lla(site, torch.nan_to_num(rec.focal_spots.reshape(-1, 3))).reshape(r, 2, 3).tolist() if r else []
+    present = torch.isfinite(rec.focal_spots).all(-1).tolist()
+    steps = rec.motor_steps.to(torch.int64).tolist()
+    az, el = torch.rad2deg(rec.sun_azimuth).tolist(), torch.rad2deg(rec.sun_elevation).tolist()
+    ids, hidx = rec.record_id.tolist(), rec.heliostat_index.tolist()
+    for i in range(r):  # one file per record is the format; the values were computed batched above
+        hid = fl.ids[hidx[i]]
+        doc = {"motor_position": {"axis_1_motor_position": steps[i][0], "axis_2_motor_position": steps[i][1]},
+               "target_name": rec.target[i],
+               "focal_spot": {src: (spots[i][k] if present[i][k] else None) for k, src in enumerate(SOURCES)},
+               "sun_elevation": el[i], "sun_azimuth": az[i]}
+        with open(os.path.join(root, hid, "Calibration", f"{ids[i]}-calibration-properties.json"), "w",
+                  encoding="utf-8") as fh:
+            fh.write(json.dumps(doc))
+    for rid, img in sim.images.items():
+        hid = fl.ids[hidx[ids.index(rid)]]
+        to_png(img, os.path.join(root, hid, "Calibration", f"{rid}-flux-centered.png"))
+    os.makedirs(os.path.join(root, "metadata"))
+    when = pd.to_datetime(rec.time.numpy(), unit="s", utc=True).strftime("%Y-%m-%d %H:%M:%S+00:00")
+    keep = rec.has_time.tolist()
+    with open(os.path.join(root, "metadata", "calibration-metadata.csv"), "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(["Id", "HeliostatId", "Azimuth", "Elevation", "DateTime"])
+        w.writerows([ids[i], fl.ids[hidx[i]], az[i], el[i], when[i]] for i in range(r) if keep[i])
+    if rec.weather is not None:
+        wx = rec.weather.tolist()
+        stamp = pd.to_datetime(rec.time.numpy(), unit="s", utc=True).strftime("%Y-%m-%dT%H:%M:%SZ")
+        with open(os.path.join(root, "metadata", "calibration-weather.csv"), "w", newline="",
+                  encoding="utf-8") as fh:
+            w = csv.writer(fh)
+            w.writerow(["Id", "HeliostatId", "DateTime", *WEATHER])
+            w.writerows([ids[i], fl.ids[hidx[i]], stamp[i], *(f"{v:.4f}" for v in wx[i])] for i in range(r)
+                        if not math.isnan(wx[i][0]))
+
+
+def truth_learned(sim: SimulatedPlant) -> tuple[dict, Kinematics]:
+    """The truth as ``/learned`` state: ``calibration`` (deviations from nominal at the end time, as a
+    calibration writes them, method ``"truth"``) and ``simulation`` (static deviations, steps, settings)."""
+    names = tuple(sim.names) + tuple(n for n in DRIFTING if n not in sim.names)
+    dev = torch.cat([sim.static, torch.zeros(sim.static.shape[0], len(names) - len(sim.names),
+                                             dtype=torch.float64)], 1)
+    for k, n in enumerate(DRIFTING):
+        dev[:, names.index(n)] += sim.end_drift[:, k]
+    kin = sim.true_kinematics()
+    nominal = sim.plant.field.kinematics
+    calibration = {"method": "truth", "focal_spot": "HeliOS", "heliostats": list(sim.plant.field.ids),
+                   "parameter_names": list(names), "deviations": dev,
+                   "nominal": {f.name: getattr(nominal, f.name) for f in fields(Kinematics)}}
+    steps = sim.steps
+    simulation = {"settings": json.dumps(sim.settings.__dict__), "static_names": list(sim.names),
+                  "static_deviations": sim.static, "drifting_names": list(DRIFTING), "end_drift": sim.end_drift,
+                  "end_time": torch.tensor([sim.end_time], dtype=torch.float64),
+                  "step_heliostat": steps["heliostat"].long(), "step_time": steps["time"].double(),
+                  "step_size": steps["size"].double(), "report": json.dumps(sim.report)}
+    return {"calibration": calibration, TRUTH_KEY: simulation}, kin
+
+
+def truth_scenario(sim: SimulatedPlant, source: str = "") -> Scenario:
+    """The true plant (kinematics at the end of the history) as an in-memory scenario."""
+    learned, kin = truth_learned(sim)
+    plant = sim.plant
+    surfaces = sim.surfaces if sim.surfaces is not None else plant.field.surfaces
+    true_plant = type(plant)(plant.site, plant.targets, type(plant.field)(
+        plant.field.ids, kin, plant.field.facets, surfaces, plant.field.width, plant.field.height,
+        plant.field.renovation), plant.sun)
+    if kin.num_heliostats != len(plant.field.ids):
+        raise HeliotwinError("simulate: truth and plant disagree on the heliostats")
+    return next_scenario(None, true_plant, learned=learned,
+                         step=provenance_entry("simulate", source=source, settings=sim.settings.__dict__),
+                         metadata={"simulated": True})

@@ -1,0 +1,69 @@
+"""The ``simulate`` and ``score`` workflows: an in-silico plant written as a PAINT folder with its truth, and
+how close a learned scenario comes to that truth.
+
+:func:`simulate` draws the plant and its calibration history (:func:`heliotwin.simulate.simulate_plant`),
+writes the PAINT folder (atomically; every reader reads it unchanged) and returns the truth scenario in
+memory (the true kinematics at the end of the history as ``/learned/calibration``, method ``truth``, and the
+static deviations, drift and steps under ``/learned/simulation``) with a report; the caller writes the
+scenario. :func:`score` compares a scenario with a truth scenario (:func:`heliotwin.simulate.score`).
+"""
+from __future__ import annotations
+
+import os
+import time
+
+from ..calibrate.priors import PlantPrior
+from ..calibrate.protocol.archive import PriorArchive, load_prior_source
+from ..errors import InputFileError
+from ..io.scenario import Scenario
+from ..simulate import SimulationSettings, simulate_plant, truth_scenario, write_paint_folder
+from ..simulate import score as score_plant
+
+__all__ = ["SimulationSettings", "simulate", "score", "prior_from"]
+
+
+def prior_from(path) -> PlantPrior:
+    """A plant prior as ``calibrate --prior-from`` takes it: learned from every heliostat of a PAINT folder with
+    enough records (:class:`~heliotwin.calibrate.protocol.archive.PriorArchive`), or stored in a scenario
+    (``/learned/calibration/prior``)."""
+    if not os.path.exists(path):
+        raise InputFileError(path, "not found; --prior-from needs a PAINT folder or a scenario file",
+                             field="--prior-from")
+    source = load_prior_source(path)
+    return source.prior() if isinstance(source, PriorArchive) else source
+
+
+def simulate(settings: SimulationSettings, out, *, prior: PlantPrior | None = None) -> tuple[Scenario, dict]:
+    """Simulate a plant and write its PAINT folder at ``out`` (absent or empty).
+
+    Parameters
+    ----------
+    settings : SimulationSettings
+    out : path
+        The PAINT folder to write.
+    prior : PlantPrior, optional
+        Distribution of the true static deviations (default: the one learned from PAINT's Jülich records).
+
+    Returns
+    -------
+    truth : Scenario
+        In memory (one ``simulate`` provenance step); write it with :func:`heliotwin.io.scenario.write_scenario`.
+    report : dict
+        Counts (heliostats, records, dropped, steps), ``seconds_simulate`` and ``seconds_write`` [s].
+    """
+    t0 = time.perf_counter()
+    sim = simulate_plant(settings, prior=prior)
+    t1 = time.perf_counter()
+    folder = write_paint_folder(sim, out)
+    t2 = time.perf_counter()
+    report = dict(sim.report, folder=os.path.abspath(folder), seed=settings.seed,
+                  prior="given" if prior is not None else "default", seconds_simulate=t1 - t0, seconds_write=t2 - t1)
+    return truth_scenario(sim, source=os.path.abspath(folder)), report
+
+
+def score(truth: Scenario, scenario: Scenario, *, suns: int = 16, seed: int = 0, flux: bool = True
+          ) -> tuple[Scenario, dict]:
+    """Score ``scenario`` against ``truth`` (unchanged scenario back; the report is the answer)."""
+    report = score_plant(truth, scenario, suns=suns, seed=seed, flux=flux)
+    report.update(truth=truth.path or None, scenario=scenario.path or None)
+    return scenario, report
