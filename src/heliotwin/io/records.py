@@ -161,15 +161,17 @@ class RecordTable:
                ) -> "RecordTable":
         """Rows of one heliostat and/or the given record ids (in table order), optionally only those with a
         flux-centred image; the heliostat axis is unchanged."""
-        keep = torch.ones(len(self), dtype=torch.bool)
+        dev = self.heliostat_index.device  # a table on the GPU selects with masks there
+        keep = torch.ones(len(self), dtype=torch.bool, device=dev)
         if heliostat is not None:
             if heliostat not in self.heliostat_ids:
                 raise KeyError(f"heliostat {heliostat} has no records in this table")
             keep &= self.heliostat_index == self.heliostat_ids.index(heliostat)
         if record_ids is not None:
-            keep &= torch.isin(self.record_id, torch.as_tensor(list(record_ids), dtype=torch.long))
+            keep &= torch.isin(self.record_id, torch.as_tensor(list(record_ids), dtype=torch.long,
+                                                                device=self.record_id.device))
         if with_centered_image:
-            keep &= torch.tensor([p is not None for p in self.flux_centered_png], dtype=torch.bool)
+            keep &= torch.tensor([p is not None for p in self.flux_centered_png], dtype=torch.bool, device=dev)
         return self.subset(keep)
 
     def for_heliostats(self, heliostat_ids) -> "RecordTable":
@@ -179,10 +181,11 @@ class RecordTable:
         unknown = [h for h in ids if h not in self.heliostat_ids]
         if unknown:
             raise KeyError(f"heliostat(s) {', '.join(unknown)} not in the record table")
-        old = torch.tensor([self.heliostat_ids.index(h) for h in ids], dtype=torch.long)
+        dev = self.heliostat_index.device
+        old = torch.tensor([self.heliostat_ids.index(h) for h in ids], dtype=torch.long, device=dev)
         out = self.subset(torch.isin(self.heliostat_index, old))
-        remap = torch.full((max(len(self.heliostat_ids), 1),), -1, dtype=torch.long)
-        remap[old] = torch.arange(len(ids))
+        remap = torch.full((max(len(self.heliostat_ids), 1),), -1, dtype=torch.long, device=dev)
+        remap[old] = torch.arange(len(ids), device=dev)
         out.heliostat_index = remap[out.heliostat_index]
         out.heliostat_ids = ids
         return out
