@@ -21,7 +21,8 @@ and report), :func:`plot_flux` (a titled, labelled figure with a colour bar), :f
 :func:`to_device` (move plant pieces between CPU and GPU);
 the whole field: :func:`field_efficiency` (one sun), :func:`optimise_aimpoints` (aim points under a peak limit),
 :func:`plot_receiver_flux` (maps on one scale), :func:`export_plant` (SolarPILOT / SolTrace),
-:func:`read_weather` (a DNI time series).
+:func:`read_weather` (a DNI time series); in silico: :func:`simulate` (a PAINT folder and its truth),
+:func:`score` (a learned plant against the truth).
 """
 from __future__ import annotations
 
@@ -44,6 +45,9 @@ from .workflows.field import field as field_workflow
 from .workflows.reconstruct import ReconstructionSettings, reconstruction_checkpoint
 from .workflows.reconstruct import reconstruct as reconstruct_surface
 from .workflows.show import export_plant as export_workflow
+from .workflows.simulate import SimulationSettings
+from .workflows.simulate import score as score_workflow
+from .workflows.simulate import simulate as simulate_workflow
 from .workflows.trace import TraceSettings
 from .workflows.trace import trace_record as trace_workflow
 from .workflows.update import UpdateSettings
@@ -51,7 +55,8 @@ from .workflows.update import update as update_workflow
 
 __all__ = ["load", "field", "trace_record", "plot_flux", "calibrate", "reconstruct", "ReconstructionSettings",
            "to_device", "field_efficiency", "FieldRunSettings", "optimise_aimpoints", "AimpointSettings",
-           "plot_receiver_flux", "export_plant", "read_weather", "update"]
+           "plot_receiver_flux", "export_plant", "read_weather", "update",
+           "simulate", "score", "SimulationSettings"]
 
 
 def load(paint, heliostats=None, *, scenario=None, plane_tolerance: float = 0.1):
@@ -395,3 +400,35 @@ def read_weather(path):
     """A DNI time series (SAM/typical-year file, PAINT's calibration weather, or a time + dni CSV;
     :func:`heliotwin.io.weather.read_dni_series`): ``.times`` (UTC), ``.dni`` [W/m^2], ``.step_hours``."""
     return read_dni_series(os.fspath(path))
+
+
+def simulate(out, settings: SimulationSettings | None = None, *, truth=None, **options):
+    """An in-silico plant (``heliotwin simulate``'s defaults): a PAINT folder at ``out`` that every command reads,
+    and its truth (:func:`heliotwin.workflows.simulate.simulate`).
+
+    Parameters
+    ----------
+    out : str or os.PathLike
+        The PAINT folder to write (absent or empty).
+    settings : heliotwin.workflows.simulate.SimulationSettings, optional
+        Heliostats, seed, years, noise [mrad], step rate [1/year], ... (``**options`` override its fields).
+    truth : str or os.PathLike, optional
+        Also write the truth scenario there.
+
+    Returns
+    -------
+    report : dict
+        Counts (heliostats, records, steps) and times [s].
+    truth : heliotwin.io.scenario.Scenario
+        The true plant (its kinematics as ``/learned/calibration``).
+    """
+    sc, report = simulate_workflow(replace(settings or SimulationSettings(), **options), os.fspath(out))
+    if truth is not None:
+        write_scenario(sc, truth)
+    return report, sc
+
+
+def score(truth, scenario, *, suns: int = 16, seed: int = 0, flux: bool = True) -> dict:
+    """A learned plant against the truth (``heliotwin score``): pointing error [mrad] at ``suns`` new sun
+    positions (median, p95, per heliostat), surface normal error [mrad] and the receiver map difference."""
+    return score_workflow(_scenario(truth), _scenario(scenario), suns=suns, seed=seed, flux=flux)[1]
