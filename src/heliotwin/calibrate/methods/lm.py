@@ -31,6 +31,7 @@ from ..metrics import record_jacobian
 from ..model import Calibrated
 from ..params import STONE8, apply_deviations, check_names, kinds, units
 from ..uncertainty import posterior
+from . import batched
 
 #: Pointing noise of one centroid record [rad] (camera-target centroids scatter by ~1 mrad).
 NOISE = 1e-3
@@ -42,6 +43,12 @@ NOISE = 1e-3
 #: Every folder of ``../shared`` (<= 30 heliostats) fits in one chunk, so its figures are those of one problem.
 LM_CHUNK = 32
 
+#: Default solver of :func:`fit_lm`: ``"batched"`` (:mod:`.batched`, all heliostats at once, any device) or
+#: ``"scipy"`` (MINPACK / trf per chunk of :data:`LM_CHUNK`; kept as the reference the batched solver is tested
+#: against). Synthetic plant, 100 records each, the ``lm`` method end to end: see
+#: ``benchmarks/bench_plant_calibration.py``.
+SOLVER = "batched"
+
 
 def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma: dict | None = None,
            prior_mean: torch.Tensor | None = None, noise: float = NOISE, max_nfev: int = 200,
@@ -49,7 +56,7 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
            prior_sigma_vector: torch.Tensor | None = None,
            prior_whitening: torch.Tensor | None = None,
            half_life_days: float | None = None, process_noise: float = 0.0,
-           drift_basis: str = "axes") -> tuple[torch.Tensor, dict]:
+           drift_basis: str = "axes", solver: str | None = None) -> tuple[torch.Tensor, dict]:
     """Fit deviations of every heliostat in ``batch`` by Levenberg-Marquardt.
 
     Parameters
@@ -80,20 +87,33 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
         Random-walk offset of the two axis offsets [rad^2/day] (:mod:`heliotwin.calibrate.drift`): the residuals are
         fitted in generalised least squares, whitened by their covariance under that walk (0 = the static fit).
         Excludes ``half_life_days``. ``drift_basis``: which deviations drift (:data:`heliotwin.calibrate.drift.BASES`).
+    solver : str, optional
+        ``"batched"`` (default, :data:`SOLVER`): every heliostat's problem at once in tensors
+        (:func:`~heliotwin.calibrate.methods.batched.solve`; any device, cost linear in heliostats);
+        ``"scipy"``: scipy's ``least_squares`` on :data:`LM_CHUNK` heliostats at a time (CPU). Same minimum.
 
     Returns
     -------
     delta : torch.Tensor, [H, P]
         Deviations (zero for heliostats without records).
     info : dict
-        ``nfev``, ``status``, ``message`` of the scipy run, and ``cost``.
+        ``nfev``, ``status``, ``message`` of the run, ``cost`` and ``method``.
     """
+    solver = SOLVER if solver is None else solver
+    if solver == "batched":
+        return _fit_batched(nominal, batch, names=names, prior_sigma=prior_sigma, prior_mean=prior_mean, noise=noise,
+                            max_nfev=max_nfev, loss=loss, f_scale=f_scale, prior_sigma_vector=prior_sigma_vector,
+                            prior_whitening=prior_whitening, half_life_days=half_life_days,
+                            process_noise=process_noise, drift_basis=drift_basis)
+    if solver != "scipy":
+        raise ValueError(f"solver must be 'batched' or 'scipy', got {solver!r}")
     if nominal.position.device.type != "cpu":  # scipy's LM runs on the CPU: fit CPU copies, deviations back
         cpu = lambda t: None if t is None else t.detach().cpu()  # noqa: E731
         delta, info = fit_lm(to_device(nominal, "cpu"), to_device(batch, "cpu"), names=names, prior_sigma=prior_sigma,
                              prior_mean=cpu(prior_mean), noise=noise, max_nfev=max_nfev, loss=loss, f_scale=f_scale,
                              prior_sigma_vector=cpu(prior_sigma_vector), prior_whitening=cpu(prior_whitening),
-                             half_life_days=half_life_days, process_noise=process_noise, drift_basis=drift_basis)
+                             half_life_days=half_life_days, process_noise=process_noise, drift_basis=drift_basis,
+                             solver="scipy")
         return delta.to(nominal.position.device), info
     names = check_names(names)
     h, p = nominal.num_heliostats, len(names)
@@ -110,7 +130,7 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
             nominal, chunk, names=names, prior_sigma=prior_sigma, prior_mean=prior_mean, noise=noise,
             max_nfev=max_nfev, loss=loss, f_scale=f_scale, prior_sigma_vector=prior_sigma_vector,
             prior_whitening=prior_whitening, half_life_days=half_life_days, process_noise=process_noise,
-            drift_basis=drift_basis), batch, h, p)
+            drift_basis=drift_basis, solver="scipy"), batch, h, p)
     prior_cols = (torch.isfinite(sig_vec) & (sig_vec > 0)).nonzero().flatten()
     if prior_whitening is not None:
         w = prior_whitening.detach().double()
@@ -161,6 +181,80 @@ def _fit_in_chunks(active: torch.Tensor, fit_chunk, batch: RecordTable, h: int, 
                    "chunks": len(infos)}
 
 
+@dataclass(frozen=True)
+class _Rows:
+    """What the residuals of :func:`~heliotwin.calibrate.metrics.record_jacobian` read of a record table: motor
+    steps [n, 2], sun [n, 3] and measured spot [n, 3] (a cheap row subset of a :class:`RecordTable`)."""
+
+    motor_steps: torch.Tensor
+    sun: torch.Tensor
+    spot: torch.Tensor
+
+    def rows(self, idx: torch.Tensor | None) -> "_Rows":
+        return self if idx is None else _Rows(self.motor_steps[idx], self.sun[idx], self.spot[idx])
+
+
+def _fit_batched(nominal: Kinematics, batch: RecordTable, *, names, prior_sigma, prior_mean, noise, max_nfev, loss,
+                 f_scale, prior_sigma_vector, prior_whitening, half_life_days, process_noise,
+                 drift_basis) -> tuple[torch.Tensor, dict]:
+    """:func:`fit_lm` by the batched solver (:func:`.batched.solve`): the same MAP problem per heliostat (record
+    residuals, optionally recency-weighted or whitened, and the prior's residuals, all under ``loss``) in
+    natural units, on the device of ``nominal``."""
+    names = check_names(names)
+    dev = nominal.position.device
+    f64 = dict(dtype=torch.float64, device=dev)
+    h, p = nominal.num_heliostats, len(names)
+    scale = units(names, device=dev)
+    sig_vec = _sigma_vector(names, prior_sigma, prior_sigma_vector).to(dev)
+    mean = torch.zeros(h, p, **f64) if prior_mean is None else prior_mean.detach().to(**f64)
+    hidx = batch.heliostat_index.to(dev)
+    counts = torch.bincount(hidx, minlength=h)
+    active = (counts > 0).nonzero().flatten()
+    na = len(active)
+    if na == 0 or len(batch) == 0:
+        return torch.zeros(h, p, **f64), {"nfev": 0, "status": 0, "message": "no records", "cost": 0.0,
+                                          "method": "batched"}
+    col_of = torch.full((h,), -1, dtype=torch.long, device=dev)
+    col_of[active] = torch.arange(na, device=dev)
+    centre = mean[active] / scale
+    if prior_whitening is not None:  # full covariance: noise * W_h (delta_h - mean_h)
+        w = prior_whitening.detach().to(**f64).expand(h, p, p)[active]
+        prior_matrix = noise * w * scale
+    else:
+        cols = (torch.isfinite(sig_vec) & (sig_vec > 0)).nonzero().flatten()
+        prior_matrix = torch.zeros(na, len(cols), p, **f64)
+        if len(cols):
+            prior_matrix[:, torch.arange(len(cols), device=dev), cols] = (noise / sig_vec[cols]) * scale[cols]
+    weights = recency_weights(batch, half_life_days) if half_life_days else None
+    whiten = None
+    if process_noise and process_noise > 0:
+        if weights is not None:
+            raise ValueError("half_life_days and process_noise are two drift models: give one")
+        whiten = whitener(nominal, batch, process_noise, noise, basis=drift_basis)
+    sw = None if weights is None else weights.to(**f64).sqrt()
+    kin_rec = nominal.index(hidx)
+    table = _Rows(batch.motor_steps, batch.sun, batch.spot)
+
+    def evaluate(x_rows, rows):
+        kin = kin_rec if rows is None else kin_rec.index(rows)
+        res, jac = record_jacobian(kin, table.rows(rows), x_rows * scale, names)
+        if sw is not None:
+            w_rows = sw if rows is None else sw[rows]
+            res, jac = res * w_rows[:, None], jac * w_rows[:, None, None]
+        if whiten is not None:
+            res, jac = whiten(res), whiten(jac)
+        return res, jac * scale
+
+    x, info = batched.solve(evaluate, centre.clone(), col_of[hidx], prior_matrix, centre, loss=loss,
+                            f_scale=f_scale, max_iterations=max_nfev, subset_records=whiten is None)
+    delta = torch.zeros(h, p, **f64)
+    delta[active] = x * scale
+    status = 1 if info["converged"] == na else 0
+    return delta, {"nfev": int(info["iterations"]), "status": status,
+                   "message": f"{info['converged']} of {na} heliostats converged", "cost": info["cost"],
+                   "method": "batched", "evaluations": info["evaluations"]}
+
+
 def _sigma_vector(names, prior_sigma: dict | None, prior_sigma_vector: torch.Tensor | None) -> torch.Tensor:
     """Prior sigma per parameter [P] (inf = no prior): the per-parameter vector if given, else per kind."""
     if prior_sigma_vector is not None:  # per-parameter sigma (e.g. a field prior), overrides the kinds
@@ -172,9 +266,11 @@ def _sigma_vector(names, prior_sigma: dict | None, prior_sigma_vector: torch.Ten
 
 def recency_weights(batch: RecordTable, half_life_days: float) -> torch.Tensor:
     """Weight per record [R]: ``0.5 ** (age / half_life)``, age [days] behind the heliostat's latest record."""
-    t = batch.time.double() if batch.time is not None else torch.full((len(batch),), float("nan"), dtype=torch.float64)
+    dev = batch.heliostat_index.device
+    t = batch.time.double() if batch.time is not None else torch.full((len(batch),), float("nan"),
+                                                                       dtype=torch.float64, device=dev)
     known = torch.isfinite(t)
-    latest = torch.full((batch.num_heliostats,), -float("inf"), dtype=torch.float64)
+    latest = torch.full((batch.num_heliostats,), -float("inf"), dtype=torch.float64, device=dev)
     latest = latest.scatter_reduce(0, batch.heliostat_index[known], t[known], reduce="amax")
     age = ((latest[batch.heliostat_index] - t) / 86400.0).clamp_min(0.0)
     return torch.where(known, 0.5 ** (age / float(half_life_days)), torch.ones_like(t))
