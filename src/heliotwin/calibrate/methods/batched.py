@@ -40,7 +40,7 @@ def _rho(f: torch.Tensor, loss: str, f_scale: float) -> tuple[torch.Tensor, torc
 def solve(evaluate: Callable, x0: torch.Tensor, record_owner: torch.Tensor, prior_matrix: torch.Tensor | None = None,
           prior_centre: torch.Tensor | None = None, *, loss: str = "linear", f_scale: float = 1.0,
           max_iterations: int = 200, xtol: float = 1e-10, ftol: float = 1e-12, gtol: float = 1e-14,
-          subset_records: bool = True) -> tuple[torch.Tensor, dict]:
+          subset_records: bool = True, near: bool = False) -> tuple[torch.Tensor, dict]:
     """Minimise every heliostat's robust least-squares cost at once.
 
     Parameters
@@ -67,6 +67,9 @@ def solve(evaluate: Callable, x0: torch.Tensor, record_owner: torch.Tensor, prio
     subset_records : bool
         Evaluate only the records of heliostats still iterating (False: every record, every iteration; for
         an ``evaluate`` that needs the whole table, e.g. a whitening across records).
+    near : bool
+        ``x0`` is already near the minimum (e.g. the fit of the same heliostats on other records): no plain
+        least-squares warm start for a robust loss.
 
     Returns
     -------
@@ -78,7 +81,7 @@ def solve(evaluate: Callable, x0: torch.Tensor, record_owner: torch.Tensor, prio
     if loss not in LOSSES:
         raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
     warm = None
-    if loss != "linear":
+    if loss != "linear" and not near:
         # Far from the minimum a robust loss has almost no curvature (large residuals), so damped steps crawl;
         # the plain least-squares minimum is a start near the robust one, and the minimum does not depend on
         # the start.
@@ -92,7 +95,6 @@ def solve(evaluate: Callable, x0: torch.Tensor, record_owner: torch.Tensor, prio
     if prior_matrix is None:
         prior_matrix = x.new_zeros(h, 0, p)
         prior_centre = torch.zeros_like(x)
-    eye = torch.eye(p, dtype=dt, device=dev)
 
     def records_of(which: torch.Tensor):
         """Rows of the records of heliostats ``which`` [H] bool (None = all)."""

@@ -56,7 +56,8 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
            prior_sigma_vector: torch.Tensor | None = None,
            prior_whitening: torch.Tensor | None = None,
            half_life_days: float | None = None, process_noise: float = 0.0,
-           drift_basis: str = "axes", solver: str | None = None) -> tuple[torch.Tensor, dict]:
+           drift_basis: str = "axes", solver: str | None = None,
+           start: torch.Tensor | None = None) -> tuple[torch.Tensor, dict]:
     """Fit deviations of every heliostat in ``batch`` by Levenberg-Marquardt.
 
     Parameters
@@ -91,6 +92,9 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
         ``"batched"`` (default, :data:`SOLVER`): every heliostat's problem at once in tensors
         (:func:`~heliotwin.calibrate.methods.batched.solve`; any device, cost linear in heliostats);
         ``"scipy"``: scipy's ``least_squares`` on :data:`LM_CHUNK` heliostats at a time (CPU). Same minimum.
+    start : torch.Tensor, [H, P], optional
+        Batched solver: where to start (physical units) when a near solution is known, e.g. the fit of the
+        same heliostats on other records (default: the prior mean). The minimum does not depend on it.
 
     Returns
     -------
@@ -104,7 +108,7 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
         return _fit_batched(nominal, batch, names=names, prior_sigma=prior_sigma, prior_mean=prior_mean, noise=noise,
                             max_nfev=max_nfev, loss=loss, f_scale=f_scale, prior_sigma_vector=prior_sigma_vector,
                             prior_whitening=prior_whitening, half_life_days=half_life_days,
-                            process_noise=process_noise, drift_basis=drift_basis)
+                            process_noise=process_noise, drift_basis=drift_basis, start=start)
     if solver != "scipy":
         raise ValueError(f"solver must be 'batched' or 'scipy', got {solver!r}")
     if nominal.position.device.type != "cpu":  # scipy's LM runs on the CPU: fit CPU copies, deviations back
@@ -196,7 +200,7 @@ class _Rows:
 
 def _fit_batched(nominal: Kinematics, batch: RecordTable, *, names, prior_sigma, prior_mean, noise, max_nfev, loss,
                  f_scale, prior_sigma_vector, prior_whitening, half_life_days, process_noise,
-                 drift_basis) -> tuple[torch.Tensor, dict]:
+                 drift_basis, start=None) -> tuple[torch.Tensor, dict]:
     """:func:`fit_lm` by the batched solver (:func:`.batched.solve`): the same MAP problem per heliostat (record
     residuals, optionally recency-weighted or whitened, and the prior's residuals, all under ``loss``) in
     natural units, on the device of ``nominal``."""
@@ -245,8 +249,9 @@ def _fit_batched(nominal: Kinematics, batch: RecordTable, *, names, prior_sigma,
             res, jac = whiten(res), whiten(jac)
         return res, jac * scale
 
-    x, info = batched.solve(evaluate, centre.clone(), col_of[hidx], prior_matrix, centre, loss=loss,
-                            f_scale=f_scale, max_iterations=max_nfev, subset_records=whiten is None)
+    x0 = centre.clone() if start is None else start.detach().to(**f64)[active] / scale
+    x, info = batched.solve(evaluate, x0, col_of[hidx], prior_matrix, centre, loss=loss, f_scale=f_scale,
+                            max_iterations=max_nfev, subset_records=whiten is None, near=start is not None)
     delta = torch.zeros(h, p, **f64)
     delta[active] = x * scale
     status = 1 if info["converged"] == na else 0
@@ -354,40 +359,56 @@ LM_BAGS = 10
 
 def stone8_field_fit(nominal: Kinematics, batch: RecordTable, usable: torch.Tensor, *, field_prior: bool = True,
                      loss: str = LM_LOSS, f_scale: float = LM_F_SCALE, half_life_days: float | None = None,
-                     process_noise: float = 0.0, drift_basis: str = "axes"):
+                     process_noise: float = 0.0, drift_basis: str = "axes", starts: dict | None = None):
     """LM on the Stone/Jülich 8 with the field prior (nominal prior when the run is too small for one).
 
     The first (loose) pass is plain least squares; the final fit uses the robust ``loss`` (one bad centroid
     in 10-30 records otherwise tilts the whole fit: AC33's pseudo-validation error halves with it).
+    ``starts`` (optional, a dict): where the two passes start (``"first"``, ``"final"`` [H, 8]) when it holds
+    them, else it receives this fit's (the bootstrap bags start from the full-data fit: fewer iterations,
+    the same minima).
 
     Returns
     -------
     delta : torch.Tensor, [H, 8]
     prior : (mean [8], sigma [8]) or None
     """
-    first, _ = fit_lm(nominal, batch, names=STONE8, prior_sigma=priors.LOOSE_SIGMA)
+    given = dict(starts) if starts else {}
+    first, _ = fit_lm(nominal, batch, names=STONE8, prior_sigma=priors.LOOSE_SIGMA, start=given.get("first"))
     fp = priors.field_prior(first, usable, STONE8) if field_prior else None
+    # the final pass starts from the loose pass (near its minimum) unless a nearer start is given
+    final_start = given.get("final", first)
     if fp is None:
         delta, _ = fit_lm(nominal, batch, names=STONE8, prior_sigma=priors.STONE8_SIGMA, loss=loss, f_scale=f_scale,
-                          half_life_days=half_life_days, process_noise=process_noise, drift_basis=drift_basis)
-        return delta, None
-    delta, _ = fit_lm(nominal, batch, names=STONE8, prior_sigma=priors.LOOSE_SIGMA,
-                      prior_mean=fp[0].expand_as(first).clone(), prior_sigma_vector=fp[1], loss=loss, f_scale=f_scale,
-                      half_life_days=half_life_days, process_noise=process_noise, drift_basis=drift_basis)
+                          half_life_days=half_life_days, process_noise=process_noise, drift_basis=drift_basis,
+                          start=final_start)
+    else:
+        delta, _ = fit_lm(nominal, batch, names=STONE8, prior_sigma=priors.LOOSE_SIGMA,
+                          prior_mean=fp[0].expand_as(first).clone(), prior_sigma_vector=fp[1], loss=loss,
+                          f_scale=f_scale, half_life_days=half_life_days, process_noise=process_noise,
+                          drift_basis=drift_basis, start=final_start)
+    if starts is not None and not given:
+        starts.update(first=first, final=delta)
     return delta, fp
 
 
 def stone8_plant_fit(nominal: Kinematics, batch: RecordTable, prior: priors.PlantPrior, *, loss: str = LM_LOSS,
                      f_scale: float = LM_F_SCALE, half_life_days: float | None = None,
-                     process_noise: float = 0.0, drift_basis: str = "axes") -> torch.Tensor:
+                     process_noise: float = 0.0, drift_basis: str = "axes", starts: dict | None = None
+                     ) -> torch.Tensor:
     """LM on the Stone/Jülich 8 with a plant prior (mean + covariance learned from other heliostats), [H, 8].
 
     One pass: the prior does not depend on the run's records, so there is no loose first pass to make.
+    ``starts``: as in :func:`stone8_field_fit` (``"final"`` only).
     """
-    mean = prior.mean.double().expand(nominal.num_heliostats, len(STONE8)).clone()
-    delta, _ = fit_lm(nominal, batch, names=STONE8, prior_mean=mean, prior_whitening=prior.whitening(), loss=loss,
-                      f_scale=f_scale, half_life_days=half_life_days, process_noise=process_noise,
-                      drift_basis=drift_basis)
+    dev = nominal.position.device
+    mean = prior.mean.to(dtype=torch.float64, device=dev).expand(nominal.num_heliostats, len(STONE8)).clone()
+    given = dict(starts) if starts else {}
+    delta, _ = fit_lm(nominal, batch, names=STONE8, prior_mean=mean, prior_whitening=prior.whitening().to(dev),
+                      loss=loss, f_scale=f_scale, half_life_days=half_life_days, process_noise=process_noise,
+                      drift_basis=drift_basis, start=given.get("final"))
+    if starts is not None and not given:
+        starts.update(final=delta)
     return delta
 
 
@@ -410,16 +431,16 @@ def bagged(fit_one, batch: RecordTable, bags: int, seed: int):
         st.update(full=saved["full"].to(dev), acc=saved["acc"].to(dev), extra=_to(saved["extra"], dev))
 
     total = 1 if bags <= 0 or len(batch) == 0 else bags + 1
+    # every heliostat's rows in ascending order (one stable sort, not one search of the table per heliostat)
+    order = torch.sort(batch.heliostat_index, stable=True).indices
+    per_heliostat = [rows for rows in order.split(batch.counts().tolist()) if len(rows)]
     for i in resumable_range("bags", total, dump, load):
         if i == 0:
             st["full"], st["extra"] = fit_one(batch)
             st["acc"] = torch.zeros_like(st["full"])
             continue
-        idx = []
-        for h in range(batch.num_heliostats):
-            rows = batch.of(h)
-            if len(rows):
-                idx.append(rows[torch.randint(len(rows), (len(rows),), generator=g).to(rows.device)])
+        # one draw per heliostat from the same generator, in heliostat order (the bags of earlier versions)
+        idx = [rows[torch.randint(len(rows), (len(rows),), generator=g).to(rows.device)] for rows in per_heliostat]
         d, _ = fit_one(batch.subset(torch.cat(idx)))
         st["acc"] += d
     if total == 1:
@@ -593,11 +614,13 @@ def _static_fit(nominal, fit_on, ok, s: LMSettings, *, plant_prior, q: float, se
     prior."""
     fit = dict(loss=s.loss, f_scale=s.f_scale, half_life_days=s.half_life_days, process_noise=q,
                drift_basis=s.drift_basis)
+    starts: dict = {}  # the full-data fit's solutions: where the bags' fits start (same minima, fewer steps)
     if plant_prior is not None:
-        delta, fp = bagged(lambda b: (stone8_plant_fit(nominal, b, plant_prior, **fit), None), fit_on, s.bags, seed)
+        delta, fp = bagged(lambda b: (stone8_plant_fit(nominal, b, plant_prior, starts=starts, **fit), None), fit_on,
+                           s.bags, seed)
     else:
-        delta, fp = bagged(lambda b: stone8_field_fit(nominal, b, ok, field_prior=s.field_prior, **fit),
-                           fit_on, s.bags, seed)
+        delta, fp = bagged(lambda b: stone8_field_fit(nominal, b, ok, field_prior=s.field_prior, starts=starts,
+                                                      **fit), fit_on, s.bags, seed)
     delta[~ok] = 0.0
     return delta, fp
 
