@@ -9,6 +9,7 @@ import argparse
 import csv
 import math
 import os
+import sys
 from dataclasses import fields, replace
 
 from ..errors import HeliotwinError
@@ -164,7 +165,7 @@ def cmd_calibrate(args) -> int:
     with checkpointed(args, _checkpoint(args, settings, device)), \
             output_set([("--paint", args.paint), ("--scenario", args.scenario)]) as out:
         output, json_path = out.file(args.output, "-o"), out.file(args.json, "--json")
-        result = calibrate(args.scenario, args.paint, settings, device=device, progress=not args.quiet,
+        result = calibrate(args.scenario, args.paint, settings, device=device, progress=_progress(args),
                            checkpoint=args.checkpoint, stage=lambda text: stage(args, text))
         report = result.report
         if args.output and result.scenario is None:
@@ -184,6 +185,21 @@ def cmd_calibrate(args) -> int:
     if not args.quiet:
         _print_table(report)
     return 0
+
+
+def _progress(args, stream=None):
+    """How a run shows progress: nothing with ``--quiet``, tqdm bars on a terminal, else one line per step of
+    the run on stderr (a log file or a pipe gets ``heliotwin calibrate: step 8/15 fit``)."""
+    stream = sys.stderr if stream is None else stream
+    if args.quiet:
+        return False
+    if getattr(stream, "isatty", lambda: False)():
+        return True
+
+    def line(step: str, index: int, total: int) -> None:
+        print(f"heliotwin calibrate: step {index + 1}/{total} {step}", file=stream, flush=True)
+
+    return line
 
 
 def _checkpoint(args, settings, device):
