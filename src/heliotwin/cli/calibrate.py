@@ -100,6 +100,10 @@ def register(subparsers) -> None:
                         "scored by it; else the flags, and the report says why); 'given' = the flags; 'auto' "
                         "(default) = cv for a PAINT folder, stored for a scenario, when no lm setting flag is "
                         "given, else given")
+    p.add_argument("--learn-settings", action="store_true",
+                   help="also choose the lm settings, plant prior and interval calibration once for this plant by "
+                        "leave-heliostats-out CV on every eligible heliostat of --paint, and store them in the -o "
+                        "scenario; later runs --prior-from that scenario reuse them without recomputing")
     p.add_argument("--online-step", type=_COUNT, default=5,
                    help="--split online: refit every this many test records (default 5; 1 = before every record)")
     add_resume_flags(p)

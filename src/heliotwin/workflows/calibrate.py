@@ -74,6 +74,10 @@ class CalibrationSettings:
         ``split="online"``: refit every this many test records.
     curve : bool
         Also run the error-vs-training-size experiment (lm refits) when something was calibrated.
+    learn_settings : bool
+        Also choose the lm settings, their plant prior and the interval calibration once for this plant, by
+        leave-heliostats-out CV on every eligible heliostat of the records' folder, and store them in the
+        scenario: later runs ``--prior-from`` it reuse them (``settings="stored"``) without recomputing.
     """
 
     method: str = "lm"
@@ -97,6 +101,7 @@ class CalibrationSettings:
     settings: str = "auto"
     online_step: int = 5
     curve: bool = False
+    learn_settings: bool = False
 
 
 def _process_noise(value):
@@ -152,7 +157,7 @@ def run_config(settings: CalibrationSettings, paint, *, progress: bool = False) 
                     correct_suspicious=not s.keep_suspicious, progress=progress is True, prior=s.prior,
                     prior_from=_path(s.prior_from), online_step=s.online_step, method_options=_lm_options(s),
                     drift_model=s.drift, process_noise=_process_noise(s.process_noise), drift_basis=s.drift_basis,
-                    settings=resolved_settings_mode(s))
+                    settings=resolved_settings_mode(s), learn_settings=bool(s.learn_settings))
     validate_config(cfg)
     return cfg
 
