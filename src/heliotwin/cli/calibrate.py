@@ -192,13 +192,14 @@ def cmd_calibrate(args) -> int:
 
 
 def _progress(args, stream=None):
-    """How a run shows progress: nothing with ``--quiet``, tqdm bars on a terminal, else one line per step of
-    the run on stderr (a log file or a pipe gets ``heliotwin calibrate: step 8/15 fit``)."""
-    stream = sys.stderr if stream is None else stream
+    """How a run shows progress: nothing with ``--quiet``, tqdm bars when stderr is a terminal, else one line
+    per step of the run on stdout, with the run's summary (a log file or a pipe gets ``heliotwin calibrate: step
+    8/15 fit``; stderr stays for the one-line error)."""
     if args.quiet:
         return False
-    if getattr(stream, "isatty", lambda: False)():
+    if sys.stderr.isatty():
         return True
+    stream = sys.stdout if stream is None else stream
 
     def line(step: str, index: int, total: int) -> None:
         print(f"heliotwin calibrate: step {index + 1}/{total} {step}", file=stream, flush=True)
