@@ -1,5 +1,7 @@
 """The batched Levenberg-Marquardt (all heliostats at once) against scipy's least_squares per chunk of
 heliostats, on a synthetic plant with known deviations."""
+from dataclasses import replace
+
 import pytest
 import torch
 from helpers.calibrate import synthetic_plant
@@ -72,3 +74,19 @@ def test_solver_converges_per_heliostat_and_follows_dtype():
         exact = torch.linalg.lstsq(a[m].reshape(-1, p), b[m].reshape(-1, 1)).solution.flatten()
         assert torch.allclose(x[k], exact, atol=1e-9)
     assert info["converged"] == h and x.dtype == torch.float64
+
+
+@pytest.mark.slow  # spawns two torch processes (~40 s on 2 busy cores)
+def test_two_processes_give_the_one_process_calibration():
+    """``nproc=2``: each rank fits its shard of the heliostats (gloo), every rank runs the rest; the deviations,
+    errors and intervals are those of one process."""
+    from heliotwin.workflows.calibrate import CalibrationSettings, calibrate
+
+    ds, _ = synthetic_plant(7, 60, seed=5)
+    settings = CalibrationSettings(min_records=50, train=30, test=20)
+    one = calibrate(None, ds, settings)
+    two = calibrate(None, ds, replace(settings, nproc=2))
+    assert torch.allclose(one.model.delta, two.model.delta, atol=1e-12, rtol=0)
+    o1, o2 = one.report["overall"], two.report["overall"]
+    assert o1["median_of_mean_test_mrad"] == pytest.approx(o2["median_of_mean_test_mrad"], rel=1e-9)
+    assert o1["interval_90_coverage"] == o2["interval_90_coverage"]

@@ -104,6 +104,8 @@ def register(subparsers) -> None:
                    help="also choose the lm settings, plant prior and interval calibration once for this plant by "
                         "leave-heliostats-out CV on every eligible heliostat of --paint, and store them in the -o "
                         "scenario; later runs --prior-from that scenario reuse them without recomputing")
+    p.add_argument("--nproc", type=_COUNT, default=1,
+                   help="shard the heliostats' fits over N local processes (torch.distributed gloo; same result)")
     p.add_argument("--online-step", type=_COUNT, default=5,
                    help="--split online: refit every this many test records (default 5; 1 = before every record)")
     add_resume_flags(p)

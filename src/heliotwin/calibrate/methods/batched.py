@@ -19,12 +19,45 @@ Device and dtype follow ``x0``.
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
 from typing import Callable
 
 import torch
+import torch.distributed as dist
 
 #: Losses of :func:`solve` (scipy ``least_squares`` names).
 LOSSES = ("linear", "soft_l1")
+
+_SHARDING: dict = {"group": None}
+
+
+@contextmanager
+def sharded(group):
+    """Within this context the batched fits (:func:`heliotwin.calibrate.methods.lm.fit_lm`) solve only this
+    rank's contiguous shard of the heliostats and sum the deviations over ``group`` (a
+    :mod:`torch.distributed` process group; None: unsharded). Every rank runs the same calibration; the
+    heliostats' problems are independent, so the result is the one-process result."""
+    before = _SHARDING["group"]
+    _SHARDING["group"] = group
+    try:
+        yield
+    finally:
+        _SHARDING["group"] = before
+
+
+def shard_group():
+    """The process group of :func:`sharded` when it has more than one rank, else None."""
+    group = _SHARDING["group"]
+    if group is None or not dist.is_available() or not dist.is_initialized():
+        return None
+    return group if dist.get_world_size(group) > 1 else None
+
+
+def contiguous_shard(n: int, rank: int, world: int) -> torch.Tensor:
+    """Indices of rank ``rank``'s contiguous share of ``n`` items (sizes differ by at most one)."""
+    base, extra = divmod(int(n), int(world))
+    start = rank * base + min(rank, extra)
+    return torch.arange(start, start + base + (1 if rank < extra else 0))
 
 
 def _rho(f: torch.Tensor, loss: str, f_scale: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -182,4 +215,4 @@ def solve(evaluate: Callable, x0: torch.Tensor, record_owner: torch.Tensor, prio
                "cost": float(cost.sum())}
 
 
-__all__ = ["solve", "LOSSES"]
+__all__ = ["solve", "LOSSES", "sharded", "shard_group", "contiguous_shard"]

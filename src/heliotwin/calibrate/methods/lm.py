@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import torch
+import torch.distributed as dist
 from scipy.optimize import least_squares
 
 from ...devices import to_device
@@ -218,6 +219,24 @@ def _fit_batched(nominal: Kinematics, batch: RecordTable, *, names, prior_sigma,
     if na == 0 or len(batch) == 0:
         return torch.zeros(h, p, **f64), {"nfev": 0, "status": 0, "message": "no records", "cost": 0.0,
                                           "method": "batched"}
+    group = batched.shard_group()
+    if group is not None:  # this rank's shard of the heliostats; the others' deviations arrive by all_reduce
+        mine = active[batched.contiguous_shard(na, dist.get_rank(group), dist.get_world_size(group)).to(dev)]
+        member = torch.zeros(h, dtype=torch.bool, device=dev)
+        member[mine] = True
+        with batched.sharded(None):
+            delta, info = _fit_batched(nominal, batch.subset(member[hidx]), names=names, prior_sigma=prior_sigma,
+                                       prior_mean=prior_mean, noise=noise, max_nfev=max_nfev, loss=loss,
+                                       f_scale=f_scale, prior_sigma_vector=prior_sigma_vector,
+                                       prior_whitening=prior_whitening, half_life_days=half_life_days,
+                                       process_noise=process_noise, drift_basis=drift_basis, start=start)
+        dist.all_reduce(delta, group=group)  # disjoint shards: a sum is a gather
+        totals = torch.tensor([info.get("converged", 0), info["nfev"], info["cost"]], dtype=torch.float64,
+                              device=dev)
+        dist.all_reduce(totals, group=group)
+        info = dict(info, cost=float(totals[2]), converged=int(totals[0]), status=int(int(totals[0]) == na),
+                    message=f"{int(totals[0])} of {na} heliostats converged ({dist.get_world_size(group)} ranks)")
+        return delta, info
     col_of = torch.full((h,), -1, dtype=torch.long, device=dev)
     col_of[active] = torch.arange(na, device=dev)
     centre = mean[active] / scale
@@ -255,7 +274,7 @@ def _fit_batched(nominal: Kinematics, batch: RecordTable, *, names, prior_sigma,
     delta = torch.zeros(h, p, **f64)
     delta[active] = x * scale
     status = 1 if info["converged"] == na else 0
-    return delta, {"nfev": int(info["iterations"]), "status": status,
+    return delta, {"nfev": int(info["iterations"]), "status": status, "converged": info["converged"],
                    "message": f"{info['converged']} of {na} heliostats converged", "cost": info["cost"],
                    "method": "batched", "evaluations": info["evaluations"]}
 
