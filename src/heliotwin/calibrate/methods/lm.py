@@ -1,17 +1,18 @@
 """``lm``: Levenberg-Marquardt (scipy, MINPACK) on the 8-parameter Stone/Jülich error model.
 
-The heliostats of a run are fitted together, :data:`LM_CHUNK` at a time in one least-squares problem: their
-parameters are independent, so the Jacobian is block diagonal and the joint minimum is every heliostat's
-own minimum; one call with an analytic (autograd) Jacobian is much faster than one call per heliostat, but
-scipy treats the Jacobian as dense, so one problem over a whole plant would cost the cube of its heliostats
-(chunks keep the cost linear). Residuals per record are the three components of
+The heliostats of a run are fitted together: their parameters are independent, so the joint minimum is every
+heliostat's own minimum. The default solver (:data:`SOLVER`, :mod:`.batched`) advances all heliostats' problems
+at once in tensors (per-heliostat normal equations, damping and convergence; cost linear in heliostats, any
+device; a whole plant in one call). The reference solver is scipy's ``least_squares`` with an analytic
+(autograd) Jacobian, :data:`LM_CHUNK` heliostats per problem: scipy treats the Jacobian as dense, so one
+problem over a whole plant would cost the cube of its heliostats. Residuals per record are the three components of
 (model normal - measured normal), whose norm is the pointing error to second order. A Gaussian prior
 (Tikhonov) towards nominal adds ``delta / sigma`` residuals per parameter; with few records this is what
 keeps the ill-conditioned directions (axis tilts versus offsets) from fitting noise.
 
-:func:`fit_lm` is the solver (scipy, so CPU and float64); :func:`stone8_field_fit` the two-pass fit with the
-field prior that every method pre-aligns with; :func:`fit_lm_method` the ``lm`` method (robust loss,
-bagging).
+:func:`fit_lm` is the solver (float64; batched on the inputs' device, or scipy on the CPU);
+:func:`stone8_field_fit` the two-pass fit with the field prior that every method pre-aligns with;
+:func:`fit_lm_method` the ``lm`` method (robust loss, bagging).
 """
 from __future__ import annotations
 

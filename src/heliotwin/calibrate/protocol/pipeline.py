@@ -11,7 +11,8 @@ step                  does                                                      
 ``prepare``           their validated records; heliostats with too few are skipped                :class:`Prepared`
 ``rebatch``           records and nominal kinematics over the heliostats that run                 :class:`Batch`
 ``split``             train/validation/test records per heliostat                                 :class:`Split`
-``choose_settings``   ``--settings cv|stored``: lm settings chosen by CV or stored (runs the run)  :class:`Choice`
+``choose_settings``   ``--settings cv|stored``: lm settings chosen by CV or stored (runs the run);  :class:`Choice`
+                      ``--learn-settings``: chosen once for the plant, stored in its scenario
 ``learn_prior``       a plant prior from other heliostats, when asked for                         ``PlantPrior``
 ``check_properties``  suspicious property values, corrected where the training records support it  :class:`Checked`
 ``fit``               the method                                                                  :class:`Fit`
