@@ -55,15 +55,15 @@ def posterior(residuals: torch.Tensor, jacobian: torch.Tensor, heliostat_index: 
     prior_precision : torch.Tensor, [P, P] or [H, P, P]
     """
     h, p = num_heliostats, num_parameters
-    jtj = torch.zeros(h, p, p, dtype=torch.float64).index_add_(
-        0, heliostat_index, torch.einsum("rci,rcj->rij", jacobian, jacobian))
-    ss = torch.zeros(h, dtype=torch.float64).index_add_(0, heliostat_index, (residuals ** 2).sum(-1))
+    f64 = dict(dtype=torch.float64, device=jacobian.device)
+    jtj = torch.zeros(h, p, p, **f64).index_add_(0, heliostat_index, torch.einsum("rci,rcj->rij", jacobian, jacobian))
+    ss = torch.zeros(h, **f64).index_add_(0, heliostat_index, (residuals ** 2).sum(-1))
     n = torch.bincount(heliostat_index, minlength=h).double()
     # 2 noise dimensions per record (the residual lies in the mirror plane); P parameters spent on the fit
     dof = (2.0 * n - p).clamp_min(1.0)
     s2 = (ss / dof).clamp_min(MIN_NOISE ** 2)
-    prec = jtj / s2[:, None, None] + prior_precision.double().expand(h, p, p)
-    eye = torch.eye(p, dtype=torch.float64)
+    prec = jtj / s2[:, None, None] + torch.as_tensor(prior_precision).to(**f64).expand(h, p, p)
+    eye = torch.eye(p, **f64)
     cov = torch.linalg.solve(prec + 1e-12 * eye, eye.expand(h, p, p))
     return 0.5 * (cov + cov.transpose(-1, -2)), s2.sqrt()
 

@@ -497,8 +497,9 @@ def laplace(nominal: Kinematics, batch: RecordTable, delta: torch.Tensor, prior_
     h = nominal.num_heliostats
     hidx = batch.heliostat_index
     if len(batch) == 0:
-        eye = torch.eye(len(STONE8), dtype=torch.float64)
-        return {"covariance": eye.expand(h, -1, -1).clone(), "noise_rad": torch.ones(h, dtype=torch.float64),
+        eye = torch.eye(len(STONE8), dtype=torch.float64, device=delta.device)
+        return {"covariance": eye.expand(h, -1, -1).clone(),
+                "noise_rad": torch.ones(h, dtype=torch.float64, device=delta.device),
                 "drift_rad": float(drift)}
     res, jac = record_jacobian(nominal.index(hidx), batch, delta.detach()[hidx], STONE8)
     cov, noise = posterior(res, jac, hidx, prior_precision, h, len(STONE8))
