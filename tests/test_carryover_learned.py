@@ -43,3 +43,26 @@ def test_settings_learned_once_are_reused_without_choosing_again(paint_dir, tmp_
     assert all(rep2["heliostats"][h]["status"] == "ok" for h in NEW)
     cov = rep2["overall"]["interval_90_coverage"]
     assert cov is not None and 0.0 <= cov <= 1.0
+
+
+def test_interval_rule_at_least_takes_the_narrowest_interval_reaching_the_target():
+    """Records whose errors an interval must cover: the ``at_least`` rule never picks a drift whose coverage
+    falls short of 0.9 when one reaches it, and no larger drift than needed."""
+    import torch
+
+    g = torch.Generator().manual_seed(1)
+    r = 400
+    normal = torch.nn.functional.normalize(torch.randn(r, 3, generator=g, dtype=torch.float64), dim=-1)
+    inputs = [{"jacobian": torch.zeros(r, 3, 8, dtype=torch.float64), "normal": normal,
+               "covariance": torch.eye(8, dtype=torch.float64).expand(r, 8, 8) * 1e-12,
+               "walk": None, "noise": torch.full((r,), 2e-4, dtype=torch.float64),
+               # errors of a 1 mrad offset the training records could not show
+               "error": 1e-3 * torch.randn(r, generator=g, dtype=torch.float64).abs() * 1.5}]
+    drift, _, cov = selection.choose_interval(inputs, samples=1000, rule="at_least")
+    assert cov[(drift, 1.0)] >= 0.9
+    smaller = [d for d in selection.DRIFT_GRID if d < drift]
+    assert all(cov[(d, 1.0)] < 0.9 for d in smaller)
+    closest, _, _ = selection.choose_interval(inputs, samples=1000)
+    assert closest <= drift
+    with pytest.raises(ValueError):
+        selection.choose_interval(inputs, rule="widest")
