@@ -165,6 +165,8 @@ def cmd_calibrate(args) -> int:
     from ..workflows.calibrate import calibrate, run_config
 
     settings = replace(_settings(args), curve=bool(args.curve and args.json and not args.no_plots))
+    if args.learn_settings and not args.output:
+        raise HeliotwinError("--learn-settings stores what it learns in the scenario: give -o PLANT.h5")
     run_config(settings, args.paint)  # one-line errors before any output is staged
     device = getattr(args, "device", "cpu")
     # The checkpoint outlives the staged outputs: removed only once they are in place.
