@@ -51,11 +51,15 @@ def test_lm_fits_a_large_field_in_independent_chunks(monkeypatch):
     delta = torch.tensor([[TRUE[n] * (1 + 0.2 * i) for n in STONE8] for i in range(5)], dtype=torch.float64)
     records = simulate(apply_deviations(nominal, delta, STONE8), 30, 5, noise=3e-4)
     train = records.subset(records.heliostat_index != 2)  # heliostat 2 has no record
-    fitted, info = fit_lm(nominal, train)
+    fitted, info = fit_lm(nominal, train, solver="scipy")
     assert info["chunks"] == 2 and bool((fitted[2] == 0).all())
+    together, _ = fit_lm(nominal, train, solver="batched")  # all at once: each heliostat its own convergence
+    assert bool((together[2] == 0).all())
     for h in (0, 4):
-        alone, _ = fit_lm(nominal, train.subset(train.heliostat_index == h))
+        alone, _ = fit_lm(nominal, train.subset(train.heliostat_index == h), solver="scipy")
         assert torch.allclose(fitted[h], alone[h], atol=1e-9), (fitted[h] - alone[h]).abs().max()
+        alone, _ = fit_lm(nominal, train.subset(train.heliostat_index == h), solver="batched")
+        assert torch.allclose(together[h], alone[h], atol=1e-9), (together[h] - alone[h]).abs().max()
     test = simulate(apply_deviations(nominal, delta, STONE8), 20, 6)
     test = test.subset(test.heliostat_index != 2)
     err = metrics.pointing_error(apply_deviations(nominal, fitted, STONE8), test)

@@ -88,3 +88,64 @@ def scenario_round_trip(tmp_path, kin: Kinematics, model):
     from heliotwin.io.scenario import load_scenario
 
     return load_scenario(save_calibration(tmp_path / "calibrated.h5", plant_of(kin, model.heliostat_ids), model))
+
+
+#: Spread of the Stone/Jülich deviations over a synthetic plant (rad; relative for increments), ``STONE8`` order:
+#: the axis offsets share a plant-wide part (the installation's) plus a few mrad per heliostat.
+PLANT_MEAN = (0.004, -0.006, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+PLANT_SPREAD = (3e-3, 3e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3)
+
+
+def synthetic_plant(num_heliostats: int, records: int, *, seed: int = 0, noise: float = 1e-3,
+                    days: float = 365.0):
+    """A whole plant with known deviations and calibration records simulated from them (no real data).
+
+    Parameters
+    ----------
+    num_heliostats : int
+        H heliostats of :func:`~heliotwin.field.demo.demo_plant` (its nominal kinematics).
+    records : int
+        Records per heliostat (R = H x records), one every ``days / records`` days, sun over a year-like
+        range, aimed at the lower Jülich target's centre +-1 m.
+    noise : float
+        Pointing noise per record [rad]: the measured centroid (HeliOS) moves by it on the target; the UTIS
+        centroid of the same spot by another draw of half of it.
+
+    Returns
+    -------
+    dataset : PaintDataset
+        Root ``"synthetic"``; records with both centroids (``focal_spots``), so the pipeline runs as on PAINT.
+    true_delta : torch.Tensor, [H, 8]
+        The deviations the records were simulated with (``params.STONE8`` order).
+    """
+    from dataclasses import replace
+
+    from heliotwin.calibrate.params import STONE8, apply_deviations
+    from heliotwin.field.demo import demo_plant
+    from heliotwin.io.paint import PaintDataset
+    from heliotwin.sun import direction_from_paint_angles
+
+    g = torch.Generator().manual_seed(seed)
+    plant = demo_plant(num_heliostats=num_heliostats, seed=seed)
+    h, n = num_heliostats, records
+    nominal = plant.field.kinematics
+    true = torch.tensor(PLANT_MEAN, dtype=F64) + torch.randn(h, 8, generator=g, dtype=F64) * torch.tensor(
+        PLANT_SPREAD, dtype=F64)
+    kin_true = apply_deviations(nominal, true, STONE8)
+    target = plant.targets["solar_tower_juelich_lower"]
+    hidx = torch.arange(h).repeat_interleave(n)
+    t_day = torch.arange(n, dtype=F64).repeat(h) * (days / n) + torch.rand(h * n, generator=g, dtype=F64)
+    az = (torch.rand(h * n, generator=g, dtype=F64) - 0.5) * 2.2
+    el = 0.2 + torch.rand(h * n, generator=g, dtype=F64) * 0.8
+    sun = direction_from_paint_angles(az, el)
+    spot = target.to_world((torch.rand(h * n, 2, generator=g, dtype=F64) - 0.5) * 2)
+    steps, ok = K.inverse(kin_true.index(hidx), spot, sun, strict=False)
+    slant = (spot - kin_true.position[hidx]).norm(dim=-1, keepdim=True)
+    heliOS = spot + (target.to_world(torch.randn(h * n, 2, generator=g, dtype=F64)) - target.center) * noise * slant
+    utis = spot + (target.to_world(torch.randn(h * n, 2, generator=g, dtype=F64)) - target.center) * noise * slant / 2
+    table = RecordTable.from_arrays(list(plant.field.ids), hidx, az, el, steps, heliOS, target,
+                                    time=1.6e9 + 86400.0 * t_day)
+    table.focal_spots = torch.stack([heliOS, utis], 1)
+    table.source = ["HeliOS"] * len(table)
+    table = table.subset(ok)
+    return PaintDataset("synthetic", replace(plant, field=replace(plant.field, kinematics=nominal)), table), true

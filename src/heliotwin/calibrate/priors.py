@@ -85,7 +85,7 @@ def field_prior(first_pass: torch.Tensor, usable: torch.Tensor, names, *, floor:
     d = first_pass[usable].detach().double()
     mu = d.median(0).values
     mad = (d - mu).abs().median(0).values * 1.4826 * widen
-    fl = sigma_vector(names, floor or FLOOR_SIGMA)
+    fl = sigma_vector(names, floor or FLOOR_SIGMA).to(mad.device)
     return mu, torch.maximum(mad, fl)
 
 

@@ -143,7 +143,8 @@ def calibrated_scenario(plant: Plant, model, *, previous: Scenario | None = None
     heliotwin.io.scenario.Scenario
         Not yet written (:func:`heliotwin.io.scenario.write_scenario` writes it).
     """
-    prior = model.extras.get("plant_prior") or model.extras.get("field_prior")
+    prior = (model.extras.get("learned_plant_prior") or model.extras.get("plant_prior")
+             or model.extras.get("field_prior"))
     prior = (prior["mean"], prior["sigma"]) if isinstance(prior, dict) and "mean" in prior else prior
     learned = dict(previous.learned) if previous is not None else {}
     learned[KEY] = calibration_state(model, focal_spot=focal_spot, prior=prior,

@@ -9,6 +9,7 @@ import argparse
 import csv
 import math
 import os
+import sys
 from dataclasses import fields, replace
 
 from ..errors import HeliotwinError
@@ -99,6 +100,12 @@ def register(subparsers) -> None:
                         "scored by it; else the flags, and the report says why); 'given' = the flags; 'auto' "
                         "(default) = cv for a PAINT folder, stored for a scenario, when no lm setting flag is "
                         "given, else given")
+    p.add_argument("--learn-settings", action="store_true",
+                   help="also choose the lm settings, plant prior and interval calibration once for this plant by "
+                        "leave-heliostats-out CV on every eligible heliostat of --paint, and store them in the -o "
+                        "scenario; later runs --prior-from that scenario reuse them without recomputing")
+    p.add_argument("--nproc", type=_COUNT, default=1,
+                   help="shard the heliostats' fits over N local processes (torch.distributed gloo; same result)")
     p.add_argument("--online-step", type=_COUNT, default=5,
                    help="--split online: refit every this many test records (default 5; 1 = before every record)")
     add_resume_flags(p)
@@ -158,13 +165,15 @@ def cmd_calibrate(args) -> int:
     from ..workflows.calibrate import calibrate, run_config
 
     settings = replace(_settings(args), curve=bool(args.curve and args.json and not args.no_plots))
+    if args.learn_settings and not args.output:
+        raise HeliotwinError("--learn-settings stores what it learns in the scenario: give -o PLANT.h5")
     run_config(settings, args.paint)  # one-line errors before any output is staged
     device = getattr(args, "device", "cpu")
     # The checkpoint outlives the staged outputs: removed only once they are in place.
     with checkpointed(args, _checkpoint(args, settings, device)), \
             output_set([("--paint", args.paint), ("--scenario", args.scenario)]) as out:
         output, json_path = out.file(args.output, "-o"), out.file(args.json, "--json")
-        result = calibrate(args.scenario, args.paint, settings, device=device, progress=not args.quiet,
+        result = calibrate(args.scenario, args.paint, settings, device=device, progress=_progress(args),
                            checkpoint=args.checkpoint, stage=lambda text: stage(args, text))
         report = result.report
         if args.output and result.scenario is None:
@@ -184,6 +193,22 @@ def cmd_calibrate(args) -> int:
     if not args.quiet:
         _print_table(report)
     return 0
+
+
+def _progress(args, stream=None):
+    """How a run shows progress: nothing with ``--quiet``, tqdm bars when stderr is a terminal, else one line
+    per step of the run on stdout, with the run's summary (a log file or a pipe gets ``heliotwin calibrate: step
+    8/15 fit``; stderr stays for the one-line error)."""
+    if args.quiet:
+        return False
+    if sys.stderr.isatty():
+        return True
+    stream = sys.stdout if stream is None else stream
+
+    def line(step: str, index: int, total: int) -> None:
+        print(f"heliotwin calibrate: step {index + 1}/{total} {step}", file=stream, flush=True)
+
+    return line
 
 
 def _checkpoint(args, settings, device):

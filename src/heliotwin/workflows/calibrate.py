@@ -21,10 +21,14 @@ import os
 from dataclasses import dataclass, replace
 from typing import Callable
 
+import torch.distributed as dist
+
+from ..calibrate.methods.batched import sharded
 from ..calibrate.model import Calibrated
 from ..calibrate.protocol import pipeline
 from ..calibrate.protocol.config import RunConfig, settings_mode, validate_config
 from ..calibrate.scenario import calibrated_scenario
+from ..distributed import run_spawned
 from ..errors import HeliotwinError
 from ..io.checkpoint import Checkpoint
 from ..io.paint import PaintDataset
@@ -74,6 +78,14 @@ class CalibrationSettings:
         ``split="online"``: refit every this many test records.
     curve : bool
         Also run the error-vs-training-size experiment (lm refits) when something was calibrated.
+    learn_settings : bool
+        Also choose the lm settings, their plant prior and the interval calibration once for this plant, by
+        leave-heliostats-out CV on every eligible heliostat of the records' folder, and store them in the
+        scenario: later runs ``--prior-from`` it reuse them (``settings="stored"``) without recomputing.
+    nproc : int
+        Shard the heliostats' fits over this many local gloo processes (:func:`heliotwin.distributed.run_spawned`;
+        the same result as one process). Under ``torchrun`` (a process group already initialised by the
+        caller), every rank runs the calibration and fits its shard.
     """
 
     method: str = "lm"
@@ -97,6 +109,8 @@ class CalibrationSettings:
     settings: str = "auto"
     online_step: int = 5
     curve: bool = False
+    learn_settings: bool = False
+    nproc: int = 1
 
 
 def _process_noise(value):
@@ -152,7 +166,7 @@ def run_config(settings: CalibrationSettings, paint, *, progress: bool = False) 
                     correct_suspicious=not s.keep_suspicious, progress=progress is True, prior=s.prior,
                     prior_from=_path(s.prior_from), online_step=s.online_step, method_options=_lm_options(s),
                     drift_model=s.drift, process_noise=_process_noise(s.process_noise), drift_basis=s.drift_basis,
-                    settings=resolved_settings_mode(s))
+                    settings=resolved_settings_mode(s), learn_settings=bool(s.learn_settings))
     validate_config(cfg)
     return cfg
 
@@ -231,6 +245,12 @@ def load_paint_records(paint, scenario=None, plane_tolerance: float = 0.1) -> tu
     return load_records(paint, scenario, plane_tolerance=plane_tolerance)
 
 
+def _calibrate_shard(job: dict, group):
+    """One rank of a ``nproc`` calibration: the whole run, fitting this rank's shard of the heliostats."""
+    with sharded(group):
+        return pipeline.run_calibration(job["cfg"], job["dataset"])
+
+
 def calibrate(scenario, records_or_paint, settings: CalibrationSettings = CalibrationSettings(), *,
               device: str = "cpu", progress: bool | Callable = False, checkpoint: Checkpoint | None = None,
               stage: Callable[[str], None] | None = None) -> Calibration:
@@ -268,8 +288,16 @@ def calibrate(scenario, records_or_paint, settings: CalibrationSettings = Calibr
         stage(f"reading {paint}")
         dataset, previous = load_paint_records(paint, scenario, cfg.plane_tolerance)
     stage(f"calibrating ({cfg.method}, {cfg.split} split) on {device}")
-    report, model, arrays = pipeline.run_calibration(cfg, dataset, device=device, checkpoint=checkpoint,
-                                                     progress=progress if callable(progress) else None)
+    if settings.nproc > 1:
+        if not str(device).startswith("cpu"):
+            raise HeliotwinError("--nproc: the local process group is gloo on CPU; use --device cpu with --nproc")
+        report, model, arrays = run_spawned(_calibrate_shard, {"cfg": replace(cfg, progress=False),
+                                                               "dataset": dataset}, settings.nproc)
+    else:
+        group = dist.group.WORLD if dist.is_available() and dist.is_initialized() else None  # e.g. torchrun
+        with sharded(group):
+            report, model, arrays = pipeline.run_calibration(cfg, dataset, device=device, checkpoint=checkpoint,
+                                                             progress=progress if callable(progress) else None)
     if model is None or not bool(model.ok.any()):
         return Calibration(None, report, model, arrays)
     curves = None

@@ -1,23 +1,25 @@
 """``lm``: Levenberg-Marquardt (scipy, MINPACK) on the 8-parameter Stone/Jülich error model.
 
-The heliostats of a run are fitted together, :data:`LM_CHUNK` at a time in one least-squares problem: their
-parameters are independent, so the Jacobian is block diagonal and the joint minimum is every heliostat's
-own minimum; one call with an analytic (autograd) Jacobian is much faster than one call per heliostat, but
-scipy treats the Jacobian as dense, so one problem over a whole plant would cost the cube of its heliostats
-(chunks keep the cost linear). Residuals per record are the three components of
+The heliostats of a run are fitted together: their parameters are independent, so the joint minimum is every
+heliostat's own minimum. The default solver (:data:`SOLVER`, :mod:`.batched`) advances all heliostats' problems
+at once in tensors (per-heliostat normal equations, damping and convergence; cost linear in heliostats, any
+device; a whole plant in one call). The reference solver is scipy's ``least_squares`` with an analytic
+(autograd) Jacobian, :data:`LM_CHUNK` heliostats per problem: scipy treats the Jacobian as dense, so one
+problem over a whole plant would cost the cube of its heliostats. Residuals per record are the three components of
 (model normal - measured normal), whose norm is the pointing error to second order. A Gaussian prior
 (Tikhonov) towards nominal adds ``delta / sigma`` residuals per parameter; with few records this is what
 keeps the ill-conditioned directions (axis tilts versus offsets) from fitting noise.
 
-:func:`fit_lm` is the solver (scipy, so CPU and float64); :func:`stone8_field_fit` the two-pass fit with the
-field prior that every method pre-aligns with; :func:`fit_lm_method` the ``lm`` method (robust loss,
-bagging).
+:func:`fit_lm` is the solver (float64; batched on the inputs' device, or scipy on the CPU);
+:func:`stone8_field_fit` the two-pass fit with the field prior that every method pre-aligns with;
+:func:`fit_lm_method` the ``lm`` method (robust loss, bagging).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
 import torch
+import torch.distributed as dist
 from scipy.optimize import least_squares
 
 from ...devices import to_device
@@ -31,6 +33,7 @@ from ..metrics import record_jacobian
 from ..model import Calibrated
 from ..params import STONE8, apply_deviations, check_names, kinds, units
 from ..uncertainty import posterior
+from . import batched
 
 #: Pointing noise of one centroid record [rad] (camera-target centroids scatter by ~1 mrad).
 NOISE = 1e-3
@@ -42,6 +45,12 @@ NOISE = 1e-3
 #: Every folder of ``../shared`` (<= 30 heliostats) fits in one chunk, so its figures are those of one problem.
 LM_CHUNK = 32
 
+#: Default solver of :func:`fit_lm`: ``"batched"`` (:mod:`.batched`, all heliostats at once, any device) or
+#: ``"scipy"`` (MINPACK / trf per chunk of :data:`LM_CHUNK`; kept as the reference the batched solver is tested
+#: against). Synthetic plant, 100 records each, the ``lm`` method end to end: see
+#: ``benchmarks/bench_plant_calibration.py``.
+SOLVER = "batched"
+
 
 def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma: dict | None = None,
            prior_mean: torch.Tensor | None = None, noise: float = NOISE, max_nfev: int = 200,
@@ -49,7 +58,8 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
            prior_sigma_vector: torch.Tensor | None = None,
            prior_whitening: torch.Tensor | None = None,
            half_life_days: float | None = None, process_noise: float = 0.0,
-           drift_basis: str = "axes") -> tuple[torch.Tensor, dict]:
+           drift_basis: str = "axes", solver: str | None = None,
+           start: torch.Tensor | None = None) -> tuple[torch.Tensor, dict]:
     """Fit deviations of every heliostat in ``batch`` by Levenberg-Marquardt.
 
     Parameters
@@ -80,20 +90,36 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
         Random-walk offset of the two axis offsets [rad^2/day] (:mod:`heliotwin.calibrate.drift`): the residuals are
         fitted in generalised least squares, whitened by their covariance under that walk (0 = the static fit).
         Excludes ``half_life_days``. ``drift_basis``: which deviations drift (:data:`heliotwin.calibrate.drift.BASES`).
+    solver : str, optional
+        ``"batched"`` (default, :data:`SOLVER`): every heliostat's problem at once in tensors
+        (:func:`~heliotwin.calibrate.methods.batched.solve`; any device, cost linear in heliostats);
+        ``"scipy"``: scipy's ``least_squares`` on :data:`LM_CHUNK` heliostats at a time (CPU). Same minimum.
+    start : torch.Tensor, [H, P], optional
+        Batched solver: where to start (physical units) when a near solution is known, e.g. the fit of the
+        same heliostats on other records (default: the prior mean). The minimum does not depend on it.
 
     Returns
     -------
     delta : torch.Tensor, [H, P]
         Deviations (zero for heliostats without records).
     info : dict
-        ``nfev``, ``status``, ``message`` of the scipy run, and ``cost``.
+        ``nfev``, ``status``, ``message`` of the run, ``cost`` and ``method``.
     """
+    solver = SOLVER if solver is None else solver
+    if solver == "batched":
+        return _fit_batched(nominal, batch, names=names, prior_sigma=prior_sigma, prior_mean=prior_mean, noise=noise,
+                            max_nfev=max_nfev, loss=loss, f_scale=f_scale, prior_sigma_vector=prior_sigma_vector,
+                            prior_whitening=prior_whitening, half_life_days=half_life_days,
+                            process_noise=process_noise, drift_basis=drift_basis, start=start)
+    if solver != "scipy":
+        raise ValueError(f"solver must be 'batched' or 'scipy', got {solver!r}")
     if nominal.position.device.type != "cpu":  # scipy's LM runs on the CPU: fit CPU copies, deviations back
         cpu = lambda t: None if t is None else t.detach().cpu()  # noqa: E731
         delta, info = fit_lm(to_device(nominal, "cpu"), to_device(batch, "cpu"), names=names, prior_sigma=prior_sigma,
                              prior_mean=cpu(prior_mean), noise=noise, max_nfev=max_nfev, loss=loss, f_scale=f_scale,
                              prior_sigma_vector=cpu(prior_sigma_vector), prior_whitening=cpu(prior_whitening),
-                             half_life_days=half_life_days, process_noise=process_noise, drift_basis=drift_basis)
+                             half_life_days=half_life_days, process_noise=process_noise, drift_basis=drift_basis,
+                             solver="scipy")
         return delta.to(nominal.position.device), info
     names = check_names(names)
     h, p = nominal.num_heliostats, len(names)
@@ -110,7 +136,7 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
             nominal, chunk, names=names, prior_sigma=prior_sigma, prior_mean=prior_mean, noise=noise,
             max_nfev=max_nfev, loss=loss, f_scale=f_scale, prior_sigma_vector=prior_sigma_vector,
             prior_whitening=prior_whitening, half_life_days=half_life_days, process_noise=process_noise,
-            drift_basis=drift_basis), batch, h, p)
+            drift_basis=drift_basis, solver="scipy"), batch, h, p)
     prior_cols = (torch.isfinite(sig_vec) & (sig_vec > 0)).nonzero().flatten()
     if prior_whitening is not None:
         w = prior_whitening.detach().double()
@@ -161,6 +187,99 @@ def _fit_in_chunks(active: torch.Tensor, fit_chunk, batch: RecordTable, h: int, 
                    "chunks": len(infos)}
 
 
+@dataclass(frozen=True)
+class _Rows:
+    """What the residuals of :func:`~heliotwin.calibrate.metrics.record_jacobian` read of a record table: motor
+    steps [n, 2], sun [n, 3] and measured spot [n, 3] (a cheap row subset of a :class:`RecordTable`)."""
+
+    motor_steps: torch.Tensor
+    sun: torch.Tensor
+    spot: torch.Tensor
+
+    def rows(self, idx: torch.Tensor | None) -> "_Rows":
+        return self if idx is None else _Rows(self.motor_steps[idx], self.sun[idx], self.spot[idx])
+
+
+def _fit_batched(nominal: Kinematics, batch: RecordTable, *, names, prior_sigma, prior_mean, noise, max_nfev, loss,
+                 f_scale, prior_sigma_vector, prior_whitening, half_life_days, process_noise,
+                 drift_basis, start=None) -> tuple[torch.Tensor, dict]:
+    """:func:`fit_lm` by the batched solver (:func:`.batched.solve`): the same MAP problem per heliostat (record
+    residuals, optionally recency-weighted or whitened, and the prior's residuals, all under ``loss``) in
+    natural units, on the device of ``nominal``."""
+    names = check_names(names)
+    dev = nominal.position.device
+    f64 = dict(dtype=torch.float64, device=dev)
+    h, p = nominal.num_heliostats, len(names)
+    scale = units(names, device=dev)
+    sig_vec = _sigma_vector(names, prior_sigma, prior_sigma_vector).to(dev)
+    mean = torch.zeros(h, p, **f64) if prior_mean is None else prior_mean.detach().to(**f64)
+    hidx = batch.heliostat_index.to(dev)
+    counts = torch.bincount(hidx, minlength=h)
+    active = (counts > 0).nonzero().flatten()
+    na = len(active)
+    if na == 0 or len(batch) == 0:
+        return torch.zeros(h, p, **f64), {"nfev": 0, "status": 0, "message": "no records", "cost": 0.0,
+                                          "method": "batched"}
+    group = batched.shard_group()
+    if group is not None:  # this rank's shard of the heliostats; the others' deviations arrive by all_reduce
+        mine = active[batched.contiguous_shard(na, dist.get_rank(group), dist.get_world_size(group)).to(dev)]
+        member = torch.zeros(h, dtype=torch.bool, device=dev)
+        member[mine] = True
+        with batched.sharded(None):
+            delta, info = _fit_batched(nominal, batch.subset(member[hidx]), names=names, prior_sigma=prior_sigma,
+                                       prior_mean=prior_mean, noise=noise, max_nfev=max_nfev, loss=loss,
+                                       f_scale=f_scale, prior_sigma_vector=prior_sigma_vector,
+                                       prior_whitening=prior_whitening, half_life_days=half_life_days,
+                                       process_noise=process_noise, drift_basis=drift_basis, start=start)
+        dist.all_reduce(delta, group=group)  # disjoint shards: a sum is a gather
+        totals = torch.tensor([info.get("converged", 0), info["nfev"], info["cost"]], dtype=torch.float64,
+                              device=dev)
+        dist.all_reduce(totals, group=group)
+        info = dict(info, cost=float(totals[2]), converged=int(totals[0]), status=int(int(totals[0]) == na),
+                    message=f"{int(totals[0])} of {na} heliostats converged ({dist.get_world_size(group)} ranks)")
+        return delta, info
+    col_of = torch.full((h,), -1, dtype=torch.long, device=dev)
+    col_of[active] = torch.arange(na, device=dev)
+    centre = mean[active] / scale
+    if prior_whitening is not None:  # full covariance: noise * W_h (delta_h - mean_h)
+        w = prior_whitening.detach().to(**f64).expand(h, p, p)[active]
+        prior_matrix = noise * w * scale
+    else:
+        cols = (torch.isfinite(sig_vec) & (sig_vec > 0)).nonzero().flatten()
+        prior_matrix = torch.zeros(na, len(cols), p, **f64)
+        if len(cols):
+            prior_matrix[:, torch.arange(len(cols), device=dev), cols] = (noise / sig_vec[cols]) * scale[cols]
+    weights = recency_weights(batch, half_life_days) if half_life_days else None
+    whiten = None
+    if process_noise and process_noise > 0:
+        if weights is not None:
+            raise ValueError("half_life_days and process_noise are two drift models: give one")
+        whiten = whitener(nominal, batch, process_noise, noise, basis=drift_basis)
+    sw = None if weights is None else weights.to(**f64).sqrt()
+    kin_rec = nominal.index(hidx)
+    table = _Rows(batch.motor_steps, batch.sun, batch.spot)
+
+    def evaluate(x_rows, rows):
+        kin = kin_rec if rows is None else kin_rec.index(rows)
+        res, jac = record_jacobian(kin, table.rows(rows), x_rows * scale, names)
+        if sw is not None:
+            w_rows = sw if rows is None else sw[rows]
+            res, jac = res * w_rows[:, None], jac * w_rows[:, None, None]
+        if whiten is not None:
+            res, jac = whiten(res), whiten(jac)
+        return res, jac * scale
+
+    x0 = centre.clone() if start is None else start.detach().to(**f64)[active] / scale
+    x, info = batched.solve(evaluate, x0, col_of[hidx], prior_matrix, centre, loss=loss, f_scale=f_scale,
+                            max_iterations=max_nfev, subset_records=whiten is None, near=start is not None)
+    delta = torch.zeros(h, p, **f64)
+    delta[active] = x * scale
+    status = 1 if info["converged"] == na else 0
+    return delta, {"nfev": int(info["iterations"]), "status": status, "converged": info["converged"],
+                   "message": f"{info['converged']} of {na} heliostats converged", "cost": info["cost"],
+                   "method": "batched", "evaluations": info["evaluations"]}
+
+
 def _sigma_vector(names, prior_sigma: dict | None, prior_sigma_vector: torch.Tensor | None) -> torch.Tensor:
     """Prior sigma per parameter [P] (inf = no prior): the per-parameter vector if given, else per kind."""
     if prior_sigma_vector is not None:  # per-parameter sigma (e.g. a field prior), overrides the kinds
@@ -172,9 +291,11 @@ def _sigma_vector(names, prior_sigma: dict | None, prior_sigma_vector: torch.Ten
 
 def recency_weights(batch: RecordTable, half_life_days: float) -> torch.Tensor:
     """Weight per record [R]: ``0.5 ** (age / half_life)``, age [days] behind the heliostat's latest record."""
-    t = batch.time.double() if batch.time is not None else torch.full((len(batch),), float("nan"), dtype=torch.float64)
+    dev = batch.heliostat_index.device
+    t = batch.time.double() if batch.time is not None else torch.full((len(batch),), float("nan"),
+                                                                       dtype=torch.float64, device=dev)
     known = torch.isfinite(t)
-    latest = torch.full((batch.num_heliostats,), -float("inf"), dtype=torch.float64)
+    latest = torch.full((batch.num_heliostats,), -float("inf"), dtype=torch.float64, device=dev)
     latest = latest.scatter_reduce(0, batch.heliostat_index[known], t[known], reduce="amax")
     age = ((latest[batch.heliostat_index] - t) / 86400.0).clamp_min(0.0)
     return torch.where(known, 0.5 ** (age / float(half_life_days)), torch.ones_like(t))
@@ -258,40 +379,56 @@ LM_BAGS = 10
 
 def stone8_field_fit(nominal: Kinematics, batch: RecordTable, usable: torch.Tensor, *, field_prior: bool = True,
                      loss: str = LM_LOSS, f_scale: float = LM_F_SCALE, half_life_days: float | None = None,
-                     process_noise: float = 0.0, drift_basis: str = "axes"):
+                     process_noise: float = 0.0, drift_basis: str = "axes", starts: dict | None = None):
     """LM on the Stone/Jülich 8 with the field prior (nominal prior when the run is too small for one).
 
     The first (loose) pass is plain least squares; the final fit uses the robust ``loss`` (one bad centroid
     in 10-30 records otherwise tilts the whole fit: AC33's pseudo-validation error halves with it).
+    ``starts`` (optional, a dict): where the two passes start (``"first"``, ``"final"`` [H, 8]) when it holds
+    them, else it receives this fit's (the bootstrap bags start from the full-data fit: fewer iterations,
+    the same minima).
 
     Returns
     -------
     delta : torch.Tensor, [H, 8]
     prior : (mean [8], sigma [8]) or None
     """
-    first, _ = fit_lm(nominal, batch, names=STONE8, prior_sigma=priors.LOOSE_SIGMA)
+    given = dict(starts) if starts else {}
+    first, _ = fit_lm(nominal, batch, names=STONE8, prior_sigma=priors.LOOSE_SIGMA, start=given.get("first"))
     fp = priors.field_prior(first, usable, STONE8) if field_prior else None
+    # the final pass starts from the loose pass (near its minimum) unless a nearer start is given
+    final_start = given.get("final", first)
     if fp is None:
         delta, _ = fit_lm(nominal, batch, names=STONE8, prior_sigma=priors.STONE8_SIGMA, loss=loss, f_scale=f_scale,
-                          half_life_days=half_life_days, process_noise=process_noise, drift_basis=drift_basis)
-        return delta, None
-    delta, _ = fit_lm(nominal, batch, names=STONE8, prior_sigma=priors.LOOSE_SIGMA,
-                      prior_mean=fp[0].expand_as(first).clone(), prior_sigma_vector=fp[1], loss=loss, f_scale=f_scale,
-                      half_life_days=half_life_days, process_noise=process_noise, drift_basis=drift_basis)
+                          half_life_days=half_life_days, process_noise=process_noise, drift_basis=drift_basis,
+                          start=final_start)
+    else:
+        delta, _ = fit_lm(nominal, batch, names=STONE8, prior_sigma=priors.LOOSE_SIGMA,
+                          prior_mean=fp[0].expand_as(first).clone(), prior_sigma_vector=fp[1], loss=loss,
+                          f_scale=f_scale, half_life_days=half_life_days, process_noise=process_noise,
+                          drift_basis=drift_basis, start=final_start)
+    if starts is not None and not given:
+        starts.update(first=first, final=delta)
     return delta, fp
 
 
 def stone8_plant_fit(nominal: Kinematics, batch: RecordTable, prior: priors.PlantPrior, *, loss: str = LM_LOSS,
                      f_scale: float = LM_F_SCALE, half_life_days: float | None = None,
-                     process_noise: float = 0.0, drift_basis: str = "axes") -> torch.Tensor:
+                     process_noise: float = 0.0, drift_basis: str = "axes", starts: dict | None = None
+                     ) -> torch.Tensor:
     """LM on the Stone/Jülich 8 with a plant prior (mean + covariance learned from other heliostats), [H, 8].
 
     One pass: the prior does not depend on the run's records, so there is no loose first pass to make.
+    ``starts``: as in :func:`stone8_field_fit` (``"final"`` only).
     """
-    mean = prior.mean.double().expand(nominal.num_heliostats, len(STONE8)).clone()
-    delta, _ = fit_lm(nominal, batch, names=STONE8, prior_mean=mean, prior_whitening=prior.whitening(), loss=loss,
-                      f_scale=f_scale, half_life_days=half_life_days, process_noise=process_noise,
-                      drift_basis=drift_basis)
+    dev = nominal.position.device
+    mean = prior.mean.to(dtype=torch.float64, device=dev).expand(nominal.num_heliostats, len(STONE8)).clone()
+    given = dict(starts) if starts else {}
+    delta, _ = fit_lm(nominal, batch, names=STONE8, prior_mean=mean, prior_whitening=prior.whitening().to(dev),
+                      loss=loss, f_scale=f_scale, half_life_days=half_life_days, process_noise=process_noise,
+                      drift_basis=drift_basis, start=given.get("final"))
+    if starts is not None and not given:
+        starts.update(final=delta)
     return delta
 
 
@@ -314,16 +451,16 @@ def bagged(fit_one, batch: RecordTable, bags: int, seed: int):
         st.update(full=saved["full"].to(dev), acc=saved["acc"].to(dev), extra=_to(saved["extra"], dev))
 
     total = 1 if bags <= 0 or len(batch) == 0 else bags + 1
+    # every heliostat's rows in ascending order (one stable sort, not one search of the table per heliostat)
+    order = torch.sort(batch.heliostat_index, stable=True).indices
+    per_heliostat = [rows for rows in order.split(batch.counts().tolist()) if len(rows)]
     for i in resumable_range("bags", total, dump, load):
         if i == 0:
             st["full"], st["extra"] = fit_one(batch)
             st["acc"] = torch.zeros_like(st["full"])
             continue
-        idx = []
-        for h in range(batch.num_heliostats):
-            rows = batch.of(h)
-            if len(rows):
-                idx.append(rows[torch.randint(len(rows), (len(rows),), generator=g).to(rows.device)])
+        # one draw per heliostat from the same generator, in heliostat order (the bags of earlier versions)
+        idx = [rows[torch.randint(len(rows), (len(rows),), generator=g).to(rows.device)] for rows in per_heliostat]
         d, _ = fit_one(batch.subset(torch.cat(idx)))
         st["acc"] += d
     if total == 1:
@@ -360,8 +497,9 @@ def laplace(nominal: Kinematics, batch: RecordTable, delta: torch.Tensor, prior_
     h = nominal.num_heliostats
     hidx = batch.heliostat_index
     if len(batch) == 0:
-        eye = torch.eye(len(STONE8), dtype=torch.float64)
-        return {"covariance": eye.expand(h, -1, -1).clone(), "noise_rad": torch.ones(h, dtype=torch.float64),
+        eye = torch.eye(len(STONE8), dtype=torch.float64, device=delta.device)
+        return {"covariance": eye.expand(h, -1, -1).clone(),
+                "noise_rad": torch.ones(h, dtype=torch.float64, device=delta.device),
                 "drift_rad": float(drift)}
     res, jac = record_jacobian(nominal.index(hidx), batch, delta.detach()[hidx], STONE8)
     cov, noise = posterior(res, jac, hidx, prior_precision, h, len(STONE8))
@@ -497,11 +635,13 @@ def _static_fit(nominal, fit_on, ok, s: LMSettings, *, plant_prior, q: float, se
     prior."""
     fit = dict(loss=s.loss, f_scale=s.f_scale, half_life_days=s.half_life_days, process_noise=q,
                drift_basis=s.drift_basis)
+    starts: dict = {}  # the full-data fit's solutions: where the bags' fits start (same minima, fewer steps)
     if plant_prior is not None:
-        delta, fp = bagged(lambda b: (stone8_plant_fit(nominal, b, plant_prior, **fit), None), fit_on, s.bags, seed)
+        delta, fp = bagged(lambda b: (stone8_plant_fit(nominal, b, plant_prior, starts=starts, **fit), None), fit_on,
+                           s.bags, seed)
     else:
-        delta, fp = bagged(lambda b: stone8_field_fit(nominal, b, ok, field_prior=s.field_prior, **fit),
-                           fit_on, s.bags, seed)
+        delta, fp = bagged(lambda b: stone8_field_fit(nominal, b, ok, field_prior=s.field_prior, starts=starts,
+                                                      **fit), fit_on, s.bags, seed)
     delta[~ok] = 0.0
     return delta, fp
 

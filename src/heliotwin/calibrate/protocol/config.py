@@ -60,6 +60,11 @@ class RunConfig:
     #: ``--settings``: ``"given"`` (the fields above) or ``"cv"`` (lm settings chosen by leave-heliostats-out
     #: CV on the ``prior_from`` PAINT folder, :func:`~heliotwin.calibrate.protocol.selection.choose_for_run`).
     settings: str = "given"
+    #: ``--learn-settings``: also choose the lm settings and the interval calibration by leave-heliostats-out
+    #: CV on this run's own PAINT folder (every eligible heliostat but ``prior_exclude``), with the plant prior
+    #: they use, for a scenario that later runs reuse (``--prior-from`` it: ``--settings stored``); the run's
+    #: own fit keeps the settings above.
+    learn_settings: bool = False
 
     def fit_options(self) -> dict:
         """The method's options: ``method_options`` plus the drift model's settings."""
@@ -125,6 +130,8 @@ def validate_config(cfg: RunConfig) -> None:
         if pn != "auto" and not (isinstance(pn, (int, float)) and math.isfinite(pn) and pn >= 0):
             raise HeliotwinError(f"--process-noise must be 'auto' or a number >= 0 [mrad^2/day], got {pn!r}")
     _validate_settings(cfg)
+    if cfg.learn_settings and cfg.method != "lm":
+        raise HeliotwinError(f"--learn-settings chooses lm settings; --method is {cfg.method}")
     if cfg.uses_plant_prior() and cfg.method != "lm":
         raise HeliotwinError(f"a plant prior (--prior-from / --prior plant) is implemented for --method lm only, "
                              f"not {cfg.method}")

@@ -11,7 +11,8 @@ step                  does                                                      
 ``prepare``           their validated records; heliostats with too few are skipped                :class:`Prepared`
 ``rebatch``           records and nominal kinematics over the heliostats that run                 :class:`Batch`
 ``split``             train/validation/test records per heliostat                                 :class:`Split`
-``choose_settings``   ``--settings cv|stored``: lm settings chosen by CV or stored (runs the run)  :class:`Choice`
+``choose_settings``   ``--settings cv|stored``: lm settings chosen by CV or stored (runs the run);  :class:`Choice`
+                      ``--learn-settings``: chosen once for the plant, stored in its scenario
 ``learn_prior``       a plant prior from other heliostats, when asked for                         ``PlantPrior``
 ``check_properties``  suspicious property values, corrected where the training records support it  :class:`Checked`
 ``fit``               the method                                                                  :class:`Fit`
@@ -65,7 +66,7 @@ from ..uncertainty import predictive
 from .archive import PriorArchive, load_prior_source, reference_kinematics, resolve_prior
 from .config import RunConfig, validate_config
 from .online import online_errors, online_split
-from .selection import choose_for_run, stored_choice
+from .selection import choose_for_run, learn_for_plant, stored_choice
 from .splits import split_records
 from .suspicious import check_and_correct
 
@@ -137,6 +138,8 @@ class Choice:
 
     cfg: RunConfig
     record: dict | None = None
+    #: ``--learn-settings``: the plant prior of the chosen candidate (stored in the run's scenario).
+    learned_prior: PlantPrior | None = None
 
 
 @dataclass(frozen=True)
@@ -231,6 +234,10 @@ def choose_settings(cfg: RunConfig, run_ids: list, runner) -> Choice:
     candidate with ``runner``, i.e. :func:`run_calibration`); ``--settings stored``: by the choice stored in
     the ``--prior-from`` scenario where it applies (:func:`~heliotwin.calibrate.protocol.selection.stored_choice`).
     Otherwise the flags as given."""
+    if cfg.learn_settings:
+        with _checkpoint.active(None):
+            record, prior = learn_for_plant(cfg, runner=runner, run_size=len(run_ids), progress=bool(cfg.progress))
+        return Choice(cfg, record, prior)
     if cfg.settings == "stored":
         return Choice(*stored_choice(cfg, _held_out(cfg, run_ids)))
     if cfg.settings == "cv":
@@ -604,6 +611,8 @@ def _run(cfg: RunConfig, dataset, device: str, step) -> tuple[dict, Calibrated |
     prior = step(learn_prior, cfg, loaded.dataset, prepared.run_ids)
     checked = step(check_properties, cfg, loaded.dataset, batch, parts, prior, prior_source)
     fitted = step(fit, cfg, loaded.dataset, checked, parts, prior)
+    if choice.learned_prior is not None:  # what later runs of this plant start from (the scenario stores it)
+        fitted.model.extras["learned_plant_prior"] = choice.learned_prior
     evaluation = step(evaluate, fitted.model, batch.nominal, parts)
     evaluation = step(online_refit, cfg, checked.nominal, batch.records, parts, prior, evaluation)
     evaluation = step(predict_intervals, cfg, fitted.model, parts, evaluation)
