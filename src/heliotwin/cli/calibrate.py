@@ -243,7 +243,9 @@ def _print_table(report: dict) -> None:
     ov = report["overall"]
     print(f"overall: median over heliostats of mean test error {_fmt(ov.get('median_of_mean_test_mrad'))} mrad "
           f"(nominal {_fmt(ov.get('nominal_median_of_mean_test_mrad'))}), {ov.get('n_heliostats', 0)} heliostats, "
-          f"{_fmt(ov.get('seconds'), 1)} s; skipped records {ov.get('skipped_records', 0)}")
+          f"{_fmt(ov.get('seconds'), 1)} s; skipped records {ov.get('skipped_records', 0)}"
+          + ("" if ov.get("interval_90_coverage") is None else
+             f"; 90 % interval covers {ov['interval_90_coverage']:.2f} of the test records"))
 
 
 def cmd_split(args) -> int:
