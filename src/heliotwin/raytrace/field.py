@@ -285,7 +285,16 @@ def _local_mirror_samples(sf, per_direction: int, rows: torch.Tensor | None):
     if rows is not None:
         sf = replace(sf, control_points=sf.control_points[rows],
                      weights=None if sf.weights is None else sf.weights[rows])
-    out = surface_points(sf, (per_direction, per_direction))
+    cp, w = sf.control_points, sf.weights
+    h = cp.shape[0]
+    if h > 1 and bool((cp == cp[:1]).all()) and (w is None or bool((w == w[:1]).all())) and \
+            not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors)):
+        # one mirror shape for the whole field (ideal heliostats): sample it once
+        one = surface_points(replace(sf, control_points=cp[:1], weights=None if w is None else w[:1]),
+                             (per_direction, per_direction))
+        out = tuple(t.expand(h, *t.shape[1:]) for t in one)
+    else:
+        out = surface_points(sf, (per_direction, per_direction))
     if cache is not None and not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors)):
         cache[key] = ([weakref.ref(t) for t in tensors], out)
     return out
