@@ -10,6 +10,9 @@ Occluder candidates come from a uniform 2-D grid over east/north (:func:`occlude
 can only be stopped by heliostats inside the corridor its rays sweep before they rise above the tallest
 mirror, so each heliostat looks up the grid cells along that corridor (a fixed number of cells per
 heliostat), keeps the candidates whose bounding spheres reach its rays, and only those are ray-tested.
+The hard test first drops, per heliostat and candidate, the pairs that no ray can join: every test quantity
+is affine in the ray origin, so its range over the box holding the mirror's points (widened by the spread
+of the rays' directions) bounds it; most candidates go, and the rest are tested ray by ray as before.
 The cost is about linear in the number of heliostats; there is no all-pairs test.
 
 Two tests share the geometry:
