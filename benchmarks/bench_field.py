@@ -254,6 +254,7 @@ def live(out: Path, aim_heliostats: int, repeats: int = 3) -> dict:
     from heliotwin.sun import direction_from_time
     from heliotwin.workflows.demo import run_field_demo
 
+    out.mkdir(parents=True, exist_ok=True)
     (out / "plant.toml").write_text(PLANT_TOML)
     layout = write_layout(out, dense_field(40, 50), name="layout-dense-2000.csv")
     sun = _sun(180.0, 39.8)
