@@ -295,7 +295,7 @@ def live(out: Path, aim_heliostats: int, repeats: int = 3) -> dict:
             before = field_optics(plant, demo_sun, atmosphere=atm)
         limit = float(defaults["peak_limit_fraction"].default) * float(before.flux.max())
         t0 = time.perf_counter()
-        aimed = optimise_aimpoints(plant, demo_sun, limit, AimSettings(), atmosphere=atm)
+        aimed = optimise_aimpoints(plant, demo_sun, limit, AimSettings(), atmosphere=atm, equator=before)
         entry["aim_points"] = {"heliostats": aim_heliostats, "seconds": time.perf_counter() - t0,
                                "equator_peak_w_m2": float(before.flux.max()), "peak_limit_w_m2": limit,
                                "optimised_peak_w_m2": aimed.peak_flux_w_m2, "optimised_power_w": aimed.power_w,
