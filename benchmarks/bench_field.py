@@ -10,7 +10,15 @@
 3. **Over a year**: the efficiency table and the hourly clear-sky annual energy for 2000 heliostats (time).
 4. **The demo** (``heliotwin demo``'s :func:`heliotwin.workflows.demo.run_field_demo`): wall time per stage and
    its figures (field efficiency, peak before/after aim points, power ratio).
-5. **Speed** of one sun (shading + blocking + 48 x 20 map, and + 256 x 256 map) for generated radial-staggered
+5. **The live loop** (what the plant recomputes every few minutes), each beside its reference in the same run:
+   the field model on a dense 2000-heliostat block (``tests/helpers/field.dense_field(40, 50)``, ~20 %
+   blocking at the south sun) -- building the plant from its layout plus one sun, and the field model alone --
+   against SolarPILOT's own wall times on the same layout (``../shared/tools/solarpilot``, run as a separate
+   program: building its field, ``assign_layout_wall_s``, plus one sun, ``wall_s``); the receiver power of the
+   field model against its Monte-Carlo trace of the same samples; and the demo's aim-point stage
+   (:func:`heliotwin.optimise.aimpoints.optimise_aimpoints` at the demo's instant and limit) for
+   ``--live-heliostats`` heliostats.
+6. **Speed** of one sun (shading + blocking + 48 x 20 map, and + 256 x 256 map) for generated radial-staggered
    fields of 50 to 10 000 heliostats, and the Monte-Carlo field model's rays per second (256 rays per flux
    sample, shading and blocking included in the time) up to 2000 heliostats; peak resident memory. Wall
    times depend on the machine and its load: the script records ``torch.get_num_threads()`` and the load
@@ -19,7 +27,7 @@
 Usage::
 
     OMP_NUM_THREADS=2 python benchmarks/bench_field.py --out /tmp/field [--sizes 50,500,2000,10000]
-        [--year-heliostats 2000] [--demo-heliostats 2000]    # --sizes "" / 0: skip that part
+        [--year-heliostats 2000] [--demo-heliostats 2000] [--live-heliostats 2000]   # "" / 0: skip that part
 
 Writes ``<out>/field.json`` and prints the tables.
 """
@@ -27,10 +35,12 @@ from __future__ import annotations
 
 import argparse
 import csv
+import inspect
 import json
 import math
 import os
 import resource
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -45,8 +55,9 @@ from heliotwin.raytrace.field import FieldSettings, field_optics, summary
 from heliotwin.sun import direction_from_paint_angles
 
 REF = Path(__file__).resolve().parents[2] / "shared" / "data" / "solarpilot-reference"
+SOLARPILOT = Path(__file__).resolve().parents[2] / "shared" / "tools" / "solarpilot" / "solarpilot_reference.py"
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from helpers.field import PLANT_TOML, brute_force_unoccluded  # noqa: E402
+from helpers.field import PLANT_TOML, brute_force_unoccluded, dense_field, write_layout  # noqa: E402
 
 
 def _sun(solarpilot_az: float, el: float) -> torch.Tensor:
@@ -213,6 +224,89 @@ def speed(out: Path, sizes: list[int]) -> list[dict]:
     return rows
 
 
+def solarpilot_seconds(layout: Path, out: Path, az: float = 180.0, el: float = 39.8, repeats: int = 2) -> dict | None:
+    """SolarPILOT's own wall times (CoPilot, Hermite model, equator aiming, 48 x 20 map) for one sun on
+    ``layout``, the fastest of ``repeats`` runs of the separate program; None when it is not installed."""
+    if not SOLARPILOT.exists():
+        return None
+    best = None
+    for _ in range(repeats):
+        js = out / "solarpilot-live.json"
+        subprocess.run([sys.executable, str(SOLARPILOT), "--engine", "copilot", "--aim", "simple", "--layout",
+                        str(layout), "--sun", str(az), str(el), "--flux-nx", "48", "--flux-ny", "20", "--json",
+                        str(js)], check=True, stdout=subprocess.DEVNULL)
+        cp = json.loads(js.read_text())["copilot"]
+        r = cp["results"][0]
+        entry = {"build_s": cp["assign_layout_wall_s"], "sun_s": r["wall_s"],
+                 "total_s": cp["assign_layout_wall_s"] + r["wall_s"], "eff_total": r["eff_total"],
+                 "eff_blocking": r["eff_blocking"], "eff_shading": r["eff_shading"]}
+        best = entry if best is None or entry["total_s"] < best["total_s"] else best
+    return best
+
+
+def live(out: Path, aim_heliostats: int, repeats: int = 3) -> dict:
+    """The live loop's field model on the dense 2000-heliostat block beside SolarPILOT, its receiver power
+    against the Monte-Carlo trace, and the demo's aim-point stage (section 5 of the module docstring)."""
+    import pandas as pd
+
+    from heliotwin.field.demo import demo_field_plant
+    from heliotwin.optimise.aimpoints import AimSettings, optimise_aimpoints
+    from heliotwin.sun import direction_from_time
+    from heliotwin.workflows.demo import run_field_demo
+
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "plant.toml").write_text(PLANT_TOML)
+    layout = write_layout(out, dense_field(40, 50), name="layout-dense-2000.csv")
+    sun = _sun(180.0, 39.8)
+    build, model = [], []
+    for _ in range(repeats + 1):  # the first is a warm-up
+        t0 = time.perf_counter()
+        plant, atm = plant_from_layout(layout, out / "plant.toml")
+        t1 = time.perf_counter()
+        with torch.no_grad():
+            res = field_optics(plant, sun, atmosphere=atm)
+        rep = summary(res, plant)
+        build.append(t1 - t0)
+        model.append(time.perf_counter() - t1)
+    build, model = min(build[1:]), min(model[1:])
+    with torch.no_grad():
+        mc = field_optics(plant, sun, atmosphere=atm, settings=FieldSettings(integrator="mc", rays_per_point=64))
+    power = rep["receiver"]["power_w"]
+    mc_power = float(mc.flux.sum()) * mc.pixel_area
+    e = rep["field"]["efficiency"]
+    entry = {"heliostats": len(plant.field.ids), "layout": "dense_field(40, 50)", "field_model_s": model,
+             "build_plus_field_model_s": build + model, "total_efficiency": e["total"],
+             "blocking": e["blocking"], "shading": e["shading"], "power_w": power,
+             "monte_carlo_map_power_w": mc_power, "monte_carlo_relative_difference": mc_power / power - 1.0,
+             "solarpilot": solarpilot_seconds(layout, out)}
+    sp = entry["solarpilot"]
+    sp_text = (f"SolarPILOT {sp['total_s']:.3f} s (build {sp['build_s']:.3f} s + sun {sp['sun_s']:.3f} s), "
+               f"total {sp['eff_total']:.4f}" if sp else "SolarPILOT not found")
+    print(f"  live field ({entry['heliostats']} heliostats, dense, blocking {1 - e['blocking']:.1%}): heliotwin "
+          f"{build + model:.3f} s (build {build:.3f} s + field model {model:.3f} s), total {e['total']:.4f}; "
+          f"{sp_text}; Monte-Carlo map power {entry['monte_carlo_relative_difference']:+.2%}", flush=True)
+    if aim_heliostats:
+        defaults = inspect.signature(run_field_demo).parameters
+        plant, atm = demo_field_plant(aim_heliostats)
+        s = plant.site
+        when = pd.DatetimeIndex([pd.Timestamp(defaults["time_utc"].default)])
+        demo_sun = direction_from_time(when, s.latitude_deg, s.longitude_deg, s.altitude_m)[0]
+        with torch.no_grad():
+            before = field_optics(plant, demo_sun, atmosphere=atm)
+        limit = float(defaults["peak_limit_fraction"].default) * float(before.flux.max())
+        t0 = time.perf_counter()
+        aimed = optimise_aimpoints(plant, demo_sun, limit, AimSettings(), atmosphere=atm, equator=before)
+        entry["aim_points"] = {"heliostats": aim_heliostats, "seconds": time.perf_counter() - t0,
+                               "equator_peak_w_m2": float(before.flux.max()), "peak_limit_w_m2": limit,
+                               "optimised_peak_w_m2": aimed.peak_flux_w_m2, "optimised_power_w": aimed.power_w,
+                               "rounds": len(aimed.history)}
+        a = entry["aim_points"]
+        print(f"  live aim points ({aim_heliostats} heliostats, the demo's stage): {a['seconds']:.2f} s, peak "
+              f"{a['equator_peak_w_m2'] / 1e3:.0f} -> {a['optimised_peak_w_m2'] / 1e3:.0f} kW/m2 (limit "
+              f"{limit / 1e3:.0f}), {a['rounds']} exact checks after calibration", flush=True)
+    return entry
+
+
 def yearly(out: Path, n: int) -> dict:
     """The yearly table (24 azimuths x 11 elevations) and the 2023 hourly clear-sky energy for ``n`` heliostats."""
     from heliotwin.raytrace.yearly import annual_energy
@@ -251,6 +345,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", default="50,500,2000,10000", help="empty or 0: skip the speed runs")
     ap.add_argument("--year-heliostats", type=int, default=2000, help="0: skip the yearly run")
     ap.add_argument("--demo-heliostats", type=int, default=2000, help="0: skip the demo run")
+    ap.add_argument("--live-heliostats", type=int, default=2000,
+                    help="aim-point stage size of the live-loop run (dense field vs SolarPILOT); 0: skip it")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -271,6 +367,8 @@ def main(argv=None) -> int:
         e = exact[key]
         print(f"  {key:19s} shading {sh} || {e['shading_ours']:.4f};  blocking {bl} || "
               f"{e['blocking_whole_mirror_ours']:.4f}, {e['blocking_ours']:.4f}")
+    if args.live_heliostats:
+        report["live"] = live(out, args.live_heliostats)
     sizes = [int(s) for s in args.sizes.split(",") if s.strip() and int(s) > 0]  # "" or 0: skip
     if sizes:
         report["speed"] = speed(out, sizes)

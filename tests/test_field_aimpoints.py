@@ -79,6 +79,28 @@ def test_image_model_gradient_matches_finite_differences():
     assert float(grad[1]) < 0.0  # moving further up spills more
 
 
+def test_image_model_fused_gradient_equals_the_recorded_graph():
+    """The optimiser's hand-written backward (aim points only) gives the map, powers and gradients of the
+    recorded autograd graph (taken when the powers also need a gradient) to rounding."""
+    g = torch.Generator().manual_seed(3)
+    f64 = dict(dtype=torch.float64)
+    h = 40
+    args = (torch.rand(h, generator=g, **f64) * 5e3, torch.rand(h, generator=g, **f64) * 0.5 + 0.2,
+            torch.rand(h, generator=g, **f64) * 0.5 + 0.2, torch.linspace(-6, 6, 25, **f64),
+            torch.linspace(-2.5, 2.5, 11, **f64))
+    x = (torch.rand(h, generator=g, **f64) * 10 - 5).requires_grad_()
+    y = (torch.rand(h, generator=g, **f64) * 4 - 2).requires_grad_()
+    weight = torch.rand(10, 24, generator=g, **f64)
+    out = []
+    for power_grad in (False, True):
+        m = ImageModel(args[0].clone().requires_grad_(power_grad), *args[1:])
+        f, p = m.flux(x, y)
+        gx, gy = torch.autograd.grad((f * weight).sum() + (p ** 2).sum() * 1e-3, (x, y))
+        out.append((f.detach(), p.detach(), gx, gy))
+    for fused, graph in zip(*out):
+        assert torch.allclose(fused, graph, rtol=1e-12, atol=1e-12 * float(graph.abs().max()))
+
+
 def test_target_file_errors_name_the_file(tmp_path):
     bad = tmp_path / "t.csv"
     np.savetxt(bad, np.ones((3, 4)), delimiter=",")

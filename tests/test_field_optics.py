@@ -3,6 +3,7 @@ bookkeeping of the receiver map, gradients w.r.t. an aim point, and the ``field`
 import csv
 import json
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -10,7 +11,14 @@ from helpers.cli import assert_one_line_error, run_cli
 from helpers.field import PLANT_TOML, dense_field, solarpilot_dir, write_layout, write_plant_toml
 
 from heliotwin.field.layout import plant_from_layout
-from heliotwin.raytrace.field import FieldSettings, equator_aim_points, field_optics, summary
+from heliotwin.geometry import safe_normalize
+from heliotwin.raytrace.field import (
+    FieldSettings,
+    equator_aim_points,
+    field_optics,
+    reuse_mirror_samples,
+    summary,
+)
 from heliotwin.sun import direction_from_paint_angles
 
 SUNS = {  # SolarPILOT azimuth (clockwise from north), elevation [deg] -> file suffix
@@ -301,3 +309,25 @@ def test_sun_cone_kernels_gradcheck_and_match_a_gaussian_sun():
 
     abc = torch.tensor([2.0, 0.4, 1.2], dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(kernel, (abc,), eps=1e-6, atol=1e-6)
+
+
+def test_reused_mirror_samples_change_nothing_and_learned_surfaces_keep_their_gradient(tmp_path):
+    """Within ``reuse_mirror_samples`` (the aim-point rounds) repeated field evaluations equal fresh ones, and
+    surfaces that require a gradient are sampled afresh, so the gradient still reaches them."""
+    plant, atm = plant_from_layout(write_layout(tmp_path, dense_field(3, 4, first_row=30.0)),
+                                   write_plant_toml(tmp_path))
+    sun = safe_normalize(torch.tensor([0.3, -0.6, 0.7], dtype=torch.float64))
+    aim = equator_aim_points(plant.targets["receiver"], plant.field.kinematics.position.to(torch.float64))
+    fresh = [field_optics(plant, sun, atmosphere=atm, aim=aim + dz) for dz in (0.0, 0.5)]
+    with reuse_mirror_samples():
+        reused = [field_optics(plant, sun, atmosphere=atm, aim=aim + dz) for dz in (0.0, 0.5)]
+    for a, b in zip(fresh, reused):
+        assert torch.equal(a.efficiency, b.efficiency) and torch.equal(a.flux, b.flux)
+    assert not torch.equal(fresh[0].flux, fresh[1].flux)
+    cp = plant.field.surfaces.control_points.clone().requires_grad_()
+    plant = replace(plant, field=replace(plant.field, surfaces=replace(plant.field.surfaces, control_points=cp)))
+    with reuse_mirror_samples():
+        field_optics(plant, sun, atmosphere=atm, settings=FieldSettings(softness=0.05))
+        power = field_optics(plant, sun, atmosphere=atm, settings=FieldSettings(softness=0.05)).power_w.sum()
+    grad, = torch.autograd.grad(power, cp)
+    assert float(grad.abs().sum()) > 0.0

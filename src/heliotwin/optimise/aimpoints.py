@@ -75,7 +75,7 @@ from ..distributed import field_optics_sharded, gather_rows, run_spawned, shard
 from ..errors import HeliotwinError
 from ..field.plant import Plant
 from ..field.targets import CylinderTarget
-from ..raytrace.field import FieldSettings, equator_aim_points, field_optics
+from ..raytrace.field import FieldSettings, equator_aim_points, field_optics, reuse_mirror_samples
 
 __all__ = ["AimResult", "AimSettings", "ImageModel", "optimise_aimpoints", "calibrate_images", "to_device",
            "aiming_factor", "image_size_priority", "evaluate", "check_settings", "uniform_target", "load_target",
@@ -187,11 +187,56 @@ class ImageModel:
 
     def flux(self, x: torch.Tensor, y: torch.Tensor):
         """Map [rows, cols] [W/m^2] (row 0 = top) and intercepted power per heliostat [h] [W]."""
+        if not any(t.requires_grad for t in (self.power, self.sx, self.sy, self.x_edges, self.y_edges)):
+            return _ImageFlux.apply(x, y, self)  # gradients to the aim points only: the hand-fused backward
         gx, gy = self.marginals(x, y)
         mx = gx.sum(1)
         p = self.power * mx  # light that misses the unrolled map sideways (a partial cylinder) is lost
         img = (gy * self.power[:, None]).transpose(0, 1) @ gx / self.cell_area
         return img.flip(0), p * gy.sum(1)
+
+
+class _ImageFlux(torch.autograd.Function):
+    """:meth:`ImageModel.flux` with its gradient w.r.t. the image centres ``x``, ``y`` [h] written out: the
+    optimiser's inner loop calls it hundreds of times, and one fused backward (the Gaussian densities at the
+    cell edges times the map's and the powers' adjoints) costs a fraction of the recorded graph's."""
+
+    @staticmethod
+    def forward(ctx, x, y, model):
+        zx = (model.x_edges - x[:, None]) / model.sx[:, None]  # [h, cols + 1] edges in sds from the centre
+        zy = (model.y_edges - y[:, None]) / model.sy[:, None]  # [h, rows + 1]
+        cx, cy = 0.5 * (1.0 + torch.erf(zx / _SQ2)), 0.5 * (1.0 + torch.erf(zy / _SQ2))
+        gx, gy = cx[:, 1:] - cx[:, :-1], cy[:, 1:] - cy[:, :-1]
+        mx, my = gx.sum(1), gy.sum(1)
+        pgy = gy * model.power[:, None]
+        img = pgy.transpose(0, 1) @ gx / model.cell_area
+        ctx.save_for_backward(zx, zy, gx, pgy, mx, my)
+        ctx.model = model
+        return img.flip(0), model.power * mx * my
+
+    @staticmethod
+    def backward(ctx, g_img, g_p):
+        zx, zy, gx, pgy, mx, my = ctx.saved_tensors
+        m = ctx.model
+        g_gx = torch.zeros_like(gx)
+        g_gy = torch.zeros_like(pgy)
+        if g_img is not None:
+            g = g_img.flip(0) / m.cell_area
+            g_gx = pgy @ g  # [h, cols]
+            g_gy = m.power[:, None] * (gx @ g.transpose(0, 1))  # [h, rows]
+        if g_p is not None:
+            gp = g_p * m.power
+            g_gx = g_gx + (gp * my)[:, None]
+            g_gy = g_gy + (gp * mx)[:, None]
+
+        def centre_gradient(g_cells, z, sd):
+            # d(cell mass)/d(centre) = (pdf at the lower edge - pdf at the upper edge) / sd
+            pdf = torch.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
+            return ((pdf[:, :-1] - pdf[:, 1:]) * g_cells).sum(1) / sd
+
+        gx_out = centre_gradient(g_gx, zx, m.sx) if ctx.needs_input_grad[0] else None
+        gy_out = centre_gradient(g_gy, zy, m.sy) if ctx.needs_input_grad[1] else None
+        return gx_out, gy_out, None
 
 
 def _local(receiver, aim: torch.Tensor):
@@ -247,6 +292,7 @@ def _lateral_scale(model: ImageModel, x, y, flux_exact, base, grp: _Group, iters
     return model.sx
 
 
+@reuse_mirror_samples()  # the rounds' exact checks move the heliostats, never their surfaces
 def calibrate_images(plant: Plant, sun, atmosphere, resolution, *, group=None, equator=None):
     """Image model of the field at this sun, calibrated on the exact model (two evaluations).
 
@@ -413,6 +459,7 @@ class AimSettings:
     softness: float = 0.05
 
 
+@reuse_mirror_samples()  # the rounds' exact checks move the heliostats, never their surfaces
 def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, settings: AimSettings = AimSettings(), *,
                        atmosphere: Atmosphere | None = None, target: torch.Tensor | None = None, group=None,
                        equator=None, model=None, progress=None, device=None) -> AimResult:
@@ -577,6 +624,7 @@ def _bisect(evaluate_at, limit, lo, hi, steps, increasing):
     return best
 
 
+@reuse_mirror_samples()  # the rounds' exact checks move the heliostats, never their surfaces
 def aiming_factor(plant: Plant, sun: torch.Tensor, peak_limit: float, *, atmosphere: Atmosphere | None = None,
                   resolution=(20, 48), steps: int = 8, model: ImageModel | None = None) -> AimResult:
     """Sánchez-González et al. (2017) aiming factor ``k``: alternate up/down displacement ``k (h/2 - r_img)``.
@@ -634,6 +682,7 @@ def _greedy_heights(model: ImageModel, x, room, order, groups: int, candidates: 
     return y
 
 
+@reuse_mirror_samples()  # the rounds' exact checks move the heliostats, never their surfaces
 def image_size_priority(plant: Plant, sun: torch.Tensor, peak_limit: float, *, atmosphere: Atmosphere | None = None,
                         resolution=(20, 48), model: ImageModel | None = None, steps: int = 8, groups: int = 40,
                         candidates: int = 11, k_max: float = 3.0) -> AimResult:

@@ -51,6 +51,9 @@ Everything is batched over heliostats (no loop over heliostats or points) and di
 from __future__ import annotations
 
 import math
+import weakref
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass, field, replace
 
 import torch
@@ -78,7 +81,7 @@ from .occlusion import (
 from .splat import splat_bilinear
 
 __all__ = ["FieldSettings", "FieldResult", "equator_aim_points", "tracking_normals", "field_optics", "summary",
-           "tracked_mirror_samples",
+           "tracked_mirror_samples", "reuse_mirror_samples",
            "per_heliostat_rows", "FACTORS"]
 
 #: Per-heliostat factors whose product is the optical efficiency (SolarPILOT's breakdown).
@@ -239,11 +242,7 @@ def tracked_mirror_samples(plant: Plant, normal: torch.Tensor, per_direction: in
     areas : torch.Tensor, shape (h, N)
         Mirror area per sample [m^2].
     """
-    sf = plant.field.surfaces
-    if rows is not None:
-        sf = replace(sf, control_points=sf.control_points[rows],
-                     weights=None if sf.weights is None else sf.weights[rows])
-    pts, nrm, area = surface_points(sf, (per_direction, per_direction))
+    pts, nrm, area = _local_mirror_samples(plant.field.surfaces, per_direction, rows)
     ew, eh = mirror_frame(normal)
     rot = torch.stack((ew, eh, normal), dim=-1)  # R_world_heliostat [h, 3, 3], columns = heliostat x, y, z
     pos = plant.field.kinematics.position.to(normal)
@@ -251,6 +250,54 @@ def tracked_mirror_samples(plant: Plant, normal: torch.Tensor, per_direction: in
     pw = pos.unsqueeze(1) + pts.to(normal) @ rot.transpose(-1, -2)
     nw = nrm.to(normal) @ rot.transpose(-1, -2)
     return pw, nw.to(dtype), area.to(normal)
+
+
+_REUSED_SAMPLES: ContextVar[dict | None] = ContextVar("heliotwin_reused_mirror_samples", default=None)
+
+
+@contextmanager
+def reuse_mirror_samples():
+    """Within this block :func:`field_optics` samples each plant's mirror surfaces (heliostat frame) once per
+    sample grid and reuses them: repeated evaluations of one plant (the rounds of the aim-point optimiser)
+    move the heliostats, never their surfaces. Surfaces that require a gradient are sampled afresh every time.
+    Nested blocks share the outermost one's samples; they are dropped when it ends."""
+    if _REUSED_SAMPLES.get() is not None:
+        yield
+        return
+    token = _REUSED_SAMPLES.set({})
+    try:
+        yield
+    finally:
+        _REUSED_SAMPLES.reset(token)
+
+
+def _local_mirror_samples(sf, per_direction: int, rows: torch.Tensor | None):
+    """:func:`heliotwin.field.facets.surface_points` of heliostats ``rows`` on a ``per_direction`` grid, reused
+    within :func:`reuse_mirror_samples`."""
+    cache = _REUSED_SAMPLES.get()
+    tensors = [sf.control_points] + ([] if sf.weights is None else [sf.weights])
+    if cache is not None and not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors)):
+        key = (tuple((id(t), t._version) for t in tensors), int(per_direction),
+               None if rows is None else hash(rows.detach().cpu().numpy().tobytes()))
+        hit = cache.get(key)
+        if hit is not None and all(r() is t for r, t in zip(hit[0], tensors)):
+            return hit[1]
+    if rows is not None:
+        sf = replace(sf, control_points=sf.control_points[rows],
+                     weights=None if sf.weights is None else sf.weights[rows])
+    cp, w = sf.control_points, sf.weights
+    h = cp.shape[0]
+    if h > 1 and bool((cp == cp[:1]).all()) and (w is None or bool((w == w[:1]).all())) and \
+            not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors)):
+        # one mirror shape for the whole field (ideal heliostats): sample it once
+        one = surface_points(replace(sf, control_points=cp[:1], weights=None if w is None else w[:1]),
+                             (per_direction, per_direction))
+        out = tuple(t.expand(h, *t.shape[1:]) for t in one)
+    else:
+        out = surface_points(sf, (per_direction, per_direction))
+    if cache is not None and not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors)):
+        cache[key] = ([weakref.ref(t) for t in tensors], out)
+    return out
 
 
 def _pool(x: torch.Tensor, weight: torch.Tensor, facets: int, m: int, k: int) -> torch.Tensor:

@@ -10,6 +10,9 @@ Occluder candidates come from a uniform 2-D grid over east/north (:func:`occlude
 can only be stopped by heliostats inside the corridor its rays sweep before they rise above the tallest
 mirror, so each heliostat looks up the grid cells along that corridor (a fixed number of cells per
 heliostat), keeps the candidates whose bounding spheres reach its rays, and only those are ray-tested.
+The hard test first drops, per heliostat and candidate, the pairs that no ray can join: every test quantity
+is affine in the ray origin, so its range over the box holding the mirror's points (widened by the spread
+of the rays' directions) bounds it; most candidates go, and the rest are tested ray by ray as before.
 The cost is about linear in the number of heliostats; there is no all-pairs test.
 
 Two tests share the geometry:
@@ -217,6 +220,8 @@ def unoccluded(origins: torch.Tensor, directions: torch.Tensor, occluders: Occlu
     """
     h, p = origins.shape[:2]
     owners = torch.arange(h, device=origins.device) if owners is None else owners
+    if softness is None:
+        return _unoccluded_hard(origins, directions, occluders, index, valid, owners, eps, max_tests_per_chunk)
     k = index.shape[1]
     step = max(1, int(max_tests_per_chunk) // max(1, p * k))
     out = []
@@ -225,6 +230,91 @@ def unoccluded(origins: torch.Tensor, directions: torch.Tensor, occluders: Occlu
         out.append(_unoccluded_chunk(origins[sl], directions[sl], occluders, index[sl], valid[sl], owners[sl],
                                      softness, eps))
     return torch.cat(out, 0)
+
+
+def _pairs_that_may_hit(rel, directions, occ: OccluderSet, index, valid, owners) -> torch.Tensor:
+    """Conservative pair test [H, K] (bool): False only where no ray of row h can meet candidate k's rectangle.
+
+    ``rel`` [H, P, 3]: the ray origins relative to the own pivot. Every ray-test quantity is affine in the
+    origin for a fixed direction, so its range over a mirror's points is bounded by its range over their
+    bounding box; the spread of the rows' directions about their mean (``delta``) widens the bounds by
+    interval arithmetic. Pairs seen nearly edge-on (their crossing ill-conditioned) are always kept. The
+    bounds are padded by far more than the float32 rounding of the per-point test, so culling never changes
+    its answer, only what it costs.
+    """
+    f64 = torch.float64
+    base = occ.center[owners].detach().to(f64)  # [H, 3]
+    # the box of the origins in the own mirror frame (tight for a flat mirror)
+    own_axes = torch.stack([t[owners].detach() for t in (occ.width_axis, occ.height_axis, occ.normal)], 1)  # [H, 3, 3]
+    local = torch.bmm(rel, own_axes.to(rel.dtype).transpose(1, 2))  # [H, P, 3]
+    hi, lo = local.amax(1).to(f64), local.amin(1).to(f64)
+    own_axes = own_axes.to(f64)
+    mid = torch.einsum("hi,hij->hj", 0.5 * (hi + lo), own_axes)  # box centre, ENU [H, 3]
+    half = 0.5 * (hi - lo) + 1e-6  # [H, 3] half sizes along the own axes
+    d = directions.detach()
+    d0 = safe_normalize(d.mean(1).to(f64))  # [H, 3]
+    delta = torch.linalg.vector_norm(d - d0.unsqueeze(1).to(d.dtype), dim=-1).amax(1).to(f64) + 1e-6  # [H]
+    c = occ.center[index].detach().to(f64) - base.unsqueeze(1)  # [H, K, 3]
+    n_k, ew_k, eh_k = (t[index].detach().to(f64) for t in (occ.normal, occ.width_axis, occ.height_axis))
+
+    def span(g):
+        """Range (lo, hi) [H, K] of (c - o) . g over the box of the own mirror's points, g [H, K, 3]."""
+        centre = ((c - mid.unsqueeze(1)) * g).sum(-1)
+        radius = (torch.einsum("hkj,hij->hki", g, own_axes).abs() * half.unsqueeze(1)).sum(-1)
+        return centre - radius, centre + radius
+
+    dl = delta.unsqueeze(1)
+    dn0 = (d0.unsqueeze(1) * n_k).sum(-1)
+    edge_on = dn0.abs() <= dl + 0.05
+    dn_safe = torch.where(edge_on, torch.ones_like(dn0), dn0)
+    wn_lo, wn_hi = span(n_k)
+    # t = w_n / d_n > 0 needs w_n of the sign of d_n somewhere
+    ahead = torch.where(dn_safe > 0, wn_hi > 0, wn_lo < 0)
+    wn_abs = torch.maximum(wn_lo.abs(), wn_hi.abs())
+    reach = wn_abs / (dn_safe.abs() - dl).clamp_min(1e-3)  # largest ray parameter of a crossing
+    keep = ahead
+    for axis, half_size in ((ew_k, occ.half_width[index]), (eh_k, occ.half_height[index])):
+        da0 = (d0.unsqueeze(1) * axis).sum(-1)
+        ratio0 = da0 / dn_safe
+        spread = torch.zeros_like(ratio0)
+        for s1 in (-1.0, 1.0):
+            for s2 in (-1.0, 1.0):
+                spread = torch.maximum(spread, ((da0 + s1 * dl) / (dn_safe + s2 * dl) - ratio0).abs())
+        # in-plane coordinate of the crossing: (c - o) . (ratio0 n_k - axis) + w_n (ratio - ratio0)
+        lo_a, hi_a = span(ratio0.unsqueeze(-1) * n_k - axis)
+        pad = wn_abs * spread + 1e-3 + 1e-4 * reach
+        hs = half_size.detach().to(f64)
+        keep = keep & (lo_a - pad <= hs) & (hi_a + pad >= -hs)
+    return valid & (keep | edge_on)
+
+
+def _unoccluded_hard(origins, directions, occ: OccluderSet, index, valid, owners, eps, max_tests_per_chunk):
+    """The exact test in float32 relative to the own pivot (a 0/1 decision: rays precision), run only on the
+    (row, candidate) pairs that :func:`_pairs_that_may_hit` keeps."""
+    h, p = origins.shape[:2]
+    dt = torch.float32
+    rel = (origins - occ.center[owners].unsqueeze(1)).to(dt)  # [H, P, 3]
+    pairs = torch.nonzero(_pairs_that_may_hit(rel, directions, occ, index, valid, owners))  # [n, 2]
+    hits = torch.zeros(h, p, dtype=dt, device=origins.device)
+    step = max(1, int(max_tests_per_chunk) // max(1, p))
+    for s0 in range(0, pairs.shape[0], step):
+        row, slot = pairs[s0:s0 + step].unbind(1)
+        k = index[row, slot]
+        base = occ.center[owners[row]]
+        c = (occ.center[k] - base).to(dt)  # [n, 3]
+        axes = torch.stack((occ.normal[k], occ.width_axis[k], occ.height_axis[k]), dim=1).to(dt)  # [n, 3, 3]
+        c_ax = (axes * c.unsqueeze(1)).sum(-1)  # [n, 3]: c . (n, ew, eh)
+        w_ax = c_ax.unsqueeze(1) - torch.bmm(rel[row], axes.transpose(1, 2))  # (c - o) . axis, [n, P, 3]
+        d_ax = torch.bmm(directions[row].to(dt), axes.transpose(1, 2))  # [n, P or 1, 3]
+        denom = d_ax[..., 0]
+        ok = denom.abs() > 1e-9
+        t = w_ax[..., 0] / torch.where(ok, denom, torch.ones_like(denom))
+        u = t * d_ax[..., 1] - w_ax[..., 1]
+        v = t * d_ax[..., 2] - w_ax[..., 2]
+        stop = (t > eps) & (u.abs() <= occ.half_width[k].to(dt).unsqueeze(1)) & \
+            (v.abs() <= occ.half_height[k].to(dt).unsqueeze(1)) & ok
+        hits.index_add_(0, row, stop.to(dt))
+    return (hits == 0).to(origins.dtype)
 
 
 def _unoccluded_chunk(o, d, occ: OccluderSet, idx, valid, own, softness, eps):

@@ -32,6 +32,7 @@ from ..optimise.aimpoints import (
     uniform_target,
 )
 from ..optimise.aimstate import KEY, aimpoint_state, instant_state
+from ..raytrace.field import reuse_mirror_samples
 from .field import check_map_resolution
 
 __all__ = ["AimpointSettings", "aimpoints"]
@@ -87,6 +88,7 @@ class AimpointSettings:
             raise HeliotwinError("--nproc: the local process group is gloo on CPU; use --device cpu with --nproc")
 
 
+@reuse_mirror_samples()  # every exact check below samples the same mirror surfaces
 def _instant(plant, sun, atm, settings: AimpointSettings):
     """Equator, the two heuristics and the optimised aim points at one sun: (report entry, optimised, equator)."""
     limit, resolution = float(settings.peak_limit_w_m2), settings.resolution

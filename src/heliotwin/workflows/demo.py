@@ -89,7 +89,8 @@ def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-
     plant_cpu, plant, sun = plant, to_device(plant, device), sun.to(device)
     t0 = time.perf_counter()
     with torch.no_grad():
-        before = to_device(field_optics(plant, sun, atmosphere=atm), "cpu")
+        equator = field_optics(plant, sun, atmosphere=atm)  # the aim points' exact model at equator aiming too
+        before = to_device(equator, "cpu")
     seconds["field_model"] = time.perf_counter() - t0
     rep = summary(before, plant_cpu)
     bar.step("field model")
@@ -97,7 +98,7 @@ def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-
     limit = float(peak_limit_fraction) * rep["receiver"]["peak_flux_w_m2"]
     t0 = time.perf_counter()
     knobs = AimSettings() if iterations is None else AimSettings(iterations=int(iterations))
-    aimed = to_device(optimise_aimpoints(plant, sun, limit, knobs, atmosphere=atm), "cpu")
+    aimed = to_device(optimise_aimpoints(plant, sun, limit, knobs, atmosphere=atm, equator=equator), "cpu")
     seconds["aim_points"] = time.perf_counter() - t0
     bar.step("aim points")
     bar.start("figures and plant.h5")
