@@ -126,10 +126,11 @@ def heights_to_displacement(heights: torch.Tensor, num_control_points, degree) -
     su, sv = h.shape[-2], h.shape[-1]
     nu, nv = (int(x) for x in num_control_points)
     p, q = (int(x) for x in degree)
-    u = (torch.arange(su, dtype=h.dtype) + 0.5) / su
-    v = (torch.arange(sv, dtype=h.dtype) + 0.5) / sv
-    bu, _ = nurbs.basis_functions(u, nurbs.clamped_knots(nu, p, dtype=h.dtype), p, nu)
-    bv, _ = nurbs.basis_functions(v, nurbs.clamped_knots(nv, q, dtype=h.dtype), q, nv)
+    f = dict(dtype=h.dtype, device=h.device)  # the bases live where the heights do
+    u = (torch.arange(su, **f) + 0.5) / su
+    v = (torch.arange(sv, **f) + 0.5) / sv
+    bu, _ = nurbs.basis_functions(u, nurbs.clamped_knots(nu, p, **f), p, nu)
+    bv, _ = nurbs.basis_functions(v, nurbs.clamped_knots(nv, q, **f), q, nv)
     d = torch.einsum("ai,fij,bj->fab", torch.linalg.pinv(bu), h, torch.linalg.pinv(bv))
     return d.reshape(1, h.shape[0], nu, nv)
 
@@ -153,8 +154,9 @@ def gauge_basis(facets: Facets, num_control_points, degree, pistons: bool = True
     nu, nv = (int(x) for x in num_control_points)
     p, q = (int(x) for x in degree)
     nf = facets.translation.shape[1]
-    s = 2.0 * nurbs.greville_abscissae(nu, p, dtype=torch.float64) - 1.0
-    t = 2.0 * nurbs.greville_abscissae(nv, q, dtype=torch.float64) - 1.0
+    f = dict(dtype=torch.float64, device=facets.translation.device)
+    s = 2.0 * nurbs.greville_abscissae(nu, p, **f) - 1.0
+    t = 2.0 * nurbs.greville_abscissae(nv, q, **f) - 1.0
     le = facets.canting_e[0].to(torch.float64).norm(dim=-1)
     ln = facets.canting_n[0].to(torch.float64).norm(dim=-1)
     modes = []
@@ -162,7 +164,7 @@ def gauge_basis(facets: Facets, num_control_points, degree, pistons: bool = True
         modes += [(le[:, None, None] * s[None, :, None]).expand(nf, nu, nv).reshape(-1),
                   (ln[:, None, None] * t[None, None, :]).expand(nf, nu, nv).reshape(-1)]
     if pistons:
-        eye = torch.eye(nf, dtype=torch.float64)
+        eye = torch.eye(nf, **f)
         modes += [eye[k][:, None, None].expand(nf, nu, nv).reshape(-1) for k in range(nf)]
     basis, _ = torch.linalg.qr(torch.stack(modes, 1))
     return basis

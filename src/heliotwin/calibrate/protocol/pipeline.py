@@ -378,7 +378,7 @@ def _assemble_blocks(blocks, n: int) -> tuple[dict, dict]:
     for where, pred, _ in blocks:
         at = torch.as_tensor(where, dtype=torch.long)
         for k, v in pred.items():
-            out[k][at] = v.to(out[k].dtype)
+            out[k][at] = v.to(device=out[k].device, dtype=out[k].dtype)  # blocks may sit on the GPU
     inputs = {k: torch.cat([b[2][k] for b in blocks]) for k in blocks[0][2] if k != "heliostat"}
     inputs["heliostat"] = [h for b in blocks for h in b[2]["heliostat"]]
     return out, inputs

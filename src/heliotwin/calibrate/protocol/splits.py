@@ -314,14 +314,14 @@ def split_records(batch, kind: str, n_train: int, n_val: int, n_test: int | None
     """
     out = {"train": [], "validation": [], "test": []}
     info = {}
+    # the split is bookkeeping on the host: a table on the GPU is read once (its indices work there too)
+    az_all, el_all, t_all = (x.detach().cpu().numpy() for x in (batch.sun_azimuth, batch.sun_elevation, batch.time))
     for h, hid in enumerate(batch.heliostat_ids):
-        rows = batch.of(h).numpy()
+        rows = batch.of(h).cpu().numpy()
         if len(rows) == 0:
             info[hid] = {"n_records": 0, "train": 0, "validation": 0, "test": 0, "dropped_no_time": 0}
             continue
-        az = batch.sun_azimuth[rows].numpy()
-        el = batch.sun_elevation[rows].numpy()
-        tt = batch.time[rows].numpy()
+        az, el, tt = az_all[rows], el_all[rows], t_all[rows]
         s = split_indices(kind, az, el, tt, n_train, n_val, n_test, seed=seed + h)
         for key in out:
             out[key].append(torch.as_tensor(rows[s[key]], dtype=torch.long))
