@@ -24,7 +24,7 @@ SRC = ROOT / "src" / "heliotwin"
 #: shipped examples).
 DONE = (
     "errors.py", "devices.py", "geometry.py", "site.py", "sun.py", "sunshape.py", "nurbs.py", "atmosphere.py",
-    "shrinkage.py",
+    "shrinkage.py", "calibrate/choice.py",
     "raytrace/montecarlo.py", "raytrace/gaussian.py", "raytrace/conv.py", "raytrace/splat.py", "raytrace/flux.py",
     "raytrace/yearly.py", "scene.py",
     "io/checkpoint.py", "io/deflectometry.py", "io/hdf5.py", "io/images.py", "io/report.py",

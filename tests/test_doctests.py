@@ -8,7 +8,8 @@ import pytest
 
 #: Modules whose docstrings carry examples; each must have at least one.
 MODULES = ("heliotwin.geometry", "heliotwin.site", "heliotwin.nurbs", "heliotwin.io.scenario",
-           "heliotwin.workflows.plan", "heliotwin.workflows.trace", "heliotwin.workflows.field", "heliotwin.api")
+           "heliotwin.workflows.plan", "heliotwin.workflows.trace", "heliotwin.workflows.field", "heliotwin.api",
+           "heliotwin.calibrate.choice")
 
 
 @pytest.mark.parametrize("name", MODULES)

@@ -49,6 +49,7 @@ import statistics
 import torch
 from tqdm.auto import tqdm
 
+from ..calibrate.choice import lowest
 from ..field.plant import Facets, SunSettings
 from . import losses
 from .acceptance import robust_outliers, shrink_to_accept, wilson_interval
@@ -165,7 +166,7 @@ def loo_select(facets, train, camera, sigma0, sun, start, s, progress=False, pri
             steps = [st for st, _ in curves[(w, p, 0)]]
             for j, st in enumerate(steps):
                 table[(w, p, st)] = statistics.mean(curves[(w, p, k)][j][1] for k in range(n))
-    (w_best, p_best, st_best) = min(table, key=table.get)
+    (w_best, p_best, st_best) = lowest(table)
     j = [st for st, _ in curves[(w_best, p_best, 0)]].index(st_best)
     held = [curves[(w_best, p_best, k)][j][1] for k in range(n)]
     drop, z = robust_outliers(held)

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ..calibrate.choice import lowest
 from ..errors import HeliotwinError
 from ..field import kinematics as kin_ops
 from ..field.plant import Facets, Kinematics, SunSettings, Surfaces
@@ -98,7 +99,7 @@ def choose_laplacian(facets: Facets, train: Observations, sun: SunSettings, sett
                 fit.model.surfaces(), held, sun, samples=settings.samples, resolution=settings.resolution,
                 size_m=settings.size_m)["l1"]).mean()))
         scores[float(w)] = sum(fold_l1) / len(fold_l1)
-    best = min(scores, key=scores.get)
+    best = lowest(scores)
     record = dict(holdout=[train.ids[k] for k in folds] if len(folds) > 1 else train.ids[-1],
                   laplacian_scores=scores, laplacian_cv=cv)
     return dataclasses.replace(settings, laplacian=best), record

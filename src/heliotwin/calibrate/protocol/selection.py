@@ -39,6 +39,7 @@ from tqdm.auto import tqdm
 from ...errors import HeliotwinError, InputFileError
 from ...io.paint import load_paint
 from ...io.scenario import load_scenario
+from ..choice import lowest
 from ..priors import MIN_HELIOSTATS
 from ..scenario import KEY
 from ..uncertainty import SAMPLES, predictive
@@ -170,8 +171,7 @@ def median(values) -> float:
 
 def select(scores: dict, candidates) -> dict:
     """The candidate whose per-heliostat errors (``scores[label]``) have the lowest median (ties: earlier)."""
-    best = min(range(len(candidates)), key=lambda i: (median(scores[label(candidates[i])].values()), i))
-    return candidates[best]
+    return candidates[lowest({i: median(scores[label(c)].values()) for i, c in enumerate(candidates)})]
 
 
 #: Offset drift values tried for the predictive interval [rad] (:func:`choose_drift`).
