@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 import shutil
 import sys
@@ -61,7 +60,7 @@ from heliotwin.workflows.calibrate import CalibrationSettings, calibrate
 from heliotwin.workflows.field import FieldRunSettings, field, sun_direction_at
 from heliotwin.workflows.reconstruct import ReconstructionSettings, reconstruct
 from heliotwin.workflows.simulate import SimulationSettings, score, simulate
-from heliotwin.workflows.update import update
+from heliotwin.workflows.update import UpdateSettings, update
 
 DAY = 86400.0
 
@@ -86,6 +85,7 @@ class LoopSettings:
     limit_fraction: float = 0.8
     resolution: tuple = (20, 48)
     refit: bool = True
+    process_noise: str = "stored"
 
 
 def calibration_settings(s: LoopSettings) -> CalibrationSettings:
@@ -100,7 +100,8 @@ def records_between(ds: PaintDataset, t0: float, t1: float) -> PaintDataset:
     return dataclasses.replace(ds, records=ds.records.subset(torch.isfinite(t) & (t >= t0) & (t < t1)))
 
 
-def daily_updates(scenario, ds: PaintDataset, cutoff: float, days: int):
+def daily_updates(scenario, ds: PaintDataset, cutoff: float, days: int,
+                  settings: UpdateSettings = UpdateSettings()):
     """One ``update`` per day after ``cutoff`` with that day's records only; the scenario after the last day,
     the alarms and per-day counts."""
     alarms, per_day, seconds = [], [], 0.0
@@ -108,7 +109,7 @@ def daily_updates(scenario, ds: PaintDataset, cutoff: float, days: int):
         day = records_between(ds, cutoff + d * DAY, cutoff + (d + 1) * DAY).records
         if not len(day):
             continue
-        scenario, report = update(scenario, day)
+        scenario, report = update(scenario, day, settings)
         seconds += report["seconds"]
         alarms += report["alarms"]
         per_day.append({"day": d, "records": report["counts"]["new"], "alarms": len(report["alarms"])})
@@ -221,13 +222,15 @@ def run_loop(s: LoopSettings, work) -> dict:
                                   "median_l1_ideal": rep.get("median_l1_ideal"), "seconds": rep["seconds"]})
         seconds["reconstruct"] = time.perf_counter() - t
     t = time.perf_counter()
-    updated, days = daily_updates(calibrated, ds, cutoff, s.update_days)
+    updated, days = daily_updates(calibrated, ds, cutoff, s.update_days,
+                                  UpdateSettings(process_noise=s.process_noise))
     seconds["update"] = time.perf_counter() - t
     nominal = dataclasses.replace(calibrated, plant=ds.plant)
     result = {"settings": dataclasses.asdict(s), "records": sim_report["records"],
               "heliostats_calibrated": cal_report["overall"].get("n_heliostats"),
               "noise_floor_mrad": SimulationSettings().centroid_noise_mrad,
-              "pointing_vs_truth": {"nominal": pointing(truth, nominal, s), "calibrated": pointing(truth, calibrated, s),
+              "pointing_vs_truth": {"nominal": pointing(truth, nominal, s),
+                                    "calibrated": pointing(truth, calibrated, s),
                                     "updated": pointing(truth, updated, s)},
               "update": {k: days[k] for k in ("records", "seconds_assimilation")} | {"update_calls": len(days["days"])},
               "alarms": alarm_score(truth, ds, days["alarms"], cutoff, end + DAY, s.within),
@@ -270,7 +273,8 @@ def markdown(r: dict) -> str:
     lines += ["", f"Step alarms: {a['detected']} of {a['steps']} injected steps detected within {a['within_records']} "
                   f"records ({share}); {a['false_alarms']} other alarms "
                   f"({a['false_alarms_per_heliostat_year']:.3f} per heliostat-year)", "",
-              "| receiver map (prediction vs delivered) | relative L1 | peak error | power error | delivered peak / limit |",
+              "| receiver map (prediction vs delivered) | relative L1 | peak error | power error "
+              "| delivered peak / limit |",
               "|---|---|---|---|---|"]
     for name, e in r["receiver"].items():
         lines.append(f"| {name} twin | {e['relative_l1']:.3f} | {100 * e['peak_error']:+.1f} % | "
