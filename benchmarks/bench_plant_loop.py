@@ -292,6 +292,9 @@ def markdown(r: dict) -> str:
     for name, e in r["receiver"].items():
         lines.append(f"| {name} twin | {e['relative_l1']:.3f} | {100 * e['peak_error']:+.1f} % | "
                      f"{100 * e['power_error']:+.1f} % | {e['delivered_peak_over_limit']:.2f} |")
+    for rec in r["reconstruct"]:
+        lines.append(f"Reconstructed {rec['heliostat']}: median test L1 learned {rec['median_l1_learned']:.3f}, "
+                     f"ideal {rec['median_l1_ideal']:.3f} ({rec['seconds']:.0f} s)")
     lines += ["", "Seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in r["seconds"].items())]
     return "\n".join(lines) + "\n"
 
