@@ -8,7 +8,19 @@ hangs is cut off by ``--timeout``):
   (:func:`heliotwin.workflows.simulate.simulate`);
 * ``read`` -- read the folder with no record cache (and write it): :func:`heliotwin.io.paint.load_paint`;
 * ``read_cached`` -- read it again from the record cache;
-* ``calibrate`` -- :func:`heliotwin.workflows.calibrate.calibrate` with default settings, scored against the truth.
+* ``calibrate`` -- :func:`heliotwin.workflows.calibrate.calibrate` with default settings, scored against the truth
+  (its scenario is kept for ``update``);
+* ``update`` -- the last day's records assimilated by :func:`heliotwin.workflows.update.update` into a scenario
+  calibrated on the records before that day (the ``calibrate`` stage's: chronological, its earliest records;
+  else one made here, outside the timing); the stage fails if the calibration saw any of the day's records.
+  Timed: the update call;
+* ``reconstruct`` -- :func:`heliotwin.workflows.reconstruct.reconstruct` on ``--sample`` heliostats that have
+  simulated images (``--images K`` makes the simulate stage draw them); timed: seconds per heliostat
+  (``--reconstruct-steps``: its step budget);
+* ``aimpoints`` -- :func:`heliotwin.workflows.aimpoints.aimpoints` (default settings) on the truth plant for one
+  sun (2024-06-01 11:00 UTC), the peak limit 0.8 x the equator-aimed peak; timed: the aimpoints call.
+
+A stage that returns ``seconds`` is timed by that (its measured call); ``wall_seconds`` is the whole stage.
 
 Per stage and size: wall seconds, the peak resident memory of the stage's process and what it added over the
 process after its imports [MiB]; per stage, the growth exponent ``b`` of ``seconds ~ heliostats^b`` (least
@@ -23,6 +35,8 @@ Usage::
 
     OMP_NUM_THREADS=1 python benchmarks/bench_plant_scale.py --out /tmp/plant-scale \
         [--sizes 100 500 2000 10000] [--stages simulate read read_cached calibrate] [--timeout 600]
+    OMP_NUM_THREADS=1 python benchmarks/bench_plant_scale.py --out /tmp/plant-loop-stages --sizes 100 500 2000 \
+        --stages simulate calibrate update aimpoints reconstruct --images 2 --sample 2 --reconstruct-steps 60
 
 Writes ``<out>/plant_scale.json`` and ``<out>/plant_scale.md``; the simulated plants stay under ``<out>/size-N``
 (``--keep`` not given: removed after their size). Deterministic inputs (``--seed``); wall times depend on the
@@ -45,6 +59,9 @@ cache and the batched parser took 28.0 s for 200 of those heliostats (18,869 rec
 Drawing alone (:func:`heliotwin.simulate.simulate_plant`, no files): 100 / 500 / 2000 / 10000 heliostats in
 2.7 / 2.9 / 8.6 / 36.5 s (9,685 / 47,604 / 189,789 / 871,800 records, peak RSS 400-960 MiB). ``calibrate`` with
 default settings took 23 s for 20 heliostats and 98 s for 60 (growth exponent 1.3; 1.8 GB peak).
+The new stages at 8 / 12 heliostats (``--images 1 --sample 1 --reconstruct-steps 20``, very busy machine:
+wall ~4x CPU time): update of the last day 0.05 / 0.04 s (1 / 4 records); aimpoints 10.0 / 16.1 s (0.65 /
+0.69 GiB peak); reconstruct 43 / 59 s per heliostat (3.2 GiB peak). Sizes this small say nothing about growth.
 """
 from __future__ import annotations
 
@@ -78,7 +95,8 @@ def simulate_stage(ctx: dict) -> dict:
     from heliotwin.io.scenario import write_scenario
     from heliotwin.workflows.simulate import SimulationSettings, simulate
 
-    truth, report = simulate(SimulationSettings(heliostats=ctx["size"], seed=ctx["seed"]), ctx["folder"])
+    truth, report = simulate(SimulationSettings(heliostats=ctx["size"], seed=ctx["seed"], images=ctx["images"]),
+                             ctx["folder"])
     write_scenario(truth, ctx["truth"])
     return {k: report[k] for k in ("records", "steps", "dropped_off_target", "months_at_capacity",
                                    "seconds_simulate", "seconds_write")}
@@ -102,7 +120,7 @@ def read_cached_stage(ctx: dict) -> dict:
 
 @stage("calibrate")
 def calibrate_stage(ctx: dict) -> dict:
-    from heliotwin.io.scenario import load_scenario
+    from heliotwin.io.scenario import load_scenario, write_scenario
     from heliotwin.simulate import score
     from heliotwin.workflows.calibrate import CalibrationSettings, calibrate
 
@@ -110,10 +128,69 @@ def calibrate_stage(ctx: dict) -> dict:
     out = {"calibrated": report["overall"].get("n_heliostats"),
            "median_of_mean_test_mrad": report["overall"].get("median_of_mean_test_mrad")}
     if scenario is not None:
+        write_scenario(scenario, os.path.join(ctx["work"], "calibrated.h5"))  # the update stage starts from it
         got = score(load_scenario(ctx["truth"]), scenario, flux=False)
         out["truth_pointing_median_mrad"] = got["pointing_mrad"]["median"]
         out["truth_pointing_p95_mrad"] = got["pointing_mrad"]["p95"]
     return out
+
+
+@stage("update")
+def update_stage(ctx: dict) -> dict:
+    from bench_plant_loop import DAY, records_between
+
+    from heliotwin.io.paint import load_paint
+    from heliotwin.io.scenario import load_scenario, write_scenario
+    from heliotwin.workflows.calibrate import CalibrationSettings, calibrate
+    from heliotwin.workflows.update import seen_record_ids, update
+
+    ds = load_paint(ctx["folder"], cache=True)
+    t = ds.records.time.double()
+    last_day = float(t[t.isfinite()].max()) - DAY
+    path = os.path.join(ctx["work"], "calibrated.h5")  # the calibrate stage's (chrono: its earliest records)
+    if not os.path.exists(path):
+        write_scenario(calibrate(None, records_between(ds, -math.inf, last_day), CalibrationSettings()).scenario, path)
+    calibrated = load_scenario(path)
+    day = records_between(ds, last_day, math.inf).records
+    if seen_record_ids(calibrated) & set(day.record_id.tolist()):
+        raise RuntimeError("update stage: the calibration saw records of the last day")
+    t0 = time.perf_counter()
+    _, report = update(calibrated, day)
+    return {"seconds": time.perf_counter() - t0, "records": report["counts"]["new"],
+            "heliostats_updated": report["heliostats_updated"], "alarms": report["overall"]["alarms"]}
+
+
+@stage("reconstruct")
+def reconstruct_stage(ctx: dict) -> dict:
+    from bench_plant_loop import image_heliostats
+
+    from heliotwin.workflows.reconstruct import ReconstructionSettings, reconstruct
+
+    chosen = image_heliostats(ctx["folder"])[:ctx["sample"]]
+    if not chosen:
+        raise RuntimeError("reconstruct stage: no heliostat has images (simulate with --images K)")
+    settings = ReconstructionSettings(steps=ctx["reconstruct_steps"], device="cpu")
+    t0 = time.perf_counter()
+    l1 = [reconstruct(None, ctx["folder"], h, settings, progress=False)[1].get("median_l1_learned") for h in chosen]
+    seconds = time.perf_counter() - t0
+    return {"seconds": seconds / len(chosen), "seconds_all": seconds, "heliostats": chosen, "median_l1_learned": l1}
+
+
+@stage("aimpoints")
+def aimpoints_stage(ctx: dict) -> dict:
+    from heliotwin.io.scenario import load_scenario
+    from heliotwin.workflows.aimpoints import AimpointSettings, aimpoints
+    from heliotwin.workflows.field import FieldRunSettings, field, sun_direction_at
+
+    plant = load_scenario(ctx["truth"])
+    sun = sun_direction_at(plant.plant, time_utc="2024-06-01T11:00:00")
+    equator, _ = field(plant, sun, FieldRunSettings())
+    limit = 0.8 * equator["receiver"]["peak_flux_w_m2"]  # binding: the equator's peak is over it
+    t0 = time.perf_counter()
+    _, report = aimpoints(plant, [("sun", sun)], AimpointSettings(peak_limit_w_m2=limit))
+    return {"seconds": time.perf_counter() - t0, "seconds_field_equator": equator["seconds"],
+            "peak_limit_w_m2": limit, "power_w": report["optimised"].get("power_w"),
+            "peak_flux_w_m2": report["optimised"].get("peak_flux_w_m2")}
 
 
 # ------------------------------------------------------------------------------------------------ driver
@@ -125,18 +202,21 @@ def _child(args) -> None:
     import heliotwin.workflows.calibrate  # noqa: F401
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     ctx = {"size": args.size, "seed": args.seed, "folder": os.path.join(args.work, "plant"),
-           "truth": os.path.join(args.work, "truth.h5"), "work": args.work}
+           "truth": os.path.join(args.work, "truth.h5"), "work": args.work, "images": args.images,
+           "sample": args.sample, "reconstruct_steps": args.reconstruct_steps}
     t0 = time.perf_counter()
     extra = STAGES[args.child](ctx)
-    seconds = time.perf_counter() - t0
+    wall = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print("RESULT " + json.dumps({"seconds": seconds, "peak_mib": peak, "added_mib": peak - base, **extra}))
+    print("RESULT " + json.dumps({"seconds": wall, "wall_seconds": wall, "peak_mib": peak, "added_mib": peak - base,
+                                  **extra}))
 
 
-def run_stage(name: str, size: int, work: Path, seed: int, timeout: float) -> dict:
-    """One stage in a subprocess: its result, or ``{"status": "timeout" | "failed", ...}``."""
+def run_stage(name: str, size: int, work: Path, seed: int, timeout: float, options: tuple = ()) -> dict:
+    """One stage in a subprocess: its result, or ``{"status": "timeout" | "failed", ...}``; ``options``: more
+    command-line words for the child (``--images``, ``--sample``, ``--reconstruct-steps``)."""
     cmd = [sys.executable, os.path.abspath(__file__), "--child", name, "--size", str(size), "--seed", str(seed),
-           "--work", str(work)]
+           "--work", str(work), *options]
     t0 = time.perf_counter()
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
@@ -184,6 +264,10 @@ def main(argv=None) -> int:
     p.add_argument("--timeout", type=float, default=600.0, help="seconds per stage and size")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--keep", action="store_true", help="keep the simulated plants")
+    p.add_argument("--images", type=int, default=0,
+                   help="heliostats the simulate stage gives flux-centred images (the reconstruct stage needs some)")
+    p.add_argument("--sample", type=int, default=2, help="heliostats the reconstruct stage reconstructs")
+    p.add_argument("--reconstruct-steps", type=int, default=None, help="reconstruct's step budget (default its own)")
     p.add_argument("--child", help=argparse.SUPPRESS)
     p.add_argument("--size", type=int, help=argparse.SUPPRESS)
     p.add_argument("--work", help=argparse.SUPPRESS)
@@ -196,6 +280,8 @@ def main(argv=None) -> int:
     results = {"sizes": args.sizes, "stages": {s: {} for s in args.stages}, "growth": {},
                "threads": os.environ.get("OMP_NUM_THREADS"), "cpus": os.cpu_count()}
     stopped: set = set()
+    options = ("--images", str(args.images), "--sample", str(args.sample),
+               *(("--reconstruct-steps", str(args.reconstruct_steps)) if args.reconstruct_steps else ()))
     for size in args.sizes:
         work = out / f"size-{size}"
         if work.exists():
@@ -204,7 +290,7 @@ def main(argv=None) -> int:
         for name in args.stages:
             if name in stopped or ("simulate" in stopped and name != "simulate"):
                 continue
-            r = run_stage(name, size, work, args.seed, args.timeout)
+            r = run_stage(name, size, work, args.seed, args.timeout, options)
             results["stages"][name][str(size)] = r
             if r["status"] != "ok":
                 stopped.add(name)
