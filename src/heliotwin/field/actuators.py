@@ -34,7 +34,11 @@ def _pivot_angle(stroke, offset, pivot_radius):
 
 
 def law_of_cosines_valid(stroke, offset, pivot_radius):
-    """True where ``|offset - pivot_radius| < stroke < offset + pivot_radius`` (a real triangle)."""
+    """True where ``|offset - pivot_radius| < stroke < offset + pivot_radius`` (a real triangle).
+
+    ``stroke``, ``offset`` and ``pivot_radius`` [m] are tensors of broadcastable shapes (...); the result is a
+    bool tensor of their broadcast shape (...).
+    """
     return (stroke > torch.abs(offset - pivot_radius)) & (stroke < offset + pivot_radius)
 
 
@@ -45,16 +49,17 @@ def steps_to_angle(steps, *, increment, offset, pivot_radius, initial_angle, ini
     Parameters
     ----------
     steps : torch.Tensor, shape (...)
-        Motor position [steps].
-    increment : torch.Tensor
+        Motor position [steps]. The actuator parameters below broadcast against it (one value per
+        heliostat, or scalars).
+    increment : torch.Tensor, shape (...)
         Steps per metre of stroke (linear) or per radian (ideal) [1/m or 1/rad].
-    offset, pivot_radius : torch.Tensor
+    offset, pivot_radius : torch.Tensor, shape (...)
         Linear actuator geometry [m].
-    initial_angle : torch.Tensor
+    initial_angle : torch.Tensor, shape (...)
         Joint angle at zero steps [rad].
-    initial_stroke_length : torch.Tensor
+    initial_stroke_length : torch.Tensor, shape (...)
         Stroke at zero steps [m].
-    clockwise, linear : torch.Tensor of bool
+    clockwise, linear : torch.Tensor of bool, shape (...)
         PAINT ``clockwise_axis_movement``; linear (True) or ideal (False) actuator.
 
     Returns

@@ -226,7 +226,8 @@ def demo_field_positions(num_heliostats: int = 2000, *, first_ring: float = 27.5
     design_sun_elevation_deg, half_span_deg : float
         [deg].
     azimuth_pitch, zone_reset : float
-        In mirror widths, and the ratio that starts a new zone.
+        Arc spacing at a zone's start in mirror widths [1], and the ratio of arc spacing to it that starts a
+        new zone [1].
     max_east : float, optional
         [m].
 

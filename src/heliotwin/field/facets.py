@@ -201,6 +201,7 @@ def facets_from_paint(facet_properties: Sequence[Mapping], path=None
     Returns
     -------
     translation, canting_e, canting_n : torch.Tensor, [F, 3], float64
+        Facet centre and its two canting (edge) vectors, heliostat frame [m].
 
     Raises
     ------

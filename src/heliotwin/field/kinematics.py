@@ -144,7 +144,8 @@ def angles_for_normal(kin: Kinematics, normal: torch.Tensor,
     ----------
     normal : torch.Tensor, shape (..., H, 3)
         Desired unit normal, ENU.
-    reference_angles : unused, reserved.
+    reference_angles : torch.Tensor, shape (..., H, 2), optional
+        Unused, reserved: joint angles [rad] near which to choose the branch.
 
     Returns
     -------

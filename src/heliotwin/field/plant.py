@@ -91,10 +91,14 @@ class Kinematics:
 
     @property
     def num_heliostats(self) -> int:
+        """H, the length of the leading (heliostat) axis of every field."""
         return int(self.position.shape[0])
 
     def index(self, idx) -> "Kinematics":
-        """Select heliostats (int, slice, list or index tensor); returns a new container (views)."""
+        """Select heliostats (int, slice, list or index tensor of shape (K,)); returns a new container (views).
+
+        Every field keeps its trailing shape: ``position`` (H, 3) becomes (K, 3), and so on (an int gives K = 1).
+        """
         if isinstance(idx, int):
             idx = [idx]
         return Kinematics(**{f.name: getattr(self, f.name)[idx] for f in fields(self)})
@@ -104,7 +108,7 @@ class Kinematics:
         return replace(self, **changes)
 
     def to(self, dtype=None, device=None) -> "Kinematics":
-        """Float tensors to ``dtype``/``device``; bool tensors keep their dtype."""
+        """Float tensors to ``dtype``/``device``; bool tensors keep their dtype; shapes ((H, ...)) are unchanged."""
         out = {}
         for f in fields(self):
             t = getattr(self, f.name)

@@ -71,7 +71,11 @@ class PlanarTarget:
 
     @classmethod
     def from_center_normal(cls, name: str, center, normal, width: float, height: float) -> "PlanarTarget":
-        """Build from centre, normal and size; the basis follows :func:`in_plane_basis`."""
+        """Build from centre, normal and size; the basis follows :func:`in_plane_basis`.
+
+        ``center`` is a tensor-like of shape (3,), ENU [m]; ``normal`` (3,) points away from the receiving
+        face (normalised here); ``width`` and ``height`` are the full extents along the basis [m].
+        """
         c = torch.as_tensor(center, dtype=torch.float64)
         n = _unit(torch.as_tensor(normal, dtype=torch.float64))
         r, u = in_plane_basis(n)
@@ -159,7 +163,7 @@ class CylinderTarget:
 
     @property
     def axis_point(self) -> torch.Tensor:
-        """The point on the axis at mid-height, ENU [m]."""
+        """The point on the axis at mid-height, shape (3,), ENU [m]."""
         return self.center - self.radius * self.normal
 
     def to_local(self, points: torch.Tensor) -> torch.Tensor:
@@ -181,6 +185,10 @@ class CylinderTarget:
 
         The corners lie on the two edge generator lines; the apex lies ``radius * (1 - cos(half angle))``
         in front of their mid-point along the normal.
+
+        ``corners`` maps ``upper_left, upper_right, lower_left, lower_right`` to tensor-likes of shape (3,),
+        ENU [m]; ``normal`` (3,) is the stored aperture normal; ``radius`` [m] and ``opening_angle`` [rad] (the
+        full angle the segment spans about its axis).
         """
         pts = {k: torch.as_tensor(v, dtype=torch.float64) for k, v in corners.items()}
         ul, ur, ll, lr = (pts[k] for k in ("upper_left", "upper_right", "lower_left", "lower_right"))
