@@ -36,6 +36,7 @@ DONE = (
     "surfaces/predict.py", "surfaces/state.py", "validate.py",
     "api.py", "progress.py", "examples/__init__.py",
     "field/__init__.py", "field/actuators.py", "field/demo.py", "field/facets.py", "field/kinematics.py", "field/layout.py", "field/plant.py", "field/targets.py", "field/update.py",
+    "raytrace/field.py", "raytrace/occlusion.py",
 )
 
 

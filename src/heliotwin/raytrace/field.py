@@ -623,7 +623,7 @@ def field_optics(plant: Plant, sun_direction: torch.Tensor, *, atmosphere: Atmos
     settings : FieldSettings, optional
     receiver : str
         Target name.
-    heliostats : torch.Tensor, [h], long, optional
+    heliostats : torch.Tensor, shape (h,), long, optional
         Trace only these heliostats (a shard, :mod:`heliotwin.distributed`); all heliostats still shade and
         block them. The result's per-heliostat tensors are theirs and the map holds their light only.
     group : torch.distributed ProcessGroup, optional

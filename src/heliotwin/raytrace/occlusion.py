@@ -55,7 +55,7 @@ def mirror_frame(normal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     Returns
     -------
     width_axis, height_axis : torch.Tensor, [..., 3]
-        ``normalize(e_up x normal)`` (east for a mirror facing the zenith or straight south) and
+        Unit vectors [1], ENU: ``normalize(e_up x normal)`` (east for a mirror facing the zenith or straight south) and
         ``normal x width_axis``. Together with ``normal`` they form ``R_world_heliostat``'s columns.
     """
     up = torch.zeros_like(normal)
