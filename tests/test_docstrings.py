@@ -37,6 +37,7 @@ DONE = (
     "api.py", "progress.py", "examples/__init__.py",
     "field/__init__.py", "field/actuators.py", "field/demo.py", "field/facets.py", "field/kinematics.py", "field/layout.py", "field/plant.py", "field/targets.py", "field/update.py",
     "raytrace/field.py", "raytrace/occlusion.py",
+    "optimise/__init__.py", "optimise/aimpoints.py", "optimise/aimstate.py",
 )
 
 

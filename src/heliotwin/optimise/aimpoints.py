@@ -149,7 +149,12 @@ def check_settings(resolution=(20, 48)) -> FieldSettings:
 
 def evaluate(plant: Plant, sun: torch.Tensor, aim: torch.Tensor, atmosphere=None, resolution=(20, 48), *,
              group=None) -> AimResult:
-    """The exact (hard-occlusion, per-sample map) field model at fixed aim points [H, 3]."""
+    """The exact (hard-occlusion, per-sample map) field model at fixed aim points.
+
+    ``sun`` is the unit vector towards the sun, shape (3,), ENU; ``aim`` the aim points, shape (H, 3), ENU [m];
+    ``resolution`` the receiver map's ``(rows, cols)``. The result holds the receiver power [W], the peak
+    [W/m^2] and the map, shape (rows, cols) [W/m^2].
+    """
     r = _Group(group).field(plant, sun, atmosphere, aim, check_settings(resolution))
     return AimResult(aim.detach(), float(r.power_w.sum()), float(r.flux.max()), r.flux)
 
@@ -177,6 +182,7 @@ class ImageModel:
 
     @property
     def cell_area(self) -> float:
+        """Area of one map cell [m^2] (the edges are uniform), a float scalar."""
         return float((self.x_edges[1] - self.x_edges[0]) * (self.y_edges[1] - self.y_edges[0]))
 
     def marginals(self, x: torch.Tensor, y: torch.Tensor):
@@ -332,7 +338,11 @@ def calibrate_images(plant: Plant, sun, atmosphere, resolution, *, group=None, e
 # ------------------------------------------------------------------------------------------ targets
 def uniform_target(equator_flux: torch.Tensor) -> torch.Tensor:
     """Target shape [rows, cols]: flat over the receiver height, laterally the equator map's column profile
-    (an external receiver is lit only on the side facing the field), normalised to unit sum."""
+    (an external receiver is lit only on the side facing the field), normalised to unit sum [1].
+
+    ``equator_flux`` is the map with every heliostat aimed at the equator, shape (rows, cols) [W/m^2]; the
+    result has the same shape, float64.
+    """
     col = equator_flux.to(torch.float64).sum(0, keepdim=True).clamp_min(0.0)
     t = col.expand(equator_flux.shape[0], -1).clone()
     return t / t.sum().clamp_min(1e-30)
@@ -362,7 +372,11 @@ def load_target(path, resolution) -> torch.Tensor:
 
 
 def target_mismatch(flux: torch.Tensor, target: torch.Tensor) -> float:
-    """Relative L2 mismatch ``|F / sum F - T| / |T|`` of a map to a unit-sum target shape."""
+    """Relative L2 mismatch ``|F / sum F - T| / |T|`` of a map to a unit-sum target shape.
+
+    ``flux`` is a map, shape (rows, cols) [W/m^2] (only its shape counts); ``target`` the unit-sum target of
+    the same shape [1]. Returns a float scalar [1].
+    """
     f = flux.to(torch.float64)
     t = target.to(f)
     return float(torch.linalg.vector_norm(f / f.sum().clamp_min(1e-30) - t) / torch.linalg.vector_norm(t))
