@@ -38,6 +38,7 @@ DONE = (
     "field/__init__.py", "field/actuators.py", "field/demo.py", "field/facets.py", "field/kinematics.py", "field/layout.py", "field/plant.py", "field/targets.py", "field/update.py",
     "raytrace/field.py", "raytrace/occlusion.py",
     "optimise/__init__.py", "optimise/aimpoints.py", "optimise/aimstate.py",
+    "distributed.py",
 )
 
 

@@ -55,7 +55,10 @@ def init_process_group(backend: str = "gloo", **kwargs) -> None:
 
 
 def shard(num_heliostats: int, rank: int, world_size: int) -> torch.Tensor:
-    """Indices [h] of rank ``rank``'s contiguous shard (sizes differ by at most one)."""
+    """Indices, shape (h,), long, of rank ``rank``'s contiguous shard (sizes differ by at most one).
+
+    ``num_heliostats`` H, ``rank`` and ``world_size`` (the number of processes) are counts [1].
+    """
     base, extra = divmod(int(num_heliostats), int(world_size))
     start = rank * base + min(rank, extra)
     return torch.arange(start, start + base + (1 if rank < extra else 0))
@@ -77,14 +80,16 @@ def field_optics_sharded(plant, sun_direction, *, group=None, **kwargs) -> Field
     Parameters
     ----------
     plant, sun_direction, **kwargs
-        As for ``field_optics`` (same on every rank).
+        As for ``field_optics`` (same on every rank): ``sun_direction`` is the unit vector towards the sun,
+        shape (3,), ENU.
     group : ProcessGroup, optional
         Default: the world.
 
     Returns
     -------
     FieldResult
-        The whole field's result, identical on every rank (map summed, per-heliostat tensors gathered).
+        The whole field's result, identical on every rank (map summed, per-heliostat tensors gathered back
+        to shape (H,) in heliostat order).
     """
     group = group if group is not None else dist.group.WORLD  # field_optics reads None as "not sharded"
     rank, world = dist.get_rank(group), dist.get_world_size(group)
