@@ -39,6 +39,7 @@ DONE = (
     "raytrace/field.py", "raytrace/occlusion.py",
     "optimise/__init__.py", "optimise/aimpoints.py", "optimise/aimstate.py",
     "distributed.py",
+    "io/paint.py", "io/records.py",
 )
 
 

@@ -556,12 +556,13 @@ def load_paint(root, heliostats=None, *, surface_control_points=(4, 4), surface_
         The PAINT download folder.
     heliostats : list of str, optional
         Heliostat ids to read (default: all with a properties file). Unknown ids raise.
-    surface_control_points, surface_degree : (int, int)
-        NURBS resolution of the ideal facets.
+    surface_control_points, surface_degree : tuple of int
+        NURBS resolution of the ideal facets: control points and degree along ``(e, n)`` [1].
     with_records : bool
         Also read every calibration record.
     focal_spot, plane_tolerance
-        See :func:`heliotwin.io.records.build_record_table`, which judges every record.
+        See :func:`heliotwin.io.records.build_record_table`, which judges every record (``plane_tolerance``
+        [m]: largest distance of a centroid from its target plane).
     cache : bool or None
         Keep the parsed records in the record cache (:func:`record_cache_path`) and re-open them from it while
         no record, image, metadata or tower file of the folder changed. None: only for folders of at least

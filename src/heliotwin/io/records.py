@@ -129,10 +129,12 @@ class RecordTable:
 
     @property
     def num_heliostats(self) -> int:
+        """H, the length of the table's heliostat axis (``heliostat_ids``), with or without records."""
         return len(self.heliostat_ids)
 
     def subset(self, idx) -> "RecordTable":
-        """Records ``idx`` (bool mask, index list or tensor); the heliostat axis is unchanged."""
+        """Records ``idx`` (bool mask of shape (R,), index list or tensor of shape (K,)); the heliostat axis is
+        unchanged. Every per-record field keeps its trailing shape: ``spot`` (R, 3) becomes (K, 3)."""
         idx = torch.as_tensor(idx)
         if idx.dtype == torch.bool:
             idx = idx.nonzero().flatten()
@@ -233,7 +235,7 @@ class RecordTable:
         return out
 
     def of(self, h: int) -> torch.Tensor:
-        """Indices (into this batch) of the records of heliostat ``h``."""
+        """Indices (into this batch), shape (K,), long, of the K records of heliostat ``h``."""
         return (self.heliostat_index == h).nonzero().flatten()
 
     def counts(self) -> torch.Tensor:
@@ -248,13 +250,19 @@ class RecordTable:
         Parameters
         ----------
         heliostat_ids : list of str (H)
-        heliostat_index : [R] int
-        sun_azimuth, sun_elevation : [R] rad
-        motor_steps : [R, 2]
-        spot : [R, 3] ENU m
+        heliostat_index : array-like, shape (R,), int
+        sun_azimuth, sun_elevation : array-like, shape (R,)
+            [rad], PAINT convention (azimuth 0 = south, +pi/2 = east).
+        motor_steps : array-like, shape (R, 2)
+            [steps].
+        spot : array-like, shape (R, 3)
+            Focal-spot centroid, ENU [m].
         target : PlanarTarget
             The plane of every record.
-        time : [R] POSIX s, optional (NaN = unknown)
+        time : array-like, shape (R,), optional
+            UTC POSIX seconds [s] (NaN = unknown).
+        record_id : array-like, shape (R,), int, optional
+            Default ``0 .. R-1``.
         """
         f64 = dict(dtype=torch.float64)
         hidx = torch.as_tensor(heliostat_index, dtype=torch.long).reshape(-1)
@@ -433,7 +441,7 @@ def build_record_table(plant, records, *, focal_spot: str = "HeliOS", plane_tole
 
     Notes
     -----
-    Judged in batch (tensors over all records); only the dropped records go one by one through
+    Judged in batch (tensors of shape (R,) over all R records); only the dropped records go one by one through
     :func:`_reason_to_skip`, which words why.
     """
     if not (isinstance(plane_tolerance, (int, float)) and math.isfinite(plane_tolerance) and plane_tolerance >= 0):
