@@ -40,6 +40,7 @@ DONE = (
     "optimise/__init__.py", "optimise/aimpoints.py", "optimise/aimstate.py",
     "distributed.py",
     "io/paint.py", "io/records.py",
+    "workflows/aimpoints.py", "workflows/field.py", "workflows/plan.py", "workflows/calibrate.py", "workflows/update.py", "workflows/simulate.py", "workflows/show.py", "workflows/demo.py",
 )
 
 

@@ -56,7 +56,7 @@ def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-
         ``summary.json``.
     num_heliostats : int
     time_utc : str
-        Instant of the sun position (pvlib at the Jülich reference); the sun must be up.
+        ISO time [UTC] of the sun position (pvlib at the Jülich reference); the sun must be up.
     peak_limit_fraction : float
         In (0, 1].
     iterations : int, optional
@@ -168,7 +168,7 @@ def _write_rows(path, rows: list[dict]) -> None:
 def run_demo(out: str, *, num_heliostats: int = 48, integrator: str = "mc", rays_per_point: int = 64,
              resolution: int = 256, seed: int = 0, time_utc: str = "2023-03-20T11:30:00Z",
              samples: tuple[int, int] = (20, 20), chunk: int = 8, progress: bool = True, device="cpu") -> dict:
-    """Trace the demo plant at ``time_utc`` with every heliostat aimed at the receiver's apex.
+    """Trace the demo plant at ``time_utc`` (an ISO time [UTC]) with every heliostat aimed at the receiver's apex.
 
     Writes into ``out``: ``receiver-flux.png`` (unrolled cylinder, PAINT orientation: left = east),
     ``calibration-spot.png`` (the first heliostat on the lower calibration target, as in a camera-target

@@ -158,7 +158,7 @@ def sun_direction_at(plant, *, time_utc: str | None = None, azimuth_deg: float |
     ----------
     plant : Plant
     time_utc : str, optional
-        ISO time (naive: UTC); takes precedence over the angles.
+        ISO time [UTC] (naive: UTC); takes precedence over the angles.
     azimuth_deg, elevation_deg : float, optional
         PAINT convention [deg] (0 = south, +90 = east).
 

@@ -63,7 +63,12 @@ def simulate(settings: SimulationSettings, out, *, prior: PlantPrior | None = No
 
 def score(truth: Scenario, scenario: Scenario, *, suns: int = 16, seed: int = 0, flux: bool = True
           ) -> tuple[Scenario, dict]:
-    """Score ``scenario`` against ``truth`` (unchanged scenario back; the report is the answer)."""
+    """Score ``scenario`` against ``truth`` (unchanged scenario back; the report is the answer).
+
+    ``suns`` sun positions drawn by ``seed`` give the pointing error [mrad]; ``flux`` (a flag) also compares the
+    receiver flux maps at the first sun (relative L1 [1], power ratio [1]). The report is
+    :func:`heliotwin.simulate.score`'s plus the two scenarios' paths.
+    """
     report = score_plant(truth, scenario, suns=suns, seed=seed, flux=flux)
     report.update(truth=truth.path or None, scenario=scenario.path or None)
     return scenario, report
