@@ -197,8 +197,12 @@ def smooth(nominal, batch: RecordTable, delta: torch.Tensor, q: float, noise: fl
 
 
 def predicted_covariance(state: dict, heliostat_index: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
-    """Covariance [R, 2, 2] (rad^2) of the offset at later records: ``P_l + q max(t - t_l, 0) I``
-    (records without a time: ``P_l``)."""
+    """Covariance (R, B, B) [rad^2] of the offset at later records: ``P_l + q max(t - t_l, 0) I``
+    (records without a time: ``P_l``).
+
+    ``state`` is :func:`smooth`'s answer (B drifting columns: 2 for the ``axes`` basis); ``heliostat_index``
+    (R,) long, each record's heliostat; ``time`` (R,), UTC POSIX seconds [s] (NaN: no time).
+    """
     dt = ((time.double() - state["time"].double()[heliostat_index]) / _DAY).clamp_min(0.0)
     dt = torch.nan_to_num(dt, nan=0.0)
     eye = torch.eye(state["covariance"].shape[-1], dtype=torch.float64, device=state["covariance"].device)
@@ -206,7 +210,8 @@ def predicted_covariance(state: dict, heliostat_index: torch.Tensor, time: torch
 
 
 def with_offset(delta: torch.Tensor, offset: torch.Tensor, basis: str = "axes") -> torch.Tensor:
-    """Deviations [H, 8] with the current offset [H, B] added to the drifting columns of ``basis``."""
+    """Deviations [H, 8] (STONE8 order, physical units) with the current offset [H, B] [rad] added to the
+    drifting columns of ``basis`` (a new tensor; ``delta`` is not changed)."""
     out = delta.clone()
     cols = columns(basis)
     out[:, cols] = out[:, cols] + offset.to(out)

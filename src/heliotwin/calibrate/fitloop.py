@@ -108,10 +108,11 @@ def prior_and_start(names, num_heliostats: int, prior_sigma, prior_mean=None, in
     num_heliostats : int
         H.
     prior_sigma : dict kind -> sigma, or tensor [P] / [H, P]
-        Prior standard deviations in physical units (``inf`` or a missing kind: no prior).
+        Prior standard deviations in physical units ([rad] for angles and tilts, [m] for lengths, [1] for
+        relative increments; ``inf`` or a missing kind: no prior).
     prior_mean, init : torch.Tensor, [H, P], optional
-        Prior mean (default 0) and start (default the prior mean), physical units.
-    like : torch.Tensor
+        Prior mean (default 0) and start (default the prior mean), physical units ([rad], [m], [1] as above).
+    like : torch.Tensor, any shape (...)
         Every tensor returned follows its dtype and device (the nominal kinematics').
 
     Returns
@@ -198,7 +199,7 @@ def _copy_into(obj: torch.Tensor, data: torch.Tensor) -> None:
 
 
 def tensor_state(x: torch.Tensor) -> State:
-    """:class:`State` of a leaf tensor with a leading heliostat axis."""
+    """:class:`State` of a leaf tensor of shape (H, ...) (a leading heliostat axis)."""
     def keep(best, rows):
         best[rows] = x.detach()[rows]
 

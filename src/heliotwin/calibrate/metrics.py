@@ -154,7 +154,10 @@ def per_heliostat_mean(values: torch.Tensor, heliostat_index: torch.Tensor, num_
 
 
 def summarize(errors_rad: torch.Tensor, miss_m: torch.Tensor | None = None) -> dict:
-    """Median/mean/max [mrad] (and median miss [m]) of one heliostat's records; NaN-free or ``None``."""
+    """Median/mean/max [mrad] (and median miss [m]) of one heliostat's records; NaN-free or ``None``.
+
+    ``errors_rad`` (R,) pointing errors [rad]; ``miss_m`` (R,) focal-spot misses [m], optional.
+    """
     e = errors_rad.detach().double() * 1e3
     if e.numel() == 0:
         return {"n": 0, "median_mrad": None, "mean_mrad": None, "max_mrad": None, "median_miss_m": None}

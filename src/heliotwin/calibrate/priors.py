@@ -58,7 +58,11 @@ MIN_HELIOSTATS = 4
 
 
 def sigma_vector(names, sigma: dict) -> torch.Tensor:
-    """Per-parameter sigma [P] from a per-kind dict (missing kind = no prior = inf)."""
+    """Per-parameter sigma [P] from a per-kind dict (missing kind = no prior = inf), float64.
+
+    ``sigma`` maps a kind to its prior standard deviation in physical units: [rad] for angles and tilts, [m]
+    for lengths, [1] for relative increments.
+    """
     return torch.tensor([float(sigma.get(k, float("inf"))) for k in kinds(names)], dtype=torch.float64)
 
 

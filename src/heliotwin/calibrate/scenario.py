@@ -188,7 +188,7 @@ def aim(scenario, heliostat_id: str, sun_azimuth: float, sun_elevation: float, a
     aim_point : sequence of 3 float
         ENU [m].
     time : float, optional
-        When [POSIX s]. With a drift model (``--drift kalman``) the steps use the offset at the latest
+        When: UTC POSIX seconds [s]. With a drift model (``--drift kalman``) the steps use the offset at the latest
         training time (its best prediction at any later time); its uncertainty grows by ``q (time - t_l)``
         (default: at ``t_l``). The answer then also has ``drift_days`` (time since that record).
 
