@@ -54,7 +54,7 @@ def shard_group():
 
 
 def contiguous_shard(n: int, rank: int, world: int) -> torch.Tensor:
-    """Indices of rank ``rank``'s contiguous share of ``n`` items (sizes differ by at most one)."""
+    """Indices, shape (k,), long, of rank ``rank``'s contiguous share of ``n`` items (sizes differ by at most one)."""
     base, extra = divmod(int(n), int(world))
     start = rank * base + min(rank, extra)
     return torch.arange(start, start + base + (1 if rank < extra else 0))

@@ -54,7 +54,8 @@ def fit_gradient(nominal: Kinematics, train: RecordTable, validation: RecordTabl
     prior_mean : torch.Tensor, [H, P] or [P], optional
         Prior centre (physical units); default nominal (0).
     prior_sigma : torch.Tensor [P] or [H, P], or dict per kind, optional
-        Prior sigma; default :data:`~heliotwin.calibrate.priors.CHAIN_SIGMA`.
+        Prior sigma (physical units: [rad] for angles and tilts, [m] for lengths, [1] for relative
+        increments); default :data:`~heliotwin.calibrate.priors.CHAIN_SIGMA`.
     noise : float
         Per-record pointing noise [rad] the prior is weighed against.
     optimizer : ``"lbfgs"`` or ``"adam"``
@@ -125,7 +126,7 @@ def prealign(nominal, train, validation, names, fit_focal_spot, field_prior):
         Initial deviations (the Stone/Jülich fit on its 8 parameters, 0 elsewhere) [parameter units].
     prior_mean, prior_sigma : torch.Tensor, [P]
         Field prior on the Stone/Jülich 8 where available, :data:`~heliotwin.calibrate.priors.CHAIN_SIGMA`
-        on the rest.
+        on the rest (physical units: [rad] for angles and tilts, [m] for lengths, [1] for relative increments).
     field_prior_fit : tuple or None
         The field prior (mean, sigma) of the Stone/Jülich 8, if one was fitted.
     """

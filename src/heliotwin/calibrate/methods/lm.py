@@ -71,9 +71,9 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
     names : sequence of str
         Parameters to fit (default the Stone/Jülich 8).
     prior_sigma : dict, optional
-        Prior standard deviation per kind (default :data:`~heliotwin.calibrate.priors.STONE8_SIGMA`); ``{}`` or
-        ``None`` values mean no
-        prior (plain least squares).
+        Prior standard deviation per kind in physical units ([rad] for angles and tilts, [m] for lengths, [1]
+        for relative increments; default :data:`~heliotwin.calibrate.priors.STONE8_SIGMA`); ``{}`` or
+        ``None`` values mean no prior (plain least squares).
     prior_mean : torch.Tensor, [H, P], optional
         Prior centre (default zero = nominal).
     noise : float
