@@ -74,6 +74,7 @@ class RunConfig:
         return opts
 
     def uses_plant_prior(self) -> bool:
+        """Whether the run fits against a plant prior (``--prior plant`` or a ``--prior-from`` source)."""
         return self.prior == "plant" or self.prior_from is not None
 
     def n_validation(self) -> int:
@@ -99,6 +100,8 @@ RUN_SPLITS = SPLIT_TYPES + ("online",)
 
 
 def validate_config(cfg: RunConfig) -> None:
+    """Check a run's settings before any data is read: :class:`HeliotwinError` (naming the flag or value) when
+    one is out of range or unknown."""
     if cfg.split not in RUN_SPLITS:
         raise HeliotwinError(f"unknown split type {cfg.split!r}; known: {', '.join(RUN_SPLITS)}")
     if cfg.online_step < 1:

@@ -128,6 +128,7 @@ class Split:
 
     @property
     def parts(self) -> dict:
+        """``{"train", "validation", "test"}`` -> that part of the split."""
         return {"train": self.train, "validation": self.validation, "test": self.test}
 
 

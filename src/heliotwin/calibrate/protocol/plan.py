@@ -45,8 +45,9 @@ def normal_jacobians(nominal: Kinematics, delta: torch.Tensor, names, aim_point:
 
     Returns
     -------
-    jacobian : torch.Tensor, [T', 3, P]
-        At the reachable sun positions only.
+    jacobian : torch.Tensor, [Tr, 3, P]
+        At the Tr reachable sun positions only; d(unit normal) per unit deviation (per [rad] for angles, per
+        [m] for lengths).
     reachable : torch.Tensor, [T], bool
     """
     t = len(sun)
@@ -104,6 +105,23 @@ def greedy_design(precision: torch.Tensor, noise: float, candidates: torch.Tenso
 def plan(scenario, heliostat_id: str, *, year: int, every: str = "1h", count: int = 5, target: str | None = None,
          min_elevation_deg: float = 15.0, sky: bool = False) -> dict:
     """Sun positions (times of ``year``) whose records would shrink ``heliostat_id``'s uncertainty most.
+
+    Parameters
+    ----------
+    scenario : heliotwin.io.scenario.Scenario
+        Calibrated with a stored posterior (``--method lm``).
+    heliostat_id : str
+    year : int
+    every : str
+        Spacing of the candidate times (a pandas frequency, e.g. ``"1h"``).
+    count : int
+        Sun positions to propose.
+    target : str, optional
+        Planar calibration target to aim at (default: the first by name).
+    min_elevation_deg : float
+        Lowest sun elevation considered [deg].
+    sky : bool
+        Also return the predictive spread over every candidate time.
 
     Returns
     -------

@@ -165,6 +165,7 @@ def cross_validated_errors(dataset, base: RunConfig, candidates, heliostats, *, 
 
 
 def median(values) -> float:
+    """Median of the finite values (``None`` and NaN left out); ``inf`` when none is left."""
     v = [x for x in values if x is not None and math.isfinite(x)]
     return float(np.median(v)) if v else float("inf")
 
@@ -391,7 +392,9 @@ def learn_for_plant(cfg: RunConfig, *, runner: Runner, run_size: int, progress: 
     """``--learn-settings``: the lm settings and interval calibration for later runs on this plant, chosen
     once by :func:`choose_for_run` on every eligible heliostat of the run's own folder (``cfg.paint``; only
     ``cfg.prior_exclude`` left out; the interval by the ``at_least`` rule of :func:`choose_interval`), and the
-    plant prior of the chosen candidate learned from all of them.
+    plant prior of the chosen candidate learned from all of them. ``run_size`` is the number of heliostats
+    the run calibrates [1] (below :data:`~heliotwin.calibrate.priors.MIN_HELIOSTATS` the run-prior candidates
+    are not tried).
 
     Returns
     -------
