@@ -44,6 +44,7 @@ DONE = (
     "calibrate/__init__.py", "calibrate/assimilate.py", "calibrate/drift.py", "calibrate/fitloop.py", "calibrate/inputs.py", "calibrate/metrics.py", "calibrate/model.py", "calibrate/params.py", "calibrate/priors.py", "calibrate/report.py", "calibrate/scenario.py", "calibrate/uncertainty.py",
     "calibrate/methods/lm.py", "calibrate/methods/batched.py", "calibrate/methods/gradient.py",
     "calibrate/protocol/config.py", "calibrate/protocol/online.py", "calibrate/protocol/suspicious.py", "calibrate/protocol/archive.py", "calibrate/protocol/selection.py", "calibrate/protocol/pipeline.py", "calibrate/protocol/plan.py",
+    "simulate/__init__.py", "simulate/images.py", "simulate/plant.py", "simulate/score.py", "simulate/writer.py",
 )
 
 

@@ -440,7 +440,8 @@ def sun_grid(settings: SimulationSettings, site) -> tuple[np.ndarray, np.ndarray
 
 
 def sun_at(spline: CubicSpline, times: np.ndarray) -> torch.Tensor:
-    """Unit vectors towards the sun [R, 3] ENU at POSIX ``times`` [R] (interpolated, renormalised)."""
+    """Unit vectors towards the sun [R, 3] ENU at ``times`` (R,), UTC POSIX seconds [s] (interpolated,
+    renormalised); ``spline`` interpolates the ENU sun direction over time, float64."""
     d = torch.from_numpy(spline(times))
     return d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
 
@@ -466,6 +467,28 @@ def drift_at(rng: np.random.Generator, heliostat: np.ndarray, time: np.ndarray, 
 
     One sort over the heliostat's queries and steps together, then cumulative sums within each heliostat:
     no loop over records.
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+        Draws the walk.
+    heliostat : numpy.ndarray, shape (R,), int
+        Heliostat of each query (< ``h``).
+    time : numpy.ndarray, shape (R,)
+        UTC POSIX seconds [s] of each query (>= ``t0``).
+    h : int
+        H, the number of heliostats.
+    t0 : float
+        Start of every walk (deviations zero) [s], UTC POSIX.
+    steps : dict
+        :func:`draw_steps`'s offset steps (``time`` [s], ``size`` [rad]).
+    walk_per_sqrt_day : float
+        Random-walk standard deviation after one day [mrad].
+
+    Returns
+    -------
+    numpy.ndarray, shape (R, 2)
+        The drifting deviations at the queries [rad].
     """
     q = len(time)
     sh, st, ss = steps["heliostat"].numpy(), steps["time"].numpy(), steps["size"].numpy()

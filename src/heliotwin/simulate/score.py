@@ -32,7 +32,7 @@ SCORE_YEAR = 2030
 
 def score_suns(site, count: int, seed: int, min_elevation_deg: float = 15.0) -> torch.Tensor:
     """``count`` sun directions [S, 3] (ENU unit vectors) drawn from a year's hourly daylight above
-    ``min_elevation_deg`` by a seeded generator."""
+    ``min_elevation_deg`` [deg] by a seeded generator (S = ``count``, or fewer when the year has fewer hours)."""
     _, az, el = daylight_times(SCORE_YEAR, "1h", site.latitude_deg, site.longitude_deg, site.altitude_m,
                                min_elevation_deg=min_elevation_deg)
     pick = np.sort(np.random.default_rng(seed).choice(len(az), size=min(count, len(az)), replace=False))
@@ -106,7 +106,10 @@ def score(truth, learned, *, suns: int = 16, seed: int = 0, flux: bool = True,
     seed : int
         Draws the sun positions.
     flux : bool
-        Also compare receiver flux maps at the first sun (needs a ``receiver`` target).
+        Also compare receiver flux maps at the first sun (needs a ``receiver`` target): relative L1 [1] and
+        power ratio [1].
+    flux_resolution : tuple of int
+        ``(rows, cols)`` of the compared maps.
 
     Returns
     -------
