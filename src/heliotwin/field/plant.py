@@ -108,7 +108,7 @@ class Kinematics:
         return replace(self, **changes)
 
     def to(self, dtype=None, device=None) -> "Kinematics":
-        """Float tensors to ``dtype``/``device``; bool tensors keep their dtype; shapes ((H, ...)) are unchanged."""
+        """Float tensors to ``dtype``/``device``; bool tensors keep their dtype; shapes (H, ...) unchanged."""
         out = {}
         for f in fields(self):
             t = getattr(self, f.name)

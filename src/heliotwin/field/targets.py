@@ -73,8 +73,8 @@ class PlanarTarget:
     def from_center_normal(cls, name: str, center, normal, width: float, height: float) -> "PlanarTarget":
         """Build from centre, normal and size; the basis follows :func:`in_plane_basis`.
 
-        ``center`` is a tensor-like of shape (3,), ENU [m]; ``normal`` (3,) points away from the receiving
-        face (normalised here); ``width`` and ``height`` are the full extents along the basis [m].
+        ``center`` is a tensor-like of shape (3,), ENU [m]; ``normal`` (3,) points towards the field
+        (normalised here); ``width`` and ``height`` are the extents along ``right`` and ``up`` [m].
         """
         c = torch.as_tensor(center, dtype=torch.float64)
         n = _unit(torch.as_tensor(normal, dtype=torch.float64))

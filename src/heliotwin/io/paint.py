@@ -557,7 +557,8 @@ def load_paint(root, heliostats=None, *, surface_control_points=(4, 4), surface_
     heliostats : list of str, optional
         Heliostat ids to read (default: all with a properties file). Unknown ids raise.
     surface_control_points, surface_degree : tuple of int
-        NURBS resolution of the ideal facets: control points and degree along ``(e, n)`` [1].
+        NURBS resolution of the ideal facets: ``(nu, nv)`` control points and
+        ``(p, q)`` degrees per facet [1].
     with_records : bool
         Also read every calibration record.
     focal_spot, plane_tolerance
