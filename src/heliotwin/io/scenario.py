@@ -887,6 +887,7 @@ def _validate_learned_calibration(c: _LearnedCheck, cal) -> None:
     drift = c.group(cal, "drift", where, required=False)
     if drift is not None:
         at = f"{where}/drift"
+        c.text(drift, "model", at, required=False)
         d = len(c.names(drift, "names", at))
         if any(n not in names for n in drift["names"]):
             c.fail(f"{at}/names", "expected names among the parameter names")
@@ -962,7 +963,7 @@ def _validate_learned_assimilation(c: _LearnedCheck, st) -> None:
                                  ("mean", (p,), "float"), ("variance", (p,), "float"), ("innovation", (2,), "float"),
                                  ("d2", (), "float"), ("statistic", (), "float"), ("window", (), "int"),
                                  ("alarm", (), "bool"), ("predicted_error", (), "float")):
-        c.array(hist, name, at, (n, *trailing), kind=kind, finite=name not in ("statistic",))
+        c.array(hist, name, at, (n, *trailing), kind=kind)
     window = c.group(st, "window", where, required=False)
     if window is not None:
         hw = len(c.names(window, "heliostats", f"{where}/window"))
