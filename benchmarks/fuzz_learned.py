@@ -43,7 +43,7 @@ READERS = {
     "calibration": [("show", ["scenario", "show", "{d}/s.h5", "--json", "{d}/o.json"]),
                     ("aim", ["aim", "--scenario", "{d}/s.h5", "--heliostat", "S1", *SUN, "--aim", "0,0,50",
                              "--json", "{d}/o.json"]),
-                    ("plan", ["plan", "--scenario", "{d}/s.h5", "--heliostat", "S1", "--quiet", "--json",
+                    ("plan", ["plan", "--scenario", "{d}/s.h5", "--heliostat", "S1", "--quiet", "--no-plots", "--json",
                               "{d}/o.json"])],
     "assimilation": [("show", ["scenario", "show", "{d}/s.h5", "--json", "{d}/o.json"]),
                      ("history", ["history", "--scenario", "{d}/s.h5", "--heliostat", "S1", "--json",

@@ -33,6 +33,7 @@ from ..surfaces.observations import paint_observations
 from ..surfaces.plantprior import check_leakage, load_surface_prior
 from ..surfaces.state import with_learned_surface
 from .show import kinematics_note
+from .sizes import check_range
 
 __all__ = ["ReconstructionSettings", "reconstruct", "reconstruction_checkpoint"]
 
@@ -85,6 +86,17 @@ class ReconstructionSettings:
         """One-line :class:`HeliotwinError` for inconsistent options (before any file is read)."""
         if self.train_records and self.train_first is not None:
             raise HeliotwinError("use either --train-records or --train-first, not both")
+        # More control points per side than mirror samples are not determined by the images; the dense fit
+        # state grows with their square (a 200x200 net took 20 GB).
+        most = min(SurfaceSettings().samples)
+        nu, nv = parse_grid(self.control_points)
+        for n in (nu, nv):
+            check_range("--control-points", n, 2, most, f"per side, at most the {most} mirror samples per side")
+        check_range("--degree", self.degree, 1, min(nu, nv) - 1, "below the control points per side")
+        if self.steps is not None:
+            check_range("--steps", self.steps, 1, 100_000)
+        if self.train_first is not None:
+            check_range("--train-first", self.train_first, 1, 10_000)
 
     def learner(self) -> SurfaceSettings:
         """The learner's settings (:class:`~heliotwin.surfaces.fit.SurfaceSettings`)."""

@@ -17,6 +17,7 @@ from ..devices import resolve_device, to_device
 from ..field import kinematics as kin_ops
 from ..io.records import SOURCES
 from ..scene import trace, world_surface
+from .sizes import check_trace_sizes
 
 __all__ = ["TraceSettings", "trace_record", "describe_plant"]
 
@@ -92,8 +93,10 @@ def trace_record(dataset, record_id: int, settings: TraceSettings | None = None)
     settings = settings or TraceSettings()
     integrator, rays_per_point, resolution = settings.integrator, settings.rays_per_point, settings.resolution
     samples, seed = settings.samples, settings.seed
-    device = resolve_device(settings.device)
     plant = dataset.plant
+    check_trace_sizes(resolution=resolution, samples=samples, facets=plant.field.facets.translation.shape[1],
+                      rays_per_point=rays_per_point if integrator == "mc" else None)
+    device = resolve_device(settings.device)
     row = dataset.record(int(record_id))
     kin, surfaces, target, row_on = to_device((plant.field.kinematics, plant.field.surfaces,
                                                plant.target(row.target[0]), row), device)
