@@ -25,6 +25,7 @@ from ..field.plant import Facets, SunSettings
 from ..io import checkpoint as _checkpoint
 from ..io.deflectometry import read_deflectometry
 from ..io.scenario import Scenario, scenario_from_paint
+from ..progress import Stages
 from ..surfaces.deflectometry import deflectometry_report
 from ..surfaces.fit import SurfaceSettings
 from ..surfaces.generalise import reconstruct_generalising
@@ -150,7 +151,8 @@ def reconstruct(scenario: Scenario | None, paint, heliostat: str, settings: Reco
         From :func:`reconstruction_checkpoint`: every fit saves its state and a resumed one continues it; the
         caller removes it once its outputs are written.
     progress : bool
-        tqdm bars.
+        Progress of the stages and of the leave-one-out fits (:mod:`heliotwin.progress`: bars on a terminal,
+        plain lines in a log).
 
     Returns
     -------
@@ -180,13 +182,19 @@ def reconstruct(scenario: Scenario | None, paint, heliostat: str, settings: Reco
     note = kinematics_note(scenario, heliostat)  # a surface learned on nominal kinematics must say so, up front
     if progress and "no calibration" in note:  # stdout: a failing run's stderr holds only its one-line error
         print(f"heliotwin reconstruct: {note}", file=sys.stdout, flush=True)
+    stages = Stages(2, "heliotwin reconstruct", enabled=progress)
+    stages.start(f"reading {heliostat}'s images")
     _, on_device, train, test = paint_observations(
         paint, heliostat, plant=plant, device=device, train_records=list(s.train_records) if s.train_records else None,
         train_first=s.train_first, resolution=learner.resolution, alignment=s.alignment)
     facets = _facets(on_device, torch.float64)
+    stages.step(f"reading {len(train)} training and {len(test)} test images")
+    stages.start("learning the surface")
     with _checkpoint.active(checkpoint):
         report, model, info = reconstruct_generalising(facets, train, test, SunSettings(sunshape="buie", csr=0.05),
                                                        learner, progress, prior=prior)
+    stages.step("learning the surface")
+    stages.close()
     fit = {"facets": facets, "train": train, "test": test, "info": info, "optics": info["optics"],
            "ideal": info["ideal"]}
     if s.deflectometry:
