@@ -21,7 +21,7 @@ from ..progress import Stages
 from ..raytrace.flux import normalized_l1
 from ..raytrace.gaussian import trace_gaussian
 from ..raytrace.montecarlo import RaySampling, trace_mc
-from .sizes import check_range, check_trace_sizes
+from .sizes import MAX_SURFACE_POINTS, check_range, check_trace_sizes
 
 __all__ = ["run_benchmark", "benchmark_scene"]
 
@@ -141,7 +141,7 @@ def run_benchmark(surface_points: int = 10000, rays_per_point=(10, 100), resolut
         ``peak_rss_mb``, and ``time_to_accuracy`` (Gaussian sun: reference image and its noise, gaussian
         integrator time and L1 vs the reference, Monte-Carlo rays/time to reach that L1, measured or extrapolated).
     """
-    check_range("--surface-points", surface_points, 1, 10 ** 8)
+    check_range("--surface-points", surface_points, 1, MAX_SURFACE_POINTS)
     for k in [rays_per_point] if isinstance(rays_per_point, int) else rays_per_point:
         check_trace_sizes(resolution=resolution, rays_per_point=k, points=int(surface_points))
     old_threads = torch.get_num_threads()

@@ -12,15 +12,19 @@ import os
 
 from ..errors import HeliotwinError
 
-__all__ = ["MAX_RESOLUTION", "MAX_SAMPLES", "MAX_RAYS", "check_range", "check_memory_estimate", "check_trace_sizes",
-           "physical_memory"]
+__all__ = ["MAX_RESOLUTION", "MAX_SAMPLES", "MAX_RAYS", "MAX_RAYS_PER_POINT", "MAX_SURFACE_POINTS", "check_range",
+           "check_memory_estimate", "check_trace_sizes", "physical_memory"]
 
 #: Largest flux-image side [pixels] (the field commands' largest map has 4096 x 4096 cells).
 MAX_RESOLUTION = 4096
 #: Largest number of mirror samples per facet and direction.
-MAX_SAMPLES = 2000
+MAX_SAMPLES = 1000
+#: Most rays per mirror point (the command line's range).
+MAX_RAYS_PER_POINT = 100_000
 #: Most rays one trace may cast (about an hour on a CPU core; a sharper image needs rays, not more).
 MAX_RAYS = 10 ** 10
+#: Most mirror points of ``bench``'s synthetic heliostat (the command line's range).
+MAX_SURFACE_POINTS = 10_000_000
 #: Bytes per traced mirror point (position, normal, area, their world copies, rays' bookkeeping) and per pixel
 #: (bitmap, its splat weights and a copy for the report), from the tracer's tensors, with headroom.
 BYTES_PER_POINT, BYTES_PER_PIXEL = 256, 64
@@ -57,10 +61,10 @@ def check_trace_sizes(*, resolution: int, samples: int | None = None, facets: in
     ``rays_per_point`` (Monte Carlo), ``images`` traced at once; refuses before anything is allocated."""
     check_range("--resolution", resolution, 8, MAX_RESOLUTION)
     if samples is not None:
-        check_range("--samples", samples, 2, MAX_SAMPLES)
+        check_range("--samples", samples, 1, MAX_SAMPLES)
         points = int(facets) * int(samples) ** 2
     if rays_per_point is not None:
-        check_range("--rays-per-point", rays_per_point, 1, 10 ** 6)
+        check_range("--rays-per-point", rays_per_point, 1, MAX_RAYS_PER_POINT)
         if points is not None and points * rays_per_point * images > MAX_RAYS:
             raise HeliotwinError(f"--rays-per-point: {points} mirror points x {rays_per_point} rays is more than "
                                  f"{MAX_RAYS:.0e} rays; lower --rays-per-point or --samples")
