@@ -983,8 +983,8 @@ def _validate_learned_state(learned: dict, plant: Plant, path) -> None:
         where = "/learned/surface_prior"
         if not isinstance(prior, dict):
             c.fail(where, "expected a group")
-        f = plant.field.facets.translation.shape[1]
-        k = c.array(prior, "mean", where, (f, None)).shape[1]
+        # Its facet count may differ from this plant's (a prior of another design): the reconstruction says so.
+        f, k = c.array(prior, "mean", where, (None, None)).shape
         c.array(prior, "covariance", where, (f * k, f * k))
     if "assimilation" in learned:
         _validate_learned_assimilation(c, learned["assimilation"])
