@@ -19,6 +19,7 @@ accept (an optional dataset deleted, a record list shortened) is fine when the r
 Usage::
 
     OMP_NUM_THREADS=1 PYTHONPATH=src python benchmarks/fuzz_learned.py [--cases 400] [--seed 0] [--show 25]
+        [--group calibration|assimilation|surfaces ...]
 
 Exit status 1 when any count is non-zero.
 """
@@ -59,6 +60,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", type=int, default=400, help="at most this many runs (default %(default)s)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--show", type=int, default=25)
+    ap.add_argument("--group", choices=sorted(READERS), action="append", help="only these learned groups")
     args = ap.parse_args(argv)
     import heliotwin
 
@@ -69,6 +71,8 @@ def main(argv=None) -> int:
         runs = []
         for name in learned_datasets(base):
             group = name.split("/")[1]
+            if args.group and group not in args.group:
+                continue
             for how in DAMAGES:
                 if damage(base, root / "probe.h5", name, how):
                     runs += [(f"{name} {how} -> {cmd}", name, how, argv) for cmd, argv in READERS.get(group, [])]
