@@ -4,7 +4,8 @@ On a terminal :class:`Stages` draws a tqdm bar on stderr (the stage's name besid
 terminal (a CI log, ``nohup``, a pipe) it writes plain lines to stdout instead of a bar's carriage returns,
 one when a stage starts and one when it ends: ``heliotwin demo: 2/4 aim points done (12.3 s)``. Stdout, not
 stderr: a failing command's stderr holds nothing but its one-line error. ``enabled=False`` (the commands'
-``--quiet``) silences both.
+``--quiet``) silences both. :class:`Progress` does the same for a count of work items (chunks, records, fits):
+a bar on a terminal, otherwise one line each time another ``every`` percent is done.
 """
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import time
 
 from tqdm.auto import tqdm
 
-__all__ = ["Stages"]
+__all__ = ["Stages", "Progress", "iterate"]
 
 
 class Stages:
@@ -72,3 +73,66 @@ class Stages:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class Progress:
+    """Progress over ``total`` work items: a tqdm bar on a terminal, a plain line every ``every`` percent in a log.
+
+    Parameters
+    ----------
+    total : int
+    desc : str
+        What runs (``"heliotwin predict: year"``).
+    unit : str
+        The items' name (``"chunk"``, ``"record"``).
+    enabled : bool
+        False: nothing is written.
+    every : float
+        Percent between two plain lines (the last item always gets one).
+    stream, lines : file, optional
+        As for :class:`Stages`.
+    """
+
+    def __init__(self, total: int, desc: str, *, unit: str = "it", enabled: bool = True, every: float = 10.0,
+                 stream=None, lines=None):
+        self.total, self.desc, self.unit, self.enabled = max(0, int(total)), desc, unit, bool(enabled)
+        self.every = float(every)
+        self.stream = sys.stderr if stream is None else stream
+        self.lines = sys.stdout if lines is None else lines
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.done, self.said = 0, -1.0
+        self.t0 = time.perf_counter()
+        self.bar = tqdm(total=self.total, desc=desc, unit=unit, file=self.stream, leave=False,
+                        disable=not (self.enabled and self.tty))
+
+    def update(self, n: int = 1) -> None:
+        """``n`` more items done."""
+        self.done += int(n)
+        if not self.enabled:
+            return
+        if self.tty:
+            self.bar.update(n)
+            return
+        pct = 100.0 * self.done / self.total if self.total else 100.0
+        if pct >= self.said + self.every or (self.done >= self.total and self.said < 100.0):
+            self.said = pct if self.done < self.total else 100.0
+            print(f"{self.desc}: {pct:.0f}% ({self.done}/{self.total} {self.unit}s, "
+                  f"{time.perf_counter() - self.t0:.1f} s)", file=self.lines, flush=True)
+
+    def close(self) -> None:
+        """End the bar; idempotent."""
+        self.bar.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def iterate(items, desc: str, *, unit: str = "it", enabled: bool = True, every: float = 10.0, total=None):
+    """Yield ``items`` while :class:`Progress` reports them (``total`` defaults to ``len(items)``)."""
+    with Progress(len(items) if total is None else total, desc, unit=unit, enabled=enabled, every=every) as bar:
+        for item in items:
+            yield item
+            bar.update()

@@ -21,7 +21,6 @@ import statistics
 from collections import defaultdict
 
 import torch
-from tqdm.auto import tqdm
 
 from .calibrate import metrics
 from .devices import resolve_device, to_device
@@ -30,6 +29,7 @@ from .field.targets import PlanarTarget
 from .io.images import CENTERED_WINDOW_M, load_measured_image
 from .io.paint import PaintDataset
 from .io.records import SOURCES, RecordTable
+from .progress import Progress
 from .raytrace.flux import cross_correlation, normalized_l1
 from .raytrace.gaussian import FootprintSettings
 from .scene import central_ray_spot, trace, world_surface
@@ -82,7 +82,7 @@ def validate_dataset(ds: PaintDataset, *, plant: Plant | None = None, sun: SunSe
         else ds.records
     sun = sun or plant.sun
     rows = {}
-    bar = tqdm(total=len(table), desc="validate", unit="rec", disable=not progress)
+    bar = Progress(len(table), "heliotwin validate", unit="record", enabled=progress)
     for tname in dict.fromkeys(table.target):
         idx = torch.tensor([i for i, t in enumerate(table.target) if t == tname], dtype=torch.long,
                            device=table.record_id.device)

@@ -189,7 +189,7 @@ def cmd_trace(args) -> int:
         ds, sc = load_records(args.paint, args.scenario, [args.heliostat])
         settings = TraceSettings(integrator=args.integrator, rays_per_point=args.rays_per_point,
                                  resolution=args.resolution, samples=args.samples, seed=args.seed, device=args.device)
-        flux, report = trace_record(ds, args.record, settings)
+        flux, report = trace_record(ds, args.record, settings, progress=not args.quiet)
         report.update(describe_plant(sc))
         to_png(flux.bitmap[0], png)
         if plot_path:
@@ -266,7 +266,8 @@ def cmd_bench(args) -> int:
     with output_set() as out:
         json_path = out.file(args.json, "--json")
         result = run_benchmark(surface_points=args.surface_points, rays_per_point=tuple(rpp),
-                               resolution=args.resolution, seed=args.seed, device=getattr(args, "device", "cpu"))
+                               resolution=args.resolution, seed=args.seed, device=getattr(args, "device", "cpu"),
+                               progress=not args.quiet)
         if json_path:
             write_json(json_path, result)
     mc = result["mc"]

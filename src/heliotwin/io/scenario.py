@@ -638,6 +638,7 @@ def load_scenario(path) -> Scenario:
     _validate_plant(plant, path)
     _validate_extras(extras, plant, path)
     _validate_learned(learned, len(plant.field.ids), path)
+    _validate_learned_state(learned, plant, path)
     return Scenario(plant, extras, metadata, version, str(path), learned, provenance)
 
 
@@ -782,6 +783,211 @@ def _validate_learned(learned: dict, h: int, path) -> None:
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
                 raise InputFileError(path, f"expected a positive finite flux [W/m2], got {v!r}",
                                      field=f"{where}@peak_limit_w_m2")
+
+
+# ===================================================================== learned calibration, surfaces, updates
+class _LearnedCheck:
+    """Checks of one learned group's entries, each failing with a one-line :class:`InputFileError` naming the
+    file and the HDF5 object; readers downstream then index and do arithmetic on them without surprises."""
+
+    def __init__(self, path):
+        self.path = path
+
+    def fail(self, where: str, message: str):
+        raise InputFileError(self.path, message, field=where)
+
+    def group(self, parent: dict, name: str, where: str, *, required: bool = True) -> dict | None:
+        v = parent.get(name)
+        if v is None and not required:
+            return None
+        if not isinstance(v, dict):
+            self.fail(f"{where}/{name}", "missing group" if v is None else "expected a group, found a dataset")
+        return v
+
+    def names(self, parent: dict, name: str, where: str, *, required: bool = True, n: int | None = None):
+        v = parent.get(name)
+        if v is None and not required:
+            return None
+        if not isinstance(v, list) or not all(isinstance(s, str) for s in v):
+            self.fail(f"{where}/{name}", "missing dataset" if v is None else "expected a 1-D dataset of strings")
+        if len(set(v)) != len(v):
+            self.fail(f"{where}/{name}", "duplicate entries")
+        if n is not None and len(v) != n:
+            self.fail(f"{where}/{name}", f"expected {n} entries, got {len(v)}")
+        return v
+
+    def text(self, parent: dict, name: str, where: str, *, required: bool = True, json_value: bool = False):
+        v = parent.get(name)
+        if v is None and not required:
+            return None
+        if not isinstance(v, str):
+            self.fail(f"{where}/{name}", "missing dataset" if v is None else "expected a string dataset")
+        if json_value:
+            try:
+                return json.loads(v)
+            except ValueError:
+                self.fail(f"{where}/{name}", "malformed JSON text")
+        return v
+
+    def array(self, parent: dict, name: str, where: str, shape: tuple, *, required: bool = True,
+              kind: str = "float", finite: bool = True, low: float | None = None) -> torch.Tensor | None:
+        """``shape``: ints, None for any size; ``kind``: "float" (int accepted), "int", "bool", "any"."""
+        at = f"{where}/{name}"
+        v = parent.get(name)
+        if v is None and not required:
+            return None
+        if v is None:
+            self.fail(at, "missing dataset")
+        if isinstance(v, np.ndarray):
+            v = torch.from_numpy(np.ascontiguousarray(v))
+        if not isinstance(v, torch.Tensor):
+            self.fail(at, f"expected a numeric dataset, found {type(v).__name__}")
+        want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
+        if v.dim() != len(shape) or not all(s is None or s == n for s, n in zip(shape, v.shape)):
+            self.fail(at, f"expected shape {want}, got {list(v.shape)}")
+        ok = {"float": v.dtype.is_floating_point or (v.dtype != torch.bool and not v.dtype.is_complex),
+              "int": not v.dtype.is_floating_point and not v.dtype.is_complex and v.dtype != torch.bool,
+              "bool": v.dtype == torch.bool, "any": not v.dtype.is_complex}[kind]
+        if not ok:
+            self.fail(at, f"expected a {kind} dataset, got {str(v.dtype).replace('torch.', '')}")
+        if finite and v.dtype.is_floating_point and not bool(torch.isfinite(v).all()):
+            self.fail(at, "contains NaN/inf")
+        if low is not None and v.numel() and not bool((v >= low).all()):
+            self.fail(at, f"expected values >= {low:g}")
+        return v
+
+
+def _validate_learned_calibration(c: _LearnedCheck, cal) -> None:
+    """``/learned/calibration`` (:mod:`heliotwin.calibrate.scenario`): heliostats [Hc] and parameter names [P]
+    index deviations [Hc, P]; nominal kinematics [Hc, ...]; the posterior, drift, prior and networks when
+    present. Keys this floor does not know are left to their readers."""
+    where = "/learned/calibration"
+    if not isinstance(cal, dict):
+        c.fail(where, "expected a group")
+    for name in ("method", "focal_spot"):
+        c.text(cal, name, where, required=False)
+    c.text(cal, "settings_choice", where, required=False, json_value=True)
+    ids = c.names(cal, "heliostats", where)
+    names = c.names(cal, "parameter_names", where)
+    hc, p = len(ids), len(names)
+    c.array(cal, "deviations", where, (hc, p))
+    nominal = c.group(cal, "nominal", where, required=False)
+    if nominal is not None:
+        for f in dataclasses.fields(Kinematics):
+            boolean = f.name in _KINEMATICS_BOOL
+            c.array(nominal, f.name, f"{where}/nominal", (hc, *_KINEMATICS_TRAILING.get(f.name, (2,))),
+                    kind="bool" if boolean else "float", finite=f.name not in _KINEMATICS_OPTIONAL)
+    post = c.group(cal, "posterior", where, required=False)
+    if post is not None:
+        at = f"{where}/posterior"
+        c.array(post, "covariance", at, (hc, p, p))
+        c.array(post, "noise_rad", at, (hc,), low=0.0)
+        c.array(post, "drift_rad", at, (1,), required=False, low=0.0)
+        c.array(post, "walk_scale", at, (1,), required=False, low=0.0)
+    drift = c.group(cal, "drift", where, required=False)
+    if drift is not None:
+        at = f"{where}/drift"
+        c.text(drift, "model", at, required=False)
+        d = len(c.names(drift, "names", at))
+        if any(n not in names for n in drift["names"]):
+            c.fail(f"{at}/names", "expected names among the parameter names")
+        c.array(drift, "offset", at, (hc, d), required=False)
+        c.array(drift, "covariance", at, (hc, d, d))
+        c.array(drift, "time", at, (hc,), finite=False)  # NaN: no record seen yet
+        c.array(drift, "process_noise_rad2_per_day", at, (1,), low=0.0)
+        c.array(drift, "static_deviations", at, (hc, p), required=False)
+    prior = c.group(cal, "prior", where, required=False)
+    if prior is not None:
+        at = f"{where}/prior"
+        k = len(c.names(prior, "names", at))
+        c.array(prior, "mean", at, (k,))
+        c.array(prior, "sigma", at, (k,), low=0.0)
+        c.array(prior, "covariance", at, (k, k), required=False)
+        c.names(prior, "heliostats", at, required=False)
+    nets = c.group(cal, "networks", where, required=False)
+    for hid, net in (nets or {}).items():
+        at = f"{where}/networks/{hid}"
+        if not isinstance(net, dict):
+            c.fail(at, "expected a group")
+        c.text(net, "config", at, json_value=True)
+        state = c.group(net, "state", at)
+        for key, t in state.items():
+            c.array(state, key, f"{at}/state", (None,) * getattr(t, "ndim", 0), kind="any")
+
+
+def _validate_learned_surfaces(c: _LearnedCheck, entries, plant: Plant) -> None:
+    """``/learned/surfaces/<HID>`` (:mod:`heliotwin.surfaces.state`): a heliostat of the plant, displacement
+    [F, nu, nv] on its control net, optics a physical sun, settings JSON, train_records [n] ints, target."""
+    where = "/learned/surfaces"
+    if not isinstance(entries, dict):
+        c.fail(where, "expected a group")
+    cp = plant.field.surfaces.control_points
+    for hid, e in entries.items():
+        at = f"{where}/{hid}"
+        if hid not in plant.field.ids:
+            c.fail(at, "not a heliostat of this scenario's field")
+        if not isinstance(e, dict):
+            c.fail(at, "expected a group")
+        c.array(e, "displacement", at, tuple(cp.shape[1:4]))
+        c.array(e, "train_records", at, (None,), kind="int")
+        c.text(e, "target", at)
+        c.text(e, "settings", at, json_value=True)
+        optics = c.text(e, "optics", at, json_value=True)
+        try:
+            sun = SunSettings(**optics)
+        except TypeError:
+            c.fail(f"{at}/optics", "expected the sun settings as a JSON object")
+        check = _PlantCheck(c.path, False)
+        check.fail = lambda _w, message: c.fail(f"{at}/optics", message)
+        _validate_sun(check, sun)
+
+
+def _validate_learned_assimilation(c: _LearnedCheck, st) -> None:
+    """``/learned/assimilation`` (:mod:`heliotwin.workflows.update`): scalars [1], heliostats [Hs], parameter
+    names [P], the history's rows [n, ...] (heliostat indices into heliostats), the step-test window."""
+    where = "/learned/assimilation"
+    if not isinstance(st, dict):
+        c.fail(where, "expected a group")
+    for name in ("version", "updates", "calibrations"):
+        c.array(st, name, where, (1,), kind="int", required=name != "version")
+    for name in ("threshold", "kappa", "false_alarm_rate"):
+        c.array(st, name, where, (1,), low=0.0)
+    p = len(c.names(st, "parameter_names", where))
+    ids = c.names(st, "heliostats", where)
+    hist = c.group(st, "history", where)
+    at = f"{where}/history"
+    n = c.array(hist, "heliostat", at, (None,), kind="int").shape[0]
+    if n and not bool(((hist["heliostat"] >= 0) & (hist["heliostat"] < len(ids))).all()):
+        c.fail(f"{at}/heliostat", f"expected indices into the {len(ids)} heliostats")
+    for name, trailing, kind in (("record_id", (), "int"), ("time", (), "float"), ("update", (), "int"),
+                                 ("mean", (p,), "float"), ("variance", (p,), "float"), ("innovation", (2,), "float"),
+                                 ("d2", (), "float"), ("statistic", (), "float"), ("window", (), "int"),
+                                 ("alarm", (), "bool"), ("predicted_error", (), "float")):
+        c.array(hist, name, at, (n, *trailing), kind=kind)
+    window = c.group(st, "window", where, required=False)
+    if window is not None:
+        hw = len(c.names(window, "heliostats", f"{where}/window"))
+        g = c.array(window, "g", f"{where}/window", (hw, None, None))
+        c.array(window, "f", f"{where}/window", (hw, g.shape[1], g.shape[2], g.shape[2]))
+
+
+def _validate_learned_state(learned: dict, plant: Plant, path) -> None:
+    """The calibration, surfaces, surface prior and update groups of ``/learned`` (see the helpers above)."""
+    c = _LearnedCheck(path)
+    if "calibration" in learned:
+        _validate_learned_calibration(c, learned["calibration"])
+    if "surfaces" in learned:
+        _validate_learned_surfaces(c, learned["surfaces"], plant)
+    if "surface_prior" in learned:
+        prior = learned["surface_prior"]
+        where = "/learned/surface_prior"
+        if not isinstance(prior, dict):
+            c.fail(where, "expected a group")
+        # Its facet count may differ from this plant's (a prior of another design): the reconstruction says so.
+        f, k = c.array(prior, "mean", where, (None, None)).shape
+        c.array(prior, "covariance", where, (f * k, f * k))
+    if "assimilation" in learned:
+        _validate_learned_assimilation(c, learned["assimilation"])
 
 
 def _validate_kinematics(c: _PlantCheck, kin: Kinematics, h: int) -> None:

@@ -47,10 +47,10 @@ import dataclasses
 import statistics
 
 import torch
-from tqdm.auto import tqdm
 
 from ..calibrate.choice import lowest
 from ..field.plant import Facets, SunSettings
+from ..progress import iterate
 from . import losses
 from .acceptance import robust_outliers, shrink_to_accept, wilson_interval
 from .edges import edge_ridge_mrad
@@ -155,7 +155,7 @@ def loo_select(facets, train, camera, sigma0, sun, start, s, progress=False, pri
     curves: dict = {}
     pgrid = (None,) if prior is None else tuple(float(p) for p in prior_grid)
     jobs = [(w, p, k) for w in s.slope_weight_grid for p in pgrid for k in range(n)]
-    for w, p, k in tqdm(jobs, desc="leave-one-out", disable=not progress, leave=False):
+    for w, p, k in iterate(jobs, "heliotwin reconstruct: leave-one-out", unit="fit", enabled=progress, every=25):
         keep = [i for i in range(n) if i != k]
         curves[(w, p, k)] = fit_surface(facets, train.subset(keep), sun, s, start=start, camera=camera.subset(keep),
                                         sigma0=sigma0[keep], slope_weight=w, prior=prior, prior_weight=p or 0.0,

@@ -16,13 +16,13 @@ import statistics
 from dataclasses import dataclass
 
 import torch
-from tqdm.auto import tqdm
 
 from ..errors import HeliotwinError
 from ..field import kinematics as kin_ops
 from ..field.plant import Kinematics, SunSettings, Surfaces
 from ..field.targets import PlanarTarget
 from ..io.images import CENTERED_WINDOW_M
+from ..progress import iterate
 from ..sun import daylight_times, direction_from_paint_angles
 from . import losses
 from .imaging import predict_images
@@ -116,7 +116,7 @@ def yearly_flux(kinematics: Kinematics, target: PlanarTarget, site: tuple, learn
     kw = dict(samples=imaging.samples, resolution=imaging.resolution, size_m=imaging.size_m,
               kernel_supersample=imaging.kernel_supersample)
     chunk = imaging.chunk
-    for start in tqdm(range(0, len(times), chunk), desc="year", disable=not progress, leave=False):
+    for start in iterate(range(0, len(times), chunk), "heliotwin predict: year", unit="chunk", enabled=progress):
         sl = slice(start, start + chunk)
         s = sund[sl]
         aim = target.center.to(torch.float64).expand(s.shape[0], 3)

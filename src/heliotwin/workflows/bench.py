@@ -17,9 +17,11 @@ import torch
 from ..devices import resolve_device, to_device
 from ..field.plant import SunSettings
 from ..field.targets import PlanarTarget
+from ..progress import Stages
 from ..raytrace.flux import normalized_l1
 from ..raytrace.gaussian import trace_gaussian
 from ..raytrace.montecarlo import RaySampling, trace_mc
+from .sizes import MAX_SURFACE_POINTS, check_range, check_trace_sizes
 
 __all__ = ["run_benchmark", "benchmark_scene"]
 
@@ -104,7 +106,8 @@ def _peak_rss_mb() -> float:
 
 
 def run_benchmark(surface_points: int = 10000, rays_per_point=(10, 100), resolution: int = 256, seed: int = 0,
-                  threads: int | None = 2, repeats: int = 10, time_to_accuracy: bool = True, device="cpu") -> dict:
+                  threads: int | None = 2, repeats: int = 10, time_to_accuracy: bool = True, device="cpu",
+                  progress: bool = False) -> dict:
     """Measure the Monte-Carlo tracer's throughput and compare integrators at equal accuracy.
 
     Parameters
@@ -127,6 +130,8 @@ def run_benchmark(surface_points: int = 10000, rays_per_point=(10, 100), resolut
     device : str or torch.device
         Where to trace (``"auto"``: CUDA when present); timings wait for the device to finish, and
         ``peak_device_mb`` reports the GPU's peak allocated memory there.
+    progress : bool
+        One progress line (or bar) per measurement (:class:`heliotwin.progress.Stages`).
 
     Returns
     -------
@@ -136,18 +141,22 @@ def run_benchmark(surface_points: int = 10000, rays_per_point=(10, 100), resolut
         ``peak_rss_mb``, and ``time_to_accuracy`` (Gaussian sun: reference image and its noise, gaussian
         integrator time and L1 vs the reference, Monte-Carlo rays/time to reach that L1, measured or extrapolated).
     """
+    check_range("--surface-points", surface_points, 1, MAX_SURFACE_POINTS)
+    for k in [rays_per_point] if isinstance(rays_per_point, int) else rays_per_point:
+        check_trace_sizes(resolution=resolution, rays_per_point=k, points=int(surface_points))
     old_threads = torch.get_num_threads()
     if threads is not None:
         torch.set_num_threads(int(threads))
     try:
-        return _run(surface_points, rays_per_point, resolution, seed, repeats, time_to_accuracy, device)
+        return _run(surface_points, rays_per_point, resolution, seed, repeats, time_to_accuracy, device, progress)
     finally:
         torch.set_num_threads(old_threads)
 
 
-def _run(surface_points, rays_per_point, resolution, seed, repeats, time_to_accuracy, device="cpu"):
+def _run(surface_points, rays_per_point, resolution, seed, repeats, time_to_accuracy, device="cpu", progress=False):
     device = resolve_device(device)
     ks = [int(rays_per_point)] if isinstance(rays_per_point, int) else [int(k) for k in rays_per_point]
+    stages = Stages(2 * len(ks) + bool(time_to_accuracy), "heliotwin bench", enabled=progress)
     pts, nrm, areas, sun_dir, target = to_device(benchmark_scene(surface_points), device)
     p = pts.shape[1]
     optics = SunSettings()
@@ -172,8 +181,12 @@ def _run(surface_points, rays_per_point, resolution, seed, repeats, time_to_accu
             (f.bitmap * weights).sum().backward()
 
         rays = p * k
+        stages.start(f"forward, {k} rays per point")
         t_f = _best_time(fwd, repeats, min_total=2.0, device=device)
+        stages.step(f"forward, {k} rays per point")
+        stages.start(f"forward and backward, {k} rays per point")
         t_fb = _best_time(fwd_bwd, repeats, min_total=2.0, device=device)
+        stages.step(f"forward and backward, {k} rays per point")
         per_k[str(k)] = {
             "rays": rays,
             "forward_s": t_f,
@@ -198,7 +211,10 @@ def _run(surface_points, rays_per_point, resolution, seed, repeats, time_to_accu
         },
     }
     if time_to_accuracy:
+        stages.start("time to accuracy")
         result["time_to_accuracy"] = _time_to_accuracy(pts, nrm, areas, sun_dir, target, resolution, seed, repeats)
+        stages.step("time to accuracy")
+    stages.close()
     result["peak_rss_mb"] = _peak_rss_mb()
     if device != "cpu":
         result["peak_device_mb"] = torch.cuda.max_memory_allocated(device) / 2 ** 20

@@ -25,6 +25,7 @@ from ..field.plant import Facets, SunSettings
 from ..io import checkpoint as _checkpoint
 from ..io.deflectometry import read_deflectometry
 from ..io.scenario import Scenario, scenario_from_paint
+from ..progress import Stages
 from ..surfaces.deflectometry import deflectometry_report
 from ..surfaces.fit import SurfaceSettings
 from ..surfaces.generalise import reconstruct_generalising
@@ -33,6 +34,7 @@ from ..surfaces.observations import paint_observations
 from ..surfaces.plantprior import check_leakage, load_surface_prior
 from ..surfaces.state import with_learned_surface
 from .show import kinematics_note
+from .sizes import check_range
 
 __all__ = ["ReconstructionSettings", "reconstruct", "reconstruction_checkpoint"]
 
@@ -85,6 +87,17 @@ class ReconstructionSettings:
         """One-line :class:`HeliotwinError` for inconsistent options (before any file is read)."""
         if self.train_records and self.train_first is not None:
             raise HeliotwinError("use either --train-records or --train-first, not both")
+        # More control points per side than mirror samples are not determined by the images; the dense fit
+        # state grows with their square (a 200x200 net took 20 GB).
+        most = min(SurfaceSettings().samples)
+        nu, nv = parse_grid(self.control_points)
+        for n in (nu, nv):
+            check_range("--control-points", n, 2, most, f"per side, at most the {most} mirror samples per side")
+        check_range("--degree", self.degree, 1, min(nu, nv) - 1, "below the control points per side")
+        if self.steps is not None:
+            check_range("--steps", self.steps, 1, 100_000)
+        if self.train_first is not None:
+            check_range("--train-first", self.train_first, 1, 10_000)
 
     def learner(self) -> SurfaceSettings:
         """The learner's settings (:class:`~heliotwin.surfaces.fit.SurfaceSettings`)."""
@@ -138,7 +151,8 @@ def reconstruct(scenario: Scenario | None, paint, heliostat: str, settings: Reco
         From :func:`reconstruction_checkpoint`: every fit saves its state and a resumed one continues it; the
         caller removes it once its outputs are written.
     progress : bool
-        tqdm bars.
+        Progress of the stages and of the leave-one-out fits (:mod:`heliotwin.progress`: bars on a terminal,
+        plain lines in a log).
 
     Returns
     -------
@@ -168,13 +182,19 @@ def reconstruct(scenario: Scenario | None, paint, heliostat: str, settings: Reco
     note = kinematics_note(scenario, heliostat)  # a surface learned on nominal kinematics must say so, up front
     if progress and "no calibration" in note:  # stdout: a failing run's stderr holds only its one-line error
         print(f"heliotwin reconstruct: {note}", file=sys.stdout, flush=True)
+    stages = Stages(2, "heliotwin reconstruct", enabled=progress)
+    stages.start(f"reading {heliostat}'s images")
     _, on_device, train, test = paint_observations(
         paint, heliostat, plant=plant, device=device, train_records=list(s.train_records) if s.train_records else None,
         train_first=s.train_first, resolution=learner.resolution, alignment=s.alignment)
     facets = _facets(on_device, torch.float64)
+    stages.step(f"reading {len(train)} training and {len(test)} test images")
+    stages.start("learning the surface")
     with _checkpoint.active(checkpoint):
         report, model, info = reconstruct_generalising(facets, train, test, SunSettings(sunshape="buie", csr=0.05),
                                                        learner, progress, prior=prior)
+    stages.step("learning the surface")
+    stages.close()
     fit = {"facets": facets, "train": train, "test": test, "info": info, "optics": info["optics"],
            "ideal": info["ideal"]}
     if s.deflectometry:

@@ -16,7 +16,9 @@ import torch
 from ..devices import resolve_device, to_device
 from ..field import kinematics as kin_ops
 from ..io.records import SOURCES
+from ..progress import Stages
 from ..scene import trace, world_surface
+from .sizes import check_trace_sizes
 
 __all__ = ["TraceSettings", "trace_record", "describe_plant"]
 
@@ -71,7 +73,7 @@ def describe_plant(scenario) -> dict:
             "surface": f"learned for {', '.join(surfaces)}" if surfaces else "ideal"}
 
 
-def trace_record(dataset, record_id: int, settings: TraceSettings | None = None):
+def trace_record(dataset, record_id: int, settings: TraceSettings | None = None, *, progress: bool = False):
     """Trace one calibration record (its sun, motor steps and target) with the dataset's plant.
 
     Parameters
@@ -80,6 +82,8 @@ def trace_record(dataset, record_id: int, settings: TraceSettings | None = None)
     record_id : int
         PAINT record id (one of ``dataset.records.record_id``).
     settings : TraceSettings, optional
+    progress : bool
+        Say when the tracing starts and ends (:class:`heliotwin.progress.Stages`: a line each in a log).
 
     Returns
     -------
@@ -92,12 +96,16 @@ def trace_record(dataset, record_id: int, settings: TraceSettings | None = None)
     settings = settings or TraceSettings()
     integrator, rays_per_point, resolution = settings.integrator, settings.rays_per_point, settings.resolution
     samples, seed = settings.samples, settings.seed
-    device = resolve_device(settings.device)
     plant = dataset.plant
+    check_trace_sizes(resolution=resolution, samples=samples, facets=plant.field.facets.translation.shape[1],
+                      rays_per_point=rays_per_point if integrator == "mc" else None)
+    device = resolve_device(settings.device)
     row = dataset.record(int(record_id))
     kin, surfaces, target, row_on = to_device((plant.field.kinematics, plant.field.surfaces,
                                                plant.target(row.target[0]), row), device)
     t0 = time.perf_counter()
+    stages = Stages(1, "heliotwin trace", enabled=progress)
+    stages.start(f"tracing record {int(record_id)} ({integrator})")
     with torch.no_grad():
         pts, nrm, area, R, c = world_surface(kin, surfaces, row_on.heliostat_index, row_on.motor_steps,
                                              (samples, samples))
@@ -105,6 +113,8 @@ def trace_record(dataset, record_id: int, settings: TraceSettings | None = None)
                      resolution=(resolution, resolution), sun=plant.sun, rays_per_point=rays_per_point,
                      generator=torch.Generator(device=device).manual_seed(seed))
     seconds = time.perf_counter() - t0
+    stages.step(f"tracing record {int(record_id)}")
+    stages.close()
     # Reporting happens on the CPU, where the plant's site and targets live.
     flux, nrm, area, R, c = to_device((flux, nrm, area, R, c), "cpu")
     s = row.sun

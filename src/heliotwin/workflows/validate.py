@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 from ..errors import HeliotwinError
 from ..validate import validate_dataset
+from .sizes import check_trace_sizes
 from .trace import describe_plant
 
 __all__ = ["ValidateSettings", "validate", "METRICS", "split_by_state"]
@@ -91,6 +92,8 @@ def validate(dataset, scenario=None, settings: ValidateSettings | None = None, *
         No usable record (names the first skipped record's reason).
     """
     settings = settings or ValidateSettings()
+    check_trace_sizes(resolution=settings.resolution, samples=settings.samples,
+                      facets=dataset.plant.field.facets.translation.shape[1])
     t0 = time.perf_counter()
     report = validate_dataset(dataset, resolution=settings.resolution, samples=(settings.samples, settings.samples),
                               with_images=settings.with_images, progress=settings.progress, device=settings.device)
