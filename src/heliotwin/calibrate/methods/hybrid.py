@@ -34,7 +34,7 @@ from ..fitloop import early_stopping_fit, net_state
 from ..inputs import FIT_FOCAL_SPOT, fit_spots, restrict, trainable
 from ..model import Calibrated
 from ..params import STONE8, apply_deviations, kinds
-from .lm import stone8_field_fit
+from .lm import stone8_field_fit, stone8_plant_fit
 from .nets import BatchedMLP
 
 #: Physical size of one network output unit per kind (see module docstring).
@@ -154,16 +154,24 @@ def _mrad(x) -> float | None:
 
 
 def fit_hybrid_method(nominal, train, validation, *, seed=0, progress=False, field_prior=True, depth=14, hidden=2,
-                      steps=400, lr=3e-3, weight_decay=1e-3, noise=1e-3, fit_focal_spot=FIT_FOCAL_SPOT) -> HybridModel:
+                      steps=400, lr=3e-3, weight_decay=1e-3, noise=1e-3, fit_focal_spot=FIT_FOCAL_SPOT,
+                      plant_prior=None) -> HybridModel:
     """``hybrid``: the pre-aligned rigid body plus a small network per heliostat (see module docstring).
 
-    The network follows the nominal kinematics' dtype and device; every random draw takes ``seed``.
+    ``plant_prior`` (:class:`~heliotwin.calibrate.priors.PlantPrior`): the pre-alignment's prior instead of
+    the run's field prior. The network follows the nominal kinematics' dtype and device; every random draw
+    takes ``seed``.
     """
+    def prealign(batch):
+        if plant_prior is not None:
+            return stone8_plant_fit(nominal, batch, plant_prior), None
+        return stone8_field_fit(nominal, batch, ok, field_prior=field_prior)
+
     h = nominal.num_heliostats
     ok = trainable(train)
     tr = fit_spots(restrict(train, ok), fit_focal_spot)
     va = restrict(validation, ok) if validation is not None else train.subset([])  # never None below
-    static, _ = stone8_field_fit(nominal, tr, ok, field_prior=field_prior)
+    static, _ = prealign(tr)
     names = STONE8
     like = nominal.position
     static = static.to(like)
@@ -198,7 +206,7 @@ def fit_hybrid_method(nominal, train, validation, *, seed=0, progress=False, fie
     use_net, why = _fallback(fit_va, best, best_err, rigid_val, ok)
     # Fallback heliostats: the rigid body refitted on every record they may see (as lm does).
     seen = RecordTable.concatenate([tr, fit_spots(va, fit_focal_spot)]) if len(va) else tr
-    refit, _ = stone8_field_fit(nominal, seen, ok, field_prior=field_prior)
+    refit, _ = prealign(seen)
     static = torch.where(use_net.unsqueeze(-1), static, refit.to(static))
     static[~ok] = 0.0
     ids = list(train.heliostat_ids)
