@@ -11,9 +11,8 @@ spread is then ~0.1 increments.
 
 Per heliostat and motor axis one network (SELU, LeCun-normal initialisation, :class:`~.nets.BatchedMLP`).
 
-* Inputs (7), standardised with the pretraining samples' mean and spread per heliostat: unit sun vector (3),
-  the aim point's east/up offset from the first training target's centre (2) and the base's motor steps for
-  (sun, aim) as a fraction of the actuator range (2).
+* Inputs (5), standardised with the pretraining samples' mean and spread per heliostat: unit sun vector (3)
+  and the base's motor steps for (sun, aim) as a fraction of the actuator range (2) (they encode the aim).
 * Output: that axis' motor steps minus the base's [increments], divided by the pretraining targets' spread
   (at least :data:`MIN_OUTPUT_SCALE` increments).
 * Loss: Huber on the step error in increments (:data:`HUBER_INCREMENTS`).
@@ -24,7 +23,7 @@ Training:
    prior), as the hybrid's pre-alignment;
 2. *pretraining* on samples simulated by that rigid body over the whole sun range: a year of sun positions
    (:func:`heliotwin.sun.daylight_times`, every ``every``) with aim points spread over the heliostat's
-   training spots (+-1 m in the target plane), motor steps from the rigid body's inverse; Adam with a cosine
+   training spots (+-3 m in the target plane), motor steps from the rigid body's inverse; Adam with a cosine
    schedule, full batch. After pretraining the network reproduces its rigid body (tested: its validation
    error is within a small tolerance of the rigid body's);
 3. *fine-tuning* on the real training records (aim = fitted focal spot, target = recorded steps) with a
@@ -32,7 +31,7 @@ Training:
    heliostat's training records), early-stopped on validation;
 4. *fallback*: a heliostat keeps its network only where, on its validation records (inside ``--train``), the
    network beats the rigid body (paired gain per record above :data:`SIGNIFICANCE` standard errors on at
-   least :data:`MIN_VALIDATION` records); otherwise it uses the rigid body refitted on train + validation.
+   least :data:`MIN_VALIDATION` records); otherwise it uses exactly ``lm`` (on train + validation).
 
 Pointing error of a record: the network predicts steps for the measured spot; the pointing error is the
 angle between the measured normal and the measured normal moved by the rigid body's normal change from the
@@ -55,11 +54,11 @@ from ..fitloop import State, early_stopping_fit
 from ..inputs import FIT_FOCAL_SPOT, fit_spots, restrict, trainable
 from ..model import Calibrated
 from ..params import STONE8, apply_deviations, read_deviations
-from .lm import stone8_field_fit, stone8_plant_fit
+from .lm import fit_lm_method, stone8_field_fit, stone8_plant_fit
 from .nets import BatchedMLP
 
-#: Inputs per network: sun (3), aim offset east/up (2), base steps as a fraction of the range (2).
-N_INPUTS = 7
+#: Inputs per network: sun (3), base steps as a fraction of the range (2).
+N_INPUTS = 5
 #: Smallest output unit [increments] (a heliostat whose rigid body equals the base still gets a usable scale).
 MIN_OUTPUT_SCALE = 5.0
 #: Huber transition of the step loss [increments]: quadratic within a few increments, linear for outliers.
@@ -70,10 +69,12 @@ SIGNIFICANCE = 1.0
 
 
 def _inputs(sun: torch.Tensor, aim: torch.Tensor, reference: torch.Tensor, base_fraction: torch.Tensor) -> torch.Tensor:
-    """Raw network inputs [R, 7]: ``sun`` [R, 3] unit, ``aim`` [R, 3] ENU [m], ``reference`` [3] or [R, 3] ENU
-    [m], ``base_fraction`` [R, 2] base steps as a fraction of the actuator range."""
-    off = (aim - reference) / 10.0
-    return torch.cat([sun, off[:, [0, 2]], base_fraction], -1)
+    """Raw network inputs [R, 5]: ``sun`` [R, 3] unit and ``base_fraction`` [R, 2] (the base's steps for the
+    aim as a fraction of the actuator range). ``aim`` [R, 3] and ``reference`` [3] or [R, 3] ENU [m] are not
+    inputs: the base's steps already encode the aim, and an aim offset would make the network extrapolate
+    whenever a record uses another target than the training records (a rigid body's step correction depends
+    on the wanted normal, i.e. the base's steps, not on where the target is)."""
+    return torch.cat([sun, base_fraction], -1)
 
 
 def _normalised_steps(kin, steps: torch.Tensor) -> torch.Tensor:
@@ -105,7 +106,7 @@ def _pad(hidx: torch.Tensor, h: int) -> tuple[torch.Tensor, torch.Tensor]:
 class StepNetworks:
     """Per-heliostat, per-axis networks with their input standardisation and output scale.
 
-    ``x_mean``/``x_std`` [H, 7], ``y_mean``/``y_scale`` [H, 2] [increments]; ``net`` has 2H rows (heliostat h,
+    ``x_mean``/``x_std`` [H, 5], ``y_mean``/``y_scale`` [H, 2] [increments]; ``net`` has 2H rows (heliostat h,
     axis a at row 2h + a).
     """
 
@@ -113,7 +114,7 @@ class StepNetworks:
         self.net, self.x_mean, self.x_std, self.y_mean, self.y_scale = net, x_mean, x_std, y_mean, y_scale
 
     def increments(self, x_raw: torch.Tensor, hidx: torch.Tensor, net: BatchedMLP | None = None) -> torch.Tensor:
-        """Predicted steps minus base steps [R, 2] [increments] for raw inputs ``x_raw`` [R, 7]."""
+        """Predicted steps minus base steps [R, 2] [increments] for raw inputs ``x_raw`` [R, 5]."""
         net = self.net if net is None else net
         h = len(self.x_mean)
         x = (x_raw - self.x_mean[hidx]) / self.x_std[hidx]
@@ -126,7 +127,7 @@ class StepNetworks:
 
 
 def _standardisation(x: torch.Tensor, y: torch.Tensor, hidx: torch.Tensor, h: int):
-    """Per-heliostat input mean/spread [H, 7] and output mean/scale [H, 2] of the pretraining samples."""
+    """Per-heliostat input mean/spread [H, 5] and output mean/scale [H, 2] of the pretraining samples."""
     x_mean, x_std = x.new_zeros(h, x.shape[1]), x.new_ones(h, x.shape[1])
     y_mean, y_scale = y.new_zeros(h, 2), y.new_full((h, 2), MIN_OUTPUT_SCALE)
     for i in range(h):  # heliostats (tens), once per fit
@@ -152,11 +153,11 @@ def _simulate(rigid, train: RecordTable, site, every: str, year: int, gen: torch
         m = train.heliostat_index == i
         if not bool(m.any()):
             continue
-        # Aim points: the heliostat's training spots, jittered by +-1 m in the target plane (CPU draws: the
+        # Aim points: the heliostat's training spots, jittered by +-3 m in the target plane (CPU draws: the
         # same samples on any device).
         spots, right, up = train.spot[m], train.plane_right[m], train.plane_up[m]
         pick = torch.randint(len(spots), (len(sun),), generator=gen).to(dev)
-        jit = ((torch.rand(len(sun), 2, generator=gen, dtype=torch.float64) - 0.5) * 2.0).to(spots)
+        jit = ((torch.rand(len(sun), 2, generator=gen, dtype=torch.float64) - 0.5) * 6.0).to(spots)
         aim = spots[pick] + jit[:, :1] * right[pick] + jit[:, 1:] * up[pick]
         steps, ok = K.inverse(rigid.index([i] * len(sun)), aim, sun, strict=False)
         ok = ok & torch.isfinite(steps).all(-1)
@@ -397,11 +398,11 @@ def fit_mlp_method(nominal, train, validation, *, seed: int = 0, progress: bool 
         use_net, why = _keep_network(errors(use=False), errors(best), va.heliostat_index, h)
     else:
         use_net, why = torch.zeros(h, dtype=torch.bool, device=like.device), {}
-    if len(va):
-        seen = RecordTable.concatenate([tr, fit_spots(va, s.fit_focal_spot)])
-        refit = _rigid_fit(nominal, seen, ok, s, plant_prior).to(like)
-        delta = torch.where(use_net.unsqueeze(-1), delta, refit)
-        delta[~ok] = 0.0
+    # (exactly lm: bagged, on train + validation; an unbagged refit alone loses ~0.05-0.2 mrad to lm)
+    refit = fit_lm_method(nominal, train, validation, seed=seed, plant_prior=plant_prior, field_prior=s.field_prior,
+                          fit_focal_spot=s.fit_focal_spot).delta.to(like)
+    delta = torch.where(use_net.unsqueeze(-1), delta, refit)
+    delta[~ok] = 0.0
     model = MLPModel("mlp", list(train.heliostat_ids), nominal, STONE8, delta, ok,
                      extras={"nets": nets, "reference": reference, "base": base, "use_net": use_net})
     _describe(model, ok, use_net, why, pretrain_val, best_err, rigid_val, len(hidx), s)
