@@ -13,8 +13,10 @@ Per heliostat and motor axis one network (SELU, LeCun-normal initialisation, :cl
 
 * Inputs (5), standardised with the pretraining samples' mean and spread per heliostat: unit sun vector (3)
   and the base's motor steps for (sun, aim) as a fraction of the actuator range (2) (they encode the aim).
-* Output: that axis' motor steps minus the base's [increments], divided by the pretraining targets' spread
-  (at least :data:`MIN_OUTPUT_SCALE` increments).
+* Output: that axis' motor steps minus the base's [increments] = an affine function of the inputs (least
+  squares on the pretraining samples: a skip connection that carries most of a rigid body's correction,
+  e.g. an increment scale is linear in the steps) + the network's output in units of what the affine part
+  leaves (its spread, at least :data:`MIN_OUTPUT_SCALE` increments).
 * Loss: Huber on the step error in increments (:data:`HUBER_INCREMENTS`).
 
 Training:
@@ -60,7 +62,7 @@ from .nets import BatchedMLP
 #: Inputs per network: sun (3), base steps as a fraction of the range (2).
 N_INPUTS = 5
 #: Smallest output unit [increments] (a heliostat whose rigid body equals the base still gets a usable scale).
-MIN_OUTPUT_SCALE = 5.0
+MIN_OUTPUT_SCALE = 0.5
 #: Huber transition of the step loss [increments]: quadratic within a few increments, linear for outliers.
 HUBER_INCREMENTS = 2.0
 #: Fewest validation records to trust a gain, and the paired gain's significance [standard errors].
@@ -106,12 +108,17 @@ def _pad(hidx: torch.Tensor, h: int) -> tuple[torch.Tensor, torch.Tensor]:
 class StepNetworks:
     """Per-heliostat, per-axis networks with their input standardisation and output scale.
 
-    ``x_mean``/``x_std`` [H, 5], ``y_mean``/``y_scale`` [H, 2] [increments]; ``net`` has 2H rows (heliostat h,
+    ``x_mean``/``x_std`` [H, 5]; ``linear`` [H, 6, 2] [increments]: the affine part (least squares on the
+    standardised inputs and 1, a skip connection around the network); ``y_scale`` [H, 2] [increments]: the
+    network's output unit (the spread of what the affine part leaves); ``net`` has 2H rows (heliostat h,
     axis a at row 2h + a).
     """
 
-    def __init__(self, net: BatchedMLP, x_mean, x_std, y_mean, y_scale):
-        self.net, self.x_mean, self.x_std, self.y_mean, self.y_scale = net, x_mean, x_std, y_mean, y_scale
+    def __init__(self, net: BatchedMLP, x_mean, x_std, linear, y_scale):
+        self.net, self.x_mean, self.x_std, self.linear, self.y_scale = net, x_mean, x_std, linear, y_scale
+
+    def with_net(self, net: BatchedMLP) -> "StepNetworks":
+        return StepNetworks(net, self.x_mean, self.x_std, self.linear, self.y_scale)
 
     def increments(self, x_raw: torch.Tensor, hidx: torch.Tensor, net: BatchedMLP | None = None) -> torch.Tensor:
         """Predicted steps minus base steps [R, 2] [increments] for raw inputs ``x_raw`` [R, 5]."""
@@ -123,20 +130,24 @@ class StepNetworks:
         y = dense.reshape(h, 2, -1).transpose(1, 2)  # [H, N, 2]
         out = x.new_zeros(len(x), 2)
         out = out.index_put((rows[mask],), y[mask])
-        return self.y_mean[hidx] + out * self.y_scale[hidx]
+        affine = (torch.cat([x, torch.ones_like(x[:, :1])], -1).unsqueeze(1) @ self.linear[hidx]).squeeze(1)
+        return affine + out * self.y_scale[hidx]
 
 
 def _standardisation(x: torch.Tensor, y: torch.Tensor, hidx: torch.Tensor, h: int):
-    """Per-heliostat input mean/spread [H, 5] and output mean/scale [H, 2] of the pretraining samples."""
+    """Per-heliostat input mean/spread [H, 5], affine part [H, 6, 2] and output unit [H, 2] of the pretraining
+    samples (see :class:`StepNetworks`)."""
     x_mean, x_std = x.new_zeros(h, x.shape[1]), x.new_ones(h, x.shape[1])
-    y_mean, y_scale = y.new_zeros(h, 2), y.new_full((h, 2), MIN_OUTPUT_SCALE)
+    linear, y_scale = y.new_zeros(h, x.shape[1] + 1, 2), y.new_full((h, 2), MIN_OUTPUT_SCALE)
     for i in range(h):  # heliostats (tens), once per fit
         m = hidx == i
         if int(m.sum()) < 2:
             continue
         x_mean[i], x_std[i] = x[m].mean(0), x[m].std(0).clamp_min(1e-6)
-        y_mean[i], y_scale[i] = y[m].mean(0), y[m].std(0).clamp_min(MIN_OUTPUT_SCALE)
-    return x_mean, x_std, y_mean, y_scale
+        xa = torch.cat([(x[m] - x_mean[i]) / x_std[i], torch.ones_like(x[m][:, :1])], -1)
+        linear[i] = torch.linalg.lstsq(xa, y[m]).solution
+        y_scale[i] = (y[m] - xa @ linear[i]).std(0).clamp_min(MIN_OUTPUT_SCALE)
+    return x_mean, x_std, linear, y_scale
 
 
 def _simulate(rigid, train: RecordTable, site, every: str, year: int, gen: torch.Generator):
@@ -179,11 +190,8 @@ def _pretrain(nets: StepNetworks, x, hidx, y, steps: int, lr: float, polish: int
     """
     h = len(nets.x_mean)
     w = (1.0 / torch.bincount(hidx, minlength=h).clamp_min(1).to(x))[hidx]
-    target = (y - nets.y_mean[hidx]) / nets.y_scale[hidx]
-
     def loss_fn():
-        pred = (nets.increments(x, hidx) - nets.y_mean[hidx]) / nets.y_scale[hidx]
-        return (((pred - target) ** 2).sum(-1) * w).sum()
+        return ((((nets.increments(x, hidx) - y) / nets.y_scale[hidx]) ** 2).sum(-1) * w).sum()
 
     opt = torch.optim.Adam(nets.net.parameters(), lr=lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(steps, 1))
@@ -265,10 +273,10 @@ class MLPSettings:
 
     hidden: int = 32
     depth: int = 2
-    every: str = "2h"
+    every: str = "3h"
     year: int = 2023
     pretrain_steps: int = 500
-    polish_steps: int = 200
+    polish_steps: int = 100
     finetune_steps: int = 300
     lr: float = 1e-2
     finetune_lr: float = 1e-3
@@ -374,7 +382,7 @@ def fit_mlp_method(nominal, train, validation, *, seed: int = 0, progress: bool 
     def errors(net_rows=None, use=True):
         model.extras["use_net"] = torch.full((h,), use, dtype=torch.bool, device=like.device)
         if net_rows is not None:
-            model.extras["nets"] = StepNetworks(net_rows, nets.x_mean, nets.x_std, nets.y_mean, nets.y_scale)
+            model.extras["nets"] = nets.with_net(net_rows)
         try:
             return model.pointing_error(va)
         finally:
@@ -391,7 +399,7 @@ def fit_mlp_method(nominal, train, validation, *, seed: int = 0, progress: bool 
     log = early_stopping_fit(step, val_err, state, len(cycles) * per_cycle, validated=va.counts() > 0,
                              check_every=10, progress=progress, desc="mlp finetune")
     best, best_err = log.best, log.best_error
-    nets = StepNetworks(best, nets.x_mean, nets.x_std, nets.y_mean, nets.y_scale)
+    nets = nets.with_net(best)
     # 3. fallback: the network only where validation says it helps; elsewhere the rigid body refitted on
     # every record the method may see (as lm does)
     if len(va):
@@ -443,7 +451,7 @@ def _describe(model, ok, use_net, why, pretrain_err, best_err, rigid_val, sample
         if not bool(ok[i]):
             continue
         cfg = dict(nets.net.config, kind="mlp", reference=ref[i].tolist(), use_net=bool(use_net[i]),
-                   x_mean=nets.x_mean[i].tolist(), x_std=nets.x_std[i].tolist(), y_mean=nets.y_mean[i].tolist(),
+                   x_mean=nets.x_mean[i].tolist(), x_std=nets.x_std[i].tolist(), linear=nets.linear[i].tolist(),
                    y_scale=nets.y_scale[i].tolist(), base_deviations=base_dev[i].tolist(), base_names=list(STONE8))
         state = {f"{k}_axis{a}": v for a in (0, 1) for k, v in nets.net.state_of(2 * i + a).items()}
         networks[hid] = {"config": cfg, "state": state}
@@ -464,7 +472,7 @@ def aim_mlp(net_entry: dict, kin, sun: torch.Tensor, target: torch.Tensor) -> to
     net = BatchedMLP.from_states(cfg, states)
     base = apply_deviations(kin, torch.tensor([cfg["base_deviations"]], **f64), cfg["base_names"])
     nets = StepNetworks(net, torch.tensor([cfg["x_mean"]], **f64), torch.tensor([cfg["x_std"]], **f64),
-                        torch.tensor([cfg["y_mean"]], **f64), torch.tensor([cfg["y_scale"]], **f64))
+                        torch.tensor([cfg["linear"]], **f64), torch.tensor([cfg["y_scale"]], **f64))
     sun, target = sun.reshape(1, 3).double(), target.reshape(1, 3).double()
     hidx = torch.zeros(1, dtype=torch.long)
     with torch.no_grad():
