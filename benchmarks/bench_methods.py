@@ -38,8 +38,7 @@ FULL = {"methods": ["lm", "gradient", "hybrid", "mlp"], "priors": ["none", "plan
         "splits": ["chrono", "online", "isolation", "region", "random", "azimuth", "solstice", "balanced",
                    "high_variance"],
         "sizes": [10, 20, 30, 60]}
-QUICK = {"methods": ["lm", "hybrid", "mlp"], "priors": ["none"], "splits": ["chrono", "isolation", "random"],
-         "sizes": [30]}
+QUICK = {"methods": ["lm", "hybrid", "mlp"], "priors": ["none"], "splits": ["chrono", "random"], "sizes": [30]}
 TEST = 30
 
 
@@ -77,6 +76,8 @@ def _fmt(x, digits=2):
 
 def _cell(r: dict | None) -> str:
     if r is None:
+        return "-"
+    if r.get("unsupported"):
         return "n/a"
     if r.get("error"):
         return "error"
@@ -94,7 +95,7 @@ def markdown(out: dict) -> str:
              f"on `{out['paint']}` ({out['threads']} threads, {out['seconds']:.0f} s). Median over heliostats of "
              f"each heliostat's mean test error [mrad], {TEST} test records per heliostat (fewer where a heliostat "
              "has fewer); for networks, `(k/H)` = heliostats that kept their network (validation inside the "
-             "training records decides). `n/a`: the method has no plant prior.", "",
+             "training records decides). `n/a`: the method has no plant prior; `-`: not run.", "",
              "## Every method, split and training size", "",
              "| split | N | " + " | ".join(f"{m}{'' if p == 'none' else ' +prior'}" for m, p in cols) + " |",
              "|---|---|" + "---|" * len(cols)]
@@ -174,8 +175,9 @@ def reference(base, ds, quick: bool) -> dict:
     cfg = dict(split="isolation", train=20, test=20, min_records=50)
     out["hybrid: isolation, 20 + 20"] = {"lm": _run(base, ds, method="lm", **cfg),
                                          "network": _run(base, ds, method="hybrid", **cfg)}
-    out["mlp: isolation, 20 + 20"] = {"lm": out["hybrid: isolation, 20 + 20"]["lm"],
-                                      "network": _run(base, ds, method="mlp", **cfg)}
+    if not quick:
+        out["mlp: isolation, 20 + 20"] = {"lm": out["hybrid: isolation, 20 + 20"]["lm"],
+                                          "network": _run(base, ds, method="mlp", **cfg)}
     if not quick:
         cfg = dict(split="chrono", train=10, test=8, heliostats=["AA39"], min_records=10)
         out["images: AA39, chrono 10 + 8"] = {"lm": _run(base, ds, method="lm", **cfg),
@@ -189,6 +191,10 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(ROOT / "docs" / "methods"), help="path stem of the .json/.md/.png")
     ap.add_argument("--quick", action="store_true", help="a few splits and sizes (minutes on 2 cores)")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--methods", help="comma-separated subset of the grid's methods")
+    ap.add_argument("--splits", help="comma-separated subset of the grid's splits")
+    ap.add_argument("--sizes", help="comma-separated training sizes")
+    ap.add_argument("--no-reference", action="store_true", help="skip the reference protocols")
     args = ap.parse_args(argv)
     import torch
 
@@ -199,7 +205,10 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
     ds = load_paint(args.paint)
-    grid = QUICK if args.quick else FULL
+    grid = dict(QUICK if args.quick else FULL)
+    for key in ("methods", "splits", "sizes"):
+        if getattr(args, key):
+            grid[key] = [int(v) if key == "sizes" else v for v in getattr(args, key).split(",")]
     base = RunConfig(paint=args.paint, test=TEST, min_records=50)
     out = {"paint": args.paint, "quick": args.quick, "threads": args.threads, "grid": grid, "table": {}}
     for split in grid["splits"]:
@@ -208,6 +217,7 @@ def main(argv=None) -> int:
                 for p in grid["priors"]:
                     key = f"{m}/{p}/{split}/{n}"
                     if p == "plant" and not _supports_prior(m):
+                        out["table"][key] = {"unsupported": True}
                         continue
                     try:
                         out["table"][key] = _run(base, ds, method=m, split=split, train=n, prior="run" if p == "none"
@@ -217,7 +227,7 @@ def main(argv=None) -> int:
                     print(key, _cell(out["table"][key]), flush=True)
     mlp_chrono = out["table"].get(f"mlp/none/chrono/{grid['sizes'][-1]}", {})
     out["networks"] = mlp_chrono.get("per_heliostat_method_info", {})
-    out["reference"] = reference(base, ds, args.quick)
+    out["reference"] = {} if args.no_reference else reference(base, ds, args.quick)
     for name, ref in out["reference"].items():
         if not ref.get("skipped"):
             print(name, "lm", _fmt(ref["lm"]["median_mrad"]), "network", _cell(ref["network"]), flush=True)
