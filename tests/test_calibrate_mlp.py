@@ -25,8 +25,8 @@ def test_pretrained_mlp_reproduces_its_rigid_body_and_falls_back_without_gain(tm
     tr, va, te = b.subset(torch.arange(26)), b.subset(torch.arange(26, 32)), b.subset(torch.arange(32, 40))
     model = fit_mlp_method(kin, tr, va, **FAST)
     info = model.extras["per_heliostat"]["S0"]
-    # Before fine-tuning the network is its rigid body (the deviations are ~10 mrad, ~10^3 increments).
-    assert abs(info["validation_after_pretraining_mrad"] - info["rigid_validation_mrad"]) < 0.1
+    # Before fine-tuning the network is its rigid body (to first order in the step error of the metric).
+    assert abs(info["validation_after_pretraining_mrad"] - info["rigid_validation_mrad"]) < 0.02
     assert model.extras["summary"]["pretraining_rms_increments"] < 10.0
     # A rigid truth with 0.5 mrad noise leaves nothing to learn: the rigid body is used.
     assert info["rigid_validation_mrad"] < 1.0
