@@ -129,10 +129,12 @@ def markdown(out: dict) -> str:
               "* `mlp`'s first version failed on real records (412 mrad validation error after pretraining) because "
               "its network output the motor steps as a fraction of the actuator range (~10^4-10^5 increments, one "
               "increment ~0.02 mrad of axis rotation): useful answers need a relative precision of ~10^-5, a small "
-              "net trained a few hundred steps reaches ~10^-2. Now the network predicts the steps on top of the "
-              "plant geometry's (nominal or plant-prior) inverse, with an affine skip connection, from the sun "
-              "vector and the geometry's steps (an aim-offset input extrapolated on other targets); pretraining "
-              "on the heliostat's own lm rigid body reproduces it (tested), fine-tuning runs in growing cycles.",
+              "net trained a few hundred steps reaches ~10^-2. Learning the rigid body on top of the nominal "
+              "geometry (`base=\"nominal\"`, affine skip connection) still left 100-270 increments at the range's "
+              "edges (0.3-1.4 mrad worse than its rigid body on validation). The default network adds its steps to "
+              "the heliostat's own rigid body (`base=\"rigid\"`): pretraining on that rigid body's samples is exact "
+              "(the 'after pretraining' column equals the rigid one), fine-tuning runs in growing cycles with "
+              "rehearsal of the pretraining samples.",
               "* `mlp` and `hybrid` fall back to exactly `lm` (bagged, train + validation) wherever their network "
               "does not beat the rigid body significantly on the validation records inside `--train`.",
               "* Timings come from the machine named above; on a shared machine they are upper bounds.",
