@@ -78,3 +78,16 @@ def test_bad_sizes_raise_one_line_error():
         split_indices("chrono", az, el, t, 5, 5, 3)
     with pytest.raises(HeliotwinError):
         split_indices("nonsense", az, el, t, 5, 1, 3)
+
+
+def test_random_split_is_seeded_and_spreads_the_test_set_over_the_sky():
+    az, el, t = sky(80)
+    a = split_indices("random", az, el, t, 30, 6, 20, seed=3)
+    assert np.array_equal(a["test"], split_indices("random", az, el, t, 30, 6, 20, seed=3)["test"])
+    assert not np.array_equal(a["test"], split_indices("random", az, el, t, 30, 6, 20, seed=4)["test"])
+    # unlike isolation, the test records are no more isolated than the rest (interpolation protocol)
+    iso = split_indices("isolation", az, el, t, 30, 6, 20, seed=3)
+    d = knn_mean_distance(np.stack([az, el], -1), 3)
+    assert d[a["test"]].mean() < d[iso["test"]].mean()
+    # and not the latest ones either (chrono)
+    assert np.median(a["test"]) < np.median(split_indices("chrono", az, el, t, 30, 6, 20)["test"])

@@ -59,6 +59,20 @@ class BatchedMLP(torch.nn.Module):
             out = out.index_put((m.nonzero().flatten(),), h)
         return out
 
+    def dense(self, x: torch.Tensor) -> torch.Tensor:
+        """All networks at once on a padded batch: ``x`` [H, N, n_in] (row h through network h) -> [H, N, n_out].
+
+        One batched matrix product per layer (no loop over heliostats): the pretraining's thousands of
+        samples per network are padded to the same N by the caller.
+        """
+        n = len(self.weights)
+        h = x
+        for i, (w, b) in enumerate(zip(self.weights, self.biases)):
+            h = torch.baddbmm(b.unsqueeze(1), h, w)
+            if i < n - 1:
+                h = torch.nn.functional.selu(h)
+        return h
+
     def weight_norm(self) -> torch.Tensor:
         """Sum of squared weights per heliostat [H] (for weight decay)."""
         return sum((w ** 2).flatten(1).sum(1) for w in self.weights)
@@ -80,6 +94,17 @@ class BatchedMLP(torch.nn.Module):
             for i in range(len(net.weights)):
                 net.weights[i].copy_(torch.as_tensor(state[f"w{i}"]).double().unsqueeze(0))
                 net.biases[i].copy_(torch.as_tensor(state[f"b{i}"]).double().unsqueeze(0))
+        return net
+
+    @classmethod
+    def from_states(cls, config: dict, states: list) -> "BatchedMLP":
+        """A len(states)-network batch from :meth:`state_of` outputs (e.g. one network per motor axis)."""
+        net = cls(len(states), config["n_in"], config["n_out"], config["hidden"], config["depth"],
+                  torch.Generator().manual_seed(0))
+        with torch.no_grad():
+            for i in range(len(net.weights)):
+                net.weights[i].copy_(torch.stack([torch.as_tensor(s[f"w{i}"]).double() for s in states]))
+                net.biases[i].copy_(torch.stack([torch.as_tensor(s[f"b{i}"]).double() for s in states]))
         return net
 
     def copy_rows(self, other: "BatchedMLP", rows: torch.Tensor) -> None:

@@ -20,6 +20,9 @@ chrono
 isolation
     Rank records by their mean distance to their 3 nearest neighbours: most isolated T -> test, next V ->
     validation, the rest -> train (a seeded random subset when more than N - V remain).
+random
+    Seeded random T records -> test, a seeded random N of the rest -> pool (the MLP paper's protocol:
+    interpolation between sun positions the training records already cover).
 region
     Region sampler: circles of radius 0.25 rad around seeded random records; whole circles go to the test
     set until it has T records (the last circle is cut by distance to its centre), then likewise for
@@ -47,7 +50,7 @@ import torch
 
 from ...errors import HeliotwinError
 
-SPLIT_TYPES = ("chrono", "isolation", "region", "azimuth", "solstice", "balanced", "high_variance")
+SPLIT_TYPES = ("chrono", "isolation", "region", "random", "azimuth", "solstice", "balanced", "high_variance")
 
 
 # ------------------------------------------------------------------------------------------ distances
@@ -179,6 +182,11 @@ def _rule(kind: str, points: np.ndarray, times: np.ndarray, n_keep: int, n_out: 
         out, rest = order[:n_out], order[n_out:]
         pool = _take_random(np.sort(rest), n_keep, seed)
         return pool, out, np.setdiff1d(rest, pool)
+    if kind == "random":
+        out = _rng(seed).permutation(n)[:n_out]
+        rest = np.setdiff1d(all_idx, out)
+        pool = _take_random(rest, n_keep, seed)
+        return pool, np.sort(out), np.setdiff1d(rest, pool)
     if kind == "region":
         out = _region_take(points, all_idx, n_out, seed)
         rest = np.setdiff1d(all_idx, out)
