@@ -32,16 +32,20 @@ def benchmark_scene(surface_points: int = 10000, dtype=torch.float32):
     Parameters
     ----------
     surface_points : int
-        Approximate number of mirror points P (rounded to a square grid).
+        Approximate number of mirror points P (rounded to a square grid) on a 4 m x 4 m mirror.
     dtype : torch.dtype
         Of the returned point/normal/area tensors.
 
     Returns
     -------
     points : torch.Tensor, shape (1, P, 3)
+        Mirror points [m], ENU.
     normals : torch.Tensor, shape (1, P, 3)
+        Unit normals [1].
     areas : torch.Tensor, shape (1, P)
+        Area per point [m^2].
     sun_direction : torch.Tensor, shape (1, 3), float64
+        Unit vector towards the sun [1].
     target : PlanarTarget
     """
     d64 = torch.float64
@@ -117,7 +121,7 @@ def run_benchmark(surface_points: int = 10000, rays_per_point=(10, 100), resolut
     rays_per_point : int or sequence of int
         K values to time.
     resolution : int
-        Bitmap side (square bitmap).
+        Bitmap side [px] (square bitmap).
     seed : int
         Generator seed.
     threads : int or None

@@ -57,8 +57,9 @@ def check_memory_estimate(what: str, need_bytes: float) -> None:
 
 def check_trace_sizes(*, resolution: int, samples: int | None = None, facets: int = 1,
                       rays_per_point: int | None = None, points: int | None = None, images: int = 1) -> None:
-    """Bounds of one trace: ``resolution`` [px per side], ``samples`` per facet side (or ``points`` in all),
-    ``rays_per_point`` (Monte Carlo), ``images`` traced at once; refuses before anything is allocated."""
+    """Bounds of one trace: ``resolution`` [px] per side, ``samples`` per facet side (or ``points`` in all),
+    ``rays_per_point`` (Monte Carlo), ``images`` traced at once; refuses before anything is allocated
+    (:class:`~heliotwin.errors.HeliotwinError`, or the out-of-memory line; memory estimate [bytes])."""
     check_range("--resolution", resolution, 8, MAX_RESOLUTION)
     if samples is not None:
         check_range("--samples", samples, 1, MAX_SAMPLES)

@@ -72,6 +72,8 @@ class HybridModel(Calibrated):
     """Calibrated hybrid: static deviations plus network deviations per record."""
 
     def normals(self, batch: RecordTable):
+        """Model mirror normals of ``batch``'s R records with the network's deviations added where it is kept:
+        ``(normals (R, 3) unit ENU, centroids (R, 3) [m])`` as :func:`heliotwin.calibrate.metrics.model_normals`."""
         net, scale, t0 = self.extras["net"], self.extras["scale"], self.extras["t0"]
         use, span = self.extras["use_net"], self.extras.get("span")
         with torch.no_grad():
@@ -228,7 +230,9 @@ def fit_hybrid_method(nominal, train, validation, *, seed=0, progress=False, fie
 def aim_hybrid(net_entry: dict, kin, sun: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Motor steps for one heliostat with its hybrid network: fixed point over steps -> deviations -> inverse.
 
-    ``kin`` is the static calibrated kinematics (1 heliostat); network deviations are added on top.
+    ``kin`` is the static calibrated kinematics (1 heliostat); network deviations are added on top. ``sun``:
+    (3,) unit vector towards the sun, ENU; ``target``: (3,) aim point [m], ENU. Returns the motor steps (1, 2)
+    [increments].
     """
     cfg = net_entry["config"]
     steps, _ = K.inverse(kin, target, sun, strict=False)

@@ -228,9 +228,10 @@ def fit_images(nominal, train: RecordTable, validation: RecordTable | None, imag
     names : sequence of str, length P
         Deviations learned (:mod:`heliotwin.calibrate.params`).
     init, prior_mean : torch.Tensor, [H, P], optional
-        Start and prior centre (physical units; default zero).
+        Start and prior centre (physical units: [rad] for angles, [m] for lengths, [1] for relative
+        increments; default zero).
     prior_sigma : dict or torch.Tensor [P], optional
-        Prior standard deviation per kind or per parameter.
+        Prior standard deviation per kind or per parameter (same units: [rad], [m], [1]).
     settings : ImageFitSettings, optional
     **options
         Any field of :class:`ImageFitSettings` by keyword, replacing ``settings``'s.

@@ -122,6 +122,7 @@ class StepNetworks:
         self.net, self.x_mean, self.x_std, self.linear, self.y_scale = net, x_mean, x_std, linear, y_scale
 
     def with_net(self, net: BatchedMLP) -> "StepNetworks":
+        """The same standardisation and affine part with another network (a fine-tuned copy)."""
         return StepNetworks(net, self.x_mean, self.x_std, self.linear, self.y_scale)
 
     def increments(self, x_raw: torch.Tensor, hidx: torch.Tensor, net: BatchedMLP | None = None) -> torch.Tensor:
@@ -231,6 +232,8 @@ class MLPModel(Calibrated):
             return b_steps + nets.increments(x, batch.heliostat_index)
 
     def normals(self, batch: RecordTable):
+        """Mirror normals (R, 3) (unit, ENU) and centroids (R, 3) [m] of ``batch``'s R records: the rigid body's
+        normals moved by what the networks' motor steps change (the rigid body where no network is kept)."""
         rigid = self.kinematics
         with torch.no_grad():
             n_rec, c = metrics.model_normals(rigid, batch)

@@ -78,7 +78,8 @@ class BatchedMLP(torch.nn.Module):
         return sum((w ** 2).flatten(1).sum(1) for w in self.weights)
 
     def state_of(self, h: int) -> dict:
-        """One heliostat's weights as a flat dict of tensors (for the calibration file)."""
+        """One heliostat's weights as a flat dict of tensors (for the calibration file): ``w{i}`` of shape
+        (n_in_i, n_out_i) and ``b{i}`` of shape (n_out_i,) per layer i."""
         out = {}
         for i, (w, b) in enumerate(zip(self.weights, self.biases)):
             out[f"w{i}"] = w[h].detach().clone()

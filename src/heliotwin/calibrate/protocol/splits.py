@@ -125,7 +125,7 @@ def _take_random(idx: np.ndarray, n: int, seed) -> np.ndarray:
 
 
 def day_of_year(times: np.ndarray) -> np.ndarray:
-    """Fractional day of year (0 = Jan 1) of POSIX seconds (NaN stays NaN)."""
+    """Fractional day of year [days] (0 = Jan 1) of ``times`` (n,) in POSIX seconds [s] (NaN stays NaN); (n,)."""
     out = np.full(len(times), np.nan)
     for i, t in enumerate(times):
         if np.isfinite(t):
@@ -141,7 +141,8 @@ def _circular_day_distance(doy: np.ndarray, target: float) -> np.ndarray:
 
 
 def kmeans(points: np.ndarray, k: int, seed=0, iterations: int = 100) -> np.ndarray:
-    """Plain k-means (k-means++ initialisation, seeded); returns the cluster label of each point (n,)."""
+    """Plain k-means (k-means++ initialisation, seeded) of ``points`` (n, d) (unit sun vectors [1] here);
+    returns the cluster label of each point (n,)."""
     n = len(points)
     k = max(1, min(k, n))
     rng = _rng(seed)
@@ -262,7 +263,7 @@ def split_indices(kind: str, azimuth, elevation, times, n_train: int, n_val: int
     azimuth, elevation : array (n,)
         Sun angles [rad].
     times : array (n,)
-        POSIX seconds, NaN when unknown (dropped by the time-based types).
+        POSIX seconds [s], NaN when unknown (dropped by the time-based types).
     n_train : int
         Records a method may see (training + validation).
     n_val : int
@@ -315,7 +316,7 @@ def split_records(batch, kind: str, n_train: int, n_val: int, n_test: int | None
 
     Returns
     -------
-    train, validation, test : torch.Tensor (long)
+    train, validation, test : torch.Tensor, (n_train,), (n_validation,), (n_test,), long
         Indices into ``batch`` (all heliostats together).
     info : dict of heliostat id -> dict
         Sizes, ``dropped_no_time``, coverage of train/test and the mean train-to-test distance [rad].
