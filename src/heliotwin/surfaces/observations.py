@@ -210,8 +210,9 @@ def paint_observations(paint_dir, heliostat_id: str, *, plant=None, device: str 
     records = ds.records_of(heliostat_id)
     tr, te = split_record_ids(records.record_id.tolist(), records.datetime, records.flux_centered_png, train_records,
                               train_first)
-    train = observations_from_records(on_device, 0, records.subset(tr), resolution, background, alignment)
-    test = observations_from_records(on_device, 0, records.subset(te), resolution, background, alignment)
+    # poses from the records on the CPU (where the table is), then the observations move to the device
+    train = observations_from_records(ds.plant, 0, records.subset(tr), resolution, background, alignment)
+    test = observations_from_records(ds.plant, 0, records.subset(te), resolution, background, alignment)
     if device != "cpu":
         train, test = train.to(device), test.to(device)
     return ds, on_device, train, test
