@@ -432,23 +432,28 @@ def stone8_plant_fit(nominal: Kinematics, batch: RecordTable, prior: priors.Plan
     return delta
 
 
-def bagged(fit_one, batch: RecordTable, bags: int, seed: int):
+def bagged(fit_one, batch: RecordTable, bags: int, seed: int, *, carry: dict | None = None):
     """Average of ``fit_one(resampled batch)`` [H, P] over bootstrap resamples of every heliostat's records.
 
     Returns (mean delta, the first return value's extras of the full-data fit). Under an active checkpoint
     (:mod:`heliotwin.io.checkpoint`) the state is saved after every fit (full data, then each bag) and a
-    resumed run goes on after the last finished one.
+    resumed run goes on after the last finished one. ``carry`` (a dict of tensors that ``fit_one`` fills
+    on the full-data fit and the bags read, e.g. where their solves start) is saved and restored with that
+    state, so a resumed bag starts where the uninterrupted one did.
     """
     g = torch.Generator().manual_seed(int(seed))
     dev = batch.heliostat_index.device
     st: dict = {}
+    carry = {} if carry is None else carry
 
     def dump():
-        return {"full": st["full"].clone(), "extra": st["extra"], "acc": st["acc"].clone(), "gen": g.get_state()}
+        return {"full": st["full"].clone(), "extra": st["extra"], "acc": st["acc"].clone(), "gen": g.get_state(),
+                "carry": {k: v.detach().clone() for k, v in carry.items()}}
 
     def load(saved):
         g.set_state(saved["gen"])
         st.update(full=saved["full"].to(dev), acc=saved["acc"].to(dev), extra=_to(saved["extra"], dev))
+        carry.update({k: v.to(dev) for k, v in saved.get("carry", {}).items()})
 
     total = 1 if bags <= 0 or len(batch) == 0 else bags + 1
     # every heliostat's rows in ascending order (one stable sort, not one search of the table per heliostat)
@@ -638,10 +643,10 @@ def _static_fit(nominal, fit_on, ok, s: LMSettings, *, plant_prior, q: float, se
     starts: dict = {}  # the full-data fit's solutions: where the bags' fits start (same minima, fewer steps)
     if plant_prior is not None:
         delta, fp = bagged(lambda b: (stone8_plant_fit(nominal, b, plant_prior, starts=starts, **fit), None), fit_on,
-                           s.bags, seed)
+                           s.bags, seed, carry=starts)
     else:
         delta, fp = bagged(lambda b: stone8_field_fit(nominal, b, ok, field_prior=s.field_prior, starts=starts,
-                                                      **fit), fit_on, s.bags, seed)
+                                                      **fit), fit_on, s.bags, seed, carry=starts)
     delta[~ok] = 0.0
     return delta, fp
 
