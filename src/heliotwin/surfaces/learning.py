@@ -224,6 +224,12 @@ class LearnableSurface(nn.Module):
         self.register_buffer("start_mm", (disp / MM).clone())
         self.log_weights = nn.Parameter(torch.zeros_like(disp)) if learn_weights else None
 
+    def _apply(self, fn, *args, **kwargs):
+        # .cpu() / .to(device) move the facets too: they are a plain dataclass, not a registered buffer
+        super()._apply(fn, *args, **kwargs)
+        self.facets = Facets(*(fn(t) for t in (self.facets.translation, self.facets.canting_e, self.facets.canting_n)))
+        return self
+
     def _displacement_of(self, control_points: torch.Tensor, degree) -> torch.Tensor:
         # Least-squares normal offsets on this net reproducing the given surface's normal heights.
         h, _ = normal_heights(self.facets, control_points, degree, (24, 24))
