@@ -146,7 +146,7 @@ def test_gpu_smoke_reconstruct_and_predict(fit_paint, tmp_path, capsys):
     scenario = tmp_path / "learned.h5"
     code, _, err = run_cli(capsys, *argv, "--json", tmp_path / "r.json", "-o", scenario, "--device", "cpu", "--quiet")
     assert code == 0, err
-    g, c = _both(capsys, tmp_path, "p", "predict", "--scenario", scenario, "--every", "7d")
+    g, c = _both(capsys, tmp_path, "p", "predict", "--scenario", scenario, "--every", "169h")
     assert g["device"] == "cuda" and g["instants"] == c["instants"]
     ga, ca = g["statistics"]["l1_ideal_vs_learned"], c["statistics"]["l1_ideal_vs_learned"]
     assert ga["median"] == pytest.approx(ca["median"], abs=2e-3)
