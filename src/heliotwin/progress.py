@@ -17,7 +17,32 @@ from tqdm.auto import tqdm
 __all__ = ["Stages", "Progress", "iterate"]
 
 
-class Stages:
+class _Reporter:
+    """What :class:`Stages` and :class:`Progress` share: where the bar and the plain lines go, whether the
+    stream is a terminal (bar) or a log (lines), the start time, and the bar's lifetime."""
+
+    def __init__(self, total: int, desc: str, *, unit: str, enabled: bool, stream, lines, leave: bool):
+        self.total, self.desc, self.enabled = int(total), desc, bool(enabled)
+        self.stream = sys.stderr if stream is None else stream
+        self.lines = sys.stdout if lines is None else lines
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.done = 0
+        self.t0 = time.perf_counter()
+        self.bar = tqdm(total=self.total, desc=desc, unit=unit, file=self.stream, leave=leave,
+                        disable=not (self.enabled and self.tty))
+
+    def close(self) -> None:
+        """End the bar (a terminal gets its final newline); the plain lines need no ending. Idempotent."""
+        self.bar.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class Stages(_Reporter):
     """Progress of a run of ``total`` named stages.
 
     Parameters
@@ -34,14 +59,7 @@ class Stages:
     """
 
     def __init__(self, total: int, desc: str, *, enabled: bool = True, stream=None, lines=None):
-        self.total, self.desc, self.enabled = int(total), desc, bool(enabled)
-        self.stream = sys.stderr if stream is None else stream
-        self.lines = sys.stdout if lines is None else lines
-        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
-        self.done = 0
-        self.t0 = time.perf_counter()
-        self.bar = tqdm(total=self.total, desc=desc, unit="stage", file=self.stream,
-                        disable=not (self.enabled and self.tty))
+        super().__init__(total, desc, unit="stage", enabled=enabled, stream=stream, lines=lines, leave=True)
 
     def start(self, name: str) -> None:
         """Say which stage is running now (the bar's label on a terminal; a line in a log)."""
@@ -64,18 +82,8 @@ class Stages:
             print(f"{self.desc}: {self.done}/{self.total} {name} done ({time.perf_counter() - self.t0:.1f} s)",
                   file=self.lines, flush=True)
 
-    def close(self) -> None:
-        """End the bar (a terminal gets its final newline); the plain lines need no ending. Idempotent."""
-        self.bar.close()
 
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-
-class Progress:
+class Progress(_Reporter):
     """Progress over ``total`` work items: a tqdm bar on a terminal, a plain line every ``every`` percent in a log.
 
     Parameters
@@ -95,15 +103,9 @@ class Progress:
 
     def __init__(self, total: int, desc: str, *, unit: str = "it", enabled: bool = True, every: float = 10.0,
                  stream=None, lines=None):
-        self.total, self.desc, self.unit, self.enabled = max(0, int(total)), desc, unit, bool(enabled)
-        self.every = float(every)
-        self.stream = sys.stderr if stream is None else stream
-        self.lines = sys.stdout if lines is None else lines
-        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
-        self.done, self.said = 0, -1.0
-        self.t0 = time.perf_counter()
-        self.bar = tqdm(total=self.total, desc=desc, unit=unit, file=self.stream, leave=False,
-                        disable=not (self.enabled and self.tty))
+        super().__init__(max(0, int(total)), desc, unit=unit, enabled=enabled, stream=stream, lines=lines,
+                         leave=False)
+        self.unit, self.every, self.said = unit, float(every), -1.0
 
     def update(self, n: int = 1) -> None:
         """``n`` more items done."""
@@ -118,16 +120,6 @@ class Progress:
             self.said = pct if self.done < self.total else 100.0
             print(f"{self.desc}: {pct:.0f}% ({self.done}/{self.total} {self.unit}s, "
                   f"{time.perf_counter() - self.t0:.1f} s)", file=self.lines, flush=True)
-
-    def close(self) -> None:
-        """End the bar; idempotent."""
-        self.bar.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
 def iterate(items, desc: str, *, unit: str = "it", enabled: bool = True, every: float = 10.0, total=None):
