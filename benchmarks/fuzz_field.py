@@ -49,31 +49,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-PLANT_TOML = """\
-[site]
-latitude = 50.9134
-longitude = 6.3878
-altitude = 87.0
-[heliostat]
-width = 3.22
-height = 2.56
-facets = [1, 1]
-canting = "flat"
-reflectivity = 0.9
-slope_error_mrad = 1.53
-[receiver]
-type = "cylinder"
-radius = 4.1
-height = 5.0
-center = [0.0, 0.0, 55.0]
-opening_angle_deg = 360
-[sun]
-shape = "limb-darkened"
-dni = 1000.0
-[atmosphere]
-model = "polynomial"
-coefficients = [0.006789, 0.1046, -0.0107, 0.002845]
-"""
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+# the SolarPILOT reference case's plant, as the field tests and bench_field use it
+from helpers.field import PLANT_TOML  # noqa: E402
 
 #: TOML keys and the values each may be set to (TOML syntax).
 TOML_KEYS = [("site", "latitude"), ("site", "longitude"), ("site", "altitude"), ("heliostat", "width"),
@@ -264,6 +242,19 @@ class Campaign:
                                       "inputs_modified", "leftovers")}
         self.bad: list = []
         self.n = 0
+
+    def report(self, summary: str) -> int:
+        """Print which heliotwin ran, ``summary``, the first ``show`` bad cases and the counts; the exit status
+        (1 when any count but ``cases`` is non-zero)."""
+        import heliotwin
+
+        print(f"heliotwin {heliotwin.__version__} from {Path(heliotwin.__file__).parent}; {summary}")
+        for line in self.bad[:self.show]:
+            print("  " + line)
+        if len(self.bad) > self.show:
+            print(f"  ... {len(self.bad) - self.show} more")
+        print(" ".join(f"{k}={v}" for k, v in self.counts.items()))
+        return 1 if any(v for k, v in self.counts.items() if k != "cases") else 0
 
     def case(self, name: str, argv, *, inputs: dict, outputs=(), fifo: str | None = None, subprocess_: bool = False,
              timeout: float = 90.0, followup=None):
@@ -722,7 +713,6 @@ def main(argv=None) -> int:
     ap.add_argument("--no-subprocess", action="store_true", help="skip the subprocess cases (nproc, SIGTERM)")
     ap.add_argument("--show", type=int, default=25, help="bad cases to list (default %(default)s)")
     args = ap.parse_args(argv)
-    import heliotwin
 
     rng = random.Random(args.seed)
     t0 = time.perf_counter()
@@ -741,14 +731,7 @@ def main(argv=None) -> int:
         scenario_cases(c, base, rng, limit=max(60, (args.cases - c.counts["cases"]) // 2))
         if not args.no_subprocess:
             subprocess_cases(c, base)
-    print(f"heliotwin {heliotwin.__version__} from {Path(heliotwin.__file__).parent}; "
-          f"{time.perf_counter() - t0:.0f} s")
-    for line in c.bad[:args.show]:
-        print("  " + line)
-    if len(c.bad) > args.show:
-        print(f"  ... {len(c.bad) - args.show} more")
-    print(" ".join(f"{k}={v}" for k, v in c.counts.items()))
-    return 1 if any(v for k, v in c.counts.items() if k != "cases") else 0
+    return c.report(f"{time.perf_counter() - t0:.0f} s")
 
 
 if __name__ == "__main__":

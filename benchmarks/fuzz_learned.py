@@ -62,7 +62,6 @@ def main(argv=None) -> int:
     ap.add_argument("--show", type=int, default=25)
     ap.add_argument("--group", choices=sorted(READERS), action="append", help="only these learned groups")
     args = ap.parse_args(argv)
-    import heliotwin
 
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="fuzz-learned-") as tmp:
@@ -82,14 +81,7 @@ def main(argv=None) -> int:
         for label, name, how, argv in runs:
             damage(base, root / "damaged.h5", name, how)
             c.case(label, argv, inputs={"s.h5": root / "damaged.h5"}, outputs=["{d}/o.json"], timeout=120)
-    print(f"heliotwin {heliotwin.__version__} from {Path(heliotwin.__file__).parent}; "
-          f"{len(runs)} runs, {time.perf_counter() - t0:.0f} s")
-    for line in c.bad[:args.show]:
-        print("  " + line)
-    if len(c.bad) > args.show:
-        print(f"  ... {len(c.bad) - args.show} more")
-    print(" ".join(f"{k}={v}" for k, v in c.counts.items()))
-    return 1 if any(v for k, v in c.counts.items() if k != "cases") else 0
+    return c.report(f"{len(runs)} runs, {time.perf_counter() - t0:.0f} s")
 
 
 if __name__ == "__main__":
