@@ -372,10 +372,10 @@ def field_year(scenario, year: int, every: str = "1h", *, azimuth_step_deg: floa
         raise HeliotwinError(f"--every {_text(step)}: a whole number of days puts every instant at the same time "
                              "of day (e.g. all at night); use hours or minutes (1h, 30min, 25h)")
     atm = Atmosphere.from_extras(scenario.extras)
-    step = float(azimuth_step_deg)
-    if not 0 < step <= 180:
-        raise HeliotwinError(f"--table-azimuth-step: expected (0, 180] deg, got {step}")
-    table = efficiency_table(scenario.plant, atmosphere=atm, azimuths_deg=np.arange(-180.0, 180.0, step),
+    az_step = float(azimuth_step_deg)
+    if not 0 < az_step <= 180:
+        raise HeliotwinError(f"--table-azimuth-step: expected (0, 180] deg, got {az_step}")
+    table = efficiency_table(scenario.plant, atmosphere=atm, azimuths_deg=np.arange(-180.0, 180.0, az_step),
                              elevations_deg=DEFAULT_ELEVATIONS_DEG)
     if weather is not None:
         report = weather_energy(scenario.plant, weather, table, year)
