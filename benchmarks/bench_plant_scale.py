@@ -183,10 +183,12 @@ def reconstruct_stage(ctx: dict) -> dict:
     if s["learned"] != len(chosen):
         raise RuntimeError(f"reconstruct stage: {s['learned']} of {len(chosen)} heliostats learned "
                            f"({[r.get('reason') for r in report['heliostats'] if r['status'] != 'learned']})")
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     workers = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024  # the largest finished worker
     return {"seconds": seconds / len(chosen), "seconds_all": seconds, "heliostats": chosen, "nproc": ctx["nproc"],
             "seconds_per_heliostat_in_its_process": s["seconds_per_heliostat"],
-            "worker_peak_mib": workers if ctx["nproc"] > 1 else None,
+            # the table's peak: the largest process of the stage (a worker's, with --nproc > 1)
+            "peak_mib": max(own, workers) if ctx["nproc"] > 1 else own, "worker_peak_mib": workers,
             "median_test_l1_ideal": s["median_test_l1_ideal"], "median_test_l1_learned": s["median_test_l1_learned"]}
 
 
