@@ -59,6 +59,7 @@ from ..progress import Progress
 from ..surfaces.observations import split_record_ids
 from ..surfaces.state import KEY, PRIOR_KEY, surface_state
 from .reconstruct import ReconstructionSettings, learn_surface
+from .show import kinematics_note
 
 __all__ = ["reconstruct_plant", "plan_heliostats", "check_plant_settings", "plant_reconstruction_checkpoint",
            "HeliostatResults", "with_learned_surfaces"]
@@ -96,6 +97,13 @@ class HeliostatResults:
                                  f"start over")
         self.resumed = exists
         self.done = self.read() if exists else {}
+
+    @classmethod
+    def at(cls, path, tag: str) -> "HeliostatResults":
+        """The results folder ``path`` as it is (no existence check, nothing read yet): where workers write."""
+        out = cls.__new__(cls)
+        out.path, out.tag, out.resumed, out.done = os.fspath(path), str(tag), False, {}
+        return out
 
     def read(self) -> dict:
         """Every saved heliostat: ``{heliostat id: result}`` (a result as :func:`reconstruct_plant` keeps it)."""
@@ -311,9 +319,10 @@ def _learn_shard(job: dict, group) -> None:
     rank, world = dist.get_rank(group), dist.get_world_size(group)
     mine = [job["heliostats"][i] for i in shard(len(job["heliostats"]), rank, world).tolist()]
     bar = _Reporter(len(mine), f"heliotwin reconstruct: worker {rank + 1}/{world}", job["progress"], bar=False)
+    results = HeliostatResults.at(job["folder"], job["tag"])
     for h in mine:
         result = _learn_one(job["scenario"], job["paint"], h, job["settings"])
-        _save_result(job["folder"], job["tag"], h, result)
+        results.save(h, result)
         bar.done(result)
     bar.close()
 
@@ -338,9 +347,7 @@ def _learn_all(scenario, paint, todo: list, s: ReconstructionSettings, nproc: in
         tag = results.tag if results is not None else "this run"
         run_spawned(_learn_shard, {"scenario": scenario, "paint": os.fspath(paint), "heliostats": list(todo),
                                    "settings": s, "folder": folder, "tag": tag, "progress": progress}, nproc)
-        saved = HeliostatResults.__new__(HeliostatResults)
-        saved.path, saved.tag = folder, tag
-        got = saved.read()
+        got = HeliostatResults.at(folder, tag).read()
     if results is not None:  # a failed heliostat is learned again by a resumed run
         for h, r in got.items():
             if r["row"]["status"] != "learned":
@@ -447,6 +454,11 @@ def reconstruct_plant(scenario: Scenario | None, paint, heliostats="all",
     t0 = time.perf_counter()
     plant = scenario.plant if scenario is not None else None
     selected, learn, skipped, nominal = plan_heliostats(paint, heliostats, s, plant)
+    nominal_kinematics = [h for h in learn if "no calibration" in kinematics_note(scenario, h)]
+    if progress and nominal_kinematics:  # a surface learned on nominal kinematics must say so, up front
+        where = f"in {scenario.path or 'the scenario'}" if scenario is not None else "(no scenario)"
+        print(f"heliotwin reconstruct: {len(nominal_kinematics)} of {len(learn)} heliostats run on their nominal "
+              f"kinematics (no calibration {where})", flush=True)
     done = dict(checkpoint.done) if checkpoint is not None else {}
     done = {h: r for h, r in done.items() if h in set(learn) and r["row"]["status"] == "learned"}
     todo = [h for h in learn if h not in done]
