@@ -140,7 +140,7 @@ def test_an_interrupted_run_resumes_from_its_finished_heliostats(plant, learned,
     assert not ckpt.exists()  # removed once the outputs are in place
 
 
-def test_a_failing_heliostat_is_reported_in_one_line_and_the_others_finish(plant, tmp_path):
+def test_a_failing_heliostat_is_reported_in_one_line_and_the_others_finish(plant, tmp_path, capsys):
     folder, with_images = plant
     copy = tmp_path / "paint"
     shutil.copytree(folder, copy)
@@ -149,7 +149,12 @@ def test_a_failing_heliostat_is_reported_in_one_line_and_the_others_finish(plant
     skipped = next(p.name for p in sorted(copy.iterdir()) if p.is_dir() and p.name not in with_images
                    and (p / "Properties").is_dir())
     scenario, report = reconstruct_plant(None, copy, [with_images[0], skipped, with_images[1]],
-                                         ReconstructionSettings(**SMALL), progress=False)
+                                         ReconstructionSettings(**SMALL), progress=True)
+    # In a log: one line per heliostat learned or failed; the learner's own leave-one-out progress stays quiet.
+    lines = capsys.readouterr().out.splitlines()
+    assert [ln.split(" (")[0] for ln in lines if "/2 " in ln] == [
+        f"heliotwin reconstruct: 1/2 {with_images[0]} failed", f"heliotwin reconstruct: 2/2 {with_images[1]} learned"]
+    assert not any("leave-one-out" in ln for ln in lines)
     rows = report["heliostats"]
     assert [r["heliostat"] for r in rows] == [with_images[0], skipped, with_images[1]]  # selection order
     assert [r["status"] for r in rows] == ["failed", "skipped", "learned"]
