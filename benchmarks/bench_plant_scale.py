@@ -14,9 +14,12 @@ hangs is cut off by ``--timeout``):
   calibrated on the records before that day (the ``calibrate`` stage's: chronological, its earliest records;
   else one made here, outside the timing); the stage fails if the calibration saw any of the day's records.
   Timed: the update call;
-* ``reconstruct`` -- :func:`heliotwin.workflows.reconstruct.reconstruct` on ``--sample`` heliostats that have
-  simulated images (``--images K`` makes the simulate stage draw them); timed: seconds per heliostat
-  (``--reconstruct-steps``: its step budget);
+* ``reconstruct`` -- :func:`heliotwin.workflows.reconstruct_plant.reconstruct_plant` (``heliotwin reconstruct
+  --heliostats``) on ``--sample`` heliostats that have simulated images (``--images K`` makes the simulate stage
+  draw them, 3 training + 7 test each), in ``--nproc`` worker processes; timed: the run's wall seconds per
+  heliostat (``seconds``; with ``--nproc 2`` and ``OMP_NUM_THREADS=1`` that is the figure on 2 cores), also each
+  heliostat's own seconds in its process and the largest worker's peak memory (``worker_peak_mib``);
+  ``--reconstruct-steps``: the step budget (default: the learner's, 300);
 * ``aimpoints`` -- :func:`heliotwin.workflows.aimpoints.aimpoints` (default settings) on the truth plant for one
   sun (2024-06-01 11:00 UTC), the peak limit 0.8 x the equator-aimed peak; timed: the aimpoints call.
 
@@ -37,6 +40,8 @@ Usage::
         [--sizes 100 500 2000 10000] [--stages simulate read read_cached calibrate] [--timeout 600]
     OMP_NUM_THREADS=1 python benchmarks/bench_plant_scale.py --out /tmp/plant-loop-stages --sizes 100 500 2000 \
         --stages simulate calibrate update aimpoints reconstruct --images 2 --sample 2 --reconstruct-steps 60
+    OMP_NUM_THREADS=1 python benchmarks/bench_plant_scale.py --out /tmp/plant-reconstruct --sizes 20 \
+        --stages simulate reconstruct --images 4 --sample 4 --nproc 2      # seconds per heliostat on 2 cores
 
 Writes ``<out>/plant_scale.json`` and ``<out>/plant_scale.md``; the simulated plants stay under ``<out>/size-N``
 (``--keep`` not given: removed after their size). Deterministic inputs (``--seed``); wall times depend on the
@@ -164,16 +169,27 @@ def update_stage(ctx: dict) -> dict:
 def reconstruct_stage(ctx: dict) -> dict:
     from bench_plant_loop import image_heliostats
 
-    from heliotwin.workflows.reconstruct import ReconstructionSettings, reconstruct
+    from heliotwin.workflows.reconstruct import ReconstructionSettings
+    from heliotwin.workflows.reconstruct_plant import reconstruct_plant
 
     chosen = image_heliostats(ctx["folder"])[:ctx["sample"]]
     if not chosen:
         raise RuntimeError("reconstruct stage: no heliostat has images (simulate with --images K)")
     settings = ReconstructionSettings(steps=ctx["reconstruct_steps"], device="cpu")
     t0 = time.perf_counter()
-    l1 = [reconstruct(None, ctx["folder"], h, settings, progress=False)[1].get("median_l1_learned") for h in chosen]
+    _, report = reconstruct_plant(None, ctx["folder"], chosen, settings, nproc=ctx["nproc"], progress=False)
     seconds = time.perf_counter() - t0
-    return {"seconds": seconds / len(chosen), "seconds_all": seconds, "heliostats": chosen, "median_l1_learned": l1}
+    s = report["summary"]
+    if s["learned"] != len(chosen):
+        raise RuntimeError(f"reconstruct stage: {s['learned']} of {len(chosen)} heliostats learned "
+                           f"({[r.get('reason') for r in report['heliostats'] if r['status'] != 'learned']})")
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    workers = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024  # the largest finished worker
+    return {"seconds": seconds / len(chosen), "seconds_all": seconds, "heliostats": chosen, "nproc": ctx["nproc"],
+            "seconds_per_heliostat_in_its_process": s["seconds_per_heliostat"],
+            # the table's peak: the largest process of the stage (a worker's, with --nproc > 1)
+            "peak_mib": max(own, workers) if ctx["nproc"] > 1 else own, "worker_peak_mib": workers,
+            "median_test_l1_ideal": s["median_test_l1_ideal"], "median_test_l1_learned": s["median_test_l1_learned"]}
 
 
 @stage("aimpoints")
@@ -203,7 +219,7 @@ def _child(args) -> None:
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     ctx = {"size": args.size, "seed": args.seed, "folder": os.path.join(args.work, "plant"),
            "truth": os.path.join(args.work, "truth.h5"), "work": args.work, "images": args.images,
-           "sample": args.sample, "reconstruct_steps": args.reconstruct_steps}
+           "sample": args.sample, "reconstruct_steps": args.reconstruct_steps, "nproc": args.nproc}
     t0 = time.perf_counter()
     extra = STAGES[args.child](ctx)
     wall = time.perf_counter() - t0
@@ -214,7 +230,7 @@ def _child(args) -> None:
 
 def run_stage(name: str, size: int, work: Path, seed: int, timeout: float, options: tuple = ()) -> dict:
     """One stage in a subprocess: its result, or ``{"status": "timeout" | "failed", ...}``; ``options``: more
-    command-line words for the child (``--images``, ``--sample``, ``--reconstruct-steps``)."""
+    command-line words for the child (``--images``, ``--sample``, ``--nproc``, ``--reconstruct-steps``)."""
     cmd = [sys.executable, os.path.abspath(__file__), "--child", name, "--size", str(size), "--seed", str(seed),
            "--work", str(work), *options]
     t0 = time.perf_counter()
@@ -268,6 +284,7 @@ def main(argv=None) -> int:
                    help="heliostats the simulate stage gives flux-centred images (the reconstruct stage needs some)")
     p.add_argument("--sample", type=int, default=2, help="heliostats the reconstruct stage reconstructs")
     p.add_argument("--reconstruct-steps", type=int, default=None, help="reconstruct's step budget (default its own)")
+    p.add_argument("--nproc", type=int, default=1, help="reconstruct's worker processes")
     p.add_argument("--child", help=argparse.SUPPRESS)
     p.add_argument("--size", type=int, help=argparse.SUPPRESS)
     p.add_argument("--work", help=argparse.SUPPRESS)
@@ -280,7 +297,7 @@ def main(argv=None) -> int:
     results = {"sizes": args.sizes, "stages": {s: {} for s in args.stages}, "growth": {},
                "threads": os.environ.get("OMP_NUM_THREADS"), "cpus": os.cpu_count()}
     stopped: set = set()
-    options = ("--images", str(args.images), "--sample", str(args.sample),
+    options = ("--images", str(args.images), "--sample", str(args.sample), "--nproc", str(args.nproc),
                *(("--reconstruct-steps", str(args.reconstruct_steps)) if args.reconstruct_steps else ()))
     for size in args.sizes:
         work = out / f"size-{size}"

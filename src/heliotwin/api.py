@@ -18,6 +18,7 @@ Functions
 :func:`load` (records on a plant), :func:`field` (the plant alone), :func:`trace_record` (one record's flux
 and report), :func:`plot_flux` (a titled, labelled figure with a colour bar), :func:`calibrate` (kinematics),
 :func:`update` (assimilate new records into a calibration), :func:`reconstruct` (a mirror surface),
+:func:`reconstruct_plant` (the mirror surfaces of every heliostat with images),
 :func:`to_device` (move plant pieces between CPU and GPU);
 the whole field: :func:`field_efficiency` (one sun), :func:`optimise_aimpoints` (aim points under a peak limit),
 :func:`plot_receiver_flux` (maps on one scale), :func:`export_plant` (SolarPILOT / SolTrace),
@@ -44,6 +45,8 @@ from .workflows.field import FieldRunSettings, sun_direction_at, sun_instants
 from .workflows.field import field as field_workflow
 from .workflows.reconstruct import ReconstructionSettings, reconstruction_checkpoint
 from .workflows.reconstruct import reconstruct as reconstruct_surface
+from .workflows.reconstruct_plant import plant_reconstruction_checkpoint
+from .workflows.reconstruct_plant import reconstruct_plant as reconstruct_surfaces
 from .workflows.show import export_plant as export_workflow
 from .workflows.simulate import SimulationSettings
 from .workflows.simulate import score as score_workflow
@@ -53,7 +56,8 @@ from .workflows.trace import trace_record as trace_workflow
 from .workflows.update import UpdateSettings
 from .workflows.update import update as update_workflow
 
-__all__ = ["load", "field", "trace_record", "plot_flux", "calibrate", "reconstruct", "ReconstructionSettings",
+__all__ = ["load", "field", "trace_record", "plot_flux", "calibrate", "reconstruct", "reconstruct_plant",
+           "ReconstructionSettings",
            "to_device", "field_efficiency", "FieldRunSettings", "optimise_aimpoints", "AimpointSettings",
            "plot_receiver_flux", "export_plant", "read_weather", "update",
            "simulate", "score", "SimulationSettings"]
@@ -296,6 +300,51 @@ def reconstruct(paint, heliostat: str, settings: ReconstructionSettings | None =
     if ck is not None:
         ck.remove()
     return report, fit["model"]
+
+
+def reconstruct_plant(paint, heliostats="all", settings: ReconstructionSettings | None = None, *, scenario=None,
+                      nproc: int = 1, output=None, checkpoint=None, resume: bool = False, progress: bool = True):
+    """Learn the mirror surface of every selected heliostat with enough centred flux images (``heliotwin
+    reconstruct --heliostats``).
+
+    Parameters
+    ----------
+    paint : str or os.PathLike
+        PAINT download folder.
+    heliostats : "all" or list of str
+        The selection; heliostats without enough images are skipped (listed in the report with the reason).
+    settings : heliotwin.workflows.reconstruct.ReconstructionSettings, optional
+        Per heliostat, as for :func:`reconstruct`.
+    scenario : str or os.PathLike, optional
+        Start from this scenario's plant (e.g. a calibrated one).
+    nproc : int
+        Worker processes (CPU).
+    output : str or os.PathLike, optional
+        Write the scenario with every learned surface there.
+    checkpoint, resume
+        A checkpoint *folder* (one file per finished heliostat); ``resume=True`` skips the heliostats it holds.
+        Removed after a finished run.
+    progress : bool
+        Progress per heliostat.
+
+    Returns
+    -------
+    report : dict
+        ``heliostats`` (a row per heliostat: status, train/test median L1 ideal vs learned, accepted, seconds)
+        and ``summary`` (:func:`heliotwin.workflows.reconstruct_plant.reconstruct_plant`).
+    scenario : heliotwin.io.scenario.Scenario
+        The plant with every learned surface.
+    """
+    s = settings or ReconstructionSettings()
+    ck = None if checkpoint is None else plant_reconstruction_checkpoint(checkpoint, paint, s, scenario_path=scenario,
+                                                                         resume=resume)
+    previous = load_scenario(scenario) if scenario is not None else None
+    new, report = reconstruct_surfaces(previous, paint, heliostats, s, nproc=nproc, checkpoint=ck, progress=progress)
+    if output is not None:
+        write_scenario(new, output)
+    if ck is not None:
+        ck.remove()
+    return report, new
 
 
 # ------------------------------------------------------------------------------------ the whole field

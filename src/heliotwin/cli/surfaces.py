@@ -5,12 +5,19 @@ Usage::
     heliotwin reconstruct --paint PAINT_DIR --heliostat AA39 --train-first 3 -o learned.h5 --json report.json
     heliotwin reconstruct ... --deflectometry AA39-deflectometry.h5
     heliotwin reconstruct --paint PAINT_DIR --heliostat AA39 --surface-prior-from S1.h5,S2.h5 -o learned.h5 ...
+    heliotwin reconstruct --paint PAINT_DIR --heliostats all --nproc 2 -o plant.h5 --json plant-report.json
+    heliotwin reconstruct --paint PAINT_DIR --heliostats AA39,AB40 --resume -o plant.h5 --json plant-report.json
     heliotwin predict --scenario learned.h5 --heliostat AA39 --year 2023 --every 30min --json out.json
 
 :func:`register` adds them to the main parser. Each command parses its flags into the workflow's settings and
 calls the workflow (:mod:`heliotwin.workflows.reconstruct`, :mod:`heliotwin.workflows.predict`), imported inside
 the command functions so that ``--help`` stays torch-free; it then writes the staged outputs. Output folders are
 checked before training, so a typo costs seconds, not a training run.
+
+``--heliostats all|A,B,C`` is the plant form (:mod:`heliotwin.workflows.reconstruct_plant`): every selected heliostat
+with enough centred images is learned (``--nproc N`` worker processes), the others are listed as skipped; ``-o``
+holds every learned surface, ``--json`` a row per heliostat and a summary (no figures), ``--resume`` continues
+from the finished heliostats.
 
 ``reconstruct`` has one learner. The flags of the retired second learner (``--method legacy``, ``--loss``,
 ``--integrator mc``, ``--background``, ``--start-from-deflectometry``) are refused in one line that says what
@@ -43,6 +50,10 @@ def cmd_reconstruct(args) -> int:
     from ..io.scenario import load_scenario, write_scenario
     from ..workflows.reconstruct import reconstruct, reconstruction_checkpoint
 
+    if args.heliostats is not None:
+        return _reconstruct_plant(args)
+    if args.nproc != 1:
+        raise HeliotwinError("--nproc shards heliostats: use it with --heliostats all|A,B,C")
     _set_threads(args.threads)
     settings = _settings(args)
     settings.check()  # before any file is read
@@ -73,6 +84,50 @@ def cmd_reconstruct(args) -> int:
 
 
 cmd_reconstruct.supports_cuda = True  # the learner follows args.device
+
+
+def _reconstruct_plant(args) -> int:
+    """``heliotwin reconstruct --heliostats``: :func:`heliotwin.workflows.reconstruct_plant.reconstruct_plant`, then
+    the scenario (``-o``) and the report (``--json``), staged; the per-heliostat checkpoint folder
+    (``<output>.ckpt``) is kept whenever the run does not finish (``--resume`` continues it)."""
+    from ..io.scenario import load_scenario, write_scenario
+    from ..workflows.reconstruct_plant import check_plant_settings, plant_reconstruction_checkpoint, reconstruct_plant
+
+    _set_threads(args.threads)
+    settings = _settings(args)
+    check_plant_settings(settings, args.nproc)  # before any file is read
+    path = checkpoint_file(args)
+    ck = None if path is None else plant_reconstruction_checkpoint(path, args.paint, settings,
+                                                                   scenario_path=args.scenario, resume=args.resume)
+    if ck is not None and ck.resumed:
+        stage(args, f"resuming from {path} ({len(ck.done)} heliostats finished)")
+    args.checkpoint_kept = None if ck is None else ck.path
+    with output_set([("--paint", args.paint), ("--scenario", args.scenario)]) as out:
+        json_path, output = out.file(args.json, "--json"), out.file(args.output, "-o")
+        previous = load_scenario(args.scenario) if args.scenario else None
+        stage(args, f"learning the surfaces of {args.heliostats} ({args.nproc} process(es)) on {settings.device}")
+        scenario, report = reconstruct_plant(previous, args.paint, _selection(args.heliostats), settings,
+                                             nproc=args.nproc, checkpoint=ck, progress=not args.quiet)
+        if output:
+            write_scenario(scenario, output)
+            report["output"] = os.fspath(args.output)
+        write_json(json_path, report)
+    if ck is not None:
+        ck.remove()
+    if not args.quiet:
+        s = report["summary"]
+        fmt = lambda v: "n/a" if v is None else f"{v:.3f}"  # noqa: E731
+        print(f"{s['learned']} learned ({s['accepted']} accepted, {s['resumed']} resumed), {s['skipped']} skipped, "
+              f"{s['failed']} failed of {s['heliostats']} heliostats; median test L1 ideal "
+              f"{fmt(s['median_test_l1_ideal'])} -> learned {fmt(s['median_test_l1_learned'])}; "
+              + ("" if s["seconds_per_heliostat"] is None else f"{s['seconds_per_heliostat']:.1f} s per heliostat; ")
+              + f"{s['seconds']:.1f} s")
+    return 0
+
+
+def _selection(text: str):
+    """``--heliostats``: ``"all"`` or the list of ids."""
+    return "all" if text.strip().lower() == "all" else [h.strip() for h in text.split(",") if h.strip()]
 
 
 #: Flags of the retired second learner: (flag, was it given?, what replaces it).
@@ -207,7 +262,13 @@ def register(subparsers) -> None:
     """Add ``reconstruct`` and ``predict`` to an argparse subparsers object."""
     p = subparsers.add_parser("reconstruct", help="learn a heliostat's mirror surface from PAINT flux images")
     p.add_argument("--paint", required=True, help="PAINT download folder")
-    p.add_argument("--heliostat", required=True, help="heliostat id, e.g. AA39")
+    which = p.add_mutually_exclusive_group(required=True)
+    which.add_argument("--heliostat", help="heliostat id, e.g. AA39")
+    which.add_argument("--heliostats", metavar="all|A,B,C",
+                       help="the plant form: learn every listed heliostat (all: the whole folder) that has enough "
+                            "centred images; the others are reported as skipped")
+    p.add_argument("--nproc", type=int_range(1, 1024, "a process count"), default=1,
+                   help="with --heliostats: learn the heliostats in N worker processes (threads split over them)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--train-records", help="comma-separated record ids to train on (rest with images: test)")
     g.add_argument("--train-first", type=positive_int,

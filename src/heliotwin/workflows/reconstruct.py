@@ -36,7 +36,7 @@ from ..surfaces.state import with_learned_surface
 from .show import kinematics_note
 from .sizes import check_range
 
-__all__ = ["ReconstructionSettings", "reconstruct", "reconstruction_checkpoint"]
+__all__ = ["ReconstructionSettings", "reconstruct", "learn_surface", "reconstruction_checkpoint"]
 
 
 @dataclass
@@ -170,6 +170,22 @@ def reconstruct(scenario: Scenario | None, paint, heliostat: str, settings: Reco
     """
     s = settings or ReconstructionSettings()
     s.check()
+    report, fit = learn_surface(scenario, paint, heliostat, s, checkpoint=checkpoint, progress=progress)
+    plant = scenario.plant if scenario is not None else None
+    base_plant = plant if plant is not None else scenario_from_paint(paint)
+    model, prior = fit["model"], fit["surface_prior"]
+    nxt = with_learned_surface(scenario, base_plant, heliostat, model.surfaces(), model.displacement.detach(),
+                               fit["optics"], train_records=[int(r["record"]) for r in report["train"]],
+                               target=fit["test"].targets[0].name, settings=report["settings"],
+                               source=os.path.abspath(paint), surface_prior=None if prior is None else prior.state())
+    return nxt, report, fit
+
+
+def learn_surface(scenario: Scenario | None, paint, heliostat: str, s: ReconstructionSettings, *,
+                  checkpoint: _checkpoint.Checkpoint | None = None, progress: bool = True) -> tuple[dict, dict]:
+    """:func:`reconstruct` without the next scenario: ``heliostat``'s images read, its surface learned and
+    evaluated; ``(report, fit)`` as there (``fit["model"]``, ``fit["surface_prior"]`` on the CPU). Reads only
+    this heliostat's records and images (the plant workflow calls it once per heliostat)."""
     prior = load_surface_prior(list(s.surface_prior_from), heliostat_id=heliostat) if s.surface_prior_from else None
     if prior is not None:
         check_leakage(prior, heliostat)
@@ -208,13 +224,7 @@ def reconstruct(scenario: Scenario | None, paint, heliostat: str, settings: Reco
     if device != "cpu":  # results come back on the CPU
         model, fit = model.cpu(), to_device(fit, "cpu")
         fit["train"], fit["test"] = train.to("cpu"), test.to("cpu")
-    fit = dict(fit, model=model, surface_prior=prior)
-    base_plant = plant if plant is not None else scenario_from_paint(paint)
-    nxt = with_learned_surface(scenario, base_plant, heliostat, model.surfaces(), model.displacement.detach(),
-                               fit["optics"], train_records=[int(r["record"]) for r in report["train"]],
-                               target=fit["test"].targets[0].name, settings=report["settings"],
-                               source=os.path.abspath(paint), surface_prior=None if prior is None else prior.state())
-    return nxt, report, fit
+    return report, dict(fit, model=model, surface_prior=prior)
 
 
 def _facets(plant, dtype=None) -> Facets:
