@@ -161,6 +161,13 @@ def test_a_failing_heliostat_is_reported_in_one_line_and_the_others_finish(plant
     assert bad.name in rows[0]["reason"] and "\n" not in rows[0]["reason"]
     assert sorted(scenario.learned["surfaces"]) == [with_images[1]]
     assert scenario.provenance[-1]["failed"] == [with_images[0]] and scenario.provenance[-1]["skipped"] == [skipped]
+    # The command line writes the others and exits 3, so a script sees that the plant is not complete.
+    out, rep = tmp_path / "plant.h5", tmp_path / "plant.json"
+    code, _, err = run_cli(capsys, "reconstruct", "--paint", copy, "--heliostats", f"{with_images[0]},{with_images[1]}",
+                           *FLAGS, "-o", out, "--json", rep)
+    assert code == 3 and "1 heliostat(s) failed" in err and len(err.strip().splitlines()) == 1
+    assert sorted(load_scenario(out).learned["surfaces"]) == [with_images[1]]
+    assert json.loads(rep.read_text())["summary"]["failed"] == 1
 
 
 def _parse_error(capsys, *argv):

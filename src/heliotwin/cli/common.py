@@ -34,7 +34,8 @@ __all__ = ["ArgumentParser", "run_command", "resolve_device", "stage", "add_resu
            "EXIT_TERMINATED", "EXIT_NOT_MET", "check_input_files", "OUT_OF_MEMORY"]
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT = 0, 1, 2
-EXIT_NOT_MET = 3  # aim point out of the actuator range (aim); peak-flux limit not met (aimpoints)
+EXIT_NOT_MET = 3  # aim point out of the actuator range (aim); peak-flux limit not met (aimpoints);
+# some heliostats failed (reconstruct --heliostats: the others are written)
 EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143  # 128 + SIGINT, 128 + SIGTERM (the shell's convention)
 
 

@@ -27,10 +27,12 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 
 from ..errors import HeliotwinError
 from ..io.report import output_set, write_json
 from .common import (
+    EXIT_NOT_MET,
     add_resume_flags,
     checkpoint_file,
     checkpointed,
@@ -122,7 +124,11 @@ def _reconstruct_plant(args) -> int:
               f"{fmt(s['median_test_l1_ideal'])} -> learned {fmt(s['median_test_l1_learned'])}; "
               + ("" if s["seconds_per_heliostat"] is None else f"{s['seconds_per_heliostat']:.1f} s per heliostat; ")
               + f"{s['seconds']:.1f} s")
-    return 0
+    failed = report["summary"]["failed"]
+    if failed:  # the outputs hold the others; a script must still see that the plant is not complete
+        print(f"heliotwin reconstruct: {failed} heliostat(s) failed (their reasons are in {args.json}); "
+              f"exit status {EXIT_NOT_MET}", file=sys.stderr)
+    return EXIT_NOT_MET if failed else 0
 
 
 def _selection(text: str):
