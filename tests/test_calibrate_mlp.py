@@ -65,3 +65,16 @@ def test_mlp_learns_a_non_rigid_step_error_that_lm_cannot():
     lm = fit_lm_method(kin, tr, va, bags=0, field_prior=False)
     e_mlp, e_lm = float(model.pointing_error(te).mean()), float(lm.pointing_error(te).mean())
     assert e_mlp < 0.8 * e_lm, (e_mlp, e_lm)
+
+
+def test_mlp_without_validation_records_keeps_its_rigid_body_exactly_as_lm():
+    # The online split's first rounds have no validation records: nothing can show that the network helps,
+    # so the rigid body (lm's fit on the same records) is used; an empty pose batch is not an error.
+    kin, true = _true_kinematics()
+    b = simulate(true, 30, 3, noise=5e-4)
+    tr, va, te = b.subset(torch.arange(20)), b.subset(torch.arange(0)), b.subset(torch.arange(20, 30))
+    assert K.inverse(kin, te.spot[:0], te.sun[:0], strict=False)[0].shape[0] == 0
+    model = fit_mlp_method(kin, tr, va, **FAST)
+    assert not bool(model.extras["use_net"][0])
+    lm = fit_lm_method(kin, tr, va, field_prior=False)
+    assert torch.allclose(model.pointing_error(te), lm.pointing_error(te), atol=1e-9)

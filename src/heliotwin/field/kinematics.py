@@ -205,7 +205,8 @@ def aim_angles(kin: Kinematics, aim_point, sun_direction, *, iterations: int = 2
     for _ in range(iterations):
         new = angles_for_normal(kin, bisector_normal(sun, concentrator, aim))
         _, concentrator = pose_from_angles(kin, new)
-        done = angles is not None and float((new - angles).abs().max()) < tolerance
+        # No poses (an empty validation set): nothing to iterate, and max() of nothing is undefined.
+        done = new.numel() == 0 or (angles is not None and float((new - angles).abs().max()) < tolerance)
         angles = new
         if done:
             break

@@ -415,6 +415,8 @@ def fit_mlp_method(nominal, train, validation, *, seed: int = 0, progress: bool 
         return loss
 
     def errors(net_rows=None, use=True):
+        if not len(va):  # no validation records (e.g. the online split's first rounds): nothing to score
+            return like.new_zeros((0,))
         model.extras["use_net"] = torch.full((h,), use, dtype=torch.bool, device=like.device)
         if net_rows is not None:
             model.extras["nets"] = nets.with_net(net_rows)
