@@ -98,7 +98,6 @@ def predictive(jacobian: torch.Tensor, normal: torch.Tensor, covariance: torch.T
         return {"expected": z, "median": z, "lower": z, "upper": z}
     dev = covariance.device
     eye = torch.eye(p, dtype=torch.float64, device=dev)
-    chol = torch.linalg.cholesky(covariance.double() + 1e-18 * eye)
     # the same draws for every record (drawn once, on the generator's device, then moved)
     xi = torch.randn(samples, p, generator=g, dtype=torch.float64).to(dev)
     eta = torch.randn(samples, 3, generator=g, dtype=torch.float64).to(dev)
@@ -107,7 +106,8 @@ def predictive(jacobian: torch.Tensor, normal: torch.Tensor, covariance: torch.T
     for rows in torch.arange(r, device=dev).split(max(1, PREDICTIVE_CHUNK // samples)):  # memory ~ chunk x samples
         # e[r, :, s] = J_r L_r xi_s + sd_r (eta_s - n_r (n_r . eta_s)): parameters, then noise in the mirror plane
         n = normal[rows].double()
-        e = (jacobian[rows].double() @ chol[rows]) @ xi.T  # [r, 3, S]
+        chol = torch.linalg.cholesky(covariance[rows].double() + 1e-18 * eye)  # per chunk: no [R, P, P] copies
+        e = (jacobian[rows].double() @ chol) @ xi.T  # [r, 3, S]
         e += sd[rows, None, None] * (eta.T[None] - n[:, :, None] * (n @ eta.T)[:, None, :])
         e = (e * e).sum(1).sqrt()  # [r, S]
         expected.append(e.mean(1))
