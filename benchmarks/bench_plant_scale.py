@@ -34,7 +34,7 @@ files)); return any JSON values to record next to the timing, and add it to ``--
 Usage::
 
     OMP_NUM_THREADS=1 python benchmarks/bench_plant_scale.py --out /tmp/plant-scale \
-        [--sizes 100 500 2000 10000] [--stages simulate read read_cached calibrate] [--timeout 600]
+        [--sizes 100 500 2000 10000] [--stages simulate read read_cached calibrate calibrate_nproc2] [--timeout 600]
     OMP_NUM_THREADS=1 python benchmarks/bench_plant_scale.py --out /tmp/plant-loop-stages --sizes 100 500 2000 \
         --stages simulate calibrate update aimpoints reconstruct --images 2 --sample 2 --reconstruct-steps 60
 
@@ -133,6 +133,32 @@ def calibrate_stage(ctx: dict) -> dict:
         out["truth_pointing_median_mrad"] = got["pointing_mrad"]["median"]
         out["truth_pointing_p95_mrad"] = got["pointing_mrad"]["p95"]
     return out
+
+
+@stage("calibrate_nproc2")
+def calibrate_nproc2_stage(ctx: dict) -> dict:
+    """The calibrate stage's workflow with ``nproc=2`` (two local gloo processes) and with one process, timed
+    each; the two must agree: the learned pointing against the truth (median, p95, mean, max over heliostats x
+    suns) to 1e-9 mrad."""
+    from heliotwin.io.paint import load_paint
+    from heliotwin.io.scenario import load_scenario
+    from heliotwin.simulate import score
+    from heliotwin.workflows.calibrate import CalibrationSettings, calibrate
+
+    dataset = load_paint(ctx["folder"], cache=True)  # read once: both runs fit the same records
+    t0 = time.perf_counter()
+    two, _ = calibrate(None, dataset, CalibrationSettings(nproc=2))
+    t1 = time.perf_counter()
+    one, _ = calibrate(None, dataset, CalibrationSettings())
+    t2 = time.perf_counter()
+    truth = load_scenario(ctx["truth"])
+    got = [score(truth, sc, flux=False)["pointing_mrad"] for sc in (two, one)]
+    diff = max(abs(got[0][k] - got[1][k]) for k in ("median", "p95", "mean", "max"))
+    if not diff <= 1e-9:
+        raise RuntimeError(f"calibrate_nproc2: nproc=2 and one process differ by {diff:g} mrad against the truth")
+    return {"seconds": t1 - t0, "seconds_nproc1": t2 - t1, "speedup": (t2 - t1) / (t1 - t0),
+            "truth_pointing_median_mrad": got[0]["median"], "max_difference_mrad": diff,
+            "worker_peak_mib": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024}  # largest rank
 
 
 @stage("update")
