@@ -8,7 +8,7 @@ import os
 import torch
 
 from heliotwin.io.records import SOURCES
-from heliotwin.simulate import SimulationSettings, simulate_plant, write_paint_folder
+from heliotwin.simulate import SimulationSettings, simulate_plant, write_paint_folder, writer
 from heliotwin.simulate.writer import _lla
 
 
@@ -37,7 +37,8 @@ def _reference_properties(kin, facets, width, height, lla, h: int) -> dict:
             "renovation": ""}
 
 
-def test_written_files_are_json_dumps_of_each_record_byte_for_byte(tmp_path):
+def test_written_files_are_json_dumps_of_each_record_byte_for_byte(tmp_path, monkeypatch):
+    monkeypatch.setattr(writer, "_RECORD_BLOCK", 40)  # several blocks of heliostats, one heliostat over a block
     sim = simulate_plant(SimulationSettings(heliostats=7, seed=11, years=0.5, records_per_month=6,
                                             utis_missing=0.3))
     root = write_paint_folder(sim, tmp_path / "plant")

@@ -108,6 +108,10 @@ _RECORD_TEMPLATE = ('{"motor_position": {"axis_1_motor_position": %d, "axis_2_mo
                     + '}, "sun_elevation": %r, "sun_azimuth": %r}')
 
 
+#: Records whose values are Python numbers at once while their files are written.
+_RECORD_BLOCK = 50_000
+
+
 def _point(p: list, present: bool) -> str:
     return f"[{p[0]!r}, {p[1]!r}, {p[2]!r}]" if present else "null"
 
@@ -167,23 +171,35 @@ def _write(sim: SimulatedPlant, root: str) -> None:
         _write_files(os.path.join(root, hid, "Properties"), [f"{hid}-heliostat-properties.json"],
                      [json.dumps(doc, indent=2)])
     r = len(rec)
-    spots = _lla(site, torch.nan_to_num(rec.focal_spots.reshape(-1, 3))).reshape(r, 2, 3).tolist() if r else []
-    present = torch.isfinite(rec.focal_spots).all(-1).tolist()
-    steps = rec.motor_steps.to(torch.int64).tolist()
-    az, el = torch.rad2deg(rec.sun_azimuth).tolist(), torch.rad2deg(rec.sun_elevation).tolist()
-    ids, hidx = rec.record_id.tolist(), rec.heliostat_index.tolist()
+    spots = _lla(site, torch.nan_to_num(rec.focal_spots.reshape(-1, 3))).reshape(r, 2, 3)
+    present = torch.isfinite(rec.focal_spots).all(-1)
+    steps = rec.motor_steps.to(torch.int64)
+    az, el = torch.rad2deg(rec.sun_azimuth), torch.rad2deg(rec.sun_elevation)
     # one file per record is the format; the values were computed batched above, the text is one template
-    # fill per record, and the files are written heliostat by heliostat (records grouped by a stable sort)
+    # fill per record, and the files are written heliostat by heliostat (records grouped by a stable sort), the
+    # values turned into Python numbers a block of records at a time (memory bounded at any plant size)
     target_json = {t: json.dumps(t) for t in set(rec.target)}
-    order = torch.argsort(rec.heliostat_index, stable=True).tolist()
+    order = torch.argsort(rec.heliostat_index, stable=True)
     bounds = torch.searchsorted(rec.heliostat_index[order], torch.arange(len(fl.ids) + 1)).tolist()
-    for h, hid in enumerate(fl.ids):
-        rows = order[bounds[h]:bounds[h + 1]]
-        names = [f"{ids[i]}-calibration-properties.json" for i in rows]
-        texts = [_RECORD_TEMPLATE % (steps[i][0], steps[i][1], target_json[rec.target[i]],
-                                     *(_point(spots[i][k], present[i][k]) for k in range(len(SOURCES))),
-                                     el[i], az[i]) for i in rows]
-        _write_files(os.path.join(root, hid, "Calibration"), names, texts)
+    h0 = 0
+    while h0 < len(fl.ids):
+        h1 = h0 + 1
+        while h1 < len(fl.ids) and bounds[h1 + 1] - bounds[h0] <= _RECORD_BLOCK:
+            h1 += 1
+        rows = order[bounds[h0]:bounds[h1]]
+        b_rid, b_steps, b_el, b_az = (rec.record_id[rows].tolist(), steps[rows].tolist(), el[rows].tolist(),
+                                      az[rows].tolist())
+        b_spots, b_present, b_rows = spots[rows].tolist(), present[rows].tolist(), rows.tolist()
+        for h in range(h0, h1):
+            mine = range(bounds[h] - bounds[h0], bounds[h + 1] - bounds[h0])
+            names = [f"{b_rid[j]}-calibration-properties.json" for j in mine]
+            texts = [_RECORD_TEMPLATE % (b_steps[j][0], b_steps[j][1], target_json[rec.target[b_rows[j]]],
+                                         *(_point(b_spots[j][k], b_present[j][k]) for k in range(len(SOURCES))),
+                                         b_el[j], b_az[j]) for j in mine]
+            _write_files(os.path.join(root, fl.ids[h], "Calibration"), names, texts)
+        h0 = h1
+    ids, hidx = rec.record_id.tolist(), rec.heliostat_index.tolist()
+    az, el = az.tolist(), el.tolist()
     for rid, img in sim.images.items():
         hid = fl.ids[hidx[ids.index(rid)]]
         to_png(img, os.path.join(root, hid, "Calibration", f"{rid}-flux-centered.png"))
