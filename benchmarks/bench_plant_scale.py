@@ -10,6 +10,9 @@ hangs is cut off by ``--timeout``):
 * ``read_cached`` -- read it again from the record cache;
 * ``calibrate`` -- :func:`heliotwin.workflows.calibrate.calibrate` with default settings, scored against the truth
   (its scenario is kept for ``update``);
+* ``calibrate_nproc2`` -- the same with ``nproc=2`` (two local processes); fails unless its pointing against the
+  truth equals the one-process result's (the ``calibrate`` stage's scenario, else a one-process run here) to
+  1e-9 mrad; timed: the nproc=2 call (``worker_peak_mib``: the largest worker's peak memory);
 * ``update`` -- the last day's records assimilated by :func:`heliotwin.workflows.update.update` into a scenario
   calibrated on the records before that day (the ``calibrate`` stage's: chronological, its earliest records;
   else one made here, outside the timing); the stage fails if the calibration saw any of the day's records.
@@ -37,7 +40,7 @@ files)); return any JSON values to record next to the timing, and add it to ``--
 Usage::
 
     OMP_NUM_THREADS=1 python benchmarks/bench_plant_scale.py --out /tmp/plant-scale \
-        [--sizes 100 500 2000 10000] [--stages simulate read read_cached calibrate] [--timeout 600]
+        [--sizes 100 500 2000 10000] [--stages simulate read read_cached calibrate calibrate_nproc2] [--timeout 600]
     OMP_NUM_THREADS=1 python benchmarks/bench_plant_scale.py --out /tmp/plant-loop-stages --sizes 100 500 2000 \
         --stages simulate calibrate update aimpoints reconstruct --images 2 --sample 2 --reconstruct-steps 60
     OMP_NUM_THREADS=1 python benchmarks/bench_plant_scale.py --out /tmp/plant-reconstruct --sizes 20 \
@@ -138,6 +141,37 @@ def calibrate_stage(ctx: dict) -> dict:
         out["truth_pointing_median_mrad"] = got["pointing_mrad"]["median"]
         out["truth_pointing_p95_mrad"] = got["pointing_mrad"]["p95"]
     return out
+
+
+@stage("calibrate_nproc2")
+def calibrate_nproc2_stage(ctx: dict) -> dict:
+    """The calibrate stage's workflow with ``nproc=2`` (two local gloo processes), timed, checked against the
+    one-process result: the calibrate stage's scenario when it ran before (its time is that stage's), else a
+    one-process run here (timed: ``seconds_nproc1``). Their pointing against the truth (median, p95, mean, max
+    over heliostats x suns) must agree to 1e-9 mrad."""
+    from heliotwin.io.paint import load_paint
+    from heliotwin.io.scenario import load_scenario
+    from heliotwin.simulate import score
+    from heliotwin.workflows.calibrate import CalibrationSettings, calibrate
+
+    dataset = load_paint(ctx["folder"], cache=True)  # the records the calibrate stage fits
+    t0 = time.perf_counter()
+    two, _ = calibrate(None, dataset, CalibrationSettings(nproc=2))
+    out = {"seconds": time.perf_counter() - t0,
+           "worker_peak_mib": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024}  # largest rank
+    path = os.path.join(ctx["work"], "calibrated.h5")
+    if os.path.exists(path):
+        one = load_scenario(path)
+    else:
+        t0 = time.perf_counter()
+        one, _ = calibrate(None, dataset, CalibrationSettings())
+        out["seconds_nproc1"] = time.perf_counter() - t0
+    truth = load_scenario(ctx["truth"])
+    got = [score(truth, sc, flux=False)["pointing_mrad"] for sc in (two, one)]
+    diff = max(abs(got[0][k] - got[1][k]) for k in ("median", "p95", "mean", "max"))
+    if not diff <= 1e-9:
+        raise RuntimeError(f"calibrate_nproc2: nproc=2 and one process differ by {diff:g} mrad against the truth")
+    return {**out, "truth_pointing_median_mrad": got[0]["median"], "max_difference_mrad": diff}
 
 
 @stage("update")
@@ -275,7 +309,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", default="/tmp/plant-scale")
     p.add_argument("--sizes", type=int, nargs="+", default=[100, 500, 2000, 10000])
-    p.add_argument("--stages", nargs="+", default=["simulate", "read", "read_cached", "calibrate"],
+    p.add_argument("--stages", nargs="+", default=["simulate", "read", "read_cached", "calibrate", "calibrate_nproc2"],
                    choices=sorted(STAGES))
     p.add_argument("--timeout", type=float, default=600.0, help="seconds per stage and size")
     p.add_argument("--seed", type=int, default=0)

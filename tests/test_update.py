@@ -204,6 +204,43 @@ def test_update_round_trips_state_and_history_and_never_reassimilates(tmp_path):
     assert 0 < ans["expected_error_mrad"] < 5 and ans["drift_days"] == pytest.approx(25.0, abs=1.0)
 
 
+def test_history_is_stored_compact_and_reads_back_exactly(tmp_path, monkeypatch):
+    """The history on disk: int32 counters, float32 state, compressed when large (here: every array, as a
+    plant-year's history is); ``state_history`` reads back exactly what it reads from the scenario in memory."""
+    import h5py
+    import numpy as np
+
+    import heliotwin.io.scenario as scenario_io
+
+    sc, kin, truth, train = _scenario()
+    stream = _stream(kin, truth, 2, 6, 5e-4, seed=7)
+    first = update(sc, RecordTable.concatenate([train, stream]))
+    monkeypatch.setattr(scenario_io, "COMPRESS_BYTES", 1)
+    path = write_scenario(first.scenario, tmp_path / "u.h5")
+    for hid, h in (("S0", 0), ("S1", 1)):
+        mem, disk = state_history(first.scenario, hid), state_history(path, hid)
+        assert mem["parameter_names"] == disk["parameter_names"] and set(mem) == set(disk)
+        for k in mem:
+            if isinstance(mem[k], np.ndarray):
+                assert mem[k].dtype == disk[k].dtype and np.array_equal(mem[k], disk[k]), k
+        assert disk["window"].dtype == np.int64 and disk["update"].dtype == np.int64
+        # the stored state is this update's to float32 rounding
+        mine = first.history["heliostat"] == h
+        order = torch.argsort(first.history["time"][mine], stable=True)
+        np.testing.assert_allclose(disk["mean"], first.history["mean"][mine][order].numpy(), rtol=1e-6, atol=1e-12)
+    with h5py.File(path, "r") as h5:
+        g = h5["learned/assimilation/history"]
+        assert g["mean"].compression == "gzip" and g["mean"].dtype == np.float32
+        assert g["heliostat"].dtype == np.int32 and g["update"].dtype == np.int32 and g["time"].dtype == np.float64
+    # a later update appends to the loaded (narrow) history
+    more = _stream(kin, truth, 2, 3, 5e-4, seed=8)
+    more.record_id += 10 ** 5
+    more.time += 30 * DAY
+    second, _ = update(load_scenario(path), RecordTable.concatenate([train, stream, more]))
+    assert len(state_history(second, "S1")["time"]) == 9
+    assert list(state_history(second, "S1")["update"]) == [1] * 6 + [2] * 3
+
+
 def test_update_refuses_a_scenario_without_a_posterior(tmp_path):
     sc, kin, truth, train = _scenario()
     nominal = sc.__class__(plant=sc.plant, extras={}, metadata={}, learned={}, provenance=[])

@@ -202,6 +202,19 @@ def _write_metadata(group: h5py.Group, metadata: dict, path) -> None:
     group.attrs["_json_keys"] = json.dumps(json_keys)
 
 
+#: Numeric arrays of ``/learned`` this large [bytes] or larger are stored chunked and compressed (byte shuffle +
+#: gzip: lossless, read back unchanged); smaller ones contiguous, where a chunk index would cost more than it saves.
+COMPRESS_BYTES = 16 * 1024
+
+
+def _array_dataset(group: h5py.Group, key: str, data: np.ndarray) -> h5py.Dataset:
+    """``data`` as the dataset ``key`` of ``group``: compressed when large and numeric (:data:`COMPRESS_BYTES`)."""
+    if data.nbytes >= COMPRESS_BYTES and data.ndim >= 1 and data.dtype.kind in "biuf":
+        return group.create_dataset(key, data=data, chunks=True, shuffle=True, compression="gzip",
+                                    compression_opts=4)
+    return group.create_dataset(key, data=data)
+
+
 def _write_extras(group: h5py.Group, extras: dict, path, where: str) -> None:
     if not isinstance(extras, dict):
         _fail_write(path, where, f"extras must be a dict, got {type(extras).__name__}")
@@ -212,9 +225,9 @@ def _write_extras(group: h5py.Group, extras: dict, path, where: str) -> None:
             _write_extras(group.create_group(key, track_order=True), value, path, name)
             continue
         if isinstance(value, torch.Tensor):
-            ds, kind = group.create_dataset(key, data=_to_numpy(value, path, name)), "torch"
+            ds, kind = _array_dataset(group, key, _to_numpy(value, path, name)), "torch"
         elif isinstance(value, np.ndarray):
-            ds, kind = group.create_dataset(key, data=_to_numpy(value, path, name)), "numpy"
+            ds, kind = _array_dataset(group, key, _to_numpy(value, path, name)), "numpy"
         elif isinstance(value, (bool, int, float, np.bool_, np.integer, np.floating)):
             ds, kind = group.create_dataset(key, data=np.asarray(value)), "scalar"
         elif isinstance(value, str):

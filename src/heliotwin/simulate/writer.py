@@ -67,30 +67,69 @@ def tower_json(plant) -> dict:
     return out
 
 
-def _properties(kin: Kinematics, facets, width, height, lla, h: int) -> dict:
+def _properties(kin: dict, facets: dict, width, height, lla, h: int) -> dict:
+    """Heliostat ``h``'s properties file; ``kin`` and ``facets``: the field's tensors as nested lists (one
+    conversion for the whole field, not a tensor index per value)."""
     acts = []
     for a in range(2):
-        acts.append({"type_axis": "linear" if bool(kin.linear[h, a]) else "ideal",
-                     "min_increment": float(kin.min_steps[h, a]), "max_increment": float(kin.max_steps[h, a]),
-                     "increment": float(kin.increment[h, a]), "offset_shift": 0,
-                     "initial_stroke_length": float(kin.initial_stroke_length[h, a]),
-                     "offset": float(kin.offset[h, a]), "pivot_radius": float(kin.pivot_radius[h, a]),
-                     "radius_shift": 0, "clockwise_axis_movement": int(bool(kin.clockwise[h, a])),
-                     "initial_angle": float(kin.initial_angle[h, a]),
-                     "min_movement_angle": float(kin.min_angle[h, a]), "max_movement_angle": float(kin.max_angle[h, a]),
+        acts.append({"type_axis": "linear" if bool(kin["linear"][h][a]) else "ideal",
+                     "min_increment": float(kin["min_steps"][h][a]), "max_increment": float(kin["max_steps"][h][a]),
+                     "increment": float(kin["increment"][h][a]), "offset_shift": 0,
+                     "initial_stroke_length": float(kin["initial_stroke_length"][h][a]),
+                     "offset": float(kin["offset"][h][a]), "pivot_radius": float(kin["pivot_radius"][h][a]),
+                     "radius_shift": 0, "clockwise_axis_movement": int(bool(kin["clockwise"][h][a])),
+                     "initial_angle": float(kin["initial_angle"][h][a]),
+                     "min_movement_angle": float(kin["min_angle"][h][a]),
+                     "max_movement_angle": float(kin["max_angle"][h][a]),
                      "movement_speed": 0})
     kp = {"actuators": acts}
     for j in range(2):
         for i, ax in enumerate("enu"):
-            kp[f"joint_translation_{ax}_{j + 1}"] = float(kin.joint_translation[h, j, i])
+            kp[f"joint_translation_{ax}_{j + 1}"] = float(kin["joint_translation"][h][j][i])
     for i, ax in enumerate("enu"):
-        kp[f"concentrator_translation_{ax}"] = float(kin.concentrator_translation[h, i])
-    fac = [{"translation_vector": facets.translation[h, f].tolist(), "canting_e": facets.canting_e[h, f].tolist(),
-            "canting_n": facets.canting_n[h, f].tolist()} for f in range(facets.translation.shape[1])]
+        kp[f"concentrator_translation_{ax}"] = float(kin["concentrator_translation"][h][i])
+    fac = [{"translation_vector": t, "canting_e": e, "canting_n": n}
+           for t, e, n in zip(facets["translation"][h], facets["canting_e"][h], facets["canting_n"][h])]
     return {"heliostat_position": lla, "height": float(height), "width": float(width),
             "initial_orientation": [0.0, -1.0, 0.0], "kinematic_properties": kp,
             "facet_properties": {"canting_type": "receiver canting", "number_of_facets": len(fac), "facets": fac},
             "renovation": ""}
+
+
+#: Kinematic fields a properties file states (converted to lists once per field).
+_PROPERTY_FIELDS = ("linear", "min_steps", "max_steps", "increment", "initial_stroke_length", "offset",
+                    "pivot_radius", "clockwise", "initial_angle", "min_angle", "max_angle", "joint_translation",
+                    "concentrator_translation")
+
+#: One calibration record's file, exactly as ``json.dumps`` writes its dict (keys in this order, ``", "`` and
+#: ``": "`` separators, floats by ``repr``, a missing focal spot ``null``); filled by ``%`` in one pass.
+_RECORD_TEMPLATE = ('{"motor_position": {"axis_1_motor_position": %d, "axis_2_motor_position": %d}, '
+                    '"target_name": %s, "focal_spot": {' + ", ".join(f'"{src}": %s' for src in SOURCES)
+                    + '}, "sun_elevation": %r, "sun_azimuth": %r}')
+
+
+#: Records whose values are Python numbers at once while their files are written.
+_RECORD_BLOCK = 50_000
+
+
+def _point(p: list, present: bool) -> str:
+    return f"[{p[0]!r}, {p[1]!r}, {p[2]!r}]" if present else "null"
+
+
+def _write_files(folder: str, names: list, contents: list) -> None:
+    """Create the files ``names`` (new) in ``folder`` with ``contents`` (str, UTF-8): one openat, write and
+    close each, the folder opened once (the format is one small file per record, so the syscalls are the cost;
+    Python's buffered text files add a stat, an isatty and a seek per file)."""
+    dir_fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        for name, text in zip(names, contents):
+            fd = os.open(name, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666, dir_fd=dir_fd)
+            try:
+                os.write(fd, text.encode("utf-8"))
+            finally:
+                os.close(fd)
+    finally:
+        os.close(dir_fd)
 
 
 def write_paint_folder(sim: SimulatedPlant, folder) -> str:
@@ -122,27 +161,45 @@ def _write(sim: SimulatedPlant, root: str) -> None:
     fl = plant.field
     kin = fl.kinematics
     pos_lla = _lla(site, kin.position.double()).tolist()
+    kin_lists = {f: getattr(kin, f).tolist() for f in _PROPERTY_FIELDS}
+    facet_lists = {f: getattr(fl.facets, f).tolist() for f in ("translation", "canting_e", "canting_n")}
+    widths, heights = torch.as_tensor(fl.width).tolist(), torch.as_tensor(fl.height).tolist()
     for h, hid in enumerate(fl.ids):
         os.makedirs(os.path.join(root, hid, "Properties"))
         os.makedirs(os.path.join(root, hid, "Calibration"))
-        with open(os.path.join(root, hid, "Properties", f"{hid}-heliostat-properties.json"), "w",
-                  encoding="utf-8") as fh:
-            json.dump(_properties(kin, fl.facets, fl.width[h], fl.height[h], pos_lla[h], h), fh, indent=2)
+        doc = _properties(kin_lists, facet_lists, widths[h], heights[h], pos_lla[h], h)
+        _write_files(os.path.join(root, hid, "Properties"), [f"{hid}-heliostat-properties.json"],
+                     [json.dumps(doc, indent=2)])
     r = len(rec)
-    spots = _lla(site, torch.nan_to_num(rec.focal_spots.reshape(-1, 3))).reshape(r, 2, 3).tolist() if r else []
-    present = torch.isfinite(rec.focal_spots).all(-1).tolist()
-    steps = rec.motor_steps.to(torch.int64).tolist()
-    az, el = torch.rad2deg(rec.sun_azimuth).tolist(), torch.rad2deg(rec.sun_elevation).tolist()
+    spots = _lla(site, torch.nan_to_num(rec.focal_spots.reshape(-1, 3))).reshape(r, 2, 3)
+    present = torch.isfinite(rec.focal_spots).all(-1)
+    steps = rec.motor_steps.to(torch.int64)
+    az, el = torch.rad2deg(rec.sun_azimuth), torch.rad2deg(rec.sun_elevation)
+    # one file per record is the format; the values were computed batched above, the text is one template
+    # fill per record, and the files are written heliostat by heliostat (records grouped by a stable sort), the
+    # values turned into Python numbers a block of records at a time (memory bounded at any plant size)
+    target_json = {t: json.dumps(t) for t in set(rec.target)}
+    order = torch.argsort(rec.heliostat_index, stable=True)
+    bounds = torch.searchsorted(rec.heliostat_index[order], torch.arange(len(fl.ids) + 1)).tolist()
+    h0 = 0
+    while h0 < len(fl.ids):
+        h1 = h0 + 1
+        while h1 < len(fl.ids) and bounds[h1 + 1] - bounds[h0] <= _RECORD_BLOCK:
+            h1 += 1
+        rows = order[bounds[h0]:bounds[h1]]
+        b_rid, b_steps, b_el, b_az = (rec.record_id[rows].tolist(), steps[rows].tolist(), el[rows].tolist(),
+                                      az[rows].tolist())
+        b_spots, b_present, b_rows = spots[rows].tolist(), present[rows].tolist(), rows.tolist()
+        for h in range(h0, h1):
+            mine = range(bounds[h] - bounds[h0], bounds[h + 1] - bounds[h0])
+            names = [f"{b_rid[j]}-calibration-properties.json" for j in mine]
+            texts = [_RECORD_TEMPLATE % (b_steps[j][0], b_steps[j][1], target_json[rec.target[b_rows[j]]],
+                                         *(_point(b_spots[j][k], b_present[j][k]) for k in range(len(SOURCES))),
+                                         b_el[j], b_az[j]) for j in mine]
+            _write_files(os.path.join(root, fl.ids[h], "Calibration"), names, texts)
+        h0 = h1
     ids, hidx = rec.record_id.tolist(), rec.heliostat_index.tolist()
-    for i in range(r):  # one file per record is the format; the values were computed batched above
-        hid = fl.ids[hidx[i]]
-        doc = {"motor_position": {"axis_1_motor_position": steps[i][0], "axis_2_motor_position": steps[i][1]},
-               "target_name": rec.target[i],
-               "focal_spot": {src: (spots[i][k] if present[i][k] else None) for k, src in enumerate(SOURCES)},
-               "sun_elevation": el[i], "sun_azimuth": az[i]}
-        with open(os.path.join(root, hid, "Calibration", f"{ids[i]}-calibration-properties.json"), "w",
-                  encoding="utf-8") as fh:
-            fh.write(json.dumps(doc))
+    az, el = az.tolist(), el.tolist()
     for rid, img in sim.images.items():
         hid = fl.ids[hidx[ids.index(rid)]]
         to_png(img, os.path.join(root, hid, "Calibration", f"{rid}-flux-centered.png"))

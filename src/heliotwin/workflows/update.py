@@ -61,6 +61,12 @@ _DRIFT_NAMES = ("initial_angle_1", "initial_angle_2")
 _HISTORY_FIELDS = ("heliostat", "record_id", "time", "mean", "variance", "innovation", "d2", "statistic", "window",
                    "alarm", "predicted_error", "update")
 
+#: Stored types of the history's fields that are narrower than computed: float32 halves the state's columns
+#: (~1e-7 relative), and the small counters fit int32 (:func:`state_history` hands them back as int64); the
+#: rest keeps its type. Large arrays are also compressed on writing (:data:`heliotwin.io.scenario.COMPRESS_BYTES`).
+_HISTORY_STORED = {"mean": torch.float32, "variance": torch.float32, "innovation": torch.float32,
+                   "heliostat": torch.int32, "window": torch.int32, "update": torch.int32}
+
 
 @dataclass(frozen=True)
 class UpdateSettings:
@@ -347,8 +353,7 @@ def _merged_history(previous: dict | None, ids: list, hist: dict, number: int) -
     merged = {}
     for k, v in rows.items():
         v = v.detach().cpu()
-        if k in ("mean", "variance", "innovation"):  # float32 halves a year of a plant's history; ~1e-7 relative
-            v = v.float()
+        v = v.to(_HISTORY_STORED.get(k, v.dtype))
         merged[k] = torch.cat([torch.as_tensor(old[k]).to(v.dtype), v]) if k in old else v
     return {"heliostats": all_ids, "history": merged}
 
@@ -488,4 +493,5 @@ def state_history(scenario, heliostat_id: str) -> dict:
         rows = np.nonzero(h["heliostat"] == ids.index(heliostat_id))[0]
         rows = rows[np.argsort(h["time"][rows], kind="stable")]
     out = {k: h[k][rows] for k in _HISTORY_FIELDS if k != "heliostat"}
+    out.update(window=out["window"].astype(np.int64), update=out["update"].astype(np.int64))
     return {"heliostat": heliostat_id, "parameter_names": names, **out}

@@ -422,18 +422,23 @@ def record_intervals(model: Calibrated, records: RecordTable, err: torch.Tensor,
     keep = model.ok[hidx]
     cov = post["covariance"][hidx]
     state = model.extras.get("drift_state")
+    # [R, P, P] per record: copies only where needed (the walk is zero without a drift state, every record is
+    # usually kept), since R x P x P doubles are the largest arrays of a plant-sized run
+    walk = None
     if state is not None:  # the offset's uncertainty at the latest training time, grown by q dt (drift.py)
         rows = state["columns"].to(cov.device)
         walk = torch.zeros_like(cov)
         walk[:, rows[:, None], rows[None, :]] = predicted_covariance(state, hidx, records.time).to(cov)
-    else:
-        walk = torch.zeros_like(cov)
-    inputs = {"jacobian": jac[keep], "normal": normal.detach()[keep], "covariance": cov[keep], "walk": walk[keep],
+    every = bool(keep.all())
+    kept = (lambda t: t) if every else (lambda t: t[keep])
+    n_kept, p = int(keep.sum()), cov.shape[-1]
+    inputs = {"jacobian": kept(jac), "normal": kept(normal.detach()), "covariance": kept(cov),
+              "walk": kept(walk) if walk is not None else cov.new_zeros(()).expand(n_kept, p, p),
               "noise": post["noise_rad"][hidx][keep], "error": err[keep],
               "heliostat": [model.heliostat_ids[h] for h in hidx[keep].tolist()]}
     # The posterior predictive samples on the CPU (its draws take a CPU generator): a few thousand numbers.
     jac, normal, err, hidx = jac.cpu(), normal.detach().cpu(), err.cpu(), hidx.cpu()
-    full = (cov + float(post.get("walk_scale", 1.0)) * walk).cpu()
+    full = (cov + float(post.get("walk_scale", 1.0)) * walk).cpu() if walk is not None else cov.cpu()
     pred = predictive(jac, normal, full, post["noise_rad"].cpu()[hidx],
                       drift=post.get("drift_rad", 0.0), generator=torch.Generator().manual_seed(seed))
     pred["inside"] = (err >= pred["lower"]) & (err <= pred["upper"])
