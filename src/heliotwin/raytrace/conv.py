@@ -55,10 +55,44 @@ from .flux import CENTERED_WINDOW_M, FluxImage
 from .splat import splat_bilinear
 
 __all__ = ["reflect_to_plane", "angular_density", "footprint_kernel", "mean_footprint_kernel", "render_centered",
-           "RenderResult", "trace_conv"]
+           "RenderResult", "trace_conv", "fft_size", "kernel_spectrum"]
 
 #: Angular grid step of the tabulated sunshape [rad].
 _ANG_STEP = 0.2e-3
+
+
+def fft_size(resolution: int) -> int:
+    """Side [px] of the FFT grid of :func:`render_centered` for an ``R``-pixel window (R even): ``5 R / 2``.
+
+    The splat and the kernel are ``2R x 2R`` and the window is ``full[q]`` for ``q`` in ``[3R/2, 5R/2)`` of their
+    linear convolution ``full[q] = sum_m splat[m] K[q - m]`` (per axis), where ``m + k`` spans ``[0, 4R - 2]``.
+    An FFT of side ``n`` (at least ``2R``, so neither input is cut) gives the *circular* convolution, in which
+    every term with ``m + k = q + j n`` (any integer ``j``) lands on ``q``. The window is alias-free when only
+    ``j = 0`` is in range for all its ``q``: ``3R/2 + n > 4R - 2`` (``n >= 5R/2 - 1``) and ``5R/2 - 1 - n < 0``
+    (``n >= 5R/2``). So ``n = 5R/2`` (160 for R = 64, instead of the full linear size ``4R = 256``) gives the
+    window exactly (``tests/test_raytrace.py`` checks it against ``4R`` to float precision, and that ``5R/2 - 1``
+    aliases) at ``(160/256)^2 = 0.39`` of the FFT work.
+    """
+    return 5 * int(resolution) // 2
+
+
+def kernel_spectrum(kernel: torch.Tensor, resolution: int) -> torch.Tensor:
+    """The kernel's spectrum as :func:`render_centered` uses it (for callers that reuse one kernel across steps).
+
+    Parameters
+    ----------
+    kernel : torch.Tensor, [B, 2R, 2R]
+        Footprint kernel (:func:`mean_footprint_kernel`, ``size = 2 * resolution``).
+    resolution : int
+        R, window pixels per side.
+
+    Returns
+    -------
+    torch.Tensor, [B, n, n // 2 + 1], complex
+        ``rfft2`` on the :func:`fft_size` grid, in the kernel's precision (complex64 for float32).
+    """
+    n = fft_size(resolution)
+    return torch.fft.rfft2(kernel, s=(n, n))
 
 
 def reflect_to_plane(points: torch.Tensor, normals: torch.Tensor, sun_direction: torch.Tensor,
@@ -268,7 +302,7 @@ class RenderResult:
 def render_centered(points: torch.Tensor, normals: torch.Tensor, areas: torch.Tensor,
                     sun_direction: torch.Tensor, target: PlanarTarget, sun: SunSettings, *,
                     size_m: float = CENTERED_WINDOW_M, resolution: int = 64, center: torch.Tensor | None = None,
-                    kernel: torch.Tensor | None = None) -> RenderResult:
+                    kernel: torch.Tensor | None = None, spectrum: torch.Tensor | None = None) -> RenderResult:
     """Flux of B mirror poses in a square window (centred on the predicted centroid by default).
 
     Parameters
@@ -289,6 +323,9 @@ def render_centered(points: torch.Tensor, normals: torch.Tensor, areas: torch.Te
     kernel : torch.Tensor, [B, 2R, 2R], optional
         Precomputed :func:`footprint_kernel` (its dependence on the surface is second order, so callers
         may reuse it across optimiser steps).
+    spectrum : torch.Tensor, [B, n, n // 2 + 1], optional
+        :func:`kernel_spectrum` of the kernel (of the kernel cast to the splat's precision: float32 rays, float32
+        kernel, as ``kernel`` is used); it replaces ``kernel`` (the caller keeps the two consistent).
 
     Returns
     -------
@@ -313,12 +350,13 @@ def render_centered(points: torch.Tensor, normals: torch.Tensor, areas: torch.Te
     px = (local[..., 0] - x0) / pix - 0.5
     py = (y1 - local[..., 1]) / pix - 0.5
     img = splat_bilinear(px, py, w, big, big)  # [B, 2R, 2R] m^2 per pixel
-    if kernel is None:
-        kernel = _mean_kernel(w, refl, dist, target, sun, pix, big)
-    kern = kernel.to(img.dtype)
-    n = 2 * big
-    spec = torch.fft.rfft2(img, s=(n, n)) * torch.fft.rfft2(kern, s=(n, n))
-    full = torch.fft.irfft2(spec, s=(n, n))
+    if spectrum is None:
+        if kernel is None:
+            kernel = _mean_kernel(w, refl, dist, target, sun, pix, big)
+        spectrum = kernel_spectrum(kernel.to(img.dtype), res)
+    n = fft_size(res)  # alias-free for the window (see fft_size), not the full linear size 2 * big
+    spec = torch.fft.rfft2(img, s=(n, n))
+    full = torch.fft.irfft2(spec * spectrum.to(spec), s=(n, n))
     # out[q] = sum_m img[m] K[q - m + big/2]; the window starts at big-grid index res/2.
     start = big // 2 + res // 2
     window = full[:, start:start + res, start:start + res].clamp_min(0.0)

@@ -14,7 +14,7 @@ from ..field import facets as facet_ops
 from ..field.plant import SunSettings, Surfaces
 from ..field.targets import PlanarTarget
 from ..io.images import CENTERED_WINDOW_M
-from ..raytrace.conv import mean_footprint_kernel, render_centered
+from ..raytrace.conv import kernel_spectrum, mean_footprint_kernel, render_centered
 from ..raytrace.flux import cross_correlation
 from ..scene import to_world
 from . import losses
@@ -57,7 +57,9 @@ def predict_images(surfaces: Surfaces, obs: Observations, sun: SunSettings, *, s
         Window pixels per side and side [m].
     kernels : dict, optional
         Cache ``image index -> footprint kernel``, filled on first use (the kernel is a second-order
-        function of the surface; reusing it keeps the optimisation cheap and deterministic).
+        function of the surface; reusing it keeps the optimisation cheap and deterministic); also holds the
+        kernels' spectra under ``("spectrum", image index)`` (derived from the kernels: a cache restored with
+        the kernels alone rebuilds them identically).
     kernel_supersample : int
         Supersampling of the footprint kernel (:func:`heliotwin.raytrace.conv.mean_footprint_kernel`).
 
@@ -75,17 +77,21 @@ def predict_images(surfaces: Surfaces, obs: Observations, sun: SunSettings, *, s
     b = len(obs)
     images, centers, misses = [None] * b, [None] * b, []
     for target, idx in _groups(obs.targets):
-        kern = None
+        spectrum = None
         if kernels is not None:
             if not all(i in kernels for i in idx):  # computed once, then reused (also by render_centered now)
                 kern_new = mean_footprint_kernel(pw[idx], nw[idx], ar[idx], sund[idx], target, sun,
                                                  size_m / resolution, 2 * resolution, kernel_supersample)
                 for j, i in enumerate(idx):
                     kernels[i] = kern_new[j]
-            kern = torch.stack([kernels[i] for i in idx])
+            if not all(("spectrum", i) in kernels for i in idx):  # the FFT of the kernel, once, not every step
+                spec_new = kernel_spectrum(torch.stack([kernels[i] for i in idx]).to(pw.dtype), resolution)
+                for j, i in enumerate(idx):
+                    kernels[("spectrum", i)] = spec_new[j]
+            spectrum = torch.stack([kernels[("spectrum", i)] for i in idx])
         fixed = None if obs.centers is None else obs.centers[idx].to(pw)
         res = render_centered(pw[idx], nw[idx], ar[idx], sund[idx], target, sun, size_m=size_m,
-                              resolution=resolution, kernel=kern, center=fixed)
+                              resolution=resolution, spectrum=spectrum, center=fixed)
         for j, i in enumerate(idx):
             images[i] = res.image[j]
             centers[i] = res.center[j]
