@@ -24,6 +24,8 @@ Shapes: F facets, (su, sv) samples per facet. Units: radians (mrad where named).
 """
 from __future__ import annotations
 
+from functools import lru_cache
+
 import torch
 
 from ..field.plant import Facets, Surfaces
@@ -45,14 +47,21 @@ def _normals(surf: Surfaces, facets: Facets, samples) -> torch.Tensor:
     return n
 
 
+@lru_cache(maxsize=16)
+def _affine_projector(su: int, sv: int, dtype, device) -> torch.Tensor:
+    # [P, P] projector onto fields affine in (u, v) on the su x sv midpoint grid; fixed by the grid, so built
+    # once rather than at every optimiser step (shared: never modified in place).
+    u = (torch.arange(su, dtype=dtype, device=device) + 0.5) / su - 0.5
+    v = (torch.arange(sv, dtype=dtype, device=device) + 0.5) / sv - 0.5
+    a = torch.stack((torch.ones(su, sv, dtype=dtype, device=device), u[:, None].expand(su, sv),
+                     v[None, :].expand(su, sv)), -1).reshape(-1, 3)  # [P, 3]
+    return a @ torch.linalg.pinv(a)
+
+
 def high_order(dn: torch.Tensor) -> torch.Tensor:
     """Residual of ``dn`` ``[F, su, sv, 3]`` after each facet's least-squares affine fit in (u, v) (same shape)."""
     f, su, sv, _ = dn.shape
-    u = (torch.arange(su, dtype=dn.dtype, device=dn.device) + 0.5) / su - 0.5
-    v = (torch.arange(sv, dtype=dn.dtype, device=dn.device) + 0.5) / sv - 0.5
-    a = torch.stack((torch.ones(su, sv, dtype=dn.dtype, device=dn.device), u[:, None].expand(su, sv),
-                     v[None, :].expand(su, sv)), -1).reshape(-1, 3)  # [P, 3]
-    proj = a @ torch.linalg.pinv(a)  # [P, P], projector onto affine fields
+    proj = _affine_projector(su, sv, dn.dtype, dn.device)
     x = dn.reshape(f, su * sv, 3)
     return (x - proj @ x).reshape(dn.shape)
 
