@@ -576,6 +576,33 @@ def test_conv_window_fft_is_alias_free(resolution):
     assert not torch.allclose(conv(full_img, full_kern, n_small - 1), full, rtol=0, atol=1e-6)
 
 
+def test_angular_density_blur_equals_separable_conv2d():
+    """The slope-error blur of the tabulated density (banded matmuls, bounded memory) is the zero-padded
+    separable convolution it replaces (conv2d), to float64 precision."""
+    import torch.nn.functional as F
+
+    from heliotwin import sunshape as sunshape_ops
+    from heliotwin.raytrace.conv import _ANG_STEP, angular_density
+
+    sun = SunSettings(sunshape="pillbox", radius=4.65e-3, slope_error=1.5e-3)
+    dens, half = angular_density(sun)
+    n = int(round(half / _ANG_STEP))
+    ax = torch.arange(-n, n + 1, dtype=D64) * _ANG_STEP
+    a, b = torch.meshgrid(ax, ax, indexing="ij")
+    sub = (torch.arange(3, dtype=D64) - 1.0) / 3.0 * _ANG_STEP
+    raw = sum(sunshape_ops.radial_profile("pillbox", torch.sqrt((a + da) ** 2 + (b + db) ** 2), sigma=sun.sigma,
+                                          radius=sun.radius, csr=sun.csr) for da in sub for db in sub)
+    spread = 2.0 * sun.slope_error
+    k = int(math.ceil(4.5 * spread / _ANG_STEP))
+    g = torch.exp(-0.5 * ((torch.arange(-k, k + 1, dtype=D64) * _ANG_STEP) / spread) ** 2)
+    g = g / g.sum()
+    ref = F.conv2d(F.conv2d(raw[None, None], g.reshape(1, 1, -1, 1), padding=(k, 0)), g.reshape(1, 1, 1, -1),
+                   padding=(0, k))[0, 0]
+    ref = ref / (ref.sum() * _ANG_STEP ** 2)
+    assert dens.shape == ref.shape
+    assert torch.allclose(dens, ref, rtol=0, atol=1e-13 * float(ref.max()))
+
+
 def test_dispatcher_names_and_errors():
     pts, nrm, areas, sun, tgt = oblique_setup(side=2.0, m=6, dist=50.0)
     optics = SunSettings(sunshape="gaussian", sigma=2.5e-3, slope_error=1e-3)

@@ -20,7 +20,7 @@ from ..scene import to_world
 from . import losses
 from .observations import Observations
 
-__all__ = ["predict_images", "evaluate_images"]
+__all__ = ["predict_images", "render_samples", "evaluate_images"]
 
 
 def _groups(targets: list) -> list[tuple[PlanarTarget, list[int]]]:
@@ -74,8 +74,43 @@ def predict_images(surfaces: Surfaces, obs: Observations, sun: SunSettings, *, s
         the B images (a scalar, differentiable).
     """
     pw, nw, ar, sund = _world_samples(surfaces, obs, samples)
+    images, centers, _, miss = render_samples(pw, nw, ar, sund, obs, sun, resolution=resolution, size_m=size_m,
+                                              kernels=kernels, kernel_supersample=kernel_supersample)
+    return images, centers, miss
+
+
+def render_samples(pw: torch.Tensor, nw: torch.Tensor, ar: torch.Tensor, sund: torch.Tensor, obs: Observations,
+                   sun: SunSettings, *, resolution: int = 64, size_m: float = CENTERED_WINDOW_M,
+                   kernels: dict | None = None, kernel_supersample: int = 4
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`predict_images` from world-frame mirror samples: each image its own samples (its own surface).
+
+    Parameters
+    ----------
+    pw, nw : torch.Tensor, [B, N, 3]
+        World ENU mirror samples [m] / unit normals (float32 rays), one set per image.
+    ar : torch.Tensor, [B, N]
+        Areas [m^2].
+    sund : torch.Tensor, [B, 3]
+        Unit sun directions.
+    obs : Observations
+        The B recordings (targets; optional fixed window centres).
+    sun, resolution, size_m, kernels, kernel_supersample
+        As :func:`predict_images`.
+
+    Returns
+    -------
+    images : torch.Tensor, [B, R, R]
+        Flux [W/m^2].
+    centers : torch.Tensor, [B, 2]
+        Window centres (local [m]).
+    miss_per_image : torch.Tensor, [B]
+        Soft miss penalty per image [m^2].
+    miss : torch.Tensor, shape ()
+        Its mean over the B images (per target group, as :func:`predict_images` returns it).
+    """
     b = len(obs)
-    images, centers, misses = [None] * b, [None] * b, []
+    images, centers, per_image, misses = [None] * b, [None] * b, [None] * b, []
     for target, idx in _groups(obs.targets):
         spectrum = None
         if kernels is not None:
@@ -95,8 +130,9 @@ def predict_images(surfaces: Surfaces, obs: Observations, sun: SunSettings, *, s
         for j, i in enumerate(idx):
             images[i] = res.image[j]
             centers[i] = res.center[j]
+            per_image[i] = res.miss_per_image[j]
         misses.append(res.miss * len(idx))
-    return torch.stack(images), torch.stack(centers), sum(misses) / b
+    return torch.stack(images), torch.stack(centers), torch.stack(per_image), sum(misses) / b
 
 
 def evaluate_images(surfaces: Surfaces, obs: Observations, sun: SunSettings, *, samples=(24, 24),
