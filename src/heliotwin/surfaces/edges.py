@@ -28,11 +28,12 @@ from functools import lru_cache
 
 import torch
 
+from ..field import facets as facet_ops
 from ..field.plant import Facets, Surfaces
 from .learning import normal_heights
 
 __all__ = ["slope_penalty", "edge_ridge_mrad", "deviation_map_mrad", "residual_map_mrad", "high_order",
-           "RIDGE_RAD", "HINGE_WEIGHT", "EDGE_BAND"]
+           "RIDGE_RAD", "HINGE_WEIGHT", "EDGE_BAND", "slope_penalties"]
 
 #: Largest slope deviation accepted without the images demanding it [rad] (5 mrad).
 RIDGE_RAD = 5e-3
@@ -73,6 +74,25 @@ def slope_penalty(surf: Surfaces, reference_normals: torch.Tensor, facets: Facet
     d2 = high_order(n - reference_normals.to(n)).pow(2).sum(-1) / 1e-6  # [mrad^2]
     hinge = torch.relu(d2 - (RIDGE_RAD / 1e-3) ** 2)
     return weight * d2.mean() + HINGE_WEIGHT * hinge.mean()
+
+
+def slope_penalties(surf: Surfaces, reference_normals: torch.Tensor, weights: torch.Tensor,
+                    samples=(16, 16)) -> torch.Tensor:
+    """:func:`slope_penalty` of K surfaces at once (one per row of ``surf``), ``[K]``.
+
+    ``surf``: control points ``[K, F, nu, nv, 3]`` [m]; ``reference_normals`` ``[F, su, sv, 3]`` (shared) or
+    ``[K, F, su, sv, 3]``; ``weights`` ``[K]`` (per mrad^2; 0 gives 0, as the fit then leaves the penalty out).
+    """
+    su, sv = samples
+    cp = surf.control_points
+    k, nf = cp.shape[0], cp.shape[1]
+    _, nrm, _ = facet_ops.surface_points(surf, samples)
+    n = nrm.reshape(k, nf, su, sv, 3)
+    dn = (n - reference_normals.to(n)).reshape(k * nf, su, sv, 3)
+    d2 = (high_order(dn).pow(2).sum(-1) / 1e-6).reshape(k, -1)  # [mrad^2]
+    hinge = torch.relu(d2 - (RIDGE_RAD / 1e-3) ** 2)
+    w = weights.to(d2)
+    return torch.where(w != 0, w * d2.mean(-1) + HINGE_WEIGHT * hinge.mean(-1), torch.zeros_like(w))
 
 
 def deviation_map_mrad(surf: Surfaces, reference: Surfaces, facets: Facets, samples=(48, 48)) -> torch.Tensor:
