@@ -49,22 +49,25 @@ def _normals(surf: Surfaces, facets: Facets, samples) -> torch.Tensor:
 
 
 @lru_cache(maxsize=16)
-def _affine_projector(su: int, sv: int, dtype, device) -> torch.Tensor:
-    # [P, P] projector onto fields affine in (u, v) on the su x sv midpoint grid; fixed by the grid, so built
-    # once rather than at every optimiser step (shared: never modified in place).
+def _affine_basis(su: int, sv: int, dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
+    # ([P, 3] affine fields in (u, v) on the su x sv midpoint grid, their [3, P] pseudo-inverse); fixed by the
+    # grid, so built once rather than at every optimiser step (shared: never modified in place).
     u = (torch.arange(su, dtype=dtype, device=device) + 0.5) / su - 0.5
     v = (torch.arange(sv, dtype=dtype, device=device) + 0.5) / sv - 0.5
     a = torch.stack((torch.ones(su, sv, dtype=dtype, device=device), u[:, None].expand(su, sv),
                      v[None, :].expand(su, sv)), -1).reshape(-1, 3)  # [P, 3]
-    return a @ torch.linalg.pinv(a)
+    return a, torch.linalg.pinv(a)
 
 
 def high_order(dn: torch.Tensor) -> torch.Tensor:
     """Residual of ``dn`` ``[F, su, sv, 3]`` after each facet's least-squares affine fit in (u, v) (same shape)."""
     f, su, sv, _ = dn.shape
-    proj = _affine_projector(su, sv, dn.dtype, dn.device)
-    x = dn.reshape(f, su * sv, 3)
-    return (x - proj @ x).reshape(dn.shape)
+    a, a_pinv = _affine_basis(su, sv, dn.dtype, dn.device)
+    # Every facet and component a column of one [P, 3F] matrix: x - A (A^+ x), two thin matmuls (not a [P, P]
+    # projector per facet).
+    x = dn.reshape(f, su * sv, 3).transpose(0, 1).reshape(su * sv, f * 3)
+    r = x - a @ (a_pinv @ x)
+    return r.reshape(su * sv, f, 3).transpose(0, 1).reshape(dn.shape)
 
 
 def slope_penalty(surf: Surfaces, reference_normals: torch.Tensor, facets: Facets, weight: float,
