@@ -3,7 +3,9 @@
 It is the one surface learner of the library (:func:`reconstruct_generalising` is its study entry: fit, then
 evaluate on test images, one report-row shape). Its settings are one class
 (:class:`~heliotwin.surfaces.fit.SurfaceSettings`); each of its fits (leave-one-out and final) is one
-:func:`~heliotwin.surfaces.fit.fit_surface`, run in calibration's fit loop.
+:func:`~heliotwin.surfaces.fit.fit_surface`, run in calibration's fit loop; without a plant prior the
+leave-one-out fits of one blur mode run as one batch (:func:`~heliotwin.surfaces.fitbatch.fit_surfaces`, the
+same fits up to float rounding, one checkpoint key).
 
 Steps (:func:`fit_generalising`), each a stated rule:
 
