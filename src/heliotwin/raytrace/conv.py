@@ -88,8 +88,9 @@ def kernel_spectrum(kernel: torch.Tensor, resolution: int) -> torch.Tensor:
 
     Returns
     -------
-    torch.Tensor, [B, n, n // 2 + 1], complex
-        ``rfft2`` on the :func:`fft_size` grid, in the kernel's precision (complex64 for float32).
+    torch.Tensor, [B, n, m], complex
+        ``rfft2`` on the ``n x n`` grid of :func:`fft_size` (``m = n // 2 + 1``), in the kernel's precision
+        (complex64 for float32).
     """
     n = fft_size(resolution)
     return torch.fft.rfft2(kernel, s=(n, n))
@@ -334,9 +335,10 @@ def render_centered(points: torch.Tensor, normals: torch.Tensor, areas: torch.Te
     kernel : torch.Tensor, [B, 2R, 2R], optional
         Precomputed :func:`footprint_kernel` (its dependence on the surface is second order, so callers
         may reuse it across optimiser steps).
-    spectrum : torch.Tensor, [B, n, n // 2 + 1], optional
-        :func:`kernel_spectrum` of the kernel (of the kernel cast to the splat's precision: float32 rays, float32
-        kernel, as ``kernel`` is used); it replaces ``kernel`` (the caller keeps the two consistent).
+    spectrum : torch.Tensor, [B, n, m], optional
+        (``n`` = :func:`fft_size`, ``m = n // 2 + 1``) :func:`kernel_spectrum` of the kernel cast to the splat's
+        precision (float32 rays: float32 kernel, as ``kernel`` is used); it replaces ``kernel`` (the caller keeps
+        the two consistent).
 
     Returns
     -------
