@@ -104,11 +104,13 @@ def focused_start(facets: Facets, focal_length: float | None, num_control_points
 
 
 def choose_optics(facets: Facets, train: Observations, base_sun: SunSettings, camera: CameraModel,
-                  s: SurfaceSettings, prior=None) -> dict:
+                  s: SurfaceSettings, prior=None, renders: dict | None = None) -> dict:
     """Step 1 (module docstring): facet focus x slope error (x per-image blur) by the ideal's training L1.
 
     With a ``prior`` (:class:`~heliotwin.surfaces.plantprior.SurfacePrior`) its mean shape is one more
-    start candidate (``focus_multiple`` ``"prior"``).
+    start candidate (``focus_multiple`` ``"prior"``). ``renders``: a cache ``(focus, slope error) -> ideal
+    images [B, R, R]`` of these ``train`` images and window settings, shared by calls that differ only in
+    the blur grid (the blur modes), so each ideal is rendered once.
     """
     f_cant = canting_focal_length(facets)
     focus = [None] + [m for m in s.focus_grid if m is not None and f_cant is not None]
@@ -125,7 +127,13 @@ def choose_optics(facets: Facets, train: Observations, base_sun: SunSettings, ca
         for se in s.slope_grid:
             sun = dataclasses.replace(base_sun, slope_error=float(se))
             with torch.no_grad():
-                pred, _ = render(ideal, train, sun, s)
+                key = (m, float(se))
+                if renders is not None and key in renders:
+                    pred = renders[key]
+                else:
+                    pred, _ = render(ideal, train, sun, s)
+                    if renders is not None:
+                        renders[key] = pred
                 per_blur = torch.stack([losses.l1(apply_camera(pred, camera, torch.full((len(train),), float(b),
                                                                                        device=pred.device)),
                                                   meas.to(pred)) for b in s.blur_grid_px])  # [G, B]
@@ -199,10 +207,10 @@ def _mode_settings(s: SurfaceSettings, mode: str) -> SurfaceSettings:
 
 def _candidates(facets, train, base_sun, camera, s, progress, prior=None, prior_grid=PRIOR_WEIGHT_GRID) -> list:
     """Per blur mode: the optics choice and (with >= 3 images) the leave-one-out table."""
-    out = []
+    out, renders = [], {}  # the modes differ in the blur only: their ideal images are the same
     for mode in s.blur_modes:
         sm = _mode_settings(s, mode)
-        opt = choose_optics(facets, train, base_sun, camera, sm, prior)
+        opt = choose_optics(facets, train, base_sun, camera, sm, prior, renders)
         sun = dataclasses.replace(base_sun, slope_error=opt["chosen"]["slope_error_rad"])
         sigma0 = torch.tensor(opt["chosen"]["blur_px"], dtype=torch.float32, device=train.images.device)
         if len(train) >= 3 and s.select:
