@@ -20,7 +20,7 @@ nearest-sun training image, the mean training image, and the NeRF-style flux pre
 :mod:`heliotwin.surfaces.baselines` (Fourier-encoded pixel coordinates conditioned on the unit sun vector and
 the two motor steps; width and step count chosen by leave-one-training-image-out; ~20 s on one core).
 
-Measured on AA39 (one core, ~2 min): median test L1 generalising physics 0.1374, NeRF-style
+Measured on AA39 (one core, ~40 s of CPU time): median test L1 generalising physics 0.1374, NeRF-style
 predictor 0.3222 (chosen width 32, 100 steps; per image 0.27 0.41 0.69 0.25 0.28 0.32 0.35), nearest-sun
 image 0.2695, mean training image 0.1863. Three images are too few for the predictor to learn how the spot
 depends on sun and motor steps (its leave-one-out L1 is ~0.75): physics wins on every test image.

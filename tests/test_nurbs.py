@@ -288,6 +288,27 @@ def test_gradcheck_surface_samples():
     assert torch.autograd.gradcheck(lambda c, ww: nurbs.surface_samples(c, 2, 2, 2, 3, ww), (cp, w))
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_cached_midpoint_basis_equals_direct_evaluation(dtype):
+    """The cached sample bases give the same basis matrices and surface samples as evaluating from scratch."""
+    for n, p, s in ((7, 3, 24), (5, 2, 16), (4, 1, 3)):
+        b0, b1 = nurbs.midpoint_basis(n, p, s, dtype, torch.device("cpu"))
+        u = nurbs.midpoints(s, dtype=dtype)
+        d0, d1 = nurbs.basis_functions(u, nurbs.clamped_knots(n, p, dtype=dtype), p, n)
+        assert b0.dtype == dtype and torch.equal(b0, d0) and torch.equal(b1, d1)
+        assert nurbs.midpoint_basis(n, p, s, dtype, torch.device("cpu"))[0] is b0  # computed once
+    cp = (_random_net((2, 7, 5)) * 0.05).to(dtype)
+    w = (0.5 + torch.rand(2, 7, 5, generator=torch.Generator().manual_seed(2), dtype=F64)).to(dtype)
+    for weights in (None, w):
+        pts, du, dv = nurbs.evaluate(cp, 3, 2, nurbs.midpoints(6, dtype=dtype), nurbs.midpoints(4, dtype=dtype),
+                                     weights)
+        cross = torch.linalg.cross(du, dv, dim=-1)
+        p2, n2, a2 = nurbs.surface_samples(cp, 3, 2, 6, 4, weights)
+        assert torch.equal(p2, pts)
+        assert torch.equal(a2, cross.norm(dim=-1) / 24)
+        assert torch.equal(n2, cross / cross.norm(dim=-1, keepdim=True))
+
+
 def test_no_nan_gradient_for_degenerate_net():
     cp = torch.ones(4, 4, 3, dtype=F64, requires_grad=True)  # all control points coincide: du x dv = 0
     pts, normals, areas = nurbs.surface_samples(cp, 2, 2, 3, 3)

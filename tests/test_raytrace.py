@@ -17,7 +17,13 @@ from heliotwin.raytrace import (
     trace_gaussian,
     trace_mc,
 )
-from heliotwin.raytrace.conv import mean_footprint_kernel, render_centered
+from heliotwin.raytrace.conv import (
+    fft_size,
+    kernel_spectrum,
+    mean_footprint_kernel,
+    reflect_to_plane,
+    render_centered,
+)
 from heliotwin.raytrace.flux import target_extent
 from heliotwin.raytrace.montecarlo import _rotated_frames, planar_coefficients, prepare_mirror
 from heliotwin.scene import INTEGRATORS, trace
@@ -526,6 +532,75 @@ def test_gradcheck_conv():
     assert torch.autograd.gradcheck(
         lambda pp: render_centered(pp, n.detach(), a.detach(), s, tgt, optics, size_m=1.0, resolution=8,
                                    kernel=kern).image, (p,), atol=1e-5, fast_mode=True)
+
+
+@pytest.mark.parametrize("resolution", [8, 14, 64])
+def test_conv_window_fft_is_alias_free(resolution):
+    """The window from the 5R/2 FFT (fft_size) equals the one of the full linear convolution (4R FFT): for
+    render_centered (with its kernel or a precomputed spectrum), and for a splat and kernel filled to their far
+    corners (the largest aliasing index), where the alias-free bound n >= 5R/2 is tight."""
+    res, big = resolution, 2 * resolution
+    n_small = fft_size(res)
+    assert n_small == 5 * res // 2
+    pts, nrm, areas, sun, tgt = oblique_setup(side=2.0, m=6, dist=30.0)
+    optics = SunSettings(sunshape="buie", csr=0.05, slope_error=2e-3)
+    size_m, pix = 2.0, 2.0 / res
+    p, n, a, s = pts[None], nrm[None], areas[None], sun[None]
+    kern = mean_footprint_kernel(p, n, a, s, tgt, optics, pix, big)
+    out = render_centered(p, n, a, s, tgt, optics, size_m=size_m, resolution=res, kernel=kern)
+    cached = render_centered(p, n, a, s, tgt, optics, size_m=size_m, resolution=res,
+                             spectrum=kernel_spectrum(kern, res))
+    assert torch.equal(out.image, cached.image)
+    # The same splat (render_centered's grid: twice the window, on the predicted centroid), convolved at 4R.
+    hits, _, _ = reflect_to_plane(p, n, s, tgt)
+    w = a * (n * s.unsqueeze(1)).sum(-1).clamp_min(0.0)
+    c = out.center.detach()
+    img = splat_bilinear((hits[..., 0] - (c[:, :1] - size_m)) / pix - 0.5,
+                         ((c[:, 1:] + size_m) - hits[..., 1]) / pix - 0.5, w, big, big)
+    rows = torch.arange(big // 2 + res // 2, big // 2 + res // 2 + res)
+
+    def conv(splat, kernel, size):
+        # The window of the circular convolution on a size x size grid (index q mod size).
+        out = torch.fft.irfft2(torch.fft.rfft2(splat, s=(size, size)) * torch.fft.rfft2(kernel, s=(size, size)),
+                               s=(size, size))
+        return out[:, rows % size][:, :, rows % size]
+
+    ref = conv(img, kern, 2 * big).clamp_min(0.0) * (optics.dni * optics.reflectivity / pix ** 2)
+    assert torch.allclose(out.image, ref, rtol=0, atol=1e-12 * float(ref.max()))
+    # Power up to the far corners of splat and kernel: still exact at 5R/2, aliased one pixel below.
+    full_img = img + torch.rand(img.shape, generator=gen(4), dtype=D64)
+    full_kern = kern + torch.rand(kern.shape, generator=gen(3), dtype=D64)
+    full = conv(full_img, full_kern, 2 * big)
+    tol = 1e-12 * float(full.abs().max())
+    assert torch.allclose(conv(full_img, full_kern, n_small), full, rtol=0, atol=tol)
+    assert not torch.allclose(conv(full_img, full_kern, n_small - 1), full, rtol=0, atol=1e-6)
+
+
+def test_angular_density_blur_equals_separable_conv2d():
+    """The slope-error blur of the tabulated density (banded matmuls, bounded memory) is the zero-padded
+    separable convolution it replaces (conv2d), to float64 precision."""
+    import torch.nn.functional as F
+
+    from heliotwin import sunshape as sunshape_ops
+    from heliotwin.raytrace.conv import _ANG_STEP, angular_density
+
+    sun = SunSettings(sunshape="pillbox", radius=4.65e-3, slope_error=1.5e-3)
+    dens, half = angular_density(sun)
+    n = int(round(half / _ANG_STEP))
+    ax = torch.arange(-n, n + 1, dtype=D64) * _ANG_STEP
+    a, b = torch.meshgrid(ax, ax, indexing="ij")
+    sub = (torch.arange(3, dtype=D64) - 1.0) / 3.0 * _ANG_STEP
+    raw = sum(sunshape_ops.radial_profile("pillbox", torch.sqrt((a + da) ** 2 + (b + db) ** 2), sigma=sun.sigma,
+                                          radius=sun.radius, csr=sun.csr) for da in sub for db in sub)
+    spread = 2.0 * sun.slope_error
+    k = int(math.ceil(4.5 * spread / _ANG_STEP))
+    g = torch.exp(-0.5 * ((torch.arange(-k, k + 1, dtype=D64) * _ANG_STEP) / spread) ** 2)
+    g = g / g.sum()
+    ref = F.conv2d(F.conv2d(raw[None, None], g.reshape(1, 1, -1, 1), padding=(k, 0)), g.reshape(1, 1, 1, -1),
+                   padding=(0, k))[0, 0]
+    ref = ref / (ref.sum() * _ANG_STEP ** 2)
+    assert dens.shape == ref.shape
+    assert torch.allclose(dens, ref, rtol=0, atol=1e-13 * float(ref.max()))
 
 
 def test_dispatcher_names_and_errors():

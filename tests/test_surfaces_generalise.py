@@ -8,7 +8,9 @@ from helpers.surfaces import small_scene
 from heliotwin.field.plant import Facets, SunSettings
 from heliotwin.surfaces import losses
 from heliotwin.surfaces.acceptance import ALPHAS, robust_outliers, shrink_to_accept, wilson_interval
-from heliotwin.surfaces.edges import edge_ridge_mrad, high_order, slope_penalty
+from heliotwin.surfaces.edges import edge_ridge_mrad, high_order, slope_penalties, slope_penalty
+from heliotwin.surfaces.fit import fit_surface
+from heliotwin.surfaces.fitbatch import FitProblem, fit_surfaces
 from heliotwin.surfaces.generalise import (
     SurfaceSettings,
     canting_focal_length,
@@ -17,7 +19,7 @@ from heliotwin.surfaces.generalise import (
     focused_start,
 )
 from heliotwin.surfaces.imaging import predict_images
-from heliotwin.surfaces.learning import LearnableSurface, normal_heights
+from heliotwin.surfaces.learning import LearnableSurface, learnable_surfaces, normal_heights
 from heliotwin.surfaces.mismatch import camera_truth
 from heliotwin.surfaces.nuisance import SATURATED, apply_camera, estimate_camera, gaussian_blur
 
@@ -71,6 +73,66 @@ def test_blur_keeps_the_power_and_is_differentiable_in_sigma():
     assert torch.allclose(gaussian_blur(img, torch.zeros(2, dtype=torch.float64)), img, atol=1e-12)
     sig = torch.tensor([1.2, 2.0], dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda s: gaussian_blur(img[:, 14:30, 14:30], s), (sig,))
+
+
+def test_blur_equals_the_grouped_separable_conv2d():
+    """The banded-matmul blur is the zero-padded separable convolution with each image's own kernel."""
+    import torch.nn.functional as F
+
+    from heliotwin.surfaces.nuisance import BLUR_RADIUS_PX
+
+    img = torch.rand(3, 40, 33, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    sig = torch.tensor([0.0, 1.3, 4.0], dtype=torch.float64)
+    r = BLUR_RADIUS_PX
+    x = torch.arange(-r, r + 1, dtype=torch.float64)
+    g = torch.exp(-0.5 * (x[None, :] / sig.clamp_min(0.05)[:, None]) ** 2)
+    g = g / g.sum(-1, keepdim=True)
+    ref = F.conv2d(F.conv2d(img[None], g[:, None, :, None], padding=(r, 0), groups=3), g[:, None, None, :],
+                   padding=(0, r), groups=3)[0]
+    assert torch.allclose(gaussian_blur(img, sig), ref, rtol=0, atol=1e-14)
+
+
+def test_batched_slope_penalty_and_laplacian_equal_the_serial_ones():
+    facets, _, _ = small_scene()
+    base = LearnableSurface(facets, (5, 5), (2, 2))
+    d = torch.randn(3, 4, 5, 5, generator=torch.Generator().manual_seed(2), dtype=torch.float64) * 1e-3
+    surf = learnable_surfaces(facets, base.base, d, (2, 2))
+    ref = normal_heights(facets, base.surfaces().control_points, (2, 2), (16, 16))[1]
+    w = torch.tensor([1e-3, 0.0, 1e-1], dtype=torch.float64)
+    got = slope_penalties(surf, ref, w)
+    for k in range(3):
+        one = learnable_surfaces(facets, base.base, d[k:k + 1], (2, 2))
+        want = slope_penalty(one, ref, facets, float(w[k])) if w[k] else torch.zeros((), dtype=torch.float64)
+        assert torch.allclose(got[k], want, rtol=1e-12, atol=0)
+        assert torch.allclose(losses.laplacian_per_row(d / 1e-3)[k], losses.laplacian(d[k:k + 1] / 1e-3), rtol=1e-12)
+
+
+def test_batched_fits_equal_the_serial_fits():
+    """The leave-one-out fits as one batch (fit_surfaces) take the serial fits' steps: same held-out curves, blurs
+    and surfaces, up to float rounding (the objective is a sum of independent problems; Adam is elementwise)."""
+    facets, obs, _ = small_scene(distance=20.0, n=3)
+    sun = SunSettings(sunshape="buie", slope_error=0.5e-3)
+    u = torch.linspace(-1, 1, 5, dtype=torch.float64)
+    d_true = (1.5e-3 * (1 - u[:, None] ** 2) * (1 - u[None, :] ** 2)).expand(1, 4, 5, 5).clone()
+    truth = learnable_surfaces(facets, LearnableSurface(facets, (5, 5), (2, 2)).base, d_true, (2, 2))
+    with torch.no_grad():
+        obs.images, _, _ = predict_images(truth, obs, sun, samples=(10, 10), resolution=32)
+    s = SurfaceSettings(control_points=(4, 4), degree=(2, 2), samples=(8, 8), resolution=32, size_m=4.0, steps=20,
+                        lr=0.3, eval_every=5)
+    cam = estimate_camera(obs.images.to(torch.float32))
+    problems = [FitProblem(obs.subset(keep), cam.subset(keep), torch.tensor([1.0, 2.0]), w,
+                           (obs.subset([k]), cam.subset([k])))
+                for w in (1e-3, 1e-1) for k in range(3) for keep in ([i for i in range(3) if i != k],)]
+    batched = fit_surfaces(facets, problems, sun, s)
+    for p, b in zip(problems, batched):
+        serial = fit_surface(facets, p.obs, sun, s, camera=p.camera, sigma0=p.sigma0, slope_weight=p.slope_weight,
+                             heldout=p.heldout)
+        assert [st for st, _ in b.curve] == [st for st, _ in serial.curve] == [5, 10, 15, 20]
+        assert max(abs(x - y) for (_, x), (_, y) in zip(b.curve, serial.curve)) < 1e-5
+        assert torch.allclose(b.sigma, serial.sigma, rtol=1e-5, atol=0)
+        ds, db = serial.model.displacement.detach(), b.model.displacement.detach()
+        assert float((db - ds).abs().max()) < 1e-5 * float(ds.abs().max())
+        assert b.evaluations == serial.evaluations == 20
 
 
 def test_residual_slope_ignores_tilt_and_bowl_but_sees_bumps():
@@ -134,8 +196,8 @@ class _Stop(Exception):
 
 
 def test_an_interrupted_fit_resumes_to_the_uninterrupted_surface(tmp_path):
-    """Under a checkpoint every fit (leave-one-out and final) saves its state; a run stopped inside the
-    second leave-one-out fit and resumed reaches the uninterrupted run's surface and choices exactly."""
+    """Under a checkpoint every fit (the batch of leave-one-out fits, the final fit) saves its state; a run stopped
+    inside the leave-one-out batch and resumed reaches the uninterrupted run's surface and choices exactly."""
     from heliotwin.io.checkpoint import Checkpoint, active
 
     facets, obs, s = _small_fit_case()
@@ -143,7 +205,7 @@ def test_an_interrupted_fit_resumes_to_the_uninterrupted_surface(tmp_path):
     ref, ref_info = fit_generalising(facets, obs, sun, s)
 
     def stop(event, key, step):
-        if event == "step" and key == "fit/1" and step == 3:
+        if event == "step" and key == "fit/0" and step == 3:
             raise _Stop
 
     path = tmp_path / "run.ckpt"
@@ -154,8 +216,8 @@ def test_an_interrupted_fit_resumes_to_the_uninterrupted_surface(tmp_path):
                     hook=lambda e, k, st: seen.append((k, st)) if e == "step" else None)
     with active(ck):
         model, info = fit_generalising(facets, obs, sun, s)
-    assert ("fit/0", 1) not in seen and ("fit/1", 3) not in seen  # restored, not rerun
-    assert ("fit/1", 4) in seen
+    assert ("fit/0", 1) not in seen and ("fit/0", 3) not in seen  # restored, not rerun
+    assert ("fit/0", 4) in seen and ("fit/1", 1) in seen
     assert torch.equal(model.displacement_mm, ref.displacement_mm)
     assert info["report"]["selection"] == ref_info["report"]["selection"]
     assert info["report"]["acceptance"] == ref_info["report"]["acceptance"]

@@ -14,6 +14,8 @@ metres per unit parameter; areas in m².
 """
 from __future__ import annotations
 
+from functools import lru_cache
+
 import torch
 
 from .errors import HeliotwinError
@@ -165,6 +167,33 @@ def _basis(num: int, degree: int, u: torch.Tensor) -> tuple[torch.Tensor, torch.
     return basis_functions(u, knots, degree, num)
 
 
+@lru_cache(maxsize=64)
+def midpoint_basis(num_control_points: int, degree: int, samples: int, dtype=None, device=None
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Basis functions at the cell midpoints :func:`midpoints`, cached: the one home of the fixed sample bases.
+
+    A surface sampled on a fixed parameter grid (every optimiser step of a surface fit) is ``B_u C B_v^T``
+    with constant ``B_u``, ``B_v``; computing them once instead of per evaluation is the same numbers.
+
+    Parameters
+    ----------
+    num_control_points, degree : int
+        n and p of the uniform clamped knot vector.
+    samples : int
+        Midpoints ``(i + 0.5) / samples``.
+    dtype, device : optional
+
+    Returns
+    -------
+    N0, N1 : torch.Tensor, [samples, n]
+        As :func:`basis_functions` (no autograd graph; shared, so never modify them in place).
+    """
+    u = midpoints(samples, dtype=dtype, device=device)
+    with torch.no_grad():
+        b0, b1 = _basis(int(num_control_points), int(degree), u)
+    return b0, b1
+
+
 # --------------------------------------------------------------------------------------------------
 # Evaluation
 # --------------------------------------------------------------------------------------------------
@@ -217,8 +246,13 @@ def evaluate(control_points: torch.Tensor, degree_u: int, degree_v: int, u: torc
         raise HeliotwinError(f"control_points must have shape [..., nu, nv, 3], got {tuple(cp.shape)}")
     nu, nv = cp.shape[-3], cp.shape[-2]
     u, v = _as_param(u, cp), _as_param(v, cp)
-    bu0, bu1 = _basis(nu, degree_u, u)
-    bv0, bv1 = _basis(nv, degree_v, v)
+    return _evaluate_bases(cp, _basis(nu, degree_u, u), _basis(nv, degree_v, v), weights)
+
+
+def _evaluate_bases(cp, basis_u, basis_v, weights):
+    # evaluate() on given basis matrices ([Pu, nu] and [Pv, nv], values and derivatives).
+    nu, nv = cp.shape[-3], cp.shape[-2]
+    (bu0, bu1), (bv0, bv1) = basis_u, basis_v
     if weights is None:
         return _tensor_grid(cp, bu0, bu1, bv0, bv1)
     w = weights.to(dtype=cp.dtype, device=cp.device)
@@ -320,9 +354,11 @@ def surface_samples(control_points: torch.Tensor, degree_u: int, degree_v: int, 
         Surface area represented by each sample [m²]: ``|S_u x S_v| / (samples_u * samples_v)``.
     """
     cp = control_points
-    u = midpoints(samples_u, dtype=cp.dtype, device=cp.device)
-    v = midpoints(samples_v, dtype=cp.dtype, device=cp.device)
-    points, du, dv = evaluate(cp, degree_u, degree_v, u, v, weights)
+    if cp.dim() < 3 or cp.shape[-1] != 3:
+        raise HeliotwinError(f"control_points must have shape [..., nu, nv, 3], got {tuple(cp.shape)}")
+    nu, nv = cp.shape[-3], cp.shape[-2]
+    points, du, dv = _evaluate_bases(cp, midpoint_basis(nu, degree_u, int(samples_u), cp.dtype, cp.device),
+                                     midpoint_basis(nv, degree_v, int(samples_v), cp.dtype, cp.device), weights)
     cross = torch.linalg.cross(du, dv, dim=-1)
     # vector_norm's backward is zero at the zero vector; the clamp keeps the division finite there.
     length = torch.linalg.vector_norm(cross, dim=-1)

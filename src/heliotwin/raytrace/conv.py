@@ -55,10 +55,45 @@ from .flux import CENTERED_WINDOW_M, FluxImage
 from .splat import splat_bilinear
 
 __all__ = ["reflect_to_plane", "angular_density", "footprint_kernel", "mean_footprint_kernel", "render_centered",
-           "RenderResult", "trace_conv"]
+           "RenderResult", "trace_conv", "fft_size", "kernel_spectrum"]
 
 #: Angular grid step of the tabulated sunshape [rad].
 _ANG_STEP = 0.2e-3
+
+
+def fft_size(resolution: int) -> int:
+    """Side [px] of the FFT grid of :func:`render_centered` for an ``R``-pixel window (R even): ``5 R / 2``.
+
+    The splat and the kernel are ``2R x 2R`` and the window is ``full[q]`` for ``q`` in ``[3R/2, 5R/2)`` of their
+    linear convolution ``full[q] = sum_m splat[m] K[q - m]`` (per axis), where ``m + k`` spans ``[0, 4R - 2]``.
+    An FFT of side ``n`` (at least ``2R``, so neither input is cut) gives the *circular* convolution, in which
+    every term with ``m + k = q + j n`` (any integer ``j``) lands on ``q``. The window is alias-free when only
+    ``j = 0`` is in range for all its ``q``: ``3R/2 + n > 4R - 2`` (``n >= 5R/2 - 1``) and ``5R/2 - 1 - n < 0``
+    (``n >= 5R/2``). So ``n = 5R/2`` (160 for R = 64, instead of the full linear size ``4R = 256``) gives the
+    window exactly (``tests/test_raytrace.py`` checks it against ``4R`` to float precision, and that ``5R/2 - 1``
+    aliases) at ``(160/256)^2 = 0.39`` of the FFT work.
+    """
+    return 5 * int(resolution) // 2
+
+
+def kernel_spectrum(kernel: torch.Tensor, resolution: int) -> torch.Tensor:
+    """The kernel's spectrum as :func:`render_centered` uses it (for callers that reuse one kernel across steps).
+
+    Parameters
+    ----------
+    kernel : torch.Tensor, [B, 2R, 2R]
+        Footprint kernel (:func:`mean_footprint_kernel`, ``size = 2 * resolution``).
+    resolution : int
+        R, window pixels per side.
+
+    Returns
+    -------
+    torch.Tensor, [B, n, m], complex
+        ``rfft2`` on the ``n x n`` grid of :func:`fft_size` (``m = n // 2 + 1``), in the kernel's precision
+        (complex64 for float32).
+    """
+    n = fft_size(resolution)
+    return torch.fft.rfft2(kernel, s=(n, n))
 
 
 def reflect_to_plane(points: torch.Tensor, normals: torch.Tensor, sun_direction: torch.Tensor,
@@ -100,23 +135,30 @@ def _angular_density_cached(sunshape: str, sigma: float, radius: float, csr: flo
     extent = sunshape_ops.angular_extent(sunshape, sigma=sigma, radius=radius)
     half = extent + 4.5 * spread + 2 * _ANG_STEP
     n = int(math.ceil(half / _ANG_STEP))
-    ax = torch.arange(-n, n + 1, dtype=torch.float64) * _ANG_STEP
+    # One quadrant (a, b >= 0), mirrored: the profile is radially symmetric and the sub-samples below are
+    # symmetric about each cell centre, so the grid is even in a and in b (a quarter of the profile evaluations).
+    ax = torch.arange(0, n + 1, dtype=torch.float64) * _ANG_STEP
     a, b = torch.meshgrid(ax, ax, indexing="ij")
-    theta = torch.sqrt(a * a + b * b)
     # 3x3 supersampling of the radial profile so the sharp disc edge is area-weighted, not aliased.
     sub = (torch.arange(3, dtype=torch.float64) - 1.0) / 3.0 * _ANG_STEP
-    dens = torch.zeros_like(theta)
+    quad = torch.zeros_like(a)
     for da in sub:
         for db in sub:
             th = torch.sqrt((a + da) ** 2 + (b + db) ** 2)
-            dens += sunshape_ops.radial_profile(sunshape, th, sigma=sigma, radius=radius, csr=csr)
+            quad += sunshape_ops.radial_profile(sunshape, th, sigma=sigma, radius=radius, csr=csr)
+    mirror = (torch.arange(2 * n + 1) - n).abs()
+    dens = quad[mirror][:, mirror]
     if spread > 0:
         # Separable Gaussian blur = convolution with the slope-error scatter.
         k = int(math.ceil(4.5 * spread / _ANG_STEP))
         g = torch.exp(-0.5 * ((torch.arange(-k, k + 1, dtype=torch.float64) * _ANG_STEP) / spread) ** 2)
         g = g / g.sum()
-        dens = F.conv2d(dens[None, None], g.reshape(1, 1, -1, 1), padding=(k, 0))
-        dens = F.conv2d(dens, g.reshape(1, 1, 1, -1), padding=(0, k))[0, 0]
+        # The zero-padded separable convolution as band @ dens @ band^T: the same sums as conv2d, whose im2col
+        # buffer (G^2 x (2k+1) values, ~3 GB at slope error 5 mrad) set the learner's peak memory.
+        i = torch.arange(dens.shape[-1])
+        off = i[None, :] - i[:, None] + k
+        band = torch.where((off >= 0) & (off <= 2 * k), g[off.clamp(0, 2 * k)], torch.zeros((), dtype=g.dtype))
+        dens = band @ dens @ band.T
     dens = dens / (dens.sum() * _ANG_STEP ** 2)
     return dens, float(n * _ANG_STEP)
 
@@ -256,19 +298,23 @@ class RenderResult:
     power : torch.Tensor, [B]
         Reflected power [W] (all samples).
     miss : torch.Tensor, []
-        Soft miss penalty: mean squared overshoot [m^2] of hits beyond the window, power-weighted.
+        Soft miss penalty: mean squared overshoot [m^2] of hits beyond the window, power-weighted, averaged
+        over the B images.
+    miss_per_image : torch.Tensor, [B]
+        The same per image (``miss`` is its mean) [m^2].
     """
 
     image: torch.Tensor
     center: torch.Tensor
     power: torch.Tensor
     miss: torch.Tensor
+    miss_per_image: torch.Tensor | None = None
 
 
 def render_centered(points: torch.Tensor, normals: torch.Tensor, areas: torch.Tensor,
                     sun_direction: torch.Tensor, target: PlanarTarget, sun: SunSettings, *,
                     size_m: float = CENTERED_WINDOW_M, resolution: int = 64, center: torch.Tensor | None = None,
-                    kernel: torch.Tensor | None = None) -> RenderResult:
+                    kernel: torch.Tensor | None = None, spectrum: torch.Tensor | None = None) -> RenderResult:
     """Flux of B mirror poses in a square window (centred on the predicted centroid by default).
 
     Parameters
@@ -289,6 +335,10 @@ def render_centered(points: torch.Tensor, normals: torch.Tensor, areas: torch.Te
     kernel : torch.Tensor, [B, 2R, 2R], optional
         Precomputed :func:`footprint_kernel` (its dependence on the surface is second order, so callers
         may reuse it across optimiser steps).
+    spectrum : torch.Tensor, [B, n, m], optional
+        (``n`` = :func:`fft_size`, ``m = n // 2 + 1``) :func:`kernel_spectrum` of the kernel cast to the splat's
+        precision (float32 rays: float32 kernel, as ``kernel`` is used); it replaces ``kernel`` (the caller keeps
+        the two consistent).
 
     Returns
     -------
@@ -313,19 +363,20 @@ def render_centered(points: torch.Tensor, normals: torch.Tensor, areas: torch.Te
     px = (local[..., 0] - x0) / pix - 0.5
     py = (y1 - local[..., 1]) / pix - 0.5
     img = splat_bilinear(px, py, w, big, big)  # [B, 2R, 2R] m^2 per pixel
-    if kernel is None:
-        kernel = _mean_kernel(w, refl, dist, target, sun, pix, big)
-    kern = kernel.to(img.dtype)
-    n = 2 * big
-    spec = torch.fft.rfft2(img, s=(n, n)) * torch.fft.rfft2(kern, s=(n, n))
-    full = torch.fft.irfft2(spec, s=(n, n))
+    if spectrum is None:
+        if kernel is None:
+            kernel = _mean_kernel(w, refl, dist, target, sun, pix, big)
+        spectrum = kernel_spectrum(kernel.to(img.dtype), res)
+    n = fft_size(res)  # alias-free for the window (see fft_size), not the full linear size 2 * big
+    spec = torch.fft.rfft2(img, s=(n, n))
+    full = torch.fft.irfft2(spec * spectrum.to(spec), s=(n, n))
     # out[q] = sum_m img[m] K[q - m + big/2]; the window starts at big-grid index res/2.
     start = big // 2 + res // 2
     window = full[:, start:start + res, start:start + res].clamp_min(0.0)
     flux = window * (float(sun.dni) * float(sun.reflectivity) / (pix * pix))
     over = (local - center.unsqueeze(1)).abs() - size_m / 2
-    miss = ((w * over.clamp_min(0.0).pow(2).sum(-1)).sum(1) / wsum).mean()
-    return RenderResult(flux, center, float(sun.dni) * float(sun.reflectivity) * w.sum(-1), miss)
+    miss = (w * over.clamp_min(0.0).pow(2).sum(-1)).sum(1) / wsum
+    return RenderResult(flux, center, float(sun.dni) * float(sun.reflectivity) * w.sum(-1), miss.mean(), miss)
 
 
 def trace_conv(points, normals, areas, sun_direction, target: PlanarTarget, *, resolution=64,

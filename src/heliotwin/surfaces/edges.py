@@ -24,13 +24,16 @@ Shapes: F facets, (su, sv) samples per facet. Units: radians (mrad where named).
 """
 from __future__ import annotations
 
+from functools import lru_cache
+
 import torch
 
+from ..field import facets as facet_ops
 from ..field.plant import Facets, Surfaces
 from .learning import normal_heights
 
 __all__ = ["slope_penalty", "edge_ridge_mrad", "deviation_map_mrad", "residual_map_mrad", "high_order",
-           "RIDGE_RAD", "HINGE_WEIGHT", "EDGE_BAND"]
+           "RIDGE_RAD", "HINGE_WEIGHT", "EDGE_BAND", "slope_penalties"]
 
 #: Largest slope deviation accepted without the images demanding it [rad] (5 mrad).
 RIDGE_RAD = 5e-3
@@ -45,16 +48,26 @@ def _normals(surf: Surfaces, facets: Facets, samples) -> torch.Tensor:
     return n
 
 
+@lru_cache(maxsize=16)
+def _affine_basis(su: int, sv: int, dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
+    # ([P, 3] affine fields in (u, v) on the su x sv midpoint grid, their [3, P] pseudo-inverse); fixed by the
+    # grid, so built once rather than at every optimiser step (shared: never modified in place).
+    u = (torch.arange(su, dtype=dtype, device=device) + 0.5) / su - 0.5
+    v = (torch.arange(sv, dtype=dtype, device=device) + 0.5) / sv - 0.5
+    a = torch.stack((torch.ones(su, sv, dtype=dtype, device=device), u[:, None].expand(su, sv),
+                     v[None, :].expand(su, sv)), -1).reshape(-1, 3)  # [P, 3]
+    return a, torch.linalg.pinv(a)
+
+
 def high_order(dn: torch.Tensor) -> torch.Tensor:
     """Residual of ``dn`` ``[F, su, sv, 3]`` after each facet's least-squares affine fit in (u, v) (same shape)."""
     f, su, sv, _ = dn.shape
-    u = (torch.arange(su, dtype=dn.dtype, device=dn.device) + 0.5) / su - 0.5
-    v = (torch.arange(sv, dtype=dn.dtype, device=dn.device) + 0.5) / sv - 0.5
-    a = torch.stack((torch.ones(su, sv, dtype=dn.dtype, device=dn.device), u[:, None].expand(su, sv),
-                     v[None, :].expand(su, sv)), -1).reshape(-1, 3)  # [P, 3]
-    proj = a @ torch.linalg.pinv(a)  # [P, P], projector onto affine fields
-    x = dn.reshape(f, su * sv, 3)
-    return (x - proj @ x).reshape(dn.shape)
+    a, a_pinv = _affine_basis(su, sv, dn.dtype, dn.device)
+    # Every facet and component a column of one [P, 3F] matrix: x - A (A^+ x), two thin matmuls (not a [P, P]
+    # projector per facet).
+    x = dn.reshape(f, su * sv, 3).transpose(0, 1).reshape(su * sv, f * 3)
+    r = x - a @ (a_pinv @ x)
+    return r.reshape(su * sv, f, 3).transpose(0, 1).reshape(dn.shape)
 
 
 def slope_penalty(surf: Surfaces, reference_normals: torch.Tensor, facets: Facets, weight: float,
@@ -64,6 +77,25 @@ def slope_penalty(surf: Surfaces, reference_normals: torch.Tensor, facets: Facet
     d2 = high_order(n - reference_normals.to(n)).pow(2).sum(-1) / 1e-6  # [mrad^2]
     hinge = torch.relu(d2 - (RIDGE_RAD / 1e-3) ** 2)
     return weight * d2.mean() + HINGE_WEIGHT * hinge.mean()
+
+
+def slope_penalties(surf: Surfaces, reference_normals: torch.Tensor, weights: torch.Tensor,
+                    samples=(16, 16)) -> torch.Tensor:
+    """:func:`slope_penalty` of K surfaces at once (one per row of ``surf``), ``[K]``.
+
+    ``surf``: control points ``[K, F, nu, nv, 3]`` [m]; ``reference_normals`` ``[F, su, sv, 3]`` (shared) or
+    ``[K, F, su, sv, 3]``; ``weights`` ``[K]`` (per mrad^2; 0 gives 0, as the fit then leaves the penalty out).
+    """
+    su, sv = samples
+    cp = surf.control_points
+    k, nf = cp.shape[0], cp.shape[1]
+    _, nrm, _ = facet_ops.surface_points(surf, samples)
+    n = nrm.reshape(k, nf, su, sv, 3)
+    dn = (n - reference_normals.to(n)).reshape(k * nf, su, sv, 3)
+    d2 = (high_order(dn).pow(2).sum(-1) / 1e-6).reshape(k, -1)  # [mrad^2]
+    hinge = torch.relu(d2 - (RIDGE_RAD / 1e-3) ** 2)
+    w = weights.to(d2)
+    return torch.where(w != 0, w * d2.mean(-1) + HINGE_WEIGHT * hinge.mean(-1), torch.zeros_like(w))
 
 
 def deviation_map_mrad(surf: Surfaces, reference: Surfaces, facets: Facets, samples=(48, 48)) -> torch.Tensor:

@@ -3,7 +3,9 @@
 It is the one surface learner of the library (:func:`reconstruct_generalising` is its study entry: fit, then
 evaluate on test images, one report-row shape). Its settings are one class
 (:class:`~heliotwin.surfaces.fit.SurfaceSettings`); each of its fits (leave-one-out and final) is one
-:func:`~heliotwin.surfaces.fit.fit_surface`, run in calibration's fit loop.
+:func:`~heliotwin.surfaces.fit.fit_surface`, run in calibration's fit loop; without a plant prior the
+leave-one-out fits of one blur mode run as one batch (:func:`~heliotwin.surfaces.fitbatch.fit_surfaces`, the
+same fits up to float rounding, one checkpoint key).
 
 Steps (:func:`fit_generalising`), each a stated rule:
 
@@ -55,6 +57,7 @@ from . import losses
 from .acceptance import robust_outliers, shrink_to_accept, wilson_interval
 from .edges import edge_ridge_mrad
 from .fit import SurfaceSettings, blur_for, evaluate_with_camera, fit_surface, render
+from .fitbatch import FitProblem, fit_surfaces
 from .learning import LearnableSurface, heights_to_displacement, learnable_surfaces
 from .nuisance import CameraModel, apply_camera, estimate_camera
 from .observations import Observations
@@ -101,11 +104,13 @@ def focused_start(facets: Facets, focal_length: float | None, num_control_points
 
 
 def choose_optics(facets: Facets, train: Observations, base_sun: SunSettings, camera: CameraModel,
-                  s: SurfaceSettings, prior=None) -> dict:
+                  s: SurfaceSettings, prior=None, renders: dict | None = None) -> dict:
     """Step 1 (module docstring): facet focus x slope error (x per-image blur) by the ideal's training L1.
 
     With a ``prior`` (:class:`~heliotwin.surfaces.plantprior.SurfacePrior`) its mean shape is one more
-    start candidate (``focus_multiple`` ``"prior"``).
+    start candidate (``focus_multiple`` ``"prior"``). ``renders``: a cache ``(focus, slope error) -> ideal
+    images [B, R, R]`` of these ``train`` images and window settings, shared by calls that differ only in
+    the blur grid (the blur modes), so each ideal is rendered once.
     """
     f_cant = canting_focal_length(facets)
     focus = [None] + [m for m in s.focus_grid if m is not None and f_cant is not None]
@@ -122,7 +127,13 @@ def choose_optics(facets: Facets, train: Observations, base_sun: SunSettings, ca
         for se in s.slope_grid:
             sun = dataclasses.replace(base_sun, slope_error=float(se))
             with torch.no_grad():
-                pred, _ = render(ideal, train, sun, s)
+                key = (m, float(se))
+                if renders is not None and key in renders:
+                    pred = renders[key]
+                else:
+                    pred, _ = render(ideal, train, sun, s)
+                    if renders is not None:
+                        renders[key] = pred
                 per_blur = torch.stack([losses.l1(apply_camera(pred, camera, torch.full((len(train),), float(b),
                                                                                        device=pred.device)),
                                                   meas.to(pred)) for b in s.blur_grid_px])  # [G, B]
@@ -155,11 +166,22 @@ def loo_select(facets, train, camera, sigma0, sun, start, s, progress=False, pri
     curves: dict = {}
     pgrid = (None,) if prior is None else tuple(float(p) for p in prior_grid)
     jobs = [(w, p, k) for w in s.slope_weight_grid for p in pgrid for k in range(n)]
-    for w, p, k in iterate(jobs, "heliotwin reconstruct: leave-one-out", unit="fit", enabled=progress, every=25):
-        keep = [i for i in range(n) if i != k]
-        curves[(w, p, k)] = fit_surface(facets, train.subset(keep), sun, s, start=start, camera=camera.subset(keep),
-                                        sigma0=sigma0[keep], slope_weight=w, prior=prior, prior_weight=p or 0.0,
-                                        heldout=(train.subset([k]), camera.subset([k]))).curve
+    if prior is None and s.optimizer == "adam":
+        # The same fits as the loop below, run as one batch (fitbatch: equal up to float rounding, ~K x fewer
+        # tensor operations).
+        problems = [FitProblem(train.subset(keep), camera.subset(keep), sigma0[keep], w,
+                               (train.subset([k]), camera.subset([k])))
+                    for w, _, k in jobs for keep in ([i for i in range(n) if i != k],)]
+        for _ in iterate([jobs], "heliotwin reconstruct: leave-one-out", unit="batch", enabled=progress, every=25):
+            fits = fit_surfaces(facets, problems, sun, s, start=start)
+        curves = {job: f.curve for job, f in zip(jobs, fits)}
+    else:
+        for w, p, k in iterate(jobs, "heliotwin reconstruct: leave-one-out", unit="fit", enabled=progress, every=25):
+            keep = [i for i in range(n) if i != k]
+            curves[(w, p, k)] = fit_surface(facets, train.subset(keep), sun, s, start=start,
+                                            camera=camera.subset(keep), sigma0=sigma0[keep], slope_weight=w,
+                                            prior=prior, prior_weight=p or 0.0,
+                                            heldout=(train.subset([k]), camera.subset([k]))).curve
     table = {}
     for w in s.slope_weight_grid:
         for p in pgrid:
@@ -185,10 +207,10 @@ def _mode_settings(s: SurfaceSettings, mode: str) -> SurfaceSettings:
 
 def _candidates(facets, train, base_sun, camera, s, progress, prior=None, prior_grid=PRIOR_WEIGHT_GRID) -> list:
     """Per blur mode: the optics choice and (with >= 3 images) the leave-one-out table."""
-    out = []
+    out, renders = [], {}  # the modes differ in the blur only: their ideal images are the same
     for mode in s.blur_modes:
         sm = _mode_settings(s, mode)
-        opt = choose_optics(facets, train, base_sun, camera, sm, prior)
+        opt = choose_optics(facets, train, base_sun, camera, sm, prior, renders)
         sun = dataclasses.replace(base_sun, slope_error=opt["chosen"]["slope_error_rad"])
         sigma0 = torch.tensor(opt["chosen"]["blur_px"], dtype=torch.float32, device=train.images.device)
         if len(train) >= 3 and s.select:

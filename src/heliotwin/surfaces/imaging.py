@@ -14,13 +14,13 @@ from ..field import facets as facet_ops
 from ..field.plant import SunSettings, Surfaces
 from ..field.targets import PlanarTarget
 from ..io.images import CENTERED_WINDOW_M
-from ..raytrace.conv import mean_footprint_kernel, render_centered
+from ..raytrace.conv import kernel_spectrum, mean_footprint_kernel, render_centered
 from ..raytrace.flux import cross_correlation
 from ..scene import to_world
 from . import losses
 from .observations import Observations
 
-__all__ = ["predict_images", "evaluate_images"]
+__all__ = ["predict_images", "render_samples", "evaluate_images"]
 
 
 def _groups(targets: list) -> list[tuple[PlanarTarget, list[int]]]:
@@ -57,7 +57,9 @@ def predict_images(surfaces: Surfaces, obs: Observations, sun: SunSettings, *, s
         Window pixels per side and side [m].
     kernels : dict, optional
         Cache ``image index -> footprint kernel``, filled on first use (the kernel is a second-order
-        function of the surface; reusing it keeps the optimisation cheap and deterministic).
+        function of the surface; reusing it keeps the optimisation cheap and deterministic); also holds the
+        kernels' spectra under ``("spectrum", image index)`` (derived from the kernels: a cache restored with
+        the kernels alone rebuilds them identically).
     kernel_supersample : int
         Supersampling of the footprint kernel (:func:`heliotwin.raytrace.conv.mean_footprint_kernel`).
 
@@ -72,25 +74,65 @@ def predict_images(surfaces: Surfaces, obs: Observations, sun: SunSettings, *, s
         the B images (a scalar, differentiable).
     """
     pw, nw, ar, sund = _world_samples(surfaces, obs, samples)
+    images, centers, _, miss = render_samples(pw, nw, ar, sund, obs, sun, resolution=resolution, size_m=size_m,
+                                              kernels=kernels, kernel_supersample=kernel_supersample)
+    return images, centers, miss
+
+
+def render_samples(pw: torch.Tensor, nw: torch.Tensor, ar: torch.Tensor, sund: torch.Tensor, obs: Observations,
+                   sun: SunSettings, *, resolution: int = 64, size_m: float = CENTERED_WINDOW_M,
+                   kernels: dict | None = None, kernel_supersample: int = 4
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`predict_images` from world-frame mirror samples: each image its own samples (its own surface).
+
+    Parameters
+    ----------
+    pw, nw : torch.Tensor, [B, N, 3]
+        World ENU mirror samples [m] / unit normals (float32 rays), one set per image.
+    ar : torch.Tensor, [B, N]
+        Areas [m^2].
+    sund : torch.Tensor, [B, 3]
+        Unit sun directions.
+    obs : Observations
+        The B recordings (targets; optional fixed window centres).
+    sun, resolution, size_m, kernels, kernel_supersample
+        As :func:`predict_images`.
+
+    Returns
+    -------
+    images : torch.Tensor, [B, R, R]
+        Flux [W/m^2].
+    centers : torch.Tensor, [B, 2]
+        Window centres (local [m]).
+    miss_per_image : torch.Tensor, [B]
+        Soft miss penalty per image [m^2].
+    miss : torch.Tensor, shape ()
+        Its mean over the B images (per target group, as :func:`predict_images` returns it).
+    """
     b = len(obs)
-    images, centers, misses = [None] * b, [None] * b, []
+    images, centers, per_image, misses = [None] * b, [None] * b, [None] * b, []
     for target, idx in _groups(obs.targets):
-        kern = None
+        spectrum = None
         if kernels is not None:
             if not all(i in kernels for i in idx):  # computed once, then reused (also by render_centered now)
                 kern_new = mean_footprint_kernel(pw[idx], nw[idx], ar[idx], sund[idx], target, sun,
                                                  size_m / resolution, 2 * resolution, kernel_supersample)
                 for j, i in enumerate(idx):
                     kernels[i] = kern_new[j]
-            kern = torch.stack([kernels[i] for i in idx])
+            if not all(("spectrum", i) in kernels for i in idx):  # the FFT of the kernel, once, not every step
+                spec_new = kernel_spectrum(torch.stack([kernels[i] for i in idx]).to(pw.dtype), resolution)
+                for j, i in enumerate(idx):
+                    kernels[("spectrum", i)] = spec_new[j]
+            spectrum = torch.stack([kernels[("spectrum", i)] for i in idx])
         fixed = None if obs.centers is None else obs.centers[idx].to(pw)
         res = render_centered(pw[idx], nw[idx], ar[idx], sund[idx], target, sun, size_m=size_m,
-                              resolution=resolution, kernel=kern, center=fixed)
+                              resolution=resolution, spectrum=spectrum, center=fixed)
         for j, i in enumerate(idx):
             images[i] = res.image[j]
             centers[i] = res.center[j]
+            per_image[i] = res.miss_per_image[j]
         misses.append(res.miss * len(idx))
-    return torch.stack(images), torch.stack(centers), sum(misses) / b
+    return torch.stack(images), torch.stack(centers), torch.stack(per_image), sum(misses) / b
 
 
 def evaluate_images(surfaces: Surfaces, obs: Observations, sun: SunSettings, *, samples=(24, 24),

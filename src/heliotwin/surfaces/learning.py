@@ -223,12 +223,21 @@ class LearnableSurface(nn.Module):
         # Gauge projection acts on the change from the start, so a loaded surface is kept as it is.
         self.register_buffer("start_mm", (disp / MM).clone())
         self.log_weights = nn.Parameter(torch.zeros_like(disp)) if learn_weights else None
+        self._gauge: dict = {}  # gauge_basis per (net, device): fixed by the facets, not recomputed every step
 
     def _apply(self, fn, *args, **kwargs):
         # .cpu() / .to(device) move the facets too: they are a plain dataclass, not a registered buffer
         super()._apply(fn, *args, **kwargs)
         self.facets = Facets(*(fn(t) for t in (self.facets.translation, self.facets.canting_e, self.facets.canting_n)))
+        self._gauge = {}
         return self
+
+    def _gauge_basis(self, like: torch.Tensor) -> torch.Tensor:
+        key = (self.num_control_points, self.gauge_tilt, like.device, like.dtype)
+        if key not in self._gauge:
+            self._gauge[key] = gauge_basis(self.facets, self.num_control_points, self.degree,
+                                           common_tilt=self.gauge_tilt).to(like)
+        return self._gauge[key]
 
     def _displacement_of(self, control_points: torch.Tensor, degree) -> torch.Tensor:
         # Least-squares normal offsets on this net reproducing the given surface's normal heights.
@@ -240,7 +249,7 @@ class LearnableSurface(nn.Module):
         """Displacements along the facet normals [m], ``[1, F, nu, nv]`` (gauge-projected if ``fix_gauge``)."""
         d = self.displacement_mm
         if self.fix_gauge:
-            q = gauge_basis(self.facets, self.num_control_points, self.degree, common_tilt=self.gauge_tilt).to(d)
+            q = self._gauge_basis(d)
             change = (d - self.start_mm).reshape(-1)
             d = self.start_mm + (change - q @ (q.T @ change)).reshape(d.shape)
         return d * MM

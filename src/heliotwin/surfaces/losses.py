@@ -25,8 +25,8 @@ from ..errors import HeliotwinError
 from ..io.images import subtract_background
 from ..raytrace.flux import normalized_l1
 
-__all__ = ["normalize", "image_loss", "l1", "l2", "kl", "ridge", "lasso", "laplacian", "IMAGE_LOSSES",
-           "threshold_background"]
+__all__ = ["normalize", "image_loss", "l1", "l2", "kl", "ridge", "lasso", "laplacian", "laplacian_per_row",
+           "IMAGE_LOSSES", "threshold_background"]
 
 _EPS = 1e-12
 
@@ -92,6 +92,16 @@ def laplacian(d_mm: torch.Tensor) -> torch.Tensor:
     The grid is padded by linear extrapolation, so planes (facet tilts, pistons) cost nothing -- ridge
     handles those -- while bumps and ripples do, including at the free edges.
     """
+    return _laplacian_stencil(d_mm).pow(2).mean()
+
+
+def laplacian_per_row(d_mm: torch.Tensor) -> torch.Tensor:
+    """:func:`laplacian` of each row of ``d_mm`` ``[K, F, nu, nv]`` [mm] (K independent surfaces): ``[K]`` [mm^2]."""
+    return _laplacian_stencil(d_mm).pow(2).reshape(d_mm.shape[0], -1).mean(-1)
+
+
+def _laplacian_stencil(d_mm: torch.Tensor) -> torch.Tensor:
+    # The 5-point Laplacian of [..., nu, nv] grids padded by linear extrapolation: [prod(...), 1, nu, nv].
     shape = d_mm.shape
     x = d_mm.reshape(-1, 1, shape[-2], shape[-1])
     k = x.new_tensor([[0.0, 1.0, 0.0], [1.0, -4.0, 1.0], [0.0, 1.0, 0.0]]).reshape(1, 1, 3, 3)
@@ -102,7 +112,7 @@ def laplacian(d_mm: torch.Tensor) -> torch.Tensor:
     left = 2 * x[..., :, :1] - x[..., :, 1:2]
     right = 2 * x[..., :, -1:] - x[..., :, -2:-1]
     x = torch.cat((left, x, right), -1)
-    return F.conv2d(x, k).pow(2).mean()
+    return F.conv2d(x, k)
 
 
 def threshold_background(image: torch.Tensor, level: float = 0.02) -> torch.Tensor:

@@ -106,9 +106,19 @@ def gaussian_blur(images: torch.Tensor, sigma_px: torch.Tensor) -> torch.Tensor:
     s = sigma_px.to(images).clamp_min(0.05)[:, None]
     g = torch.exp(-0.5 * (x[None, :] / s) ** 2)
     g = g / g.sum(-1, keepdim=True)  # [B, K]
-    b = images.shape[0]
-    y = F.conv2d(images[None], g[:, None, :, None], padding=(r, 0), groups=b)
-    return F.conv2d(y, g[:, None, None, :], padding=(0, r), groups=b)[0]
+    # The separable zero-padded convolution as two banded matrices, out = T_rows @ image @ T_cols^T: the same
+    # sums as a grouped conv2d, several times cheaper forward and backward (w.r.t. sigma too) on a CPU.
+    return _band(g, images.shape[-2]) @ images @ _band(g, images.shape[-1]).transpose(-1, -2)
+
+
+def _band(g: torch.Tensor, n: int) -> torch.Tensor:
+    """``[B, n, n]`` matrices ``T[b, i, j] = g[b, j - i + r]`` (0 where ``|j - i| > r``) of kernels ``g`` ``[B, 2r+1]``:
+    ``T @ x`` is the zero-padded correlation of ``x`` with ``g`` along ``x``'s rows."""
+    r = (g.shape[-1] - 1) // 2
+    i = torch.arange(n, device=g.device)
+    off = i[None, :] - i[:, None] + r  # [n, n]
+    inside = (off >= 0) & (off <= 2 * r)
+    return g[:, off.clamp(0, 2 * r)] * inside.to(g)
 
 
 def apply_camera(pred: torch.Tensor, camera: CameraModel, sigma_px: torch.Tensor | None = None) -> torch.Tensor:
@@ -126,9 +136,10 @@ def apply_camera(pred: torch.Tensor, camera: CameraModel, sigma_px: torch.Tensor
     x = pred if sigma_px is None else gaussian_blur(pred, sigma_px)
     x = x / x.amax((-2, -1), keepdim=True).clamp_min(1e-30)
     flat = x.detach().flatten(1)
-    k = camera.n_saturated.to(x.device).clamp(1, flat.shape[1])
-    top = torch.sort(flat, dim=1, descending=True).values
-    gain = 1.0 / top.gather(1, (k - 1)[:, None]).clamp_min(1e-6)  # [B, 1], detached
+    k = camera.n_saturated.clamp(1, flat.shape[1])
+    # The k-th largest value per image: the largest k_max values sorted (topk), not a sort of all pixels.
+    top = torch.topk(flat, int(k.max()), dim=1, sorted=True).values
+    gain = 1.0 / top.gather(1, (k.to(x.device) - 1)[:, None]).clamp_min(1e-6)  # [B, 1], detached
     x = torch.clamp(x * gain[:, :, None], max=1.0)
     keep = (x.detach() >= camera.threshold.to(x)[:, None, None]).to(x)
     return x * keep
