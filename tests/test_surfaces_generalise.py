@@ -354,3 +354,16 @@ def test_cli_generalising_interrupted_resumes_to_the_same_report(paint_dir, tmp_
     assert not (tmp_path / "run.json.ckpt").exists()
     a, b = json.loads(out.read_text()), json.loads(ref.read_text())
     assert a["train"] == b["train"] and a["test"] == b["test"] and a["choices"] == b["choices"]
+
+
+def test_a_reconstruction_checkpoint_of_the_serial_leave_one_out_layout_is_not_resumed(tmp_path, monkeypatch):
+    # The leave-one-out fits of a blur mode share one checkpoint key since they run batched; a checkpoint of the
+    # serial layout holds nine keys per mode, so its tag must differ (resume refuses it instead of misreading it).
+    from heliotwin.workflows import reconstruct as rc
+
+    paint = tmp_path / "paint"
+    paint.mkdir()
+    now = rc.reconstruction_checkpoint(tmp_path / "a.ckpt", paint, "AA39", rc.ReconstructionSettings(device="cpu"))
+    monkeypatch.setattr(rc, "CHECKPOINT_LAYOUT", 1)
+    old = rc.reconstruction_checkpoint(tmp_path / "b.ckpt", paint, "AA39", rc.ReconstructionSettings(device="cpu"))
+    assert now.tag != old.tag

@@ -36,7 +36,11 @@ from ..surfaces.state import with_learned_surface
 from .show import kinematics_note
 from .sizes import check_range
 
-__all__ = ["ReconstructionSettings", "reconstruct", "learn_surface", "reconstruction_checkpoint"]
+__all__ = ["ReconstructionSettings", "reconstruct", "learn_surface", "reconstruction_checkpoint", "CHECKPOINT_LAYOUT"]
+
+#: What a reconstruction checkpoint holds, part of its tag. 2: a blur mode's leave-one-out fits are one batched
+#: fit under one key; a checkpoint of the serial layout (1) cannot be continued, so --resume refuses it.
+CHECKPOINT_LAYOUT = 2
 
 
 @dataclass
@@ -124,7 +128,8 @@ def reconstruction_checkpoint(path, paint, heliostat: str, settings: Reconstruct
     """The :class:`~heliotwin.io.checkpoint.Checkpoint` of a :func:`reconstruct` run at ``path``, tagged with the
     heliostat, the device, :meth:`ReconstructionSettings.fingerprint` and the input files (the PAINT folder, the
     starting scenario, the deflectometry file and the surface-prior scenarios)."""
-    tag = {"command": "reconstruct", "heliostat": heliostat, "device": resolve_device(settings.device),
+    tag = {"command": "reconstruct", "layout": CHECKPOINT_LAYOUT, "heliostat": heliostat,
+           "device": resolve_device(settings.device),
            "paint": os.path.abspath(os.fspath(paint)), **settings.fingerprint()}
     files = [paint] + [p for p in (scenario_path, settings.deflectometry) if p is not None]
     files += list(settings.surface_prior_from or ())
