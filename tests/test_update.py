@@ -335,6 +335,9 @@ def test_calibrate_then_update_on_real_records_by_command_line(paint_dir, tmp_pa
         "older_than_state"] + c["without_time"] == c["records"]
     # the records are predicted before they are assimilated: as well as a calibration predicts its test block
     assert rep["overall"]["median_of_mean_predicted_error_mrad"] < 2.0
+    # calibrate (no drift model) chose the offsets' walk on the records it saw; the update read it
+    assert rep["process_noise"]["source"].startswith("stored choice") and 0.001 <= rep["process_noise"][
+        "mrad2_per_day"] <= 0.1
     assert "assimilated" in out
     code, out, err = run_cli(capsys, "history", "--scenario", tmp_path / "u.h5", "--heliostat", "BG23", "--json",
                              tmp_path / "h.json")

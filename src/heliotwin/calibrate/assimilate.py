@@ -72,6 +72,17 @@ REOPEN = 2e-3
 #: Records of the step tests' longest window (:func:`assimilate`).
 WINDOW = 3
 
+#: q [mrad^2/day] tried by :func:`choose_process_noise`: 0.001 to 0.1, log-spaced (7 values, a third of a decade
+#: apart). 0.01 mrad^2/day is a 1 mrad standard deviation per component after 100 days.
+PROCESS_NOISE_GRID = tuple(float(f"{10 ** (-3 + k / 3):.3g}") for k in range(7))
+
+#: Relative margin of validation error within which :func:`choose_process_noise` counts q values as tied and
+#: takes the largest (a walk too fast costs a little noise; one too slow absorbs steps and drift late).
+PROCESS_NOISE_TIE = 0.005
+
+#: Share of each heliostat's timed records (the latest) that :func:`choose_process_noise` validates on.
+VALIDATION_SHARE = 0.25
+
 #: Floor of the in-sample residual covariance (share of s^2) in :func:`leave_one_out_d2` (high leverage).
 _LEVERAGE_FLOOR = 0.05
 
@@ -300,6 +311,98 @@ def rounds(records: RecordTable) -> torch.Tensor:
     return rows.T.contiguous()
 
 
+def choose_process_noise(nominal: Kinematics, records: RecordTable, state: FilterState,
+                         grid=PROCESS_NOISE_GRID, share: float = VALIDATION_SHARE) -> dict:
+    """The random walk's ``q`` chosen on records a calibration saw: chronological validation per heliostat.
+
+    Every grid value at once, all heliostats at once: the residuals of the records at the state's mean are
+    linearised once (``z`` [R, 2], tangent plane; ``H_b`` [R, 2, B], the drifting columns), then a Kalman
+    filter of the walking offset ``b`` alone runs through each heliostat's timed records in time order,
+    predicting each record before it assimilates it (Huber-weighted as :func:`assimilate` is). The offset
+    starts from a prior worth one record (the state's offset covariance times the heliostat's records: a
+    unit-information prior), so what a validation record is predicted with comes from the records before it,
+    not from the calibration's own offset level, which saw it. The score of q is the median over heliostats of
+    the mean prediction error ``|z - H_b b|`` [mrad of the mirror normal] of their latest ``share`` of records
+    (heliostats with >= 4 timed records; the median: a step in a few heliostats' latest records does not
+    choose the walk of the whole plant). The largest q within :data:`PROCESS_NOISE_TIE` of the best wins.
+
+    Parameters
+    ----------
+    nominal : Kinematics
+        The state's H heliostats.
+    records : RecordTable
+        R records on the same heliostat axis (records without a time are ignored).
+    state : FilterState
+        The calibration's state: ``mean`` [H, P] (where to linearise), ``covariance`` [H, P, P] (the posterior
+        of those records), ``noise`` [H] [rad], ``drift_columns``, ``names``.
+    grid : sequence of float
+        q values [mrad^2/day], > 0.
+    share : float
+        Share of each heliostat's latest timed records that validate.
+
+    Returns
+    -------
+    dict
+        ``process_noise_mrad2_per_day`` (the choice; None when no heliostat has >= 4 timed records),
+        ``grid_mrad2_per_day`` [G], ``validation_error_mrad`` [G], ``validation_records``,
+        ``validation_heliostats`` and ``share``.
+    """
+    dev = state.mean.device
+    dt_ = torch.float64
+    q_grid = torch.as_tensor([float(q) for q in grid], dtype=dt_, device=dev)
+    out = {"grid_mrad2_per_day": [float(q) for q in grid], "share": float(share), "validation_records": 0,
+           "validation_heliostats": 0, "validation_error_mrad": [float("nan")] * len(grid),
+           "process_noise_mrad2_per_day": None}
+    if len(records) == 0 or records.time is None:
+        return out
+    records = records.subset(torch.isfinite(records.time.double()))
+    order = rounds(records).to(dev)  # [K, H] rows in time order
+    n = (order >= 0).sum(0)
+    n_val = torch.where(n >= 4, torch.round(float(share) * n).clamp_min(1), torch.zeros_like(n)).long()
+    k_index = torch.arange(order.shape[0], device=dev)[:, None]
+    is_val = (order >= 0) & (k_index >= (n - n_val)[None])  # [K, H]
+    if not bool(is_val.any()):
+        return out
+    hidx = records.heliostat_index
+    cols = torch.as_tensor(list(state.drift_columns), dtype=torch.long, device=dev)
+    z, hm, _, _ = linearise(nominal.index(hidx), records, state.mean.double()[hidx], state.names)
+    z, hb = z.detach(), hm[:, :, cols].detach()
+    g, h, nb = len(q_grid), state.mean.shape[0], len(cols)
+    s2 = (state.noise.double() ** 2).repeat(g)  # [G * H], grid-major
+    cov0 = state.covariance.double()[:, cols[:, None], cols[None, :]] * n.clamp_min(1).double()[:, None, None]
+    cov = cov0.repeat(g, 1, 1)
+    b = torch.zeros(g * h, nb, dtype=dt_, device=dev)
+    q = (1e-6 * q_grid).repeat_interleave(h)
+    t_prev = torch.full((g * h,), float("nan"), dtype=dt_, device=dev)
+    err_sum = torch.zeros(g * h, dtype=dt_, device=dev)
+    eye = torch.eye(2, dtype=dt_, device=dev)
+    rec_t = records.time.double().to(dev)
+    for k in range(order.shape[0]):  # rounds: one per record of the busiest heliostat, not heliostats
+        rows = order[k].repeat(g)
+        ok = rows >= 0
+        r = rows.clamp_min(0)
+        t = rec_t[r]
+        days = torch.nan_to_num((t - t_prev) / _DAY, nan=0.0).clamp_min(0.0)
+        p0 = cov + (q * days)[:, None, None] * torch.eye(nb, dtype=dt_, device=dev)
+        e = z[r] - torch.einsum("rkb,rb->rk", hb[r], b)  # the record predicted before it is assimilated
+        s = hb[r] @ p0 @ hb[r].transpose(1, 2) + s2[:, None, None] * eye
+        d2 = (e[:, None, :] @ torch.linalg.solve(s, e[:, :, None]))[:, 0, 0]
+        var = s2 * torch.clamp(d2 / HUBER_D2, min=1.0)
+        b_new, p_new, _ = kalman_update(b, p0, e, hb[r], var)
+        b = torch.where(ok[:, None], b_new, b)
+        cov = torch.where(ok[:, None, None], p_new, cov)
+        t_prev = torch.where(ok, t, t_prev)
+        err_sum = err_sum + torch.where(is_val[k].repeat(g), e.norm(dim=-1), torch.zeros_like(d2))
+    has = n_val > 0
+    mean_err = (err_sum.view(g, h) / n_val.clamp_min(1).double())[:, has]  # [G, heliostats validated]
+    score = 1e3 * mean_err.median(dim=1).values
+    best = score.min()
+    chosen = int(torch.nonzero(score <= best * (1.0 + PROCESS_NOISE_TIE)).max())
+    out.update(process_noise_mrad2_per_day=float(q_grid[chosen]), validation_error_mrad=score.tolist(),
+               validation_records=int(n_val.sum()), validation_heliostats=int(has.sum()))
+    return out
+
+
 def assimilate(nominal: Kinematics, records: RecordTable, state: FilterState,
                options: AssimilationOptions = AssimilationOptions(), score_spot: torch.Tensor | None = None
                ) -> tuple[FilterState, dict]:
@@ -346,6 +449,7 @@ def assimilate(nominal: Kinematics, records: RecordTable, state: FilterState,
     eye_b = torch.eye(nb, dtype=dt_, device=dev)
     out: dict = {k: [] for k in ("row", "heliostat", "record_id", "time", "mean", "variance", "innovation", "d2",
                                  "statistic", "window", "alarm", "predicted_error")}
+    q_walk = float(state.process_noise)
     for rows in rounds(records):  # rounds: a handful per day (records per heliostat), not heliostats
         rows = rows[rows >= 0].to(dev)
         if len(rows) == 0:
@@ -356,7 +460,7 @@ def assimilate(nominal: Kinematics, records: RecordTable, state: FilterState,
         t = rec_t[rows]
         days = torch.nan_to_num((t - time[h]) / _DAY, nan=0.0).clamp_min(0.0)
         m0 = mean[h]
-        p0 = cov[h] + float(state.process_noise) * days[:, None, None] * ee
+        p0 = cov[h] + q_walk * days[:, None, None] * ee
         z, hm, normal, conc = linearise(kin, batch, m0, state.names)
         score = replace(batch, spot=spot[rows])
         predicted = pointing_error_of_normals(normal.double(), conc.double(), score)
@@ -425,4 +529,5 @@ def assimilate(nominal: Kinematics, records: RecordTable, state: FilterState,
 
 
 __all__ = ["FilterState", "AssimilationOptions", "tangent_basis", "linearise", "kalman_update", "alarm_threshold",
-           "leave_one_out_d2", "rounds", "assimilate", "HUBER_D2", "FALSE_ALARM_RATE", "REOPEN"]
+           "leave_one_out_d2", "rounds", "assimilate", "choose_process_noise", "HUBER_D2", "FALSE_ALARM_RATE", "REOPEN",
+           "PROCESS_NOISE_GRID", "PROCESS_NOISE_TIE", "VALIDATION_SHARE"]

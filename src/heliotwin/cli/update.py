@@ -28,7 +28,7 @@ def register(subparsers) -> None:
                         "at the first update)")
     p.add_argument("--process-noise", default="stored",
                    help="random-walk process noise of the axis offsets [mrad^2/day], or 'stored' (the "
-                        "calibration's; default)")
+                        "calibration's drift model's, else the one chosen on the records it saw; default)")
     p.add_argument("--reopen-mrad", type=float_range(0.0, 100.0, what="an angle [mrad]"), default=2.0,
                    help="smallest re-opening of the axis offsets at an alarm [mrad] (default 2)")
     p.add_argument("--iterations", type=int_range(1, 20, "an iteration count"), default=2,
@@ -74,7 +74,8 @@ def cmd_update(args) -> int:
         print(f"{o['records']} new records of {report['heliostats_updated']} heliostats assimilated ({c['seen']} seen "
               f"before, {c['older_than_state']} older than the state, {c['without_time']} without a time); predicted "
               f"error before each: median of the heliostats' means {'-' if err is None else f'{err:.3f}'} mrad; "
-              f"{o['alarms']} step alarm(s)")
+              f"{o['alarms']} step alarm(s); offset walk {report['process_noise']['mrad2_per_day']:.3g} mrad^2/day "
+              f"({report['process_noise']['source']})")
         for a in report["alarms"]:
             print(f"  step alarm: {a['heliostat']} record {a['record_id']} (step statistic {a['statistic']:.1f} over "
                   f"{a['window']} record(s) > {report['threshold']['threshold']:.1f})")

@@ -33,6 +33,7 @@ from ..errors import HeliotwinError
 from ..io.checkpoint import Checkpoint
 from ..io.paint import PaintDataset
 from ..io.scenario import Scenario, load_records, load_scenario
+from .update import with_process_noise_choice
 
 __all__ = ["CalibrationSettings", "Calibration", "calibrate", "run_config", "resolved_settings_mode",
            "calibration_checkpoint", "training_size_curves", "seen_records", "load_paint_records"]
@@ -308,4 +309,9 @@ def calibrate(scenario, records_or_paint, settings: CalibrationSettings = Calibr
     new = calibrated_scenario(dataset.plant, model, previous=previous, focal_spot=cfg.focal_spot,
                               records=seen_records(arrays), settings=dict(report["config"]),
                               source=os.path.abspath(paint), settings_choice=report.get("settings_choice"))
+    # without a drift model, the update's random walk is chosen here, where the records the fit saw are at hand
+    # (an update is often given only the new ones)
+    new, choice = with_process_noise_choice(new, dataset.records)
+    if choice is not None:
+        report["update_process_noise"] = choice
     return Calibration(new, report, model, arrays, curves)

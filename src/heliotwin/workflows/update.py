@@ -11,6 +11,11 @@ each heliostat's Gaussian state (:mod:`heliotwin.calibrate.assimilate`), not ref
 * New records are those of calibrated heliostats whose ids no provenance step lists as seen (``calibrate``'s
   training records, earlier updates' records) and that are later than the heliostat's state (a record older
   than the state cannot be assimilated by a filter; it is counted, not used).
+* The random walk of the axis offsets between records: the calibration's drift model's q; without one, q is
+  chosen on the records the calibration saw (:func:`process_noise_choice`: each heliostat's latest quarter
+  predicted by the walk run through its earlier ones) by ``calibrate`` or, when it did not, by the first
+  update given those records, and stored under ``/learned/calibration/process_noise_choice`` with how it was
+  chosen; later updates read it. :data:`DEFAULT_PROCESS_NOISE` only when neither had the records.
 * ``/learned/assimilation`` keeps the step-alarm threshold (chosen at the first update from the target
   false-alarm rate and the normalised leave-one-out residuals of the records the calibration saw, when the
   folder holds them) and every update's per-record history (:func:`state_history` reads it back); each
@@ -34,6 +39,7 @@ from ..calibrate.assimilate import (
     FilterState,
     alarm_threshold,
     assimilate,
+    choose_process_noise,
     leave_one_out_d2,
 )
 from ..calibrate.inputs import FIT_FOCAL_SPOT, fit_spots
@@ -48,15 +54,19 @@ from ..io.records import RecordTable
 from ..io.scenario import Scenario, load_records, load_scenario, next_scenario, provenance_entry
 
 __all__ = ["UpdateSettings", "Update", "update", "state_history", "seen_record_ids", "filter_state", "ASSIMILATION_KEY",
-           "HISTORY_VERSION", "DEFAULT_PROCESS_NOISE"]
+           "HISTORY_VERSION", "DEFAULT_PROCESS_NOISE", "CHOICE_KEY", "process_noise_choice",
+           "with_process_noise_choice"]
 
 #: Key of the assimilation state under ``Scenario.learned``.
 ASSIMILATION_KEY = "assimilation"
 #: Layout version of ``/learned/assimilation``.
 HISTORY_VERSION = 1
-#: q [mrad^2/day] of the drifting axis offsets when the calibration has no drift model: the random-walk
-#: setting chosen on the online protocol by leave-heliostats-out CV (benchmarks/bench_carryover.py, kq0.03).
+#: q [mrad^2/day] of the drifting axis offsets when the calibration has no drift model and no choice could be
+#: made on its records (:func:`process_noise_choice`): the random-walk setting chosen on the real PAINT
+#: archive's online protocol by leave-heliostats-out CV (benchmarks/bench_carryover.py, kq0.03).
 DEFAULT_PROCESS_NOISE = 0.03
+#: Key under ``/learned/calibration`` of the q chosen on the calibration's records, with how it was chosen.
+CHOICE_KEY = "process_noise_choice"
 _DRIFT_NAMES = ("initial_angle_1", "initial_angle_2")
 _HISTORY_FIELDS = ("heliostat", "record_id", "time", "mean", "variance", "innovation", "d2", "statistic", "window",
                    "alarm", "predicted_error", "update")
@@ -78,8 +88,8 @@ class UpdateSettings:
         Target share of clean records that raise a step alarm (chooses the threshold at the first update;
         later updates keep the stored one).
     process_noise : str or float
-        ``"stored"``: the calibration's random-walk q (:data:`DEFAULT_PROCESS_NOISE` when it has none), or a
-        number >= 0 [mrad^2/day].
+        ``"stored"``: the calibration's random-walk q, else the one chosen on its records (module docstring;
+        :data:`DEFAULT_PROCESS_NOISE` when neither exists), or a number >= 0 [mrad^2/day].
     reopen_mrad : float
         Smallest re-opening of the axis offsets at an alarm [mrad].
     iterations : int
@@ -232,6 +242,9 @@ def _state(cal: dict, names: tuple, path, n: int, q_given: float | None, seen_ti
         raise InputFileError(path, f"drift names {list(drift_names)} not among the parameters", field=f"{where}/drift")
     cols = tuple(names.index(d) for d in drift_names)
     q = 1e-6 * DEFAULT_PROCESS_NOISE
+    chosen = _stored_choice(cal, path)
+    if chosen is not None:
+        q = 1e-6 * chosen
     if drift:
         p_l = _tensor(cal, where, path, "drift", "covariance")
         t_l = _tensor(cal, where, path, "drift", "time")
@@ -245,6 +258,78 @@ def _state(cal: dict, names: tuple, path, n: int, q_given: float | None, seen_ti
         q = 1e-6 * q_given
     return FilterState(mean=mean, covariance=cov, time=time, noise=noise, process_noise=q, drift_columns=cols,
                        names=names)
+
+
+def _stored_choice(cal: dict, path) -> float | None:
+    """q [mrad^2/day] of ``/learned/calibration/process_noise_choice`` (None: none stored or none made)."""
+    choice = cal.get(CHOICE_KEY)
+    if not isinstance(choice, dict):
+        return None
+    try:
+        q = float(torch.as_tensor(choice["process_noise_mrad2_per_day"], dtype=torch.float64).reshape(-1)[0])
+    except (KeyError, TypeError, ValueError, RuntimeError, IndexError):
+        raise InputFileError(path, "malformed process-noise choice",
+                             field=f"/learned/{KEY}/{CHOICE_KEY}/process_noise_mrad2_per_day") from None
+    if not (math.isfinite(q) and q >= 0):
+        raise InputFileError(path, f"expected a number >= 0, got {q}",
+                             field=f"/learned/{KEY}/{CHOICE_KEY}/process_noise_mrad2_per_day")
+    return q
+
+
+def _stored_choice_dict(choice: dict) -> dict:
+    """The choice as stored (tensors for the numbers, text for how it was made)."""
+    return {"process_noise_mrad2_per_day": torch.tensor([choice["process_noise_mrad2_per_day"]], dtype=torch.float64),
+            "grid_mrad2_per_day": torch.tensor(choice["grid_mrad2_per_day"], dtype=torch.float64),
+            "validation_error_mrad": torch.tensor(choice["validation_error_mrad"], dtype=torch.float64),
+            "validation_records": torch.tensor([choice["validation_records"]]),
+            "validation_heliostats": torch.tensor([choice["validation_heliostats"]]),
+            "share": torch.tensor([choice["share"]], dtype=torch.float64), "method": choice["method"]}
+
+
+def process_noise_choice(scenario: Scenario, records: RecordTable) -> dict | None:
+    """The random walk's q [mrad^2/day] chosen on the records ``scenario``'s calibration saw, for a calibration
+    without a drift model (:func:`heliotwin.calibrate.assimilate.choose_process_noise`: each heliostat's
+    latest quarter of those records predicted by the walk run through its earlier ones).
+
+    Parameters
+    ----------
+    scenario : Scenario
+        With a rigid-body calibration (``calibrate --method lm``).
+    records : RecordTable
+        Records of the plant (any heliostat ids); only those the calibration lists as seen are used.
+
+    Returns
+    -------
+    dict or None
+        ``process_noise_mrad2_per_day`` (None: too few seen records), the grid, its validation errors [mrad]
+        and counts, and ``method`` (how it was chosen); None when the calibration has a drift model (its q
+        stands) or is not a rigid-body one.
+    """
+    cal = scenario.learned.get(KEY)
+    if not isinstance(cal, dict) or cal.get("drift") or cal.get("networks") or not cal.get("posterior"):
+        return None
+    cal, ids, names = _calibration(scenario)
+    table = fit_spots(_on_axis(records, ids), FIT_FOCAL_SPOT)
+    seen = seen_record_ids(scenario)
+    rows = torch.as_tensor(np.isin(table.record_id.numpy(), np.array(sorted(seen), dtype=np.int64)))
+    table = table.subset(rows)
+    nominal = _nominal(cal, scenario.path, len(ids))
+    state = _state(cal, names, scenario.path, len(ids), None, torch.full((len(ids),), float("nan")))
+    choice = choose_process_noise(nominal, table, state)
+    choice["method"] = ("chronological validation on the calibration's records: each heliostat's latest "
+                        f"{choice['share']:.0%} predicted by the walk run through its earlier ones; median over "
+                        "heliostats of the mean error; ties to the larger q")
+    return choice
+
+
+def with_process_noise_choice(scenario: Scenario, records: RecordTable) -> tuple[Scenario, dict | None]:
+    """``scenario`` with :func:`process_noise_choice` stored under ``/learned/calibration`` (where the update
+    reads it), and the choice; unchanged (and None) when there is nothing to choose or too few records."""
+    made = process_noise_choice(scenario, records)
+    if made is None or made["process_noise_mrad2_per_day"] is None:
+        return scenario, None
+    cal = {**scenario.learned[KEY], CHOICE_KEY: _stored_choice_dict(made)}
+    return replace(scenario, learned={**scenario.learned, KEY: cal}), made
 
 
 def filter_state(scenario: Scenario, records: RecordTable, process_noise: float | None = None) -> FilterState:
@@ -409,6 +494,31 @@ def _report(ids, counts, threshold, hist, state, seconds, source) -> dict:
             "process_noise_mrad2_per_day": 1e6 * float(state.process_noise), "seconds": seconds, "heliostats": per}
 
 
+def _process_noise(previous: Scenario, cal: dict, table: RecordTable, q_given: float | None) -> tuple:
+    """Where this update's q comes from: given, the calibration's drift model (or an earlier update's), the
+    choice stored with the calibration, or -- the first time a calibration without a drift model is updated --
+    chosen now on the seen records in ``table`` (:func:`process_noise_choice`) and stored with the calibration
+    so that later updates read it; :data:`DEFAULT_PROCESS_NOISE` when ``table`` holds too few seen records.
+    Returns (scenario, calibration entry, report's ``process_noise`` entry)."""
+    choice = cal.get(CHOICE_KEY)
+    if q_given is not None:
+        return previous, cal, {"source": "given"}
+    if isinstance(choice, dict):
+        return previous, cal, {"source": "stored choice (made on the calibration's records)",
+                               "method": str(choice.get("method", "")),
+                               "validation_error_mrad": torch.as_tensor(choice["validation_error_mrad"]).tolist(),
+                               "grid_mrad2_per_day": torch.as_tensor(choice["grid_mrad2_per_day"]).tolist()}
+    if cal.get("drift"):
+        return previous, cal, {"source": "the stored drift state (the calibration's drift model or an earlier update)"}
+    previous, made = with_process_noise_choice(previous, table)
+    if made is None:
+        return previous, cal, {"source": "default (too few seen records to choose on)"}
+    return previous, previous.learned[KEY], {"source": "chosen now on the calibration's records (stored)",
+                                             "method": made["method"],
+                                             "validation_error_mrad": made["validation_error_mrad"],
+                                             "grid_mrad2_per_day": made["grid_mrad2_per_day"]}
+
+
 def update(scenario, records_or_paint, settings: UpdateSettings = UpdateSettings(), *, device: str = "cpu") -> Update:
     """Assimilate the records a calibrated plant has not seen yet (module docstring).
 
@@ -434,6 +544,7 @@ def update(scenario, records_or_paint, settings: UpdateSettings = UpdateSettings
     nominal = _nominal(cal, previous.path, len(ids))
     table, source = _records(records_or_paint, previous, ids, settings.plane_tolerance)
     t0 = _time.perf_counter()
+    previous, cal, noise = _process_noise(previous, cal, table, q_given)
     seen_ids = seen_record_ids(previous)
     state = filter_state(previous, table, q_given)
     new_rows, seen_idx, counts = _split(table, seen_ids, state.time)
@@ -456,6 +567,7 @@ def update(scenario, records_or_paint, settings: UpdateSettings = UpdateSettings
     for j, rid in zip(hist["heliostat"].tolist(), hist["record_id"].tolist()):
         records.setdefault(ids[j], []).append(int(rid))
     report = _report(ids, counts, threshold, hist, new_state, seconds, source)
+    report["process_noise"] = {"mrad2_per_day": 1e6 * float(new_state.process_noise), **noise}
     step = provenance_entry("update", source=str(source), records=records, alarms=report["alarms"],
                             settings={f.name: getattr(settings, f.name) for f in fields(UpdateSettings)},
                             threshold=float(threshold["threshold"]))
