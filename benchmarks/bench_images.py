@@ -268,23 +268,29 @@ def summary(res: dict) -> list:
 
 
 #: What the numbers can and cannot show (independent of the run).
-NOTE = """Reading the numbers:
+NOTE = """Reading the numbers (seed 0 of ``--quick``; the pattern, not the decimals, is the finding):
 
-* An image's centroid carries the same pointing information as a camera centroid (the camera centroids of a
-  real plant are computed from such images); what an image adds is the spot's shape. With the mirror surfaces
-  known (ideal true surfaces), the shape pins down rotations that a centroid cannot see, and images alone come
-  close to the centroid fit; with few records the pixel term's information is what the prior cannot replace.
-* With defective true surfaces the flux centroid is *not* the central ray's hit: a facet's mean slope error
-  moves the spot by 0.5-1.7 mrad here (measured for this benchmark on the rendered images against the
-  simulator's central-ray spots), while the calibration renders ideal surfaces. The images then teach the
-  kinematics the optical pointing (kinematics + mean surface tilt), and the score, which judges the kinematic
-  mirror normal, counts the surface tilt as an error. The simulator's camera centroids are central-ray hits plus
-  noise, so ``lm`` does not pay this price in silico; on a real plant its centroids come from the same images
-  and would carry the same surface tilt. Images cannot separate a kinematic offset from a mean surface tilt
-  unless the surfaces are known (deflectometry, or learned first).
-* AA39 is one heliostat with 10 images; with 5-7 training records for 9 parameters the priors matter as much as
-  the data, and one record (86500, 81 mrad nominal) is far off for every method. The AA39 numbers decide
-  nothing on their own; they show the method runs on real images without harm.
+* **Images alone do not beat the centroids.** An image's centroid carries the same pointing information as a
+  camera centroid (a real plant's camera centroids are computed from such images); what an image adds is the
+  spot's shape. With ideal true surfaces images alone tie ``lm`` at 10 records per heliostat and have a worse
+  tail at 5 (one poorly conditioned heliostat: 9 parameters from 5 spots, the shape term does not make up for
+  it).
+* **Images with the centroids beat them when the mirror surfaces are right.** With ideal true surfaces (what the
+  calibration renders) ``images+centroids`` roughly thirds the median pointing error of ``lm`` at 10 records
+  per heliostat: the image centroids are nearly noise-free and free of the UTIS camera offsets, and the shape
+  fixes the rotations a centroid cannot see.
+* **With defective true surfaces the gain is gone, and images alone lose.** The flux centroid of a real mirror
+  is not the central ray's hit: the facets' mean slope errors move the spot by 0.5-1.7 mrad here (measured on
+  this benchmark's renders against the simulator's central-ray spots; 0.05 mrad with ideal surfaces), while the
+  calibration renders ideal surfaces. Images then teach the kinematics the *optical* pointing (kinematic normal
+  + mean surface tilt), and the score, which judges the kinematic normal, counts the tilt as error. The
+  simulator's camera centroids are central-ray hits plus noise, so ``lm`` does not pay this in silico; a real
+  plant's camera centroids come from the same images and carry the same tilt. Images cannot separate a
+  kinematic offset from a mean surface tilt unless the surfaces are known (deflectometry, or learned first).
+* **AA39** is one heliostat with 10 images: with 5-7 training records for 9 parameters (and no field of
+  heliostats for a field prior) the prior matters as much as the data, and one record (86500, 81 mrad nominal)
+  is far off for every method. The AA39 numbers decide nothing on their own: they show that the method runs
+  on real images from the images alone and where it lands against ``lm`` on the same records.
 """
 
 
