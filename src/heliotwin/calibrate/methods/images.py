@@ -22,7 +22,7 @@ Stone/Jülich LM fit with the field prior (:func:`~heliotwin.calibrate.methods.l
 rendered spots start on their targets. Prior: field prior on the Stone/Jülich 8, the chain's nominal
 prior (:data:`~heliotwin.calibrate.priors.CHAIN_SIGMA`) on the rest. Optimiser: L-BFGS (or Adam) in
 natural units (mrad, mm, 0.1 %), early-stopped per heliostat on the validation loss (same three terms +
-centroid term) when there are validation records.
+centroid term) when there are validation records, else kept at its lowest training loss.
 
 The images and the mirror surfaces come from the pipeline (``images={record_id: path or bitmap}``,
 ``surfaces=Surfaces`` of the run's heliostats, ``targets={name: PlanarTarget}``, ``sun=SunSettings``).
@@ -262,10 +262,17 @@ def fit_images(nominal, train: RecordTable, validation: RecordTable | None, imag
         prior = (((delta - mu) * inv_sig) ** 2).sum()
         return data + img.sum() + prior + actuator_barrier(kin)
 
+    def train_loss_per_heliostat():
+        delta = x.detach() * unit
+        kin = apply_deviations(nominal, delta, names)
+        data = centroid_weight * _centroid_loss_per_heliostat(nominal, delta, names, train, h, noise)
+        img, _ = image_loss_per_heliostat(tr_img, kin, h, **kw)
+        return data + img + (((delta - mu) * inv_sig) ** 2).sum(-1)
+
     def val_loss():
         with torch.no_grad():
-            if not has_val:
-                return torch.full((h,), float("inf"), dtype=x.dtype, device=x.device)
+            if not has_val:  # no validation: each heliostat keeps its lowest training loss (a step that made
+                return train_loss_per_heliostat()  # it worse -- bounds, validity restore -- is not kept)
             delta = x.detach() * unit
             kin = apply_deviations(nominal, delta, names)
             v = centroid_weight * _centroid_loss_per_heliostat(nominal, delta, names, validation, h, noise)
@@ -282,7 +289,7 @@ def fit_images(nominal, train: RecordTable, validation: RecordTable | None, imag
 
     before = mean_terms()
     opt, closure = make_optimizer(x, objective, s.optimizer, s.lr, lbfgs_max_iter=s.lbfgs_inner)
-    validated = validation.counts() > 0 if has_val else torch.zeros(h, dtype=torch.bool, device=x.device)
+    validated = validation.counts() > 0 if has_val else torch.ones(h, dtype=torch.bool, device=x.device)
     log = early_stopping_fit(lambda: opt.step(closure), val_loss, tensor_state(x), s.iterations, validated=validated,
                              check_every=s.check_every, progress=progress, desc="images",
                              project=box_and_validity(x, bound, lambda xx: actuators_valid(
