@@ -295,8 +295,9 @@ NOTE = """Reading the numbers (seed 0 of ``--quick``; the pattern, not the decim
   heliostats for a field prior) the prior matters as much as the data, and its two earliest records (86500,
   86520, multi-focus tower) are 60-80 mrad off every model. Its image centroids sit 4-8 cm from its HeliOS
   centroids (0.7-2.3 mrad; the per-target camera offsets ``heliotwin validate`` reports), and the test metric is
-  HeliOS, so images alone carry that offset into the test. The AA39 numbers decide nothing on their own: they show that the method runs
-  on real images from the images alone and where it lands against ``lm`` on the same records.
+  HeliOS, so images alone carry that offset into the test. The AA39 numbers decide nothing on their own:
+  they show that the method runs on real images from the images alone and where it lands against ``lm`` on
+  the same records.
 """
 
 
