@@ -22,7 +22,7 @@ Stone/Jülich LM fit with the field prior (:func:`~heliotwin.calibrate.methods.l
 rendered spots start on their targets. Prior: field prior on the Stone/Jülich 8, the chain's nominal
 prior (:data:`~heliotwin.calibrate.priors.CHAIN_SIGMA`) on the rest. Optimiser: L-BFGS (or Adam) in
 natural units (mrad, mm, 0.1 %), early-stopped per heliostat on the validation loss (same three terms +
-centroid term) when there are validation records.
+centroid term) when there are validation records, else kept at its lowest training loss.
 
 The images and the mirror surfaces come from the pipeline (``images={record_id: path or bitmap}``,
 ``surfaces=Surfaces`` of the run's heliostats, ``targets={name: PlanarTarget}``, ``sun=SunSettings``).
@@ -262,10 +262,17 @@ def fit_images(nominal, train: RecordTable, validation: RecordTable | None, imag
         prior = (((delta - mu) * inv_sig) ** 2).sum()
         return data + img.sum() + prior + actuator_barrier(kin)
 
+    def train_loss_per_heliostat():
+        delta = x.detach() * unit
+        kin = apply_deviations(nominal, delta, names)
+        data = centroid_weight * _centroid_loss_per_heliostat(nominal, delta, names, train, h, noise)
+        img, _ = image_loss_per_heliostat(tr_img, kin, h, **kw)
+        return data + img + (((delta - mu) * inv_sig) ** 2).sum(-1)
+
     def val_loss():
         with torch.no_grad():
-            if not has_val:
-                return torch.full((h,), float("inf"), dtype=x.dtype, device=x.device)
+            if not has_val:  # no validation: each heliostat keeps its lowest training loss (a step that made
+                return train_loss_per_heliostat()  # it worse -- bounds, validity restore -- is not kept)
             delta = x.detach() * unit
             kin = apply_deviations(nominal, delta, names)
             v = centroid_weight * _centroid_loss_per_heliostat(nominal, delta, names, validation, h, noise)
@@ -282,7 +289,7 @@ def fit_images(nominal, train: RecordTable, validation: RecordTable | None, imag
 
     before = mean_terms()
     opt, closure = make_optimizer(x, objective, s.optimizer, s.lr, lbfgs_max_iter=s.lbfgs_inner)
-    validated = validation.counts() > 0 if has_val else torch.zeros(h, dtype=torch.bool, device=x.device)
+    validated = validation.counts() > 0 if has_val else torch.ones(h, dtype=torch.bool, device=x.device)
     log = early_stopping_fit(lambda: opt.step(closure), val_loss, tensor_state(x), s.iterations, validated=validated,
                              check_every=s.check_every, progress=progress, desc="images",
                              project=box_and_validity(x, bound, lambda xx: actuators_valid(
@@ -295,19 +302,52 @@ def fit_images(nominal, train: RecordTable, validation: RecordTable | None, imag
     return log.best * unit, info
 
 
+def image_centroid_records(batch: RecordTable, images: dict, targets: dict, resolution=(64, 64)) -> RecordTable:
+    """The records of ``batch`` that have a usable flux image, with the measured centroid replaced by the
+    image's own (flux-weighted centroid of the image at ``resolution``, on the target plane, ENU [m]).
+
+    What an image alone says about the pointing: no camera centroid of the record (``spot``, ``spot_other``,
+    ``focal_spots``) is left in the returned table (K <= R records, same heliostat axis), so a fit on it has
+    seen nothing but the images.
+    """
+    terms = ImageTerms(batch, images, None, targets, None, resolution=resolution)
+    sub = terms.batch
+    if not len(sub):
+        return sub
+    cen = terms.measured_centroid
+    tgt = [targets[n] for n in sub.target]
+    center = torch.stack([t.center for t in tgt]).to(cen)
+    right = torch.stack([t.right for t in tgt]).to(cen)
+    up = torch.stack([t.up for t in tgt]).to(cen)
+    spot = center + cen[:, :1] * right + cen[:, 1:] * up
+    return replace(sub, spot=spot.to(sub.spot), spot_other=None, focal_spots=None,
+                   source=["image"] * len(sub))
+
+
 def fit_images_method(nominal, train, validation, *, seed=0, progress=False, images=None, surfaces=None,
                       targets=None, sun=None, names=IMAGE_PARAMETERS, field_prior=True, fit_focal_spot=FIT_FOCAL_SPOT,
-                      **options) -> Calibrated:
+                      centroids: bool = True, **options) -> Calibrated:
     """``images``: Stone/Jülich pre-alignment on centroids, then image (+ centroid) loss through the tracer.
 
     Heliostats without image records are fitted on their centroids alone (same loss without image terms).
     ``images``, ``surfaces``, ``targets``, ``sun``: as for :func:`fit_images` (the pipeline passes the run's);
     ``options``: ``settings`` (an :class:`ImageFitSettings`) and/or its fields by keyword.
+
+    ``centroids=False``: calibration from the images alone. The records without an image are dropped, the
+    camera centroids of the others are replaced by their images' centroids
+    (:func:`image_centroid_records`), so the pre-alignment starts from what the images show, and the
+    centroid term is off (``centroid_weight=0``: the alignment term already weighs the image centroid).
     """
     if surfaces is None or targets is None:
         raise HeliotwinError("method 'images' needs the mirror surfaces and targets (run it through "
                              "heliotwin.calibrate.protocol.pipeline / `heliotwin calibrate`)")
     images = dict(images or {})
+    if not centroids:
+        res = options.get("resolution", (options.get("settings") or ImageFitSettings()).resolution)
+        train = image_centroid_records(train, images, targets, res)
+        if validation is not None:
+            validation = image_centroid_records(validation, images, targets, res)
+        options = {**options, "centroid_weight": 0.0}
     sun = sun or SunSettings()
     h = nominal.num_heliostats
     names = check_names(names)
@@ -327,4 +367,5 @@ def fit_images_method(nominal, train, validation, *, seed=0, progress=False, ima
     return Calibrated("images", list(train.heliostat_ids), nominal, names, delta, ok, extras=extras)
 
 
-__all__ = ["fit_images_method", "fit_images", "ImageFitSettings", "ImageTerms", "IMAGE_PARAMETERS", "load_image"]
+__all__ = ["fit_images_method", "fit_images", "image_centroid_records", "ImageFitSettings", "ImageTerms",
+           "IMAGE_PARAMETERS", "load_image"]
