@@ -15,19 +15,16 @@ import pytest
 import torch
 from helpers.calibrate import TRUE, jueliche_like, simulate
 from helpers.cli import assert_one_line_error, run_cli
-from helpers.surfaces import small_scene
+from helpers.surfaces import dome_scene as make_dome_scene
 
 from heliotwin.calibrate.methods.gradient import fit_gradient_method
 from heliotwin.calibrate.methods.hybrid import fit_hybrid_method
 from heliotwin.calibrate.methods.lm import fit_lm_method
 from heliotwin.calibrate.params import STONE8, apply_deviations
 from heliotwin.errors import HeliotwinError
-from heliotwin.field.plant import SunSettings
 from heliotwin.io.checkpoint import Checkpoint, active, checkpoint_path, make_tag
 from heliotwin.surfaces.fit import SurfaceSettings, fit_surface
-from heliotwin.surfaces.imaging import predict_images
 from heliotwin.surfaces.insilico import choose_laplacian
-from heliotwin.surfaces.learning import LearnableSurface, learnable_surfaces
 from heliotwin.surfaces.nuisance import estimate_camera
 
 
@@ -119,13 +116,7 @@ def test_lm_bagging_resumed_after_some_bags_equals_the_uninterrupted_fit(tmp_pat
 
 @pytest.fixture(scope="module")
 def dome_scene():
-    facets, obs, _ = small_scene(distance=20.0, n=3)
-    sun = SunSettings(sunshape="buie", slope_error=0.5e-3)
-    u = torch.linspace(-1, 1, 5, dtype=torch.float64)
-    d_true = (1.5e-3 * (1 - u[:, None] ** 2) * (1 - u[None, :] ** 2)).expand(1, 4, 5, 5).clone()
-    truth = learnable_surfaces(facets, LearnableSurface(facets, (5, 5), (2, 2)).base, d_true, (2, 2))
-    with torch.no_grad():
-        obs.images, _, _ = predict_images(truth, obs, sun, samples=(10, 10), resolution=32)
+    facets, obs, sun, _ = make_dome_scene(samples=(10, 10))
     return facets, obs, sun
 
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from helpers.surfaces import small_scene
+from helpers.surfaces import dome_scene, small_scene
 
 from heliotwin.field.plant import Facets, SunSettings
 from heliotwin.surfaces import losses
@@ -110,13 +110,7 @@ def test_batched_slope_penalty_and_laplacian_equal_the_serial_ones():
 def test_batched_fits_equal_the_serial_fits():
     """The leave-one-out fits as one batch (fit_surfaces) take the serial fits' steps: same held-out curves, blurs
     and surfaces, up to float rounding (the objective is a sum of independent problems; Adam is elementwise)."""
-    facets, obs, _ = small_scene(distance=20.0, n=3)
-    sun = SunSettings(sunshape="buie", slope_error=0.5e-3)
-    u = torch.linspace(-1, 1, 5, dtype=torch.float64)
-    d_true = (1.5e-3 * (1 - u[:, None] ** 2) * (1 - u[None, :] ** 2)).expand(1, 4, 5, 5).clone()
-    truth = learnable_surfaces(facets, LearnableSurface(facets, (5, 5), (2, 2)).base, d_true, (2, 2))
-    with torch.no_grad():
-        obs.images, _, _ = predict_images(truth, obs, sun, samples=(10, 10), resolution=32)
+    facets, obs, sun, truth = dome_scene(samples=(10, 10))
     s = SurfaceSettings(control_points=(4, 4), degree=(2, 2), samples=(8, 8), resolution=32, size_m=4.0, steps=20,
                         lr=0.3, eval_every=5)
     cam = estimate_camera(obs.images.to(torch.float32))

@@ -3,7 +3,7 @@ bump better than the ideal one."""
 from __future__ import annotations
 
 import torch
-from helpers.surfaces import small_scene
+from helpers.surfaces import dome_scene, small_scene
 
 from heliotwin.field.plant import SunSettings
 from heliotwin.surfaces import losses
@@ -46,13 +46,7 @@ def test_tiny_reconstruction_recovers_bump():
 def test_lbfgs_with_a_leave_one_out_weight_choice_ends_by_its_rules():
     from heliotwin.surfaces.insilico import choose_laplacian
 
-    facets, obs, _ = small_scene(distance=20.0, n=3)
-    sun = SunSettings(sunshape="buie", slope_error=0.5e-3)
-    u = torch.linspace(-1, 1, 5, dtype=torch.float64)
-    d_true = (1.5e-3 * (1 - u[:, None] ** 2) * (1 - u[None, :] ** 2)).expand(1, 4, 5, 5).clone()
-    truth = learnable_surfaces(facets, LearnableSurface(facets, (5, 5), (2, 2)).base, d_true, (2, 2))
-    with torch.no_grad():
-        obs.images, _, _ = predict_images(truth, obs, sun, samples=(12, 12), resolution=32)
+    facets, obs, sun, truth = dome_scene(samples=(12, 12))
     s = SurfaceSettings(control_points=(5, 5), degree=(2, 2), samples=(10, 10), resolution=32, loss="l1",
                         optimizer="lbfgs", continuation=(1.5,), continuation_iters=5, lbfgs_round=10, steps=30)
     s, chosen = choose_laplacian(facets, obs, sun, s, (1e-3, 1e-2), cv="loo")

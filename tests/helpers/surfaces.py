@@ -4,8 +4,10 @@ from __future__ import annotations
 import torch
 
 from heliotwin.field.kinematics import aimed_pose
-from heliotwin.field.plant import Facets, Kinematics
+from heliotwin.field.plant import Facets, Kinematics, SunSettings
 from heliotwin.field.targets import PlanarTarget
+from heliotwin.surfaces.imaging import predict_images
+from heliotwin.surfaces.learning import LearnableSurface, learnable_surfaces
 from heliotwin.surfaces.observations import Observations
 
 __all__ = ["facets4", "kinematics_at", "small_scene"]
@@ -48,3 +50,26 @@ def small_scene(distance=20.0, n=2):
     sun = sun / sun.norm(dim=-1, keepdim=True)
     rot, conc = aimed_pose(kin, target.center.expand(n, 3), sun)
     return facets4(), Observations(sun, rot, conc, [target] * n, None, [str(i) for i in range(n)]), target
+
+
+def dome_scene(samples=(10, 10), distance=20.0, n=3):
+    """:func:`small_scene` with images of a known dome-shaped surface (1.5 mm bulge per facet, 5 x 5 net).
+
+    Returns
+    -------
+    facets : Facets
+    obs : Observations
+        With ``images`` [n, 32, 32] rendered from the dome (``samples`` mirror samples per facet).
+    sun : SunSettings
+        Buie sunshape, 0.5 mrad slope error.
+    truth : Surfaces
+        The dome.
+    """
+    facets, obs, _ = small_scene(distance=distance, n=n)
+    sun = SunSettings(sunshape="buie", slope_error=0.5e-3)
+    u = torch.linspace(-1, 1, 5, dtype=torch.float64)
+    d_true = (1.5e-3 * (1 - u[:, None] ** 2) * (1 - u[None, :] ** 2)).expand(1, 4, 5, 5).clone()
+    truth = learnable_surfaces(facets, LearnableSurface(facets, (5, 5), (2, 2)).base, d_true, (2, 2))
+    with torch.no_grad():
+        obs.images, _, _ = predict_images(truth, obs, sun, samples=samples, resolution=32)
+    return facets, obs, sun, truth

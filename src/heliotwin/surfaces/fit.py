@@ -47,8 +47,8 @@ from .nuisance import CameraModel, apply_camera
 from .observations import Observations
 from .plantprior import prior_penalty
 
-__all__ = ["SurfaceSettings", "SurfaceFit", "fit_surface", "blur_images", "blur_for", "evaluate_with_camera",
-           "OPTIMIZERS"]
+__all__ = ["SurfaceSettings", "SurfaceFit", "fit_surface", "adam_step", "blur_images", "blur_for",
+           "evaluate_with_camera", "OPTIMIZERS"]
 
 #: The optimisers :func:`fit_surface` runs.
 OPTIMIZERS = ("adam", "lbfgs")
@@ -329,13 +329,13 @@ def fit_surface(facets: Facets, obs: Observations, sun: SunSettings, s: SurfaceS
     return SurfaceFit(model, log_sigma.detach().exp() if camera is not None else None, live.curve, [], live.steps)
 
 
-def _adam(model, live: _Live, objective, obs, sun, s: SurfaceSettings, steps: int, heldout) -> None:
-    """Adam with exponential decay; the held-out curve (module docstring)."""
-    params = [p for p in model.parameters() if p.requires_grad]
-    opt = torch.optim.Adam([{"params": params, "lr": s.lr}, {"params": [live.log_sigma], "lr": s.blur_lr}])
-    # Chainable: a resumed fit's schedule goes on from the learning rate restored into the optimiser.
-    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=s.decay)
+def adam_step(opt: torch.optim.Optimizer, sched, objective, live):
+    """One optimiser step of a surface fit as a closure for the fit loop (shared by the one-problem and the
+    batched fit, :mod:`heliotwin.surfaces.fitbatch`).
 
+    ``objective() -> (total, data)`` (scalar tensors: what is minimised, and the data term reported); ``live``
+    counts the steps taken (``live.steps``). The closure returns the data term [unit-sum image L1] as a float.
+    """
     def step() -> float:
         opt.zero_grad(set_to_none=True)
         total, data = objective()
@@ -344,6 +344,17 @@ def _adam(model, live: _Live, objective, obs, sun, s: SurfaceSettings, steps: in
         sched.step()
         live.steps += 1
         return float(data.detach())
+    return step
+
+
+def _adam(model, live: _Live, objective, obs, sun, s: SurfaceSettings, steps: int, heldout) -> None:
+    """Adam with exponential decay; the held-out curve (module docstring)."""
+    params = [p for p in model.parameters() if p.requires_grad]
+    opt = torch.optim.Adam([{"params": params, "lr": s.lr}, {"params": [live.log_sigma], "lr": s.blur_lr}])
+    # Chainable: a resumed fit's schedule goes on from the learning rate restored into the optimiser.
+    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=s.decay)
+
+    step = adam_step(opt, sched, objective, live)
 
     def heldout_l1() -> torch.Tensor:
         # Only on the eval_every grid (not at the start, nor at a last step off the grid): the curve's steps

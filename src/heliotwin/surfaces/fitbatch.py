@@ -34,7 +34,7 @@ from ..field.plant import Facets, SunSettings
 from ..scene import to_world
 from . import losses
 from .edges import slope_penalties
-from .fit import SurfaceFit, SurfaceSettings, _loop_state, blur_for
+from .fit import SurfaceFit, SurfaceSettings, _loop_state, adam_step, blur_for
 from .imaging import render_samples
 from .learning import MM, LearnableSurface, gauge_basis, learnable_surfaces, normal_heights
 from .nuisance import CameraModel, apply_camera
@@ -201,14 +201,7 @@ def fit_surfaces(facets: Facets, problems: list, sun: SunSettings, s: SurfaceSet
     opt = torch.optim.Adam([{"params": [disp], "lr": s.lr}, {"params": [log_sigma], "lr": s.blur_lr}])
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=s.decay)
 
-    def step() -> float:
-        opt.zero_grad(set_to_none=True)
-        total, data = objective()
-        total.backward()
-        opt.step()
-        sched.step()
-        live.steps += 1
-        return float(data.detach())
+    step = adam_step(opt, sched, objective, live)
 
     def heldout_l1() -> torch.Tensor:
         at = live.steps
