@@ -917,6 +917,16 @@ def _validate_learned_calibration(c: _LearnedCheck, cal) -> None:
         c.array(prior, "sigma", at, (k,), low=0.0)
         c.array(prior, "covariance", at, (k, k), required=False)
         c.names(prior, "heliostats", at, required=False)
+    choice = c.group(cal, "process_noise_choice", where, required=False)
+    if choice is not None:  # the update's random-walk q chosen on the plant's records (workflows.update)
+        at = f"{where}/process_noise_choice"
+        c.array(choice, "process_noise_mrad2_per_day", at, (1,), low=0.0)
+        g = c.array(choice, "grid_mrad2_per_day", at, (None,), low=0.0)
+        c.array(choice, "validation_error_mrad", at, (len(g),), finite=False)  # inf: a grid value that diverged
+        c.array(choice, "validation_records", at, (1,), kind="int", low=0)
+        c.array(choice, "validation_heliostats", at, (1,), kind="int", low=0)
+        c.array(choice, "share", at, (1,), low=0.0)
+        c.text(choice, "method", at)
     nets = c.group(cal, "networks", where, required=False)
     for hid, net in (nets or {}).items():
         at = f"{where}/networks/{hid}"
