@@ -50,26 +50,34 @@ Writes ``<out>/plant_scale.json`` and ``<out>/plant_scale.md``; the simulated pl
 (``--keep`` not given: removed after their size). Deterministic inputs (``--seed``); wall times depend on the
 machine and its load.
 
-Measured on a busy 2-core machine (shared with seven other jobs; 1 thread; re-measure on an idle one):
+Measured 2026-11-26 on the idle 2-core machine (torch's default 2 threads; reconstruct one thread per worker)::
 
-=================================  ============  ============  ==========================
-stage                              100 hel.      500 hel.      2000 hel. (202,676 rec.)
-=================================  ============  ============  ==========================
-simulate (draw + write folder)     4.4 s         15.6 s        2.5 s draw + 109 s write
-read, no record cache              1.2 s         8.5 s         10.5 s (10.2 s writing it)
-read_cached                        0.2 s         1.0 s         3.3 s
-=================================  ============  ============  ==========================
+    python benchmarks/bench_plant_scale.py --out D --sizes 100 500 2000 10000 --stages simulate read \
+        read_cached calibrate calibrate_nproc2 update aimpoints reconstruct --images 4 --sample 4 --nproc 2 --keep
 
-The 2000-heliostat column was measured by hand (``heliotwin simulate --heliostats 2000 --records-per-month 3``,
-then :func:`heliotwin.io.paint.load_paint` with ``cache=False`` / ``True``; the 100/500 columns are from before
-the bracket-count shortcut of the JSON depth check); the reader before the record
-cache and the batched parser took 28.0 s for 200 of those heliostats (18,869 records; ~300 s for the folder).
-Drawing alone (:func:`heliotwin.simulate.simulate_plant`, no files): 100 / 500 / 2000 / 10000 heliostats in
-2.7 / 2.9 / 8.6 / 36.5 s (9,685 / 47,604 / 189,789 / 871,800 records, peak RSS 400-960 MiB). ``calibrate`` with
-default settings took 23 s for 20 heliostats and 98 s for 60 (growth exponent 1.3; 1.8 GB peak).
-The new stages at 8 / 12 heliostats (``--images 1 --sample 1 --reconstruct-steps 20``, very busy machine:
-wall ~4x CPU time): update of the last day 0.05 / 0.04 s (1 / 4 records); aimpoints 10.0 / 16.1 s (0.65 /
-0.69 GiB peak); reconstruct 43 / 59 s per heliostat (3.2 GiB peak). Sizes this small say nothing about growth.
+Seconds (a stage's measured call) and the peak resident memory of its process:
+
+================  ================  ================  =================  =================  ========
+stage             100 hel.          500 hel.          2000 hel.          10000 hel.         exponent
+================  ================  ================  =================  =================  ========
+simulate          0.9 s, 488 MiB    2.4 s, 580 MiB    8.6 s, 752 MiB     50.2 s, 1833 MiB   0.88
+read              0.4 s, 429 MiB    2.5 s, 548 MiB    10.5 s, 943 MiB    55.9 s, 2791 MiB   1.07
+read_cached       0.1 s, 415 MiB    0.4 s, 478 MiB    2.0 s, 725 MiB     11.0 s, 1924 MiB   1.03
+calibrate         3.2 s, 541 MiB    13.0 s, 717 MiB   44.3 s, 1308 MiB   231.5 s, 4758 MiB  0.92
+calibrate_nproc2  7.9 s, 448 MiB    19.6 s, 584 MiB   67.5 s, 1116 MiB   356.2 s, 3676 MiB  0.83
+update (one day)  0.02 s            0.02 s            0.06 s             0.53 s             0.73
+aimpoints         1.9 s, 468 MiB    3.8 s, 631 MiB    15.2 s, 1139 MiB   94.5 s, 3276 MiB   0.86
+reconstruct       12.6 s, 595 MiB   12.2 s, 603 MiB   14.2 s, 1210 MiB   23.2 s, 4149 MiB   0.13
+================  ================  ================  =================  =================  ========
+
+Records: 9,685 / 47,604 / 189,789 / 871,800. Calibrate's pointing against the truth at new suns, median / p95:
+0.62 / 2.37, 0.56 / 2.25, 0.51 / 2.21, 0.54 / 3.04 mrad (10,000: 9,578 heliostats calibrated; the demo field
+grown to 10,000 sends 47,718 simulated records off the target, which the simulator drops). ``calibrate_nproc2``
+equals one process to 0.0 mrad but is slower on one 2-core machine: one process already uses both cores through
+torch's threads, and the process group costs seconds to start (it is meant for several machines, via torchrun).
+``reconstruct``: wall seconds per heliostat of 4 sampled heliostats over 2 workers (one heliostat took 20.7-22.7 s
+in its process); at 10,000 the parent's listing of the folder's 871,800 records adds ~40 s to the run, and its
+4.1 GiB peak is the parent's (a worker's peak: 0.6-1.9 GiB).
 """
 from __future__ import annotations
 
