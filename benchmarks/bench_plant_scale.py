@@ -76,7 +76,7 @@ grown to 10,000 sends 47,718 simulated records off the target, which the simulat
 equals one process to 0.0 mrad but is slower on one 2-core machine: one process already uses both cores through
 torch's threads, and the process group costs seconds to start (it is meant for several machines, via torchrun).
 ``reconstruct``: wall seconds per heliostat of 4 sampled heliostats over 2 workers (one heliostat took 20.7-22.7 s
-in its process); at 10,000 the parent's listing of the folder's 871,800 records adds ~40 s to the run, and its
+in its process); at 10,000 the parent's listing of the folder's 871,800 records adds ~45 s to the run, and its
 4.1 GiB peak is the parent's (a worker's peak: 0.6-1.9 GiB).
 """
 from __future__ import annotations
