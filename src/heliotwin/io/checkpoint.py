@@ -40,8 +40,8 @@ import torch
 from ..errors import HeliotwinError
 from .report import _new_file_mode
 
-__all__ = ["Checkpoint", "checkpoint_path", "make_tag", "fingerprint", "active", "current", "resumable_range", "FORMAT",
-           "VERSION"]
+__all__ = ["Checkpoint", "checkpoint_path", "make_tag", "fingerprint", "save_atomic", "active", "current",
+           "resumable_range", "FORMAT", "VERSION"]
 
 FORMAT = "heliotwin-checkpoint"
 VERSION = 1
@@ -178,22 +178,28 @@ class Checkpoint:
             self.hook(event, key, step)
 
     def _write(self) -> None:
-        folder = os.path.dirname(os.path.abspath(self.path))
-        fd, tmp = tempfile.mkstemp(prefix=".heliotwin-ckpt-", dir=folder)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                torch.save({"format": FORMAT, "version": VERSION, "tag": self.tag, "entries": self.entries}, f)
-            os.chmod(tmp, _new_file_mode())
-            os.replace(tmp, self.path)
-        except BaseException:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
-            raise
+        save_atomic({"format": FORMAT, "version": VERSION, "tag": self.tag, "entries": self.entries}, self.path)
 
     def remove(self) -> None:
         """Delete the file (after the run's outputs are written)."""
         with contextlib.suppress(FileNotFoundError):
             os.unlink(self.path)
+
+
+def save_atomic(obj, path) -> None:
+    """``torch.save(obj)`` to ``path`` atomically: a temporary file in the same folder, then :func:`os.replace`
+    (a kill leaves the previous file or none, never half of one); the new file gets the mode of a fresh file."""
+    path = os.fspath(path)
+    fd, tmp = tempfile.mkstemp(prefix=".heliotwin-ckpt-", dir=os.path.dirname(os.path.abspath(path)))
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(obj, f)
+        os.chmod(tmp, _new_file_mode())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
 
 
 @contextlib.contextmanager

@@ -53,7 +53,6 @@ from ..field.plant import SunSettings, Surfaces
 from ..field.update import with_surfaces
 from ..io import checkpoint as _checkpoint
 from ..io.paint import list_heliostats, load_paint
-from ..io.report import _new_file_mode
 from ..io.scenario import Scenario, next_scenario, provenance_entry
 from ..progress import Progress
 from ..surfaces.observations import split_record_ids
@@ -139,17 +138,8 @@ class HeliostatResults:
 
 def _save_result(folder: str, tag: str, heliostat: str, result: dict) -> None:
     os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".heliotwin-ckpt-", dir=folder)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save({"format": _FORMAT, "version": _VERSION, "tag": tag, "heliostat": heliostat,
-                        "result": result}, f)
-        os.chmod(tmp, _new_file_mode())
-        os.replace(tmp, os.path.join(folder, f"{heliostat}.ckpt"))
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
+    _checkpoint.save_atomic({"format": _FORMAT, "version": _VERSION, "tag": tag, "heliostat": heliostat,
+                             "result": result}, os.path.join(folder, f"{heliostat}.ckpt"))
 
 
 def _tag(paint, settings: ReconstructionSettings, scenario_path=None) -> str:
