@@ -148,12 +148,7 @@ def fit_lm(nominal: Kinematics, batch: RecordTable, *, names=STONE8, prior_sigma
         full[active] = torch.as_tensor(x, dtype=torch.float64).reshape(na, p) * scale
         return full
 
-    weights = recency_weights(batch, half_life_days) if half_life_days else None
-    whiten = None
-    if process_noise and process_noise > 0:
-        if weights is not None:
-            raise ValueError("half_life_days and process_noise are two drift models: give one")
-        whiten = whitener(nominal, batch, process_noise, noise, basis=drift_basis)
+    weights, whiten = _drift_model(nominal, batch, half_life_days, process_noise, noise, drift_basis)
     fun, jac = _cached(_stacked_problem(nominal, batch, names, unpack, active, scale, mean, sig_vec, prior_cols,
                                         noise, weights, whiten))
     x0 = (mean[active] / scale).reshape(-1).numpy()
@@ -249,12 +244,7 @@ def _fit_batched(nominal: Kinematics, batch: RecordTable, *, names, prior_sigma,
         prior_matrix = torch.zeros(na, len(cols), p, **f64)
         if len(cols):
             prior_matrix[:, torch.arange(len(cols), device=dev), cols] = (noise / sig_vec[cols]) * scale[cols]
-    weights = recency_weights(batch, half_life_days) if half_life_days else None
-    whiten = None
-    if process_noise and process_noise > 0:
-        if weights is not None:
-            raise ValueError("half_life_days and process_noise are two drift models: give one")
-        whiten = whitener(nominal, batch, process_noise, noise, basis=drift_basis)
+    weights, whiten = _drift_model(nominal, batch, half_life_days, process_noise, noise, drift_basis)
     sw = None if weights is None else weights.to(**f64).sqrt()
     kin_rec = nominal.index(hidx)
     table = _Rows(batch.motor_steps, batch.sun, batch.spot)
@@ -278,6 +268,19 @@ def _fit_batched(nominal: Kinematics, batch: RecordTable, *, names, prior_sigma,
     return delta, {"nfev": int(info["iterations"]), "status": status, "converged": info["converged"],
                    "message": f"{info['converged']} of {na} heliostats converged", "cost": info["cost"],
                    "method": "batched", "evaluations": info["evaluations"]}
+
+
+def _drift_model(nominal: Kinematics, batch: RecordTable, half_life_days, process_noise, noise, drift_basis):
+    """The fit's drift model, one of two (both solvers use this): per-record recency ``weights`` [R] (a half-life
+    [days]) or the random walk's ``whiten`` (:func:`heliotwin.calibrate.drift.whitener`, q [rad^2/day]); (None,
+    None) for a static fit. Both at once is a :class:`ValueError`."""
+    weights = recency_weights(batch, half_life_days) if half_life_days else None
+    whiten = None
+    if process_noise and process_noise > 0:
+        if weights is not None:
+            raise ValueError("half_life_days and process_noise are two drift models: give one")
+        whiten = whitener(nominal, batch, process_noise, noise, basis=drift_basis)
+    return weights, whiten
 
 
 def _sigma_vector(names, prior_sigma: dict | None, prior_sigma_vector: torch.Tensor | None) -> torch.Tensor:
