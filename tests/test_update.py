@@ -7,8 +7,9 @@ import math
 
 import pytest
 import torch
-from helpers.calibrate import F64, TRUE, jueliche_like, plant_of, simulate
+from helpers.calibrate import F64, TRUE, jueliche_like, simulate
 from helpers.cli import assert_one_line_error, run_cli
+from helpers.learned import calibrated_scenario_of
 
 from heliotwin.calibrate import priors
 from heliotwin.calibrate.assimilate import (
@@ -20,7 +21,6 @@ from heliotwin.calibrate.assimilate import (
     leave_one_out_d2,
 )
 from heliotwin.calibrate.methods.lm import laplace
-from heliotwin.calibrate.model import Calibrated
 from heliotwin.calibrate.params import STONE8, apply_deviations
 from heliotwin.calibrate.scenario import aim, calibrated_scenario
 from heliotwin.io.records import RecordTable
@@ -156,12 +156,7 @@ def test_no_alarm_on_clean_records_at_the_chosen_threshold():
 
 def _scenario(h=2):
     kin, truth, train, post = _calibrated(h)
-    ids = [f"S{i}" for i in range(h)]
-    train.heliostat_ids = ids
-    model = Calibrated("lm", ids, kin, STONE8, truth.clone(), torch.ones(h, dtype=torch.bool),
-                       extras={"posterior": dict(post, walk_scale=1.0)})
-    seen = {ids[j]: train.record_id[train.heliostat_index == j].tolist() for j in range(h)}
-    sc = calibrated_scenario(plant_of(kin, ids), model, records=seen, source="synthetic")
+    sc, _ = calibrated_scenario_of(kin, truth, train, post)
     return sc, kin, truth, train
 
 

@@ -18,13 +18,27 @@ DAMAGES = ("nan", "truncated", "wrong_shape", "wrong_dtype", "missing", "scalar"
 DAY = 86400.0
 
 
+def calibrated_scenario_of(kin, truth: torch.Tensor, train, post: dict):
+    """The scenario of an ``lm`` calibration of heliostats ``S0..S{H-1}`` with deviations ``truth`` [H, 8] and
+    Laplace posterior ``post``, having seen ``train``'s records (their ids are set to the names); (scenario, ids)."""
+    from heliotwin.calibrate.model import Calibrated
+    from heliotwin.calibrate.params import STONE8
+    from heliotwin.calibrate.scenario import calibrated_scenario
+
+    h = truth.shape[0]
+    ids = [f"S{i}" for i in range(h)]
+    train.heliostat_ids = ids
+    model = Calibrated("lm", ids, kin, STONE8, truth.clone(), torch.ones(h, dtype=torch.bool),
+                       extras={"posterior": dict(post, walk_scale=1.0)})
+    seen = {ids[j]: train.record_id[train.heliostat_index == j].tolist() for j in range(h)}
+    return calibrated_scenario(plant_of(kin, ids), model, records=seen, source="synthetic"), ids
+
+
 def learned_scenario(path: Path) -> Path:
     """Write a 2-heliostat scenario (``S0``, ``S1``) with ``/learned/{calibration, assimilation, surfaces/S1}``."""
     from heliotwin.calibrate import priors
     from heliotwin.calibrate.methods.lm import laplace
-    from heliotwin.calibrate.model import Calibrated
     from heliotwin.calibrate.params import STONE8, apply_deviations
-    from heliotwin.calibrate.scenario import calibrated_scenario
     from heliotwin.field.plant import SunSettings
     from heliotwin.io.records import RecordTable
     from heliotwin.io.scenario import write_scenario
@@ -38,12 +52,7 @@ def learned_scenario(path: Path) -> Path:
     train = simulate(apply_deviations(kin, truth, STONE8), n, seed=0, noise=5e-4)
     train.time = 1.6e9 - (n - torch.arange(len(train), dtype=F64) % n) * 7 * DAY
     post = laplace(kin, train, truth, torch.diag(1.0 / priors.sigma_vector(STONE8, priors.STONE8_SIGMA) ** 2))
-    ids = [f"S{i}" for i in range(h)]
-    train.heliostat_ids = ids
-    model = Calibrated("lm", ids, kin, STONE8, truth.clone(), torch.ones(h, dtype=torch.bool),
-                       extras={"posterior": dict(post, walk_scale=1.0)})
-    seen = {ids[j]: train.record_id[train.heliostat_index == j].tolist() for j in range(h)}
-    sc = calibrated_scenario(plant_of(kin, ids), model, records=seen, source="synthetic")
+    sc, ids = calibrated_scenario_of(kin, truth, train, post)
     new = simulate(apply_deviations(kin, truth, STONE8), 4, seed=5, noise=5e-4)
     new.heliostat_ids = ids
     new.record_id = 10 ** 6 + torch.arange(len(new))
