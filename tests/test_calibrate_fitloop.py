@@ -3,32 +3,18 @@ import dataclasses
 
 import pytest
 import torch
-from helpers.calibrate import TRUE, jueliche_like, simulate
+from helpers.calibrate import TRUE, jueliche_like, simulate, walk_fit
 
 from heliotwin.calibrate import metrics
-from heliotwin.calibrate.fitloop import box_and_validity, early_stopping_fit, tensor_state
+from heliotwin.calibrate.fitloop import box_and_validity
 from heliotwin.calibrate.methods import METHODS, get_method
 from heliotwin.calibrate.methods.gradient import fit_gradient
 from heliotwin.calibrate.params import STONE8, apply_deviations
 from heliotwin.errors import HeliotwinError
 
 
-def _walk(targets, iterations, validated, **kw):
-    """x climbs by 1 per step; heliostat h's validation error is |x - targets[h]|."""
-    x = torch.zeros(len(targets), 1, dtype=torch.float64)
-    t = torch.tensor(targets, dtype=torch.float64)
-
-    def step():
-        x.add_(1.0)
-        return float(x.sum())
-
-    log = early_stopping_fit(step, lambda: (x[:, 0] - t).abs(), tensor_state(x), iterations,
-                             validated=torch.tensor(validated), **kw)
-    return x, log
-
-
 def test_loop_keeps_each_heliostats_best_validated_state():
-    x, log = _walk([2.2, 4.9, 1.0], 6, [True, True, False])
+    x, log = walk_fit([2.2, 4.9, 1.0], 6, [True, True, False])
     assert log.best[:, 0].tolist() == [2.0, 5.0, 6.0]  # the third has no validation: its final state
     assert log.best_iteration.tolist() == [2, 5, 6]
     assert float(x[0, 0]) == 6.0  # the live state is left alone
@@ -37,13 +23,13 @@ def test_loop_keeps_each_heliostats_best_validated_state():
 
 
 def test_loop_checks_every_n_and_after_the_last_step():
-    _, log = _walk([2.2, 4.9], 7, [True, True], check_every=3)
+    _, log = walk_fit([2.2, 4.9], 7, [True, True], check_every=3)
     assert log.best[:, 0].tolist() == [3.0, 6.0]
     assert [h[0] for h in log.history] == [0, 3, 6, 7]
 
 
 def test_refit_mode_stops_each_heliostat_at_its_iteration():
-    _, log = _walk([100.0, 100.0, 100.0], 6, [False, False, False], check_every=3,
+    _, log = walk_fit([100.0, 100.0, 100.0], 6, [False, False, False], check_every=3,
                    stop_at=torch.tensor([0, 3, 6]))
     assert log.best[:, 0].tolist() == [0.0, 3.0, 6.0]
     assert log.best_iteration.tolist() == [0, 3, 6]

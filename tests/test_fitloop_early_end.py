@@ -1,39 +1,26 @@
 """The fit loop's early end, optimiser swap and fresh-optimiser steps (what the surface fits use): unit-level."""
 import pytest
 import torch
+from helpers.calibrate import walk_fit
 
 from heliotwin.calibrate.fitloop import EarlyEnd, Swap, early_stopping_fit, tensor_state
 from heliotwin.io.checkpoint import Checkpoint, active, make_tag
 
 
-def _climb(targets, iterations, **kw):
-    """x climbs by 1 per step; the validation error is |x - target| (one heliostat per target)."""
-    x = torch.zeros(len(targets), 1, dtype=torch.float64)
-    t = torch.tensor(targets, dtype=torch.float64)
-
-    def step():
-        x.add_(1.0)
-        return float(x.sum())
-
-    log = early_stopping_fit(step, lambda: (x[:, 0] - t).abs(), tensor_state(x), iterations,
-                             validated=torch.ones(len(targets), dtype=torch.bool), **kw)
-    return x, log
-
-
 def test_without_rules_the_loop_is_the_plain_loop():
-    x0, plain = _climb([2.2, 4.9], 7, check_every=3)
-    x1, off = _climb([2.2, 4.9], 7, check_every=3, early_end=EarlyEnd())
+    x0, plain = walk_fit([2.2, 4.9], 7, check_every=3)
+    x1, off = walk_fit([2.2, 4.9], 7, check_every=3, early_end=EarlyEnd())
     assert torch.equal(x0, x1) and torch.equal(plain.best, off.best)
     assert plain.history == off.history and plain.losses == off.losses and plain.ended_at == off.ended_at == 7
 
 
 def test_patience_ends_after_checks_without_a_better_validation_error():
     # Best at x = 3 (target 3.1); checks at 4 and 5 are worse: two bad checks end the loop at 5, best kept.
-    x, log = _climb([3.1], 20, early_end=EarlyEnd(patience=2))
+    x, log = walk_fit([3.1], 20, early_end=EarlyEnd(patience=2))
     assert log.ended_at == 5 and float(x[0, 0]) == 5.0
     assert log.best[:, 0].tolist() == [3.0] and log.best_iteration.tolist() == [3]
     # min_delta: gains of 1 and then 2 below the start do not count as better (2.5 needed): ended at the second.
-    _, log = _climb([30.0], 20, early_end=EarlyEnd(patience=2, min_delta=2.5))
+    _, log = walk_fit([30.0], 20, early_end=EarlyEnd(patience=2, min_delta=2.5))
     assert log.ended_at == 2 and log.best_iteration.tolist() == [0]
 
 
@@ -58,7 +45,7 @@ def test_tolerance_ends_when_the_training_loss_stops_falling():
 
 def test_a_callers_condition_ends_the_loop():
     calls = []
-    x, log = _climb([100.0], 20, early_end=EarlyEnd(done=lambda: calls.append(1) or len(calls) >= 7))
+    x, log = walk_fit([100.0], 20, early_end=EarlyEnd(done=lambda: calls.append(1) or len(calls) >= 7))
     assert log.ended_at == 7 and float(x[0, 0]) == 7.0
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import torch
 
+from heliotwin.calibrate.fitloop import early_stopping_fit, tensor_state
 from heliotwin.field import kinematics as K
 from heliotwin.field.plant import Kinematics
 from heliotwin.field.targets import PlanarTarget
@@ -149,3 +150,18 @@ def synthetic_plant(num_heliostats: int, records: int, *, seed: int = 0, noise: 
     table.source = ["HeliOS"] * len(table)
     table = table.subset(ok)
     return PaintDataset("synthetic", replace(plant, field=replace(plant.field, kinematics=nominal)), table), true
+
+
+def walk_fit(targets, iterations, validated=None, **kw):
+    """A toy run of the fit loop: x [H, 1] climbs by 1 per step; heliostat h's validation error is
+    |x - targets[h]| (``validated``: which heliostats have validation records; default all). Returns (x, log)."""
+    x = torch.zeros(len(targets), 1, dtype=torch.float64)
+    t = torch.tensor(targets, dtype=torch.float64)
+
+    def step():
+        x.add_(1.0)
+        return float(x.sum())
+
+    ok = torch.ones(len(targets), dtype=torch.bool) if validated is None else torch.tensor(validated)
+    log = early_stopping_fit(step, lambda: (x[:, 0] - t).abs(), tensor_state(x), iterations, validated=ok, **kw)
+    return x, log
