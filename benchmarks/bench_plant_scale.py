@@ -120,11 +120,13 @@ def simulate_stage(ctx: dict) -> dict:
 
 @stage("read")
 def read_stage(ctx: dict) -> dict:
-    from heliotwin.io.paint import load_paint, record_cache_path
+    from heliotwin.io.paint import load_paint
+    from heliotwin.io.record_index import index_dir
 
     ds = load_paint(ctx["folder"], cache=True)
-    return {"records": len(ds.records), "cache_bytes": os.path.getsize(record_cache_path(ctx["folder"],
-                                                                                        ds.plant.field.ids))}
+    where = index_dir(ctx["folder"])
+    return {"records": len(ds.records), "cache_bytes": sum(os.path.getsize(os.path.join(where, f))
+                                                           for f in os.listdir(where))}
 
 
 @stage("read_cached")

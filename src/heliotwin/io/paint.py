@@ -16,12 +16,12 @@ from __future__ import annotations
 
 import csv
 import glob
-import hashlib
+import io
+import itertools
 import json
 import math
 import os
 import re
-import tempfile
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -32,7 +32,16 @@ from ..field import facets as facet_ops
 from ..field.plant import Facets, Field, Kinematics, Plant, Site, SunSettings
 from ..field.targets import CylinderTarget, PlanarTarget
 from ..site import wgs84_to_enu
-from .records import SOURCES, WEATHER_KEYS, RawRecords, RecordTable, build_record_table, parse_time, raw_from_records
+from . import record_index
+from .records import (
+    SOURCES,
+    WEATHER_KEYS,
+    RawRecords,
+    RecordTable,
+    build_record_table,
+    parse_time,
+    raw_from_records,
+)
 
 HELIOSTAT_DIR = re.compile(r"^[A-Z]{2}[0-9]{2}$")
 FOCAL_SPOT_SOURCES = ("HeliOS", "UTIS")
@@ -414,8 +423,9 @@ def read_metadata(root) -> tuple[dict, dict]:
     Raises
     ------
     InputFileError
-        A CSV that is not UTF-8, malformed, lacks its columns, or has a bad Id, a duplicate Id or a
-        non-finite weather value (file, line and column named).
+        A CSV that is not UTF-8, malformed, lacks its columns, or has a bad Id, a duplicate Id, a DateTime that
+        is not a UTC ISO 8601 time (unparsable, or naming a zone such as ``CEST``; empty is allowed: no time) or
+        a non-finite weather value (file, line and column named).
     """
     meta = os.path.join(str(root), "metadata", "calibration-metadata.csv")
     wpath = os.path.join(str(root), "metadata", "calibration-weather.csv")
@@ -425,7 +435,16 @@ def read_metadata(root) -> tuple[dict, dict]:
 
 
 def _metadata_row(row: dict):
-    return row["DateTime"] or None
+    """A record's DateTime (None when empty: PAINT has records without one), checked to be a UTC ISO 8601 time
+    (:func:`~heliotwin.io.records.parse_time`: a zone name such as ``CEST`` or unparsable text is refused)."""
+    text = row["DateTime"]
+    if not text or not text.strip():
+        return None
+    try:
+        parse_time(text)
+    except ValueError as exc:
+        raise ValueError(f"column DateTime: {exc}") from None
+    return text
 
 
 def _weather_row(row: dict) -> dict:
@@ -442,20 +461,26 @@ def _weather_row(row: dict) -> dict:
     return out
 
 
-def _read_csv(path: str, parse_row, columns) -> dict:
-    """Record id -> ``parse_row(row)`` for every row of a PAINT metadata CSV."""
-    out, line = {}, 1
+def _read_csv(path: str, parse_row, columns, *, text: str | None = None, header: str | None = None,
+              first_line: int = 2, known=()) -> dict:
+    """Record id -> ``parse_row(row)`` for every row of a PAINT metadata CSV.
+
+    ``text``: only this part of the file (from a line start on; ``header`` is then its header line and
+    ``first_line`` the file's line number of the part's first row, ``known`` the ids of the rows before it,
+    for the duplicate check); default: the whole file."""
+    out, line = {}, first_line - 1
     try:
-        with open(path, newline="", encoding="utf-8") as fh:
-            reader = csv.DictReader(fh)
+        with (open(path, newline="", encoding="utf-8") if text is None else io.StringIO(text, newline="")) as fh:
+            lines = fh if header is None else itertools.chain([header], fh)
+            reader = csv.DictReader(lines)
             if not all(c in (reader.fieldnames or []) for c in columns):
                 raise InputFileError(path, f"needs columns {', '.join(columns)}", field="header")
-            for line, row in enumerate(reader, start=2):
+            for line, row in enumerate(reader, start=first_line):
                 try:
                     rid = int(row["Id"])
                 except (TypeError, ValueError):
                     raise InputFileError(path, f"line {line}: bad Id {_short(row.get('Id'))}", field="Id") from None
-                if rid in out:
+                if rid in out or rid in known:
                     raise InputFileError(path, f"line {line}: duplicate Id {rid}", field="Id")
                 try:
                     out[rid] = parse_row(row)
@@ -486,6 +511,8 @@ class PaintDataset:
         ``{"record_id", "heliostat_id", "reason"}`` per record that could not be used.
     properties : dict
         Heliostat id -> :class:`HeliostatProperties`.
+    reading : dict
+        How the records were read (:func:`read_records`' ``stats``: files listed, parsed now, from the index).
     """
 
     root: str
@@ -493,6 +520,7 @@ class PaintDataset:
     records: RecordTable
     skipped: list = field(default_factory=list)
     properties: dict = field(default_factory=dict)
+    reading: dict = field(default_factory=dict)
 
     def on_plant(self, plant: Plant, source: str = "scenario") -> "PaintDataset":
         """The same records on another plant of the same site (e.g. a calibrated scenario): the table's
@@ -511,7 +539,7 @@ class PaintDataset:
         ids = set(plant.field.ids)
         skipped = [s for s in self.skipped if s["heliostat_id"] in ids]
         return PaintDataset(self.root, plant, self.records.for_heliostats(plant.field.ids), skipped,
-                            {h: p for h, p in self.properties.items() if h in ids})
+                            {h: p for h, p in self.properties.items() if h in ids}, dict(self.reading))
 
     def records_of(self, heliostat_id: str) -> RecordTable:
         """Usable records of one heliostat, in reading order (ascending record id)."""
@@ -565,9 +593,9 @@ def load_paint(root, heliostats=None, *, surface_control_points=(4, 4), surface_
         See :func:`heliotwin.io.records.build_record_table`, which judges every record (``plane_tolerance``
         [m]: largest distance of a centroid from its target plane).
     cache : bool or None
-        Keep the parsed records in the record cache (:func:`record_cache_path`) and re-open them from it while
-        no record, image, metadata or tower file of the folder changed. None: only for folders of at least
-        :data:`CACHE_MIN_RECORDS` records (unless ``HELIOTWIN_CACHE=0``).
+        Use the folder's incremental record index (:mod:`heliotwin.io.record_index`): files unchanged since
+        they were indexed are not parsed again, new ones are parsed and appended. None: for folders of at least
+        :data:`CACHE_MIN_RECORDS` record files (``HELIOTWIN_CACHE=1``: every folder, ``=0``: none).
     """
     root = str(root)
     site, targets = read_tower(find_tower_file(root))
@@ -593,48 +621,86 @@ def load_paint(root, heliostats=None, *, surface_control_points=(4, 4), surface_
     fld = Field(ids, kin, fac, surfaces, torch.tensor([props[h].width for h in ids], dtype=torch.float64),
                 torch.tensor([props[h].height for h in ids], dtype=torch.float64), [props[h].renovation for h in ids])
     plant = Plant(site, targets, fld, SunSettings())
-    raw = read_records(root, ids, site, targets, cache=cache) if with_records else []
+    reading: dict = {}
+    raw = read_records(root, ids, site, targets, cache=cache, stats=reading) if with_records else []
     table, skipped = build_record_table(plant, raw, focal_spot=focal_spot, plane_tolerance=plane_tolerance)
-    return PaintDataset(root, plant, table, skipped, props)
+    return PaintDataset(root, plant, table, skipped, props, reading)
 
 
 # ------------------------------------------------------------------------------------ fast record reading
-#: Folders with at least this many record files keep a record cache by default (``load_paint(cache=None)``).
+#: Folders with at least this many record files keep a record index by default (``load_paint(cache=None)``;
+#: ``HELIOTWIN_CACHE=1`` indexes every folder, ``HELIOTWIN_CACHE=0`` none).
 CACHE_MIN_RECORDS = 5000
-#: Layout version of a record cache file; a file of another version is never read.
-CACHE_VERSION = 1
+#: Suffix of a calibration record file's name.
+RECORD_SUFFIX = "-calibration-properties.json"
 
 
-def _listing(root: str, ids) -> list[tuple[str, list, set, list]]:
-    """Per heliostat: its Calibration folder, the record files in reading order (ascending record id), every
-    file name there, and ``(name, size, mtime_ns)`` of every file (the cache key's part)."""
-    out = []
-    for h in ids:
-        folder = os.path.join(root, h, "Calibration")
+@dataclass
+class Listing:
+    """The record files of some heliostats of a PAINT folder, as listed now (arrays over F files, in reading
+    order: heliostat by heliostat, ascending record id).
+
+    Attributes
+    ----------
+    folders : list of str
+        Each heliostat's Calibration folder.
+    names : list of set
+        Every file name in each of those folders (images are looked up there).
+    heliostat : np.ndarray [F] int
+        Index of each file's heliostat.
+    name : np.ndarray [F] bytes
+        File names.
+    size, mtime_ns : np.ndarray [F] int64
+        The index key's part of each file (-1 when it could not be stat'ed).
+    """
+
+    folders: list
+    names: list
+    heliostat: np.ndarray
+    name: np.ndarray
+    size: np.ndarray
+    mtime_ns: np.ndarray
+
+    def files(self, rows=None) -> list:
+        """(heliostat index, Calibration folder, file name) per file (of ``rows``, default all)."""
+        rows = range(len(self.name)) if rows is None else rows
+        return [(int(self.heliostat[i]), self.folders[int(self.heliostat[i])], self.name[i].decode()) for i in rows]
+
+
+def _listing(root: str, ids) -> Listing:
+    """The record files of heliostats ``ids`` of ``root`` with their size and modification time."""
+    folders, names, hidx, fnames, sizes, mtimes = [], [], [], [], [], []
+    for h, hid in enumerate(ids):
+        folder = os.path.join(root, hid, "Calibration")
+        folders.append(folder)
         try:
             entries = list(os.scandir(folder))
         except (FileNotFoundError, NotADirectoryError):  # no records (what a glob of it finds)
-            out.append((folder, [], set(), []))
+            names.append(set())
             continue
         except OSError as exc:
             raise InputFileError(folder, f"cannot read ({exc.strerror})") from None
-        names = {e.name for e in entries}
-        files = sorted((e.name for e in entries if e.name.endswith("-calibration-properties.json")
-                        and not e.name.startswith(".")), key=_record_number)
-        stats = []
-        for e in sorted(entries, key=lambda e: e.name):
+        names.append({e.name for e in entries})
+        files = sorted((e for e in entries if e.name.endswith(RECORD_SUFFIX) and not e.name.startswith(".")),
+                       key=lambda e: _record_number(e.name))
+        for e in files:
             try:
                 st = e.stat()
-                stats.append((e.name, st.st_size, st.st_mtime_ns))
+                sizes.append(st.st_size)
+                mtimes.append(st.st_mtime_ns)
             except OSError:
-                stats.append((e.name, -1, -1))
-        out.append((folder, files, names, stats))
-    return out
+                sizes.append(-1)
+                mtimes.append(-1)
+            fnames.append(e.name.encode())
+            hidx.append(h)
+    return Listing(folders, names, np.asarray(hidx, dtype=np.int64), np.asarray(fnames, dtype="S"),
+                   np.asarray(sizes, dtype=np.int64), np.asarray(mtimes, dtype=np.int64))
 
 
-def _parse_record(data: dict, path: str, known_targets) -> tuple:
-    """The fields of a parsed record file, validated like :func:`read_calibration_record` (raises a plain
-    ``ValueError`` on anything it would reject; the caller then lets that function word the error)."""
+def _parse_record(data: dict, path: str) -> tuple:
+    """The fields of a parsed record file (focal spots lat-first WGS84, NaN where absent), checked like
+    :func:`read_calibration_record` (raises a plain ``ValueError`` on anything it would reject; the caller
+    then lets that function word the error). The target is checked against the tower at assembly."""
     rid = int(os.path.basename(path).split("-")[0])
     mp = data["motor_position"]
     steps = (mp["axis_1_motor_position"], mp["axis_2_motor_position"])
@@ -642,9 +708,9 @@ def _parse_record(data: dict, path: str, known_targets) -> tuple:
     spots = data["focal_spot"]
     az, el = data["sun_azimuth"], data["sun_elevation"]
     if not (all(_finite_number(x) for x in (*steps, az, el)) and isinstance(target, str) and isinstance(spots, dict)
-            and (known_targets is None or target in known_targets) and 0.0 < float(el) <= 90.0):
+            and 0.0 < float(el) <= 90.0):
         raise ValueError("invalid record")
-    lla = [None, None]
+    lla = [[math.nan] * 3, [math.nan] * 3]
     for k, src in enumerate(FOCAL_SPOT_SOURCES):
         v = spots.get(src)
         if v is not None:
@@ -652,151 +718,183 @@ def _parse_record(data: dict, path: str, known_targets) -> tuple:
                     and -90.0 <= v[0] <= 90.0 and -180.0 <= v[1] <= 180.0):
                 raise ValueError("invalid focal spot")
             lla[k] = [float(x) for x in v]
-    if lla == [None, None]:
+    if math.isnan(lla[0][0]) and math.isnan(lla[1][0]):
         raise ValueError("no focal spot")
     return rid, float(steps[0]), float(steps[1]), target, lla, math.radians(az), math.radians(el)
+
+
+def _parse_files(root: str, ids, listing: Listing, rows, site: Site, targets: dict) -> dict:
+    """Index entries (:mod:`heliotwin.io.record_index`) of the listed files ``rows``, parsed now. A file the
+    fast parser does not accept is read by :func:`read_calibration_record`, which words its error."""
+    out = []
+    for (h, folder, name), i in zip(listing.files(rows), rows):
+        path = os.path.join(folder, name)
+        try:
+            out.append(_parse_record(read_json(path), path))
+        except (InputFileError, ValueError, KeyError, TypeError, AttributeError, OverflowError):
+            r = read_calibration_record(path, site, ids[h], known_targets=targets)  # words the error, if any
+            lla = [r.focal_spot_wgs84.get(src, [math.nan] * 3) for src in FOCAL_SPOT_SOURCES]
+            out.append((r.record_id, *map(float, r.motor_steps), r.target, lla, r.sun_azimuth, r.sun_elevation))
+    n = len(out)
+    return {"heliostat": np.asarray([ids[int(listing.heliostat[i])] for i in rows], dtype="U").reshape(n),
+            "name": listing.name[rows].reshape(n), "size": listing.size[rows].reshape(n),
+            "mtime_ns": listing.mtime_ns[rows].reshape(n),
+            "record_id": np.asarray([r[0] for r in out], dtype=np.int64).reshape(n),
+            "motor_steps": np.asarray([[r[1], r[2]] for r in out], dtype=np.float64).reshape(n, 2),
+            "target": np.asarray([r[3] for r in out], dtype="U").reshape(n),
+            "lla": np.asarray([r[4] for r in out], dtype=np.float64).reshape(n, 2, 3),
+            "sun_azimuth": np.asarray([r[5] for r in out], dtype=np.float64).reshape(n),
+            "sun_elevation": np.asarray([r[6] for r in out], dtype=np.float64).reshape(n)}
 
 
 def _read_one_by_one(listing, ids, site: Site, targets: dict, times: dict, weather: dict) -> RawRecords:
     """Every record through :func:`read_calibration_record` (the reference reader: it words the first bad file
     in reading order)."""
     records = []
-    for h, (folder, files, _, _) in zip(ids, listing):
-        for name in files:
-            r = read_calibration_record(os.path.join(folder, name), site, h, known_targets=targets)
-            r.datetime = times.get(r.record_id)
-            r.weather = weather.get(r.record_id)
-            records.append(r)
+    for h, folder, name in listing.files():
+        r = read_calibration_record(os.path.join(folder, name), site, ids[h], known_targets=targets)
+        r.datetime = times.get(r.record_id)
+        r.weather = weather.get(r.record_id)
+        records.append(r)
     return raw_from_records(records)
 
 
-def _parse_all(listing, ids, site: Site, targets: dict, times: dict, weather: dict) -> RawRecords:
-    """Every record of ``ids`` as :class:`RawRecords`: parsed file by file, converted to ENU in one batch.
-
-    Any file this fast path does not accept (or an implausibly far centroid) sends the whole folder through
-    :func:`_read_one_by_one`, so errors and edge cases are exactly those of :func:`read_calibration_record`.
-    """
-    paths, hidx, rows = [], [], []
-    try:
-        for hi, (folder, files, _, _) in enumerate(listing):
-            for name in files:
-                path = os.path.join(folder, name)
-                rows.append(_parse_record(read_json(path), path, targets))
-                paths.append(path)
-                hidx.append(hi)
-    except (InputFileError, ValueError, KeyError, TypeError, AttributeError, OverflowError):
-        return _read_one_by_one(listing, ids, site, targets, times, weather)
-    n = len(rows)
-    lla = np.full((n, len(SOURCES), 3), np.nan)
-    for k in range(len(SOURCES)):
-        have = [i for i, r in enumerate(rows) if r[4][k] is not None]
-        if have:
-            lla[have, k] = [rows[i][4][k] for i in have]
+def _assemble(entries: dict, listing: Listing, ids, site: Site, targets: dict, meta: dict) -> RawRecords | None:
+    """:class:`RawRecords` of the entries of the listed files (one per file, in listing order): focal spots to
+    ENU in one batch, times and weather joined by record id, images looked up in the listing. None when a
+    record names a target the tower lacks or a centroid lies implausibly far (the one-by-one reader then
+    words the error)."""
+    n = len(entries["record_id"])
+    if n and not bool(np.isin(entries["target"], np.asarray(list(targets), dtype="U")).all()):
+        return None
+    lla = entries["lla"]
     present = ~np.isnan(lla[..., 0])
     enu = torch.full((n, len(SOURCES), 3), float("nan"), dtype=torch.float64)
     if present.any():
         enu[torch.from_numpy(present)] = wgs84_to_enu(torch.from_numpy(lla[present]), site.reference)
     far = (torch.hypot(enu[..., 0], enu[..., 1]) > MAX_PLANT_RADIUS_M) | (enu[..., 2].abs() > MAX_PLANT_HEIGHT_M)
     if bool(far.any()):
-        return _read_one_by_one(listing, ids, site, targets, times, weather)
-    rid = [r[0] for r in rows]
-    dt = [times.get(x) for x in rid]
-    nan5 = [float("nan")] * len(WEATHER_KEYS)
-    wx = [[float(weather[x].get(k, float("nan"))) for k in WEATHER_KEYS] if weather.get(x) else nan5 for x in rid]
+        return None
+    rid = entries["record_id"]
+    dt, t = _join(rid, meta["ids"], meta["datetime"], meta["time"], None)
+    wx = _join(rid, meta["weather_ids"], None, meta["weather"], len(WEATHER_KEYS))[1]
+    hidx = listing.heliostat
+    names = listing.name.astype("U").tolist() if n else []
+    paths = [os.path.join(listing.folders[h], nm) for h, nm in zip(hidx.tolist(), names)]
+    rid_list = rid.tolist()
+    png, cpng = [], []
+    for h, x in zip(hidx.tolist(), rid_list):
+        have, folder = listing.names[h], listing.folders[h]
+        png.append(os.path.join(folder, f"{x}-flux.png") if f"{x}-flux.png" in have else None)
+        cpng.append(os.path.join(folder, f"{x}-flux-centered.png") if f"{x}-flux-centered.png" in have else None)
     f64 = dict(dtype=torch.float64)
-    folders = [listing[h][0] for h in hidx]
-    png = [os.path.join(f, f"{x}-flux.png") if f"{x}-flux.png" in listing[h][2] else None
-           for f, x, h in zip(folders, rid, hidx)]
-    cpng = [os.path.join(f, f"{x}-flux-centered.png") if f"{x}-flux-centered.png" in listing[h][2] else None
-            for f, x, h in zip(folders, rid, hidx)]
     return RawRecords(
-        heliostat_ids=list(ids), heliostat_index=torch.tensor(hidx, dtype=torch.long),
-        record_id=torch.tensor(rid, dtype=torch.long), sun_azimuth=torch.tensor([r[5] for r in rows], **f64),
-        sun_elevation=torch.tensor([r[6] for r in rows], **f64),
-        motor_steps=torch.tensor([[r[1], r[2]] for r in rows], **f64).reshape(n, 2), target=[r[3] for r in rows],
-        focal_spots=enu, present=torch.from_numpy(present), time=torch.tensor([parse_time(x) for x in dt], **f64),
-        weather=torch.tensor(wx, **f64).reshape(n, len(WEATHER_KEYS)), datetime=dt, flux_png=png,
-        flux_centered_png=cpng, path=paths)
+        heliostat_ids=list(ids), heliostat_index=torch.from_numpy(hidx.astype(np.int64)),
+        record_id=torch.from_numpy(rid.astype(np.int64)), sun_azimuth=torch.tensor(entries["sun_azimuth"], **f64),
+        sun_elevation=torch.tensor(entries["sun_elevation"], **f64),
+        motor_steps=torch.tensor(entries["motor_steps"], **f64).reshape(n, 2), target=entries["target"].tolist(),
+        focal_spots=enu, present=torch.from_numpy(present), time=torch.from_numpy(t),
+        weather=torch.from_numpy(wx).reshape(n, len(WEATHER_KEYS)), datetime=dt, flux_png=png, flux_centered_png=cpng,
+        path=paths)
 
 
-def record_cache_path(root, ids) -> str:
-    """Where the record cache of heliostats ``ids`` of the PAINT folder ``root`` lives: under
-    ``$HELIOTWIN_CACHE_DIR`` (default ``$XDG_CACHE_HOME/heliotwin/paint-records``, ``~/.cache/...``), one
-    ``.npz`` per folder and heliostat list."""
-    base = os.environ.get("HELIOTWIN_CACHE_DIR") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "heliotwin",
-        "paint-records")
-    name = hashlib.sha256("\0".join([os.path.abspath(str(root)), *ids]).encode()).hexdigest()[:32]
-    return os.path.join(base, f"{name}.npz")
+def _join(rid: np.ndarray, ids: np.ndarray, text, values: np.ndarray, width: int | None):
+    """Per record id: the text (list, None where absent) and values (NaN where absent) of the CSV rows ``ids``."""
+    n = len(rid)
+    shape = (n,) if width is None else (n, width)
+    out = np.full(shape, np.nan)
+    have = np.zeros(n, dtype=bool)
+    pos = np.zeros(n, dtype=np.int64)
+    if len(ids):
+        order = np.argsort(ids, kind="stable")
+        at = np.searchsorted(ids[order], rid).clip(max=len(ids) - 1)
+        have = ids[order][at] == rid
+        pos = order[at]
+        out[have] = values[pos[have]]
+    words = None
+    if text is not None:
+        words = [None] * n
+        for i in np.nonzero(have)[0].tolist():
+            words[i] = text[pos[i]]
+    return words, out
 
 
-def _cache_key(root: str, ids, listing) -> str:
-    """Digest of everything the parsed records depend on: the format version, the folder, the heliostats, and
-    name, size and modification time of the tower file, the metadata CSVs and every file of every
-    Calibration folder (records and images)."""
-    def stat(path):
-        try:
-            st = os.stat(path)
-            return [st.st_size, st.st_mtime_ns]
-        except OSError:
-            return None
-    meta = [stat(os.path.join(root, "metadata", f)) for f in ("calibration-metadata.csv", "calibration-weather.csv")]
-    tower = find_tower_file(root)
-    parts = [CACHE_VERSION, os.path.abspath(root), list(ids), os.path.basename(tower), stat(tower), meta,
-             [entry[3] for entry in listing]]
-    return hashlib.sha256(json.dumps(parts).encode()).hexdigest()
-
-
-def _save_cache(path: str, key: str, raw: RawRecords) -> None:
-    """Write the cache atomically; a cache that cannot be written is simply not written."""
-    strings = lambda v: np.array(["" if x is None else x for x in v], dtype=str)  # noqa: E731
-    arrays = {"key": np.array(key), "heliostat_ids": np.array(raw.heliostat_ids, dtype=str)}
-    for name in ("heliostat_index", "record_id", "sun_azimuth", "sun_elevation", "motor_steps", "focal_spots",
-                 "present", "time", "weather"):
-        arrays[name] = getattr(raw, name).numpy()
-    for name in ("target", "datetime", "flux_png", "flux_centered_png", "path"):
-        v = getattr(raw, name)
-        arrays[name] = strings(v)
-        arrays[name + "_none"] = np.array([x is None for x in v], dtype=bool)
+def _csv_columns(root: str, name: str, parse_row, columns, to_row, width: int | None, use_index: bool) -> dict:
+    """The rows of ``root/metadata/<name>`` as columns: ``ids`` [M] int64, ``text`` (str or None per row, or
+    absent), ``values`` [M] or [M, width] float64; parsed from the record index where it holds the file's
+    bytes (only the rows appended since are parsed, :func:`heliotwin.io.record_index.csv_cached`)."""
+    path = os.path.join(root, "metadata", name)
+    empty = {"ids": np.zeros(0, dtype=np.int64), "text": [],
+             "values": np.zeros((0,) if width is None else (0, width))}
+    if not os.path.exists(path):
+        return empty
+    stored, covered = record_index.csv_cached(root, path) if use_index else (None, 0)
     try:
-        os.makedirs(os.path.dirname(path), exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=".records-", suffix=".npz", dir=os.path.dirname(path))
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
-        os.replace(tmp, path)
-    except OSError:
-        try:
-            os.unlink(tmp)
-        except (OSError, UnboundLocalError):
-            pass
-
-
-def _load_cache(path: str, key: str) -> RawRecords | None:
-    """The cached records when the file exists, reads cleanly and its key matches; None otherwise."""
+        with open(path, "rb") as fh:
+            fh.seek(covered)
+            data = fh.read()
+    except OSError as exc:
+        raise InputFileError(path, f"cannot read ({exc.strerror})") from None
+    if stored is not None and not data:
+        return {"ids": stored["ids"], "values": stored["values"],
+                "text": [None if none else str(x) for x, none in zip(stored["text"].tolist(),
+                                                                     stored["text_none"].tolist())]}
     try:
-        with np.load(path, allow_pickle=False) as z:
-            if str(z["key"]) != key:
-                return None
-            d = {k: z[k] for k in z.files}
-    except (OSError, ValueError, KeyError, EOFError):
-        return None
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise InputFileError(path, f"not UTF-8 text (byte {covered + exc.start})") from None
+    header = None if stored is None else str(stored["header"])
+    first = 2 if stored is None else int(stored["lines"]) + 1
+    known = set() if stored is None else set(stored["ids"].tolist())
+    rows = _read_csv(path, parse_row, columns, text=text, header=header, first_line=first, known=known)
+    new_ids = np.fromiter(rows, dtype=np.int64, count=len(rows))
+    parsed = [to_row(v) for v in rows.values()]
+    new_text = [p[0] for p in parsed]
+    new_values = np.asarray([p[1] for p in parsed], dtype=np.float64).reshape((len(rows),) + empty["values"].shape[1:])
+    if stored is None:
+        out = {"ids": new_ids, "text": new_text, "values": new_values}
+        header = text.splitlines(keepends=True)[0] if text else ""
+    else:
+        out = {"ids": np.concatenate([stored["ids"], new_ids]),
+               "values": np.concatenate([stored["values"], new_values]),
+               "text": [None if none else str(x) for x, none in zip(stored["text"].tolist(),
+                                                                     stored["text_none"].tolist())] + new_text}
+    if use_index and text.endswith("\n"):
+        lines = (first - 1) + text.count("\n") - (1 if stored is None else 0)
+        record_index.store_csv(root, path, covered + len(data), {
+            "ids": out["ids"], "values": out["values"], "header": np.array(header), "lines": np.array(lines),
+            "text": np.asarray(["" if x is None else x for x in out["text"]], dtype="U"),
+            "text_none": np.asarray([x is None for x in out["text"]], dtype=bool)})
+    return out
 
-    def strings(name):
-        return [None if none else str(x) for x, none in zip(d[name].tolist(), d[name + "_none"].tolist())]
-    try:
-        return RawRecords(heliostat_ids=[str(x) for x in d["heliostat_ids"].tolist()],
-                          **{k: torch.from_numpy(d[k]) for k in ("heliostat_index", "record_id", "sun_azimuth",
-                                                                 "sun_elevation", "motor_steps", "focal_spots",
-                                                                 "present", "time", "weather")},
-                          **{k: strings(k) for k in ("target", "datetime", "flux_png", "flux_centered_png", "path")})
-    except (KeyError, TypeError, ValueError):
-        return None
+
+def _metadata_columns(root: str, use_index: bool) -> dict:
+    """Times and weather of the folder's records as columns (:func:`_csv_columns`)."""
+    meta = _csv_columns(root, "calibration-metadata.csv", _metadata_row, ("Id", "DateTime"),
+                        lambda text: (text, parse_time(text)), None, use_index)
+    wx = _csv_columns(root, "calibration-weather.csv", _weather_row, ("Id",),
+                      lambda d: (None, [float(d.get(k, float("nan"))) for k in WEATHER_KEYS]), len(WEATHER_KEYS),
+                      use_index)
+    return {"ids": meta["ids"], "datetime": meta["text"], "time": meta["values"], "weather_ids": wx["ids"],
+            "weather": wx["values"]}
 
 
-def read_records(root, ids, site: Site, targets: dict, *, cache: bool | None = None) -> RawRecords:
+def _use_index(cache: bool | None, files: int) -> bool:
+    if cache is not None:
+        return bool(cache)
+    flag = os.environ.get("HELIOTWIN_CACHE")
+    return flag != "0" and (flag == "1" or files >= CACHE_MIN_RECORDS)
+
+
+def read_records(root, ids, site: Site, targets: dict, *, cache: bool | None = None,
+                 stats: dict | None = None) -> RawRecords:
     """Every calibration record of heliostats ``ids`` of a PAINT folder, parsed (not yet judged), with the
-    metadata's time and weather: from the record cache when it matches the folder's files, else from the
-    files (then the cache is written when ``cache`` allows, see :func:`load_paint`).
+    metadata's time and weather. With the record index (``cache``, see :func:`load_paint`) only files that
+    are new or changed since they were indexed are parsed (:mod:`heliotwin.io.record_index`), and they are
+    appended to it.
+
+    ``stats``, when given, receives ``files`` (record files listed), ``parsed`` (read from the files now) and
+    ``indexed`` (taken from the index).
 
     Raises
     ------
@@ -805,16 +903,32 @@ def read_records(root, ids, site: Site, targets: dict, *, cache: bool | None = N
     """
     root = str(root)
     listing = _listing(root, ids)
-    files = sum(len(entry[1]) for entry in listing)
-    use = cache if cache is not None else (files >= CACHE_MIN_RECORDS and os.environ.get("HELIOTWIN_CACHE") != "0")
+    n = len(listing.name)
+    use = _use_index(cache, n)
+    rows = np.full(n, -1, dtype=np.int64)
     if use:
-        key = _cache_key(root, ids, listing)
-        path = record_cache_path(root, ids)
-        hit = _load_cache(path, key)
-        if hit is not None:
-            return hit
-    times, weather = read_metadata(root)
-    raw = _parse_all(listing, ids, site, targets, times, weather)
-    if use and _cache_key(root, ids, _listing(root, ids)) == key:  # nothing changed while reading
-        _save_cache(path, key, raw)
+        known, segments = record_index.read_entries(root)
+        rows = record_index.match(known, [ids[h] for h in listing.heliostat.tolist()], listing.name.tolist(),
+                                  listing.size, listing.mtime_ns)
+    else:
+        known, segments = record_index.empty_entries(), []
+    todo = np.nonzero(rows < 0)[0]
+    fresh = _parse_files(root, ids, listing, todo, site, targets)
+    if use and len(todo):
+        record_index.append_entries(root, fresh)
+    if use:
+        valid = np.zeros(len(known["record_id"]), dtype=bool)
+        valid[rows[rows >= 0]] = True
+        listed = np.isin(known["heliostat"], np.asarray(list(ids), dtype="U"))
+        record_index.compact(root, known, valid | ~listed, segments)
+    order = np.concatenate([rows[rows >= 0], len(known["record_id"]) + np.arange(len(todo))])
+    place = np.concatenate([np.nonzero(rows >= 0)[0], todo])
+    both = record_index.concat_entries([known, fresh])
+    entries = {k: v[order][np.argsort(place, kind="stable")] for k, v in both.items()}
+    if stats is not None:
+        stats.update(files=n, parsed=int(len(todo)), indexed=int(n - len(todo)))
+    raw = _assemble(entries, listing, ids, site, targets, _metadata_columns(root, use))
+    if raw is None:  # a record the batch refuses: the reference reader words the first such file
+        times, weather = read_metadata(root)
+        return _read_one_by_one(listing, ids, site, targets, times, weather)
     return raw
