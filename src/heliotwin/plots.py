@@ -18,7 +18,8 @@ from .raytrace.field import FACTORS
 from .raytrace.flux import target_extent
 
 __all__ = ["draw_flux", "draw_measured_image", "plot_flux", "plot_demo", "plot_field_demo", "plot_validation",
-           "plot_receiver_flux", "receiver_extent", "plot_prediction"]
+           "plot_receiver_flux", "receiver_extent", "plot_prediction", "loss_waterfall", "plot_loss_waterfall",
+           "angle_origin", "instant_line"]
 
 
 def draw_flux(ax, flux, title: str, *, measured: dict | None = None) -> None:
@@ -202,27 +203,113 @@ def plot_field_demo(folder, plant, before, aimed, rep, limit: float, time_utc: s
     ax.legend(loc="lower right")
     save_figure(fig, folder / "field_efficiency.png")
 
-    fig = Figure(figsize=(7, 4))
-    ax = fig.add_subplot()
-    loss = [100.0 * rep["losses"][k]["fraction"] for k in FACTORS]
-    bars = ax.bar(FACTORS, loss, color="tab:red")
-    for b, v, k in zip(bars, loss, FACTORS):
-        ax.annotate(f"{v:.1f} %\n{rep['losses'][k]['power_w'] / 1e6:.2f} MW", (b.get_x() + b.get_width() / 2, v),
-                    ha="center", va="bottom", fontsize=8)
-    ax.set(ylabel="share of DNI x mirror area lost [%]", ylim=(0, max(loss) * 1.3 + 1),
-           title=f"loss breakdown: {rep['receiver']['power_w'] / 1e6:.2f} MW on the receiver "
-                 f"(efficiency {e['total']:.3f})")
-    save_figure(fig, folder / "losses.png")
+    plot_loss_waterfall(rep["losses"], rep["dni_w_m2"] * rep["mirror_area_m2"], folder / "losses.png",
+                        title=f"{len(pos)} heliostats, {time_utc[:16]} UTC (sun el {sun['elevation_deg']:.1f} deg)")
 
     receiver = plant.targets["receiver"]
     maps = {"equator aiming": before.flux, "optimised aim points": aimed.flux}
     powers = {"equator aiming": rep["receiver"]["power_w"], "optimised aim points": aimed.power_w}
     vmax = max(float(before.flux.max()), float(aimed.flux.max()))
+    instant = {"time_utc": time_utc, "sun_enu": sun.get("direction_enu")}
     plot_receiver_flux(maps, receiver, folder / "flux_before_after.png", limit_w_m2=limit, powers_w=powers,
-                       title=f"{len(pos)} heliostats, {time_utc[:16]} UTC: peak-flux limit {limit / 1e3:.0f} kW/m²")
+                       title=f"{len(pos)} heliostats: peak-flux limit {limit / 1e3:.0f} kW/m²", instant=instant)
     for name, label in (("flux_equator", "equator aiming"), ("flux_optimised", "optimised aim points")):
         plot_receiver_flux({label: maps[label]}, receiver, folder / f"{name}.png", limit_w_m2=limit,
-                           powers_w=powers, vmax_w_m2=vmax)
+                           powers_w=powers, vmax_w_m2=vmax, instant=instant)
+
+
+# ----------------------------------------------------------------------------------------- loss waterfall
+def loss_waterfall(losses: dict, dni_area_w: float) -> list[dict]:
+    """The steps of the loss waterfall: from the DNI on the mirror area down to the receiver.
+
+    Parameters
+    ----------
+    losses : dict
+        Per factor of :data:`~heliotwin.raytrace.field.FACTORS` (in chain order) ``{"power_w": lost [W]}``:
+        the power lost at that stage of the chain (cosine first, reflectance last), as the demo's report holds it.
+    dni_area_w : float
+        DNI x total mirror area [W]: the top of the waterfall.
+
+    Returns
+    -------
+    list of dict
+        One per factor: ``name``, ``lost_pct`` (the power lost at that stage, in % of DNI x mirror area, so the
+        steps add up to the plant's loss), ``top_pct`` (what remains before the stage [%]), ``power_w`` [W]
+        and ``own_loss_pct`` (1 - the factor, power-weighted over what reaches that stage [%]).
+    """
+    total = max(float(dni_area_w), 1e-30)
+    remaining, steps = total, []
+    for name in FACTORS:
+        lost = float(losses[name]["power_w"])
+        steps.append({"name": name, "lost_pct": 100.0 * lost / total, "top_pct": 100.0 * remaining / total,
+                      "power_w": lost, "own_loss_pct": 100.0 * lost / max(remaining, 1e-30)})
+        remaining -= lost
+    return steps
+
+
+def plot_loss_waterfall(losses: dict, dni_area_w: float, path=None, *, title: str | None = None):
+    """The loss chain as a waterfall (:func:`loss_waterfall`): a bar for DNI x mirror area (100 %), one
+    falling bar per factor (its loss in % of DNI x mirror area and in MW; its own loss 1 - factor in brackets),
+    and the bar of what reaches the receiver; the falling bars add up to the plant's loss.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        Made without pyplot; the falling bars are the axes' patches with the gid ``"loss"``.
+    """
+    steps = loss_waterfall(losses, dni_area_w)
+    left = steps[-1]["top_pct"] - steps[-1]["lost_pct"] if steps else 100.0
+    fig = Figure(figsize=(8.5, 4.6), layout="constrained")
+    ax = fig.add_subplot()
+    names = ["DNI x mirror area"] + [s["name"] for s in steps] + ["on the receiver"]
+    ax.bar(names[0], 100.0, color="tab:gray")
+    ax.annotate(f"100 %\n{dni_area_w / 1e6:.2f} MW", (0, 100.0), ha="center", va="bottom", fontsize=8)
+    for i, s in enumerate(steps, 1):
+        ax.bar(names[i], s["lost_pct"], bottom=s["top_pct"] - s["lost_pct"], color="tab:red", gid="loss")
+        ax.annotate(f"-{s['lost_pct']:.1f} %\n{s['power_w'] / 1e6:.2f} MW\n({s['own_loss_pct']:.1f} % of its input)",
+                    (i, s["top_pct"]), ha="center", va="bottom", fontsize=7)
+    ax.bar(names[-1], left, color="tab:green")
+    ax.annotate(f"{left:.1f} %\n{left * dni_area_w / 1e8:.2f} MW", (len(names) - 1, left), ha="center",
+                va="bottom", fontsize=8)
+    ax.set(ylabel="share of DNI x mirror area [%]", ylim=(0, 125))
+    ax.tick_params(axis="x", rotation=20)
+    head = f"loss waterfall: the losses add up to {100.0 - left:.1f} %, {left:.1f} % reaches the receiver"
+    ax.set_title(f"{title}\n{head}" if title else head, fontsize=10)
+    if path is not None:
+        save_figure(fig, path, tight=False)
+    return fig
+
+
+# ------------------------------------------------------------------------------------ the receiver's axes
+def _compass(azimuth_deg: float) -> str:
+    return ("N", "NE", "E", "SE", "S", "SW", "W", "NW")[round((azimuth_deg % 360.0) / 45.0) % 8]
+
+
+def angle_origin(receiver) -> str:
+    """Where 0 deg of a cylindrical receiver's angle axis points, in words: ``"0° = aperture normal, facing
+    N (azimuth 0°); + towards E"`` (azimuths clockwise from north [deg], of the horizontal parts of the
+    receiver's ``normal`` and ``right``)."""
+    n, r = (v.detach().cpu().to(torch.float64).tolist() for v in (receiver.normal, receiver.right))
+    az = float(np.degrees(np.arctan2(n[0], n[1]))) % 360.0
+    az_r = float(np.degrees(np.arctan2(r[0], r[1]))) % 360.0
+    return f"0° = aperture normal, facing {_compass(az)} (azimuth {az:.0f}°); + towards {_compass(az_r)}"
+
+
+def instant_line(instant: dict | None) -> str:
+    """``"2023-03-20 11:30 UTC, sun azimuth 172.4° el 38.1°"`` of ``instant`` (``time_utc`` ISO text and/or
+    ``sun_enu`` [3], the unit vector towards the sun, ENU); azimuth clockwise from north [deg]."""
+    if not instant:
+        return ""
+    parts = []
+    if instant.get("time_utc"):
+        parts.append(f"{str(instant['time_utc'])[:16].replace('T', ' ')} UTC")
+    sun = instant.get("sun_enu")
+    if sun is not None:
+        e, n, u = (float(v) for v in (sun.tolist() if torch.is_tensor(sun) else sun))
+        az = float(np.degrees(np.arctan2(e, n))) % 360.0
+        el = float(np.degrees(np.arcsin(max(-1.0, min(1.0, u)))))
+        parts.append(f"sun azimuth {az:.1f}° elevation {el:.1f}°")
+    return ", ".join(parts)
 
 
 # --------------------------------------------------------------------------------------- receiver maps
@@ -233,7 +320,8 @@ def receiver_extent(receiver) -> list[float]:
 
 
 def plot_receiver_flux(maps: dict, receiver, path=None, *, limit_w_m2: float | None = None,
-                       title: str | None = None, powers_w: dict | None = None, vmax_w_m2: float | None = None):
+                       title: str | None = None, powers_w: dict | None = None, vmax_w_m2: float | None = None,
+                       instant: dict | None = None):
     """Receiver flux maps side by side on ONE colour scale, so that before and after compare by eye.
 
     Parameters
@@ -254,6 +342,9 @@ def plot_receiver_flux(maps: dict, receiver, path=None, *, limit_w_m2: float | N
     vmax_w_m2 : float, optional
         Top of the colour scale [W/m^2] (default: the largest value of all panels, or the limit when higher):
         give the same value to figures drawn one by one so that they compare.
+    instant : dict, optional
+        ``time_utc`` (ISO) and/or ``sun_enu`` [3] (unit vector towards the sun): named in the figure's title
+        (:func:`instant_line`), so that two saved maps can be told apart.
 
     Returns
     -------
@@ -291,7 +382,7 @@ def plot_receiver_flux(maps: dict, receiver, path=None, *, limit_w_m2: float | N
             radius = float(receiver.radius)
             top = ax.secondary_xaxis("top", functions=(lambda x, r=radius: np.degrees(x / r),
                                                        lambda d, r=radius: np.radians(d) * r))
-            top.set_xlabel("angle around the receiver axis [deg]", fontsize=8)
+            top.set_xlabel(f"angle around the receiver axis [deg] ({angle_origin(receiver)})", fontsize=8)
         else:
             ax.set_xlabel("across the receiver, 'right' [m]")
     axes[0].set_ylabel("height on the receiver [m]")
@@ -301,8 +392,9 @@ def plot_receiver_flux(maps: dict, receiver, path=None, *, limit_w_m2: float | N
         bar.ax.axhline(limit_w_m2 / 1e3, color="cyan", ls="--", lw=1.5)
         axes[-1].plot([], [], color="cyan", ls="--", label=f"limit {limit_w_m2 / 1e3:.0f} kW/m²")
     axes[-1].legend(loc="lower right", fontsize=8, framealpha=0.6)
-    if title:
-        fig.suptitle(title)
+    when = instant_line(instant)
+    if title or when:
+        fig.suptitle(" | ".join(t for t in (when, title) if t))
     if path is not None:
         save_figure(fig, path, tight=False)
     return fig

@@ -11,6 +11,9 @@ Exit codes (documented in the README):
   ``aimpoints`` could not hold the peak-flux limit at some instant (its outputs are written: the best it
   found, with ``limit_met: false`` in the report, and a console line saying so);
 * 130 / 143 -- interrupted by Ctrl-C (SIGINT) / terminated (SIGTERM); nothing is left behind.
+
+A reader that closes the pipe early (``heliotwin scenario show plant.h5 | head``) ends the command quietly:
+no message, and the command's own exit status (0 while it was still printing: the reader took what it wanted).
 """
 from __future__ import annotations
 
@@ -122,13 +125,19 @@ def run_command(args, prefix: str = "heliotwin: ") -> int:
     their temporary files.
     """
     debug = debug_requested(args)
+    code = EXIT_OK
     try:
         with _sigterm_as_interrupt():
             check_input_files(args)
             if getattr(args, "device", None) is not None:
                 args.device = resolve_device(args.device, getattr(args.func, "supports_cuda", False),
                                              getattr(args, "command", None))
-            return int(args.func(args) or 0)
+            code = int(args.func(args) or 0)
+            sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's exit
+            return code
+    except BrokenPipeError:
+        _stdout_to_devnull()
+        return code
     except KeyboardInterrupt as exc:
         terminated = isinstance(exc, Terminated)
         if debug:
@@ -145,6 +154,20 @@ def run_command(args, prefix: str = "heliotwin: ") -> int:
         lines = [ln for ln in str(message).splitlines() if ln.strip()]
         print(f"{prefix}error: {lines[0] if lines else message}", file=sys.stderr)
         return code
+
+
+def _stdout_to_devnull() -> None:
+    """After the reader of stdout went away (``| head``): point stdout at /dev/null, so that the interpreter's
+    final flush neither fails nor prints ``Exception ignored ... BrokenPipeError``."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # replaced by a non-file (a test's StringIO)
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, fd)
+    finally:
+        os.close(devnull)
 
 
 def _named_paths(args):

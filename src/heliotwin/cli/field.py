@@ -100,8 +100,11 @@ def _write_field_outputs(args, sc, report, result, paths: dict) -> None:
         _write_csv(paths["--per-heliostat"], per_heliostat_rows(result, sc.plant))
     if paths["--flux"]:
         r = report["receiver"]
+        limit = ((sc.learned or {}).get("aimpoints") or {}).get("peak_limit_w_m2")  # the stored limit, if any
         plot_receiver_flux({f"{args.aim} aiming": result.flux.cpu()}, sc.plant.targets["receiver"],
                            paths["--flux"], powers_w={f"{args.aim} aiming": r["power_w"]},
+                           limit_w_m2=float(limit) if limit else None,
+                           instant={"time_utc": args.time, "sun_enu": report["sun"]["direction_enu"]},
                            title=f"receiver flux: {len(sc.plant.field.ids)} heliostats, DNI "
                                  f"{args.dni or sc.plant.sun.dni:.0f} W/m²")
     if paths["--flux-csv"]:

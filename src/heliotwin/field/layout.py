@@ -5,7 +5,9 @@ Layout CSV
 ``x, y, z`` = east, north, up [m] of each heliostat's pivot, tower base at the origin; lines starting with
 ``#`` are comments; the first other line is the header (column names ``x``, ``y``, ``z``, optionally
 ``id``; SolarPILOT's ``x_location``/``y_location``/``z_location`` are accepted too; other columns are
-ignored). Without an ``id`` column heliostats are named ``H0000``, ``H0001``, ... in file order.
+ignored). Without an ``id`` column heliostats are named ``H0000``, ``H0001``, ... in file order. An optional
+``focal_length`` column [m] gives each heliostat's on-axis canting distance (default: the TOML's, else the
+slant range); ``heliotwin scenario export`` writes it for plants whose facets are canted at another distance.
 
 Plant description (TOML)
 ------------------------
@@ -14,10 +16,14 @@ Plant description (TOML)
     [site]        latitude, longitude [deg], altitude [m]
     [heliostat]   width, height [m], facets = [nx, ny], canting = "flat" | "on-axis" (focal_length [m],
                   default: each heliostat's slant range to the receiver), reflectivity [-],
-                  slope_error_mrad (per in-plane direction)
+                  slope_error_mrad (per in-plane direction); optional facet_centers = [[x, y, z], ...]
+                  (nx * ny facet centres in the heliostat frame [m], row by row from the top left; default:
+                  the facets tile the mirror) and facet_size = [w, h] (one facet [m]; default: the tile)
     [receiver]    type = "cylinder" (radius, height [m], center = [e, n, u] of the axis at mid-height,
                   opening_angle_deg, optional horizontal normal: default the field's mean direction, for a
-                  full cylinder the nearest of N/E/S/W; it only fixes where the unrolled map starts)
+                  full cylinder the nearest of N/E/S/W; it only fixes where the unrolled map starts;
+                  optional axis = [e, n, u], the cylinder's unit axis (default vertical): with it the
+                  normal may tilt (a PAINT tower's receiver), perpendicular to the axis)
                   | "planar" (width, height, center, normal)
     [sun]         shape = "limb-darkened" | "buie" (csr) | "gaussian" (sigma_mrad) | "pillbox"
                   (radius_mrad, also the limb-darkened disc), dni [W/m^2]
@@ -66,7 +72,9 @@ __all__ = ["Layout", "PlantConfig", "read_layout", "read_plant_config", "plant_f
 RECEIVER_TYPES = ("cylinder", "planar")
 CANTINGS = ("flat", "on-axis")
 _REQUIRED = object()
-_ALIASES = {"x": ("x", "x_location"), "y": ("y", "y_location"), "z": ("z", "z_location"), "id": ("id",)}
+_ALIASES = {"x": ("x", "x_location"), "y": ("y", "y_location"), "z": ("z", "z_location"), "id": ("id",),
+            "focal_length": ("focal_length",)}
+_OPTIONAL_COLUMNS = ("id", "focal_length")
 #: Physical bounds of a plant description: beyond them a value is a typo or a unit mistake.
 MIN_MIRROR_M, MAX_MIRROR_M = 0.05, 50.0  # heliostat width/height [m] (the largest built are about 12 m)
 MIN_RECEIVER_M, MAX_RECEIVER_M = 0.1, 1000.0  # receiver radius/width/height [m]
@@ -190,12 +198,15 @@ class Layout:
     lines : list of int
         Source line of each heliostat (for error messages).
     path : str
+    focal_length : torch.Tensor, [H], float64, optional
+        On-axis canting distance per heliostat [m] (the optional ``focal_length`` column).
     """
 
     ids: list
     position: torch.Tensor
     lines: list
     path: str
+    focal_length: torch.Tensor | None = None
 
 
 def read_layout(path) -> Layout:
@@ -225,14 +236,15 @@ def read_layout(path) -> Layout:
         found = [i for i, c in enumerate(names) if c in aliases]
         if found:
             column[key] = found[0]
-        elif key != "id":
+        elif key not in _OPTIONAL_COLUMNS:
             raise InputFileError(path, f"missing column {key!r} in header {header.strip()!r} (expected x,y,z[,id])",
                                  field=f"line {header_line}")
     values, ids, lines = [], [], []
+    numeric = ("x", "y", "z") + (("focal_length",) if "focal_length" in column else ())
     for n, line in rows[1:]:
         cells = [c.strip() for c in next(csv.reader([line]))]
         xyz = []
-        for key in ("x", "y", "z"):
+        for key in numeric:
             i = column[key]
             if i >= len(cells) or not cells[i]:
                 raise InputFileError(path, f"missing value (row has {len(cells)} columns)", field=f"line {n}, {key}")
@@ -240,8 +252,9 @@ def read_layout(path) -> Layout:
                 v = float(cells[i])
             except ValueError:
                 raise InputFileError(path, f"expected a number, got {cells[i]!r}", field=f"line {n}, {key}") from None
-            if not math.isfinite(v):
-                raise InputFileError(path, f"expected a finite number, got {cells[i]!r}", field=f"line {n}, {key}")
+            if not math.isfinite(v) or (key == "focal_length" and not 0.0 < v <= 1e5):
+                want = "a focal length in (0, 1e5] m" if key == "focal_length" else "a finite number"
+                raise InputFileError(path, f"expected {want}, got {cells[i]!r}", field=f"line {n}, {key}")
             xyz.append(v)
         if "id" in column:
             i = column["id"]
@@ -261,7 +274,9 @@ def read_layout(path) -> Layout:
         if hid in seen:
             raise InputFileError(path, f"duplicate id {hid!r} (first on line {seen[hid]})", field=f"line {n}, id")
         seen[hid] = n
-    return Layout(ids, torch.tensor(values, dtype=torch.float64), lines, str(path))
+    table = torch.tensor(values, dtype=torch.float64)
+    return Layout(ids, table[:, :3].contiguous(), lines, str(path),
+                  table[:, 3].contiguous() if "focal_length" in column else None)
 
 
 # ------------------------------------------------------------------------------------------------ TOML
@@ -300,10 +315,17 @@ class _Table:
             self.fail(key, f"expected a value <= {hi:g}, got {v:g}")
         return v
 
-    def vector(self, key: str, length: int | None, default=_REQUIRED, *, integer=False) -> list:
+    def vector(self, key: str, length: int | None, default=_REQUIRED, *, integer=False, nested: int = 0) -> list:
         present, v = self._lookup(key, default)
         if not present:
             return v
+        if nested:  # a list of vectors of ``nested`` numbers each
+            if not isinstance(v, list) or not v or not all(isinstance(x, list) for x in v):
+                self.fail(key, f"expected a list of [{', '.join(['x'] * nested)}] lists, got {v!r}")
+            return [self._numbers(key, x, nested, integer) for x in v]
+        return self._numbers(key, v, length, integer)
+
+    def _numbers(self, key: str, v, length: int | None, integer: bool) -> list:
         kinds = (int,) if integer else (int, float)
         if not isinstance(v, list) or (length is not None and len(v) != length) or not v or \
                 not all(isinstance(x, kinds) and not isinstance(x, bool) and math.isfinite(float(x)) for x in v):
@@ -338,6 +360,8 @@ class PlantConfig:
     receiver: dict
     sun: SunSettings
     atmosphere: Atmosphere
+    facet_centers: tuple | None = None
+    facet_size: tuple | None = None
 
 
 def read_plant_config(path) -> PlantConfig:
@@ -380,6 +404,15 @@ def read_plant_config(path) -> PlantConfig:
         t.fail("facets", f"expected two integers in 1..{MAX_FACETS_PER_SIDE}, got {facets}")
     canting = t.choice("canting", CANTINGS, "flat")
     focal = t.number("focal_length", None, lo=0, lo_open=True, hi=1e5)
+    centers = t.vector("facet_centers", None, None, nested=3)
+    if centers is not None and len(centers) != facets[0] * facets[1]:
+        t.fail("facet_centers", f"expected {facets[0] * facets[1]} facet centres (facets = {facets}), "
+                                f"got {len(centers)}")
+    if centers is not None and max(abs(c) for xyz in centers for c in xyz) > MAX_MIRROR_M:
+        t.fail("facet_centers", f"expected centres within {MAX_MIRROR_M:g} m of the pivot")
+    facet_size = t.vector("facet_size", 2, None)
+    if facet_size is not None and not all(MIN_MIRROR_M / 64 <= v <= MAX_MIRROR_M for v in facet_size):
+        t.fail("facet_size", f"expected two sizes in [{MIN_MIRROR_M / 64:g}, {MAX_MIRROR_M:g}] m, got {facet_size}")
     reflectivity = t.number("reflectivity", 0.9, lo=0, hi=1)
     slope = t.number("slope_error_mrad", 1.53, lo=0, hi=100) * 1e-3
     t.done()
@@ -402,7 +435,9 @@ def read_plant_config(path) -> PlantConfig:
         t.fail("coefficients", f"expected at most 8 polynomial coefficients, got {len(coefficients)}")
     atmosphere = Atmosphere(t.choice("model", ATMOSPHERE_MODELS, "polynomial"), tuple(coefficients))
     t.done()
-    return PlantConfig(site, width, height, tuple(facets), canting, focal, receiver, sun, atmosphere)
+    return PlantConfig(site, width, height, tuple(facets), canting, focal, receiver, sun, atmosphere,
+                       None if centers is None else tuple(tuple(c) for c in centers),
+                       None if facet_size is None else tuple(facet_size))
 
 
 def _receiver_config(t: _Table) -> dict:
@@ -421,8 +456,16 @@ def _receiver_config(t: _Table) -> dict:
     if kind == "cylinder":
         out["radius"] = t.number("radius", lo=MIN_RECEIVER_M, hi=MAX_RECEIVER_M)
         out["opening_angle"] = math.radians(t.number("opening_angle_deg", 360.0, lo=1, hi=360))
-        if normal is not None and abs(normal[2]) > 1e-9 * math.hypot(*normal):
-            t.fail("normal", "a cylinder's aperture normal must be horizontal (the axis is vertical)")
+        axis = t.vector("axis", 3, None)
+        if axis is not None and (math.hypot(*axis) == 0.0 or axis[2] <= 0.0):
+            t.fail("axis", f"expected a non-zero vector pointing up (positive up component), got {axis}")
+        out["axis"] = axis
+        if axis is None and normal is not None and abs(normal[2]) > 1e-9 * math.hypot(*normal):
+            t.fail("normal", "a cylinder's aperture normal must be horizontal (the axis is vertical; give `axis` "
+                             "for a tilted receiver)")
+        if axis is not None and normal is not None and \
+                abs(sum(a * b for a, b in zip(axis, normal))) > 1e-6 * math.hypot(*axis) * math.hypot(*normal):
+            t.fail("normal", f"must be perpendicular to the cylinder's axis {axis}")
     else:
         out["width"] = t.number("width", lo=MIN_RECEIVER_M, hi=MAX_RECEIVER_M)
         if normal is None:
@@ -439,7 +482,10 @@ def _receiver(config: dict, towards_field: torch.Tensor):
         return PlanarTarget.from_center_normal("receiver", center, config["normal"], config["width"], config["height"])
     normal = torch.tensor(config["normal"], **f64) if config["normal"] is not None else towards_field
     normal = normal / torch.linalg.vector_norm(normal)
-    up = torch.tensor([0.0, 0.0, 1.0], **f64)
+    up = torch.tensor(config.get("axis") or [0.0, 0.0, 1.0], **f64)
+    up = up / torch.linalg.vector_norm(up)
+    if config.get("axis") is not None and config["normal"] is None:  # default normal: made perpendicular to the axis
+        normal = torch.nn.functional.normalize(normal - (normal @ up) * up, dim=0)
     right = torch.linalg.cross(up, normal)
     r = float(config["radius"])
     return CylinderTarget("receiver", center + r * normal, normal, right, up, r, float(config["height"]),
@@ -482,9 +528,11 @@ def _nominal_kinematics(position: torch.Tensor) -> Kinematics:
 def _facets(config: PlantConfig, h: int, focal_length: torch.Tensor) -> Facets:
     nx, ny = config.facets
     hw, hh = config.width / (2 * nx), config.height / (2 * ny)
-    ex = [(-config.width / 2 + (2 * i + 1) * hw) for i in range(nx)]
-    ny_ = [(config.height / 2 - (2 * j + 1) * hh) for j in range(ny)]
-    centres = torch.tensor([(x, y, 0.0) for y in ny_ for x in ex], dtype=torch.float64)
+    if config.facet_size is not None:
+        hw, hh = config.facet_size[0] / 2, config.facet_size[1] / 2
+    ex = [(-config.width / 2 + (2 * i + 1) * config.width / (2 * nx)) for i in range(nx)]
+    ny_ = [(config.height / 2 - (2 * j + 1) * config.height / (2 * ny)) for j in range(ny)]
+    centres = torch.tensor(config.facet_centers or [(x, y, 0.0) for y in ny_ for x in ex], dtype=torch.float64)
     translation = centres.expand(h, -1, -1).clone()
     if config.canting == "on-axis":
         ce, cn = receiver_canting(translation, hw, hh, focal_length)
@@ -544,6 +592,8 @@ def build_plant(layout: Layout, config: PlantConfig, *, num_control_points=(4, 4
     aim_centre = receiver.center if receiver.kind == "planar" else receiver.axis_point
     slant = torch.linalg.vector_norm(aim_centre - pos, dim=-1)
     focal = torch.full_like(slant, config.focal_length) if config.focal_length else slant
+    if layout.focal_length is not None:
+        focal = layout.focal_length.to(slant)
     h = len(layout.ids)
     facets = _facets(config, h, focal)
     surfaces = ideal_surfaces(facets, num_control_points=num_control_points)

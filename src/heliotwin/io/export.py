@@ -13,7 +13,11 @@
   :func:`read_soltrace`, which reads such a file back (positions, mirror normals, sizes, optics, receiver).
 
 What the formats cannot hold is refused in one line rather than dropped silently: heliostats of different
-sizes (one TOML ``[heliostat]``), a receiver other than a cylinder or a plane. Learned kinematics and learned
+sizes or facet placements (one TOML ``[heliostat]``), facets canted otherwise than on-axis, a receiver other
+than a cylinder or a plane. Facets that do not tile the mirror (PAINT's, with gaps) are written as
+``facet_centers``/``facet_size``, on-axis canting at another distance than the slant range as the layout's
+``focal_length`` column, a tilted cylinder with its ``axis``: re-importing a PAINT, simulated or demo plant
+gives the same field figures (tested). Learned kinematics and learned
 surfaces stay in the scenario: a layout holds pivots and the ideal mirror only (the exported TOML says so in
 a comment), and SolTrace gets one flat or spherical element per heliostat, not its facets.
 """
@@ -28,6 +32,7 @@ import torch
 
 from ..atmosphere import Atmosphere
 from ..errors import HeliotwinError, InputFileError
+from ..field.facets import receiver_canting
 from ..field.targets import CylinderTarget
 from .report import atomic_path
 
@@ -79,9 +84,9 @@ def read_flux_map_csv(path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 # ------------------------------------------------------------------------------------- plant description
-def _uniform(values: torch.Tensor, what: str) -> float:
+def _uniform(values: torch.Tensor, what: str, rtol: float = 1e-9) -> float:
     v = values.to(torch.float64)
-    if float(v.max() - v.min()) > 1e-9 * max(1.0, float(v.abs().max())):
+    if float(v.max() - v.min()) > rtol * max(1.0, float(v.abs().max())):
         raise HeliotwinError(f"export: heliostats of different {what} ({float(v.min()):.4g} to {float(v.max()):.4g}); "
                              "a layout file describes one heliostat type")
     return float(v[0])
@@ -94,6 +99,51 @@ def _facet_grid(facets) -> tuple[int, int, str]:
     ny = len(torch.unique(torch.round(t[:, 1] * 1e6)))
     tilted = bool((facets.canting_e[..., 2].abs() > 1e-9).any() | (facets.canting_n[..., 2].abs() > 1e-9).any())
     return nx, ny, "on-axis" if tilted else "flat"
+
+
+def _facet_placement(field, nx: int, ny: int) -> dict:
+    """The TOML keys that place the facets when they do not tile the mirror: ``facet_centers`` [F, 3] and
+    ``facet_size`` [2] [m] (uniform over heliostats, else refused in one line)."""
+    t = field.facets.translation.detach().cpu().to(torch.float64)
+    if float((t - t[:1]).abs().max()) > 1e-9:
+        raise HeliotwinError("export: heliostats with different facet placements; a layout file describes one "
+                             "heliostat type")
+    spans = [torch.linalg.vector_norm(v.detach().cpu(), dim=-1).flatten()
+             for v in (field.facets.canting_e, field.facets.canting_n)]
+    hw, hh = _uniform(spans[0], "facet widths", 1e-6), _uniform(spans[1], "facet heights", 1e-6)
+    width, height = float(field.width[0]), float(field.height[0])
+    ex = [(-width / 2 + (2 * i + 1) * width / (2 * nx)) for i in range(nx)]
+    ey = [(height / 2 - (2 * j + 1) * height / (2 * ny)) for j in range(ny)]
+    tile = torch.tensor([(x, y, 0.0) for y in ey for x in ex], dtype=torch.float64)
+    out = {}
+    if tile.shape != t[0].shape or float((tile - t[0]).abs().max()) > 1e-9:
+        out["facet_centers"] = [[float(v) for v in row] for row in t[0].tolist()]
+    if abs(hw - width / (2 * nx)) > 1e-9 or abs(hh - height / (2 * ny)) > 1e-9:
+        out["facet_size"] = [2 * hw, 2 * hh]
+    return out
+
+
+def canting_focal_length(facets) -> torch.Tensor:
+    """Each heliostat's on-axis canting distance [H] [m], recovered from its facets' normals (the inverse of
+    :func:`heliotwin.field.facets.receiver_canting`: the facet at ``t`` has the normal of ``z = |t|^2 / (4 f)``).
+
+    Raises
+    ------
+    HeliotwinError
+        Facets canted otherwise (the layout format holds on-axis canting only).
+    """
+    t = facets.translation.detach().cpu().to(torch.float64)
+    ce, cn = (v.detach().cpu().to(torch.float64) for v in (facets.canting_e, facets.canting_n))
+    n = torch.nn.functional.normalize(torch.linalg.cross(ce, cn, dim=-1), dim=-1)
+    slope = -n[..., :2] / n[..., 2:3]  # = t_xy / (2 f)
+    inv_f = 2.0 * (slope * t[..., :2]).sum((-1, -2)) / (t[..., :2] ** 2).sum((-1, -2)).clamp_min(1e-30)
+    focal = 1.0 / inv_f.clamp_min(1e-12)
+    again = receiver_canting(t, 1.0, 1.0, focal)
+    unit = (torch.nn.functional.normalize(ce, dim=-1), torch.nn.functional.normalize(cn, dim=-1))
+    if any(float((a - b).abs().max()) > 1e-7 for a, b in zip(again, unit)):
+        raise HeliotwinError("export: facets canted otherwise than on-axis (towards one point per heliostat); a "
+                             "layout file holds flat or on-axis canting only")
+    return focal
 
 
 def plant_description(plant, atmosphere: Atmosphere | None = None) -> dict:
@@ -113,11 +163,12 @@ def plant_description(plant, atmosphere: Atmosphere | None = None) -> dict:
                     "altitude": float(site.altitude_m)},
            "heliostat": {"width": _uniform(f.width, "widths"), "height": _uniform(f.height, "heights"),
                          "facets": [nx, ny], "canting": canting, "reflectivity": float(s.reflectivity),
-                         "slope_error_mrad": float(s.slope_error) * 1e3}}
+                         "slope_error_mrad": float(s.slope_error) * 1e3, **_facet_placement(f, nx, ny)}}
     if isinstance(rec, CylinderTarget):
         axis = rec.axis_point.tolist()
         out["receiver"] = {"type": "cylinder", "radius": float(rec.radius), "height": float(rec.height),
                            "center": [float(v) for v in axis], "normal": [float(v) for v in rec.normal.tolist()],
+                           "axis": [float(v) for v in rec.up.tolist()],
                            "opening_angle_deg": math.degrees(float(rec.opening_angle))}
     else:
         out["receiver"] = {"type": "planar", "width": float(rec.width), "height": float(rec.height),
@@ -178,14 +229,23 @@ def export_solarpilot(plant, layout_path, toml_path, *, atmosphere: Atmosphere |
     pos = plant.field.kinematics.position.detach().cpu().to(torch.float64)
     rec = plant.targets["receiver"]
     aim = rec.center.detach().cpu().expand_as(pos) if aim is None else aim.detach().cpu().to(torch.float64)
+    focal = None
+    if desc["heliostat"]["canting"] == "on-axis":  # the layout's default distance is the slant range to the axis
+        focal = canting_focal_length(plant.field.facets)
+        slant = torch.linalg.vector_norm((rec.axis_point if isinstance(rec, CylinderTarget) else rec.center)
+                                         .detach().cpu().to(torch.float64) - pos, dim=-1)
+        if float(((focal - slant) / slant).abs().max()) < 1e-9:
+            focal = None
     note = (f"exported by heliotwin from {source or 'a plant'}: pivots and the ideal mirror only (learned "
             "kinematics and surfaces stay in the scenario)")
     with atomic_path(layout_path) as tmp, open(tmp, "w", newline="") as fh:
         fh.write(f"# {note}\n# east, north, up [m] about the tower base\n")
         w = csv.writer(fh)
-        w.writerow(["id", "x_location", "y_location", "z_location", "x_aimpoint", "y_aimpoint", "z_aimpoint"])
-        for hid, p, a in zip(plant.field.ids, pos.tolist(), aim.tolist()):
-            w.writerow([hid] + [f"{v:.6f}" for v in p] + [f"{v:.6f}" for v in a])
+        w.writerow(["id", "x_location", "y_location", "z_location", "x_aimpoint", "y_aimpoint", "z_aimpoint"]
+                   + (["focal_length"] if focal is not None else []))
+        extra = [[f"{v:.9g}"] for v in focal.tolist()] if focal is not None else [[]] * len(pos)
+        for hid, p, a, e in zip(plant.field.ids, pos.tolist(), aim.tolist(), extra):
+            w.writerow([hid] + [f"{v:.6f}" for v in p] + [f"{v:.6f}" for v in a] + e)
     write_plant_toml(toml_path, desc, header=note)
 
 

@@ -25,9 +25,43 @@ from ..field.update import select_heliostats
 from ..geometry import angle_between
 from ..raytrace.field import FieldSettings, equator_aim_points, field_optics
 from ..sun import daylight_times, direction_from_paint_angles
+from .writer import TRUTH_KEY
 
 #: Year whose daylight supplies the scoring sun positions (any year: the sun's path repeats).
 SCORE_YEAR = 2030
+
+
+def truth_missing(truth) -> list[str]:
+    """What ``truth`` (a :class:`~heliotwin.io.scenario.Scenario`) lacks to be a ``heliotwin simulate`` truth:
+    the simulated history ``/learned/simulation``, the true kinematics (``/learned/calibration`` with method
+    ``truth``) and the ``simulate`` provenance step; empty when it is one."""
+    learned = truth.learned or {}
+    cal = learned.get("calibration") or {}
+    missing = []
+    if not learned.get(TRUTH_KEY):
+        missing.append(f"/learned/{TRUTH_KEY} (the simulated history)")
+    if cal.get("method") != "truth":
+        got = f"method {cal.get('method')!r}" if cal else "none"
+        missing.append(f"/learned/calibration of method 'truth' (the true kinematics; found {got})")
+    if not any(p.get("step") == "simulate" for p in truth.provenance):
+        steps = ", ".join(str(p.get("step")) for p in truth.provenance) or "none"
+        missing.append(f"a 'simulate' provenance step (steps: {steps})")
+    return missing
+
+
+def check_truth(truth) -> None:
+    """Refuse a scenario that is not a ``heliotwin simulate`` truth, naming what it lacks (:func:`truth_missing`).
+
+    Raises
+    ------
+    HeliotwinError
+        One line: ``score --truth FILE: not a 'heliotwin simulate' truth; it lacks ...``.
+    """
+    missing = truth_missing(truth)
+    if missing:
+        raise HeliotwinError(f"score --truth {truth.path or '(in memory)'}: not a 'heliotwin simulate' truth; it lacks "
+                             + "; ".join(missing) + " (score compares a learned plant with the truth that "
+                             "'heliotwin simulate' wrote)")
 
 
 def score_suns(site, count: int, seed: int, min_elevation_deg: float = 15.0) -> torch.Tensor:
@@ -100,7 +134,8 @@ def score(truth, learned, *, suns: int = 16, seed: int = 0, flux: bool = True,
     Parameters
     ----------
     truth, learned : heliotwin.io.scenario.Scenario
-        Same site; the learned plant's heliostats are scored where the truth has them.
+        Same site; the learned plant's heliostats are scored where the truth has them. ``truth`` must be
+        what ``heliotwin simulate`` wrote (:func:`check_truth`: else a one-line ``HeliotwinError``).
     suns : int
         Sun positions for the pointing error.
     seed : int
@@ -119,6 +154,7 @@ def score(truth, learned, *, suns: int = 16, seed: int = 0, flux: bool = True,
         {median, p95, ...} of each heliostat's median, ``unreachable`` (pairs left out), ``surface_mrad``
         (or None), ``flux`` {relative_l1, power_ratio} (or None).
     """
+    check_truth(truth)
     tp, lp = truth.plant, learned.plant
     ids = [h for h in tp.field.ids if h in set(lp.field.ids)]
     if not ids:

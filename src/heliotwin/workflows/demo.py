@@ -145,14 +145,17 @@ def _demo_scenario(plant, atmosphere, aimed, sun, limit: float, time_utc: str, n
 
 
 def _loss_breakdown(result) -> dict:
-    """Per factor of the chain (cosine, shading, blocking, attenuation, intercept, reflectance): the
-    power-weighted fraction lost at that stage and the power [W] it costs (they add up to DNI x area - power)."""
+    """Per factor of the chain (cosine, shading, blocking, attenuation, intercept, reflectance): the power [W]
+    lost at that stage and its ``fraction`` of DNI x mirror area [1] (both add up to DNI x area - power), and
+    ``own_fraction``: the factor's own loss, 1 - factor, power-weighted over what reaches the stage [1]."""
     stage = result.dni * result.mirror_area.to(torch.float64)
+    total = max(float(stage.sum()), 1e-30)  # DNI x mirror area [W]: every fraction is of it, so they add up
     out = {}
     for name in FACTORS:
         f = getattr(result, name).to(torch.float64)
         lost = float((stage * (1.0 - f)).sum())
-        out[name] = {"fraction": lost / max(float(stage.sum()), 1e-30), "power_w": lost}
+        out[name] = {"fraction": lost / total, "power_w": lost,
+                     "own_fraction": lost / max(float(stage.sum()), 1e-30)}
         stage = stage * f
     out["tower_shading_unweighted_mean"] = float(result.tower_shading.mean())
     return out

@@ -36,16 +36,22 @@ def _groups(tree: dict, prefix: str = "/learned") -> list[str]:
     return out
 
 
+#: Longest id lists in :func:`describe_scenario`'s JSON (the counts are always of the full lists).
+LISTED_IDS = 1000
+LISTED_INSTANTS = 100
+
+
 def _learned_summary(learned: dict) -> dict:
     cal = learned.get("calibration") or {}
+    calibrated = sorted(cal.get("heliostats", [])) if cal else []
     surfaces = sorted(learned.get("surfaces") or {})
     aim = learned.get("aimpoints") or {}
     instants = aim.get("instants") or {}
-    return {"kinematics": {"calibrated": bool(cal), "method": cal.get("method"),
-                           "heliostats": sorted(cal.get("heliostats", []))[:1000] if cal else []},
-            "surfaces": {"learned_for": surfaces},
+    return {"kinematics": {"calibrated": bool(cal), "method": cal.get("method"), "count": len(calibrated),
+                           "heliostats": calibrated[:LISTED_IDS]},
+            "surfaces": {"count": len(surfaces), "learned_for": surfaces[:LISTED_IDS]},
             "aimpoints": {"instants": len(instants),
-                          "labels": [str(v.get("instant", k)) for k, v in instants.items()][:100],
+                          "labels": [str(v.get("instant", k)) for k, v in instants.items()][:LISTED_INSTANTS],
                           "peak_limit_w_m2": aim.get("peak_limit_w_m2")},
             "other": sorted(k for k in learned if k not in ("calibration", "surfaces", "aimpoints"))}
 
@@ -71,8 +77,9 @@ def describe_scenario(scenario: Scenario) -> dict:
     -------
     dict
         ``file``, ``format_version``, ``plant`` (heliostats, ids (first 20), targets with kind and size [m],
-        site [deg, m], sun and optics, field extent [m]), ``learned`` (kinematics calibrated or nominal
-        and for which heliostats, learned surfaces, aim-point instants, other groups), ``learned_groups``
+        site [deg, m], sun and optics, field extent [m]), ``learned`` (kinematics calibrated or nominal,
+        ``count`` of calibrated heliostats and their ids -- the first :data:`LISTED_IDS` --, learned surfaces
+        with ``count`` and ids capped the same way, aim-point instants, other groups), ``learned_groups``
         (the ``/learned`` HDF5 groups), ``extras`` (names), ``metadata`` and ``provenance`` (per step:
         ``step``, ``utc``, ``heliotwin`` version and the keys that say how it ran).
     """
@@ -109,6 +116,13 @@ def describe_scenario(scenario: Scenario) -> dict:
             "provenance": steps}
 
 
+def _surfaces_line(s: dict) -> str:
+    ids, count = s["learned_for"], s.get("count", len(s["learned_for"]))
+    if count <= 10:
+        return f"learned for {', '.join(ids)}"
+    return f"learned for {count} heliostats: {', '.join(ids[:10])} ..."
+
+
 def format_description(d: dict) -> str:
     """:func:`describe_scenario`'s dict as the lines ``heliotwin scenario show`` prints."""
     p, lr = d["plant"], d["learned"]
@@ -121,11 +135,12 @@ def format_description(d: dict) -> str:
              f"{p['field_radius_m'][1]:.0f} m from the tower; targets: {targets}",
              f"sun: {sun['sunshape']}, DNI {sun['dni_w_m2']:.0f} W/m2, reflectivity {sun['reflectivity']}, "
              f"slope error {sun['slope_error_mrad']:.2f} mrad",
-             "kinematics: " + (f"calibrated ({k['method']}) for {len(k['heliostats'])} heliostats: "
-                               f"{', '.join(k['heliostats'][:10])}{' ...' if len(k['heliostats']) > 10 else ''}"
+             "kinematics: " + (f"calibrated ({k['method']}) for {k.get('count', len(k['heliostats']))} heliostats: "
+                               f"{', '.join(k['heliostats'][:10])}"
+                               f"{' ...' if k.get('count', len(k['heliostats'])) > 10 else ''}"
                                if k["calibrated"] else "nominal (not calibrated)"),
-             "surfaces: " + (f"learned for {', '.join(lr['surfaces']['learned_for'])}"
-                             if lr["surfaces"]["learned_for"] else "ideal (none learned)"),
+             "surfaces: " + (_surfaces_line(lr["surfaces"]) if lr["surfaces"]["learned_for"]
+                             else "ideal (none learned)"),
              "aim points: " + (f"{lr['aimpoints']['instants']} instants ({', '.join(lr['aimpoints']['labels'][:4])})"
                                if lr["aimpoints"]["instants"] else "none stored (equator aiming)"),
              "/learned groups: " + (", ".join(d["learned_groups"][:12]) or "none")
