@@ -8,8 +8,10 @@ with :meth:`RecordTable.select` / :meth:`RecordTable.subset` and the centroid so
 :meth:`RecordTable.with_focal_spot`.
 
 Every check a record must pass lives in :func:`build_record_table` and nowhere else: a record whose target
-is unknown or not planar, that has no usable centroid, whose numbers are not finite, whose motor steps are
-outside the actuator range, or whose centroid lies off its target plane is dropped with one reason string.
+is unknown or not planar, that has no usable centroid, whose numbers are not finite, whose sun angles are beyond
+a full turn (azimuth) or the zenith (elevation), that is dated in the future (later than the time of reading
+plus a day), whose motor steps are outside the actuator range, or whose centroid lies off its target plane is
+dropped with one reason string and the field concerned.
 (What makes a *file* unreadable — a missing field, a sun at or below the horizon, an unknown target — is the
 reader's job, :mod:`heliotwin.io.paint`, which names the file and field.) Duplicate record ids are an
 error (one of them would silently shadow the other).
@@ -17,6 +19,8 @@ error (one of them would silently shadow the other).
 from __future__ import annotations
 
 import math
+import re
+import time as _time
 from dataclasses import dataclass, field, fields
 from datetime import datetime, timezone
 
@@ -37,17 +41,60 @@ def normalise_source(name: str) -> str:
     raise HeliotwinError(f"unknown focal-spot source {name!r}; known: {', '.join(SOURCES)}")
 
 
+#: Time-zone names a PAINT time may end with that mean UTC (any other name -- ``CEST``, ``CET`` -- is refused:
+#: an abbreviation is ambiguous and PAINT's DateTime is UTC).
+UTC_NAMES = ("UTC", "GMT", "Z")
+_ZONE_NAME = re.compile(r"^(?P<time>.*?\d)\s*(?P<zone>[A-Za-z][A-Za-z0-9+\-/_]*)$")
+
+
 def parse_time(text: str | None) -> float:
-    """UTC ISO timestamp -> POSIX seconds; NaN when missing or unparsable (the record then has no time)."""
-    if not text:
+    """A PAINT DateTime (UTC ISO 8601) -> POSIX seconds; NaN when missing (empty: the record has no time).
+
+    Accepted: ISO 8601 with ``Z`` or an offset (``2023-05-01T10:00:00Z``, ``2023-05-01 10:00:00+02:00``), or
+    naive (``2023-05-01 10:00:00``: UTC, PAINT's convention); a trailing ``UTC`` / ``GMT`` also means UTC.
+
+    Raises
+    ------
+    ValueError
+        Text that is not such a time, or that names another time zone (``2023-05-01 10:00:00 CEST``: an
+        abbreviation is ambiguous; write the offset, ``+02:00``). The message is one line starting with the
+        text; the PAINT reader adds the file, line and column.
+    """
+    if text is None or not str(text).strip():
         return float("nan")
+    text = str(text).strip()
+    body, zone = text, None
+    m = _ZONE_NAME.match(text)
+    if m and not _looks_iso(text):
+        body, zone = m.group("time").strip(), m.group("zone")
+        if zone.upper() not in UTC_NAMES:
+            raise ValueError(f"{_short_text(text)} names the time zone {zone!r}; PAINT times are UTC (ISO 8601 with "
+                             f"Z or an offset such as +02:00)")
     try:
-        t = datetime.fromisoformat(text.strip().replace("Z", "+00:00"))
+        t = datetime.fromisoformat(body[:-1] + "+00:00" if body.endswith("Z") else body)
     except ValueError:
-        return float("nan")
+        raise ValueError(f"{_short_text(text)} is not an ISO 8601 time (e.g. 2023-05-01T10:00:00Z)") from None
     if t.tzinfo is None:  # PAINT's DateTime is UTC; a naive value is taken as UTC
         t = t.replace(tzinfo=timezone.utc)
-    return t.timestamp()
+    elif zone is not None:  # "10:00+02:00 UTC": two zones
+        raise ValueError(f"{_short_text(text)} has both an offset and the zone name {zone!r}")
+    try:
+        return t.timestamp()
+    except (OverflowError, ValueError):  # year 1 with a positive offset, year 9999 with a negative one
+        raise ValueError(f"{_short_text(text)} is outside the representable times") from None
+
+
+def _looks_iso(text: str) -> bool:
+    """Whether ``text`` already parses as ISO 8601 (``...Z`` included), so a trailing letter is not a zone."""
+    try:
+        datetime.fromisoformat(text[:-1] + "+00:00" if text.endswith("Z") else text)
+    except ValueError:
+        return False
+    return True
+
+
+def _short_text(text: str, n: int = 60) -> str:
+    return repr(text if len(text) <= n else text[:n] + "...")
 
 
 @dataclass
@@ -305,9 +352,35 @@ class RecordTable:
 WEATHER_KEYS = ("wind_speed", "wind_direction", "dni", "temperature", "humidity")
 
 
-def _reason_to_skip(rec, target, kin, h: int, plane_tolerance: float) -> tuple[str, str] | None:
+#: How far [s] a record's time may lie after the time of reading (clock skew, time zones of the writer) before
+#: the record counts as dated in the future and is dropped.
+FUTURE_TOLERANCE_S = 86400.0
+#: Largest |sun azimuth| [deg] a record may name (PAINT's is in (-180, 180]; a full turn either way is allowed).
+MAX_SUN_AZIMUTH_DEG = 360.0
+#: Largest |sun elevation| [deg] a record may name (the reader refuses a sun at or below the horizon).
+MAX_SUN_ELEVATION_DEG = 90.0
+
+
+def _now_seconds(now) -> float:
+    """``now`` (None = the current time, POSIX seconds, or an aware/naive-UTC ``datetime``) as POSIX seconds."""
+    if now is None:
+        return _time.time()
+    if isinstance(now, datetime):
+        return (now if now.tzinfo is not None else now.replace(tzinfo=timezone.utc)).timestamp()
+    if isinstance(now, bool) or not isinstance(now, (int, float)) or not math.isfinite(float(now)):
+        raise HeliotwinError(f"now must be POSIX seconds or a datetime, got {now!r}")
+    return float(now)
+
+
+def _utc_text(seconds: float) -> str:
+    return datetime.fromtimestamp(seconds, timezone.utc).isoformat(timespec="seconds").replace("+00:00", "Z")
+
+
+def _reason_to_skip(rec, target, kin, h: int, plane_tolerance: float, now: float = math.inf
+                    ) -> tuple[str, str] | None:
     """Why ``rec`` cannot be used (one line) and the file field concerned, or None. The only place a record
-    is judged."""
+    is judged. ``now`` [POSIX s]: the time of reading (a record later than ``now + FUTURE_TOLERANCE_S`` is
+    dated in the future)."""
     if target is None:
         return f"unknown target {rec.target!r}", "target_name"
     if getattr(target, "kind", "") != "planar":
@@ -318,6 +391,14 @@ def _reason_to_skip(rec, target, kin, h: int, plane_tolerance: float) -> tuple[s
     if not (bool(torch.isfinite(steps).all()) and math.isfinite(rec.sun_azimuth) and math.isfinite(rec.sun_elevation)
             and all(bool(torch.isfinite(torch.as_tensor(v)).all()) for v in rec.focal_spot.values())):
         return "non-finite value", "motor_position"
+    for name, value, bound in (("sun_azimuth", rec.sun_azimuth, MAX_SUN_AZIMUTH_DEG),
+                               ("sun_elevation", rec.sun_elevation, MAX_SUN_ELEVATION_DEG)):
+        if abs(value) > math.radians(bound):
+            return f"{name} {math.degrees(value):.6g} deg outside [-{bound:g}, {bound:g}] deg", name
+    t = getattr(rec, "time", math.nan)
+    if t > now + FUTURE_TOLERANCE_S:  # NaN (no time) is not in the future
+        return (f"time {rec.datetime or _utc_text(t)} is in the future (read at {_utc_text(now)}; a record may be "
+                f"at most {FUTURE_TOLERANCE_S / 3600:g} h ahead)", "DateTime")
     lo, hi = kin.min_steps[h], kin.max_steps[h]
     bad = (steps < lo) | (steps > hi)
     if bool(bad.any()):
@@ -401,14 +482,22 @@ def raw_from_records(records) -> RawRecords:
         sun_elevation=torch.tensor([r.sun_elevation for r in records], **f64),
         motor_steps=torch.tensor([list(r.motor_steps) for r in records], **f64).reshape(n, 2),
         target=[r.target for r in records], focal_spots=spots, present=present,
-        time=torch.tensor([parse_time(r.datetime) for r in records], **f64),
+        time=torch.tensor([_record_time(r) for r in records], **f64),
         weather=torch.tensor([[float((r.weather or {}).get(k, float("nan"))) for k in WEATHER_KEYS]
                               for r in records], **f64).reshape(n, len(WEATHER_KEYS)),
         datetime=[r.datetime for r in records], flux_png=[r.flux_png for r in records],
         flux_centered_png=[r.flux_centered_png for r in records], path=[str(r.path) for r in records])
 
 
-def build_record_table(plant, records, *, focal_spot: str = "HeliOS", plane_tolerance: float = 0.1
+def _record_time(record) -> float:
+    """POSIX time of a record's ``datetime`` (NaN without one); a malformed one names the record's file."""
+    try:
+        return parse_time(record.datetime)
+    except ValueError as exc:
+        raise InputFileError(record.path, f"DateTime {exc}", field="DateTime") from None
+
+
+def build_record_table(plant, records, *, focal_spot: str = "HeliOS", plane_tolerance: float = 0.1, now=None
                        ) -> tuple[RecordTable, list[dict]]:
     """Validate raw records once and put the usable ones into one table over the plant's heliostats.
 
@@ -425,6 +514,10 @@ def build_record_table(plant, records, *, focal_spot: str = "HeliOS", plane_tole
         Largest distance [m] of a centroid from its target plane (the multi-focus tower's records lie up to
         9 cm behind it; beyond 0.1 m the centroid is not on the target the record names). A source beyond
         it is treated as absent; a record with no source within it is dropped.
+    now : float or datetime.datetime, optional
+        The time of reading (POSIX seconds [s] or a datetime; naive = UTC); default: the current time. A
+        record dated more than :data:`FUTURE_TOLERANCE_S` after it is dropped ("time ... is in the future"):
+        assimilated, it would date the heliostat's state after every real record to come.
 
     Returns
     -------
@@ -448,7 +541,7 @@ def build_record_table(plant, records, *, focal_spot: str = "HeliOS", plane_tole
         raise HeliotwinError(f"plane tolerance must be a finite number >= 0 m, got {plane_tolerance!r}")
     prefer = normalise_source(focal_spot)
     raw = records if isinstance(records, RawRecords) else raw_from_records(list(records))
-    table, skipped = _table_from_raw(plant, raw, float(plane_tolerance))
+    table, skipped = _table_from_raw(plant, raw, float(plane_tolerance), _now_seconds(now))
     return table.with_focal_spot(prefer), skipped
 
 
@@ -459,6 +552,7 @@ class _Record:
         self.target = raw.target[i]
         self.motor_steps = tuple(raw.motor_steps[i].tolist())
         self.sun_azimuth, self.sun_elevation = float(raw.sun_azimuth[i]), float(raw.sun_elevation[i])
+        self.time, self.datetime = float(raw.time[i]), raw.datetime[i]
         self.focal_spot = {src: raw.focal_spots[i, k] for k, src in enumerate(SOURCES) if bool(raw.present[i, k])}
 
 
@@ -470,8 +564,10 @@ def _check_duplicates(raw: RawRecords) -> None:
         first[rid] = i
 
 
-def _table_from_raw(plant, raw: RawRecords, tolerance: float) -> tuple[RecordTable, list[dict]]:
-    """The usable records of ``raw`` as a table on ``plant`` (HeliOS in ``spot``) and the dropped ones."""
+def _table_from_raw(plant, raw: RawRecords, tolerance: float, now: float = math.inf
+                    ) -> tuple[RecordTable, list[dict]]:
+    """The usable records of ``raw`` as a table on ``plant`` (HeliOS in ``spot``) and the dropped ones (``now``
+    [POSIX s]: the time of reading)."""
     f64 = dict(dtype=torch.float64)
     _check_duplicates(raw)
     ids = list(plant.field.ids)
@@ -493,14 +589,17 @@ def _table_from_raw(plant, raw: RawRecords, tolerance: float) -> tuple[RecordTab
     has_spot = raw.present.any(-1)
     finite = (torch.isfinite(raw.motor_steps).all(-1) & torch.isfinite(raw.sun_azimuth)
               & torch.isfinite(raw.sun_elevation) & (torch.isfinite(raw.focal_spots).all(-1) | ~raw.present).all(-1))
+    sun_ok = ((raw.sun_azimuth.abs() <= math.radians(MAX_SUN_AZIMUTH_DEG))
+              & (raw.sun_elevation.abs() <= math.radians(MAX_SUN_ELEVATION_DEG)))
+    not_future = ~(raw.time > now + FUTURE_TOLERANCE_S)  # NaN (no time) passes
     steps = raw.motor_steps
     in_range = ((steps >= kin.min_steps[hp].to(**f64)) & (steps <= kin.max_steps[hp].to(**f64))).all(-1)
     dist = ((raw.focal_spots - centers[tix].unsqueeze(1)) * normals[tix].unsqueeze(1)).sum(-1)
     within = raw.present & (dist.abs() <= tolerance)
-    ok = usable_target & has_spot & finite & in_range & within.any(-1)
+    ok = usable_target & has_spot & finite & sun_ok & not_future & in_range & within.any(-1)
     skipped = []
     for i in (in_plant & ~ok).nonzero().flatten().tolist():  # the dropped records only: word why
-        why = _reason_to_skip(_Record(raw, i), targets[int(tix[i])], kin, int(h[i]), tolerance)
+        why = _reason_to_skip(_Record(raw, i), targets[int(tix[i])], kin, int(h[i]), tolerance, now)
         if why is None:  # the batch and the reasons disagree on an edge case: the reasons decide
             ok[i] = True
             continue

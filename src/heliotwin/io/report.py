@@ -20,7 +20,7 @@ import tempfile
 import threading
 from contextlib import contextmanager
 
-from ..errors import InputFileError
+from ..errors import HeliotwinError, InputFileError
 
 __all__ = ["atomic_path", "write_json", "save_figure", "json_safe", "OutputSet", "output_set"]
 
@@ -254,6 +254,18 @@ class OutputSet:
                     _move(os.path.join(staging, name), os.path.join(folder, name))
             self.discard()
 
+    def unstage_message(self, exc: BaseException) -> None:
+        """Make a :class:`~heliotwin.errors.HeliotwinError` raised while writing a staged output (disk full, say)
+        name the destination the user gave, not the staging folder that is about to be removed (in place)."""
+        if not isinstance(exc, HeliotwinError) or not exc.args or not isinstance(exc.args[0], str):
+            return
+        text = exc.args[0]
+        for folder, staging in self._staging.items():
+            text = text.replace(staging + os.sep, folder.rstrip(os.sep) + os.sep)
+            if isinstance(getattr(exc, "path", None), str) and exc.path.startswith(staging + os.sep):
+                exc.path = os.path.join(folder, os.path.relpath(exc.path, staging))
+        exc.args = (text, *exc.args[1:])
+
     def discard(self) -> None:
         """Remove the staging folders (and whatever a failed run had written there)."""
         for staging in self._staging.values():
@@ -302,7 +314,8 @@ def output_set(inputs=()):
     outputs = OutputSet(inputs)
     try:
         yield outputs
-    except BaseException:
+    except BaseException as exc:
+        outputs.unstage_message(exc)
         outputs.discard()
         raise
     outputs.commit()

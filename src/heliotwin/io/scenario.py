@@ -65,6 +65,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
+import io
 import json
 import math
 import os
@@ -307,7 +308,8 @@ def save_scenario(plant: Plant, path, extras: dict | None = None, metadata: dict
     HeliotwinError
         Inconsistent plant, unsupported extras/metadata (names the field); no file is written.
     InputFileError
-        The destination cannot be written (missing folder, permissions, disk full).
+        The destination cannot be written (missing folder, permissions, disk full, a file-size limit): one
+        line naming ``path``; an existing file is left untouched and no temporary file is left behind.
     """
     path = Path(path)
     _validate_plant(plant, path, writing=True)
@@ -315,18 +317,23 @@ def save_scenario(plant: Plant, path, extras: dict | None = None, metadata: dict
     meta = {"created_by": f"heliotwin {__version__}",
             "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
     meta.update(metadata or {})
-    with atomic_path(path) as tmp:
-        with h5py.File(tmp, "w") as h5:
-            h5.attrs["format"] = FORMAT
-            h5.attrs["version"] = VERSION
-            _write_metadata(h5.create_group("metadata"), meta, path)
-            _write_plant(h5, plant, path)
-            if extras:
-                _write_extras(h5.create_group("extras", track_order=True), extras, path, "/extras")
-            if learned:
-                _write_extras(h5.create_group("learned", track_order=True), learned, path, "/learned")
-            if provenance:
-                h5.create_dataset("provenance", data=provenance_json, dtype=_STR)
+    # The file is built in memory and written with one plain write: HDF5 writing to disk itself meets a full
+    # disk (ENOSPC, or EFBIG under ``ulimit -f``) in its metadata cache, where the error cannot be raised and
+    # the process crashes; a plain write raises an OSError that ``atomic_path`` turns into one line.
+    image = io.BytesIO()
+    with h5py.File(image, "w") as h5:
+        h5.attrs["format"] = FORMAT
+        h5.attrs["version"] = VERSION
+        _write_metadata(h5.create_group("metadata"), meta, path)
+        _write_plant(h5, plant, path)
+        if extras:
+            _write_extras(h5.create_group("extras", track_order=True), extras, path, "/extras")
+        if learned:
+            _write_extras(h5.create_group("learned", track_order=True), learned, path, "/learned")
+        if provenance:
+            h5.create_dataset("provenance", data=provenance_json, dtype=_STR)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(image.getbuffer())
     return path
 
 

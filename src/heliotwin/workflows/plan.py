@@ -132,7 +132,10 @@ def aim_time(text: str | None) -> float | None:
     """``--time``: UTC ISO text -> POSIX time [s] (None when not given; one-line error when unparsable)."""
     if text is None:
         return None
-    t = parse_time(text)
+    try:
+        t = parse_time(text)
+    except ValueError:
+        t = math.nan
     if not math.isfinite(t):
         raise HeliotwinError(f"--time must be a UTC ISO time (e.g. 2023-05-01T12:00:00Z), got {text!r}")
     return t
