@@ -163,6 +163,8 @@ def test_the_reading_time_is_injectable(folder):
     assert {s["record_id"] for s in skipped} == ahead
     assert all(s["field"] == "DateTime" and "is in the future" in s["reason"] for s in skipped)
     assert len(kept) + len(skipped) == len(raw)
+    ds = load_paint(folder, now=last - 2 * 86400.0)  # the reader passes it on
+    assert {s["record_id"] for s in ds.skipped} == ahead and len(ds.records) == len(kept)
     with pytest.raises(HeliotwinError, match="now"):
         build_record_table(plant, raw, now="tomorrow")
 

@@ -575,7 +575,7 @@ def list_heliostats(root) -> list[str]:
 
 def load_paint(root, heliostats=None, *, surface_control_points=(4, 4), surface_degree=(2, 2),
                with_records: bool = True, focal_spot: str = "HeliOS", plane_tolerance: float = 0.1,
-               cache: bool | None = None) -> PaintDataset:
+               cache: bool | None = None, now=None) -> PaintDataset:
     """Read a PAINT folder into a :class:`Plant` (ideal flat canted surfaces) and its records.
 
     Parameters
@@ -589,9 +589,10 @@ def load_paint(root, heliostats=None, *, surface_control_points=(4, 4), surface_
         ``(p, q)`` degrees per facet [1].
     with_records : bool
         Also read every calibration record.
-    focal_spot, plane_tolerance
+    focal_spot, plane_tolerance, now
         See :func:`heliotwin.io.records.build_record_table`, which judges every record (``plane_tolerance``
-        [m]: largest distance of a centroid from its target plane).
+        [m]: largest distance of a centroid from its target plane; ``now``: the time of reading, default the
+        current time, after which a record is dated in the future).
     cache : bool or None
         Use the folder's incremental record index (:mod:`heliotwin.io.record_index`): files unchanged since
         they were indexed are not parsed again, new ones are parsed and appended. None: for folders of at least
@@ -623,7 +624,7 @@ def load_paint(root, heliostats=None, *, surface_control_points=(4, 4), surface_
     plant = Plant(site, targets, fld, SunSettings())
     reading: dict = {}
     raw = read_records(root, ids, site, targets, cache=cache, stats=reading) if with_records else []
-    table, skipped = build_record_table(plant, raw, focal_spot=focal_spot, plane_tolerance=plane_tolerance)
+    table, skipped = build_record_table(plant, raw, focal_spot=focal_spot, plane_tolerance=plane_tolerance, now=now)
     return PaintDataset(root, plant, table, skipped, props, reading)
 
 
