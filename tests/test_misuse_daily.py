@@ -137,6 +137,19 @@ def test_an_empty_date_is_a_record_without_time(folder, sim):
     assert int(ds.records.time.isnan().sum()) == 1
 
 
+def test_a_record_object_with_a_zone_named_date_names_its_file(folder):
+    """Records built in code (not from the CSV) meet the same rule when they are judged."""
+    raw = _raw_one_by_one(folder)
+    plant = load_paint(folder, with_records=False).plant
+    site, targets = read_tower(find_tower_file(folder))
+    path = raw.path[0]
+    record = read_calibration_record(path, site, raw.heliostat_ids[int(raw.heliostat_index[0])], targets)
+    record.datetime = "2023-05-01 10:00:00 CEST"
+    with pytest.raises(InputFileError) as info:
+        build_record_table(plant, [record])
+    assert str(info.value).startswith(f"{path} [DateTime]: ") and "CEST" in str(info.value)
+
+
 # ------------------------------------------------------------------------------------------ 2. the future
 def test_a_record_dated_2099_is_dropped_with_a_named_reason(folder, sim):
     rid = _set_datetime(folder, 2, "2099-06-01T10:00:00Z")
