@@ -10,6 +10,7 @@ import torch
 from helpers.calibrate import F64, TRUE, jueliche_like, plant_of, simulate
 
 from heliotwin.calibrate import priors
+from heliotwin.calibrate import twinstate as twinstate_module
 from heliotwin.calibrate.assimilate import FilterState, choose_process_noise
 from heliotwin.calibrate.methods.lm import laplace
 from heliotwin.calibrate.model import Calibrated
@@ -100,7 +101,7 @@ def test_the_first_update_chooses_the_walk_stores_it_and_later_updates_read_it(t
     def refuse(*args, **kwargs):
         raise AssertionError("the stored choice must be read, not made again")
 
-    monkeypatch.setattr(update_module, "choose_process_noise", refuse)
+    monkeypatch.setattr(twinstate_module, "choose_process_noise", refuse)
     later, _ = _walked(8, 2, 0.0003, seed=12, id0=2 * 10 ** 6, start=1.6e9 + 70 * EVERY * DAY)
     second, rep2 = update(back, later)  # the new records only: nothing to choose on, the stored choice stands
     assert rep2["process_noise"]["source"].startswith("stored choice") and rep2["counts"]["new"] == len(later)

@@ -30,21 +30,31 @@ def _ids(text: str | None):
     return ids
 
 
-def _add_common(p):
+_STUDY_SPLITS = ("chrono", "isolation", "region", "azimuth", "solstice", "balanced", "high_variance")
+
+
+def _add_common(p, current: bool = False):
     p.add_argument("--paint", required=True, help="PAINT download folder")
     p.add_argument("--heliostats", help="comma-separated heliostat ids (default: every heliostat)")
     p.add_argument("--min-records", type=_COUNT, default=50,
                    help="skip heliostats with fewer usable records (default 50)")
-    p.add_argument("--split", "--type", dest="split", default="chrono",
-                   choices=("chrono", "isolation", "region", "azimuth", "solstice", "balanced", "high_variance",
-                            "online"),
-                   help="split type (default chrono; online = each test record predicted from the --train records "
-                        "before it, calibrate only)")
-    p.add_argument("--train", type=_COUNT, default=30,
-                   help="records a method may see per heliostat, validation included")
+    if current:
+        p.add_argument("--split", "--type", dest="split", default="current",
+                       choices=("current",) + _STUDY_SPLITS + ("online",),
+                       help="current (default): the plant as it is now, fitted on every record, its expected error "
+                            "from each heliostat's latest --test records predicted from its earlier ones; or a study "
+                            "protocol whose written plant sees only --train records (online = each test record "
+                            "predicted from the --train records before it)")
+    else:
+        p.add_argument("--split", "--type", dest="split", default="chrono", choices=_STUDY_SPLITS + ("online",),
+                       help="split type (default chrono)")
+    p.add_argument("--train", type=_COUNT, default=None,
+                   help="study splits: records a method may see per heliostat, validation included (default 30)")
     p.add_argument("--validation", type=_COUNT0, default=None,
-                   help="validation records carved out of --train (default 20%% of it, 0 below 8)")
-    p.add_argument("--test", type=_COUNT, default=None, help="test records per heliostat (default: every other record)")
+                   help="study splits: validation records carved out of --train (default 20%% of it, 0 below 8)")
+    p.add_argument("--test", type=_COUNT, default=None,
+                   help="test records per heliostat (study splits, default: every other record; --split current: "
+                        "each heliostat's latest records the internal validation predicts, default 10)")
     p.add_argument("--focal-spot", default="HeliOS", help="centroid source: heliOS or utis (falls back to the other)")
     p.add_argument("--seed", type=seed_int, default=0, help="seed of every random choice")
 
@@ -52,9 +62,11 @@ def _add_common(p):
 def register(subparsers) -> None:
     """Add ``calibrate``, ``split`` and ``aim`` to an argparse subparsers object."""
     p = subparsers.add_parser("calibrate", help="calibrate heliostat kinematics from PAINT calibration records",
-                              description="Calibrate heliostat kinematics from real calibration records and "
-                                          "report the pointing error on held-out records.")
-    _add_common(p)
+                              description="Calibrate heliostat kinematics from real calibration records. By default "
+                                          "the plant written (-o) is fitted on every usable record, and the error "
+                                          "it is expected to make is measured inside those records; --split/--train "
+                                          "run a study protocol instead.")
+    _add_common(p, current=True)
     p.add_argument("--method", default="lm", choices=METHOD_CHOICES, help="calibration method (default lm)")
     p.add_argument("--scenario", help="start from this scenario's plant (default: the PAINT folder's nominal plant)")
     p.add_argument("-o", "--output", help="write the calibrated plant as a scenario file (.h5)")
@@ -241,6 +253,14 @@ def _print_table(report: dict) -> None:
         print(f"{hid:10s} {r['status']:8s} {s.get('train', 0):5d} {s.get('validation', 0):4d} {s.get('test', 0):4d} "
               f"{_fmt(r.get('nominal_mean_test_mrad')):>9s} {_fmt(r.get('mean_test_mrad')):>8s}  {note}")
     ov = report["overall"]
+    expected = report.get("expected_error")
+    if expected:
+        print(f"written plant: fitted on every record ({report['written_plant']['records_fitted']} records); "
+              f"expected error {_fmt(expected.get('median_of_mean_mrad'))} mrad median, "
+              f"{_fmt(expected.get('p95_of_mean_mrad'))} p95 over heliostats ({expected['protocol']})")
+    elif report.get("written_plant"):
+        print(f"written plant: {report['written_plant']['records']} (a study protocol; --split current fits every "
+              "record)")
     print(f"overall: median over heliostats of mean test error {_fmt(ov.get('median_of_mean_test_mrad'))} mrad "
           f"(nominal {_fmt(ov.get('nominal_median_of_mean_test_mrad'))}), {ov.get('n_heliostats', 0)} heliostats, "
           f"{_fmt(ov.get('seconds'), 1)} s; skipped records {ov.get('skipped_records', 0)}"

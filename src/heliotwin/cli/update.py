@@ -51,35 +51,52 @@ def register(subparsers) -> None:
 def cmd_update(args) -> int:
     import os
 
-    from ..io.scenario import write_scenario
-    from ..workflows.update import UpdateSettings, update
+    from ..errors import HeliotwinError
+    from ..workflows.update import UpdateSettings, update_plant_file
 
     settings = UpdateSettings(false_alarm_rate=args.false_alarm_rate, process_noise=args.process_noise,
                               reopen_mrad=args.reopen_mrad, iterations=args.iterations, window=args.window,
                               plane_tolerance=args.plane_tolerance)
     same = all(os.path.exists(f) for f in (args.output, args.scenario)) and os.path.samefile(args.output,
                                                                                           args.scenario)
-    inputs = [("--paint", args.paint)] + ([] if args.in_place and same else [("--scenario", args.scenario)])
+    if same and not args.in_place:
+        raise HeliotwinError(f"-o {args.output} is the input scenario; add --in-place to replace it")
+    inputs = [("--paint", args.paint)] + ([] if same else [("--scenario", args.scenario)])
     with output_set(inputs) as out:
-        output, json_path = out.file(args.output, "-o"), out.file(args.json, "--json")
+        json_path = out.file(args.json, "--json")
         stage(args, f"assimilating new records of {args.paint}")
-        scenario, report = update(args.scenario, args.paint, settings)
-        write_scenario(scenario, output)
+        # the plant file is written by the workflow itself: locked, checked unchanged, atomic
+        _, report = update_plant_file(args.scenario, args.paint, args.output, settings)
         report["output"] = os.fspath(args.output)
         if json_path:
             write_json(json_path, report)
     if not args.quiet:
-        c, o = report["counts"], report["overall"]
-        err = o["median_of_mean_predicted_error_mrad"]
-        print(f"{o['records']} new records of {report['heliostats_updated']} heliostats assimilated ({c['seen']} seen "
-              f"before, {c['older_than_state']} older than the state, {c['without_time']} without a time); predicted "
-              f"error before each: median of the heliostats' means {'-' if err is None else f'{err:.3f}'} mrad; "
-              f"{o['alarms']} step alarm(s); offset walk {report['process_noise']['mrad2_per_day']:.3g} mrad^2/day "
-              f"({report['process_noise']['source']})")
-        for a in report["alarms"]:
-            print(f"  step alarm: {a['heliostat']} record {a['record_id']} (step statistic {a['statistic']:.1f} over "
-                  f"{a['window']} record(s) > {report['threshold']['threshold']:.1f})")
+        print_update_summary(report)
     return 0
+
+
+def print_update_summary(report: dict) -> None:
+    """The update's report in a few lines (``update`` and ``daily``)."""
+    c, o = report["counts"], report["overall"]
+    err = o["median_of_mean_predicted_error_mrad"]
+    reading = report.get("reading") or {}
+    read = (f"; read {reading['parsed']} of {reading['files']} record files (the rest from the record index)"
+            if reading else "")
+    print(f"{o['records']} new records of {report['heliostats_updated']} heliostats assimilated ({c['seen']} seen "
+          f"before, {c['older_than_state']} older than the state, {c['without_time']} without a time){read}; "
+          f"predicted error before each: median of the heliostats' means {'-' if err is None else f'{err:.3f}'} "
+          f"mrad; {o['alarms']} step alarm(s); offset walk {report['process_noise']['mrad2_per_day']:.3g} "
+          f"mrad^2/day ({report['process_noise']['source']})")
+    if c.get("dropped"):
+        reasons = "; ".join(f"{n} {why}" for why, n in list(c["dropped_by_reason"].items())[:4])
+        print(f"  {c['dropped']} record(s) in the folder dropped by the reader: {reasons}")
+    if c.get("unknown_heliostats"):
+        print(f"  {c['unknown_heliostat_records']} record(s) of {c['unknown_heliostats']} heliostat(s) this plant "
+              f"does not know were not used ({', '.join(c['unknown_heliostat_ids'][:5])}"
+              f"{', ...' if c['unknown_heliostats'] > 5 else ''})")
+    for a in report["alarms"]:
+        print(f"  step alarm: {a['heliostat']} record {a['record_id']} (step statistic {a['statistic']:.1f} over "
+              f"{a['window']} record(s) > {report['threshold']['threshold']:.1f})")
 
 
 def cmd_history(args) -> int:

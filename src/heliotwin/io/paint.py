@@ -526,12 +526,7 @@ class PaintDataset:
         """The same records on another plant of the same site (e.g. a calibrated scenario): the table's
         heliostat axis becomes ``plant.field.ids`` (each must be in this folder), records of other heliostats
         are left out. ``source`` names the plant in errors."""
-        mine, theirs = self.plant.site, plant.site
-        same_site = all(abs(float(getattr(mine, k)) - float(getattr(theirs, k))) <= tol for k, tol in
-                        (("latitude_deg", 1e-9), ("longitude_deg", 1e-9), ("altitude_m", 1e-6)))
-        if not same_site:
-            raise InputFileError(source, f"site ({theirs.latitude_deg}, {theirs.longitude_deg}, {theirs.altitude_m}) "
-                                         f"is not the PAINT folder's {self.root}", field="/site")
+        _check_same_site(self.plant.site, plant.site, source, self.root)
         missing = [h for h in plant.field.ids if h not in self.plant.field.ids]
         if missing:
             raise InputFileError(source, f"heliostat(s) {', '.join(missing[:5])} are not in the PAINT folder "
@@ -556,6 +551,59 @@ class PaintDataset:
         except KeyError:
             raise InputFileError(self.root, f"record {record_id} not found for heliostat(s) "
                                             f"{', '.join(self.plant.field.ids)}", field="record") from None
+
+
+def _check_same_site(mine: Site, theirs: Site, source, root) -> None:
+    """A plant of another site than the folder's is a one-line error naming ``source``."""
+    same_site = all(abs(float(getattr(mine, k)) - float(getattr(theirs, k))) <= tol for k, tol in
+                    (("latitude_deg", 1e-9), ("longitude_deg", 1e-9), ("altitude_m", 1e-6)))
+    if not same_site:
+        raise InputFileError(source, f"site ({theirs.latitude_deg}, {theirs.longitude_deg}, {theirs.altitude_m}) "
+                                     f"is not the PAINT folder's {root}", field="/site")
+
+
+def load_paint_on_plant(root, plant: Plant, *, source: str = "scenario", focal_spot: str = "HeliOS",
+                        plane_tolerance: float = 0.1, cache: bool | None = None) -> PaintDataset:
+    """The records of ``plant``'s heliostats in the PAINT folder ``root``, judged on ``plant`` (its targets and
+    motor ranges) without reading the folder's heliostat properties: what a learner that starts from a
+    scenario needs from a folder that grows (:func:`read_records` with the record index). The dataset's
+    ``properties`` are empty; ``reading`` also counts ``unknown_heliostats`` and ``unknown_records`` (heliostat
+    folders with records that ``plant`` does not hold, listed in ``unknown_ids``, first 20).
+
+    Raises
+    ------
+    InputFileError
+        The folder's site is not ``plant``'s, or a heliostat of ``plant`` has no folder there (``source``
+        names the plant), or as :func:`read_records`.
+    """
+    root = str(root)
+    site, targets = read_tower(find_tower_file(root))
+    _check_same_site(site, plant.site, source, root)
+    available = list_heliostats(root)
+    ids = list(plant.field.ids)
+    have = set(available)
+    missing = [h for h in ids if h not in have]
+    if missing:
+        raise InputFileError(source, f"heliostat(s) {', '.join(missing[:5])} are not in the PAINT folder {root}",
+                             field="/field/ids")
+    reading: dict = {}
+    raw = read_records(root, ids, site, targets, cache=cache, stats=reading)
+    table, skipped = build_record_table(plant, raw, focal_spot=focal_spot, plane_tolerance=plane_tolerance)
+    known = set(ids)
+    unknown = [h for h in available if h not in known]
+    counts = {h: len(f) for h, f in zip(unknown, (_record_names(os.path.join(root, h, "Calibration"))
+                                                  for h in unknown)) if f}
+    reading.update(unknown_heliostats=len(counts), unknown_records=int(sum(counts.values())),
+                   unknown_ids=sorted(counts)[:20])
+    return PaintDataset(root, plant, table, skipped, {}, reading)
+
+
+def _record_names(folder: str) -> list:
+    """Names of the record files in a Calibration folder (none when it is missing)."""
+    try:
+        return [e.name for e in os.scandir(folder) if e.name.endswith(RECORD_SUFFIX) and not e.name.startswith(".")]
+    except OSError:
+        return []
 
 
 def _record_number(path: str) -> int:

@@ -934,6 +934,15 @@ def _validate_learned_calibration(c: _LearnedCheck, cal) -> None:
         c.array(choice, "validation_heliostats", at, (1,), kind="int", low=0)
         c.array(choice, "share", at, (1,), low=0.0)
         c.text(choice, "method", at)
+    alarm = c.group(cal, "alarm_threshold", where, required=False)
+    if alarm is not None:  # the updates' step-alarm threshold chosen on the calibration's records (twinstate)
+        at = f"{where}/alarm_threshold"
+        c.array(alarm, "threshold", at, (1,), low=0.0)
+        c.array(alarm, "kappa", at, (1,), low=1.0)
+        c.array(alarm, "false_alarm_rate", at, (1,), low=0.0)
+        c.array(alarm, "tests", at, (1,), kind="int", low=1)
+        c.array(alarm, "validation_records", at, (1,), kind="int", low=0)
+        c.text(alarm, "method", at)
     nets = c.group(cal, "networks", where, required=False)
     for hid, net in (nets or {}).items():
         at = f"{where}/networks/{hid}"

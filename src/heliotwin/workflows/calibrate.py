@@ -21,19 +21,20 @@ import os
 from dataclasses import dataclass, replace
 from typing import Callable
 
+import numpy as np
 import torch.distributed as dist
 
 from ..calibrate.methods.batched import sharded
 from ..calibrate.model import Calibrated
 from ..calibrate.protocol import pipeline
-from ..calibrate.protocol.config import RunConfig, settings_mode, validate_config
+from ..calibrate.protocol.config import EVERY_RECORD, RunConfig, settings_mode, validate_config
 from ..calibrate.scenario import calibrated_scenario
+from ..calibrate.twinstate import with_alarm_threshold, with_process_noise_choice
 from ..distributed import run_spawned
 from ..errors import HeliotwinError
 from ..io.checkpoint import Checkpoint
 from ..io.paint import PaintDataset
 from ..io.scenario import Scenario, load_records, load_scenario
-from .update import with_process_noise_choice
 
 __all__ = ["CalibrationSettings", "Calibration", "calibrate", "run_config", "resolved_settings_mode",
            "calibration_checkpoint", "training_size_curves", "seen_records", "load_paint_records"]
@@ -50,10 +51,15 @@ class CalibrationSettings:
     heliostats : sequence of str or None
         Heliostat ids (None: every heliostat of the records).
     split : str
-        Split type (:data:`heliotwin.calibrate.protocol.config.RUN_SPLITS`).
+        ``"current"`` (default): the plant as it is now, fitted on every usable record of each heliostat, its
+        expected error from validation inside those records (:func:`calibrate`); or a study protocol's split
+        type (:data:`heliotwin.calibrate.protocol.config.RUN_SPLITS`), whose written plant saw only the
+        training part.
     train, validation, test : int or None
-        Records per heliostat: seen by the method (validation included), carved out of ``train`` for
-        validation (None: 20 % of it, 0 below 8), held out for the test (None: every other record).
+        Study splits: records per heliostat seen by the method (validation included; None: 30), carved out
+        of ``train`` for validation (None: 20 % of it, 0 below 8), held out for the test (None: every other
+        record). ``current``: ``train`` and ``validation`` must be None, ``test`` is how many of each
+        heliostat's latest records the internal validation predicts (None: :data:`CURRENT_HOLDOUT`).
     min_records : int
         Heliostats with fewer usable records are skipped.
     focal_spot : str
@@ -91,8 +97,8 @@ class CalibrationSettings:
 
     method: str = "lm"
     heliostats: tuple | list | None = None
-    split: str = "chrono"
-    train: int = 30
+    split: str = "current"
+    train: int | None = None
     validation: int | None = None
     test: int | None = None
     min_records: int = 50
@@ -112,6 +118,26 @@ class CalibrationSettings:
     curve: bool = False
     learn_settings: bool = False
     nproc: int = 1
+
+
+#: ``--split current``: each heliostat's latest this many records are predicted from its earlier ones to tell
+#: the written plant's expected error (a sixth or less of a heliostat's records at the default --min-records 50,
+#: about the records a plant gathers per heliostat in four months).
+CURRENT_HOLDOUT = 10
+#: ``--train`` of the study splits when not given.
+STUDY_TRAIN = 30
+
+
+def _sizes(s: "CalibrationSettings") -> tuple:
+    """(train, validation, test) of the run: ``current`` sees every record (``--train``/``--validation`` are
+    a one-line error there), the study splits default to :data:`STUDY_TRAIN`."""
+    if s.split == "current":
+        if s.train is not None or s.validation is not None:
+            raise HeliotwinError("--train / --validation size the study splits (--split chrono, ...); --split current "
+                                 "(the default) fits every record and validates inside them (--test: how many of "
+                                 "each heliostat's latest records)")
+        return EVERY_RECORD, 0, s.test
+    return STUDY_TRAIN if s.train is None else s.train, s.validation, s.test
 
 
 def _process_noise(value):
@@ -161,8 +187,9 @@ def run_config(settings: CalibrationSettings, paint, *, progress: bool = False) 
     ``paint`` (one-line :class:`~heliotwin.errors.HeliotwinError` for a bad option); ``progress``: the
     methods' own tqdm bars."""
     s = settings
-    cfg = RunConfig(paint=os.fspath(paint), method=s.method, split=s.split, train=s.train, validation=s.validation,
-                    test=s.test, heliostats=None if s.heliostats is None else list(s.heliostats),
+    train, validation, test = _sizes(s)
+    cfg = RunConfig(paint=os.fspath(paint), method=s.method, split=s.split, train=train, validation=validation,
+                    test=test, heliostats=None if s.heliostats is None else list(s.heliostats),
                     min_records=s.min_records, focal_spot=s.focal_spot, seed=s.seed, plane_tolerance=s.plane_tolerance,
                     correct_suspicious=not s.keep_suspicious, progress=progress is True, prior=s.prior,
                     prior_from=_path(s.prior_from), online_step=s.online_step, method_options=_lm_options(s),
@@ -252,6 +279,65 @@ def _calibrate_shard(job: dict, group):
         return pipeline.run_calibration(job["cfg"], job["dataset"])
 
 
+def _run(cfg: RunConfig, dataset: PaintDataset, nproc: int, device: str, progress, checkpoint) -> tuple:
+    """One pipeline run of ``cfg`` (sharded over ``nproc`` local processes, or the caller's process group)."""
+    if nproc > 1:
+        if not str(device).startswith("cpu"):
+            raise HeliotwinError("--nproc: the local process group is gloo on CPU; use --device cpu with --nproc")
+        return run_spawned(_calibrate_shard, {"cfg": replace(cfg, progress=False), "dataset": dataset}, nproc)
+    group = dist.group.WORLD if dist.is_available() and dist.is_initialized() else None  # e.g. torchrun
+    with sharded(group):
+        return pipeline.run_calibration(cfg, dataset, device=device, checkpoint=checkpoint,
+                                        progress=progress if callable(progress) else None)
+
+
+#: Per-heliostat keys of a study run's report that describe its held-out records (the expected error).
+_HELD_OUT_KEYS = ("test", "nominal_test", "mean_test_mrad", "median_test_mrad", "nominal_mean_test_mrad",
+                  "interval_90_coverage", "expected_test_mrad", "interval_90_mrad")
+
+
+def with_expected_error(report: dict, validation: dict) -> dict:
+    """The report of a ``current`` run (every record fitted, nothing held out) with the expected error of the
+    plant it wrote, from the validation run inside its records (``validation``: the report of the same
+    calibration on each heliostat's earlier records, tested on its latest ones). The headline keys
+    (``overall.median_of_mean_test_mrad``, each heliostat's ``mean_test_mrad``) are that expected error;
+    ``expected_error`` says how it was measured; ``written_plant`` what the plant saw."""
+    v_overall = validation.get("overall") or {}
+    holdout = (validation.get("config") or {}).get("test")
+    out = dict(report)
+    heliostats = {}
+    for hid, entry in report["heliostats"].items():
+        v = validation["heliostats"].get(hid) or {}
+        held = {k: v[k] for k in _HELD_OUT_KEYS if k in v} if v.get("status") == "ok" else {}
+        heliostats[hid] = {**entry, **held, "validation_split": v.get("split")}
+    out["heliostats"] = heliostats
+    mine = report.get("overall") or {}
+    keep = ("n_heliostats", "fit_seconds", "seconds", "skipped_heliostats", "skipped_records",
+            "median_of_mean_train_mrad", "method_info", "dropped_no_time")
+    out["overall"] = {**{k: v for k, v in v_overall.items() if k not in keep},
+                      **{k: mine[k] for k in keep if k in mine}, "split": "current",
+                      "validation_seconds": v_overall.get("seconds")}
+    out["test_records"] = validation.get("test_records", [])
+    out["expected_error"] = {
+        "protocol": f"validation inside the records: each heliostat's latest {holdout} records (chronological) "
+                    "predicted by the same calibration fitted on its earlier records",
+        "holdout_records": holdout, "median_of_mean_mrad": v_overall.get("median_of_mean_test_mrad"),
+        "p95_of_mean_mrad": _quantile([e.get("mean_test_mrad") for e in heliostats.values()], 0.95),
+        "interval_90_coverage": v_overall.get("interval_90_coverage"),
+        "heliostats_validated": v_overall.get("n_heliostats")}
+    fitted = sum(int((e.get("split") or {}).get("train", 0)) for e in report["heliostats"].values()
+                 if e.get("status") == "ok")
+    out["written_plant"] = {"records": "every usable record of each calibrated heliostat", "records_fitted": fitted}
+    return out
+
+
+def _quantile(values, q: float):
+    xs = sorted(float(x) for x in values if x is not None and math.isfinite(float(x)))
+    if not xs:
+        return None
+    return float(np.quantile(np.asarray(xs), q))
+
+
 def calibrate(scenario, records_or_paint, settings: CalibrationSettings = CalibrationSettings(), *,
               device: str = "cpu", progress: bool | Callable = False, checkpoint: Checkpoint | None = None,
               stage: Callable[[str], None] | None = None) -> Calibration:
@@ -288,30 +374,41 @@ def calibrate(scenario, records_or_paint, settings: CalibrationSettings = Calibr
     else:
         stage(f"reading {paint}")
         dataset, previous = load_paint_records(paint, scenario, cfg.plane_tolerance)
-    stage(f"calibrating ({cfg.method}, {cfg.split} split) on {device}")
-    if settings.nproc > 1:
-        if not str(device).startswith("cpu"):
-            raise HeliotwinError("--nproc: the local process group is gloo on CPU; use --device cpu with --nproc")
-        report, model, arrays = run_spawned(_calibrate_shard, {"cfg": replace(cfg, progress=False),
-                                                               "dataset": dataset}, settings.nproc)
+    validation, study_cfg = None, cfg
+    if cfg.split == "current":
+        holdout = cfg.test or CURRENT_HOLDOUT
+        stage(f"validating inside the records ({cfg.method}): each heliostat's latest {holdout} records predicted "
+              f"from its earlier ones")
+        study_cfg = replace(cfg, split="chrono", test=holdout, learn_settings=False)
+        validation = _run(study_cfg, dataset, settings.nproc, device, progress, None)
+        stage(f"fitting the current plant ({cfg.method}) on every record on {device}")
     else:
-        group = dist.group.WORLD if dist.is_available() and dist.is_initialized() else None  # e.g. torchrun
-        with sharded(group):
-            report, model, arrays = pipeline.run_calibration(cfg, dataset, device=device, checkpoint=checkpoint,
-                                                             progress=progress if callable(progress) else None)
+        stage(f"calibrating ({cfg.method}, {cfg.split} split) on {device}")
+    report, model, arrays = _run(cfg, dataset, settings.nproc, device, progress, checkpoint)
+    seen = seen_records(arrays)  # what the written plant saw (the update treats every other record as new)
+    if validation is not None:
+        report, arrays = with_expected_error(report, validation[0]), validation[2]
+    else:
+        report["written_plant"] = {"records": f"the training part of the {cfg.split} split only",
+                                   "note": "a study protocol: the plant written saw only its training records; "
+                                           "--split current (the default) fits every record"}
     if model is None or not bool(model.ok.any()):
         return Calibration(None, report, model, arrays)
     curves = None
     if settings.curve:
         stage("training-size curve (lm refits)")
-        curves = training_size_curves(cfg, dataset, report["overall"]["median_of_mean_test_mrad"])
+        curves = training_size_curves(study_cfg, dataset, report["overall"]["median_of_mean_test_mrad"])
     # The run's settings, method options included (half-life, drift: they shape the result).
     new = calibrated_scenario(dataset.plant, model, previous=previous, focal_spot=cfg.focal_spot,
-                              records=seen_records(arrays), settings=dict(report["config"]),
+                              records=seen, settings=dict(report["config"]),
                               source=os.path.abspath(paint), settings_choice=report.get("settings_choice"))
     # without a drift model, the update's random walk is chosen here, where the records the fit saw are at hand
     # (an update is often given only the new ones)
     new, choice = with_process_noise_choice(new, dataset.records)
     if choice is not None:
         report["update_process_noise"] = choice
+    # the updates' step-alarm threshold too: its leave-one-out residuals need every record the fit saw
+    new, threshold = with_alarm_threshold(new, dataset.records)
+    if threshold is not None:
+        report["update_alarm_threshold"] = threshold
     return Calibration(new, report, model, arrays, curves)

@@ -95,8 +95,12 @@ def settings_mode(mode: str, *, method: str, prior_from=None, fixed_by_hand: boo
     return "cv" if os.path.isdir(prior_from) else "stored" if os.path.isfile(prior_from) else "given"
 
 
-#: Split types of a calibration run: the record splits plus the online protocol (:mod:`.online`).
-RUN_SPLITS = SPLIT_TYPES + ("online",)
+#: Split types of a calibration run: ``current`` (the plant as it is now: every usable record fitted, nothing held
+#: out; the workflow validates inside the records, :func:`heliotwin.workflows.calibrate.calibrate`), the record
+#: splits of the study protocols and the online protocol (:mod:`.online`).
+RUN_SPLITS = ("current",) + SPLIT_TYPES + ("online",)
+#: ``--train`` of a ``current`` run: every record a heliostat has.
+EVERY_RECORD = 10 ** 9
 
 
 def validate_config(cfg: RunConfig) -> None:

@@ -222,11 +222,28 @@ def rebatch(loaded: Loaded, prepared: Prepared) -> Batch:
 def split(cfg: RunConfig, batch: Batch) -> Split:
     """Train/validation/test records per heliostat (validation carved out of ``--train``)."""
     records = batch.records
+    if cfg.split == "current":
+        return _every_record(cfg, records)
     if cfg.split == "online":
         tr, va, te, info = online_split(records, cfg.train, cfg.test)
     else:
         tr, va, te, info = split_records(records, cfg.split, cfg.train, cfg.n_validation(), cfg.test, seed=cfg.seed)
     return Split(records.subset(tr), records.subset(va), records.subset(te), te, info)
+
+
+def _every_record(cfg: RunConfig, records: RecordTable) -> Split:
+    """``current``: every usable record is training (a drift model needs times: records without one are then
+    dropped and counted); nothing is held out."""
+    keep = torch.ones(len(records), dtype=torch.bool, device=records.heliostat_index.device)
+    if cfg.drift_model != "none":
+        keep = torch.isfinite(records.time)
+    rows = keep.nonzero().flatten()
+    none = rows[:0]
+    n = torch.bincount(records.heliostat_index, minlength=len(records.heliostat_ids)).tolist()
+    used = torch.bincount(records.heliostat_index[rows], minlength=len(records.heliostat_ids)).tolist()
+    info = {hid: {"n_records": n[h], "train": used[h], "validation": 0, "test": 0, "dropped_no_time": n[h] - used[h]}
+            for h, hid in enumerate(records.heliostat_ids)}
+    return Split(records.subset(rows), records.subset(none), records.subset(none), none, info)
 
 
 def choose_settings(cfg: RunConfig, run_ids: list, runner) -> Choice:

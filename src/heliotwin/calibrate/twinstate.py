@@ -1,0 +1,491 @@
+"""The state of a calibrated twin as the scenario stores it, and what an update reads and writes there.
+
+A rigid-body calibration (``calibrate --method lm``) stores under ``/learned/calibration`` its deviations,
+their Laplace posterior and, with a drift model, the random-walk offset; this module turns that into the
+:class:`~heliotwin.calibrate.assimilate.FilterState` an update starts from (:func:`filter_state`), and an
+update's result back into ``/learned`` (:func:`updated_learned`). What is learned once per calibration and
+reused by every update is chosen here on the records the calibration saw and stored with it:
+
+* the random walk's process noise (:func:`process_noise_choice`: each heliostat's latest quarter of its
+  records predicted by the walk run through its earlier ones), under ``/learned/calibration/
+  process_noise_choice``;
+* the step-alarm threshold (:func:`alarm_threshold_choice`: the target false-alarm rate and the normalised
+  leave-one-out residuals of those records, :func:`heliotwin.calibrate.assimilate.alarm_threshold`), under
+  ``/learned/calibration/alarm_threshold``.
+
+``/learned/assimilation`` keeps every update's per-record history (:func:`state_history`), the step tests'
+evidence window and the threshold in force.
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import fields, replace
+
+import numpy as np
+import torch
+
+from ..errors import HeliotwinError, InputFileError
+from ..field.plant import Kinematics
+from ..io.records import RecordTable
+from ..io.scenario import Scenario, load_scenario
+from .assimilate import FALSE_ALARM_RATE, WINDOW, FilterState, alarm_threshold, choose_process_noise, leave_one_out_d2
+from .inputs import FIT_FOCAL_SPOT, fit_spots
+from .params import check_names
+from .scenario import KEY
+
+__all__ = ["ASSIMILATION_KEY", "HISTORY_VERSION", "DEFAULT_PROCESS_NOISE", "CHOICE_KEY", "THRESHOLD_KEY",
+           "calibration_entry", "nominal_kinematics", "current_assimilation", "calibration_count", "seen_record_ids",
+           "stored_tensor", "filter_state", "on_axis", "process_noise_choice", "with_process_noise_choice",
+           "process_noise_source", "alarm_threshold_choice", "with_alarm_threshold", "threshold_in_force",
+           "split_new", "merged_history", "updated_learned", "state_history"]
+#: Key of the assimilation state under ``Scenario.learned``.
+ASSIMILATION_KEY = "assimilation"
+#: Layout version of ``/learned/assimilation``.
+HISTORY_VERSION = 1
+#: q [mrad^2/day] of the drifting axis offsets when the calibration has no drift model and no choice could be
+#: made on its records (:func:`process_noise_choice`): the random-walk setting chosen on the real PAINT
+#: archive's online protocol by leave-heliostats-out CV (benchmarks/bench_carryover.py, kq0.03).
+DEFAULT_PROCESS_NOISE = 0.03
+#: Key under ``/learned/calibration`` of the q chosen on the calibration's records, with how it was chosen.
+CHOICE_KEY = "process_noise_choice"
+#: Key under ``/learned/calibration`` of the step-alarm threshold chosen on the calibration's records.
+THRESHOLD_KEY = "alarm_threshold"
+_DRIFT_NAMES = ("initial_angle_1", "initial_angle_2")
+_HISTORY_FIELDS = ("heliostat", "record_id", "time", "mean", "variance", "innovation", "d2", "statistic", "window",
+                   "alarm", "predicted_error", "update")
+
+#: Stored types of the history's fields that are narrower than computed: float32 halves the state's columns
+#: (~1e-7 relative), and the small counters fit int32 (:func:`state_history` hands them back as int64); the
+#: rest keeps its type. Large arrays are also compressed on writing (:data:`heliotwin.io.scenario.COMPRESS_BYTES`).
+_HISTORY_STORED = {"mean": torch.float32, "variance": torch.float32, "innovation": torch.float32,
+                   "heliostat": torch.int32, "window": torch.int32, "update": torch.int32}
+
+
+def calibration_count(scenario: Scenario) -> int:
+    """How many ``calibrate`` steps the scenario's provenance holds (a new one restarts the update's state)."""
+    return sum(1 for p in scenario.provenance or [] if isinstance(p, dict) and p.get("step") == "calibrate")
+
+
+def current_assimilation(scenario: Scenario) -> dict | None:
+    """``/learned/assimilation`` when it belongs to the scenario's current calibration (None after a
+    recalibration: its threshold and step-test evidence were about the replaced one; the history stays)."""
+    st = scenario.learned.get(ASSIMILATION_KEY)
+    if not isinstance(st, dict):
+        return None
+    stamp = int(torch.as_tensor(st.get("calibrations", -1)).reshape(-1)[0])
+    return st if stamp == calibration_count(scenario) else None
+
+
+def seen_record_ids(scenario: Scenario) -> set:
+    """Record ids some provenance step lists as seen (``calibrate``'s training records, updates' records)."""
+    seen = set()
+    for step in scenario.provenance or []:
+        recs = step.get("records") if isinstance(step, dict) else None
+        if isinstance(recs, dict):
+            for ids in recs.values():
+                if isinstance(ids, list):
+                    seen.update(int(i) for i in ids if isinstance(i, (int, float)))
+    return seen
+
+
+def stored_tensor(cal: dict, where: str, path, *keys) -> torch.Tensor:
+    obj = cal
+    try:
+        for k in keys:
+            obj = obj[k]
+        return torch.as_tensor(obj, dtype=torch.float64)
+    except (KeyError, TypeError, ValueError, RuntimeError):
+        raise InputFileError(path, "missing or malformed (a rigid-body calibration with its posterior, "
+                                   "calibrate --method lm)", field=f"{where}/{'/'.join(keys)}") from None
+
+
+def calibration_entry(scenario: Scenario) -> tuple[dict, list, tuple]:
+    """The ``/learned/calibration`` entry an update starts from, its heliostats and parameter names."""
+    where = f"/learned/{KEY}"
+    cal = scenario.learned.get(KEY)
+    if not isinstance(cal, dict) or not cal.get("heliostats"):
+        raise InputFileError(scenario.path, "no calibration to update (run heliotwin calibrate -o first)", field=where)
+    if cal.get("networks") or not cal.get("posterior"):
+        raise InputFileError(scenario.path, f"method {cal.get('method')!r} has no rigid-body posterior to update "
+                                            "(calibrate --method lm)", field=f"{where}/posterior")
+    ids = cal["heliostats"]
+    if not isinstance(ids, list) or not all(isinstance(i, str) for i in ids):
+        raise InputFileError(scenario.path, "expected a list of heliostat ids", field=f"{where}/heliostats")
+    try:
+        names = check_names(list(cal["parameter_names"]))
+    except (KeyError, TypeError, HeliotwinError):
+        raise InputFileError(scenario.path, "missing or unknown parameter names",
+                             field=f"{where}/parameter_names") from None
+    return cal, ids, names
+
+
+def nominal_kinematics(cal: dict, path, n: int) -> Kinematics:
+    try:
+        kin = Kinematics(**{f.name: torch.as_tensor(cal["nominal"][f.name]) for f in fields(Kinematics)})
+    except (KeyError, TypeError, ValueError, RuntimeError):
+        raise InputFileError(path, "missing or malformed nominal kinematics", field=f"/learned/{KEY}/nominal") from None
+    if kin.num_heliostats != n:
+        raise InputFileError(path, f"expected {n} heliostats", field=f"/learned/{KEY}/nominal/position")
+    return kin
+
+
+def _state(cal: dict, names: tuple, path, n: int, q_given: float | None, seen_time: torch.Tensor) -> FilterState:
+    """The filter state of the calibration (module docstring); ``seen_time`` [H]: latest seen record time."""
+    where = f"/learned/{KEY}"
+    p = len(names)
+    mean = stored_tensor(cal, where, path, "deviations")
+    cov = stored_tensor(cal, where, path, "posterior", "covariance").clone()
+    noise = stored_tensor(cal, where, path, "posterior", "noise_rad")
+    if mean.shape != (n, p) or cov.shape != (n, p, p) or noise.shape != (n,):
+        raise InputFileError(path, f"deviations / posterior must be [{n}, {p}] / [{n}, {p}, {p}] / [{n}]",
+                             field=f"{where}/posterior")
+    drift = cal.get("drift") or {}
+    time = seen_time.clone()
+    drift_names = tuple(drift.get("names") or _DRIFT_NAMES)
+    if any(d not in names for d in drift_names):
+        raise InputFileError(path, f"drift names {list(drift_names)} not among the parameters", field=f"{where}/drift")
+    cols = tuple(names.index(d) for d in drift_names)
+    q = 1e-6 * DEFAULT_PROCESS_NOISE
+    chosen = _stored_choice(cal, path)
+    if chosen is not None:
+        q = 1e-6 * chosen
+    if drift:
+        p_l = stored_tensor(cal, where, path, "drift", "covariance")
+        t_l = stored_tensor(cal, where, path, "drift", "time")
+        q = float(stored_tensor(cal, where, path, "drift", "process_noise_rad2_per_day").reshape(-1)[0])
+        if p_l.shape != (n, len(cols), len(cols)) or t_l.shape != (n,):
+            raise InputFileError(path, "malformed drift state", field=f"{where}/drift")
+        idx = torch.tensor(cols)
+        cov[:, idx[:, None], idx[None, :]] += p_l  # the offset's own uncertainty on top of the static posterior
+        time = torch.where(torch.isfinite(t_l), t_l, time)
+    if q_given is not None:
+        q = 1e-6 * q_given
+    return FilterState(mean=mean, covariance=cov, time=time, noise=noise, process_noise=q, drift_columns=cols,
+                       names=names)
+
+
+def _stored_choice(cal: dict, path) -> float | None:
+    """q [mrad^2/day] of ``/learned/calibration/process_noise_choice`` (None: none stored or none made)."""
+    choice = cal.get(CHOICE_KEY)
+    if not isinstance(choice, dict):
+        return None
+    try:
+        q = float(torch.as_tensor(choice["process_noise_mrad2_per_day"], dtype=torch.float64).reshape(-1)[0])
+    except (KeyError, TypeError, ValueError, RuntimeError, IndexError):
+        raise InputFileError(path, "malformed process-noise choice",
+                             field=f"/learned/{KEY}/{CHOICE_KEY}/process_noise_mrad2_per_day") from None
+    if not (math.isfinite(q) and q >= 0):
+        raise InputFileError(path, f"expected a number >= 0, got {q}",
+                             field=f"/learned/{KEY}/{CHOICE_KEY}/process_noise_mrad2_per_day")
+    return q
+
+
+def _stored_choice_dict(choice: dict) -> dict:
+    """The choice as stored (tensors for the numbers, text for how it was made)."""
+    return {"process_noise_mrad2_per_day": torch.tensor([choice["process_noise_mrad2_per_day"]], dtype=torch.float64),
+            "grid_mrad2_per_day": torch.tensor(choice["grid_mrad2_per_day"], dtype=torch.float64),
+            "validation_error_mrad": torch.tensor(choice["validation_error_mrad"], dtype=torch.float64),
+            "validation_records": torch.tensor([choice["validation_records"]]),
+            "validation_heliostats": torch.tensor([choice["validation_heliostats"]]),
+            "share": torch.tensor([choice["share"]], dtype=torch.float64), "method": choice["method"]}
+
+
+def process_noise_choice(scenario: Scenario, records: RecordTable) -> dict | None:
+    """The random walk's q [mrad^2/day] chosen on the records ``scenario``'s calibration saw, for a calibration
+    without a drift model (:func:`heliotwin.calibrate.assimilate.choose_process_noise`: each heliostat's
+    latest quarter of those records predicted by the walk run through its earlier ones).
+
+    Parameters
+    ----------
+    scenario : Scenario
+        With a rigid-body calibration (``calibrate --method lm``).
+    records : RecordTable
+        Records of the plant (any heliostat ids); only those the calibration lists as seen are used.
+
+    Returns
+    -------
+    dict or None
+        ``process_noise_mrad2_per_day`` (None: too few seen records), the grid, its validation errors [mrad]
+        and counts, and ``method`` (how it was chosen); None when the calibration has a drift model (its q
+        stands) or is not a rigid-body one.
+    """
+    cal = scenario.learned.get(KEY)
+    if not isinstance(cal, dict) or cal.get("drift") or cal.get("networks") or not cal.get("posterior"):
+        return None
+    cal, ids, names = calibration_entry(scenario)
+    table = fit_spots(on_axis(records, ids), FIT_FOCAL_SPOT)
+    seen = seen_record_ids(scenario)
+    rows = torch.as_tensor(np.isin(table.record_id.numpy(), np.array(sorted(seen), dtype=np.int64)))
+    table = table.subset(rows)
+    nominal = nominal_kinematics(cal, scenario.path, len(ids))
+    state = _state(cal, names, scenario.path, len(ids), None, torch.full((len(ids),), float("nan")))
+    choice = choose_process_noise(nominal, table, state)
+    choice["method"] = ("chronological validation on the calibration's records: each heliostat's latest "
+                        f"{choice['share']:.0%} predicted by the walk run through its earlier ones; median over "
+                        "heliostats of the mean error; ties to the larger q")
+    return choice
+
+
+def with_process_noise_choice(scenario: Scenario, records: RecordTable) -> tuple[Scenario, dict | None]:
+    """``scenario`` with :func:`process_noise_choice` stored under ``/learned/calibration`` (where the update
+    reads it), and the choice; unchanged (and None) when there is nothing to choose or too few records."""
+    made = process_noise_choice(scenario, records)
+    if made is None or made["process_noise_mrad2_per_day"] is None:
+        return scenario, None
+    cal = {**scenario.learned[KEY], CHOICE_KEY: _stored_choice_dict(made)}
+    return replace(scenario, learned={**scenario.learned, KEY: cal}), made
+
+
+def filter_state(scenario: Scenario, records: RecordTable, process_noise: float | None = None) -> FilterState:
+    """The filter state an update of ``scenario`` starts from (:class:`~heliotwin.calibrate.assimilate.FilterState`,
+    heliostat axis = the calibrated heliostats): the deviations, their posterior covariance plus the random-walk
+    offset's, the state's time (the drift state's, else the latest seen record's in ``records``), the residual
+    noise and q.
+
+    Parameters
+    ----------
+    records : RecordTable
+        Records on the calibrated heliostats' axis (seen ones give the time when the calibration has none).
+    process_noise : float, optional
+        q [mrad^2/day] replacing the stored one.
+    """
+    cal, ids, names = calibration_entry(scenario)
+    seen = seen_record_ids(scenario)
+    seen_rows = torch.as_tensor(np.isin(records.record_id.numpy(), np.array(sorted(seen), dtype=np.int64)))
+    t = _with_time(records)
+    ok = seen_rows & torch.isfinite(t)
+    seen_time = torch.full((len(ids),), float("nan"), dtype=torch.float64)
+    seen_time = seen_time.scatter_reduce(0, records.heliostat_index[ok], t[ok], reduce="amax", include_self=False)
+    state = _state(cal, names, scenario.path, len(ids), process_noise, seen_time)
+    window = (current_assimilation(scenario) or {}).get("window") or {}
+    if window.get("heliostats") == list(ids):  # the same calibration's heliostats: its evidence carries on
+        try:
+            g = torch.as_tensor(window["g"], dtype=torch.float64)
+            f = torch.as_tensor(window["f"], dtype=torch.float64)
+        except (KeyError, TypeError, ValueError, RuntimeError):
+            raise InputFileError(scenario.path, "malformed step-test window",
+                                 field=f"/learned/{ASSIMILATION_KEY}/window") from None
+        state = replace(state, window_g=g, window_f=f)
+    return state
+
+
+def on_axis(table: RecordTable, ids: list) -> RecordTable:
+    """The records of ``ids`` re-indexed onto that list (heliostats without records are fine)."""
+    pos = {h: i for i, h in enumerate(ids)}
+    remap = torch.tensor([pos.get(h, -1) for h in table.heliostat_ids], dtype=torch.long)
+    new = remap[table.heliostat_index] if len(table) else table.heliostat_index
+    out = table.subset(new >= 0)
+    out.heliostat_index = new[new >= 0]
+    out.heliostat_ids = list(ids)
+    return out
+
+
+def alarm_threshold_choice(scenario: Scenario, records: RecordTable, false_alarm_rate: float = FALSE_ALARM_RATE,
+                           window: int = WINDOW) -> dict | None:
+    """The step-alarm threshold of ``scenario``'s rigid-body calibration, chosen on the records it saw
+    (:func:`~heliotwin.calibrate.assimilate.alarm_threshold` of the target ``false_alarm_rate`` per record,
+    ``window`` step tests per record, and the normalised leave-one-out residuals of those records under the
+    fit's own posterior, :func:`~heliotwin.calibrate.assimilate.leave_one_out_d2`).
+
+    Parameters
+    ----------
+    records : RecordTable
+        Records of the plant (any heliostat ids); only those the calibration lists as seen are used.
+
+    Returns
+    -------
+    dict or None
+        ``threshold`` (d^2), ``kappa``, ``false_alarm_rate``, ``tests``, ``validation_records``, ``method``;
+        None for a calibration without a rigid-body posterior (nothing to update).
+    """
+    cal = scenario.learned.get(KEY)
+    if not isinstance(cal, dict) or cal.get("networks") or not cal.get("posterior"):
+        return None
+    cal, ids, names = calibration_entry(scenario)
+    table = fit_spots(on_axis(records, ids), FIT_FOCAL_SPOT)
+    seen = seen_record_ids(scenario)
+    rows = torch.as_tensor(np.isin(table.record_id.numpy(), np.array(sorted(seen), dtype=np.int64)))
+    nominal = nominal_kinematics(cal, scenario.path, len(ids))
+    state = _state(cal, names, scenario.path, len(ids), None, torch.full((len(ids),), float("nan")))
+    # validation under the fit's own posterior (the Laplace posterior of those records, without the walk's)
+    state = replace(state, covariance=stored_tensor(cal, f"/learned/{KEY}", scenario.path, "posterior", "covariance"))
+    d2 = leave_one_out_d2(nominal, table.subset(rows), state) if bool(rows.any()) else None
+    made = alarm_threshold(false_alarm_rate, d2, tests=window)
+    made["method"] = ("chi-square quantile of the false-alarm rate per step test, widened by the 90 % quantile of "
+                      "the leave-one-out normalised residuals of the calibration's records")
+    return made
+
+
+def with_alarm_threshold(scenario: Scenario, records: RecordTable, false_alarm_rate: float = FALSE_ALARM_RATE,
+                         window: int = WINDOW) -> tuple[Scenario, dict | None]:
+    """``scenario`` with :func:`alarm_threshold_choice` stored under ``/learned/calibration/alarm_threshold``
+    (where every update reads it), and the choice; unchanged (and None) when there is nothing to update."""
+    made = alarm_threshold_choice(scenario, records, false_alarm_rate, window)
+    if made is None:
+        return scenario, None
+    f64 = dict(dtype=torch.float64)
+    stored = {"threshold": torch.tensor([made["threshold"]], **f64), "kappa": torch.tensor([made["kappa"]], **f64),
+              "false_alarm_rate": torch.tensor([made["false_alarm_rate"]], **f64),
+              "tests": torch.tensor([made["tests"]]), "validation_records": torch.tensor([made["validation_records"]]),
+              "method": made["method"]}
+    cal = {**scenario.learned[KEY], THRESHOLD_KEY: stored}
+    return replace(scenario, learned={**scenario.learned, KEY: cal}), made
+
+
+def _first(value, default=None) -> float:
+    return float(torch.as_tensor(value if value is not None else default).reshape(-1)[0])
+
+
+def threshold_in_force(assimilation: dict | None, cal: dict, false_alarm_rate: float, window: int, nominal,
+                       seen: RecordTable, state: FilterState) -> dict:
+    """The step-alarm threshold an update applies: an earlier update's of the same calibration, else the one
+    ``calibrate`` stored for the same false-alarm rate and window (:func:`with_alarm_threshold`), else chosen
+    now on ``seen`` (the seen records, fit centroids) under ``state`` (the fit's posterior). ``source`` says
+    which."""
+    if assimilation and "threshold" in assimilation:
+        return {"threshold": _first(assimilation["threshold"]), "kappa": _first(assimilation.get("kappa"), 1.0),
+                "false_alarm_rate": _first(assimilation.get("false_alarm_rate"), 0.0), "stored": True,
+                "source": "stored by an earlier update of this calibration"}
+    chosen = cal.get(THRESHOLD_KEY)
+    if isinstance(chosen, dict):
+        rate, tests = _first(chosen["false_alarm_rate"]), int(_first(chosen["tests"]))
+        if math.isclose(rate, float(false_alarm_rate), rel_tol=1e-12) and tests == max(1, int(window)):
+            return {"threshold": _first(chosen["threshold"]), "kappa": _first(chosen["kappa"]),
+                    "false_alarm_rate": rate, "tests": tests,
+                    "validation_records": int(_first(chosen["validation_records"])), "stored": True,
+                    "source": "stored by calibrate (chosen on the records it saw)"}
+    d2 = leave_one_out_d2(nominal, seen, state) if len(seen) else None
+    return {**alarm_threshold(false_alarm_rate, d2, tests=window), "stored": False,
+            "source": "chosen now on the calibration's records"}
+
+
+def _with_time(table: RecordTable) -> torch.Tensor:
+    return table.time.double() if table.time is not None else torch.full((len(table),), float("nan"))
+
+
+def split_new(table: RecordTable, seen: set, state_time: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, dict]:
+    """Rows (new, seen) of ``table`` and the counts of what is skipped."""
+    ids = table.record_id
+    is_seen = torch.as_tensor(np.isin(ids.cpu().numpy(), np.fromiter(seen, dtype=np.int64, count=len(seen))),
+                              dtype=torch.bool)
+    t = _with_time(table)
+    timed = torch.isfinite(t)
+    st = state_time[table.heliostat_index]
+    late = timed & torch.isfinite(st) & (t <= st)
+    new = ~is_seen & timed & ~late
+    counts = {"records": len(table), "seen": int(is_seen.sum()), "without_time": int((~is_seen & ~timed).sum()),
+              "older_than_state": int((~is_seen & late).sum()), "new": int(new.sum())}
+    return new.nonzero().flatten(), is_seen.nonzero().flatten(), counts
+
+
+def merged_history(previous: dict | None, ids: list, hist: dict, number: int) -> dict:
+    """The stored history with this update's rows appended (heliostat index into ``heliostats``)."""
+    old_ids = list((previous or {}).get("heliostats") or [])
+    all_ids = old_ids + [h for h in ids if h not in set(old_ids)]
+    pos = {h: i for i, h in enumerate(all_ids)}
+    remap = torch.tensor([pos[h] for h in ids], dtype=torch.long)
+    rows = {"heliostat": remap[hist["heliostat"]], "record_id": hist["record_id"].long(), "time": hist["time"],
+            "mean": hist["mean"], "variance": hist["variance"], "innovation": hist["innovation"], "d2": hist["d2"],
+            "statistic": hist["statistic"], "window": hist["window"].long(), "alarm": hist["alarm"],
+            "predicted_error": hist["predicted_error"],
+            "update": torch.full((len(hist["d2"]),), number, dtype=torch.long)}
+    old = (previous or {}).get("history") or {}
+    merged = {}
+    for k, v in rows.items():
+        v = v.detach().cpu()
+        v = v.to(_HISTORY_STORED.get(k, v.dtype))
+        merged[k] = torch.cat([torch.as_tensor(old[k]).to(v.dtype), v]) if k in old else v
+    return {"heliostats": all_ids, "history": merged}
+
+
+def updated_learned(previous: Scenario, cal: dict, ids: list, state: FilterState, old_state: FilterState,
+             threshold: dict, hist: dict) -> dict:
+    names = list(state.names)
+    cols = list(state.drift_columns)
+    mean, cov = state.mean.detach().cpu(), state.covariance.detach().cpu()
+    new_cal = dict(cal)
+    new_cal["deviations"] = mean
+    new_cal["posterior"] = dict(cal["posterior"], covariance=cov)
+    drift = dict(cal.get("drift") or {})
+    static = torch.as_tensor(drift.get("static_deviations", old_state.mean), dtype=torch.float64)
+    new_cal["drift"] = {**drift, "model": "kalman", "names": [names[c] for c in cols],
+                        "offset": (mean - static)[:, cols], "covariance": torch.zeros(len(ids), len(cols), len(cols),
+                                                                                      dtype=torch.float64),
+                        "time": state.time.detach().cpu(), "static_deviations": static,
+                        "process_noise_rad2_per_day": torch.tensor([float(state.process_noise)], dtype=torch.float64)}
+    prev = previous.learned.get(ASSIMILATION_KEY)
+    number = int(torch.as_tensor(prev.get("updates", 0)).reshape(-1)[0]) + 1 if prev else 1
+    merged = merged_history(prev, ids, hist, number)
+    learned = dict(previous.learned)
+    learned[KEY] = new_cal
+    learned[ASSIMILATION_KEY] = {"version": torch.tensor([HISTORY_VERSION]), "updates": torch.tensor([number]),
+                                 "threshold": torch.tensor([threshold["threshold"]], dtype=torch.float64),
+                                 "kappa": torch.tensor([threshold["kappa"]], dtype=torch.float64),
+                                 "false_alarm_rate": torch.tensor([threshold["false_alarm_rate"]], dtype=torch.float64),
+                                 "calibrations": torch.tensor([calibration_count(previous)]),
+                                 "parameter_names": names, **merged}
+    if state.window_g is not None:  # the step tests' evidence of each heliostat's latest records
+        learned[ASSIMILATION_KEY]["window"] = {"heliostats": list(ids), "g": state.window_g.detach().cpu(),
+                                               "f": state.window_f.detach().cpu()}
+    return learned
+
+
+def process_noise_source(previous: Scenario, cal: dict, table: RecordTable, q_given: float | None) -> tuple:
+    """Where this update's q comes from: given, the calibration's drift model (or an earlier update's), the
+    choice stored with the calibration, or -- the first time a calibration without a drift model is updated --
+    chosen now on the seen records in ``table`` (:func:`process_noise_choice`) and stored with the calibration
+    so that later updates read it; :data:`DEFAULT_PROCESS_NOISE` when ``table`` holds too few seen records.
+    Returns (scenario, calibration entry, report's ``process_noise`` entry)."""
+    choice = cal.get(CHOICE_KEY)
+    if q_given is not None:
+        return previous, cal, {"source": "given"}
+    if isinstance(choice, dict):
+        return previous, cal, {"source": "stored choice (made on the calibration's records)",
+                               "method": str(choice.get("method", "")),
+                               "validation_error_mrad": torch.as_tensor(choice["validation_error_mrad"]).tolist(),
+                               "grid_mrad2_per_day": torch.as_tensor(choice["grid_mrad2_per_day"]).tolist()}
+    if cal.get("drift"):
+        return previous, cal, {"source": "the stored drift state (the calibration's drift model or an earlier update)"}
+    previous, made = with_process_noise_choice(previous, table)
+    if made is None:
+        return previous, cal, {"source": "default (too few seen records to choose on)"}
+    return previous, previous.learned[KEY], {"source": "chosen now on the calibration's records (stored)",
+                                             "method": made["method"],
+                                             "validation_error_mrad": made["validation_error_mrad"],
+                                             "grid_mrad2_per_day": made["grid_mrad2_per_day"]}
+
+
+def state_history(scenario, heliostat_id: str) -> dict:
+    """One heliostat's state history across every update of ``scenario`` (a Scenario or a path).
+
+    Returns
+    -------
+    dict
+        ``heliostat``, ``parameter_names`` [P], and per assimilated record in time order: ``record_id`` [n],
+        ``time`` [n] (POSIX s), ``update`` [n] (which update), ``mean`` [n, P] and ``variance`` [n, P] of the
+        deviations after the record, ``innovation`` [n, 2] [rad], ``d2`` [n], ``alarm`` [n] (bool),
+        ``predicted_error`` [n] [rad] (numpy arrays). Empty arrays for a heliostat never updated.
+    """
+    sc = load_scenario(scenario) if isinstance(scenario, (str, os.PathLike)) else scenario
+    where = f"/learned/{ASSIMILATION_KEY}"
+    st = sc.learned.get(ASSIMILATION_KEY)
+    if not isinstance(st, dict):
+        raise InputFileError(sc.path, "no update history (run heliotwin update first)", field=where)
+    try:
+        names = list(st["parameter_names"])
+        ids = list(st["heliostats"])
+        h = {k: np.asarray(st["history"][k]) for k in _HISTORY_FIELDS}
+    except (KeyError, TypeError, ValueError):
+        raise InputFileError(sc.path, "malformed update history", field=f"{where}/history") from None
+    if heliostat_id not in ids:
+        cal_ids = (sc.learned.get(KEY) or {}).get("heliostats") or []
+        if heliostat_id not in cal_ids:
+            raise HeliotwinError(f"{sc.path}: heliostat {heliostat_id} was never calibrated or updated")
+        rows = np.zeros(0, dtype=np.int64)
+    else:
+        rows = np.nonzero(h["heliostat"] == ids.index(heliostat_id))[0]
+        rows = rows[np.argsort(h["time"][rows], kind="stable")]
+    out = {k: h[k][rows] for k in _HISTORY_FIELDS if k != "heliostat"}
+    out.update(window=out["window"].astype(np.int64), update=out["update"].astype(np.int64))
+    return {"heliostat": heliostat_id, "parameter_names": names, **out}

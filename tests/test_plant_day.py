@@ -1,0 +1,192 @@
+"""A plant's day as run: the default ``calibrate -o`` writes the current plant (every record, expected error
+from validation inside them), an update after one new day reads only that day's files, the stored choices are
+read (not recomputed), and a killed or concurrent update leaves the plant intact."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from helpers.cli import assert_one_line_error, run_cli
+
+from heliotwin.calibrate.twinstate import THRESHOLD_KEY, seen_record_ids
+from heliotwin.io import paint as P
+from heliotwin.io.scenario import load_scenario
+from heliotwin.simulate import SimulationSettings, simulate_plant, write_paint_folder
+
+OLD_NS = 1_600_000_000 * 10**9
+DAY = 86400.0
+
+
+def _age(folder):
+    for base, _, files in os.walk(folder):
+        for f in files:
+            os.utime(os.path.join(base, f), ns=(OLD_NS, OLD_NS))
+
+
+@pytest.fixture(scope="module")
+def plant(tmp_path_factory):
+    """A small simulated plant (6 heliostats, ~1 year of records) split into "until yesterday" and "today"."""
+    root = tmp_path_factory.mktemp("day")
+    sim = simulate_plant(SimulationSettings(heliostats=6, seed=11, years=1.0, records_per_month=6))
+    full = write_paint_folder(sim, root / "full")
+    _age(full)
+    return full
+
+
+def _split_at_last_day(full, dest):
+    """A copy of ``full`` without its last day's records (returned: [(path in dest, file in full)]) and the
+    metadata rows of that day."""
+    shutil.copytree(full, dest)
+    meta = os.path.join(dest, "metadata", "calibration-metadata.csv")
+    lines = open(meta).read().splitlines(keepends=True)
+    from heliotwin.io.records import parse_time
+    times = {ln.split(",")[0]: parse_time(ln.rstrip("\n").split(",")[-1]) for ln in lines[1:]}
+    last = max(t for t in times.values() if np.isfinite(t))
+    today = {rid for rid, t in times.items() if np.isfinite(t) and t > last - DAY}
+    moved = []
+    for hid in P.list_heliostats(dest):
+        cal = os.path.join(dest, hid, "Calibration")
+        for f in os.listdir(cal):
+            if f.split("-")[0] in today:
+                os.remove(os.path.join(cal, f))
+                moved.append((os.path.join(cal, f), os.path.join(full, hid, "Calibration", f)))
+    with open(meta, "w") as fh:
+        fh.write("".join(ln for ln in lines if ln.split(",")[0] not in today))
+    _age(dest)
+    tail = [ln for ln in lines[1:] if ln.split(",")[0] in today]
+    return moved, tail, meta
+
+
+def _grow(moved, tail, meta):
+    for dest, src in moved:
+        shutil.copy(src, dest)
+        os.utime(dest, ns=(OLD_NS + 5 * 10**9,) * 2)
+    with open(meta, "a") as fh:
+        fh.write("".join(tail))
+    os.utime(meta, ns=(OLD_NS + 5 * 10**9,) * 2)
+
+
+def test_default_calibrate_writes_the_current_plant(plant, tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("HELIOTWIN_CACHE_DIR", str(tmp_path / "cache"))
+    out, js = tmp_path / "a.h5", tmp_path / "a.json"
+    code, text, err = run_cli(capsys, "calibrate", "--paint", plant, "--min-records", 20, "-o", out, "--json", js,
+                              "--no-plots")
+    assert code == 0, err
+    report = json.loads(js.read_text())
+    ds = P.load_paint(plant)
+    usable = set(ds.records.record_id.tolist())
+    seen = seen_record_ids(load_scenario(out))
+    assert seen == usable  # the written plant saw every usable record, the latest ones included
+    assert report["written_plant"]["records_fitted"] == len(usable)
+    expected = report["expected_error"]
+    assert expected["holdout_records"] == 10 and 0 < expected["median_of_mean_mrad"] < 2.0
+    assert report["overall"]["median_of_mean_test_mrad"] == expected["median_of_mean_mrad"]
+    assert "expected error" in text and "every record" in text
+    # the updates' threshold is learned here, on those records, and stored
+    cal = load_scenario(out).learned["calibration"]
+    assert float(cal[THRESHOLD_KEY]["threshold"][0]) > 0 and int(cal[THRESHOLD_KEY]["validation_records"][0]) > 100
+
+
+def test_a_study_protocol_says_its_plant_saw_only_the_training_part(plant, tmp_path, capsys):
+    out, js = tmp_path / "s.h5", tmp_path / "s.json"
+    code, _, err = run_cli(capsys, "calibrate", "--paint", plant, "--min-records", 20, "--split", "chrono",
+                           "--train", 25, "-o", out, "--json", js, "--no-plots")
+    assert code == 0, err
+    report = json.loads(js.read_text())
+    assert "training part" in report["written_plant"]["records"] and "expected_error" not in report
+    seen = seen_record_ids(load_scenario(out))
+    assert len(seen) == 25 * report["overall"]["n_heliostats"]
+
+
+def test_train_without_a_study_split_is_a_one_line_error(plant, tmp_path, capsys):
+    code, _, err = run_cli(capsys, "calibrate", "--paint", plant, "--train", 30, "-o", tmp_path / "x.h5")
+    assert_one_line_error(code, err, "--train", "--split")
+    assert not (tmp_path / "x.h5").exists()
+
+
+@pytest.fixture(scope="module")
+def calibrated(plant, tmp_path_factory):
+    """The plant until yesterday, calibrated (the current plant), and what arrives today."""
+    root = tmp_path_factory.mktemp("cal")
+    moved, tail, meta = _split_at_last_day(plant, root / "plant")
+    env = {**os.environ, "HELIOTWIN_CACHE_DIR": str(root / "cache"), "HELIOTWIN_CACHE": "1"}
+    out = root / "a.h5"
+    subprocess.run([sys.executable, "-m", "heliotwin", "calibrate", "--paint", str(root / "plant"), "--min-records",
+                    "20", "-o", str(out), "--quiet"], check=True, env=env)
+    assert moved, "the simulated plant has records on its last day"
+    return {"root": root, "folder": root / "plant", "moved": moved, "tail": tail, "meta": meta, "scenario": out,
+            "env": env}
+
+
+def _run(args, env, **kw):
+    return subprocess.run([sys.executable, "-m", "heliotwin", *map(str, args)], env=env, capture_output=True,
+                          text=True, **kw)
+
+
+def test_an_update_after_one_new_day_reads_only_the_new_files(calibrated, tmp_path):
+    c = calibrated
+    work = tmp_path / "plant"
+    shutil.copytree(c["folder"], work)
+    _age(work)
+    env = {**c["env"], "HELIOTWIN_CACHE_DIR": str(tmp_path / "cache")}
+    first = _run(["update", "--scenario", c["scenario"], "--paint", work, "-o", tmp_path / "b0.h5", "--json",
+                  tmp_path / "b0.json"], env)
+    assert first.returncode == 0, first.stderr
+    r0 = json.loads((tmp_path / "b0.json").read_text())
+    assert r0["overall"]["records"] == 0  # nothing new yet: the plant saw every record
+    assert r0["threshold"]["source"].startswith("stored by calibrate")  # not recomputed here
+    moved = [(os.path.join(work, os.path.relpath(d, c["folder"])), s) for d, s in c["moved"]]
+    _grow(moved, c["tail"], os.path.join(work, "metadata", "calibration-metadata.csv"))
+    second = _run(["update", "--scenario", tmp_path / "b0.h5", "--paint", work, "-o", tmp_path / "b1.h5", "--json",
+                   tmp_path / "b1.json"], env)
+    assert second.returncode == 0, second.stderr
+    r1 = json.loads((tmp_path / "b1.json").read_text())
+    assert r1["reading"]["parsed"] == len(moved)  # today's files only, counted
+    assert r1["reading"]["indexed"] == r1["reading"]["files"] - len(moved)
+    assert r1["overall"]["records"] == len(moved)
+
+
+def test_a_killed_update_leaves_the_plant_and_the_index_intact(calibrated, tmp_path):
+    c = calibrated
+    plant_file = tmp_path / "plant.h5"
+    shutil.copy(c["scenario"], plant_file)
+    before = plant_file.read_bytes()
+    env = {**c["env"], "HELIOTWIN_CACHE_DIR": str(tmp_path / "cache")}
+    proc = subprocess.Popen([sys.executable, "-m", "heliotwin", "update", "--scenario", str(plant_file), "--paint",
+                             str(c["folder"]), "-o", str(plant_file), "--in-place", "--quiet"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    time.sleep(1.0)  # somewhere inside the command (imports, reading or the update): the outcome is the same
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert plant_file.read_bytes() == before
+    assert [f.name for f in tmp_path.iterdir() if f.name.startswith(".") or f.suffix == ".tmp"] == []
+    again = _run(["update", "--scenario", plant_file, "--paint", c["folder"], "-o", plant_file, "--in-place",
+                  "--json", tmp_path / "u.json"], env)
+    assert again.returncode == 0, again.stderr
+    assert json.loads((tmp_path / "u.json").read_text())["counts"]["records"] > 0
+
+
+def test_two_concurrent_updates_of_one_plant_do_not_lose_one(calibrated, tmp_path):
+    from heliotwin.io.lock import plant_lock
+
+    c = calibrated
+    plant_file = tmp_path / "plant.h5"
+    shutil.copy(c["scenario"], plant_file)
+    with plant_lock(plant_file):  # another update holds the plant
+        busy = _run(["update", "--scenario", plant_file, "--paint", c["folder"], "-o", plant_file, "--in-place"],
+                    c["env"])
+    assert busy.returncode != 0 and "another heliotwin command is updating" in busy.stderr
+    assert len(busy.stderr.strip().splitlines()) == 1
+
+
+def test_in_place_needs_the_flag(calibrated, capsys):
+    c = calibrated
+    code, _, err = run_cli(capsys, "update", "--scenario", c["scenario"], "--paint", c["folder"], "-o", c["scenario"])
+    assert_one_line_error(code, err, "--in-place")
