@@ -9,6 +9,7 @@ Layout: :mod:`.common` (error reporting, argument types), then one module per co
 * :mod:`.update` -- ``update``, ``history``
 * :mod:`.surfaces` -- ``reconstruct``, ``predict``
 * :mod:`.simulate` -- ``simulate``, ``score``
+* :mod:`.report` -- ``report`` (the plant at a glance, one HTML page)
 
 The groups are ordinary imports: a command whose module fails to import breaks ``heliotwin`` loudly instead
 of disappearing from it. Library modules never import this package. Building the parser imports no torch
@@ -26,13 +27,13 @@ import argparse
 import sys
 
 from .. import __version__
-from . import calibrate, field, plan, plant, simulate, surfaces, update
+from . import calibrate, field, plan, plant, report, simulate, surfaces, update
 from .common import ArgumentParser, run_command
 
 __all__ = ["build_parser", "main", "run_command"]
 
 #: Command groups in the order of ``heliotwin --help``.
-GROUPS = (plant, calibrate, plan, update, surfaces, field, simulate)
+GROUPS = (plant, calibrate, plan, update, surfaces, field, simulate, report)
 
 
 def build_parser() -> argparse.ArgumentParser:

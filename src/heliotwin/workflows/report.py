@@ -1,0 +1,373 @@
+"""The ``report`` workflow: the plant at a glance, one self-contained HTML page an operator opens each morning.
+
+:func:`plant_report` reads what a scenario holds (and, when given, a PAINT folder's records) and gathers:
+
+* the per-heliostat state (:func:`heliostat_state`): position, whether calibrated, the 95 % interval of the
+  axis offsets from the stored posterior, the latest predicted pointing error and the step alarms of the
+  update history (``heliotwin update``), days since the last record, learned surfaces;
+* the alarms since the last report (the latest update's), sorted by their step statistic, with what to do;
+* per-heliostat detail (state history across updates, residuals) for the alarmed and the least certain
+  heliostats with an update history, at most :attr:`ReportSettings.detail` of them, so that the page stays
+  small at any plant size;
+* the calibration plan for the heliostats that need records most (the ``plan`` workflow, with its sky map);
+* the receiver (the ``field`` workflow): equator aiming and the stored aim points on one colour scale, with
+  the stored peak-flux limit;
+* provenance (:func:`heliotwin.workflows.show.describe_scenario`).
+
+The page itself is drawn by :mod:`heliotwin.workflows.report_page` (Plotly, its JavaScript inlined). Like every
+workflow this one writes no file: the report dict carries the page as ``html`` and the caller writes it.
+Nothing here depends on the wall clock: "days since" and "tomorrow" are counted from the latest record time
+the plant holds (``reference_time``).
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..errors import HeliotwinError
+from ..field.targets import CylinderTarget
+from ..io.records import parse_time
+from ..io.scenario import Scenario
+from .field import FieldRunSettings, field, sun_direction_at
+from .plan import PlanSettings, plan
+from .report_page import render_page
+from .show import describe_scenario
+from .update import ASSIMILATION_KEY
+
+__all__ = ["ReportSettings", "QUANTITIES", "heliostat_state", "alarm_rows", "heliostat_detail", "plant_report"]
+
+#: Colour quantities of the field map: key -> (label with unit, higher is worse).
+QUANTITIES = {
+    "predicted_error_mrad": ("latest predicted pointing error [mrad]", True),
+    "interval_mrad": ("95 % interval of the axis offsets [mrad]", True),
+    "days_since_record": ("days since the last record [d]", True),
+    "alarms": ("step alarms, all updates [-]", True),
+    "alarms_latest": ("step alarms in the latest update [-]", True),
+    "statistic_latest": ("largest alarm's step statistic, latest update [-]", True),
+    "surface_learned": ("learned surface (1 = yes) [-]", False),
+    "calibrated": ("calibrated kinematics (1 = yes) [-]", False),
+}
+
+#: The two encoder offsets whose posterior the interval is of (names of the calibration's parameters).
+OFFSETS = ("initial_angle_1", "initial_angle_2")
+
+
+@dataclass(frozen=True)
+class ReportSettings:
+    """Options of ``heliotwin report`` (same names and defaults).
+
+    Attributes
+    ----------
+    colour : str
+        The field map's initial colour quantity (a key of :data:`QUANTITIES`; the page switches between all).
+    detail : int
+        Most heliostats with their own section (alarmed first, then the widest intervals).
+    plan_heliostats : int
+        Heliostats in the calibration plan (the ``plan`` workflow runs once for each).
+    plan_count : int
+        Sun positions proposed per planned heliostat.
+    time_utc : str or None
+        Instant of the receiver map (ISO, UTC); None: the stored aim points' instant, else no receiver map.
+    flux : bool
+        Draw the receiver (runs the field model twice: equator and stored aim points).
+    resolution : (int, int)
+        Receiver map ``(rows, cols)``.
+    """
+
+    colour: str = "predicted_error_mrad"
+    detail: int = 40
+    plan_heliostats: int = 10
+    plan_count: int = 3
+    time_utc: str | None = None
+    flux: bool = True
+    resolution: tuple = (24, 64)
+
+    def __post_init__(self):
+        if self.colour not in QUANTITIES:
+            raise HeliotwinError(f"--colour {self.colour}: expected one of {', '.join(QUANTITIES)}")
+        for name, lo in (("detail", 0), ("plan_heliostats", 0), ("plan_count", 1)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= 10000:
+                raise HeliotwinError(f"--{name.replace('_', '-')}: expected an integer in {lo}..10000, got {v!r}")
+
+
+# ------------------------------------------------------------------------------------------ per heliostat
+def _history(scenario: Scenario) -> dict | None:
+    """The update history as numpy arrays (``heliostat`` indexes ``ids``), or None."""
+    st = scenario.learned.get(ASSIMILATION_KEY)
+    if not isinstance(st, dict) or not isinstance(st.get("history"), dict):
+        return None
+    h = {k: np.asarray(v.detach().cpu() if torch.is_tensor(v) else v) for k, v in st["history"].items()}
+    return {"ids": list(st["heliostats"]), "names": list(st.get("parameter_names") or []), "rows": h,
+            "threshold": float(np.asarray(st.get("threshold", [math.nan])).reshape(-1)[0]),
+            "updates": int(np.asarray(st.get("updates", [0])).reshape(-1)[0])}
+
+
+def _per_heliostat_latest(ids: list, hist: dict | None) -> tuple[np.ndarray, ...]:
+    """Latest record time [s], latest predicted error [rad], alarm counts (all, latest update) and the latest
+    update's largest alarm statistic per heliostat (arrays [H])."""
+    n = len(ids)
+    last_t, last_err = np.full(n, np.nan), np.full(n, np.nan)
+    alarms, latest, stat = np.zeros(n), np.zeros(n), np.zeros(n)
+    if hist is None or not len(hist["rows"].get("time", [])):
+        return last_t, last_err, alarms, latest, stat
+    r = hist["rows"]
+    where = {h: i for i, h in enumerate(ids)}
+    to_plant = np.array([where.get(h, -1) for h in hist["ids"]])[r["heliostat"].astype(np.int64)]
+    ok = to_plant >= 0
+    order = np.argsort(r["time"][ok], kind="stable")
+    rows, t, err = to_plant[ok][order], r["time"][ok][order], r["predicted_error"][ok][order]
+    last_t[rows], last_err[rows] = t, err  # the latest row of each heliostat is written last
+    alarm = r["alarm"][ok].astype(bool)
+    np.add.at(alarms, to_plant[ok][alarm], 1)
+    newest = alarm & (r["update"][ok] == r["update"].max())
+    np.add.at(latest, to_plant[ok][newest], 1)
+    np.maximum.at(stat, to_plant[ok][newest], r["statistic"][ok][newest].astype(np.float64))
+    return last_t, last_err, alarms, latest, stat
+
+
+def _interval_mrad(cal: dict, ids: list) -> np.ndarray:
+    """95 % interval width [mrad] of the encoder offsets' combined angle, ``2 x 1.96 x sqrt(var_1 + var_2)``,
+    from the stored posterior covariance [H, P, P] (NaN where none)."""
+    out = np.full(len(ids), np.nan)
+    post = cal.get("posterior") or {}
+    names = list(cal.get("parameter_names") or [])
+    if post.get("covariance") is None or not all(n in names for n in OFFSETS):
+        return out
+    cov = torch.as_tensor(post["covariance"], dtype=torch.float64)
+    cols = [names.index(n) for n in OFFSETS]
+    var = cov[:, cols, cols].sum(-1).clamp_min(0.0).numpy()
+    where = {h: i for i, h in enumerate(ids)}
+    rows = np.array([where.get(h, -1) for h in cal.get("heliostats", [])], dtype=np.int64)
+    ok = rows >= 0
+    out[rows[ok]] = 1e3 * 2 * 1.96 * np.sqrt(var[ok])
+    return out
+
+
+def heliostat_state(scenario: Scenario, records=None) -> dict:
+    """Every heliostat's state for the field map.
+
+    Parameters
+    ----------
+    scenario : Scenario
+    records : heliotwin.io.records.RecordTable, optional
+        A PAINT folder's records: their latest time per heliostat counts for "days since the last record".
+
+    Returns
+    -------
+    dict
+        ``ids`` [H], ``x_m``, ``y_m`` [H] (east, north [m]), one numpy array [H] per key of
+        :data:`QUANTITIES` (NaN where unknown), ``reference_time`` (POSIX s: the latest record time the plant
+        holds, or NaN) and ``threshold`` (the update's step-alarm threshold, or NaN).
+    """
+    plant = scenario.plant
+    ids = list(plant.field.ids)
+    pos = plant.field.kinematics.position.detach().cpu().to(torch.float64).numpy()
+    cal = scenario.learned.get("calibration") or {}
+    hist = _history(scenario)
+    last_t, last_err, alarms, latest, stat = _per_heliostat_latest(ids, hist)
+    if records is not None and len(records):
+        where = {h: i for i, h in enumerate(ids)}
+        t = records.time.detach().cpu().numpy().astype(np.float64)
+        per_id = np.array([where.get(h, -1) for h in records.heliostat_ids], dtype=np.int64)
+        rows = per_id[records.heliostat_index.detach().cpu().numpy()]
+        ok = (rows >= 0) & np.isfinite(t)
+        folder_last = np.full(len(ids), -np.inf)
+        np.maximum.at(folder_last, rows[ok], t[ok])
+        last_t = np.where(np.isfinite(folder_last), np.fmax(last_t, folder_last), last_t)
+    finite = last_t[np.isfinite(last_t)]
+    reference = float(finite.max()) if len(finite) else math.nan
+    calibrated = set(cal.get("heliostats") or [])
+    surfaces = set((scenario.learned.get("surfaces") or {}).keys())
+    return {"ids": ids, "x_m": pos[:, 0], "y_m": pos[:, 1],
+            "predicted_error_mrad": 1e3 * last_err, "interval_mrad": _interval_mrad(cal, ids),
+            "days_since_record": (reference - last_t) / 86400.0, "alarms": alarms, "alarms_latest": latest,
+            "statistic_latest": stat,
+            "surface_learned": np.array([1.0 if h in surfaces else 0.0 for h in ids]),
+            "calibrated": np.array([1.0 if h in calibrated else 0.0 for h in ids]),
+            "reference_time": reference, "threshold": hist["threshold"] if hist else math.nan}
+
+
+def _iso(t: float) -> str:
+    return _dt.datetime.fromtimestamp(float(t), _dt.timezone.utc).isoformat(timespec="minutes")
+
+
+def alarm_rows(scenario: Scenario, *, latest_only: bool = True) -> list[dict]:
+    """The step alarms of the update history, largest step statistic first.
+
+    Returns
+    -------
+    list of dict
+        ``heliostat``, ``record_id``, ``time`` (UTC ISO), ``update``, ``statistic`` [-] (and ``threshold``),
+        ``innovation_mrad`` (the record's miss before assimilation [mrad]) and ``action`` (what the operator
+        should do). Only the latest update's alarms when ``latest_only``.
+    """
+    hist = _history(scenario)
+    if hist is None or not len(hist["rows"].get("alarm", [])):
+        return []
+    r, thr = hist["rows"], hist["threshold"]
+    pick = r["alarm"].astype(bool)
+    if latest_only:
+        pick &= r["update"] == r["update"].max()
+    out = []
+    for i in np.nonzero(pick)[0]:
+        size = 1e3 * float(np.linalg.norm(r["innovation"][i]))
+        big = math.isfinite(thr) and float(r["statistic"][i]) > 3 * thr
+        action = ("inspect the drive and encoders (a step far above the threshold), then take a calibration record"
+                  if big else "take a calibration record soon to confirm the step (the update re-opened the offset)")
+        out.append({"heliostat": hist["ids"][int(r["heliostat"][i])], "record_id": int(r["record_id"][i]),
+                    "time": _iso(r["time"][i]), "update": int(r["update"][i]),
+                    "statistic": float(r["statistic"][i]), "threshold": thr, "innovation_mrad": size,
+                    "action": action})
+    return sorted(out, key=lambda a: -a["statistic"])
+
+
+def heliostat_detail(scenario: Scenario, heliostat: str) -> dict:
+    """One heliostat's history across updates, for its page section.
+
+    Returns
+    -------
+    dict
+        ``heliostat``, ``time`` (UTC ISO) [n], ``offsets_mrad`` {name: mean [n]}, ``offsets_std_mrad``
+        {name: std [n]} (the encoder offsets after each record), ``residual_mrad`` [n] (the record's miss
+        before assimilation), ``predicted_error_mrad`` [n], ``alarm`` [n] (bool), ``update`` [n]. Empty lists
+        for a heliostat without history.
+    """
+    hist = _history(scenario)
+    empty = {"heliostat": heliostat, "time": [], "offsets_mrad": {}, "offsets_std_mrad": {}, "residual_mrad": [],
+             "predicted_error_mrad": [], "alarm": [], "update": []}
+    if hist is None or heliostat not in hist["ids"]:
+        return empty
+    r = hist["rows"]
+    rows = np.nonzero(r["heliostat"] == hist["ids"].index(heliostat))[0]
+    rows = rows[np.argsort(r["time"][rows], kind="stable")]
+    names = hist["names"]
+    cols = {n: names.index(n) for n in OFFSETS if n in names}
+    return {"heliostat": heliostat, "time": [_iso(t) for t in r["time"][rows]],
+            "offsets_mrad": {n: (1e3 * r["mean"][rows, c]).tolist() for n, c in cols.items()},
+            "offsets_std_mrad": {n: (1e3 * np.sqrt(np.maximum(r["variance"][rows, c], 0))).tolist()
+                                 for n, c in cols.items()},
+            "residual_mrad": (1e3 * np.linalg.norm(r["innovation"][rows], axis=-1)).tolist(),
+            "predicted_error_mrad": (1e3 * r["predicted_error"][rows]).tolist(),
+            "alarm": r["alarm"][rows].astype(bool).tolist(), "update": r["update"][rows].astype(int).tolist()}
+
+
+# ------------------------------------------------------------------------------------------------ choices
+def _ranked(state: dict, count: int) -> list[int]:
+    """Heliostat indices that need attention most: alarmed in the latest update (largest step statistic first),
+    then the widest interval, then the longest without a record; at most ``count``."""
+    key_alarm = np.nan_to_num(state["statistic_latest"], nan=0.0)
+    key_width = np.nan_to_num(state["interval_mrad"], nan=-1.0)
+    key_days = np.nan_to_num(state["days_since_record"], nan=-1.0)
+    order = np.lexsort((-key_days, -key_width, -key_alarm))
+    return [int(i) for i in order[:count]]
+
+
+def _plan_rows(scenario: Scenario, state: dict, settings: ReportSettings) -> list[dict]:
+    """The ``plan`` workflow for the heliostats :func:`_ranked` puts first (calibrated ones only)."""
+    if not settings.plan_heliostats or not (scenario.learned.get("calibration") or {}).get("posterior"):
+        return []
+    ref = state["reference_time"]
+    year = _dt.datetime.fromtimestamp(ref + 86400.0, _dt.timezone.utc).year if math.isfinite(ref) else 2030
+    calibrated = [i for i in _ranked(state, len(state["ids"])) if state["calibrated"][i]]
+    out = []
+    for i in calibrated[:settings.plan_heliostats]:
+        hid = state["ids"][i]
+        try:
+            _, ans = plan(scenario, hid, PlanSettings(year=year, count=settings.plan_count, sky=True))
+        except HeliotwinError as exc:
+            out.append({"heliostat": hid, "error": str(exc)})
+            continue
+        out.append({"heliostat": hid, "rms_now_mrad": ans["rms_now_mrad"], "target": ans["target"],
+                    "proposals": ans["proposals"], "sky": {k: np.asarray(v).tolist() for k, v in ans["sky"].items()},
+                    "interval_mrad": float(state["interval_mrad"][i]),
+                    "alarms_latest": int(state["alarms_latest"][i])})
+    return out
+
+
+def _receiver(scenario: Scenario, settings: ReportSettings) -> dict | None:
+    """Equator aiming and (if stored) the stored aim points at one instant, for the receiver section."""
+    plant = scenario.plant
+    if not settings.flux or "receiver" not in plant.targets:
+        return None
+    group = scenario.learned.get("aimpoints") or {}
+    when = settings.time_utc
+    if when is None and group.get("aim") is not None:
+        label = str(next(iter((group.get("instants") or {}).values()), {}).get("instant", ""))
+        try:
+            when = label if math.isfinite(parse_time(label)) else None
+        except ValueError:
+            when = None
+        sun = torch.as_tensor(group["sun_direction"], dtype=torch.float64) if when is None else None
+    else:
+        sun = None
+    if when is None and sun is None:
+        return {"note": "no stored aim points and no --time: no receiver map (give --time)"}
+    if sun is None:
+        sun = sun_direction_at(plant, time_utc=when)
+    maps, aims = {}, None
+    for aim in ("equator", "scenario") if group.get("aim") is not None else ("equator",):
+        rep, result = field(scenario, sun, FieldRunSettings(resolution=tuple(settings.resolution), aim=aim))
+        label = "equator aiming" if aim == "equator" else "stored aim points"
+        maps[label] = {"flux_w_m2": result.flux.detach().cpu().double().numpy(), "power_w": rep["receiver"]["power_w"],
+                       "peak_w_m2": rep["receiver"]["peak_flux_w_m2"]}
+        if aim == "scenario":
+            aims = plant.targets["receiver"].to_local(result.aim.detach().cpu().double()).numpy()
+    rec = plant.targets["receiver"]
+    extent = [float(v) for v in result.extent.detach().cpu()]
+    limit = group.get("peak_limit_w_m2")
+    return {"time_utc": when, "sun_enu": [float(v) for v in sun.detach().cpu()], "maps": maps, "extent_m": extent,
+            "aim_local_m": aims, "limit_w_m2": float(limit) if limit is not None else None,
+            "cylinder": isinstance(rec, CylinderTarget), "radius_m": float(getattr(rec, "radius", 0.0)),
+            "receiver": rec}
+
+
+# ---------------------------------------------------------------------------------------------- workflow
+def plant_report(scenario: Scenario, records=None, settings: ReportSettings = ReportSettings()
+                 ) -> tuple[Scenario, dict]:
+    """The plant page of ``scenario`` (module docstring).
+
+    Parameters
+    ----------
+    scenario : Scenario
+    records : heliotwin.io.records.RecordTable, optional
+        Records of a PAINT folder (``--paint``): their times count for "days since the last record".
+    settings : ReportSettings
+
+    Returns
+    -------
+    scenario : Scenario
+        Unchanged (a report learns nothing).
+    report : dict
+        ``html`` (the page, str), ``heliostats``, ``alarms`` (the latest update's, sorted), ``detail`` (ids
+        with a section), ``plan`` (heliostat ids planned), ``receiver`` (bool), ``reference_time`` (UTC ISO or
+        None) and ``seconds`` {state, plan, receiver, page} [s].
+    """
+    seconds = {}
+    t0 = time.perf_counter()
+    state = heliostat_state(scenario, records)
+    alarms = alarm_rows(scenario)
+    with_history = np.isfinite(state["predicted_error_mrad"]) | (state["alarms"] > 0)
+    detail_ids = [state["ids"][i] for i in _ranked(state, len(state["ids"])) if with_history[i]][:settings.detail]
+    details = [heliostat_detail(scenario, h) for h in detail_ids]
+    seconds["state"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    plans = _plan_rows(scenario, state, settings)
+    seconds["plan"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    receiver = _receiver(scenario, settings)
+    seconds["receiver"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    described = describe_scenario(scenario)
+    html = render_page(described=described, state=state, quantities=QUANTITIES, colour=settings.colour,
+                       alarms=alarms, details=details, plans=plans, receiver=receiver)
+    seconds["page"] = time.perf_counter() - t0
+    ref = state["reference_time"]
+    return scenario, {"html": html, "heliostats": len(state["ids"]), "alarms": alarms, "detail": detail_ids,
+                      "plan": [p["heliostat"] for p in plans], "receiver": bool(receiver and "maps" in receiver),
+                      "reference_time": _iso(ref) if math.isfinite(ref) else None, "seconds": seconds}

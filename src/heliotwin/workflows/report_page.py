@@ -1,0 +1,313 @@
+"""The plant page as one self-contained HTML file: Plotly figures with plotly.js inlined once, no network.
+
+:func:`render_page` draws what :func:`heliotwin.workflows.report.plant_report` gathered: the field map
+(one WebGL scatter, its colour switched by a menu, hover for every value, a click jumps to
+the heliostat's section), the alarms, the calibration plan with its sky maps, the per-heliostat sections
+(offsets with their 2-sigma band across updates, alarms marked, residuals), the receiver maps on one colour
+scale with the aim points and the peak-flux limit contour, and the provenance. It computes nothing physical.
+
+The only hand-written JavaScript is the click handler of the field map (a few lines; Plotly has no "link"
+action). Plotly is a declared dependency; without it :func:`render_page` raises a one-line error.
+"""
+from __future__ import annotations
+
+import html
+import json
+
+import numpy as np
+
+from ..errors import HeliotwinError
+from ..plots import angle_origin, instant_line
+
+try:  # a declared dependency; the message below says what to do where it is missing
+    import plotly.graph_objects as go
+    import plotly.io as pio
+    from plotly.offline import get_plotlyjs
+    from plotly.subplots import make_subplots
+except ImportError:  # pragma: no cover - plotly is installed with heliotwin
+    go = None
+
+__all__ = ["render_page", "PLOTLY_MISSING"]
+
+#: The error when plotly cannot be imported.
+PLOTLY_MISSING = ("heliotwin report needs plotly (a dependency of heliotwin: pip install 'plotly>=5'); "
+                  "it is not importable here")
+
+_CSS = """
+body{font-family:system-ui,sans-serif;margin:0 auto;max-width:1280px;padding:0 16px;color:#222}
+h1{font-size:1.5em} h2{border-bottom:1px solid #ccc;padding-top:8px}
+table{border-collapse:collapse;font-size:.9em} td,th{border:1px solid #ddd;padding:3px 7px;text-align:left}
+th{background:#f3f3f3} .note{color:#666;font-size:.9em} .hl{outline:3px solid #e6550d}
+nav a{margin-right:1em} section.heliostat{border-top:1px dotted #bbb;margin-top:1em}
+"""
+
+_CLICK = """
+<script>
+(function(){var map=document.getElementById('fieldmap'); if(!map||!map.on){return;}
+map.on('plotly_click',function(ev){var id=ev.points[0].text; var el=document.getElementById('h-'+id);
+var note=document.getElementById('clicked');
+document.querySelectorAll('.hl').forEach(function(e){e.classList.remove('hl')});
+if(el){el.classList.add('hl'); el.scrollIntoView({behavior:'smooth'}); note.textContent='';}
+else{note.textContent=id+': no section of its own (only the heliostats that need attention most have one)';}});})();
+</script>
+"""
+
+
+def _e(x) -> str:
+    return html.escape(str(x))
+
+
+def _div(fig, div_id: str) -> str:
+    return pio.to_html(fig, full_html=False, include_plotlyjs=False, div_id=div_id,
+                       config={"displaylogo": False, "responsive": True})
+
+
+def _fmt(v, digits: int = 3) -> str:
+    return "-" if v is None or (isinstance(v, float) and not np.isfinite(v)) else f"{v:.{digits}g}"
+
+
+# -------------------------------------------------------------------------------------------- field map
+def _field_map(state: dict, quantities: dict, colour: str):
+    """The field map: ONE WebGL scatter of every heliostat (positions and ids once, so the page stays small at
+    10,000 heliostats); the menu restyles its colour array. Unknown values (NaN) draw dark grey."""
+    ids = np.asarray(state["ids"], dtype=object)
+    keys = list(quantities)
+    table = np.stack([np.asarray(state[k], dtype=np.float32) for k in keys], axis=1)
+    hover = "<b>%{text}</b><br>" + "<br>".join(f"{_e(quantities[k][0])}: %{{customdata[{j}]:.3g}}"
+                                               for j, k in enumerate(keys)) + "<extra></extra>"
+
+    def style(k):
+        v = table[:, keys.index(k)]
+        return {"marker.color": [np.where(np.isfinite(v), np.round(v, 4), None).tolist()],
+                "marker.colorscale": ["YlOrRd" if quantities[k][1] else "Viridis"],
+                "marker.colorbar.title.text": _e(quantities[k][0])}
+
+    first = style(colour)
+    fig = go.Figure(go.Scattergl(
+        x=np.asarray(state["x_m"], dtype=np.float32), y=np.asarray(state["y_m"], dtype=np.float32), text=ids,
+        customdata=table, mode="markers", name="heliostats (dark grey: no value)", hovertemplate=hover,
+        marker=dict(size=6, color=table[:, keys.index(colour)], colorscale=first["marker.colorscale"][0], showscale=True,
+                    colorbar=dict(title=dict(text=first["marker.colorbar.title.text"], side="right")))))
+    fig.add_trace(go.Scatter(x=[0.0], y=[0.0], mode="markers", name="tower", hoverinfo="name",
+                             marker=dict(symbol="triangle-up", size=14, color="black")))
+    buttons = [dict(label=quantities[k][0], method="restyle", args=[style(k), [0]]) for k in keys]
+    fig.update_layout(
+        height=640, margin=dict(l=60, r=20, t=60, b=50), legend=dict(orientation="h", y=-0.08),
+        xaxis=dict(title="east [m]"), yaxis=dict(title="north [m]", scaleanchor="x", scaleratio=1),
+        updatemenus=[dict(buttons=buttons, active=keys.index(colour), x=0.0, xanchor="left", y=1.1, yanchor="top")],
+        title=dict(text="colour:", x=0.0, y=0.99, font=dict(size=12)))
+    return fig
+
+
+# ------------------------------------------------------------------------------------------- heliostats
+def _detail_figure(d: dict):
+    """Offsets with their 2-sigma band and alarms (top), residual and predicted error (bottom)."""
+    fig = make_subplots(rows=2, cols=1, shared_xaxes=True, vertical_spacing=0.08,
+                        subplot_titles=("encoder offsets after each record [mrad] (bars: 2 sigma)",
+                                        "record residual before assimilation [mrad]"))
+    t = d["time"]
+    alarm = np.asarray(d["alarm"], dtype=bool)
+    for name, mean in d["offsets_mrad"].items():
+        std = 2 * np.asarray(d["offsets_std_mrad"][name])
+        fig.add_trace(go.Scatter(x=t, y=mean, mode="lines+markers", name=name,
+                                 error_y=dict(type="data", array=std, visible=True, thickness=1)), row=1, col=1)
+        if alarm.any():
+            fig.add_trace(go.Scatter(x=list(np.asarray(t)[alarm]), y=list(np.asarray(mean)[alarm]), mode="markers",
+                                     name=f"step alarm ({name})", marker=dict(symbol="x", size=12, color="red")),
+                          row=1, col=1)
+    fig.add_trace(go.Scatter(x=t, y=d["residual_mrad"], mode="markers", name="residual"), row=2, col=1)
+    fig.add_trace(go.Scatter(x=t, y=d["predicted_error_mrad"], mode="lines", name="predicted error"), row=2, col=1)
+    fig.update_layout(height=420, margin=dict(l=60, r=20, t=40, b=40))
+    return fig
+
+
+def _sky_figure(p: dict):
+    """The plan's sky map: predictive spread at every candidate sun position, proposals marked."""
+    sky = p["sky"]
+    fig = go.Figure(go.Scattergl(x=sky["sun_azimuth_deg"], y=sky["sun_elevation_deg"], mode="markers",
+                                 name="candidate sun positions",
+                                 marker=dict(size=4, color=sky["std_now_mrad"], colorscale="Viridis",
+                                             colorbar=dict(title="spread now [mrad]"))))
+    fig.add_trace(go.Scatter(x=[q["sun_azimuth_deg"] for q in p["proposals"]],
+                             y=[q["sun_elevation_deg"] for q in p["proposals"]], mode="markers+text",
+                             text=[str(i + 1) for i in range(len(p["proposals"]))], textposition="top center",
+                             name="proposed records", marker=dict(symbol="star", size=14, color="red")))
+    fig.update_layout(height=320, margin=dict(l=60, r=20, t=30, b=40),
+                      xaxis=dict(title="sun azimuth [deg] (PAINT: 0 = south, +90 = east)"),
+                      yaxis=dict(title="sun elevation [deg]"), showlegend=False,
+                      title=dict(text=f"{_e(p['heliostat'])}: sun-position coverage", font=dict(size=12)))
+    return fig
+
+
+def _sections(details: list, plans: list) -> str:
+    planned = {p["heliostat"]: p for p in plans if "sky" in p}
+    out = []
+    for k, d in enumerate(details):
+        hid = d["heliostat"]
+        parts = [f'<section class="heliostat" id="h-{_e(hid)}"><h3>{_e(hid)}</h3>']
+        if d["time"]:
+            n_alarm = int(np.sum(d["alarm"]))
+            parts.append(f'<p>{len(d["time"])} assimilated records, {n_alarm} step alarm(s), latest '
+                         f'{_e(d["time"][-1])}</p>')
+            parts.append(_div(_detail_figure(d), f"hist-{k}"))
+        else:
+            parts.append('<p class="note">no update history (never updated since its calibration)</p>')
+        if hid in planned:
+            parts.append(_div(_sky_figure(planned[hid]), f"sky-{k}"))
+        parts.append("</section>")
+        out.append("".join(parts))
+    return "\n".join(out)
+
+
+# ----------------------------------------------------------------------------------------------- tables
+def _alarm_table(alarms: list, detail_ids: set) -> str:
+    if not alarms:
+        return '<p class="note">no step alarm in the latest update</p>'
+    rows = []
+    for a in alarms:
+        hid = _e(a["heliostat"])
+        link = f'<a href="#h-{hid}">{hid}</a>' if a["heliostat"] in detail_ids else hid
+        rows.append(f"<tr><td>{link}</td><td>{_e(a['time'])}</td><td>{a['record_id']}</td>"
+                    f"<td>{a['statistic']:.1f} (threshold {_fmt(a['threshold'])})</td>"
+                    f"<td>{a['innovation_mrad']:.2f}</td><td>{_e(a['action'])}</td></tr>")
+    return ("<table id='alarms'><tr><th>heliostat</th><th>record time (UTC)</th><th>record</th><th>step statistic"
+            "</th><th>miss [mrad]</th><th>what to do</th></tr>" + "".join(rows) + "</table>")
+
+
+def _plan_table(plans: list, detail_ids: set) -> str:
+    if not plans:
+        return '<p class="note">no plan: the scenario stores no posterior (calibrate --method lm)</p>'
+    rows = []
+    for p in plans:
+        hid = _e(p["heliostat"])
+        link = f'<a href="#h-{hid}">{hid}</a>' if p["heliostat"] in detail_ids else hid
+        if "error" in p:
+            rows.append(f"<tr><td>{link}</td><td colspan=3>{_e(p['error'])}</td></tr>")
+            continue
+        props = "<br>".join(f"{_e(q['time'][:16])} UTC: azimuth {q['sun_azimuth_deg']:.1f}, elevation "
+                            f"{q['sun_elevation_deg']:.1f} deg -> {q['rms_after_mrad']:.3f} mrad"
+                            for q in p["proposals"])
+        rows.append(f"<tr><td>{link}</td><td>{_fmt(p['interval_mrad'])} / {p['alarms_latest']}</td>"
+                    f"<td>{p['rms_now_mrad']:.3f} on {_e(p['target'])}</td><td>{props}</td></tr>")
+    return ("<table id='plan'><tr><th>heliostat</th><th>offset interval [mrad] / alarms</th><th>spread now "
+            "[mrad]</th><th>proposed sun positions (time of the year with that sun) -> spread after</th></tr>"
+            + "".join(rows) + "</table>")
+
+
+def _provenance(described: dict) -> str:
+    rows = []
+    for i, s in enumerate(described.get("provenance") or [], 1):
+        how = ", ".join(f"{_e(k)}={_e(v)}" for k, v in s.items() if k not in ("step", "utc", "heliotwin"))
+        rows.append(f"<tr><td>{i}</td><td>{_e(s.get('utc', '?'))}</td><td>{_e(s.get('step', '?'))}</td>"
+                    f"<td>{how}</td><td>{_e(s.get('heliotwin', '?'))}</td></tr>")
+    return ("<table id='provenance'><tr><th>#</th><th>UTC</th><th>step</th><th>inputs and settings</th>"
+            "<th>heliotwin</th></tr>" + "".join(rows) + "</table>")
+
+
+# ---------------------------------------------------------------------------------------------- receiver
+def _receiver_figure(rec: dict):
+    maps = rec["maps"]
+    ext = rec["extent_m"]
+    vmax = max([float(m["flux_w_m2"].max()) for m in maps.values()] + [rec["limit_w_m2"] or 0.0]) / 1e3 or 1.0
+    fig = make_subplots(rows=1, cols=len(maps), shared_yaxes=True, horizontal_spacing=0.05,
+                        subplot_titles=[f"{_e(k)}: peak {m['peak_w_m2'] / 1e3:.0f} kW/m², {m['power_w'] / 1e6:.2f} MW"
+                                        for k, m in maps.items()])
+    for c, (label, m) in enumerate(maps.items(), 1):
+        a = m["flux_w_m2"] / 1e3
+        rows, cols = a.shape
+        xs = ext[0] + (np.arange(cols) + 0.5) * (ext[1] - ext[0]) / cols
+        ys = ext[3] - (np.arange(rows) + 0.5) * (ext[3] - ext[2]) / rows
+        fig.add_trace(go.Heatmap(x=xs, y=ys, z=a, zmin=0.0, zmax=vmax, colorscale="Inferno", showscale=c == 1,
+                                 colorbar=dict(title="flux [kW/m²]"), name=label,
+                                 hovertemplate="arc %{x:.2f} m, height %{y:.2f} m: %{z:.0f} kW/m²<extra></extra>"),
+                      row=1, col=c)
+        if rec["limit_w_m2"]:
+            lim = rec["limit_w_m2"] / 1e3
+            fig.add_trace(go.Contour(x=xs, y=ys, z=a, showscale=False, contours=dict(start=lim, end=lim, size=1,
+                                                                                      coloring="none"),
+                                     line=dict(color="cyan", dash="dash", width=2), hoverinfo="skip",
+                                     name=f"limit {lim:.0f} kW/m²", showlegend=c == 1), row=1, col=c)
+        if label == "stored aim points" and rec["aim_local_m"] is not None:
+            aim = np.asarray(rec["aim_local_m"])
+            fig.add_trace(go.Scattergl(x=aim[:, 0], y=aim[:, 1], mode="markers", name="aim points",
+                                       marker=dict(size=3, color="cyan", opacity=0.5), hoverinfo="skip"),
+                          row=1, col=c)
+        fig.update_xaxes(title_text="arc along the unrolled receiver [m]" if rec["cylinder"] else "across [m]",
+                         row=1, col=c)
+    fig.update_yaxes(title_text="height [m]", row=1, col=1)
+    fig.update_layout(height=420, margin=dict(l=60, r=20, t=60, b=50), legend=dict(orientation="h", y=-0.2))
+    return fig
+
+
+def _receiver_section(rec: dict | None) -> str:
+    if rec is None:
+        return '<p class="note">no receiver map (the plant has no receiver, or --no-flux)</p>'
+    if "maps" not in rec:
+        return f'<p class="note">{_e(rec["note"])}</p>'
+    when = instant_line({"time_utc": rec["time_utc"], "sun_enu": rec["sun_enu"]})
+    axis = f"; angle axis: {angle_origin(rec['receiver'])} (angle = arc / {rec['radius_m']:.2f} m)" \
+        if rec["cylinder"] else ""
+    limit = f"peak-flux limit {rec['limit_w_m2'] / 1e3:.0f} kW/m² (dashed)" if rec["limit_w_m2"] else "no stored limit"
+    return (f"<p>{_e(when)}; {_e(limit)}{_e(axis)}</p>" + _div(_receiver_figure(rec), "receiver"))
+
+
+# --------------------------------------------------------------------------------------------------- page
+def render_page(*, described: dict, state: dict, quantities: dict, colour: str, alarms: list, details: list,
+                plans: list, receiver: dict | None) -> str:
+    """The whole page as one HTML string (module docstring).
+
+    Parameters
+    ----------
+    described : dict
+        :func:`heliotwin.workflows.show.describe_scenario`'s dict (plant, learned, provenance).
+    state : dict
+        :func:`heliotwin.workflows.report.heliostat_state` (arrays [H]).
+    quantities : dict
+        Key -> (label with unit, higher is worse): the field map's colour choices.
+    colour : str
+        The initial colour quantity.
+    alarms, details, plans : list of dict
+        :func:`~heliotwin.workflows.report.alarm_rows`, :func:`~heliotwin.workflows.report.heliostat_detail`
+        per detailed heliostat, the plan rows.
+    receiver : dict or None
+        The receiver maps (flux [rows, cols] [W/m^2], extent [m], aim points on the receiver [m], limit).
+
+    Raises
+    ------
+    HeliotwinError
+        plotly is not importable (:data:`PLOTLY_MISSING`).
+    """
+    if go is None:
+        raise HeliotwinError(PLOTLY_MISSING)
+    p = described["plant"]
+    k = described["learned"]["kinematics"]
+    detail_ids = {d["heliostat"] for d in details}
+    ref = state["reference_time"]
+    ref_text = "no record times" if not np.isfinite(ref) else \
+        f"latest record {np.datetime_as_string(np.datetime64(int(ref), 's'), unit='m')} UTC"
+    kin = f"calibrated ({k['method']}) for {k.get('count', 0)}" if k["calibrated"] else "nominal"
+    summary = (f"{p['heliostats']} heliostats; kinematics {kin}; {len(alarms)} step alarm(s) in the latest update; "
+               f"{ref_text}")
+    facts = json.dumps({"heliostats": p["heliostats"], "alarms": len(alarms), "detail": len(details),
+                        "plan": len(plans)})
+    body = [
+        "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
+        f"<title>heliotwin: {_e(described.get('file') or 'plant')}</title><style>{_CSS}</style>",
+        f"<script type='text/javascript'>{get_plotlyjs()}</script></head><body>",
+        f"<h1>The plant at a glance</h1><p>{_e(described.get('file') or '')}</p><p><b>{_e(summary)}</b></p>",
+        f"<script type='application/json' id='facts'>{facts}</script>",
+        "<nav><a href='#map'>field map</a><a href='#alarms-h'>alarms</a><a href='#plan-h'>calibration plan</a>"
+        "<a href='#receiver-h'>receiver</a><a href='#heliostats-h'>heliostats</a><a href='#provenance-h'>provenance"
+        "</a></nav>",
+        "<h2 id='map'>Field map</h2><p class='note'>colour by the menu; hover for every value; click a heliostat "
+        "to open its section. Days since the last record count from the latest record the plant holds.</p>",
+        _div(_field_map(state, quantities, colour), "fieldmap"), "<p id='clicked' class='note'></p>",
+        "<h2 id='alarms-h'>Alarms since the last report</h2>", _alarm_table(alarms, detail_ids),
+        "<h2 id='plan-h'>Calibration plan</h2><p class='note'>the heliostats that need records most (alarmed, then "
+        "the widest offset interval), each with the sun positions that would shrink its uncertainty most "
+        "(heliotwin plan)</p>", _plan_table(plans, detail_ids),
+        "<h2 id='receiver-h'>Receiver</h2>", _receiver_section(receiver),
+        f"<h2 id='heliostats-h'>Heliostats ({len(details)} with a section)</h2>", _sections(details, plans),
+        "<h2 id='provenance-h'>Provenance</h2>", _provenance(described),
+        _CLICK, "</body></html>"]
+    return "\n".join(body)
