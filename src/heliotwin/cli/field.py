@@ -160,6 +160,7 @@ def _print_instant(limit):
               "of equator" + "".join(f", {n} {rep[n]['power_vs_equator']:.4f} (peak "
                                      f"{rep[n]['peak_flux_w_m2'] / 1e3:.1f})"
                                      for n in ("aiming_factor", "image_size_priority") if n in rep)
+              + ("" if o.get("note", "").endswith("full power") else f"; {o.get('note')}")
               + f"; {rep['seconds']:.1f} s", flush=True)
     return show
 

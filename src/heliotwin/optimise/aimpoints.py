@@ -2,7 +2,7 @@
 
 Every heliostat gets an aim point on the receiver surface with two degrees of freedom, its unrolled local
 coordinates ``(x, y)`` (arc length, height [m]); the height stays on the receiver (projected onto
-``|y| <= h/2``), the lateral coordinate is free. The problem, at one sun,
+``|y| <= h/2``), the lateral coordinate within the part of the receiver the heliostat sees. The problem, at one sun,
 
     maximise P(a)  subject to  F_c(a) <= limit for every cell c of the reporting map
 
@@ -17,10 +17,11 @@ Structural Optimization 15 (1998) 16):
 1. the exact model at the current aim points ``a_k`` gives the map ``F_k``, the power per heliostat (with its
    shading, blocking, cosine, attenuation) and its intercept;
 2. the image model ``S(a)``: per heliostat one Gaussian image centred on its aim point, power = the exact
-   model's power before spillage, vertical spread calibrated per heliostat from the exact intercept at a
-   probe aim point near the receiver edge, lateral spread from the vertical one times ``cos(elevation)``
-   and one scale fitted (least squares) to the exact equator map; cell-integrated (erf differences), so
-   the map is a ``[rows, H] x [H, cols]`` product;
+   model's power before spillage, spreads = the second moments of the exact model's own footprints at the
+   current aim points (:func:`image_moments`: sunshape, slope error, mirror size and focus, and the incidence
+   on the receiver's surface, so a tilted or curved receiver and a partial cylinder's edges are the exact
+   model's); cell-integrated (erf differences), so the map is a ``[rows, H] x [H, cols]`` product (closed
+   around a full cylinder);
 3. the corrected model ``S(a) + (F_k - S(a_k))`` equals the exact map at ``a_k``; an augmented Lagrangian
    (Hestenes-Powell; multipliers per cell, ``lambda_c <- max(0, lambda_c + rho g_c)``, kept across rounds)
    with Adam steps solves the problem on it against the internal limit ``(1 - m) limit``;
@@ -32,8 +33,14 @@ the smooth differentiable field model's power gradient (soft shading and blockin
 intercept; one backward pass through :func:`~heliotwin.raytrace.field.field_optics`) and the image model's is
 added as a linear term, so the optimiser sees how occlusion and cosine move with the aim points.
 
-The answer is the best aim points whose *exact* check passed (or, if none did, the least violating ones,
-with the violation reported as it is, never clipped).
+Each aim point stays on the receiver's height and, on a cylinder, within :data:`VISIBLE_HALF_ANGLE` of the
+generator line facing its heliostat (a point on the far side is hidden behind the near one).
+
+The answer is the best aim points whose *exact* check passed. When none did (the limit cannot be held with
+every heliostat's light on the receiver), the fewest heliostats that make the least violating aim points hold
+it go to standby (aimed above the receiver; :attr:`AimResult.standby` counts them): less power, the limit held.
+Only when even the whole field on standby violates it is the least violating result returned, with the
+violation reported as it is, never clipped.
 
 Sharding (:mod:`heliotwin.distributed`): with a process group every rank holds the parameters of its
 contiguous shard of heliostats; image maps and powers are all-reduced at every step, the exact check is
@@ -75,7 +82,17 @@ from ..distributed import field_optics_sharded, gather_rows, run_spawned, shard
 from ..errors import HeliotwinError
 from ..field.plant import Plant
 from ..field.targets import CylinderTarget
-from ..raytrace.field import FieldSettings, equator_aim_points, field_optics, reuse_mirror_samples
+from ..geometry import reflect
+from ..raytrace.field import (
+    FieldSettings,
+    _footprints,
+    equator_aim_points,
+    field_optics,
+    reuse_mirror_samples,
+    tracked_mirror_samples,
+    tracking_normals,
+)
+from ..raytrace.flux import target_extent
 
 __all__ = ["AimResult", "AimSettings", "ImageModel", "optimise_aimpoints", "calibrate_images", "to_device",
            "aiming_factor", "image_size_priority", "evaluate", "check_settings", "uniform_target", "load_target",
@@ -96,6 +113,7 @@ class AimResult:
     iterations: int = 0
     parameter: float | None = None
     history: list = field(default_factory=list)
+    standby: int = 0  #: heliostats sent off the receiver (standby) so that the limit holds
 
     def violation(self, limit: float) -> float:
         """Relative excess of the peak over the limit (0 when met)."""
@@ -160,18 +178,41 @@ def evaluate(plant: Plant, sun: torch.Tensor, aim: torch.Tensor, atmosphere=None
 
 
 # ------------------------------------------------------------------------------------------ image model
+def _axis_cdf(t: torch.Tensor, box: torch.Tensor, sd: torch.Tensor) -> torch.Tensor:
+    """CDF at ``t`` (offsets from the centre [m], [h, ...]) of a uniform box of half-width ``box`` convolved
+    with a Gaussian of standard deviation ``sd`` ([h, 1, ...] each, [m]): ``(G(t + b) - G(t - b)) / 2b`` with
+    ``G(u) = u Phi(u / s) + s phi(u / s)`` (the integral of the Gaussian CDF)."""
+    def g(u):
+        z = u / sd
+        return u * 0.5 * (1.0 + torch.erf(z / _SQ2)) + sd * torch.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
+
+    return (g(t + box) - g(t - box)) / (2.0 * box)
+
+
+def _axis_pdf(t: torch.Tensor, box: torch.Tensor, sd: torch.Tensor) -> torch.Tensor:
+    """Density [1/m] of :func:`_axis_cdf`'s profile at ``t``: ``(Phi((t + b) / s) - Phi((t - b) / s)) / 2b``."""
+    return 0.25 * (torch.erf((t + box) / (_SQ2 * sd)) - torch.erf((t - box) / (_SQ2 * sd))) / box
+
+
 @dataclass
 class ImageModel:
-    """One Gaussian image per heliostat on the unrolled receiver map (cell-integrated).
+    """One image per heliostat on the unrolled receiver map (cell-integrated): per axis a uniform box (the
+    mirror's own extent as seen on the receiver) convolved with a Gaussian (sunshape and slope error).
 
     Attributes
     ----------
     power : torch.Tensor, [h]
         Power arriving at the receiver surface before spillage [W] (the exact model's ``power_w / intercept``).
     sx, sy : torch.Tensor, [h]
-        Lateral and vertical image standard deviations [m].
+        Lateral and vertical image standard deviations [m] (box and Gaussian together).
     x_edges, y_edges : torch.Tensor, [cols + 1], [rows + 1]
         Cell edges [m], ascending (map rows run from the top, so the map is flipped in ``y``).
+    period : float
+        The map's circumference [m] when it closes on itself (a full cylinder: an image crossing the seam
+        comes back on the other side, as the exact map's); 0 for a partial cylinder or a plane.
+    bx, by : torch.Tensor, [h], optional
+        Half-widths [m] of the boxes, ``b^2 / 3 < s^2`` (the rest of the variance is the Gaussian's);
+        None: a pure Gaussian image.
     """
 
     power: torch.Tensor
@@ -179,6 +220,37 @@ class ImageModel:
     sy: torch.Tensor
     x_edges: torch.Tensor
     y_edges: torch.Tensor
+    period: float = 0.0
+    bx: torch.Tensor | None = None
+    by: torch.Tensor | None = None
+
+    def _profile(self, axis: int):
+        """Box half-width and Gaussian sd [h] along ``axis`` (0: x, 1: y); the box at least 1e-3 sd (a
+        vanishing box is a Gaussian, and its difference quotient stays accurate)."""
+        s, b = (self.sx, self.bx) if axis == 0 else (self.sy, self.by)
+        b = torch.zeros_like(s) if b is None else b.to(s)
+        b = torch.minimum(b, 0.999 * math.sqrt(3.0) * s)
+        g = (s * s - b * b / 3.0).clamp_min(1e-12).sqrt()
+        return b.clamp_min(1e-3 * g), g
+
+    def _tx(self, x: torch.Tensor) -> torch.Tensor:
+        """Column edges minus each centre [h, S, cols + 1] [m] (S = 3 copies one period apart on a closed map,
+        else 1)."""
+        if self.period > 0.0:
+            p = float(self.period)
+            x = torch.remainder(x + 0.5 * p, p) - 0.5 * p
+            shift = torch.tensor([-p, 0.0, p], dtype=x.dtype, device=x.device)
+        else:
+            shift = torch.zeros(1, dtype=x.dtype, device=x.device)
+        return self.x_edges[None, None, :] - x[:, None, None] - shift[None, :, None]
+
+    def _edges_cdf(self, x: torch.Tensor, y: torch.Tensor):
+        """Offsets of the cell edges from the centres and the profiles' CDFs there: tx [h, S, cols + 1],
+        ty [h, rows + 1], cx, cy likewise."""
+        tx, ty = self._tx(x), self.y_edges[None, :] - y[:, None]
+        bx, gx = self._profile(0)
+        by, gy = self._profile(1)
+        return tx, ty, _axis_cdf(tx, bx[:, None, None], gx[:, None, None]), _axis_cdf(ty, by[:, None], gy[:, None])
 
     @property
     def cell_area(self) -> float:
@@ -187,13 +259,13 @@ class ImageModel:
 
     def marginals(self, x: torch.Tensor, y: torch.Tensor):
         """Mass per column [h, cols] and per row (ascending y) [h, rows] of the images centred at ``(x, y)`` [h]."""
-        cx = 0.5 * (1.0 + torch.erf((self.x_edges - x[:, None]) / (_SQ2 * self.sx[:, None])))
-        cy = 0.5 * (1.0 + torch.erf((self.y_edges - y[:, None]) / (_SQ2 * self.sy[:, None])))
-        return cx[:, 1:] - cx[:, :-1], cy[:, 1:] - cy[:, :-1]
+        _, _, cx, cy = self._edges_cdf(x, y)
+        return (cx[..., 1:] - cx[..., :-1]).sum(1), cy[:, 1:] - cy[:, :-1]
 
     def flux(self, x: torch.Tensor, y: torch.Tensor):
         """Map [rows, cols] [W/m^2] (row 0 = top) and intercepted power per heliostat [h] [W]."""
-        if not any(t.requires_grad for t in (self.power, self.sx, self.sy, self.x_edges, self.y_edges)):
+        params = (self.power, self.sx, self.sy, self.x_edges, self.y_edges, self.bx, self.by)
+        if not any(t is not None and t.requires_grad for t in params):
             return _ImageFlux.apply(x, y, self)  # gradients to the aim points only: the hand-fused backward
         gx, gy = self.marginals(x, y)
         mx = gx.sum(1)
@@ -204,25 +276,23 @@ class ImageModel:
 
 class _ImageFlux(torch.autograd.Function):
     """:meth:`ImageModel.flux` with its gradient w.r.t. the image centres ``x``, ``y`` [h] written out: the
-    optimiser's inner loop calls it hundreds of times, and one fused backward (the Gaussian densities at the
+    optimiser's inner loop calls it hundreds of times, and one fused backward (the profiles' densities at the
     cell edges times the map's and the powers' adjoints) costs a fraction of the recorded graph's."""
 
     @staticmethod
     def forward(ctx, x, y, model):
-        zx = (model.x_edges - x[:, None]) / model.sx[:, None]  # [h, cols + 1] edges in sds from the centre
-        zy = (model.y_edges - y[:, None]) / model.sy[:, None]  # [h, rows + 1]
-        cx, cy = 0.5 * (1.0 + torch.erf(zx / _SQ2)), 0.5 * (1.0 + torch.erf(zy / _SQ2))
-        gx, gy = cx[:, 1:] - cx[:, :-1], cy[:, 1:] - cy[:, :-1]
+        tx, ty, cx, cy = model._edges_cdf(x, y)  # tx [h, S, cols + 1] (the centre and its copies), ty [h, rows + 1]
+        gx, gy = (cx[..., 1:] - cx[..., :-1]).sum(1), cy[:, 1:] - cy[:, :-1]
         mx, my = gx.sum(1), gy.sum(1)
         pgy = gy * model.power[:, None]
         img = pgy.transpose(0, 1) @ gx / model.cell_area
-        ctx.save_for_backward(zx, zy, gx, pgy, mx, my)
+        ctx.save_for_backward(tx, ty, gx, pgy, mx, my)
         ctx.model = model
         return img.flip(0), model.power * mx * my
 
     @staticmethod
     def backward(ctx, g_img, g_p):
-        zx, zy, gx, pgy, mx, my = ctx.saved_tensors
+        tx, ty, gx, pgy, mx, my = ctx.saved_tensors
         m = ctx.model
         g_gx = torch.zeros_like(gx)
         g_gy = torch.zeros_like(pgy)
@@ -235,13 +305,17 @@ class _ImageFlux(torch.autograd.Function):
             g_gx = g_gx + (gp * my)[:, None]
             g_gy = g_gy + (gp * mx)[:, None]
 
-        def centre_gradient(g_cells, z, sd):
-            # d(cell mass)/d(centre) = (pdf at the lower edge - pdf at the upper edge) / sd
-            pdf = torch.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
-            return ((pdf[:, :-1] - pdf[:, 1:]) * g_cells).sum(1) / sd
+        def centre_gradient(g_cells, t, axis):
+            # d(cell mass)/d(centre) = density at the lower edge - density at the upper edge
+            b, sd = m._profile(axis)
+            shape = (-1,) + (1,) * (t.dim() - 1)
+            pdf = _axis_pdf(t, b.view(shape), sd.view(shape))
+            if t.dim() == 3:  # the copies of a closed map
+                pdf = pdf.sum(1)
+            return ((pdf[:, :-1] - pdf[:, 1:]) * g_cells).sum(1)
 
-        gx_out = centre_gradient(g_gx, zx, m.sx) if ctx.needs_input_grad[0] else None
-        gy_out = centre_gradient(g_gy, zy, m.sy) if ctx.needs_input_grad[1] else None
+        gx_out = centre_gradient(g_gx, tx, 0) if ctx.needs_input_grad[0] else None
+        gy_out = centre_gradient(g_gy, ty, 1) if ctx.needs_input_grad[1] else None
         return gx_out, gy_out, None
 
 
@@ -261,46 +335,94 @@ def _edges(receiver, resolution, like: torch.Tensor):
             torch.linspace(-h / 2, h / 2, rows + 1, dtype=like.dtype, device=like.device))
 
 
-def _spread_from_intercept(intercept, d, h, lo=0.02, hi=5.0, steps=50):
-    """Gaussian sd [m] whose mass in ``[-d, h - d]`` about its centre is ``intercept`` (vectorised bisection)."""
-    a, b = torch.full_like(intercept, lo), torch.full_like(intercept, hi)
-    target = intercept.clamp(1e-6, 1 - 1e-9)
-    for _ in range(steps):
-        s = 0.5 * (a + b)
-        mass = 0.5 * (torch.erf(d / (_SQ2 * s)) - torch.erf((d - h) / (_SQ2 * s)))
-        big = mass > target  # too much mass inside: the image is wider
-        a, b = torch.where(big, s, a), torch.where(big, b, s)
-    return 0.5 * (a + b)
+def image_moments(plant: Plant, sun: torch.Tensor, aim: torch.Tensor, resolution, rows: torch.Tensor | None = None,
+                  per_direction: int = 4):
+    """Centre and spread of every heliostat's image on the receiver map, from the exact model's own footprints.
 
+    Each mirror sample's reflected central ray lands where :func:`~heliotwin.raytrace.field.field_optics` puts
+    its footprint, with the footprint covariance ``var J J^T`` (``var`` the sunshape's and slope error's
+    second moment [rad^2], ``J`` the hit's Jacobian w.r.t. the ray angle on the receiver's tangent plane, so
+    the incidence on a tilted or curved receiver is in it) plus the map's pixel-box smoothing. A heliostat's
+    image is the weighted sum of its samples' footprints (weights: mirror area times the cosine, no
+    occlusion); its centre and second moments are those of that mixture, the spread of the samples' centres
+    (a box) apart from their footprints' mean covariance (a Gaussian).
 
-def _lateral_scale(model: ImageModel, x, y, flux_exact, base, grp: _Group, iters: int = 30) -> torch.Tensor:
-    """Golden-section search of ``c`` (log scale, [0.25, 4]) with ``sx = c * base`` fitting the exact map."""
-    def err(logc):
-        model.sx = base * math.exp(logc)
-        with torch.no_grad():
-            f = grp.sum(model.flux(x, y)[0])
-        return float(((f - flux_exact) ** 2).sum())
+    Parameters
+    ----------
+    plant : Plant
+        With the ``receiver`` target.
+    sun : torch.Tensor, [3]
+        Unit vector towards the sun, ENU.
+    aim : torch.Tensor, [H, 3]
+        Aim points of all heliostats, ENU [m].
+    resolution : (int, int)
+        Map ``(rows, cols)`` (sets the smoothing, one pixel box).
+    rows : torch.Tensor, [h], long, optional
+        Only these heliostats (a shard); default all.
+    per_direction : int
+        Mirror samples per facet and direction.
 
-    g = (math.sqrt(5) - 1) / 2
-    a, b = math.log(0.25), math.log(4.0)
-    c, d = b - g * (b - a), a + g * (b - a)
-    fc, fd = err(c), err(d)
-    for _ in range(iters):
-        if fc < fd:
-            b, d, fd = d, c, fc
-            c = b - g * (b - a)
-            fc = err(c)
-        else:
-            a, c, fc = c, d, fd
-            d = a + g * (b - a)
-            fd = err(d)
-    model.sx = base * math.exp(0.5 * (a + b))
-    return model.sx
+    Returns
+    -------
+    offset : torch.Tensor, [h, 2]
+        Image centre minus the aim point in map coordinates ``(x, y)`` [m] (arc, height).
+    sd : torch.Tensor, [h, 2]
+        Image standard deviations along ``x`` and ``y`` [m], float64.
+    box : torch.Tensor, [h, 2]
+        Half-widths [m] of the uniform boxes with the variance of the samples' centres (the mirror's extent on
+        the receiver; :class:`ImageModel`'s ``bx``, ``by``).
+    """
+    rec = plant.target("receiver")
+    pos = plant.field.kinematics.position.to(torch.float64)
+    aim = aim.to(pos)
+    sun = torch.as_tensor(sun).to(pos)
+    rows = torch.arange(pos.shape[0], device=pos.device) if rows is None else rows
+    normal = tracking_normals(pos, aim, sun)[rows]
+    with torch.no_grad():
+        pw, nw, area = tracked_mirror_samples(plant, normal, int(per_direction), torch.float64, rows)
+        h, n = area.shape
+        reflected = reflect(-sun.expand_as(nw), nw)
+        r_px, c_px = (int(v) for v in resolution)
+        extent = target_extent(rec, 1).to(pos)
+        mu, jac, ok = _footprints(pw.reshape(1, h * n, 3), reflected.reshape(1, h * n, 3), rec, extent, r_px, c_px)
+        mu, jac, ok = mu[0].reshape(h, n, 2), jac[0].reshape(h, n, 2, 2), ok[0].reshape(h, n)
+        s = plant.sun
+        var = _ss.second_moment(s.sunshape, sigma=float(s.sigma), radius=float(s.radius), csr=float(s.csr),
+                                slope_error=float(s.slope_error))
+        cov = var * (jac @ jac.transpose(-1, -2))  # [h, n, 2, 2] [px^2]
+        e = extent[0]
+        px = torch.stack(((e[1] - e[0]) / c_px, (e[3] - e[2]) / r_px))  # [2] [m/px]
+        # pixel -> map coordinates [m]: x grows with the column, y with the height (rows run from the top)
+        xy = torch.stack((e[0] + (mu[..., 0] + 0.5) * px[0], e[3] - (mu[..., 1] + 0.5) * px[1]), dim=-1)
+        var_xy = (torch.diagonal(cov, dim1=-2, dim2=-1) + 1.0 / 12.0) * px ** 2  # [h, n, 2] [m^2]
+        local = torch.stack(_local(rec, aim[rows]), dim=-1)  # [h, 2]
+        d = xy - local[:, None, :]
+        if isinstance(rec, CylinderTarget) and rec.opening_angle >= 2 * math.pi - 1e-9:
+            w = float(rec.width)
+            d[..., 0] = torch.remainder(d[..., 0] + 0.5 * w, w) - 0.5 * w  # across the seam of a full cylinder
+        cos_p = (nw * sun).sum(-1).clamp_min(0.0)
+        wt = torch.where(ok, area * cos_p, torch.zeros_like(area))
+        wsum = wt.sum(1, keepdim=True).clamp_min(1e-30)
+        d = torch.where(ok[..., None], d, torch.zeros_like(d))
+        var_xy = torch.where(ok[..., None], var_xy, torch.zeros_like(var_xy))
+        offset = (wt[..., None] * d).sum(1) / wsum
+        centres = (wt[..., None] * (d - offset[:, None, :]) ** 2).sum(1) / wsum  # the mirror's own extent
+        spread = (wt[..., None] * var_xy).sum(1) / wsum + centres
+        # a heliostat none of whose rays reach the receiver's surface: a wide image (its power is ~0 anyway)
+        hit = wt.sum(1, keepdim=True) > 0
+        spread = torch.where(hit, spread, torch.full_like(spread, float(rec.height) ** 2))
+        box = torch.where(hit, (3.0 * centres).sqrt(), torch.zeros_like(centres))
+    return offset, spread.clamp_min(1e-8).sqrt(), box
 
 
 @reuse_mirror_samples()  # the rounds' exact checks move the heliostats, never their surfaces
 def calibrate_images(plant: Plant, sun, atmosphere, resolution, *, group=None, equator=None):
-    """Image model of the field at this sun, calibrated on the exact model (two evaluations).
+    """Image model of the field at this sun from the exact model at equator aiming (one evaluation).
+
+    The power per heliostat is the exact model's power before spillage (``power_w / intercept``), the image
+    spreads are the moments of the exact model's own footprints at the equator aim points
+    (:func:`image_moments`: sunshape, slope error, mirror size and focus, the incidence on the receiver's
+    surface whatever its tilt or curvature).
 
     Returns
     -------
@@ -316,23 +438,16 @@ def calibrate_images(plant: Plant, sun, atmosphere, resolution, *, group=None, e
     rows = grp.rows(h, pos.device)
     eq_aim = equator_aim_points(rec, pos)
     ex = equator if equator is not None else grp.field(plant, sun, atmosphere, eq_aim, check_settings(resolution))
-    x0, _ = _local(rec, eq_aim)
-    s = plant.sun
-    beam = math.sqrt(_ss.second_moment(s.sunshape, sigma=float(s.sigma), radius=float(s.radius), csr=float(s.csr),
-                                       slope_error=float(s.slope_error)))
-    slant = torch.linalg.vector_norm(eq_aim - pos, dim=-1)
-    # probe: every image centred a (first-guess) sd below the top edge, where the spilled fraction is most
-    # sensitive to the spread
-    guess = (beam * slant + 0.3 * plant.field.height.to(pos)).clamp(0.1, 0.45 * float(rec.height))
-    probe_y = 0.5 * float(rec.height) - guess
-    probe = grp.field(plant, sun, atmosphere, _world(rec, x0, probe_y), check_settings(resolution))
-    sy = _spread_from_intercept(probe.intercept.to(pos), guess, float(rec.height))
+    _, sd, box = image_moments(plant, sun, eq_aim, resolution, rows)
     power = (ex.power_w.to(pos) / ex.intercept.to(pos).clamp_min(1e-6))
-    elev = torch.asin(((eq_aim - pos)[:, 2] / slant).clamp(-1, 1))
     xe, ye = _edges(rec, resolution, pos)
-    model = ImageModel(power[rows], sy[rows] * torch.cos(elev[rows]), sy[rows], xe, ye)
-    _lateral_scale(model, x0[rows], torch.zeros_like(x0[rows]), ex.flux.to(pos), model.sx.clone(), grp)
-    return model, ex
+    return ImageModel(power[rows], sd[:, 0], sd[:, 1], xe, ye, _period(rec), box[:, 0], box[:, 1]), ex
+
+
+def _period(receiver) -> float:
+    """The unrolled map's circumference [m] for a full cylinder, else 0 (see :class:`ImageModel`)."""
+    full = isinstance(receiver, CylinderTarget) and receiver.opening_angle >= 2 * math.pi - 1e-9
+    return float(receiver.width) if full else 0.0
 
 
 # ------------------------------------------------------------------------------------------ targets
@@ -383,6 +498,22 @@ def target_mismatch(flux: torch.Tensor, target: torch.Tensor) -> float:
 
 
 # ------------------------------------------------------------------------------------------ optimiser
+#: Largest angle [rad] about a cylinder's axis between an aim point and the heliostat's own side of it.
+VISIBLE_HALF_ANGLE = math.radians(70.0)
+
+
+def _visible_arc(receiver, position: torch.Tensor):
+    """Lateral bounds ``(lo, hi)`` [h] [m] of each heliostat's aim points on a cylinder: within
+    :data:`VISIBLE_HALF_ANGLE` of the generator line facing it (an aim point on the far side is hidden behind
+    the near side, where the exact model puts the light); None for a plane (any lateral aim point is seen)."""
+    if not isinstance(receiver, CylinderTarget):
+        return None
+    d = position - receiver.axis_point.to(position)
+    face = float(receiver.radius) * torch.atan2(d @ receiver.right.to(position), d @ receiver.normal.to(position))
+    room = float(receiver.radius) * VISIBLE_HALF_ANGLE
+    return face - room, face + room
+
+
 def _field_power_gradient(plant, sun, atmosphere, rec, x_all, y_all, rows, grp, resolution, softness,
                           dtype=torch.float32):
     """d(receiver power)/d(x, y) [h], [h] of this rank's heliostats through the smooth field model (shading,
@@ -397,10 +528,11 @@ def _field_power_gradient(plant, sun, atmosphere, rec, x_all, y_all, rows, grp, 
 
 
 def _alm(model: ImageModel, x, y, defect, power_defect, limit_int, lam, *, grp, steps, lr, rho, inner,
-         half_height, p0, weight, target, linear=None):
+         half_height, p0, weight, target, linear=None, x_bounds=None):
     """Augmented-Lagrangian Adam steps on the corrected image model; returns x, y (``lam`` updated in place).
 
     ``linear = (cx, cy)``: a first-order power correction ``sum cx (x - x_k) + cy (y - y_k)`` [W] about the start.
+    ``x_bounds = (lo, hi)``, [h] each [m]: the lateral range each aim point stays in.
     """
     x0, y0 = x.clone(), y.clone()
     x = x.clone().requires_grad_()
@@ -428,6 +560,8 @@ def _alm(model: ImageModel, x, y, defect, power_defect, limit_int, lam, *, grp, 
         sched.step()
         with torch.no_grad():
             y.clamp_(-half_height, half_height)
+            if x_bounds is not None:
+                x.copy_(torch.minimum(torch.maximum(x, x_bounds[0]), x_bounds[1]))
             if (it + 1) % int(inner) == 0:
                 lam.copy_(torch.clamp(lam + rho * g.detach(), min=0.0))
     return x.detach(), y.detach()
@@ -537,6 +671,7 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, setti
     eq_aim = equator_aim_points(rec, pos)
     x0, _ = _local(rec, eq_aim)
     x = x0[rows].clone()
+    x_bounds = _visible_arc(rec, pos[rows])
     # a small alternating spread: equator aiming is a symmetric point of the problem
     y = 0.05 * (1 - 2 * (rows % 2)).to(pos)
     half = 0.5 * float(rec.height)
@@ -571,8 +706,11 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, setti
             m = max(float(margin), m - 0.5 * (1.0 - peak / limit - float(margin)))
         if k == int(rounds) - 1:
             break
-        # refresh the per-heliostat power (shading, blocking and cosine move with the aim points)
+        # refresh the per-heliostat power (shading, blocking and cosine move with the aim points) and the image
+        # spreads (the incidence on the receiver moves with them)
         model.power = (ex.power_w.to(pos) / ex.intercept.to(pos).clamp_min(1e-6))[rows]
+        _, sd, box = image_moments(plant, sun, aim, resolution, rows)
+        model.sx, model.sy, model.bx, model.by = sd[:, 0], sd[:, 1], box[:, 0], box[:, 1]
         with torch.no_grad():
             f_s, p_s = model.flux(x, y)
             f_s, p_s = grp.sum(f_s), grp.sum(p_s.sum())
@@ -587,11 +725,80 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, setti
             linear = (gfx - gsx, gfy - gsy)
         x, y = _alm(model, x, y, defect, power - float(p_s), limit * (1.0 - m), lam, grp=grp,
                     steps=iterations, lr=lr, rho=rho, inner=inner, half_height=half, p0=p_eq, weight=float(h),
-                    target=tgt, linear=linear)
+                    target=tgt, linear=linear, x_bounds=x_bounds)
         steps += int(iterations)
     out = best if best is not None else least
+    if best is None:  # no aim point on the receiver held the limit: take the fewest heliostats off it that do
+        out = _standby(plant, sun, atmosphere, rec, model, least, limit, grp, rows, resolution)
     out.seconds, out.iterations, out.history, out.parameter = time.perf_counter() - t0, steps, history, m
     return out
+
+
+def _standby(plant, sun, atmosphere, rec, model: ImageModel, least: AimResult, limit: float, grp: _Group, rows,
+             resolution, bisections: int = 6) -> AimResult:
+    """The least-violating aim points with the fewest heliostats sent to standby that hold the limit exactly.
+
+    A heliostat on standby aims ``5 sy`` above the receiver's top edge, on the side facing it (its image
+    passes above the receiver; it still shades and blocks as it tracks). The heliostats are ranked by their
+    image-model flux in the cells over the limit (most first); the count is first predicted on the image
+    model corrected to the exact map, grown by half until the exact check passes (all of them at most), then
+    bisected down (``bisections`` exact checks at most, to half a per cent of the field) to keep as many on
+    the receiver as hold it. Returns ``least`` unchanged (limit still violated) when even every heliostat on
+    standby does not hold it; else the result with ``standby`` set.
+    """
+    h = least.aim.shape[0]
+    aim = least.aim.to(torch.float64)
+    x_all, y_all = _local(rec, aim)
+    x, y = x_all[rows], y_all[rows]
+    with torch.no_grad():
+        gx, gy = model.marginals(x, y)
+        over = (least.flux.to(x) > limit).flip(0).to(x)  # [rows, cols], ascending y like the marginals
+        own = model.power * torch.einsum("hr,rc,hc->h", gy, over, gx) / model.cell_area  # [h] [W/m^2 x cells]
+        mass = grp.gather(own, h)
+        order = torch.argsort(mass, descending=True, stable=True)
+        # the image model's prediction of how many must go: cumulative removal from the exact map
+        img = (model.power[:, None, None] * gy[:, :, None] * gx[:, None, :]) / model.cell_area  # [h, rows, cols]
+        local_rank = torch.empty_like(order)
+        local_rank[order] = torch.arange(h, device=order.device)
+        ranked = torch.zeros((h,) + tuple(img.shape[1:]), dtype=img.dtype, device=img.device)
+        ranked[local_rank[rows]] = img
+        ranked = grp.sum(ranked)
+        remaining = least.flux.to(x).flip(0)[None] - torch.cumsum(ranked, 0)
+        fits = (remaining.amax(dim=(-2, -1)) <= limit).nonzero()
+        k = int(fits[0]) + 1 if fits.numel() else h
+    sy_all = grp.gather(model.sy, h)
+    x_eq, _ = _local(rec, equator_aim_points(rec, plant.field.kinematics.position.to(aim)))
+    half = 0.5 * float(rec.height)
+
+    def check(count):
+        off = torch.zeros(h, dtype=torch.bool, device=aim.device)
+        off[order[:count]] = True
+        x_new = torch.where(off, x_eq, x_all)  # facing the heliostat: its beam passes above the receiver
+        y_new = torch.where(off, half + 5.0 * sy_all.to(y_all), y_all)
+        trial = _world(rec, x_new, y_new)
+        ex = grp.field(plant, sun, atmosphere, trial, check_settings(resolution))
+        out = AimResult(trial.detach(), float(ex.power_w.sum()), float(ex.flux.max()), ex.flux)
+        out.standby = count
+        return out
+
+    fail, ok = 0, None
+    while ok is None:  # grow from the prediction until the exact check passes
+        r = check(k)
+        if r.peak_flux_w_m2 <= limit:
+            ok = r
+        elif k >= h:
+            return least
+        else:
+            fail, k = k, min(h, k + max(1, k // 2))
+    for _ in range(int(bisections)):  # then fewer on standby while it still passes
+        if ok.standby - fail <= max(1, h // 200):
+            break
+        r = check((fail + ok.standby) // 2)
+        if r.peak_flux_w_m2 <= limit:
+            ok = r
+        else:
+            fail = r.standby
+    return ok
 
 
 # ------------------------------------------------------------------------------------------ baselines

@@ -128,11 +128,25 @@ def _instant(plant, sun, atm, settings: AimpointSettings):
     for name, r in baselines.items():
         rep[name] = {**entry(r), "k": r.parameter}
     rep["optimised"] = {**entry(best), "iterations": best.iterations, "rounds": len(best.history),
-                        "final_margin": best.parameter, "history": best.history}
+                        "final_margin": best.parameter, "standby_heliostats": int(best.standby),
+                        "note": _note(best, equator, limit), "history": best.history}
     for name, r in baselines.items():
         rep["optimised"][f"power_vs_{name}"] = best.power_w / r.power_w
     rep["seconds"] = time.perf_counter() - t0
     return rep, best, equator
+
+
+def _note(best: AimResult, equator: AimResult, limit: float) -> str:
+    """One sentence on what the optimised aim points cost, for the report and the summary line."""
+    if best.peak_flux_w_m2 > limit:
+        return "the limit is not held even with every heliostat on standby"
+    if best.standby:
+        return (f"the limit cannot be held with every heliostat's light on the receiver: {best.standby} heliostats "
+                f"on standby, {best.power_w / equator.power_w:.3f} of equator aiming's power")
+    if best.power_w < 0.99 * equator.power_w:
+        return (f"the limit is held by spilling light: {best.power_w / equator.power_w:.3f} of equator aiming's "
+                "power")
+    return "the limit is held at full power"
 
 
 def aimpoints(scenario: Scenario, instants: list[tuple[str, torch.Tensor]], settings: AimpointSettings, *,
