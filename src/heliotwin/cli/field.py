@@ -80,10 +80,16 @@ def _field_line(report, heliostats: int) -> str:
 
 
 def _year_line(args, report) -> str:
-    return (f"field {args.year}: {report['instants']} daylight instants every {args.every}; annual optical energy "
-            f"{report['annual_optical_energy_mwh']:.1f} MWh of {report['annual_dni_energy_on_mirrors_mwh']:.1f} MWh "
-            f"DNI on the mirrors ({report['dni_model']}; efficiency {report['mean_efficiency']:.4f}); "
-            f"{report['seconds']:.1f} s")
+    if report.get("annual", True):
+        energy = (f"annual optical energy {report['annual_optical_energy_mwh']:.1f} MWh of "
+                  f"{report['annual_dni_energy_on_mirrors_mwh']:.1f} MWh DNI on the mirrors")
+    else:  # a weather file that does not cover the year: the energy of the hours it covers, not annual
+        c = report["coverage"]
+        energy = (f"optical energy {report['optical_energy_mwh']:.1f} MWh of {report['dni_energy_on_mirrors_mwh']:.1f}"
+                  f" MWh DNI on the mirrors over the {c['hours']:.0f} h the weather covers "
+                  f"({100 * c['fraction_of_year']:.1f} % of {args.year}; NOT annual)")
+    return (f"field {args.year}: {report['instants']} daylight instants every {args.every}; {energy} "
+            f"({report['dni_model']}; efficiency {report['mean_efficiency']:.4f}); {report['seconds']:.1f} s")
 
 
 def _write_field_outputs(args, sc, report, result, paths: dict) -> None:

@@ -249,7 +249,10 @@ def cmd_predict(args) -> int:
         st = out["statistics"]["l1_ideal_vs_learned"]
         print(f"{out['heliostat']}: {out['instants']} instants; L1(ideal, learned) median "
               f"{'n/a' if st.get('median') is None else format(st['median'], '.3f')}; "
-              f"{out['energy']['energy_kwh']:.0f} kWh on the target under {out['energy']['dni_source']}")
+              f"{out['energy']['energy_kwh']:.0f} kWh on the target under {out['energy']['dni_source']}"
+              + ("" if out["energy"].get("annual", True) else
+                 f" (NOT annual: {out['energy']['coverage']['instants_with_dni']} of "
+                 f"{out['energy']['coverage']['instants']} instants have weather)"))
     return 0
 
 

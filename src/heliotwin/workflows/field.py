@@ -40,6 +40,7 @@ from ..devices import to_device
 from ..distributed import run_sharded
 from ..errors import HeliotwinError
 from ..field.facets import surface_points
+from ..io.weather import weather_for_year
 from ..optimise.aimstate import stored_aimpoints
 from ..raytrace.field import FieldResult, FieldSettings, field_optics, summary
 from ..raytrace.yearly import DEFAULT_ELEVATIONS_DEG, annual_energy, efficiency_table, interpolate_efficiency
@@ -301,38 +302,39 @@ def flux_map_fields(result: FieldResult) -> dict:
 def weather_energy(plant, series, table: dict, year: int | None = None) -> dict:
     """Optical energy on the receiver under a DNI time series (:func:`heliotwin.io.weather.read_dni_series`).
 
-    Every instant with the sun up contributes ``DNI x mirror area x efficiency(sun) x step`` (efficiency
-    interpolated in ``table``, :func:`heliotwin.raytrace.yearly.interpolate_efficiency`). A typical-year file
-    whose instants all lie outside ``year`` is moved into it (month, day and time kept; its sun positions are
-    then those of ``year``).
+    The series is placed in ``year`` by :func:`heliotwin.io.weather.weather_for_year` (the one rule of every
+    ``--weather``: its rows in that year, or a typical year moved into it; gaps, repeats and the coverage
+    stated). Every row with the sun up contributes ``DNI x mirror area x efficiency(sun) x its hours``
+    (efficiency interpolated in ``table``, :func:`heliotwin.raytrace.yearly.interpolate_efficiency`).
 
     Returns
     -------
     dict
-        ``annual_optical_energy_mwh``, ``annual_dni_energy_on_mirrors_mwh``, ``mean_efficiency`` (DNI-weighted),
-        ``instants`` (sun up), ``step_hours``, ``dni_source`` (file, kind, rows dropped, year moved),
+        ``optical_energy_mwh`` and ``dni_energy_on_mirrors_mwh`` over the hours the file covers, the same as
+        ``annual_optical_energy_mwh`` / ``annual_dni_energy_on_mirrors_mwh`` when it covers the year (else
+        those are None), ``annual``, ``coverage``, ``assumptions``, ``mean_efficiency`` (DNI-weighted),
+        ``instants`` (sun up), ``step_hours``, ``dni_source`` (file, kind, rows used and not, year moved),
         ``mirror_area_m2``, ``table``.
     """
-    times = series.times
-    moved = None
-    if year is not None and not (times.year == int(year)).any():
-        moved = int(times.year[0])
-        times = pd.DatetimeIndex([t.replace(year=int(year)) if not (t.month == 2 and t.day == 29) else pd.NaT
-                                  for t in times])
-    keep = ~times.isna()
-    times, dni = times[keep], series.dni[np.asarray(keep)]
+    if year is None:  # the file's own (middle) year
+        year = int(series.times.year[len(series.times) // 2])
+    wy = weather_for_year(series, int(year))
     s = plant.site
-    az, el = solar_position(times, s.latitude_deg, s.longitude_deg, s.altitude_m)
+    az, el = solar_position(wy.times, s.latitude_deg, s.longitude_deg, s.altitude_m)
     up = (el > 0).numpy()
     eta = interpolate_efficiency(table, az[up], el[up]).numpy()
     area = _mirror_area(plant)
-    e_mirror = float((dni[up] * area).sum() * series.step_hours) / 1e6
-    e_rx = float((dni[up] * area * eta).sum() * series.step_hours) / 1e6
-    return {"year": None if year is None else int(year), "instants": int(up.sum()), "step_hours": series.step_hours,
-            "mirror_area_m2": area, "annual_dni_energy_on_mirrors_mwh": e_mirror, "annual_optical_energy_mwh": e_rx,
-            "mean_efficiency": e_rx / e_mirror if e_mirror > 0 else None,
-            "dni_source": {"file": os.path.abspath(series.path), "kind": series.kind, "rows": int(len(series.dni)),
-                           "rows_dropped": series.dropped, "moved_from_year": moved, **series.info},
+    e_mirror = float((wy.dni[up] * area * wy.hours[up]).sum()) / 1e6
+    e_rx = float((wy.dni[up] * area * eta * wy.hours[up]).sum()) / 1e6
+    if e_mirror <= 0.0:
+        raise HeliotwinError(f"{os.path.basename(series.path)}: no direct sun in {year} while the sun is up (every "
+                             "daytime DNI is 0): no energy to report")
+    return {"year": int(year), "instants": int(up.sum()), "step_hours": wy.step_hours,
+            "mirror_area_m2": area, "optical_energy_mwh": e_rx, "dni_energy_on_mirrors_mwh": e_mirror,
+            "annual": wy.annual, "annual_dni_energy_on_mirrors_mwh": e_mirror if wy.annual else None,
+            "annual_optical_energy_mwh": e_rx if wy.annual else None, "mean_efficiency": e_rx / e_mirror,
+            "coverage": wy.coverage, "assumptions": wy.assumptions,
+            "dni_source": {**wy.source, "file": os.path.abspath(series.path), "rows_dropped": series.dropped},
             "table": {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in table.items()}}
 
 

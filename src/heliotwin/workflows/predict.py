@@ -16,7 +16,7 @@ import pandas as pd
 from ..devices import resolve_device, to_device
 from ..errors import HeliotwinError
 from ..io.scenario import Scenario
-from ..io.weather import read_dni_series
+from ..io.weather import ANNUAL_FRACTION, read_dni_series, weather_for_year
 from ..raytrace.yearly import clear_sky_dni
 from ..surfaces.predict import YearSampling, summarize, yearly_flux
 from ..surfaces.state import KEY, learned_surface
@@ -48,22 +48,44 @@ class PredictionSettings:
     weather: str | None = None
 
 
-def prediction_energy(series: dict, plant, dni_model: float, every: str, weather: str | None) -> dict:
+def prediction_energy(series: dict, plant, dni_model: float, every: str, weather: str | None,
+                      year: int | None = None) -> dict:
     """The year's energy on the target [kWh]: each instant's predicted power (made at the plant's DNI) scaled by
-    the DNI of that instant (clear sky, or the weather file's nearest row within half its step; none: 0)."""
+    the DNI of that instant (clear sky, or the weather file placed in ``year`` by
+    :func:`heliotwin.io.weather.weather_for_year`, the same rule as ``field --year --weather``: the row whose
+    interval holds the instant; an instant in a gap of the file counts no energy and the coverage says so).
+
+    ``series``: ``time`` (ISO, UTC) and ``power_w`` per instant (T); gets ``dni_w_m2`` (NaN in a gap).
+    ``year``: default the instants' year. Returns ``energy_kwh`` over the instants with a DNI, ``annual``,
+    ``coverage`` and ``assumptions`` (with a file), ``dni_source``, ``model_dni_w_m2``, ``rule``.
+    """
     times = pd.DatetimeIndex(pd.to_datetime(series["time"], utc=True))
+    out = {}
     if weather is None:
         dni, source = clear_sky_dni(times, plant), "pvlib ineichen clear sky"
     else:
         w = read_dni_series(weather)
-        at = pd.Series(w.dni, index=w.times).sort_index()
-        near = at.reindex(times, method="nearest", tolerance=pd.Timedelta(hours=w.step_hours / 2))
-        dni, source = near.fillna(0.0).to_numpy(), f"{weather} ({w.kind})"
+        year = int(times.year[len(times) // 2]) if year is None else int(year)
+        wy = weather_for_year(w, year)
+        dni, source = wy.dni_at(times), f"{weather} ({w.kind})"
+        have = np.isfinite(dni)
+        if not have.any():
+            raise HeliotwinError(f"{weather}: no row within half its step ({wy.step_hours:g} h) of any of the "
+                                 f"{len(times)} instants in {year}")
+        annual = wy.annual and float(have.mean()) >= ANNUAL_FRACTION
+        assumptions = list(wy.assumptions)
+        if wy.annual and not annual:
+            assumptions.append(f"{int(have.sum())} of the {len(times)} instants have a DNI in the file: the energy "
+                               "is theirs, not annual")
+        out = {"annual": annual, "assumptions": assumptions,
+               "coverage": {**wy.coverage, "instants_with_dni": int(have.sum()), "instants": int(len(times))}}
     step_h = pd.Timedelta(every).total_seconds() / 3600.0
-    power = np.asarray(series["power_w"], dtype=np.float64) * np.asarray(dni, dtype=np.float64) / max(dni_model, 1e-9)
+    dni = np.asarray(dni, dtype=np.float64)
+    power = np.asarray(series["power_w"], dtype=np.float64) * np.nan_to_num(dni) / max(dni_model, 1e-9)
     series["dni_w_m2"] = [float(v) for v in dni]
     return {"energy_kwh": float(power.sum() * step_h / 1e3), "dni_source": source, "model_dni_w_m2": dni_model,
-            "rule": "sum over instants of power at the model DNI x (DNI of the instant / model DNI) x step"}
+            **out, "rule": "sum over instants of power at the model DNI x (DNI of the instant / model DNI) x step; "
+                           "instants in a gap of the weather file count nothing"}
 
 
 def learned_heliostat(scenario: Scenario, heliostat: str | None = None) -> str:
@@ -105,7 +127,8 @@ def predict(scenario: Scenario, heliostat: str | None = None, settings: Predicti
     series = yearly_flux(kin, target, site, surfaces, ideal, item["optics"],
                          when=YearSampling(year=s.year, every=s.every), progress=progress)
     optics = item["optics"]
-    energy = prediction_energy(series, plant, float(getattr(optics, "dni", plant.sun.dni)), s.every, s.weather)
+    energy = prediction_energy(series, plant, float(getattr(optics, "dni", plant.sun.dni)), s.every, s.weather,
+                               s.year)
     return scenario, {"heliostat": heliostat, "target": name, "year": s.year, "every": s.every,
                       "instants": len(series["time"]), "statistics": summarize(series), "series": series,
                       "optics": {"sunshape": optics.sunshape, "slope_error_rad": optics.slope_error},
