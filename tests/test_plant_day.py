@@ -190,3 +190,33 @@ def test_in_place_needs_the_flag(calibrated, capsys):
     c = calibrated
     code, _, err = run_cli(capsys, "update", "--scenario", c["scenario"], "--paint", c["folder"], "-o", c["scenario"])
     assert_one_line_error(code, err, "--in-place")
+
+
+def test_daily_updates_plans_and_aims_in_one_step_and_flags_an_alarm(calibrated, tmp_path):
+    c = calibrated
+    work = tmp_path / "plant"
+    shutil.copytree(c["folder"], work)
+    moved = [(os.path.join(work, os.path.relpath(d, c["folder"])), s) for d, s in c["moved"]]
+    _grow(moved, c["tail"], os.path.join(work, "metadata", "calibration-metadata.csv"))
+    stepped, _ = moved[0]  # one heliostat jumps: its new record is far off (a step of its axis-1 offset)
+    data = json.loads(open(stepped).read())
+    data["motor_position"]["axis_1_motor_position"] += 3000
+    with open(stepped, "w") as fh:
+        json.dump(data, fh)
+    hid = os.path.basename(os.path.dirname(os.path.dirname(stepped)))
+    plant_file = tmp_path / "plant.h5"
+    shutil.copy(c["scenario"], plant_file)
+    before = load_scenario(plant_file)
+    env = {**c["env"], "HELIOTWIN_CACHE_DIR": str(tmp_path / "cache")}
+    run = _run(["daily", "--plant", plant_file, "--paint", work, "--json", tmp_path / "d.json", "--day", "2024-06-21",
+                "--slots", 3, "--peak-limit", 300000], env)
+    assert run.returncode == 3, run.stderr  # written, and a step alarm needs a person
+    report = json.loads((tmp_path / "d.json").read_text())
+    assert [a["heliostat"] for a in report["update"]["alarms"]] == [hid]
+    assert report["plan"]["proposals"][0]["heliostat"] == hid and len(report["plan"]["proposals"]) == 3
+    assert report["plan"]["proposals"][0]["rms_after_mrad"] < report["plan"]["proposals"][0]["rms_now_mrad"]
+    assert report["aimpoints"]["instants"][0]["peak_flux_w_m2"] <= 300000 * (1 + 1e-6)
+    after = load_scenario(plant_file)
+    assert len(after.provenance) == len(before.provenance) + 1 and after.provenance[-1]["step"] == "daily"
+    assert sum(len(v) for v in after.provenance[-1]["records"].values()) == report["update"]["overall"]["records"]
+    assert "aimpoints" in after.learned and "step alarm" in run.stdout

@@ -1,17 +1,19 @@
-"""``heliotwin update`` (assimilate the records a calibrated plant has not seen yet) and ``heliotwin history``
-(one heliostat's state across updates).
+"""``heliotwin update`` (assimilate the records a calibrated plant has not seen yet), ``heliotwin daily`` (the
+plant's day as one scheduled command) and ``heliotwin history`` (one heliostat's state across updates).
 
 :func:`register` adds both commands; the library (:mod:`heliotwin.workflows.update`) is imported inside the
 command functions so that ``--help`` stays torch-free.
 """
 from __future__ import annotations
 
+import os
+
 from ..io.report import output_set, write_json
 from .common import float_range, int_range, stage
 
 
 def register(subparsers) -> None:
-    """Add ``update`` and ``history`` to an argparse subparsers object."""
+    """Add ``update``, ``daily`` and ``history`` to an argparse subparsers object."""
     p = subparsers.add_parser("update", help="assimilate new calibration records into a calibrated scenario "
                                              "(posterior update, step alarms)",
                               description="Assimilate the calibration records a calibrated plant has not seen yet "
@@ -47,9 +49,33 @@ def register(subparsers) -> None:
     h.add_argument("--json", help="also write the history as JSON")
     h.set_defaults(func=cmd_history)
 
+    d = subparsers.add_parser("daily", help="the plant's day as one scheduled command: update, alarms, tomorrow's "
+                                            "calibration plan, aim points",
+                              description="Update the plant with the folder's new records (step alarms), plan the "
+                                          "next day's calibration records and optimise its aim points; one "
+                                          "provenance step, one report. Exit status: 0 nothing to act on, 3 "
+                                          "written but something needs a person (a step alarm, a peak limit not "
+                                          "held), 2 refused (nothing written).")
+    d.add_argument("--plant", required=True, help="calibrated plant file (.h5), updated in place unless -o")
+    d.add_argument("--paint", required=True, help="the plant's PAINT folder (it grows every day)")
+    d.add_argument("-o", "--output", help="write the plant here instead of in place")
+    d.add_argument("--json", help="also write the day's report as JSON")
+    d.add_argument("--day", help="the planned day, UTC date (default: tomorrow)")
+    d.add_argument("--slots", type=int_range(0, 100000, "a record count"), default=20,
+                   help="calibration records to plan for the day (default 20)")
+    d.add_argument("--every", default="30min", help="spacing of the candidate calibration times (default 30min)")
+    d.add_argument("--peak-limit", type=float_range(0.0, None, lo_open=True, what="a flux [W/m2]"), default=None,
+                   help="peak-flux limit of the aim points [W/m2] (default: the one the plant stores from an "
+                        "earlier 'aimpoints')")
+    d.add_argument("--aim-times", help="comma-separated UTC times of the day's aim points (default: the hour "
+                                       "with the highest sun)")
+    d.add_argument("--no-aim", dest="aim", action="store_false", help="no aim points")
+    d.add_argument("--wait", type=float_range(0.0, 86400.0, what="seconds"), default=0.0,
+                   help="seconds to wait for another command that holds the plant (default 0: refuse at once)")
+    d.set_defaults(func=cmd_daily)
+
 
 def cmd_update(args) -> int:
-    import os
 
     from ..errors import HeliotwinError
     from ..workflows.update import UpdateSettings, update_plant_file
@@ -97,6 +123,43 @@ def print_update_summary(report: dict) -> None:
     for a in report["alarms"]:
         print(f"  step alarm: {a['heliostat']} record {a['record_id']} (step statistic {a['statistic']:.1f} over "
               f"{a['window']} record(s) > {report['threshold']['threshold']:.1f})")
+
+
+def cmd_daily(args) -> int:
+    from ..workflows.daily import DailySettings, daily_plant_file
+
+    settings = DailySettings(day=args.day, slots=args.slots, every=args.every, aim=args.aim,
+                             peak_limit_w_m2=args.peak_limit, aim_times=args.aim_times)
+    with output_set([("--paint", args.paint)]) as out:
+        json_path = out.file(args.json, "--json")
+        stage(args, f"the plant's day: {args.plant} with the new records of {args.paint}")
+        result = daily_plant_file(args.plant, args.paint, args.output, settings, timeout=args.wait or None)
+        report = result.report
+        report["output"] = os.fspath(args.output or args.plant)
+        if json_path:
+            write_json(json_path, report)
+    if not args.quiet:
+        print_update_summary(report["update"])
+        plan = report["plan"]
+        print(f"calibration plan for {plan['day']}: {len(plan['proposals'])} record(s) on {plan['target']} "
+              f"(pointing spread over the plant: median {_mrad(plan['median_spread_mrad'])}, p95 "
+              f"{_mrad(plan['p95_spread_mrad'])} mrad)")
+        for p in plan["proposals"][:10]:
+            print(f"  {p['time']}  {p['heliostat']}  ({p['reason']}; {p['rms_now_mrad']:.3f} -> "
+                  f"{p['rms_after_mrad']:.3f} mrad)")
+        aim = report["aimpoints"]
+        if "skipped" in aim:
+            print(f"aim points: skipped, {aim['skipped']}")
+        else:
+            for e in aim["instants"]:
+                print(f"aim points {e['instant']}: peak {e['peak_flux_w_m2'] / 1e3:.1f} kW/m2 (limit "
+                      f"{aim['peak_limit_w_m2'] / 1e3:.1f}{'' if e['limit_met'] else ', NOT held'})")
+        print(f"status {report['status']}: {'; '.join(report['attention']) or 'nothing to act on'}")
+    return result.status
+
+
+def _mrad(x) -> str:
+    return "-" if x is None else f"{x:.3f}"
 
 
 def cmd_history(args) -> int:

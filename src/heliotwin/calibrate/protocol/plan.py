@@ -18,13 +18,14 @@ from __future__ import annotations
 import math
 from dataclasses import fields
 
+import pandas as pd
 import torch
 
 from ...errors import HeliotwinError
 from ...field import kinematics as K
 from ...field.plant import Kinematics
 from ...field.targets import PlanarTarget
-from ...sun import daylight_times, direction_from_paint_angles
+from ...sun import daylight_times, direction_from_paint_angles, solar_position
 from ..params import apply_deviations
 from ..scenario import KEY
 
@@ -170,3 +171,143 @@ def plan(scenario, heliostat_id: str, *, year: int, every: str = "1h", count: in
         ans["sky"] = {"sun_azimuth_deg": torch.rad2deg(az[keep]).numpy(),
                       "sun_elevation_deg": torch.rad2deg(el[keep]).numpy(), "std_now_mrad": 1e3 * std.numpy()}
     return ans
+
+
+# ------------------------------------------------------------------------------------------ the plant's day
+#: Spacing of the reference sun positions over the year that a plant plan's objective averages over (25 h: every
+#: time of day in turn, about one a day).
+REFERENCE_EVERY = "25h"
+
+
+def normal_jacobians_many(nominal: Kinematics, delta: torch.Tensor, names, aim_point: torch.Tensor,
+                          sun: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`normal_jacobians` of K heliostats at once, at every sun position.
+
+    Parameters
+    ----------
+    nominal : Kinematics
+        K heliostats.
+    delta : torch.Tensor, [K, P]
+    aim_point : torch.Tensor, [3]
+        ENU [m].
+    sun : torch.Tensor, [T, 3]
+
+    Returns
+    -------
+    jacobian : torch.Tensor, [K, T, 3, P]
+        d(unit normal) per unit deviation; zero where the sun position is not reachable.
+    reachable : torch.Tensor, [K, T], bool
+    """
+    k, t = delta.shape[0], len(sun)
+    rows = torch.arange(k).repeat_interleave(t)
+    kin = nominal.index(rows.tolist())
+    d = delta.double()[rows].clone()
+    cal = apply_deviations(kin, d, names)
+    s = sun.double().repeat(k, 1)
+    steps, ok = K.inverse(cal, aim_point.double().reshape(1, 3).expand(k * t, 3), s, strict=False)
+    ok = ok & ((steps >= cal.min_steps) & (steps <= cal.max_steps)).all(-1) & torch.isfinite(steps).all(-1)
+    steps = torch.where(ok[:, None], steps, cal.min_steps)  # a reachable stand-in keeps the gradient finite
+    d = d.requires_grad_(True)
+    rot, _ = K.forward(apply_deviations(kin, d, names), steps.detach())
+    n = K.mirror_normal(rot)
+    jac = torch.stack([torch.autograd.grad(n[:, c].sum(), d, retain_graph=c < 2)[0] for c in range(3)], 1)
+    jac = torch.where(ok[:, None, None], jac.detach(), torch.zeros((), dtype=jac.dtype))
+    return jac.reshape(k, t, 3, -1), ok.reshape(k, t)
+
+
+def _spread_now(cal: dict, names: list, day_s: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each calibrated heliostat's predicted pointing spread on the planned day [rad] (root of the summed
+    variances of its axis offsets, the random walk grown to the day's noon when the state has a time) and the
+    posterior covariance [H, P, P] at that day."""
+    cov = torch.as_tensor(cal["posterior"]["covariance"], dtype=torch.float64).clone()
+    drift = cal.get("drift") or {}
+    offset_names = [n for n in drift.get("names") or ("initial_angle_1", "initial_angle_2") if n in names]
+    cols = torch.tensor([names.index(n) for n in offset_names], dtype=torch.long)
+    if drift:
+        t = torch.as_tensor(drift["time"], dtype=torch.float64)
+        q = float(torch.as_tensor(drift["process_noise_rad2_per_day"], dtype=torch.float64).reshape(-1)[0])
+        dt = ((day_s + 43200.0 - t) / 86400.0).clamp_min(0.0).nan_to_num(0.0)
+        cov[:, cols, cols] += (q * dt)[:, None]
+    spread = cov[:, cols, cols].sum(-1).clamp_min(0.0).sqrt()
+    return spread, cov
+
+
+def plant_plan(scenario, *, day: str, slots: int = 20, every: str = "30min", target: str | None = None,
+               min_elevation_deg: float = 15.0, urgent=()) -> dict:
+    """Tomorrow's calibration plan for the plant: which heliostats to record on ``day`` and at which sun
+    position, one heliostat at a time on the calibration target.
+
+    Heliostats are ranked (``urgent`` ones first, e.g. those that raised a step alarm; then by their predicted
+    pointing spread on that day, :func:`_spread_now`); each of the ``slots`` most in need gets the candidate
+    time of ``day`` (every ``every``, sun above ``min_elevation_deg``) whose record shrinks its mean predictive
+    variance of the mirror normal over the year's sun positions most (the I-optimal choice of :func:`plan`, one
+    record; all heliostats in one batched solve), at most ``ceil(slots / candidates)`` heliostats per time.
+
+    Returns
+    -------
+    dict
+        ``day``, ``target``, ``candidates`` (times of the day), ``heliostats`` (ranked), ``proposals`` (per
+        planned heliostat in priority order: ``heliostat``, ``time`` UTC ISO, ``sun_azimuth_deg``,
+        ``sun_elevation_deg``, ``reason``, ``spread_now_mrad``, ``rms_now_mrad``, ``rms_after_mrad``), and the
+        spread's median and 95th percentile over the plant [mrad].
+    """
+    cal = scenario.learned.get(KEY) or {}
+    if not cal.get("posterior"):
+        raise HeliotwinError(f"{scenario.path} [/learned/{KEY}/posterior]: no posterior stored (calibrate with "
+                             "--method lm to get one)")
+    plant = scenario.plant
+    planar = sorted(n for n, tg in plant.targets.items() if isinstance(tg, PlanarTarget))
+    name = target or (planar[0] if planar else None)
+    if name not in planar:
+        raise HeliotwinError(f"target {name!r} is not a planar calibration target; known: {', '.join(planar)}")
+    try:
+        start = pd.Timestamp(day)
+        start = (start.tz_localize("UTC") if start.tzinfo is None else start.tz_convert("UTC")).normalize()
+    except (ValueError, TypeError):
+        raise HeliotwinError(f"--day: cannot parse {day!r} (expected a UTC date, e.g. 2024-06-21)") from None
+    ids, names = list(cal["heliostats"]), list(cal["parameter_names"])
+    spread, cov = _spread_now(cal, names, start.timestamp())
+    order = sorted(range(len(ids)), key=lambda h: (ids[h] not in set(urgent), -float(spread[h])))
+    chosen = order[:max(0, int(slots))]
+    site = plant.site
+    stamps = pd.date_range(start, start + pd.Timedelta("1D"), freq=every, inclusive="left")
+    az, el = solar_position(stamps, site.latitude_deg, site.longitude_deg, site.altitude_m)
+    up = el > math.radians(min_elevation_deg)
+    stamps, az, el = stamps[up.numpy()], az[up], el[up]
+    out = {"day": start.date().isoformat(), "target": name, "candidates": int(len(stamps)), "heliostats": len(ids),
+           "median_spread_mrad": 1e3 * float(spread.median()) if len(ids) else None,
+           "p95_spread_mrad": 1e3 * float(torch.quantile(spread, 0.95)) if len(ids) else None, "proposals": []}
+    if not chosen or not len(stamps):
+        return out
+    idx = torch.tensor(chosen)
+    nominal = Kinematics(**{f.name: torch.as_tensor(cal["nominal"][f.name])[idx] for f in fields(Kinematics)})
+    delta = torch.as_tensor(cal["deviations"], dtype=torch.float64)[idx]
+    noise = torch.as_tensor(cal["posterior"]["noise_rad"], dtype=torch.float64)[idx].clamp_min(1e-6)
+    aim_point = plant.targets[name].center
+    _, raz, rel = daylight_times(start.year, REFERENCE_EVERY, site.latitude_deg, site.longitude_deg, site.altitude_m,
+                                 min_elevation_deg)
+    ref, ref_ok = normal_jacobians_many(nominal, delta, names, aim_point, direction_from_paint_angles(raz, rel))
+    cand, cand_ok = normal_jacobians_many(nominal, delta, names, aim_point, direction_from_paint_angles(az, el))
+    m = torch.einsum("ktci,ktcj->kij", ref, ref) / ref_ok.sum(1).clamp_min(1)[:, None, None]
+    lam = torch.linalg.inv(cov[idx])
+    info = torch.einsum("ktci,ktcj->ktij", cand, cand) / noise[:, None, None, None] ** 2
+    eye = torch.eye(lam.shape[-1], dtype=torch.float64)
+    after = torch.einsum("ktij,kji->kt", torch.linalg.solve(lam[:, None] + info, eye), m).clamp_min(0.0)
+    now = torch.einsum("kij,kji->k", torch.linalg.solve(lam, eye.expand_as(lam)), m).clamp_min(0.0)
+    after = torch.where(cand_ok, after, torch.full_like(after, math.inf))
+    per_time = math.ceil(len(chosen) / len(stamps))
+    load = [0] * len(stamps)
+    for j, h in enumerate(chosen):  # priority order; K <= slots heliostats, bookkeeping only
+        free = torch.tensor([c < per_time for c in load])
+        v = torch.where(free, after[j], torch.full_like(after[j], math.inf))
+        c = int(torch.argmin(v))
+        if not math.isfinite(float(v[c])):
+            continue  # cannot reach the target at any free time of the day
+        load[c] += 1
+        out["proposals"].append({
+            "heliostat": ids[h], "time": stamps[c].isoformat(), "sun_azimuth_deg": math.degrees(float(az[c])),
+            "sun_elevation_deg": math.degrees(float(el[c])),
+            "reason": "step alarm" if ids[h] in set(urgent) else "largest predicted pointing spread",
+            "spread_now_mrad": 1e3 * float(spread[h]), "rms_now_mrad": 1e3 * math.sqrt(float(now[j])),
+            "rms_after_mrad": 1e3 * math.sqrt(float(after[j, c]))})
+    return out

@@ -1,0 +1,203 @@
+"""The daily workflow: a plant's day as one scheduled command (``heliotwin daily``).
+
+It composes the workflows a plant engineer would otherwise run one by one every morning, on the plant file
+and the PAINT folder that grew overnight:
+
+1. **update** (:func:`heliotwin.workflows.update.update`): yesterday's records assimilated (only the new files
+   are parsed: the folder's record index), step alarms raised;
+2. **plan** (:func:`heliotwin.calibrate.protocol.plan.plant_plan`): the calibration slots of the planned day
+   (default tomorrow, UTC), heliostats with an alarm first, then those whose pointing is least certain, each
+   at the sun position that teaches most about it;
+3. **aim points** (:func:`heliotwin.workflows.aimpoints.aimpoints`): for the planned day's instants (default
+   the one nearest solar noon) under the peak-flux limit given or stored by an earlier ``aimpoints`` run;
+   skipped, and said so, when the plant has neither a limit nor a receiver.
+
+The result is one scenario with **one** ``daily`` provenance step (the records it assimilated, its alarms, the
+plan and the aim points' summary), one report, and a status a scheduler can act on (:data:`OK`,
+:data:`ATTENTION`). :func:`daily_plant_file` is the command on files: the plant is locked for the whole
+read-update-write and replaced atomically, or not at all.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import math
+import os
+from dataclasses import dataclass, field, replace
+
+import torch
+
+from ..calibrate.protocol.plan import plant_plan
+from ..errors import HeliotwinError
+from ..io.lock import check_unchanged, file_stamp, plant_lock
+from ..io.scenario import Scenario, load_scenario, provenance_entry, write_scenario
+from ..optimise.aimstate import KEY as AIM_KEY
+from .aimpoints import AimpointSettings, aimpoints
+from .field import sun_instants
+from .update import UpdateSettings, update
+
+__all__ = ["DailySettings", "Daily", "daily", "daily_plant_file", "OK", "ATTENTION"]
+
+#: Exit status: the day ran and nothing needs a person.
+OK = 0
+#: Exit status: the day ran (the plant is written) and something needs a person: a step alarm, or aim points
+#: that could not hold the peak limit.
+ATTENTION = 3
+
+
+@dataclass(frozen=True)
+class DailySettings:
+    """Options of ``heliotwin daily`` (same names and defaults).
+
+    Attributes
+    ----------
+    update : UpdateSettings
+        The update's options.
+    day : str or None
+        The planned day (UTC date); None: tomorrow by the clock.
+    slots : int
+        Calibration records to plan for the day.
+    every : str
+        Spacing of the candidate calibration times (pandas frequency).
+    min_elevation : float
+        Lowest sun elevation of a calibration candidate [deg].
+    aim : bool
+        Also optimise aim points for the day.
+    peak_limit_w_m2 : float or None
+        Peak-flux limit [W/m^2]; None: the one an earlier ``aimpoints`` run stored in the plant.
+    aim_times : str or None
+        Comma-separated UTC times of the day's aim points; None: the hour of the day with the highest sun.
+    resolution : tuple of int
+        Receiver map (rows, cols) of the aim points.
+    """
+
+    update: UpdateSettings = field(default_factory=UpdateSettings)
+    day: str | None = None
+    slots: int = 20
+    every: str = "30min"
+    min_elevation: float = 15.0
+    aim: bool = True
+    peak_limit_w_m2: float | None = None
+    aim_times: str | None = None
+    resolution: tuple = (20, 48)
+
+    def __post_init__(self):
+        if isinstance(self.slots, bool) or not isinstance(self.slots, int) or not 0 <= self.slots <= 100000:
+            raise HeliotwinError(f"--slots: expected 0..100000 calibration records, got {self.slots!r}")
+        e = self.min_elevation
+        if not (isinstance(e, (int, float)) and math.isfinite(e) and 0 <= e <= 89):
+            raise HeliotwinError(f"--min-elevation: expected an elevation in [0, 89] deg, got {e!r}")
+        lim = self.peak_limit_w_m2
+        if lim is not None and not (isinstance(lim, (int, float)) and math.isfinite(lim) and lim > 0):
+            raise HeliotwinError(f"--peak-limit: expected a finite positive flux [W/m2], got {lim!r}")
+
+
+@dataclass(frozen=True)
+class Daily:
+    """What :func:`daily` returns; unpacks as ``scenario, report = daily(...)``.
+
+    Attributes
+    ----------
+    scenario : Scenario
+        The plant after the day (one ``daily`` provenance step).
+    report : dict
+        ``update`` (the update's report), ``plan``, ``aimpoints``, ``status`` and ``attention`` (why).
+    status : int
+        :data:`OK` or :data:`ATTENTION`.
+    """
+
+    scenario: Scenario
+    report: dict
+    status: int
+
+    def __iter__(self):
+        return iter((self.scenario, self.report))
+
+
+def _planned_day(day: str | None) -> str:
+    if day is not None:
+        return day
+    return (_dt.datetime.now(_dt.timezone.utc).date() + _dt.timedelta(days=1)).isoformat()
+
+
+def _stored_limit(scenario: Scenario) -> float | None:
+    state = scenario.learned.get(AIM_KEY)
+    if not isinstance(state, dict) or "peak_limit_w_m2" not in state:
+        return None
+    return float(torch.as_tensor(state["peak_limit_w_m2"], dtype=torch.float64).reshape(-1)[0])
+
+
+def _aim(scenario: Scenario, day: str, settings: DailySettings) -> tuple[Scenario, dict]:
+    """The day's aim points (or why there are none)."""
+    if not settings.aim:
+        return scenario, {"skipped": "not asked for (--no-aim)"}
+    limit = settings.peak_limit_w_m2 or _stored_limit(scenario)
+    if limit is None:
+        return scenario, {"skipped": "no peak-flux limit: give --peak-limit, or run 'heliotwin aimpoints' once "
+                                     "(the plant keeps its limit)"}
+    if "receiver" not in scenario.plant.targets:
+        return scenario, {"skipped": "the plant has no receiver target"}
+    if settings.aim_times:
+        instants = sun_instants(scenario.plant, times=settings.aim_times)
+    else:  # the hour with the highest sun: where the peak limit binds hardest
+        hours = sun_instants(scenario.plant, day=day, every="1h")
+        instants = [max(hours, key=lambda item: float(item[1][2]))]
+    aim_settings = AimpointSettings(peak_limit_w_m2=float(limit), resolution=tuple(settings.resolution),
+                                    baselines=False)
+    aimed, report = aimpoints(scenario, instants, aim_settings)
+    met = [e["optimised"]["peak_flux_w_m2"] <= limit * (1 + 1e-6) for e in report["instants"]]
+    summary = {"peak_limit_w_m2": float(limit), "instants": [
+        {"instant": e["instant"], "power_w": e["optimised"].get("power_w"),
+         "peak_flux_w_m2": e["optimised"]["peak_flux_w_m2"], "limit_met": ok}
+        for e, ok in zip(report["instants"], met)], "limit_met": all(met)}
+    return aimed, summary
+
+
+def daily(scenario, paint, settings: DailySettings = DailySettings(), *, device: str = "cpu") -> Daily:
+    """The plant's day (module docstring): update with the folder's new records, plan the next calibrations,
+    aim the field; one provenance step.
+
+    Parameters
+    ----------
+    scenario : Scenario, str or os.PathLike
+        A calibrated plant (``calibrate --method lm -o``, or an earlier update or day).
+    paint : str or os.PathLike
+        The plant's PAINT folder (it grows every day; seen records are recognised).
+    settings : DailySettings
+    device : str
+        Where the update computes.
+    """
+    previous = load_scenario(scenario) if isinstance(scenario, (str, os.PathLike)) else scenario
+    updated = update(previous, paint, settings.update, device=device)
+    day = _planned_day(settings.day)
+    alarms = updated.report["alarms"]
+    plan = plant_plan(updated.scenario, day=day, slots=settings.slots, every=settings.every,
+                      min_elevation_deg=settings.min_elevation, urgent={a["heliostat"] for a in alarms})
+    final, aim = _aim(updated.scenario, day, settings)
+    update_step = updated.scenario.provenance[-1]
+    step = provenance_entry("daily", source=update_step.get("source"), records=update_step.get("records", {}),
+                            alarms=alarms, threshold=update_step.get("threshold"), day=day,
+                            plan=[{k: p[k] for k in ("heliostat", "time")} for p in plan["proposals"]],
+                            aimpoints={k: v for k, v in aim.items() if k != "instants"},
+                            settings={"update": update_step.get("settings"), "slots": settings.slots,
+                                      "every": settings.every})
+    final = replace(final, provenance=list(previous.provenance or []) + [step])
+    attention = [f"{len(alarms)} step alarm(s)"] if alarms else []
+    if aim.get("limit_met") is False:
+        attention.append("aim points could not hold the peak limit at every instant")
+    status = ATTENTION if attention else OK
+    report = {"day": day, "status": status, "attention": attention, "update": updated.report, "plan": plan,
+              "aimpoints": aim}
+    return Daily(final, report, status)
+
+
+def daily_plant_file(plant_path, paint, output=None, settings: DailySettings = DailySettings(), *,
+                     device: str = "cpu", timeout: float | None = None) -> Daily:
+    """:func:`daily` on files: ``output`` (default: the plant file itself) is locked for the whole day's
+    read-update-write, not replaced when another process changed it meanwhile, and written atomically."""
+    output = plant_path if output is None else output
+    with plant_lock(output, timeout=timeout):
+        stamp = file_stamp(output)
+        result = daily(plant_path, paint, settings, device=device)
+        check_unchanged(output, stamp)
+        write_scenario(result.scenario, output)
+    return result
