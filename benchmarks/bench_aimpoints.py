@@ -1,4 +1,22 @@
-"""Aim points on the embedded ~2000-heliostat field: the optimiser against equator aiming and two heuristics.
+"""Aim points on generated plants nobody tuned the optimiser to (``--testbed``), and on the embedded demo field.
+
+**Test bed** (``--testbed``): :func:`heliotwin.optimise.testbed.generated_plant` builds every combination of
+layout and receiver (radial-staggered north field with a vertical full cylinder, a flat panel, a tilted flat
+panel and Jülich's tilted 60-degree cylinder segment; a Jülich-style grid with a cylinder and the tilted
+segment; a surround field with a cylinder), tower heights and field sizes; at each sun (pvlib at the Jülich
+site) the limit is ``f`` x the equator-aimed peak for every ``f`` in ``--fractions`` (0.6 to 0.9). Per case:
+whether the limit is met on the exact model, heliostats on standby, power against equator aiming, peak
+against the limit, seconds (image model + rounds). Optional ``--scenario FILE`` adds a plant file's cases
+(e.g. the 2,000-heliostat ``heliotwin simulate`` truth with the tilted Jülich receiver of issue 31). Summary:
+share met, share met without standby, median power vs equator, worst peak overshoot, time per case.
+
+    OMP_NUM_THREADS=1 python benchmarks/bench_aimpoints.py --testbed --out /tmp/aimbed [--heliostats 150] \
+        [--towers 30,55,120] [--times ...] [--fractions 0.6,0.75,0.9] [--scenario truth.h5]
+
+Writes ``<out>/testbed.json`` and ``<out>/testbed.csv`` (one row per case).
+
+**Demo field** (default): the embedded ~2000-heliostat field, the optimiser against equator aiming and two
+heuristics.
 
 For each instant (the sun from pvlib at the Jülich site) the peak limit is set so that equator aiming exceeds
 it by ``--excess`` (default 35 %); then, all judged on the exact field model (hard shading and blocking, every
@@ -47,8 +65,10 @@ from pathlib import Path
 import pandas as pd
 import torch
 
+from heliotwin.atmosphere import Atmosphere
 from heliotwin.field.demo import demo_field_plant
 from heliotwin.io.report import save_figure, write_json
+from heliotwin.io.scenario import load_scenario
 from heliotwin.optimise.aimpoints import (
     AimResult,
     aiming_factor,
@@ -57,6 +77,7 @@ from heliotwin.optimise.aimpoints import (
     optimise_aimpoints,
     run_aimpoints_sharded,
 )
+from heliotwin.optimise.testbed import generated_plant
 from heliotwin.sun import direction_from_time
 
 
@@ -71,15 +92,96 @@ def _png(flux, extent, path, title, vmax):
     save_figure(fig, path)
 
 
+#: (layout, receiver) pairs of the test bed: a flat receiver only faces a field on one side
+PAIRS = (("radial", "cylinder"), ("radial", "flat"), ("radial", "tilted-flat"), ("radial", "tilted-cylinder"),
+         ("grid", "cylinder"), ("grid", "tilted-cylinder"), ("surround", "cylinder"))
+TESTBED_TIMES = "2024-06-21T11:00:00Z,2024-03-20T08:00:00Z,2024-12-21T11:00:00Z"
+
+
+def _cases(plant, atm, label: dict, times, fractions, rows: list) -> None:
+    """Every sun x limit fraction of one plant, appended to ``rows`` (one dict per case)."""
+    s = plant.site
+    for text in times:
+        sun = direction_from_time(pd.DatetimeIndex([pd.Timestamp(text)]), s.latitude_deg, s.longitude_deg,
+                                  s.altitude_m)[0]
+        elevation = float(torch.rad2deg(torch.asin(sun[2])))
+        if elevation < 5.0:
+            continue
+        t0 = time.perf_counter()
+        model, eq = calibrate_images(plant, sun, atm, (20, 48))
+        t_cal = time.perf_counter() - t0
+        p_eq, f_eq = float(eq.power_w.sum()), float(eq.flux.max())
+        for f in fractions:
+            limit = f * f_eq
+            best = optimise_aimpoints(plant, sun, limit, atmosphere=atm, equator=eq, model=model)
+            row = {**label, "time": text, "sun_elevation_deg": round(elevation, 2), "limit_fraction": f,
+                   "limit_w_m2": limit, "equator_peak_w_m2": f_eq, "equator_power_w": p_eq,
+                   "met": best.peak_flux_w_m2 <= limit, "standby": int(best.standby),
+                   "power_vs_equator": best.power_w / p_eq, "peak_vs_limit": best.peak_flux_w_m2 / limit,
+                   "rounds": len(best.history), "seconds": t_cal + best.seconds}
+            rows.append(row)
+            standby = f" ({row['standby']} standby)" if row["standby"] else ""
+            print(f"{label['plant']:>34s} {text[:13]} {f:.2f}: {'met' if row['met'] else 'NOT MET'}{standby}, power "
+                  f"{row['power_vs_equator']:.4f}, peak {row['peak_vs_limit']:.4f} L, {row['rounds']} rounds, "
+                  f"{row['seconds']:.1f} s", flush=True)
+
+
+def testbed(args) -> dict:
+    """The generated plants' table (module docstring)."""
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    times = [t.strip() for t in (args.times or TESTBED_TIMES).split(",")]
+    fractions = [float(f) for f in args.fractions.split(",")]
+    rows: list = []
+    t_all = time.perf_counter()
+    for n in (int(v) for v in str(args.heliostats_bed).split(",")):
+        for tower in (float(v) for v in args.towers.split(",")):
+            for layout, receiver in PAIRS:
+                plant, atm = generated_plant(layout, n, receiver, tower=tower)
+                label = {"plant": f"{layout}/{receiver}/{n}/{tower:g}m", "layout": layout, "receiver": receiver,
+                         "heliostats": n, "tower_m": tower}
+                _cases(plant, atm, label, times, fractions, rows)
+    for path in args.scenario or []:
+        sc = load_scenario(path)
+        rec = sc.plant.targets["receiver"]
+        label = {"plant": f"scenario {Path(path).name}", "layout": "file", "receiver": rec.kind,
+                 "heliostats": len(sc.plant.field.ids), "tower_m": float(rec.center[2])}
+        _cases(sc.plant, Atmosphere.from_extras(sc.extras), label, times, fractions, rows)
+    frame = pd.DataFrame(rows)
+    summary = {"cases": len(frame), "plants": int(frame["plant"].nunique()),
+               "share_met": float(frame["met"].mean()),
+               "share_met_without_standby": float((frame["met"] & (frame["standby"] == 0)).mean()),
+               "median_power_vs_equator": float(frame["power_vs_equator"].median()),
+               "worst_peak_overshoot": float(frame["peak_vs_limit"].max() - 1.0),
+               "median_seconds_per_case": float(frame["seconds"].median()),
+               "max_seconds_per_case": float(frame["seconds"].max()),
+               "threads": torch.get_num_threads(), "load_average": os.getloadavg(),
+               "seconds": time.perf_counter() - t_all}
+    frame.to_csv(out / "testbed.csv", index=False)
+    write_json(out / "testbed.json", {"summary": summary, "cases": rows})
+    print("summary: " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in summary.items()
+                                  if k != "load_average"), flush=True)
+    return {"summary": summary, "cases": rows}
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", required=True)
+    ap.add_argument("--testbed", action="store_true", help="the generated plants' table")
     ap.add_argument("--heliostats", type=int, default=2000)
-    ap.add_argument("--times", default="2023-06-21T07:00:00Z,2023-06-21T11:30:00Z")
+    ap.add_argument("--heliostats-bed", default="150", help="--testbed: field sizes, comma-separated")
+    ap.add_argument("--towers", default="30,55,120", help="--testbed: receiver heights [m], comma-separated")
+    ap.add_argument("--fractions", default="0.6,0.75,0.9", help="--testbed: limits as fractions of the equator peak")
+    ap.add_argument("--scenario", action="append", help="--testbed: also this plant file's cases (repeatable)")
+    ap.add_argument("--times", default=None)
     ap.add_argument("--excess", type=float, default=1.35)
     ap.add_argument("--nproc", type=int, default=2)
     ap.add_argument("--steps", type=int, default=5, help="bisection steps of the two heuristics")
     args = ap.parse_args(argv)
+    if args.testbed:
+        return testbed(args)
+    args.times = args.times or "2023-06-21T07:00:00Z,2023-06-21T11:30:00Z"
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     plant, atm = demo_field_plant(args.heliostats)
