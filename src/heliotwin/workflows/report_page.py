@@ -41,6 +41,22 @@ th{background:#f3f3f3} .note{color:#666;font-size:.9em} .hl{outline:3px solid #e
 nav a{margin-right:1em} section.heliostat{border-top:1px dotted #bbb;margin-top:1em}
 """
 
+#: Draws the ``lazy-plot`` figures when they come within 600 px of the viewport (all at once without an observer);
+#: ``window.heliotwinDraw(div)`` draws one now (a browser test's hook).
+_LAZY = """
+<script>
+(function(){var els=document.querySelectorAll('.lazy-plot');
+function draw(el){if(el.dataset.drawn){return;} el.dataset.drawn='1';
+var f=JSON.parse(document.getElementById(el.id+'-json').textContent);
+Plotly.newPlot(el,f.data,f.layout,{displaylogo:false,responsive:true});}
+window.heliotwinDraw=draw;
+if(!('IntersectionObserver' in window)){els.forEach(draw);return;}
+var io=new IntersectionObserver(function(es){es.forEach(function(e){if(e.isIntersecting){draw(e.target);
+io.unobserve(e.target);}});},{rootMargin:'600px'});
+els.forEach(function(el){io.observe(el);});})();
+</script>
+"""
+
 _CLICK = """
 <script>
 (function(){var map=document.getElementById('fieldmap'); if(!map||!map.on){return;}
@@ -60,6 +76,14 @@ def _e(x) -> str:
 def _div(fig, div_id: str) -> str:
     return pio.to_html(fig, full_html=False, include_plotlyjs=False, div_id=div_id,
                        config={"displaylogo": False, "responsive": True})
+
+
+def _lazy_div(fig, div_id: str) -> str:
+    """A figure drawn when it scrolls near the viewport (:data:`_LAZY`): the page loads as fast with 400
+    heliostat sections as with 4. The figure's JSON sits in a ``<script type="application/json">``."""
+    height = int(fig.layout.height or 420)
+    return (f'<div id="{div_id}" class="lazy-plot" style="height:{height}px"></div>'
+            f'<script type="application/json" id="{div_id}-json">{fig.to_json()}</script>')
 
 
 def _fmt(v, digits: int = 3) -> str:
@@ -86,8 +110,8 @@ def _field_map(state: dict, quantities: dict, colour: str):
     fig = go.Figure(go.Scattergl(
         x=np.asarray(state["x_m"], dtype=np.float32), y=np.asarray(state["y_m"], dtype=np.float32), text=ids,
         customdata=table, mode="markers", name="heliostats (dark grey: no value)", hovertemplate=hover,
-        marker=dict(size=6, color=table[:, keys.index(colour)], colorscale=first["marker.colorscale"][0], showscale=True,
-                    colorbar=dict(title=dict(text=first["marker.colorbar.title.text"], side="right")))))
+        marker=dict(size=6, color=table[:, keys.index(colour)], colorscale=first["marker.colorscale"][0],
+                    showscale=True, colorbar=dict(title=dict(text=first["marker.colorbar.title.text"], side="right")))))
     fig.add_trace(go.Scatter(x=[0.0], y=[0.0], mode="markers", name="tower", hoverinfo="name",
                              marker=dict(symbol="triangle-up", size=14, color="black")))
     buttons = [dict(label=quantities[k][0], method="restyle", args=[style(k), [0]]) for k in keys]
@@ -122,12 +146,18 @@ def _detail_figure(d: dict):
 
 
 def _sky_figure(p: dict):
-    """The plan's sky map: predictive spread at every candidate sun position, proposals marked."""
+    """The plan's sky map: the predictive spread now, averaged in 5 deg x 2.5 deg cells of sun azimuth and
+    elevation (a heatmap: no WebGL context, a few hundred cells), the proposed sun positions marked."""
     sky = p["sky"]
-    fig = go.Figure(go.Scattergl(x=sky["sun_azimuth_deg"], y=sky["sun_elevation_deg"], mode="markers",
-                                 name="candidate sun positions",
-                                 marker=dict(size=4, color=sky["std_now_mrad"], colorscale="Viridis",
-                                             colorbar=dict(title="spread now [mrad]"))))
+    az, el, std = (np.asarray(sky[k], dtype=float) for k in ("sun_azimuth_deg", "sun_elevation_deg", "std_now_mrad"))
+    az_edges = np.arange(np.floor(az.min() / 5) * 5, az.max() + 5.0, 5.0) if len(az) else np.array([0.0, 5.0])
+    el_edges = np.arange(np.floor(el.min() / 2.5) * 2.5, el.max() + 2.5, 2.5) if len(el) else np.array([0.0, 2.5])
+    total, _, _ = np.histogram2d(el, az, bins=(el_edges, az_edges), weights=std)
+    count, _, _ = np.histogram2d(el, az, bins=(el_edges, az_edges))
+    mean = np.where(count > 0, total / np.maximum(count, 1), np.nan)
+    fig = go.Figure(go.Heatmap(x=0.5 * (az_edges[1:] + az_edges[:-1]), y=0.5 * (el_edges[1:] + el_edges[:-1]),
+                               z=np.round(mean, 4), colorscale="Viridis", colorbar=dict(title="spread now [mrad]"),
+                               hovertemplate="azimuth %{x:.0f}, elevation %{y:.1f} deg: %{z:.3f} mrad<extra></extra>"))
     fig.add_trace(go.Scatter(x=[q["sun_azimuth_deg"] for q in p["proposals"]],
                              y=[q["sun_elevation_deg"] for q in p["proposals"]], mode="markers+text",
                              text=[str(i + 1) for i in range(len(p["proposals"]))], textposition="top center",
@@ -135,7 +165,8 @@ def _sky_figure(p: dict):
     fig.update_layout(height=320, margin=dict(l=60, r=20, t=30, b=40),
                       xaxis=dict(title="sun azimuth [deg] (PAINT: 0 = south, +90 = east)"),
                       yaxis=dict(title="sun elevation [deg]"), showlegend=False,
-                      title=dict(text=f"{_e(p['heliostat'])}: sun-position coverage", font=dict(size=12)))
+                      title=dict(text=f"{_e(p['heliostat'])}: sun-position coverage (stars: proposed records)",
+                                 font=dict(size=12)))
     return fig
 
 
@@ -149,11 +180,11 @@ def _sections(details: list, plans: list) -> str:
             n_alarm = int(np.sum(d["alarm"]))
             parts.append(f'<p>{len(d["time"])} assimilated records, {n_alarm} step alarm(s), latest '
                          f'{_e(d["time"][-1])}</p>')
-            parts.append(_div(_detail_figure(d), f"hist-{k}"))
+            parts.append(_lazy_div(_detail_figure(d), f"hist-{k}"))
         else:
             parts.append('<p class="note">no update history (never updated since its calibration)</p>')
         if hid in planned:
-            parts.append(_div(_sky_figure(planned[hid]), f"sky-{k}"))
+            parts.append(_lazy_div(_sky_figure(planned[hid]), f"sky-{k}"))
         parts.append("</section>")
         out.append("".join(parts))
     return "\n".join(out)
@@ -189,9 +220,11 @@ def _plan_table(plans: list, detail_ids: set) -> str:
                             for q in p["proposals"])
         rows.append(f"<tr><td>{link}</td><td>{_fmt(p['interval_mrad'])} / {p['alarms_latest']}</td>"
                     f"<td>{p['rms_now_mrad']:.3f} on {_e(p['target'])}</td><td>{props}</td></tr>")
+    skies = [_lazy_div(_sky_figure(p), f"plan-sky-{k}") for k, p in enumerate(plans)
+             if "sky" in p and p["heliostat"] not in detail_ids]  # the others' sky maps are in their sections
     return ("<table id='plan'><tr><th>heliostat</th><th>offset interval [mrad] / alarms</th><th>spread now "
             "[mrad]</th><th>proposed sun positions (time of the year with that sun) -> spread after</th></tr>"
-            + "".join(rows) + "</table>")
+            + "".join(rows) + "</table>" + "".join(skies))
 
 
 def _provenance(described: dict) -> str:
@@ -248,7 +281,7 @@ def _receiver_section(rec: dict | None) -> str:
     axis = f"; angle axis: {angle_origin(rec['receiver'])} (angle = arc / {rec['radius_m']:.2f} m)" \
         if rec["cylinder"] else ""
     limit = f"peak-flux limit {rec['limit_w_m2'] / 1e3:.0f} kW/m² (dashed)" if rec["limit_w_m2"] else "no stored limit"
-    return (f"<p>{_e(when)}; {_e(limit)}{_e(axis)}</p>" + _div(_receiver_figure(rec), "receiver"))
+    return (f"<p id='receiver-note'>{_e(when)}; {_e(limit)}{_e(axis)}</p>" + _div(_receiver_figure(rec), "receiver"))
 
 
 # --------------------------------------------------------------------------------------------------- page
@@ -309,5 +342,5 @@ def render_page(*, described: dict, state: dict, quantities: dict, colour: str, 
         "<h2 id='receiver-h'>Receiver</h2>", _receiver_section(receiver),
         f"<h2 id='heliostats-h'>Heliostats ({len(details)} with a section)</h2>", _sections(details, plans),
         "<h2 id='provenance-h'>Provenance</h2>", _provenance(described),
-        _CLICK, "</body></html>"]
+        _LAZY, _CLICK, "</body></html>"]
     return "\n".join(body)
