@@ -252,6 +252,17 @@ def plot_loss_waterfall(losses: dict, dni_area_w: float, path=None, *, title: st
     falling bar per factor (its loss in % of DNI x mirror area and in MW; its own loss 1 - factor in brackets),
     and the bar of what reaches the receiver; the falling bars add up to the plant's loss.
 
+    Parameters
+    ----------
+    losses : dict
+        Per factor ``{"power_w": lost [W]}`` (:func:`loss_waterfall`).
+    dni_area_w : float
+        DNI x total mirror area [W].
+    path : str or os.PathLike, optional
+        Write the figure here (atomically).
+    title : str, optional
+        First title line (the second says what the losses add up to [%]).
+
     Returns
     -------
     matplotlib.figure.Figure

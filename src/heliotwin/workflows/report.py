@@ -71,6 +71,9 @@ class ReportSettings:
         Heliostats in the calibration plan (the ``plan`` workflow runs once for each).
     plan_count : int
         Sun positions proposed per planned heliostat.
+    plan_every : str
+        Spacing of the plan's candidate times over the year (``plan --every``; 2h halves the plan's time
+        against 1h, and the sky map is binned anyway).
     time_utc : str or None
         Instant of the receiver map (ISO, UTC); None: the stored aim points' instant, else no receiver map.
     flux : bool
@@ -83,6 +86,7 @@ class ReportSettings:
     detail: int = 40
     plan_heliostats: int = 10
     plan_count: int = 3
+    plan_every: str = "2h"
     time_utc: str | None = None
     flux: bool = True
     resolution: tuple = (24, 64)
@@ -279,7 +283,8 @@ def _plan_rows(scenario: Scenario, state: dict, settings: ReportSettings) -> lis
     for i in calibrated[:settings.plan_heliostats]:
         hid = state["ids"][i]
         try:
-            _, ans = plan(scenario, hid, PlanSettings(year=year, count=settings.plan_count, sky=True))
+            _, ans = plan(scenario, hid, PlanSettings(year=year, every=settings.plan_every, count=settings.plan_count,
+                                                    sky=True))
         except HeliotwinError as exc:
             out.append({"heliostat": hid, "error": str(exc)})
             continue
