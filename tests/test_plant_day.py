@@ -220,3 +220,18 @@ def test_daily_updates_plans_and_aims_in_one_step_and_flags_an_alarm(calibrated,
     assert len(after.provenance) == len(before.provenance) + 1 and after.provenance[-1]["step"] == "daily"
     assert sum(len(v) for v in after.provenance[-1]["records"].values()) == report["update"]["overall"]["records"]
     assert "aimpoints" in after.learned and "step alarm" in run.stdout
+
+
+def test_default_threads_take_the_cores_others_leave_idle():
+    from heliotwin.cli.common import default_threads, share_of_cores
+
+    assert share_of_cores(2, 0.05) == 2  # idle: every core
+    assert share_of_cores(2, 1.0) == 1 and share_of_cores(2, 5.0) == 1  # one busy process or more: one thread
+    assert share_of_cores(16, 4.2) == 12 and share_of_cores(4, float("nan")) == 4
+    env = {"OMP_NUM_THREADS": "3"}
+    assert default_threads(env) is None and env == {"OMP_NUM_THREADS": "3"}  # the user's choice stands
+    env = {"HELIOTWIN_THREADS": "5"}
+    assert default_threads(env) == 5 and env["OMP_NUM_THREADS"] == env["MKL_NUM_THREADS"] == "5"
+    env = {}
+    n = default_threads(env)
+    assert 1 <= n <= os.cpu_count() and env["OMP_NUM_THREADS"] == str(n)
