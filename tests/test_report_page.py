@@ -160,3 +160,13 @@ def test_cli_writes_the_page_and_refuses_an_unknown_colour(scenario, tmp_path, c
     with pytest.raises(SystemExit) as exc:
         build_parser().parse_args(["report", "--scenario", str(path), "-o", "x.html", "--colour", "nope"])
     assert exc.value.code == 2
+
+
+def test_the_map_opens_on_a_quantity_the_plant_has_values_of(scenario):
+    """A plant with calibrated kinematics but no posterior or history: the default colour (predicted error) has
+    no value anywhere, so the map opens on "calibrated"."""
+    ids = scenario.plant.field.ids
+    bare = next_scenario(None, scenario.plant, learned={"calibration": {"method": "truth", "heliostats": ids}},
+                         step=provenance_entry("simulate"))
+    html = plant_report(bare, None, ReportSettings(plan_heliostats=0, flux=False))[1]["html"]
+    assert f'"active":{list(QUANTITIES).index("calibrated")}' in html

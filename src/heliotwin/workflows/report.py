@@ -369,7 +369,10 @@ def plant_report(scenario: Scenario, records=None, settings: ReportSettings = Re
     seconds["receiver"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     described = describe_scenario(scenario)
-    html = render_page(described=described, state=state, quantities=QUANTITIES, colour=settings.colour,
+    colour = settings.colour  # the chosen one, else the first quantity the plant has values of
+    if not np.isfinite(state[colour]).any():
+        colour = next((k for k in QUANTITIES if np.isfinite(state[k]).any() and np.nanmax(state[k]) > 0), colour)
+    html = render_page(described=described, state=state, quantities=QUANTITIES, colour=colour,
                        alarms=alarms, details=details, plans=plans, receiver=receiver)
     seconds["page"] = time.perf_counter() - t0
     ref = state["reference_time"]

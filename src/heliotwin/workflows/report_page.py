@@ -110,8 +110,9 @@ def _field_map(state: dict, quantities: dict, colour: str):
     fig = go.Figure(go.Scattergl(
         x=np.asarray(state["x_m"], dtype=np.float32), y=np.asarray(state["y_m"], dtype=np.float32), text=ids,
         customdata=table, mode="markers", name="heliostats (dark grey: no value)", hovertemplate=hover,
-        marker=dict(size=6, color=table[:, keys.index(colour)], colorscale=first["marker.colorscale"][0],
-                    showscale=True, colorbar=dict(title=dict(text=first["marker.colorbar.title.text"], side="right")))))
+        marker=dict(size=6 if len(ids) <= 3000 else 4, color=table[:, keys.index(colour)],
+                    colorscale=first["marker.colorscale"][0], showscale=True,
+                    colorbar=dict(title=dict(text=first["marker.colorbar.title.text"], side="right")))))
     fig.add_trace(go.Scatter(x=[0.0], y=[0.0], mode="markers", name="tower", hoverinfo="name",
                              marker=dict(symbol="triangle-up", size=14, color="black")))
     buttons = [dict(label=quantities[k][0], method="restyle", args=[style(k), [0]]) for k in keys]
