@@ -1,4 +1,5 @@
-"""Sun position: direction vectors from PAINT angles or from UTC time at the site (pvlib SPA).
+"""Sun position: direction vectors from PAINT angles (:mod:`heliotwin.sunangles`, re-exported here) or from
+UTC time at the site (pvlib SPA).
 
 Convention
 ----------
@@ -16,51 +17,10 @@ import pandas as pd
 import pvlib
 import torch
 
-from .errors import OutOfRangeError
+from .sunangles import direction_from_paint_angles, paint_angles_from_direction
 
-
-def direction_from_paint_angles(azimuth, elevation, *, check_horizon: bool = True) -> torch.Tensor:
-    """Unit vector towards the sun from PAINT angles.
-
-    Parameters
-    ----------
-    azimuth : tensor-like, shape (...)
-        Sun azimuth [rad], 0 = south, +pi/2 = east.
-    elevation : tensor-like, shape (...)
-        Sun elevation above the horizon [rad].
-    check_horizon : bool
-        Raise :class:`~heliotwin.errors.OutOfRangeError` when any elevation is <= 0.
-
-    Returns
-    -------
-    torch.Tensor, shape (..., 3), float64
-        ENU unit vector towards the sun.
-    """
-    az = torch.as_tensor(azimuth, dtype=torch.float64)
-    el = torch.as_tensor(elevation, dtype=torch.float64)
-    if check_horizon and bool((el <= 0).any()):
-        bad = float(el.min())
-        raise OutOfRangeError(f"sun elevation {math.degrees(bad):.3f} deg is at or below the horizon")
-    ce = torch.cos(el)
-    return torch.stack((torch.sin(az) * ce, -torch.cos(az) * ce, torch.sin(el)), dim=-1)
-
-
-def paint_angles_from_direction(direction) -> tuple[torch.Tensor, torch.Tensor]:
-    """Inverse of :func:`direction_from_paint_angles`.
-
-    Parameters
-    ----------
-    direction : tensor-like, shape (..., 3)
-        ENU vector towards the sun (need not be unit).
-
-    Returns
-    -------
-    azimuth, elevation : torch.Tensor, shape (...)
-        [rad], PAINT convention (0 = south, +pi/2 = east).
-    """
-    d = torch.as_tensor(direction, dtype=torch.float64)
-    horizontal = torch.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
-    return torch.atan2(d[..., 0], -d[..., 1]), torch.atan2(d[..., 2], horizontal)
+__all__ = ["direction_from_paint_angles", "paint_angles_from_direction", "solar_position", "direction_from_time",
+           "daylight_times"]
 
 
 def solar_position(times, latitude_deg: float, longitude_deg: float, altitude_m: float = 0.0):

@@ -18,7 +18,7 @@ from ..field import kinematics as K
 from ..field.plant import Kinematics, Plant
 from ..field.update import with_kinematics
 from ..io.scenario import Scenario, next_scenario, provenance_entry, write_scenario
-from ..sun import direction_from_paint_angles
+from ..sunangles import direction_from_paint_angles
 from .methods.hybrid import aim_hybrid
 from .methods.mlp import aim_mlp
 from .params import STONE8, apply_deviations

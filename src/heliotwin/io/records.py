@@ -27,7 +27,7 @@ from datetime import datetime, timezone
 import torch
 
 from ..errors import HeliotwinError, InputFileError
-from ..sun import direction_from_paint_angles
+from ..sunangles import direction_from_paint_angles
 
 #: Focal-spot sources a record may carry, in PAINT's spelling.
 SOURCES = ("HeliOS", "UTIS")
