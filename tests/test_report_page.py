@@ -87,7 +87,7 @@ def scenario():
 
 @pytest.fixture(scope="module")
 def page(scenario):
-    return plant_report(scenario, None, ReportSettings(plan_heliostats=1, plan_count=2, detail=5))[1]
+    return plant_report(scenario, None, ReportSettings(plan_heliostats=1, plan_count=2, plan_every="6h", detail=5))[1]
 
 
 def test_state_reads_intervals_alarms_and_days_from_the_stored_posterior_and_history(scenario):
