@@ -27,6 +27,7 @@ from heliotwin.workflows.report import (
     heliostat_detail,
     heliostat_state,
     plant_report,
+    surface_deviation,
 )
 from heliotwin.workflows.report_page import render_page
 
@@ -170,3 +171,20 @@ def test_the_map_opens_on_a_quantity_the_plant_has_values_of(scenario):
                          step=provenance_entry("simulate"))
     html = plant_report(bare, None, ReportSettings(plan_heliostats=0, flux=False))[1]["html"]
     assert f'"active":{list(QUANTITIES).index("calibrated")}' in html
+
+
+def test_a_learned_surface_shows_its_tilt_from_the_ideal_facets(scenario):
+    """Control points of heliostat 0 lifted along z in proportion to x: every normal tilts by atan(slope)."""
+    ids = scenario.plant.field.ids
+    f = scenario.plant.field
+    cp = f.surfaces.control_points.clone()
+    cp[0, ..., 2] += 1e-3 * (cp[0, ..., 0] - cp[0, ..., 0].mean(dim=(-1, -2), keepdim=True))  # slope 1 mrad
+    plant = dataclasses.replace(scenario.plant, field=dataclasses.replace(
+        f, surfaces=dataclasses.replace(f.surfaces, control_points=cp)))
+    learned = dict(scenario.learned, surfaces={ids[0]: {}})
+    sc = next_scenario(None, plant, learned=learned, step=provenance_entry("reconstruct"))
+    surf = surface_deviation(sc, ids[0])
+    assert surf["rms_mrad"] == pytest.approx(1.0, rel=0.05)
+    assert surface_deviation(sc, ids[1])["rms_mrad"] < 1e-6
+    html = plant_report(sc, None, ReportSettings(plan_heliostats=0, flux=False, detail=40))[1]["html"]
+    assert f"{ids[0]}: learned surface, RMS 1.0" in html.replace("\\u003c", "<")

@@ -6,9 +6,9 @@
   axis offsets from the stored posterior, the latest predicted pointing error and the step alarms of the
   update history (``heliotwin update``), days since the last record, learned surfaces;
 * the alarms since the last report (the latest update's), sorted by their step statistic, with what to do;
-* per-heliostat detail (state history across updates, residuals) for the alarmed and the least certain
-  heliostats with an update history, at most :attr:`ReportSettings.detail` of them, so that the page stays
-  small at any plant size;
+* per-heliostat detail (state history across updates, residuals, the learned surface's tilt from the ideal
+  facets) for the alarmed and the least certain heliostats with an update history or a learned surface, at
+  most :attr:`ReportSettings.detail` of them, so that the page stays small at any plant size;
 * the calibration plan for the heliostats that need records most (the ``plan`` workflow, with its sky map);
 * the receiver (the ``field`` workflow): equator aiming and the stored aim points on one colour scale, with
   the stored peak-flux limit;
@@ -30,7 +30,10 @@ import numpy as np
 import torch
 
 from ..errors import HeliotwinError
+from ..field.facets import ideal_surfaces, surface_points
+from ..field.plant import Facets, Surfaces
 from ..field.targets import CylinderTarget
+from ..geometry import angle_between
 from ..io.records import parse_time
 from ..io.scenario import Scenario
 from .field import FieldRunSettings, field, sun_direction_at
@@ -39,7 +42,8 @@ from .report_page import render_page
 from .show import describe_scenario
 from .update import ASSIMILATION_KEY
 
-__all__ = ["ReportSettings", "QUANTITIES", "heliostat_state", "alarm_rows", "heliostat_detail", "plant_report"]
+__all__ = ["ReportSettings", "QUANTITIES", "heliostat_state", "alarm_rows", "heliostat_detail", "surface_deviation",
+           "plant_report"]
 
 #: Colour quantities of the field map: key -> (label with unit, higher is worse).
 QUANTITIES = {
@@ -261,6 +265,34 @@ def heliostat_detail(scenario: Scenario, heliostat: str) -> dict:
             "alarm": r["alarm"][rows].astype(bool).tolist(), "update": r["update"][rows].astype(int).tolist()}
 
 
+def surface_deviation(scenario: Scenario, heliostat: str, samples: tuple = (12, 12)) -> dict:
+    """How far ``heliostat``'s surface in the plant (learned, if a step learned one) tilts from its ideal canted
+    facets: the angle between the two normals at the same facet samples.
+
+    Returns
+    -------
+    dict
+        ``deviation_mrad`` [F][su][sv] (nested lists; u along the facet's ``canting_e``), ``rms_mrad``
+        (area-weighted over the mirror) and ``facets`` (F).
+    """
+    f = scenario.plant.field
+    i = list(f.ids).index(heliostat)
+    s = f.surfaces
+    cp = s.control_points[i:i + 1].detach().cpu().double()
+    learned = Surfaces(cp, s.degree_u, s.degree_v, None if s.weights is None else s.weights[i:i + 1].detach().cpu())
+    facets = Facets(*(getattr(f.facets, k)[i:i + 1].detach().cpu().double()
+                      for k in ("translation", "canting_e", "canting_n")))
+    ideal = ideal_surfaces(facets, num_control_points=tuple(cp.shape[2:4]), degree=(s.degree_u, s.degree_v))
+    with torch.no_grad():
+        _, n_learned, area = surface_points(learned, samples)
+        _, n_ideal, _ = surface_points(ideal, samples)
+        angle = 1e3 * angle_between(n_learned, n_ideal.to(n_learned))[0]  # [F * su * sv] [mrad]
+    rms = float(torch.sqrt((area[0] * angle ** 2).sum() / area[0].sum()))
+    n_facets = cp.shape[1]
+    return {"facets": n_facets, "rms_mrad": rms,
+            "deviation_mrad": angle.reshape(n_facets, samples[0], samples[1]).numpy().round(4).tolist()}
+
+
 # ------------------------------------------------------------------------------------------------ choices
 def _ranked(state: dict, count: int) -> list[int]:
     """Heliostat indices that need attention most: alarmed in the latest update (largest step statistic first),
@@ -357,9 +389,13 @@ def plant_report(scenario: Scenario, records=None, settings: ReportSettings = Re
     t0 = time.perf_counter()
     state = heliostat_state(scenario, records)
     alarms = alarm_rows(scenario)
-    with_history = np.isfinite(state["predicted_error_mrad"]) | (state["alarms"] > 0)
+    with_history = np.isfinite(state["predicted_error_mrad"]) | (state["alarms"] > 0) | (state["surface_learned"] > 0)
     detail_ids = [state["ids"][i] for i in _ranked(state, len(state["ids"])) if with_history[i]][:settings.detail]
     details = [heliostat_detail(scenario, h) for h in detail_ids]
+    learned_surfaces = set((scenario.learned.get("surfaces") or {}).keys())
+    for d in details:
+        if d["heliostat"] in learned_surfaces:
+            d["surface"] = surface_deviation(scenario, d["heliostat"])
     seconds["state"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     plans = _plan_rows(scenario, state, settings)

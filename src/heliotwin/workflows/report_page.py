@@ -1,10 +1,11 @@
 """The plant page as one self-contained HTML file: Plotly figures with plotly.js inlined once, no network.
 
 :func:`render_page` draws what :func:`heliotwin.workflows.report.plant_report` gathered: the field map
-(one WebGL scatter, its colour switched by a menu, hover for every value, a click jumps to
-the heliostat's section), the alarms, the calibration plan with its sky maps, the per-heliostat sections
-(offsets with their 2-sigma band across updates, alarms marked, residuals), the receiver maps on one colour
-scale with the aim points and the peak-flux limit contour, and the provenance. It computes nothing physical.
+(one WebGL scatter, its colour switched by a menu, hover for every value, a click jumps to the heliostat's
+section), the alarms, the calibration plan with its sky maps, the per-heliostat sections (offsets with their
+2-sigma band across updates, alarms marked, residuals, a learned surface's tilt from the ideal facets), the
+receiver maps on one colour scale with the aim points and the peak-flux limit contour, and the provenance. It
+computes nothing physical.
 
 The only hand-written JavaScript is the click handler of the field map (a few lines; Plotly has no "link"
 action). Plotly is a declared dependency; without it :func:`render_page` raises a one-line error.
@@ -146,6 +147,24 @@ def _detail_figure(d: dict):
     return fig
 
 
+def _surface_figure(hid: str, surf: dict):
+    """The learned surface: per facet, the angle of its normals to the ideal facet's [mrad], one colour scale."""
+    dev = [np.asarray(f, dtype=float) for f in surf["deviation_mrad"]]
+    top = max(float(d.max()) for d in dev) or 1.0
+    fig = make_subplots(rows=1, cols=len(dev), subplot_titles=[f"facet {k + 1}" for k in range(len(dev))],
+                        horizontal_spacing=0.03)
+    for k, d in enumerate(dev, 1):
+        fig.add_trace(go.Heatmap(z=d, zmin=0.0, zmax=top, colorscale="Magma", showscale=k == 1,
+                                 colorbar=dict(title="normal vs ideal [mrad]"),
+                                 hovertemplate="%{z:.2f} mrad<extra></extra>"), row=1, col=k)
+        fig.update_xaxes(showticklabels=False, row=1, col=k)
+        fig.update_yaxes(showticklabels=False, row=1, col=k)
+    fig.update_layout(height=260, margin=dict(l=30, r=20, t=50, b=20),
+                      title=dict(text=f"{_e(hid)}: learned surface, RMS {surf['rms_mrad']:.2f} mrad from the ideal "
+                                      "canted facets", font=dict(size=12)))
+    return fig
+
+
 def _sky_figure(p: dict):
     """The plan's sky map: the predictive spread now, averaged in 5 deg x 2.5 deg cells of sun azimuth and
     elevation (a heatmap: no WebGL context, a few hundred cells), the proposed sun positions marked."""
@@ -186,6 +205,8 @@ def _sections(details: list, plans: list) -> str:
             parts.append('<p class="note">no update history (never updated since its calibration)</p>')
         if hid in planned:
             parts.append(_lazy_div(_sky_figure(planned[hid]), f"sky-{k}"))
+        if d.get("surface"):
+            parts.append(_lazy_div(_surface_figure(hid, d["surface"]), f"surface-{k}"))
         parts.append("</section>")
         out.append("".join(parts))
     return "\n".join(out)
