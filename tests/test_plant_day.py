@@ -235,3 +235,39 @@ def test_default_threads_take_the_cores_others_leave_idle():
     env = {}
     n = default_threads(env)
     assert 1 <= n <= os.cpu_count() and env["OMP_NUM_THREADS"] == str(n)
+
+
+def test_an_update_counts_what_it_does_not_assimilate(calibrated, tmp_path):
+    """Records of a heliostat the plant does not know, and records the reader drops (motor steps out of range, a
+    date in the future, an absurd sun azimuth), are counted and named in the report, never silently lost."""
+    c = calibrated
+    work = tmp_path / "plant"
+    shutil.copytree(c["folder"], work)
+    known = P.list_heliostats(work)[0]
+    stranger = "ZZ99"
+    shutil.copytree(work / known, work / stranger)
+    os.rename(work / stranger / "Properties" / f"{known}-heliostat-properties.json",
+              work / stranger / "Properties" / f"{stranger}-heliostat-properties.json")
+    n_stranger = len([f for f in os.listdir(work / stranger / "Calibration") if f.endswith(P.RECORD_SUFFIX)])
+    for f in os.listdir(work / stranger / "Calibration"):  # its own record ids
+        os.rename(work / stranger / "Calibration" / f, work / stranger / "Calibration" / f"9{f}")
+    moved = [(os.path.join(work, os.path.relpath(d, c["folder"])), s) for d, s in c["moved"]]
+    _grow(moved, c["tail"], os.path.join(work, "metadata", "calibration-metadata.csv"))
+    old = sorted(f for f in os.listdir(work / known / "Calibration") if f.endswith(P.RECORD_SUFFIX))[0]
+    bad, bad_az = moved[0][0], os.path.join(work, known, "Calibration", old)
+    data = json.loads(open(bad).read())
+    data["motor_position"]["axis_1_motor_position"] = 1e9
+    open(bad, "w").write(json.dumps(data))
+    data = json.loads(open(bad_az).read())
+    data["sun_azimuth"] = 1e300
+    open(bad_az, "w").write(json.dumps(data))
+    env = {**c["env"], "HELIOTWIN_CACHE_DIR": str(tmp_path / "cache")}
+    run = _run(["update", "--scenario", c["scenario"], "--paint", work, "-o", tmp_path / "b.h5", "--json",
+                tmp_path / "b.json"], env)
+    assert run.returncode == 0, run.stderr
+    counts = json.loads((tmp_path / "b.json").read_text())["counts"]
+    assert counts["unknown_heliostats"] == 1 and counts["unknown_heliostat_records"] == n_stranger
+    assert counts["unknown_heliostat_ids"] == [stranger]
+    reasons = " ".join(counts["dropped_by_reason"])
+    assert counts["dropped"] >= 2 and "motor steps axis 1" in reasons and "sun_azimuth" in reasons
+    assert "this plant does not know" in run.stdout and "dropped by the reader" in run.stdout

@@ -27,7 +27,13 @@ import torch.distributed as dist
 from ..calibrate.methods.batched import sharded
 from ..calibrate.model import Calibrated
 from ..calibrate.protocol import pipeline
-from ..calibrate.protocol.config import EVERY_RECORD, RunConfig, settings_mode, validate_config
+from ..calibrate.protocol.config import (
+    EVERY_RECORD,
+    RunConfig,
+    settings_mode,
+    validate_config,
+    validation_protocol,
+)
 from ..calibrate.scenario import calibrated_scenario
 from ..calibrate.twinstate import with_alarm_threshold, with_process_noise_choice
 from ..distributed import run_spawned
@@ -59,7 +65,8 @@ class CalibrationSettings:
         Study splits: records per heliostat seen by the method (validation included; None: 30), carved out
         of ``train`` for validation (None: 20 % of it, 0 below 8), held out for the test (None: every other
         record). ``current``: ``train`` and ``validation`` must be None, ``test`` is how many of each
-        heliostat's latest records the internal validation predicts (None: :data:`CURRENT_HOLDOUT`).
+        heliostat's latest records the internal validation predicts (None:
+        :data:`heliotwin.calibrate.protocol.config.CURRENT_HOLDOUT`).
     min_records : int
         Heliostats with fewer usable records are skipped.
     focal_spot : str
@@ -120,10 +127,6 @@ class CalibrationSettings:
     nproc: int = 1
 
 
-#: ``--split current``: each heliostat's latest this many records are predicted from its earlier ones to tell
-#: the written plant's expected error (a sixth or less of a heliostat's records at the default --min-records 50,
-#: about the records a plant gathers per heliostat in four months).
-CURRENT_HOLDOUT = 10
 #: ``--train`` of the study splits when not given.
 STUDY_TRAIN = 30
 
@@ -376,10 +379,9 @@ def calibrate(scenario, records_or_paint, settings: CalibrationSettings = Calibr
         dataset, previous = load_paint_records(paint, scenario, cfg.plane_tolerance)
     validation, study_cfg = None, cfg
     if cfg.split == "current":
-        holdout = cfg.test or CURRENT_HOLDOUT
-        stage(f"validating inside the records ({cfg.method}): each heliostat's latest {holdout} records predicted "
-              f"from its earlier ones")
-        study_cfg = replace(cfg, split="chrono", test=holdout, learn_settings=False)
+        study_cfg = replace(validation_protocol(cfg), learn_settings=False)
+        stage(f"validating inside the records ({cfg.method}): each heliostat's latest {study_cfg.test} records "
+              f"predicted from its earlier ones")
         validation = _run(study_cfg, dataset, settings.nproc, device, progress, None)
         stage(f"fitting the current plant ({cfg.method}) on every record on {device}")
     else:

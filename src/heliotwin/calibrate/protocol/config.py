@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from ...errors import HeliotwinError
 from ...io.records import normalise_source
@@ -101,6 +101,19 @@ def settings_mode(mode: str, *, method: str, prior_from=None, fixed_by_hand: boo
 RUN_SPLITS = ("current",) + SPLIT_TYPES + ("online",)
 #: ``--train`` of a ``current`` run: every record a heliostat has.
 EVERY_RECORD = 10 ** 9
+#: ``--split current``: each heliostat's latest this many records are predicted from its earlier ones to tell
+#: the written plant's expected error, and to score settings by CV (a sixth or less of a heliostat's records at
+#: the default --min-records 50, about the records a plant gathers per heliostat in four months).
+CURRENT_HOLDOUT = 10
+
+
+def validation_protocol(cfg: "RunConfig") -> "RunConfig":
+    """The study protocol that measures a ``current`` run's settings inside its records: chronological, each
+    heliostat's latest ``cfg.test`` (default :data:`CURRENT_HOLDOUT`) records predicted from every earlier one.
+    Other configs are returned as they are."""
+    if cfg.split != "current":
+        return cfg
+    return replace(cfg, split="chrono", train=EVERY_RECORD, validation=0, test=cfg.test or CURRENT_HOLDOUT)
 
 
 def validate_config(cfg: RunConfig) -> None:

@@ -64,7 +64,7 @@ from ..model import Calibrated, nominal_model
 from ..priors import PlantPrior
 from ..uncertainty import predictive
 from .archive import PriorArchive, load_prior_source, reference_kinematics, resolve_prior
-from .config import RunConfig, validate_config
+from .config import RunConfig, validate_config, validation_protocol
 from .online import online_errors, online_split
 from .selection import choose_for_run, learn_for_plant, stored_choice
 from .splits import split_records
@@ -252,17 +252,25 @@ def choose_settings(cfg: RunConfig, run_ids: list, runner) -> Choice:
     candidate with ``runner``, i.e. :func:`run_calibration`); ``--settings stored``: by the choice stored in
     the ``--prior-from`` scenario where it applies (:func:`~heliotwin.calibrate.protocol.selection.stored_choice`).
     Otherwise the flags as given."""
+    # a current run (nothing held out) is scored on its validation protocol, then fits every record
+    study = validation_protocol(cfg)
+
+    def back(chosen: RunConfig) -> RunConfig:
+        return replace(chosen, split=cfg.split, train=cfg.train, validation=cfg.validation, test=cfg.test)
+
     if cfg.learn_settings:
         with _checkpoint.active(None):
-            record, prior = learn_for_plant(cfg, runner=runner, run_size=len(run_ids), progress=bool(cfg.progress))
+            record, prior = learn_for_plant(study, runner=runner, run_size=len(run_ids), progress=bool(cfg.progress))
         return Choice(cfg, record, prior)
     if cfg.settings == "stored":
-        return Choice(*stored_choice(cfg, _held_out(cfg, run_ids)))
+        chosen, record = stored_choice(study, _held_out(cfg, run_ids))
+        return Choice(back(chosen), record)
     if cfg.settings == "cv":
         # The CV runs are not the run's fit: they stay out of its checkpoint (a resumed run repeats them, seeded).
         with _checkpoint.active(None):
-            return Choice(*choose_for_run(cfg, _held_out(cfg, run_ids), runner=runner, progress=bool(cfg.progress),
-                                          run_size=len(run_ids)))
+            chosen, record = choose_for_run(study, _held_out(cfg, run_ids), runner=runner,
+                                            progress=bool(cfg.progress), run_size=len(run_ids))
+        return Choice(back(chosen), record)
     return Choice(cfg)
 
 
