@@ -6,7 +6,7 @@ Needs Debian's ``chromium`` package (``apt-get install -y chromium``; not instal
 not a test). No DevTools client: the benchmark opens a copy of the page with a small probe prepended to its
 ``<head>`` that records ``window.onerror``/``console.error`` messages and the paint/load timings into the DOM,
 which ``chromium --dump-dom`` prints once the page has loaded. Screenshots use ``--screenshot`` on a copy whose
-load handler moves the part to show (the field map; the alarm table with the first alarm's section; the
+load handler moves the part to show (the field map; the first alarm's section above the alarm table; the
 receiver) to the top and draws its figures.
 
 Usage::
@@ -136,7 +136,7 @@ def main() -> int:
             shots = {"map": ["map", "fieldmap"]}
             alarm = first_alarm(page)
             if alarm:
-                shots["alarm"] = ["alarms", alarm]
+                shots["alarm"] = [alarm, "alarms"]
             shots["receiver"] = ["receiver-h", "receiver-note", "receiver"]
             for name, elements in shots.items():
                 screenshot(page, elements, os.path.join(args.out, f"{stem}_{name}.png"), tmp)

@@ -188,3 +188,17 @@ def test_a_learned_surface_shows_its_tilt_from_the_ideal_facets(scenario):
     assert surface_deviation(sc, ids[1])["rms_mrad"] < 1e-6
     html = plant_report(sc, None, ReportSettings(plan_heliostats=0, flux=False, detail=40))[1]["html"]
     assert f"{ids[0]}: learned surface, RMS 1.0" in html.replace("\\u003c", "<")
+
+
+def test_the_alarm_table_lists_the_largest_hundred_and_counts_the_rest():
+    alarms = [{"heliostat": f"H{i:04d}", "record_id": i, "time": "2021-11-24T09:11:00+00:00", "update": 1,
+               "statistic": 500.0 - i, "threshold": 20.0, "innovation_mrad": 1.0, "action": "x"} for i in range(150)]
+    state = {"ids": ["H0000"], "x_m": np.zeros(1), "y_m": np.zeros(1), "reference_time": T0, "threshold": 20.0}
+    state.update({k: np.zeros(1) for k in QUANTITIES})
+    described = {"plant": {"heliostats": 1}, "learned": {"kinematics": {"calibrated": False}}, "provenance": []}
+    html = render_page(described=described, state=state, quantities=QUANTITIES, colour="alarms", alarms=alarms,
+                       details=[], plans=[], receiver=None)
+    table = html[html.index("<table id='alarms'>"):]
+    table = table[:table.index("</table>")]
+    assert table.count("<tr>") == 1 + 100 and "H0099" in table and "H0100" not in table
+    assert "2021-11-24 09:11" in table and "... and 50 smaller alarm(s)" in html

@@ -213,18 +213,24 @@ def _sections(details: list, plans: list) -> str:
 
 
 # ----------------------------------------------------------------------------------------------- tables
+#: Most rows of the alarm table (the largest alarms; the count of the others is named below it).
+ALARM_ROWS = 100
+
+
 def _alarm_table(alarms: list, detail_ids: set) -> str:
     if not alarms:
         return '<p class="note">no step alarm in the latest update</p>'
     rows = []
-    for a in alarms:
+    for a in alarms[:ALARM_ROWS]:
         hid = _e(a["heliostat"])
         link = f'<a href="#h-{hid}">{hid}</a>' if a["heliostat"] in detail_ids else hid
-        rows.append(f"<tr><td>{link}</td><td>{_e(a['time'])}</td><td>{a['record_id']}</td>"
+        rows.append(f"<tr><td>{link}</td><td>{_e(a['time'][:16].replace('T', ' '))}</td><td>{a['record_id']}</td>"
                     f"<td>{a['statistic']:.1f} (threshold {_fmt(a['threshold'])})</td>"
                     f"<td>{a['innovation_mrad']:.2f}</td><td>{_e(a['action'])}</td></tr>")
     return ("<table id='alarms'><tr><th>heliostat</th><th>record time (UTC)</th><th>record</th><th>step statistic"
-            "</th><th>miss [mrad]</th><th>what to do</th></tr>" + "".join(rows) + "</table>")
+            "</th><th>miss [mrad]</th><th>what to do</th></tr>" + "".join(rows) + "</table>"
+            + (f'<p class="note">... and {len(alarms) - ALARM_ROWS} smaller alarm(s) (heliotwin update --json lists '
+               'every one)</p>' if len(alarms) > ALARM_ROWS else ""))
 
 
 def _plan_table(plans: list, detail_ids: set) -> str:
