@@ -178,20 +178,19 @@ def evaluate(plant: Plant, sun: torch.Tensor, aim: torch.Tensor, atmosphere=None
 
 
 # ------------------------------------------------------------------------------------------ image model
-def _axis_cdf(t: torch.Tensor, box: torch.Tensor, sd: torch.Tensor) -> torch.Tensor:
-    """CDF at ``t`` (offsets from the centre [m], [h, ...]) of a uniform box of half-width ``box`` convolved
-    with a Gaussian of standard deviation ``sd`` ([h, 1, ...] each, [m]): ``(G(t + b) - G(t - b)) / 2b`` with
-    ``G(u) = u Phi(u / s) + s phi(u / s)`` (the integral of the Gaussian CDF)."""
-    def g(u):
-        z = u / sd
-        return u * 0.5 * (1.0 + torch.erf(z / _SQ2)) + sd * torch.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
+def _axis_profile(t: torch.Tensor, box: torch.Tensor, sd: torch.Tensor):
+    """CDF and density at ``t`` (offsets from the centre [m], [h, ...]) of a uniform box of half-width ``box``
+    convolved with a Gaussian of standard deviation ``sd`` ([h, 1, ...] each, [m]).
 
-    return (g(t + box) - g(t - box)) / (2.0 * box)
-
-
-def _axis_pdf(t: torch.Tensor, box: torch.Tensor, sd: torch.Tensor) -> torch.Tensor:
-    """Density [1/m] of :func:`_axis_cdf`'s profile at ``t``: ``(Phi((t + b) / s) - Phi((t - b) / s)) / 2b``."""
-    return 0.25 * (torch.erf((t + box) / (_SQ2 * sd)) - torch.erf((t - box) / (_SQ2 * sd))) / box
+    CDF ``(G(t + b) - G(t - b)) / 2b`` with ``G(u) = u Phi(u / s) + s phi(u / s)`` (the integral of the Gaussian
+    CDF) [1]; density ``(Phi((t + b) / s) - Phi((t - b) / s)) / 2b`` [1/m] (the same two erfs).
+    """
+    up, lo = t + box, t - box
+    e_up, e_lo = torch.erf(up / (_SQ2 * sd)), torch.erf(lo / (_SQ2 * sd))
+    k = sd / math.sqrt(2.0 * math.pi)
+    g_up = up * 0.5 * (1.0 + e_up) + k * torch.exp(-0.5 * (up / sd) ** 2)
+    g_lo = lo * 0.5 * (1.0 + e_lo) + k * torch.exp(-0.5 * (lo / sd) ** 2)
+    return (g_up - g_lo) / (2.0 * box), 0.25 * (e_up - e_lo) / box
 
 
 @dataclass
@@ -245,12 +244,12 @@ class ImageModel:
         return self.x_edges[None, None, :] - x[:, None, None] - shift[None, :, None]
 
     def _edges_cdf(self, x: torch.Tensor, y: torch.Tensor):
-        """Offsets of the cell edges from the centres and the profiles' CDFs there: tx [h, S, cols + 1],
-        ty [h, rows + 1], cx, cy likewise."""
+        """The profiles' (CDF, density) at the column edges, [h, S, cols + 1] each, and at the row edges,
+        [h, rows + 1] each."""
         tx, ty = self._tx(x), self.y_edges[None, :] - y[:, None]
         bx, gx = self._profile(0)
         by, gy = self._profile(1)
-        return tx, ty, _axis_cdf(tx, bx[:, None, None], gx[:, None, None]), _axis_cdf(ty, by[:, None], gy[:, None])
+        return _axis_profile(tx, bx[:, None, None], gx[:, None, None]), _axis_profile(ty, by[:, None], gy[:, None])
 
     @property
     def cell_area(self) -> float:
@@ -259,7 +258,7 @@ class ImageModel:
 
     def marginals(self, x: torch.Tensor, y: torch.Tensor):
         """Mass per column [h, cols] and per row (ascending y) [h, rows] of the images centred at ``(x, y)`` [h]."""
-        _, _, cx, cy = self._edges_cdf(x, y)
+        (cx, _), (cy, _) = self._edges_cdf(x, y)
         return (cx[..., 1:] - cx[..., :-1]).sum(1), cy[:, 1:] - cy[:, :-1]
 
     def flux(self, x: torch.Tensor, y: torch.Tensor):
@@ -281,18 +280,18 @@ class _ImageFlux(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x, y, model):
-        tx, ty, cx, cy = model._edges_cdf(x, y)  # tx [h, S, cols + 1] (the centre and its copies), ty [h, rows + 1]
+        (cx, px), (cy, py) = model._edges_cdf(x, y)  # [h, S, cols + 1] (the centre and its copies), [h, rows + 1]
         gx, gy = (cx[..., 1:] - cx[..., :-1]).sum(1), cy[:, 1:] - cy[:, :-1]
         mx, my = gx.sum(1), gy.sum(1)
         pgy = gy * model.power[:, None]
         img = pgy.transpose(0, 1) @ gx / model.cell_area
-        ctx.save_for_backward(tx, ty, gx, pgy, mx, my)
+        ctx.save_for_backward(px.sum(1), py, gx, pgy, mx, my)  # densities at the edges (copies summed)
         ctx.model = model
         return img.flip(0), model.power * mx * my
 
     @staticmethod
     def backward(ctx, g_img, g_p):
-        tx, ty, gx, pgy, mx, my = ctx.saved_tensors
+        px, py, gx, pgy, mx, my = ctx.saved_tensors
         m = ctx.model
         g_gx = torch.zeros_like(gx)
         g_gy = torch.zeros_like(pgy)
@@ -305,17 +304,12 @@ class _ImageFlux(torch.autograd.Function):
             g_gx = g_gx + (gp * my)[:, None]
             g_gy = g_gy + (gp * mx)[:, None]
 
-        def centre_gradient(g_cells, t, axis):
+        def centre_gradient(g_cells, pdf):
             # d(cell mass)/d(centre) = density at the lower edge - density at the upper edge
-            b, sd = m._profile(axis)
-            shape = (-1,) + (1,) * (t.dim() - 1)
-            pdf = _axis_pdf(t, b.view(shape), sd.view(shape))
-            if t.dim() == 3:  # the copies of a closed map
-                pdf = pdf.sum(1)
             return ((pdf[:, :-1] - pdf[:, 1:]) * g_cells).sum(1)
 
-        gx_out = centre_gradient(g_gx, tx, 0) if ctx.needs_input_grad[0] else None
-        gy_out = centre_gradient(g_gy, ty, 1) if ctx.needs_input_grad[1] else None
+        gx_out = centre_gradient(g_gx, px) if ctx.needs_input_grad[0] else None
+        gy_out = centre_gradient(g_gy, py) if ctx.needs_input_grad[1] else None
         return gx_out, gy_out, None
 
 
@@ -589,6 +583,9 @@ class AimSettings:
         Starting internal margin ``m`` [-].
     tolerance : float
         Relative change of the power (or mismatch) below which the rounds stop [-].
+    slack : float
+        Maximising power, the rounds also stop at a feasible round, the best so far, whose peak is within this
+        fraction below the limit [-].
     field_gradient : bool
         Make the power model first-order exact at every round's start (see :func:`optimise_aimpoints`).
     softness : float
@@ -605,6 +602,7 @@ class AimSettings:
     tolerance: float = 1e-3
     field_gradient: bool = False
     softness: float = 0.05
+    slack: float = 0.01
 
 
 @reuse_mirror_samples()  # the rounds' exact checks move the heliostats, never their surfaces
@@ -672,8 +670,9 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, setti
     x0, _ = _local(rec, eq_aim)
     x = x0[rows].clone()
     x_bounds = _visible_arc(rec, pos[rows])
-    # a small alternating spread: equator aiming is a symmetric point of the problem
-    y = 0.05 * (1 - 2 * (rows % 2)).to(pos)
+    y = torch.zeros_like(x)
+    # the first steps start from a small alternating spread: equator aiming is a symmetric point of the problem
+    kick = 0.05 * (1 - 2 * (rows % 2)).to(pos)
     half = 0.5 * float(rec.height)
     p_eq = float(equator.power_w.sum())
     lam = torch.zeros(tuple(int(r) for r in resolution), dtype=torch.float64, device=pos.device)
@@ -683,7 +682,8 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, setti
     previous = None
     for k in range(int(rounds)):
         aim = _world(rec, grp.gather(x, h), grp.gather(y, h))
-        ex = grp.field(plant, sun, atmosphere, aim, check_settings(resolution))
+        # round 0 is equator aiming, whose exact check the image model was calibrated on
+        ex = equator if k == 0 else grp.field(plant, sun, atmosphere, aim, check_settings(resolution))
         peak, power = float(ex.flux.max()), float(ex.power_w.sum())
         ok = peak <= limit
         key = power / p_eq if tgt is None else -target_mismatch(ex.flux, tgt)
@@ -698,6 +698,8 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, setti
             least = res
         if ok and previous is not None and abs(key - previous) < tolerance:
             break
+        if ok and k > 0 and tgt is None and best is res and peak >= (1.0 - float(settings.slack)) * limit:
+            break  # the limit binds within the slack at the best power so far: more rounds only trade noise
         previous = key if ok else None
         if not ok and k > 0:
             m += peak / limit - 1.0 + 0.5 * float(margin)
@@ -709,8 +711,9 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, setti
         # refresh the per-heliostat power (shading, blocking and cosine move with the aim points) and the image
         # spreads (the incidence on the receiver moves with them)
         model.power = (ex.power_w.to(pos) / ex.intercept.to(pos).clamp_min(1e-6))[rows]
-        _, sd, box = image_moments(plant, sun, aim, resolution, rows)
-        model.sx, model.sy, model.bx, model.by = sd[:, 0], sd[:, 1], box[:, 0], box[:, 1]
+        if k > 0:  # round 0: the calibration's own (equator) spreads
+            _, sd, box = image_moments(plant, sun, aim, resolution, rows)
+            model.sx, model.sy, model.bx, model.by = sd[:, 0], sd[:, 1], box[:, 0], box[:, 1]
         with torch.no_grad():
             f_s, p_s = model.flux(x, y)
             f_s, p_s = grp.sum(f_s), grp.sum(p_s.sum())
@@ -723,7 +726,7 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, setti
             gfx, gfy = _field_power_gradient(plant, sun, atmosphere, rec, grp.gather(x, h), grp.gather(y, h), rows,
                                              grp, resolution, softness)
             linear = (gfx - gsx, gfy - gsy)
-        x, y = _alm(model, x, y, defect, power - float(p_s), limit * (1.0 - m), lam, grp=grp,
+        x, y = _alm(model, x, y + kick if k == 0 else y, defect, power - float(p_s), limit * (1.0 - m), lam, grp=grp,
                     steps=iterations, lr=lr, rho=rho, inner=inner, half_height=half, p0=p_eq, weight=float(h),
                     target=tgt, linear=linear, x_bounds=x_bounds)
         steps += int(iterations)
