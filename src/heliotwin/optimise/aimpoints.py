@@ -351,7 +351,7 @@ def image_moments(plant: Plant, sun: torch.Tensor, aim: torch.Tensor, resolution
         Aim points of all heliostats, ENU [m].
     resolution : (int, int)
         Map ``(rows, cols)`` (sets the smoothing, one pixel box).
-    rows : torch.Tensor, [h], long, optional
+    rows : torch.Tensor, shape (h,), long, optional
         Only these heliostats (a shard); default all.
     per_direction : int
         Mirror samples per facet and direction.
