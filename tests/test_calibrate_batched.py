@@ -83,7 +83,7 @@ def test_two_processes_give_the_one_process_calibration():
     from heliotwin.workflows.calibrate import CalibrationSettings, calibrate
 
     ds, _ = synthetic_plant(7, 60, seed=5)
-    settings = CalibrationSettings(split="chrono", min_records=50, train=30, test=20)
+    settings = CalibrationSettings(min_records=50, train=30, test=20)
     one = calibrate(None, ds, settings)
     two = calibrate(None, ds, replace(settings, nproc=2))
     assert torch.allclose(one.model.delta, two.model.delta, atol=1e-12, rtol=0)

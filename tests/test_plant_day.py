@@ -96,17 +96,19 @@ def test_default_calibrate_writes_the_current_plant(plant, tmp_path, capsys, mon
 
 def test_a_study_protocol_says_its_plant_saw_only_the_training_part(plant, tmp_path, capsys):
     out, js = tmp_path / "s.h5", tmp_path / "s.json"
-    code, _, err = run_cli(capsys, "calibrate", "--paint", plant, "--min-records", 20, "--split", "chrono",
+    code, _, err = run_cli(capsys, "calibrate", "--paint", plant, "--min-records", 20,  # --train: chrono study
                            "--train", 25, "-o", out, "--json", js, "--no-plots")
     assert code == 0, err
     report = json.loads(js.read_text())
     assert "training part" in report["written_plant"]["records"] and "expected_error" not in report
+    assert report["config"]["split"] == "chrono"
     seen = seen_record_ids(load_scenario(out))
     assert len(seen) == 25 * report["overall"]["n_heliostats"]
 
 
-def test_train_without_a_study_split_is_a_one_line_error(plant, tmp_path, capsys):
-    code, _, err = run_cli(capsys, "calibrate", "--paint", plant, "--train", 30, "-o", tmp_path / "x.h5")
+def test_train_with_the_current_split_is_a_one_line_error(plant, tmp_path, capsys):
+    code, _, err = run_cli(capsys, "calibrate", "--paint", plant, "--split", "current", "--train", 30, "-o",
+                           tmp_path / "x.h5")
     assert_one_line_error(code, err, "--train", "--split")
     assert not (tmp_path / "x.h5").exists()
 

@@ -199,7 +199,7 @@ def test_lm_calibration_recovers_the_truth(tmp_path):
     """The calibrate workflow with its defaults (bagging, field prior, chronological split)."""
     sim = simulate_plant(SimulationSettings(heliostats=4, seed=6, years=0.8, records_per_month=5, **STATIC))
     folder = write_paint_folder(sim, tmp_path / "plant")
-    scenario, report = calibrate(None, folder, CalibrationSettings(method="lm", split="chrono", min_records=20, train=30))
+    scenario, report = calibrate(None, folder, CalibrationSettings(method="lm", min_records=20, train=30))
     assert report["overall"]["n_heliostats"] == 4
     truth = truth_scenario(sim)
     got = score(truth, scenario, suns=16, flux=False)

@@ -39,12 +39,12 @@ def _add_common(p, current: bool = False):
     p.add_argument("--min-records", type=_COUNT, default=50,
                    help="skip heliostats with fewer usable records (default 50)")
     if current:
-        p.add_argument("--split", "--type", dest="split", default="current",
+        p.add_argument("--split", "--type", dest="split", default=None,
                        choices=("current",) + _STUDY_SPLITS + ("online",),
-                       help="current (default): the plant as it is now, fitted on every record, its expected error "
-                            "from each heliostat's latest --test records predicted from its earlier ones; or a study "
-                            "protocol whose written plant sees only --train records (online = each test record "
-                            "predicted from the --train records before it)")
+                       help="current (default; chrono when --train is given): the plant as it is now, fitted on "
+                            "every record, its expected error from each heliostat's latest --test records predicted "
+                            "from its earlier ones; or a study protocol whose written plant sees only --train "
+                            "records (online = each test record predicted from the --train records before it)")
     else:
         p.add_argument("--split", "--type", dest="split", default="chrono", choices=_STUDY_SPLITS + ("online",),
                        help="split type (default chrono)")

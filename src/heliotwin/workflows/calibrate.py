@@ -42,7 +42,7 @@ from ..io.checkpoint import Checkpoint
 from ..io.paint import PaintDataset
 from ..io.scenario import Scenario, load_records, load_scenario
 
-__all__ = ["CalibrationSettings", "Calibration", "calibrate", "run_config", "resolved_settings_mode",
+__all__ = ["CalibrationSettings", "Calibration", "calibrate", "run_config", "resolved_settings_mode", "resolved_split",
            "calibration_checkpoint", "training_size_curves", "seen_records", "load_paint_records"]
 
 
@@ -56,11 +56,12 @@ class CalibrationSettings:
         ``lm``, ``gradient``, ``hybrid``, ``mlp`` or ``images``.
     heliostats : sequence of str or None
         Heliostat ids (None: every heliostat of the records).
-    split : str
-        ``"current"`` (default): the plant as it is now, fitted on every usable record of each heliostat, its
-        expected error from validation inside those records (:func:`calibrate`); or a study protocol's split
-        type (:data:`heliotwin.calibrate.protocol.config.RUN_SPLITS`), whose written plant saw only the
-        training part.
+    split : str or None
+        None (default): ``"current"``, or ``"chrono"`` when ``train`` or ``validation`` is given (a study size
+        names a study protocol, as it always did). ``"current"``: the plant as it is now, fitted on every usable
+        record of each heliostat, its expected error from validation inside those records
+        (:func:`calibrate`); or a study protocol's split type
+        (:data:`heliotwin.calibrate.protocol.config.RUN_SPLITS`), whose written plant saw only the training part.
     train, validation, test : int or None
         Study splits: records per heliostat seen by the method (validation included; None: 30), carved out
         of ``train`` for validation (None: 20 % of it, 0 below 8), held out for the test (None: every other
@@ -104,7 +105,7 @@ class CalibrationSettings:
 
     method: str = "lm"
     heliostats: tuple | list | None = None
-    split: str = "current"
+    split: str | None = None
     train: int | None = None
     validation: int | None = None
     test: int | None = None
@@ -131,10 +132,18 @@ class CalibrationSettings:
 STUDY_TRAIN = 30
 
 
+def resolved_split(s: "CalibrationSettings") -> str:
+    """The run's split: as given, else ``current`` (the plant as it is now) unless a study size (``train``,
+    ``validation``) is given, which names the chronological study protocol."""
+    if s.split is not None:
+        return s.split
+    return "chrono" if (s.train is not None or s.validation is not None) else "current"
+
+
 def _sizes(s: "CalibrationSettings") -> tuple:
     """(train, validation, test) of the run: ``current`` sees every record (``--train``/``--validation`` are
     a one-line error there), the study splits default to :data:`STUDY_TRAIN`."""
-    if s.split == "current":
+    if resolved_split(s) == "current":
         if s.train is not None or s.validation is not None:
             raise HeliotwinError("--train / --validation size the study splits (--split chrono, ...); --split current "
                                  "(the default) fits every record and validates inside them (--test: how many of "
@@ -191,8 +200,8 @@ def run_config(settings: CalibrationSettings, paint, *, progress: bool = False) 
     methods' own tqdm bars."""
     s = settings
     train, validation, test = _sizes(s)
-    cfg = RunConfig(paint=os.fspath(paint), method=s.method, split=s.split, train=train, validation=validation,
-                    test=test, heliostats=None if s.heliostats is None else list(s.heliostats),
+    cfg = RunConfig(paint=os.fspath(paint), method=s.method, split=resolved_split(s), train=train,
+                    validation=validation, test=test, heliostats=None if s.heliostats is None else list(s.heliostats),
                     min_records=s.min_records, focal_spot=s.focal_spot, seed=s.seed, plane_tolerance=s.plane_tolerance,
                     correct_suspicious=not s.keep_suspicious, progress=progress is True, prior=s.prior,
                     prior_from=_path(s.prior_from), online_step=s.online_step, method_options=_lm_options(s),
