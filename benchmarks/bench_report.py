@@ -26,7 +26,7 @@ Debian, SwiftShader WebGL), median of 3 loads, no console error on any page:
   ``update`` with the rest: 443 alarms), ``--paint`` given: 5.8 MB, paint 2.0 s, load 2.0 s, run 4.8 s;
 * simulated 10,000 heliostats, same chain (1,871 alarms): 7.0 MB, paint 2.3 s, load 2.2 s, run 5.0 s.
 
-plotly.js is 4.8 MB of every page; the map adds about 0.2 MB per 1,000 heliostats; the 40 heliostat sections
+plotly.js is 4.8 MB of every page; the map adds about 0.15 MB per 1,000 heliostats; the 40 heliostat sections
 and 10 sky maps are drawn when scrolled to, so they cost bytes, not load time.
 """
 from __future__ import annotations

@@ -202,3 +202,21 @@ def test_the_alarm_table_lists_the_largest_hundred_and_counts_the_rest():
     table = table[:table.index("</table>")]
     assert table.count("<tr>") == 1 + 100 and "H0099" in table and "H0100" not in table
     assert "2021-11-24 09:11" in table and "... and 50 smaller alarm(s)" in html
+
+
+class _Records:
+    """The three fields of a RecordTable that the page reads (heliostat ids, index [R], time [R] POSIX s)."""
+
+    def __init__(self, ids, index, time):
+        self.heliostat_ids, self.heliostat_index, self.time = ids, torch.tensor(index), torch.tensor(time)
+
+    def __len__(self):
+        return len(self.time)
+
+
+def test_a_paint_folders_newer_records_count_for_days_since_the_last_record(scenario):
+    ids = scenario.plant.field.ids
+    records = _Records([ids[5], "ZZ99"], [0, 1, 1], [T0 + 10 * DAY, T0 + 20 * DAY, float("nan")])
+    s = heliostat_state(scenario, records)
+    assert s["reference_time"] == T0 + 10 * DAY  # the unknown heliostat's record is not the plant's
+    assert s["days_since_record"][5] == 0.0 and s["days_since_record"][3] == pytest.approx(5.0)
