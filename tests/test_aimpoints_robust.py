@@ -1,17 +1,21 @@
 """Aim points on generated plants nobody tuned the optimiser to (issue 31): the image model against the exact
 model on a tilted receiver, the limit held at full power where it can be, less power with the limit held
 where it cannot, and the closed map of a full cylinder."""
+import json
 import math
 
 import pandas as pd
 import pytest
 import torch
+from helpers.cli import run_cli
 
+from heliotwin.io.scenario import save_scenario
 from heliotwin.optimise.aimpoints import (
     VISIBLE_HALF_ANGLE,
     AimSettings,
     ImageModel,
     calibrate_images,
+    evaluate,
     image_moments,
     optimise_aimpoints,
 )
@@ -138,3 +142,18 @@ def test_full_cylinder_map_is_closed_at_its_seam_and_its_gradient_exact():
     ref = torch.autograd.grad((img.flip(0) * w).sum() + (closed.power * gx.sum(1) * gy.sum(1)).sum(), (xs, ys))
     for a, b in zip(fused, ref):
         assert torch.allclose(a, b, rtol=1e-8, atol=1e-10)
+
+
+def test_aimpoints_command_says_what_a_too_low_limit_costs_and_exits_0(tmp_path, capsys):
+    plant, atm = generated_plant("radial", 40, "cylinder", tower=40.0)
+    sc = save_scenario(plant, tmp_path / "p.h5", extras=atm.to_extras())
+    rec = plant.targets["receiver"]
+    peak = evaluate(plant, _sun(plant), equator_aim_points(rec, plant.field.kinematics.position), atm).peak_flux_w_m2
+    limit = 0.04 * peak
+    code, out, err = run_cli(capsys, "aimpoints", "--scenario", sc, "--time", TIME, "--peak-limit", limit,
+                             "--iterations", 100, "--no-baselines", "-o", tmp_path / "a.h5", "--json",
+                             tmp_path / "a.json")
+    assert code == 0, err  # the limit is held (with heliostats on standby): not exit 3
+    o = json.loads((tmp_path / "a.json").read_text())["optimised"]
+    assert o["limit_met"] and o["peak_flux_w_m2"] <= limit and 0 < o["standby_heliostats"] < 40
+    assert "on standby" in o["note"] and "on standby" in out
