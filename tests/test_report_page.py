@@ -220,3 +220,12 @@ def test_a_paint_folders_newer_records_count_for_days_since_the_last_record(scen
     s = heliostat_state(scenario, records)
     assert s["reference_time"] == T0 + 10 * DAY  # the unknown heliostat's record is not the plant's
     assert s["days_since_record"][5] == 0.0 and s["days_since_record"][3] == pytest.approx(5.0)
+
+
+def test_tomorrows_plan_puts_the_alarmed_heliostats_first_on_the_day_after_the_latest_record(page, scenario):
+    ids = scenario.plant.field.ids
+    t = page["tomorrow"]
+    assert t["day"] == "2023-11-20"  # the latest record: T0 + 5 days = 2023-11-19 22:13 UTC
+    assert set(t["heliostats"][:2]) == {ids[1], ids[2]} and len(t["heliostats"]) == 12
+    html = page["html"]
+    assert "<table id='tomorrow'>" in html and html.count("step alarm</td>") == 2

@@ -31,7 +31,9 @@ def register(subparsers) -> None:
     p.add_argument("--detail", type=int_range(0, 10000, "a heliostat count"), default=40,
                    help="most heliostats with a section of their own (default %(default)s)")
     p.add_argument("--plan", type=int_range(0, 1000, "a heliostat count"), default=10,
-                   help="heliostats in the calibration plan (default %(default)s)")
+                   help="heliostats with a sun-position coverage map (heliotwin plan; default %(default)s)")
+    p.add_argument("--slots", type=int_range(0, 10000, "a record count"), default=20,
+                   help="records in tomorrow's calibration plan for the plant (default %(default)s)")
     p.add_argument("--time", type=utc_time, help="instant of the receiver map (default: the stored aim points')")
     p.add_argument("--no-flux", action="store_true", help="no receiver map (skips the field model)")
     p.set_defaults(func=cmd_report)
@@ -44,7 +46,7 @@ def cmd_report(args) -> int:
     from ..workflows.report import ReportSettings, plant_report
 
     settings = ReportSettings(colour=args.colour, detail=args.detail, plan_heliostats=args.plan,
-                              time_utc=args.time, flux=not args.no_flux)
+                              plan_slots=args.slots, time_utc=args.time, flux=not args.no_flux)
     with output_set([("--scenario", args.scenario), ("--paint", args.paint)]) as out:
         path = out.file(args.output, "-o")
         scenario = load_scenario(args.scenario)
@@ -59,6 +61,7 @@ def cmd_report(args) -> int:
     if not args.quiet:
         size = os.path.getsize(args.output) / 1e6
         print(f"report: {report['heliostats']} heliostats, {len(report['alarms'])} alarm(s), {len(report['detail'])} "
-              f"heliostat sections, {len(report['plan'])} planned, receiver {'yes' if report['receiver'] else 'no'} "
+              f"heliostat sections, {len(report['tomorrow']['heliostats'])} records planned for "
+              f"{report['tomorrow']['day'] or '-'}, receiver {'yes' if report['receiver'] else 'no'} "
               f"-> {args.output} ({size:.1f} MB)")
     return 0

@@ -9,7 +9,10 @@
 * per-heliostat detail (state history across updates, residuals, the learned surface's tilt from the ideal
   facets) for the alarmed and the least certain heliostats with an update history or a learned surface, at
   most :attr:`ReportSettings.detail` of them, so that the page stays small at any plant size;
-* the calibration plan for the heliostats that need records most (the ``plan`` workflow, with its sky map);
+* tomorrow's calibration plan for the plant (:func:`heliotwin.calibrate.protocol.plan.plant_plan`, as
+  ``heliotwin daily`` makes it: the alarmed heliostats first, then the widest predicted spread, each with its
+  time and sun position on the day after the latest record), and the sun-position coverage (the ``plan``
+  workflow's sky map) of the first of them;
 * the receiver (the ``field`` workflow): equator aiming and the stored aim points on one colour scale, with
   the stored peak-flux limit;
 * provenance (:func:`heliotwin.workflows.show.describe_scenario`).
@@ -29,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ..calibrate.protocol.plan import plant_plan
 from ..errors import HeliotwinError
 from ..field.facets import ideal_surfaces, surface_points
 from ..field.plant import Facets, Surfaces
@@ -72,7 +76,9 @@ class ReportSettings:
     detail : int
         Most heliostats with their own section (alarmed first, then the widest intervals).
     plan_heliostats : int
-        Heliostats in the calibration plan (the ``plan`` workflow runs once for each).
+        Heliostats with a sun-position coverage map (the ``plan`` workflow runs once for each).
+    plan_slots : int
+        Records in tomorrow's plan for the plant (one heliostat each).
     plan_count : int
         Sun positions proposed per planned heliostat.
     plan_every : str
@@ -89,6 +95,7 @@ class ReportSettings:
     colour: str = "predicted_error_mrad"
     detail: int = 40
     plan_heliostats: int = 10
+    plan_slots: int = 20
     plan_count: int = 3
     plan_every: str = "2h"
     time_utc: str | None = None
@@ -98,7 +105,7 @@ class ReportSettings:
     def __post_init__(self):
         if self.colour not in QUANTITIES:
             raise HeliotwinError(f"--colour {self.colour}: expected one of {', '.join(QUANTITIES)}")
-        for name, lo in (("detail", 0), ("plan_heliostats", 0), ("plan_count", 1)):
+        for name, lo in (("detail", 0), ("plan_heliostats", 0), ("plan_count", 1), ("plan_slots", 0)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= 10000:
                 raise HeliotwinError(f"--{name.replace('_', '-')}: expected an integer in {lo}..10000, got {v!r}")
@@ -327,6 +334,22 @@ def _plan_rows(scenario: Scenario, state: dict, settings: ReportSettings) -> lis
     return out
 
 
+def _tomorrow(scenario: Scenario, state: dict, alarms: list, settings: ReportSettings) -> dict:
+    """Tomorrow's plan for the plant (``plant_plan`` on the day after the latest record, the latest update's
+    alarmed heliostats first), or ``{"note": why not}``."""
+    ref = state["reference_time"]
+    if not settings.plan_slots:
+        return {"note": "no plan asked for (--slots 0)"}
+    if not math.isfinite(ref):
+        return {"note": "no record times in the plant: no day to plan"}
+    day = _dt.datetime.fromtimestamp(ref + 86400.0, _dt.timezone.utc).date().isoformat()
+    urgent = list(dict.fromkeys(a["heliostat"] for a in alarms))
+    try:
+        return plant_plan(scenario, day=day, slots=settings.plan_slots, urgent=urgent)
+    except HeliotwinError as exc:
+        return {"note": str(exc)}
+
+
 def _receiver(scenario: Scenario, settings: ReportSettings) -> dict | None:
     """Equator aiming and (if stored) the stored aim points at one instant, for the receiver section."""
     plant = scenario.plant
@@ -383,7 +406,8 @@ def plant_report(scenario: Scenario, records=None, settings: ReportSettings = Re
     report : dict
         ``html`` (the page, str), ``heliostats``, ``alarms`` (the latest update's, sorted), ``detail`` (ids
         with a section), ``plan`` (heliostat ids planned), ``receiver`` (bool), ``reference_time`` (UTC ISO or
-        None) and ``seconds`` {state, plan, receiver, page} [s].
+        None), ``tomorrow`` (the plan's day and planned heliostat ids, or its note) and ``seconds`` {state, plan,
+        receiver, page} [s].
     """
     seconds = {}
     t0 = time.perf_counter()
@@ -399,6 +423,7 @@ def plant_report(scenario: Scenario, records=None, settings: ReportSettings = Re
     seconds["state"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     plans = _plan_rows(scenario, state, settings)
+    tomorrow = _tomorrow(scenario, state, alarms, settings)
     seconds["plan"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     receiver = _receiver(scenario, settings)
@@ -409,9 +434,12 @@ def plant_report(scenario: Scenario, records=None, settings: ReportSettings = Re
     if not np.isfinite(state[colour]).any():
         colour = next((k for k in QUANTITIES if np.isfinite(state[k]).any() and np.nanmax(state[k]) > 0), colour)
     html = render_page(described=described, state=state, quantities=QUANTITIES, colour=colour,
-                       alarms=alarms, details=details, plans=plans, receiver=receiver)
+                       alarms=alarms, details=details, plans=plans, receiver=receiver, tomorrow=tomorrow)
     seconds["page"] = time.perf_counter() - t0
     ref = state["reference_time"]
     return scenario, {"html": html, "heliostats": len(state["ids"]), "alarms": alarms, "detail": detail_ids,
                       "plan": [p["heliostat"] for p in plans], "receiver": bool(receiver and "maps" in receiver),
-                      "reference_time": _iso(ref) if math.isfinite(ref) else None, "seconds": seconds}
+                      "reference_time": _iso(ref) if math.isfinite(ref) else None, "seconds": seconds,
+                      "tomorrow": {"day": tomorrow.get("day"), "heliostats": [p["heliostat"] for p in
+                                                                             tomorrow.get("proposals", [])],
+                                   "note": tomorrow.get("note")}}

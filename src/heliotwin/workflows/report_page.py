@@ -255,6 +255,28 @@ def _plan_table(plans: list, detail_ids: set) -> str:
             + "".join(rows) + "</table>" + "".join(skies))
 
 
+def _tomorrow_table(t: dict | None, detail_ids: set) -> str:
+    """Tomorrow's plan for the plant: one row per record, in priority order."""
+    if not t or "note" in t:
+        return f'<p class="note">no plan for tomorrow: {_e((t or {}).get("note", "not asked for"))}</p>'
+    if not t.get("proposals"):
+        return f'<p class="note">{_e(t["day"])}: nothing to record ({t["candidates"]} candidate times)</p>'
+    rows = []
+    for k, q in enumerate(t["proposals"], 1):
+        hid = _e(q["heliostat"])
+        link = f'<a href="#h-{hid}">{hid}</a>' if q["heliostat"] in detail_ids else hid
+        rows.append(f"<tr><td>{k}</td><td>{link}</td><td>{_e(q['time'][11:16])}</td>"
+                    f"<td>{q['sun_azimuth_deg']:.1f} / {q['sun_elevation_deg']:.1f}</td><td>{_e(q['reason'])}</td>"
+                    f"<td>{_fmt(q.get('spread_now_mrad'))}</td>"
+                    f"<td>{_fmt(q.get('rms_now_mrad'))} -> {_fmt(q.get('rms_after_mrad'))}</td></tr>")
+    head = (f"<p>{_e(t['day'])} (UTC), target {_e(t['target'])}: {len(t['proposals'])} records; predicted spread "
+            f"over the plant: median {_fmt(t.get('median_spread_mrad'))}, p95 {_fmt(t.get('p95_spread_mrad'))} "
+            "mrad</p>")
+    return (head + "<table id='tomorrow'><tr><th>#</th><th>heliostat</th><th>time (UTC)</th><th>sun azimuth / "
+            "elevation [deg] (PAINT)</th><th>why</th><th>spread now [mrad]</th><th>year RMS now -> after [mrad]"
+            "</th></tr>" + "".join(rows) + "</table>")
+
+
 def _provenance(described: dict) -> str:
     rows = []
     for i, s in enumerate(described.get("provenance") or [], 1):
@@ -314,7 +336,7 @@ def _receiver_section(rec: dict | None) -> str:
 
 # --------------------------------------------------------------------------------------------------- page
 def render_page(*, described: dict, state: dict, quantities: dict, colour: str, alarms: list, details: list,
-                plans: list, receiver: dict | None) -> str:
+                plans: list, receiver: dict | None, tomorrow: dict | None = None) -> str:
     """The whole page as one HTML string (module docstring).
 
     Parameters
@@ -332,6 +354,9 @@ def render_page(*, described: dict, state: dict, quantities: dict, colour: str, 
         per detailed heliostat, the plan rows.
     receiver : dict or None
         The receiver maps (flux [rows, cols] [W/m^2], extent [m], aim points on the receiver [m], limit).
+    tomorrow : dict, optional
+        :func:`heliotwin.calibrate.protocol.plan.plant_plan`'s plan (times UTC, sun angles [deg], spreads
+        [mrad]), or ``{"note": why none}``.
 
     Raises
     ------
@@ -364,9 +389,10 @@ def render_page(*, described: dict, state: dict, quantities: dict, colour: str, 
         "to open its section. Days since the last record count from the latest record the plant holds.</p>",
         _div(_field_map(state, quantities, colour), "fieldmap"), "<p id='clicked' class='note'></p>",
         "<h2 id='alarms-h'>Alarms since the last report</h2>", _alarm_table(alarms, detail_ids),
-        "<h2 id='plan-h'>Calibration plan</h2><p class='note'>the heliostats that need records most (alarmed, then "
-        "the widest offset interval), each with the sun positions that would shrink its uncertainty most "
-        "(heliotwin plan)</p>", _plan_table(plans, detail_ids),
+        "<h2 id='plan-h'>Calibration plan</h2><h3>Tomorrow</h3>", _tomorrow_table(tomorrow, detail_ids),
+        "<h3>Sun-position coverage</h3><p class='note'>the heliostats that need records most (alarmed, then the "
+        "widest offset interval), each with the sun positions over the year that would shrink its uncertainty "
+        "most (heliotwin plan)</p>", _plan_table(plans, detail_ids),
         "<h2 id='receiver-h'>Receiver</h2>", _receiver_section(receiver),
         f"<h2 id='heliostats-h'>Heliostats ({len(details)} with a section)</h2>", _sections(details, plans),
         "<h2 id='provenance-h'>Provenance</h2>", _provenance(described),
