@@ -148,6 +148,7 @@ def main() -> int:
             if alarm:
                 shots["alarm"] = [alarm, "alarms"]
             shots["receiver"] = ["receiver-h", "receiver-note", "receiver"]
+            shots["plan"] = ["plan-h", "tomorrow"]
             for name, elements in shots.items():
                 screenshot(page, elements, os.path.join(args.out, f"{stem}_{name}.png"), tmp)
         p = runs[-1][0]
