@@ -492,6 +492,9 @@ def target_mismatch(flux: torch.Tensor, target: torch.Tensor) -> float:
 
 
 # ------------------------------------------------------------------------------------------ optimiser
+#: Precision of the augmented-Lagrangian steps on the image model (float32: ~2.5x faster per step on a CPU
+#: than float64 at 2000 heliostats; every result is judged on the exact model in its own precision).
+ALM_DTYPE = torch.float32
 #: Largest angle [rad] about a cylinder's axis between an aim point and the heliostat's own side of it.
 VISIBLE_HALF_ANGLE = math.radians(70.0)
 
@@ -526,8 +529,19 @@ def _alm(model: ImageModel, x, y, defect, power_defect, limit_int, lam, *, grp, 
     """Augmented-Lagrangian Adam steps on the corrected image model; returns x, y (``lam`` updated in place).
 
     ``linear = (cx, cy)``: a first-order power correction ``sum cx (x - x_k) + cy (y - y_k)`` [W] about the start.
-    ``x_bounds = (lo, hi)``, [h] each [m]: the lateral range each aim point stays in.
+    ``x_bounds = (lo, hi)``, [h] each [m]: the lateral range each aim point stays in. The steps run in
+    :data:`ALM_DTYPE` (the exact check judges the result); x, y come back in their own dtype.
     """
+    dtype, lam_out = x.dtype, lam
+
+    def low(t):
+        return None if t is None else t.to(ALM_DTYPE)
+
+    model = dataclasses.replace(model, power=low(model.power), sx=low(model.sx), sy=low(model.sy), bx=low(model.bx),
+                                by=low(model.by), x_edges=low(model.x_edges), y_edges=low(model.y_edges))
+    x, y, defect, lam, target = low(x), low(y), low(defect), low(lam), low(target)
+    linear = None if linear is None else tuple(low(t) for t in linear)
+    x_bounds = None if x_bounds is None else tuple(low(t) for t in x_bounds)
     x0, y0 = x.clone(), y.clone()
     x = x.clone().requires_grad_()
     y = y.clone().requires_grad_()
@@ -558,7 +572,8 @@ def _alm(model: ImageModel, x, y, defect, power_defect, limit_int, lam, *, grp, 
                 x.copy_(torch.minimum(torch.maximum(x, x_bounds[0]), x_bounds[1]))
             if (it + 1) % int(inner) == 0:
                 lam.copy_(torch.clamp(lam + rho * g.detach(), min=0.0))
-    return x.detach(), y.detach()
+    lam_out.copy_(lam)
+    return x.detach().to(dtype), y.detach().to(dtype)
 
 
 @dataclass(frozen=True)
