@@ -246,7 +246,7 @@ def _every_record(cfg: RunConfig, records: RecordTable) -> Split:
     return Split(records.subset(rows), records.subset(none), records.subset(none), none, info)
 
 
-def choose_settings(cfg: RunConfig, run_ids: list, runner) -> Choice:
+def choose_settings(cfg: RunConfig, run_ids: list, runner, log=None) -> Choice:
     """``--settings cv``: the run's lm settings replaced by those leave-heliostats-out CV chooses on the
     ``--prior-from`` folder (:func:`~heliotwin.calibrate.protocol.selection.choose_for_run`, scoring every
     candidate with ``runner``, i.e. :func:`run_calibration`); ``--settings stored``: by the choice stored in
@@ -260,7 +260,8 @@ def choose_settings(cfg: RunConfig, run_ids: list, runner) -> Choice:
 
     if cfg.learn_settings:
         with _checkpoint.active(None):
-            record, prior = learn_for_plant(study, runner=runner, run_size=len(run_ids), progress=bool(cfg.progress))
+            record, prior = learn_for_plant(study, runner=runner, run_size=len(run_ids), progress=bool(cfg.progress),
+                                            log=log)
         return Choice(cfg, record, prior)
     if cfg.settings == "stored":
         chosen, record = stored_choice(study, _held_out(cfg, run_ids))
@@ -269,7 +270,7 @@ def choose_settings(cfg: RunConfig, run_ids: list, runner) -> Choice:
         # The CV runs are not the run's fit: they stay out of its checkpoint (a resumed run repeats them, seeded).
         with _checkpoint.active(None):
             chosen, record = choose_for_run(study, _held_out(cfg, run_ids), runner=runner,
-                                            progress=bool(cfg.progress), run_size=len(run_ids))
+                                            progress=bool(cfg.progress), run_size=len(run_ids), log=log)
         return Choice(back(chosen), record)
     return Choice(cfg)
 
@@ -619,9 +620,9 @@ def _config_report(cfg: RunConfig, device) -> dict:
     return config
 
 
-def _run(cfg: RunConfig, dataset, device: str, step) -> tuple[dict, Calibrated | None, dict]:
+def _run(cfg: RunConfig, dataset, device: str, step, log=None) -> tuple[dict, Calibrated | None, dict]:
     """The steps, wired: each gets what it reads from the steps before it. ``step(fn, *args)`` announces the
-    step (progress) and calls it."""
+    step (progress) and calls it; ``log(text)`` reports progress inside a long step."""
     t_start = time.perf_counter()
     loaded = step(select, cfg, dataset, device)
     prepared = step(prepare, cfg, loaded)
@@ -634,7 +635,7 @@ def _run(cfg: RunConfig, dataset, device: str, step) -> tuple[dict, Calibrated |
         return report, None, {}
     batch = step(rebatch, loaded, prepared)
     parts = step(split, cfg, batch)
-    choice = step(choose_settings, cfg, prepared.run_ids, run_calibration)
+    choice = step(choose_settings, cfg, prepared.run_ids, run_calibration, log)
     if choice.record is not None:
         report["config"] = _config_report(choice.cfg, device)  # the settings that ran
         report["settings_choice"] = choice.record
@@ -687,7 +688,7 @@ def run_calibration(cfg: RunConfig, dataset=None, *, device: str = "cpu", progre
     bar = _StageBar(f"calibrate {cfg.method}", len(STEPS), cfg.progress if progress is None else progress)
     try:
         with _checkpoint.active(checkpoint):
-            report, model, arrays = _run(cfg, dataset, device, bar.step)
+            report, model, arrays = _run(cfg, dataset, device, bar.step, bar.log)
     finally:
         bar.close()
     if device == "cpu":
@@ -717,6 +718,13 @@ class _StageBar:
             self.bar.set_postfix_str(name)
         self.index += 1
         return fn(*args)
+
+    def log(self, text: str) -> None:
+        """A line of progress inside the current step (e.g. each settings candidate scored by CV)."""
+        if self.callback is not None and self.index:
+            self.callback(f"{STEPS[self.index - 1][0]}: {' '.join(text.split())}", self.index - 1, self.total)
+        elif self.bar is not None:
+            self.bar.set_postfix_str(" ".join(text.split())[:60])
 
     def close(self) -> None:
         if self.bar is not None:
