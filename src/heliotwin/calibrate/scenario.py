@@ -23,10 +23,11 @@ from .methods.hybrid import aim_hybrid
 from .methods.mlp import aim_mlp
 from .params import STONE8, apply_deviations
 from .priors import PlantPrior
+from .twinstate import KEY
 from .uncertainty import LEVEL, predictive
 
-#: The key of a calibration under ``Scenario.learned``.
-KEY = "calibration"
+# KEY (the calibration's key under ``Scenario.learned``) is calibrate.twinstate's, imported above for the readers
+# that take it from here.
 
 
 def _calibrated_rows(model) -> list[int]:

@@ -32,13 +32,15 @@ from ..io.scenario import Scenario, load_scenario
 from .assimilate import FALSE_ALARM_RATE, WINDOW, FilterState, alarm_threshold, choose_process_noise, leave_one_out_d2
 from .inputs import FIT_FOCAL_SPOT, fit_spots
 from .params import check_names
-from .scenario import KEY
 
 __all__ = ["ASSIMILATION_KEY", "HISTORY_VERSION", "DEFAULT_PROCESS_NOISE", "CHOICE_KEY", "THRESHOLD_KEY",
            "calibration_entry", "nominal_kinematics", "current_assimilation", "calibration_count", "seen_record_ids",
            "stored_tensor", "filter_state", "on_axis", "process_noise_choice", "with_process_noise_choice",
            "process_noise_source", "alarm_threshold_choice", "with_alarm_threshold", "threshold_in_force",
            "split_new", "merged_history", "updated_learned", "state_history"]
+#: Key of the calibration under ``Scenario.learned`` (:mod:`heliotwin.calibrate.scenario` writes it; defined here,
+#: with what reads it back, so that an update does not import the calibration methods to find it).
+KEY = "calibration"
 #: Key of the assimilation state under ``Scenario.learned``.
 ASSIMILATION_KEY = "assimilation"
 #: Layout version of ``/learned/assimilation``.

@@ -48,12 +48,12 @@ import torch
 from ..calibrate.assimilate import FALSE_ALARM_RATE, REOPEN, WINDOW, AssimilationOptions, assimilate
 from ..calibrate.inputs import FIT_FOCAL_SPOT, fit_spots
 from ..calibrate.params import apply_deviations
-from ..calibrate.scenario import KEY
 from ..calibrate.twinstate import (
     ASSIMILATION_KEY,
     CHOICE_KEY,
     DEFAULT_PROCESS_NOISE,
     HISTORY_VERSION,
+    KEY,
     THRESHOLD_KEY,
     calibration_entry,
     current_assimilation,
