@@ -405,7 +405,7 @@ def plot_receiver_flux(maps: dict, receiver, path=None, *, limit_w_m2: float | N
     axes[-1].legend(loc="lower right", fontsize=8, framealpha=0.6)
     when = instant_line(instant)
     if title or when:
-        fig.suptitle(" | ".join(t for t in (when, title) if t))
+        fig.suptitle("\n".join(t for t in (when, title) if t), fontsize=10 if n == 1 else 12)
     if path is not None:
         save_figure(fig, path, tight=False)
     return fig
