@@ -92,6 +92,8 @@ def seen_record_ids(scenario: Scenario) -> set:
 
 
 def stored_tensor(cal: dict, where: str, path, *keys) -> torch.Tensor:
+    """``cal[keys...]`` as a float64 tensor (shape as stored); a missing or malformed entry is a one-line
+    :class:`~heliotwin.errors.InputFileError` naming ``path`` and ``where/keys``."""
     obj = cal
     try:
         for k in keys:
@@ -123,6 +125,8 @@ def calibration_entry(scenario: Scenario) -> tuple[dict, list, tuple]:
 
 
 def nominal_kinematics(cal: dict, path, n: int) -> Kinematics:
+    """The nominal kinematics the calibration's deviations are relative to (``/learned/calibration/nominal``,
+    ``n`` heliostats [1]); one-line error when missing, malformed or of another size."""
     try:
         kin = Kinematics(**{f.name: torch.as_tensor(cal["nominal"][f.name]) for f in fields(Kinematics)})
     except (KeyError, TypeError, ValueError, RuntimeError):
@@ -294,6 +298,10 @@ def alarm_threshold_choice(scenario: Scenario, records: RecordTable, false_alarm
     ----------
     records : RecordTable
         Records of the plant (any heliostat ids); only those the calibration lists as seen are used.
+    false_alarm_rate : float
+        Target share of clean records that raise an alarm [1].
+    window : int
+        Step tests per record [1].
 
     Returns
     -------
@@ -321,8 +329,9 @@ def alarm_threshold_choice(scenario: Scenario, records: RecordTable, false_alarm
 
 def with_alarm_threshold(scenario: Scenario, records: RecordTable, false_alarm_rate: float = FALSE_ALARM_RATE,
                          window: int = WINDOW) -> tuple[Scenario, dict | None]:
-    """``scenario`` with :func:`alarm_threshold_choice` stored under ``/learned/calibration/alarm_threshold``
-    (where every update reads it), and the choice; unchanged (and None) when there is nothing to update."""
+    """``scenario`` with :func:`alarm_threshold_choice` (``false_alarm_rate`` [1] per record, ``window`` [1]
+    step tests) stored under ``/learned/calibration/alarm_threshold`` (where every update reads it), and the
+    choice; unchanged (and None) when there is nothing to update."""
     made = alarm_threshold_choice(scenario, records, false_alarm_rate, window)
     if made is None:
         return scenario, None
@@ -342,9 +351,9 @@ def _first(value, default=None) -> float:
 def threshold_in_force(assimilation: dict | None, cal: dict, false_alarm_rate: float, window: int, nominal,
                        seen: RecordTable, state: FilterState) -> dict:
     """The step-alarm threshold an update applies: an earlier update's of the same calibration, else the one
-    ``calibrate`` stored for the same false-alarm rate and window (:func:`with_alarm_threshold`), else chosen
-    now on ``seen`` (the seen records, fit centroids) under ``state`` (the fit's posterior). ``source`` says
-    which."""
+    ``calibrate`` stored for the same ``false_alarm_rate`` [1] and ``window`` [1] (:func:`with_alarm_threshold`),
+    else chosen now on ``seen`` (the seen records, fit centroids) under ``state`` (the fit's posterior).
+    ``source`` says which."""
     if assimilation and "threshold" in assimilation:
         return {"threshold": _first(assimilation["threshold"]), "kappa": _first(assimilation.get("kappa"), 1.0),
                 "false_alarm_rate": _first(assimilation.get("false_alarm_rate"), 0.0), "stored": True,
@@ -367,7 +376,9 @@ def _with_time(table: RecordTable) -> torch.Tensor:
 
 
 def split_new(table: RecordTable, seen: set, state_time: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, dict]:
-    """Rows (new, seen) of ``table`` and the counts of what is skipped."""
+    """Rows (new [N], seen [S]) of ``table`` and the counts of what is skipped: ``seen`` holds record ids a
+    provenance step lists, ``state_time`` [H] each heliostat's state time [s] (POSIX; a record not later than
+    it cannot be assimilated)."""
     ids = table.record_id
     is_seen = torch.as_tensor(np.isin(ids.cpu().numpy(), np.fromiter(seen, dtype=np.int64, count=len(seen))),
                               dtype=torch.bool)
@@ -403,6 +414,10 @@ def merged_history(previous: dict | None, ids: list, hist: dict, number: int) ->
 
 def updated_learned(previous: Scenario, cal: dict, ids: list, state: FilterState, old_state: FilterState,
              threshold: dict, hist: dict) -> dict:
+    """``previous.learned`` with the update's result: the calibration's deviations [Hc, P] and posterior
+    [Hc, P, P] now ``state``'s, its drift state (offset [Hc, 2] from the static deviations, time [s]), and
+    ``/learned/assimilation`` with the threshold in force and the history (this update's rows ``hist``
+    appended)."""
     names = list(state.names)
     cols = list(state.drift_columns)
     mean, cov = state.mean.detach().cpu(), state.covariance.detach().cpu()

@@ -174,9 +174,23 @@ def compact(root, entries: dict, valid, read: list) -> None:
 
 
 def match(entries: dict, heliostat, name, size, mtime_ns) -> np.ndarray:
-    """For each listed file (arrays over F: heliostat id, file name as bytes, size, mtime [ns]) the row of its
-    valid entry in ``entries``, or -1 (none, or the file changed since it was indexed). A later entry of the
-    same file wins."""
+    """For each listed file the row of its valid entry in ``entries``, or -1 (none, or the file changed since it
+    was indexed). A later entry of the same file wins.
+
+    Parameters
+    ----------
+    entries : dict
+        Index entries (:data:`ENTRY_COLUMNS`, arrays over E entries).
+    heliostat, name : sequence, [F]
+        Each listed file's heliostat id and file name (bytes).
+    size, mtime_ns : np.ndarray of int, [F]
+        Its size in bytes and modification time in nanoseconds (the counts the file system keeps).
+
+    Returns
+    -------
+    np.ndarray, [F]
+        Row into ``entries`` or -1 [1].
+    """
     n = len(heliostat)
     if not len(entries["record_id"]) or not n:
         return np.full(n, -1, dtype=np.int64)
@@ -226,8 +240,9 @@ def csv_cached(root, path: str) -> tuple[dict | None, int]:
 
 
 def store_csv(root, path: str, size: int, arrays: dict) -> None:
-    """Store the parse (``arrays``: ``ids``, ``lines`` and the parsed columns) of the first ``size`` bytes of
-    the CSV ``path``; those bytes must end with a line break (a partly written last line is not stored)."""
+    """Store the parse (``arrays``: ``ids`` [M], ``lines`` and the parsed columns [M, ...]) of the first ``size``
+    bytes [1] of the CSV ``path``; those bytes must end with a line break (a partly written last line is not
+    stored)."""
     digest = _digest(path, size)
     if digest is None:
         return
