@@ -184,7 +184,7 @@ def match(entries: dict, heliostat, name, size, mtime_ns) -> np.ndarray:
     heliostat, name : sequence, [F]
         Each listed file's heliostat id and file name (bytes).
     size, mtime_ns : np.ndarray of int, [F]
-        Its size in bytes and modification time in nanoseconds (the counts the file system keeps).
+        Its size and modification time as the file system counts them [1] (bytes, nanoseconds).
 
     Returns
     -------
