@@ -694,7 +694,7 @@ class Listing:
     folders : list of str
         Each heliostat's Calibration folder.
     names : list of set
-        Every file name in each of those folders (images are looked up there).
+        The image (``.png``) file names in each of those folders (a record's images are looked up there).
     heliostat : np.ndarray [F] int
         Index of each file's heliostat.
     name : np.ndarray [F] bytes
@@ -729,10 +729,18 @@ def _listing(root: str, ids) -> Listing:
             continue
         except OSError as exc:
             raise InputFileError(folder, f"cannot read ({exc.strerror})") from None
-        names.append({e.name for e in entries})
-        files = sorted((e for e in entries if e.name.endswith(RECORD_SUFFIX) and not e.name.startswith(".")),
-                       key=lambda e: _record_number(e.name))
-        for e in files:
+        files, images = [], set()
+        for e in entries:  # one pass: record files, and the images a record may have
+            name = e.name
+            if name.endswith(RECORD_SUFFIX):
+                if not name.startswith("."):
+                    head = name.split("-", 1)[0]
+                    files.append((int(head) if head.isdigit() else -1, name, e))
+            elif name.endswith(".png"):
+                images.add(name)
+        names.append(images)
+        files.sort(key=lambda item: item[0])  # ascending record id (stable: ties keep the folder's order)
+        for _, name, e in files:
             try:
                 st = e.stat()
                 sizes.append(st.st_size)
@@ -740,7 +748,7 @@ def _listing(root: str, ids) -> Listing:
             except OSError:
                 sizes.append(-1)
                 mtimes.append(-1)
-            fnames.append(e.name.encode())
+            fnames.append(name.encode())
             hidx.append(h)
     return Listing(folders, names, np.asarray(hidx, dtype=np.int64), np.asarray(fnames, dtype="S"),
                    np.asarray(sizes, dtype=np.int64), np.asarray(mtimes, dtype=np.int64))
@@ -829,13 +837,18 @@ def _assemble(entries: dict, listing: Listing, ids, site: Site, targets: dict, m
     wx = _join(rid, meta["weather_ids"], None, meta["weather"], len(WEATHER_KEYS))[1]
     hidx = listing.heliostat
     names = listing.name.astype("U").tolist() if n else []
-    paths = [os.path.join(listing.folders[h], nm) for h, nm in zip(hidx.tolist(), names)]
+    prefix = [folder + os.sep for folder in listing.folders]
+    paths = [prefix[h] + nm for h, nm in zip(hidx.tolist(), names)]
     rid_list = rid.tolist()
     png, cpng = [], []
     for h, x in zip(hidx.tolist(), rid_list):
-        have, folder = listing.names[h], listing.folders[h]
-        png.append(os.path.join(folder, f"{x}-flux.png") if f"{x}-flux.png" in have else None)
-        cpng.append(os.path.join(folder, f"{x}-flux-centered.png") if f"{x}-flux-centered.png" in have else None)
+        have = listing.names[h]
+        if not have:  # most folders hold no image
+            png.append(None)
+            cpng.append(None)
+            continue
+        png.append(prefix[h] + f"{x}-flux.png" if f"{x}-flux.png" in have else None)
+        cpng.append(prefix[h] + f"{x}-flux-centered.png" if f"{x}-flux-centered.png" in have else None)
     f64 = dict(dtype=torch.float64)
     return RawRecords(
         heliostat_ids=list(ids), heliostat_index=torch.from_numpy(hidx.astype(np.int64)),

@@ -186,6 +186,7 @@ class RecordTable:
         if idx.dtype == torch.bool:
             idx = idx.nonzero().flatten()
         idx = idx.long()
+        rows = idx.tolist()
         out = {}
         for f in fields(self):
             v = getattr(self, f.name)
@@ -194,7 +195,7 @@ class RecordTable:
             elif v is None:
                 out[f.name] = None
             elif isinstance(v, list):
-                out[f.name] = [v[i] for i in idx.tolist()]
+                out[f.name] = list(map(v.__getitem__, rows))
             else:
                 out[f.name] = v[idx]
         return RecordTable(**out)
