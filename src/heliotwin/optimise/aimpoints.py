@@ -65,6 +65,7 @@ Shapes: H heliostats; aim points [H, 3] ENU [m]; maps [rows, cols] [W/m^2] (row 
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import time
@@ -524,6 +525,21 @@ def _field_power_gradient(plant, sun, atmosphere, rec, x_all, y_all, rows, grp, 
     return grp.sum(gx.detach())[rows], grp.sum(gy.detach())[rows]
 
 
+@contextlib.contextmanager
+def _intra_op_threads(n: int):
+    """Run the block with ``n`` intra-op threads (restored after): the image model's steps are hundreds of
+    small element-wise ops, for which a second thread only adds synchronisation, and on a loaded machine
+    (more runnable processes than cores) its spin-waits multiplied the steps' CPU time 30-fold (measured:
+    whole command 10 s with one thread against 251 s with two, 2 cores, load ~5)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(int(n))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+@_intra_op_threads(1)
 def _alm(model: ImageModel, x, y, defect, power_defect, limit_int, lam, *, grp, steps, lr, rho, inner,
          half_height, p0, weight, target, linear=None, x_bounds=None):
     """Augmented-Lagrangian Adam steps on the corrected image model; returns x, y (``lam`` updated in place).
