@@ -189,8 +189,10 @@ def _axis_profile(t: torch.Tensor, box: torch.Tensor, sd: torch.Tensor):
     up, lo = t + box, t - box
     e_up, e_lo = torch.erf(up / (_SQ2 * sd)), torch.erf(lo / (_SQ2 * sd))
     k = sd / math.sqrt(2.0 * math.pi)
-    g_up = up * 0.5 * (1.0 + e_up) + k * torch.exp(-0.5 * (up / sd) ** 2)
-    g_lo = lo * 0.5 * (1.0 + e_lo) + k * torch.exp(-0.5 * (lo / sd) ** 2)
+    # exponents capped at -50 (e^-50 ~ 2e-22): beyond, exp runs through subnormal floats (float32 below
+    # e^-87), which a CPU computes ~5x slower, for terms that cancel in the difference anyway
+    g_up = up * 0.5 * (1.0 + e_up) + k * torch.exp(-0.5 * ((up / sd) ** 2).clamp_max(100.0))
+    g_lo = lo * 0.5 * (1.0 + e_lo) + k * torch.exp(-0.5 * ((lo / sd) ** 2).clamp_max(100.0))
     return (g_up - g_lo) / (2.0 * box), 0.25 * (e_up - e_lo) / box
 
 
