@@ -162,8 +162,9 @@ def check_settings(resolution=(20, 48)) -> FieldSettings:
     """The exact model every result is judged with: hard occlusion on the reporting grid, the map exactly as
     ``heliotwin field`` draws it (``flux_mode="auto"``: every flux sample's own Gaussian on small fields,
     footprint classes on large ones, where one map costs ~15 s per-sample against ~0.5 s; the map is the same
-    in one process and sharded)."""
-    return FieldSettings(resolution=tuple(int(r) for r in resolution))
+    in one process and sharded), in float64: the rounds feed it back into the optimiser, and a float32 map's
+    summation order (one process or shards) changed the sharded aim points by millimetres."""
+    return FieldSettings(resolution=tuple(int(r) for r in resolution), dtype=torch.float64)
 
 
 def evaluate(plant: Plant, sun: torch.Tensor, aim: torch.Tensor, atmosphere=None, resolution=(20, 48), *,
@@ -215,6 +216,8 @@ class ImageModel:
     bx, by : torch.Tensor, [h], optional
         Half-widths [m] of the boxes, ``b^2 / 3 < s^2`` (the rest of the variance is the Gaussian's);
         None: a pure Gaussian image.
+    profile_dtype : torch.dtype, optional
+        Evaluate the profiles at the cell edges (element-wise) in this precision, the rest in the model's.
     """
 
     power: torch.Tensor
@@ -225,6 +228,7 @@ class ImageModel:
     period: float = 0.0
     bx: torch.Tensor | None = None
     by: torch.Tensor | None = None
+    profile_dtype: torch.dtype | None = None
 
     def _profile(self, axis: int):
         """Box half-width and Gaussian sd [h] along ``axis`` (0: x, 1: y); the box at least 1e-3 sd (a
@@ -252,7 +256,10 @@ class ImageModel:
         tx, ty = self._tx(x), self.y_edges[None, :] - y[:, None]
         bx, gx = self._profile(0)
         by, gy = self._profile(1)
-        return _axis_profile(tx, bx[:, None, None], gx[:, None, None]), _axis_profile(ty, by[:, None], gy[:, None])
+        dt = self.profile_dtype or tx.dtype
+        ax = _axis_profile(tx.to(dt), bx[:, None, None].to(dt), gx[:, None, None].to(dt))
+        ay = _axis_profile(ty.to(dt), by[:, None].to(dt), gy[:, None].to(dt))
+        return tuple(v.to(tx.dtype) for v in ax), tuple(v.to(ty.dtype) for v in ay)
 
     @property
     def cell_area(self) -> float:
@@ -495,9 +502,10 @@ def target_mismatch(flux: torch.Tensor, target: torch.Tensor) -> float:
 
 
 # ------------------------------------------------------------------------------------------ optimiser
-#: Precision of the augmented-Lagrangian steps on the image model (float32: ~2.5x faster per step on a CPU
-#: than float64 at 2000 heliostats; every result is judged on the exact model in its own precision).
-ALM_DTYPE = torch.float32
+#: Precision of the image profiles (erf, exp) in the augmented-Lagrangian steps: float32 is ~2.5x faster on a
+#: CPU. Only these element-wise, per-heliostat terms: every sum over heliostats (the map, the power, their
+#: all-reduce when sharded) stays in the aim points' float64, so a sharded run takes one process's steps.
+ALM_PROFILE_DTYPE = torch.float32
 #: Largest angle [rad] about a cylinder's axis between an aim point and the heliostat's own side of it.
 VISIBLE_HALF_ANGLE = math.radians(70.0)
 
@@ -547,19 +555,10 @@ def _alm(model: ImageModel, x, y, defect, power_defect, limit_int, lam, *, grp, 
     """Augmented-Lagrangian Adam steps on the corrected image model; returns x, y (``lam`` updated in place).
 
     ``linear = (cx, cy)``: a first-order power correction ``sum cx (x - x_k) + cy (y - y_k)`` [W] about the start.
-    ``x_bounds = (lo, hi)``, [h] each [m]: the lateral range each aim point stays in. The steps run in
-    :data:`ALM_DTYPE` (the exact check judges the result); x, y come back in their own dtype.
+    ``x_bounds = (lo, hi)``, [h] each [m]: the lateral range each aim point stays in. The image profiles are
+    evaluated in :data:`ALM_PROFILE_DTYPE`.
     """
-    dtype, lam_out = x.dtype, lam
-
-    def low(t):
-        return None if t is None else t.to(ALM_DTYPE)
-
-    model = dataclasses.replace(model, power=low(model.power), sx=low(model.sx), sy=low(model.sy), bx=low(model.bx),
-                                by=low(model.by), x_edges=low(model.x_edges), y_edges=low(model.y_edges))
-    x, y, defect, lam, target = low(x), low(y), low(defect), low(lam), low(target)
-    linear = None if linear is None else tuple(low(t) for t in linear)
-    x_bounds = None if x_bounds is None else tuple(low(t) for t in x_bounds)
+    model = dataclasses.replace(model, profile_dtype=ALM_PROFILE_DTYPE)
     x0, y0 = x.clone(), y.clone()
     x = x.clone().requires_grad_()
     y = y.clone().requires_grad_()
@@ -590,8 +589,7 @@ def _alm(model: ImageModel, x, y, defect, power_defect, limit_int, lam, *, grp, 
                 x.copy_(torch.minimum(torch.maximum(x, x_bounds[0]), x_bounds[1]))
             if (it + 1) % int(inner) == 0:
                 lam.copy_(torch.clamp(lam + rho * g.detach(), min=0.0))
-    lam_out.copy_(lam)
-    return x.detach().to(dtype), y.detach().to(dtype)
+    return x.detach(), y.detach()
 
 
 @dataclass(frozen=True)
