@@ -174,7 +174,8 @@ def run_command(args, prefix: str = "heliotwin: ") -> int:
                 args.device = resolve_device(args.device, getattr(args.func, "supports_cuda", False),
                                              getattr(args, "command", None))
             code = int(args.func(args) or 0)
-            sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's exit
+            if sys.stdout is not None:  # (redirect_stdout(None) in a caller)
+                sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's exit
             return code
     except BrokenPipeError:
         _stdout_to_devnull()
