@@ -176,7 +176,8 @@ def test_api_field_and_aimpoints_call_the_workflows(layout_scenario, tmp_path, c
                                                settings=api.AimpointSettings(1.0, iterations=40, baselines=False),
                                                output=tmp_path / "aimed.h5")
     assert arep["optimised"]["peak_flux_w_m2"] <= limit * 1.001 and len(maps) == 1
-    assert float(maps[0]["equator aiming"].max()) == pytest.approx(rep["receiver"]["peak_flux_w_m2"], rel=1e-6)
+    # the aim points' exact check sums its map in float64, `field` in float32: the same map to ~1e-5 of the peak
+    assert float(maps[0]["equator aiming"].max()) == pytest.approx(rep["receiver"]["peak_flux_w_m2"], rel=2e-5)
     fig = api.plot_receiver_flux(maps[0], sc.plant.targets["receiver"], limit_w_m2=limit)
     assert len([a for a in fig.axes if a.images]) == 2
     written = api.export_plant(tmp_path / "aimed.h5", solarpilot=tmp_path / "sp.csv")

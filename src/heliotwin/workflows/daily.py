@@ -28,12 +28,11 @@ import torch
 
 from ..calibrate.protocol.plan import plant_plan
 from ..errors import HeliotwinError
-from ..io.lock import check_unchanged, file_stamp, plant_lock
-from ..io.scenario import Scenario, load_scenario, provenance_entry, write_scenario
+from ..io.scenario import Scenario, load_scenario, provenance_entry
 from ..optimise.aimstate import KEY as AIM_KEY
 from .aimpoints import AimpointSettings, aimpoints
 from .field import sun_instants
-from .update import UpdateSettings, update
+from .update import UpdateSettings, locked_plant_write, update
 
 __all__ = ["DailySettings", "Daily", "daily", "daily_plant_file", "OK", "ATTENTION"]
 
@@ -195,9 +194,4 @@ def daily_plant_file(plant_path, paint, output=None, settings: DailySettings = D
     """:func:`daily` on files: ``output`` (default: the plant file itself) is locked for the whole day's
     read-update-write, not replaced when another process changed it meanwhile, and written atomically."""
     output = plant_path if output is None else output
-    with plant_lock(output, timeout=timeout):
-        stamp = file_stamp(output)
-        result = daily(plant_path, paint, settings, device=device)
-        check_unchanged(output, stamp)
-        write_scenario(result.scenario, output)
-    return result
+    return locked_plant_write(output, lambda: daily(plant_path, paint, settings, device=device), timeout)

@@ -79,9 +79,9 @@ from ..io.paint import PaintDataset, load_paint_on_plant
 from ..io.records import RecordTable
 from ..io.scenario import Scenario, load_scenario, next_scenario, provenance_entry, write_scenario
 
-__all__ = ["UpdateSettings", "Update", "update", "update_plant_file", "state_history", "seen_record_ids",
-           "filter_state", "ASSIMILATION_KEY", "HISTORY_VERSION", "DEFAULT_PROCESS_NOISE", "CHOICE_KEY",
-           "THRESHOLD_KEY", "process_noise_choice", "with_process_noise_choice", "with_alarm_threshold"]
+__all__ = ["UpdateSettings", "Update", "update", "update_plant_file", "locked_plant_write", "state_history",
+           "seen_record_ids", "filter_state", "ASSIMILATION_KEY", "HISTORY_VERSION", "DEFAULT_PROCESS_NOISE",
+           "CHOICE_KEY", "THRESHOLD_KEY", "process_noise_choice", "with_process_noise_choice", "with_alarm_threshold"]
 
 
 @dataclass(frozen=True)
@@ -262,15 +262,21 @@ def update(scenario, records_or_paint, settings: UpdateSettings = UpdateSettings
     return Update(next_scenario(previous, plant, learned=learned, step=step), report, hist)
 
 
-def update_plant_file(scenario_path, paint, output, settings: UpdateSettings = UpdateSettings(), *,
-                      device: str = "cpu", timeout: float | None = None) -> Update:
-    """:func:`update` from and to files, as a scheduled command runs it: the output plant file is locked for
-    the whole read-update-write (a second update of the same plant refuses at once, or waits ``timeout`` [s]),
-    the output is not replaced when another process changed it since it was read, and the write is atomic
-    (an error leaves the old file as it was). ``output`` may be ``scenario_path`` (in place)."""
+def locked_plant_write(output, make, timeout: float | None = None):
+    """``make()`` (a workflow's result with a ``scenario``) written to the plant file ``output`` the way a
+    scheduled command must: ``output`` locked for the whole read-compute-write (a second command on the same
+    plant refuses at once, or waits ``timeout`` [s]), not replaced when another process changed it meanwhile,
+    and written atomically (an error leaves the old file as it was). Returns the result."""
     with plant_lock(output, timeout=timeout):
         stamp = file_stamp(output)
-        result = update(scenario_path, paint, settings, device=device)
+        result = make()
         check_unchanged(output, stamp)
         write_scenario(result.scenario, output)
     return result
+
+
+def update_plant_file(scenario_path, paint, output, settings: UpdateSettings = UpdateSettings(), *,
+                      device: str = "cpu", timeout: float | None = None) -> Update:
+    """:func:`update` from and to files, as a scheduled command runs it (:func:`locked_plant_write`; ``output``
+    may be ``scenario_path``: in place)."""
+    return locked_plant_write(output, lambda: update(scenario_path, paint, settings, device=device), timeout)

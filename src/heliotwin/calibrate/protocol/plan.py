@@ -51,17 +51,8 @@ def normal_jacobians(nominal: Kinematics, delta: torch.Tensor, names, aim_point:
         [m] for lengths).
     reachable : torch.Tensor, [T], bool
     """
-    t = len(sun)
-    kin_t = nominal.index([0] * t)
-    d = delta.double().reshape(1, -1).expand(t, -1).clone()
-    cal = apply_deviations(kin_t, d, names)
-    steps, ok = K.inverse(cal, aim_point.double().reshape(1, 3).expand(t, 3), sun.double(), strict=False)
-    ok = ok & ((steps >= cal.min_steps) & (steps <= cal.max_steps)).all(-1) & torch.isfinite(steps).all(-1)
-    d = d.requires_grad_(True)
-    rot, _ = K.forward(apply_deviations(kin_t, d, names), steps.detach())
-    n = K.mirror_normal(rot)
-    jac = torch.stack([torch.autograd.grad(n[:, c].sum(), d, retain_graph=c < 2)[0] for c in range(3)], 1)
-    return jac[ok].detach(), ok
+    jac, ok = normal_jacobians_many(nominal, delta.reshape(1, -1), names, aim_point, sun)
+    return jac[0][ok[0]], ok[0]
 
 
 def greedy_design(precision: torch.Tensor, noise: float, candidates: torch.Tensor, reference: torch.Tensor,
