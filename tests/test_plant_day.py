@@ -273,3 +273,17 @@ def test_an_update_counts_what_it_does_not_assimilate(calibrated, tmp_path):
     reasons = " ".join(counts["dropped_by_reason"])
     assert counts["dropped"] >= 2 and "motor steps axis 1" in reasons and "sun_azimuth" in reasons
     assert "this plant does not know" in run.stdout and "dropped by the reader" in run.stdout
+
+
+def test_an_update_reads_a_folder_holding_some_of_the_plants_heliostats(calibrated, tmp_path):
+    c = calibrated
+    work = tmp_path / "plant"
+    shutil.copytree(c["folder"], work)
+    gone = P.list_heliostats(work)[0]
+    shutil.rmtree(work / gone)
+    env = {**c["env"], "HELIOTWIN_CACHE_DIR": str(tmp_path / "cache")}
+    run = _run(["update", "--scenario", c["scenario"], "--paint", work, "-o", tmp_path / "b.h5", "--json",
+                tmp_path / "b.json"], env)
+    assert run.returncode == 0, run.stderr
+    report = json.loads((tmp_path / "b.json").read_text())
+    assert report["counts"]["records"] == sum(len(P.load_paint(work, [h]).records) for h in P.list_heliostats(work))

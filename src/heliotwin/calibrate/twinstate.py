@@ -243,7 +243,8 @@ def with_process_noise_choice(scenario: Scenario, records: RecordTable) -> tuple
     return replace(scenario, learned={**scenario.learned, KEY: cal}), made
 
 
-def filter_state(scenario: Scenario, records: RecordTable, process_noise: float | None = None) -> FilterState:
+def filter_state(scenario: Scenario, records: RecordTable, process_noise: float | None = None, *,
+                 seen: set | None = None) -> FilterState:
     """The filter state an update of ``scenario`` starts from (:class:`~heliotwin.calibrate.assimilate.FilterState`,
     heliostat axis = the calibrated heliostats): the deviations, their posterior covariance plus the random-walk
     offset's, the state's time (the drift state's, else the latest seen record's in ``records``), the residual
@@ -255,9 +256,11 @@ def filter_state(scenario: Scenario, records: RecordTable, process_noise: float 
         Records on the calibrated heliostats' axis (seen ones give the time when the calibration has none).
     process_noise : float, optional
         q [mrad^2/day] replacing the stored one.
+    seen : set, optional
+        :func:`seen_record_ids` of ``scenario``, when the caller has it already.
     """
     cal, ids, names = calibration_entry(scenario)
-    seen = seen_record_ids(scenario)
+    seen = seen_record_ids(scenario) if seen is None else seen
     seen_rows = torch.as_tensor(np.isin(records.record_id.numpy(), np.array(sorted(seen), dtype=np.int64)))
     t = _with_time(records)
     ok = seen_rows & torch.isfinite(t)

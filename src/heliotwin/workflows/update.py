@@ -39,7 +39,6 @@ from __future__ import annotations
 import math
 import os
 import time as _time
-from collections import Counter
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
@@ -75,7 +74,7 @@ from ..devices import to_device
 from ..errors import HeliotwinError
 from ..field.update import select_heliostats, with_kinematics
 from ..io.lock import check_unchanged, file_stamp, plant_lock
-from ..io.paint import PaintDataset, load_paint_on_plant
+from ..io.paint import PaintDataset, list_heliostats, load_paint_on_plant
 from ..io.records import RecordTable
 from ..io.scenario import Scenario, load_scenario, next_scenario, provenance_entry, write_scenario
 
@@ -165,7 +164,8 @@ def _check_settings(s: UpdateSettings) -> float | None:
 
 def _records(records_or_paint, scenario: Scenario, ids: list, plane_tolerance: float) -> tuple:
     """The record table (calibrated heliostats' axis), where it came from, and how it was read (the folder's
-    reading counts and the records its reader dropped, by reason)."""
+    reading counts and the records its reader dropped, by field). A folder may hold some of the calibrated
+    heliostats only (their records are read); none of them is a one-line error."""
     if isinstance(records_or_paint, RecordTable):
         return on_axis(records_or_paint, ids), "records", {}
     if isinstance(records_or_paint, PaintDataset):
@@ -174,11 +174,24 @@ def _records(records_or_paint, scenario: Scenario, ids: list, plane_tolerance: f
         paint = os.fspath(records_or_paint)
         if not os.path.isdir(paint):
             raise HeliotwinError(f"{paint}: PAINT folder not found")
-        ds = load_paint_on_plant(paint, select_heliostats(scenario.plant, ids), source=scenario.path or "scenario",
+        present = set(list_heliostats(paint))
+        use = [h for h in ids if h in present]
+        if not use:
+            raise HeliotwinError(f"{paint}: none of the scenario's {len(ids)} calibrated heliostats is in this "
+                                 "PAINT folder")
+        ds = load_paint_on_plant(paint, select_heliostats(scenario.plant, use), source=scenario.path or "scenario",
                                  plane_tolerance=plane_tolerance)
-    dropped = Counter(s["reason"].split(" = ")[0].split(" (")[0] for s in ds.skipped)
-    reading = {**ds.reading, "dropped": len(ds.skipped), "dropped_by_reason": dict(dropped.most_common())}
-    return on_axis(ds.records, ids), os.path.abspath(ds.root), reading
+    return on_axis(ds.records, ids), os.path.abspath(ds.root), {**ds.reading, **_dropped(ds.skipped)}
+
+
+def _dropped(skipped: list) -> dict:
+    """How many records the reader dropped, grouped by the file field that made them unusable (one key per field:
+    the field and the first such record's reason without its values)."""
+    by_field: dict = {}
+    for s in skipped:
+        key = by_field.setdefault(s["field"], [f"{s['field']}: {s['reason'].split(' = ')[0].split(' (')[0]}", 0])
+        key[1] += 1
+    return {"dropped": len(skipped), "dropped_by_reason": dict(sorted(by_field.values(), key=lambda kv: -kv[1]))}
 
 
 def _report(ids, counts, threshold, hist, state, seconds, source) -> dict:
@@ -226,8 +239,9 @@ def update(scenario, records_or_paint, settings: UpdateSettings = UpdateSettings
     table, source, reading = _records(records_or_paint, previous, ids, settings.plane_tolerance)
     t0 = _time.perf_counter()
     previous, cal, noise = process_noise_source(previous, cal, table, q_given)
-    state = filter_state(previous, table, q_given)
-    new_rows, seen_idx, counts = split_new(table, seen_record_ids(previous), state.time)
+    seen = seen_record_ids(previous)
+    state = filter_state(previous, table, q_given, seen=seen)
+    new_rows, seen_idx, counts = split_new(table, seen, state.time)
     if reading:
         counts.update(dropped=reading["dropped"], dropped_by_reason=reading["dropped_by_reason"],
                       unknown_heliostats=reading.get("unknown_heliostats", 0),
