@@ -96,6 +96,7 @@ def _write_field_outputs(args, sc, report, result, paths: dict) -> None:
     """The one-sun outputs into their staged paths: JSON, per-heliostat CSV, the flux figure (axes in metres
     and degrees, kW/m^2) and the numeric map (CSV)."""
     from ..io.export import write_flux_map_csv
+    from ..optimise.aimstate import stored_peak_limit
     from ..plots import plot_receiver_flux
     from ..raytrace.field import per_heliostat_rows
 
@@ -106,10 +107,10 @@ def _write_field_outputs(args, sc, report, result, paths: dict) -> None:
         _write_csv(paths["--per-heliostat"], per_heliostat_rows(result, sc.plant))
     if paths["--flux"]:
         r = report["receiver"]
-        limit = ((sc.learned or {}).get("aimpoints") or {}).get("peak_limit_w_m2")  # the stored limit, if any
+        limit = stored_peak_limit(sc)  # the stored limit, if any
         plot_receiver_flux({f"{args.aim} aiming": result.flux.cpu()}, sc.plant.targets["receiver"],
                            paths["--flux"], powers_w={f"{args.aim} aiming": r["power_w"]},
-                           limit_w_m2=float(limit) if limit else None,
+                           limit_w_m2=limit,
                            instant={"time_utc": args.time, "sun_enu": report["sun"]["direction_enu"]},
                            title=f"receiver flux: {len(sc.plant.field.ids)} heliostats, DNI "
                                  f"{args.dni or sc.plant.sun.dni:.0f} W/m²")

@@ -881,6 +881,11 @@ def _join(rid: np.ndarray, ids: np.ndarray, text, values: np.ndarray, width: int
     return words, out
 
 
+def _stored_text(stored: dict) -> list:
+    """The text column of a stored CSV parse (None where the row had none)."""
+    return [None if none else str(x) for x, none in zip(stored["text"].tolist(), stored["text_none"].tolist())]
+
+
 def _csv_columns(root: str, name: str, parse_row, columns, to_row, width: int | None, use_index: bool) -> dict:
     """The rows of ``root/metadata/<name>`` as columns: ``ids`` [M] int64, ``text`` (str or None per row, or
     absent), ``values`` [M] or [M, width] float64; parsed from the record index where it holds the file's
@@ -898,9 +903,7 @@ def _csv_columns(root: str, name: str, parse_row, columns, to_row, width: int | 
     except OSError as exc:
         raise InputFileError(path, f"cannot read ({exc.strerror})") from None
     if stored is not None and not data:
-        return {"ids": stored["ids"], "values": stored["values"],
-                "text": [None if none else str(x) for x, none in zip(stored["text"].tolist(),
-                                                                     stored["text_none"].tolist())]}
+        return {"ids": stored["ids"], "values": stored["values"], "text": _stored_text(stored)}
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
@@ -918,9 +921,7 @@ def _csv_columns(root: str, name: str, parse_row, columns, to_row, width: int | 
         header = text.splitlines(keepends=True)[0] if text else ""
     else:
         out = {"ids": np.concatenate([stored["ids"], new_ids]),
-               "values": np.concatenate([stored["values"], new_values]),
-               "text": [None if none else str(x) for x, none in zip(stored["text"].tolist(),
-                                                                     stored["text_none"].tolist())] + new_text}
+               "values": np.concatenate([stored["values"], new_values]), "text": _stored_text(stored) + new_text}
     if use_index and text.endswith("\n"):
         lines = (first - 1) + text.count("\n") - (1 if stored is None else 0)
         record_index.store_csv(root, path, covered + len(data), {

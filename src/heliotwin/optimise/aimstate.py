@@ -18,7 +18,7 @@ from ..errors import HeliotwinError
 from ..field.kinematics import inverse
 from ..field.plant import Plant
 
-__all__ = ["KEY", "METHOD", "instant_state", "aimpoint_state", "stored_aimpoints"]
+__all__ = ["KEY", "METHOD", "instant_state", "aimpoint_state", "stored_aimpoints", "stored_peak_limit"]
 
 #: Name of the learned group.
 KEY = "aimpoints"
@@ -82,6 +82,14 @@ def aimpoint_state(instants: dict, *, peak_limit_w_m2: float, target: str = "max
     return {"aim": first["aim"], "peak_limit_w_m2": float(peak_limit_w_m2), "sun_direction": first["sun_direction"],
             "method": method, "motor_steps": first["motor_steps"], "reachable": first["reachable"],
             "target": target, "instants": instants}
+
+
+def stored_peak_limit(scenario) -> float | None:
+    """The peak-flux limit [W/m^2] the scenario's stored aim points were optimised under (None: none stored)."""
+    state = (scenario.learned or {}).get(KEY)
+    if not isinstance(state, dict) or state.get("peak_limit_w_m2") is None:
+        return None
+    return float(torch.as_tensor(state["peak_limit_w_m2"], dtype=torch.float64).reshape(-1)[0])
 
 
 def stored_aimpoints(scenario, sun_direction: torch.Tensor) -> torch.Tensor:

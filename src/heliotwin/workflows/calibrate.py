@@ -365,7 +365,7 @@ def with_expected_error(report: dict, validation: dict) -> dict:
 
 
 def _quantile(values, q: float):
-    xs = sorted(float(x) for x in values if x is not None and math.isfinite(float(x)))
+    xs = [float(x) for x in values if x is not None and math.isfinite(float(x))]
     if not xs:
         return None
     return float(np.quantile(np.asarray(xs), q))

@@ -24,12 +24,10 @@ import math
 import os
 from dataclasses import dataclass, field, replace
 
-import torch
-
 from ..calibrate.protocol.plan import plant_plan
 from ..errors import HeliotwinError
 from ..io.scenario import Scenario, load_scenario, provenance_entry
-from ..optimise.aimstate import KEY as AIM_KEY
+from ..optimise.aimstate import stored_peak_limit
 from .aimpoints import AimpointSettings, aimpoints
 from .field import sun_instants
 from .update import UpdateSettings, locked_plant_write, update
@@ -118,18 +116,11 @@ def _planned_day(day: str | None) -> str:
     return (_dt.datetime.now(_dt.timezone.utc).date() + _dt.timedelta(days=1)).isoformat()
 
 
-def _stored_limit(scenario: Scenario) -> float | None:
-    state = scenario.learned.get(AIM_KEY)
-    if not isinstance(state, dict) or "peak_limit_w_m2" not in state:
-        return None
-    return float(torch.as_tensor(state["peak_limit_w_m2"], dtype=torch.float64).reshape(-1)[0])
-
-
 def _aim(scenario: Scenario, day: str, settings: DailySettings) -> tuple[Scenario, dict]:
     """The day's aim points (or why there are none)."""
     if not settings.aim:
         return scenario, {"skipped": "not asked for (--no-aim)"}
-    limit = settings.peak_limit_w_m2 or _stored_limit(scenario)
+    limit = settings.peak_limit_w_m2 or stored_peak_limit(scenario)
     if limit is None:
         return scenario, {"skipped": "no peak-flux limit: give --peak-limit, or run 'heliotwin aimpoints' once "
                                      "(the plant keeps its limit)"}

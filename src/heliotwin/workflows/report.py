@@ -40,6 +40,7 @@ from ..field.targets import CylinderTarget
 from ..geometry import angle_between
 from ..io.records import parse_time
 from ..io.scenario import Scenario
+from ..optimise.aimstate import stored_peak_limit
 from .field import FieldRunSettings, field, sun_direction_at
 from .plan import PlanSettings, plan
 from .report_page import render_page
@@ -380,9 +381,9 @@ def _receiver(scenario: Scenario, settings: ReportSettings) -> dict | None:
             aims = plant.targets["receiver"].to_local(result.aim.detach().cpu().double()).numpy()
     rec = plant.targets["receiver"]
     extent = [float(v) for v in result.extent.detach().cpu()]
-    limit = group.get("peak_limit_w_m2")
+    limit = stored_peak_limit(scenario)
     return {"time_utc": when, "sun_enu": [float(v) for v in sun.detach().cpu()], "maps": maps, "extent_m": extent,
-            "aim_local_m": aims, "limit_w_m2": float(limit) if limit is not None else None,
+            "aim_local_m": aims, "limit_w_m2": limit,
             "cylinder": isinstance(rec, CylinderTarget), "radius_m": float(getattr(rec, "radius", 0.0)),
             "receiver": rec}
 

@@ -55,6 +55,24 @@ def normal_jacobians(nominal: Kinematics, delta: torch.Tensor, names, aim_point:
     return jac[0][ok[0]], ok[0]
 
 
+def _posterior_and_target(scenario, cal: dict, target: str | None) -> str:
+    """The planar calibration target a plan aims at (``target``, default the first by name), checking that the
+    calibration ``cal`` stores a posterior (one-line errors otherwise)."""
+    if not cal.get("posterior"):
+        raise HeliotwinError(f"{scenario.path} [/learned/{KEY}/posterior]: no posterior stored (calibrate with "
+                             "--method lm to get one)")
+    planar = sorted(n for n, t in scenario.plant.targets.items() if isinstance(t, PlanarTarget))
+    name = target or (planar[0] if planar else None)
+    if name not in planar:
+        raise HeliotwinError(f"target {name!r} is not a planar calibration target; known: {', '.join(planar)}")
+    return name
+
+
+def _nominal(cal: dict, rows: list) -> Kinematics:
+    """The stored nominal kinematics of the calibrated heliostats ``rows`` (positions in ``cal["heliostats"]``)."""
+    return Kinematics(**{f.name: torch.as_tensor(cal["nominal"][f.name])[rows] for f in fields(Kinematics)})
+
+
 def greedy_design(precision: torch.Tensor, noise: float, candidates: torch.Tensor, reference: torch.Tensor,
                   count: int) -> tuple[list, list]:
     """Greedy I-optimal choice of ``count`` candidates.
@@ -129,17 +147,11 @@ def plan(scenario, heliostat_id: str, *, year: int, every: str = "1h", count: in
     cal = scenario.learned.get(KEY) or {}
     if heliostat_id not in (cal.get("heliostats") or []):
         raise HeliotwinError(f"{scenario.path}: heliostat {heliostat_id} is not calibrated in this scenario")
-    if not cal.get("posterior"):
-        raise HeliotwinError(f"{scenario.path} [/learned/{KEY}/posterior]: no posterior stored (calibrate with "
-                             "--method lm to get one)")
+    name = _posterior_and_target(scenario, cal, target)
     plant = scenario.plant
-    planar = sorted(n for n, t in plant.targets.items() if isinstance(t, PlanarTarget))
-    name = target or (planar[0] if planar else None)
-    if name not in planar:
-        raise HeliotwinError(f"target {name!r} is not a planar calibration target; known: {', '.join(planar)}")
     j = list(cal["heliostats"]).index(heliostat_id)
     names = list(cal["parameter_names"])
-    nominal = Kinematics(**{f.name: torch.as_tensor(cal["nominal"][f.name])[j:j + 1] for f in fields(Kinematics)})
+    nominal = _nominal(cal, [j])
     delta = torch.as_tensor(cal["deviations"], dtype=torch.float64)[j]
     cov = torch.as_tensor(cal["posterior"]["covariance"], dtype=torch.float64)[j]
     noise = float(torch.as_tensor(cal["posterior"]["noise_rad"], dtype=torch.float64)[j])
@@ -243,14 +255,9 @@ def plant_plan(scenario, *, day: str, slots: int = 20, every: str = "30min", tar
         spread's median and 95th percentile over the plant [mrad].
     """
     cal = scenario.learned.get(KEY) or {}
-    if not cal.get("posterior"):
-        raise HeliotwinError(f"{scenario.path} [/learned/{KEY}/posterior]: no posterior stored (calibrate with "
-                             "--method lm to get one)")
+    name = _posterior_and_target(scenario, cal, target)
     plant = scenario.plant
-    planar = sorted(n for n, tg in plant.targets.items() if isinstance(tg, PlanarTarget))
-    name = target or (planar[0] if planar else None)
-    if name not in planar:
-        raise HeliotwinError(f"target {name!r} is not a planar calibration target; known: {', '.join(planar)}")
+    urgent = set(urgent)
     try:
         start = pd.Timestamp(day)
         start = (start.tz_localize("UTC") if start.tzinfo is None else start.tz_convert("UTC")).normalize()
@@ -258,7 +265,7 @@ def plant_plan(scenario, *, day: str, slots: int = 20, every: str = "30min", tar
         raise HeliotwinError(f"--day: cannot parse {day!r} (expected a UTC date, e.g. 2024-06-21)") from None
     ids, names = list(cal["heliostats"]), list(cal["parameter_names"])
     spread, cov = _spread_now(cal, names, start.timestamp())
-    order = sorted(range(len(ids)), key=lambda h: (ids[h] not in set(urgent), -float(spread[h])))
+    order = sorted(range(len(ids)), key=lambda h: (ids[h] not in urgent, -float(spread[h])))
     chosen = order[:max(0, int(slots))]
     site = plant.site
     stamps = pd.date_range(start, start + pd.Timedelta("1D"), freq=every, inclusive="left")
@@ -271,7 +278,7 @@ def plant_plan(scenario, *, day: str, slots: int = 20, every: str = "30min", tar
     if not chosen or not len(stamps):
         return out
     idx = torch.tensor(chosen)
-    nominal = Kinematics(**{f.name: torch.as_tensor(cal["nominal"][f.name])[idx] for f in fields(Kinematics)})
+    nominal = _nominal(cal, chosen)
     delta = torch.as_tensor(cal["deviations"], dtype=torch.float64)[idx]
     noise = torch.as_tensor(cal["posterior"]["noise_rad"], dtype=torch.float64)[idx].clamp_min(1e-6)
     aim_point = plant.targets[name].center
@@ -298,7 +305,7 @@ def plant_plan(scenario, *, day: str, slots: int = 20, every: str = "30min", tar
         out["proposals"].append({
             "heliostat": ids[h], "time": stamps[c].isoformat(), "sun_azimuth_deg": math.degrees(float(az[c])),
             "sun_elevation_deg": math.degrees(float(el[c])),
-            "reason": "step alarm" if ids[h] in set(urgent) else "largest predicted pointing spread",
+            "reason": "step alarm" if ids[h] in urgent else "largest predicted pointing spread",
             "spread_now_mrad": 1e3 * float(spread[h]), "rms_now_mrad": 1e3 * math.sqrt(float(now[j])),
             "rms_after_mrad": 1e3 * math.sqrt(float(after[j, c]))})
     return out
