@@ -4,9 +4,11 @@ from __future__ import annotations
 import math
 
 import pytest
+from scipy.stats import binomtest
 
-from heliotwin.calibrate.choice import lowest
+from heliotwin.calibrate.choice import lowest, sign_test, worth_its_cost
 from heliotwin.calibrate.protocol import selection
+from heliotwin.calibrate.protocol.config import RunConfig
 
 
 def test_lowest_finite_score_wins_ties_go_to_the_earlier_candidate():
@@ -28,3 +30,46 @@ def test_calibration_selection_uses_the_rule_on_median_errors():
     assert selection.select(scores, cands) is cands[1]
     scores[selection.label(cands[0])] = {"h1": 1.5, "h2": 1.5, "h3": 1.0}    # median 1.5: tie, earlier wins
     assert selection.select(scores, cands) is cands[0]
+
+
+def test_sign_test_is_scipys_exact_binomial_tail():
+    for better, worse in [(0, 0), (5, 0), (8, 2), (60, 40), (3, 17), (120, 80)]:
+        expected = binomtest(better, better + worse, 0.5, alternative="greater").pvalue if better + worse else 1.0
+        assert sign_test(better, worse) == pytest.approx(expected, rel=1e-9)
+
+
+def test_costlier_setting_only_when_it_wins_beyond_chance():
+    """A costlier candidate (bags) that is better on 150 of 200 held-out heliostats is taken; one whose
+    differences are noise (a lower median by a hair, as often as not better) is not; ties are left out."""
+    cheap = {f"h{i}": 1.0 + 0.01 * i for i in range(200)}
+    clearly = {k: v - (0.05 if i < 150 else -0.05) for i, (k, v) in enumerate(cheap.items())}
+    take, info = worth_its_cost(cheap, clearly)
+    assert take and info["better"] == 150 and info["worse"] == 50 and info["p"] < 1e-10
+    noise = {k: v + (-0.001 if i % 2 else 0.0012) for i, (k, v) in enumerate(cheap.items())}
+    take, info = worth_its_cost(cheap, noise)
+    assert not take and info["better"] == 100 and info["median_costly"] < info["median_cheap"] + 0.01
+    take, info = worth_its_cost({"a": 1.0, "b": math.nan, "c": 2.0}, {"a": 1.0, "b": 0.5, "d": 0.1})
+    assert not take and (info["better"], info["worse"], info["ties"]) == (0, 0, 1)
+
+
+def test_choose_bags_runs_both_and_keeps_the_bags_only_when_they_win():
+    """The validation protocol is run unbagged and bagged; the written plant gets bags only when the bagged
+    fits predict more heliostats' held-out records better than chance (here: all 12, or none)."""
+    def runner_with(gain):
+        calls = []
+
+        def runner(cfg, dataset):
+            calls.append(cfg.method_options["bags"])
+            b = cfg.method_options["bags"]
+            rep = {"heliostats": {f"h{i}": {"status": "ok", "mean_test_mrad": 1.0 + 0.1 * i - (gain if b else 0.0)}
+                                  for i in range(12)}, "overall": {"seconds": 1.0 + b}}
+            return rep, None, {"bags": b}
+        return runner, calls
+
+    cfg = RunConfig(paint="x", method_options={"half_life_days": 30.0})
+    runner, calls = runner_with(0.05)
+    bags, run, info = selection.choose_bags(cfg, None, runner=runner)
+    assert bags == 10 and run[2] == {"bags": 10} and sorted(calls) == [0, 10] and info["better"] == 12
+    runner, calls = runner_with(0.0)
+    bags, run, info = selection.choose_bags(cfg, None, runner=runner)
+    assert bags == 0 and run[2] == {"bags": 0} and info["ties"] == 12 and info["p"] == 1.0

@@ -43,6 +43,10 @@ PARAMETERS: tuple = tuple(
 )
 NAMES: tuple = tuple(p[0] for p in PARAMETERS)
 _BY_NAME = {p[0]: p for p in PARAMETERS}
+#: Each parameter's (Kinematics field, index within the per-heliostat tensor).
+FIELD_OF = {p[0]: (p[1], p[2]) for p in PARAMETERS}
+#: The actuators' fields (one value per axis): they move the chain through the joint angles.
+ACTUATOR_FIELDS = ("increment", "offset", "pivot_radius", "initial_angle", "initial_stroke_length")
 
 #: Tilts of a joint about its own axis: no measurement can see them (redundant with initial_angle).
 REDUNDANT = ("joint_tilt_1_e", "joint_tilt_2_u")
@@ -146,5 +150,6 @@ def actuators_valid(kin: Kinematics) -> torch.Tensor:
     return (actuator_margin(kin) > 0).all(-1)
 
 
-__all__ = ["PARAMETERS", "NAMES", "STONE8", "ALL", "REDUNDANT", "UNIT", "apply_deviations", "read_deviations",
+__all__ = ["PARAMETERS", "NAMES", "FIELD_OF", "ACTUATOR_FIELDS",
+           "STONE8", "ALL", "REDUNDANT", "UNIT", "apply_deviations", "read_deviations",
            "actuator_margin", "actuators_valid", "kinds", "units", "check_names", "law_of_cosines_valid"]

@@ -88,6 +88,106 @@ def pose_from_angles(kin: Kinematics, angles: torch.Tensor) -> tuple[torch.Tenso
     return r1 @ r2 @ _mount(kin), concentrator
 
 
+#: The coordinates of the chain that :func:`pose_derivatives` differentiates by, in its column order:
+#: ``(Kinematics field, index within the per-heliostat tensor)``; ``("angle", (j,))`` is joint angle ``theta_j``.
+POSE_COORDINATES: tuple = tuple(
+    [("joint_translation", (j, i)) for j in range(2) for i in range(3)]
+    + [("joint_tilt", (j, i)) for j in range(2) for i in range(3)]
+    + [("concentrator_translation", (i,)) for i in range(3)]
+    + [("concentrator_tilt", (i,)) for i in range(3)]
+    + [("angle", (j,)) for j in range(2)])
+#: (i, j) of the elementary rotation about east, north, up (:func:`heliotwin.geometry.rotation_e` etc.):
+#: ``m[i][i] = m[j][j] = cos``, ``m[i][j] = -sin``, ``m[j][i] = sin``.
+_PLANE = ((1, 2), (2, 0), (0, 1))
+
+
+def _times_rotation(columns: list, axis: int, angle: torch.Tensor) -> list:
+    """``P @ R_axis(angle)`` for P given by its three columns [N, 3]: a rotation mixes two columns only."""
+    i, j = _PLANE[axis]
+    c, s = torch.cos(angle).unsqueeze(-1), torch.sin(angle).unsqueeze(-1)
+    out = list(columns)
+    out[i] = c * columns[i] + s * columns[j]
+    out[j] = c * columns[j] - s * columns[i]
+    return out
+
+
+def pose_derivatives(kin: Kinematics, angles: torch.Tensor, coordinates=POSE_COORDINATES):
+    """Mirror normal and concentrator of :func:`pose_from_angles` with their derivatives (forward mode, analytic).
+
+    The chain is a product of elementary rotations ``A_1 ... A_10`` (the factors of ``R1 R2 R3 R_E(pi/2)``, see
+    :class:`~heliotwin.field.plant.Kinematics`). Turning factor ``k`` by ``dt`` turns everything after it about
+    that factor's axis *in the world frame*, ``w_k = (A_1 ... A_k) e_axis``, so the derivative of any vector
+    ``A_1 ... A_L v`` (``k <= L``) is ``w_k x (A_1 ... A_L v)``: one pass of prefix products (each mixes two
+    columns), no autograd graph and no 3x3 matrix products. Calibration's least squares evaluate this at every
+    iteration for every record; it equals three reverse passes through the chain to rounding
+    (``tests/test_kinematics.py``) at a fraction of their cost.
+
+    Parameters
+    ----------
+    kin : Kinematics
+        N entries (heliostats, or one per record).
+    angles : torch.Tensor, shape (N, 2)
+        ``(theta1, theta2)`` [rad], PAINT convention.
+    coordinates : sequence of (field, index), length C
+        Which of :data:`POSE_COORDINATES` to differentiate by (default all 20), in this order.
+
+    Returns
+    -------
+    normal : torch.Tensor, shape (N, 3)
+        Unit mirror normal, ENU.
+    concentrator : torch.Tensor, shape (N, 3)
+        ENU [m].
+    d_normal, d_concentrator : torch.Tensor, shape (N, 3, C)
+        Derivatives by the ``coordinates``: per rad for tilts and angles, per m for translations.
+    """
+    jt, ct = kin.joint_tilt, kin.concentrator_tilt
+    quarter = torch.full_like(ct[..., 0], math.pi / 2)
+    # (axis, angle, coordinate) of each factor, in the order of pose_from_angles' product
+    factors = [(2, jt[..., 0, 2], ("joint_tilt", (0, 2))), (1, jt[..., 0, 1], ("joint_tilt", (0, 1))),
+               (0, angles[..., 0] - math.pi / 2, ("angle", (0,))), (0, jt[..., 1, 0], ("joint_tilt", (1, 0))),
+               (1, jt[..., 1, 1], ("joint_tilt", (1, 1))), (2, angles[..., 1], ("angle", (1,))),
+               (0, ct[..., 0], ("concentrator_tilt", (0,))), (1, ct[..., 1], ("concentrator_tilt", (1,))),
+               (2, ct[..., 2], ("concentrator_tilt", (2,))), (0, quarter, None)]
+    eye = torch.eye(3, dtype=ct.dtype, device=ct.device)
+    columns = [eye[i].expand(quarter.shape + (3,)) for i in range(3)]
+    prefix, world_axis = [], {}
+    for axis, angle, coord in factors:
+        columns = _times_rotation(columns, axis, angle)
+        prefix.append(columns)
+        if coord is not None:
+            world_axis[coord] = columns[axis]
+
+    def times(cols, v):  # P v, v [N, 3]
+        return cols[0] * v[..., 0:1] + cols[1] * v[..., 1:2] + cols[2] * v[..., 2:3]
+
+    tj, ctr = kin.joint_translation, kin.concentrator_translation
+    normal = prefix[9][2]
+    arm1, arm2 = times(prefix[2], tj[..., 1, :]), times(prefix[5], ctr)  # vectors entering after factors 3, 6
+    concentrator = kin.position + tj[..., 0, :] + arm1 + arm2
+    level = {c: k for k, (_, _, c) in enumerate(factors) if c is not None}
+    zero = torch.zeros_like(normal)
+    d_normal, d_conc = [], []
+    for field, idx in coordinates:
+        coord = (field, tuple(idx))
+        if coord in world_axis:
+            w, k = world_axis[coord], level[coord]
+            d_normal.append(torch.linalg.cross(w, normal))
+            arm = (arm1 if k <= 2 else zero) + (arm2 if k <= 5 else zero)
+            d_conc.append(torch.linalg.cross(w, arm) if k <= 5 else zero)
+        elif field == "joint_translation":  # before joint 1 (fixed) or after it (turned by it)
+            d_normal.append(zero)
+            d_conc.append(eye[idx[1]].expand_as(normal) if idx[0] == 0 else prefix[2][idx[1]])
+        elif field == "concentrator_translation":
+            d_normal.append(zero)
+            d_conc.append(prefix[5][idx[0]])
+        elif coord in (("joint_tilt", (0, 0)), ("joint_tilt", (1, 2))):  # a joint's tilt about its own axis
+            d_normal.append(zero)
+            d_conc.append(zero)
+        else:
+            raise ValueError(f"pose_derivatives: unknown coordinate {coord}; known: {POSE_COORDINATES}")
+    return normal, concentrator, torch.stack(d_normal, -1), torch.stack(d_conc, -1)
+
+
 def forward(kin: Kinematics, motor_steps) -> tuple[torch.Tensor, torch.Tensor]:
     """Motor steps -> heliostat pose (see :func:`pose_from_angles`).
 

@@ -26,7 +26,7 @@ import torch.distributed as dist
 
 from ..calibrate.methods.batched import sharded
 from ..calibrate.model import Calibrated
-from ..calibrate.protocol import pipeline
+from ..calibrate.protocol import pipeline, selection
 from ..calibrate.protocol.config import (
     EVERY_RECORD,
     RunConfig,
@@ -371,6 +371,13 @@ def _quantile(values, q: float):
     return float(np.quantile(np.asarray(xs), q))
 
 
+def _bags_to_choose(cfg: RunConfig) -> bool:
+    """Whether a ``current`` run chooses lm's bootstrap bags by its internal validation: lm with the given
+    settings (a settings CV or stored choice chooses bags among its candidates), bags not fixed by the caller."""
+    return cfg.method == "lm" and cfg.settings == "given" and not cfg.learn_settings \
+        and "bags" not in cfg.method_options
+
+
 def calibrate(scenario, records_or_paint, settings: CalibrationSettings = CalibrationSettings(), *,
               device: str = "cpu", progress: bool | Callable = False, checkpoint: Checkpoint | None = None,
               stage: Callable[[str], None] | None = None) -> Calibration:
@@ -407,13 +414,19 @@ def calibrate(scenario, records_or_paint, settings: CalibrationSettings = Calibr
     else:
         stage(f"reading {paint}")
         dataset, previous = load_paint_records(paint, scenario, cfg.plane_tolerance)
-    validation, study_cfg = None, cfg
+    validation, study_cfg, bags_choice = None, cfg, None
     if cfg.split == "current":
         study_cfg = replace(validation_protocol(cfg), learn_settings=False,
                             heliostats=validation_sample(cfg, dataset))
         stage(f"validating inside the records ({cfg.method}): each heliostat's latest {study_cfg.test} records "
               f"predicted from its earlier ones ({len(study_cfg.heliostats)} heliostats)")
-        validation = _run(study_cfg, dataset, settings.nproc, device, progress, None)
+        if _bags_to_choose(cfg):  # bagged or not: the records decide (selection.choose_bags)
+            bags, validation, bags_choice = selection.choose_bags(
+                study_cfg, dataset, runner=lambda c, d: _run(c, d, settings.nproc, device, progress, None),
+                log=stage)
+            cfg = replace(cfg, method_options=dict(cfg.method_options, bags=bags))
+        else:
+            validation = _run(study_cfg, dataset, settings.nproc, device, progress, None)
         stage(f"fitting the current plant ({cfg.method}) on every record on {device}")
     else:
         stage(f"calibrating ({cfg.method}, {cfg.split} split) on {device}")
@@ -421,6 +434,8 @@ def calibrate(scenario, records_or_paint, settings: CalibrationSettings = Calibr
     seen = seen_records(arrays)  # what the written plant saw (the update treats every other record as new)
     if validation is not None:
         report, arrays = with_expected_error(report, validation[0]), validation[2]
+        if bags_choice is not None:
+            report["bags_choice"] = bags_choice
     else:
         report["written_plant"] = {"records": f"the training part of the {cfg.split} split only",
                                    "note": "a study protocol: the plant written saw only its training records; "
