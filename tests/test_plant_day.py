@@ -19,6 +19,7 @@ from heliotwin.calibrate.twinstate import THRESHOLD_KEY, seen_record_ids
 from heliotwin.io import paint as P
 from heliotwin.io.scenario import load_scenario
 from heliotwin.simulate import SimulationSettings, simulate_plant, write_paint_folder
+from heliotwin.workflows.update import update
 
 OLD_NS = 1_600_000_000 * 10**9
 DAY = 86400.0
@@ -157,6 +158,15 @@ def test_an_update_after_one_new_day_reads_only_the_new_files(calibrated, tmp_pa
     assert r1["reading"]["parsed"] == len(moved)  # today's files only, counted
     assert r1["reading"]["indexed"] == r1["reading"]["files"] - len(moved)
     assert r1["overall"]["records"] == len(moved)
+    # the first update needed the seen records (the state's time); from the second on they are left out unread
+    assert r0["reading"]["skipped"] == 0 and r1["reading"]["skipped"] == r1["reading"]["files"] - len(moved)
+    assert r1["counts"]["seen"] == r1["reading"]["skipped"]
+    # ... and the update is the one that reads them all (given records are never left out)
+    b0 = load_scenario(tmp_path / "b0.h5")
+    every = update(b0, P.load_paint_on_plant(work, b0.plant).records).scenario.learned["calibration"]
+    mine = load_scenario(tmp_path / "b1.h5").learned["calibration"]
+    assert np.allclose(every["deviations"], mine["deviations"], rtol=0, atol=1e-12)
+    assert np.allclose(every["posterior"]["covariance"], mine["posterior"]["covariance"], rtol=0, atol=1e-18)
 
 
 def test_a_killed_update_leaves_the_plant_and_the_index_intact(calibrated, tmp_path):

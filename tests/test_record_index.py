@@ -92,7 +92,7 @@ def test_index_reopens_the_same_records_as_the_reference_reader(folder):
     assert stats["parsed"] == stats["files"] > 0
     warm_stats = {}
     warm = _raw(folder, warm_stats)
-    assert warm_stats == {"files": stats["files"], "parsed": 0, "indexed": stats["files"]}
+    assert warm_stats == {"files": stats["files"], "parsed": 0, "indexed": stats["files"], "skipped": 0}
     ref = _reference(folder)
     _same(cold, warm)
     assert torch.equal(warm.record_id, ref.record_id) and warm.path == ref.path
@@ -113,7 +113,7 @@ def test_a_grown_folder_parses_only_its_new_files_and_metadata_rows(folder, tmp_
     os.utime(meta, ns=(OLD_NS + 10**9, OLD_NS + 10**9))
     stats = {}
     grown = _raw(folder, stats)
-    assert stats == {"files": first["files"] + 4, "parsed": 4, "indexed": first["files"]}
+    assert stats == {"files": first["files"] + 4, "parsed": 4, "indexed": first["files"], "skipped": 0}
     ref = _reference(folder)
     assert torch.equal(grown.record_id, ref.record_id)
     assert torch.equal(grown.time.nan_to_num(), ref.time.nan_to_num())  # the appended rows' times arrived

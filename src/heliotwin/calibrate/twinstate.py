@@ -351,12 +351,9 @@ def _first(value, default=None) -> float:
     return float(torch.as_tensor(value if value is not None else default).reshape(-1)[0])
 
 
-def threshold_in_force(assimilation: dict | None, cal: dict, false_alarm_rate: float, window: int, nominal,
-                       seen: RecordTable, state: FilterState) -> dict:
-    """The step-alarm threshold an update applies: an earlier update's of the same calibration, else the one
-    ``calibrate`` stored for the same ``false_alarm_rate`` [1] and ``window`` [1] (:func:`with_alarm_threshold`),
-    else chosen now on ``seen`` (the seen records, fit centroids) under ``state`` (the fit's posterior).
-    ``source`` says which."""
+def _stored_threshold(assimilation: dict | None, cal: dict, false_alarm_rate: float, window: int) -> dict | None:
+    """The stored step-alarm threshold that applies (an earlier update's of the same calibration, else the one
+    ``calibrate`` stored for the same rate and window), or None."""
     if assimilation and "threshold" in assimilation:
         return {"threshold": _first(assimilation["threshold"]), "kappa": _first(assimilation.get("kappa"), 1.0),
                 "false_alarm_rate": _first(assimilation.get("false_alarm_rate"), 0.0), "stored": True,
@@ -369,9 +366,35 @@ def threshold_in_force(assimilation: dict | None, cal: dict, false_alarm_rate: f
                     "false_alarm_rate": rate, "tests": tests,
                     "validation_records": int(_first(chosen["validation_records"])), "stored": True,
                     "source": "stored by calibrate (chosen on the records it saw)"}
+    return None
+
+
+def threshold_in_force(assimilation: dict | None, cal: dict, false_alarm_rate: float, window: int, nominal,
+                       seen: RecordTable, state: FilterState) -> dict:
+    """The step-alarm threshold an update applies: an earlier update's of the same calibration, else the one
+    ``calibrate`` stored for the same ``false_alarm_rate`` [1] and ``window`` [1] (:func:`with_alarm_threshold`),
+    else chosen now on ``seen`` (the seen records, fit centroids) under ``state`` (the fit's posterior).
+    ``source`` says which."""
+    stored = _stored_threshold(assimilation, cal, false_alarm_rate, window)
+    if stored is not None:
+        return stored
     d2 = leave_one_out_d2(nominal, seen, state) if len(seen) else None
     return {**alarm_threshold(false_alarm_rate, d2, tests=window), "stored": False,
             "source": "chosen now on the calibration's records"}
+
+
+def needs_seen_records(scenario: Scenario, cal: dict, q_given: float | None, false_alarm_rate: float,
+                       window: int) -> bool:
+    """Whether an update of ``scenario`` needs the records its plant has already seen, or only the new ones:
+    it needs them while something it starts from is not stored yet -- the state's time per heliostat (stored
+    with the drift state from the first update on), the process noise (:func:`process_noise_source`), the
+    step-alarm threshold (:func:`threshold_in_force`). Every later update of a plant reads only new records."""
+    drift = cal.get("drift") or {}
+    t = drift.get("time")
+    timed = t is not None and bool(torch.isfinite(torch.as_tensor(t, dtype=torch.float64)).all())
+    noise = q_given is not None or isinstance(cal.get(CHOICE_KEY), dict) or bool(drift)
+    threshold = _stored_threshold(current_assimilation(scenario), cal, false_alarm_rate, window) is not None
+    return not (timed and noise and threshold)
 
 
 def _with_time(table: RecordTable) -> torch.Tensor:

@@ -563,12 +563,14 @@ def _check_same_site(mine: Site, theirs: Site, source, root) -> None:
 
 
 def load_paint_on_plant(root, plant: Plant, *, source: str = "scenario", focal_spot: str = "HeliOS",
-                        plane_tolerance: float = 0.1, cache: bool | None = None) -> PaintDataset:
+                        plane_tolerance: float = 0.1, cache: bool | None = None,
+                        skip_record_ids=None) -> PaintDataset:
     """The records of ``plant``'s heliostats in the PAINT folder ``root``, judged on ``plant`` (its targets and
     motor ranges) without reading the folder's heliostat properties: what a learner that starts from a
-    scenario needs from a folder that grows (:func:`read_records` with the record index). The dataset's
-    ``properties`` are empty; ``reading`` also counts ``unknown_heliostats`` and ``unknown_records`` (heliostat
-    folders with records that ``plant`` does not hold, listed in ``unknown_ids``, first 20).
+    scenario needs from a folder that grows (:func:`read_records` with the record index; ``skip_record_ids``
+    as there). The dataset's ``properties`` are empty; ``reading`` also counts ``unknown_heliostats`` and
+    ``unknown_records`` (heliostat folders with records that ``plant`` does not hold, listed in ``unknown_ids``,
+    first 20).
 
     Raises
     ------
@@ -587,7 +589,7 @@ def load_paint_on_plant(root, plant: Plant, *, source: str = "scenario", focal_s
         raise InputFileError(source, f"heliostat(s) {', '.join(missing[:5])} are not in the PAINT folder {root}",
                              field="/field/ids")
     reading: dict = {}
-    raw = read_records(root, ids, site, targets, cache=cache, stats=reading)
+    raw = read_records(root, ids, site, targets, cache=cache, stats=reading, skip_record_ids=skip_record_ids)
     table, skipped = build_record_table(plant, raw, focal_spot=focal_spot, plane_tolerance=plane_tolerance)
     known = set(ids)
     unknown = [h for h in available if h not in known]
@@ -709,6 +711,11 @@ class Listing:
     name: np.ndarray
     size: np.ndarray
     mtime_ns: np.ndarray
+
+    def subset(self, keep: np.ndarray) -> "Listing":
+        """The files of ``keep`` ([F] bool), folders and images unchanged."""
+        return Listing(self.folders, self.names, self.heliostat[keep], self.name[keep], self.size[keep],
+                       self.mtime_ns[keep])
 
     def files(self, rows=None) -> list:
         """(heliostat index, Calibration folder, file name) per file (of ``rows``, default all)."""
@@ -950,14 +957,17 @@ def _use_index(cache: bool | None, files: int) -> bool:
 
 
 def read_records(root, ids, site: Site, targets: dict, *, cache: bool | None = None,
-                 stats: dict | None = None) -> RawRecords:
+                 stats: dict | None = None, skip_record_ids=None) -> RawRecords:
     """Every calibration record of heliostats ``ids`` of a PAINT folder, parsed (not yet judged), with the
     metadata's time and weather. With the record index (``cache``, see :func:`load_paint`) only files that
     are new or changed since they were indexed are parsed (:mod:`heliotwin.io.record_index`), and they are
     appended to it.
 
-    ``stats``, when given, receives ``files`` (record files listed), ``parsed`` (read from the files now) and
-    ``indexed`` (taken from the index).
+    ``stats``, when given, receives ``files`` (record files listed), ``parsed`` (read from the files now),
+    ``indexed`` (taken from the index) and ``skipped`` (records left out by id).
+
+    ``skip_record_ids`` (an int array, optional): records left out once their ids are known, before they are
+    assembled (an update that needs only the records its plant has not seen; seen ones are most of a folder).
 
     Raises
     ------
@@ -987,9 +997,15 @@ def read_records(root, ids, site: Site, targets: dict, *, cache: bool | None = N
     order = np.concatenate([rows[rows >= 0], len(known["record_id"]) + np.arange(len(todo))])
     place = np.concatenate([np.nonzero(rows >= 0)[0], todo])
     both = record_index.concat_entries([known, fresh])
-    entries = {k: v[order][np.argsort(place, kind="stable")] for k, v in both.items()}
+    rows_in_listing_order = order[np.argsort(place, kind="stable")]
+    skipped = 0
+    if skip_record_ids is not None and n:
+        keep = ~np.isin(both["record_id"][rows_in_listing_order], np.asarray(skip_record_ids, dtype=np.int64))
+        skipped = int(n - keep.sum())
+        rows_in_listing_order, listing = rows_in_listing_order[keep], listing.subset(keep)
+    entries = {k: v[rows_in_listing_order] for k, v in both.items()}
     if stats is not None:
-        stats.update(files=n, parsed=int(len(todo)), indexed=int(n - len(todo)))
+        stats.update(files=n, parsed=int(len(todo)), indexed=int(n - len(todo)), skipped=skipped)
     raw = _assemble(entries, listing, ids, site, targets, _metadata_columns(root, use))
     if raw is None:  # a record the batch refuses: the reference reader words the first such file
         times, weather = read_metadata(root)

@@ -57,6 +57,7 @@ from ..calibrate.twinstate import (
     calibration_entry,
     current_assimilation,
     filter_state,
+    needs_seen_records,
     nominal_kinematics,
     on_axis,
     process_noise_choice,
@@ -162,10 +163,11 @@ def _check_settings(s: UpdateSettings) -> float | None:
     return q
 
 
-def _records(records_or_paint, scenario: Scenario, ids: list, plane_tolerance: float) -> tuple:
+def _records(records_or_paint, scenario: Scenario, ids: list, plane_tolerance: float, skip=None) -> tuple:
     """The record table (calibrated heliostats' axis), where it came from, and how it was read (the folder's
     reading counts and the records its reader dropped, by field). A folder may hold some of the calibrated
-    heliostats only (their records are read); none of them is a one-line error."""
+    heliostats only (their records are read); none of them is a one-line error. ``skip``: record ids a folder's
+    reader leaves out (given records are taken as they are)."""
     if isinstance(records_or_paint, RecordTable):
         return on_axis(records_or_paint, ids), "records", {}
     if isinstance(records_or_paint, PaintDataset):
@@ -180,7 +182,7 @@ def _records(records_or_paint, scenario: Scenario, ids: list, plane_tolerance: f
             raise HeliotwinError(f"{paint}: none of the scenario's {len(ids)} calibrated heliostats is in this "
                                  "PAINT folder")
         ds = load_paint_on_plant(paint, select_heliostats(scenario.plant, use), source=scenario.path or "scenario",
-                                 plane_tolerance=plane_tolerance)
+                                 plane_tolerance=plane_tolerance, skip_record_ids=skip)
     return on_axis(ds.records, ids), os.path.abspath(ds.root), {**ds.reading, **_dropped(ds.skipped)}
 
 
@@ -236,12 +238,17 @@ def update(scenario, records_or_paint, settings: UpdateSettings = UpdateSettings
     previous = load_scenario(scenario) if isinstance(scenario, (str, os.PathLike)) else scenario
     cal, ids, names = calibration_entry(previous)
     nominal = nominal_kinematics(cal, previous.path, len(ids))
-    table, source, reading = _records(records_or_paint, previous, ids, settings.plane_tolerance)
+    seen = seen_record_ids(previous)
+    # a plant that has stored all it starts from reads only the records it has not seen (most of a folder has been)
+    skip = None if needs_seen_records(previous, cal, q_given, settings.false_alarm_rate, settings.window) else \
+        np.fromiter(seen, dtype=np.int64, count=len(seen))
+    table, source, reading = _records(records_or_paint, previous, ids, settings.plane_tolerance, skip)
     t0 = _time.perf_counter()
     previous, cal, noise = process_noise_source(previous, cal, table, q_given)
-    seen = seen_record_ids(previous)
     state = filter_state(previous, table, q_given, seen=seen)
     new_rows, seen_idx, counts = split_new(table, seen, state.time)
+    skipped = int(reading.get("skipped", 0)) if reading else 0
+    counts.update(records=counts["records"] + skipped, seen=counts["seen"] + skipped)  # left out when read
     if reading:
         counts.update(dropped=reading["dropped"], dropped_by_reason=reading["dropped_by_reason"],
                       unknown_heliostats=reading.get("unknown_heliostats", 0),
@@ -269,7 +276,7 @@ def update(scenario, records_or_paint, settings: UpdateSettings = UpdateSettings
     report = _report(ids, counts, threshold, hist, new_state, seconds, source)
     report["process_noise"] = {"mrad2_per_day": 1e6 * float(new_state.process_noise), **noise}
     if reading:
-        report["reading"] = {k: reading[k] for k in ("files", "parsed", "indexed") if k in reading}
+        report["reading"] = {k: reading[k] for k in ("files", "parsed", "indexed", "skipped") if k in reading}
     step = provenance_entry("update", source=str(source), records=records, alarms=report["alarms"],
                             settings={f.name: getattr(settings, f.name) for f in fields(UpdateSettings)},
                             threshold=float(threshold["threshold"]))
