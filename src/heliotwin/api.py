@@ -47,9 +47,9 @@ from .workflows.reconstruct import ReconstructionSettings, reconstruction_checkp
 from .workflows.reconstruct import reconstruct as reconstruct_surface
 from .workflows.reconstruct_plant import plant_reconstruction_checkpoint
 from .workflows.reconstruct_plant import reconstruct_plant as reconstruct_surfaces
+from .workflows.score import score as score_workflow
 from .workflows.show import export_plant as export_workflow
 from .workflows.simulate import SimulationSettings
-from .workflows.simulate import score as score_workflow
 from .workflows.simulate import simulate as simulate_workflow
 from .workflows.trace import TraceSettings
 from .workflows.trace import trace_record as trace_workflow

@@ -88,7 +88,7 @@ def cmd_simulate(args) -> int:
 
 def cmd_score(args) -> int:
     from ..io.scenario import load_scenario
-    from ..workflows.simulate import score
+    from ..workflows.score import score
 
     with output_set([("--truth", args.truth), ("--scenario", args.scenario)]) as out:
         json_path = out.file(args.json, "--json")

@@ -5,7 +5,8 @@ how close a learned scenario comes to that truth.
 writes the PAINT folder (atomically; every reader reads it unchanged) and returns the truth scenario in
 memory (the true kinematics at the end of the history as ``/learned/calibration``, method ``truth``, and the
 static deviations, drift and steps under ``/learned/simulation``) with a report; the caller writes the
-scenario. :func:`score` compares a scenario with a truth scenario (:func:`heliotwin.simulate.score`).
+scenario. :func:`score` (:mod:`heliotwin.workflows.score`, re-exported here) compares a scenario with a truth
+scenario.
 """
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from ..calibrate.protocol.archive import PriorArchive, load_prior_source
 from ..errors import InputFileError
 from ..io.scenario import Scenario
 from ..simulate import SimulationSettings, simulate_plant, truth_scenario, write_paint_folder
-from ..simulate import score as score_plant
+from .score import score
 
 __all__ = ["SimulationSettings", "simulate", "score", "prior_from"]
 
@@ -59,16 +60,3 @@ def simulate(settings: SimulationSettings, out, *, prior: PlantPrior | None = No
     report = dict(sim.report, folder=os.path.abspath(folder), seed=settings.seed,
                   prior="given" if prior is not None else "default", seconds_simulate=t1 - t0, seconds_write=t2 - t1)
     return truth_scenario(sim, source=os.path.abspath(folder)), report
-
-
-def score(truth: Scenario, scenario: Scenario, *, suns: int = 16, seed: int = 0, flux: bool = True
-          ) -> tuple[Scenario, dict]:
-    """Score ``scenario`` against ``truth`` (unchanged scenario back; the report is the answer).
-
-    ``suns`` sun positions drawn by ``seed`` give the pointing error [mrad]; ``flux`` (a flag) also compares the
-    receiver flux maps at the first sun (relative L1 [1], power ratio [1]). The report is
-    :func:`heliotwin.simulate.score`'s plus the two scenarios' paths.
-    """
-    report = score_plant(truth, scenario, suns=suns, seed=seed, flux=flux)
-    report.update(truth=truth.path or None, scenario=scenario.path or None)
-    return scenario, report
