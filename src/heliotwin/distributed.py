@@ -28,7 +28,6 @@ import threading
 import time
 
 import torch
-import torch._dynamo  # noqa: F401  (imported for its side effect: see init_process_group)
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
@@ -50,7 +49,14 @@ def init_process_group(backend: str = "gloo", **kwargs) -> None:
     at interpreter exit instead, where it can abort the process ("terminate called without an active
     exception", SIGABRT: about one two-rank aim-point run in four with torch 2.13 on CPU). Imported before
     the group exists, it holds nothing. Call this instead of torch's own under ``torchrun`` too.
+
+    The import is here, not at the top of the module: it costs 1-3 s, and only a process that creates a group
+    needs it (every one of heliotwin's groups is created here; the aim-point optimiser's own Adam,
+    :class:`heliotwin.optimise.aimpoints._Adam`, no longer imports it, but any other ``torch.optim`` user
+    would).
     """
+    import torch._dynamo  # noqa: F401, PLC0415  (lazy on purpose: for its side effect, before the group exists)
+
     dist.init_process_group(backend, **kwargs)
 
 
