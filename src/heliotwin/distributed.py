@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import ctypes.util
+import importlib
 import os
 import shutil
 import signal
@@ -55,8 +56,7 @@ def init_process_group(backend: str = "gloo", **kwargs) -> None:
     :class:`heliotwin.optimise.aimpoints._Adam`, no longer imports it, but any other ``torch.optim`` user
     would).
     """
-    import torch._dynamo  # noqa: F401, PLC0415  (lazy on purpose: for its side effect, before the group exists)
-
+    importlib.import_module("torch._dynamo")  # deliberately here, at run time: for its side effect (above)
     dist.init_process_group(backend, **kwargs)
 
 

@@ -32,6 +32,7 @@ from ..optimise.aimpoints import (
     uniform_target,
 )
 from ..optimise.aimstate import KEY, aimpoint_state, instant_state
+from ..optimise.robust import require_posterior, robust_aimpoints
 from ..raytrace.field import reuse_mirror_samples
 from .field import check_map_resolution
 
@@ -60,6 +61,15 @@ class AimpointSettings:
         Local gloo processes to shard the heliostats over (1: none; CPU only).
     device : str, optional
         Where the models run (None: where the plant is).
+    confidence : float, optional
+        Hold the limit with this probability under the plant's stored pointing posterior
+        (:func:`heliotwin.optimise.robust.robust_aimpoints`; the stored aim points are the robust ones).
+    draws : int
+        Monte-Carlo draws of the plant's pointing errors behind ``confidence``.
+    mc : {"model", "exact"}
+        Each draw's map from the image model corrected to the exact map, or from the exact model.
+    seed : int
+        Seed of the draws.
     """
 
     peak_limit_w_m2: float
@@ -70,6 +80,10 @@ class AimpointSettings:
     baselines: bool = True
     nproc: int = 1
     device: str | None = None
+    confidence: float | None = None
+    draws: int = 200
+    mc: str = "model"
+    seed: int = 0
 
     def __post_init__(self):
         self.check()  # refused when made, before any file is read or output staged
@@ -84,13 +98,25 @@ class AimpointSettings:
         for name, v in (("--iterations", self.iterations), ("--nproc", self.nproc)):
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise HeliotwinError(f"{name}: expected a positive integer, got {v!r}")
+        c = self.confidence
+        if c is not None and (isinstance(c, bool) or not isinstance(c, (int, float)) or not 0.0 < c < 1.0):
+            raise HeliotwinError(f"--confidence: expected a probability strictly between 0 and 1, got {c!r}")
+        if isinstance(self.draws, bool) or not isinstance(self.draws, int) or self.draws < 20:
+            raise HeliotwinError(f"--draws: expected an integer of at least 20, got {self.draws!r}")
+        if self.mc not in ("model", "exact"):
+            raise HeliotwinError(f"--mc: expected 'model' or 'exact', got {self.mc!r}")
+        if c is not None and (self.nproc > 1 or self.target is not None):
+            raise HeliotwinError("--confidence: maximises power in one process (not with --nproc or --target)")
         if self.nproc > 1 and str(self.device or "cpu").startswith("cuda"):
             raise HeliotwinError("--nproc: the local process group is gloo on CPU; use --device cpu with --nproc")
 
 
 @reuse_mirror_samples()  # every exact check below samples the same mirror surfaces
-def _instant(plant, sun, atm, settings: AimpointSettings):
-    """Equator, the two heuristics and the optimised aim points at one sun: (report entry, optimised, equator)."""
+def _instant(plant, sun, atm, settings: AimpointSettings, learned=None, path=""):
+    """Equator, the two heuristics and the optimised aim points at one sun: (report entry, optimised, equator).
+
+    With ``settings.confidence`` the optimised aim points are the robust ones and the entry has ``robust``
+    (:func:`heliotwin.optimise.robust.robust_aimpoints`' report)."""
     limit, resolution = float(settings.peak_limit_w_m2), settings.resolution
     t0 = time.perf_counter()
     model, eq_field = calibrate_images(plant, sun, atm, resolution)
@@ -108,6 +134,11 @@ def _instant(plant, sun, atm, settings: AimpointSettings):
     else:
         best = optimise_aimpoints(plant, sun, limit, knobs, atmosphere=atm, target=target, equator=eq_field,
                                   model=model)
+    robust = None
+    if settings.confidence is not None:
+        best, robust = robust_aimpoints(plant, sun, limit, settings.confidence, learned, knobs, atmosphere=atm,
+                                        equator=eq_field, model=model, deterministic=best, draws=settings.draws,
+                                        seed=settings.seed, mc=settings.mc, path=path)
     baselines = {}
     if settings.baselines:
         baselines["aiming_factor"] = aiming_factor(plant, sun, limit, atmosphere=atm, resolution=resolution,
@@ -132,6 +163,8 @@ def _instant(plant, sun, atm, settings: AimpointSettings):
                         "note": _note(best, equator, limit), "history": best.history}
     for name, r in baselines.items():
         rep["optimised"][f"power_vs_{name}"] = best.power_w / r.power_w
+    if robust is not None:
+        rep["robust"] = robust
     rep["seconds"] = time.perf_counter() - t0
     return rep, best, equator
 
@@ -177,6 +210,8 @@ def aimpoints(scenario: Scenario, instants: list[tuple[str, torch.Tensor]], sett
         ``seconds``.
     """
     settings.check()
+    if settings.confidence is not None:
+        require_posterior(scenario.learned, scenario.path or "")  # before any optimisation
     limit = float(settings.peak_limit_w_m2)
     t_all = time.perf_counter()
     plant = scenario.plant if settings.device is None else to_device(scenario.plant, settings.device)
@@ -184,10 +219,10 @@ def aimpoints(scenario: Scenario, instants: list[tuple[str, torch.Tensor]], sett
     target = settings.target or "max-power"
     report = {"scenario": os.path.abspath(scenario.path) if scenario.path else None, "peak_limit_w_m2": limit,
               "resolution": {"cols": settings.resolution[1], "rows": settings.resolution[0]},
-              "target": target, "nproc": settings.nproc, "instants": []}
+              "target": target, "nproc": settings.nproc, "confidence": settings.confidence, "instants": []}
     stored = {}
     for i, (label, sun) in enumerate(instants):
-        rep, best, equator = _instant(plant, sun, atm, settings)
+        rep, best, equator = _instant(plant, sun, atm, settings, scenario.learned, scenario.path or "")
         stored[f"i{i:03d}"] = instant_state(plant, label, best.aim, sun, power_w=best.power_w,
                                             peak_flux_w_m2=best.peak_flux_w_m2)
         rep["optimised"]["motor_steps_reachable"] = int(stored[f"i{i:03d}"]["reachable"].sum())
