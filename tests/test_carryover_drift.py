@@ -166,3 +166,30 @@ def test_choose_interval_shrinks_a_walk_that_overstates_the_drift():
     assert scale < 1.0 and abs(cov[(drift, scale)] - 0.9) < 0.05 and cov[(0.0, 1.0)] > 0.97
     drift, scale, cov = selection.choose_interval([x], samples=1000)
     assert scale == 1.0 and all(k[1] == 1.0 for k in cov) and math.isfinite(drift)
+
+
+def test_recursive_whitening_and_smoother_equal_the_dense_gaussian_forms():
+    """The Kalman-form whitening (one pass over the records) against the dense Cholesky factor of Sigma, and
+    the filter + RTS smoother against the dense Gaussian conditional; records out of time order (the whitening
+    then differs, a valid factor all the same: equal inner products, s^2 x^T Sigma^-1 z) and one without a
+    time included."""
+    kin, batch, _ = walk_records(h=3, n=30)
+    batch.time[batch.of(1)[5]] = float("nan")
+    g = torch.Generator().manual_seed(5)
+    x = torch.randn(len(batch), 3, 8, dtype=F64, generator=g)
+    delta = torch.tensor([[TRUE[k] for k in STONE8]] * 3, dtype=F64) * 0.5
+    for q in (0.0, 0.05e-6, 1e-6):
+        assert torch.allclose(D.whitener(kin, batch, q, 1e-3)(x), D.dense_whitener(kin, batch, q, 1e-3)(x),
+                              rtol=0, atol=1e-12)
+        s, sd = D.smooth(kin, batch, delta, q, 1e-3), D.dense_smooth(kin, batch, delta, q, 1e-3)
+        for key, tol in (("smoothed", 1e-14), ("offset", 1e-14), ("covariance", 1e-18)):
+            assert torch.allclose(s[key], sd[key], rtol=0, atol=tol), key
+        assert torch.equal(s["time"], sd["time"])
+    perm = torch.randperm(len(batch), generator=g)
+    shuffled, xs, zs = batch.subset(perm), x[perm], torch.randn(len(batch), 3, 8, dtype=F64, generator=g)
+
+    def inner(w):
+        return torch.zeros(3, 8, 8, dtype=F64).index_add_(0, shuffled.heliostat_index,
+                                                          torch.einsum("rcp,rcq->rpq", w(xs), w(zs)))
+    assert torch.allclose(inner(D.whitener(kin, shuffled, 1e-6, 1e-3)),
+                          inner(D.dense_whitener(kin, shuffled, 1e-6, 1e-3)), rtol=0, atol=1e-11)

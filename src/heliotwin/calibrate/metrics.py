@@ -130,7 +130,8 @@ def _bisector_and_residual_derivative(sun, concentrator, spot, d_normal, d_conce
 
 def record_jacobian_autograd(nominal_per_record: Kinematics, batch: RecordTable, delta_rec: torch.Tensor, names):
     """:func:`record_jacobian` by reverse-mode autograd (three passes, one per residual component): the
-    reference the analytic one is tested against. Same arguments and returns."""
+    reference the analytic one is tested against. Same arguments (``delta_rec`` [R, P]) and returns
+    (residuals [R, 3], Jacobian [R, 3, P] per natural unit)."""
     d = delta_rec.detach().clone().requires_grad_(True)
     with torch.enable_grad():
         r = normal_residuals(apply_deviations(nominal_per_record, d, names), batch, per_record=True)
