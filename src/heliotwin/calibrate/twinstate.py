@@ -386,7 +386,7 @@ def threshold_in_force(assimilation: dict | None, cal: dict, false_alarm_rate: f
 def needs_seen_records(scenario: Scenario, cal: dict, q_given: float | None, false_alarm_rate: float,
                        window: int) -> bool:
     """Whether an update of ``scenario`` needs the records its plant has already seen, or only the new ones
-    (``q_given`` [mrad^2/day] or None, ``false_alarm_rate`` [1 per record], ``window`` [records]): it needs
+    (``q_given`` [mrad^2/day] or None, ``false_alarm_rate`` per record [1], ``window`` in records [1]): it needs
     them while something it starts from is not stored yet -- the state's time per heliostat (stored
     with the drift state from the first update on), the process noise (:func:`process_noise_source`), the
     step-alarm threshold (:func:`threshold_in_force`). Every later update of a plant reads only new records."""
