@@ -12,6 +12,7 @@ from heliotwin.field.demo import demo_field_plant
 from heliotwin.optimise.aimpoints import (
     AimSettings,
     ImageModel,
+    _Adam,
     aiming_factor,
     calibrate_images,
     image_size_priority,
@@ -290,3 +291,27 @@ def test_stored_aimpoints_of_a_scenario_without_them_is_one_line():
         stored_aimpoints(Scenario(plant=plant, extras={}, metadata={}, path="p.h5"), torch.tensor([0.0, 0.0, 1.0]))
 
 
+
+
+def test_the_optimisers_adam_is_torchs():
+    """The aim-point optimiser's hand-written Adam (no torch.optim: its first use imports torch._dynamo) takes
+    torch.optim.Adam's steps on a non-quadratic objective, the step scale included."""
+    g = torch.Generator().manual_seed(3)
+    start = [torch.randn(5, generator=g, dtype=torch.float64), torch.randn(2, 3, generator=g, dtype=torch.float64)]
+    ours = [p.clone().requires_grad_(True) for p in start]
+    theirs = [p.clone().requires_grad_(True) for p in start]
+    mine, ref = _Adam(ours, lr=0.05), torch.optim.Adam(theirs, lr=0.05)
+
+    def loss(ps):
+        return (ps[0] ** 4).sum() + torch.sin(ps[1]).sum() + (ps[0][:3] * ps[1][0]).sum()
+
+    for _ in range(40):
+        grads = torch.autograd.grad(loss(ours), ours)
+        with torch.no_grad():
+            mine.step(grads)
+        ref.zero_grad()
+        loss(theirs).backward()
+        ref.step()
+    for a, b in zip(ours, theirs):
+        assert torch.allclose(a, b, rtol=0, atol=1e-12)
+    assert not torch.allclose(ours[0], start[0], atol=1e-3)  # it moved

@@ -20,7 +20,6 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import ctypes.util
-import importlib
 import os
 import shutil
 import signal
@@ -56,7 +55,7 @@ def init_process_group(backend: str = "gloo", **kwargs) -> None:
     :class:`heliotwin.optimise.aimpoints._Adam`, no longer imports it, but any other ``torch.optim`` user
     would).
     """
-    importlib.import_module("torch._dynamo")  # deliberately here, at run time: for its side effect (above)
+    import torch._dynamo  # noqa: F401, PLC0415  (here, not at the top: for its side effect, see above)
     dist.init_process_group(backend, **kwargs)
 
 
