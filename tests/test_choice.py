@@ -52,24 +52,34 @@ def test_costlier_setting_only_when_it_wins_beyond_chance():
     assert not take and (info["better"], info["worse"], info["ties"]) == (0, 0, 1)
 
 
-def test_choose_bags_runs_both_and_keeps_the_bags_only_when_they_win():
-    """The validation protocol is run unbagged and bagged; the written plant gets bags only when the bagged
-    fits predict more heliostats' held-out records better than chance (here: all 12, or none)."""
-    def runner_with(gain):
+def test_current_settings_take_a_costlier_candidate_only_when_it_wins():
+    """Each candidate of a current plant is run on the validation protocol once; bagging and the random walk
+    are taken only when they predict more heliostats' held-out records better than chance (here: the walk wins
+    on all 12, bagging on none), and the walk's process noise is the one its validation run chose."""
+    def runner_with(gain_bags, gain_walk):
         calls = []
 
         def runner(cfg, dataset):
-            calls.append(cfg.method_options["bags"])
-            b = cfg.method_options["bags"]
-            rep = {"heliostats": {f"h{i}": {"status": "ok", "mean_test_mrad": 1.0 + 0.1 * i - (gain if b else 0.0)}
-                                  for i in range(12)}, "overall": {"seconds": 1.0 + b}}
-            return rep, None, {"bags": b}
+            b, walk = cfg.method_options["bags"], cfg.drift_model == "kalman"
+            calls.append((b, cfg.drift_model, cfg.process_noise))
+            gain = gain_walk if walk else (gain_bags if b else 0.0)
+            rep = {"heliostats": {f"h{i}": {"status": "ok", "mean_test_mrad": 1.0 + 0.1 * i - gain}
+                                  for i in range(12)},
+                   "overall": {"seconds": 1.0 + b, "method_info": {"process_noise_mrad2_per_day": 0.003}}}
+            return rep, None, {"bags": b, "walk": walk}
         return runner, calls
 
     cfg = RunConfig(paint="x", method_options={"half_life_days": 30.0})
-    runner, calls = runner_with(0.05)
-    bags, run, info = selection.choose_bags(cfg, None, runner=runner)
-    assert bags == 10 and run[2] == {"bags": 10} and sorted(calls) == [0, 10] and info["better"] == 12
-    runner, calls = runner_with(0.0)
-    bags, run, info = selection.choose_bags(cfg, None, runner=runner)
-    assert bags == 0 and run[2] == {"bags": 0} and info["ties"] == 12 and info["p"] == 1.0
+    runner, calls = runner_with(0.0, 0.05)
+    chosen, run, info = selection.choose_current(cfg, None, runner=runner)
+    assert calls == [(0, "none", "auto"), (10, "none", "auto"), (0, "kalman", "auto")]
+    assert info["chosen"] == "random-walk offset" and run[2] == {"bags": 0, "walk": True}
+    assert chosen.drift_model == "kalman" and chosen.process_noise == 0.003 and chosen.method_options["bags"] == 0
+    assert [t["taken"] for t in info["tests"]] == [False, True] and info["tests"][1]["better"] == 12
+    runner, calls = runner_with(0.05, 0.0)  # bagging wins; the walk is then judged against the bagged fits
+    chosen, run, info = selection.choose_current(cfg, None, runner=runner)
+    assert info["chosen"] == "static, 10 bags" and chosen.drift_model == "none" and chosen.method_options["bags"] == 10
+    assert info["tests"][1]["against"] == "static, 10 bags" and info["tests"][1]["worse"] == 12
+    runner, calls = runner_with(0.0, 0.0)
+    chosen, run, info = selection.choose_current(cfg, None, runner=runner, drift=False)
+    assert len(calls) == 2 and info["chosen"] == "static" and info["tests"][0]["ties"] == 12

@@ -90,10 +90,18 @@ def test_default_calibrate_writes_the_current_plant(plant, tmp_path, capsys, mon
     assert expected["holdout_records"] == 10 and 0 < expected["median_of_mean_mrad"] < 2.0
     assert report["overall"]["median_of_mean_test_mrad"] == expected["median_of_mean_mrad"]
     assert "expected error" in text and "every record" in text
-    # bagged or not, chosen by that validation; the written plant was fitted with the chosen bags
-    choice = report["bags_choice"]
-    assert choice["better"] + choice["worse"] + choice["ties"] == expected["heliostats_validated"]
-    assert report["overall"]["method_info"]["bags"] == choice["chosen"] == (10 if choice["p"] < 0.05 else 0)
+    # bagged or not, a random walk or not, chosen by that validation; the plant was fitted as chosen
+    choice = report["current_settings_choice"]
+    assert choice["candidates"] == ["static", "static, 10 bags", "random-walk offset"]
+    for test in choice["tests"]:
+        assert test["better"] + test["worse"] + test["ties"] == expected["heliostats_validated"]
+        assert test["taken"] == (test["p"] < 0.05)
+    taken = [t["candidate"] for t in choice["tests"] if t["taken"]]
+    assert choice["chosen"] == (taken[-1] if taken else "static")
+    info = report["overall"]["method_info"]
+    assert info["bags"] == (10 if choice["chosen"] == "static, 10 bags" else 0)
+    assert info["drift_model"] == ("kalman" if choice["chosen"] == "random-walk offset" else "none")
+    assert expected["median_of_mean_mrad"] == choice["median_mrad"][choice["chosen"]]
     # the updates' threshold is learned here, on those records, and stored
     cal = load_scenario(out).learned["calibration"]
     assert float(cal[THRESHOLD_KEY]["threshold"][0]) > 0 and int(cal[THRESHOLD_KEY]["validation_records"][0]) > 100

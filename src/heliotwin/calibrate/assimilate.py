@@ -245,7 +245,8 @@ def alarm_threshold(false_alarm_rate: float = FALSE_ALARM_RATE, validation_d2: t
             "false_alarm_rate": float(false_alarm_rate), "tests": max(1, int(tests)), "validation_records": n}
 
 
-def leave_one_out_d2(nominal: Kinematics, records: RecordTable, state: FilterState) -> torch.Tensor:
+def leave_one_out_d2(nominal: Kinematics, records: RecordTable, state: FilterState,
+                     mean_per_record: torch.Tensor | None = None) -> torch.Tensor:
     """Normalised leave-one-out residuals ``d^2`` [R] of records a calibration saw, under its posterior.
 
     For record i of heliostat h with tangent residual ``z_i`` and ``H_i``, the in-sample residual has
@@ -258,11 +259,16 @@ def leave_one_out_d2(nominal: Kinematics, records: RecordTable, state: FilterSta
         The state's H heliostats.
     records : RecordTable
         R records on the same heliostat axis.
+    mean_per_record : torch.Tensor, [R, P], optional
+        The deviations each record is judged at (default: its heliostat's ``state.mean``): under a drift model,
+        the static part plus the offset smoothed at the record's time, so that a record taken before the offset
+        moved is not judged against where it is now.
     """
     if len(records) == 0:
         return torch.zeros(0, dtype=torch.float64)
     hidx = records.heliostat_index
-    z, h, _, _ = linearise(nominal.index(hidx), records, state.mean[hidx], state.names)
+    mean = state.mean[hidx] if mean_per_record is None else mean_per_record.to(state.mean)
+    z, h, _, _ = linearise(nominal.index(hidx), records, mean, state.names)
     s2 = state.noise.double()[hidx] ** 2
     eye = torch.eye(2, dtype=torch.float64, device=z.device)
     c = s2[:, None, None] * eye - h @ state.covariance[hidx] @ h.transpose(1, 2)

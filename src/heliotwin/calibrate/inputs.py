@@ -17,6 +17,10 @@ MIN_TRAIN = 4
 #: validation that never touches the test records (see docs in :func:`fit_spots`).
 FIT_FOCAL_SPOT = "UTIS"
 
+#: Pointing noise of one centroid record [rad] (camera-target centroids scatter by ~1 mrad): what the least-squares
+#: fits weigh their priors and drift against.
+NOISE = 1e-3
+
 
 def fit_spots(batch: RecordTable, source: str | None = FIT_FOCAL_SPOT) -> RecordTable:
     """The batch with the centroids a fit trains on.

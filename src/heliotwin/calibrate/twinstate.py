@@ -30,8 +30,9 @@ from ..field.plant import Kinematics
 from ..io.records import RecordTable
 from ..io.scenario import Scenario, load_scenario
 from .assimilate import FALSE_ALARM_RATE, WINDOW, FilterState, alarm_threshold, choose_process_noise, leave_one_out_d2
-from .inputs import FIT_FOCAL_SPOT, fit_spots
-from .params import check_names
+from .drift import BASES, smooth, with_offset
+from .inputs import FIT_FOCAL_SPOT, NOISE, fit_spots
+from .params import STONE8, check_names
 
 __all__ = ["ASSIMILATION_KEY", "HISTORY_VERSION", "DEFAULT_PROCESS_NOISE", "CHOICE_KEY", "THRESHOLD_KEY",
            "calibration_entry", "nominal_kinematics", "current_assimilation", "calibration_count", "seen_record_ids",
@@ -323,11 +324,31 @@ def alarm_threshold_choice(scenario: Scenario, records: RecordTable, false_alarm
     state = _state(cal, names, scenario.path, len(ids), None, torch.full((len(ids),), float("nan")))
     # validation under the fit's own posterior (the Laplace posterior of those records, without the walk's)
     state = replace(state, covariance=stored_tensor(cal, f"/learned/{KEY}", scenario.path, "posterior", "covariance"))
-    d2 = leave_one_out_d2(nominal, table.subset(rows), state) if bool(rows.any()) else None
+    seen_table = table.subset(rows)
+    d2 = leave_one_out_d2(nominal, seen_table, state, _judged_at(cal, names, nominal, seen_table, scenario.path)) \
+        if bool(rows.any()) else None
     made = alarm_threshold(false_alarm_rate, d2, tests=window)
     made["method"] = ("chi-square quantile of the false-alarm rate per step test, widened by the 90 % quantile of "
-                      "the leave-one-out normalised residuals of the calibration's records")
+                      "the leave-one-out normalised residuals of the calibration's records (under a drift model, "
+                      "each at the offset smoothed to its time)")
     return made
+
+
+def _judged_at(cal: dict, names: tuple, nominal: Kinematics, records: RecordTable, path) -> torch.Tensor | None:
+    """Per record [R, P] the deviations a drift calibration had at the record's time: the static part plus the
+    random-walk offset smoothed there (:func:`heliotwin.calibrate.drift.smooth`); None without a drift model."""
+    drift = cal.get("drift") or {}
+    if not drift or "static_deviations" not in drift or tuple(names) != STONE8:
+        return None
+    where = f"/learned/{KEY}"
+    static = stored_tensor(cal, where, path, "drift", "static_deviations").double()
+    q = float(stored_tensor(cal, where, path, "drift", "process_noise_rad2_per_day").reshape(-1)[0])
+    drift_names = tuple(drift.get("names") or _DRIFT_NAMES)
+    basis = next((b for b, n in BASES.items() if n == drift_names), None)
+    if basis is None or static.shape != (nominal.num_heliostats, len(names)):
+        return None
+    offset = smooth(nominal, records, static, q, NOISE, basis=basis)["smoothed"]
+    return with_offset(static[records.heliostat_index], offset, basis)
 
 
 def with_alarm_threshold(scenario: Scenario, records: RecordTable, false_alarm_rate: float = FALSE_ALARM_RATE,

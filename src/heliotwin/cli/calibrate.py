@@ -94,10 +94,11 @@ def register(subparsers) -> None:
     p.add_argument("--drift-mrad", type=float_range(0.0, 1e3, what="a drift [mrad]"), default=None,
                    help="lm predictive interval: offset drift per component [mrad] added to the Laplace posterior's "
                         "noise (default 0; chosen by cross-validated coverage in benchmarks/bench_carryover.py)")
-    p.add_argument("--drift", choices=("none", "kalman"), default="none",
+    p.add_argument("--drift", choices=("auto", "none", "kalman"), default="auto",
                    help="lm drift model: 'kalman' = rigid body + a random-walk offset of the axis offsets, "
                         "smoothed over the training records; the scenario aims with the offset at the latest "
-                        "training time (default none = static)")
+                        "training time; 'none' = static; 'auto' (default): --split current chooses by its "
+                        "validation inside the records, a study split is static")
     p.add_argument("--process-noise", default="auto", metavar="auto|Q",
                    help="--drift kalman: process noise of the offset [mrad^2/day] per component, or 'auto' "
                         "(chosen by chronological validation inside the training records; default)")

@@ -85,8 +85,9 @@ class CalibrationSettings:
     drift_mrad : float or None
         lm predictive interval: offset drift per component [mrad].
     drift, process_noise, drift_basis :
-        lm drift model (``"none"`` / ``"kalman"``), its process noise [mrad^2/day] or ``"auto"``, and what
-        drifts (``"axes"`` / ``"rotation"``).
+        lm drift model (``"auto"``: chosen by a current run's internal validation, none in a study protocol;
+        ``"none"`` / ``"kalman"``), its process noise [mrad^2/day] or ``"auto"``, and what drifts (``"axes"`` /
+        ``"rotation"``).
     settings : str
         ``"auto"``, ``"given"``, ``"cv"`` or ``"stored"`` (:func:`resolved_settings_mode`).
     online_step : int
@@ -118,7 +119,7 @@ class CalibrationSettings:
     prior_from: str | os.PathLike | None = None
     half_life_days: float | None = None
     drift_mrad: float | None = None
-    drift: str = "none"
+    drift: str = "auto"
     process_noise: str | float = "auto"
     drift_basis: str = "axes"
     settings: str = "auto"
@@ -185,7 +186,8 @@ def _lm_options(settings: CalibrationSettings) -> dict:
 def resolved_settings_mode(settings: CalibrationSettings) -> str:
     """``settings.settings`` with ``auto`` resolved (:func:`~heliotwin.calibrate.protocol.config.settings_mode`):
     an lm setting fixed by hand (half-life, interval drift, drift model) keeps the given settings."""
-    by_hand = settings.half_life_days is not None or settings.drift_mrad is not None or settings.drift != "none"
+    by_hand = settings.half_life_days is not None or settings.drift_mrad is not None \
+        or settings.drift not in ("none", "auto")
     return settings_mode(settings.settings or "given", method=settings.method, prior_from=settings.prior_from,
                          fixed_by_hand=by_hand)
 
@@ -205,7 +207,8 @@ def run_config(settings: CalibrationSettings, paint, *, progress: bool = False) 
                     min_records=s.min_records, focal_spot=s.focal_spot, seed=s.seed, plane_tolerance=s.plane_tolerance,
                     correct_suspicious=not s.keep_suspicious, progress=progress is True, prior=s.prior,
                     prior_from=_path(s.prior_from), online_step=s.online_step, method_options=_lm_options(s),
-                    drift_model=s.drift, process_noise=_process_noise(s.process_noise), drift_basis=s.drift_basis,
+                    drift_model="none" if s.drift == "auto" else s.drift,
+                    process_noise=_process_noise(s.process_noise), drift_basis=s.drift_basis,
                     settings=resolved_settings_mode(s), learn_settings=bool(s.learn_settings))
     validate_config(cfg)
     return cfg
@@ -371,11 +374,12 @@ def _quantile(values, q: float):
     return float(np.quantile(np.asarray(xs), q))
 
 
-def _bags_to_choose(cfg: RunConfig) -> bool:
-    """Whether a ``current`` run chooses lm's bootstrap bags by its internal validation: lm with the given
-    settings (a settings CV or stored choice chooses bags among its candidates), bags not fixed by the caller."""
+def _settings_to_choose(cfg: RunConfig) -> bool:
+    """Whether a ``current`` run chooses lm's bagging and drift model by its internal validation
+    (:func:`heliotwin.calibrate.protocol.selection.choose_current`): lm with the given settings (a settings CV or a
+    stored choice chooses among its own candidates), bags and drift model not fixed by the caller."""
     return cfg.method == "lm" and cfg.settings == "given" and not cfg.learn_settings \
-        and "bags" not in cfg.method_options
+        and "bags" not in cfg.method_options and cfg.drift_model == "none"
 
 
 def calibrate(scenario, records_or_paint, settings: CalibrationSettings = CalibrationSettings(), *,
@@ -414,17 +418,18 @@ def calibrate(scenario, records_or_paint, settings: CalibrationSettings = Calibr
     else:
         stage(f"reading {paint}")
         dataset, previous = load_paint_records(paint, scenario, cfg.plane_tolerance)
-    validation, study_cfg, bags_choice = None, cfg, None
+    validation, study_cfg, choice = None, cfg, None
     if cfg.split == "current":
         study_cfg = replace(validation_protocol(cfg), learn_settings=False,
                             heliostats=validation_sample(cfg, dataset))
         stage(f"validating inside the records ({cfg.method}): each heliostat's latest {study_cfg.test} records "
               f"predicted from its earlier ones ({len(study_cfg.heliostats)} heliostats)")
-        if _bags_to_choose(cfg):  # bagged or not: the records decide (selection.choose_bags)
-            bags, validation, bags_choice = selection.choose_bags(
+        if _settings_to_choose(cfg):  # bagged or not, a random walk or not: the records decide
+            chosen, validation, choice = selection.choose_current(
                 study_cfg, dataset, runner=lambda c, d: _run(c, d, settings.nproc, device, progress, None),
-                log=stage)
-            cfg = replace(cfg, method_options=dict(cfg.method_options, bags=bags))
+                drift=settings.drift == "auto" and "half_life_days" not in cfg.method_options, log=stage)
+            cfg = replace(cfg, method_options=chosen.method_options, drift_model=chosen.drift_model,
+                          process_noise=chosen.process_noise)
         else:
             validation = _run(study_cfg, dataset, settings.nproc, device, progress, None)
         stage(f"fitting the current plant ({cfg.method}) on every record on {device}")
@@ -434,8 +439,8 @@ def calibrate(scenario, records_or_paint, settings: CalibrationSettings = Calibr
     seen = seen_records(arrays)  # what the written plant saw (the update treats every other record as new)
     if validation is not None:
         report, arrays = with_expected_error(report, validation[0]), validation[2]
-        if bags_choice is not None:
-            report["bags_choice"] = bags_choice
+        if choice is not None:
+            report["current_settings_choice"] = choice
     else:
         report["written_plant"] = {"records": f"the training part of the {cfg.split} split only",
                                    "note": "a study protocol: the plant written saw only its training records; "

@@ -28,15 +28,12 @@ from ...io.checkpoint import resumable_range
 from ...io.records import RecordTable
 from .. import metrics, priors
 from ..drift import Q_GRID, smooth, split_for_choice, whitener, with_offset
-from ..inputs import FIT_FOCAL_SPOT, fit_spots, trainable
+from ..inputs import FIT_FOCAL_SPOT, NOISE, fit_spots, trainable
 from ..metrics import record_jacobian
 from ..model import Calibrated
 from ..params import STONE8, apply_deviations, check_names, kinds, units
 from ..uncertainty import posterior
 from . import batched
-
-#: Pointing noise of one centroid record [rad] (camera-target centroids scatter by ~1 mrad).
-NOISE = 1e-3
 
 #: Most heliostats in one least-squares problem of :func:`fit_lm`. scipy's solvers factor the dense Jacobian
 #: [3 R + H P, H P], so a joint problem costs ~H^3 (synthetic, 30 records each, 2 threads: 16 / 32 / 64 / 128

@@ -182,36 +182,54 @@ def held_out_errors(report: dict) -> dict:
             if r.get("status") == "ok" and r.get("mean_test_mrad") is not None}
 
 
-def choose_bags(cfg: RunConfig, dataset, *, runner: Runner, bags: int = LM_BAGS, level: float = 0.05,
-                log=None) -> tuple[int, tuple, dict]:
-    """Bootstrap bags of ``lm`` chosen by validation inside the records: 0 or ``bags``.
+def choose_current(cfg: RunConfig, dataset, *, runner: Runner, drift: bool = True, bags: int = LM_BAGS,
+                   level: float = 0.05, log=None) -> tuple[RunConfig, tuple, dict]:
+    """The ``lm`` settings of a current plant chosen by validation inside its records, cheapest first.
 
-    ``cfg`` is a validation protocol (e.g. each heliostat's latest records predicted from its earlier ones,
-    :func:`~.config.validation_protocol`); it is run once unbagged and once with ``bags`` bags, and the bags are
-    kept only when they lower more heliostats' held-out error than chance explains
-    (:func:`heliotwin.calibrate.choice.worth_its_cost`, one-sided sign test at ``level``). Bagging costs
-    ``bags + 1`` fits; it pays where a heliostat has few records (one outlier or unlucky sun moves a small
-    fit: 1.80 -> 1.34 mrad at 10 records in the shared folder's chronological study) and not where it has
-    many (1.15 -> 1.14 at 30), so the records decide, not a constant.
+    ``cfg`` is a validation protocol (each heliostat's latest records predicted from its earlier ones,
+    :func:`~.config.validation_protocol`). The candidates, in order of cost: the static rigid body unbagged;
+    bagged over ``bags`` bootstrap resamples (``bags + 1`` fits: it pays where a heliostat has few records, one
+    outlier or unlucky sun moving a small fit -- 1.80 -> 1.34 mrad at 10 records in the shared folder's
+    chronological study -- and not where it has many, 1.15 -> 1.14 at 30); with ``drift``, the rigid body plus
+    a random-walk offset of the axis offsets (``--drift kalman``; its process noise chosen inside each
+    training part), which follows steps and drift that a static fit averages over the years. Each is run
+    once; a costlier candidate replaces the current choice only when it lowers more heliostats' held-out error
+    than chance explains (:func:`heliotwin.calibrate.choice.worth_its_cost`, one-sided sign test at ``level``),
+    so the records decide, not a constant.
 
     Returns
     -------
-    (chosen bags, the chosen run's ``(report, model, arrays)``, info): ``info`` holds the sign test's counts,
-    ``p`` and both candidates' median errors [mrad].
+    (settings, run, info): ``cfg``'s method options and drift model as chosen (a random walk's process noise
+    fixed at the value its validation run chose), the chosen candidate's ``(report, model, arrays)``, and
+    ``info``: each candidate's median held-out error [mrad] and seconds, each sign test, the choice.
     """
+    cands = [("static", {"bags": 0}, {}), (f"static, {bags} bags", {"bags": bags}, {})]
+    if drift:
+        cands.append(("random-walk offset", {"bags": 0}, {"drift_model": "kalman", "process_noise": "auto"}))
     runs = {}
-    for b in (0, bags):
-        runs[b] = runner(replace(cfg, method_options=dict(cfg.method_options, bags=b)), dataset)
-    take, info = worth_its_cost(held_out_errors(runs[0][0]), held_out_errors(runs[bags][0]), level)
-    chosen = bags if take else 0
-    info = {"candidates": [0, bags], "chosen": chosen, **info, "level": level,
-            "seconds": {str(b): (run[0].get("overall") or {}).get("seconds") for b, run in runs.items()},
-            "rule": f"{bags} bags only if they lower more heliostats' held-out error than chance explains "
-                    f"(one-sided sign test, p < {level})"}
+    for name, options, model in cands:
+        c = replace(cfg, method_options=dict(cfg.method_options, **options), **model)
+        runs[name] = (c, runner(c, dataset))
+    chosen, tests = cands[0][0], []
+    for name, _, _ in cands[1:]:
+        take, test = worth_its_cost(held_out_errors(runs[chosen][1][0]), held_out_errors(runs[name][1][0]), level)
+        tests.append({"candidate": name, "against": chosen, "taken": take, **test})
+        chosen = name if take else chosen
+    c, run = runs[chosen]
+    q = c.process_noise
+    if c.drift_model == "kalman":  # the final fit takes the walk the validation chose, not a second choice
+        q = float(((run[0].get("overall") or {}).get("method_info") or {}).get("process_noise_mrad2_per_day", q))
+    info = {"chosen": chosen, "candidates": [n for n, _, _ in cands], "level": level,
+            "median_mrad": {n: median(held_out_errors(r[1][0]).values()) for n, r in runs.items()},
+            "seconds": {n: (r[1][0].get("overall") or {}).get("seconds") for n, r in runs.items()}, "tests": tests,
+            "rule": "the cheapest candidate unless a costlier one lowers more heliostats' held-out error than "
+                    f"chance explains (one-sided sign test, p < {level})"}
+    if c.drift_model == "kalman":
+        info["process_noise_mrad2_per_day"] = q
     if log:
-        log(f"  bags: {chosen} (median {info['median_cheap']:.3f} mrad unbagged, {info['median_costly']:.3f} with "
-            f"{bags}; better on {info['better']}, worse on {info['worse']} heliostats, p = {info['p']:.3g})")
-    return chosen, runs[chosen], info
+        log("  " + ", ".join(f"{n}: {m:.3f} mrad" for n, m in info["median_mrad"].items()) + f" -> {chosen}")
+    settings = replace(cfg, method_options=c.method_options, drift_model=c.drift_model, process_noise=q)
+    return settings, run, info
 
 
 #: Offset drift values tried for the predictive interval [rad] (:func:`choose_drift`).
