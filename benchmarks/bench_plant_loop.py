@@ -141,29 +141,41 @@ def daily_updates(scenario, ds: PaintDataset, cutoff: float, days: int,
                       "records": sum(p["records"] for p in per_day)}
 
 
-def alarm_score(truth, ds: PaintDataset, alarms: list, t0: float, t1: float, within: int) -> dict:
+def alarm_score(truth, ds: PaintDataset, alarms: list, t0: float, t1: float, within: int,
+                min_step_mrad: float = 0.0) -> dict:
     """Injected steps in ``[t0, t1)`` detected within ``within`` records of their heliostat, and the other
-    alarms per heliostat-year (the simulator's steps: ``/learned/simulation`` of the truth)."""
+    alarms per heliostat-year (the simulator's steps: ``/learned/simulation`` of the truth). Only steps of at
+    least ``min_step_mrad`` (the size of the axis offsets' jump) count as steps to detect; every step's window
+    explains the alarms in it. ``steps_without_records``: counted steps no record follows before ``t1`` (no
+    method can detect them)."""
     sim = truth.learned["simulation"]
     ids = list(truth.plant.field.ids)
     who, when = sim["step_heliostat"].tolist(), sim["step_time"].tolist()
+    jump = torch.as_tensor(sim["step_size"]).double()
+    size = (1e3 * (jump.norm(dim=-1) if jump.dim() > 1 else jump.abs())).tolist()
     rec = ds.records
     t = rec.time.double().numpy()
     hid = [rec.heliostat_ids[i] for i in rec.heliostat_index.tolist()]
     alarmed = {(a["heliostat"], int(a["record_id"])) for a in alarms}
-    explained, steps, detected = set(), 0, 0
-    for h, ts in zip(who, when):
+    by_heliostat: dict = {}
+    for i in np.argsort(t):
+        by_heliostat.setdefault(hid[i], []).append(i)
+    explained, steps, detected, blind = set(), 0, 0, 0
+    for h, ts, sz in zip(who, when, size):
         if not (t0 <= ts < t1):
             continue
-        steps += 1
-        rows = [i for i in np.argsort(t) if hid[i] == ids[h] and t[i] >= ts][:within]
+        rows = [i for i in by_heliostat.get(ids[h], []) if t[i] >= ts][:within]
         window = {(ids[h], int(rec.record_id[i])) for i in rows}
         explained |= window
-        detected += bool(window & alarmed)
+        if sz >= min_step_mrad:
+            steps += 1
+            detected += bool(window & alarmed)
+            blind += not rows
     false = len(alarmed - explained)
     heliostat_years = len(set(hid)) * (t1 - t0) / (365.25 * DAY)
     return {"steps": steps, "detected": detected, "share_detected": detected / steps if steps else None,
-            "within_records": within, "alarms": len(alarmed), "false_alarms": false,
+            "min_step_mrad": min_step_mrad, "steps_without_records": blind, "within_records": within,
+            "alarms": len(alarmed), "false_alarms": false,
             "false_alarms_per_heliostat_year": false / heliostat_years if heliostat_years else None}
 
 
