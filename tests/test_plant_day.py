@@ -102,6 +102,11 @@ def test_default_calibrate_writes_the_current_plant(plant, tmp_path, capsys, mon
     assert info["bags"] == (10 if choice["chosen"] == "static, 10 bags" else 0)
     assert info["drift_model"] == ("kalman" if choice["chosen"] == "random-walk offset" else "none")
     assert expected["median_of_mean_mrad"] == choice["median_mrad"][choice["chosen"]]
+    # the predictive interval calibrated on the same held-out records, and stored with the plant's posterior
+    iv = choice["interval"]
+    assert abs(iv["coverage"] - 0.9) <= abs(iv["uncalibrated_coverage"] - 0.9)
+    posterior = load_scenario(out).learned["calibration"]["posterior"]
+    assert float(posterior["drift_rad"].reshape(-1)[0]) == pytest.approx(1e-3 * iv["drift_mrad"])
     # the updates' threshold is learned here, on those records, and stored
     cal = load_scenario(out).learned["calibration"]
     assert float(cal[THRESHOLD_KEY]["threshold"][0]) > 0 and int(cal[THRESHOLD_KEY]["validation_records"][0]) > 100

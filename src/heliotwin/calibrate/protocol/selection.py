@@ -183,7 +183,7 @@ def held_out_errors(report: dict) -> dict:
 
 
 def choose_current(cfg: RunConfig, dataset, *, runner: Runner, drift: bool = True, bags: int = LM_BAGS,
-                   level: float = 0.05, log=None) -> tuple[RunConfig, tuple, dict]:
+                   level: float = 0.05, interval: bool = True, log=None) -> tuple[RunConfig, tuple, dict]:
     """The ``lm`` settings of a current plant chosen by validation inside its records, cheapest first.
 
     ``cfg`` is a validation protocol (each heliostat's latest records predicted from its earlier ones,
@@ -195,7 +195,9 @@ def choose_current(cfg: RunConfig, dataset, *, runner: Runner, drift: bool = Tru
     training part), which follows steps and drift that a static fit averages over the years. Each is run
     once; a costlier candidate replaces the current choice only when it lowers more heliostats' held-out error
     than chance explains (:func:`heliotwin.calibrate.choice.worth_its_cost`, one-sided sign test at ``level``),
-    so the records decide, not a constant.
+    so the records decide, not a constant. With ``interval`` (and no interval drift given in ``cfg``) the
+    predictive interval is then calibrated on the chosen run's held-out records (:func:`choose_interval`): the
+    offset drift and walk scale whose 90 % intervals cover them closest to 0.9.
 
     Returns
     -------
@@ -226,9 +228,19 @@ def choose_current(cfg: RunConfig, dataset, *, runner: Runner, drift: bool = Tru
                     f"chance explains (one-sided sign test, p < {level})"}
     if c.drift_model == "kalman":
         info["process_noise_mrad2_per_day"] = q
+    options = dict(c.method_options)
+    inputs = (run[2] or {}).get("interval_inputs")
+    if interval and inputs and "drift" not in cfg.method_options:
+        # the predictive interval calibrated on the same held-out records: its offset drift and walk scale
+        drift, scale, cov = choose_interval([inputs])
+        options.update(drift=drift, walk_scale=scale)
+        info["interval"] = {"drift_mrad": 1e3 * drift, "walk_scale": scale, "coverage": cov[(drift, scale)],
+                            "uncalibrated_coverage": cov.get((0.0, 1.0)),
+                            "rule": "the offset drift and walk scale whose 90 % intervals cover the held-out "
+                                    "records closest to 0.9 (DRIFT_GRID x WALK_SCALES)"}
     if log:
         log("  " + ", ".join(f"{n}: {m:.3f} mrad" for n, m in info["median_mrad"].items()) + f" -> {chosen}")
-    settings = replace(cfg, method_options=c.method_options, drift_model=c.drift_model, process_noise=q)
+    settings = replace(cfg, method_options=options, drift_model=c.drift_model, process_noise=q)
     return settings, run, info
 
 
