@@ -98,8 +98,6 @@ def _write_field_outputs(args, sc, report, result, paths: dict) -> None:
     """The one-sun outputs into their staged paths: JSON, per-heliostat CSV, the flux figure (axes in metres
     and degrees, kW/m^2) and the numeric map (CSV)."""
     from ..io.export import write_flux_map_csv
-    from ..optimise.aimstate import stored_peak_limit
-    from ..plots import plot_receiver_flux
     from ..raytrace.field import per_heliostat_rows
 
     write_json(paths["--json"], report)
@@ -108,6 +106,9 @@ def _write_field_outputs(args, sc, report, result, paths: dict) -> None:
     if paths["--per-heliostat"]:
         _write_csv(paths["--per-heliostat"], per_heliostat_rows(result, sc.plant))
     if paths["--flux"]:
+        from ..optimise.aimstate import stored_peak_limit
+        from ..plots import plot_receiver_flux  # matplotlib (~0.4 s): only for a figure asked for
+
         r = report["receiver"]
         limit = stored_peak_limit(sc)  # the stored limit, if any
         plot_receiver_flux({f"{args.aim} aiming": result.flux.cpu()}, sc.plant.targets["receiver"],
