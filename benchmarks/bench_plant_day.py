@@ -169,7 +169,7 @@ def bench_size(n: int, args, root: str) -> dict:
         daily = run(["daily", "--plant", b, "--paint", plant, "--json", os.path.join(work, "daily.json"),
                      "--peak-limit", args.peak_limit, "--quiet"], env, log, "daily", ok=(0, 3))
         alarms += json.load(open(os.path.join(work, "daily.json")))["update"]["alarms"]
-    hid = cal_report and next(iter(cal_report["heliostats"]))
+    hid = next(h for h, e in cal_report["heliostats"].items() if e.get("status") == "ok")  # a calibrated one
     others = {
         "field": run(["field", "--scenario", b, "--sun-azimuth", 10, "--sun-elevation", 45, "--json",
                       os.path.join(work, "f.json"), "--quiet"], env, log, "field (one sun)"),
