@@ -306,3 +306,34 @@ def test_library_settings_hash_ignores_progress():
     assert len(tags) == 1
     cfg = dataclasses.replace(RunConfig(paint="/nonexistent"), train=10)
     assert calibration_checkpoint(cfg, "/nonexistent/x.ckpt").tag not in tags
+
+
+def test_settings_cv_interrupted_resumes_after_its_finished_candidates(tmp_path, paint_dir):
+    """The settings CV (``--settings cv`` / ``--learn-settings``) under the run's checkpoint: Ctrl-C after two
+    of three candidates keeps them; the resumed choice scores only the third and makes the same choice."""
+    from heliotwin.calibrate.protocol import pipeline, selection
+    from heliotwin.calibrate.protocol.config import RunConfig
+
+    cands = [{"prior": "run", "bags": 0}, {"prior": "run", "bags": 0, "loss": "linear"},
+             {"prior": "run", "bags": 0, "half_life_days": 60.0}]
+    cfg = RunConfig(paint=str(paint_dir), split="chrono", train=30, test=30, prior_from=str(paint_dir),
+                    settings="cv")
+    calls = []
+
+    def runner(c, dataset):
+        calls.append(c.method_options.get("loss"))
+        with active(None):
+            return pipeline.run_calibration(c, dataset)
+
+    _, ref = selection.choose_for_run(cfg, [], runner=runner, candidates=cands, run_size=11)
+    assert len(calls) == 3
+    path = tmp_path / "cv.ckpt"
+    with pytest.raises(Interrupt):
+        with active(Checkpoint(path, "tag", min_interval_s=0, hook=_stop_at("settings_cv/0", 2))):
+            selection.choose_for_run(cfg, [], runner=runner, candidates=cands, run_size=11)
+    calls.clear()
+    with active(Checkpoint(path, "tag", resume=True, min_interval_s=0)):
+        _, resumed = selection.choose_for_run(cfg, [], runner=runner, candidates=cands, run_size=11)
+    assert len(calls) == 1  # the third candidate only
+    assert resumed["table"] == ref["table"] and resumed["chosen"] == ref["chosen"]
+    assert resumed["drift_mrad"] == ref["drift_mrad"] and resumed["walk_scale"] == ref["walk_scale"]

@@ -258,19 +258,22 @@ def choose_settings(cfg: RunConfig, run_ids: list, runner, log=None) -> Choice:
     def back(chosen: RunConfig) -> RunConfig:
         return replace(chosen, split=cfg.split, train=cfg.train, validation=cfg.validation, test=cfg.test)
 
-    if cfg.learn_settings:
+    def cv_run(c: RunConfig, dataset):
+        # A CV run is not the run's fit: its own loops stay out of the run's checkpoint, which keeps the CV's
+        # finished candidates instead (selection.choose_for_run: a resumed run goes on after the last one).
         with _checkpoint.active(None):
-            record, prior = learn_for_plant(study, runner=runner, run_size=len(run_ids), progress=bool(cfg.progress),
-                                            log=log)
+            return runner(c, dataset)
+
+    if cfg.learn_settings:
+        record, prior = learn_for_plant(study, runner=cv_run, run_size=len(run_ids), progress=bool(cfg.progress),
+                                        log=log)
         return Choice(cfg, record, prior)
     if cfg.settings == "stored":
         chosen, record = stored_choice(study, _held_out(cfg, run_ids))
         return Choice(back(chosen), record)
     if cfg.settings == "cv":
-        # The CV runs are not the run's fit: they stay out of its checkpoint (a resumed run repeats them, seeded).
-        with _checkpoint.active(None):
-            chosen, record = choose_for_run(study, _held_out(cfg, run_ids), runner=runner,
-                                            progress=bool(cfg.progress), run_size=len(run_ids), log=log)
+        chosen, record = choose_for_run(study, _held_out(cfg, run_ids), runner=cv_run,
+                                        progress=bool(cfg.progress), run_size=len(run_ids), log=log)
         return Choice(back(chosen), record)
     return Choice(cfg)
 

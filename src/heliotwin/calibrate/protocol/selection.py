@@ -37,6 +37,7 @@ import torch
 from tqdm.auto import tqdm
 
 from ...errors import HeliotwinError, InputFileError
+from ...io.checkpoint import resumable_range
 from ...io.paint import load_paint
 from ...io.scenario import load_scenario
 from ..choice import lowest, worth_its_cost
@@ -433,9 +434,20 @@ def choose_for_run(cfg: RunConfig, calibrated, dataset=None, *, runner: Runner, 
                                  f"with the run's own field prior need {MIN_HELIOSTATS} and none uses a plant prior")
     if progress:
         bar = tqdm(total=len(cands), desc="settings by CV", leave=False, disable=None)
-    scores = {}
-    for cand in cands:
-        scores.update(cross_validated_errors(ds, base, [cand], ids, runner=runner, folds=min(folds, len(ids)),
+    scores: dict = {}
+
+    def dump():
+        return {"scores": dict(scores), "collect": {k: list(v) for k, v in collect.items()}}
+
+    def load(saved):
+        scores.update(saved["scores"])
+        collect.update(saved["collect"])
+        if log:
+            log(f"  resumed after {len(scores)} of {len(cands)} candidates")
+
+    # one candidate per step under the run's checkpoint (Ctrl-C keeps the finished ones; --resume goes on)
+    for i in resumable_range("settings_cv", len(cands), dump, load):
+        scores.update(cross_validated_errors(ds, base, [cands[i]], ids, runner=runner, folds=min(folds, len(ids)),
                                              seed=seed, archive=archive, exclude=calibrated, log=log, collect=collect))
         if progress:
             bar.update(1)
