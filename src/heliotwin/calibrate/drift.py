@@ -274,18 +274,8 @@ def smooth(nominal, batch: RecordTable, delta: torch.Tensor, q: float, noise: fl
 def dense_whitener(nominal, batch: RecordTable, q: float, noise: float, basis: str = "axes"):
     """:func:`whitener` by the dense Cholesky factor of each heliostat's ``Sigma`` [3n, 3n] (records in the
     batch's order): the reference the recursion is tested against (O(n^3) time, O(n^2) memory per heliostat).
-
-    Parameters
-    ----------
-    q : float
-        Process noise [rad^2/day] per component.
-    noise : float
-        Residual noise per component [rad] (the fit's ``noise``).
-
-    Returns
-    -------
-    callable ``w(x)``: ``x`` [R, 3, ...] -> the whitened ``s L^-1 x`` [R, 3, ...] per heliostat (records stay
-    on their heliostat's rows, so the Jacobian keeps its block structure).
+    Arguments and return as :func:`whitener`'s: ``q`` [rad^2/day], ``noise`` [rad]; ``w(x)`` maps ``x``
+    [R, 3, ...] to ``s L^-1 x`` [R, 3, ...].
     """
     a, k, index, mask = _padded_model(batch, offset_jacobian(nominal, batch, basis=basis), q)
     h, n = index.shape
@@ -309,15 +299,8 @@ def dense_whitener(nominal, batch: RecordTable, q: float, noise: float, basis: s
 
 def dense_smooth(nominal, batch: RecordTable, delta: torch.Tensor, q: float, noise: float, basis: str = "axes"
                  ) -> dict:
-    """:func:`smooth` by the dense Gaussian conditional (the reference the recursion is tested against).
-
-    Returns
-    -------
-    dict
-        ``smoothed`` [R, 2] (rad, E[b(t_i) | all records] per record; 0 without a time), ``offset`` [H, 2]
-        (rad, at the heliostat's latest training time), ``covariance`` [H, 2, 2] (rad^2), ``time`` [H]
-        (POSIX s of that latest record; NaN without one), ``q`` (rad^2/day).
-    """
+    """:func:`smooth` by the dense Gaussian conditional (the reference the recursion is tested against): the
+    same arguments (``delta`` [H, 8], ``q`` [rad^2/day], ``noise`` [rad]) and the same dict."""
     hidx = batch.heliostat_index
     h = batch.num_heliostats
     res, jac = record_jacobian(nominal.index(hidx), batch, delta.detach().double()[hidx], STONE8)
