@@ -377,9 +377,11 @@ def _quantile(values, q: float):
 def _settings_to_choose(cfg: RunConfig) -> bool:
     """Whether a ``current`` run chooses lm's bagging and drift model by its internal validation
     (:func:`heliotwin.calibrate.protocol.selection.choose_current`): lm with the given settings (a settings CV or a
-    stored choice chooses among its own candidates), bags and drift model not fixed by the caller."""
-    return cfg.method == "lm" and cfg.settings == "given" and not cfg.learn_settings \
-        and "bags" not in cfg.method_options and cfg.drift_model == "none"
+    stored choice chooses among its own candidates), bags and drift model not fixed by the caller. A
+    ``--learn-settings`` run chooses so too: what it learns is stored for later runs, and the plant it writes
+    is fitted as its own validation says."""
+    return cfg.method == "lm" and cfg.settings == "given" and "bags" not in cfg.method_options \
+        and cfg.drift_model == "none"
 
 
 def calibrate(scenario, records_or_paint, settings: CalibrationSettings = CalibrationSettings(), *,
