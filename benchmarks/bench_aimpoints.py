@@ -24,6 +24,18 @@ lowest 0.67, a surround field on a 360-degree cylinder at 0.6, where both heuris
 60-degree segment), median 2.6 s per case (max 25 s, the 2,000-heliostat plant). Before the image model
 came from the exact footprints, that plant's rounds diverged to 2.6 x the limit (exit 3).
 
+**A day** (``--day DATE --scenario FILE``): the whole ``heliotwin aimpoints --day DATE --every 15min
+--no-baselines`` command (a subprocess, one thread) on a plant file, once with warm starts (each instant from the
+previous instant's optimised aim points, the default) and once with ``--cold`` (every instant from equator
+aiming); the limit is ``--fraction`` (0.8) x the equator-aimed peak at the day's highest sun. Reported: whole
+command wall time, per-instant seconds, Adam steps and exact checks, power against equator aiming, peak against
+the limit, the day's energy, and the machine's load (busy or idle)::
+
+    heliotwin simulate --heliostats 2000 --seed 7 --years 0.2 --out /tmp/d31/sim
+    python benchmarks/bench_aimpoints.py --day 2024-06-21 --scenario /tmp/d31/sim/truth.h5 --out /tmp/d31/day
+
+Writes ``<out>/day.json`` and each run's report ``<out>/day_{warm,cold}.json``.
+
 **Demo field** (default): the embedded ~2000-heliostat field, the optimiser against equator aiming and two
 heuristics.
 
@@ -67,7 +79,10 @@ aim-point difference 6.6 um, peaks 510 264.7 vs 510 266.2 W/m2, power equal to 1
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -88,6 +103,7 @@ from heliotwin.optimise.aimpoints import (
 )
 from heliotwin.optimise.testbed import generated_plant
 from heliotwin.sun import direction_from_time
+from heliotwin.workflows.field import sun_instants
 
 
 def _png(flux, extent, path, title, vmax):
@@ -174,6 +190,66 @@ def testbed(args) -> dict:
     return {"summary": summary, "cases": rows}
 
 
+def day(args) -> dict:
+    """The whole ``aimpoints --day`` command, warm-started and cold (module docstring)."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = (args.scenario or [None])[0]
+    if path is None:
+        raise SystemExit("--day needs --scenario FILE")
+    sc = load_scenario(path)
+    instants = sun_instants(sc.plant, day=args.day, every=args.every)
+    label, sun = max(instants, key=lambda i: float(i[1][2]))  # the day's highest sun
+    t0 = time.perf_counter()
+    _, eq = calibrate_images(sc.plant, sun, Atmosphere.from_extras(sc.extras), (20, 48))
+    limit = args.fraction * float(eq.flux.max())
+    report = {"scenario": str(path), "heliostats": len(sc.plant.field.ids), "day": args.day, "every": args.every,
+              "instants": len(instants), "limit_w_m2": limit, "limit_fraction": args.fraction,
+              "limit_from": {"instant": label, "equator_peak_w_m2": float(eq.flux.max()),
+                             "seconds": time.perf_counter() - t0}, "runs": {}}
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    for mode in args.modes.split(","):
+        js = out / f"day_{mode}.json"
+        cmd = [sys.executable, "-m", "heliotwin", "aimpoints", "--scenario", str(path), "--day", args.day, "--every",
+               args.every, "--peak-limit", repr(limit), "--no-baselines", "-o", str(out / f"day_{mode}.h5"),
+               "--json", str(js)] + (["--cold"] if mode == "cold" else [])
+        load0 = os.getloadavg()
+        t1 = time.perf_counter()
+        run = subprocess.run(cmd, env=env, capture_output=True, text=True)
+        wall = time.perf_counter() - t1
+        print(run.stdout, end="", flush=True)
+        if run.returncode not in (0, 3):
+            raise SystemExit(f"{mode}: exit {run.returncode}: {run.stderr.strip()}")
+        rep = json.loads(js.read_text())
+        per = [i["seconds"] for i in rep["instants"]]
+        opt = [i["optimised"] for i in rep["instants"]]
+        report["runs"][mode] = {
+            "exit": run.returncode, "wall_s": wall, "load_average_before": load0, "load_average_after": os.getloadavg(),
+            "summary": rep["summary"], "seconds_per_instant": per,
+            "adam_steps": [o["iterations"] for o in opt], "exact_checks": [o["exact_checks"] for o in opt],
+            "power_vs_equator": [o["power_vs_equator"] for o in opt],
+            "peak_vs_limit": [o["peak_vs_limit"] for o in opt],
+            "instant_labels": [i["instant"] for i in rep["instants"]]}
+        d = rep["summary"]
+        print(f"{mode}: exit {run.returncode}, {wall:.1f} s whole command, {d['instants']} instants, per instant "
+              f"mean {d['seconds_per_instant']['mean']:.2f} s, max {d['seconds_per_instant']['max']:.2f} s; worst peak "
+              f"{d['worst_peak_vs_limit']:.4f} of the limit; energy {d['energy_kwh']:.5g} kWh "
+              f"({d['energy_vs_equator']:.4f} of equator); {d['adam_steps']} Adam steps, {d['exact_checks']} exact "
+              f"checks; load {load0[0]:.2f} -> {os.getloadavg()[0]:.2f}", flush=True)
+    runs = report["runs"]
+    if {"warm", "cold"} <= set(runs):
+        w, c = runs["warm"], runs["cold"]
+        report["warm_vs_cold"] = {
+            "wall_ratio": w["wall_s"] / c["wall_s"],
+            "energy_ratio": w["summary"]["energy_kwh"] / c["summary"]["energy_kwh"],
+            "power_ratio_min": min(a / b for a, b in zip(w["power_vs_equator"], c["power_vs_equator"])),
+            "power_ratio_median": float(pd.Series([a / b for a, b in zip(w["power_vs_equator"],
+                                                                        c["power_vs_equator"])]).median())}
+        print(f"warm vs cold: {report['warm_vs_cold']}", flush=True)
+    write_json(out / "day.json", report)
+    return report
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", required=True)
@@ -187,9 +263,16 @@ def main(argv=None) -> dict:
     ap.add_argument("--excess", type=float, default=1.35)
     ap.add_argument("--nproc", type=int, default=2)
     ap.add_argument("--steps", type=int, default=5, help="bisection steps of the two heuristics")
+    ap.add_argument("--day", help="a day's aim points (UTC date) on the --scenario plant: warm vs cold starts")
+    ap.add_argument("--every", default="15min", help="--day: time step (default: %(default)s)")
+    ap.add_argument("--fraction", type=float, default=0.8, help="--day: limit as a fraction of the equator peak "
+                    "at the day's highest sun (default: %(default)s)")
+    ap.add_argument("--modes", default="warm,cold", help="--day: runs, comma-separated (default: %(default)s)")
     args = ap.parse_args(argv)
     if args.testbed:
         return testbed(args)
+    if args.day:
+        return day(args)
     args.times = args.times or "2023-06-21T07:00:00Z,2023-06-21T11:30:00Z"
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

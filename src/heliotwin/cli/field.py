@@ -162,19 +162,24 @@ def _write_csv(path, rows: list[dict]) -> None:
 
 
 # ------------------------------------------------------------------------------------------- aimpoints
-def _print_instant(limit):
+def _print_instant(limit, count: int = 1):
     def show(i, label, rep, best, equator) -> None:
         o = rep["optimised"]
-        print(f"aimpoints {label}: peak {o['peak_flux_w_m2'] / 1e3:.1f} kW/m2 (limit {limit / 1e3:.1f}, "
-              f"equator {rep['equator']['peak_flux_w_m2'] / 1e3:.1f}), power {o['power_vs_equator']:.4f} "
-              "of equator" + "".join(f", {n} {rep[n]['power_vs_equator']:.4f} (peak "
-                                     f"{rep[n]['peak_flux_w_m2'] / 1e3:.1f})"
-                                     for n in ("aiming_factor", "image_size_priority") if n in rep)
+        where = f" {i + 1}/{count}" if count > 1 else ""
+        start = (f", warm start: {o['iterations']} steps, exact checks: {o['exact_checks']}" if o.get("warm_start")
+                 else "")
+        eq = rep["equator"]
+        eq_peak = "" if eq.get("estimated") else f", equator {eq['peak_flux_w_m2'] / 1e3:.1f}"
+        print(f"aimpoints{where} {label}: peak {o['peak_flux_w_m2'] / 1e3:.1f} kW/m2 (limit {limit / 1e3:.1f}"
+              f"{eq_peak}), power {o['power_vs_equator']:.4f} of equator"
+              + (" (estimated)" if eq.get("estimated") else "")
+              + "".join(f", {n} {rep[n]['power_vs_equator']:.4f} (peak {rep[n]['peak_flux_w_m2'] / 1e3:.1f})"
+                        for n in ("aiming_factor", "image_size_priority") if n in rep)
               + ("" if o.get("note", "").endswith("full power") else f"; {o.get('note')}")
               + (f"; P(peak > limit) {rep['robust']['robust']['exceedance_probability']:.3f} (deterministic "
                  f"{rep['robust']['deterministic']['exceedance_probability']:.3f}, {rep['robust']['draws']} draws), "
                  f"power cost {rep['robust']['power_cost']:.4f}" if "robust" in rep else "")
-              + f"; {rep['seconds']:.1f} s", flush=True)
+              + f"; {rep['seconds']:.1f} s{start}", flush=True)
     return show
 
 
@@ -224,12 +229,13 @@ def cmd_aimpoints(args) -> int:
                                 iterations=args.iterations, target=args.target, field_gradient=args.field_gradient,
                                 baselines=not args.no_baselines, nproc=args.nproc,
                                 device=getattr(args, "device", None), confidence=args.confidence,
-                                draws=args.draws, mc=args.mc, seed=args.seed)
+                                draws=args.draws, mc=args.mc, seed=args.seed, warm_start=not args.cold,
+                                exact_equator=bool(args.flux))
     settings.check()  # before any output is staged
     with output_set([("--scenario", args.scenario)]) as out:
         out_h5, out_json = out.file(args.output, "-o"), out.file(args.json, "--json")
         out_png = out.folder(args.flux, "--flux") if args.flux else None
-        show = None if args.quiet else _print_instant(float(args.peak_limit))
+        show = None
 
         def on_instant(i, label, rep, best, equator) -> None:
             if out_png:
@@ -241,13 +247,25 @@ def cmd_aimpoints(args) -> int:
         sc = load_scenario(args.scenario)
         instants = sun_instants(sc.plant, times=args.time, day=args.day, every=args.every,
                                 azimuth_deg=args.sun_azimuth, elevation_deg=args.sun_elevation)
+        show = None if args.quiet else _print_instant(float(args.peak_limit), len(instants))
         if show:  # a line before the long part; one more per instant as each finishes
             print(f"aimpoints: {len(sc.plant.field.ids)} heliostats, {len(instants)} instant(s), limit "
                   f"{float(args.peak_limit) / 1e3:.1f} kW/m2 ...", flush=True)
         aimed, report = aimpoints(sc, instants, settings, on_instant=on_instant)
         write_scenario(aimed, out_h5)
         write_json(out_json, report)
+    if show and len(instants) > 1:
+        _print_summary(report["summary"])
     return _limit_verdict(report, float(args.peak_limit))
+
+
+def _print_summary(d: dict) -> None:
+    """The line after several instants: worst peak, the day's energy (``--day``), work and time."""
+    energy = (f", energy {d['energy_kwh']:.4g} kWh ({d['energy_vs_equator']:.4f} of equator aiming's)"
+              if "energy_kwh" in d else "")
+    print(f"aimpoints: {d['instants']} instants, worst peak {d['worst_peak_vs_limit']:.4f} of the limit{energy}; "
+          f"{d['exact_checks']} exact checks, {d['adam_steps']} steps, {d['seconds']:.1f} s "
+          f"({d['seconds_per_instant']['mean']:.1f} s per instant)", flush=True)
 
 
 def _limit_verdict(report: dict, limit: float) -> int:
@@ -340,7 +358,9 @@ def register(sub) -> None:
     when = p.add_mutually_exclusive_group(required=True)
     when.add_argument("--sun-azimuth", type=_AZIMUTH, help="[deg], PAINT convention (0 = south, +90 = east)")
     when.add_argument("--time", help="UTC time(s), ISO, comma-separated for several instants")
-    when.add_argument("--day", help="UTC date: every --every over the day with the sun above 10 deg")
+    when.add_argument("--day", help="UTC date: every --every over the day with the sun above 10 deg (each instant "
+                      "warm-started from the previous one's aim points unless --cold; the report's summary has the "
+                      "day's energy)")
     p.add_argument("--every", default="1h", help="with --day: time step, 1min..1d (default: "
                                                                    "%(default)s)")
     p.add_argument("--sun-elevation", type=_ELEVATION, help="[deg] (with --sun-azimuth)")
@@ -356,6 +376,9 @@ def register(sub) -> None:
     p.add_argument("--field-gradient", action="store_true", help="add the smooth field model's power gradient "
                    "(shading, blocking, cosine) to the image model each round (one backward pass per round)")
     p.add_argument("--no-baselines", action="store_true", help="skip the aiming-factor and image-size baselines")
+    p.add_argument("--cold", action="store_true", help="several instants: start every one from equator aiming "
+                   "(default: from the previous instant's optimised aim points; without baselines, --flux, a "
+                   "uniform target or --confidence, a warm instant's equator power is the image model's estimate)")
     p.add_argument("--confidence", type=float, help="hold the limit with this probability (e.g. 0.95) under the "
                    "plant's stored pointing posterior (calibrate --method lm); the report gives the probability of "
                    "exceeding the limit for these and for the deterministic aim points, and the power it costs")

@@ -115,6 +115,13 @@ class AimResult:
     parameter: float | None = None
     history: list = field(default_factory=list)
     standby: int = 0  #: heliostats sent off the receiver (standby) so that the limit holds
+    #: the augmented Lagrangian's multipliers per map cell [rows, cols] [-] at the end (a warm start's)
+    multipliers: torch.Tensor | None = None
+    #: the power [W] the objective was relative to: equator aiming's on the exact model, or (a warm start without
+    #: the equator check) the corrected image model's estimate of it
+    reference_power_w: float | None = None
+    #: exact field-model evaluations made (the rounds' checks, the warm start's, the standby search's)
+    exact_checks: int = 0
 
     def violation(self, limit: float) -> float:
         """Relative excess of the peak over the limit (0 when met)."""
@@ -449,10 +456,18 @@ def calibrate_images(plant: Plant, sun, atmosphere, resolution, *, group=None, e
     rows = grp.rows(h, pos.device)
     eq_aim = equator_aim_points(rec, pos)
     ex = equator if equator is not None else grp.field(plant, sun, atmosphere, eq_aim, check_settings(resolution))
-    _, sd, box = image_moments(plant, sun, eq_aim, resolution, rows)
-    power = (ex.power_w.to(pos) / ex.intercept.to(pos).clamp_min(1e-6))
+    return _image_model_at(plant, sun, eq_aim, ex, resolution, rows), ex
+
+
+def _image_model_at(plant: Plant, sun, aim: torch.Tensor, exact, resolution, rows) -> ImageModel:
+    """Image model of heliostats ``rows`` [h] from the exact model's result ``exact`` at the aim points ``aim``
+    [H, 3] ENU [m]: power before spillage per heliostat [W], spreads from :func:`image_moments` there."""
+    rec = plant.target("receiver")
+    pos = plant.field.kinematics.position.to(torch.float64)
+    _, sd, box = image_moments(plant, sun, aim, resolution, rows)
+    power = (exact.power_w.to(pos) / exact.intercept.to(pos).clamp_min(1e-6))
     xe, ye = _edges(rec, resolution, pos)
-    return ImageModel(power[rows], sd[:, 0], sd[:, 1], xe, ye, _period(rec), box[:, 0], box[:, 1]), ex
+    return ImageModel(power[rows], sd[:, 0], sd[:, 1], xe, ye, _period(rec), box[:, 0], box[:, 1])
 
 
 def _period(receiver) -> float:
@@ -678,6 +693,10 @@ class AimSettings:
         Make the power model first-order exact at every round's start (see :func:`optimise_aimpoints`).
     softness : float
         Occlusion width [m] of the smooth field model used by ``field_gradient``.
+    warm_iterations, warm_lr, warm_tolerance : int, float, float
+        With a warm start (``start_aim``): Adam steps per round, step size [m] and the predicted relative gain
+        [-] below which the rounds stop (the start is near an optimum already: smaller, fewer steps; an exact
+        check is worth making only for a gain above ``warm_tolerance``).
     """
 
     resolution: tuple[int, int] = (20, 48)
@@ -691,12 +710,61 @@ class AimSettings:
     field_gradient: bool = False
     softness: float = 0.05
     slack: float = 0.01
+    warm_iterations: int = 100
+    warm_lr: float = 0.01
+    warm_tolerance: float = 2e-3
+
+
+def _start(plant, sun, atmosphere, resolution, grp: _Group, rows, x0, x_bounds, equator, model, start_aim):
+    """Where :func:`optimise_aimpoints`' rounds start: ``(x, y, kick, first, model, p_eq, spreads_at_start)``.
+
+    Cold (``start_aim`` None): equator aiming (``x0`` [H] its lateral coordinates [m], heights 0) with a small
+    alternating ``kick`` [h] [m] for the first steps; ``first`` the exact equator result (``equator``, or made
+    with the image model by :func:`calibrate_images`). Warm: ``start_aim`` [H, 3] ENU [m] projected onto the
+    receiver's height and each heliostat's visible arc (``x_bounds``), no kick, ``first`` its exact check;
+    without ``model`` the image model is calibrated on that check (``spreads_at_start``). ``p_eq`` is equator
+    aiming's power [W]: exact with ``equator``, else the image model's corrected to the start's exact power.
+    """
+    rec = plant.target("receiver")
+    pos = plant.field.kinematics.position.to(torch.float64)
+    h, half = pos.shape[0], 0.5 * float(rec.height)
+    spreads_at_start = False
+    if start_aim is not None:
+        start = torch.as_tensor(start_aim).to(pos)
+        if start.shape != pos.shape:
+            raise HeliotwinError(f"start aim points: expected shape {tuple(pos.shape)}, got {tuple(start.shape)}")
+        xs, ys = _local(rec, start)
+        x, y = xs[rows].clone(), ys[rows].clamp(-half, half)
+        if x_bounds is not None:
+            x = torch.minimum(torch.maximum(x, x_bounds[0]), x_bounds[1])
+        start = _world(rec, grp.gather(x, h), grp.gather(y, h))
+        first = grp.field(plant, sun, atmosphere, start, check_settings(resolution))  # round 0's exact check
+        if model is None:
+            model, spreads_at_start = _image_model_at(plant, sun, start, first, resolution, rows), True
+        kick = torch.zeros_like(x)  # no symmetric point to leave
+    else:
+        if model is None or equator is None:
+            model, equator = calibrate_images(plant, sun, atmosphere, resolution, group=grp.group, equator=equator)
+        first = equator  # round 0 is equator aiming, whose exact check the image model was calibrated on
+        x, y = x0[rows].clone(), torch.zeros_like(x0[rows])
+        # the first steps start from a small alternating spread: equator aiming is a symmetric point of the problem
+        kick = 0.05 * (1 - 2 * (rows % 2)).to(pos)
+    model = dataclasses.replace(model)  # its power is refreshed every round: leave the caller's alone
+    if equator is not None:
+        p_eq = float(equator.power_w.sum())
+    else:  # equator aiming's power on the image model corrected to the start's exact power
+        with torch.no_grad():
+            p_e, p_s = model.flux(x0[rows], torch.zeros_like(x))[1], model.flux(x, y)[1]
+            p_eq = float(grp.sum(p_e.sum())) + float(first.power_w.sum()) - float(grp.sum(p_s.sum()))
+    return x, y, kick, first, model, p_eq, spreads_at_start
 
 
 @reuse_mirror_samples()  # the rounds' exact checks move the heliostats, never their surfaces
 def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, settings: AimSettings = AimSettings(), *,
                        atmosphere: Atmosphere | None = None, target: torch.Tensor | None = None, group=None,
-                       equator=None, model=None, progress=None, device=None) -> AimResult:
+                       equator=None, model=None, progress=None, device=None,
+                       start_aim: torch.Tensor | None = None, start_multipliers: torch.Tensor | None = None,
+                       start_margin: float | None = None) -> AimResult:
     """Aim points that maximise intercepted power (or match ``target``) with every map cell at or below
     ``peak_limit`` [W/m^2] on the exact model.
 
@@ -729,13 +797,26 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, setti
     device : str or torch.device, optional
         Run on this device (the plant, sun and target are moved there; ``equator``/``model`` must already be
         there). Default: where the plant's tensors are.
-
+    start_aim : torch.Tensor, [H, 3], optional
+        Warm start: the rounds start from these aim points (ENU [m]; e.g. the previous instant's optimised ones,
+        projected onto the receiver's height and each heliostat's visible arc) instead of equator aiming. Round 0
+        is then the exact check of them at this sun; without ``model`` the image model is calibrated on that
+        check (power, spreads at these aim points) and without ``equator`` no equator check is made: the power
+        the objective is relative to (:attr:`AimResult.reference_power_w`) is the corrected image model's
+        estimate of equator aiming's.
+    start_multipliers : torch.Tensor, [rows, cols], optional
+        With ``start_aim``: the multipliers to start from (the previous instant's :attr:`AimResult.multipliers`).
+    start_margin : float, optional
+        With ``start_aim``: the internal margin to start from (the previous instant's final
+        :attr:`AimResult.parameter`) [-].
 
     Returns
     -------
     AimResult
         All aim points [H, 3] and the exact check of them; ``history`` has per round the exact peak, power,
-        margin and whether the check passed; ``iterations`` the Adam steps done.
+        margin and whether the check passed; ``iterations`` the Adam steps done; ``exact_checks`` the exact
+        evaluations made (not counting ``equator``); ``multipliers`` and ``parameter`` (the final margin) are
+        the next instant's warm start.
     """
     t0 = time.perf_counter()
     resolution, iterations = settings.resolution, settings.iterations
@@ -751,27 +832,29 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, setti
     h = pos.shape[0]
     rows = grp.rows(h, pos.device)
     limit = float(peak_limit)
-    if model is None or equator is None:
-        model, equator = calibrate_images(plant, sun, atmosphere, resolution, group=group, equator=equator)
-    model = dataclasses.replace(model)  # its power is refreshed every round: leave the caller's alone
     eq_aim = equator_aim_points(rec, pos)
     x0, _ = _local(rec, eq_aim)
-    x = x0[rows].clone()
     x_bounds = _visible_arc(rec, pos[rows])
-    y = torch.zeros_like(x)
-    # the first steps start from a small alternating spread: equator aiming is a symmetric point of the problem
-    kick = 0.05 * (1 - 2 * (rows % 2)).to(pos)
     half = 0.5 * float(rec.height)
-    p_eq = float(equator.power_w.sum())
+    warm = start_aim is not None
+    if warm:
+        iterations, lr, tolerance = settings.warm_iterations, settings.warm_lr, settings.warm_tolerance
+    x, y, kick, first, model, p_eq, spreads_at_start = _start(plant, sun, atmosphere, resolution, grp, rows, x0,
+                                                             x_bounds, equator, model, start_aim)
+    checks = int(warm)
     lam = torch.zeros(tuple(int(r) for r in resolution), dtype=torch.float64, device=pos.device)
+    if warm and start_multipliers is not None:
+        lam = start_multipliers.detach().to(lam).clone()
     tgt = None if target is None else target.to(pos)
-    m = float(margin)
+    m = float(margin) if not warm or start_margin is None else max(float(margin), float(start_margin))
     best, best_key, least, history, steps = None, None, None, [], 0
     previous = None
     for k in range(int(rounds)):
         aim = _world(rec, grp.gather(x, h), grp.gather(y, h))
-        # round 0 is equator aiming, whose exact check the image model was calibrated on
-        ex = equator if k == 0 else grp.field(plant, sun, atmosphere, aim, check_settings(resolution))
+        if k == 0:
+            ex = first  # equator aiming's check (cold) or the start's (warm), made above
+        else:
+            ex, checks = grp.field(plant, sun, atmosphere, aim, check_settings(resolution)), checks + 1
         peak, power = float(ex.flux.max()), float(ex.power_w.sum())
         ok = peak <= limit
         key = power / p_eq if tgt is None else -target_mismatch(ex.flux, tgt)
@@ -799,7 +882,7 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, setti
         # refresh the per-heliostat power (shading, blocking and cosine move with the aim points) and the image
         # spreads (the incidence on the receiver moves with them)
         model.power = (ex.power_w.to(pos) / ex.intercept.to(pos).clamp_min(1e-6))[rows]
-        if k > 0:  # round 0: the calibration's own (equator) spreads
+        if k > 0 or (warm and not spreads_at_start):  # else the calibration's own spreads at these aim points
             _, sd, box = image_moments(plant, sun, aim, resolution, rows)
             model.sx, model.sy, model.bx, model.by = sd[:, 0], sd[:, 1], box[:, 0], box[:, 1]
         with torch.no_grad():
@@ -828,7 +911,9 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, setti
     out = best if best is not None else least
     if best is None:  # no aim point on the receiver held the limit: take the fewest heliostats off it that do
         out = _standby(plant, sun, atmosphere, rec, model, least, limit, grp, rows, resolution)
+        checks += out.exact_checks
     out.seconds, out.iterations, out.history, out.parameter = time.perf_counter() - t0, steps, history, m
+    out.multipliers, out.reference_power_w, out.exact_checks = lam.detach().clone(), p_eq, checks
     return out
 
 
@@ -879,23 +964,25 @@ def _standby(plant, sun, atmosphere, rec, model: ImageModel, least: AimResult, l
         out.standby = count
         return out
 
-    fail, ok = 0, None
+    fail, ok, calls = 0, None, 0
     while ok is None:  # grow from the prediction until the exact check passes
-        r = check(k)
+        r, calls = check(k), calls + 1
         if r.peak_flux_w_m2 <= limit:
             ok = r
         elif k >= h:
+            least.exact_checks = calls
             return least
         else:
             fail, k = k, min(h, k + max(1, k // 2))
     for _ in range(int(bisections)):  # then fewer on standby while it still passes
         if ok.standby - fail <= max(1, h // 200):
             break
-        r = check((fail + ok.standby) // 2)
+        r, calls = check((fail + ok.standby) // 2), calls + 1
         if r.peak_flux_w_m2 <= limit:
             ok = r
         else:
             fail = r.standby
+    ok.exact_checks = calls
     return ok
 
 

@@ -13,6 +13,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numpy as np
+import pandas as pd
 import torch
 
 from ..atmosphere import Atmosphere
@@ -36,7 +38,7 @@ from ..optimise.robust import require_posterior, robust_aimpoints
 from ..raytrace.field import reuse_mirror_samples
 from .field import check_map_resolution
 
-__all__ = ["AimpointSettings", "aimpoints"]
+__all__ = ["AimpointSettings", "aimpoints", "day_summary"]
 
 
 @dataclass
@@ -70,6 +72,13 @@ class AimpointSettings:
         Each draw's map from the image model corrected to the exact map, or from the exact model.
     seed : int
         Seed of the draws.
+    warm_start : bool
+        Each instant after the first starts from the previous instant's optimised aim points, multipliers and
+        margin (``optimise_aimpoints(start_aim=...)``; one process only, not with ``nproc > 1``).
+    exact_equator : bool
+        With warm starts: make the exact equator check at every instant anyway (its peak and map in the report
+        and the flux maps). Without it (and without baselines, a uniform target or a confidence, which need it)
+        a warm instant's equator power is the corrected image model's estimate (``equator.estimated``).
     """
 
     peak_limit_w_m2: float
@@ -84,6 +93,8 @@ class AimpointSettings:
     draws: int = 200
     mc: str = "model"
     seed: int = 0
+    warm_start: bool = True
+    exact_equator: bool = False
 
     def __post_init__(self):
         self.check()  # refused when made, before any file is read or output staged
@@ -112,16 +123,23 @@ class AimpointSettings:
 
 
 @reuse_mirror_samples()  # every exact check below samples the same mirror surfaces
-def _instant(plant, sun, atm, settings: AimpointSettings, learned=None, path=""):
-    """Equator, the two heuristics and the optimised aim points at one sun: (report entry, optimised, equator).
+def _instant(plant, sun, atm, settings: AimpointSettings, learned=None, path="", warm: AimResult | None = None):
+    """Equator, the two heuristics and the optimised aim points at one sun: (report entry, optimised, equator,
+    deterministic optimised).
 
     With ``settings.confidence`` the optimised aim points are the robust ones and the entry has ``robust``
-    (:func:`heliotwin.optimise.robust.robust_aimpoints`' report)."""
+    (:func:`heliotwin.optimise.robust.robust_aimpoints`' report). ``warm``: the previous instant's deterministic
+    optimised result to start from; without the exact equator check (see :class:`AimpointSettings`) the
+    equator entry holds only the image model's estimate of its power."""
     limit, resolution = float(settings.peak_limit_w_m2), settings.resolution
     t0 = time.perf_counter()
-    model, eq_field = calibrate_images(plant, sun, atm, resolution)
-    equator = AimResult(eq_field.aim, float(eq_field.power_w.sum()), float(eq_field.flux.max()), eq_field.flux)
-    equator.seconds = time.perf_counter() - t0
+    need_equator = (warm is None or settings.exact_equator or settings.baselines or settings.target == "uniform"
+                    or settings.confidence is not None)
+    model = eq_field = None
+    if need_equator:
+        model, eq_field = calibrate_images(plant, sun, atm, resolution)
+        equator = AimResult(eq_field.aim, float(eq_field.power_w.sum()), float(eq_field.flux.max()), eq_field.flux)
+        equator.seconds = time.perf_counter() - t0
     target = None
     if settings.target == "uniform":
         target = uniform_target(eq_field.flux)
@@ -132,8 +150,13 @@ def _instant(plant, sun, atm, settings: AimpointSettings, learned=None, path="")
     if nproc > 1:
         best = run_aimpoints_sharded(plant, sun, limit, nproc, knobs, atmosphere=atm, target=target)
     else:
+        start = {} if warm is None else {"start_aim": warm.aim, "start_multipliers": warm.multipliers,
+                                         "start_margin": warm.parameter}
         best = optimise_aimpoints(plant, sun, limit, knobs, atmosphere=atm, target=target, equator=eq_field,
-                                  model=model)
+                                  model=model, **start)
+    if not need_equator:  # equator aiming's power as the optimiser's corrected image model estimated it
+        equator = AimResult(None, float(best.reference_power_w), float("nan"), None)
+    deterministic = best
     robust = None
     if settings.confidence is not None:
         best, robust = robust_aimpoints(plant, sun, limit, settings.confidence, learned, knobs, atmosphere=atm,
@@ -147,6 +170,8 @@ def _instant(plant, sun, atm, settings: AimpointSettings, learned=None, path="")
                                                                resolution=resolution, model=model)
 
     def entry(r):
+        if r.flux is None:  # the estimated equator: its power only
+            return {"power_w": r.power_w, "power_vs_equator": 1.0, "estimated": True}
         e = {"power_w": r.power_w, "peak_flux_w_m2": r.peak_flux_w_m2, "violation": r.violation(limit),
              "limit_met": r.peak_flux_w_m2 <= limit, "power_vs_equator": r.power_w / equator.power_w,
              "seconds": r.seconds}
@@ -154,11 +179,15 @@ def _instant(plant, sun, atm, settings: AimpointSettings, learned=None, path="")
             e["target_mismatch"] = target_mismatch(r.flux, target)
         return e
 
-    rep = {"sun_direction_enu": sun.tolist(), "sun_elevation_deg": math.degrees(math.asin(float(sun[2]))),
+    e, n, u = (float(v) for v in sun)
+    rep = {"sun_direction_enu": sun.tolist(), "sun_elevation_deg": math.degrees(math.asin(u)),
+           "sun_azimuth_deg": math.degrees(math.atan2(e, -n)),  # PAINT convention: 0 = south, +90 = east
            "equator": entry(equator)}
     for name, r in baselines.items():
         rep[name] = {**entry(r), "k": r.parameter}
     rep["optimised"] = {**entry(best), "iterations": best.iterations, "rounds": len(best.history),
+                        "exact_checks": best.exact_checks, "warm_start": warm is not None,
+                        "peak_vs_limit": best.peak_flux_w_m2 / limit,
                         "final_margin": best.parameter, "standby_heliostats": int(best.standby),
                         "note": _note(best, equator, limit), "history": best.history}
     for name, r in baselines.items():
@@ -166,7 +195,7 @@ def _instant(plant, sun, atm, settings: AimpointSettings, learned=None, path="")
     if robust is not None:
         rep["robust"] = robust
     rep["seconds"] = time.perf_counter() - t0
-    return rep, best, equator
+    return rep, best, equator, deterministic
 
 
 def _note(best: AimResult, equator: AimResult, limit: float) -> str:
@@ -180,6 +209,40 @@ def _note(best: AimResult, equator: AimResult, limit: float) -> str:
         return (f"the limit is held by spilling light: {best.power_w / equator.power_w:.3f} of equator aiming's "
                 "power")
     return "the limit is held at full power"
+
+
+def day_summary(entries: list[dict], limit: float, seconds: float) -> dict:
+    """Summary of the instants' report entries (as :func:`aimpoints` writes them).
+
+    ``instants``, ``warm_starts``, ``limit_met_at_all``, ``worst_peak_vs_limit`` [-], ``exact_checks`` (the
+    optimiser's), ``equator_checks`` (exact evaluations of equator aiming) and ``adam_steps`` (all instants),
+    ``seconds`` (whole run) and ``seconds_per_instant`` (mean, max) [s]; when the
+    instants' labels are UTC times on a regular grid of two or more (``--day``), also ``step_s`` [s] and the
+    energy over the day, each instant standing for one step: ``energy_kwh`` of the optimised aim points,
+    ``equator_energy_kwh`` (estimated where the instant's equator power is) and their ratio.
+    """
+    opt = [e["optimised"] for e in entries]
+    out = {"instants": len(entries), "warm_starts": sum(bool(o.get("warm_start")) for o in opt),
+           "limit_met_at_all": all(o["limit_met"] for o in opt),
+           "worst_peak_vs_limit": max(o["peak_flux_w_m2"] for o in opt) / limit,
+           "exact_checks": sum(int(o.get("exact_checks", 0)) for o in opt),
+           "equator_checks": sum(not e["equator"].get("estimated", False) for e in entries),
+           "adam_steps": sum(int(o.get("iterations", 0)) for o in opt), "seconds": seconds,
+           "seconds_per_instant": {"mean": sum(e["seconds"] for e in entries) / len(entries),
+                                   "max": max(e["seconds"] for e in entries)}}
+    try:
+        stamps = pd.DatetimeIndex([pd.Timestamp(e["instant"]) for e in entries])
+    except (ValueError, TypeError):
+        return out
+    gaps = np.diff(np.asarray((stamps - stamps[0]).total_seconds(), dtype=float))  # [s], whatever the unit
+    if gaps.size and (gaps > 0).all() and np.allclose(gaps, gaps.min()):
+        step = float(gaps.min())
+        energy = sum(o["power_w"] for o in opt) * step / 3.6e6
+        equator = sum(e["equator"]["power_w"] for e in entries) * step / 3.6e6
+        out.update({"step_s": step, "energy_kwh": energy, "equator_energy_kwh": equator,
+                    "energy_vs_equator": energy / equator if equator > 0 else float("nan"),
+                    "equator_estimated_at": sum(bool(e["equator"].get("estimated")) for e in entries)})
+    return out
 
 
 def aimpoints(scenario: Scenario, instants: list[tuple[str, torch.Tensor]], settings: AimpointSettings, *,
@@ -205,9 +268,10 @@ def aimpoints(scenario: Scenario, instants: list[tuple[str, torch.Tensor]], sett
         learned state with ``/learned/aimpoints`` (:func:`heliotwin.optimise.aimstate.aimpoint_state`), one
         more provenance step.
     report : dict
-        ``peak_limit_w_m2``, ``resolution``, ``target``, ``nproc``, ``instants`` (per instant: equator,
-        baselines, optimised with ``motor_steps_reachable``), the first instant's entries at the top, and
-        ``seconds``.
+        ``peak_limit_w_m2``, ``resolution``, ``target``, ``nproc``, ``instants`` (per instant: sun elevation
+        and azimuth, equator, baselines, optimised with ``peak_vs_limit``, ``exact_checks``, ``warm_start`` and
+        ``motor_steps_reachable``, ``seconds``), the first instant's entries at the top, ``seconds`` and
+        ``summary`` (:func:`day_summary`).
     """
     settings.check()
     if settings.confidence is not None:
@@ -220,9 +284,11 @@ def aimpoints(scenario: Scenario, instants: list[tuple[str, torch.Tensor]], sett
     report = {"scenario": os.path.abspath(scenario.path) if scenario.path else None, "peak_limit_w_m2": limit,
               "resolution": {"cols": settings.resolution[1], "rows": settings.resolution[0]},
               "target": target, "nproc": settings.nproc, "confidence": settings.confidence, "instants": []}
-    stored = {}
+    stored, previous = {}, None
+    warm = settings.warm_start and settings.nproc == 1
     for i, (label, sun) in enumerate(instants):
-        rep, best, equator = _instant(plant, sun, atm, settings, scenario.learned, scenario.path or "")
+        rep, best, equator, previous = _instant(plant, sun, atm, settings, scenario.learned, scenario.path or "",
+                                                previous if warm else None)
         stored[f"i{i:03d}"] = instant_state(plant, label, best.aim, sun, power_w=best.power_w,
                                             peak_flux_w_m2=best.peak_flux_w_m2)
         rep["optimised"]["motor_steps_reachable"] = int(stored[f"i{i:03d}"]["reachable"].sum())
@@ -231,6 +297,7 @@ def aimpoints(scenario: Scenario, instants: list[tuple[str, torch.Tensor]], sett
             on_instant(i, label, rep, best, equator)
     report.update({k: v for k, v in report["instants"][0].items() if k != "instant"})  # first instant at top
     report["seconds"] = time.perf_counter() - t_all
+    report["summary"] = day_summary(report["instants"], limit, report["seconds"])
     learned = {**scenario.learned, KEY: aimpoint_state(stored, peak_limit_w_m2=limit, target=target)}
     step = provenance_entry("aimpoints", peak_limit_w_m2=limit, instants=[lbl for lbl, _ in instants],
                             iterations=settings.iterations, target=target,
