@@ -443,6 +443,11 @@ def calibrate(scenario, records_or_paint, settings: CalibrationSettings = Calibr
         report, arrays = with_expected_error(report, validation[0]), validation[2]
         if choice is not None:
             report["current_settings_choice"] = choice
+            if "interval" in choice:  # the interval the plant carries: calibrated on those held-out records
+                report["expected_error"]["interval_90_coverage"] = choice["interval"]["coverage"]
+                report["expected_error"]["interval_90_coverage_uncalibrated"] = choice["interval"][
+                    "uncalibrated_coverage"]
+                report["overall"]["interval_90_coverage"] = choice["interval"]["coverage"]
     else:
         report["written_plant"] = {"records": f"the training part of the {cfg.split} split only",
                                    "note": "a study protocol: the plant written saw only its training records; "
