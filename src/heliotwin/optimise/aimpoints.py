@@ -688,7 +688,7 @@ class AimSettings:
         Relative change of the power (or mismatch) below which the rounds stop [-].
     slack : float
         Maximising power, the rounds also stop at a feasible round, the best so far, whose peak is within this
-        fraction below the limit [-].
+        fraction below the limit (with a warm start, the start's own check too) [-].
     field_gradient : bool
         Make the power model first-order exact at every round's start (see :func:`optimise_aimpoints`).
     softness : float
@@ -869,7 +869,7 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, setti
             least = res
         if ok and previous is not None and abs(key - previous) < tolerance:
             break
-        if ok and k > 0 and tgt is None and best is res and peak >= (1.0 - float(settings.slack)) * limit:
+        if ok and (k > 0 or warm) and tgt is None and best is res and peak >= (1.0 - float(settings.slack)) * limit:
             break  # the limit binds within the slack at the best power so far: more rounds only trade noise
         previous = key if ok else None
         if not ok and k > 0:
