@@ -42,6 +42,22 @@ def two_instants():
     return plant, atm, second, limit, eq2, prev, cold, warm
 
 
+def test_predicted_warm_start_is_never_a_result_and_holds_the_limit(two_instants):
+    """``start_field``: round 0 predicted from the previous instant's exact result (no exact check of the start);
+    the answer is an exactly checked round that holds the limit, with the power of a cold start."""
+    plant, atm, sun, limit, eq, prev, cold, _ = two_instants
+    assert prev.exact is not None and torch.equal(prev.exact.flux, prev.flux)
+    pred = optimise_aimpoints(plant, sun, limit, KNOBS, atmosphere=atm, start_aim=prev.aim,
+                              start_multipliers=prev.multipliers, start_margin=prev.parameter,
+                              start_field=prev.exact)
+    first = pred.history[0]
+    assert first["predicted"] and not first["feasible"]  # a prediction is never feasible, whatever its peak
+    assert pred.exact_checks == len(pred.history) - 1 >= 1  # every other round an exact check
+    assert pred.violation(limit) == 0.0 and evaluate(plant, sun, pred.aim, atm).peak_flux_w_m2 <= limit
+    assert pred.power_w >= 0.995 * cold.power_w
+    assert pred.iterations < cold.iterations
+
+
 def test_warm_start_holds_the_limit_on_the_exact_check(two_instants):
     plant, atm, sun, limit, eq, prev, cold, warm = two_instants
     assert float(eq.flux.max()) > 1.2 * limit  # the limit bites at this instant too

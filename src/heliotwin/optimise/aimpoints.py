@@ -71,6 +71,7 @@ import math
 import time
 import warnings
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import numpy as np
 import torch
@@ -122,6 +123,9 @@ class AimResult:
     reference_power_w: float | None = None
     #: exact field-model evaluations made (the rounds' checks, the warm start's, the standby search's)
     exact_checks: int = 0
+    #: the exact model's :class:`~heliotwin.raytrace.field.FieldResult` of these aim points (the next instant's
+    #: ``start_field``)
+    exact: object = None
 
     def violation(self, limit: float) -> float:
         """Relative excess of the peak over the limit (0 when met)."""
@@ -715,7 +719,28 @@ class AimSettings:
     warm_tolerance: float = 2e-3
 
 
-def _start(plant, sun, atmosphere, resolution, grp: _Group, rows, x0, x_bounds, equator, model, start_aim):
+def _predicted_start(plant, sun, start, start_field, resolution, grp: _Group, rows, x, y):
+    """Image model at this sun and the predicted exact result at the aim points ``start`` [H, 3] from the exact
+    result ``start_field`` of the same aim points at an earlier sun (``start_field.sun``), without evaluating
+    the exact model: powers before spillage scaled by each heliostat's cosine ratio, spreads at this sun, and the
+    earlier exact map plus the image model's change, ``F_prev + S_now(start) - S_prev(start)`` [rows, cols]."""
+    pos = plant.field.kinematics.position.to(torch.float64)
+    old_sun = torch.as_tensor(start_field.sun).to(pos)
+    cos_old = (tracking_normals(pos, start, old_sun) * old_sun).sum(-1).clamp_min(1e-6)
+    cos_new = (tracking_normals(pos, start, sun) * sun).sum(-1).clamp_min(0.0)
+    old = _image_model_at(plant, old_sun, start, start_field, resolution, rows)
+    now = dataclasses.replace(_image_model_at(plant, sun, start, start_field, resolution, rows),
+                              power=old.power * (cos_new / cos_old)[rows])
+    with torch.no_grad():
+        f_new, p_new = now.flux(x, y)
+        f_old, p_old = old.flux(x, y)
+        flux = start_field.flux.to(pos) + grp.sum(f_new) - grp.sum(f_old)
+        power = float(start_field.power_w.sum()) + float(grp.sum(p_new.sum())) - float(grp.sum(p_old.sum()))
+    return now, SimpleNamespace(flux=flux, power_w=torch.tensor([power], dtype=torch.float64), predicted=True)
+
+
+def _start(plant, sun, atmosphere, resolution, grp: _Group, rows, x0, x_bounds, equator, model, start_aim,
+           start_field=None):
     """Where :func:`optimise_aimpoints`' rounds start: ``(x, y, kick, first, model, p_eq, spreads_at_start)``.
 
     Cold (``start_aim`` None): equator aiming (``x0`` [H] its lateral coordinates [m], heights 0) with a small
@@ -724,6 +749,8 @@ def _start(plant, sun, atmosphere, resolution, grp: _Group, rows, x0, x_bounds, 
     receiver's height and each heliostat's visible arc (``x_bounds``), no kick, ``first`` its exact check;
     without ``model`` the image model is calibrated on that check (``spreads_at_start``). ``p_eq`` is equator
     aiming's power [W]: exact with ``equator``, else the image model's corrected to the start's exact power.
+    With ``start_field`` (the start's exact result at an earlier sun) ``first`` is predicted, not evaluated
+    (:func:`_predicted_start`; its ``predicted`` is True) and the image model is made at this sun.
     """
     rec = plant.target("receiver")
     pos = plant.field.kinematics.position.to(torch.float64)
@@ -738,7 +765,11 @@ def _start(plant, sun, atmosphere, resolution, grp: _Group, rows, x0, x_bounds, 
         if x_bounds is not None:
             x = torch.minimum(torch.maximum(x, x_bounds[0]), x_bounds[1])
         start = _world(rec, grp.gather(x, h), grp.gather(y, h))
-        first = grp.field(plant, sun, atmosphere, start, check_settings(resolution))  # round 0's exact check
+        if start_field is not None:
+            model, first = _predicted_start(plant, sun, start, start_field, resolution, grp, rows, x, y)
+            spreads_at_start = True
+        else:
+            first = grp.field(plant, sun, atmosphere, start, check_settings(resolution))  # round 0's exact check
         if model is None:
             model, spreads_at_start = _image_model_at(plant, sun, start, first, resolution, rows), True
         kick = torch.zeros_like(x)  # no symmetric point to leave
@@ -764,7 +795,7 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, setti
                        atmosphere: Atmosphere | None = None, target: torch.Tensor | None = None, group=None,
                        equator=None, model=None, progress=None, device=None,
                        start_aim: torch.Tensor | None = None, start_multipliers: torch.Tensor | None = None,
-                       start_margin: float | None = None) -> AimResult:
+                       start_margin: float | None = None, start_field=None) -> AimResult:
     """Aim points that maximise intercepted power (or match ``target``) with every map cell at or below
     ``peak_limit`` [W/m^2] on the exact model.
 
@@ -809,6 +840,11 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, setti
     start_margin : float, optional
         With ``start_aim``: the internal margin to start from (the previous instant's final
         :attr:`AimResult.parameter`) [-].
+    start_field : FieldResult, optional
+        With ``start_aim``: the exact result of those aim points at an earlier sun (the previous instant's
+        :attr:`AimResult.exact`): round 0 is then predicted from it (cosine-scaled powers, the earlier map plus
+        the image model's change) instead of an exact check, and the first exact check is of the aim points
+        optimised on that prediction; a prediction never counts as a result.
 
     Returns
     -------
@@ -840,8 +876,9 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, setti
     if warm:
         iterations, lr, tolerance = settings.warm_iterations, settings.warm_lr, settings.warm_tolerance
     x, y, kick, first, model, p_eq, spreads_at_start = _start(plant, sun, atmosphere, resolution, grp, rows, x0,
-                                                             x_bounds, equator, model, start_aim)
-    checks = int(warm)
+                                                             x_bounds, equator, model, start_aim, start_field)
+    predicted = getattr(first, "predicted", False)  # round 0 a prediction, not an exact check
+    checks = int(warm and not predicted)
     lam = torch.zeros(tuple(int(r) for r in resolution), dtype=torch.float64, device=pos.device)
     if warm and start_multipliers is not None:
         lam = start_multipliers.detach().to(lam).clone()
@@ -856,16 +893,19 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, setti
         else:
             ex, checks = grp.field(plant, sun, atmosphere, aim, check_settings(resolution)), checks + 1
         peak, power = float(ex.flux.max()), float(ex.power_w.sum())
-        ok = peak <= limit
+        guess = predicted and k == 0
+        ok = peak <= limit and not guess  # a prediction is never a result
         key = power / p_eq if tgt is None else -target_mismatch(ex.flux, tgt)
         history.append({"round": k, "peak_flux_w_m2": peak, "power_w": power, "margin": m, "feasible": ok,
                         "objective": key})
+        if guess:
+            history[-1]["predicted"] = True
         if progress is not None:
             progress(f"round {k}: peak {peak / limit:.4f} of the limit, power {power / p_eq:.4f} of equator")
-        res = AimResult(aim.detach(), power, peak, ex.flux)
+        res = AimResult(aim.detach(), power, peak, ex.flux, exact=None if guess else ex)
         if ok and (best is None or key > best_key):
             best, best_key = res, key
-        if least is None or peak < least.peak_flux_w_m2:
+        if not guess and (least is None or peak < least.peak_flux_w_m2):
             least = res
         if ok and previous is not None and abs(key - previous) < tolerance:
             break
@@ -881,7 +921,8 @@ def optimise_aimpoints(plant: Plant, sun: torch.Tensor, peak_limit: float, setti
             break
         # refresh the per-heliostat power (shading, blocking and cosine move with the aim points) and the image
         # spreads (the incidence on the receiver moves with them)
-        model.power = (ex.power_w.to(pos) / ex.intercept.to(pos).clamp_min(1e-6))[rows]
+        if not guess:
+            model.power = (ex.power_w.to(pos) / ex.intercept.to(pos).clamp_min(1e-6))[rows]
         if k > 0 or (warm and not spreads_at_start):  # else the calibration's own spreads at these aim points
             _, sd, box = image_moments(plant, sun, aim, resolution, rows)
             model.sx, model.sy, model.bx, model.by = sd[:, 0], sd[:, 1], box[:, 0], box[:, 1]

@@ -151,7 +151,7 @@ def _instant(plant, sun, atm, settings: AimpointSettings, learned=None, path="",
         best = run_aimpoints_sharded(plant, sun, limit, nproc, knobs, atmosphere=atm, target=target)
     else:
         start = {} if warm is None else {"start_aim": warm.aim, "start_multipliers": warm.multipliers,
-                                         "start_margin": warm.parameter}
+                                         "start_margin": warm.parameter, "start_field": warm.exact}
         best = optimise_aimpoints(plant, sun, limit, knobs, atmosphere=atm, target=target, equator=eq_field,
                                   model=model, **start)
     if not need_equator:  # equator aiming's power as the optimiser's corrected image model estimated it
