@@ -714,7 +714,7 @@ class AimSettings:
     field_gradient: bool = False
     softness: float = 0.05
     slack: float = 0.01
-    warm_iterations: int = 100
+    warm_iterations: int = 50
     warm_lr: float = 0.01
     warm_tolerance: float = 2e-3
 
