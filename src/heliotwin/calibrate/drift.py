@@ -60,13 +60,16 @@ Q_GRID = (0.0, 0.001, 0.003, 0.01, 0.03, 0.1)
 _DAY = 86400.0
 
 
-def padded_index(batch: RecordTable) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per heliostat, the batch rows of its records: ``index`` [H, n] (``-1`` = padding) and ``mask`` [H, n]."""
+def padded_index(batch: RecordTable, key: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per heliostat, the batch rows of its records: ``index`` [H, n] (``-1`` = padding) and ``mask`` [H, n].
+    Each heliostat's rows are in batch order, or ascending in ``key`` [R] (stable) when it is given."""
     hidx = batch.heliostat_index
     h = batch.num_heliostats
     counts = torch.bincount(hidx, minlength=h)
     n = int(counts.max()) if len(hidx) else 0
-    order = torch.argsort(hidx, stable=True)
+    order = torch.argsort(hidx, stable=True) if key is None else torch.argsort(key, stable=True)
+    if key is not None:
+        order = order[torch.argsort(hidx[order], stable=True)]
     start = torch.cumsum(counts, 0) - counts
     pos = torch.arange(len(hidx), device=hidx.device) - start[hidx[order]]
     index = torch.full((h, max(n, 1)), -1, dtype=torch.long, device=hidx.device)
@@ -122,19 +125,8 @@ def _time_ordered(batch: RecordTable):
     """Per heliostat its records in time order (records without a time first: they do not move the walk):
     ``index`` [H, n] (-1 = padding), ``mask`` [H, n], days since the heliostat's first timed record ``tt``
     [H, n] (0 where untimed or padding), ``timed`` [H, n] and that first time [H] (POSIX s)."""
-    hidx = batch.heliostat_index
-    h = batch.num_heliostats
     tau, first = elapsed_days(batch)
-    key = torch.where(torch.isfinite(tau), tau, torch.full_like(tau, -1.0))
-    order = torch.argsort(key, stable=True)
-    order = order[torch.argsort(hidx[order], stable=True)]
-    counts = torch.bincount(hidx, minlength=h)
-    n = int(counts.max()) if len(hidx) else 0
-    start = torch.cumsum(counts, 0) - counts
-    pos = torch.arange(len(hidx), device=hidx.device) - start[hidx[order]]
-    index = torch.full((h, max(n, 1)), -1, dtype=torch.long, device=hidx.device)
-    index[hidx[order], pos] = order
-    mask = index >= 0
+    index, mask = padded_index(batch, torch.where(torch.isfinite(tau), tau, torch.full_like(tau, -1.0)))
     t = tau[index.clamp_min(0)]
     timed = mask & torch.isfinite(t)
     return index, mask, torch.where(timed, t, torch.zeros_like(t)), timed, first
@@ -175,6 +167,15 @@ def _filter_gains(a: torch.Tensor, tt: torch.Tensor, timed: torch.Tensor, q: flo
     return {"gain": gain, "white": white, "predicted": predicted, "filtered": filtered, "last": cov}
 
 
+def _walk_filter(nominal, batch: RecordTable, q: float, noise: float, basis: str):
+    """What :func:`whitener` and :func:`smooth` both run: the time-ordered padding (:func:`_time_ordered`), the
+    offset Jacobian ``a`` [H, n, 3, B] (zero where untimed or padding) and the filter (:func:`_filter_gains`)."""
+    index, mask, tt, timed, first = _time_ordered(batch)
+    jac = offset_jacobian(nominal, batch, basis=basis).double()
+    a = torch.where(timed[..., None, None], jac[index.clamp_min(0)], 0.0)
+    return index, mask, tt, timed, first, a, _filter_gains(a, tt, timed, q, noise)
+
+
 def whitener(nominal, batch: RecordTable, q: float, noise: float, basis: str = "axes"):
     """The GLS whitening of :func:`~heliotwin.calibrate.methods.lm.fit_lm` (module docstring).
 
@@ -197,10 +198,7 @@ def whitener(nominal, batch: RecordTable, q: float, noise: float, basis: str = "
     callable ``w(x)``: ``x`` [R, 3, ...] -> the whitened ``s L^-1 x`` [R, 3, ...] per heliostat (records stay
     on their heliostat's rows, so the Jacobian keeps its block structure).
     """
-    index, mask, tt, timed, _ = _time_ordered(batch)
-    jac = offset_jacobian(nominal, batch, basis=basis).double()
-    a = torch.where(timed[..., None, None], jac[index.clamp_min(0)], 0.0)
-    f = _filter_gains(a, tt, timed, q, noise)
+    index, mask, _, _, _, a, f = _walk_filter(nominal, batch, q, noise, basis)
     gain, white = f["gain"], f["white"]
     h, n = index.shape
     rows = index[mask]
@@ -240,10 +238,7 @@ def smooth(nominal, batch: RecordTable, delta: torch.Tensor, q: float, noise: fl
     hidx = batch.heliostat_index
     h = batch.num_heliostats
     res, _ = record_jacobian(nominal.index(hidx), batch, delta.detach().double()[hidx], STONE8)
-    index, mask, tt, timed, first = _time_ordered(batch)
-    jac = offset_jacobian(nominal, batch, basis=basis).double()
-    a = torch.where(timed[..., None, None], jac[index.clamp_min(0)], 0.0)
-    f = _filter_gains(a, tt, timed, q, noise)
+    index, mask, tt, timed, first, a, f = _walk_filter(nominal, batch, q, noise, basis)
     hn, n = index.shape
     nb = a.shape[-1]
     dev = res.device

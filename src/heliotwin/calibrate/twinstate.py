@@ -30,7 +30,7 @@ from ..field.plant import Kinematics
 from ..io.records import RecordTable
 from ..io.scenario import Scenario, load_scenario
 from .assimilate import FALSE_ALARM_RATE, WINDOW, FilterState, alarm_threshold, choose_process_noise, leave_one_out_d2
-from .drift import BASES, smooth, with_offset
+from .drift import BASES, DRIFT_NAMES, smooth, with_offset
 from .inputs import FIT_FOCAL_SPOT, NOISE, fit_spots
 from .params import STONE8, check_names
 
@@ -54,7 +54,6 @@ DEFAULT_PROCESS_NOISE = 0.03
 CHOICE_KEY = "process_noise_choice"
 #: Key under ``/learned/calibration`` of the step-alarm threshold chosen on the calibration's records.
 THRESHOLD_KEY = "alarm_threshold"
-_DRIFT_NAMES = ("initial_angle_1", "initial_angle_2")
 _HISTORY_FIELDS = ("heliostat", "record_id", "time", "mean", "variance", "innovation", "d2", "statistic", "window",
                    "alarm", "predicted_error", "update")
 
@@ -149,7 +148,7 @@ def _state(cal: dict, names: tuple, path, n: int, q_given: float | None, seen_ti
                              field=f"{where}/posterior")
     drift = cal.get("drift") or {}
     time = seen_time.clone()
-    drift_names = tuple(drift.get("names") or _DRIFT_NAMES)
+    drift_names = tuple(drift.get("names") or DRIFT_NAMES)
     if any(d not in names for d in drift_names):
         raise InputFileError(path, f"drift names {list(drift_names)} not among the parameters", field=f"{where}/drift")
     cols = tuple(names.index(d) for d in drift_names)
@@ -343,7 +342,7 @@ def _judged_at(cal: dict, names: tuple, nominal: Kinematics, records: RecordTabl
     where = f"/learned/{KEY}"
     static = stored_tensor(cal, where, path, "drift", "static_deviations").double()
     q = float(stored_tensor(cal, where, path, "drift", "process_noise_rad2_per_day").reshape(-1)[0])
-    drift_names = tuple(drift.get("names") or _DRIFT_NAMES)
+    drift_names = tuple(drift.get("names") or DRIFT_NAMES)
     basis = next((b for b, n in BASES.items() if n == drift_names), None)
     if basis is None or static.shape != (nominal.num_heliostats, len(names)):
         return None
