@@ -147,7 +147,9 @@ def alarm_score(truth, ds: PaintDataset, alarms: list, t0: float, t1: float, wit
     alarms per heliostat-year (the simulator's steps: ``/learned/simulation`` of the truth). Only steps of at
     least ``min_step_mrad`` (the size of the axis offsets' jump) count as steps to detect; every step's window
     explains the alarms in it. ``steps_without_records``: counted steps no record follows before ``t1`` (no
-    method can detect them)."""
+    method can detect them); ``steps_decided``: counted steps detected or followed by ``within`` records
+    (a step with fewer records after it and no alarm yet may still be detected in time), and
+    ``share_detected_of_decided`` the detected share of those."""
     sim = truth.learned["simulation"]
     ids = list(truth.plant.field.ids)
     who, when = sim["step_heliostat"].tolist(), sim["step_time"].tolist()
@@ -160,7 +162,7 @@ def alarm_score(truth, ds: PaintDataset, alarms: list, t0: float, t1: float, wit
     by_heliostat: dict = {}
     for i in np.argsort(t):
         by_heliostat.setdefault(hid[i], []).append(i)
-    explained, steps, detected, blind = set(), 0, 0, 0
+    explained, steps, detected, blind, decided = set(), 0, 0, 0, 0
     for h, ts, sz in zip(who, when, size):
         if not (t0 <= ts < t1):
             continue
@@ -169,12 +171,15 @@ def alarm_score(truth, ds: PaintDataset, alarms: list, t0: float, t1: float, wit
         explained |= window
         if sz >= min_step_mrad:
             steps += 1
-            detected += bool(window & alarmed)
+            hit = bool(window & alarmed)
+            detected += hit
             blind += not rows
+            decided += hit or len(rows) >= within
     false = len(alarmed - explained)
     heliostat_years = len(set(hid)) * (t1 - t0) / (365.25 * DAY)
     return {"steps": steps, "detected": detected, "share_detected": detected / steps if steps else None,
             "min_step_mrad": min_step_mrad, "steps_without_records": blind, "within_records": within,
+            "steps_decided": decided, "share_detected_of_decided": detected / decided if decided else None,
             "alarms": len(alarmed), "false_alarms": false,
             "false_alarms_per_heliostat_year": false / heliostat_years if heliostat_years else None}
 

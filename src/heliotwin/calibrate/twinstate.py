@@ -346,7 +346,9 @@ def _judged_at(cal: dict, names: tuple, nominal: Kinematics, records: RecordTabl
     basis = next((b for b, n in BASES.items() if n == drift_names), None)
     if basis is None or static.shape != (nominal.num_heliostats, len(names)):
         return None
-    offset = smooth(nominal, records, static, q, NOISE, basis=basis)["smoothed"]
+    noise = float(stored_tensor(cal, where, path, "drift", "noise_rad").reshape(-1)[0]) if "noise_rad" in drift \
+        else NOISE  # plants written before the walk's noise was learned: the fit's assumed noise
+    offset = smooth(nominal, records, static, q, noise, basis=basis)["smoothed"]
     return with_offset(static[records.heliostat_index], offset, basis)
 
 

@@ -493,9 +493,17 @@ def _prior_precision(plant_prior, fp) -> torch.Tensor:
 
 
 def laplace(nominal: Kinematics, batch: RecordTable, delta: torch.Tensor, prior_precision: torch.Tensor,
-            drift: float = 0.0) -> dict:
+            drift: float = 0.0, *, q: float = 0.0, drift_basis: str = "axes") -> dict:
     """Laplace posterior of the Stone/Jülich 8 around ``delta`` [H, 8] on the fit's records
     (:mod:`heliotwin.calibrate.uncertainty`).
+
+    Under a random-walk offset (``q`` [rad^2/day] > 0) the residuals and their Jacobian are whitened by the
+    walk's covariance first (:func:`~heliotwin.calibrate.drift.whitener` at the fit's ``q`` and
+    :data:`~heliotwin.calibrate.inputs.NOISE`): the posterior of the GLS fit, and the noise per heliostat the
+    maximum-likelihood scale of the walk model given its ratio ``q / noise^2`` (the prediction-error
+    decomposition, Durbin & Koopman ch. 7). The static residuals' noise would count the offset's wandering
+    and every earlier step as measurement noise (2-3x the records' own on a simulated plant), which normalises
+    an update's innovations ~6x too wide and hides a 1-2 mrad step from the alarm.
 
     Returns ``{"covariance": [H, 8, 8], "noise_rad": [H], "drift_rad": float}``.
     """
@@ -507,8 +515,19 @@ def laplace(nominal: Kinematics, batch: RecordTable, delta: torch.Tensor, prior_
                 "noise_rad": torch.ones(h, dtype=torch.float64, device=delta.device),
                 "drift_rad": float(drift)}
     res, jac = record_jacobian(nominal.index(hidx), batch, delta.detach()[hidx], STONE8)
+    if q > 0:
+        white = whitener(nominal, batch, q, NOISE, basis=drift_basis)
+        res, jac = white(res), white(jac)
     cov, noise = posterior(res, jac, hidx, prior_precision, h, len(STONE8))
     return {"covariance": cov, "noise_rad": noise, "drift_rad": float(drift)}
+
+
+def walk_noise(noise: torch.Tensor, ok: torch.Tensor) -> float:
+    """The plant's noise per component [rad] of the random-walk model: the median of the heliostats' ``noise``
+    [H] (:func:`laplace` under the walk) over the fitted ones ``ok`` [H] (a few heliostats with a step the walk
+    cannot follow must not set it); :data:`~heliotwin.calibrate.inputs.NOISE` without any."""
+    vals = noise[ok] if bool(ok.any()) else noise.new_zeros(0)
+    return float(vals.median()) if len(vals) else NOISE
 
 
 @dataclass(frozen=True)
@@ -611,14 +630,18 @@ def fit_lm_method(nominal: Kinematics, train: RecordTable, validation: RecordTab
         process_noise, q_choice = choose_process_noise(nominal, fit_on, ok, s, plant_prior=plant_prior)
     q = 1e-6 * float(process_noise) if s.drift_model == "kalman" else 0.0  # mrad^2/day -> rad^2/day
     delta, fp = _static_fit(nominal, fit_on, ok, s, plant_prior=plant_prior, q=q, seed=seed)
-    extras = {"field_prior": field_prior_extras(fp),
-              "posterior": dict(laplace(nominal, fit_on, delta, _prior_precision(plant_prior, fp), s.drift),
-                                walk_scale=float(s.walk_scale)),
+    precision = _prior_precision(plant_prior, fp)
+    post = laplace(nominal, fit_on, delta, precision, s.drift, q=q, drift_basis=s.drift_basis)
+    extras = {"field_prior": field_prior_extras(fp), "posterior": dict(post, walk_scale=float(s.walk_scale)),
               "summary": {"bags": s.bags, "fit_focal_spot": s.fit_focal_spot, "loss": s.loss,
                           "half_life_days": s.half_life_days, "drift_model": s.drift_model,
                           "prior": "plant" if plant_prior is not None else ("field" if fp is not None else "nominal")}}
     if s.drift_model == "kalman":
-        state = smooth(nominal, fit_on, delta, q, NOISE, basis=s.drift_basis)
+        # the walk's scale as the records give it (laplace: the whitened residuals' noise), not the 1 mrad the
+        # fit assumed: the same smoothing (q / noise^2 kept), the offset's covariance in the records' units
+        c2 = (walk_noise(post["noise_rad"], ok) / NOISE) ** 2
+        state = smooth(nominal, fit_on, delta, q * c2, NOISE * c2 ** 0.5, basis=s.drift_basis)
+        state["noise"] = NOISE * c2 ** 0.5
         state["offset"][~ok] = 0.0
         state.pop("smoothed")
         state["static_deviations"] = delta
