@@ -206,6 +206,30 @@ def test_many_segments_are_compacted_and_stale_entries_dropped(folder, monkeypat
     _same(_raw(folder), _reference(folder))
 
 
+def test_records_left_out_by_id_keep_their_index_entries(folder, monkeypatch):
+    """An update's read leaves its seen records out by id before they are even stat'ed; a compaction during it
+    must not drop their entries (the next whole read would parse the folder again)."""
+    monkeypatch.setattr(RI, "MAX_SEGMENTS", 1)
+    files = _record_files(folder)
+    whole = _raw(folder)
+    seen = whole.record_id[:-2].numpy()
+    for k in range(2):  # two more segments: the next read compacts
+        with open(files[k], "a") as fh:
+            fh.write(" ")
+        os.utime(files[k], ns=(OLD_NS + (k + 1) * 10**9,) * 2)
+        _raw(folder)
+    ids = P.list_heliostats(folder)
+    site, targets = P.read_tower(P.find_tower_file(folder))
+    stats: dict = {}
+    some = P.read_records(folder, ids, site, targets, cache=True, stats=stats, skip_record_ids=seen)
+    assert some.record_id.tolist() == whole.record_id[-2:].tolist()
+    assert stats["skipped"] == len(seen) and stats["parsed"] + stats["indexed"] == 2 and stats["files"] == len(files)
+    stats = {}
+    again = P.read_records(folder, ids, site, targets, cache=True, stats=stats)
+    assert stats["parsed"] == 0 and stats["indexed"] == len(files)
+    _same(again, _reference(folder))
+
+
 def _read_in_process(args):
     folder, cache = args
     os.environ["HELIOTWIN_CACHE_DIR"] = cache

@@ -703,6 +703,8 @@ class Listing:
         File names.
     size, mtime_ns : np.ndarray [F] int64
         The index key's part of each file (-1 when it could not be stat'ed).
+    skipped : int
+        Record files left out by id before they were stat'ed (:func:`_listing`'s ``skip``).
     """
 
     folders: list
@@ -711,11 +713,12 @@ class Listing:
     name: np.ndarray
     size: np.ndarray
     mtime_ns: np.ndarray
+    skipped: int = 0
 
     def subset(self, keep: np.ndarray) -> "Listing":
         """The files of ``keep`` ([F] bool), folders and images unchanged."""
         return Listing(self.folders, self.names, self.heliostat[keep], self.name[keep], self.size[keep],
-                       self.mtime_ns[keep])
+                       self.mtime_ns[keep], self.skipped + int((~keep).sum()))
 
     def files(self, rows=None) -> list:
         """(heliostat index, Calibration folder, file name) per file (of ``rows``, default all)."""
@@ -723,8 +726,12 @@ class Listing:
         return [(int(self.heliostat[i]), self.folders[int(self.heliostat[i])], self.name[i].decode()) for i in rows]
 
 
-def _listing(root: str, ids) -> Listing:
-    """The record files of heliostats ``ids`` of ``root`` with their size and modification time."""
+def _listing(root: str, ids, skip=None) -> Listing:
+    """The record files of heliostats ``ids`` of ``root`` with their size and modification time; those whose
+    record id (the name's head) is in ``skip`` (a set of int, optional) are left out before they are stat'ed
+    (an update of a plant that has seen most of a folder: one stat per file was most of its reading)."""
+    skip = skip or set()
+    left_out = 0
     folders, names, hidx, fnames, sizes, mtimes = [], [], [], [], [], []
     for h, hid in enumerate(ids):
         folder = os.path.join(root, hid, "Calibration")
@@ -742,7 +749,11 @@ def _listing(root: str, ids) -> Listing:
             if name.endswith(RECORD_SUFFIX):
                 if not name.startswith("."):
                     head = name.split("-", 1)[0]
-                    files.append((int(head) if head.isdigit() else -1, name, e))
+                    rid = int(head) if head.isdigit() else -1
+                    if rid in skip:
+                        left_out += 1
+                        continue
+                    files.append((rid, name, e))
             elif name.endswith(".png"):
                 images.add(name)
         names.append(images)
@@ -758,7 +769,7 @@ def _listing(root: str, ids) -> Listing:
             fnames.append(name.encode())
             hidx.append(h)
     return Listing(folders, names, np.asarray(hidx, dtype=np.int64), np.asarray(fnames, dtype="S"),
-                   np.asarray(sizes, dtype=np.int64), np.asarray(mtimes, dtype=np.int64))
+                   np.asarray(sizes, dtype=np.int64), np.asarray(mtimes, dtype=np.int64), left_out)
 
 
 def _parse_record(data: dict, path: str) -> tuple:
@@ -975,9 +986,10 @@ def read_records(root, ids, site: Site, targets: dict, *, cache: bool | None = N
         As :func:`read_calibration_record` and :func:`read_metadata` (the first bad file in reading order).
     """
     root = str(root)
-    listing = _listing(root, ids)
+    skip = None if skip_record_ids is None else np.asarray(skip_record_ids, dtype=np.int64)
+    listing = _listing(root, ids, None if skip is None else set(skip.tolist()))
     n = len(listing.name)
-    use = _use_index(cache, n)
+    use = _use_index(cache, n + listing.skipped)
     rows = np.full(n, -1, dtype=np.int64)
     if use:
         known, segments = record_index.read_entries(root)
@@ -992,20 +1004,21 @@ def read_records(root, ids, site: Site, targets: dict, *, cache: bool | None = N
     if use:
         valid = np.zeros(len(known["record_id"]), dtype=bool)
         valid[rows[rows >= 0]] = True
+        if skip is not None and listing.skipped:  # left out unlisted, not gone: their entries stay
+            valid |= np.isin(known["record_id"], skip)
         listed = np.isin(known["heliostat"], np.asarray(list(ids), dtype="U"))
         record_index.compact(root, known, valid | ~listed, segments)
     order = np.concatenate([rows[rows >= 0], len(known["record_id"]) + np.arange(len(todo))])
     place = np.concatenate([np.nonzero(rows >= 0)[0], todo])
     both = record_index.concat_entries([known, fresh])
     rows_in_listing_order = order[np.argsort(place, kind="stable")]
-    skipped = 0
-    if skip_record_ids is not None and n:
-        keep = ~np.isin(both["record_id"][rows_in_listing_order], np.asarray(skip_record_ids, dtype=np.int64))
-        skipped = int(n - keep.sum())
+    listed_files = n + listing.skipped
+    if skip is not None and n:  # a file whose name does not carry its record id
+        keep = ~np.isin(both["record_id"][rows_in_listing_order], skip)
         rows_in_listing_order, listing = rows_in_listing_order[keep], listing.subset(keep)
     entries = {k: v[rows_in_listing_order] for k, v in both.items()}
     if stats is not None:
-        stats.update(files=n, parsed=int(len(todo)), indexed=int(n - len(todo)), skipped=skipped)
+        stats.update(files=listed_files, parsed=int(len(todo)), indexed=int(n - len(todo)), skipped=listing.skipped)
     raw = _assemble(entries, listing, ids, site, targets, _metadata_columns(root, use))
     if raw is None:  # a record the batch refuses: the reference reader words the first such file
         times, weather = read_metadata(root)
