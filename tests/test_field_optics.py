@@ -206,18 +206,23 @@ def test_new_commands_have_help(command, capsys):
 def test_tower_shadow_matches_a_direct_ray_test_on_every_point(solarpilot):
     """The tower (receiver radius, up to its top) shades the heliostats behind it at a low southern sun; the
     bounding pre-test keeps exactly the direct all-heliostat ray-cylinder result."""
+    from heliotwin.field.facets import surface_points
     from heliotwin.geometry import ray_cylinder
     from heliotwin.raytrace.field import _tower_shading, tracked_mirror_samples
+    from heliotwin.raytrace.occlusion import mirror_frame
 
     plant = solarpilot[0]
     res = solarpilot[1][WINTER][0]
     pts, nrm, area = tracked_mirror_samples(plant, res.normal, 8, torch.float64)
+    local = surface_points(plant.field.surfaces, (8, 8))[0].to(torch.float64)
+    rot = torch.stack((*mirror_frame(res.normal), res.normal), dim=-1)  # the mirrors' own frames
     lit = area * (nrm * res.sun).sum(-1).clamp_min(0)
     rec = plant.targets["receiver"]
     t, hit, _ = ray_cylinder(pts, res.sun.expand_as(pts), rec.axis_point, rec.up, rec.radius)
     shaded = hit & ((pts + t.unsqueeze(-1) * res.sun - rec.axis_point)[..., 2] <= rec.height / 2)
     direct = (lit * ~shaded).sum(1) / lit.sum(1)
-    assert torch.allclose(_tower_shading(plant, pts, res.sun, lit), direct)
+    pivot = plant.field.kinematics.position.to(torch.float64)
+    assert torch.allclose(_tower_shading(plant, pivot, local, rot, res.sun, lit), direct)
     assert 5 < int((direct < 1).sum()) < 100
     assert torch.all(plant.field.kinematics.position[direct < 1][:, 0].abs() < 10.0)  # behind the tower only
 

@@ -72,11 +72,13 @@ from .gaussian import _cylinder_moments, _fft_convolve, _gaussian_kernels, _proj
 from .montecarlo import RaySampling, planar_coefficients, trace_mc
 from .occlusion import (
     OccluderSet,
+    mirror_blocks,
     mirror_frame,
     occluder_candidates,
     solarpilot_interference,
     solarpilot_neighbours,
     unoccluded,
+    unoccluded_tracked,
 )
 from .splat import splat_bilinear
 
@@ -311,27 +313,42 @@ def _pool(x: torch.Tensor, weight: torch.Tensor, facets: int, m: int, k: int) ->
 
 def _occlusion(plant: Plant, normal, aim, sun, settings: FieldSettings, rows: torch.Tensor):
     """Shading, blocking (pooled onto the flux samples [h, N]) and per-heliostat factors [h] of heliostats
-    ``rows``; every heliostat of the field (``normal``, ``aim`` [H, 3]) can occlude them."""
+    ``rows``; every heliostat of the field (``normal``, ``aim`` [H, 3]) can occlude them.
+
+    The mirror samples stay in the heliostat frame (``R_world_heliostat`` per heliostat): the hard test
+    (:func:`heliotwin.raytrace.occlusion.unoccluded_tracked`) forms world rays only for the blocks of samples
+    an occluder may reach; the smooth test traces every sample."""
     fl = plant.field
     nf = fl.facets.translation.shape[1]
     h = rows.shape[0]
     m, k = int(settings.flux_samples), int(settings.occlusion_oversampling)
-    pw, nw, area = tracked_mirror_samples(plant, normal[rows], m * k, normal.dtype, rows)
+    pts, nrm, area = _local_mirror_samples(fl.surfaces, m * k, rows)
+    pts, nrm, area = pts.to(normal), nrm.to(normal), area.to(normal)
+    nr = normal[rows]
+    ew, eh = mirror_frame(nr)
+    rot = torch.stack((ew, eh, nr), dim=-1)  # R_world_heliostat [h, 3, 3]
     pos = fl.kinematics.position.to(normal)
     occ = OccluderSet(pos, normal, fl.width.to(normal), fl.height.to(normal))
     s = sun.to(normal)
-    cos_p = (nw * s).sum(-1).clamp_min(0.0)
+    cos_p = (nrm * (s @ rot).unsqueeze(1)).sum(-1).clamp_min(0.0)  # n . s in the heliostat frame
     lit = area * cos_p
+    tower = _tower_shading(plant, pos[rows], pts, rot, s, lit)
     if settings.occlusion_model == "solarpilot":
-        return _occlusion_solarpilot(plant, occ, normal, aim, s, pw, lit, nf, m, k, rows)
+        return _occlusion_solarpilot(plant, occ, normal, aim, s, lit, tower, nf, m, rows)
     idx, valid = occluder_candidates(occ, s, queries=rows)
-    free_sun = unoccluded(pw, s.expand(h, 1, 3), occ, idx, valid, softness=settings.softness, owners=rows)
-    reflected = reflect(-s.expand_as(nw), nw)
     idx_b, valid_b = occluder_candidates(occ, safe_normalize(aim[rows] - pos[rows]), queries=rows)
-    free_rx = unoccluded(pw, reflected, occ, idx_b, valid_b, softness=settings.softness, owners=rows)
+    if settings.softness is None:
+        blocks = mirror_blocks(pts, nrm, nf, m * k)
+        free_sun = unoccluded_tracked(blocks, rot, occ, idx, valid, s, reflected=False, owners=rows)
+        free_rx = unoccluded_tracked(blocks, rot, occ, idx_b, valid_b, s, reflected=True, owners=rows)
+    else:
+        pw = pos[rows].unsqueeze(1) + pts @ rot.transpose(-1, -2)
+        nw = nrm @ rot.transpose(-1, -2)
+        free_sun = unoccluded(pw, s.expand(h, 1, 3), occ, idx, valid, softness=settings.softness, owners=rows)
+        free_rx = unoccluded(pw, reflect(-s.expand_as(nw), nw), occ, idx_b, valid_b, softness=settings.softness,
+                             owners=rows)
     shading = (lit * free_sun).sum(1) / lit.sum(1).clamp_min(1e-30)
     blocking = (lit * free_sun * free_rx).sum(1) / (lit * free_sun).sum(1).clamp_min(1e-30)
-    tower = _tower_shading(plant, pw, s, lit)
     free = _pool(free_sun * free_rx, lit.detach() + 1e-30, nf, m, k)
     # SolarPILOT's reading: blocking of the whole mirror's light as if it were all lit (counts the light that
     # is both shaded and blocked twice in a product, so it is only reported, never multiplied in)
@@ -339,7 +356,7 @@ def _occlusion(plant: Plant, normal, aim, sun, settings: FieldSettings, rows: to
     return shading, blocking, tower, free, blocking_whole
 
 
-def _occlusion_solarpilot(plant: Plant, occ: OccluderSet, normal, aim, sun, pw, lit, nf, m, k, rows):
+def _occlusion_solarpilot(plant: Plant, occ: OccluderSet, normal, aim, sun, lit, tower, nf, m, rows):
     """SolarPILOT's analytic shading and blocking (whole mirror, per heliostat [h]), spread uniformly over the
     flux samples; the same outputs as :func:`_occlusion`."""
     fl = plant.field
@@ -352,14 +369,14 @@ def _occlusion_solarpilot(plant: Plant, occ: OccluderSet, normal, aim, sun, pw, 
     idx_b, valid_b = occluder_candidates(occ, tower_dir, queries=rows)
     valid_b = solarpilot_neighbours(pos, height, width, elevation, idx_b, valid_b, rows)
     blocking = solarpilot_interference(pos, normal, width, height, tower_dir, idx_b, valid_b, rows)
-    tower = _tower_shading(plant, pw, sun, lit)
     free = (shading * blocking).unsqueeze(1).expand(rows.shape[0], nf * m * m)
     return shading, blocking, tower, free, blocking
 
 
-def _tower_shading(plant: Plant, points, sun, lit) -> torch.Tensor:
+def _tower_shading(plant: Plant, pivot, points, rot, sun, lit) -> torch.Tensor:
     """Unshaded fraction [H] by the tower: a vertical cylinder of the receiver's radius up to its top edge.
 
+    ``pivot`` [H, 3] ENU, ``points`` [H, N, 3] in the heliostat frame, ``rot`` [H, 3, 3] ``R_world_heliostat``.
     Only heliostats whose sun ray passes near the tower (a per-heliostat bounding test) are ray-tested.
     """
     rec = plant.targets["receiver"]
@@ -370,8 +387,10 @@ def _tower_shading(plant: Plant, points, sun, lit) -> torch.Tensor:
     up = rec.up.to(points)
     top = float(rec.height) / 2
     with torch.no_grad():
-        centre = points.mean(1)
-        reach = (points - centre.unsqueeze(1)).norm(dim=-1).amax(1)
+        centre = pivot.detach()
+        shared = points.shape[0] > 1 and points.stride(0) == 0
+        reach = torch.linalg.vector_norm((points[:1] if shared else points).detach(), dim=-1).amax(1)
+        reach = reach.expand(points.shape[0]) if shared else reach
         rel = axis - centre
         horiz = sun - (sun @ up) * up
         hn = horiz.norm().clamp_min(1e-12)
@@ -384,7 +403,7 @@ def _tower_shading(plant: Plant, points, sun, lit) -> torch.Tensor:
         rows = torch.nonzero(near).flatten()
     if rows.numel() == 0:
         return out
-    p = points[rows]
+    p = pivot[rows].unsqueeze(1) + points[rows] @ rot[rows].transpose(-1, -2)
     t, hit, _ = ray_cylinder(p, sun.expand_as(p), axis, up, float(rec.radius))
     height = ((p + t.unsqueeze(-1) * sun - axis) * up).sum(-1)
     shaded = hit & (height <= top)

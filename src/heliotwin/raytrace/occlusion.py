@@ -35,13 +35,15 @@ Shapes: H heliostats, P points per heliostat, K candidates per heliostat. Units:
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 
-from ..geometry import safe_normalize
+from ..geometry import reflect, safe_normalize
 
-__all__ = ["mirror_frame", "occluder_candidates", "unoccluded", "OccluderSet", "solarpilot_neighbours",
-           "solarpilot_interference"]
+__all__ = ["mirror_frame", "occluder_candidates", "unoccluded", "unoccluded_tracked", "mirror_blocks", "MirrorBlocks",
+           "OccluderSet",
+           "solarpilot_neighbours", "solarpilot_interference"]
 
 
 def mirror_frame(normal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -243,18 +245,28 @@ def _pairs_that_may_hit(rel, directions, occ: OccluderSet, index, valid, owners)
     its answer, only what it costs.
     """
     f64 = torch.float64
-    base = occ.center[owners].detach().to(f64)  # [H, 3]
     # the box of the origins in the own mirror frame (tight for a flat mirror)
     own_axes = torch.stack([t[owners].detach() for t in (occ.width_axis, occ.height_axis, occ.normal)], 1)  # [H, 3, 3]
     local = torch.bmm(rel, own_axes.to(rel.dtype).transpose(1, 2))  # [H, P, 3]
     hi, lo = local.amax(1).to(f64), local.amin(1).to(f64)
-    own_axes = own_axes.to(f64)
-    mid = torch.einsum("hi,hij->hj", 0.5 * (hi + lo), own_axes)  # box centre, ENU [H, 3]
-    half = 0.5 * (hi - lo) + 1e-6  # [H, 3] half sizes along the own axes
     d = directions.detach()
     d0 = safe_normalize(d.mean(1).to(f64))  # [H, 3]
     delta = torch.linalg.vector_norm(d - d0.unsqueeze(1).to(d.dtype), dim=-1).amax(1).to(f64) + 1e-6  # [H]
-    c = occ.center[index].detach().to(f64) - base.unsqueeze(1)  # [H, K, 3]
+    return _box_pairs_that_may_hit(0.5 * (hi + lo), 0.5 * (hi - lo), own_axes.to(f64), d0, delta, occ, index,
+                                   valid, owners)
+
+
+def _box_pairs_that_may_hit(mid_local, half, own_axes, d0, delta, occ: OccluderSet, index, valid,
+                            owners) -> torch.Tensor:
+    """:func:`_pairs_that_may_hit` from the bounds themselves: ray origins in a box (centre ``mid_local``,
+    half sizes ``half`` [R, 3] along the own mirror axes ``own_axes`` [R, 3, 3] (rows: width, height,
+    normal), relative to the pivot of heliostat ``owners`` [R]) and directions within ``delta`` [R] of the
+    unit ``d0`` [R, 3]; ``index``, ``valid`` [R, K]. Returns [R, K] bool."""
+    f64 = torch.float64
+    base = occ.center[owners].detach().to(f64)  # [R, 3]
+    mid = torch.einsum("hi,hij->hj", mid_local, own_axes)  # box centre relative to the pivot, ENU [R, 3]
+    half = half + 1e-6  # [R, 3] half sizes along the own axes
+    c = occ.center[index].detach().to(f64) - base.unsqueeze(1)  # [R, K, 3]
     n_k, ew_k, eh_k = (t[index].detach().to(f64) for t in (occ.normal, occ.width_axis, occ.height_axis))
 
     def span(g):
@@ -299,22 +311,198 @@ def _unoccluded_hard(origins, directions, occ: OccluderSet, index, valid, owners
     step = max(1, int(max_tests_per_chunk) // max(1, p))
     for s0 in range(0, pairs.shape[0], step):
         row, slot = pairs[s0:s0 + step].unbind(1)
-        k = index[row, slot]
-        base = occ.center[owners[row]]
-        c = (occ.center[k] - base).to(dt)  # [n, 3]
-        axes = torch.stack((occ.normal[k], occ.width_axis[k], occ.height_axis[k]), dim=1).to(dt)  # [n, 3, 3]
-        c_ax = (axes * c.unsqueeze(1)).sum(-1)  # [n, 3]: c . (n, ew, eh)
-        w_ax = c_ax.unsqueeze(1) - torch.bmm(rel[row], axes.transpose(1, 2))  # (c - o) . axis, [n, P, 3]
-        d_ax = torch.bmm(directions[row].to(dt), axes.transpose(1, 2))  # [n, P or 1, 3]
-        denom = d_ax[..., 0]
-        ok = denom.abs() > 1e-9
-        t = w_ax[..., 0] / torch.where(ok, denom, torch.ones_like(denom))
-        u = t * d_ax[..., 1] - w_ax[..., 1]
-        v = t * d_ax[..., 2] - w_ax[..., 2]
-        stop = (t > eps) & (u.abs() <= occ.half_width[k].to(dt).unsqueeze(1)) & \
-            (v.abs() <= occ.half_height[k].to(dt).unsqueeze(1)) & ok
+        stop = _ray_stops(rel[row], directions[row], occ, owners[row], index[row, slot], eps)
         hits.index_add_(0, row, stop.to(dt))
     return (hits == 0).to(origins.dtype)
+
+
+def _ray_stops(rel, directions, occ: OccluderSet, owner, k, eps) -> torch.Tensor:
+    """[n, P] bool: ray ``rel[i, j] + t directions[i, j]`` (origins relative to heliostat ``owner[i]``'s pivot,
+    float32) stops on heliostat ``k[i]``'s rectangle at some ``t > eps``."""
+    dt = torch.float32
+    c = (occ.center[k] - occ.center[owner]).to(dt)  # [n, 3]
+    axes = torch.stack((occ.normal[k], occ.width_axis[k], occ.height_axis[k]), dim=1).to(dt)  # [n, 3, 3]
+    c_ax = (axes * c.unsqueeze(1)).sum(-1)  # [n, 3]: c . (n, ew, eh)
+    w_ax = c_ax.unsqueeze(1) - torch.bmm(rel, axes.transpose(1, 2))  # (c - o) . axis, [n, P, 3]
+    d_ax = torch.bmm(directions.to(dt), axes.transpose(1, 2))  # [n, P or 1, 3]
+    denom = d_ax[..., 0]
+    ok = denom.abs() > 1e-9
+    t = w_ax[..., 0] / torch.where(ok, denom, torch.ones_like(denom))
+    u = t * d_ax[..., 1] - w_ax[..., 1]
+    v = t * d_ax[..., 2] - w_ax[..., 2]
+    return (t > eps) & (u.abs() <= occ.half_width[k].to(dt).unsqueeze(1)) & \
+        (v.abs() <= occ.half_height[k].to(dt).unsqueeze(1)) & ok
+
+
+def _normal_bound(lo, hi):
+    """Unit ``n0`` [..., 3] (the normalised centre of the box ``lo``, ``hi`` [..., 3]) and ``e`` [...]: no
+    vector in the box is farther than ``e`` from ``n0``."""
+    n0 = safe_normalize(0.5 * (lo + hi))
+    return n0, torch.linalg.vector_norm(torch.maximum((hi - n0).abs(), (lo - n0).abs()), dim=-1)
+
+
+def _reflected(n0, e, rot, s):
+    """Directions ``d0`` [R, 3] of the sun ``s`` reflected about ``R n0`` (``n0`` [R, 3] heliostat frame, unit;
+    ``rot`` [R, 3, 3]) and the bound ``delta`` [R] on any reflected ray's distance from it when the normal is
+    within ``e`` [R] of ``n0``: ``2 e + 4 e^2`` (plus a margin)."""
+    n0w = torch.einsum("ri,rji->rj", n0, rot)
+    return 2.0 * (n0w @ s).unsqueeze(-1) * n0w - s, 2.0 * e + 4.0 * e * e + 1e-6
+
+
+@dataclass
+class MirrorBlocks:
+    """Mirror samples of tracked heliostats in their own frame, grouped in square blocks of neighbours, with
+    each block's bounds (what :func:`unoccluded_tracked` culls with); from :func:`mirror_blocks`.
+
+    ``points``, ``normals`` [H, N, 3] (heliostat frame); ``index`` [B, b*b] the samples of each block;
+    ``lo``, ``hi`` [H', B, 3] the block's box; ``n0`` [H', B, 3] its mean normal (unit) and ``e`` [H', B] the
+    largest distance of a normal from it; ``n0_all`` [H', 3], ``e_all`` [H'] the same over the whole mirror.
+    ``H' = 1`` when every heliostat has the same samples (an expanded tensor), else H.
+    """
+
+    points: torch.Tensor
+    normals: torch.Tensor
+    index: torch.Tensor
+    lo: torch.Tensor
+    hi: torch.Tensor
+    n0: torch.Tensor
+    e: torch.Tensor
+    n0_all: torch.Tensor
+    e_all: torch.Tensor
+
+
+def mirror_blocks(points: torch.Tensor, normals: torch.Tensor, facets: int, per_direction: int,
+                  block: int = 4) -> MirrorBlocks:
+    """Group the samples of :func:`heliotwin.field.facets.surface_points` (``facets`` facets, ``per_direction``
+    samples per facet and direction, index ``f*S^2 + i*S + j``) in ``b`` x ``b`` blocks, ``b`` the divisor of
+    ``per_direction`` nearest ``block``; ``points``, ``normals`` [H, N, 3] in the heliostat frame."""
+    f64 = torch.float64
+    h, n = points.shape[:2]
+    s = int(per_direction)
+    if n != int(facets) * s * s:
+        raise ValueError(f"{n} samples per heliostat are not {facets} facets of {s} x {s}")
+    b = min((d for d in range(1, s + 1) if s % d == 0), key=lambda d: (abs(d - block), -d))
+    q = s // b
+    dev = points.device
+    i = torch.arange(s, device=dev)
+    blk = (i // b).view(-1, 1) * q + (i // b).view(1, -1)  # [S, S]: block of sample (i, j) in its facet
+    order = torch.argsort(blk.reshape(-1), stable=True).view(-1, b * b)  # [q^2, b*b], i-major within a block
+    index = (torch.arange(int(facets), device=dev).view(-1, 1, 1) * s * s + order).reshape(-1, b * b)
+    with torch.no_grad():
+        shared = h > 1 and points.stride(0) == 0 and normals.stride(0) == 0
+        p, nr = (points[:1], normals[:1]) if shared else (points, normals)
+        hp = p.shape[0]
+        grid = (hp, int(facets), q, b, q, b, 3)  # blocks as views of the sample grid: no copy
+        p, nr = p.detach().to(f64).reshape(grid), nr.detach().to(f64).reshape(grid)
+        lo, hi = p.amin(5).amin(3).reshape(hp, -1, 3), p.amax(5).amax(3).reshape(hp, -1, 3)
+        # the normals' box per block bounds their distance from its normalised centre
+        n_lo, n_hi = nr.amin(5).amin(3).reshape(hp, -1, 3), nr.amax(5).amax(3).reshape(hp, -1, 3)
+        n0, e = _normal_bound(n_lo, n_hi)
+        n0_all, e_all = _normal_bound(n_lo.amin(1), n_hi.amax(1))
+    return MirrorBlocks(points, normals, index, lo, hi, n0, e, n0_all, e_all)
+
+
+def _normal_bound(lo, hi):
+    """Unit ``n0`` [..., 3] (the normalised centre of the box ``lo``, ``hi`` [..., 3]) and ``e`` [...]: no
+    vector in the box is farther than ``e`` from ``n0``."""
+    n0 = safe_normalize(0.5 * (lo + hi))
+    return n0, torch.linalg.vector_norm(torch.maximum((hi - n0).abs(), (lo - n0).abs()), dim=-1)
+
+
+def _reflected(n0, e, rot, s):
+    """Directions ``d0`` [R, 3] of the sun ``s`` reflected about ``R n0`` (``n0`` [R, 3] heliostat frame, unit;
+    ``rot`` [R, 3, 3]) and the bound ``delta`` [R] on any reflected ray's distance from it when the normal is
+    within ``e`` [R] of ``n0``: ``2 e + 4 e^2`` (plus a margin)."""
+    n0w = torch.einsum("ri,rji->rj", n0, rot)
+    return 2.0 * (n0w @ s).unsqueeze(-1) * n0w - s, 2.0 * e + 4.0 * e * e + 1e-6
+
+
+def unoccluded_tracked(blocks: MirrorBlocks, rotation: torch.Tensor, occluders: OccluderSet, index: torch.Tensor,
+                       valid: torch.Tensor, sun: torch.Tensor, *, reflected: bool, owners: torch.Tensor | None = None,
+                       eps: float = 1e-6, max_tests_per_chunk: int = 2 ** 22) -> torch.Tensor:
+    """The hard test of :func:`unoccluded` for tracked mirrors given in their own frame, culled block by block.
+
+    The rays start at ``R points`` (relative to the pivot) and go towards the sun (``reflected=False``:
+    shading) or along the sun reflected about ``R normals`` (``reflected=True``: blocking), ``R`` the
+    heliostat's rotation. The bounds of :func:`_pairs_that_may_hit` are taken first for the whole mirror
+    against each candidate occluder, then for each block of neighbouring samples against the candidates the
+    mirror may meet: the box of the block's points in the mirror frame, and the spread of its rays'
+    directions bounded from its normals' (a reflected direction turns by at most ``2 e + 4 e^2`` when the
+    normal turns by ``e``). Neither the world samples nor the rays of the whole field are formed: only the
+    rays of the blocks a candidate may reach, ray-tested exactly as :func:`unoccluded` does.
+
+    Parameters
+    ----------
+    blocks : MirrorBlocks
+        The mirror samples [H, N, 3] (float64) and their blocks, :func:`mirror_blocks`.
+    rotation : torch.Tensor, [H, 3, 3]
+        ``R_world_heliostat`` (columns: the width axis, height axis and normal of :func:`mirror_frame`).
+    occluders : OccluderSet
+        All heliostats.
+    index, valid : torch.Tensor, [H, K]
+        From :func:`occluder_candidates`.
+    sun : torch.Tensor, [3]
+        Unit vector towards the sun.
+    reflected : bool
+    owners : torch.Tensor, [H], long, optional
+        Which heliostat each row belongs to (default: row i = heliostat i).
+
+    Returns
+    -------
+    torch.Tensor, [H, N]
+        1 where the ray is free, 0 where a candidate stops it; dtype of the points.
+    """
+    f64 = torch.float64
+    points, normals = blocks.points, blocks.normals
+    h, n = points.shape[:2]
+    nb, pb = blocks.index.shape
+    dev = points.device
+    owners = torch.arange(h, device=dev) if owners is None else owners
+    if h == 0 or index.shape[1] == 0:
+        return torch.ones(h, n, dtype=points.dtype, device=dev)
+    with torch.no_grad():
+        rot = rotation.detach().to(f64)
+        s = sun.detach().to(f64).reshape(3)
+        shared = blocks.lo.shape[0] == 1 and h > 1
+        own_axes = rot.transpose(1, 2)
+        # level 1: the whole mirror against each candidate
+        box_lo, box_hi = blocks.lo.amin(1).expand(h, 3), blocks.hi.amax(1).expand(h, 3)
+        if reflected:
+            d0, delta = _reflected(blocks.n0_all.expand(h, 3), blocks.e_all.expand(h), rot, s)
+        else:
+            d0, delta = s.expand(h, 3), torch.full((h,), 1e-6, dtype=f64, device=dev)
+        pair_row, pair_slot = torch.nonzero(_box_pairs_that_may_hit(
+            0.5 * (box_hi + box_lo), 0.5 * (box_hi - box_lo), own_axes, d0, delta, occluders, index, valid,
+            owners)).unbind(1)
+        # level 2: every block of the mirror against each candidate the whole mirror may meet
+        pr = pair_row.repeat_interleave(nb)  # [pairs * B]
+        blk = torch.arange(nb, device=dev).repeat(pair_row.shape[0])
+        src = torch.zeros_like(pr) if shared else pr
+        lo, hi = blocks.lo[src, blk], blocks.hi[src, blk]
+        if reflected:
+            d0, delta = _reflected(blocks.n0[src, blk], blocks.e[src, blk], rot[pr], s)
+        else:
+            d0, delta = s.expand(pr.shape[0], 3), torch.full(pr.shape, 1e-6, dtype=f64, device=dev)
+        kk = index[pair_row, pair_slot].repeat_interleave(nb).unsqueeze(1)
+        keep = _box_pairs_that_may_hit(0.5 * (hi + lo), 0.5 * (hi - lo), own_axes[pr], d0, delta, occluders, kk,
+                                       torch.ones_like(kk, dtype=torch.bool), owners[pr])[:, 0]
+        row, blk, k = pr[keep], blk[keep], kk[keep, 0]
+    dt = torch.float32
+    hits = torch.zeros(h * n, dtype=dt, device=dev)
+    step = max(1, int(max_tests_per_chunk) // max(1, pb))
+    s = sun.to(f64).reshape(3)
+    for s0 in range(0, row.shape[0], step):
+        r, pidx, kk = row[s0:s0 + step], blocks.index[blk[s0:s0 + step]], k[s0:s0 + step]
+        rt = rotation[r].to(f64).transpose(1, 2)
+        rel = torch.bmm(points[r.unsqueeze(1), pidx].to(f64), rt).to(dt)  # [m, b, 3] world, from the pivot
+        if reflected:
+            nw = torch.bmm(normals[r.unsqueeze(1), pidx].to(f64), rt)
+            dirs = reflect(-s.expand_as(nw), nw)
+        else:
+            dirs = s.expand(r.shape[0], 1, 3)
+        stop = _ray_stops(rel, dirs, occluders, owners[r], kk, eps)
+        hits.index_add_(0, (r * n).unsqueeze(1).add(pidx).reshape(-1), stop.reshape(-1).to(dt))
+    return (hits.view(h, n) == 0).to(points.dtype)
 
 
 def _unoccluded_chunk(o, d, occ: OccluderSet, idx, valid, own, softness, eps):
