@@ -330,7 +330,7 @@ def _occlusion(plant: Plant, normal, aim, sun, settings: FieldSettings, rows: to
     pos = fl.kinematics.position.to(normal)
     occ = OccluderSet(pos, normal, fl.width.to(normal), fl.height.to(normal))
     s = sun.to(normal)
-    cos_p = (nrm * (s @ rot).unsqueeze(1)).sum(-1).clamp_min(0.0)  # n . s in the heliostat frame
+    cos_p = torch.einsum("hnc,hc->hn", nrm, s @ rot).clamp_min(0.0)  # n . s in the heliostat frame
     lit = area * cos_p
     tower = _tower_shading(plant, pos[rows], pts, rot, s, lit)
     if settings.occlusion_model == "solarpilot":
@@ -681,11 +681,11 @@ def field_optics(plant: Plant, sun_direction: torch.Tensor, *, atmosphere: Atmos
     m = int(settings.flux_samples)
     pw, nw, area = tracked_mirror_samples(plant, normal, m, settings.dtype, rows)
     nw64 = nw.to(f64)
-    cos_p = (nw64 * sun).sum(-1).clamp_min(0.0)
+    cos_p = (nw64 @ sun).clamp_min(0.0)
     rho, dni = float(plant.sun.reflectivity), float(plant.sun.dni)
     # [H, N] power [W] leaving each sample towards the receiver
     weights = dni * rho * area * cos_p * free * att.unsqueeze(1)
-    reflected = reflect(-sun.expand_as(nw64), nw64)
+    reflected = -sun - 2.0 * (nw64 @ -sun).unsqueeze(-1) * nw64  # reflect(-sun, nw64), the dot as a product
     h, n = weights.shape
     flux, icpt, extent = _flux_map(pw.reshape(h * n, 3), nw.reshape(h * n, 3), reflected.reshape(h * n, 3),
                                    weights.reshape(-1), target, settings, plant, sun, group)

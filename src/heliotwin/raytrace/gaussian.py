@@ -120,18 +120,19 @@ def _cylinder_moments(points, reflected, u, v, target: CylinderTarget, extent, r
     t, hit, _ = ray_cylinder(o, reflected, axis_point, up, r_cyl)
     hp = o + t.unsqueeze(-1) * reflected  # central hit, relative to the apex
     radial = hp - axis_point
-    radial = radial - (radial * up).sum(-1, keepdim=True) * up
+    # dot products over the last axis as matrix products (a sum over a last axis of 3 is ~5x slower)
+    radial = radial - (radial @ up).unsqueeze(-1) * up
     m = radial / r_cyl  # outward normal of the tangent plane
     e = torch.linalg.cross(up.expand_as(m), m, dim=-1)  # tangent "right" (arc direction)
-    ang = torch.atan2((radial * right).sum(-1), (radial * nrm).sum(-1))
+    ang = torch.atan2(radial @ right, radial @ nrm)
     arc = r_cyl * ang
-    axial = (hp * up).sum(-1)
+    axial = hp @ up
     # tangent-plane Jacobian of (x, y) w.r.t. (a, b) at the central ray
-    h = ((hp - o) * m).sum(-1)  # (H - o) . m  (< 0 from the field side)
+    h = torch.einsum("...i,...i->...", hp - o, m)  # (H - o) . m  (< 0 from the field side)
     basis = torch.stack((reflected, u, v), dim=-2)
-    den = (basis * m.unsqueeze(-2)).sum(-1)  # [B, P, 3]
-    ex = (basis * e.unsqueeze(-2)).sum(-1)
-    ey = (basis * up).sum(-1)
+    den = torch.einsum("...ji,...i->...j", basis, m)  # [B, P, 3]
+    ex = torch.einsum("...ji,...i->...j", basis, e)
+    ey = basis @ up
     d0 = den[..., 0]
     ok = hit & (d0 < -_EPS)
     safe = torch.where(ok, d0, -torch.ones_like(d0))
