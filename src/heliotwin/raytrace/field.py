@@ -56,6 +56,7 @@ from contextlib import contextmanager
 from contextvars import ContextVar
 from dataclasses import dataclass, field, replace
 
+import numpy as np
 import torch
 import torch.distributed as dist
 
@@ -302,6 +303,21 @@ def _local_mirror_samples(sf, per_direction: int, rows: torch.Tensor | None):
     return out
 
 
+def _reused_blocks(points, normals, facets: int, per_direction: int):
+    """:func:`heliotwin.raytrace.occlusion.mirror_blocks` of the local samples ``points``, ``normals``, reused
+    within :func:`reuse_mirror_samples` while they are the same tensors (the reused samples themselves)."""
+    cache = _REUSED_SAMPLES.get()
+    if cache is None or points.requires_grad or normals.requires_grad:
+        return mirror_blocks(points, normals, facets, per_direction)
+    key = ("blocks", id(points), points._version, id(normals), normals._version, int(facets), int(per_direction))
+    hit = cache.get(key)
+    if hit is not None and hit[0]() is points and hit[1]() is normals:
+        return hit[2]
+    blocks = mirror_blocks(points, normals, facets, per_direction)
+    cache[key] = (weakref.ref(points), weakref.ref(normals), blocks)
+    return blocks
+
+
 def _pool(x: torch.Tensor, weight: torch.Tensor, facets: int, m: int, k: int) -> torch.Tensor:
     """Weighted mean of fine-grid values [H, F*(m k)^2] over each k x k block -> [H, F*m^2]."""
     h = x.shape[0]
@@ -338,7 +354,7 @@ def _occlusion(plant: Plant, normal, aim, sun, settings: FieldSettings, rows: to
     idx, valid = occluder_candidates(occ, s, queries=rows)
     idx_b, valid_b = occluder_candidates(occ, safe_normalize(aim[rows] - pos[rows]), queries=rows)
     if settings.softness is None:
-        blocks = mirror_blocks(pts, nrm, nf, m * k)
+        blocks = _reused_blocks(pts, nrm, nf, m * k)
         free_sun = unoccluded_tracked(blocks, rot, occ, idx, valid, s, reflected=False, owners=rows)
         free_rx = unoccluded_tracked(blocks, rot, occ, idx_b, valid_b, s, reflected=True, owners=rows)
     else:
@@ -349,7 +365,14 @@ def _occlusion(plant: Plant, normal, aim, sun, settings: FieldSettings, rows: to
                              owners=rows)
     shading = (lit * free_sun).sum(1) / lit.sum(1).clamp_min(1e-30)
     blocking = (lit * free_sun * free_rx).sum(1) / (lit * free_sun).sum(1).clamp_min(1e-30)
-    free = _pool(free_sun * free_rx, lit.detach() + 1e-30, nf, m, k)
+    both = free_sun * free_rx
+    if settings.softness is None:  # hard: a mirror no ray of which is stopped pools to exactly 1
+        free = torch.ones((h, nf * m * m), dtype=both.dtype, device=both.device)
+        hit = torch.nonzero((both == 0).any(1)).flatten()
+        if hit.numel():
+            free[hit] = _pool(both[hit], lit[hit].detach() + 1e-30, nf, m, k)
+    else:
+        free = _pool(both, lit.detach() + 1e-30, nf, m, k)
     # SolarPILOT's reading: blocking of the whole mirror's light as if it were all lit (counts the light that
     # is both shaded and blocked twice in a product, so it is only reported, never multiplied in)
     blocking_whole = (lit * free_rx).sum(1) / lit.sum(1).clamp_min(1e-30)
@@ -438,6 +461,14 @@ def _intercept(mu, cov, ok, target, rows, cols):
     return torch.where(ok, frac, torch.zeros_like(frac))
 
 
+def _quantile(x: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """``torch.quantile(x, q)`` (linear interpolation); on the CPU by NumPy's selection instead of a full sort
+    (the same numbers, ~3x faster on the field's ~10^6 samples)."""
+    if x.device.type != "cpu":
+        return torch.quantile(x, q)
+    return torch.from_numpy(np.asarray(np.quantile(x.numpy(), q.numpy()), dtype=x.numpy().dtype))
+
+
 def _grouped_map(mu, cov, weights, rows, cols, groups, n_sigma, group=None, density=None):
     """Footprints in classes of similar covariance: per class a bilinear splat convolved with its mean Gaussian,
     or with ``density`` = (angular density [G, G], its half width [rad], the sun's variance [rad^2], the
@@ -452,8 +483,8 @@ def _grouped_map(mu, cov, weights, rows, cols, groups, n_sigma, group=None, dens
         lx, ly = torch.log(cov[:, 0, 0].clamp_min(1e-12)), torch.log(cov[:, 1, 1].clamp_min(1e-12))
         q = torch.linspace(0, 1, groups + 1, dtype=lx.dtype, device=lx.device)[1:-1]
         all_x, all_y = (lx, ly) if group is None else _gather_all(torch.stack((lx, ly), -1), group).unbind(-1)
-        gx = torch.bucketize(lx, torch.quantile(all_x, q)) if groups > 1 else torch.zeros_like(lx, dtype=torch.long)
-        gy = torch.bucketize(ly, torch.quantile(all_y, q)) if groups > 1 else torch.zeros_like(ly, dtype=torch.long)
+        gx = torch.bucketize(lx, _quantile(all_x, q)) if groups > 1 else torch.zeros_like(lx, dtype=torch.long)
+        gy = torch.bucketize(ly, _quantile(all_y, q)) if groups > 1 else torch.zeros_like(ly, dtype=torch.long)
         g = gx * groups + gy
         ng = groups * groups
         order = torch.argsort(g, stable=True)
