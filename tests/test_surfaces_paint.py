@@ -24,6 +24,10 @@ def test_aa39_centred_records_split_and_orientation(paint_dir):
     # No DateTime for AA39 in the metadata: the earliest are by id.
     assert train.record_id.tolist() == [86520, 151375, 202558]
     assert len(test) == 7 and not set(train.record_id.tolist()) & set(test.record_id.tolist())
+    # the default is the current surface: the latest three (by id here), the earlier seven its test images
+    lt, le = split_record_ids(records.record_id.tolist(), records.datetime, records.flux_centered_png)
+    ids = sorted(with_img.record_id.tolist())
+    assert records.record_id[lt].tolist() == ids[-3:] and sorted(records.record_id[le].tolist()) == ids[:-3]
     obs = observations_from_records(ds.plant, 0, train)
     assert obs.images.shape == (3, 64, 64)
     # Every centred image is centred on its own centroid (PAINT) -> within a pixel of the window centre.
@@ -67,3 +71,17 @@ def test_cli_module_entry_point_reports_error(tmp_path):
                            str(tmp_path / "missing.h5"), "--json", str(tmp_path / "o.json")],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode != 0 and len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_the_default_split_trains_on_the_latest_dated_images():
+    """Latest by DateTime (an undated record counts as earlier than every dated one); ``train_first`` keeps the
+    study's earliest split; both in time order."""
+    ids = [10, 11, 12, 13, 14, 15]
+    times = ["2023-05-01T10:00:00", "", "2021-01-01T09:00:00", "2024-02-03T12:00:00", "2022-07-07T08:00:00", None]
+    pngs = ["a", "b", "c", "d", None, "f"]
+    tr, te = split_record_ids(ids, times, pngs)
+    assert [ids[i] for i in tr] == [12, 10, 13] and sorted(ids[i] for i in te) == [11, 15]
+    tr, te = split_record_ids(ids, times, pngs, train_latest=1)
+    assert [ids[i] for i in tr] == [13]
+    tr, _ = split_record_ids(ids, times, pngs, train_first=2)
+    assert [ids[i] for i in tr] == [12, 10]

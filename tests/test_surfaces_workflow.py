@@ -21,9 +21,11 @@ def test_the_learner_settings_come_from_the_one_settings_object():
 
 
 def test_inconsistent_options_and_unknown_learner_settings_are_one_line():
-    with pytest.raises(HeliotwinError, match="--train-records or --train-first") as exc:
+    with pytest.raises(HeliotwinError, match="not --train-records and --train-first") as exc:
         ReconstructionSettings(train_records=(1, 2), train_first=3).check()
     assert "\n" not in str(exc.value)
+    with pytest.raises(HeliotwinError, match="not --train-first and --train-latest"):
+        ReconstructionSettings(train_first=3, train_latest=3).check()
     with pytest.raises(HeliotwinError, match="unknown optimizer 'sgd'"):
         SurfaceSettings(optimizer="sgd")
     with pytest.raises(HeliotwinError, match="unknown image loss 'l3'"):

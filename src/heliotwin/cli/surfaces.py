@@ -160,7 +160,8 @@ def _settings(args):
     if args.surface_prior_from:
         prior = tuple(p.strip() for p in str(args.surface_prior_from).split(","))
     return ReconstructionSettings(
-        train_records=_train_records(args), train_first=args.train_first, control_points=args.control_points,
+        train_records=_train_records(args), train_first=args.train_first,
+        train_latest=args.train_latest, control_points=args.control_points,
         degree=args.degree, steps=args.steps, slope_error_mrad=None if args.slope_error == "auto" else args.slope_error,
         alignment=args.alignment, deflectometry=args.deflectometry, surface_prior_from=prior,
         device=getattr(args, "device", "cpu"))
@@ -280,8 +281,12 @@ def register(subparsers) -> None:
                    help="with --heliostats: learn the heliostats in N worker processes (threads split over them)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--train-records", help="comma-separated record ids to train on (rest with images: test)")
+    g.add_argument("--train-latest", type=positive_int,
+                   help="train on the K latest records with centred images, the current surface (default 3); "
+                        "the earlier ones are its test images")
     g.add_argument("--train-first", type=positive_int,
-                   help="train on the K earliest records with centred images (default 3)")
+                   help="a study's split: train on the K earliest records with centred images (the written surface "
+                        "is then the oldest one)")
     p.add_argument("--control-points", default="7x7", help="control points per facet, e.g. 7x7")
     p.add_argument("--degree", type=int_range(1, 5, "a NURBS degree"), default=3, help="NURBS degree (both directions)")
     p.add_argument("--steps", type=positive_int, default=None,

@@ -93,13 +93,19 @@ def load_centered_image(path, resolution: int = 64, background: float = 0.0) -> 
     return load_measured_image(path, resolution, background=background, square=True)
 
 
+#: Centred images a reconstruction trains on by default: the latest ones (the surface now). Three, because the
+#: learner's leave-one-image-out choices cost about the square of the images (AA39, whole command, busy: 3 ->
+#: 32 s, 6 -> 94 s), and the plant command's budget is 30 s per heliostat.
+TRAIN_LATEST = 3
+
+
 def _time_key(record_id: int, time) -> tuple:
     # Records with a DateTime first (ISO strings sort chronologically), the rest by id.
     return (0, str(time), record_id) if time else (1, "", record_id)
 
 
-def split_record_ids(record_ids, times, image_paths, train_records=None,
-                     train_first: int | None = None) -> tuple[list[int], list[int]]:
+def split_record_ids(record_ids, times, image_paths, train_records=None, train_first: int | None = None,
+                     train_latest: int | None = None) -> tuple[list[int], list[int]]:
     """Train/test split of the records that have centred images, over plain record columns.
 
     Parameters
@@ -112,7 +118,10 @@ def split_record_ids(record_ids, times, image_paths, train_records=None,
     train_records : iterable of int, optional
         Explicit training ids (each must have a centred image); the rest are test.
     train_first : int, optional
-        Otherwise the K (default 3) earliest by DateTime (records without one come after, by id).
+        Otherwise the K earliest by DateTime (records without one come after, by id): a study's split.
+    train_latest : int, optional
+        Otherwise the K latest by DateTime (default 3; records without one count as earlier than every dated
+        one): the current surface, the earlier images its test set.
 
     Returns
     -------
@@ -131,11 +140,16 @@ def split_record_ids(record_ids, times, image_paths, train_records=None,
             raise HeliotwinError(f"train record(s) {', '.join(map(str, missing))} have no centred image or do not "
                                  f"exist; records with images: {', '.join(str(ids[i]) for i in with_img)}")
         train = [i for i in with_img if ids[i] in wanted]
+    elif train_first is not None:
+        if int(train_first) < 1:
+            raise HeliotwinError(f"--train-first must be >= 1, got {train_first}")
+        train = sorted(with_img, key=key.get)[:int(train_first)]
     else:
-        k = 3 if train_first is None else int(train_first)
+        k = TRAIN_LATEST if train_latest is None else int(train_latest)
         if k < 1:
-            raise HeliotwinError(f"--train-first must be >= 1, got {k}")
-        train = sorted(with_img, key=key.get)[:k]
+            raise HeliotwinError(f"--train-latest must be >= 1, got {k}")
+        dated_last = {i: (0, "", ids[i]) if not times[i] else (1, str(times[i]), ids[i]) for i in with_img}
+        train = sorted(with_img, key=dated_last.get)[-k:]
     test = [i for i in with_img if i not in train]
     if not test:
         raise HeliotwinError(f"no test images left: {len(with_img)} records have centred images, all used for training")
@@ -173,7 +187,8 @@ def observations_from_records(plant, heliostat_index: int, records: RecordTable,
 
 def paint_observations(paint_dir, heliostat_id: str, *, plant=None, device: str = "cpu", train_records=None,
                        train_first: int | None = None, resolution: int = 64, background: float = 0.0,
-                       alignment: str = "focal-spot") -> tuple[PaintDataset, object, Observations, Observations]:
+                       alignment: str = "focal-spot", train_latest: int | None = None
+                       ) -> tuple[PaintDataset, object, Observations, Observations]:
     """One PAINT heliostat's training and test observations (:func:`split_record_ids`,
     :func:`observations_from_records`).
 
@@ -186,7 +201,7 @@ def paint_observations(paint_dir, heliostat_id: str, *, plant=None, device: str 
         Replaces the folder's nominal plant (e.g. a calibrated scenario's): its kinematics pose the heliostat.
     device : {"cpu", "cuda"}
         Where the plant and observations go (the images are read on the CPU).
-    train_records, train_first
+    train_records, train_first, train_latest
         The split (:func:`split_record_ids`).
     resolution : int
         R, window pixels per side.
@@ -209,7 +224,7 @@ def paint_observations(paint_dir, heliostat_id: str, *, plant=None, device: str 
     on_device = ds.plant if device == "cpu" else to_device(ds.plant, device)
     records = ds.records_of(heliostat_id)
     tr, te = split_record_ids(records.record_id.tolist(), records.datetime, records.flux_centered_png, train_records,
-                              train_first)
+                              train_first, train_latest)
     # poses from the records on the CPU (where the table is), then the observations move to the device
     train = observations_from_records(ds.plant, 0, records.subset(tr), resolution, background, alignment)
     test = observations_from_records(ds.plant, 0, records.subset(te), resolution, background, alignment)

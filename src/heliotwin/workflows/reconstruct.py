@@ -30,7 +30,7 @@ from ..surfaces.deflectometry import deflectometry_report
 from ..surfaces.fit import SurfaceSettings
 from ..surfaces.generalise import reconstruct_generalising
 from ..surfaces.learning import parse_grid
-from ..surfaces.observations import paint_observations
+from ..surfaces.observations import TRAIN_LATEST, paint_observations
 from ..surfaces.plantprior import check_leakage, load_surface_prior
 from ..surfaces.state import with_learned_surface
 from .show import kinematics_note
@@ -52,7 +52,10 @@ class ReconstructionSettings:
     train_records : tuple of int, optional
         Record ids to train on (each with a centred image); the others with images are the test set.
     train_first : int, optional
-        Otherwise the K earliest records with centred images (default 3).
+        Otherwise the K earliest records with centred images (a study: the written surface is years old).
+    train_latest : int, optional
+        Otherwise the K latest (default :data:`~heliotwin.surfaces.observations.TRAIN_LATEST`, 3): the current
+        surface, evaluated on the earlier images.
     control_points : str or (int, int)
         NURBS control points per facet, e.g. ``"7x7"``.
     degree : int
@@ -78,6 +81,7 @@ class ReconstructionSettings:
 
     train_records: tuple | None = None
     train_first: int | None = None
+    train_latest: int | None = None
     control_points: str | tuple = "7x7"
     degree: int = 3
     steps: int | None = None
@@ -89,8 +93,11 @@ class ReconstructionSettings:
 
     def check(self) -> None:
         """One-line :class:`HeliotwinError` for inconsistent options (before any file is read)."""
-        if self.train_records and self.train_first is not None:
-            raise HeliotwinError("use either --train-records or --train-first, not both")
+        given = [n for n, v in (("--train-records", self.train_records), ("--train-first", self.train_first),
+                                ("--train-latest", self.train_latest)) if v]
+        if len(given) > 1:
+            raise HeliotwinError(f"use one of --train-records, --train-first, --train-latest, not "
+                                 f"{' and '.join(given)}")
         # More control points per side than mirror samples are not determined by the images; the dense fit
         # state grows with their square (a 200x200 net took 20 GB).
         most = min(SurfaceSettings().samples)
@@ -102,6 +109,8 @@ class ReconstructionSettings:
             check_range("--steps", self.steps, 1, 100_000)
         if self.train_first is not None:
             check_range("--train-first", self.train_first, 1, 10_000)
+        if self.train_latest is not None:
+            check_range("--train-latest", self.train_latest, 1, 10_000)
 
     def learner(self) -> SurfaceSettings:
         """The learner's settings (:class:`~heliotwin.surfaces.fit.SurfaceSettings`)."""
@@ -207,7 +216,7 @@ def learn_surface(scenario: Scenario | None, paint, heliostat: str, s: Reconstru
     stages.start(f"reading {heliostat}'s images")
     _, on_device, train, test = paint_observations(
         paint, heliostat, plant=plant, device=device, train_records=list(s.train_records) if s.train_records else None,
-        train_first=s.train_first, resolution=learner.resolution, alignment=s.alignment)
+        train_first=s.train_first, resolution=learner.resolution, alignment=s.alignment, train_latest=s.train_latest)
     facets = _facets(on_device, torch.float64)
     stages.step(f"reading {len(train)} training and {len(test)} test images")
     stages.start("learning the surface")
@@ -224,12 +233,27 @@ def learn_surface(scenario: Scenario | None, paint, heliostat: str, s: Reconstru
     report.update(heliostat=heliostat, paint=str(paint), alignment=s.alignment, device=device,
                   plant="paint" if plant is None else "scenario", seconds=time.perf_counter() - t0)
     report["kinematics"] = note
+    report["split"] = split_note(s)
     report["choices"] = _choices(report)
     report["settings"] = dict(report["settings"], chosen=report["choices"])  # the stored surface records its choices
     if device != "cpu":  # results come back on the CPU
         model, fit = model.cpu(), to_device(fit, "cpu")
         fit["train"], fit["test"] = train.to("cpu"), test.to("cpu")
     return report, dict(fit, model=model, surface_prior=prior)
+
+
+def split_note(s: ReconstructionSettings) -> dict:
+    """Which images the written surface learned from, in words a report reader needs (the current surface by
+    default; a study's split says that the written surface saw only its training part)."""
+    if s.train_records:
+        return {"rule": "the given training records", "current": False,
+                "note": "the written surface learned from the given records only"}
+    if s.train_first is not None:
+        return {"rule": f"the {int(s.train_first)} earliest centred images (a study's split)", "current": False,
+                "note": "the written surface saw only the earliest images: not the surface now"}
+    k = int(s.train_latest or TRAIN_LATEST)
+    return {"rule": f"the {k} latest centred images (the current surface)", "current": True,
+            "note": "test images are the earlier ones: how well the surface now explains the mirror's past images"}
 
 
 def _facets(plant, dtype=None) -> Facets:

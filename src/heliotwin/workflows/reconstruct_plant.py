@@ -10,8 +10,8 @@ the surface ``heliotwin reconstruct --heliostat H`` gives it. Around it:
 
 * Planning: the folder's records are read once (metadata, no image), and each selected heliostat's train/test split
   is made as the learner makes it (:func:`heliotwin.surfaces.observations.split_record_ids`). A heliostat without
-  enough centred images (``train_first`` for training and one for the test) is *skipped*, with the reason in the
-  report: not an error.
+  enough centred images (``train_latest`` or ``train_first`` for training and one for the test) is *skipped*,
+  with the reason in the report: not an error.
 * Learning: one heliostat at a time per process: its images are read, its surface learned and only its result kept
   (control points, displacement, optics, report row: kilobytes). Peak memory is one heliostat's images and fit
   per process, whatever the plant's size. A heliostat whose fit raises is *failed* with a one-line reason; the
@@ -55,7 +55,7 @@ from ..io import checkpoint as _checkpoint
 from ..io.paint import list_heliostats, load_paint
 from ..io.scenario import Scenario, next_scenario, provenance_entry
 from ..progress import Progress
-from ..surfaces.observations import split_record_ids
+from ..surfaces.observations import TRAIN_LATEST, split_record_ids
 from ..surfaces.state import KEY, PRIOR_KEY, surface_state
 from .reconstruct import ReconstructionSettings, learn_surface
 from .show import kinematics_note
@@ -163,7 +163,8 @@ def check_plant_settings(settings: ReconstructionSettings, nproc: int = 1) -> No
     the run cannot use (before any file is read)."""
     settings.check()
     if settings.train_records:
-        raise HeliotwinError("--train-records names one heliostat's records; with --heliostats use --train-first")
+        raise HeliotwinError("--train-records names one heliostat's records; with --heliostats use --train-latest "
+                             "or --train-first")
     if settings.deflectometry:
         raise HeliotwinError("--deflectometry is one heliostat's file; use it with --heliostat")
     if isinstance(nproc, bool) or not isinstance(nproc, int) or nproc < 1:
@@ -182,7 +183,8 @@ def plan_heliostats(paint, heliostats, settings: ReconstructionSettings, plant=N
     heliostats : "all" or sequence of str
         ``"all"``: every heliostat of the folder (of ``plant`` too, when given).
     settings : ReconstructionSettings
-        Its ``train_first`` (default 3) sets how many centred images a heliostat needs: that many and one more.
+        Its ``train_latest`` or ``train_first`` (default 3 latest) sets how many centred images a heliostat needs:
+        that many and one more.
     plant : Plant, optional
         The starting scenario's plant: a heliostat it does not hold is skipped.
 
@@ -225,10 +227,10 @@ def plan_heliostats(paint, heliostats, settings: ReconstructionSettings, plant=N
         r = rows.get(h, [])
         try:
             split_record_ids([ids[i] for i in r], [times[i] for i in r], [pngs[i] for i in r],
-                             train_first=settings.train_first)
+                             train_first=settings.train_first, train_latest=settings.train_latest)
         except HeliotwinError:
             n = sum(1 for i in r if pngs[i])
-            need = (3 if settings.train_first is None else int(settings.train_first)) + 1
+            need = int(settings.train_first or settings.train_latest or TRAIN_LATEST) + 1
             skipped[h] = {"heliostat": h, "status": "skipped", "centred_images": n,
                           "reason": f"{n} centred image(s), needs {need} ({need - 1} training + 1 test)"}
             continue
