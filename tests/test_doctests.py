@@ -9,7 +9,7 @@ import pytest
 #: Modules whose docstrings carry examples; each must have at least one.
 MODULES = ("heliotwin.geometry", "heliotwin.site", "heliotwin.nurbs", "heliotwin.io.scenario",
            "heliotwin.workflows.plan", "heliotwin.workflows.trace", "heliotwin.workflows.field", "heliotwin.api",
-           "heliotwin.calibrate.choice")
+           "heliotwin.calibrate.choice", "heliotwin.workflows.field_one_sun")
 
 
 @pytest.mark.parametrize("name", MODULES)

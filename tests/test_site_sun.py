@@ -144,6 +144,37 @@ def test_spa_solar_noon_at_equinox():
     assert math.degrees(float(az[0])) > 10 and math.degrees(float(az[-1])) < -10  # morning east (+), afternoon west
 
 
+@pytest.mark.parametrize("site", [JUELICH_REFERENCE, (37.4, -5.9, 20.0), (-23.5, 133.9, 600.0), (0.0, 0.0, 0.0),
+                                  (70.0, 20.0, 2500.0)])
+def test_spa_without_pvlib_equals_pvlib(site):
+    """:func:`solar_position` (pvlib's NumPy SPA, :mod:`heliotwin.sunspa`, without pvlib's package import) gives
+    pvlib's numbers: ``get_solarposition(method="nrel_numpy")`` at 2,000 instants over 1990-2060, day and night."""
+    import numpy as np
+    import pvlib  # the reference (imported here only: the library itself does not import pvlib for the sun)
+
+    g = np.random.default_rng(3)
+    times = pd.to_datetime(g.integers(pd.Timestamp("1990-01-01").value, pd.Timestamp("2060-01-01").value, 2000),
+                           utc=True)
+    lat, lon, alt = site
+    az, el = solar_position(times, lat, lon, alt)
+    ref = pvlib.solarposition.get_solarposition(times, lat, lon, altitude=alt, method="nrel_numpy")
+    az_ref = np.angle(np.exp(1j * (math.pi - np.deg2rad(ref["azimuth"].to_numpy()))))
+    assert np.abs(az.numpy() - az_ref).max() < 1e-12
+    assert np.abs(el.numpy() - np.deg2rad(ref["apparent_elevation"].to_numpy())).max() < 1e-12
+
+
+def test_one_sun_commands_do_not_import_pvlib():
+    """The sun at a time needs no pvlib (:mod:`heliotwin.sunspa`), the one-sun field model no pandas either
+    (~0.7 s of such a command's start-up): the field at sun angles, the sun at a time, the aimpoints workflow."""
+    import subprocess
+    import sys
+
+    code = ("import sys, heliotwin.workflows.field_one_sun; assert 'pvlib' not in sys.modules "
+            "and 'pandas' not in sys.modules; import heliotwin.workflows.field, heliotwin.workflows.aimpoints; "
+            "assert 'pvlib' not in sys.modules, 'pvlib'")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
 @pytest.fixture(scope="module")
 def dated_records(paint_dir):
     """Records of a few real heliostats with their metadata DateTime (UTC)."""

@@ -12,7 +12,7 @@ from heliotwin.field.demo import demo_field_plant
 from heliotwin.io.scenario import Scenario
 from heliotwin.io.weather import read_dni_series
 from heliotwin.raytrace.yearly import annual_energy, clear_sky_dni, efficiency_table
-from heliotwin.workflows.field import field_year, weather_energy
+from heliotwin.workflows.field_year import field_year, weather_energy
 
 AZ = np.arange(-180.0, 180.0, 30.0)
 EL = np.array([5.0, 15.0, 30.0, 45.0, 60.0, 75.0, 89.0])

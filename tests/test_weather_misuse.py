@@ -16,7 +16,7 @@ from heliotwin.field.demo import demo_field_plant
 from heliotwin.io.scenario import save_scenario
 from heliotwin.io.weather import read_dni_series, weather_for_year
 from heliotwin.raytrace.yearly import efficiency_table
-from heliotwin.workflows.field import weather_energy
+from heliotwin.workflows.field_year import weather_energy
 from heliotwin.workflows.predict import prediction_energy
 
 AZ = np.arange(-180.0, 180.0, 45.0)

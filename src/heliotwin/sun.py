@@ -1,5 +1,6 @@
 """Sun position: direction vectors from PAINT angles (:mod:`heliotwin.sunangles`, re-exported here) or from
-UTC time at the site (pvlib SPA).
+UTC time at the site (NREL's SPA as pvlib computes it: :mod:`heliotwin.sunspa`, pvlib's own NumPy SPA without
+pvlib's package import; pvlib stays the reference in the tests).
 
 Convention
 ----------
@@ -14,17 +15,20 @@ import math
 
 import numpy as np
 import pandas as pd
-import pvlib
 import torch
 
 from .sunangles import direction_from_paint_angles, paint_angles_from_direction
+from .sunspa import solar_position_numpy
 
 __all__ = ["direction_from_paint_angles", "paint_angles_from_direction", "solar_position", "direction_from_time",
            "daylight_times"]
 
 
 def solar_position(times, latitude_deg: float, longitude_deg: float, altitude_m: float = 0.0):
-    """Apparent sun position by NREL's SPA (via pvlib), in PAINT's convention.
+    """Apparent sun position by NREL's SPA, in PAINT's convention: the numbers of
+    ``pvlib.solarposition.get_solarposition(times, lat, lon, altitude=altitude_m, method="nrel_numpy")``
+    (pressure from the altitude by pvlib's ``alt2pres``, 12 degC, delta T 67 s, refraction at the horizon
+    0.5667 deg), computed by :func:`heliotwin.sunspa.solar_position_numpy` without importing pvlib.
 
     Parameters
     ----------
@@ -41,12 +45,14 @@ def solar_position(times, latitude_deg: float, longitude_deg: float, altitude_m:
         [rad]; azimuth 0 = south, +pi/2 = east; elevation is the refraction-corrected apparent one.
     """
     idx = pd.DatetimeIndex(pd.to_datetime(times, utc=True))
-    sp = pvlib.solarposition.get_solarposition(idx, latitude_deg, longitude_deg, altitude=altitude_m,
-                                               method="nrel_numpy")
-    # pvlib azimuth is from north, clockwise (east = 90). PAINT: from south, east positive.
-    az_north = np.deg2rad(sp["azimuth"].to_numpy())
+    unixtime = np.array((idx - pd.Timestamp("1970-01-01", tz="UTC")) / pd.Timedelta("1s"))
+    pressure_pa = 100 * ((44331.514 - altitude_m) / 11880.516) ** (1 / 0.1902632)  # pvlib.atmosphere.alt2pres
+    _, _, app_elevation, _, azimuth, _ = solar_position_numpy(
+        unixtime, latitude_deg, longitude_deg, altitude_m, pressure_pa / 100, 12.0, 67.0, 0.5667, 4)
+    # SPA azimuth is from north, clockwise (east = 90). PAINT: from south, east positive.
+    az_north = np.deg2rad(np.asarray(azimuth, dtype=np.float64))
     az_paint = np.angle(np.exp(1j * (math.pi - az_north)))  # wrap to (-pi, pi]
-    el = np.deg2rad(sp["apparent_elevation"].to_numpy())
+    el = np.deg2rad(np.asarray(app_elevation, dtype=np.float64))
     return torch.as_tensor(az_paint), torch.as_tensor(el)
 
 

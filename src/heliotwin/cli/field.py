@@ -145,7 +145,7 @@ def cmd_field(args) -> int:
         bar.start("efficiency table over the year" if args.year is not None else "field model")
         if args.year is not None:
             from ..io.weather import read_dni_series  # pandas and pvlib: only for a year
-            from ..workflows.field import field_year
+            from ..workflows.field_year import field_year
 
             weather = read_dni_series(args.weather) if getattr(args, "weather", None) else None
             report = field_year(sc, args.year, args.every, azimuth_step_deg=args.table_azimuth_step, weather=weather)

@@ -1,11 +1,13 @@
-"""The ``field`` workflow: a plant's optical efficiency at one sun, or over a year, and the sun positions asked for.
+"""The ``field`` workflow at one sun, and the sun positions asked for.
 
 :func:`field` runs the field model (:func:`heliotwin.raytrace.field.field_optics`, optionally sharded over
 local processes) on a scenario's plant at one sun, with equator aiming or the scenario's stored aim points
-(:func:`heliotwin.optimise.aimstate.stored_aimpoints`); :func:`field_year` tabulates the efficiency over sun
-positions and integrates the clear-sky annual optical energy. Neither learns anything, so neither returns a
-new scenario. :func:`sun_direction_at` and :func:`sun_instants` turn the user's times or angles into sun
-directions (the ``field`` and ``aimpoints`` commands' ``--time``, ``--day``, ``--sun-azimuth``).
+(:func:`heliotwin.optimise.aimstate.stored_aimpoints`); it lives in :mod:`heliotwin.workflows.field_one_sun`
+(no ephemeris, no pandas) and is re-exported here. :func:`sun_direction_at` and :func:`sun_instants` turn the
+user's times or angles into sun directions (the ``field`` and ``aimpoints`` commands' ``--time``, ``--day``,
+``--sun-azimuth``). The year (``field --year``: the efficiency table over sun positions and the clear-sky
+annual optical energy) is :mod:`heliotwin.workflows.field_year`. Nothing here learns anything, so nothing
+returns a new scenario.
 
 Four heliostats of the demo plant under a southern sun, a coarse receiver map; the power-weighted factors
 chain to the field's efficiency, receiver power over DNI times mirror area:
@@ -26,20 +28,13 @@ True
 from __future__ import annotations
 
 import math
-import os
 import re
-import time
 
-import numpy as np
 import pandas as pd
 import torch
 
-from ..atmosphere import Atmosphere
 from ..errors import HeliotwinError
-from ..field.facets import surface_points
-from ..io.weather import weather_for_year
-from ..raytrace.yearly import DEFAULT_ELEVATIONS_DEG, annual_energy, efficiency_table, interpolate_efficiency
-from ..sun import direction_from_time, solar_position
+from ..sun import direction_from_time
 from .field_one_sun import (
     MAX_DNI,
     MAX_MAP_CELLS,
@@ -52,7 +47,7 @@ from .field_one_sun import (
     sun_from_angles,
 )
 
-__all__ = ["FieldRunSettings", "field", "field_year", "flux_map_fields", "sun_direction_at", "sun_from_angles",
+__all__ = ["FieldRunSettings", "field", "flux_map_fields", "sun_direction_at", "sun_from_angles",
            "sun_instants", "check_irradiance", "check_map_resolution", "check_sun_angles", "MAX_MAP_CELLS", "MAX_DNI"]
 
 
@@ -169,96 +164,3 @@ def sun_instants(plant, *, times: str | None = None, day: str | None = None, eve
         return out
     return [(f"azimuth {azimuth_deg} deg, elevation {elevation_deg} deg",
              sun_direction_at(plant, azimuth_deg=azimuth_deg, elevation_deg=elevation_deg))]
-
-
-def weather_energy(plant, series, table: dict, year: int | None = None) -> dict:
-    """Optical energy on the receiver under a DNI time series (:func:`heliotwin.io.weather.read_dni_series`).
-
-    The series is placed in ``year`` by :func:`heliotwin.io.weather.weather_for_year` (the one rule of every
-    ``--weather``: its rows in that year, or a typical year moved into it; gaps, repeats and the coverage
-    stated). Every row with the sun up contributes ``DNI x mirror area x efficiency(sun) x its hours``
-    (efficiency interpolated in ``table``, :func:`heliotwin.raytrace.yearly.interpolate_efficiency`).
-
-    Returns
-    -------
-    dict
-        ``optical_energy_mwh`` and ``dni_energy_on_mirrors_mwh`` over the hours the file covers, the same as
-        ``annual_optical_energy_mwh`` / ``annual_dni_energy_on_mirrors_mwh`` when it covers the year (else
-        those are None), ``annual``, ``coverage``, ``assumptions``, ``mean_efficiency`` (DNI-weighted),
-        ``instants`` (sun up), ``step_hours``, ``dni_source`` (file, kind, rows used and not, year moved),
-        ``mirror_area_m2``, ``table``.
-    """
-    if year is None:  # the file's own (middle) year
-        year = int(series.times.year[len(series.times) // 2])
-    wy = weather_for_year(series, int(year))
-    s = plant.site
-    az, el = solar_position(wy.times, s.latitude_deg, s.longitude_deg, s.altitude_m)
-    up = (el > 0).numpy()
-    eta = interpolate_efficiency(table, az[up], el[up]).numpy()
-    area = _mirror_area(plant)
-    e_mirror = float((wy.dni[up] * area * wy.hours[up]).sum()) / 1e6
-    e_rx = float((wy.dni[up] * area * eta * wy.hours[up]).sum()) / 1e6
-    if e_mirror <= 0.0:
-        raise HeliotwinError(f"{os.path.basename(series.path)}: no direct sun in {year} while the sun is up (every "
-                             "daytime DNI is 0): no energy to report")
-    return {"year": int(year), "instants": int(up.sum()), "step_hours": wy.step_hours,
-            "mirror_area_m2": area, "optical_energy_mwh": e_rx, "dni_energy_on_mirrors_mwh": e_mirror,
-            "annual": wy.annual, "annual_dni_energy_on_mirrors_mwh": e_mirror if wy.annual else None,
-            "annual_optical_energy_mwh": e_rx if wy.annual else None, "mean_efficiency": e_rx / e_mirror,
-            "coverage": wy.coverage, "assumptions": wy.assumptions,
-            "dni_source": {**wy.source, "file": os.path.abspath(series.path), "rows_dropped": series.dropped},
-            "table": {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in table.items()}}
-
-
-def _mirror_area(plant) -> float:
-    """Total mirror area [m^2]: the sampled facet areas, as the field model and the clear-sky energy use them."""
-    return float(surface_points(plant.field.surfaces, (4, 4))[2].sum())
-
-
-def field_year(scenario, year: int, every: str = "1h", *, azimuth_step_deg: float = 15.0, weather=None) -> dict:
-    """The efficiency table over sun positions and the clear-sky annual optical energy (equator aiming).
-
-    Parameters
-    ----------
-    scenario : heliotwin.io.scenario.Scenario
-    year : int
-    every : str
-        pandas frequency of the instants (``"1h"``, ``"30min"``).
-    azimuth_step_deg : float
-        Azimuth step [deg] of the efficiency table, in (0, 180].
-    weather : heliotwin.io.weather.DniSeries, optional
-        Measured or typical-year DNI (``field --weather CSV``) instead of pvlib's clear sky
-        (:func:`weather_energy`; ``every`` is then the file's own step).
-
-    Returns
-    -------
-    dict
-        :func:`heliotwin.raytrace.yearly.annual_energy`'s (or :func:`weather_energy`'s) report plus
-        ``scenario``, ``aim``, ``dni_model`` and ``seconds`` [s].
-    """
-    t0 = time.perf_counter()
-    if isinstance(year, bool) or not isinstance(year, int) or not 1900 <= year <= 2100:
-        raise HeliotwinError(f"--year: expected a year in 1900..2100, got {year!r}")
-    step = _step(every)
-    if step > pd.Timedelta("366D"):
-        raise HeliotwinError(f"--every {_text(step)}: longer than the year")
-    if step % pd.Timedelta("1D") == pd.Timedelta(0):
-        raise HeliotwinError(f"--every {_text(step)}: a whole number of days puts every instant at the same time "
-                             "of day (e.g. all at night); use hours or minutes (1h, 30min, 25h)")
-    atm = Atmosphere.from_extras(scenario.extras)
-    az_step = float(azimuth_step_deg)
-    if not 0 < az_step <= 180:
-        raise HeliotwinError(f"--table-azimuth-step: expected (0, 180] deg, got {az_step}")
-    table = efficiency_table(scenario.plant, atmosphere=atm, azimuths_deg=np.arange(-180.0, 180.0, az_step),
-                             elevations_deg=DEFAULT_ELEVATIONS_DEG)
-    if weather is not None:
-        report = weather_energy(scenario.plant, weather, table, year)
-        dni_model = f"measured/typical-year DNI from {os.path.basename(weather.path)} ({weather.kind})"
-    else:
-        report = annual_energy(scenario.plant, year, _day_unit(every), atmosphere=atm, table=table)
-        dni_model = "pvlib ineichen clear sky"
-    if not report.get("instants"):
-        raise HeliotwinError(f"--year {year} --every {every}: no instant with the sun above the horizon")
-    report.update({"scenario": os.path.abspath(scenario.path) if scenario.path else None, "aim": "equator",
-                   "dni_model": dni_model, "seconds": time.perf_counter() - t0})
-    return report
