@@ -253,9 +253,7 @@ def smooth(nominal, batch: RecordTable, delta: torch.Tensor, q: float, noise: fl
     back = mean
     for k in range(n - 2, -1, -1):  # RTS: m_k + C_k (m_{k+1}^s - m_{k+1}^-), C_k = P_k^+ (P_{k+1}^-)^-1
         pred = f["predicted"][:, k + 1]
-        ok = torch.linalg.det(pred).abs() > 0
-        c = f["filtered"][:, k] @ torch.linalg.pinv(pred)
-        c = torch.where(ok[:, None, None], c, torch.zeros_like(c))
+        c = f["filtered"][:, k] @ torch.linalg.pinv(pred)  # a singular (zero) prediction: pinv 0, no smoothing
         back = means[:, k] + c @ (back - means[:, k])  # the walk's prediction is the filtered mean itself
         smoothed_pad[:, k] = back
     smoothed = torch.zeros(len(batch), nb, dtype=torch.float64, device=dev)

@@ -330,12 +330,14 @@ _HELD_OUT_KEYS = ("test", "nominal_test", "mean_test_mrad", "median_test_mrad", 
                   "interval_90_coverage", "expected_test_mrad", "interval_90_mrad")
 
 
-def with_expected_error(report: dict, validation: dict) -> dict:
+def with_expected_error(report: dict, validation: dict, interval: dict | None = None) -> dict:
     """The report of a ``current`` run (every record fitted, nothing held out) with the expected error of the
     plant it wrote, from the validation run inside its records (``validation``: the report of the same
     calibration on each heliostat's earlier records, tested on its latest ones). The headline keys
     (``overall.median_of_mean_test_mrad``, each heliostat's ``mean_test_mrad``) are that expected error;
-    ``expected_error`` says how it was measured; ``written_plant`` what the plant saw."""
+    ``expected_error`` says how it was measured; ``written_plant`` what the plant saw. ``interval``: the
+    interval calibrated on those held-out records (``selection.choose_interval``'s ``coverage`` and
+    ``uncalibrated_coverage``), the one the plant carries; without it the validation's own coverage."""
     v_overall = validation.get("overall") or {}
     holdout = (validation.get("config") or {}).get("test")
     out = dict(report)
@@ -361,6 +363,10 @@ def with_expected_error(report: dict, validation: dict) -> dict:
         "p95_of_mean_mrad": _quantile([e.get("mean_test_mrad") for e in heliostats.values()], 0.95),
         "interval_90_coverage": v_overall.get("interval_90_coverage"),
         "heliostats_validated": v_overall.get("n_heliostats")}
+    if interval is not None:
+        out["expected_error"].update(interval_90_coverage=interval["coverage"],
+                                     interval_90_coverage_uncalibrated=interval["uncalibrated_coverage"])
+        out["overall"]["interval_90_coverage"] = interval["coverage"]
     fitted = sum(int((e.get("split") or {}).get("train", 0)) for e in report["heliostats"].values()
                  if e.get("status") == "ok")
     out["written_plant"] = {"records": "every usable record of each calibrated heliostat", "records_fitted": fitted}
@@ -440,14 +446,10 @@ def calibrate(scenario, records_or_paint, settings: CalibrationSettings = Calibr
     report, model, arrays = _run(cfg, dataset, settings.nproc, device, progress, checkpoint)
     seen = seen_records(arrays)  # what the written plant saw (the update treats every other record as new)
     if validation is not None:
-        report, arrays = with_expected_error(report, validation[0]), validation[2]
+        report = with_expected_error(report, validation[0], (choice or {}).get("interval"))
+        arrays = validation[2]
         if choice is not None:
             report["current_settings_choice"] = choice
-            if "interval" in choice:  # the interval the plant carries: calibrated on those held-out records
-                report["expected_error"]["interval_90_coverage"] = choice["interval"]["coverage"]
-                report["expected_error"]["interval_90_coverage_uncalibrated"] = choice["interval"][
-                    "uncalibrated_coverage"]
-                report["overall"]["interval_90_coverage"] = choice["interval"]["coverage"]
     else:
         report["written_plant"] = {"records": f"the training part of the {cfg.split} split only",
                                    "note": "a study protocol: the plant written saw only its training records; "
