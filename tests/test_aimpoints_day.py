@@ -133,3 +133,16 @@ def test_a_day_without_daylight_is_one_line(tmp_path, capsys):
                            "--peak-limit", 1e5, "-o", out, "--json", js)
     assert_one_line_error(code, err, "--day")
     assert not js.exists() and not out.exists()
+
+
+def test_day_steps_in_days_parse_without_pandas_deprecation_warning():
+    """``--every 1d`` (pandas deprecates the lower-case day unit): the same step as ``1D``, no FutureWarning."""
+    import warnings
+
+    from heliotwin.workflows.field import _step
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _step("1d") == _step("1D") == pd.Timedelta(days=1)
+        assert _step("1d12h") == pd.Timedelta(hours=36)
+        assert _step("2 days") == pd.Timedelta(days=2)
