@@ -375,7 +375,8 @@ def mirror_blocks(points: torch.Tensor, normals: torch.Tensor, facets: int, per_
                   block: int = 4) -> MirrorBlocks:
     """Group the samples of :func:`heliotwin.field.facets.surface_points` (``facets`` facets, ``per_direction``
     samples per facet and direction, index ``f*S^2 + i*S + j``) in ``b`` x ``b`` blocks, ``b`` the divisor of
-    ``per_direction`` nearest ``block``; ``points``, ``normals`` [H, N, 3] in the heliostat frame."""
+    ``per_direction`` nearest ``block``; ``points`` [H, N, 3] [m] and unit ``normals`` [H, N, 3] [1] in the
+    heliostat frame."""
     f64 = torch.float64
     h, n = points.shape[:2]
     s = int(per_direction)
