@@ -431,7 +431,7 @@ def test_a_limit_no_full_field_can_hold_is_held_with_heliostats_on_standby(work,
 
 # -------------------------------------------------------------------------------------------- workers
 def test_nproc_above_the_heliostat_count_is_clamped(work, monkeypatch):
-    import heliotwin.workflows.field as wf
+    import heliotwin.workflows.field_one_sun as wf  # where the field workflow (and its run_sharded) lives
     from heliotwin.io.scenario import load_scenario
 
     used = []
@@ -443,8 +443,7 @@ def test_nproc_above_the_heliostat_count_is_clamped(work, monkeypatch):
 
     monkeypatch.setattr(wf, "run_sharded", fake)
     sc = load_scenario(work / "p.h5")
-    report, _ = wf.field(sc, wf.sun_direction_at(sc.plant, azimuth_deg=10.0, elevation_deg=40.0),
-                         wf.FieldRunSettings(resolution=(4, 8), nproc=50))
+    report, _ = wf.field(sc, wf.sun_from_angles(10.0, 40.0), wf.FieldRunSettings(resolution=(4, 8), nproc=50))
     assert used == [6]
     assert 0 < report["field"]["efficiency"]["total"] < 1
 
