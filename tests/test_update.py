@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import inspect
 import math
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -13,16 +14,20 @@ from helpers.learned import calibrated_scenario_of
 
 from heliotwin.calibrate import priors
 from heliotwin.calibrate.assimilate import (
+    FALSE_ALARM_RATE,
+    FALSE_ALARMS_PER_HELIOSTAT_YEAR,
     AssimilationOptions,
     FilterState,
     alarm_threshold,
     assimilate,
+    false_alarm_rate_for,
     kalman_update,
     leave_one_out_d2,
 )
 from heliotwin.calibrate.methods.lm import laplace
 from heliotwin.calibrate.params import STONE8, apply_deviations
 from heliotwin.calibrate.scenario import aim, calibrated_scenario
+from heliotwin.calibrate.twinstate import records_per_heliostat_year
 from heliotwin.io.records import RecordTable
 from heliotwin.io.scenario import load_scenario, write_scenario
 from heliotwin.workflows.update import UpdateSettings, state_history, update
@@ -58,6 +63,26 @@ def test_the_chi_square_threshold_and_its_validation_scale():
     assert alarm_threshold(1e-3, chi2)["kappa"] == pytest.approx(1.0, abs=0.08)  # Gaussian residuals: chi-square
     wide = alarm_threshold(1e-3, 4.0 * chi2)  # residuals twice as wide: a threshold four times higher
     assert wide["kappa"] == pytest.approx(4.0, rel=0.08)
+
+
+def test_the_default_rate_spends_a_budget_per_heliostat_year_at_the_plants_record_rate():
+    """A plant that records daily gets a ten times smaller per-record rate than one recording every ten days:
+    the same false alarms per heliostat-year (the operator's budget), not ten times more."""
+    def table(every_days: float, years: float = 2.0, heliostats: int = 5):
+        n = int(years * 365.25 / every_days)
+        t = 1.6e9 + torch.arange(n, dtype=F64).repeat(heliostats) * every_days * DAY
+        t[3] = float("nan")  # an untimed record does not count
+        return SimpleNamespace(time=t, heliostat_index=torch.arange(heliostats).repeat_interleave(n))
+
+    rates = {}
+    for every in (1.0, 10.0):
+        per_year = records_per_heliostat_year(table(every))
+        assert per_year == pytest.approx(365.25 / every, rel=0.02)
+        rates[every] = false_alarm_rate_for(per_year)
+        assert rates[every] * per_year == pytest.approx(FALSE_ALARMS_PER_HELIOSTAT_YEAR, rel=1e-9)
+    assert rates[10.0] == pytest.approx(10 * rates[1.0], rel=0.02)
+    assert false_alarm_rate_for(float("nan")) == FALSE_ALARM_RATE  # unknown record rate: the per-record default
+    assert false_alarm_rate_for(0.5) == 1e-2  # within FALSE_ALARM_RATE_RANGE
 
 
 def _calibrated(h: int, n_train: int = 30, noise: float = 5e-4, seed: int = 0):

@@ -63,8 +63,17 @@ _DAY = 86400.0
 #: chi-square (2 dof) quantile above which a record is down-weighted (Huber): 95 %.
 HUBER_D2 = -2.0 * math.log(0.05)
 
-#: Default false-alarm rate per clean record of the step alarm.
+#: False-alarm rate per clean record of the step alarm when a plant's record rate is unknown.
 FALSE_ALARM_RATE = 1e-3
+
+#: False step alarms per heliostat-year the default threshold spends (:func:`false_alarm_rate_for`): an operator
+#: budget is per heliostat and year, not per record -- a plant that calibrates daily would get 10x the alarms of
+#: one that calibrates every ten days at the same per-record rate. Half of the 0.1 an operator accepts (issue
+#: "A plant's day"), since real residuals' tails are heavier than the model's.
+FALSE_ALARMS_PER_HELIOSTAT_YEAR = 0.05
+
+#: Range of the per-record rate derived from that budget [1].
+FALSE_ALARM_RATE_RANGE = (1e-4, 1e-2)
 
 #: Smallest re-opening of the drifting columns at an alarm [rad] (per column, standard deviation).
 REOPEN = 2e-3
@@ -208,6 +217,18 @@ def kalman_update(mean: torch.Tensor, cov: torch.Tensor, z: torch.Tensor, h: tor
     new_cov = a @ cov @ a.transpose(1, 2) + noise_var[:, None, None] * gain @ gain.transpose(1, 2)
     new_cov = 0.5 * (new_cov + new_cov.transpose(1, 2))
     return mean + (gain @ z[:, :, None])[..., 0], new_cov, d2
+
+
+def false_alarm_rate_for(records_per_heliostat_year: float,
+                         budget: float = FALSE_ALARMS_PER_HELIOSTAT_YEAR) -> float:
+    """The per-record false-alarm rate [1] that spends ``budget`` false alarms per heliostat-year at a plant's
+    record rate (``records_per_heliostat_year`` [1/year]), within :data:`FALSE_ALARM_RATE_RANGE`;
+    :data:`FALSE_ALARM_RATE` when the record rate is unknown (NaN, not positive)."""
+    r = float(records_per_heliostat_year)
+    if not math.isfinite(r) or r <= 0.0:
+        return FALSE_ALARM_RATE
+    lo, hi = FALSE_ALARM_RATE_RANGE
+    return min(max(float(budget) / r, lo), hi)
 
 
 def alarm_threshold(false_alarm_rate: float = FALSE_ALARM_RATE, validation_d2: torch.Tensor | None = None,

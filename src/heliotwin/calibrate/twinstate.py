@@ -29,7 +29,15 @@ from ..errors import HeliotwinError, InputFileError
 from ..field.plant import Kinematics
 from ..io.records import RecordTable
 from ..io.scenario import Scenario, load_scenario
-from .assimilate import FALSE_ALARM_RATE, WINDOW, FilterState, alarm_threshold, choose_process_noise, leave_one_out_d2
+from .assimilate import (
+    FALSE_ALARMS_PER_HELIOSTAT_YEAR,
+    WINDOW,
+    FilterState,
+    alarm_threshold,
+    choose_process_noise,
+    false_alarm_rate_for,
+    leave_one_out_d2,
+)
 from .drift import BASES, DRIFT_NAMES, smooth, with_offset
 from .inputs import FIT_FOCAL_SPOT, NOISE, fit_spots
 from .params import STONE8, check_names
@@ -290,7 +298,43 @@ def on_axis(table: RecordTable, ids: list) -> RecordTable:
     return out
 
 
-def alarm_threshold_choice(scenario: Scenario, records: RecordTable, false_alarm_rate: float = FALSE_ALARM_RATE,
+def records_per_heliostat_year(table: RecordTable) -> float:
+    """A plant's calibration record rate [1/year]: the median over heliostats (those with >= 2 timed records
+    spanning >= 30 days) of their records per year of span; NaN when no heliostat qualifies."""
+    t = _with_time(table).cpu().numpy()
+    h = table.heliostat_index.cpu().numpy()
+    ok = np.isfinite(t)
+    t, h = t[ok], h[ok]
+    if not len(t):
+        return float("nan")
+    n_h = int(h.max()) + 1
+    n = np.bincount(h, minlength=n_h)
+    lo, hi = np.full(n_h, np.inf), np.full(n_h, -np.inf)
+    np.minimum.at(lo, h, t)
+    np.maximum.at(hi, h, t)
+    span = (hi - lo) / (365.25 * 86400.0)
+    use = (n >= 2) & (span >= 30.0 / 365.25)
+    return float(np.median((n[use] - 1) / span[use])) if use.any() else float("nan")
+
+
+def _rate_of(false_alarm_rate: float | None, seen: RecordTable) -> dict:
+    """The per-record rate in force and where it came from: given, or from the operator's budget per
+    heliostat-year at the plant's record rate on ``seen`` (:func:`records_per_heliostat_year`)."""
+    rate_per_year = records_per_heliostat_year(seen) if len(seen) else float("nan")
+    if false_alarm_rate is None:
+        false_alarm_rate = false_alarm_rate_for(rate_per_year)
+        rule = (f"{FALSE_ALARMS_PER_HELIOSTAT_YEAR} false alarms per heliostat-year at the plant's record rate "
+                "(median over heliostats)")
+    else:
+        rule = "given per record"
+    out = {"false_alarm_rate": float(false_alarm_rate), "rate_rule": rule}
+    if math.isfinite(rate_per_year):
+        out.update(records_per_heliostat_year=rate_per_year,
+                   false_alarms_per_heliostat_year=float(false_alarm_rate) * rate_per_year)
+    return out
+
+
+def alarm_threshold_choice(scenario: Scenario, records: RecordTable, false_alarm_rate: float | None = None,
                            window: int = WINDOW) -> dict | None:
     """The step-alarm threshold of ``scenario``'s rigid-body calibration, chosen on the records it saw
     (:func:`~heliotwin.calibrate.assimilate.alarm_threshold` of the target ``false_alarm_rate`` per record,
@@ -301,16 +345,18 @@ def alarm_threshold_choice(scenario: Scenario, records: RecordTable, false_alarm
     ----------
     records : RecordTable
         Records of the plant (any heliostat ids); only those the calibration lists as seen are used.
-    false_alarm_rate : float
-        Target share of clean records that raise an alarm [1].
+    false_alarm_rate : float, optional
+        Target share of clean records that raise an alarm [1]; None (default): the one that spends
+        :data:`~heliotwin.calibrate.assimilate.FALSE_ALARMS_PER_HELIOSTAT_YEAR` at the plant's own record rate.
     window : int
         Step tests per record [1].
 
     Returns
     -------
     dict or None
-        ``threshold`` (d^2), ``kappa``, ``false_alarm_rate``, ``tests``, ``validation_records``, ``method``;
-        None for a calibration without a rigid-body posterior (nothing to update).
+        ``threshold`` (d^2), ``kappa``, ``false_alarm_rate``, ``tests``, ``validation_records``, ``method``,
+        ``rate_rule``, ``records_per_heliostat_year`` and ``false_alarms_per_heliostat_year`` (when the record
+        rate is known); None for a calibration without a rigid-body posterior (nothing to update).
     """
     cal = scenario.learned.get(KEY)
     if not isinstance(cal, dict) or cal.get("networks") or not cal.get("posterior"):
@@ -326,7 +372,8 @@ def alarm_threshold_choice(scenario: Scenario, records: RecordTable, false_alarm
     seen_table = table.subset(rows)
     d2 = leave_one_out_d2(nominal, seen_table, state, _judged_at(cal, names, nominal, seen_table, scenario.path)) \
         if bool(rows.any()) else None
-    made = alarm_threshold(false_alarm_rate, d2, tests=window)
+    rate = _rate_of(false_alarm_rate, seen_table)
+    made = {**rate, **alarm_threshold(rate["false_alarm_rate"], d2, tests=window)}
     made["method"] = ("chi-square quantile of the false-alarm rate per step test, widened by the 90 % quantile of "
                       "the leave-one-out normalised residuals of the calibration's records (under a drift model, "
                       "each at the offset smoothed to its time)")
@@ -352,11 +399,11 @@ def _judged_at(cal: dict, names: tuple, nominal: Kinematics, records: RecordTabl
     return with_offset(static[records.heliostat_index], offset, basis)
 
 
-def with_alarm_threshold(scenario: Scenario, records: RecordTable, false_alarm_rate: float = FALSE_ALARM_RATE,
+def with_alarm_threshold(scenario: Scenario, records: RecordTable, false_alarm_rate: float | None = None,
                          window: int = WINDOW) -> tuple[Scenario, dict | None]:
-    """``scenario`` with :func:`alarm_threshold_choice` (``false_alarm_rate`` [1] per record, ``window`` [1]
-    step tests) stored under ``/learned/calibration/alarm_threshold`` (where every update reads it), and the
-    choice; unchanged (and None) when there is nothing to update."""
+    """``scenario`` with :func:`alarm_threshold_choice` (``false_alarm_rate`` [1] per record or None: from the
+    budget per heliostat-year, ``window`` [1] step tests) stored under ``/learned/calibration/alarm_threshold``
+    (where every update reads it), and the choice; unchanged (and None) when there is nothing to update."""
     made = alarm_threshold_choice(scenario, records, false_alarm_rate, window)
     if made is None:
         return scenario, None
@@ -364,7 +411,10 @@ def with_alarm_threshold(scenario: Scenario, records: RecordTable, false_alarm_r
     stored = {"threshold": torch.tensor([made["threshold"]], **f64), "kappa": torch.tensor([made["kappa"]], **f64),
               "false_alarm_rate": torch.tensor([made["false_alarm_rate"]], **f64),
               "tests": torch.tensor([made["tests"]]), "validation_records": torch.tensor([made["validation_records"]]),
-              "method": made["method"]}
+              "method": made["method"], "rate_rule": made["rate_rule"]}
+    for key in ("records_per_heliostat_year", "false_alarms_per_heliostat_year"):
+        if key in made:
+            stored[key] = torch.tensor([made[key]], **f64)
     cal = {**scenario.learned[KEY], THRESHOLD_KEY: stored}
     return replace(scenario, learned={**scenario.learned, KEY: cal}), made
 
@@ -373,9 +423,11 @@ def _first(value, default=None) -> float:
     return float(torch.as_tensor(value if value is not None else default).reshape(-1)[0])
 
 
-def _stored_threshold(assimilation: dict | None, cal: dict, false_alarm_rate: float, window: int) -> dict | None:
+def _stored_threshold(assimilation: dict | None, cal: dict, false_alarm_rate: float | None,
+                      window: int) -> dict | None:
     """The stored step-alarm threshold that applies (an earlier update's of the same calibration, else the one
-    ``calibrate`` stored for the same rate and window), or None."""
+    ``calibrate`` stored for the same window and the same rate, or any rate when ``false_alarm_rate`` is None:
+    the rate calibrate chose), or None."""
     if assimilation and "threshold" in assimilation:
         return {"threshold": _first(assimilation["threshold"]), "kappa": _first(assimilation.get("kappa"), 1.0),
                 "false_alarm_rate": _first(assimilation.get("false_alarm_rate"), 0.0), "stored": True,
@@ -383,32 +435,37 @@ def _stored_threshold(assimilation: dict | None, cal: dict, false_alarm_rate: fl
     chosen = cal.get(THRESHOLD_KEY)
     if isinstance(chosen, dict):
         rate, tests = _first(chosen["false_alarm_rate"]), int(_first(chosen["tests"]))
-        if math.isclose(rate, float(false_alarm_rate), rel_tol=1e-12) and tests == max(1, int(window)):
+        same_rate = false_alarm_rate is None or math.isclose(rate, float(false_alarm_rate), rel_tol=1e-12)
+        if same_rate and tests == max(1, int(window)):
+            extra = {k: _first(chosen[k]) for k in ("records_per_heliostat_year", "false_alarms_per_heliostat_year")
+                     if k in chosen}
             return {"threshold": _first(chosen["threshold"]), "kappa": _first(chosen["kappa"]),
                     "false_alarm_rate": rate, "tests": tests,
                     "validation_records": int(_first(chosen["validation_records"])), "stored": True,
-                    "source": "stored by calibrate (chosen on the records it saw)"}
+                    "source": "stored by calibrate (chosen on the records it saw)", **extra}
     return None
 
 
-def threshold_in_force(assimilation: dict | None, cal: dict, false_alarm_rate: float, window: int, nominal,
+def threshold_in_force(assimilation: dict | None, cal: dict, false_alarm_rate: float | None, window: int, nominal,
                        seen: RecordTable, state: FilterState) -> dict:
     """The step-alarm threshold an update applies: an earlier update's of the same calibration, else the one
-    ``calibrate`` stored for the same ``false_alarm_rate`` [1] and ``window`` [1] (:func:`with_alarm_threshold`),
-    else chosen now on ``seen`` (the seen records, fit centroids) under ``state`` (the fit's posterior).
+    ``calibrate`` stored for the same ``false_alarm_rate`` [1] (None: the rate it chose) and ``window`` [1]
+    (:func:`with_alarm_threshold`), else chosen now on ``seen`` (the seen records, fit centroids) under
+    ``state`` (the fit's posterior; None rate: from the budget per heliostat-year at ``seen``'s record rate).
     ``source`` says which."""
     stored = _stored_threshold(assimilation, cal, false_alarm_rate, window)
     if stored is not None:
         return stored
     d2 = leave_one_out_d2(nominal, seen, state) if len(seen) else None
-    return {**alarm_threshold(false_alarm_rate, d2, tests=window), "stored": False,
+    rate = _rate_of(false_alarm_rate, seen)
+    return {**rate, **alarm_threshold(rate["false_alarm_rate"], d2, tests=window), "stored": False,
             "source": "chosen now on the calibration's records"}
 
 
-def needs_seen_records(scenario: Scenario, cal: dict, q_given: float | None, false_alarm_rate: float,
+def needs_seen_records(scenario: Scenario, cal: dict, q_given: float | None, false_alarm_rate: float | None,
                        window: int) -> bool:
     """Whether an update of ``scenario`` needs the records its plant has already seen, or only the new ones
-    (``q_given`` [mrad^2/day] or None, ``false_alarm_rate`` per record [1], ``window`` in records [1]): it needs
+    (``q_given`` [mrad^2/day] or None, ``false_alarm_rate`` per record [1] or None, ``window`` in records [1]): it needs
     them while something it starts from is not stored yet -- the state's time per heliostat (stored
     with the drift state from the first update on), the process noise (:func:`process_noise_source`), the
     step-alarm threshold (:func:`threshold_in_force`). Every later update of a plant reads only new records."""

@@ -944,6 +944,9 @@ def _validate_learned_calibration(c: _LearnedCheck, cal) -> None:
         c.array(alarm, "tests", at, (1,), kind="int", low=1)
         c.array(alarm, "validation_records", at, (1,), kind="int", low=0)
         c.text(alarm, "method", at)
+        c.text(alarm, "rate_rule", at, required=False)
+        c.array(alarm, "records_per_heliostat_year", at, (1,), required=False, low=0.0)
+        c.array(alarm, "false_alarms_per_heliostat_year", at, (1,), required=False, low=0.0)
     nets = c.group(cal, "networks", where, required=False)
     for hid, net in (nets or {}).items():
         at = f"{where}/networks/{hid}"

@@ -23,8 +23,9 @@ overwritten, and the write is atomic.
   predicted by the walk run through its earlier ones) by ``calibrate`` or, when it did not, by the first
   update given those records, and stored under ``/learned/calibration/process_noise_choice`` with how it was
   chosen; later updates read it. :data:`DEFAULT_PROCESS_NOISE` only when neither had the records.
-* The step-alarm threshold: chosen by ``calibrate`` from the target false-alarm rate and the normalised
-  leave-one-out residuals of the records it saw, and stored with the calibration
+* The step-alarm threshold: chosen by ``calibrate`` from the target false-alarm rate (by default the one that
+  spends :data:`~heliotwin.calibrate.assimilate.FALSE_ALARMS_PER_HELIOSTAT_YEAR` at the plant's own record
+  rate) and the normalised leave-one-out residuals of the records it saw, and stored with the calibration
   (:func:`~heliotwin.calibrate.twinstate.with_alarm_threshold`); an update reads it (it is chosen at the first
   update only for a plant calibrated before it was stored, or for another false-alarm rate or window).
 * ``/learned/assimilation`` keeps the threshold in force and every update's per-record history
@@ -44,7 +45,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 import torch
 
-from ..calibrate.assimilate import FALSE_ALARM_RATE, REOPEN, WINDOW, AssimilationOptions, assimilate
+from ..calibrate.assimilate import REOPEN, WINDOW, AssimilationOptions, assimilate
 from ..calibrate.inputs import FIT_FOCAL_SPOT, fit_spots
 from ..calibrate.params import apply_deviations
 from ..calibrate.twinstate import (
@@ -90,9 +91,10 @@ class UpdateSettings:
 
     Attributes
     ----------
-    false_alarm_rate : float
-        Target share of clean records that raise a step alarm (chooses the threshold at the first update;
-        later updates keep the stored one).
+    false_alarm_rate : float, optional
+        Target share of clean records that raise a step alarm [1]; None (default): the threshold ``calibrate``
+        stored (its rate spends :data:`~heliotwin.calibrate.assimilate.FALSE_ALARMS_PER_HELIOSTAT_YEAR` at the
+        plant's record rate). Later updates keep the threshold in force.
     process_noise : str or float
         ``"stored"``: the calibration's random-walk q, else the one chosen on its records (module docstring;
         :data:`DEFAULT_PROCESS_NOISE` when neither exists), or a number >= 0 [mrad^2/day].
@@ -111,7 +113,7 @@ class UpdateSettings:
         Largest distance [m] of a focal spot from its target plane.
     """
 
-    false_alarm_rate: float = FALSE_ALARM_RATE
+    false_alarm_rate: float | None = None
     process_noise: str | float = "stored"
     reopen_mrad: float = 1e3 * REOPEN
     iterations: int = 2
@@ -144,7 +146,7 @@ class Update:
 
 
 def _check_settings(s: UpdateSettings) -> float | None:
-    if not (0.0 < float(s.false_alarm_rate) < 1.0):
+    if s.false_alarm_rate is not None and not (0.0 < float(s.false_alarm_rate) < 1.0):
         raise HeliotwinError(f"--false-alarm-rate must be in (0, 1), got {s.false_alarm_rate}")
     if not (math.isfinite(s.reopen_mrad) and s.reopen_mrad >= 0):
         raise HeliotwinError(f"--reopen-mrad must be a number >= 0, got {s.reopen_mrad}")
