@@ -191,21 +191,27 @@ def evaluate(plant: Plant, sun: torch.Tensor, aim: torch.Tensor, atmosphere=None
 
 
 # ------------------------------------------------------------------------------------------ image model
-def _axis_profile(t: torch.Tensor, box: torch.Tensor, sd: torch.Tensor):
+def _axis_profile(t: torch.Tensor, box: torch.Tensor, sd: torch.Tensor, consts=None):
     """CDF and density at ``t`` (offsets from the centre [m], [h, ...]) of a uniform box of half-width ``box``
     convolved with a Gaussian of standard deviation ``sd`` ([h, 1, ...] each, [m]).
 
     CDF ``(G(t + b) - G(t - b)) / 2b`` with ``G(u) = u Phi(u / s) + s phi(u / s)`` (the integral of the Gaussian
-    CDF) [1]; density ``(Phi((t + b) / s) - Phi((t - b) / s)) / 2b`` [1/m] (the same two erfs).
+    CDF) [1]; density ``(Phi((t + b) / s) - Phi((t - b) / s)) / 2b`` [1/m] (the same two erfs). ``consts``:
+    :func:`_profile_consts` of ``box``, ``sd`` when the caller keeps them (the same numbers).
     """
+    s2, k, two_b = _profile_consts(box, sd) if consts is None else consts
     up, lo = t + box, t - box
-    e_up, e_lo = torch.erf(up / (_SQ2 * sd)), torch.erf(lo / (_SQ2 * sd))
-    k = sd / math.sqrt(2.0 * math.pi)
+    e_up, e_lo = torch.erf(up / s2), torch.erf(lo / s2)
     # exponents capped at -50 (e^-50 ~ 2e-22): beyond, exp runs through subnormal floats (float32 below
     # e^-87), which a CPU computes ~5x slower, for terms that cancel in the difference anyway
     g_up = up * 0.5 * (1.0 + e_up) + k * torch.exp(-0.5 * ((up / sd) ** 2).clamp_max(100.0))
     g_lo = lo * 0.5 * (1.0 + e_lo) + k * torch.exp(-0.5 * ((lo / sd) ** 2).clamp_max(100.0))
-    return (g_up - g_lo) / (2.0 * box), 0.25 * (e_up - e_lo) / box
+    return (g_up - g_lo) / two_b, 0.25 * (e_up - e_lo) / box
+
+
+def _profile_consts(box: torch.Tensor, sd: torch.Tensor):
+    """``(sqrt(2) sd, sd / sqrt(2 pi), 2 box)`` [m] of :func:`_axis_profile` ([h, 1, ...] each)."""
+    return _SQ2 * sd, sd / math.sqrt(2.0 * math.pi), 2.0 * box
 
 
 @dataclass
@@ -250,6 +256,25 @@ class ImageModel:
         g = (s * s - b * b / 3.0).clamp_min(1e-12).sqrt()
         return b.clamp_min(1e-3 * g), g
 
+    def _axis(self, axis: int, dt):
+        """Box half-widths and Gaussian sds [h, 1] in ``dt`` along ``axis`` and their :func:`_profile_consts`:
+        the same every step of a round, so kept (keyed by the very tensors, not a dataclass field: a replaced
+        or reassigned ``sx`` ... starts afresh) unless they need a gradient."""
+        s, b = (self.sx, self.bx) if axis == 0 else (self.sy, self.by)
+        key = (axis, dt, id(s), s._version, None if b is None else (id(b), b._version))
+        cache = self.__dict__.setdefault("_axis_cache", {})
+        hit = cache.get(key)
+        if hit is not None and hit[0] is s and hit[1] is b:
+            return hit[2]
+        box, sd = self._profile(axis)
+        box, sd = box[:, None].to(dt), sd[:, None].to(dt)
+        out = (box, sd, _profile_consts(box, sd))
+        if not (torch.is_grad_enabled() and (s.requires_grad or (b is not None and b.requires_grad))):
+            if len(cache) >= 8:  # reassigned spreads: drop the old ones
+                cache.clear()
+            cache[key] = (s, b, out)
+        return out
+
     def _tx(self, x: torch.Tensor) -> torch.Tensor:
         """Column edges minus each centre [h, cols + 1] [m]; on a closed map wrapped into ``[-period/2,
         period/2)`` (each edge's offset from the copy of the image nearest to it)."""
@@ -270,11 +295,9 @@ class ImageModel:
         evaluated in ``profile_dtype`` (element-wise), the masses returned in the centres' precision.
         """
         tx, ty = self._tx(x), self.y_edges[None, :] - y[:, None]
-        bx, sx = self._profile(0)
-        by, sy = self._profile(1)
         dt = self.profile_dtype or tx.dtype
-        cx, px = (v.to(tx.dtype) for v in _axis_profile(tx.to(dt), bx[:, None].to(dt), sx[:, None].to(dt)))
-        cy, py = (v.to(ty.dtype) for v in _axis_profile(ty.to(dt), by[:, None].to(dt), sy[:, None].to(dt)))
+        cx, px = (v.to(tx.dtype) for v in _axis_profile(tx.to(dt), *self._axis(0, dt)))
+        cy, py = (v.to(ty.dtype) for v in _axis_profile(ty.to(dt), *self._axis(1, dt)))
         gx = cx[:, 1:] - cx[:, :-1]
         if self.period > 0.0:
             gx = gx + (tx[:, 1:] < tx[:, :-1]).to(gx)
