@@ -214,3 +214,30 @@ def test_the_walk_learns_the_records_noise_not_the_static_residuals():
     torch.testing.assert_close(state["offset"], ref["offset"], rtol=1e-9, atol=1e-12)
     torch.testing.assert_close(state["covariance"], ref["covariance"] * (state["noise"] / 1e-3) ** 2,
                                rtol=1e-9, atol=1e-18)
+
+
+def test_after_a_walk_calibration_a_step_alarms_and_clean_records_do_not(tmp_path):
+    """The update's innovations are normalised by the walk's learned noise: a 3 mrad step of one heliostat's
+    axis offsets alarms at its first new record, the five unstepped heliostats' records do not (with the static
+    residuals' noise, 2-3x wider here, the step's d^2 of ~26 would be ~4, far below the threshold of 16)."""
+    from heliotwin.workflows.update import update
+
+    h, n = 6, 60
+    kin, batch, walk = walk_records(h=h, n=n, q_mrad2=0.05)
+    model = _fit(kin, batch, drift_model="kalman", process_noise=0.05)
+    sc = scenario_round_trip(tmp_path, kin, model)
+    step = torch.tensor([2.4e-3, -1.8e-3], dtype=F64)
+    parts = []
+    for k in range(3):  # three records per heliostat, DAYS apart after the last training record
+        d = torch.tensor([[TRUE[name] for name in STONE8]] * h, dtype=F64)
+        d[:, :2] += walk[-1]
+        d[2, :2] += step
+        rec = simulate(apply_deviations(kin, d, STONE8), 1, 900 + k, noise=2e-4)
+        rec.time = torch.full((h,), 1.6e9 + (n + k) * DAYS * 86400.0, dtype=F64)
+        parts.append(rec)
+    new = RecordTable.concatenate(parts)
+    new.heliostat_ids = list(batch.heliostat_ids)
+    new.record_id = 10 ** 6 + torch.arange(len(new))
+    result = update(sc, new)
+    alarmed = {a["heliostat"] for a in result.report["alarms"]}
+    assert alarmed == {batch.heliostat_ids[2]}, result.report["alarms"]
