@@ -174,7 +174,7 @@ import torch
 from heliotwin.atmosphere import Atmosphere
 from heliotwin.field.demo import demo_field_plant
 from heliotwin.io.report import save_figure, write_json
-from heliotwin.io.scenario import load_scenario
+from heliotwin.io.scenario import load_scenario, save_scenario
 from heliotwin.optimise.aimpoints import (
     AimResult,
     aiming_factor,
@@ -447,6 +447,55 @@ def confidence(args) -> dict:
     return report
 
 
+def _process(argv: list, env: dict) -> tuple[float, int, str]:
+    """Wall time [s], exit status and stderr tail of ``python -m heliotwin ARGV`` as a process."""
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "heliotwin", *map(str, argv)], env=env, capture_output=True,
+                          text=True)
+    return time.perf_counter() - t0, proc.returncode, proc.stderr.strip()[-500:]
+
+
+def scale(args) -> dict:
+    """``--scale N,...``: the whole ``aimpoints`` command (a process, twice: first and second run) on a generated
+    radial field of N heliostats around a cylinder (:func:`generated_plant`, tower ``--scale-tower``) at one sun
+    (``--sun-azimuth``/``--sun-elevation`` [deg]) on ``--device``, limit ``--fraction`` x the equator-aimed peak
+    that the ``field`` command (also timed) reports."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    sun = ["--sun-azimuth", args.sun_azimuth, "--sun-elevation", args.sun_elevation]
+    rows = []
+    for n in (int(x) for x in args.scale.split(",")):
+        plant, _ = generated_plant("radial", n, "cylinder", tower=args.scale_tower)
+        path = save_scenario(plant, out / f"plant{n}.h5")
+        fjson = out / f"field{n}.json"
+        t_field, rc, err = _process(["field", "--scenario", path, *sun, "--json", fjson, "--quiet", "--device",
+                                     args.device], env)
+        if rc:
+            raise SystemExit(f"field on {n} heliostats failed ({rc}): {err}")
+        peak = json.loads(fjson.read_text())["receiver"]["peak_flux_w_m2"]
+        row = {"heliostats": n, "device": args.device, "field_s": t_field, "equator_peak_w_m2": peak,
+               "limit_w_m2": args.fraction * peak}
+        for run_name in ("first", "second"):
+            ajson = out / f"aim{n}_{run_name}.json"
+            t, rc, err = _process(["aimpoints", "--scenario", path, *sun, "--peak-limit", row["limit_w_m2"],
+                                   "--no-baselines", "--device", args.device, "-o", out / f"aim{n}.h5", "--json",
+                                   ajson, "--quiet"], env)
+            rep = json.loads(ajson.read_text()) if ajson.exists() else {}
+            row[f"aimpoints_{run_name}_s"], row[f"aimpoints_{run_name}_exit"] = t, rc
+            if rc not in (0, 3):
+                row["error"] = err
+        opt = rep.get("optimised") or {}
+        row["report"] = {"seconds": rep.get("seconds"), **{k: opt.get(k) for k in (
+            "limit_met", "power_vs_equator", "peak_vs_limit", "rounds", "exact_checks", "iterations") if k in opt}}
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    report = {"rows": rows, "load_average": os.getloadavg(), "cpus": os.cpu_count(),
+              "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
+    write_json(out / "scale.json", report)
+    return report
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", required=True)
@@ -475,7 +524,15 @@ def main(argv=None) -> dict:
     ap.add_argument("--min-records", type=int, default=50, help="--confidence: per calibrated heliostat")
     ap.add_argument("--schemes", default="resampled,this_plant", help="--confidence: draws of the plant, "
                     "comma-separated (default: %(default)s)")
+    ap.add_argument("--scale", help="whole aimpoints commands on generated radial fields of these sizes "
+                    "(comma-separated), e.g. 2000,10000,30000 with --device cuda")
+    ap.add_argument("--scale-tower", type=float, default=150.0, help="--scale: receiver height [m]")
+    ap.add_argument("--sun-azimuth", type=float, default=10.0, help="--scale: [deg], PAINT convention")
+    ap.add_argument("--sun-elevation", type=float, default=45.0, help="--scale: [deg]")
+    ap.add_argument("--device", default="cpu", help="--scale: cpu or cuda")
     args = ap.parse_args(argv)
+    if args.scale:
+        return scale(args)
     if args.confidence is not None:
         return confidence(args)
     if args.testbed:
