@@ -470,7 +470,7 @@ def scale(args) -> dict:
         path = save_scenario(plant, out / f"plant{n}.h5")
         fjson = out / f"field{n}.json"
         t_field, rc, err = _process(["field", "--scenario", path, *sun, "--json", fjson, "--quiet", "--device",
-                                     args.device], env)
+                                     "auto"], env)  # field's exact model runs on the CPU
         if rc:
             raise SystemExit(f"field on {n} heliostats failed ({rc}): {err}")
         peak = json.loads(fjson.read_text())["receiver"]["peak_flux_w_m2"]
