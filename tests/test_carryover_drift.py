@@ -196,24 +196,23 @@ def test_recursive_whitening_and_smoother_equal_the_dense_gaussian_forms():
 
 
 def test_the_walk_learns_the_records_noise_not_the_static_residuals():
-    """Under the walk the posterior's noise is the records' own (the centroid noise, 0.4 mrad as a reflected-ray
-    angle for ``noise=2e-4``), not the static residuals' (which count the wandering offset as noise); the
-    offset's state keeps the fit's smoothing (same q / noise^2) in the records' units."""
+    """Under the walk the update's filter gets the records' own noise (the centroid noise, 0.4 mrad as a
+    reflected-ray angle for ``noise=2e-4``), not the static residuals' (which count the wandering offset as
+    noise and stay the predictive interval's); the offset's state keeps the fit's smoothing, and its scale
+    factor turns the covariance and q into the records' units."""
     kin, batch, _ = walk_records(h=6, n=60, q_mrad2=0.05)
     static = _fit(kin, batch)
     kal = _fit(kin, batch, drift_model="kalman", process_noise=0.05)
     true = 2 * 2e-4
-    s_kal, s_static = kal.extras["posterior"]["noise_rad"], static.extras["posterior"]["noise_rad"]
-    assert bool(((s_kal > 0.8 * true) & (s_kal < 1.5 * true)).all()), s_kal
-    assert float(s_static.median()) > 1.8 * float(s_kal.median()), (s_static, s_kal)
     state = kal.extras["drift_state"]
-    assert state["noise"] == pytest.approx(float(s_kal.median()))
-    assert state["q"] / state["noise"] ** 2 == pytest.approx(0.05e-6 / 1e-6, rel=1e-9)
-    # the same smoothing: the offset does not depend on the scale, its covariance scales with noise^2
+    s_rec, s_static = state["record_noise"], static.extras["posterior"]["noise_rad"]
+    assert bool(((s_rec > 0.8 * true) & (s_rec < 1.5 * true)).all()), s_rec
+    assert float(s_static.median()) > 1.8 * float(s_rec.median()), (s_static, s_rec)
+    assert float(kal.extras["posterior"]["noise_rad"].median()) > 1.3 * float(s_rec.median())  # the interval's
+    assert state["filter_scale"] == pytest.approx((float(s_rec.median()) / 1e-3) ** 2)
     ref = D.smooth(kin, batch, state["static_deviations"], 0.05e-6, 1e-3)
     torch.testing.assert_close(state["offset"], ref["offset"], rtol=1e-9, atol=1e-12)
-    torch.testing.assert_close(state["covariance"], ref["covariance"] * (state["noise"] / 1e-3) ** 2,
-                               rtol=1e-9, atol=1e-18)
+    torch.testing.assert_close(state["covariance"], ref["covariance"], rtol=1e-9, atol=1e-18)
 
 
 def test_after_a_walk_calibration_a_step_alarms_and_clean_records_do_not(tmp_path):

@@ -19,7 +19,6 @@ from ..field.plant import Kinematics, Plant
 from ..field.update import with_kinematics
 from ..io.scenario import Scenario, next_scenario, provenance_entry, write_scenario
 from ..sunangles import direction_from_paint_angles
-from .inputs import NOISE
 from .methods.hybrid import aim_hybrid
 from .methods.mlp import aim_mlp
 from .params import STONE8, apply_deviations
@@ -91,7 +90,9 @@ def calibration_state(model, *, focal_spot: str = "", prior=None, settings_choic
                           "covariance": ds["covariance"].detach()[ok].to(torch.float64).cpu(),
                           "time": ds["time"].detach()[ok].to(torch.float64).cpu(),
                           "process_noise_rad2_per_day": torch.tensor([float(ds["q"])], dtype=torch.float64),
-                          "noise_rad": torch.tensor([float(ds.get("noise", NOISE))], dtype=torch.float64),
+                          **({"record_noise_rad": ds["record_noise"].detach()[ok].to(torch.float64).cpu(),
+                              "filter_scale": torch.tensor([float(ds["filter_scale"])], dtype=torch.float64)}
+                             if "record_noise" in ds else {}),
                           "static_deviations": ds["static_deviations"].detach()[ok].to(torch.float64).cpu()}
     networks = model.extras.get("networks") or {}
     if networks:

@@ -44,9 +44,9 @@ from .params import STONE8, check_names
 
 __all__ = ["ASSIMILATION_KEY", "HISTORY_VERSION", "DEFAULT_PROCESS_NOISE", "CHOICE_KEY", "THRESHOLD_KEY",
            "calibration_entry", "nominal_kinematics", "current_assimilation", "calibration_count", "seen_record_ids",
-           "stored_tensor", "filter_state", "on_axis", "process_noise_choice", "with_process_noise_choice",
-           "process_noise_source", "alarm_threshold_choice", "with_alarm_threshold", "threshold_in_force",
-           "split_new", "merged_history", "updated_learned", "state_history"]
+           "stored_tensor", "filter_scale", "filter_state", "fit_posterior", "on_axis", "process_noise_choice",
+           "with_process_noise_choice", "process_noise_source", "alarm_threshold_choice", "with_alarm_threshold",
+           "threshold_in_force", "split_new", "merged_history", "updated_learned", "state_history"]
 #: Key of the calibration under ``Scenario.learned`` (:mod:`heliotwin.calibrate.scenario` writes it; defined here,
 #: with what reads it back, so that an update does not import the calibration methods to find it).
 KEY = "calibration"
@@ -144,8 +144,11 @@ def nominal_kinematics(cal: dict, path, n: int) -> Kinematics:
     return kin
 
 
-def _state(cal: dict, names: tuple, path, n: int, q_given: float | None, seen_time: torch.Tensor) -> FilterState:
-    """The filter state of the calibration (module docstring); ``seen_time`` [H]: latest seen record time."""
+def _state(cal: dict, names: tuple, path, n: int, q_given: float | None, seen_time: torch.Tensor, *,
+           from_calibration: bool = False) -> FilterState:
+    """The filter state of the calibration (module docstring); ``seen_time`` [H]: latest seen record time.
+    ``from_calibration``: the stored posterior is still calibrate's (no update since), whose covariance is in
+    the static residuals' noise: scaled to the walk's record noise the filter runs on (:func:`fit_posterior`)."""
     where = f"/learned/{KEY}"
     p = len(names)
     mean = stored_tensor(cal, where, path, "deviations")
@@ -165,11 +168,18 @@ def _state(cal: dict, names: tuple, path, n: int, q_given: float | None, seen_ti
     if chosen is not None:
         q = 1e-6 * chosen
     if drift:
-        p_l = stored_tensor(cal, where, path, "drift", "covariance")
+        scale = filter_scale(cal, path)  # the walk's learned record noise (lm.laplace under the walk)
+        p_l = scale * stored_tensor(cal, where, path, "drift", "covariance")
         t_l = stored_tensor(cal, where, path, "drift", "time")
-        q = float(stored_tensor(cal, where, path, "drift", "process_noise_rad2_per_day").reshape(-1)[0])
+        q = scale * float(stored_tensor(cal, where, path, "drift", "process_noise_rad2_per_day").reshape(-1)[0])
         if p_l.shape != (n, len(cols), len(cols)) or t_l.shape != (n,):
             raise InputFileError(path, "malformed drift state", field=f"{where}/drift")
+        if "record_noise_rad" in drift:
+            fit_noise, noise = noise, stored_tensor(cal, where, path, "drift", "record_noise_rad")
+            if noise.shape != (n,):
+                raise InputFileError(path, f"record noise must be [{n}]", field=f"{where}/drift/record_noise_rad")
+            if from_calibration:
+                cov = cov * ((noise / fit_noise.clamp_min(1e-12)) ** 2)[:, None, None]
         idx = torch.tensor(cols)
         cov[:, idx[:, None], idx[None, :]] += p_l  # the offset's own uncertainty on top of the static posterior
         time = torch.where(torch.isfinite(t_l), t_l, time)
@@ -177,6 +187,16 @@ def _state(cal: dict, names: tuple, path, n: int, q_given: float | None, seen_ti
         q = 1e-6 * q_given
     return FilterState(mean=mean, covariance=cov, time=time, noise=noise, process_noise=q, drift_columns=cols,
                        names=names)
+
+
+def filter_scale(cal: dict, path) -> float:
+    """The factor [1] from a drift calibration's stored offset covariance and q (in the 1 mrad record noise its
+    fit assumed, what the predictive interval uses) to an update's filter (the walk's record noise learned from
+    the records, ``/learned/calibration/drift/filter_scale``); 1 for plants written before it was learned."""
+    drift = cal.get("drift") or {}
+    if "filter_scale" not in drift:
+        return 1.0
+    return float(stored_tensor(cal, f"/learned/{KEY}", path, "drift", "filter_scale").reshape(-1)[0])
 
 
 def _stored_choice(cal: dict, path) -> float | None:
@@ -274,7 +294,8 @@ def filter_state(scenario: Scenario, records: RecordTable, process_noise: float 
     ok = seen_rows & torch.isfinite(t)
     seen_time = torch.full((len(ids),), float("nan"), dtype=torch.float64)
     seen_time = seen_time.scatter_reduce(0, records.heliostat_index[ok], t[ok], reduce="amax", include_self=False)
-    state = _state(cal, names, scenario.path, len(ids), process_noise, seen_time)
+    state = _state(cal, names, scenario.path, len(ids), process_noise, seen_time,
+                   from_calibration=current_assimilation(scenario) is None)
     window = (current_assimilation(scenario) or {}).get("window") or {}
     if window.get("heliostats") == list(ids):  # the same calibration's heliostats: its evidence carries on
         try:
@@ -368,7 +389,7 @@ def alarm_threshold_choice(scenario: Scenario, records: RecordTable, false_alarm
     nominal = nominal_kinematics(cal, scenario.path, len(ids))
     state = _state(cal, names, scenario.path, len(ids), None, torch.full((len(ids),), float("nan")))
     # validation under the fit's own posterior (the Laplace posterior of those records, without the walk's)
-    state = replace(state, covariance=stored_tensor(cal, f"/learned/{KEY}", scenario.path, "posterior", "covariance"))
+    state = fit_posterior(state, cal, scenario.path)
     seen_table = table.subset(rows)
     d2 = leave_one_out_d2(nominal, seen_table, state, _judged_at(cal, names, nominal, seen_table, scenario.path)) \
         if bool(rows.any()) else None
@@ -378,6 +399,19 @@ def alarm_threshold_choice(scenario: Scenario, records: RecordTable, false_alarm
                       "the leave-one-out normalised residuals of the calibration's records (under a drift model, "
                       "each at the offset smoothed to its time)")
     return made
+
+
+def fit_posterior(state: FilterState, cal: dict, path) -> FilterState:
+    """``state`` with the calibration fit's own Laplace posterior covariance [H, P, P] (without the walk's; what
+    the leave-one-out residuals of the records it saw are judged under), in the units of ``state.noise``: scaled
+    per heliostat by (state noise / the posterior's noise)^2 when the filter runs on the walk's learned record
+    noise (the posterior's comes from the static residuals; a data-dominated Laplace covariance scales with the
+    noise squared)."""
+    cov = stored_tensor(cal, f"/learned/{KEY}", path, "posterior", "covariance")
+    if "record_noise_rad" in (cal.get("drift") or {}):
+        fit_noise = stored_tensor(cal, f"/learned/{KEY}", path, "posterior", "noise_rad")
+        cov = cov * ((state.noise / fit_noise.clamp_min(1e-12)) ** 2)[:, None, None]
+    return replace(state, covariance=cov)
 
 
 def _judged_at(cal: dict, names: tuple, nominal: Kinematics, records: RecordTable, path) -> torch.Tensor | None:
@@ -393,9 +427,7 @@ def _judged_at(cal: dict, names: tuple, nominal: Kinematics, records: RecordTabl
     basis = next((b for b, n in BASES.items() if n == drift_names), None)
     if basis is None or static.shape != (nominal.num_heliostats, len(names)):
         return None
-    noise = float(stored_tensor(cal, where, path, "drift", "noise_rad").reshape(-1)[0]) if "noise_rad" in drift \
-        else NOISE  # plants written before the walk's noise was learned: the fit's assumed noise
-    offset = smooth(nominal, records, static, q, noise, basis=basis)["smoothed"]
+    offset = smooth(nominal, records, static, q, NOISE, basis=basis)["smoothed"]
     return with_offset(static[records.heliostat_index], offset, basis)
 
 
@@ -536,7 +568,9 @@ def updated_learned(previous: Scenario, cal: dict, ids: list, state: FilterState
                         "offset": (mean - static)[:, cols], "covariance": torch.zeros(len(ids), len(cols), len(cols),
                                                                                       dtype=torch.float64),
                         "time": state.time.detach().cpu(), "static_deviations": static,
-                        "process_noise_rad2_per_day": torch.tensor([float(state.process_noise)], dtype=torch.float64)}
+                        # q stored as calibrate stores it (the interval's units), the filter's divided by its scale
+                        "process_noise_rad2_per_day": torch.tensor(
+                            [float(state.process_noise) / filter_scale(cal, None)], dtype=torch.float64)}
     prev = previous.learned.get(ASSIMILATION_KEY)
     number = int(torch.as_tensor(prev.get("updates", 0)).reshape(-1)[0]) + 1 if prev else 1
     merged = merged_history(prev, ids, hist, number)

@@ -915,7 +915,8 @@ def _validate_learned_calibration(c: _LearnedCheck, cal) -> None:
         c.array(drift, "covariance", at, (hc, d, d))
         c.array(drift, "time", at, (hc,), finite=False)  # NaN: no record seen yet
         c.array(drift, "process_noise_rad2_per_day", at, (1,), low=0.0)
-        c.array(drift, "noise_rad", at, (1,), required=False, low=0.0)
+        c.array(drift, "record_noise_rad", at, (hc,), required=False, low=0.0)
+        c.array(drift, "filter_scale", at, (1,), required=False, low=0.0)
         c.array(drift, "static_deviations", at, (hc, p), required=False)
     prior = c.group(cal, "prior", where, required=False)
     if prior is not None:

@@ -40,7 +40,7 @@ from __future__ import annotations
 import math
 import os
 import time as _time
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
@@ -53,11 +53,11 @@ from ..calibrate.twinstate import (
     CHOICE_KEY,
     DEFAULT_PROCESS_NOISE,
     HISTORY_VERSION,
-    KEY,
     THRESHOLD_KEY,
     calibration_entry,
     current_assimilation,
     filter_state,
+    fit_posterior,
     needs_seen_records,
     nominal_kinematics,
     on_axis,
@@ -66,7 +66,6 @@ from ..calibrate.twinstate import (
     seen_record_ids,
     split_new,
     state_history,
-    stored_tensor,
     threshold_in_force,
     updated_learned,
     with_alarm_threshold,
@@ -258,10 +257,9 @@ def update(scenario, records_or_paint, settings: UpdateSettings = UpdateSettings
                       unknown_heliostat_ids=reading.get("unknown_ids", []))
     fit_table = fit_spots(table, settings.fit_focal_spot)
     # validation under the fit's own posterior (the Laplace posterior of those records, without the walk's)
-    fit_posterior = replace(state, covariance=stored_tensor(cal, f"/learned/{KEY}", previous.path, "posterior",
-                                                            "covariance"))
+    fit_post = fit_posterior(state, cal, previous.path)
     threshold = threshold_in_force(current_assimilation(previous), cal, settings.false_alarm_rate, settings.window,
-                                   nominal, fit_table.subset(seen_idx), fit_posterior)
+                                   nominal, fit_table.subset(seen_idx), fit_post)
     options = AssimilationOptions(threshold=threshold["threshold"], reopen=1e-3 * settings.reopen_mrad,
                                   iterations=int(settings.iterations), robust=bool(settings.robust),
                                   window=int(settings.window))
