@@ -68,7 +68,7 @@ its truth; ``heliotwin calibrate`` (every heliostat with >= 50 records) writes t
 pointing posterior (both skipped when ``<out>/twin.h5`` exists). At ``--time`` (2024-06-21T11:00Z) the limit is
 ``--fraction`` (0.8) x the twin's equator-aimed peak. The twin commands each heliostat with its learned kinematics;
 the real heliostat moves with the truth's, so its true mirror-normal error at that sun and aim point is fixed
-(:func:`heliotwin.simulate.score.pointing_errors`, as ``bench_plant_loop.delivered_flux``; reproduced here to
+(:func:`heliotwin.evaluation.pointing_errors`, as ``bench_plant_loop.delivered_flux``; reproduced here to
 3e-5 of the peak). ``--mc-draws`` (200) plants, two schemes, each draw seeded (``torch.Generator``):
 
 * ``resampled`` (the headline): every heliostat gets the true error of a heliostat drawn at random with
@@ -335,11 +335,11 @@ def day(args) -> dict:
 def confidence(args) -> dict:
     """Deterministic vs robust (``--confidence``) aim points on a calibrated simulated plant, checked on draws of
     the plant from the truth's distribution (module docstring)."""
+    from heliotwin.evaluation import pointing_errors
     from heliotwin.field.update import select_heliostats
     from heliotwin.optimise.aimpoints import AimSettings
     from heliotwin.optimise.robust import perturbed_aim, robust_aimpoints
     from heliotwin.raytrace.field import FieldSettings, field_optics, tracking_normals
-    from heliotwin.simulate.score import pointing_errors
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

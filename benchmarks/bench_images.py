@@ -23,7 +23,7 @@ background cut at 3 % of the max) and 8-bit quantisation. The calibration sees i
 Gaussian-footprint renderer (a different sunshape model), so the images are not an inverse crime. The plant is
 written as a PAINT folder and read back with :func:`heliotwin.io.paint.load_paint`, as a user's run would.
 Each heliostat trains on its N earliest records (N from ``--sizes``); the score is the pointing error at
-``--suns`` new sun positions of the simulator's scoring (:func:`heliotwin.simulate.score.pointing_errors`, the
+``--suns`` new sun positions of the simulator's scoring (:func:`heliotwin.evaluation.pointing_errors`, the
 function ``heliotwin score`` uses: the learned model aims, the true heliostat moves).
 
 **Real AA39** (the only PAINT heliostat with whole-target images, 10 of its 18 records): trained on the
@@ -53,13 +53,13 @@ from heliotwin import scene
 from heliotwin.calibrate import metrics
 from heliotwin.calibrate.methods import get_method
 from heliotwin.calibrate.methods.images import fit_images_method
+from heliotwin.evaluation import aim_points, pointing_errors, score_suns
 from heliotwin.field.plant import Surfaces
 from heliotwin.io.images import to_png
 from heliotwin.io.paint import load_paint
 from heliotwin.raytrace.montecarlo import RaySampling, trace_mc
 from heliotwin.simulate.images import camera, true_surfaces
 from heliotwin.simulate.plant import SimulationSettings, simulate_plant, true_kinematics
-from heliotwin.simulate.score import aim_points, pointing_errors, score_suns
 from heliotwin.simulate.writer import write_paint_folder
 from heliotwin.sun import direction_from_paint_angles
 

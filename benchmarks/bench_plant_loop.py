@@ -23,7 +23,7 @@ truth the simulator wrote (the true kinematics at the end of the history):
   to the same aim points (its motor steps on the true kinematics, the rays to the aim points' range):
   relative L1, peak and power error. The library has no "flux of the true plant under another model's
   commands at given aim points" helper; :func:`delivered_flux` builds it here from
-  :func:`heliotwin.simulate.score.pointing_errors` and :func:`heliotwin.raytrace.field.field_optics`.
+  :func:`heliotwin.evaluation.pointing_errors` and :func:`heliotwin.raytrace.field.field_optics`.
 
 Usage::
 
@@ -73,12 +73,12 @@ import pandas as pd
 import torch
 
 from heliotwin.atmosphere import Atmosphere
+from heliotwin.evaluation import pointing_errors
 from heliotwin.field.update import select_heliostats
 from heliotwin.io.paint import PaintDataset, load_paint
 from heliotwin.io.report import write_json
 from heliotwin.optimise.aimstate import stored_aimpoints
 from heliotwin.raytrace.field import FieldSettings, field_optics
-from heliotwin.simulate.score import pointing_errors
 from heliotwin.workflows.aimpoints import AimpointSettings, aimpoints
 from heliotwin.workflows.calibrate import CalibrationSettings, calibrate
 from heliotwin.workflows.field import FieldRunSettings, field, sun_direction_at

@@ -18,7 +18,7 @@ FLOORS = (
     ("building blocks", ("errors", "devices", "geometry", "site", "sun", "sunangles", "sunspa", "sunshape", "nurbs",
                          "atmosphere", "shrinkage", "examples", "progress")),
     ("plant as data", ("field",)),
-    ("optics", ("raytrace", "scene")),
+    ("optics", ("raytrace", "scene", "evaluation")),
     ("data edge", ("io",)),
     ("figures", ("plots",)),
     # calibration by role: shared parts < methods (and what reads their results) < protocol

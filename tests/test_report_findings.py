@@ -14,6 +14,7 @@ import torch
 
 import heliotwin
 from heliotwin.errors import HeliotwinError
+from heliotwin.evaluation import score, truth_missing
 from heliotwin.field.demo import demo_field_plant
 from heliotwin.field.layout import plant_from_layout
 from heliotwin.io.export import export_solarpilot
@@ -22,7 +23,6 @@ from heliotwin.plots import angle_origin, loss_waterfall, plot_loss_waterfall, p
 from heliotwin.raytrace.field import FACTORS, field_optics
 from heliotwin.simulate import SimulationSettings, simulate_plant, truth_scenario
 from heliotwin.simulate.plant import nominal_plant
-from heliotwin.simulate.score import score, truth_missing
 from heliotwin.sun import direction_from_paint_angles
 from heliotwin.workflows.demo import _loss_breakdown
 from heliotwin.workflows.show import LISTED_IDS, describe_scenario, format_description

@@ -16,12 +16,12 @@ from heliotwin.calibrate.methods.lm import fit_lm
 from heliotwin.calibrate.metrics import pointing_error
 from heliotwin.calibrate.params import STONE8, apply_deviations
 from heliotwin.calibrate.priors import LOOSE_SIGMA
+from heliotwin.evaluation import score
 from heliotwin.io.images import read_png
 from heliotwin.io.paint import HELIOSTAT_DIR, load_paint
 from heliotwin.io.scenario import load_scenario, write_scenario
 from heliotwin.simulate import SimulationSettings, simulate_plant, truth_scenario, write_paint_folder
 from heliotwin.simulate.plant import DRIFTING, draw_steps, drift_at, nominal_plant, true_kinematics
-from heliotwin.simulate.score import score
 from heliotwin.workflows.calibrate import CalibrationSettings, calibrate
 
 #: No drift, no steps: the truth is static, so a static calibration can recover it.

@@ -5,10 +5,11 @@ any learned plant against that truth.
   (:func:`simulate_plant`);
 * :mod:`.writer` -- the PAINT folder and the truth scenario (:func:`write_paint_folder`,
   :func:`truth_scenario`);
-* :mod:`.score` -- pointing, surface and flux errors of a learned scenario against the truth (:func:`score`).
+* :func:`score` -- pointing, surface and flux errors of a learned scenario against the truth (it lives in
+  :mod:`heliotwin.evaluation`, so that scoring a plant does not import the simulator).
 """
+from ..evaluation import score
 from .plant import SimulatedPlant, SimulationSettings, paint_prior, simulate_plant
-from .score import score
 from .writer import truth_scenario, write_paint_folder
 
 __all__ = ["SimulatedPlant", "SimulationSettings", "paint_prior", "simulate_plant", "score", "truth_scenario",

@@ -20,6 +20,7 @@ import pandas as pd
 import torch
 
 from ..errors import HeliotwinError, InputFileError
+from ..evaluation import TRUTH_KEY
 from ..field.plant import Kinematics
 from ..field.targets import PlanarTarget
 from ..io.images import to_png
@@ -27,8 +28,6 @@ from ..io.records import SOURCES
 from ..io.scenario import Scenario, next_scenario, provenance_entry
 from ..site import enu_to_wgs84
 from .plant import DRIFTING, WEATHER, SimulatedPlant
-
-TRUTH_KEY = "simulation"
 
 
 def _lla(site, enu: torch.Tensor) -> torch.Tensor:

@@ -6,8 +6,8 @@ on a plant every day, and its start-up is part of its time.
 """
 from __future__ import annotations
 
+from ..evaluation import score as score_plant
 from ..io.scenario import Scenario
-from ..simulate.score import score as score_plant
 
 __all__ = ["score"]
 
@@ -18,7 +18,7 @@ def score(truth: Scenario, scenario: Scenario, *, suns: int = 16, seed: int = 0,
 
     ``suns`` sun positions drawn by ``seed`` give the pointing error [mrad]; ``flux`` (a flag) also compares the
     receiver flux maps at the first sun (relative L1 [1], power ratio [1]). The report is
-    :func:`heliotwin.simulate.score`'s plus the two scenarios' paths.
+    :func:`heliotwin.evaluation.score`'s plus the two scenarios' paths.
     """
     report = score_plant(truth, scenario, suns=suns, seed=seed, flux=flux)
     report.update(truth=truth.path or None, scenario=scenario.path or None)

@@ -18,17 +18,19 @@ import math
 import numpy as np
 import torch
 
-from ..errors import HeliotwinError
-from ..field import kinematics as K
-from ..field.facets import surface_points
-from ..field.update import select_heliostats
-from ..geometry import angle_between
-from ..raytrace.field import FieldSettings, equator_aim_points, field_optics
-from ..sun import daylight_times, direction_from_paint_angles
-from .writer import TRUTH_KEY
+from .errors import HeliotwinError
+from .field import kinematics as K
+from .field.facets import surface_points
+from .field.update import select_heliostats
+from .geometry import angle_between
+from .raytrace.field import FieldSettings, equator_aim_points, field_optics
+from .sun import daylight_times, direction_from_paint_angles
 
 #: Year whose daylight supplies the scoring sun positions (any year: the sun's path repeats).
 SCORE_YEAR = 2030
+
+#: Key under a truth scenario's ``/learned`` of what the simulator drew (:mod:`heliotwin.simulate.writer`).
+TRUTH_KEY = "simulation"
 
 
 def truth_missing(truth) -> list[str]:
