@@ -403,21 +403,6 @@ def mirror_blocks(points: torch.Tensor, normals: torch.Tensor, facets: int, per_
     return MirrorBlocks(points, normals, index, lo, hi, n0, e, n0_all, e_all)
 
 
-def _normal_bound(lo, hi):
-    """Unit ``n0`` [..., 3] (the normalised centre of the box ``lo``, ``hi`` [..., 3]) and ``e`` [...]: no
-    vector in the box is farther than ``e`` from ``n0``."""
-    n0 = safe_normalize(0.5 * (lo + hi))
-    return n0, torch.linalg.vector_norm(torch.maximum((hi - n0).abs(), (lo - n0).abs()), dim=-1)
-
-
-def _reflected(n0, e, rot, s):
-    """Directions ``d0`` [R, 3] of the sun ``s`` reflected about ``R n0`` (``n0`` [R, 3] heliostat frame, unit;
-    ``rot`` [R, 3, 3]) and the bound ``delta`` [R] on any reflected ray's distance from it when the normal is
-    within ``e`` [R] of ``n0``: ``2 e + 4 e^2`` (plus a margin)."""
-    n0w = torch.einsum("ri,rji->rj", n0, rot)
-    return 2.0 * (n0w @ s).unsqueeze(-1) * n0w - s, 2.0 * e + 4.0 * e * e + 1e-6
-
-
 def unoccluded_tracked(blocks: MirrorBlocks, rotation: torch.Tensor, occluders: OccluderSet, index: torch.Tensor,
                        valid: torch.Tensor, sun: torch.Tensor, *, reflected: bool, owners: torch.Tensor | None = None,
                        eps: float = 1e-6, max_tests_per_chunk: int = 2 ** 22) -> torch.Tensor:
