@@ -24,6 +24,13 @@ lowest 0.67, a surround field on a 360-degree cylinder at 0.6, where both heuris
 60-degree segment), median 2.6 s per case (max 25 s, the 2,000-heliostat plant). Before the image model
 came from the exact footprints, that plant's rounds diverged to 2.6 x the limit (exit 3).
 
+**Scale** (``--scale N,... [--device cpu|cuda]``): the whole ``aimpoints`` command (a process, run twice) on a
+generated radial field of N heliostats around a cylinder on a 150 m tower at one sun, limit 0.8 x the equator
+peak that the (timed) ``field`` command reports. Measured 2026-11-28 on a lent H200 machine's 16-core CPU
+(``aimpoints`` refuses ``--device cuda``: it runs on the CPU only so far), first / second run: 2,000 heliostats
+7.7 / 7.4 s (1.3 s in-process), 10,000 12.6 / 11.4 s (5.4 s), 30,000 24.9 / 24.7 s (19.4 s), the limit met at
+0.996-0.9998 of equator power; about 6 s of each is start-up (that machine's torch 2.11+cu130 import).
+
 **A day** (``--day DATE --scenario FILE``): the whole ``heliotwin aimpoints --day DATE --every 15min
 --no-baselines`` command (a subprocess, one thread) on a plant file, once with warm starts (each instant from the
 previous instant's optimised aim points, the default) and once with ``--cold`` (every instant from equator
