@@ -41,6 +41,18 @@ LEVEL = 0.9
 MIN_NOISE = 1e-4
 
 
+def residual_variance(residuals: torch.Tensor, heliostat_index: torch.Tensor, num_heliostats: int,
+                      num_parameters: int) -> torch.Tensor:
+    """Residual variance per component [H] [rad^2] of a fit of ``num_parameters`` per heliostat: ``residuals``
+    [R, 3] [rad] over ``2 n - P`` degrees of freedom per heliostat (the residual lies in the mirror plane), at
+    least :data:`MIN_NOISE` squared."""
+    f64 = dict(dtype=torch.float64, device=residuals.device)
+    ss = torch.zeros(num_heliostats, **f64).index_add_(0, heliostat_index, (residuals ** 2).sum(-1))
+    n = torch.bincount(heliostat_index, minlength=num_heliostats).double()
+    dof = (2.0 * n - num_parameters).clamp_min(1.0)
+    return (ss / dof).clamp_min(MIN_NOISE ** 2)
+
+
 def posterior(residuals: torch.Tensor, jacobian: torch.Tensor, heliostat_index: torch.Tensor, prior_precision,
               num_heliostats: int, num_parameters: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Laplace posterior covariance [H, P, P] and residual noise per component [H] (rad).
@@ -57,11 +69,7 @@ def posterior(residuals: torch.Tensor, jacobian: torch.Tensor, heliostat_index: 
     h, p = num_heliostats, num_parameters
     f64 = dict(dtype=torch.float64, device=jacobian.device)
     jtj = torch.zeros(h, p, p, **f64).index_add_(0, heliostat_index, torch.einsum("rci,rcj->rij", jacobian, jacobian))
-    ss = torch.zeros(h, **f64).index_add_(0, heliostat_index, (residuals ** 2).sum(-1))
-    n = torch.bincount(heliostat_index, minlength=h).double()
-    # 2 noise dimensions per record (the residual lies in the mirror plane); P parameters spent on the fit
-    dof = (2.0 * n - p).clamp_min(1.0)
-    s2 = (ss / dof).clamp_min(MIN_NOISE ** 2)
+    s2 = residual_variance(residuals, heliostat_index, h, p)
     prec = jtj / s2[:, None, None] + torch.as_tensor(prior_precision).to(**f64).expand(h, p, p)
     eye = torch.eye(p, **f64)
     cov = torch.linalg.solve(prec + 1e-12 * eye, eye.expand(h, p, p))
