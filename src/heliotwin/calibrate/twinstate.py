@@ -179,7 +179,7 @@ def _state(cal: dict, names: tuple, path, n: int, q_given: float | None, seen_ti
             if noise.shape != (n,):
                 raise InputFileError(path, f"record noise must be [{n}]", field=f"{where}/drift/record_noise_rad")
             if from_calibration:
-                cov = cov * ((noise / fit_noise.clamp_min(1e-12)) ** 2)[:, None, None]
+                cov = _in_record_units(cov, noise, fit_noise)
         idx = torch.tensor(cols)
         cov[:, idx[:, None], idx[None, :]] += p_l  # the offset's own uncertainty on top of the static posterior
         time = torch.where(torch.isfinite(t_l), t_l, time)
@@ -409,9 +409,14 @@ def fit_posterior(state: FilterState, cal: dict, path) -> FilterState:
     noise squared)."""
     cov = stored_tensor(cal, f"/learned/{KEY}", path, "posterior", "covariance")
     if "record_noise_rad" in (cal.get("drift") or {}):
-        fit_noise = stored_tensor(cal, f"/learned/{KEY}", path, "posterior", "noise_rad")
-        cov = cov * ((state.noise / fit_noise.clamp_min(1e-12)) ** 2)[:, None, None]
+        cov = _in_record_units(cov, state.noise, stored_tensor(cal, f"/learned/{KEY}", path, "posterior", "noise_rad"))
     return replace(state, covariance=cov)
+
+
+def _in_record_units(cov: torch.Tensor, noise: torch.Tensor, fit_noise: torch.Tensor) -> torch.Tensor:
+    """A Laplace covariance [H, P, P] of a fit with residual noise ``fit_noise`` [H] [rad] rescaled to the record
+    noise ``noise`` [H] [rad] (a data-dominated posterior covariance scales with the noise squared)."""
+    return cov * ((noise / fit_noise.clamp_min(1e-12)) ** 2)[:, None, None]
 
 
 def _judged_at(cal: dict, names: tuple, nominal: Kinematics, records: RecordTable, path) -> torch.Tensor | None:
