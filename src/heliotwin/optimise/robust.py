@@ -288,20 +288,18 @@ def robust_aimpoints(plant: Plant, sun: torch.Tensor, limit: float, confidence: 
     dn = draw_normal_errors(post, draws, gen)
     check = dict(atmosphere=atmosphere, resolution=settings.resolution, mc=mc, model=model)
     ex_det = exceedance(plant, sun, det, limit, dn, **check)
-    best, ex_best, internal = det, ex_det, float(limit)
+    best, ex_best, internal = det, ex_det, float(limit)  # the latest tightening (each one is tighter)
     tried = []
     level = 1.0 - goal
-    current, ex_cur = det, ex_det
     for _ in range(int(tries)):
         if ex_best["probability"] <= goal:
             break
-        q = float(torch.quantile(ex_cur["peaks"], level))
+        q = float(torch.quantile(ex_best["peaks"], level))
         internal = internal * min(float(limit) / q, 1.0 - 1e-3)  # the quantile scaled onto the limit
-        current = optimise_aimpoints(plant, sun, internal, settings, **kw)
-        ex_cur = exceedance(plant, sun, current, limit, dn, **check)
-        tried.append({"internal_limit_w_m2": internal, "exceedance_probability": ex_cur["probability"],
-                      "power_w": current.power_w, "standby": int(current.standby)})
-        best, ex_best = current, ex_cur
+        best = optimise_aimpoints(plant, sun, internal, settings, **kw)
+        ex_best = exceedance(plant, sun, best, limit, dn, **check)
+        tried.append({"internal_limit_w_m2": internal, "exceedance_probability": ex_best["probability"],
+                      "power_w": best.power_w, "standby": int(best.standby)})
     sd = post.sd_mrad()
 
     def entry(r, ex, lim):
