@@ -136,14 +136,24 @@ def plot_demo(plant, per_heliostat, receiver_flux, spot, path) -> None:
     save_figure(fig, path, make_folder=True)  # as before: plots make their folder
 
 
+#: Above this many heliostats :func:`plot_validation` draws distributions instead of a bar per heliostat (a bar per
+#: heliostat of a 2,000-heliostat plant is a figure 700 inches wide).
+VALIDATION_BARS_MOST = 40
+
+
 def plot_validation(report: dict, path) -> None:
     """Per-heliostat median pointing error, spot distance and record counts of a validation report.
 
     Bars are labelled with units; the count panel shows how many records (and images) each median rests on,
-    so a reader sees which heliostats' errors are backed by few records.
+    so a reader sees which heliostats' errors are backed by few records. Above :data:`VALIDATION_BARS_MOST`
+    heliostats: the share of heliostats at or below each error and distance (empirical CDFs, the worst named) and
+    a histogram of the record counts.
     """
     hs = report["heliostats"]
     ids = list(hs)
+    if len(ids) > VALIDATION_BARS_MOST:
+        _plot_validation_plant(report, path)
+        return
     fig = Figure(figsize=(max(8, 0.35 * len(ids)), 9))
     axes = fig.subplots(3, 1, sharex=True, gridspec_kw={"height_ratios": [3, 3, 2]})
     axes[0].bar(ids, [hs[h]["median_pointing_error_mrad"] for h in ids], color="tab:blue")
@@ -163,10 +173,40 @@ def plot_validation(report: dict, path) -> None:
     axes[2].legend(fontsize="small")
     axes[2].tick_params(axis="x", rotation=90)
     axes[2].set_xlabel("heliostat")
+    _validation_title(fig, report)
+    save_figure(fig, path, make_folder=True)  # as before: plots make their folder
+
+
+def _validation_title(fig, report: dict) -> None:
     settings = report.get("settings") or {}
     fig.suptitle(f"{settings.get('kinematics', 'nominal')} kinematics, {settings.get('surface', 'ideal')} surface "
                  f"vs measured focal spots")
-    save_figure(fig, path, make_folder=True)  # as before: plots make their folder
+
+
+def _plot_validation_plant(report: dict, path) -> None:
+    """:func:`plot_validation` for a plant: distributions over heliostats, a fixed-size figure."""
+    hs = report["heliostats"]
+    ids = list(hs)
+    fig = Figure(figsize=(13, 4))
+    axes = fig.subplots(1, 3)
+    for ax, key, label, colour in ((axes[0], "median_pointing_error_mrad", "median pointing error [mrad]", "tab:blue"),
+                                   (axes[1], "median_distance_m", "median spot distance [m]", "tab:orange")):
+        v = np.array([hs[h].get(key) if hs[h].get(key) is not None else np.nan for h in ids], dtype=float)
+        ok = np.isfinite(v) & (v > 0)
+        order = np.argsort(v[ok])
+        ax.step(v[ok][order], np.arange(1, ok.sum() + 1) / max(1, ok.sum()), where="post", color=colour)
+        ax.set_xscale("log")
+        ax.set_xlabel(label)
+        ax.grid(alpha=0.3)
+        worst = [ids[i] for i in np.flatnonzero(ok)[order][::-1][:5]]
+        ax.set_title("worst: " + ", ".join(worst), fontsize=8)
+    axes[0].set_ylabel(f"share of the {len(ids)} heliostats at or below")
+    counts = np.array([hs[h].get("records", 0) for h in ids], dtype=float)
+    axes[2].hist(counts, bins=30, color="tab:gray")
+    axes[2].set_xlabel("records per heliostat [-]")
+    axes[2].set_ylabel("heliostats [-]")
+    _validation_title(fig, report)
+    save_figure(fig, path, make_folder=True)
 
 
 def plot_field_demo(folder, plant, before, aimed, rep, limit: float, time_utc: str) -> None:
