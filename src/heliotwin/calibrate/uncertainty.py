@@ -118,8 +118,12 @@ def predictive(jacobian: torch.Tensor, normal: torch.Tensor, covariance: torch.T
     size = min(chunk, r)
     e_buf = torch.empty(size, 3, samples, dtype=torch.float64, device=dev)
     norm_buf = torch.empty(size, samples, dtype=torch.float64, device=dev)
-    sorted_buf = (torch.empty(size, samples, dtype=torch.float64, device=dev),
-                  torch.empty(size, samples, dtype=torch.long, device=dev))
+    # only the order statistics from the lower quantile's up are needed: the largest ``top`` of each row, sorted (a
+    # partial sort, about half a full one's cost at 4,000 samples; the same values)
+    first = int(min(0.5, float(level)) * (samples - 1))
+    top = samples - first
+    sorted_buf = (torch.empty(size, top, dtype=torch.float64, device=dev),
+                  torch.empty(size, top, dtype=torch.long, device=dev))
     expected, medians, uppers = [], [], []
     for rows in torch.arange(r, device=dev).split(chunk):
         # e[r, :, s] = J_r L_r xi_s + sd_r (I - n_r n_r^T) eta_s: parameters, then noise in the mirror plane, as
@@ -131,19 +135,24 @@ def predictive(jacobian: torch.Tensor, normal: torch.Tensor, covariance: torch.T
         e = torch.matmul(torch.cat([jacobian[rows].double() @ chol, plane], 2), draws, out=e_buf[:m])  # [r, 3, S]
         e = torch.sum(e.mul_(e), dim=1, out=norm_buf[:m]).sqrt_()  # [r, S]
         expected.append(e.mean(1))
-        e = torch.sort(e, dim=1, out=(sorted_buf[0][:m], sorted_buf[1][:m])).values  # one sort: both quantiles
-        medians.append(_quantile(e, 0.5))
-        uppers.append(_quantile(e, level))
+        e = torch.topk(e, top, dim=1, out=(sorted_buf[0][:m], sorted_buf[1][:m])).values.flip(1)  # ascending
+        medians.append(_quantile(e, 0.5, samples))
+        uppers.append(_quantile(e, level, samples))
     upper = torch.cat(uppers)
     return {"expected": torch.cat(expected), "median": torch.cat(medians), "lower": torch.zeros_like(upper),
             "upper": upper}
 
 
-def _quantile(x: torch.Tensor, q: float) -> torch.Tensor:
-    """``torch.quantile(x, q, dim=1)`` (linear interpolation) of ``x`` [r, S] sorted along its rows."""
-    pos = q * (x.shape[1] - 1)
+def _quantile(x: torch.Tensor, q: float, samples: int | None = None) -> torch.Tensor:
+    """``torch.quantile(v, q, dim=1)`` (linear interpolation) of rows ``v`` of ``samples`` values (default
+    ``x.shape[1]``) given the largest ``x.shape[1]`` of each, ascending: ``x`` [r, k] = ``sort(v)[:, samples - k:]``."""
+    n = x.shape[1] if samples is None else int(samples)
+    pos = q * (n - 1)
     lo = int(pos)
-    a = x[:, lo]
-    if lo + 1 >= x.shape[1] or pos == lo:
+    skip = n - x.shape[1]
+    if lo < skip:
+        raise ValueError(f"quantile {q} is below the {x.shape[1]} largest of {n} values given")
+    a = x[:, lo - skip]
+    if lo + 1 >= n or pos == lo:
         return a.clone()  # not a view: ``x`` may be a reused buffer
-    return a + (pos - lo) * (x[:, lo + 1] - a)
+    return a + (pos - lo) * (x[:, lo + 1 - skip] - a)
