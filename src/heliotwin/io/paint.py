@@ -33,6 +33,7 @@ from ..field.plant import Facets, Field, Kinematics, Plant, Site, SunSettings
 from ..field.targets import CylinderTarget, PlanarTarget
 from ..site import wgs84_to_enu
 from . import record_index
+from .readahead import read_ahead
 from .records import (
     SOURCES,
     WEATHER_KEYS,
@@ -802,14 +803,17 @@ def _parse_files(root: str, ids, listing: Listing, rows, site: Site, targets: di
     """Index entries (:mod:`heliotwin.io.record_index`) of the listed files ``rows``, parsed now. A file the
     fast parser does not accept is read by :func:`read_calibration_record`, which words its error."""
     out = []
-    for (h, folder, name), i in zip(listing.files(rows), rows):
-        path = os.path.join(folder, name)
-        try:
-            out.append(_parse_record(read_json(path), path))
-        except (InputFileError, ValueError, KeyError, TypeError, AttributeError, OverflowError):
-            r = read_calibration_record(path, site, ids[h], known_targets=targets)  # words the error, if any
-            lla = [r.focal_spot_wgs84.get(src, [math.nan] * 3) for src in FOCAL_SPOT_SOURCES]
-            out.append((r.record_id, *map(float, r.motor_steps), r.target, lla, r.sun_azimuth, r.sun_elevation))
+    files = listing.files(rows)
+    paths = [os.path.join(folder, name) for _, folder, name in files]
+    with read_ahead(paths):  # many files from a disk: the kernel reads them while this loop parses
+        for (h, _, _), path in zip(files, paths):
+            try:
+                out.append(_parse_record(read_json(path), path))
+            except (InputFileError, ValueError, KeyError, TypeError, AttributeError, OverflowError):
+                r = read_calibration_record(path, site, ids[h], known_targets=targets)  # words the error, if any
+                lla = [r.focal_spot_wgs84.get(src, [math.nan] * 3) for src in FOCAL_SPOT_SOURCES]
+                out.append((r.record_id, *map(float, r.motor_steps), r.target, lla, r.sun_azimuth,
+                            r.sun_elevation))
     n = len(out)
     return {"heliostat": np.asarray([ids[int(listing.heliostat[i])] for i in rows], dtype="U").reshape(n),
             "name": listing.name[rows].reshape(n), "size": listing.size[rows].reshape(n),
