@@ -286,6 +286,12 @@ class RecordTable:
         """Indices (into this batch), shape (K,), long, of the K records of heliostat ``h``."""
         return (self.heliostat_index == h).nonzero().flatten()
 
+    def rows_by_heliostat(self) -> list:
+        """:meth:`of` for every heliostat at once: H index tensors, each ascending (one stable sort, O(R log R);
+        a mask per heliostat is O(H R), 0.6 s at 2,000 heliostats and 190,000 records)."""
+        order = torch.argsort(self.heliostat_index, stable=True)
+        return list(torch.split(order, self.counts().tolist()))
+
     def counts(self) -> torch.Tensor:
         """Records per heliostat, [H]."""
         return torch.bincount(self.heliostat_index, minlength=self.num_heliostats)

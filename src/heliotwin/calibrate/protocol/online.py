@@ -27,8 +27,8 @@ def _ordered(batch) -> list:
     """Per heliostat: global indices of its records with a time, in time order (stable)."""
     times = batch.time.detach().cpu().numpy() if batch.time is not None else np.full(len(batch), np.nan)
     out = []
-    for h in range(batch.num_heliostats):
-        rows = batch.of(h).cpu().numpy()
+    for rows in batch.rows_by_heliostat():
+        rows = rows.cpu().numpy()
         rows = rows[np.isfinite(times[rows])]
         out.append(rows[np.argsort(times[rows], kind="stable")])
     return out

@@ -499,7 +499,8 @@ def _mean(xs):
 
 
 def _heliostat_report(cfg: RunConfig, parts: Split, checked: Checked, fitted: Fit, evaluation: Evaluation, h: int,
-                      hid: str, per_h_seconds: float) -> dict:
+                      hid: str, per_h_seconds: float, rows: dict) -> dict:
+    """``rows``: each part's (and ``nominal_test``'s) :meth:`~heliotwin.io.records.RecordTable.rows_by_heliostat`."""
     model, info = fitted.model, parts.info[hid]
     ok = bool(model.ok[h])
     rep = {"status": "ok" if ok else "skipped", "split": info}
@@ -512,7 +513,7 @@ def _heliostat_report(cfg: RunConfig, parts: Split, checked: Checked, fitted: Fi
         rep["reason"] = model.reasons.get(hid, why)
     for name, b in list(parts.parts.items()) + [("nominal_test", parts.test)]:
         e, m = evaluation.errors[name]
-        mine = b.heliostat_index == h
+        mine = rows[name][h].to(e.device)
         rep[name] = metrics.summarize(e[mine], m[mine])
     if not ok:
         # An uncalibrated heliostat has no calibrated error; do not let nominal numbers pass as one.
@@ -522,12 +523,12 @@ def _heliostat_report(cfg: RunConfig, parts: Split, checked: Checked, fitted: Fi
     rep["nominal_mean_test_mrad"] = rep["nominal_test"]["mean_mrad"]
     rep["fit_seconds_share"] = per_h_seconds
     if evaluation.intervals and ok:
-        mine = (parts.test.heliostat_index == h).cpu()
+        mine = rows["nominal_test"][h].cpu()  # the test records (nominal_test is the test part)
         iv = evaluation.intervals
-        rep["interval_90_coverage"] = float(iv["inside"][mine].double().mean()) if bool(mine.any()) else None
-        rep["expected_test_mrad"] = float(1e3 * iv["expected"][mine].mean()) if bool(mine.any()) else None
+        rep["interval_90_coverage"] = float(iv["inside"][mine].double().mean()) if len(mine) else None
+        rep["expected_test_mrad"] = float(1e3 * iv["expected"][mine].mean()) if len(mine) else None
         rep["interval_90_mrad"] = ([float(1e3 * iv["lower"][mine].median()), float(1e3 * iv["upper"][mine].median())]
-                                   if bool(mine.any()) else None)
+                                   if len(mine) else None)
     if model.names and ok:
         rep["parameters"] = {n: float(model.delta[h, j]) for j, n in enumerate(model.names)}
     if hid in checked.findings:
@@ -543,7 +544,8 @@ def report_heliostats(cfg: RunConfig, parts: Split, checked: Checked, fitted: Fi
     whole run's wall time)."""
     ids = fitted.model.heliostat_ids
     per_h_seconds = fitted.seconds / max(1, len(ids))
-    return {hid: _heliostat_report(cfg, parts, checked, fitted, evaluation, h, hid, per_h_seconds)
+    rows = {name: b.rows_by_heliostat() for name, b in list(parts.parts.items()) + [("nominal_test", parts.test)]}
+    return {hid: _heliostat_report(cfg, parts, checked, fitted, evaluation, h, hid, per_h_seconds, rows)
             for h, hid in enumerate(ids)}
 
 

@@ -325,8 +325,9 @@ def split_records(batch, kind: str, n_train: int, n_val: int, n_test: int | None
     info = {}
     # the split is bookkeeping on the host: a table on the GPU is read once (its indices work there too)
     az_all, el_all, t_all = (x.detach().cpu().numpy() for x in (batch.sun_azimuth, batch.sun_elevation, batch.time))
+    by_heliostat = batch.rows_by_heliostat()
     for h, hid in enumerate(batch.heliostat_ids):
-        rows = batch.of(h).cpu().numpy()
+        rows = by_heliostat[h].cpu().numpy()
         if len(rows) == 0:
             info[hid] = {"n_records": 0, "train": 0, "validation": 0, "test": 0, "dropped_no_time": 0}
             continue

@@ -146,8 +146,7 @@ def check_and_correct(kin: Kinematics, ids, field_kin: Kinematics, train: Record
     with torch.no_grad():
         err = metrics.pointing_error(kin, train)
     counts = train.counts()
-    per_h = [float(err[train.heliostat_index == h].median()) if int(counts[h]) else float("nan")
-             for h in range(len(ids))]
+    per_h = [float(err[rows].median()) if len(rows) else float("nan") for rows in train.rows_by_heliostat()]
     finite = [e for e in per_h if e == e]
     field_nominal = float(torch.tensor(finite).median()) if finite else float("nan")
     medians = field_medians(field_kin)
