@@ -271,6 +271,28 @@ def test_default_threads_take_the_cores_others_leave_idle():
     assert 1 <= n <= os.cpu_count() and env["OMP_NUM_THREADS"] == str(n)
 
 
+@pytest.mark.skipif(not os.path.exists("/proc/stat"), reason="the kernel's runnable count is Linux's")
+def test_busy_cores_see_a_busy_process_now_not_the_minute_before(tmp_path):
+    """The load average trails by a minute: a command started after another one ended took one thread on an idle
+    machine. busy_cores reads the runnable count now: a busy process is seen, a finished one is not."""
+    from heliotwin.cli.common import busy_cores
+
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        deadline = 200
+        while deadline and busy.poll() is None and busy_cores() < 1.0:  # until the child is scheduled
+            deadline -= 1
+        assert busy_cores() >= 1.0
+    finally:
+        busy.kill()
+        busy.wait()
+    fake = tmp_path / "stat"
+    fake.write_text("cpu  1 2 3 4\nprocs_running 1\nprocs_blocked 0\n")  # only the reader itself runs
+    assert busy_cores(str(fake)) == 0.0
+    fake.write_text("cpu  1 2 3 4\nprocs_running 4\n")
+    assert busy_cores(str(fake)) == 3.0
+
+
 def test_an_update_counts_what_it_does_not_assimilate(calibrated, tmp_path):
     """Records of a heliostat the plant does not know, and records the reader drops (motor steps out of range, a
     date in the future, an absurd sun azimuth), are counted and named in the report, never silently lost."""
