@@ -24,14 +24,19 @@ Usage::
 Budgets (issue "A plant's day, as run", 2 cores): calibrate <= 60 s and <= 4 GB at 2,000 heliostats; update
 <= 5 s the first time, <= 3 s after; field one sun, show, score, history <= 3 s.
 
-Measured 2026-11-28 (``--sizes 2000 --days 30 --keep --calibrate-warm``, 2 idle cores, the folder in the page
-cache as simulate leaves it): calibrate cold / warm 59.7 / 51.5 s, 1.41 GB; update first 2.77 s, later median
-2.75 s; field one sun 2.70 s; show / score / history 1.74 / 3.07 / 1.71 s (score 2.63 s once it stopped
-importing the simulator); daily 17.4 s; pointing vs truth 0.143 / 0.537 mrad (median / p95), 0.126 / 0.394
-after 29 updates; steps >= 1 mrad detected 15 of the 15 decided (15 / 21 in all: 6 have no record after them),
-other alarms 0.024 per heliostat-year counting steps the calibration straddled (0.25 without: steps 0-95 days
-before the cut-off that the calibration's walk had not yet followed). A folder read from disk instead of the
-page cache adds ~19 s to calibrate cold (190,000 record files parsed in 28 s instead of 9.4 s).
+Measured 2026-11-28, second session (``--sizes 2000 --days 30 --keep --calibrate-warm``, 2 idle cores, the folder
+in the page cache as simulate leaves it; calibrate now as the README writes it, with its JSON report and figures):
+calibrate cold / warm 45.1 / 35.5 s, 1.43 GB; update first 2.80 s, later median 2.69 s; daily 14.4 s; field one
+sun 2.16 s; show / score / history 1.64 / 2.39 / 1.63 s; pointing vs truth 0.143 / 0.537 mrad (median / p95);
+steps >= 1 mrad detected 15 of the 15 decided (15 / 21 in all: 6 have no record after them), other alarms 0.02 per
+heliostat-year counting steps the calibration straddled (0.25 without). By hand, the same folder from disk (page
+cache and inodes dropped, empty index): calibrate 44.9 s (the folder is read ahead, :mod:`heliotwin.io.readahead`);
+10,000 heliostats from disk 191.6 s, 5.7 GB.
+
+Earlier the same day: calibrate cold / warm 59.7 / 51.5 s (without the figures the README's recipe writes: a bar per
+heliostat made a 102,560-px-wide PNG in ~20 s), 69.5 s from disk; the difference is the figures at plant scale, a
+mask per heliostat in the report and the split (O(heliostats x records)), and a thread count that read the load
+average of the command before (one thread on an idle machine).
 """
 from __future__ import annotations
 
