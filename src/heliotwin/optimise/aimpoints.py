@@ -741,7 +741,7 @@ class AimSettings:
         limit alone (at a tenth of the step size; they stop once no cell exceeds it): where the limit binds hard
         the multipliers lag and the model's peak still stood 2-4 % over, so the exact checks failed and the margin
         grew a round at a time. Chosen by ``benchmarks/bench_aimpoints.py --testbed --candidates`` (its
-        :func:`choose_candidate` rule) on the generated plants at 150 and 1,000 heliostats: every limit met
+        ``choose_candidate`` rule) on the generated plants at 150 and 1,000 heliostats: every limit met
         either way, mean power +0.09 / +0.08 %, exact checks 599 -> 590 and 249 -> 240.
     warm_iterations, warm_lr, warm_tolerance : int, float, float
         With a warm start (``start_aim``): Adam steps per round, step size [m] and the predicted relative gain
