@@ -287,8 +287,9 @@ class RecordTable:
         return (self.heliostat_index == h).nonzero().flatten()
 
     def rows_by_heliostat(self) -> list:
-        """:meth:`of` for every heliostat at once: H index tensors, each ascending (one stable sort, O(R log R);
-        a mask per heliostat is O(H R), 0.6 s at 2,000 heliostats and 190,000 records)."""
+        """:meth:`of` for every heliostat at once: H index tensors, heliostat ``h``'s of shape (K_h,), long,
+        ascending (one stable sort, O(R log R); a mask per heliostat is O(H R), 0.6 s at 2,000 heliostats and
+        190,000 records)."""
         order = torch.argsort(self.heliostat_index, stable=True)
         return list(torch.split(order, self.counts().tolist()))
 
