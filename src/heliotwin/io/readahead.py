@@ -47,10 +47,10 @@ def read_ahead(paths: list[str], *, min_files: int = READ_AHEAD_MIN_FILES):
     """Within the block, a helper process asks the kernel to read ``paths`` (in this order) ahead of the caller.
 
     Yields whether a helper runs. It is stopped when the block ends (it has usually finished long before); its
-    list file is removed. Nothing happens for fewer than ``min_files`` paths, without ``os.posix_fadvise`` or
-    when ``HELIOTWIN_READ_AHEAD=0``.
+    list file is removed. Nothing happens for fewer than ``min_files`` paths, without ``os.posix_fadvise`` or an
+    interpreter to start (an embedded Python), or when ``HELIOTWIN_READ_AHEAD=0``.
     """
-    if (len(paths) < min_files or not hasattr(os, "posix_fadvise")
+    if (len(paths) < min_files or not hasattr(os, "posix_fadvise") or not sys.executable
             or os.environ.get("HELIOTWIN_READ_AHEAD", "1") == "0"):
         yield False
         return
