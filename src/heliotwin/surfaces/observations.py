@@ -99,9 +99,11 @@ def load_centered_image(path, resolution: int = 64, background: float = 0.0) -> 
 TRAIN_LATEST = 3
 
 
-def _time_key(record_id: int, time) -> tuple:
-    # Records with a DateTime first (ISO strings sort chronologically), the rest by id.
-    return (0, str(time), record_id) if time else (1, "", record_id)
+def _time_key(record_id: int, time, undated_first: bool = False) -> tuple:
+    # Records with a DateTime in time order (ISO strings sort chronologically), the rest by id: after them, or
+    # before them with ``undated_first`` (the latest images are then the latest dated ones).
+    undated = 0 if undated_first else 2
+    return (1, str(time), record_id) if time else (undated, "", record_id)
 
 
 def split_record_ids(record_ids, times, image_paths, train_records=None, train_first: int | None = None,
@@ -148,8 +150,7 @@ def split_record_ids(record_ids, times, image_paths, train_records=None, train_f
         k = TRAIN_LATEST if train_latest is None else int(train_latest)
         if k < 1:
             raise HeliotwinError(f"--train-latest must be >= 1, got {k}")
-        dated_last = {i: (0, "", ids[i]) if not times[i] else (1, str(times[i]), ids[i]) for i in with_img}
-        train = sorted(with_img, key=dated_last.get)[-k:]
+        train = sorted(with_img, key=lambda i: _time_key(ids[i], times[i], undated_first=True))[-k:]
     test = [i for i in with_img if i not in train]
     if not test:
         raise HeliotwinError(f"no test images left: {len(with_img)} records have centred images, all used for training")

@@ -511,9 +511,9 @@ def _heliostat_report(cfg: RunConfig, parts: Split, checked: Checked, fitted: Fi
             why += (f"; {info['dropped_no_time']} record(s) have no DateTime in metadata/calibration-metadata.csv, "
                     f"which the {cfg.split} split needs")
         rep["reason"] = model.reasons.get(hid, why)
-    for name, b in list(parts.parts.items()) + [("nominal_test", parts.test)]:
+    for name, by_heliostat in rows.items():
         e, m = evaluation.errors[name]
-        mine = rows[name][h].to(e.device)
+        mine = by_heliostat[h].to(e.device)
         rep[name] = metrics.summarize(e[mine], m[mine])
     if not ok:
         # An uncalibrated heliostat has no calibrated error; do not let nominal numbers pass as one.
