@@ -79,6 +79,31 @@ def test_python_dash_m_heliotwin_reports_one_line_error(tmp_path):
     assert not (tmp_path / "o.json").exists()
 
 
+def test_leave_skips_the_teardown_but_not_the_exit_functions_the_output_or_the_status(tmp_path):
+    """``heliotwin``'s exit after a command (``cli.common.leave``): the status, every line of a long stdout, the exit
+    functions (here one that writes a file) and a closed output file survive the skipped teardown; with another
+    non-daemon thread still running, the ordinary exit waits for it (its file is written after the main thread
+    left). Both in a child process: in this one ``leave`` would end the test run."""
+    marker, thread_file = tmp_path / "atexit.txt", tmp_path / "thread.txt"
+    code = ("import atexit, sys, threading, time, torch\n"
+            "from heliotwin.cli.common import leave\n"
+            f"atexit.register(lambda: open({str(marker)!r}, 'w').write('ran'))\n"
+            "sys.stdout.write(''.join(f'line {i}\\n' for i in range(20000)))\n"
+            "if sys.argv[1] == 'thread':\n"
+            "    late = lambda: (time.sleep(1.0), open(sys.argv[2], 'w').write('done'))\n"
+            "    threading.Thread(target=late).start()\n"
+            "leave(3)\n")
+    for mode in ("plain", "thread"):
+        proc = subprocess.run([sys.executable, "-c", code, mode, str(thread_file)], capture_output=True, text=True,
+                              env=_env(), timeout=300)
+        assert proc.returncode == 3, proc.stderr
+        lines = proc.stdout.splitlines()
+        assert len(lines) == 20000 and lines[-1] == "line 19999"
+        assert marker.read_text() == "ran"
+        marker.unlink()
+    assert thread_file.read_text() == "done"
+
+
 def test_library_never_imports_the_cli():
     """Only ``heliotwin.cli`` itself may import ``heliotwin.cli`` (``python -m heliotwin`` runs
     ``heliotwin/cli/__main__.py`` by name), and only it imports the notebook edge ``heliotwin.api`` (the library's

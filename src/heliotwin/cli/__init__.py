@@ -28,9 +28,9 @@ import sys
 
 from .. import __version__
 from . import calibrate, field, plan, plant, report, simulate, surfaces, update
-from .common import ArgumentParser, run_command
+from .common import ArgumentParser, leave, run_command
 
-__all__ = ["build_parser", "main", "run_command"]
+__all__ = ["build_parser", "console", "main", "run_command"]
 
 #: Command groups in the order of ``heliotwin --help``.
 GROUPS = (plant, calibrate, plan, update, surfaces, field, simulate, report)
@@ -101,3 +101,9 @@ def main(argv=None) -> int:
     """Parse ``argv`` (default: ``sys.argv[1:]``), run the command, return its exit status."""
     argv = _join_signed_values(list(sys.argv[1:] if argv is None else argv))
     return run_command(build_parser().parse_args(argv))
+
+
+def console() -> None:
+    """The ``heliotwin`` command (console script and ``python -m heliotwin``): :func:`main` on ``sys.argv``,
+    then :func:`.common.leave` with its exit status (no interpreter teardown after the work is done)."""
+    leave(main())

@@ -1,8 +1,6 @@
 """``python -m heliotwin`` and ``python -m heliotwin.cli``: the ``heliotwin`` command without the installed
 console script."""
-import sys
-
-from . import main
+from . import console
 
 if __name__ == "__main__":
-    sys.exit(main())
+    console()
