@@ -80,27 +80,38 @@ def test_python_dash_m_heliotwin_reports_one_line_error(tmp_path):
 
 
 def test_leave_skips_the_teardown_but_not_the_exit_functions_the_output_or_the_status(tmp_path):
-    """``heliotwin``'s exit after a command (``cli.common.leave``): the status, every line of a long stdout, the exit
-    functions (here one that writes a file) and a closed output file survive the skipped teardown; with another
-    non-daemon thread still running, the ordinary exit waits for it (its file is written after the main thread
-    left). Both in a child process: in this one ``leave`` would end the test run."""
-    marker, thread_file = tmp_path / "atexit.txt", tmp_path / "thread.txt"
+    """``heliotwin``'s exit after a command (``cli.common.leave``): the status, every line of a long stdout and the
+    exit functions (here one that writes a file) survive; the interpreter's teardown (here a module-level object
+    whose finaliser writes a file) is skipped. The ordinary exit, teardown included, where another non-daemon
+    thread still runs (its file is written after the main thread left) or a profiler watches (``python -m
+    cProfile`` writes its statistics after the command). In a child process: in this one ``leave`` would end the
+    test run."""
+    marker, thread_file, teardown = tmp_path / "atexit.txt", tmp_path / "thread.txt", tmp_path / "teardown.txt"
     code = ("import atexit, sys, threading, time, torch\n"
             "from heliotwin.cli.common import leave\n"
-            f"atexit.register(lambda: open({str(marker)!r}, 'w').write('ran'))\n"
+            "mode, folder = sys.argv[1], sys.argv[2]\n"
+            "atexit.register(lambda: open(folder + '/atexit.txt', 'w').write('ran'))\n"
+            "class Finalised:\n"
+            "    def __del__(self, open=open, path=folder + '/teardown.txt'):  # builtins go early in a teardown\n"
+            "        open(path, 'w').write('ran')\n"
+            "kept = Finalised()\n"
             "sys.stdout.write(''.join(f'line {i}\\n' for i in range(20000)))\n"
-            "if sys.argv[1] == 'thread':\n"
-            "    late = lambda: (time.sleep(1.0), open(sys.argv[2], 'w').write('done'))\n"
+            "if mode == 'thread':\n"
+            "    late = lambda: (time.sleep(1.0), open(folder + '/thread.txt', 'w').write('done'))\n"
             "    threading.Thread(target=late).start()\n"
+            "if mode == 'profiled':\n"
+            "    sys.setprofile(lambda *args: None)\n"
             "leave(3)\n")
-    for mode in ("plain", "thread"):
-        proc = subprocess.run([sys.executable, "-c", code, mode, str(thread_file)], capture_output=True, text=True,
+    for mode in ("plain", "thread", "profiled"):
+        proc = subprocess.run([sys.executable, "-c", code, mode, str(tmp_path)], capture_output=True, text=True,
                               env=_env(), timeout=300)
         assert proc.returncode == 3, proc.stderr
         lines = proc.stdout.splitlines()
         assert len(lines) == 20000 and lines[-1] == "line 19999"
         assert marker.read_text() == "ran"
+        assert teardown.exists() == (mode != "plain"), mode
         marker.unlink()
+        teardown.unlink(missing_ok=True)
     assert thread_file.read_text() == "done"
 
 

@@ -238,11 +238,12 @@ def leave(status: int):
     ``update``, paid after the work is done. Nothing is lost by skipping it: a command writes, closes and
     renames its outputs before it returns, and the exit functions that matter (logging's flush,
     multiprocessing's joins, temporary folders' finalizers) are the ones run here. Where torch was never
-    imported (``--help``, a refused argument) or another non-daemon thread still runs (the interpreter would
-    wait for it), the ordinary exit happens instead.
+    imported (``--help``, a refused argument), another non-daemon thread still runs (the interpreter would
+    wait for it) or a profiler or tracer watches (``python -m cProfile -m heliotwin`` writes its statistics
+    after the command returns), the ordinary exit happens instead.
     """
     others = [t for t in threading.enumerate() if t is not threading.main_thread() and t.is_alive() and not t.daemon]
-    if others or "torch" not in sys.modules:
+    if others or "torch" not in sys.modules or sys.getprofile() is not None or sys.gettrace() is not None:
         sys.exit(status)
     atexit._run_exitfuncs()  # what the interpreter's exit runs first (CPython's own function)
     for stream in (sys.stdout, sys.stderr):
