@@ -355,16 +355,17 @@ class _ImageFlux(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x, y, model):
-        # in the profiles' precision throughout (float32 in the optimiser: the maps of a few thousand images sum
-        # to ~1e-6 relative, far inside the exact checks' margin); the outputs in the centres'
+        # per heliostat in the profiles' precision (float32 in the optimiser), every sum over heliostats (the map)
+        # in the centres': a sharded run's all-reduced map is then one process's to float64 rounding, and its
+        # steps are one process's (the backward's contractions run over cells, each heliostat on its own)
         gx, gy, px, py = model._cells(x, y)  # [h, cols], [h, rows], densities [h, cols + 1], [h, rows + 1]
         power = model.power.to(gx.dtype)
         mx, my = gx.sum(1), gy.sum(1)
         pgy = gy * power[:, None]
-        img = pgy.transpose(0, 1) @ gx / model.cell_area
+        img = pgy.to(x.dtype).transpose(0, 1) @ gx.to(x.dtype) / model.cell_area
         ctx.save_for_backward(px, py, gx, pgy, mx, my, power)  # densities at the edges
         ctx.model, ctx.dtype = model, x.dtype
-        return img.flip(0).to(x.dtype), (power * mx * my).to(x.dtype)
+        return img.flip(0), (power * mx * my).to(x.dtype)
 
     @staticmethod
     def backward(ctx, g_img, g_p):
