@@ -25,6 +25,23 @@ def _rand_unit(n, seed=0):
     return v / v.norm(dim=-1, keepdim=True)
 
 
+def test_dot_term_by_term_equals_the_reduction_bit_for_bit():
+    """``geometry._dot`` sums the three products term by term where nothing is recorded (faster on a CPU): the
+    reduction's numbers to the bit, in both precisions and with broadcasting; with a gradient recorded it is the
+    reduction itself (and its gradient the reduction's)."""
+    from heliotwin.geometry import _dot
+
+    g = torch.Generator().manual_seed(5)
+    for dt in (torch.float32, torch.float64):
+        for sa, sb in (((1000, 3), (1000, 3)), ((1000, 3), (3,)), ((50, 20, 3), (50, 1, 3))):
+            a, b = torch.randn(*sa, generator=g, dtype=dt), torch.randn(*sb, generator=g, dtype=dt)
+            assert torch.equal(_dot(a, b), (a * b).sum(-1))
+    a = torch.randn(10, 3, generator=g, dtype=torch.float64, requires_grad=True)
+    b = torch.randn(10, 3, generator=g, dtype=torch.float64)
+    grad, = torch.autograd.grad(_dot(a, b).sum(), a)
+    assert torch.equal(grad, b)
+
+
 def test_reflect_identities():
     d = _rand_unit(100, 1)
     n = _rand_unit(100, 2)
