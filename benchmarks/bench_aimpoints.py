@@ -169,7 +169,9 @@ thread): few heliostats, each a larger share of the peak cell, sparsely calibrat
 the deterministic optimum leaves the twin's peak at 0.993 of the limit. The true errors (0.27 mrad) then push
 the peak over the limit in 23 % of the resampled plants and 82 % of this plant's draws, by at most 1.2 %; the
 twin's own estimate was 0.25, so the robust mode tightened to an estimate of 0.025 (<= 0.05) and no true draw
-exceeded the limit, for 0.04 % of the power.
+exceeded the limit, for 0.04 % of the power. Another plant of the same kind (``--seed 11``): resampled 0.10 ->
+0.01, its own draws 0 -> 0 (its errors happened to spread the spots), the twin's estimate 0.12 -> 0.01, 0.01 %
+of the power.
 
 **Demo field** (default): the embedded ~2000-heliostat field, the optimiser against equator aiming and two
 heuristics.
