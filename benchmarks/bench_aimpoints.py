@@ -170,7 +170,7 @@ plants do not exercise the robust mode (it acts in ``tests/test_aimpoints_confid
 The last one does (``--heliostats 60 --years 0.5 --records-per-month 3 --min-records 8``, measured 2026-11-28, one
 thread): few heliostats, each a larger share of the peak cell, sparsely calibrated (posterior sd 0.55 mrad), and
 the deterministic optimum leaves the twin's peak at 0.988 of the limit. The true errors (0.27 mrad) then push
-the peak over the limit in 12 % of the resampled plants and 36 % of this plant's draws, by at most 0.7 %; the
+the peak over the limit in 12 % of the resampled plants and 36 % of this plant's draws (95th percentile 0.7 % over); the
 twin's own estimate was 0.18, so the robust mode tightened to an estimate of 0.015 (<= 0.05) and no true draw
 exceeded the limit, for 0.06 % of the power. Another plant of the same kind (``--seed 11``): resampled 0.09 ->
 0.01, its own draws 0 -> 0 (its errors happened to spread the spots), the twin's estimate 0.11 -> 0.01, 0.01 %
