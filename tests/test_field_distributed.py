@@ -150,25 +150,38 @@ def test_destroy_frees_the_group_after_an_optimiser(tmp_path):
 
 
 def test_aimpoints_command_nproc_2_equals_one_process(tmp_path, capsys):
-    """`aimpoints --nproc 2` (run_aimpoints_sharded: spawned gloo ranks) writes the one-process aim points."""
+    """`aimpoints --nproc 2` (run_aimpoints_sharded: spawned gloo ranks) writes the one-process aim points, at two
+    instants: the first from equator aiming, the second warm-started from the first (its ranks make no equator
+    check of their own, as one process makes none)."""
     import json
 
     from helpers.cli import run_cli
 
     from heliotwin.io.scenario import load_scenario, save_scenario
+    from heliotwin.optimise.aimpoints import evaluate
+    from heliotwin.raytrace.field import equator_aim_points
+    from heliotwin.workflows.field import sun_direction_at
 
-    plant, atm, _, limit = _aim_case()
+    plant, atm, _, _ = _aim_case()
+    times = ["2023-06-21T10:00:00Z", "2023-06-21T10:15:00Z"]
+    sun = sun_direction_at(plant, time_utc=times[0])
+    limit = evaluate(plant, sun, equator_aim_points(plant.targets["receiver"], plant.field.kinematics.position),
+                     atm).peak_flux_w_m2 / 1.35
     h5 = tmp_path / "p.h5"
     save_scenario(plant, h5, extras=atm.to_extras())
     out = {}
     for n in (1, 2):
         js, aimed = tmp_path / f"a{n}.json", tmp_path / f"a{n}.h5"
-        code, _, err = run_cli(capsys, "aimpoints", "--scenario", h5, "--sun-azimuth", math.degrees(0.2),
-                               "--sun-elevation", 45, "--peak-limit", limit, "--iterations", 100, "--nproc", n,
-                               "--no-baselines", "-o", aimed, "--json", js, "--quiet")
+        code, _, err = run_cli(capsys, "aimpoints", "--scenario", h5, "--time", ",".join(times), "--peak-limit",
+                               limit, "--iterations", 100, "--nproc", n, "--no-baselines", "-o", aimed, "--json", js,
+                               "--quiet")
         assert code == 0, err
-        out[n] = (json.loads(js.read_text())["instants"][0]["optimised"],
-                  load_scenario(aimed).learned["aimpoints"]["instants"]["i000"]["aim"])
-    assert out[2][0]["limit_met"] and out[2][0]["violation"] == 0.0
-    assert out[2][0]["peak_flux_w_m2"] == pytest.approx(out[1][0]["peak_flux_w_m2"], rel=1e-5)
-    assert float((out[2][1] - out[1][1]).abs().max()) < 1e-4  # [m]: only the summation order differs
+        stored = load_scenario(aimed).learned["aimpoints"]["instants"]
+        out[n] = [(e["optimised"], stored[f"i{i:03d}"]["aim"])
+                  for i, e in enumerate(json.loads(js.read_text())["instants"])]
+    for i, ((sharded, aim2), (single, aim1)) in enumerate(zip(out[2], out[1])):
+        assert sharded["warm_start"] == single["warm_start"] == (i == 1)
+        assert sharded["limit_met"] and sharded["violation"] == 0.0
+        assert sharded["exact_checks"] == single["exact_checks"]
+        assert sharded["peak_flux_w_m2"] == pytest.approx(single["peak_flux_w_m2"], rel=1e-5)
+        assert float((aim2 - aim1).abs().max()) < 1e-4  # [m]: only the summation order differs

@@ -1106,20 +1106,26 @@ def _standby(plant, sun, atmosphere, rec, model: ImageModel, least: AimResult, l
 
 # ------------------------------------------------------------------------------------------ baselines
 def _optimise_shard(job: dict, group) -> AimResult:
-    """One rank of :func:`run_aimpoints_sharded`: image model and aim points of this rank's shard."""
+    """One rank of :func:`run_aimpoints_sharded`: image model (unless a warm start needs none) and aim points of
+    this rank's shard."""
     kw, settings = dict(job["kwargs"]), job["settings"]
-    model, equator = calibrate_images(job["plant"], job["sun"], kw.get("atmosphere"), settings.resolution,
-                                      group=group)
+    model = equator = None
+    if job["equator"]:
+        model, equator = calibrate_images(job["plant"], job["sun"], kw.get("atmosphere"), settings.resolution,
+                                          group=group)
     return optimise_aimpoints(job["plant"], job["sun"], job["limit"], settings, group=group, equator=equator,
                               model=model, **kw)
 
 
 def run_aimpoints_sharded(plant, sun_direction, peak_limit: float, nproc: int, settings: AimSettings = AimSettings(),
-                          **kwargs) -> AimResult:
+                          *, equator: bool = True, **kwargs) -> AimResult:
     """:func:`optimise_aimpoints` sharded over ``nproc`` spawned local gloo processes (CPU); rank 0's result
-    (every rank holds the same aim points). ``settings`` and ``kwargs`` as for it, without ``group``,
-    ``equator``, ``model`` and ``progress``."""
-    job = {"plant": plant, "sun": sun_direction, "limit": float(peak_limit), "settings": settings, "kwargs": kwargs}
+    (every rank holds the same aim points). ``settings`` and ``kwargs`` as for it (a warm start's ``start_aim``
+    ... included), without ``group``, ``equator``, ``model`` and ``progress``; ``equator``: the ranks make the exact
+    equator check and calibrate the image model on it first (False: a warm start's own check does, as in one
+    process)."""
+    job = {"plant": plant, "sun": sun_direction, "limit": float(peak_limit), "settings": settings, "kwargs": kwargs,
+           "equator": bool(equator) or kwargs.get("start_aim") is None}
     return run_spawned(_optimise_shard, job, nproc)
 
 

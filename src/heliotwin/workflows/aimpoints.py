@@ -74,7 +74,7 @@ class AimpointSettings:
         Seed of the draws.
     warm_start : bool
         Each instant after the first starts from the previous instant's optimised aim points, multipliers and
-        margin (``optimise_aimpoints(start_aim=...)``; one process only, not with ``nproc > 1``).
+        margin (``optimise_aimpoints(start_aim=...)``; with ``nproc > 1`` each instant's ranks start from it).
     exact_equator : bool
         With warm starts: make the exact equator check at every instant anyway (its peak and map in the report
         and the flux maps). Without it (and without baselines, a uniform target or a confidence, which need it)
@@ -147,11 +147,12 @@ def _instant(plant, sun, atm, settings: AimpointSettings, learned=None, path="",
         target = load_target(settings.target, resolution)
     knobs = AimSettings(resolution=resolution, iterations=settings.iterations, field_gradient=settings.field_gradient)
     nproc = min(settings.nproc, len(plant.field.ids))  # at most one process per heliostat
-    if nproc > 1:
-        best = run_aimpoints_sharded(plant, sun, limit, nproc, knobs, atmosphere=atm, target=target)
+    start = {} if warm is None else {"start_aim": warm.aim, "start_multipliers": warm.multipliers,
+                                     "start_margin": warm.parameter, "start_field": warm.exact}
+    if nproc > 1:  # the ranks make their own (sharded) equator check and image model where this one did
+        best = run_aimpoints_sharded(plant, sun, limit, nproc, knobs, equator=need_equator, atmosphere=atm,
+                                     target=target, **start)
     else:
-        start = {} if warm is None else {"start_aim": warm.aim, "start_multipliers": warm.multipliers,
-                                         "start_margin": warm.parameter, "start_field": warm.exact}
         best = optimise_aimpoints(plant, sun, limit, knobs, atmosphere=atm, target=target, equator=eq_field,
                                   model=model, **start)
     if not need_equator:  # equator aiming's power as the optimiser's corrected image model estimated it
@@ -285,7 +286,7 @@ def aimpoints(scenario: Scenario, instants: list[tuple[str, torch.Tensor]], sett
               "resolution": {"cols": settings.resolution[1], "rows": settings.resolution[0]},
               "target": target, "nproc": settings.nproc, "confidence": settings.confidence, "instants": []}
     stored, previous = {}, None
-    warm = settings.warm_start and settings.nproc == 1
+    warm = settings.warm_start
     for i, (label, sun) in enumerate(instants):
         rep, best, equator, previous = _instant(plant, sun, atm, settings, scenario.learned, scenario.path or "",
                                                 previous if warm else None)
