@@ -690,6 +690,13 @@ def _alm(model: ImageModel, x, y, defect, power_defect, limit_int, lam, *, grp, 
         mismatch = None if t is None else ((f / f.sum() - t) ** 2).sum() / (t ** 2).sum()
         return f, p, mismatch
 
+    def step(opt: _Adam, gx, gy, scale: float) -> None:
+        # one Adam step, then back onto the receiver's height and each heliostat's visible arc (under no_grad)
+        opt.step((gx, gy), scale)
+        y.clamp_(-half_height, half_height)
+        if x_bounds is not None:
+            x.copy_(torch.minimum(torch.maximum(x, x_bounds[0]), x_bounds[1]))
+
     check = 2 * int(inner)
     last, done = None, 0
     for it in range(int(steps)):
@@ -701,10 +708,7 @@ def _alm(model: ImageModel, x, y, defect, power_defect, limit_int, lam, *, grp, 
         gx, gy = torch.autograd.grad(loss, (x, y))
         done = it + 1
         with torch.no_grad():
-            adam.step((gx, gy), 1.0 - 0.9 * it / max(1, steps))
-            y.clamp_(-half_height, half_height)
-            if x_bounds is not None:
-                x.copy_(torch.minimum(torch.maximum(x, x_bounds[0]), x_bounds[1]))
+            step(adam, gx, gy, 1.0 - 0.9 * it / max(1, steps))
             if (it + 1) % int(inner) == 0:
                 lam.copy_(torch.clamp(lam + rho * g.detach(), min=0.0))
             if (it + 1) % check == 0:
@@ -716,7 +720,7 @@ def _alm(model: ImageModel, x, y, defect, power_defect, limit_int, lam, *, grp, 
     # internal limit after the steps (2,000 heliostats on Jülich's tilted receiver): the exact checks then failed
     # and the margin grew a round at a time. Steps on the excess alone, at a tenth of the step size, with moments
     # of their own (the objective's moments point along its gradient, not the excess's)
-    adam = _Adam((x, y), lr)
+    restoring = _Adam((x, y), lr) if restore else None
     for _ in range(int(restore)):
         f, _, _ = corrected(x, y)
         excess = f / limit_int - 1.0
@@ -725,10 +729,7 @@ def _alm(model: ImageModel, x, y, defect, power_defect, limit_int, lam, *, grp, 
         gx, gy = torch.autograd.grad((torch.clamp(excess, min=0.0) ** 2).sum(), (x, y))
         done += 1
         with torch.no_grad():
-            adam.step((gx, gy), 0.1)
-            y.clamp_(-half_height, half_height)
-            if x_bounds is not None:
-                x.copy_(torch.minimum(torch.maximum(x, x_bounds[0]), x_bounds[1]))
+            step(restoring, gx, gy, 0.1)
     with torch.no_grad():
         _, p, mismatch = corrected(x, y)
     predicted = float(p) / p0 if t is None else -math.sqrt(float(mismatch))
@@ -1106,26 +1107,27 @@ def _standby(plant, sun, atmosphere, rec, model: ImageModel, least: AimResult, l
 
 # ------------------------------------------------------------------------------------------ baselines
 def _optimise_shard(job: dict, group) -> AimResult:
-    """One rank of :func:`run_aimpoints_sharded`: image model (unless a warm start needs none) and aim points of
-    this rank's shard."""
+    """One rank of :func:`run_aimpoints_sharded`: this rank's image model (unless a warm start makes its own) and
+    aim points of this rank's shard."""
     kw, settings = dict(job["kwargs"]), job["settings"]
-    model = equator = None
-    if job["equator"]:
+    model, equator = None, job["equator"]
+    if equator is not None or kw.get("start_aim") is None:
         model, equator = calibrate_images(job["plant"], job["sun"], kw.get("atmosphere"), settings.resolution,
-                                          group=group)
+                                          group=group, equator=equator)
     return optimise_aimpoints(job["plant"], job["sun"], job["limit"], settings, group=group, equator=equator,
                               model=model, **kw)
 
 
 def run_aimpoints_sharded(plant, sun_direction, peak_limit: float, nproc: int, settings: AimSettings = AimSettings(),
-                          *, equator: bool = True, **kwargs) -> AimResult:
+                          *, equator=None, **kwargs) -> AimResult:
     """:func:`optimise_aimpoints` sharded over ``nproc`` spawned local gloo processes (CPU); rank 0's result
     (every rank holds the same aim points). ``settings`` and ``kwargs`` as for it (a warm start's ``start_aim``
-    ... included), without ``group``, ``equator``, ``model`` and ``progress``; ``equator``: the ranks make the exact
-    equator check and calibrate the image model on it first (False: a warm start's own check does, as in one
-    process)."""
+    ... included), without ``group``, ``model`` and ``progress``. ``equator``: the exact equator result (a
+    :class:`~heliotwin.raytrace.field.FieldResult` of :func:`calibrate_images`) the ranks calibrate their image
+    models on instead of making the check again; without it the ranks make it, unless a warm start's own check
+    serves (as in one process)."""
     job = {"plant": plant, "sun": sun_direction, "limit": float(peak_limit), "settings": settings, "kwargs": kwargs,
-           "equator": bool(equator) or kwargs.get("start_aim") is None}
+           "equator": equator}
     return run_spawned(_optimise_shard, job, nproc)
 
 

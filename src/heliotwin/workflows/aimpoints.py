@@ -149,8 +149,8 @@ def _instant(plant, sun, atm, settings: AimpointSettings, learned=None, path="",
     nproc = min(settings.nproc, len(plant.field.ids))  # at most one process per heliostat
     start = {} if warm is None else {"start_aim": warm.aim, "start_multipliers": warm.multipliers,
                                      "start_margin": warm.parameter, "start_field": warm.exact}
-    if nproc > 1:  # the ranks make their own (sharded) equator check and image model where this one did
-        best = run_aimpoints_sharded(plant, sun, limit, nproc, knobs, equator=need_equator, atmosphere=atm,
+    if nproc > 1:  # the ranks calibrate their shards' image models on this equator check (or warm-start)
+        best = run_aimpoints_sharded(plant, sun, limit, nproc, knobs, equator=eq_field, atmosphere=atm,
                                      target=target, **start)
     else:
         best = optimise_aimpoints(plant, sun, limit, knobs, atmosphere=atm, target=target, equator=eq_field,
