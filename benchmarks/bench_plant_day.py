@@ -33,6 +33,11 @@ heliostat-year counting steps the calibration straddled (0.25 without). By hand,
 cache and inodes dropped, empty index): calibrate 44.9 s (the folder is read ahead, :mod:`heliotwin.io.readahead`);
 10,000 heliostats from disk 191.6 s, 5.7 GB.
 
+The session after (the command's quick exit, ``cli.common.leave``, and faster aim points): calibrate cold / warm
+41.3 / 31.9 s, 1.43 GB; update first 2.17 s, later median 2.22 s; daily 8.45 s; field one sun 1.73 s; show / score /
+history 1.23 / 1.75 / 1.23 s; pointing and alarms the same. A second run an hour later, when the machine itself was
+slower (``import torch`` 1.27 -> 1.78 s): 44.0 / 37.4 s, 2.38 / 2.44 s, 10.8 s, 2.11 s, 1.47 / 2.30 / 1.51 s.
+
 Earlier the same day: calibrate cold / warm 59.7 / 51.5 s (without the figures the README's recipe writes: a bar per
 heliostat made a 102,560-px-wide PNG in ~20 s), 69.5 s from disk; the difference is the figures at plant scale, a
 mask per heliostat in the report and the split (O(heliostats x records)), and a thread count that read the load
