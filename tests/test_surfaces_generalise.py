@@ -1,6 +1,8 @@
 """Generalising surface learning: camera nuisance, edge penalty, acceptance rule, outlier rule, optics start."""
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 from helpers.surfaces import dome_scene, small_scene
@@ -9,11 +11,12 @@ from heliotwin.field.plant import Facets, SunSettings
 from heliotwin.surfaces import losses
 from heliotwin.surfaces.acceptance import ALPHAS, robust_outliers, shrink_to_accept, wilson_interval
 from heliotwin.surfaces.edges import edge_ridge_mrad, high_order, slope_penalties, slope_penalty
-from heliotwin.surfaces.fit import fit_surface
+from heliotwin.surfaces.fit import fit_surface, minibatch_rows
 from heliotwin.surfaces.fitbatch import FitProblem, fit_surfaces
 from heliotwin.surfaces.generalise import (
     SurfaceSettings,
     canting_focal_length,
+    cv_folds,
     evaluate_with_camera,
     fit_generalising,
     focused_start,
@@ -127,6 +130,55 @@ def test_batched_fits_equal_the_serial_fits():
         ds, db = serial.model.displacement.detach(), b.model.displacement.detach()
         assert float((db - ds).abs().max()) < 1e-5 * float(ds.abs().max())
         assert b.evaluations == serial.evaluations == 20
+
+
+def test_minibatches_cycle_through_each_fits_images_and_are_seeded():
+    rows = minibatch_rows([5, 2, 3], 2, steps=10, seed=4)
+    assert rows.shape == (10, 2 + 2 + 2)
+    first = rows[:, :2].reshape(-1)  # the 5-image fit: one random order after the other, in chunks of two
+    for k in range(0, 20, 5):
+        assert sorted(first[k:k + 5].tolist()) == [0, 1, 2, 3, 4]
+    assert (rows[:, 2:4].sort(1).values == torch.tensor([5, 6])).all()  # two images: both, every step
+    third = rows[:, 4:].reshape(-1)
+    for k in range(0, 18, 3):
+        assert sorted(third[k:k + 3].tolist()) == [7, 8, 9]
+    assert torch.equal(rows, minibatch_rows([5, 2, 3], 2, steps=10, seed=4))
+    assert not torch.equal(rows, minibatch_rows([5, 2, 3], 2, steps=10, seed=5))
+    assert minibatch_rows([2, 1], 2, steps=10) is None and minibatch_rows([5], None, steps=10) is None
+
+
+def test_cross_validation_folds_hold_every_image_out_once():
+    assert cv_folds(7, 3) == [[0, 3, 6], [1, 4], [2, 5]]
+    assert cv_folds(3, 3) == cv_folds(3, None) == cv_folds(3, 8) == [[0], [1], [2]]  # leave one out
+
+
+def test_batched_minibatch_fits_with_held_out_folds_equal_the_serial_fits():
+    """Mini-batches (one image per step) and folds of two held-out images: the batched fits still take the serial
+    fits' steps (the same seeded batches), and each held-out image's evaluation is its own."""
+    facets, obs, sun, truth = dome_scene(samples=(10, 10))
+    s = SurfaceSettings(control_points=(4, 4), degree=(2, 2), samples=(8, 8), resolution=32, size_m=4.0, steps=12,
+                        lr=0.3, eval_every=4, batch_images=1)
+    cam = estimate_camera(obs.images.to(torch.float32))
+    split = [([0, 1], [2]), ([2], [0, 1])]
+    problems = [FitProblem(obs.subset(keep), cam.subset(keep), torch.ones(len(keep)), w,
+                           (obs.subset(held), cam.subset(held))) for w in (1e-3, 1e-1) for keep, held in split]
+    batched = fit_surfaces(facets, problems, sun, s)
+    for p, b in zip(problems, batched):
+        serial = fit_surface(facets, p.obs, sun, s, camera=p.camera, sigma0=p.sigma0, slope_weight=p.slope_weight,
+                             heldout=p.heldout)
+        assert [st for st, _ in b.curve] == [st for st, _ in serial.curve] == [4, 8, 12]
+        assert max(abs(x - y) for (_, x), (_, y) in zip(b.curve, serial.curve)) < 1e-5
+        ds, db = serial.model.displacement.detach(), b.model.displacement.detach()
+        assert float((db - ds).abs().max()) < 1e-5 * float(ds.abs().max())
+        for st in (4, 8, 12):
+            hb, hs = b.heldout[st], serial.heldout[st]
+            assert len(hb["l1"]) == len(p.heldout[0]) and hb["images"].shape == (len(p.heldout[0]), 32, 32)
+            assert max(abs(x - y) for x, y in zip(hb["l1"], hs["l1"])) < 1e-5
+            assert abs(sum(hb["l1"]) / len(hb["l1"]) - dict(b.curve)[st]) < 1e-12  # the curve is their mean
+    # one image per step is not the full batch: the two-image fits learn something else
+    full = fit_surface(facets, problems[0].obs, sun, dataclasses.replace(s, batch_images=None),
+                       camera=problems[0].camera, sigma0=problems[0].sigma0, slope_weight=1e-3)
+    assert float((full.model.displacement - batched[0].model.displacement).detach().abs().max()) > 1e-6
 
 
 def test_residual_slope_ignores_tilt_and_bowl_but_sees_bumps():
@@ -270,7 +322,9 @@ def test_cli_generalising_on_a_scenario_stores_an_accepted_surface(paint_dir, tm
     assert code == 0, err
     rep = json.loads((tmp_path / "r.json").read_text())
     assert rep["plant"] == "scenario"
-    assert len(rep["train"]) == 3 and len(rep["test"]) == 7
+    # the current surface: every one of the 10 centred images trains; the test rows are their cross-validation
+    assert len(rep["train"]) == 10 and len(rep["test"]) == 10 and rep["test_is"] == "cross-validation"
+    assert rep["split"]["current"] and rep["selection"]["folds"] == 3
     assert rep["train_worse_than_ideal"] == 0
     assert all(r["l1_learned"] <= r["l1_ideal"] + 1e-6 for r in rep["train"])
     for key in ("test_improved_wilson95", "edge_ridge", "dropped", "acceptance", "choices", "selection", "optics"):

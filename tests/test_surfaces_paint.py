@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from heliotwin.cli import main
+from heliotwin.errors import HeliotwinError
 from heliotwin.io.paint import load_paint
 from heliotwin.surfaces.observations import load_centered_image, observations_from_records, split_record_ids
 
@@ -24,9 +25,12 @@ def test_aa39_centred_records_split_and_orientation(paint_dir):
     # No DateTime for AA39 in the metadata: the earliest are by id.
     assert train.record_id.tolist() == [86520, 151375, 202558]
     assert len(test) == 7 and not set(train.record_id.tolist()) & set(test.record_id.tolist())
-    # the default is the current surface: the latest three (by id here), the earlier seven its test images
+    # the default is the current surface: every centred image trains (in time order, by id here), no test split
     lt, le = split_record_ids(records.record_id.tolist(), records.datetime, records.flux_centered_png)
     ids = sorted(with_img.record_id.tolist())
+    assert records.record_id[lt].tolist() == ids and le == []
+    # the study's latest-K split: the latest three, the earlier seven its test images
+    lt, le = split_record_ids(records.record_id.tolist(), records.datetime, records.flux_centered_png, train_latest=3)
     assert records.record_id[lt].tolist() == ids[-3:] and sorted(records.record_id[le].tolist()) == ids[:-3]
     obs = observations_from_records(ds.plant, 0, train)
     assert obs.images.shape == (3, 64, 64)
@@ -73,13 +77,18 @@ def test_cli_module_entry_point_reports_error(tmp_path):
     assert proc.returncode != 0 and len(proc.stderr.strip().splitlines()) == 1
 
 
-def test_the_default_split_trains_on_the_latest_dated_images():
-    """Latest by DateTime (an undated record counts as earlier than every dated one); ``train_first`` keeps the
-    study's earliest split; both in time order."""
+def test_the_default_split_trains_on_every_image_and_the_latest_split_on_the_latest_dated_ones():
+    """Default: every record with an image trains, in time order (undated ones after the dated), none is a test
+    image; fewer than three images are refused (no cross-validation). ``train_latest``: latest by DateTime (an
+    undated record counts as earlier than every dated one); ``train_first`` keeps the study's earliest split."""
     ids = [10, 11, 12, 13, 14, 15]
     times = ["2023-05-01T10:00:00", "", "2021-01-01T09:00:00", "2024-02-03T12:00:00", "2022-07-07T08:00:00", None]
     pngs = ["a", "b", "c", "d", None, "f"]
     tr, te = split_record_ids(ids, times, pngs)
+    assert [ids[i] for i in tr] == [12, 10, 13, 11, 15] and te == []
+    with pytest.raises(HeliotwinError, match="at least 3 to cross-validate"):
+        split_record_ids(ids[:2], times[:2], pngs[:2])
+    tr, te = split_record_ids(ids, times, pngs, train_latest=3)
     assert [ids[i] for i in tr] == [12, 10, 13] and sorted(ids[i] for i in te) == [11, 15]
     tr, te = split_record_ids(ids, times, pngs, train_latest=1)
     assert [ids[i] for i in tr] == [13]

@@ -57,14 +57,15 @@ def test_every_heliostat_with_images_is_learned_and_the_others_are_skipped_with_
     assert sorted(h for h, r in rows.items() if r["status"] == "learned") == with_images
     for h, r in rows.items():
         if h not in with_images:
-            assert r["status"] == "skipped" and r["reason"].startswith("0 centred image(s), needs 4")
+            assert r["status"] == "skipped" and r["reason"].startswith("0 centred image(s), needs 3")
     s = report["summary"]
     assert (s["learned"], s["skipped"], s["failed"], s["resumed"], s["nproc"]) == (3, 3, 0, 0, 1)
-    # The plant learns what it is meant to: on images it never saw, the learned surfaces beat the ideal one.
+    # The plant learns what it is meant to: on images its fits never saw, the learned surfaces beat the ideal one.
     assert s["median_test_l1_learned"] < s["median_test_l1_ideal"]
     for h in with_images:
         r = rows[h]
-        assert (r["train"]["images"], r["test"]["images"]) == (3, 7)
+        # every image trained (the current surface); the test rows are its cross-validation, one per image
+        assert (r["train"]["images"], r["test"]["images"], r["test"]["is"]) == (10, 10, "cross-validation")
         assert r["accepted"] == (r["acceptance_alpha"] > 0) and r["train"]["worse_than_ideal"] == 0
     # One scenario holds every learned surface, with one provenance step naming them.
     assert sorted(scenario.learned["surfaces"]) == with_images
@@ -83,6 +84,11 @@ def test_a_heliostat_learned_in_the_plant_run_is_the_single_heliostat_reconstruc
     assert row["test"]["median_l1_ideal"] == report["median_l1_ideal"]
     assert row["acceptance_alpha"] == report["acceptance"]["alpha"] and row["choices"] == report["choices"]
     assert torch.equal(_cp(learned[0], h), _cp(single, h))
+    # the current surface: every image trained it, and each test row is that image held out of its fold's fits
+    assert report["split"]["current"] and report["test_is"] == "cross-validation" and not report["dropped"]
+    assert [r["record"] for r in report["test"]] == [r["record"] for r in report["train"]]
+    assert [r["l1_learned"] for r in report["test"]] == report["selection"]["heldout_l1"]
+    assert report["selection"]["folds"] == 3
     assert torch.equal(learned[0].learned["surfaces"][h]["displacement"], single.learned["surfaces"][h]["displacement"])
 
 

@@ -190,7 +190,8 @@ def _reconstruct(capsys, paint_dir, tmp_path, *extra):
 
 def test_cli_surface_prior_is_used_reported_and_stored(paint_dir, tmp_path, capsys):
     """``reconstruct --surface-prior-from A.h5,B.h5 -o`` on real AA39 (4-step budget, ~10 s): the report says which
-    heliostats the prior came from and the weight the rule chose (3 images: leave-one-out over a grid with 0);
+    heliostats the prior came from and the weight the rule chose (every one of the 10 images trains: 3-fold
+    cross-validation over mini-batches, over a grid with 0);
     no training image worse than the ideal; the output scenario stores the prior, which a later run reads
     back from that one file."""
     import json

@@ -169,7 +169,8 @@ def _settings(args):
 
 def _stage_text(args, settings) -> str:
     learner, device = settings.learner(), getattr(args, "device", "cpu")
-    return (f"learning {args.heliostat}'s surface (optics, leave-one-out over <= {learner.steps} steps, "
+    cv = "leave-one-out" if learner.folds is None else f"{learner.folds}-fold cross-validation"
+    return (f"learning {args.heliostat}'s surface (optics, {cv} over <= {learner.steps} steps, "
             f"acceptance) on {device}, then evaluating")
 
 
@@ -215,8 +216,10 @@ def _plot_reconstruction(args, json_path, report, fit) -> dict:
 
 def _print_reconstruction(heliostat: str, report: dict) -> None:
     lo, hi = report["test_improved_wilson95"]
-    print(f"{heliostat}: median test L1 ideal {report['median_l1_ideal']:.3f} -> learned "
-          f"{report['median_l1_learned']:.3f}; test improved {report['test_improved']}/{report['test_images']} "
+    test = "cross-validated" if report.get("test_is") == "cross-validation" else "test"
+    print(f"{heliostat}: median {test} L1 ideal {report['median_l1_ideal']:.3f} -> learned "
+          f"{report['median_l1_learned']:.3f}; {test} images improved {report['test_improved']}/"
+          f"{report['test_images']} "
           f"(Wilson 95 % [{lo:.2f}, {hi:.2f}]); training images worse than ideal "
           f"{report['train_worse_than_ideal']}; edge ridge {report['edge_ridge']['edge_max_mrad']:.2f} mrad; "
           + (f"surface prior from {len(report['prior']['heliostats'])} heliostats, weight {report['prior']['weight']:g}"
@@ -282,15 +285,15 @@ def register(subparsers) -> None:
     g = p.add_mutually_exclusive_group()
     g.add_argument("--train-records", help="comma-separated record ids to train on (rest with images: test)")
     g.add_argument("--train-latest", type=positive_int,
-                   help="train on the K latest records with centred images, the current surface (default 3); "
-                        "the earlier ones are its test images")
+                   help="a study's split: train on the K latest records with centred images, test on the earlier "
+                        "ones (default: every centred image trains, and cross-validation over them is the test)")
     g.add_argument("--train-first", type=positive_int,
                    help="a study's split: train on the K earliest records with centred images (the written surface "
                         "is then the oldest one)")
     p.add_argument("--control-points", default="7x7", help="control points per facet, e.g. 7x7")
     p.add_argument("--degree", type=int_range(1, 5, "a NURBS degree"), default=3, help="NURBS degree (both directions)")
     p.add_argument("--steps", type=positive_int, default=None,
-                   help="the leave-one-out step budget (default 300)")
+                   help="the cross-validation's step budget (default 300)")
     p.add_argument("--slope-error", type=_slope_error, default="auto",
                    help="mirror slope error [mrad] or 'auto' (chosen on the training images)")
     p.add_argument("--alignment", choices=("focal-spot", "motor"), default="focal-spot")

@@ -14,8 +14,10 @@ Pipeline per step::
 Two optimisers (:attr:`SurfaceSettings.optimizer`):
 
 * ``"adam"`` (the learner's): ``steps`` Adam steps with exponential learning-rate decay (the per-image log-blur
-  of the camera model at its own rate ``blur_lr``); with a held-out image the held-out L1 is recorded every
-  ``eval_every`` steps (the curve the leave-one-out choice reads; the final state is kept).
+  of the camera model at its own rate ``blur_lr``); with held-out images the held-out L1 is recorded every
+  ``eval_every`` steps (the curve the cross-validation reads; the final state is kept). Every image, training
+  or held out, is rendered with its footprint kernel made once from the start surface (the kernel depends on
+  the surface only to second order).
 * ``"lbfgs"`` (the in-silico study's): full-batch L-BFGS (strong-Wolfe line search) in rounds, each a fresh
   optimiser (history reset): first one round of ``continuation_iters`` iterations per entry of
   ``continuation`` with both images blurred by a Gaussian of that many pixels (a smoother loss landscape
@@ -48,7 +50,7 @@ from .observations import Observations
 from .plantprior import prior_penalty
 
 __all__ = ["SurfaceSettings", "SurfaceFit", "fit_surface", "adam_step", "blur_images", "blur_for",
-           "evaluate_with_camera", "OPTIMIZERS"]
+           "evaluate_with_camera", "minibatch_rows", "kernel_view", "OPTIMIZERS"]
 
 #: The optimisers :func:`fit_surface` runs.
 OPTIMIZERS = ("adam", "lbfgs")
@@ -88,6 +90,15 @@ class SurfaceSettings:
     select : bool
         Leave-one-out choice of weight and steps (with >= 3 images); False: the grid's largest weight and
         ``steps``.
+    folds : int, optional
+        Cross-validation folds of that choice: with more training images than ``folds``, image ``i`` (in time
+        order) is held out in fold ``i mod folds``; None (or at least as many folds as images): leave one out.
+    batch_images : int, optional
+        Adam: images per fit and step, drawn without replacement from a fixed seeded schedule
+        (:func:`minibatch_rows`; cycling through one random order per pass); None or at least the fit's images:
+        every image every step (the fit is then the full-batch one, unchanged).
+    batch_seed : int
+        Seed of that schedule (every fit with the same number of images takes the same batches).
     optimizer : {"adam", "lbfgs"}
         See the module docstring.
     loss : {"l1", "l2", "kl"}
@@ -122,6 +133,9 @@ class SurfaceSettings:
     continuation_iters: int = 60
     lbfgs_round: int = 200
     tolerance: float = 1e-3
+    folds: int | None = None
+    batch_images: int | None = None
+    batch_seed: int = 0
 
     def __post_init__(self):
         if self.optimizer not in OPTIMIZERS:
@@ -145,11 +159,15 @@ class SurfaceFit:
     sigma : torch.Tensor, [B], optional
         Learned per-image blur [px] (with a camera model).
     curve : list of (int, float)
-        Held-out L1 every ``eval_every`` steps (Adam with a held-out image; else empty).
+        Held-out L1 every ``eval_every`` steps, the mean over the held-out images (Adam with held-out images;
+        else empty).
     log : list of dict
         L-BFGS: per round ``{"step" (loss evaluations so far), "train", "blur_px", "total"}``.
     evaluations : int
         Adam steps, or L-BFGS loss evaluations, run.
+    heldout : dict
+        Per checked step, each held-out image's evaluation there: ``{step: {"l1", "l1_raw", "sigma"}}`` (lists
+        of length H [1, 1, px]) and ``"images"`` ``[H, R, R]`` (the predictions through the camera model).
     """
 
     model: LearnableSurface
@@ -157,6 +175,46 @@ class SurfaceFit:
     curve: list = field(default_factory=list)
     log: list = field(default_factory=list)
     evaluations: int = 0
+    heldout: dict = field(default_factory=dict)
+
+
+def minibatch_rows(sizes, batch: int | None, steps: int, seed: int = 0, device=None) -> torch.Tensor | None:
+    """The images each of K fits takes at each step, as rows of their concatenated images.
+
+    Problem ``k`` owns rows ``[start_k, start_k + sizes[k])``. With ``batch`` below its size it takes ``batch``
+    of them per step: its images in one random order, then the next (a generator seeded with ``seed`` and its
+    size, so fits with as many images take the same batches and a resumed fit the same ones), consecutive
+    chunks read across the orders. Otherwise it takes all of them every step.
+
+    Returns
+    -------
+    torch.Tensor, [steps, sum_k min(batch, sizes[k])], long, or None
+        Rows per step, problem by problem; None when every problem takes all its images (full batch).
+    """
+    sizes = [int(n) for n in sizes]
+    if batch is None or all(n <= int(batch) for n in sizes):
+        return None
+    out, start = [], 0
+    for n in sizes:
+        b = min(int(batch), n)
+        if b == n:
+            out.append(torch.arange(start, start + n).expand(steps, n))
+        else:
+            g = torch.Generator().manual_seed(int(seed) * 1_000_003 + n)
+            passes = -(-steps * b // n)
+            order = torch.cat([torch.randperm(n, generator=g) for _ in range(passes)])
+            out.append(start + order[:steps * b].reshape(steps, b))
+        start += n
+    return torch.cat(out, dim=1).to(device)
+
+
+def kernel_view(kernels: dict, rows) -> dict:
+    """The footprint-kernel cache of :func:`~heliotwin.surfaces.imaging.render_samples` for a batch: entry ``j``
+    (and its spectrum) is the full cache's ``rows[j]`` (which must hold every image's kernel and spectrum)."""
+    rows = [int(r) for r in rows]
+    view = {j: kernels[r] for j, r in enumerate(rows)}
+    view.update({("spectrum", j): kernels[("spectrum", r)] for j, r in enumerate(rows)})
+    return view
 
 
 def blur_images(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
@@ -195,11 +253,12 @@ def render(surf, obs: Observations, sun: SunSettings, s: SurfaceSettings, kernel
 
 
 def evaluate_with_camera(surf, obs: Observations, sun: SunSettings, camera: CameraModel, sigma: torch.Tensor,
-                         s: SurfaceSettings) -> dict:
+                         s: SurfaceSettings, kernels: dict | None = None) -> dict:
     """Per-image L1 with the camera model (``l1``) and of the raw model image (``l1_raw``), lists of length B;
-    predicted images through the camera model (``images``, ``[B, R, R]``). ``sigma``: per-image blur ``[B]`` [px]."""
+    predicted images through the camera model (``images``, ``[B, R, R]``). ``sigma``: per-image blur ``[B]`` [px];
+    ``kernels``: a footprint-kernel cache of these images (:func:`render`; default: made from ``surf``)."""
     with torch.no_grad():
-        pred, _ = render(surf, obs, sun, s)
+        pred, _ = render(surf, obs, sun, s, kernels)
         meas = obs.images.to(pred)
         cam = apply_camera(pred, camera, sigma)
         return {"l1": losses.l1(cam, meas).tolist(), "l1_raw": losses.l1(pred, meas).tolist(), "images": cam}
@@ -212,14 +271,15 @@ class _Live:
 
     def __init__(self, model: LearnableSurface, log_sigma: torch.Tensor):
         self.model, self.log_sigma, self.kernels, self.curve, self.steps = model, log_sigma, {}, [], 0
-        self.evals, self.log = 0, []
+        self.evals, self.log, self.heldout = 0, [], {}
 
     def dump(self) -> dict:
         return {"steps": self.steps, "model": {k: v.detach().clone() for k, v in self.model.state_dict().items()},
                 "log_sigma": self.log_sigma.detach().clone(),
                 # the kernels alone: their spectra are derived from them and rebuilt identically on resume
                 "kernels": {k: v for k, v in self.kernels.items() if not isinstance(k, tuple)},
-                "curve": [[a, b] for a, b in self.curve], "evals": self.evals, "log": [dict(e) for e in self.log]}
+                "curve": [[a, b] for a, b in self.curve], "evals": self.evals, "log": [dict(e) for e in self.log],
+                "heldout": {int(k): dict(v) for k, v in self.heldout.items()}}
 
     def load(self, data: dict) -> None:
         self.model.load_state_dict(data["model"])
@@ -229,6 +289,7 @@ class _Live:
         self.kernels.update(data["kernels"])
         self.curve[:] = [(int(a), float(b)) for a, b in data["curve"]]
         self.steps, self.evals, self.log = int(data["steps"]), int(data["evals"]), [dict(e) for e in data["log"]]
+        self.heldout = {int(k): dict(v) for k, v in data.get("heldout", {}).items()}
 
 
 def _loop_state(live: _Live) -> State:
@@ -274,8 +335,9 @@ def fit_surface(facets: Facets, obs: Observations, sun: SunSettings, s: SurfaceS
         A plant prior (:class:`~heliotwin.surfaces.plantprior.SurfacePrior`) and the weight of its penalty
         (0: not evaluated, so a fit without a prior is unchanged).
     heldout : (Observations, CameraModel), optional
-        One held-out image (Adam with a camera model): its L1 every ``eval_every`` steps, its blur by
-        :func:`heliotwin.surfaces.generalise.blur_for` from the current training blurs.
+        Held-out images (Adam with a camera model): their L1 every ``eval_every`` steps (the curve: their
+        mean; each image's in ``SurfaceFit.heldout``), their blur by :func:`blur_for` from the current training
+        blurs.
     steps : int, optional
         Overrides ``s.steps``.
 
@@ -301,15 +363,25 @@ def fit_surface(facets: Facets, obs: Observations, sun: SunSettings, s: SurfaceS
     log_sigma = torch.log(sig.to(device=dev, dtype=torch.float32).clamp_min(0.1)).clone().requires_grad_(True)
     meas = obs.images.to(torch.float32)
     live = _Live(model, log_sigma)
+    rows = minibatch_rows([len(obs)], s.batch_images, steps, s.batch_seed) if s.optimizer == "adam" else None
+    if rows is not None:  # every image's kernel from the start surface first: what the first full step would make
+        with torch.no_grad():
+            render(model.surfaces(), obs, sun, s, live.kernels)
 
     def objective(blur: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
         """(total, data) of the live surface: image loss + regularisers (+ penalties)."""
         surf = model.surfaces()
-        pred, miss = render(surf, obs, sun, s, live.kernels)
+        if rows is None:
+            pred, miss = render(surf, obs, sun, s, live.kernels)
+            cam, sig, seen = camera, log_sigma, meas
+        else:  # this step's images (the loop has taken live.steps steps)
+            at = rows[min(live.steps, len(rows) - 1)].tolist()
+            pred, miss = render(surf, obs.subset(at), sun, s, kernel_view(live.kernels, at))
+            cam, sig, seen = camera.subset(at), log_sigma[at], meas[at]
         if camera is not None:
-            data = losses.image_loss(s.loss, apply_camera(pred, camera, log_sigma.exp()), meas.to(pred))
+            data = losses.image_loss(s.loss, apply_camera(pred, cam, sig.exp()), seen.to(pred))
         else:
-            target = blur_images(losses.normalize(meas.to(pred)), blur)
+            target = blur_images(losses.normalize(seen.to(pred)), blur)
             data = losses.image_loss(s.loss, blur_images(losses.normalize(pred), blur), target)
         d = model.displacement / 1e-3
         reg = s.ridge * losses.ridge(d) + s.laplacian * losses.laplacian(d)
@@ -326,7 +398,8 @@ def fit_surface(facets: Facets, obs: Observations, sun: SunSettings, s: SurfaceS
         _lbfgs(model, live, objective, s, steps)
         return SurfaceFit(model, None, [], live.log, live.evals)
     _adam(model, live, objective, obs, sun, s, steps, heldout)
-    return SurfaceFit(model, log_sigma.detach().exp() if camera is not None else None, live.curve, [], live.steps)
+    return SurfaceFit(model, log_sigma.detach().exp() if camera is not None else None, live.curve, [], live.steps,
+                      live.heldout)
 
 
 def adam_step(opt: torch.optim.Optimizer, sched, objective, live):
@@ -355,6 +428,10 @@ def _adam(model, live: _Live, objective, obs, sun, s: SurfaceSettings, steps: in
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=s.decay)
 
     step = adam_step(opt, sched, objective, live)
+    hkernels: dict = {}  # the held-out images' kernels from the start surface, as the training images' are made
+    if heldout is not None:
+        with torch.no_grad():
+            render(model.surfaces(), heldout[0], sun, s, hkernels)
 
     def heldout_l1() -> torch.Tensor:
         # Only on the eval_every grid (not at the start, nor at a last step off the grid): the curve's steps
@@ -364,7 +441,9 @@ def _adam(model, live: _Live, objective, obs, sun, s: SurfaceSettings, steps: in
             return torch.full((1,), float("inf"))
         hobs, hcam = heldout
         sig = blur_for(obs.targets, live.log_sigma.detach().exp(), hobs.targets)
-        l1 = evaluate_with_camera(model.surfaces(), hobs, sun, hcam, sig, s)["l1"][0]
+        ev = evaluate_with_camera(model.surfaces(), hobs, sun, hcam, sig, s, hkernels)
+        live.heldout[at] = {"l1": ev["l1"], "l1_raw": ev["l1_raw"], "sigma": sig.tolist(), "images": ev["images"]}
+        l1 = statistics.mean(ev["l1"])
         live.curve.append((at, l1))
         return torch.full((1,), float(l1))
 

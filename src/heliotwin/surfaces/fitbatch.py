@@ -11,7 +11,11 @@ the serial fits).
 Why it is faster. One step of one fit is a few thousand small tensor operations whose cost is mostly the
 per-operation overhead; one batched step over K problems has about as many operations as one serial step.
 
-Scope. Adam with a camera model and a held-out image per problem, no plant prior (the leave-one-out fits of
+Mini-batches (``SurfaceSettings.batch_images``): each problem renders its own batch of images per step
+(:func:`~heliotwin.surfaces.fit.minibatch_rows`), as its serial fit does, so a step's cost no longer grows with
+the images.
+
+Scope. Adam with a camera model and held-out images per problem, no plant prior (the leave-one-out fits of
 :func:`~heliotwin.surfaces.generalise.loo_select`), one heliostat's facets and start for all problems. The
 problem axis is the heliostat axis of :class:`~heliotwin.field.plant.Surfaces` ``[H, F, ...]`` and the render
 takes each image's own mirror samples, so problems of different heliostats need per-problem facets and starts
@@ -34,7 +38,7 @@ from ..field.plant import Facets, SunSettings
 from ..scene import to_world
 from . import losses
 from .edges import slope_penalties
-from .fit import SurfaceFit, SurfaceSettings, _loop_state, adam_step, blur_for
+from .fit import SurfaceFit, SurfaceSettings, _loop_state, adam_step, blur_for, kernel_view, minibatch_rows
 from .imaging import render_samples
 from .learning import MM, LearnableSurface, gauge_basis, learnable_surfaces, normal_heights
 from .nuisance import CameraModel, apply_camera
@@ -58,7 +62,7 @@ class FitProblem:
     slope_weight : float
         Weight of the slope-deviation penalty (0: none).
     heldout : (Observations, CameraModel)
-        One held-out image and its camera model.
+        Its held-out images (one or more: a fold) and their camera model.
     """
 
     obs: Observations
@@ -98,12 +102,14 @@ class _BatchLive:
     def __init__(self, displacement_mm: torch.Tensor, log_sigma: torch.Tensor, k: int):
         self.displacement_mm, self.log_sigma, self.kernels = displacement_mm, log_sigma, {}
         self.curves, self.steps = [[] for _ in range(k)], 0
+        self.heldout = [{} for _ in range(k)]
 
     def dump(self) -> dict:
         return {"steps": self.steps, "displacement_mm": self.displacement_mm.detach().clone(),
                 "log_sigma": self.log_sigma.detach().clone(),
                 "kernels": {k: v for k, v in self.kernels.items() if not isinstance(k, tuple)},
-                "curves": [[[a, b] for a, b in c] for c in self.curves]}
+                "curves": [[[a, b] for a, b in c] for c in self.curves],
+                "heldout": [{int(s): dict(v) for s, v in h.items()} for h in self.heldout]}
 
     def load(self, data: dict) -> None:
         with torch.no_grad():
@@ -112,6 +118,7 @@ class _BatchLive:
         self.kernels.clear()
         self.kernels.update(data["kernels"])
         self.curves[:] = [[(int(a), float(b)) for a, b in c] for c in data["curves"]]
+        self.heldout[:] = [{int(s): dict(v) for s, v in h.items()} for h in data["heldout"]]
         self.steps = int(data["steps"])
 
 
@@ -162,11 +169,17 @@ def fit_surfaces(facets: Facets, problems: list, sun: SunSettings, s: SurfaceSet
     dev = obs.images.device
     sizes = [len(p.obs) for p in problems]
     owner = torch.repeat_interleave(torch.arange(k, device=dev), torch.tensor(sizes, device=dev))
-    counts = torch.tensor(sizes, dtype=torch.float32, device=dev)
     camera = _concat_cameras([p.camera for p in problems])
     meas = obs.images.to(torch.float32)
+    rows = minibatch_rows(sizes, s.batch_images, steps, s.batch_seed, device=dev)
+    taken = sizes if rows is None else [min(int(s.batch_images), n) for n in sizes]  # images per step
+    step_owner = torch.repeat_interleave(torch.arange(k, device=dev), torch.tensor(taken, device=dev))
+    counts = torch.tensor(taken, dtype=torch.float32, device=dev)
     hobs = concat_observations([p.heldout[0] for p in problems])
     hcam = _concat_cameras([p.heldout[1] for p in problems])
+    hsizes = [len(p.heldout[0]) for p in problems]
+    howner = torch.repeat_interleave(torch.arange(k, device=dev), torch.tensor(hsizes, device=dev))
+    hbounds = [sum(hsizes[:i]) for i in range(k + 1)]
     sig0 = torch.cat([p.sigma0.to(device=dev, dtype=torch.float32) for p in problems])
     log_sigma = torch.log(sig0.clamp_min(0.1)).clone().requires_grad_(True)
     disp = proto.displacement_mm.detach().expand(k, *start_mm.shape[1:]).clone().requires_grad_(True)
@@ -184,16 +197,30 @@ def fit_surfaces(facets: Facets, problems: list, sun: SunSettings, s: SurfaceSet
         pw, nw = to_world(images.rotation.to(pts), images.concentrator.to(pts), pts[rows], nrm[rows], torch.float32)
         return surf, pw, nw, area.to(torch.float32)[rows], images.sun.to(pw)
 
+    if rows is not None and not all(("spectrum", i) in live.kernels for i in range(len(obs))):
+        # every image's kernel from the start surface first: what the first full step would make
+        with torch.no_grad():
+            _, pw, nw, ar, sund = world(displacement(), obs, owner)
+            render_samples(pw, nw, ar, sund, obs, sun, resolution=s.resolution, size_m=s.size_m,
+                           kernels=live.kernels)
+
     def objective() -> tuple[torch.Tensor, torch.Tensor]:
         d_m = displacement()
-        surf, pw, nw, ar, sund = world(d_m, obs, owner)
-        pred, _, miss, _ = render_samples(pw, nw, ar, sund, obs, sun, resolution=s.resolution, size_m=s.size_m,
-                                          kernels=live.kernels)
-        per_image = losses.IMAGE_LOSSES[s.loss](apply_camera(pred, camera, log_sigma.exp()), meas.to(pred))
-        data = _per_problem_mean(per_image, owner, counts)
+        if rows is None:
+            seen, kern, cam, sig, meas_t = obs, live.kernels, camera, log_sigma, meas
+        else:  # this step's images (the loop has taken live.steps steps)
+            at = rows[min(live.steps, len(rows) - 1)]
+            idx = at.tolist()
+            seen, kern, cam, sig, meas_t = (obs.subset(idx), kernel_view(live.kernels, idx), camera.subset(idx),
+                                            log_sigma[at], meas[at])
+        surf, pw, nw, ar, sund = world(d_m, seen, step_owner)
+        pred, _, miss, _ = render_samples(pw, nw, ar, sund, seen, sun, resolution=s.resolution, size_m=s.size_m,
+                                          kernels=kern)
+        per_image = losses.IMAGE_LOSSES[s.loss](apply_camera(pred, cam, sig.exp()), meas_t.to(pred))
+        data = _per_problem_mean(per_image, step_owner, counts)
         d = d_m / 1e-3
         reg = s.ridge * d.pow(2).flatten(1).mean(-1) + s.laplacian * losses.laplacian_per_row(d)
-        total = data.to(reg) + reg + s.miss * _per_problem_mean(miss, owner, counts).to(reg)
+        total = data.to(reg) + reg + s.miss * _per_problem_mean(miss, step_owner, counts).to(reg)
         if ref is not None:
             total = total + slope_penalties(surf, ref, weights.to(reg))
         return total.sum(), data.sum()
@@ -203,6 +230,11 @@ def fit_surfaces(facets: Facets, problems: list, sun: SunSettings, s: SurfaceSet
 
     step = adam_step(opt, sched, objective, live)
 
+    hkernels: dict = {}  # the held-out images' kernels from the start surface, as the training images' are made
+    with torch.no_grad():
+        _, pw, nw, ar, sund = world(displacement(), hobs, howner)
+        render_samples(pw, nw, ar, sund, hobs, sun, resolution=s.resolution, size_m=s.size_m, kernels=hkernels)
+
     def heldout_l1() -> torch.Tensor:
         at = live.steps
         if at == 0 or at % s.eval_every != 0:
@@ -211,12 +243,20 @@ def fit_surfaces(facets: Facets, problems: list, sun: SunSettings, s: SurfaceSet
         sig = torch.cat([blur_for(p.obs.targets, blur[bounds[i]:bounds[i + 1]], p.heldout[0].targets)
                          for i, p in enumerate(problems)])
         with torch.no_grad():
-            _, pw, nw, ar, sund = world(displacement(), hobs, torch.arange(k, device=dev))
-            pred, _, _, _ = render_samples(pw, nw, ar, sund, hobs, sun, resolution=s.resolution, size_m=s.size_m)
-            l1 = losses.l1(apply_camera(pred, hcam, sig), hobs.images.to(pred)).tolist()
-        for curve, v in zip(live.curves, l1):
-            curve.append((at, v))
-        return torch.tensor(l1, dtype=torch.float64)
+            _, pw, nw, ar, sund = world(displacement(), hobs, howner)
+            pred, _, _, _ = render_samples(pw, nw, ar, sund, hobs, sun, resolution=s.resolution, size_m=s.size_m,
+                                           kernels=hkernels)
+            meas_h = hobs.images.to(pred)
+            cam = apply_camera(pred, hcam, sig)
+            l1, l1_raw = losses.l1(cam, meas_h).tolist(), losses.l1(pred, meas_h).tolist()
+        means = []
+        for i in range(k):
+            a, b = hbounds[i], hbounds[i + 1]
+            live.heldout[i][at] = {"l1": l1[a:b], "l1_raw": l1_raw[a:b], "sigma": sig[a:b].tolist(),
+                                   "images": cam[a:b].clone()}
+            means.append(sum(l1[a:b]) / (b - a))
+            live.curves[i].append((at, means[-1]))
+        return torch.tensor(means, dtype=torch.float64)
 
     early_stopping_fit(step, heldout_l1, _loop_state(live), steps, validated=torch.zeros(k, dtype=torch.bool),
                        check_every=s.eval_every)
@@ -226,5 +266,5 @@ def fit_surfaces(facets: Facets, problems: list, sun: SunSettings, s: SurfaceSet
         with torch.no_grad():
             model.displacement_mm.copy_(disp[i:i + 1])
         out.append(SurfaceFit(model, log_sigma.detach()[bounds[i]:bounds[i + 1]].exp(), list(live.curves[i]), [],
-                              live.steps))
+                              live.steps, dict(live.heldout[i])))
     return out

@@ -110,8 +110,12 @@ def render_samples(pw: torch.Tensor, nw: torch.Tensor, ar: torch.Tensor, sund: t
         Its mean over the B images (per target group, as :func:`predict_images` returns it).
     """
     b = len(obs)
-    images, centers, per_image, misses = [None] * b, [None] * b, [None] * b, []
-    for target, idx in _groups(obs.targets):
+    groups = _groups(obs.targets)
+    order = [i for _, idx in groups for i in idx]
+    whole = order == list(range(b))  # one target, or the groups already in order: no gather at all
+    images, centers, per_image, misses = [], [], [], []
+    for target, idx in groups:
+        take = slice(idx[0], idx[-1] + 1) if whole else idx
         spectrum = None
         if kernels is not None:
             if not all(i in kernels for i in idx):  # computed once, then reused (also by render_centered now)
@@ -124,15 +128,21 @@ def render_samples(pw: torch.Tensor, nw: torch.Tensor, ar: torch.Tensor, sund: t
                 for j, i in enumerate(idx):
                     kernels[("spectrum", i)] = spec_new[j]
             spectrum = torch.stack([kernels[("spectrum", i)] for i in idx])
-        fixed = None if obs.centers is None else obs.centers[idx].to(pw)
-        res = render_centered(pw[idx], nw[idx], ar[idx], sund[idx], target, sun, size_m=size_m,
+        fixed = None if obs.centers is None else obs.centers[take].to(pw)
+        res = render_centered(pw[take], nw[take], ar[take], sund[take], target, sun, size_m=size_m,
                               resolution=resolution, spectrum=spectrum, center=fixed)
-        for j, i in enumerate(idx):
-            images[i] = res.image[j]
-            centers[i] = res.center[j]
-            per_image[i] = res.miss_per_image[j]
+        images.append(res.image)
+        centers.append(res.center)
+        per_image.append(res.miss_per_image)
         misses.append(res.miss * len(idx))
-    return torch.stack(images), torch.stack(centers), torch.stack(per_image), sum(misses) / b
+    # Groups joined, then one gather back to image order: per-image selects would each cost a full-size zero
+    # tensor in the backward pass.
+    out = [x[0] if len(x) == 1 else torch.cat(x) for x in (images, centers, per_image)]
+    if not whole:
+        back = torch.empty(b, dtype=torch.long)
+        back[torch.tensor(order)] = torch.arange(b)
+        out = [x[back.to(x.device)] for x in out]
+    return out[0], out[1], out[2], sum(misses) / b
 
 
 def evaluate_images(surfaces: Surfaces, obs: Observations, sun: SunSettings, *, samples=(24, 24),

@@ -45,14 +45,16 @@ def add_halo(images: torch.Tensor, fraction: float = 0.5, sigma_px: float = 8.0)
 def run_mismatch_case(plant, distance: float = 50.0, num_train: int = 4, num_test: int = 10, seed: int = 0,
                       truth_sun: SunSettings = TRUTH_SUN, saturation: float = 0.8, cut: float = 0.05,
                       window: str = "centred", settings: SurfaceSettings | None = None,
-                      progress: bool = False, halo: int | None = None) -> dict:
+                      progress: bool = False, halo: int | None = None, latest: int | None = None) -> dict:
     """One in-silico case under mismatch; the generalising report plus surface recovery metrics.
 
     ``distance``: the heliostat's horizontal offset from the target [m]
     (:func:`~heliotwin.surfaces.insilico.make_scene`); ``saturation`` and ``cut``: the truth camera's levels as
     fractions of each image's max [1] (:func:`camera_truth`); ``window``: "centred" (spot-centred windows,
     PAINT's) or "aim" (fixed on the aim point), both 6 m wide. ``halo``: index of a training image that gets a
-    broad diffuse halo (:func:`add_halo`) -- an inconsistent image the outlier rule should drop.
+    broad diffuse halo (:func:`add_halo`) -- an inconsistent image the outlier rule should drop. ``latest``: train on
+    the last ``latest`` of the ``num_train`` images only (the same scene, suns and test images: the learner of a
+    few latest images beside the one of every image).
 
     Returns
     -------
@@ -71,13 +73,15 @@ def run_mismatch_case(plant, distance: float = 50.0, num_train: int = 4, num_tes
         train.images[halo] = add_halo(train.images[halo:halo + 1])[0]
     train.images = camera_truth(train.images, saturation, cut)
     test.images = camera_truth(test.images, saturation, cut)
+    if latest is not None:
+        train = train.subset(range(max(0, num_train - int(latest)), num_train))
     t0 = time.perf_counter()
     report, model, info = reconstruct_generalising(scene.facets, train, test, SunSettings(sunshape="buie", csr=0.05),
                                                    settings, progress)
     report["seconds"] = time.perf_counter() - t0
     report["recovery"] = {"learned": surface_metrics(scene.facets, model.surfaces(), scene.truth),
                           "ideal": surface_metrics(scene.facets, info["ideal"], scene.truth)}
-    report["case"] = {"distance_m": distance, "train_images": num_train, "test_images": num_test, "seed": seed,
+    report["case"] = {"distance_m": distance, "train_images": len(train), "test_images": num_test, "seed": seed,
                       "window": window, "truth_sun": {"sunshape": truth_sun.sunshape, "sigma_rad": truth_sun.sigma,
                                                       "slope_error_rad": truth_sun.slope_error},
                       "truth_camera": {"saturation_fraction_of_max": saturation, "cut_fraction_of_max": cut},

@@ -93,10 +93,9 @@ def load_centered_image(path, resolution: int = 64, background: float = 0.0) -> 
     return load_measured_image(path, resolution, background=background, square=True)
 
 
-#: Centred images a reconstruction trains on by default: the latest ones (the surface now). Three, because the
-#: learner's leave-one-image-out choices cost about the square of the images (AA39, whole command, busy: 3 ->
-#: 32 s, 6 -> 94 s), and the plant command's budget is 30 s per heliostat.
-TRAIN_LATEST = 3
+#: Centred images a reconstruction needs by default: it trains on every one and estimates its error by
+#: cross-validation over them, which needs three (two to fit, one held out, in each of three folds).
+MIN_IMAGES = 3
 
 
 def _time_key(record_id: int, time, undated_first: bool = False) -> tuple:
@@ -122,8 +121,10 @@ def split_record_ids(record_ids, times, image_paths, train_records=None, train_f
     train_first : int, optional
         Otherwise the K earliest by DateTime (records without one come after, by id): a study's split.
     train_latest : int, optional
-        Otherwise the K latest by DateTime (default 3; records without one count as earlier than every dated
-        one): the current surface, the earlier images its test set.
+        Otherwise the K latest by DateTime (records without one count as earlier than every dated one), the
+        earlier images its test set.
+    None of them (the default): every record with a centred image trains (the current surface), and ``test``
+    is empty (the learner's cross-validation gives the error); at least :data:`MIN_IMAGES` are needed.
 
     Returns
     -------
@@ -146,11 +147,16 @@ def split_record_ids(record_ids, times, image_paths, train_records=None, train_f
         if int(train_first) < 1:
             raise HeliotwinError(f"--train-first must be >= 1, got {train_first}")
         train = sorted(with_img, key=key.get)[:int(train_first)]
-    else:
-        k = TRAIN_LATEST if train_latest is None else int(train_latest)
+    elif train_latest is not None:
+        k = int(train_latest)
         if k < 1:
             raise HeliotwinError(f"--train-latest must be >= 1, got {k}")
         train = sorted(with_img, key=lambda i: _time_key(ids[i], times[i], undated_first=True))[-k:]
+    else:
+        if len(with_img) < MIN_IMAGES:
+            raise HeliotwinError(f"{len(with_img)} record(s) with a centred image; a surface learned from every image "
+                                 f"needs at least {MIN_IMAGES} to cross-validate (or give --train-records)")
+        return sorted(with_img, key=key.get), []
     test = [i for i in with_img if i not in train]
     if not test:
         raise HeliotwinError(f"no test images left: {len(with_img)} records have centred images, all used for training")
@@ -217,7 +223,8 @@ def paint_observations(paint_dir, heliostat_id: str, *, plant=None, device: str 
     plant : Plant
         One heliostat, on ``device``.
     train, test : Observations
-        ``[B, R, R]`` images with poses, on ``device``; ``train`` in time order.
+        ``[B, R, R]`` images with poses, on ``device``; ``train`` in time order; ``test`` None when every image
+        trains (the default split).
     """
     ds = load_paint(paint_dir, heliostats=[heliostat_id])
     if plant is not None:
@@ -228,7 +235,7 @@ def paint_observations(paint_dir, heliostat_id: str, *, plant=None, device: str 
                               train_first, train_latest)
     # poses from the records on the CPU (where the table is), then the observations move to the device
     train = observations_from_records(ds.plant, 0, records.subset(tr), resolution, background, alignment)
-    test = observations_from_records(ds.plant, 0, records.subset(te), resolution, background, alignment)
+    test = observations_from_records(ds.plant, 0, records.subset(te), resolution, background, alignment) if te else None
     if device != "cpu":
-        train, test = train.to(device), test.to(device)
+        train, test = train.to(device), None if test is None else test.to(device)
     return ds, on_device, train, test

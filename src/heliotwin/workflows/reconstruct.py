@@ -28,9 +28,9 @@ from ..io.scenario import Scenario, scenario_from_paint
 from ..progress import Stages
 from ..surfaces.deflectometry import deflectometry_report
 from ..surfaces.fit import SurfaceSettings
-from ..surfaces.generalise import reconstruct_generalising
+from ..surfaces.generalise import CV_BATCH_IMAGES, CV_FOLDS, reconstruct_generalising
 from ..surfaces.learning import parse_grid
-from ..surfaces.observations import TRAIN_LATEST, paint_observations
+from ..surfaces.observations import paint_observations
 from ..surfaces.plantprior import check_leakage, load_surface_prior
 from ..surfaces.state import with_learned_surface
 from .show import kinematics_note
@@ -39,8 +39,9 @@ from .sizes import check_range
 __all__ = ["ReconstructionSettings", "reconstruct", "learn_surface", "reconstruction_checkpoint", "CHECKPOINT_LAYOUT"]
 
 #: What a reconstruction checkpoint holds, part of its tag. 2: a blur mode's leave-one-out fits are one batched
-#: fit under one key; a checkpoint of the serial layout (1) cannot be continued, so --resume refuses it.
-CHECKPOINT_LAYOUT = 2
+#: fit under one key; a checkpoint of the serial layout (1) cannot be continued, so --resume refuses it. 3: the
+#: fits also keep each held-out image's evaluation (the cross-validation rows of an every-image run).
+CHECKPOINT_LAYOUT = 3
 
 
 @dataclass
@@ -54,14 +55,16 @@ class ReconstructionSettings:
     train_first : int, optional
         Otherwise the K earliest records with centred images (a study: the written surface is years old).
     train_latest : int, optional
-        Otherwise the K latest (default :data:`~heliotwin.surfaces.observations.TRAIN_LATEST`, 3): the current
-        surface, evaluated on the earlier images.
+        Otherwise the K latest, evaluated on the earlier images (a study). None of the three (the default): every
+        centred image trains the surface (the current one), its error estimated by cross-validation over them
+        (:data:`~heliotwin.surfaces.generalise.CV_FOLDS` folds, :data:`~heliotwin.surfaces.generalise.CV_BATCH_IMAGES`
+        images per fit and step, so a step costs the same however many images a heliostat has).
     control_points : str or (int, int)
         NURBS control points per facet, e.g. ``"7x7"``.
     degree : int
         NURBS degree in both directions.
     steps : int, optional
-        The leave-one-out step budget (default :attr:`SurfaceSettings.steps`, 300; held-out L1 every
+        The cross-validation step budget (default :attr:`SurfaceSettings.steps`, 300; held-out L1 every
         ``min(30, steps // 2)`` steps).
     slope_error_mrad : float, optional
         Mirror slope error [mrad]; None chooses it on the training images.
@@ -112,12 +115,20 @@ class ReconstructionSettings:
         if self.train_latest is not None:
             check_range("--train-latest", self.train_latest, 1, 10_000)
 
+    @property
+    def every_image(self) -> bool:
+        """Every centred image trains (no split option given): the current surface."""
+        return not (self.train_records or self.train_first is not None or self.train_latest is not None)
+
     def learner(self) -> SurfaceSettings:
-        """The learner's settings (:class:`~heliotwin.surfaces.fit.SurfaceSettings`)."""
+        """The learner's settings (:class:`~heliotwin.surfaces.fit.SurfaceSettings`); training on every image,
+        K-fold cross-validation and mini-batches (a study's split keeps leave-one-out over full batches)."""
         base = SurfaceSettings()
         steps = int(self.steps or base.steps)
         kw = dict(control_points=parse_grid(self.control_points), degree=(int(self.degree), int(self.degree)),
                   steps=steps, eval_every=min(base.eval_every, max(1, steps // 2)))
+        if self.every_image:
+            kw.update(folds=CV_FOLDS, batch_images=CV_BATCH_IMAGES)
         if self.slope_error_mrad is not None:
             kw["slope_grid"] = (self.slope_error_mrad * 1e-3,)
         return SurfaceSettings(**kw)
@@ -149,7 +160,8 @@ def reconstruction_checkpoint(path, paint, heliostat: str, settings: Reconstruct
 def reconstruct(scenario: Scenario | None, paint, heliostat: str, settings: ReconstructionSettings | None = None, *,
                 checkpoint: _checkpoint.Checkpoint | None = None,
                 progress: bool = True) -> tuple[Scenario, dict, dict]:
-    """Learn ``heliostat``'s surface from its earliest centred images in ``paint``; evaluate on the others.
+    """Learn ``heliostat``'s surface from its centred images in ``paint`` (by default every one, evaluated by
+    cross-validation; a study's split evaluates on the images it left out).
 
     Parameters
     ----------
@@ -165,7 +177,7 @@ def reconstruct(scenario: Scenario | None, paint, heliostat: str, settings: Reco
         From :func:`reconstruction_checkpoint`: every fit saves its state and a resumed one continues it; the
         caller removes it once its outputs are written.
     progress : bool
-        Progress of the stages and of the leave-one-out fits (:mod:`heliotwin.progress`: bars on a terminal,
+        Progress of the stages and of the cross-validation fits (:mod:`heliotwin.progress`: bars on a terminal,
         plain lines in a log).
 
     Returns
@@ -218,11 +230,12 @@ def learn_surface(scenario: Scenario | None, paint, heliostat: str, s: Reconstru
         paint, heliostat, plant=plant, device=device, train_records=list(s.train_records) if s.train_records else None,
         train_first=s.train_first, resolution=learner.resolution, alignment=s.alignment, train_latest=s.train_latest)
     facets = _facets(on_device, torch.float64)
-    stages.step(f"reading {len(train)} training and {len(test)} test images")
+    stages.step(f"reading {len(train)} training and {0 if test is None else len(test)} test images")
     stages.start("learning the surface")
     with _checkpoint.active(checkpoint):
         report, model, info = reconstruct_generalising(facets, train, test, SunSettings(sunshape="buie", csr=0.05),
                                                        learner, progress, prior=prior)
+    test = train if test is None else test  # every image trained: the test rows are its cross-validation
     stages.step("learning the surface")
     stages.close()
     fit = {"facets": facets, "train": train, "test": test, "info": info, "optics": info["optics"],
@@ -251,9 +264,12 @@ def split_note(s: ReconstructionSettings) -> dict:
     if s.train_first is not None:
         return {"rule": f"the {int(s.train_first)} earliest centred images (a study's split)", "current": False,
                 "note": "the written surface saw only the earliest images: not the surface now"}
-    k = int(s.train_latest or TRAIN_LATEST)
-    return {"rule": f"the {k} latest centred images (the current surface)", "current": True,
-            "note": "test images are the earlier ones: how well the surface now explains the mirror's past images"}
+    if s.train_latest is not None:
+        return {"rule": f"the {int(s.train_latest)} latest centred images (a study's split)", "current": False,
+                "note": "the written surface saw only the latest images; test images are the earlier ones"}
+    return {"rule": "every centred image (the current surface)", "current": True,
+            "note": f"the test rows are cross-validation: each image evaluated by a fit that did not see it "
+                    f"({CV_FOLDS} folds, or one image per fold with fewer images)"}
 
 
 def _facets(plant, dtype=None) -> Facets:

@@ -5,13 +5,14 @@
 ``Scenario × PAINT folder × heliostat selection × ReconstructionSettings → (Scenario′, report)``.
 
 Per heliostat it is the single-heliostat learner (:func:`heliotwin.workflows.reconstruct.learn_surface`: the same
-split, optics choice, leave-one-out, outlier drop and acceptance rule), so a heliostat learned here gets exactly
+split, optics choice, cross-validation, outlier drop and acceptance rule), so a heliostat learned here gets exactly
 the surface ``heliotwin reconstruct --heliostat H`` gives it. Around it:
 
 * Planning: the folder's records are read once (metadata, no image), and each selected heliostat's train/test split
   is made as the learner makes it (:func:`heliotwin.surfaces.observations.split_record_ids`). A heliostat without
-  enough centred images (``train_latest`` or ``train_first`` for training and one for the test) is *skipped*,
-  with the reason in the report: not an error.
+  enough centred images (by default :data:`~heliotwin.surfaces.observations.MIN_IMAGES`: every image trains
+  and cross-validation gives the error; with ``train_latest`` or ``train_first`` that many for training and one
+  for the test) is *skipped*, with the reason in the report: not an error.
 * Learning: one heliostat at a time per process: its images are read, its surface learned and only its result kept
   (control points, displacement, optics, report row: kilobytes). Peak memory is one heliostat's images and fit
   per process, whatever the plant's size. A heliostat whose fit raises is *failed* with a one-line reason; the
@@ -24,7 +25,7 @@ the surface ``heliotwin reconstruct --heliostat H`` gives it. Around it:
   finishes (by whichever process learned it) and tagged with the settings and inputs (not the selection: a
   heliostat's result does not depend on which others were selected). A resumed run loads the finished heliostats
   and learns the rest; failed heliostats are learned again.
-* Batching: the learner's choices (optics candidates, blur mode, leave-one-out step counts, dropped images,
+* Batching: the learner's choices (optics candidates, blur mode, cross-validated step counts, dropped images,
   acceptance) are per heliostat and data-dependent, so heliostats are not stacked into one tensor batch; the plant
   runs them side by side in processes instead.
 
@@ -55,7 +56,7 @@ from ..io import checkpoint as _checkpoint
 from ..io.paint import list_heliostats, load_paint
 from ..io.scenario import Scenario, next_scenario, provenance_entry
 from ..progress import Progress
-from ..surfaces.observations import TRAIN_LATEST, split_record_ids
+from ..surfaces.observations import MIN_IMAGES, split_record_ids
 from ..surfaces.state import KEY, PRIOR_KEY, surface_state
 from .reconstruct import ReconstructionSettings, learn_surface
 from .show import kinematics_note
@@ -183,8 +184,8 @@ def plan_heliostats(paint, heliostats, settings: ReconstructionSettings, plant=N
     heliostats : "all" or sequence of str
         ``"all"``: every heliostat of the folder (of ``plant`` too, when given).
     settings : ReconstructionSettings
-        Its ``train_latest`` or ``train_first`` (default 3 latest) sets how many centred images a heliostat needs:
-        that many and one more.
+        Its ``train_latest`` or ``train_first`` sets how many centred images a heliostat needs: that many and
+        one more; by default (every image trains) :data:`~heliotwin.surfaces.observations.MIN_IMAGES`.
     plant : Plant, optional
         The starting scenario's plant: a heliostat it does not hold is skipped.
 
@@ -230,9 +231,11 @@ def plan_heliostats(paint, heliostats, settings: ReconstructionSettings, plant=N
                              train_first=settings.train_first, train_latest=settings.train_latest)
         except HeliotwinError:
             n = sum(1 for i in r if pngs[i])
-            need = int(settings.train_first or settings.train_latest or TRAIN_LATEST) + 1
+            k = settings.train_first or settings.train_latest
+            why = (f"needs {int(k) + 1} ({int(k)} training + 1 test)" if k else
+                   f"needs {MIN_IMAGES} (every image trains; cross-validation over them)")
             skipped[h] = {"heliostat": h, "status": "skipped", "centred_images": n,
-                          "reason": f"{n} centred image(s), needs {need} ({need - 1} training + 1 test)"}
+                          "reason": f"{n} centred image(s), {why}"}
             continue
         learn.append(h)
     return wanted, learn, skipped, ds.plant
@@ -259,7 +262,7 @@ def _row(heliostat: str, report: dict) -> dict:
                       "worse_than_ideal": report["train_worse_than_ideal"]},
             "test": {"images": len(te), "median_l1_ideal": report["median_l1_ideal"],
                      "median_l1_learned": report["median_l1_learned"], "improved": report["test_improved"],
-                     "improved_wilson95": report["test_improved_wilson95"]},
+                     "improved_wilson95": report["test_improved_wilson95"], "is": report["test_is"]},
             # The rule always holds after shrinking; alpha = 0 keeps the ideal start: nothing learned was accepted.
             "accepted": alpha > 0.0, "acceptance_alpha": alpha,
             "kinematics": "nominal" if "no calibration" in report["kinematics"] else "calibrated",
