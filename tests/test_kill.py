@@ -22,6 +22,13 @@ def _env():
                 OMP_NUM_THREADS="1", HELIOTWIN_DEBUG="0")
 
 
+def _default_sigint():
+    # A child inherits an ignored SIGINT from a shell that started the test run in the background (`cmd &`
+    # without job control), and Python then installs no KeyboardInterrupt handler: Ctrl-C would not reach it.
+    # The commands are tested as a terminal starts them.
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _wait_for(predicate, proc, timeout=120.0):
     t0 = time.monotonic()
     while not predicate():
@@ -61,7 +68,7 @@ def test_signal_during_a_write_leaves_the_old_output_and_nothing_else(tmp_path, 
     out = tmp_path / "report.json"
     out.write_text("old")
     proc = subprocess.Popen([sys.executable, "-c", _SLOW_WRITER, str(out)], env=_env(), stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True, preexec_fn=_default_sigint)
 
     def writing():
         staged = [p for d in tmp_path.glob(".heliotwin-*") for p in d.iterdir()]
@@ -79,7 +86,9 @@ def test_signal_during_a_write_leaves_the_old_output_and_nothing_else(tmp_path, 
 # Slow and timing-dependent (the signal is sent 0.3 s "into the tracing"): in two of three full-suite runs on
 # the busy 2-core machine the demo ran to the end with exit 0 instead of stopping, which was not reproduced
 # alone or under synthetic load. Out of the default run until it waits for a deterministic event; the
-# mechanism itself is covered deterministically by the slow-writer test above.
+# mechanism itself is covered deterministically by the slow-writer test above. (2026-11-28: the slow-writer's
+# SIGINT case failed the same way, exit 0, in a CI run started with `&` from a script: SIGINT was ignored from
+# the start, inherited. Both tests now reset it in the child, _default_sigint; that was likely the cause here.)
 @pytest.mark.slow
 @pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_signal_during_demo_leaves_no_output_folder(tmp_path, sig, code):
@@ -87,7 +96,7 @@ def test_signal_during_demo_leaves_no_output_folder(tmp_path, sig, code):
     folder, report = tmp_path / "demo", tmp_path / "demo.json"
     proc = subprocess.Popen([sys.executable, "-m", "heliotwin", "demo", "--out", str(folder), "--json", str(report),
                              "--heliostats", "2000", "--quiet"], env=_env(),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_default_sigint)
     _wait_for(lambda: any(tmp_path.glob(".heliotwin-*")), proc)
     time.sleep(0.3)  # into the tracing
     proc.send_signal(sig)
