@@ -197,12 +197,26 @@ def fit_surfaces(facets: Facets, problems: list, sun: SunSettings, s: SurfaceSet
         pw, nw = to_world(images.rotation.to(pts), images.concentrator.to(pts), pts[rows], nrm[rows], torch.float32)
         return surf, pw, nw, area.to(torch.float32)[rows], images.sun.to(pw)
 
-    if rows is not None and not all(("spectrum", i) in live.kernels for i in range(len(obs))):
-        # every image's kernel from the start surface first: what the first full step would make
+    def start_kernels(images: Observations, rows: torch.Tensor, cache: dict) -> None:
+        # Every image's kernel from the start surface (what the first full step would make), each distinct pose
+        # once: the problems share the start, and an image sits in several problems (folds x weights).
+        if all(("spectrum", i) in cache for i in range(len(images))):
+            return
+        keys = [(id(t), *images.sun[i].tolist(), *images.rotation[i].flatten().tolist(),
+                 *images.concentrator[i].tolist()) for i, t in enumerate(images.targets)]
+        first, unique = {}, []  # key -> its position among the distinct poses; their first rows
+        for i, key in enumerate(keys):
+            if key not in first:
+                first[key] = len(unique)
+                unique.append(i)
+        sub, made = images.subset(unique), {}
         with torch.no_grad():
-            _, pw, nw, ar, sund = world(displacement(), obs, owner)
-            render_samples(pw, nw, ar, sund, obs, sun, resolution=s.resolution, size_m=s.size_m,
-                           kernels=live.kernels)
+            _, pw, nw, ar, sund = world(displacement(), sub, rows[unique])
+            render_samples(pw, nw, ar, sund, sub, sun, resolution=s.resolution, size_m=s.size_m, kernels=made)
+        for i, key in enumerate(keys):
+            cache[i], cache[("spectrum", i)] = made[first[key]], made[("spectrum", first[key])]
+
+    start_kernels(obs, owner, live.kernels)
 
     def objective() -> tuple[torch.Tensor, torch.Tensor]:
         d_m = displacement()
@@ -231,9 +245,7 @@ def fit_surfaces(facets: Facets, problems: list, sun: SunSettings, s: SurfaceSet
     step = adam_step(opt, sched, objective, live)
 
     hkernels: dict = {}  # the held-out images' kernels from the start surface, as the training images' are made
-    with torch.no_grad():
-        _, pw, nw, ar, sund = world(displacement(), hobs, howner)
-        render_samples(pw, nw, ar, sund, hobs, sun, resolution=s.resolution, size_m=s.size_m, kernels=hkernels)
+    start_kernels(hobs, howner, hkernels)
 
     def heldout_l1() -> torch.Tensor:
         at = live.steps
