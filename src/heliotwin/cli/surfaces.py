@@ -210,7 +210,9 @@ def _plot_reconstruction(args, json_path, report, fit) -> dict:
     plot_flux_comparison(fit["test"].images, images["ideal"], images["learned"], fit["test"].ids,
                          staged["flux"], [r["l1_ideal"] for r in report["test"]],
                          [r["l1_learned"] for r in report["test"]],
-                         title="centred flux: measured vs ideal vs learned (camera model)")
+                         title="centred flux: measured vs ideal vs learned (camera model)"
+                         + ("; learned = cross-validated, each image by fits that did not see it"
+                            if report.get("test_is") == "cross-validation" else ""))
     return {k: os.path.splitext(os.fspath(args.json))[0] + v for k, v in names.items()}
 
 
