@@ -16,10 +16,12 @@ from heliotwin.surfaces.fitbatch import FitProblem, fit_surfaces
 from heliotwin.surfaces.generalise import (
     SurfaceSettings,
     canting_focal_length,
+    choose_optics,
     cv_folds,
     evaluate_with_camera,
     fit_generalising,
     focused_start,
+    spread_images,
 )
 from heliotwin.surfaces.imaging import predict_images
 from heliotwin.surfaces.learning import LearnableSurface, learnable_surfaces, normal_heights
@@ -145,6 +147,27 @@ def test_minibatches_cycle_through_each_fits_images_and_are_seeded():
     assert torch.equal(rows, minibatch_rows([5, 2, 3], 2, steps=10, seed=4))
     assert not torch.equal(rows, minibatch_rows([5, 2, 3], 2, steps=10, seed=5))
     assert minibatch_rows([2, 1], 2, steps=10) is None and minibatch_rows([5], None, steps=10) is None
+
+
+def test_the_optics_choice_scores_on_spread_images_and_finds_every_images_blur():
+    assert spread_images(10, 12) is None and spread_images(50, None) is None
+    pick = spread_images(40, 12)
+    assert len(pick) == 12 and pick[0] == 0 and pick[-1] == 39 and pick == sorted(set(pick))
+    facets, obs, sun, _ = dome_scene(samples=(8, 8), n=4)
+    s = SurfaceSettings(control_points=(4, 4), degree=(2, 2), samples=(8, 8), resolution=32, size_m=4.0,
+                        focus_grid=(None, 1.0, 4.0), slope_grid=(0.5e-3, 2e-3, 4e-3))
+    cam = estimate_camera(obs.images.to(torch.float32))
+    assert choose_optics(facets, obs, sun, cam, dataclasses.replace(s, optics_images=4))["scores"] == \
+        choose_optics(facets, obs, sun, cam, s)["scores"]  # no more images than the bound: unchanged
+    bounded = choose_optics(facets, obs, sun, cam, dataclasses.replace(s, optics_images=3))
+    on = spread_images(4, 3)
+    assert on == [0, 2, 3] and bounded["scored_on"]["records"] == [obs.ids[i] for i in on]
+    sub = choose_optics(facets, obs.subset(on), sun, cam.subset(on), s)
+    assert [r["mean_l1"] for r in bounded["scores"]] == [r["mean_l1"] for r in sub["scores"]]
+    # the chosen ideal's best blur for every image (4), as the unbounded choice finds it for that candidate
+    full = choose_optics(facets, obs, sun, cam, dataclasses.replace(
+        s, focus_grid=(bounded["chosen"]["focus_multiple"],), slope_grid=(bounded["chosen"]["slope_error_rad"],)))
+    assert len(bounded["chosen"]["blur_px"]) == 4 and bounded["chosen"]["blur_px"] == full["chosen"]["blur_px"]
 
 
 def test_cross_validation_folds_hold_every_image_out_once():

@@ -7,14 +7,15 @@ import pytest
 
 from heliotwin.errors import HeliotwinError
 from heliotwin.surfaces.fit import SurfaceSettings
-from heliotwin.surfaces.generalise import CV_BATCH_IMAGES, CV_FOLDS
+from heliotwin.surfaces.generalise import CV_BATCH_IMAGES, CV_FOLDS, CV_OPTICS_IMAGES
 from heliotwin.workflows.reconstruct import ReconstructionSettings
 
 
 def test_the_learner_settings_come_from_the_one_settings_object():
     g = ReconstructionSettings().learner()
     # the defaults are the learner's; every image trains: K-fold cross-validation over mini-batches
-    assert isinstance(g, SurfaceSettings) and g == SurfaceSettings(folds=CV_FOLDS, batch_images=CV_BATCH_IMAGES)
+    assert isinstance(g, SurfaceSettings) and g == SurfaceSettings(folds=CV_FOLDS, batch_images=CV_BATCH_IMAGES,
+                                                                   optics_images=CV_OPTICS_IMAGES)
     assert ReconstructionSettings(train_latest=3).learner() == SurfaceSettings()  # a study: leave-one-out, full batch
     assert ReconstructionSettings(train_first=3).learner() == SurfaceSettings()
     small = ReconstructionSettings(steps=4, control_points="4x4", degree=2, slope_error_mrad=1.5).learner()

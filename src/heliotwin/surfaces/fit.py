@@ -99,6 +99,9 @@ class SurfaceSettings:
         every image every step (the fit is then the full-batch one, unchanged).
     batch_seed : int
         Seed of that schedule (every fit with the same number of images takes the same batches).
+    optics_images : int, optional
+        The optics choice scores its candidates on at most this many training images, spread over them in time
+        (:func:`heliotwin.surfaces.generalise.spread_images`); None: on every one.
     optimizer : {"adam", "lbfgs"}
         See the module docstring.
     loss : {"l1", "l2", "kl"}
@@ -136,6 +139,7 @@ class SurfaceSettings:
     folds: int | None = None
     batch_images: int | None = None
     batch_seed: int = 0
+    optics_images: int | None = None
 
     def __post_init__(self):
         if self.optimizer not in OPTIMIZERS:

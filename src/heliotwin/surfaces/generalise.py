@@ -68,7 +68,8 @@ from .nuisance import CameraModel, apply_camera, estimate_camera
 from .observations import Observations
 from .plantprior import PRIOR_WEIGHT_GRID, check_facets, describe, prior_penalty
 
-__all__ = ["SurfaceSettings", "reconstruct_generalising", "CV_FOLDS", "CV_BATCH_IMAGES", "summarise",
+__all__ = ["SurfaceSettings", "reconstruct_generalising", "CV_FOLDS", "CV_BATCH_IMAGES", "CV_OPTICS_IMAGES",
+           "spread_images", "summarise",
            "canting_focal_length", "focused_start", "choose_optics", "fit_generalising",
            "blur_for", "evaluate_with_camera", "loo_select", "cv_folds"]
 
@@ -85,6 +86,13 @@ CV_FOLDS = 3
 #: cross-validated L1 within 0.003 of the test L1 on average). Full batches would be better still by up to 0.008,
 #: at twice the time.
 CV_BATCH_IMAGES = 2
+
+#: Images that score the optics candidates in that mode (spread over the record; :func:`spread_images`): the
+#: choice renders every candidate (4 focus x 8 slope errors) for each image, the one cost of the learner that
+#: still grew with the images (AA39's 10: 1.2 s; 40 images: 4.1 s). Twelve leave every heliostat with up to
+#: twelve images learned exactly as without the bound; in silico with 24 images the bound chose the same optics
+#: in 6 of 8 cases and the same median test L1 on average (``bench_insilico.py --every-image --optics all,12``).
+CV_OPTICS_IMAGES = 12
 
 
 def canting_focal_length(facets: Facets) -> float | None:
@@ -135,6 +143,10 @@ def choose_optics(facets: Facets, train: Observations, base_sun: SunSettings, ca
     focus = [None] + [m for m in s.focus_grid if m is not None and f_cant is not None]
     if prior is not None:
         focus.append("prior")
+    every, every_camera = train, camera
+    pick = spread_images(len(train), s.optics_images)
+    if pick is not None:  # the candidates are scored on images spread over the record, the blurs found for all
+        train, camera = train.subset(pick), camera.subset(pick)
     meas = train.images.to(torch.float32)
     scores, best = [], None
     for m in focus:
@@ -162,10 +174,36 @@ def choose_optics(facets: Facets, train: Observations, base_sun: SunSettings, ca
                    "blur_px": [float(s.blur_grid_px[i]) for i in ib.tolist()]}
             scores.append(row)
             if best is None or row["mean_l1"] < best["mean_l1"]:
-                best = dict(row, start=start)
-    return {"canting_focal_length_m": f_cant, "chosen": {k: v for k, v in best.items() if k != "start"},
-            "start": best["start"], "scores": scores,
-            "rule": "min mean training L1 of the ideal surface (camera model, best blur per image)"}
+                best = dict(row, start=start, ideal=ideal, sun=sun)
+    if pick is not None:  # the chosen ideal's best blur for every training image
+        with torch.no_grad():
+            key = ("every", best["focus_multiple"], best["slope_error_rad"])
+            pred = renders.get(key) if renders is not None else None
+            if pred is None:
+                pred, _ = render(best["ideal"], every, best["sun"], s)
+                if renders is not None:
+                    renders[key] = pred
+            meas_all = every.images.to(pred)
+            per_blur = torch.stack([losses.l1(apply_camera(pred, every_camera, torch.full(
+                (len(every),), float(b), device=pred.device)), meas_all) for b in s.blur_grid_px])
+        best["blur_px"] = [float(s.blur_grid_px[i]) for i in per_blur.min(0).indices.tolist()]
+    out = {"canting_focal_length_m": f_cant, "chosen": {k: v for k, v in best.items()
+                                                        if k not in ("start", "ideal", "sun")},
+           "start": best["start"], "scores": scores,
+           "rule": "min mean training L1 of the ideal surface (camera model, best blur per image)"}
+    if pick is not None:
+        out["scored_on"] = {"records": list(train.ids), "rule": f"{len(pick)} of the {len(every)} training images, "
+                            f"spread evenly over them in time; the chosen ideal's blur then found for every image"}
+    return out
+
+
+def spread_images(n: int, most: int | None) -> list | None:
+    """``most`` indices spread evenly over ``n`` time-ordered images (the first and the last included), or None
+    when there are no more than ``most`` (or no bound): which images score the optics candidates."""
+    if most is None or n <= int(most):
+        return None
+    m = max(2, int(most))
+    return sorted({round(i * (n - 1) / (m - 1)) for i in range(m)})
 
 
 def cv_folds(n: int, folds: int | None) -> list:

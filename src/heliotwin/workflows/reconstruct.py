@@ -28,7 +28,7 @@ from ..io.scenario import Scenario, scenario_from_paint
 from ..progress import Stages
 from ..surfaces.deflectometry import deflectometry_report
 from ..surfaces.fit import SurfaceSettings
-from ..surfaces.generalise import CV_BATCH_IMAGES, CV_FOLDS, reconstruct_generalising
+from ..surfaces.generalise import CV_BATCH_IMAGES, CV_FOLDS, CV_OPTICS_IMAGES, reconstruct_generalising
 from ..surfaces.learning import parse_grid
 from ..surfaces.observations import paint_observations
 from ..surfaces.plantprior import check_leakage, load_surface_prior
@@ -128,7 +128,7 @@ class ReconstructionSettings:
         kw = dict(control_points=parse_grid(self.control_points), degree=(int(self.degree), int(self.degree)),
                   steps=steps, eval_every=min(base.eval_every, max(1, steps // 2)))
         if self.every_image:
-            kw.update(folds=CV_FOLDS, batch_images=CV_BATCH_IMAGES)
+            kw.update(folds=CV_FOLDS, batch_images=CV_BATCH_IMAGES, optics_images=CV_OPTICS_IMAGES)
         if self.slope_error_mrad is not None:
             kw["slope_grid"] = (self.slope_error_mrad * 1e-3,)
         return SurfaceSettings(**kw)
