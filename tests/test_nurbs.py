@@ -243,6 +243,23 @@ def test_fit_rejects_bad_shapes():
         nurbs.fit(torch.zeros(10, 2), torch.zeros(10, 2))
     with pytest.raises(HeliotwinError):
         nurbs.fit(torch.zeros(10, 3), torch.zeros(9, 2))
+    with pytest.raises(HeliotwinError, match="without normals"):  # batches share uv, not normal terms
+        nurbs.fit(torch.zeros(2, 10, 3), torch.zeros(10, 2), normals=torch.zeros(2, 10, 3), normal_weight=1.0)
+
+
+def test_a_batch_of_fits_on_one_grid_equals_the_fits_one_by_one():
+    """Leading axes of ``points`` are independent fits sharing ``uv`` (one system, many right-hand sides): each
+    equals its own fit, with and without the ridge."""
+    g = torch.Generator().manual_seed(3)
+    pts = torch.randn(2, 3, 150, 3, generator=g, dtype=F64)
+    uv = torch.rand(150, 2, generator=g, dtype=F64)
+    for ridge in (0.0, 1e-6):
+        batch = nurbs.fit(pts, uv, (5, 4), (2, 3), ridge=ridge)
+        assert batch.shape == (2, 3, 5, 4, 3)
+        for i in range(2):
+            for j in range(3):
+                one = nurbs.fit(pts[i, j], uv, (5, 4), (2, 3), ridge=ridge)
+                assert torch.allclose(batch[i, j], one, rtol=0, atol=1e-12)
 
 
 # ---------------------------------------------------------------- refinement

@@ -274,3 +274,26 @@ def test_large_folders_index_by_default_unless_switched_off(folder, monkeypatch)
     monkeypatch.setenv("HELIOTWIN_CACHE", "1")
     P.load_paint(folder)
     assert os.path.exists(where)
+
+
+def test_one_heliostat_of_a_large_folder_reads_the_metadata_through_the_index(folder, monkeypatch):
+    """The metadata CSV holds every record of the folder: reading one heliostat of a large folder parses it once,
+    then takes it from the index (few record files would not switch the index on by themselves)."""
+    meta = os.path.join(folder, "metadata", "calibration-metadata.csv")
+    one = P.list_heliostats(folder)[:1]
+    monkeypatch.setattr(P, "CACHE_MIN_RECORDS", 10**9)
+    monkeypatch.setattr(P, "CACHE_MIN_METADATA_BYTES", 10**9)
+    P.load_paint(folder, heliostats=one)
+    assert RI.csv_cached(folder, meta) == (None, 0)  # a small folder: no index
+    monkeypatch.setattr(P, "CACHE_MIN_METADATA_BYTES", 1)
+    first = P.load_paint(folder, heliostats=one)
+    stored, covered = RI.csv_cached(folder, meta)
+    assert stored is not None and covered == os.path.getsize(meta)
+    again = P.load_paint(folder, heliostats=one)
+    _same(first.records, again.records)
+    assert torch.equal(first.records.time.nan_to_num(), P.load_paint(folder, cache=False).records_of(one[0])
+                       .time.nan_to_num())
+    monkeypatch.setenv("HELIOTWIN_CACHE", "0")
+    shutil.rmtree(RI.index_dir(folder))
+    P.load_paint(folder, heliostats=one)
+    assert RI.csv_cached(folder, meta) == (None, 0)

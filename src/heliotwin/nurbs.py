@@ -395,8 +395,9 @@ def fit(points: torch.Tensor, uv: torch.Tensor, num_control_points: tuple[int, i
 
     Parameters
     ----------
-    points : torch.Tensor, [N, 3]
-        Measured points [m].
+    points : torch.Tensor, [..., N, 3]
+        Measured points [m]; leading axes (without ``normals``) are independent fits that share ``uv`` (one
+        system, many right-hand sides: e.g. every facet of a field resampled on one parameter grid).
     uv : torch.Tensor, [N, 2]
         Their surface parameters in [0, 1]^2.
     num_control_points : (int, int)
@@ -414,16 +415,17 @@ def fit(points: torch.Tensor, uv: torch.Tensor, num_control_points: tuple[int, i
 
     Returns
     -------
-    torch.Tensor, [nu, nv, 3]
+    torch.Tensor, [..., nu, nv, 3]
         Control points [m], dtype/device of ``points``. Differentiable w.r.t. points and normals.
     """
     nu, nv = (int(x) for x in num_control_points)
     p, q = (int(x) for x in degree)
-    if points.dim() != 2 or points.shape[-1] != 3:
-        raise HeliotwinError(f"fit: points must have shape [N, 3], got {tuple(points.shape)}")
-    if uv.shape != (points.shape[0], 2):
-        raise HeliotwinError(f"fit: uv must have shape [{points.shape[0]}, 2], got {tuple(uv.shape)}")
     use_normals = normals is not None and normal_weight > 0
+    if points.dim() < 2 or points.shape[-1] != 3 or (use_normals and points.dim() != 2):
+        raise HeliotwinError(f"fit: points must have shape [N, 3] (or [..., N, 3] without normals), got "
+                             f"{tuple(points.shape)}")
+    if uv.shape != (points.shape[-2], 2):
+        raise HeliotwinError(f"fit: uv must have shape [{points.shape[-2]}, 2], got {tuple(uv.shape)}")
     if use_normals and normals.shape != points.shape:
         raise HeliotwinError(f"fit: normals must have shape {tuple(points.shape)}, got {tuple(normals.shape)}")
     if normal_weight < 0 or ridge < 0:
@@ -432,20 +434,20 @@ def fit(points: torch.Tensor, uv: torch.Tensor, num_control_points: tuple[int, i
     pts = points.to(**f64)
     params = uv.to(**f64)
     nrm = normals.to(**f64) if use_normals else None
-    centroid = pts.mean(dim=0)
+    centroid = pts.mean(dim=-2, keepdim=True)
     pts = pts - centroid  # the ridge then shrinks towards the centroid, not the frame origin
     m = nu * nv
     ku, kv = clamped_knots(nu, p, **f64), clamped_knots(nv, q, **f64)
     gram = torch.zeros(m, m, **f64)
-    rhs = torch.zeros(m, 3, **f64)
+    rhs = torch.zeros(*pts.shape[:-2], m, 3, **f64)
     slope = torch.zeros(3 * m, 3 * m, **f64) if use_normals else None
-    for start in range(0, pts.shape[0], chunk_size):  # chunks bound memory; not a per-point loop
+    for start in range(0, pts.shape[-2], chunk_size):  # chunks bound memory; not a per-point loop
         sl = slice(start, start + chunk_size)
         bu0, bu1 = basis_functions(params[sl, 0], ku, p, nu)
         bv0, bv1 = basis_functions(params[sl, 1], kv, q, nv)
         rows = _row_products(bu0, bv0)
         gram = gram + rows.T @ rows
-        rhs = rhs + rows.T @ pts[sl]
+        rhs = rhs + rows.T @ pts[..., sl, :]
         if use_normals:
             n = nrm[sl]
             for d in (_row_products(bu1, bv0), _row_products(bu0, bv1)):
@@ -455,12 +457,14 @@ def fit(points: torch.Tensor, uv: torch.Tensor, num_control_points: tuple[int, i
     scale = gram.diagonal().mean().clamp_min(torch.finfo(torch.float64).tiny)
     eye = torch.eye(m, **f64)
     if not use_normals:
-        sol = torch.linalg.solve(gram + ridge * scale * eye, rhs)
+        # one factorisation for every right-hand side: [..., m, 3] as [m, ... * 3]
+        flat = rhs.movedim(-2, 0).reshape(m, -1)
+        sol = torch.linalg.solve(gram + ridge * scale * eye, flat).reshape(m, *rhs.shape[:-2], 3).movedim(0, -2)
     else:
         eye3 = torch.eye(3, **f64)
         system = torch.kron(gram + ridge * scale * eye, eye3) + normal_weight * slope
         sol = torch.linalg.solve(system, rhs.reshape(3 * m)).reshape(m, 3)
-    return (sol + centroid).reshape(nu, nv, 3).to(dtype=points.dtype)
+    return (sol + centroid).reshape(*points.shape[:-2], nu, nv, 3).to(dtype=points.dtype)
 
 
 def refine(control_points: torch.Tensor, degree_u: int, degree_v: int,

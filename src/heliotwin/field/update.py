@@ -102,9 +102,10 @@ def resample_surfaces(surfaces: Surfaces, num_control_points: tuple[int, int], d
     uv = torch.stack(torch.meshgrid(u, u, indexing="ij"), -1).reshape(-1, 2)
     h, f = cp.shape[:2]
     flat = points.reshape(h * f, g * g, 3)
-    # One small solve per facet; this runs once per learning step, never inside a fit.
-    nets = [nurbs.fit(flat[k], uv, (nu2, nv2), degree, ridge=0.0) for k in range(h * f)]
-    return Surfaces(torch.stack(nets).reshape(h, f, nu2, nv2, 3).to(cp), int(degree[0]), int(degree[1]))
+    # Every facet on the one parameter grid: one system, a right-hand side per facet (a loop of per-facet fits
+    # took 10.8 s for a 2,000-heliostat field).
+    nets = nurbs.fit(flat, uv, (nu2, nv2), degree, ridge=0.0)
+    return Surfaces(nets.reshape(h, f, nu2, nv2, 3).to(cp), int(degree[0]), int(degree[1]))
 
 
 def with_surfaces(plant: Plant, heliostat_ids, surfaces: Surfaces) -> Plant:
