@@ -50,7 +50,7 @@ from .observations import Observations
 from .plantprior import prior_penalty
 
 __all__ = ["SurfaceSettings", "SurfaceFit", "fit_surface", "adam_step", "blur_images", "blur_for",
-           "evaluate_with_camera", "minibatch_rows", "kernel_view", "OPTIMIZERS"]
+           "evaluate_with_camera", "minibatch_rows", "kernel_view", "keep_spectra", "OPTIMIZERS"]
 
 #: The optimisers :func:`fit_surface` runs.
 OPTIMIZERS = ("adam", "lbfgs")
@@ -214,11 +214,20 @@ def minibatch_rows(sizes, batch: int | None, steps: int, seed: int = 0, device=N
 
 def kernel_view(kernels: dict, rows) -> dict:
     """The footprint-kernel cache of :func:`~heliotwin.surfaces.imaging.render_samples` for a batch: entry ``j``
-    (and its spectrum) is the full cache's ``rows[j]`` (which must hold every image's kernel and spectrum)."""
+    (and its spectrum, where the full cache has it) is the full cache's ``rows[j]``, which must hold every image's
+    kernel. A checkpoint restores the kernels alone: the render makes the missing spectra, and
+    :func:`keep_spectra` puts them back."""
     rows = [int(r) for r in rows]
     view = {j: kernels[r] for j, r in enumerate(rows)}
-    view.update({("spectrum", j): kernels[("spectrum", r)] for j, r in enumerate(rows)})
+    view.update({("spectrum", j): kernels[("spectrum", r)] for j, r in enumerate(rows) if ("spectrum", r) in kernels})
     return view
+
+
+def keep_spectra(kernels: dict, view: dict, rows) -> None:
+    """The spectra a render made in a :func:`kernel_view`, kept in the full cache under their rows."""
+    for j, r in enumerate(int(r) for r in rows):
+        if ("spectrum", r) not in kernels and ("spectrum", j) in view:
+            kernels[("spectrum", r)] = view[("spectrum", j)]
 
 
 def blur_images(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
@@ -380,7 +389,9 @@ def fit_surface(facets: Facets, obs: Observations, sun: SunSettings, s: SurfaceS
             cam, sig, seen = camera, log_sigma, meas
         else:  # this step's images (the loop has taken live.steps steps)
             at = rows[min(live.steps, len(rows) - 1)].tolist()
-            pred, miss = render(surf, obs.subset(at), sun, s, kernel_view(live.kernels, at))
+            view = kernel_view(live.kernels, at)
+            pred, miss = render(surf, obs.subset(at), sun, s, view)
+            keep_spectra(live.kernels, view, at)
             cam, sig, seen = camera.subset(at), log_sigma[at], meas[at]
         if camera is not None:
             data = losses.image_loss(s.loss, apply_camera(pred, cam, sig.exp()), seen.to(pred))

@@ -38,7 +38,16 @@ from ..field.plant import Facets, SunSettings
 from ..scene import to_world
 from . import losses
 from .edges import slope_penalties
-from .fit import SurfaceFit, SurfaceSettings, _loop_state, adam_step, blur_for, kernel_view, minibatch_rows
+from .fit import (
+    SurfaceFit,
+    SurfaceSettings,
+    _loop_state,
+    adam_step,
+    blur_for,
+    keep_spectra,
+    kernel_view,
+    minibatch_rows,
+)
 from .imaging import render_samples
 from .learning import MM, LearnableSurface, gauge_basis, learnable_surfaces, normal_heights
 from .nuisance import CameraModel, apply_camera
@@ -230,6 +239,8 @@ def fit_surfaces(facets: Facets, problems: list, sun: SunSettings, s: SurfaceSet
         surf, pw, nw, ar, sund = world(d_m, seen, step_owner)
         pred, _, miss, _ = render_samples(pw, nw, ar, sund, seen, sun, resolution=s.resolution, size_m=s.size_m,
                                           kernels=kern)
+        if rows is not None:
+            keep_spectra(live.kernels, kern, idx)
         per_image = losses.IMAGE_LOSSES[s.loss](apply_camera(pred, cam, sig.exp()), meas_t.to(pred))
         data = _per_problem_mean(per_image, step_owner, counts)
         d = d_m / 1e-3
