@@ -76,13 +76,13 @@ def test_bench_says_each_measurement(capsys):
 
 
 @pytest.mark.slow  # a short reconstruction on real images: about a minute on the busy 2-core machine
-def test_reconstruct_prints_its_stages_and_leave_one_out_in_plain_lines(tmp_path, capsys, paint_dir):
+def test_reconstruct_prints_its_stages_and_cross_validation_in_plain_lines(tmp_path, capsys, paint_dir):
     root = copy_paint(paint_dir, tmp_path)
     argv = ("reconstruct", "--paint", root, "--heliostat", "AA39", "--steps", "4", "--control-points", "4x4",
             "--degree", "2", "--slope-error", "1")
     code, out, err = run_cli(capsys, *argv, "--json", tmp_path / "r.json")
     assert code == 0, err
     assert _lines(out, "heliotwin reconstruct: 2/2 learning the surface done")
-    assert _lines(out, "heliotwin reconstruct: leave-one-out: 100% (")
+    assert _lines(out, "heliotwin reconstruct: cross-validation: 100% (")  # every image trains: 3 folds
     code, out, _ = run_cli(capsys, *argv, "--json", tmp_path / "q.json", "--quiet")
     assert code == 0 and out == ""
