@@ -120,12 +120,16 @@ def dome_scene():
     return facets, obs, sun
 
 
-def test_surface_adam_fit_with_camera_and_heldout_curve_resumed_equals_the_uninterrupted_fit(tmp_path, dome_scene):
+@pytest.mark.parametrize("batch", [None, 1])
+def test_surface_adam_fit_with_camera_and_heldout_curve_resumed_equals_the_uninterrupted_fit(tmp_path, dome_scene,
+                                                                                             batch):
     """The learner's Adam fit (camera model, learned per-image blur, slope penalty, held-out curve) in the fit
-    loop: interrupted between two saves, resumed, it takes the same steps to the same surface and curve."""
+    loop: interrupted between two saves, resumed, it takes the same steps to the same surface and curve. With
+    one image per step (``batch`` 1, every-image learning) the same seeded batches and the same kernels, restored
+    without their spectra, which the resumed fit makes again."""
     facets, obs, sun = dome_scene
     s = SurfaceSettings(control_points=(4, 4), degree=(2, 2), samples=(8, 8), resolution=32, size_m=4.0, steps=14,
-                        lr=0.3, eval_every=3)
+                        lr=0.3, eval_every=3, batch_images=batch)
     cam = estimate_camera(obs.images.to(torch.float32))
 
     def fit():
@@ -137,26 +141,7 @@ def test_surface_adam_fit_with_camera_and_heldout_curve_resumed_equals_the_unint
     assert [s for k, s in seen if k == "fit/0"][0] == 7  # continued after the last save (step 6)
     assert torch.equal(out.model.displacement, ref.model.displacement) and torch.equal(out.sigma, ref.sigma)
     assert out.curve == ref.curve and [st for st, _ in out.curve] == [3, 6, 9, 12]
-
-
-def test_a_minibatch_surface_fit_resumed_equals_the_uninterrupted_fit(tmp_path, dome_scene):
-    """One image per step from a seeded schedule (every-image learning): a resumed fit takes the same batches
-    with the same kernels (restored without their spectra, which it makes again) to the same surface and
-    held-out curve."""
-    facets, obs, sun = dome_scene
-    s = SurfaceSettings(control_points=(4, 4), degree=(2, 2), samples=(8, 8), resolution=32, size_m=4.0, steps=14,
-                        lr=0.3, eval_every=3, batch_images=1)
-    cam = estimate_camera(obs.images.to(torch.float32))
-
-    def fit():
-        return fit_surface(facets, obs.subset([0, 1]), sun, s, camera=cam.subset([0, 1]), sigma0=torch.ones(2),
-                           slope_weight=1e-2, heldout=(obs.subset([2]), cam.subset([2])))
-
-    ref = fit()
-    out, seen = _interrupted_then_resumed(tmp_path, fit, "fit/0", 8, every=3)
-    assert [s for k, s in seen if k == "fit/0"][0] == 7
-    assert torch.equal(out.model.displacement, ref.model.displacement) and torch.equal(out.sigma, ref.sigma)
-    assert out.curve == ref.curve and out.heldout.keys() == ref.heldout.keys()
+    assert out.heldout.keys() == ref.heldout.keys()
 
 
 def test_surface_lbfgs_study_resumed_equals_the_uninterrupted_one(tmp_path, dome_scene):
