@@ -972,14 +972,13 @@ CACHE_MIN_METADATA_BYTES = 200_000
 
 
 def _metadata_worth_index(root: str, cache: bool | None) -> bool:
-    """Whether the folder's metadata CSVs go through the record index (``cache`` as :func:`load_paint`'s)."""
-    if cache is not None or os.environ.get("HELIOTWIN_CACHE") in ("0", "1"):
-        return _use_index(cache, 0)
+    """Whether the folder's metadata CSVs go through the record index: :func:`_use_index`'s rules (``cache``,
+    ``HELIOTWIN_CACHE``), with a large metadata CSV counting as a large folder."""
     try:
         size = os.path.getsize(os.path.join(root, "metadata", "calibration-metadata.csv"))
     except OSError:
-        return False
-    return size >= CACHE_MIN_METADATA_BYTES
+        size = 0
+    return _use_index(cache, CACHE_MIN_RECORDS if size >= CACHE_MIN_METADATA_BYTES else 0)
 
 
 def _use_index(cache: bool | None, files: int) -> bool:

@@ -240,17 +240,17 @@ def loo_select(facets, train, camera, sigma0, sun, start, s, progress=False, pri
     def keep_of(f):
         return [i for i in range(n) if i not in folds[f]]
 
+    label = "heliotwin reconstruct: " + ("leave-one-out" if len(folds) == n else "cross-validation")
     if prior is None and s.optimizer == "adam":
         # The same fits as the loop below, run as one batch (fitbatch: equal up to float rounding, ~K x fewer
         # tensor operations).
         problems = [FitProblem(train.subset(keep_of(f)), camera.subset(keep_of(f)), sigma0[keep_of(f)], w,
                                (train.subset(folds[f]), camera.subset(folds[f]))) for w, _, f in jobs]
-        for _ in iterate([jobs], "heliotwin reconstruct: leave-one-out" if len(folds) == n else
-                         "heliotwin reconstruct: cross-validation", unit="run", enabled=progress, every=25):
+        for _ in iterate([jobs], label, unit="run", enabled=progress, every=25):
             batch = fit_surfaces(facets, problems, sun, s, start=start)
         fits = dict(zip(jobs, batch))
     else:
-        for w, p, f in iterate(jobs, "heliotwin reconstruct: leave-one-out", unit="fit", enabled=progress, every=25):
+        for w, p, f in iterate(jobs, label, unit="fit", enabled=progress, every=25):
             keep = keep_of(f)
             fits[(w, p, f)] = fit_surface(facets, train.subset(keep), sun, s, start=start,
                                           camera=camera.subset(keep), sigma0=sigma0[keep], slope_weight=w,
