@@ -1,6 +1,7 @@
 """``--device`` on the computing commands, and a GPU smoke test that runs where CUDA is available."""
 from __future__ import annotations
 
+import argparse
 import json
 
 import pytest
@@ -73,6 +74,16 @@ def test_cuda_on_a_cpu_only_command_is_refused():
     assert resolve_device("auto", False, "x") == "cpu"
     with pytest.raises(HeliotwinError, match="CPU only" if CUDA else "no CUDA device"):
         resolve_device("cuda", False, "x")
+
+
+def test_every_command_with_a_device_option_can_take_cuda():
+    """A command that offers ``--device`` must not refuse ``cuda`` as CPU-only: the flag ``supports_cuda`` has to
+    survive wrappers (``field`` and ``aimpoints`` lost it to their argument check, so a GPU run was refused)."""
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    offered = {name for name, p in sub.choices.items() if any("--device" in a.option_strings for a in p._actions)}
+    assert {"field", "aimpoints", "calibrate", "reconstruct", "predict", "demo"} <= offered
+    refused = sorted(n for n in offered if not getattr(sub.choices[n].get_default("func"), "supports_cuda", False))
+    assert refused == []
 
 
 def test_the_fit_commands_run_on_the_cuda_capable_path_on_the_cpu(small_paint, tmp_path, capsys):

@@ -15,6 +15,7 @@ import argparse
 import contextlib
 import csv
 import ctypes
+import functools
 import os
 import sys
 import time
@@ -406,6 +407,7 @@ def register(sub) -> None:
 
 
 def _checked(command):
+    @functools.wraps(command)  # keeps the command's attributes (supports_cuda) for run_command's --device
     def run(args) -> int:
         if getattr(args, "sun_azimuth", None) is not None and args.sun_elevation is None:
             raise HeliotwinError("--sun-azimuth needs --sun-elevation")
