@@ -2,14 +2,12 @@
 the robust aim points exceed the limit in at most about ``1 - confidence`` of independent Monte-Carlo draws of
 the plant, the deterministic ones in clearly more; the draws reproduce the exact model's aim-point displacement;
 a plant without a posterior is refused in one line."""
-import dataclasses
-
 import pandas as pd
 import pytest
 import torch
 from helpers.cli import run_cli
+from helpers.field import learned_posterior
 
-from heliotwin.field.plant import Kinematics
 from heliotwin.io.scenario import save_scenario
 from heliotwin.optimise import robust as R
 from heliotwin.optimise.aimpoints import calibrate_images, optimise_aimpoints
@@ -25,14 +23,7 @@ def _case(sd_mrad=3.0):
     s = plant.site
     sun = direction_from_time(pd.DatetimeIndex([pd.Timestamp(TIME)]), s.latitude_deg, s.longitude_deg,
                               s.altitude_m)[0]
-    h, kin = len(plant.field.ids), plant.field.kinematics
-    learned = {"calibration": {
-        "heliostats": list(plant.field.ids), "parameter_names": ["initial_angle_1", "initial_angle_2"],
-        "deviations": torch.zeros(h, 2, dtype=torch.float64),
-        "nominal": {f.name: getattr(kin, f.name) for f in dataclasses.fields(Kinematics)},
-        "posterior": {"covariance": (sd_mrad * 1e-3) ** 2 * torch.eye(2, dtype=torch.float64).expand(h, 2, 2).clone(),
-                      "noise_rad": torch.full((h,), 2e-4, dtype=torch.float64), "drift_rad": torch.zeros(1)}}}
-    return plant, atm, sun, learned
+    return plant, atm, sun, learned_posterior(plant, sd_mrad)
 
 
 @pytest.fixture(scope="module")

@@ -2,11 +2,14 @@
 brute-force (all-pairs, loop over occluders) ray-rectangle reference for shading and blocking."""
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
 import torch
 from helpers.data import SHARED_DATA, require_shared
+
+from heliotwin.field.plant import Kinematics
 
 #: SolarPILOT's output for one field (see its README.md), next to the checkout.
 SOLARPILOT_DIR = SHARED_DATA / "solarpilot-reference"
@@ -91,3 +94,17 @@ def brute_force_unoccluded(origins, directions, center, normal, width_axis, heig
         stop[k] = False
         free &= ~stop
     return free.to(origins.dtype)
+
+
+def learned_posterior(plant, sd_mrad: float = 3.0, noise_rad: float = 2e-4) -> dict:
+    """A scenario's ``/learned`` with a pointing posterior for every heliostat of ``plant``: the nominal
+    kinematics, zero deviations of the two initial angles with ``sd_mrad`` [mrad] each, record noise
+    ``noise_rad`` [rad], no drift (what ``calibrate --method lm`` stores, in miniature)."""
+    h, kin = len(plant.field.ids), plant.field.kinematics
+    cov = (sd_mrad * 1e-3) ** 2 * torch.eye(2, dtype=torch.float64).expand(h, 2, 2).clone()
+    return {"calibration": {
+        "heliostats": list(plant.field.ids), "parameter_names": ["initial_angle_1", "initial_angle_2"],
+        "deviations": torch.zeros(h, 2, dtype=torch.float64),
+        "nominal": {f.name: getattr(kin, f.name).clone() for f in dataclasses.fields(Kinematics)},
+        "posterior": {"covariance": cov, "noise_rad": torch.full((h,), noise_rad, dtype=torch.float64),
+                      "drift_rad": torch.zeros(1)}}}

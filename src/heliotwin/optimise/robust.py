@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import torch
 
 from ..calibrate.params import apply_deviations
+from ..devices import to_device
 from ..errors import HeliotwinError
 from ..field import kinematics as K
 from ..field.plant import Kinematics, Plant
@@ -119,15 +120,17 @@ def pointing_posterior(plant: Plant, learned: dict, sun: torch.Tensor, aim: torc
     if cov.shape != (len(ids), p, p) or noise.shape != (len(ids),):
         raise HeliotwinError(f"{where}: covariance must be [{len(ids)}, {p}, {p}] and noise [{len(ids)}]")
     pos = plant.field.kinematics.position.to(torch.float64)
+    dev = pos.device  # the stored posterior is on the host; the plant may be on a GPU
+    cov, noise, delta, nominal = cov.to(dev), noise.to(dev), delta.to(dev), to_device(nominal, dev)
     aim = aim.to(pos)
     sun = torch.as_tensor(sun).to(pos)
     h = pos.shape[0]
     normal = tracking_normals(pos, aim, sun)
     index = {hid: k for k, hid in enumerate(plant.field.ids)}
     rows = [k for k, hid in enumerate(ids) if hid in index]
-    at = torch.tensor([index[ids[k]] for k in rows], dtype=torch.long)
-    jl = torch.zeros(h, 3, p, dtype=torch.float64)
-    sd = torch.zeros(h, dtype=torch.float64)
+    at = torch.tensor([index[ids[k]] for k in rows], dtype=torch.long, device=dev)
+    jl = torch.zeros(h, 3, p, dtype=torch.float64, device=dev)
+    sd = torch.zeros(h, dtype=torch.float64, device=dev)
     if rows:
         kin = nominal.index(rows)
         d = delta[rows].clone()
@@ -137,10 +140,10 @@ def pointing_posterior(plant: Plant, learned: dict, sun: torch.Tensor, aim: torc
         rot, _ = K.forward(apply_deviations(kin, d, names), steps.detach())
         n = K.mirror_normal(rot)
         jac = torch.stack([torch.autograd.grad(n[:, c].sum(), d, retain_graph=c < 2)[0] for c in range(3)], 1)
-        chol = torch.linalg.cholesky(cov[rows] + 1e-18 * torch.eye(p, dtype=torch.float64))
+        chol = torch.linalg.cholesky(cov[rows] + 1e-18 * torch.eye(p, dtype=torch.float64, device=dev))
         jl[at] = jac.detach() @ chol
         sd[at] = (noise[rows] ** 2 + drift ** 2).sqrt()
-    missing = torch.ones(h, dtype=torch.bool)
+    missing = torch.ones(h, dtype=torch.bool, device=dev)
     missing[at] = False
     if bool(missing.any()) and rows:
         # no posterior of their own: the calibrated heliostats' median spread, in their own mirror plane
@@ -150,11 +153,12 @@ def pointing_posterior(plant: Plant, learned: dict, sun: torch.Tensor, aim: torc
 
 
 def draw_normal_errors(posterior: PointingPosterior, draws: int, generator: torch.Generator) -> torch.Tensor:
-    """``draws`` seeded draws of every heliostat's normal error ``dn`` [D, H, 3] [rad] (module docstring)."""
+    """``draws`` seeded draws of every heliostat's normal error ``dn`` [D, H, 3] [rad] (module docstring), on
+    the posterior's device; drawn where ``generator`` lives, so a seed gives the same draws on every device."""
     h, _, p = posterior.jacobian_chol.shape
-    xi = torch.randn(int(draws), h, p, generator=generator, dtype=torch.float64)
-    eta = torch.randn(int(draws), h, 3, generator=generator, dtype=torch.float64)
     n = posterior.normal
+    xi = torch.randn(int(draws), h, p, generator=generator, dtype=torch.float64, device=generator.device).to(n)
+    eta = torch.randn(int(draws), h, 3, generator=generator, dtype=torch.float64, device=generator.device).to(n)
     plane = eta - (eta * n).sum(-1, keepdim=True) * n  # (I - n n^T) eta
     return torch.einsum("hcp,dhp->dhc", posterior.jacobian_chol, xi) + posterior.plane_sd[None, :, None] * plane
 
@@ -190,7 +194,7 @@ def spot_jacobian(plant: Plant, sun: torch.Tensor, aim: torch.Tensor, step: floa
     xy = torch.stack((x, y), -1)
     tangents = []
     for k in range(2):
-        e = torch.zeros(2, dtype=pos.dtype)
+        e = torch.zeros(2, dtype=pos.dtype, device=pos.device)
         e[k] = step
         tangents.append((rec.to_world(xy + e) - rec.to_world(xy - e)) / (2.0 * step))
     ray = aim - pos
@@ -199,7 +203,7 @@ def spot_jacobian(plant: Plant, sun: torch.Tensor, aim: torch.Tensor, step: floa
     g = torch.stack((tangents[0], tangents[1], -r), -1)  # [H, 3, 3]
     d = -torch.as_tensor(sun).to(pos).expand_as(normal)
     dn = (d * normal).sum(-1)[:, None, None]
-    b = -2.0 * (dn * torch.eye(3, dtype=pos.dtype) + normal[:, :, None] * d[:, None, :])  # dr = B dn
+    b = -2.0 * (dn * torch.eye(3, dtype=pos.dtype, device=pos.device) + normal[:, :, None] * d[:, None, :])  # dr = B dn
     return slant[:, None, None] * torch.linalg.solve(g, b)[:, :2, :]
 
 
@@ -232,7 +236,7 @@ def exceedance(plant: Plant, sun: torch.Tensor, result: AimResult, limit: float,
         raise ValueError(f"unknown mc {mc!r}; expected 'model' or 'exact'")
     over = (peaks > float(limit)).double()
     prob = float(over.mean())
-    qs = torch.quantile(peaks, torch.tensor([0.5, 0.9, 0.95, 0.99], dtype=torch.float64))
+    qs = torch.quantile(peaks, torch.tensor([0.5, 0.9, 0.95, 0.99], dtype=torch.float64, device=peaks.device))
     return {"probability": prob, "standard_error": math.sqrt(max(prob * (1.0 - prob), 1e-12) / len(peaks)),
             "draws": len(peaks), "mc": mc, "quantiles_w_m2": {"0.5": float(qs[0]), "0.9": float(qs[1]),
                                                                "0.95": float(qs[2]), "0.99": float(qs[3])},
