@@ -62,7 +62,8 @@ its last prediction's error against the exact check (or half of it), which saves
 **Scale** (``--scale N,... [--device cpu|cuda]``): the whole ``aimpoints`` command (a process, run twice) on a
 generated radial field of N heliostats around a cylinder on a 150 m tower at one sun, limit 0.8 x the equator
 peak that the (timed) ``field`` command reports. Measured 2026-11-28 on a lent H200 machine's 16-core CPU
-(``aimpoints`` refuses ``--device cuda``: it runs on the CPU only so far), first / second run: 2,000 heliostats
+(``aimpoints`` refused ``--device cuda`` then: its argument check hid the command's CUDA support, mended since;
+``benchmarks/gpu_check.sh`` runs this mode on a lent GPU), first / second run: 2,000 heliostats
 7.7 / 7.4 s (1.3 s in-process), 10,000 12.6 / 11.4 s (5.4 s), 30,000 24.9 / 24.7 s (19.4 s), the limit met at
 0.996-0.9998 of equator power; about 6 s of each is start-up (that machine's torch 2.11+cu130 import). On this
 project's 2-core machine, idle, the same day (``--scale 2000,10000``, restore steps 100): 2,000 heliostats 3.4 / 3.5
@@ -565,7 +566,7 @@ def scale(args) -> dict:
         path = save_scenario(plant, out / f"plant{n}.h5")
         fjson = out / f"field{n}.json"
         t_field, rc, err = _process(["field", "--scenario", path, *sun, "--json", fjson, "--quiet", "--device",
-                                     "auto"], env)  # field's exact model runs on the CPU
+                                     args.device], env)
         if rc:
             raise SystemExit(f"field on {n} heliostats failed ({rc}): {err}")
         peak = json.loads(fjson.read_text())["receiver"]["peak_flux_w_m2"]

@@ -7,9 +7,12 @@ import json
 import pytest
 import torch
 from helpers.cli import assert_one_line_error, run_cli
+from helpers.field import learned_posterior
 from helpers.paint import copy_paint
 
 from heliotwin.cli import COMPUTE_COMMANDS, build_parser
+from heliotwin.io.scenario import save_scenario
+from heliotwin.optimise.testbed import generated_plant
 
 CUDA = torch.cuda.is_available()
 
@@ -107,15 +110,15 @@ def fit_paint(tmp_path, paint_dir):
     return copy_paint(paint_dir, tmp_path, heliostats=("AA39", "AK46", "BG23"), metadata=True)
 
 
-def _both(capsys, tmp_path, name, *argv, out="--json"):
+def _both(capsys, tmp_path, name, *argv, out="--json", devices=("cuda", "cpu")):
     """Run a command on cuda and on the cpu; return both JSON reports."""
     reports = {}
-    for device in ("cuda", "cpu"):
+    for device in devices:
         js = tmp_path / f"{name}-{device}.json"
         code, _, err = run_cli(capsys, *argv, out, js, "--device", device, "--quiet")
         assert code == 0, (device, err)
         reports[device] = json.loads(js.read_text())
-    return reports["cuda"], reports["cpu"]
+    return reports[devices[0]], reports[devices[1]]
 
 
 @gpu
@@ -177,3 +180,33 @@ def test_gpu_smoke_field_demo_with_aim_points(tmp_path, capsys):
         assert g["field"]["efficiency"][key] == pytest.approx(c["field"]["efficiency"][key], rel=1e-4)
     assert g["aim_points"]["violation"] == 0.0 and c["aim_points"]["violation"] == 0.0
     assert g["aim_points"]["power_vs_equator"] == pytest.approx(c["aim_points"]["power_vs_equator"], abs=2e-3)
+
+
+def _field_and_robust_aimpoints(capsys, tmp_path, devices):
+    """``field`` and ``aimpoints --confidence`` on a generated plant with a pointing posterior, on two devices:
+    the same field factors, the limit held by both, the same power and exceedance within float tolerance."""
+    plant, atm = generated_plant("radial", 40, "cylinder", tower=30.0)
+    path = save_scenario(plant, tmp_path / "p.h5", extras=atm.to_extras(), learned=learned_posterior(plant))
+    when = ("--sun-azimuth", "10", "--sun-elevation", "50")
+    g, c = _both(capsys, tmp_path, "f", "field", "--scenario", path, *when, devices=devices)
+    for key in ("total", "shading", "blocking", "intercept"):
+        assert g["field"]["efficiency"][key] == pytest.approx(c["field"]["efficiency"][key], rel=1e-4)
+    limit = 0.8 * c["receiver"]["peak_flux_w_m2"]
+    g, c = _both(capsys, tmp_path, "a", "aimpoints", "--scenario", path, *when, "--peak-limit", limit,
+                 "--confidence", "0.9", "--draws", "100", "-o", tmp_path / "a.h5", devices=devices)
+    assert g["optimised"]["limit_met"] and c["optimised"]["limit_met"]
+    assert g["optimised"]["power_vs_equator"] == pytest.approx(c["optimised"]["power_vs_equator"], abs=2e-3)
+    gp, cp = g["robust"]["robust"]["exceedance_probability"], c["robust"]["robust"]["exceedance_probability"]
+    assert gp == pytest.approx(cp, abs=0.03)  # the same seeded draws; peaks within float tolerance of the limit
+
+
+@pytest.mark.slow
+def test_field_and_robust_aimpoints_agree_between_two_cpu_runs(tmp_path, capsys):
+    """The GPU comparison below, on the CPU twice (so that its checks are themselves checked without a GPU;
+    slow: 6 s)."""
+    _field_and_robust_aimpoints(capsys, tmp_path, ("cpu", "cpu"))
+
+
+@gpu
+def test_gpu_smoke_field_and_robust_aimpoints(tmp_path, capsys):
+    _field_and_robust_aimpoints(capsys, tmp_path, ("cuda", "cpu"))
