@@ -14,6 +14,7 @@ from heliotwin.field.layout import plant_from_layout
 from heliotwin.geometry import safe_normalize
 from heliotwin.raytrace.field import (
     FieldSettings,
+    _footprint_classes,
     equator_aim_points,
     field_optics,
     reuse_mirror_samples,
@@ -129,6 +130,25 @@ def test_grouped_map_agrees_with_the_exact_window_map(tmp_path):
     w, g = maps["window"], maps["grouped"]
     assert float(g.max()) == pytest.approx(float(w.max()), rel=0.03)
     assert float((g - w).abs().sum() / w.sum()) < 0.03
+
+
+def test_footprint_classes_hold_equal_shares_when_the_two_variances_grow_together():
+    """Footprints grow in both axes with the slant range: per-axis quantile bins would leave the off-diagonal
+    classes empty; the classes split each column bin by its own row quantiles instead. A shard classified
+    against every rank's values gets the classes the whole field gives it."""
+    gen = torch.Generator().manual_seed(0)
+    t = torch.rand(4000, generator=gen, dtype=torch.float64)
+    lx, ly = t + 0.05 * torch.randn(4000, generator=gen, dtype=torch.float64), 2 * t + 0.1 * torch.rand(
+        4000, generator=gen, dtype=torch.float64)
+    g = _footprint_classes(lx, ly, lx, ly, 4)
+    counts = torch.bincount(g, minlength=16)
+    assert int(counts.min()) >= 240 and int(counts.max()) <= 260  # 4000 / 16 = 250 each
+    # and every class is narrow in the row variance (per-axis bins: 0.27 of the range; these: 0.17)
+    spread = max(float(ly[g == c].max() - ly[g == c].min()) for c in range(16))
+    assert spread < 0.2 * float(ly.max() - ly.min())
+    shard = torch.arange(4000) % 3 == 1
+    assert torch.equal(_footprint_classes(lx[shard], ly[shard], lx, ly, 4), g[shard])
+    assert torch.equal(_footprint_classes(lx, ly, lx, ly, 1), torch.zeros(4000, dtype=torch.long))
 
 
 def test_intercepted_power_gradient_matches_finite_differences(tmp_path):

@@ -30,13 +30,13 @@ that Gaussian's mass on the receiver: its axial marginal between the top and bot
 cylinder or a planar receiver, times the lateral marginal; exact for the full cylinder, the lateral
 correlation is neglected otherwise); a central ray that misses the receiver contributes nothing.
 
-The flux map sums the footprints: ``window`` mode evaluates every sample's own Gaussian (exact, cost
-~ samples x window pixels); ``grouped`` mode sorts the samples into ``groups`` classes of similar footprint
-size, splats each class's mean hits bilinearly and convolves it (FFT) with the class's power-weighted mean
-Gaussian (cost ~ samples + groups x pixels log pixels); ``auto`` takes ``window`` when its cost is small.
-With ``integrator="mc"`` the map is a Monte-Carlo trace of the same samples (occlusion and attenuation as
-weights); the per-heliostat intercept stays the Gaussian one. The unrolled map of a full cylinder is
-periodic: Gaussian footprints that reach over its seam continue at the other edge (the Monte-Carlo map does
+The flux map sums the footprints: ``window`` mode evaluates every sample's own Gaussian (exact, cost ~ samples x
+window pixels); ``grouped`` mode sorts the samples into ``groups^2`` equal classes of similar footprint size
+(:func:`_footprint_classes`), splats each class's mean hits bilinearly and convolves it (FFT) with the class's
+power-weighted mean Gaussian (cost ~ samples + groups x pixels log pixels); ``auto`` takes ``window`` when its
+cost is small. With ``integrator="mc"`` the map is a Monte-Carlo trace of the same samples (occlusion and
+attenuation as weights); the per-heliostat intercept stays the Gaussian one. The unrolled map of a full cylinder
+is periodic: Gaussian footprints that reach over its seam continue at the other edge (the Monte-Carlo map does
 not wrap).
 
 With ``integrator="conv"`` the map keeps the *exact* sunshape (limb-darkened, Buie, pillbox) instead of its
@@ -469,6 +469,25 @@ def _quantile(x: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
     return torch.from_numpy(np.asarray(np.quantile(x.numpy(), q.numpy()), dtype=x.numpy().dtype))
 
 
+def _footprint_classes(lx, ly, all_x, all_y, groups: int) -> torch.Tensor:
+    """Class [n] in ``0..groups^2-1`` of each footprint by its log variances ``lx``, ``ly`` [n] (columns, rows):
+    ``groups`` quantile bins of ``lx``, each split into ``groups`` quantile bins of ``ly`` *within it*, so the
+    classes hold about equal numbers of footprints (``all_x``, ``all_y``: every rank's values, whose quantiles
+    set the bins). Independent bins per axis left most classes empty, as the two variances grow together with
+    the slant range, so a few classes spanned wide ranges of footprint size and their padded layout grew with
+    the largest class."""
+    if groups <= 1:
+        return torch.zeros_like(lx, dtype=torch.long)
+    q = torch.linspace(0, 1, groups + 1, dtype=lx.dtype, device=lx.device)[1:-1]
+    edges_x = _quantile(all_x, q)
+    gx, all_gx = torch.bucketize(lx, edges_x), torch.bucketize(all_x, edges_x)
+    # per x-bin quantiles of ly (a loop over the few bins, not over footprints); an empty bin takes any edges
+    edges_y = torch.stack([_quantile(all_y[all_gx == b], q) if bool((all_gx == b).any()) else edges_x
+                           for b in range(groups)])  # [groups, groups - 1]
+    gy = torch.searchsorted(edges_y[gx], ly.unsqueeze(-1)).squeeze(-1)
+    return gx * groups + gy
+
+
 def _grouped_map(mu, cov, weights, rows, cols, groups, n_sigma, group=None, density=None):
     """Footprints in classes of similar covariance: per class a bilinear splat convolved with its mean Gaussian,
     or with ``density`` = (angular density [G, G], its half width [rad], the sun's variance [rad^2], the
@@ -481,11 +500,8 @@ def _grouped_map(mu, cov, weights, rows, cols, groups, n_sigma, group=None, dens
     n = mu.shape[0]
     with torch.no_grad():
         lx, ly = torch.log(cov[:, 0, 0].clamp_min(1e-12)), torch.log(cov[:, 1, 1].clamp_min(1e-12))
-        q = torch.linspace(0, 1, groups + 1, dtype=lx.dtype, device=lx.device)[1:-1]
         all_x, all_y = (lx, ly) if group is None else _gather_all(torch.stack((lx, ly), -1), group).unbind(-1)
-        gx = torch.bucketize(lx, _quantile(all_x, q)) if groups > 1 else torch.zeros_like(lx, dtype=torch.long)
-        gy = torch.bucketize(ly, _quantile(all_y, q)) if groups > 1 else torch.zeros_like(ly, dtype=torch.long)
-        g = gx * groups + gy
+        g = _footprint_classes(lx, ly, all_x, all_y, groups)
         ng = groups * groups
         order = torch.argsort(g, stable=True)
         counts = torch.bincount(g, minlength=ng)
