@@ -111,8 +111,10 @@ def _aim_case():
     return plant, atm, sun, eq.peak_flux_w_m2 / 1.35
 
 
+@pytest.mark.slow
 def test_two_gloo_processes_give_the_single_process_aim_points(tmp_path):
-    """Sharded aim-point optimisation (map and power all-reduced every step): the one-process aim points."""
+    """Sharded aim-point optimisation (map and power all-reduced every step): the one-process aim points (slow:
+    the default run checks the same through the command, ``test_aimpoints_command_nproc_2_equals_one_process``)."""
     from heliotwin.optimise.aimpoints import AimSettings, optimise_aimpoints
 
     mp.spawn(_aim_worker, args=(2, str(tmp_path)), nprocs=2, join=True)
@@ -138,13 +140,18 @@ def test_destroy_frees_the_group_after_an_optimiser(tmp_path):
     getrefcount's argument may remain.
     """
     mp.spawn(release_worker, args=(1, str(tmp_path), init_process_group, 1), nprocs=1, join=True)
+    before, after = map(int, (tmp_path / "refs-1.txt").read_text().split())
+    assert after == 2 < before
+
+
+@pytest.mark.slow
+def test_torch_own_init_still_keeps_the_group_past_destroy(tmp_path):
+    """The control of the test above (slow: a rank of its own): torch's own init keeps references past
+    destroy. If torch fixes this, :func:`heliotwin.distributed.init_process_group`'s workaround can go."""
     try:
         mp.spawn(release_worker, args=(1, str(tmp_path), dist.init_process_group, 0), nprocs=1, join=True)
     except mp.ProcessExitedException:
         pass  # the control rank may abort at exit: the very symptom (it has written its counts by then)
-    before, after = map(int, (tmp_path / "refs-1.txt").read_text().split())
-    assert after == 2 < before
-    # the control: torch's own init keeps references past destroy (if torch fixes this, drop the workaround)
     _, torch_after = map(int, (tmp_path / "refs-0.txt").read_text().split())
     assert torch_after > 2, "torch now frees the group itself: heliotwin.distributed.init_process_group can go"
 
