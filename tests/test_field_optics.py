@@ -5,6 +5,7 @@ import json
 import math
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 from helpers.cli import assert_one_line_error, run_cli
@@ -15,6 +16,7 @@ from heliotwin.geometry import safe_normalize
 from heliotwin.raytrace.field import (
     FieldSettings,
     _footprint_classes,
+    _sorted_quantile,
     equator_aim_points,
     field_optics,
     reuse_mirror_samples,
@@ -149,6 +151,18 @@ def test_footprint_classes_hold_equal_shares_when_the_two_variances_grow_togethe
     shard = torch.arange(4000) % 3 == 1
     assert torch.equal(_footprint_classes(lx[shard], ly[shard], lx, ly, 4), g[shard])
     assert torch.equal(_footprint_classes(lx, ly, lx, ly, 1), torch.zeros(4000, dtype=torch.long))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_gpu_quantile_is_numpys(dtype):
+    """The footprint classes' quantiles off the CPU (one sort; torch.quantile refuses > 2^24 values): NumPy's
+    linear interpolation, ties and both ends included."""
+    gen = torch.Generator().manual_seed(3)
+    x = torch.cat((torch.randn(997, generator=gen, dtype=dtype), torch.full((40,), 0.25, dtype=dtype)))
+    q = torch.tensor([0.0, 0.1, 0.25, 1 / 3, 0.5, 0.9, 1.0], dtype=dtype)
+    want = torch.from_numpy(np.quantile(x.numpy(), q.numpy()).astype(x.numpy().dtype))
+    assert torch.equal(_sorted_quantile(x, q), want) if dtype == torch.float64 else \
+        torch.allclose(_sorted_quantile(x, q), want, rtol=0, atol=1e-6)
 
 
 def test_intercepted_power_gradient_matches_finite_differences(tmp_path):
