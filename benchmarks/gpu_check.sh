@@ -12,7 +12,7 @@
 # Prepare once on the development machine (the folder is ignored through .git/info/exclude, never committed):
 #   echo /.gpu/ >> .git/info/exclude
 #   mkdir -p .gpu/data .gpu/wheels && cp -r ../shared/data/paint .gpu/data/
-#   pip download pvlib --no-deps -d .gpu/wheels      # the image has every other dependency
+#   pip download pvlib pytz tzdata --no-deps -d .gpu/wheels   # the image has every other dependency
 # then call the device tool's run with carry [".gpu"], command "bash benchmarks/gpu_check.sh", timeout_s 540.
 # Locally (no GPU, no installs): SKIP_INSTALL=1 DEVICE=cpu SIZES=300 OUT=/tmp/g bash benchmarks/gpu_check.sh
 set -uo pipefail
