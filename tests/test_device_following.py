@@ -59,13 +59,13 @@ def test_the_field_model_follows_the_plants_device(receiver):
 def test_aim_points_with_confidence_follow_the_plants_device():
     """The whole workflow with baselines and ``--confidence`` (posterior, draws, exceedance); the learned state
     stays on the host as in a run with ``device="cuda"``."""
-    plant, atm = generated_plant("radial", 40, "cylinder", tower=30.0)
+    plant, atm = generated_plant("radial", 20, "cylinder", tower=30.0)
     sun = _sun(plant)
     learned = learned_posterior(plant)
     mark_host(learned)
     scenario = Scenario(plant=plant, learned=learned, extras={})
     limit = 0.8 * float(field_optics(plant, sun, atmosphere=atm).flux.max())
     with DeviceAudit() as audit:
-        _, report = aimpoints(scenario, [("t", sun)], AimpointSettings(limit, confidence=0.9, draws=40))
+        _, report = aimpoints(scenario, [("t", sun)], AimpointSettings(limit, confidence=0.9, draws=20))
     assert report["optimised"]["limit_met"]
     assert not audit.hits, audit.report()
