@@ -120,6 +120,34 @@ def test_receiver_map_holds_the_intercepted_power(solarpilot):
     assert res.flux.shape == (20, 48)
 
 
+def test_blocks_of_heliostats_and_samples_give_the_one_piece_result(tmp_path, monkeypatch):
+    """The occlusion test in blocks of heliostats and the footprints in blocks of samples (memory bounds) give
+    the field model's numbers, gradients included: every heliostat still occludes every block (the factors bit
+    for bit; the map to float rounding, as vectorised math takes another path at a block's tail)."""
+    import heliotwin.raytrace.field as field_module
+
+    layout = write_layout(tmp_path, dense_field(4, 5, first_row=30.0))
+    plant, atm = plant_from_layout(layout, write_plant_toml(tmp_path))
+    sun = _sun(150.0, 25.0)  # low: shading and blocking cross the blocks
+    aim = equator_aim_points(plant.targets["receiver"], plant.field.kinematics.position).requires_grad_(True)
+
+    def run():
+        r = field_optics(plant, sun, atmosphere=atm, aim=aim)
+        grad, = torch.autograd.grad(r.power_w.sum() + r.flux.max(), aim)
+        return r, grad
+
+    whole, g_whole = run()
+    monkeypatch.setattr(field_module, "OCCLUSION_BLOCK", 3)
+    monkeypatch.setattr(field_module, "FOOTPRINT_BLOCK", 100)
+    blocks, g_blocks = run()
+    assert 0.0 < float(whole.shading.detach().min()) < 0.95 or 0.0 < float(whole.blocking.detach().min()) < 0.95
+    for name in ("shading", "blocking", "tower_shading"):
+        assert torch.equal(getattr(blocks, name), getattr(whole, name)), name
+    for name in ("intercept", "power_w", "flux"):
+        assert torch.allclose(getattr(blocks, name), getattr(whole, name), rtol=1e-5, atol=0), name
+    assert torch.allclose(g_blocks, g_whole, rtol=1e-4, atol=1e-6 * float(g_whole.abs().max()))
+
+
 def test_grouped_map_agrees_with_the_exact_window_map(tmp_path):
     layout = write_layout(tmp_path, dense_field(5, 8, first_row=40.0))
     plant, atm = plant_from_layout(layout, write_plant_toml(tmp_path))

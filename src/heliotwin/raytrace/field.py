@@ -379,6 +379,22 @@ def _occlusion(plant: Plant, normal, aim, sun, settings: FieldSettings, rows: to
     return shading, blocking, tower, free, blocking_whole
 
 
+def _occlusion_in_blocks(plant: Plant, normal, aim, sun, settings: FieldSettings, rows: torch.Tensor):
+    """:func:`_occlusion` of heliostats ``rows`` in blocks of :data:`OCCLUSION_BLOCK` heliostats, concatenated:
+    its oversampled mirror samples (``F (flux_samples x oversampling)^2`` per heliostat, a dozen [H, N] tensors
+    in flight) are what bounds the field model's memory, ~2 GB at 10,000 heliostats in one piece."""
+    if rows.numel() <= OCCLUSION_BLOCK:
+        return _occlusion(plant, normal, aim, sun, settings, rows)
+    parts = [_occlusion(plant, normal, aim, sun, settings, rows[i:i + OCCLUSION_BLOCK])
+             for i in range(0, rows.numel(), OCCLUSION_BLOCK)]
+    return tuple(torch.cat(p) for p in zip(*parts))
+
+
+#: Heliostats per block of the occlusion test (:func:`_occlusion_in_blocks`): a memory bound, not a tuning knob
+#: (the occluders are every heliostat of the field in every block, so the result does not depend on it).
+OCCLUSION_BLOCK = 2048
+
+
 def _occlusion_solarpilot(plant: Plant, occ: OccluderSet, normal, aim, sun, lit, tower, nf, m, rows):
     """SolarPILOT's analytic shading and blocking (whole mirror, per heliostat [h]), spread uniformly over the
     flux samples; the same outputs as :func:`_occlusion`."""
@@ -435,7 +451,23 @@ def _tower_shading(plant: Plant, pivot, points, rot, sun, lit) -> torch.Tensor:
 
 
 def _footprints(points, reflected, target, extent, rows, cols):
-    """Mean hits mu [1, N, 2] and Jacobians [1, N, 2, 2] in pixels, ok [1, N] (central ray lands)."""
+    """Mean hits mu [1, N, 2] and Jacobians [1, N, 2, 2] in pixels, ok [1, N] (central ray lands), in blocks of
+    :data:`FOOTPRINT_BLOCK` samples (each sample's own; a whole field's in one piece held ~400 bytes of
+    temporaries per sample: 1 GB at 10,000 heliostats)."""
+    n = points.shape[1]
+    if n <= FOOTPRINT_BLOCK:
+        return _footprint_block(points, reflected, target, extent, rows, cols)
+    parts = [_footprint_block(points[:, i:i + FOOTPRINT_BLOCK], reflected[:, i:i + FOOTPRINT_BLOCK], target, extent,
+                              rows, cols) for i in range(0, n, FOOTPRINT_BLOCK)]
+    return tuple(torch.cat(p, dim=1) for p in zip(*parts))
+
+
+#: Samples per block of :func:`_footprints` (a memory bound; the result does not depend on it).
+FOOTPRINT_BLOCK = 1 << 18
+
+
+def _footprint_block(points, reflected, target, extent, rows, cols):
+    """:func:`_footprints` of one block."""
     u, v = orthonormal_frame(reflected)
     if isinstance(target, PlanarTarget):
         coef, in_front = planar_coefficients(points, reflected, u, v, target, extent, rows, cols)
@@ -731,7 +763,7 @@ def field_optics(plant: Plant, sun_direction: torch.Tensor, *, atmosphere: Atmos
     normal = tracking_normals(pos, aim, sun)
     rows = torch.arange(pos.shape[0], device=pos.device) if heliostats is None else \
         torch.as_tensor(heliostats, dtype=torch.long, device=pos.device)
-    shading, blocking, tower, free, blocking_whole = _occlusion(plant, normal, aim, sun, settings, rows)
+    shading, blocking, tower, free, blocking_whole = _occlusion_in_blocks(plant, normal, aim, sun, settings, rows)
     aim, normal, pos = aim[rows], normal[rows], pos[rows]
     cosine = (normal * sun).sum(-1)
     slant = torch.linalg.vector_norm(aim - pos, dim=-1)
