@@ -70,7 +70,11 @@ project's 2-core machine, idle, the same day (``--scale 2000,10000``, restore st
 s, 10,000 12.7 / 11.3 s, limit met at 0.996 / 0.9994 of equator power (budgets 5 s and 20 s). Not met on the
 simulated 2,000-heliostat plant with Jülich's tilted receiver (``heliotwin aimpoints --scenario b.h5 --time
 2024-06-21T11:00:00Z --peak-limit 991423 --no-baselines``): 6.3 s (7.7 s before the restore steps: four exact
-checks instead of two), of which 2.4 s are start-up, plant load and writing.
+checks instead of two), of which 2.4 s are start-up, plant load and writing. The row also gives each command's peak
+resident memory. Measured 2026-11-28 (session 39) on the 2-core machine, idle, after the equal-share footprint
+classes and the field model's memory blocks: 2,000 heliostats field 1.69 s / 636 MiB, aimpoints 2.52 / 2.52 s,
+771 MiB; 10,000: field 3.22 s / 1,188 MiB, aimpoints 6.71 / 6.64 s, 2,586 MiB (limit met, 0.9956 / 0.9994 of
+equator power); 30,000 (``--scale 30000``, not a CPU budget): aimpoints 26.4 s, 7.7 GB (30.7 s, 11.6 GB before).
 
 **A day** (``--day DATE --scenario FILE``): the whole ``heliotwin aimpoints --day DATE --every 15min
 --no-baselines`` command (a subprocess, one thread) on a plant file, once with warm starts (each instant from the
@@ -225,6 +229,7 @@ import math
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -543,12 +548,20 @@ def confidence(args) -> dict:
     return report
 
 
-def _process(argv: list, env: dict) -> tuple[float, int, str]:
-    """Wall time [s], exit status and stderr tail of ``python -m heliotwin ARGV`` as a process."""
-    t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "heliotwin", *map(str, argv)], env=env, capture_output=True,
-                          text=True)
-    return time.perf_counter() - t0, proc.returncode, proc.stderr.strip()[-500:]
+def _process(argv: list, env: dict, peaks: list | None = None) -> tuple[float, int, str]:
+    """Wall time [s], exit status and stderr tail of ``python -m heliotwin ARGV`` as a process; its peak resident
+    memory [MiB] (``os.wait4``, what ``/usr/bin/time -v`` reports) appended to ``peaks``."""
+    with tempfile.TemporaryFile("w+") as err:  # a file, not a pipe: a long stderr cannot stall the child
+        t0 = time.perf_counter()
+        proc = subprocess.Popen([sys.executable, "-m", "heliotwin", *map(str, argv)], env=env,
+                                stdout=subprocess.DEVNULL, stderr=err, text=True)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        err.seek(0)
+        tail = err.read().strip()[-500:]
+    if peaks is not None:
+        peaks.append(round(usage.ru_maxrss / 1024, 1))
+    return wall, os.waitstatus_to_exitcode(status), tail
 
 
 def scale(args) -> dict:
@@ -565,8 +578,9 @@ def scale(args) -> dict:
         plant, _ = generated_plant("radial", n, "cylinder", tower=args.scale_tower)
         path = save_scenario(plant, out / f"plant{n}.h5")
         fjson = out / f"field{n}.json"
+        peaks = []  # [MiB]: field, first and second aimpoints
         t_field, rc, err = _process(["field", "--scenario", path, *sun, "--json", fjson, "--quiet", "--device",
-                                     args.device], env)
+                                     args.device], env, peaks)
         if rc:
             raise SystemExit(f"field on {n} heliostats failed ({rc}): {err}")
         peak = json.loads(fjson.read_text())["receiver"]["peak_flux_w_m2"]
@@ -576,11 +590,12 @@ def scale(args) -> dict:
             ajson = out / f"aim{n}_{run_name}.json"
             t, rc, err = _process(["aimpoints", "--scenario", path, *sun, "--peak-limit", row["limit_w_m2"],
                                    "--no-baselines", "--device", args.device, "-o", out / f"aim{n}.h5", "--json",
-                                   ajson, "--quiet"], env)
+                                   ajson, "--quiet"], env, peaks)
             rep = json.loads(ajson.read_text()) if ajson.exists() else {}
             row[f"aimpoints_{run_name}_s"], row[f"aimpoints_{run_name}_exit"] = t, rc
             if rc not in (0, 3):
                 row["error"] = err
+        row["field_peak_mib"], row["aimpoints_first_peak_mib"], row["aimpoints_second_peak_mib"] = peaks
         opt = rep.get("optimised") or {}
         row["report"] = {"seconds": rep.get("seconds"), **{k: opt.get(k) for k in (
             "limit_met", "power_vs_equator", "peak_vs_limit", "rounds", "exact_checks", "iterations") if k in opt}}
