@@ -67,10 +67,11 @@ peak that the (timed) ``field`` command reports. Measured 2026-11-28 on a lent H
 7.7 / 7.4 s (1.3 s in-process), 10,000 12.6 / 11.4 s (5.4 s), 30,000 24.9 / 24.7 s (19.4 s), the limit met at
 0.996-0.9998 of equator power; about 6 s of each is start-up (that machine's torch 2.11+cu130 import). On this
 project's 2-core machine, idle, the same day (``--scale 2000,10000``, restore steps 100): 2,000 heliostats 3.4 / 3.5
-s, 10,000 12.7 / 11.3 s, limit met at 0.996 / 0.9994 of equator power (budgets 5 s and 20 s). Not met on the
+s, 10,000 12.7 / 11.3 s, limit met at 0.996 / 0.9994 of equator power (budgets 5 s and 20 s). Not met then on the
 simulated 2,000-heliostat plant with Jülich's tilted receiver (``heliotwin aimpoints --scenario b.h5 --time
 2024-06-21T11:00:00Z --peak-limit 991423 --no-baselines``): 6.3 s (7.7 s before the restore steps: four exact
-checks instead of two), of which 2.4 s are start-up, plant load and writing. The row also gives each command's peak
+checks instead of two), of which 2.4 s are start-up, plant load and writing; met since (4.4-4.7 s in session 37,
+4.10-4.16 s and 0.83 GB in session 39). The row also gives each command's peak
 resident memory. Measured 2026-11-28 (session 39) on the 2-core machine, idle, after the equal-share footprint
 classes and the field model's memory blocks: 2,000 heliostats field 1.69 s / 636 MiB, aimpoints 2.52 / 2.52 s,
 771 MiB; 10,000: field 3.22 s / 1,188 MiB, aimpoints 6.71 / 6.64 s, 2,586 MiB (limit met, 0.9956 / 0.9994 of
