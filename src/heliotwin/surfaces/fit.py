@@ -50,7 +50,7 @@ from .observations import Observations
 from .plantprior import prior_penalty
 
 __all__ = ["SurfaceSettings", "SurfaceFit", "fit_surface", "adam_step", "blur_images", "blur_for",
-           "evaluate_with_camera", "minibatch_rows", "kernel_view", "keep_spectra", "OPTIMIZERS"]
+           "evaluate_with_camera", "minibatch_rows", "kernel_view", "step_images", "keep_spectra", "OPTIMIZERS"]
 
 #: The optimisers :func:`fit_surface` runs.
 OPTIMIZERS = ("adam", "lbfgs")
@@ -223,6 +223,18 @@ def kernel_view(kernels: dict, rows) -> dict:
     return view
 
 
+def step_images(rows: torch.Tensor, step: int, obs: Observations, kernels: dict, camera, log_sigma: torch.Tensor,
+                meas: torch.Tensor) -> tuple:
+    """The images a mini-batch fit renders at ``step`` (``rows`` from :func:`minibatch_rows`; past its last row,
+    the last again): ``(idx, obs, kernels, camera, log_sigma, meas)`` of those rows -- their row list, their
+    observations, a :func:`kernel_view` of the cache, their camera model (None stays None), log blurs ``[b]``
+    and measured images ``[b, R, R]``. After the render, :func:`keep_spectra` with ``idx``."""
+    at = rows[min(int(step), len(rows) - 1)]
+    idx = at.tolist()
+    return (idx, obs.subset(idx), kernel_view(kernels, idx), None if camera is None else camera.subset(idx),
+            log_sigma[at], meas[at])
+
+
 def keep_spectra(kernels: dict, view: dict, rows) -> None:
     """The spectra a render made in a :func:`kernel_view`, kept in the full cache under their rows."""
     for j, r in enumerate(int(r) for r in rows):
@@ -388,11 +400,10 @@ def fit_surface(facets: Facets, obs: Observations, sun: SunSettings, s: SurfaceS
             pred, miss = render(surf, obs, sun, s, live.kernels)
             cam, sig, seen = camera, log_sigma, meas
         else:  # this step's images (the loop has taken live.steps steps)
-            at = rows[min(live.steps, len(rows) - 1)].tolist()
-            view = kernel_view(live.kernels, at)
-            pred, miss = render(surf, obs.subset(at), sun, s, view)
+            at, step_obs, view, cam, sig, seen = step_images(rows, live.steps, obs, live.kernels, camera, log_sigma,
+                                                             meas)
+            pred, miss = render(surf, step_obs, sun, s, view)
             keep_spectra(live.kernels, view, at)
-            cam, sig, seen = camera.subset(at), log_sigma[at], meas[at]
         if camera is not None:
             data = losses.image_loss(s.loss, apply_camera(pred, cam, sig.exp()), seen.to(pred))
         else:

@@ -45,8 +45,8 @@ from .fit import (
     adam_step,
     blur_for,
     keep_spectra,
-    kernel_view,
     minibatch_rows,
+    step_images,
 )
 from .imaging import render_samples
 from .learning import MM, LearnableSurface, gauge_basis, learnable_surfaces, normal_heights
@@ -232,10 +232,8 @@ def fit_surfaces(facets: Facets, problems: list, sun: SunSettings, s: SurfaceSet
         if rows is None:
             seen, kern, cam, sig, meas_t = obs, live.kernels, camera, log_sigma, meas
         else:  # this step's images (the loop has taken live.steps steps)
-            at = rows[min(live.steps, len(rows) - 1)]
-            idx = at.tolist()
-            seen, kern, cam, sig, meas_t = (obs.subset(idx), kernel_view(live.kernels, idx), camera.subset(idx),
-                                            log_sigma[at], meas[at])
+            idx, seen, kern, cam, sig, meas_t = step_images(rows, live.steps, obs, live.kernels, camera, log_sigma,
+                                                            meas)
         surf, pw, nw, ar, sund = world(d_m, seen, step_owner)
         pred, _, miss, _ = render_samples(pw, nw, ar, sund, seen, sun, resolution=s.resolution, size_m=s.size_m,
                                           kernels=kern)
