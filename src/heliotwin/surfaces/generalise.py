@@ -147,7 +147,21 @@ def choose_optics(facets: Facets, train: Observations, base_sun: SunSettings, ca
     pick = spread_images(len(train), s.optics_images)
     if pick is not None:  # the candidates are scored on images spread over the record, the blurs found for all
         train, camera = train.subset(pick), camera.subset(pick)
-    meas = train.images.to(torch.float32)
+    def ideal_images(key, ideal, images, sun):  # rendered once per key for the calls sharing ``renders``
+        if renders is not None and key in renders:
+            return renders[key]
+        pred, _ = render(ideal, images, sun, s)
+        if renders is not None:
+            renders[key] = pred
+        return pred
+
+    def best_blur(pred, images, cam):  # per image: the lowest L1 over the blur grid [B] and its grid index [B]
+        meas = images.images.to(torch.float32).to(pred)
+        per_blur = torch.stack([losses.l1(apply_camera(pred, cam, torch.full((len(images),), float(b),
+                                                                             device=pred.device)), meas)
+                                for b in s.blur_grid_px])  # [G, B]
+        return per_blur.min(0)
+
     scores, best = [], None
     for m in focus:
         if m == "prior":
@@ -158,17 +172,7 @@ def choose_optics(facets: Facets, train: Observations, base_sun: SunSettings, ca
         for se in s.slope_grid:
             sun = dataclasses.replace(base_sun, slope_error=float(se))
             with torch.no_grad():
-                key = (m, float(se))
-                if renders is not None and key in renders:
-                    pred = renders[key]
-                else:
-                    pred, _ = render(ideal, train, sun, s)
-                    if renders is not None:
-                        renders[key] = pred
-                per_blur = torch.stack([losses.l1(apply_camera(pred, camera, torch.full((len(train),), float(b),
-                                                                                       device=pred.device)),
-                                                  meas.to(pred)) for b in s.blur_grid_px])  # [G, B]
-            l1, ib = per_blur.min(0)
+                l1, ib = best_blur(ideal_images((m, float(se)), ideal, train, sun), train, camera)
             row = {"focus_multiple": m, "focal_length_m": None if m in (None, "prior") else m * f_cant,
                    "slope_error_rad": float(se), "mean_l1": float(l1.mean()),
                    "blur_px": [float(s.blur_grid_px[i]) for i in ib.tolist()]}
@@ -178,15 +182,8 @@ def choose_optics(facets: Facets, train: Observations, base_sun: SunSettings, ca
     if pick is not None:  # the chosen ideal's best blur for every training image
         with torch.no_grad():
             key = ("every", best["focus_multiple"], best["slope_error_rad"])
-            pred = renders.get(key) if renders is not None else None
-            if pred is None:
-                pred, _ = render(best["ideal"], every, best["sun"], s)
-                if renders is not None:
-                    renders[key] = pred
-            meas_all = every.images.to(pred)
-            per_blur = torch.stack([losses.l1(apply_camera(pred, every_camera, torch.full(
-                (len(every),), float(b), device=pred.device)), meas_all) for b in s.blur_grid_px])
-        best["blur_px"] = [float(s.blur_grid_px[i]) for i in per_blur.min(0).indices.tolist()]
+            _, ib = best_blur(ideal_images(key, best["ideal"], every, best["sun"]), every, every_camera)
+        best["blur_px"] = [float(s.blur_grid_px[i]) for i in ib.tolist()]
     out = {"canting_focal_length_m": f_cant, "chosen": {k: v for k, v in best.items()
                                                         if k not in ("start", "ideal", "sun")},
            "start": best["start"], "scores": scores,
