@@ -330,9 +330,10 @@ def fit_generalising(facets: Facets, train: Observations, base_sun: SunSettings,
         The accepted surface (shrunk toward the start if the acceptance rule required it).
     info : dict
         ``optics`` (SunSettings), ``start`` (control net or None), ``camera``, ``sigma`` (per training image
-        [px]), a JSON-ready ``report`` of every choice and ``validation``: each training image's evaluation
-        when it was held out, under the chosen setting (a dropped image's from the first pass; None without
-        cross-validation), a list of dicts as :func:`loo_select`'s ``heldout_rows``.
+        [px]), ``ideal_kernels`` (the ideal's footprint-kernel cache on the training images: its evaluations
+        there share it), a JSON-ready ``report`` of every choice and ``validation``: each training image's
+        evaluation when it was held out, under the chosen setting (a dropped image's from the first pass; None
+        without cross-validation), a list of dicts as :func:`loo_select`'s ``heldout_rows``.
     """
     s = s or SurfaceSettings()
     if prior is not None:
@@ -365,7 +366,8 @@ def fit_generalising(facets: Facets, train: Observations, base_sun: SunSettings,
     if drop:  # a dropped image's blur follows the rule for unseen images
         sigma[drop] = blur_for([train.targets[i] for i in keep], sigma_keep, [train.targets[i] for i in drop])
     ideal = LearnableSurface(facets, s.control_points, s.degree, initial=start).surfaces()
-    ideal_l1 = evaluate_with_camera(ideal, train, sun, camera, sigma, sm)["l1"]
+    ideal_kernels: dict = {}  # the ideal's footprint kernels on the training images, for every evaluation of it
+    ideal_l1 = evaluate_with_camera(ideal, train, sun, camera, sigma, sm, ideal_kernels)["l1"]
     learned_mm = model.displacement_mm.detach().clone()
     start_mm = model.start_mm.detach().clone()
 
@@ -406,7 +408,7 @@ def fit_generalising(facets: Facets, train: Observations, base_sun: SunSettings,
                                    "the prior mean's shape is one candidate of the optics choice (lowest training L1 "
                                    "of the ideal)"}
     return model, {"optics": sun, "start": start, "camera": camera, "sigma": sigma, "report": report,
-                   "ideal": ideal, "settings": sm, "validation": validation}
+                   "ideal": ideal, "ideal_kernels": ideal_kernels, "settings": sm, "validation": validation}
 
 
 def summarise(train_rows: list, test_rows: list) -> dict:
@@ -461,7 +463,7 @@ def reconstruct_generalising(facets: Facets, train: Observations, test: Observat
                                  f"estimated by cross-validation over them: that needs at least 3 images")
         cam_te, sig_te = info["camera"], torch.tensor([r["sigma"] for r in rows], dtype=torch.float32,
                                                       device=train.images.device)
-        e_ideal = evaluate_with_camera(ideal, train, sun, cam_te, sig_te, info["settings"])
+        e_ideal = evaluate_with_camera(ideal, train, sun, cam_te, sig_te, info["settings"], info["ideal_kernels"])
         e_learn = {"l1": [r["l1"] for r in rows], "l1_raw": [r["l1_raw"] for r in rows],
                    "images": torch.stack([r["image"] for r in rows])}
         ev["test"] = _rows(train, e_ideal, e_learn)
@@ -473,7 +475,8 @@ def reconstruct_generalising(facets: Facets, train: Observations, test: Observat
     for name, obs, cam, sig in (("train", train, info["camera"], info["sigma"]), ("test", test, cam_te, sig_te)):
         if name in ev:
             continue
-        e_ideal = evaluate_with_camera(ideal, obs, sun, cam, sig, info["settings"])
+        e_ideal = evaluate_with_camera(ideal, obs, sun, cam, sig, info["settings"],
+                                       info["ideal_kernels"] if obs is train else None)
         e_learn = evaluate_with_camera(learned, obs, sun, cam, sig, info["settings"])
         ev[name] = _rows(obs, e_ideal, e_learn)
         info[f"{name}_images"] = {"ideal": e_ideal["images"], "learned": e_learn["images"]}  # with the camera model
