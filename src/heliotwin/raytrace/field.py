@@ -379,15 +379,21 @@ def _occlusion(plant: Plant, normal, aim, sun, settings: FieldSettings, rows: to
     return shading, blocking, tower, free, blocking_whole
 
 
+def _in_blocks(run, n: int, block: int, dim: int = 0) -> tuple:
+    """``run(sl)`` over consecutive slices ``sl`` of ``n`` items, ``block`` at a time, its tuple of tensors joined
+    along ``dim`` (one call when ``n <= block``): a memory bound for work that is item by item."""
+    if n <= block:
+        return run(slice(0, n))
+    parts = [run(slice(i, i + block)) for i in range(0, n, block)]
+    return tuple(torch.cat(p, dim=dim) for p in zip(*parts))
+
+
 def _occlusion_in_blocks(plant: Plant, normal, aim, sun, settings: FieldSettings, rows: torch.Tensor):
     """:func:`_occlusion` of heliostats ``rows`` in blocks of :data:`OCCLUSION_BLOCK` heliostats, concatenated:
     its oversampled mirror samples (``F (flux_samples x oversampling)^2`` per heliostat, a dozen [H, N] tensors
     in flight) are what bounds the field model's memory, ~2 GB at 10,000 heliostats in one piece."""
-    if rows.numel() <= OCCLUSION_BLOCK:
-        return _occlusion(plant, normal, aim, sun, settings, rows)
-    parts = [_occlusion(plant, normal, aim, sun, settings, rows[i:i + OCCLUSION_BLOCK])
-             for i in range(0, rows.numel(), OCCLUSION_BLOCK)]
-    return tuple(torch.cat(p) for p in zip(*parts))
+    return _in_blocks(lambda sl: _occlusion(plant, normal, aim, sun, settings, rows[sl]), rows.numel(),
+                      OCCLUSION_BLOCK)
 
 
 #: Heliostats per block of the occlusion test (:func:`_occlusion_in_blocks`): a memory bound, not a tuning knob
@@ -454,12 +460,8 @@ def _footprints(points, reflected, target, extent, rows, cols):
     """Mean hits mu [1, N, 2] and Jacobians [1, N, 2, 2] in pixels, ok [1, N] (central ray lands), in blocks of
     :data:`FOOTPRINT_BLOCK` samples (each sample's own; a whole field's in one piece held ~400 bytes of
     temporaries per sample: 1 GB at 10,000 heliostats)."""
-    n = points.shape[1]
-    if n <= FOOTPRINT_BLOCK:
-        return _footprint_block(points, reflected, target, extent, rows, cols)
-    parts = [_footprint_block(points[:, i:i + FOOTPRINT_BLOCK], reflected[:, i:i + FOOTPRINT_BLOCK], target, extent,
-                              rows, cols) for i in range(0, n, FOOTPRINT_BLOCK)]
-    return tuple(torch.cat(p, dim=1) for p in zip(*parts))
+    return _in_blocks(lambda sl: _footprint_block(points[:, sl], reflected[:, sl], target, extent, rows, cols),
+                      points.shape[1], FOOTPRINT_BLOCK, dim=1)
 
 
 #: Samples per block of :func:`_footprints` (a memory bound; the result does not depend on it).

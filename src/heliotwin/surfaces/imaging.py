@@ -139,9 +139,9 @@ def render_samples(pw: torch.Tensor, nw: torch.Tensor, ar: torch.Tensor, sund: t
     # tensor in the backward pass.
     out = [x[0] if len(x) == 1 else torch.cat(x) for x in (images, centers, per_image)]
     if not whole:
-        back = torch.empty(b, dtype=torch.long)
-        back[torch.tensor(order)] = torch.arange(b)
-        out = [x[back.to(x.device)] for x in out]
+        back = torch.empty(b, dtype=torch.long, device=pw.device)  # made once where the images are
+        back[torch.tensor(order, device=pw.device)] = torch.arange(b, device=pw.device)
+        out = [x[back] for x in out]
     return out[0], out[1], out[2], sum(misses) / b
 
 
