@@ -228,7 +228,7 @@ def step_images(rows: torch.Tensor, step: int, obs: Observations, kernels: dict,
     """The images a mini-batch fit renders at ``step`` (``rows`` from :func:`minibatch_rows`; past its last row,
     the last again): ``(idx, obs, kernels, camera, log_sigma, meas)`` of those rows -- their row list, their
     observations, a :func:`kernel_view` of the cache, their camera model (None stays None), log blurs ``[b]``
-    and measured images ``[b, R, R]``. After the render, :func:`keep_spectra` with ``idx``."""
+    [log px] and measured images ``[b, R, R]`` [1]. After the render, :func:`keep_spectra` with ``idx``."""
     at = rows[min(int(step), len(rows) - 1)]
     idx = at.tolist()
     return (idx, obs.subset(idx), kernel_view(kernels, idx), None if camera is None else camera.subset(idx),
