@@ -1,0 +1,1 @@
+"""The cases of ``benchmarks/fuzz_daily.py``, one module per area (each defines ``CASES``)."""
