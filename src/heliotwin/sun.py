@@ -75,7 +75,15 @@ def daylight_times(year: int, every: str, latitude_deg: float, longitude_deg: fl
         T instants [UTC].
     azimuth, elevation : torch.Tensor, shape (T,) [rad], PAINT convention.
     """
-    times = pd.date_range(f"{year}-01-01", f"{year + 1}-01-01", freq=every, tz="UTC", inclusive="left")
+    return daylight_window(pd.Timestamp(f"{year}-01-01", tz="UTC"), pd.Timestamp(f"{year + 1}-01-01", tz="UTC"),
+                           every, latitude_deg, longitude_deg, altitude_m, min_elevation_deg)
+
+
+def daylight_window(start, end, every: str, latitude_deg: float, longitude_deg: float, altitude_m: float = 0.0,
+                    min_elevation_deg: float = 5.0):
+    """:func:`daylight_times` over ``[start, end)`` (UTC pandas Timestamps) instead of a calendar year: the
+    instants of the plant's own next year, say. Same returns."""
+    times = pd.date_range(start, end, freq=every, inclusive="left")
     az, el = solar_position(times, latitude_deg, longitude_deg, altitude_m)
     keep = el > math.radians(min_elevation_deg)
     return times[keep.numpy()], az[keep], el[keep]

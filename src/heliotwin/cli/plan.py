@@ -19,7 +19,8 @@ def register(subparsers) -> None:
     p.add_argument("--scenario", required=True, help="calibrated scenario file (calibrate --method lm -o)")
     p.add_argument("--heliostat", required=True, help="heliostat id")
     p.add_argument("--year", type=int_range(1900, 2100, "a year"), default=None,
-                   help="year of the candidate times (default: the current year)")
+                   help="year of the candidate times (default: the year from the plant's next day on: tomorrow, or "
+                        "the day after the plant's latest record when that is more than 3 days behind the clock)")
     p.add_argument("--every", type=frequency, default="1h", help="spacing of candidate times (default 1h)")
     p.add_argument("--count", type=int_range(1, 1000, "a record count"), default=5,
                    help="records to propose (default 5)")
@@ -61,6 +62,8 @@ def cmd_plan(args) -> int:
         return 0
     print(f"{ans['heliostat']}: predictive spread of the normal over {ans['year']}'s sun positions "
           f"{ans['rms_now_mrad']:.3f} mrad now ({ans['candidates']} candidate times, target {ans['target']})")
+    if ans.get("candidates_from"):
+        print(f"  candidates from {ans['candidates_from']['day']} on: {ans['candidates_from']['why']}")
     for p in ans["proposals"]:
         print(f"  {p['time']}  sun azimuth {p['sun_azimuth_deg']:7.2f} deg, elevation {p['sun_elevation_deg']:5.2f} deg"
               f"  -> {p['rms_after_mrad']:.3f} mrad")

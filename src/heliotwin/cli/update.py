@@ -61,7 +61,8 @@ def register(subparsers) -> None:
     d.add_argument("--paint", required=True, help="the plant's PAINT folder (it grows every day)")
     d.add_argument("-o", "--output", help="write the plant here instead of in place")
     d.add_argument("--json", help="also write the day's report as JSON")
-    d.add_argument("--day", help="the planned day, UTC date (default: tomorrow)")
+    d.add_argument("--day", help="the planned day, UTC date (default: tomorrow; the day after the plant's latest "
+                                 "record when that is more than 3 days behind the wall clock)")
     d.add_argument("--slots", type=int_range(0, 100000, "a record count"), default=20,
                    help="calibration records to plan for the day (default 20)")
     d.add_argument("--every", default="30min", help="spacing of the candidate calibration times (default 30min)")
@@ -145,6 +146,7 @@ def cmd_daily(args) -> int:
         print(f"calibration plan for {plan['day']}: {len(plan['proposals'])} record(s) on {plan['target']} "
               f"(pointing spread over the plant: median {_mrad(plan['median_spread_mrad'])}, p95 "
               f"{_mrad(plan['p95_spread_mrad'])} mrad)")
+        print(f"  planned day {report['day']}: {report['day_reason']}")
         for p in plan["proposals"][:10]:
             print(f"  {p['time']}  {p['heliostat']}  ({p['reason']}; {p['rms_now_mrad']:.3f} -> "
                   f"{p['rms_after_mrad']:.3f} mrad)")
@@ -154,9 +156,18 @@ def cmd_daily(args) -> int:
         else:
             for e in aim["instants"]:
                 print(f"aim points {e['instant']}: peak {e['peak_flux_w_m2'] / 1e3:.1f} kW/m2 (limit "
-                      f"{aim['peak_limit_w_m2'] / 1e3:.1f}{'' if e['limit_met'] else ', NOT held'})")
+                      f"{aim['peak_limit_w_m2'] / 1e3:.1f}{'' if e['limit_met'] else ', NOT held'}"
+                      f"{_standby(e)})")
         print(f"status {report['status']}: {'; '.join(report['attention']) or 'nothing to act on'}")
     return result.status
+
+
+def _standby(entry: dict) -> str:
+    n = entry.get("standby_heliostats") or 0
+    if not n:
+        return ""
+    cost = entry.get("power_below_equator_w")
+    return f"; {n} heliostat(s) ON STANDBY" + (f", {cost / 1e3:.1f} kW below equator aiming" if cost else "")
 
 
 def _mrad(x) -> str:

@@ -34,7 +34,9 @@ import math
 from dataclasses import dataclass
 
 import torch
+from scipy.stats import beta as beta_distribution
 
+from ..calibrate.clock import grown_covariance
 from ..calibrate.params import apply_deviations
 from ..devices import to_device
 from ..errors import HeliotwinError
@@ -70,12 +72,16 @@ class PointingPosterior:
         The tracking normals the errors are about.
     calibrated : int
         Heliostats with their own posterior (the others get the calibrated ones' median in-plane spread).
+    walk_days : torch.Tensor, [Hc]
+        Days [d] of the axis offsets' random walk added to each calibrated heliostat's covariance (the time from
+        its state to the asked instant; zeros without an instant or a stored walk).
     """
 
     jacobian_chol: torch.Tensor
     plane_sd: torch.Tensor
     normal: torch.Tensor
     calibrated: int
+    walk_days: torch.Tensor = dataclasses.field(default_factory=lambda: torch.zeros(1, dtype=torch.float64))
 
     def sd_mrad(self) -> torch.Tensor:
         """Root-mean-square normal error per in-plane axis [H] [mrad]."""
@@ -94,13 +100,15 @@ def require_posterior(learned: dict, path: str = "") -> dict:
 
 
 def pointing_posterior(plant: Plant, learned: dict, sun: torch.Tensor, aim: torch.Tensor,
-                       path: str = "") -> PointingPosterior:
+                       path: str = "", when_s: float | None = None) -> PointingPosterior:
     """The normal-error distribution [rad] of every heliostat aiming at ``aim`` [H, 3] ENU [m] under ``sun`` [3]
     (unit, ENU).
 
     ``learned`` is the scenario's ``/learned`` dict; its ``calibration`` must hold a ``posterior`` (``heliotwin
     calibrate --method lm``), else a one-line :class:`~heliotwin.errors.HeliotwinError`. The Jacobian is taken
     at the stored fit (nominal kinematics plus deviations) and the motor steps that aim each heliostat there.
+    ``when_s`` (POSIX UTC [s]): the instant of the aim; the axis offsets' stored random walk grows the covariance
+    by q x the days since each heliostat's state time (:func:`heliotwin.calibrate.clock.grown_covariance`).
     """
     cal = require_posterior(learned, path)
     where = f"{path or 'scenario'} [/learned/calibration/posterior]"
@@ -109,6 +117,9 @@ def pointing_posterior(plant: Plant, learned: dict, sun: torch.Tensor, aim: torc
         names = [str(n) for n in cal["parameter_names"]]
         post = cal["posterior"]
         cov = torch.as_tensor(post["covariance"], dtype=torch.float64)
+        walk_days = torch.zeros(cov.shape[0], dtype=torch.float64)
+        if when_s is not None:
+            cov, walk_days = grown_covariance(cal, [str(n) for n in cal["parameter_names"]], float(when_s))
         noise = torch.as_tensor(post["noise_rad"], dtype=torch.float64).reshape(-1)
         drift = float(torch.as_tensor(post.get("drift_rad", 0.0), dtype=torch.float64).reshape(-1)[0])
         delta = torch.as_tensor(cal["deviations"], dtype=torch.float64)
@@ -149,7 +160,7 @@ def pointing_posterior(plant: Plant, learned: dict, sun: torch.Tensor, aim: torc
         # no posterior of their own: the calibrated heliostats' median spread, in their own mirror plane
         mean_var = 0.5 * ((jl[at] ** 2).sum((-1, -2)) + 2.0 * sd[at] ** 2)
         sd[missing] = float(mean_var.median().sqrt())
-    return PointingPosterior(jl, sd, normal, len(rows))
+    return PointingPosterior(jl, sd, normal, len(rows), walk_days)
 
 
 def draw_normal_errors(posterior: PointingPosterior, draws: int, generator: torch.Generator) -> torch.Tensor:
@@ -207,6 +218,33 @@ def spot_jacobian(plant: Plant, sun: torch.Tensor, aim: torch.Tensor, step: floa
     return slant[:, None, None] * torch.linalg.solve(g, b)[:, :2, :]
 
 
+def exceedance_upper_bound(over: int, draws: int, level: float = 0.95) -> float:
+    """The exact (Clopper-Pearson) one-sided ``level`` upper bound [-] on a probability of which ``over`` of
+    ``draws`` independent draws were seen: 0 of 50 bounds it only below 5.8 % at 95 %, whatever the estimate 0
+    and its binomial standard error say."""
+    if over >= draws:
+        return 1.0
+    return float(beta_distribution.ppf(level, over + 1, draws - over))
+
+
+def draws_needed(alpha: float, level: float = 0.95) -> int:
+    """The fewest draws [-] whose exact ``level`` upper bound (:func:`exceedance_upper_bound`) can fall to ``alpha``
+    at all (none of them over the limit): ``ln(1 - level) / ln(1 - alpha)``, about ``3 / alpha`` at 95 %."""
+    return int(math.ceil(math.log(1.0 - level) / math.log1p(-alpha)))
+
+
+def decision_share(alpha: float, draws: int, level: float = 0.95) -> float:
+    """The largest share ``k / draws`` [-] of draws over the limit whose exact ``level`` upper bound
+    (:func:`exceedance_upper_bound`) is at most ``alpha``; 0 when even none over cannot show it."""
+    if exceedance_upper_bound(0, draws, level) > alpha:
+        return 0.0
+    lo, hi = 0, int(draws)  # the bound of lo is at most alpha, of hi above it (it grows with k)
+    while hi - lo > 1:
+        k = (lo + hi) // 2
+        lo, hi = (k, hi) if exceedance_upper_bound(k, draws, level) <= alpha else (lo, k)
+    return lo / int(draws)
+
+
 def exceedance(plant: Plant, sun: torch.Tensor, result: AimResult, limit: float, dn: torch.Tensor, *,
                atmosphere=None, resolution=(20, 48), mc: str = "model",
                model: ImageModel | None = None) -> dict:
@@ -215,7 +253,8 @@ def exceedance(plant: Plant, sun: torch.Tensor, result: AimResult, limit: float,
 
     ``mc="exact"``: the exact model per draw; ``mc="model"``: ``model`` (calibrated for these heliostats)
     corrected to ``result.flux`` (module docstring). Returns ``probability`` [-], its binomial
-    ``standard_error``, ``draws``, the peaks' ``quantiles`` (0.5, 0.9, 0.95, 0.99) [W/m^2] and ``peaks`` [D].
+    ``standard_error``, its exact one-sided 95 % ``upper_95`` (:func:`exceedance_upper_bound`), ``draws``, the
+    peaks' ``quantiles`` (0.5, 0.9, 0.95, 0.99) [W/m^2] and ``peaks`` [D].
     """
     aim = result.aim.to(torch.float64)
     if mc == "exact":
@@ -236,17 +275,18 @@ def exceedance(plant: Plant, sun: torch.Tensor, result: AimResult, limit: float,
         raise ValueError(f"unknown mc {mc!r}; expected 'model' or 'exact'")
     over = (peaks > float(limit)).double()
     prob = float(over.mean())
+    k, n = int(over.sum()), len(peaks)
     qs = torch.quantile(peaks, torch.tensor([0.5, 0.9, 0.95, 0.99], dtype=torch.float64, device=peaks.device))
     return {"probability": prob, "standard_error": math.sqrt(max(prob * (1.0 - prob), 1e-12) / len(peaks)),
-            "draws": len(peaks), "mc": mc, "quantiles_w_m2": {"0.5": float(qs[0]), "0.9": float(qs[1]),
-                                                               "0.95": float(qs[2]), "0.99": float(qs[3])},
+            "upper_95": exceedance_upper_bound(k, n), "draws": n, "mc": mc,
+            "quantiles_w_m2": {"0.5": float(qs[0]), "0.9": float(qs[1]), "0.95": float(qs[2]), "0.99": float(qs[3])},
             "peaks": peaks}
 
 
 def robust_aimpoints(plant: Plant, sun: torch.Tensor, limit: float, confidence: float, learned: dict,
                      settings: AimSettings = AimSettings(), *, atmosphere=None, equator=None, model=None,
                      deterministic: AimResult | None = None, draws: int = 200, seed: int = 0, mc: str = "model",
-                     tries: int = 6, path: str = "") -> tuple[AimResult, dict]:
+                     tries: int = 6, path: str = "", when_s: float | None = None) -> tuple[AimResult, dict]:
     """Aim points whose peak stays at or below ``limit`` [W/m^2] with probability ``confidence`` under the
     stored pointing posterior (module docstring), and the report comparing them with the deterministic ones.
 
@@ -267,6 +307,8 @@ def robust_aimpoints(plant: Plant, sun: torch.Tensor, limit: float, confidence: 
         How each draw's map is computed (:func:`exceedance`); the tightening always decides on the same draws.
     tries : int
         Tightened optimisations at most.
+    when_s : float, optional
+        The instant [s] (POSIX UTC): the pointing posterior grown by the stored random walk to then.
 
     Returns
     -------
@@ -276,18 +318,21 @@ def robust_aimpoints(plant: Plant, sun: torch.Tensor, limit: float, confidence: 
         ``confidence``, ``draws``, ``mc``, ``seed``, ``pointing_sd_mrad`` (median, max), ``calibrated_heliostats``,
         ``deterministic`` and ``robust`` (``exceedance_probability`` and its standard error, peak quantiles,
         power, internal limit), ``power_cost`` (1 - robust / deterministic power), ``decision_probability``
-        (the share of draws over the limit the tightening aims at or below: ``1 - confidence`` less 1.645 binomial
-        standard errors, so that independent draws stay within ``1 - confidence``), ``met`` (reached).
+        (the share of draws over the limit the tightening aims at or below: the largest whose exact 95 % upper
+        bound is at most ``1 - confidence``, :func:`decision_share`), ``met`` (that bound reached),
+        ``draws_needed`` (:func:`draws_needed`), ``why_not_met`` when the draws are too few to show it at all,
+        and ``walk_days`` (the random walk's days added to the posterior, median and max).
     """
     if not 0.0 < float(confidence) < 1.0:
         raise HeliotwinError(f"--confidence: expected a probability in (0, 1), got {confidence!r}")
     alpha = 1.0 - float(confidence)
-    # decide on a one-sided 95 % bound, not the estimate: stopping as soon as the draws' share dips under alpha
-    # fits the aim points to these draws (measured: 0.095 on them, 0.14 on independent ones at alpha 0.1)
-    goal = max(alpha - 1.645 * math.sqrt(alpha * (1.0 - alpha) / int(draws)), 0.5 * alpha)
+    # decide on the exact one-sided 95 % bound, not the estimate: stopping as soon as the draws' share dips under
+    # alpha fits the aim points to these draws (measured: 0.095 on them, 0.14 on independent ones at alpha 0.1).
+    # The goal is the largest share of the draws whose Clopper-Pearson bound is still at most alpha.
+    goal = decision_share(alpha, int(draws))
     kw = dict(atmosphere=atmosphere, equator=equator, model=model)
     det = deterministic or optimise_aimpoints(plant, sun, limit, settings, **kw)
-    post = pointing_posterior(plant, learned, sun, det.aim, path)
+    post = pointing_posterior(plant, learned, sun, det.aim, path, when_s)
     gen = torch.Generator().manual_seed(int(seed))
     dn = draw_normal_errors(post, draws, gen)
     check = dict(atmosphere=atmosphere, resolution=settings.resolution, mc=mc, model=model)
@@ -295,8 +340,10 @@ def robust_aimpoints(plant: Plant, sun: torch.Tensor, limit: float, confidence: 
     best, ex_best, internal = det, ex_det, float(limit)  # the latest tightening (each one is tighter)
     tried = []
     level = 1.0 - goal
-    for _ in range(int(tries)):
-        if ex_best["probability"] <= goal:
+    # met only when the exact bound is under alpha: 0 of 50 draws is no evidence of a 1e-7 exceedance
+    certifiable = int(draws) >= draws_needed(alpha)
+    for _ in range(int(tries) if certifiable else 0):
+        if ex_best["probability"] <= goal and ex_best["upper_95"] <= alpha:
             break
         q = float(torch.quantile(ex_best["peaks"], level))
         internal = internal * min(float(limit) / q, 1.0 - 1e-3)  # the quantile scaled onto the limit
@@ -308,6 +355,7 @@ def robust_aimpoints(plant: Plant, sun: torch.Tensor, limit: float, confidence: 
 
     def entry(r, ex, lim):
         return {"exceedance_probability": ex["probability"], "standard_error": ex["standard_error"],
+                "exceedance_upper_95": ex["upper_95"],
                 "peak_quantiles_w_m2": ex["quantiles_w_m2"], "power_w": r.power_w,
                 "undisturbed_peak_w_m2": r.peak_flux_w_m2, "internal_limit_w_m2": lim, "standby": int(r.standby)}
 
@@ -316,5 +364,11 @@ def robust_aimpoints(plant: Plant, sun: torch.Tensor, limit: float, confidence: 
               "pointing_sd_mrad": {"median": float(sd.median()), "max": float(sd.max())},
               "deterministic": entry(det, ex_det, float(limit)), "robust": entry(best, ex_best, internal),
               "power_cost": 1.0 - best.power_w / det.power_w if det.power_w > 0 else 0.0,
-              "decision_probability": goal, "met": ex_best["probability"] <= goal, "tightenings": tried}
+              "decision_probability": goal, "draws_needed": draws_needed(alpha),
+              "met": ex_best["probability"] <= goal and ex_best["upper_95"] <= alpha, "tightenings": tried}
+    if not certifiable:
+        report["why_not_met"] = (f"{int(draws)} draws cannot show an exceedance probability below {alpha:.3g}: even "
+                                 f"none over the limit bounds it only below {ex_best['upper_95']:.3g} (95 %); "
+                                 f"--draws {draws_needed(alpha)} at least")
+    report["walk_days"] = {"median": float(post.walk_days.median()), "max": float(post.walk_days.max())}
     return best, report

@@ -123,7 +123,21 @@ class AimpointSettings:
 
 
 @reuse_mirror_samples()  # every exact check below samples the same mirror surfaces
-def _instant(plant, sun, atm, settings: AimpointSettings, learned=None, path="", warm: AimResult | None = None):
+def _instant_time(label) -> float | None:
+    """The POSIX time [s] of an instant's label when it is a UTC time (``--time``, ``--day``), else None (an
+    instant given by sun angles has no time: the pointing posterior is then the state's own)."""
+    try:
+        stamp = pd.Timestamp(str(label))
+    except (ValueError, TypeError, OverflowError):
+        return None
+    if pd.isna(stamp):
+        return None
+    stamp = stamp.tz_localize("UTC") if stamp.tzinfo is None else stamp.tz_convert("UTC")
+    return float(stamp.timestamp())
+
+
+def _instant(plant, sun, atm, settings: AimpointSettings, learned=None, path="", warm: AimResult | None = None,
+             label: str | None = None):
     """Equator, the two heuristics and the optimised aim points at one sun: (report entry, optimised, equator,
     deterministic optimised).
 
@@ -162,7 +176,7 @@ def _instant(plant, sun, atm, settings: AimpointSettings, learned=None, path="",
     if settings.confidence is not None:
         best, robust = robust_aimpoints(plant, sun, limit, settings.confidence, learned, knobs, atmosphere=atm,
                                         equator=eq_field, model=model, deterministic=best, draws=settings.draws,
-                                        seed=settings.seed, mc=settings.mc, path=path)
+                                        seed=settings.seed, mc=settings.mc, path=path, when_s=_instant_time(label))
     baselines = {}
     if settings.baselines:
         baselines["aiming_factor"] = aiming_factor(plant, sun, limit, atmosphere=atm, resolution=resolution,
@@ -289,7 +303,7 @@ def aimpoints(scenario: Scenario, instants: list[tuple[str, torch.Tensor]], sett
     warm = settings.warm_start
     for i, (label, sun) in enumerate(instants):
         rep, best, equator, previous = _instant(plant, sun, atm, settings, scenario.learned, scenario.path or "",
-                                                previous if warm else None)
+                                                previous if warm else None, label=label)
         stored[f"i{i:03d}"] = instant_state(plant, label, best.aim, sun, power_w=best.power_w,
                                             peak_flux_w_m2=best.peak_flux_w_m2)
         rep["optimised"]["motor_steps_reachable"] = int(stored[f"i{i:03d}"]["reachable"].sum())

@@ -19,11 +19,11 @@ read-update-write and replaced atomically, or not at all.
 """
 from __future__ import annotations
 
-import datetime as _dt
 import math
 import os
 from dataclasses import dataclass, field, replace
 
+from ..calibrate.clock import planned_day
 from ..calibrate.protocol.plan import plant_plan
 from ..errors import HeliotwinError
 from ..io.scenario import Scenario, load_scenario, provenance_entry
@@ -32,7 +32,7 @@ from .aimpoints import AimpointSettings, aimpoints
 from .field import sun_instants
 from .update import UpdateSettings, locked_plant_write, update
 
-__all__ = ["DailySettings", "Daily", "daily", "daily_plant_file", "OK", "ATTENTION"]
+__all__ = ["DailySettings", "Daily", "daily", "day_attention", "daily_plant_file", "OK", "ATTENTION"]
 
 #: Exit status: the day ran and nothing needs a person.
 OK = 0
@@ -50,7 +50,8 @@ class DailySettings:
     update : UpdateSettings
         The update's options.
     day : str or None
-        The planned day (UTC date); None: tomorrow by the clock.
+        The planned day (UTC date); None: tomorrow by the wall clock, or the day after the plant's latest record
+        when that is days behind (:func:`heliotwin.calibrate.clock.planned_day`).
     slots : int
         Calibration records to plan for the day.
     every : str
@@ -110,12 +111,6 @@ class Daily:
         return iter((self.scenario, self.report))
 
 
-def _planned_day(day: str | None) -> str:
-    if day is not None:
-        return day
-    return (_dt.datetime.now(_dt.timezone.utc).date() + _dt.timedelta(days=1)).isoformat()
-
-
 def _aim(scenario: Scenario, day: str, settings: DailySettings) -> tuple[Scenario, dict]:
     """The day's aim points (or why there are none)."""
     if not settings.aim:
@@ -135,14 +130,39 @@ def _aim(scenario: Scenario, day: str, settings: DailySettings) -> tuple[Scenari
                                     baselines=False)
     aimed, report = aimpoints(scenario, instants, aim_settings)
     met = [e["optimised"]["peak_flux_w_m2"] <= limit * (1 + 1e-6) for e in report["instants"]]
-    summary = {"peak_limit_w_m2": float(limit), "instants": [
-        {"instant": e["instant"], "power_w": e["optimised"].get("power_w"),
-         "peak_flux_w_m2": e["optimised"]["peak_flux_w_m2"], "limit_met": ok}
-        for e, ok in zip(report["instants"], met)], "limit_met": all(met)}
+    rows = []
+    for e, ok in zip(report["instants"], met):
+        opt, eq = e["optimised"], e.get("equator") or {}
+        # what the standby heliostats cost: the optimised power against equator aiming's (all light on the
+        # receiver, no limit), the power a plant without the limit would have had at this instant
+        lost = max(float(eq["power_w"]) - float(opt["power_w"]), 0.0) if eq.get("power_w") else None
+        rows.append({"instant": e["instant"], "power_w": opt.get("power_w"), "peak_flux_w_m2": opt["peak_flux_w_m2"],
+                     "limit_met": ok, "standby_heliostats": int(opt.get("standby_heliostats", 0)),
+                     "equator_power_w": eq.get("power_w"),
+                     "power_below_equator_w": lost if opt.get("standby_heliostats") else None})
+    summary = {"peak_limit_w_m2": float(limit), "instants": rows, "limit_met": all(met),
+               "standby_heliostats": max((r["standby_heliostats"] for r in rows), default=0)}
     return aimed, summary
 
 
-def daily(scenario, paint, settings: DailySettings = DailySettings(), *, device: str = "cpu") -> Daily:
+def day_attention(alarms: list, aim: dict) -> list[str]:
+    """Why the day needs a person (empty: nothing): step alarms, a peak limit not held, heliostats on standby.
+
+    ``alarms``: the update's alarms; ``aim``: the day's aim-point summary (:func:`_aim`)."""
+    attention = [f"{len(alarms)} step alarm(s)"] if alarms else []
+    if aim.get("limit_met") is False:
+        attention.append("aim points could not hold the peak limit at every instant")
+    if aim.get("standby_heliostats"):
+        worst = max(aim["instants"], key=lambda r: r["standby_heliostats"])
+        cost = worst.get("power_below_equator_w")
+        attention.append(f"{aim['standby_heliostats']} heliostat(s) on standby to hold the peak limit at "
+                         f"{worst['instant']}" + (f" ({cost / 1e3:.1f} kW below equator aiming's "
+                                                 f"{worst['equator_power_w'] / 1e3:.1f} kW)" if cost else ""))
+    return attention
+
+
+def daily(scenario, paint, settings: DailySettings = DailySettings(), *, device: str = "cpu",
+          now=None) -> Daily:
     """The plant's day (module docstring): update with the folder's new records, plan the next calibrations,
     aim the field; one provenance step.
 
@@ -155,10 +175,13 @@ def daily(scenario, paint, settings: DailySettings = DailySettings(), *, device:
     settings : DailySettings
     device : str
         Where the update computes.
+    now : datetime.datetime, optional
+        The wall clock (UTC; default: now) that decides the planned day when ``settings.day`` is None
+        (:func:`heliotwin.calibrate.clock.planned_day`: the plant's own clock when it is days behind).
     """
     previous = load_scenario(scenario) if isinstance(scenario, (str, os.PathLike)) else scenario
     updated = update(previous, paint, settings.update, device=device)
-    day = _planned_day(settings.day)
+    day, day_reason = planned_day(updated.scenario.learned, settings.day, now)
     alarms = updated.report["alarms"]
     plan = plant_plan(updated.scenario, day=day, slots=settings.slots, every=settings.every,
                       min_elevation_deg=settings.min_elevation, urgent={a["heliostat"] for a in alarms})
@@ -171,12 +194,10 @@ def daily(scenario, paint, settings: DailySettings = DailySettings(), *, device:
                             settings={"update": update_step.get("settings"), "slots": settings.slots,
                                       "every": settings.every})
     final = replace(final, provenance=list(previous.provenance or []) + [step])
-    attention = [f"{len(alarms)} step alarm(s)"] if alarms else []
-    if aim.get("limit_met") is False:
-        attention.append("aim points could not hold the peak limit at every instant")
+    attention = day_attention(alarms, aim)
     status = ATTENTION if attention else OK
-    report = {"day": day, "status": status, "attention": attention, "update": updated.report, "plan": plan,
-              "aimpoints": aim}
+    report = {"day": day, "day_reason": day_reason, "status": status, "attention": attention,
+              "update": updated.report, "plan": plan, "aimpoints": aim}
     return Daily(final, report, status)
 
 

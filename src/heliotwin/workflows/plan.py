@@ -12,12 +12,13 @@ from dataclasses import dataclass
 
 import pandas as pd
 
+from ..calibrate.clock import planned_day
 from ..calibrate.protocol.plan import plan as plan_records
 from ..calibrate.scenario import aim as aim_heliostat
 from ..errors import HeliotwinError
 from ..io.records import parse_time
 from ..io.scenario import Scenario
-from ..sun import daylight_times
+from ..sun import daylight_times, daylight_window
 
 __all__ = ["PlanSettings", "plan", "AimRequest", "aim", "aim_time"]
 
@@ -29,7 +30,7 @@ class PlanSettings:
     Attributes
     ----------
     year : int or None
-        Year whose daylight sun positions are the candidates (None: the current UTC year).
+        Year whose daylight sun positions are the candidates (None: the year from the plant's next day on).
     every : str
         Candidate spacing (pandas frequency, e.g. ``"1h"``).
     count : int
@@ -70,8 +71,13 @@ class PlanSettings:
             raise HeliotwinError(f"--min-elevation: expected an elevation in [0, 89] deg, got {e!r}")
 
 
-def plan(scenario: Scenario, heliostat: str, settings: PlanSettings = PlanSettings()) -> tuple[Scenario, dict]:
+def plan(scenario: Scenario, heliostat: str, settings: PlanSettings = PlanSettings(), *,
+         now: datetime.datetime | None = None) -> tuple[Scenario, dict]:
     """The sun positions whose calibration records would shrink ``heliostat``'s pointing uncertainty most.
+
+    Without ``settings.year`` the candidates are the year from the plant's next day on
+    (:func:`heliotwin.calibrate.clock.planned_day`: tomorrow by the wall clock ``now``, or the day after the
+    plant's latest record when that is days behind), so that no proposal lies in the plant's past.
 
     Returns
     -------
@@ -79,17 +85,29 @@ def plan(scenario: Scenario, heliostat: str, settings: PlanSettings = PlanSettin
         Unchanged.
     report : dict
         :func:`heliotwin.calibrate.protocol.plan.plan`'s answer (proposals with UTC times, sun angles [deg] and
-        the predictive spread after each [mrad]).
+        the predictive spread after each [mrad]); without ``settings.year`` also ``candidates_from`` (the first
+        day and why).
     """
-    year = settings.year or datetime.datetime.now(datetime.timezone.utc).year
+    since = clock = None
+    if settings.year is None:
+        day, why = planned_day(scenario.learned, None, now)
+        since, clock = pd.Timestamp(day, tz="UTC"), {"day": day, "why": why}
     site = scenario.plant.site
-    times, _, _ = daylight_times(year, settings.every, site.latitude_deg, site.longitude_deg, site.altitude_m,
-                                 settings.min_elevation)
+    if since is None:
+        times, _, _ = daylight_times(settings.year, settings.every, site.latitude_deg, site.longitude_deg,
+                                     site.altitude_m, settings.min_elevation)
+    else:
+        times, _, _ = daylight_window(since, since + pd.DateOffset(years=1), settings.every, site.latitude_deg,
+                                      site.longitude_deg, site.altitude_m, settings.min_elevation)
+    year = settings.year or since.year
     if len(times) == 0:
         raise HeliotwinError(f"plan: no candidate time in {year} every {settings.every} with the sun above "
                              f"{settings.min_elevation:g} deg at {site.latitude_deg:g} deg latitude")
     report = plan_records(scenario, heliostat, year=year, every=settings.every, count=settings.count,
-                          target=settings.target, min_elevation_deg=settings.min_elevation, sky=settings.sky)
+                          target=settings.target, min_elevation_deg=settings.min_elevation, sky=settings.sky,
+                          since=since)
+    if clock:
+        report["candidates_from"] = clock
     return scenario, report
 
 

@@ -25,7 +25,8 @@ from ...errors import HeliotwinError
 from ...field import kinematics as K
 from ...field.plant import Kinematics
 from ...field.targets import PlanarTarget
-from ...sun import daylight_times, direction_from_paint_angles, solar_position
+from ...sun import daylight_times, daylight_window, direction_from_paint_angles, solar_position
+from ..clock import OFFSET_NAMES, grown_covariance
 from ..params import apply_deviations
 from ..scenario import KEY
 
@@ -113,7 +114,7 @@ def greedy_design(precision: torch.Tensor, noise: float, candidates: torch.Tenso
 
 
 def plan(scenario, heliostat_id: str, *, year: int, every: str = "1h", count: int = 5, target: str | None = None,
-         min_elevation_deg: float = 15.0, sky: bool = False) -> dict:
+         min_elevation_deg: float = 15.0, sky: bool = False, since=None) -> dict:
     """Sun positions (times of ``year``) whose records would shrink ``heliostat_id``'s uncertainty most.
 
     Parameters
@@ -132,6 +133,8 @@ def plan(scenario, heliostat_id: str, *, year: int, every: str = "1h", count: in
         Lowest sun elevation considered [deg].
     sky : bool
         Also return the predictive spread over every candidate time.
+    since : pandas.Timestamp, optional
+        Candidates over the year from this UTC instant on (the plant's own next year) instead of ``year``.
 
     Returns
     -------
@@ -156,8 +159,12 @@ def plan(scenario, heliostat_id: str, *, year: int, every: str = "1h", count: in
     cov = torch.as_tensor(cal["posterior"]["covariance"], dtype=torch.float64)[j]
     noise = float(torch.as_tensor(cal["posterior"]["noise_rad"], dtype=torch.float64)[j])
     site = plant.site
-    times, az, el = daylight_times(year, every, site.latitude_deg, site.longitude_deg, site.altitude_m,
-                                   min_elevation_deg)
+    if since is None:
+        times, az, el = daylight_times(year, every, site.latitude_deg, site.longitude_deg, site.altitude_m,
+                                       min_elevation_deg)
+    else:
+        times, az, el = daylight_window(since, since + pd.DateOffset(years=1), every, site.latitude_deg,
+                                        site.longitude_deg, site.altitude_m, min_elevation_deg)
     sun = direction_from_paint_angles(az, el)
     jac, ok = normal_jacobians(nominal, delta, names, plant.targets[name].center, sun)
     if len(jac) == 0:
@@ -220,17 +227,12 @@ def normal_jacobians_many(nominal: Kinematics, delta: torch.Tensor, names, aim_p
 
 def _spread_now(cal: dict, names: list, day_s: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Each calibrated heliostat's predicted pointing spread on the planned day [rad] (root of the summed
-    variances of its axis offsets, the random walk grown to the day's noon when the state has a time) and the
-    posterior covariance [H, P, P] at that day."""
-    cov = torch.as_tensor(cal["posterior"]["covariance"], dtype=torch.float64).clone()
+    variances of its axis offsets, the random walk grown to the day's noon from the state's time:
+    :func:`heliotwin.calibrate.clock.grown_covariance`) and the posterior covariance [H, P, P] at that day."""
+    cov, _ = grown_covariance(cal, names, day_s + 43200.0)
     drift = cal.get("drift") or {}
-    offset_names = [n for n in drift.get("names") or ("initial_angle_1", "initial_angle_2") if n in names]
+    offset_names = [n for n in drift.get("names") or OFFSET_NAMES if n in names]
     cols = torch.tensor([names.index(n) for n in offset_names], dtype=torch.long)
-    if drift:
-        t = torch.as_tensor(drift["time"], dtype=torch.float64)
-        q = float(torch.as_tensor(drift["process_noise_rad2_per_day"], dtype=torch.float64).reshape(-1)[0])
-        dt = ((day_s + 43200.0 - t) / 86400.0).clamp_min(0.0).nan_to_num(0.0)
-        cov[:, cols, cols] += (q * dt)[:, None]
     spread = cov[:, cols, cols].sum(-1).clamp_min(0.0).sqrt()
     return spread, cov
 
