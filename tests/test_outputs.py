@@ -3,6 +3,7 @@ numeric map as CSV and in the JSON (the same numbers), the shipped examples, the
 ``scenario show``/``export`` on it."""
 from __future__ import annotations
 
+import csv
 import json
 
 import numpy as np
@@ -182,6 +183,18 @@ def test_api_field_and_aimpoints_call_the_workflows(layout_scenario, tmp_path, c
     assert len([a for a in fig.axes if a.images]) == 2
     written = api.export_plant(tmp_path / "aimed.h5", solarpilot=tmp_path / "sp.csv")
     assert written["solarpilot_config"].endswith("sp.toml") and (tmp_path / "sp.toml").exists()
+    # what was learned goes out: the stored optimised aim points, not equator aiming (issue 42 item 5)
+    assert written["aim_points"] == "optimised"
+    stored = load_scenario(tmp_path / "aimed.h5").learned["aimpoints"]["aim"]
+    with open(tmp_path / "sp.csv", newline="") as fh:
+        rows = list(csv.DictReader(line for line in fh if not line.startswith("#")))
+    table = torch.tensor([[float(r[k]) for k in ("x_aimpoint", "y_aimpoint", "z_aimpoint")] for r in rows])
+    assert torch.allclose(table, torch.as_tensor(stored, dtype=table.dtype), atol=1e-4)
+    eq = api.export_plant(tmp_path / "aimed.h5", solarpilot=tmp_path / "eq.csv", aim="equator")
+    with open(tmp_path / "eq.csv", newline="") as fh:
+        zs = {round(float(r["z_aimpoint"]), 6) for r in csv.DictReader(ln for ln in fh if not ln.startswith("#"))}
+    assert eq["aim_points"] == "equator" and len(zs) == 1  # the receiver centre without a sun
+    assert float(table[:, 2].std()) > 0.01  # the optimised ones spread over the receiver
 
 
 def test_progress_is_a_line_per_stage_in_a_log_and_silent_when_quiet():

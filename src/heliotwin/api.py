@@ -429,12 +429,14 @@ def plot_receiver_flux(maps: dict, receiver, path=None, *, limit_w_m2: float | N
 
 
 def export_plant(scenario, *, solarpilot=None, solarpilot_config=None, soltrace=None, time_utc: str | None = None,
-                 sun_azimuth_deg: float | None = None, sun_elevation_deg: float | None = None) -> dict:
+                 sun_azimuth_deg: float | None = None, sun_elevation_deg: float | None = None,
+                 aim: str = "auto") -> dict:
     """The plant for SolarPILOT (layout table + the TOML ``heliotwin scenario from-layout`` reads back) and/or
     SolTrace (``.stinput``, mirrors facing the sun given by ``time_utc`` or the angles), as ``heliotwin scenario
     export`` (:func:`heliotwin.workflows.show.export_plant`). ``time_utc`` is an ISO time [UTC];
     ``sun_azimuth_deg`` [deg] (0 = south, +90 = east) and ``sun_elevation_deg`` [deg] give the sun instead.
-    Returns what was written."""
+    ``aim``: ``"auto"`` (the stored optimised aim points when the plant has them, else equator aiming),
+    ``"optimised"`` or ``"equator"``. Returns what was written (``aim_points`` says which)."""
     sc = _scenario(scenario)
     timed = time_utc is not None or sun_azimuth_deg is not None
     sun = sun_direction_at(sc.plant, time_utc=time_utc, azimuth_deg=sun_azimuth_deg,
@@ -442,7 +444,7 @@ def export_plant(scenario, *, solarpilot=None, solarpilot_config=None, soltrace=
     pair = None
     if solarpilot is not None:
         pair = (solarpilot, solarpilot_config or os.path.splitext(os.fspath(solarpilot))[0] + ".toml")
-    return export_workflow(sc, solarpilot=pair, soltrace=soltrace, sun=sun)
+    return export_workflow(sc, solarpilot=pair, soltrace=soltrace, sun=sun, aim=aim)
 
 
 def read_weather(path):

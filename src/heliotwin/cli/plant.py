@@ -151,11 +151,13 @@ def cmd_scenario_export(args) -> int:
         config = out.file(args.config_out or (os.path.splitext(args.solarpilot)[0] + ".toml" if args.solarpilot
                                               else None), "--config-out")
         written = export_plant(sc, solarpilot=(layout, config) if layout else None,
-                               soltrace=out.file(args.soltrace, "--soltrace"), sun=sun)
+                               soltrace=out.file(args.soltrace, "--soltrace"), sun=sun, aim=args.aim)
     if not args.quiet:
         print(f"export: {written['heliostats']} heliostats -> " + ", ".join(
             str(getattr(args, k)) for k in ("solarpilot", "config_out", "soltrace") if getattr(args, k))
-            + (f" (+ {os.path.splitext(args.solarpilot)[0]}.toml)" if args.solarpilot and not args.config_out else ""))
+            + (f" (+ {os.path.splitext(args.solarpilot)[0]}.toml)" if args.solarpilot and not args.config_out else "")
+            + f"; aim points: {written['aim_points']}" + (" (the plant's stored optimised ones)"
+                                                          if written["aim_points"] == "optimised" else ""))
     return 0
 
 
@@ -336,7 +338,9 @@ def register(sub) -> None:
                         description="Write the scenario's plant as SolarPILOT's per-heliostat layout table (id, "
                                     "x/y/z_location, x/y/z_aimpoint [m]) with the TOML plant description that "
                                     "'heliotwin scenario from-layout' reads back, and/or as a SolTrace input file "
-                                    "(.stinput) with every mirror oriented for one sun (equator aiming). Learned "
+                                    "(.stinput) with every mirror oriented for one sun. The aim points are the "
+                                    "plant's stored optimised ones when it has them (--aim equator for equator "
+                                    "aiming). Learned "
                                     "kinematics and surfaces stay in the scenario: the formats hold pivots and ideal "
                                     "mirrors.")
     q.add_argument("file", metavar="FILE", help="scenario file (.h5)")
@@ -344,6 +348,9 @@ def register(sub) -> None:
     q.add_argument("--config-out", metavar="PLANT.toml", help="plant description to write (default: next to "
                                                               "--solarpilot, .toml)")
     q.add_argument("--soltrace", metavar="FILE.stinput", help="SolTrace input file to write (needs a sun)")
+    q.add_argument("--aim", choices=("auto", "optimised", "equator"), default="auto",
+                   help="aim points written: the stored optimised ones (default when the plant has them: 'auto'), "
+                        "or equator aiming at the sun (else the receiver centre)")
     q.add_argument("--time", help="UTC time (ISO) of the sun the mirrors face")
     q.add_argument("--sun-azimuth", type=float, help="[deg], PAINT convention (0 = south, +90 = east)")
     q.add_argument("--sun-elevation", type=float, help="[deg] (with --sun-azimuth)")

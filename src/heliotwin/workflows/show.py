@@ -15,8 +15,11 @@ import os
 import torch
 
 from ..atmosphere import Atmosphere
+from ..errors import HeliotwinError
 from ..io.export import export_solarpilot, export_soltrace
 from ..io.scenario import Scenario
+from ..optimise.aimstate import KEY as AIM_KEY
+from ..optimise.aimstate import stored_aimpoints
 from ..raytrace.field import FieldSettings, field_optics
 
 __all__ = ["describe_scenario", "export_plant", "format_description", "kinematics_note"]
@@ -155,35 +158,54 @@ def format_description(d: dict) -> str:
     return "\n".join(lines)
 
 
-def export_plant(scenario: Scenario, *, solarpilot: tuple | None = None, soltrace=None, sun=None) -> dict:
+def export_plant(scenario: Scenario, *, solarpilot: tuple | None = None, soltrace=None, sun=None,
+                 aim: str = "auto") -> dict:
     """Write the scenario's plant for SolarPILOT and/or SolTrace (:mod:`heliotwin.io.export`).
 
     Parameters
     ----------
     scenario : Scenario
     solarpilot : (layout path, TOML path), optional
-        SolarPILOT's per-heliostat table (positions; aim points of equator aiming at ``sun``, else the
-        receiver centre) and the TOML that ``scenario from-layout`` reads back.
+        SolarPILOT's per-heliostat table (positions and aim points, ``aim``) and the TOML that
+        ``scenario from-layout`` reads back.
     soltrace : path, optional
-        SolTrace input file at ``sun`` (needed then): mirror normals of equator aiming from the field model.
+        SolTrace input file at ``sun`` (needed then): mirror normals of the same aim points from the field model.
     sun : torch.Tensor, [3], optional
         Unit vector towards the sun (ENU).
+    aim : {"auto", "optimised", "equator"}
+        Which aim points go out: ``"optimised"`` the ones the plant stores (``aimpoints``; the stored instant
+        whose sun is nearest ``sun``), ``"equator"`` equator aiming at ``sun`` (else the receiver centre);
+        ``"auto"`` (default): the stored ones when the plant has them, else equator aiming -- what was learned
+        goes out unless asked otherwise.
 
     Returns
     -------
     dict
-        What was written (``solarpilot_layout``, ``solarpilot_config``, ``soltrace``) and ``heliostats``.
+        What was written (``solarpilot_layout``, ``solarpilot_config``, ``soltrace``), ``heliostats`` and
+        ``aim_points`` (``"optimised"`` or ``"equator"``: what the files hold).
     """
+    if aim not in ("auto", "optimised", "equator"):
+        raise HeliotwinError(f"--aim: expected auto, optimised or equator, got {aim!r}")
     plant, atm = scenario.plant, Atmosphere.from_extras(scenario.extras)
+    stored = (scenario.learned.get(AIM_KEY) or {}).get("aim") is not None
+    if aim == "optimised" and not stored:
+        raise HeliotwinError(f"{scenario.path or 'scenario'} [/learned/aimpoints]: no optimised aim points stored "
+                             "(run 'heliotwin aimpoints' first, or export --aim equator)")
+    use_stored = aim == "optimised" or (aim == "auto" and stored)
+    points = None
+    if use_stored:
+        near = sun if sun is not None else torch.as_tensor(scenario.learned[AIM_KEY]["sun_direction"],
+                                                           dtype=torch.float64)
+        points = stored_aimpoints(scenario, near)
     result = None
     if sun is not None:
         with torch.no_grad():
-            result = field_optics(plant, sun, atmosphere=atm, settings=FieldSettings(resolution=(8, 16)))
+            result = field_optics(plant, sun, atmosphere=atm, aim=points, settings=FieldSettings(resolution=(8, 16)))
     src = os.path.abspath(scenario.path) if scenario.path else ""
-    out = {"heliostats": len(plant.field.ids)}
+    out = {"heliostats": len(plant.field.ids), "aim_points": "optimised" if use_stored else "equator"}
     if solarpilot:
         export_solarpilot(plant, solarpilot[0], solarpilot[1], atmosphere=atm,
-                          aim=None if result is None else result.aim, source=src)
+                          aim=points if points is not None else (None if result is None else result.aim), source=src)
         out.update(solarpilot_layout=str(solarpilot[0]), solarpilot_config=str(solarpilot[1]))
     if soltrace:
         if result is None:
