@@ -84,12 +84,12 @@ def _not_regular(mode: int) -> str | None:
     """Why a file of ``mode`` (an ``st_mode``) is not read, or None for a regular file."""
     if stat.S_ISREG(mode):
         return None
-    kind = next((name for test, name in _KINDS if test(mode)), "not a regular file")
-    return f"{kind}, not a regular file (the reader opens only regular files)"
+    kind = next((name for test, name in _KINDS if test(mode)), "of another kind")
+    return f"not a regular file ({kind}; the reader opens only regular files)"
 
 
 def _too_big(size: int, limit: int) -> str:
-    return f"{size} bytes, more than the {limit} bytes such a file can hold"
+    return f"too large ({size} bytes; such a file holds at most {limit})"
 
 
 def read_regular(path, limit: int, *, start: int = 0) -> bytes:
@@ -108,7 +108,8 @@ def read_regular(path, limit: int, *, start: int = 0) -> bytes:
     try:
         fd = os.open(path, flags)
     except FileNotFoundError:
-        raise InputFileError(path, "a dangling symbolic link" if os.path.islink(path) else "file not found") from None
+        raise InputFileError(path, "not a regular file (a dangling symbolic link)" if os.path.islink(path)
+                             else "file not found") from None
     except OSError as exc:
         raise InputFileError(path, f"cannot read ({exc.strerror})") from None
     try:
@@ -149,7 +150,7 @@ def regular_size(path) -> int | None:
         st = os.stat(path)
     except FileNotFoundError:
         if os.path.islink(path):
-            raise InputFileError(path, "a dangling symbolic link") from None
+            raise InputFileError(path, "not a regular file (a dangling symbolic link)") from None
         return None
     except OSError as exc:
         raise InputFileError(path, f"cannot read ({exc.strerror})") from None
@@ -957,16 +958,17 @@ def _listing(root: str, ids, skip=None, owners=None) -> Listing:
             try:
                 st = e.stat()  # follows a link: its target is what is read
             except FileNotFoundError:
-                refused.append(_refusal(os.path.join(folder, name), hid, "a dangling symbolic link"))
+                refused.append(_refusal(os.path.join(folder, name), hid,
+                                        "not a regular file (a dangling symbolic link)"))
                 continue
             except OSError as exc:
                 refused.append(_refusal(os.path.join(folder, name), hid, f"cannot stat ({exc.strerror})"))
                 continue
-            why = _not_regular(st.st_mode)
+            why, fld = _not_regular(st.st_mode), "file"
             if why is None and st.st_size > MAX_RECORD_BYTES:
-                why = _too_big(st.st_size, MAX_RECORD_BYTES)
+                why, fld = _too_big(st.st_size, MAX_RECORD_BYTES), "size"
             if why is not None:
-                refused.append(_refusal(os.path.join(folder, name), hid, why))
+                refused.append(_refusal(os.path.join(folder, name), hid, why, fld))
                 continue
             sizes.append(st.st_size)
             mtimes.append(st.st_mtime_ns)
