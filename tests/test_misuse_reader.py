@@ -407,7 +407,7 @@ def test_a_record_whose_heliostat_contradicts_its_folder_is_dropped_with_a_reaso
     dropped = {s["path"]: s for s in ds.skipped}
     assert set(dropped) == {by_row, by_file}
     assert dropped[by_row]["field"] == dropped[by_file]["field"] == "HeliostatId"
-    assert f"names heliostat {ids[1]}" in dropped[by_row]["reason"] and ids[0] in dropped[by_row]["reason"]
+    assert f"names {ids[1]} for record" in dropped[by_row]["reason"] and ids[0] in dropped[by_row]["reason"]
     assert "ZZ99" in dropped[by_file]["reason"]
     rids = ds.records.record_id.tolist()
     assert P._record_number(by_row) not in rids and P._record_number(by_file) not in rids

@@ -1320,9 +1320,10 @@ def _refuse_foreign(entries: dict, listing: Listing, ids, meta: dict, meta_path:
         path = os.path.join(listing.folders[int(listing.heliostat[i])], listing.name[i].decode())
         rid, here = int(entries["record_id"][i]), str(folder_hid[i])
         if by_file[i]:
-            why = f"the file names heliostat {claim[i]} but lies under {here}"
+            why = f"another heliostat than its folder (the file names {claim[i]}; it lies under {here})"
         else:
-            why = f"{meta_path} names heliostat {row_hid[i]} for record {rid}, but its file lies under {here}"
+            why = (f"another heliostat than its folder ({meta_path} names {row_hid[i]} for record {rid}; its file "
+                   f"lies under {here})")
         refused.append({"record_id": rid, "heliostat_id": here, "reason": why, "path": path, "field": "HeliostatId"})
     keep = ~bad
     out = listing.subset(keep, left_out_by_id=False)

@@ -8,8 +8,8 @@ file name, size, modification time [ns], status-change time [ns], inode)``. A fi
 touched, replaced) or that is gone simply has no valid entry: it invalidates itself and nothing else. The
 status-change time cannot be set by a user: a rewrite whose size and modification time are restored
 (``touch -d``, ``cp -p``, ``rsync -a``, a backup restore) still changes it, and a replaced file has a new inode.
-Geodesy (WGS84 -> ENU), the tower's targets, times, weather and images are applied when the records are assembled (:mod:`heliotwin.io.paint`), so the entries do not depend on
-them.
+Geodesy (WGS84 -> ENU), the tower's targets, times, weather and images are applied when the records are
+assembled (:mod:`heliotwin.io.paint`), so the entries do not depend on them.
 
 Layout, under :func:`index_dir` (``$HELIOTWIN_CACHE_DIR``, default ``~/.cache/heliotwin/paint-records``)::
 
