@@ -175,11 +175,11 @@ def _depth(obj, limit: int) -> int:
     return deepest
 
 
-def read_json(path, limit: int = MAX_JSON_BYTES) -> dict:
+def read_json(path, limit: int | None = None) -> dict:
     """Parse a JSON file; one-line :class:`InputFileError` when it is missing, not a regular file
-    (:func:`read_regular`), malformed, not UTF-8, larger than ``limit`` [bytes] or nested deeper than
-    :data:`MAX_JSON_DEPTH`."""
-    raw = read_regular(path, limit)
+    (:func:`read_regular`), malformed, not UTF-8, larger than ``limit`` [bytes] (default
+    :data:`MAX_JSON_BYTES`) or nested deeper than :data:`MAX_JSON_DEPTH`."""
+    raw = read_regular(path, MAX_JSON_BYTES if limit is None else limit)
     try:
         text = raw.decode("utf-8")
         data = json.loads(text)
