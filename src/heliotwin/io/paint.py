@@ -17,8 +17,13 @@ before a byte is read, and read up to a size cap (:data:`MAX_JSON_BYTES`, :data:
 :data:`MAX_CSV_BYTES`), so no FIFO, device or endless file can stall a command that holds the plant's lock. A
 symbolic link to a regular file is read as that file (wherever it points: a download deduplicated with links
 stays readable); a link to anything else, or a dangling one, is refused like the thing itself. A record file that
-is refused so is dropped with its reason (``skipped``, field ``file``); the tower, properties and metadata files
-are one-line errors naming the file.
+is refused so is dropped with its reason (``skipped``, field ``file`` or ``size``); the tower, properties and
+metadata files are one-line errors naming the file. A record whose heliostat (its ``HeliostatId``, or its metadata
+row's) is not its folder's is dropped too (field ``HeliostatId``).
+
+A folder read onto a plant (:func:`load_paint_on_plant`, :meth:`PaintDataset.on_plant`) must be that plant's:
+each heliostat's position in its Properties file within :data:`MAX_POSITION_MISMATCH_M` of the plant's, and no
+record the plant saw under one heliostat lying under another.
 """
 from __future__ import annotations
 
@@ -677,7 +682,8 @@ def load_paint_on_plant(root, plant: Plant, *, source: str = "scenario", focal_s
     """The records of ``plant``'s heliostats in the PAINT folder ``root``, judged on ``plant`` (its targets and
     motor ranges): what a learner that starts from a scenario needs from a folder that grows
     (:func:`read_records` with the record index; ``skip_record_ids``, ``seen_owners`` and ``require_times``
-    as there: by default a folder without its metadata CSV is refused, an update needs the records' times).
+    as there: by default a folder without its metadata CSV is refused, an update needs the records' times [s];
+    ``plane_tolerance`` [m] as in :func:`heliotwin.io.records.build_record_table`).
     Of the folder's heliostat properties only the positions are read, to check that the folder is this plant's
     (:func:`check_positions`). The dataset's ``properties`` are empty; ``reading`` also counts
     ``unknown_heliostats`` and ``unknown_records`` (heliostat folders with records that ``plant`` does not
@@ -869,7 +875,8 @@ class Listing:
     refused : list of dict
         Record files that are not read: not a regular file (a FIFO, a device, a directory, a link to one or a
         dangling link) or larger than :data:`MAX_RECORD_BYTES`, or whose heliostat contradicts the folder; as
-        :func:`heliotwin.io.records.build_record_table`'s ``skipped`` (``field`` ``file`` or ``HeliostatId``).
+        :func:`heliotwin.io.records.build_record_table`'s ``skipped`` (``field``: ``file``, ``size`` or
+        ``HeliostatId``).
     """
 
     folders: list
@@ -1236,7 +1243,7 @@ def read_records(root, ids, site: Site, targets: dict, *, cache: bool | None = N
     assembled (an update that needs only the records its plant has not seen; seen ones are most of a folder).
     ``seen_owners`` (record id -> heliostat id, optional): where a plant saw its records (:func:`_listing`).
     ``require_times``: a folder without ``metadata/calibration-metadata.csv`` is a one-line error (the records'
-    times are there; a command that orders records in time cannot use them without).
+    times [s] are there; a command that orders records in time cannot use them without).
 
     A record file that is not a regular file, is too large, or whose heliostat (its ``HeliostatId``, or its
     metadata row's) is not the folder's, is left out and returned in ``RawRecords.refused``.
