@@ -45,7 +45,9 @@ def _record_files(folder):
 
 def _same(a, b):
     assert torch.equal(a.record_id, b.record_id) and torch.equal(a.motor_steps, b.motor_steps)
-    assert torch.equal(a.focal_spots.nan_to_num(), b.focal_spots.nan_to_num())
+    # geodesy in batches of another size may round the last bit differently (a nanometre is the same spot)
+    assert torch.equal(a.focal_spots.isnan(), b.focal_spots.isnan())
+    assert torch.allclose(a.focal_spots.nan_to_num(), b.focal_spots.nan_to_num(), rtol=0, atol=1e-9)
     assert torch.equal(a.time.nan_to_num(), b.time.nan_to_num()) and a.path == b.path and a.target == b.target
     assert torch.equal(a.weather.nan_to_num(), b.weather.nan_to_num())
 
@@ -92,7 +94,8 @@ def test_index_reopens_the_same_records_as_the_reference_reader(folder):
     assert stats["parsed"] == stats["files"] > 0
     warm_stats = {}
     warm = _raw(folder, warm_stats)
-    assert warm_stats == {"files": stats["files"], "parsed": 0, "indexed": stats["files"], "skipped": 0}
+    assert warm_stats == {"files": stats["files"], "parsed": 0, "indexed": stats["files"], "skipped": 0,
+                          "refused": 0}
     ref = _reference(folder)
     _same(cold, warm)
     assert torch.equal(warm.record_id, ref.record_id) and warm.path == ref.path
@@ -113,7 +116,8 @@ def test_a_grown_folder_parses_only_its_new_files_and_metadata_rows(folder, tmp_
     os.utime(meta, ns=(OLD_NS + 10**9, OLD_NS + 10**9))
     stats = {}
     grown = _raw(folder, stats)
-    assert stats == {"files": first["files"] + 4, "parsed": 4, "indexed": first["files"], "skipped": 0}
+    assert stats == {"files": first["files"] + 4, "parsed": 4, "indexed": first["files"], "skipped": 0,
+                     "refused": 0}
     ref = _reference(folder)
     assert torch.equal(grown.record_id, ref.record_id)
     assert torch.equal(grown.time.nan_to_num(), ref.time.nan_to_num())  # the appended rows' times arrived

@@ -23,7 +23,8 @@ def _positions(plant: Plant, heliostat_ids) -> torch.Tensor:
     ids = list(heliostat_ids)
     if len(set(ids)) != len(ids):
         raise HeliotwinError(f"duplicate heliostat ids in {ids}")
-    return torch.tensor([plant.field.index_of(h) for h in ids], dtype=torch.long)
+    at = {h: i for i, h in reversed(list(enumerate(plant.field.ids)))}  # one pass: index_of per id is quadratic
+    return torch.tensor([at[h] if h in at else plant.field.index_of(h) for h in ids], dtype=torch.long)
 
 
 def with_kinematics(plant: Plant, heliostat_ids, kinematics: Kinematics) -> Plant:

@@ -11,6 +11,19 @@ Layout::
 
 Every problem raises :class:`~heliotwin.errors.InputFileError` with the file and the JSON field.
 Geodetic coordinates are lat-first WGS84 and become ENU about the plant reference (float64).
+
+Only regular files are read (:func:`read_regular`): every file is opened non-blocking and checked with ``fstat``
+before a byte is read, and read up to a size cap (:data:`MAX_JSON_BYTES`, :data:`MAX_RECORD_BYTES`,
+:data:`MAX_CSV_BYTES`), so no FIFO, device or endless file can stall a command that holds the plant's lock. A
+symbolic link to a regular file is read as that file (wherever it points: a download deduplicated with links
+stays readable); a link to anything else, or a dangling one, is refused like the thing itself. A record file that
+is refused so is dropped with its reason (``skipped``, field ``file`` or ``size``); the tower, properties and
+metadata files are one-line errors naming the file. A record whose heliostat (its ``HeliostatId``, or its metadata
+row's) is not its folder's is dropped too (field ``HeliostatId``).
+
+A folder read onto a plant (:func:`load_paint_on_plant`, :meth:`PaintDataset.on_plant`) must be that plant's:
+each heliostat's position in its Properties file within :data:`MAX_POSITION_MISMATCH_M` of the plant's, and no
+record the plant saw under one heliostat lying under another.
 """
 from __future__ import annotations
 
@@ -22,6 +35,7 @@ import json
 import math
 import os
 import re
+import stat
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -58,6 +72,97 @@ MAX_HELIOSTAT_LENGTH_M = 50.0
 #: Largest JSON file [bytes] a PAINT reader opens (PAINT's are a few kB) and its deepest nesting.
 MAX_JSON_BYTES = 16 * 2**20
 MAX_JSON_DEPTH = 32
+#: Largest calibration record file [bytes] (PAINT's are 1-2 kB; a bigger one is not a record and is dropped).
+MAX_RECORD_BYTES = 2**20
+#: Largest metadata CSV [bytes] (about 80 bytes per record: 1 GiB is ten million records, 50 years of 10,000
+#: heliostats at PAINT's rate).
+MAX_CSV_BYTES = 2**30
+#: Largest distance [m] of a heliostat's position in the folder's Properties file from the plant's position of
+#: the same id: beyond it the folder is another plant's (surveys agree to centimetres).
+MAX_POSITION_MISMATCH_M = 1.0
+
+_KINDS = ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+          (stat.S_ISSOCK, "a socket"), (stat.S_ISDIR, "a directory"))
+
+
+def _not_regular(mode: int) -> str | None:
+    """Why a file of ``mode`` (an ``st_mode``) is not read, or None for a regular file."""
+    if stat.S_ISREG(mode):
+        return None
+    kind = next((name for test, name in _KINDS if test(mode)), "of another kind")
+    return f"not a regular file ({kind}; the reader opens only regular files)"
+
+
+def _too_big(size: int, limit: int) -> str:
+    return f"too large ({size} bytes; such a file holds at most {limit})"
+
+
+def read_regular(path, limit: int, *, start: int = 0) -> bytes:
+    """The bytes of the regular file ``path`` from byte ``start`` on, at most ``limit`` [bytes] in all.
+
+    Opened with ``O_NONBLOCK`` (a FIFO or device neither blocks the open nor is read) and checked with ``fstat``
+    on the open descriptor (no race between the check and the read); a symbolic link to a regular file is read as
+    that file.
+
+    Raises
+    ------
+    InputFileError
+        Missing (or a dangling link), not a regular file (naming what it is), larger than ``limit``, unreadable.
+    """
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOCTTY", 0) | getattr(os, "O_CLOEXEC", 0)
+    try:
+        fd = os.open(path, flags)
+    except FileNotFoundError:
+        raise InputFileError(path, "not a regular file (a dangling symbolic link)" if os.path.islink(path)
+                             else "file not found") from None
+    except OSError as exc:
+        raise InputFileError(path, f"cannot read ({exc.strerror})") from None
+    try:
+        st = os.fstat(fd)
+        why = _not_regular(st.st_mode)
+        if why is not None:
+            raise InputFileError(path, why)
+        if st.st_size > limit:
+            raise InputFileError(path, _too_big(st.st_size, limit))
+        if start:
+            os.lseek(fd, start, os.SEEK_SET)
+        chunks, left = [], limit - start + 1  # one byte more than allowed: a file that grew since fstat
+        while left > 0:
+            chunk = os.read(fd, min(left, 1 << 22))
+            if not chunk:
+                break
+            chunks.append(chunk)
+            left -= len(chunk)
+        data = b"".join(chunks)
+        if start + len(data) > limit:
+            raise InputFileError(path, _too_big(start + len(data), limit))
+        return data
+    except OSError as exc:
+        raise InputFileError(path, f"cannot read ({exc.strerror})") from None
+    finally:
+        os.close(fd)
+
+
+def regular_size(path) -> int | None:
+    """Size [bytes] of ``path`` when it exists (following links); None when it does not exist.
+
+    Raises
+    ------
+    InputFileError
+        It exists but is not a regular file (or is a dangling link).
+    """
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        if os.path.islink(path):
+            raise InputFileError(path, "not a regular file (a dangling symbolic link)") from None
+        return None
+    except OSError as exc:
+        raise InputFileError(path, f"cannot read ({exc.strerror})") from None
+    why = _not_regular(st.st_mode)
+    if why is not None:
+        raise InputFileError(path, why)
+    return int(st.st_size)
 
 
 def _depth(obj, limit: int) -> int:
@@ -75,18 +180,14 @@ def _depth(obj, limit: int) -> int:
     return deepest
 
 
-def read_json(path) -> dict:
-    """Parse a JSON file; one-line :class:`InputFileError` when it is missing, malformed, not UTF-8, larger
-    than :data:`MAX_JSON_BYTES` or nested deeper than :data:`MAX_JSON_DEPTH`."""
+def read_json(path, limit: int | None = None) -> dict:
+    """Parse a JSON file; one-line :class:`InputFileError` when it is missing, not a regular file
+    (:func:`read_regular`), malformed, not UTF-8, larger than ``limit`` [bytes] (default
+    :data:`MAX_JSON_BYTES`) or nested deeper than :data:`MAX_JSON_DEPTH`."""
+    raw = read_regular(path, MAX_JSON_BYTES if limit is None else limit)
     try:
-        size = os.path.getsize(path)
-        if size > MAX_JSON_BYTES:
-            raise InputFileError(path, f"{size} bytes; a PAINT JSON file is at most {MAX_JSON_BYTES} bytes")
-        with open(path, encoding="utf-8") as fh:
-            text = fh.read()
+        text = raw.decode("utf-8")
         data = json.loads(text)
-    except FileNotFoundError:
-        raise InputFileError(path, "file not found") from None
     except UnicodeDecodeError as exc:
         raise InputFileError(path, f"not UTF-8 text (byte {exc.start})") from None
     except json.JSONDecodeError as exc:
@@ -95,8 +196,6 @@ def read_json(path) -> dict:
         raise InputFileError(path, "malformed JSON (nested too deeply)") from None
     except ValueError as exc:  # e.g. an integer literal of more than 4300 digits
         raise InputFileError(path, f"malformed JSON ({' '.join(str(exc).split())})") from None
-    except OSError as exc:
-        raise InputFileError(path, f"cannot read ({exc.strerror})") from None
     # Nesting deeper than the limit needs more opening brackets than the limit: most files need no walk.
     if text.count("[") + text.count("{") > MAX_JSON_DEPTH and _depth(data, MAX_JSON_DEPTH) > MAX_JSON_DEPTH:
         raise InputFileError(path, f"nested deeper than {MAX_JSON_DEPTH} levels; not a PAINT file")
@@ -354,6 +453,8 @@ class CalibrationRecord:
         UTC ISO time from the metadata CSV.
     weather : dict or None
     path : str
+    claim : str
+        The heliostat the file names itself (``HeliostatId``; '' when it names none).
     """
 
     record_id: int
@@ -369,6 +470,7 @@ class CalibrationRecord:
     flux_centered_png: str | None = None
     datetime: str | None = None
     weather: dict | None = None
+    claim: str = ""
 
     def spot(self, prefer: str = "HeliOS") -> torch.Tensor:
         """Focal spot ENU (3,) from ``prefer``, falling back to the other source."""
@@ -382,7 +484,7 @@ class CalibrationRecord:
 
 def read_calibration_record(path, site: Site, heliostat_id: str, known_targets=None) -> CalibrationRecord:
     """Read ``<id>-calibration-properties.json``; validates every field it uses."""
-    data = read_json(path)
+    data = read_json(path, MAX_RECORD_BYTES)
     base = os.path.basename(str(path))
     try:
         rid = int(base.split("-")[0])
@@ -415,7 +517,8 @@ def read_calibration_record(path, site: Site, heliostat_id: str, known_targets=N
     png = os.path.join(folder, f"{rid}-flux.png")
     cpng = os.path.join(folder, f"{rid}-flux-centered.png")
     return CalibrationRecord(rid, heliostat_id, math.radians(az), math.radians(el), steps, target, enu, lla, str(path),
-                             png if os.path.exists(png) else None, cpng if os.path.exists(cpng) else None)
+                             png if os.path.exists(png) else None, cpng if os.path.exists(cpng) else None,
+                             claim=_claim(data))
 
 
 def read_metadata(root) -> tuple[dict, dict]:
@@ -430,8 +533,8 @@ def read_metadata(root) -> tuple[dict, dict]:
     """
     meta = os.path.join(str(root), "metadata", "calibration-metadata.csv")
     wpath = os.path.join(str(root), "metadata", "calibration-weather.csv")
-    times = _read_csv(meta, _metadata_row, ("Id", "DateTime")) if os.path.exists(meta) else {}
-    weather = _read_csv(wpath, _weather_row, ("Id",)) if os.path.exists(wpath) else {}
+    times = _read_csv(meta, _metadata_row, ("Id", "DateTime")) if regular_size(meta) is not None else {}
+    weather = _read_csv(wpath, _weather_row, ("Id",)) if regular_size(wpath) is not None else {}
     return times, weather
 
 
@@ -470,8 +573,15 @@ def _read_csv(path: str, parse_row, columns, *, text: str | None = None, header:
     ``first_line`` the file's line number of the part's first row, ``known`` the ids of the rows before it,
     for the duplicate check); default: the whole file."""
     out, line = {}, first_line - 1
+    if text is None:
+        data = read_regular(path, MAX_CSV_BYTES)
+        try:
+            text = data.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            lines_before = data.count(b"\n", 0, exc.start)
+            raise InputFileError(path, f"not UTF-8 text (byte {exc.start} after line {lines_before})") from None
     try:
-        with (open(path, newline="", encoding="utf-8") if text is None else io.StringIO(text, newline="")) as fh:
+        with io.StringIO(text, newline="") as fh:
             lines = fh if header is None else itertools.chain([header], fh)
             reader = csv.DictReader(lines)
             if not all(c in (reader.fieldnames or []) for c in columns):
@@ -491,8 +601,6 @@ def _read_csv(path: str, parse_row, columns, *, text: str | None = None, header:
         raise InputFileError(path, f"not UTF-8 text (byte {exc.start} after line {line})") from None
     except csv.Error as exc:
         raise InputFileError(path, f"line {line}: malformed CSV ({exc})") from None
-    except OSError as exc:
-        raise InputFileError(path, f"cannot read ({exc.strerror})") from None
     return out
 
 
@@ -528,10 +636,15 @@ class PaintDataset:
         heliostat axis becomes ``plant.field.ids`` (each must be in this folder), records of other heliostats
         are left out. ``source`` names the plant in errors."""
         _check_same_site(self.plant.site, plant.site, source, self.root)
-        missing = [h for h in plant.field.ids if h not in self.plant.field.ids]
+        mine = set(self.plant.field.ids)
+        missing = [h for h in plant.field.ids if h not in mine]
         if missing:
             raise InputFileError(source, f"heliostat(s) {', '.join(missing[:5])} are not in the PAINT folder "
                                          f"{self.root}", field="/field/ids")
+        if self.properties:
+            check_positions(self.root, list(plant.field.ids),
+                            torch.cat([self.properties[h].kinematics.position for h in plant.field.ids]),
+                            plant.field.kinematics.position, source)
         ids = set(plant.field.ids)
         skipped = [s for s in self.skipped if s["heliostat_id"] in ids]
         return PaintDataset(self.root, plant, self.records.for_heliostats(plant.field.ids), skipped,
@@ -565,19 +678,23 @@ def _check_same_site(mine: Site, theirs: Site, source, root) -> None:
 
 def load_paint_on_plant(root, plant: Plant, *, source: str = "scenario", focal_spot: str = "HeliOS",
                         plane_tolerance: float = 0.1, cache: bool | None = None,
-                        skip_record_ids=None) -> PaintDataset:
+                        skip_record_ids=None, seen_owners=None, require_times: bool = True) -> PaintDataset:
     """The records of ``plant``'s heliostats in the PAINT folder ``root``, judged on ``plant`` (its targets and
-    motor ranges) without reading the folder's heliostat properties: what a learner that starts from a
-    scenario needs from a folder that grows (:func:`read_records` with the record index; ``skip_record_ids``
-    as there). The dataset's ``properties`` are empty; ``reading`` also counts ``unknown_heliostats`` and
-    ``unknown_records`` (heliostat folders with records that ``plant`` does not hold, listed in ``unknown_ids``,
-    first 20).
+    motor ranges): what a learner that starts from a scenario needs from a folder that grows
+    (:func:`read_records` with the record index; ``skip_record_ids``, ``seen_owners`` and ``require_times``
+    as there: by default a folder without its metadata CSV is refused, an update needs the records' times [s];
+    ``plane_tolerance`` [m] as in :func:`heliotwin.io.records.build_record_table`).
+    Of the folder's heliostat properties only the positions are read, to check that the folder is this plant's
+    (:func:`check_positions`). The dataset's ``properties`` are empty; ``reading`` also counts
+    ``unknown_heliostats`` and ``unknown_records`` (heliostat folders with records that ``plant`` does not
+    hold, listed in ``unknown_ids``, first 20).
 
     Raises
     ------
     InputFileError
-        The folder's site is not ``plant``'s, or a heliostat of ``plant`` has no folder there (``source``
-        names the plant), or as :func:`read_records`.
+        The folder's site is not ``plant``'s, a heliostat of ``plant`` has no folder there (``source`` names
+        the plant), a heliostat's position there is not the plant's, a record lies under another heliostat than
+        the plant saw it under, or as :func:`read_records`.
     """
     root = str(root)
     site, targets = read_tower(find_tower_file(root))
@@ -589,8 +706,11 @@ def load_paint_on_plant(root, plant: Plant, *, source: str = "scenario", focal_s
     if missing:
         raise InputFileError(source, f"heliostat(s) {', '.join(missing[:5])} are not in the PAINT folder {root}",
                              field="/field/ids")
+    positions = torch.cat([_folder_position(root, h, site) for h in ids]) if ids else torch.zeros(0, 3)
+    check_positions(root, ids, positions, plant.field.kinematics.position, source)
     reading: dict = {}
-    raw = read_records(root, ids, site, targets, cache=cache, stats=reading, skip_record_ids=skip_record_ids)
+    raw = read_records(root, ids, site, targets, cache=cache, stats=reading, skip_record_ids=skip_record_ids,
+                       seen_owners=seen_owners, require_times=require_times)
     table, skipped = build_record_table(plant, raw, focal_spot=focal_spot, plane_tolerance=plane_tolerance)
     known = set(ids)
     unknown = [h for h in available if h not in known]
@@ -599,6 +719,49 @@ def load_paint_on_plant(root, plant: Plant, *, source: str = "scenario", focal_s
     reading.update(unknown_heliostats=len(counts), unknown_records=int(sum(counts.values())),
                    unknown_ids=sorted(counts)[:20])
     return PaintDataset(root, plant, table, skipped, {}, reading)
+
+
+def _properties_path(root: str, heliostat_id: str) -> str:
+    return os.path.join(root, heliostat_id, "Properties", f"{heliostat_id}-heliostat-properties.json")
+
+
+def _folder_position(root: str, heliostat_id: str, site: Site) -> torch.Tensor:
+    """The ENU position [1, 3] [m] of a heliostat in its Properties file (only that field read and checked)."""
+    path = _properties_path(root, heliostat_id)
+    return _local_enu(read_json(path), "heliostat_position", path, site).reshape(1, 3)
+
+
+def check_positions(root, ids, folder_positions: torch.Tensor, plant_positions: torch.Tensor, source) -> None:
+    """Refuse a folder whose heliostats stand elsewhere than the plant's of the same ids.
+
+    Parameters
+    ----------
+    root : str
+        The PAINT folder (its Properties files are named in the error).
+    ids : list of str, H
+    folder_positions, plant_positions : torch.Tensor, [H, 3]
+        ENU [m] about the site's reference, from the folder's Properties and from the plant.
+    source : str
+        Names the plant in the error.
+
+    Raises
+    ------
+    InputFileError
+        The first heliostat farther than :data:`MAX_POSITION_MISMATCH_M` from the plant's (the folder is
+        another plant's: ids repeat between plants, positions do not).
+    """
+    if not len(ids):
+        return
+    d = torch.linalg.vector_norm(folder_positions.to(torch.float64) - plant_positions.to(torch.float64), dim=-1)
+    far = (~(d <= MAX_POSITION_MISMATCH_M)).nonzero().flatten()
+    if len(far):
+        i = int(far[0])
+        h = ids[i]
+        where = ", ".join(f"{x:.1f}" for x in plant_positions[i].tolist())
+        more = f" (and {len(far) - 1} more)" if len(far) > 1 else ""
+        raise InputFileError(_properties_path(str(root), h),
+                             f"heliostat {h} is {float(d[i]):.1f} m from {source}'s {h} (ENU {where} m){more}; "
+                             "is this another plant's folder?", field="heliostat_position")
 
 
 def _record_names(folder: str) -> list:
@@ -626,7 +789,7 @@ def list_heliostats(root) -> list[str]:
 
 def load_paint(root, heliostats=None, *, surface_control_points=(4, 4), surface_degree=(2, 2),
                with_records: bool = True, focal_spot: str = "HeliOS", plane_tolerance: float = 0.1,
-               cache: bool | None = None, now=None) -> PaintDataset:
+               cache: bool | None = None, now=None, require_times: bool = False) -> PaintDataset:
     """Read a PAINT folder into a :class:`Plant` (ideal flat canted surfaces) and its records.
 
     Parameters
@@ -644,6 +807,8 @@ def load_paint(root, heliostats=None, *, surface_control_points=(4, 4), surface_
         See :func:`heliotwin.io.records.build_record_table`, which judges every record (``plane_tolerance``
         [m]: largest distance of a centroid from its target plane; ``now``: the time of reading, default the
         current time, after which a record is dated in the future).
+    require_times : bool
+        Refuse a folder without ``metadata/calibration-metadata.csv`` (:func:`read_records`).
     cache : bool or None
         Use the folder's incremental record index (:mod:`heliotwin.io.record_index`): files unchanged since
         they were indexed are not parsed again, new ones are parsed and appended. None: for folders of at least
@@ -653,15 +818,14 @@ def load_paint(root, heliostats=None, *, surface_control_points=(4, 4), surface_
     site, targets = read_tower(find_tower_file(root))
     available = list_heliostats(root)
     ids = available if heliostats is None else list(heliostats)
-    missing = [h for h in ids if h not in available]
+    have = set(available)
+    missing = [h for h in ids if h not in have]
     if missing:
         raise InputFileError(root, f"heliostat(s) {', '.join(missing)} not found; available: {', '.join(available)}",
                              field="heliostats")
     if not ids:
         raise InputFileError(root, "no heliostats with a properties file")
-    props = {h: read_heliostat_properties(os.path.join(root, h, "Properties", f"{h}-heliostat-properties.json"),
-                                          site, h)
-             for h in ids}
+    props = {h: read_heliostat_properties(_properties_path(root, h), site, h) for h in ids}
     nfac = {p.facets.translation.shape[1] for p in props.values()}
     if len(nfac) != 1:
         raise InputFileError(root, f"heliostats have different facet counts {sorted(nfac)}; load them separately",
@@ -674,7 +838,8 @@ def load_paint(root, heliostats=None, *, surface_control_points=(4, 4), surface_
                 torch.tensor([props[h].height for h in ids], dtype=torch.float64), [props[h].renovation for h in ids])
     plant = Plant(site, targets, fld, SunSettings())
     reading: dict = {}
-    raw = read_records(root, ids, site, targets, cache=cache, stats=reading) if with_records else []
+    raw = read_records(root, ids, site, targets, cache=cache, stats=reading,
+                       require_times=require_times) if with_records else []
     table, skipped = build_record_table(plant, raw, focal_spot=focal_spot, plane_tolerance=plane_tolerance, now=now)
     return PaintDataset(root, plant, table, skipped, props, reading)
 
@@ -702,10 +867,16 @@ class Listing:
         Index of each file's heliostat.
     name : np.ndarray [F] bytes
         File names.
-    size, mtime_ns : np.ndarray [F] int64
-        The index key's part of each file (-1 when it could not be stat'ed).
+    size, mtime_ns, ctime_ns, inode : np.ndarray [F] int64
+        The index key's part of each file (of a link: of its target). The status-change time and inode catch a
+        rewrite whose size and modification time were restored (``touch -d``, ``cp -p``, ``rsync -a``).
     skipped : int
         Record files left out by id before they were stat'ed (:func:`_listing`'s ``skip``).
+    refused : list of dict
+        Record files that are not read: not a regular file (a FIFO, a device, a directory, a link to one or a
+        dangling link) or larger than :data:`MAX_RECORD_BYTES`, or whose heliostat contradicts the folder; as
+        :func:`heliotwin.io.records.build_record_table`'s ``skipped`` (``field``: ``file``, ``size`` or
+        ``HeliostatId``).
     """
 
     folders: list
@@ -714,12 +885,25 @@ class Listing:
     name: np.ndarray
     size: np.ndarray
     mtime_ns: np.ndarray
+    ctime_ns: np.ndarray = None
+    inode: np.ndarray = None
     skipped: int = 0
+    refused: list = field(default_factory=list)
 
-    def subset(self, keep: np.ndarray) -> "Listing":
-        """The files of ``keep`` ([F] bool), folders and images unchanged."""
+    def __post_init__(self):
+        n = len(self.name)
+        if self.ctime_ns is None:
+            self.ctime_ns = np.full(n, -1, dtype=np.int64)
+        if self.inode is None:
+            self.inode = np.full(n, -1, dtype=np.int64)
+
+    def subset(self, keep: np.ndarray, *, left_out_by_id: bool = True) -> "Listing":
+        """The files of ``keep`` ([F] bool), folders, images and refusals unchanged; the others count as left out
+        by id (``left_out_by_id``) or simply go (refused: the caller adds them to ``refused``)."""
+        gone = int((~keep).sum()) if left_out_by_id else 0
         return Listing(self.folders, self.names, self.heliostat[keep], self.name[keep], self.size[keep],
-                       self.mtime_ns[keep], self.skipped + int((~keep).sum()))
+                       self.mtime_ns[keep], self.ctime_ns[keep], self.inode[keep], self.skipped + gone,
+                       list(self.refused))
 
     def files(self, rows=None) -> list:
         """(heliostat index, Calibration folder, file name) per file (of ``rows``, default all)."""
@@ -727,13 +911,27 @@ class Listing:
         return [(int(self.heliostat[i]), self.folders[int(self.heliostat[i])], self.name[i].decode()) for i in rows]
 
 
-def _listing(root: str, ids, skip=None) -> Listing:
-    """The record files of heliostats ``ids`` of ``root`` with their size and modification time; those whose
-    record id (the name's head) is in ``skip`` (a set of int, optional) are left out before they are stat'ed
-    (an update of a plant that has seen most of a folder: one stat per file was most of its reading)."""
+def _refusal(path: str, heliostat_id: str, reason: str, fld: str = "file") -> dict:
+    """A record left out by the reader, as :func:`heliotwin.io.records.build_record_table` words a dropped one."""
+    return {"record_id": _record_number(path), "heliostat_id": heliostat_id, "reason": reason, "path": path,
+            "field": fld}
+
+
+def _listing(root: str, ids, skip=None, owners=None) -> Listing:
+    """The record files of heliostats ``ids`` of ``root`` with their size, times and inode; those whose record id
+    (the name's head) is in ``skip`` (a set of int, optional) are left out before they are stat'ed (an update of
+    a plant that has seen most of a folder: one stat per file was most of its reading). A file that is not a
+    regular file (following links) or larger than :data:`MAX_RECORD_BYTES` is refused (:attr:`Listing.refused`),
+    never opened.
+
+    ``owners`` (record id -> heliostat id, optional): the heliostat a plant saw each record id under; a file
+    under another heliostat with such an id is a one-line error (another plant's folder, or a record moved).
+    """
     skip = skip or set()
+    owners = owners or {}
     left_out = 0
-    folders, names, hidx, fnames, sizes, mtimes = [], [], [], [], [], []
+    refused = []
+    folders, names, hidx, fnames, sizes, mtimes, ctimes, inodes = [], [], [], [], [], [], [], []
     for h, hid in enumerate(ids):
         folder = os.path.join(root, hid, "Calibration")
         folders.append(folder)
@@ -751,6 +949,10 @@ def _listing(root: str, ids, skip=None) -> Listing:
                 if not name.startswith("."):
                     head = name.split("-", 1)[0]
                     rid = int(head) if head.isdigit() else -1
+                    if owners and owners.get(rid, hid) != hid:
+                        raise InputFileError(os.path.join(folder, name), f"record {rid} is under heliostat {hid} "
+                                             f"but the plant saw it under {owners[rid]}; is this another plant's "
+                                             "folder?", field="id")
                     if rid in skip:
                         left_out += 1
                         continue
@@ -761,16 +963,30 @@ def _listing(root: str, ids, skip=None) -> Listing:
         files.sort(key=lambda item: item[0])  # ascending record id (stable: ties keep the folder's order)
         for _, name, e in files:
             try:
-                st = e.stat()
-                sizes.append(st.st_size)
-                mtimes.append(st.st_mtime_ns)
-            except OSError:
-                sizes.append(-1)
-                mtimes.append(-1)
+                st = e.stat()  # follows a link: its target is what is read
+            except FileNotFoundError:
+                refused.append(_refusal(os.path.join(folder, name), hid,
+                                        "not a regular file (a dangling symbolic link)"))
+                continue
+            except OSError as exc:
+                refused.append(_refusal(os.path.join(folder, name), hid, f"cannot stat ({exc.strerror})"))
+                continue
+            why, fld = _not_regular(st.st_mode), "file"
+            if why is None and st.st_size > MAX_RECORD_BYTES:
+                why, fld = _too_big(st.st_size, MAX_RECORD_BYTES), "size"
+            if why is not None:
+                refused.append(_refusal(os.path.join(folder, name), hid, why, fld))
+                continue
+            sizes.append(st.st_size)
+            mtimes.append(st.st_mtime_ns)
+            ctimes.append(st.st_ctime_ns)
+            inodes.append(st.st_ino)
             fnames.append(name.encode())
             hidx.append(h)
-    return Listing(folders, names, np.asarray(hidx, dtype=np.int64), np.asarray(fnames, dtype="S"),
-                   np.asarray(sizes, dtype=np.int64), np.asarray(mtimes, dtype=np.int64), left_out)
+    i64 = dict(dtype=np.int64)
+    return Listing(folders, names, np.asarray(hidx, **i64), np.asarray(fnames, dtype="S"), np.asarray(sizes, **i64),
+                   np.asarray(mtimes, **i64), np.asarray(ctimes, **i64), np.asarray(inodes, dtype=np.uint64).astype(
+                       np.int64), left_out, refused)
 
 
 def _parse_record(data: dict, path: str) -> tuple:
@@ -796,7 +1012,20 @@ def _parse_record(data: dict, path: str) -> tuple:
             lla[k] = [float(x) for x in v]
     if math.isnan(lla[0][0]) and math.isnan(lla[1][0]):
         raise ValueError("no focal spot")
-    return rid, float(steps[0]), float(steps[1]), target, lla, math.radians(az), math.radians(el)
+    return rid, float(steps[0]), float(steps[1]), target, lla, math.radians(az), math.radians(el), _claim(data)
+
+
+#: Keys under which a record file may name its heliostat (PAINT's files do not; some exports do).
+CLAIM_KEYS = ("HeliostatId", "heliostat_id")
+
+
+def _claim(data: dict) -> str:
+    """The heliostat a record file names itself ('' when it names none)."""
+    for k in CLAIM_KEYS:
+        v = data.get(k)
+        if isinstance(v, str) and v.strip():
+            return v.strip()
+    return ""
 
 
 def _parse_files(root: str, ids, listing: Listing, rows, site: Site, targets: dict) -> dict:
@@ -808,22 +1037,25 @@ def _parse_files(root: str, ids, listing: Listing, rows, site: Site, targets: di
     with read_ahead(paths):  # many files from a disk: the kernel reads them while this loop parses
         for (h, _, _), path in zip(files, paths):
             try:
-                out.append(_parse_record(read_json(path), path))
+                data = read_json(path, MAX_RECORD_BYTES)
+                out.append(_parse_record(data, path))
             except (InputFileError, ValueError, KeyError, TypeError, AttributeError, OverflowError):
                 r = read_calibration_record(path, site, ids[h], known_targets=targets)  # words the error, if any
                 lla = [r.focal_spot_wgs84.get(src, [math.nan] * 3) for src in FOCAL_SPOT_SOURCES]
                 out.append((r.record_id, *map(float, r.motor_steps), r.target, lla, r.sun_azimuth,
-                            r.sun_elevation))
+                            r.sun_elevation, r.claim))
     n = len(out)
     return {"heliostat": np.asarray([ids[int(listing.heliostat[i])] for i in rows], dtype="U").reshape(n),
             "name": listing.name[rows].reshape(n), "size": listing.size[rows].reshape(n),
-            "mtime_ns": listing.mtime_ns[rows].reshape(n),
+            "mtime_ns": listing.mtime_ns[rows].reshape(n), "ctime_ns": listing.ctime_ns[rows].reshape(n),
+            "inode": listing.inode[rows].reshape(n),
             "record_id": np.asarray([r[0] for r in out], dtype=np.int64).reshape(n),
             "motor_steps": np.asarray([[r[1], r[2]] for r in out], dtype=np.float64).reshape(n, 2),
             "target": np.asarray([r[3] for r in out], dtype="U").reshape(n),
             "lla": np.asarray([r[4] for r in out], dtype=np.float64).reshape(n, 2, 3),
             "sun_azimuth": np.asarray([r[5] for r in out], dtype=np.float64).reshape(n),
-            "sun_elevation": np.asarray([r[6] for r in out], dtype=np.float64).reshape(n)}
+            "sun_elevation": np.asarray([r[6] for r in out], dtype=np.float64).reshape(n),
+            "claim": np.asarray([r[7] for r in out] or [""], dtype="U")[:n]}
 
 
 def _read_one_by_one(listing, ids, site: Site, targets: dict, times: dict, weather: dict) -> RawRecords:
@@ -910,22 +1142,21 @@ def _stored_text(stored: dict) -> list:
 
 def _csv_columns(root: str, name: str, parse_row, columns, to_row, width: int | None, use_index: bool) -> dict:
     """The rows of ``root/metadata/<name>`` as columns: ``ids`` [M] int64, ``text`` (str or None per row, or
-    absent), ``values`` [M] or [M, width] float64; parsed from the record index where it holds the file's
-    bytes (only the rows appended since are parsed, :func:`heliotwin.io.record_index.csv_cached`)."""
+    absent), ``values`` [M] or [M, width] float64, ``heliostat`` [M] str (the row's HeliostatId, '' without
+    one; ``to_row`` returns ``(text, values)`` or ``(text, values, heliostat)``); parsed from the record index
+    where it holds the file's bytes (only the rows appended since are parsed,
+    :func:`heliotwin.io.record_index.csv_cached`). A missing file has no rows; one that is not a regular file
+    or larger than :data:`MAX_CSV_BYTES` is a one-line error (:func:`read_regular`)."""
     path = os.path.join(root, "metadata", name)
     empty = {"ids": np.zeros(0, dtype=np.int64), "text": [],
-             "values": np.zeros((0,) if width is None else (0, width))}
-    if not os.path.exists(path):
+             "values": np.zeros((0,) if width is None else (0, width)), "heliostat": np.zeros(0, dtype="U1")}
+    if regular_size(path) is None:
         return empty
     stored, covered = record_index.csv_cached(root, path) if use_index else (None, 0)
-    try:
-        with open(path, "rb") as fh:
-            fh.seek(covered)
-            data = fh.read()
-    except OSError as exc:
-        raise InputFileError(path, f"cannot read ({exc.strerror})") from None
+    data = read_regular(path, MAX_CSV_BYTES, start=covered)
     if stored is not None and not data:
-        return {"ids": stored["ids"], "values": stored["values"], "text": _stored_text(stored)}
+        return {"ids": stored["ids"], "values": stored["values"], "text": _stored_text(stored),
+                "heliostat": stored["heliostat"]}
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
@@ -938,30 +1169,38 @@ def _csv_columns(root: str, name: str, parse_row, columns, to_row, width: int | 
     parsed = [to_row(v) for v in rows.values()]
     new_text = [p[0] for p in parsed]
     new_values = np.asarray([p[1] for p in parsed], dtype=np.float64).reshape((len(rows),) + empty["values"].shape[1:])
+    new_hid = np.asarray([p[2] if len(p) > 2 else "" for p in parsed] or [""], dtype="U")[:len(parsed)]
     if stored is None:
-        out = {"ids": new_ids, "text": new_text, "values": new_values}
+        out = {"ids": new_ids, "text": new_text, "values": new_values, "heliostat": new_hid}
         header = text.splitlines(keepends=True)[0] if text else ""
     else:
         out = {"ids": np.concatenate([stored["ids"], new_ids]),
-               "values": np.concatenate([stored["values"], new_values]), "text": _stored_text(stored) + new_text}
+               "values": np.concatenate([stored["values"], new_values]), "text": _stored_text(stored) + new_text,
+               "heliostat": np.concatenate([stored["heliostat"], new_hid])}
     if use_index and text.endswith("\n"):
         lines = (first - 1) + text.count("\n") - (1 if stored is None else 0)
         record_index.store_csv(root, path, covered + len(data), {
             "ids": out["ids"], "values": out["values"], "header": np.array(header), "lines": np.array(lines),
             "text": np.asarray(["" if x is None else x for x in out["text"]], dtype="U"),
-            "text_none": np.asarray([x is None for x in out["text"]], dtype=bool)})
+            "text_none": np.asarray([x is None for x in out["text"]], dtype=bool),
+            "heliostat": np.asarray(out["heliostat"], dtype="U")})
     return out
 
 
+def _metadata_with_heliostat(row: dict):
+    """A metadata row's DateTime (:func:`_metadata_row`) and its HeliostatId ('' without one)."""
+    return _metadata_row(row), str(row.get("HeliostatId") or "").strip()
+
+
 def _metadata_columns(root: str, use_index: bool) -> dict:
-    """Times and weather of the folder's records as columns (:func:`_csv_columns`)."""
-    meta = _csv_columns(root, "calibration-metadata.csv", _metadata_row, ("Id", "DateTime"),
-                        lambda text: (text, parse_time(text)), None, use_index)
+    """Times, heliostats and weather of the folder's records as columns (:func:`_csv_columns`)."""
+    meta = _csv_columns(root, "calibration-metadata.csv", _metadata_with_heliostat, ("Id", "DateTime"),
+                        lambda v: (v[0], parse_time(v[0]), v[1]), None, use_index)
     wx = _csv_columns(root, "calibration-weather.csv", _weather_row, ("Id",),
                       lambda d: (None, [float(d.get(k, float("nan"))) for k in WEATHER_KEYS]), len(WEATHER_KEYS),
                       use_index)
-    return {"ids": meta["ids"], "datetime": meta["text"], "time": meta["values"], "weather_ids": wx["ids"],
-            "weather": wx["values"]}
+    return {"ids": meta["ids"], "datetime": meta["text"], "time": meta["values"], "heliostat": meta["heliostat"],
+            "weather_ids": wx["ids"], "weather": wx["values"]}
 
 
 #: A metadata CSV of at least this many bytes (~2,600 rows of a simulated folder's ~76 bytes) is parsed through
@@ -989,17 +1228,25 @@ def _use_index(cache: bool | None, files: int) -> bool:
 
 
 def read_records(root, ids, site: Site, targets: dict, *, cache: bool | None = None,
-                 stats: dict | None = None, skip_record_ids=None) -> RawRecords:
+                 stats: dict | None = None, skip_record_ids=None, seen_owners=None,
+                 require_times: bool = False) -> RawRecords:
     """Every calibration record of heliostats ``ids`` of a PAINT folder, parsed (not yet judged), with the
     metadata's time and weather. With the record index (``cache``, see :func:`load_paint`) only files that
     are new or changed since they were indexed are parsed (:mod:`heliotwin.io.record_index`), and they are
     appended to it.
 
     ``stats``, when given, receives ``files`` (record files listed), ``parsed`` (read from the files now),
-    ``indexed`` (taken from the index) and ``skipped`` (records left out by id).
+    ``indexed`` (taken from the index), ``skipped`` (records left out by id) and ``refused`` (left out by the
+    reader: :attr:`Listing.refused`).
 
     ``skip_record_ids`` (an int array, optional): records left out once their ids are known, before they are
     assembled (an update that needs only the records its plant has not seen; seen ones are most of a folder).
+    ``seen_owners`` (record id -> heliostat id, optional): where a plant saw its records (:func:`_listing`).
+    ``require_times``: a folder without ``metadata/calibration-metadata.csv`` is a one-line error (the records'
+    times [s] are there; a command that orders records in time cannot use them without).
+
+    A record file that is not a regular file, is too large, or whose heliostat (its ``HeliostatId``, or its
+    metadata row's) is not the folder's, is left out and returned in ``RawRecords.refused``.
 
     Raises
     ------
@@ -1007,15 +1254,19 @@ def read_records(root, ids, site: Site, targets: dict, *, cache: bool | None = N
         As :func:`read_calibration_record` and :func:`read_metadata` (the first bad file in reading order).
     """
     root = str(root)
+    meta_path = os.path.join(root, "metadata", "calibration-metadata.csv")
+    if require_times and regular_size(meta_path) is None:
+        raise InputFileError(meta_path, "missing: the records' times (DateTime) are there; without it no record "
+                                        "can be placed in time")
     skip = None if skip_record_ids is None else np.asarray(skip_record_ids, dtype=np.int64)
-    listing = _listing(root, ids, None if skip is None else set(skip.tolist()))
+    listing = _listing(root, ids, None if skip is None else set(skip.tolist()), seen_owners)
     n = len(listing.name)
     use = _use_index(cache, n + listing.skipped)
     rows = np.full(n, -1, dtype=np.int64)
     if use:
         known, segments = record_index.read_entries(root)
         rows = record_index.match(known, [ids[h] for h in listing.heliostat.tolist()], listing.name.tolist(),
-                                  listing.size, listing.mtime_ns)
+                                  listing.size, listing.mtime_ns, listing.ctime_ns, listing.inode)
     else:
         known, segments = record_index.empty_entries(), []
     todo = np.nonzero(rows < 0)[0]
@@ -1033,16 +1284,55 @@ def read_records(root, ids, site: Site, targets: dict, *, cache: bool | None = N
     place = np.concatenate([np.nonzero(rows >= 0)[0], todo])
     both = record_index.concat_entries([known, fresh])
     rows_in_listing_order = order[np.argsort(place, kind="stable")]
-    listed_files = n + listing.skipped
+    listed_files = n + listing.skipped + len(listing.refused)
     if skip is not None and n:  # a file whose name does not carry its record id
         keep = ~np.isin(both["record_id"][rows_in_listing_order], skip)
         rows_in_listing_order, listing = rows_in_listing_order[keep], listing.subset(keep)
     entries = {k: v[rows_in_listing_order] for k, v in both.items()}
-    if stats is not None:
-        stats.update(files=listed_files, parsed=int(len(todo)), indexed=int(n - len(todo)), skipped=listing.skipped)
     meta = _metadata_columns(root, use or _metadata_worth_index(root, cache))
+    entries, listing = _refuse_foreign(entries, listing, ids, meta, meta_path)
+    if stats is not None:
+        stats.update(files=listed_files, parsed=int(len(todo)), indexed=int(n - len(todo)), skipped=listing.skipped,
+                     refused=len(listing.refused))
     raw = _assemble(entries, listing, ids, site, targets, meta)
     if raw is None:  # a record the batch refuses: the reference reader words the first such file
         times, weather = read_metadata(root)
-        return _read_one_by_one(listing, ids, site, targets, times, weather)
+        raw = _read_one_by_one(listing, ids, site, targets, times, weather)
+    raw.refused = list(listing.refused)
     return raw
+
+
+def _refuse_foreign(entries: dict, listing: Listing, ids, meta: dict, meta_path: str) -> tuple[dict, Listing]:
+    """The entries and listing without the records whose heliostat contradicts their folder: the file names
+    another heliostat (``HeliostatId``), or its metadata row does (those go to ``listing.refused``)."""
+    n = len(entries["record_id"])
+    if not n:
+        return entries, listing
+    folder_hid = np.asarray(list(ids), dtype="U")[listing.heliostat]
+    claim = entries["claim"].astype("U")
+    by_file = (claim != "") & (claim != folder_hid)
+    row_hid = np.full(n, "", dtype=object)
+    if len(meta["ids"]):
+        order = np.argsort(meta["ids"], kind="stable")
+        at = np.searchsorted(meta["ids"][order], entries["record_id"]).clip(max=len(order) - 1)
+        have = meta["ids"][order][at] == entries["record_id"]
+        row_hid[have] = np.asarray(meta["heliostat"], dtype="U")[order[at[have]]]
+    row_hid = row_hid.astype("U")
+    by_row = ~by_file & (row_hid != "") & (row_hid != folder_hid)
+    bad = by_file | by_row
+    if not bool(bad.any()):
+        return entries, listing
+    refused = list(listing.refused)
+    for i in np.nonzero(bad)[0].tolist():
+        path = os.path.join(listing.folders[int(listing.heliostat[i])], listing.name[i].decode())
+        rid, here = int(entries["record_id"][i]), str(folder_hid[i])
+        if by_file[i]:
+            why = f"another heliostat than its folder (the file names {claim[i]}; it lies under {here})"
+        else:
+            why = (f"another heliostat than its folder ({meta_path} names {row_hid[i]} for record {rid}; its file "
+                   f"lies under {here})")
+        refused.append({"record_id": rid, "heliostat_id": here, "reason": why, "path": path, "field": "HeliostatId"})
+    keep = ~bad
+    out = listing.subset(keep, left_out_by_id=False)
+    out.refused = refused
+    return {k: v[keep] for k, v in entries.items()}, out

@@ -228,11 +228,12 @@ class RecordTable:
         """The records of ``heliostat_ids`` only, re-indexed so that ``heliostat_index`` points into that list
         (the order a caller indexes its kinematics with)."""
         ids = list(heliostat_ids)
-        unknown = [h for h in ids if h not in self.heliostat_ids]
+        at = {h: i for i, h in reversed(list(enumerate(self.heliostat_ids)))}  # first position, as list.index
+        unknown = [h for h in ids if h not in at]
         if unknown:
             raise KeyError(f"heliostat(s) {', '.join(unknown)} not in the record table")
         dev = self.heliostat_index.device
-        old = torch.tensor([self.heliostat_ids.index(h) for h in ids], dtype=torch.long, device=dev)
+        old = torch.tensor([at[h] for h in ids], dtype=torch.long, device=dev)
         out = self.subset(torch.isin(self.heliostat_index, old))
         remap = torch.full((max(len(self.heliostat_ids), 1),), -1, dtype=torch.long, device=dev)
         remap[old] = torch.arange(len(ids), device=dev)
@@ -447,6 +448,9 @@ class RawRecords:
     weather : [R, 5] float64
         :data:`WEATHER_KEYS`, NaN where absent.
     datetime, flux_png, flux_centered_png, path : list of (str or None), R
+    refused : list of dict
+        Records the reader left out before parsing (a file that is not a regular file, too large, or under
+        another heliostat than it names), worded as :func:`build_record_table`'s ``skipped``; they join it.
     """
 
     heliostat_ids: list
@@ -464,6 +468,7 @@ class RawRecords:
     flux_png: list
     flux_centered_png: list
     path: list
+    refused: list = field(default_factory=list)
 
     def __len__(self) -> int:
         return int(self.record_id.shape[0])
@@ -613,6 +618,7 @@ def _table_from_raw(plant, raw: RawRecords, tolerance: float, now: float = math.
             continue
         skipped.append({"record_id": int(raw.record_id[i]), "heliostat_id": ids[int(h[i])], "reason": why[0],
                         "path": str(raw.path[i]), "field": why[1]})
+    skipped += [dict(r) for r in raw.refused if r["heliostat_id"] in pos]  # left out by the reader, named there
     keep = (in_plant & ok).nonzero().flatten()
     rows = keep.tolist()
     spots = torch.where(within[keep].unsqueeze(-1), raw.focal_spots[keep], torch.full_like(raw.focal_spots[keep],

@@ -1122,10 +1122,12 @@ def load_records(paint_dir, scenario=None, heliostats=None, *, plane_tolerance: 
     if sc is None:
         return load_paint(paint_dir, heliostats, plane_tolerance=plane_tolerance), None
     ids = list(heliostats or sc.plant.field.ids)
-    unknown = [h for h in ids if h not in sc.plant.field.ids]
+    in_scenario = set(sc.plant.field.ids)
+    unknown = [h for h in ids if h not in in_scenario]
     if unknown:
         raise InputFileError(sc.path, f"heliostat(s) {', '.join(unknown)} not in this scenario", field="/field/ids")
-    absent = [h for h in ids if h not in set(list_heliostats(paint_dir))]
+    in_folder = set(list_heliostats(paint_dir))  # listed once: per id it made a 10,000-heliostat report quadratic
+    absent = [h for h in ids if h not in in_folder]
     if absent:
         raise InputFileError(sc.path, f"heliostat(s) {', '.join(absent[:5])} not in the PAINT folder {paint_dir}",
                              field="/field/ids")

@@ -183,8 +183,22 @@ def _records(records_or_paint, scenario: Scenario, ids: list, plane_tolerance: f
             raise HeliotwinError(f"{paint}: none of the scenario's {len(ids)} calibrated heliostats is in this "
                                  "PAINT folder")
         ds = load_paint_on_plant(paint, select_heliostats(scenario.plant, use), source=scenario.path or "scenario",
-                                 plane_tolerance=plane_tolerance, skip_record_ids=skip)
+                                 plane_tolerance=plane_tolerance, skip_record_ids=skip,
+                                 seen_owners=_seen_owners(scenario))
     return on_axis(ds.records, ids), os.path.abspath(ds.root), {**ds.reading, **_dropped(ds.skipped)}
+
+
+def _seen_owners(scenario: Scenario) -> dict:
+    """Record id -> the heliostat a provenance step lists it under (the reader refuses a folder that holds one of
+    them under another heliostat: another plant's folder, or records moved between heliostats)."""
+    owners: dict = {}
+    for step in scenario.provenance or []:
+        recs = step.get("records") if isinstance(step, dict) else None
+        if isinstance(recs, dict):
+            for hid, rids in recs.items():
+                if isinstance(rids, list):
+                    owners.update((int(i), str(hid)) for i in rids if isinstance(i, (int, float)))
+    return owners
 
 
 def _dropped(skipped: list) -> dict:
