@@ -296,7 +296,8 @@ def _print_table(report: dict) -> None:
     red = report.get("reduced")
     if red:
         held = red.get("held_out") or {}
-        print(f"reduced models ({len(red.get('calibrated', []))} heliostats, < --min-records {red.get('min_records')}): "
+        print(f"reduced models ({len(red.get('calibrated', []))} heliostats, < --min-records {red.get('min_records')}"
+              "): "
               f"{red['rule']['rule']}; on their own latest records (held out) {_fmt(held.get('median_mrad'))} mrad "
               f"median against nominal {_fmt(held.get('nominal_median_mrad'))}, better than nominal for "
               f"{held.get('better_than_nominal', 0)} of {held.get('heliostats', 0)}; 'calib' of a reduced heliostat is "

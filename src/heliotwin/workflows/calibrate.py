@@ -25,15 +25,14 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from ..calibrate.methods.batched import sharded
-from ..calibrate.model import Calibrated
 from ..calibrate import metrics
 from ..calibrate.inputs import fit_spots
+from ..calibrate.methods.batched import sharded
+from ..calibrate.model import Calibrated
 from ..calibrate.params import STONE8
 from ..calibrate.priors import MIN_HELIOSTATS, plant_prior
 from ..calibrate.protocol import pipeline, reduced, selection
 from ..calibrate.protocol.archive import PriorArchive
-from ..calibrate.protocol.suspicious import check_and_correct
 from ..calibrate.protocol.config import (
     EVERY_RECORD,
     RunConfig,
@@ -41,6 +40,7 @@ from ..calibrate.protocol.config import (
     validate_config,
     validation_protocol,
 )
+from ..calibrate.protocol.suspicious import check_and_correct
 from ..calibrate.scenario import calibrated_scenario
 from ..calibrate.twinstate import with_alarm_threshold, with_process_noise_choice
 from ..distributed import run_spawned
@@ -588,7 +588,7 @@ def _reduced_entries(small: Calibrated, records, info: dict, rule, cfg: RunConfi
         if not bool(small.ok[i]):
             least = rule.fewest
             out[hid] = {"status": "nominal", "split": split, "model": "nominal",
-                        "reason": (f"no usable record" if n == 0 else f"too few usable records ({n}) for any model "
+                        "reason": ("no usable record" if n == 0 else f"too few usable records ({n}) for any model "
                                    f"the validation supports (fewest {least})"),
                         "nominal_records": n}
             continue

@@ -251,7 +251,8 @@ def choose_rule(nominal: Kinematics, records: RecordTable, deviations: torch.Ten
         enough = counts >= n + HOLDOUT
         if int(enough.sum()) < FOLDS:
             continue
-        train = records.subset(((rank >= HOLDOUT) & (rank < HOLDOUT + n)) & enough.to(rank.device)[records.heliostat_index])
+        mine = enough.to(rank.device)[records.heliostat_index]
+        train = records.subset((rank >= HOLDOUT) & (rank < HOLDOUT + n) & mine)
         test = test_all.subset(enough.to(rank.device)[test_all.heliostat_index])
         nominal_err = _held_out(nominal, test, torch.zeros(len(ids), 8, dtype=torch.float64), enough)
         row = {"heliostats": int(enough.sum()), "nominal": _median(nominal_err)}
@@ -351,7 +352,8 @@ def fit_reduced(nominal: Kinematics, records: RecordTable, rule: Rule, prior: pr
     known = torch.isfinite(t)
     latest = torch.full((h,), -float("inf"), dtype=torch.float64, device=t.device).scatter_reduce(
         0, records.heliostat_index[known].to(t.device), t[known], reduce="amax")
-    model.extras["latest_time"] = torch.where(torch.isfinite(latest), latest, torch.full_like(latest, float("nan"))).cpu()
+    nan = torch.full_like(latest, float("nan"))
+    model.extras["latest_time"] = torch.where(torch.isfinite(latest), latest, nan).cpu()
     info = {hid: {"parameters": name, "records": int(c)}
             for hid, name, c in zip(records.heliostat_ids, chosen, counts.tolist())}
     return model, info
