@@ -477,7 +477,8 @@ def calibrate(scenario, records_or_paint, settings: CalibrationSettings = Calibr
     # The run's settings, method options included (half-life, drift: they shape the result).
     new = calibrated_scenario(dataset.plant, model, previous=previous, focal_spot=cfg.focal_spot,
                               records=seen, settings=dict(report["config"]),
-                              source=os.path.abspath(paint), settings_choice=report.get("settings_choice"))
+                              source=os.path.abspath(paint), settings_choice=report.get("settings_choice"),
+                              coverage=run_coverage(report, model, dataset, cfg))
     # without a drift model, the update's random walk is chosen here, where the records the fit saw are at hand
     # (an update is often given only the new ones)
     # (both chosen on the fully calibrated heliostats' records: a reduced heliostat's few records cannot tell a
@@ -667,3 +668,23 @@ def nominal_line(ids: list, why: str, limit: int = 12) -> str:
 
 def _fmt(x) -> str:
     return "-" if x is None else f"{x:.2f}"
+
+
+def run_coverage(report: dict, model: Calibrated, dataset: PaintDataset, cfg: RunConfig) -> dict:
+    """What the run did with every heliostat, for the scenario (:func:`heliotwin.calibrate.scenario.
+    calibration_state`): each calibrated one's expected error, the reduced ones' parameter set, the nominal ones
+    with why, and the calibrated model's residual on every usable record of its heliostats."""
+    entries = report.get("heliostats") or {}
+    red = report.get("reduced") or {}
+    ok = [h for h, o in zip(model.heliostat_ids, model.ok.tolist()) if o]
+    records = dataset.records.for_heliostats(model.heliostat_ids).with_focal_spot(cfg.focal_spot)
+    records = records.subset(model.ok.to(records.heliostat_index.device)[records.heliostat_index])
+    err = model.pointing_error(records).double().cpu() if len(records) else torch.zeros(0, dtype=torch.float64)
+    t = records.time.double().cpu() if records.time is not None else torch.full((len(records),), float("nan"))
+    return {"expected_error_mrad": {h: entries.get(h, {}).get("mean_test_mrad") for h in ok},
+            "reduced": {h: v["parameters"] for h, v in (red.get("heliostats") or {}).items() if h in set(ok)},
+            "nominal": (report.get("headline") or {}).get("nominal_reasons") or {},
+            "min_records": cfg.min_records, "rule": (red.get("rule") or {}).get("rule"),
+            "residuals": {"record_id": records.record_id.cpu().tolist(),
+                          "heliostat": [records.heliostat_ids[i] for i in records.heliostat_index.cpu().tolist()],
+                          "time": t.tolist(), "error_mrad": (1e3 * err).tolist()}}
