@@ -99,7 +99,7 @@ def test_the_headline_show_score_and_report_name_the_nominal_heliostat(plant, ca
     assert rep["headline"]["nominal"] == [h] and rep["headline"]["calibrated"] == 7
     assert f"1 heliostat nominal: no usable record: {h}" in rep["headline"]["text"]
     text = format_description(describe_scenario(plant["scenario"]))
-    assert "calibrated (lm) for 7 of 8 heliostats (2 with a reduced model" in text
+    assert "calibrated (lm) for 7 heliostats of 8 (2 with a reduced model" in text
     assert f"1 heliostat nominal: no usable record: {h}" in text
     _, scored = score(plant["truth"], plant["scenario"], suns=8, flux=False)
     lines = summary_lines(scored)
@@ -142,3 +142,25 @@ def test_calibrate_prints_the_headline_first_and_names_each_block_of_steps(plant
     table = next(i for i, ln in enumerate(lines) if ln.startswith("heliostat "))
     assert head == table - 1
     assert "of the command's" in lines[-1]
+
+
+def test_on_the_shared_records_every_heliostat_with_five_records_is_calibrated_by_the_default_command(paint_dir,
+                                                                                                     tmp_path):
+    """The README's command on ``../shared/data/paint``: 19 of its 30 heliostats have 0-30 records (under the
+    default --min-records 50); every one with >= 5 is calibrated, the headline's expected error counts them."""
+    result = calibrate(None, paint_dir, CalibrationSettings())
+    rep = result.report
+    counts = {h: e["split"]["n_records"] if "n_records" in e.get("split", {}) else None
+              for h, e in rep["heliostats"].items()}
+    records = load_paint(paint_dir).records
+    n = dict(zip(records.heliostat_ids, records.counts().tolist()))
+    assert counts and all(rep["heliostats"][h]["status"] == "ok" for h in n if n[h] >= 5)
+    calibrated = set(result.scenario.learned["calibration"]["heliostats"])
+    assert {h for h in n if n[h] >= 5} <= calibrated
+    head = rep["headline"]
+    assert head["calibrated"] == len(calibrated) and head["reduced"] >= 15
+    assert head["expected_median_mrad"] < 2.0 and head["expected_p95_mrad"] is not None
+    assert set(head["nominal"]) == {h for h in n if h not in calibrated} and all(n[h] == 0 for h in head["nominal"])
+    # the reduced models beat nominal on each heliostat's own latest records, which their fit did not see
+    held = rep["reduced"]["held_out"]
+    assert held["heliostats"] >= 10 and held["median_mrad"] < 0.2 * held["nominal_median_mrad"]

@@ -190,8 +190,8 @@ def format_description(d: dict) -> str:
              f"{p['field_radius_m'][1]:.0f} m from the tower; targets: {targets}",
              f"sun: {sun['sunshape']}, DNI {sun['dni_w_m2']:.0f} W/m2, reflectivity {sun['reflectivity']}, "
              f"slope error {sun['slope_error_mrad']:.2f} mrad",
-             "kinematics: " + (f"calibrated ({k['method']}) for {k.get('count', len(k['heliostats']))} of "
-                               f"{p['heliostats']} heliostats{_reduced_note(k)}: "
+             "kinematics: " + (f"calibrated ({k['method']}) for {k.get('count', len(k['heliostats']))} heliostats "
+                               f"of {p['heliostats']}{_reduced_note(k)}: "
                                f"{', '.join(k['heliostats'][:10])}"
                                f"{' ...' if k.get('count', len(k['heliostats'])) > 10 else ''}"
                                + (f"; {k['nominal_line']}" if k.get("nominal_line") else "")

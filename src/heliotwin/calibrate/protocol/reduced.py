@@ -120,6 +120,8 @@ class Rule:
         return "; ".join(parts) + ("" if self.validated else " (not validated: too few fully calibrated heliostats)")
 
     def json(self) -> dict:
+        """The rule as JSON values: ``steps``, ``validated``, ``rule`` (:meth:`text`), ``drift_mrad`` [mrad],
+        ``evidence``."""
         return {"steps": [[int(n), s] for n, s in self.steps], "validated": self.validated, "rule": self.text(),
                 "drift_mrad": 1e3 * self.drift_rad, "evidence": self.evidence}
 
