@@ -24,6 +24,7 @@ from heliotwin.workflows.calibrate import CalibrationSettings, calibrate
 from heliotwin.workflows.report import ReportSettings, heliostat_detail, heliostat_state, plant_report
 from heliotwin.workflows.score import score, summary_lines
 from heliotwin.workflows.show import describe_scenario, format_description
+from heliotwin.workflows.update import update
 from tests.helpers.cli import run_cli
 
 KEEP = {5: 8, 6: 3, 7: 0}  # heliostat index -> records kept (the others keep all)
@@ -164,3 +165,14 @@ def test_on_the_shared_records_every_heliostat_with_five_records_is_calibrated_b
     # the reduced models beat nominal on each heliostat's own latest records, which their fit did not see
     held = rep["reduced"]["held_out"]
     assert held["heliostats"] >= 10 and held["median_mrad"] < 0.2 * held["nominal_median_mrad"]
+
+
+def test_an_updates_report_counts_records_of_known_uncalibrated_heliostats_as_nominal_not_unknown(plant):
+    ids = plant["ids"]
+    sub = calibrate(None, plant["folder"], CalibrationSettings(heliostats=ids[:5], min_records=MIN_RECORDS))
+    report = update(sub.scenario, plant["folder"]).report
+    c = report["counts"]
+    assert c["unknown_heliostats"] == 0 and c["unknown_heliostat_records"] == 0
+    # ids[5] and ids[6] have records (8 and 3), ids[7] none: known heliostats on nominal kinematics
+    assert c["nominal_heliostats"] == 2 and c["nominal_heliostat_ids"] == sorted([ids[5], ids[6]])
+    assert c["nominal_heliostat_records"] == 8 + 3
