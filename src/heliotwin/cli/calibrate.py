@@ -38,7 +38,10 @@ def _add_common(p, current: bool = False):
     p.add_argument("--paint", required=True, help="PAINT download folder")
     p.add_argument("--heliostats", help="comma-separated heliostat ids (default: every heliostat)")
     p.add_argument("--min-records", type=_COUNT, default=50,
-                   help="skip heliostats with fewer usable records (default 50)")
+                   help="fewest usable records for the full model (default 50); --split current with lm gives a "
+                        "heliostat with fewer the reduced model its records support (the plant prior of the fully "
+                        "calibrated ones, the parameter set per record count chosen by validation on them), only "
+                        "one without a usable record stays nominal; study splits skip them")
     if current:
         p.add_argument("--split", "--type", dest="split", default=None,
                        choices=("current",) + _STUDY_SPLITS + ("online",),

@@ -76,7 +76,8 @@ class CalibrationSettings:
         heliostat's latest records the internal validation predicts (None:
         :data:`heliotwin.calibrate.protocol.config.CURRENT_HOLDOUT`).
     min_records : int
-        Heliostats with fewer usable records are skipped.
+        Fewest usable records for the full model. A ``current`` lm run gives a heliostat with fewer the reduced
+        model its records support (:func:`with_reduced_models`); study protocols and other methods skip it.
     focal_spot : str
         Centroid source scored on (``HeliOS`` or ``UTIS``).
     seed : int
