@@ -310,13 +310,14 @@ def _print_table(report: dict) -> None:
     if expected:
         print(f"written plant: fitted on every record ({report['written_plant']['records_fitted']} records); "
               f"expected error {_fmt(expected.get('median_of_mean_mrad'))} mrad median, "
-              f"{_fmt(expected.get('p95_of_mean_mrad'))} p95 over heliostats ({expected['protocol']})")
+              f"{_fmt(expected.get('p95_of_mean_mrad'))} p95 over the {'fully calibrated ' if red else ''}heliostats "
+              f"({expected['protocol']})")
     elif report.get("written_plant"):
         print(f"written plant: {report['written_plant']['records']} (a study protocol; --split current fits every "
               "record)")
     took = f"fit run {_fmt(ov.get('seconds'), 1)} s"
     if ov.get("command_seconds") is not None:
-        took += f" of the command's {_fmt(ov['command_seconds'], 1)} s"
+        took += f" of the command's {_fmt(ov['command_seconds'], 1)} s (after start-up)"
     full = "fully calibrated " if red else ""
     print(f"overall: median over {full}heliostats of mean test error {_fmt(ov.get('median_of_mean_test_mrad'))} mrad "
           f"(nominal {_fmt(ov.get('nominal_median_of_mean_test_mrad'))}), {ov.get('n_heliostats', 0)} heliostats, "
