@@ -129,6 +129,10 @@ def surface_errors(true_surfaces, learned_surfaces, samples=(8, 8)) -> torch.Ten
     return torch.sqrt((area * ang ** 2).sum(-1) / area.sum(-1))
 
 
+#: Heliostats named in :func:`score`'s ``worst_heliostats``.
+WORST = 5
+
+
 def score(truth, learned, *, suns: int = 16, seed: int = 0, flux: bool = True,
           flux_resolution: tuple = (20, 48)) -> dict:
     """Compare a learned scenario with the truth of a simulated plant (module docstring).
@@ -154,7 +158,8 @@ def score(truth, learned, *, suns: int = 16, seed: int = 0, flux: bool = True,
         ``heliostats`` (scored), ``missing`` (truth heliostats the learned plant lacks), ``suns``,
         ``pointing_mrad`` {median, p95, mean, max} over heliostats x suns, ``pointing_per_heliostat_mrad``
         {median, p95, ...} of each heliostat's median, ``unreachable`` (pairs left out), ``surface_mrad``
-        (or None), ``flux`` {relative_l1, power_ratio} (or None).
+        (or None), ``flux`` {relative_l1, power_ratio} (or None), ``worst_heliostats`` (the :data:`WORST`
+        largest per-heliostat medians: ``heliostat``, ``median_mrad``).
     """
     check_truth(truth)
     tp, lp = truth.plant, learned.plant
@@ -175,6 +180,10 @@ def score(truth, learned, *, suns: int = 16, seed: int = 0, flux: bool = True,
               "pointing_per_heliostat_mrad": {k: (None if v is None else 1e3 * v)
                                               for k, v in _stats(per_heliostat).items()},
               "unreachable": int((~ok).sum())}
+    # the heliostats that set the tail, named (a p95 alone tells an operator nothing to act on)
+    order = torch.argsort(torch.nan_to_num(per_heliostat, nan=-1.0), descending=True)[:WORST]
+    report["worst_heliostats"] = [{"heliostat": ids[i], "median_mrad": 1e3 * float(per_heliostat[i])}
+                                  for i in order.tolist() if math.isfinite(float(per_heliostat[i]))]
     surf = surface_errors(tp.field.surfaces, lp.field.surfaces)
     report["surface_mrad"] = None if surf is None else {k: (None if v is None else 1e3 * v)
                                                         for k, v in _stats(surf).items()}

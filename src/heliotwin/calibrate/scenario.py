@@ -45,7 +45,8 @@ def storable_choice(record: dict | None) -> dict | None:
     return record.get("original") if record.get("used") else None
 
 
-def calibration_state(model, *, focal_spot: str = "", prior=None, settings_choice: dict | None = None) -> dict:
+def calibration_state(model, *, focal_spot: str = "", prior=None, settings_choice: dict | None = None,
+                      coverage: dict | None = None) -> dict:
     """The ``/learned/calibration`` entry of a calibrated model (calibrated heliostats only).
 
     Parameters
@@ -63,6 +64,12 @@ def calibration_state(model, *, focal_spot: str = "", prior=None, settings_choic
         The lm settings chosen by leave-heliostats-out CV
         (:func:`heliotwin.calibrate.protocol.selection.choose_for_run`'s record), stored as JSON text for
         ``--settings stored`` (:func:`heliotwin.calibrate.protocol.selection.stored_choice`).
+    coverage : dict, optional
+        What the run did with every heliostat (:func:`coverage_entry`'s input): ``expected_error_mrad``
+        {id: float}, ``reduced`` {id: parameter set}, ``nominal`` {id: why}, ``residuals`` (per fitted record:
+        ``record_id``, ``heliostat`` id list, ``time`` [s], ``error_mrad``). Stored as ``expected_error_mrad``
+        [Hc] (NaN where unknown), ``coverage`` (JSON text) and ``residuals`` (arrays, ``heliostat`` indexing
+        ``heliostats``): what ``scenario show``, ``score`` and ``report`` name and draw.
 
     Returns
     -------
@@ -101,12 +108,32 @@ def calibration_state(model, *, focal_spot: str = "", prior=None, settings_choic
                              for hid, net in networks.items() if hid in ids}
     if settings_choice:
         state["settings_choice"] = json.dumps(settings_choice)
+    if coverage:
+        state.update(coverage_entry(coverage, ids))
     if isinstance(prior, PlantPrior):
         state["prior"] = prior.state()
     elif prior is not None:
         state["prior"] = {"names": [str(n) for n in model.names], "mean": torch.as_tensor(prior[0]).double(),
                           "sigma": torch.as_tensor(prior[1]).double(), "heliostats": list(ids)}
     return state
+
+
+def coverage_entry(coverage: dict, ids: list) -> dict:
+    """The stored form of a run's ``coverage`` (see :func:`calibration_state`) over the calibrated ``ids``."""
+    expected = coverage.get("expected_error_mrad") or {}
+    out = {"expected_error_mrad": torch.tensor([float(expected.get(h) if expected.get(h) is not None else "nan")
+                                                for h in ids], dtype=torch.float64),
+           "coverage": json.dumps({k: coverage.get(k) for k in ("reduced", "nominal", "min_records", "rule")})}
+    res = coverage.get("residuals")
+    if res and len(res.get("record_id", [])):
+        where = {h: i for i, h in enumerate(ids)}
+        rows = [i for i, h in enumerate(res["heliostat"]) if h in where]
+        out["residuals"] = {
+            "record_id": torch.as_tensor([int(res["record_id"][i]) for i in rows], dtype=torch.int64),
+            "heliostat": torch.as_tensor([where[res["heliostat"][i]] for i in rows], dtype=torch.int64),
+            "time": torch.as_tensor([float(res["time"][i]) for i in rows], dtype=torch.float64),
+            "error_mrad": torch.as_tensor([float(res["error_mrad"][i]) for i in rows], dtype=torch.float64)}
+    return out
 
 
 def calibrated_plant(plant: Plant, model) -> Plant:
@@ -119,7 +146,7 @@ def calibrated_plant(plant: Plant, model) -> Plant:
 
 def calibrated_scenario(plant: Plant, model, *, previous: Scenario | None = None, focal_spot: str = "",
                         records: dict | None = None, settings: dict | None = None, source: str = "",
-                        settings_choice: dict | None = None) -> Scenario:
+                        settings_choice: dict | None = None, coverage: dict | None = None) -> Scenario:
     """The calibrated plant as a scenario, in memory (plant′ = ``plant`` with the calibrated kinematics, the
     calibration under ``/learned/calibration`` and one ``calibrate`` provenance step).
 
@@ -141,6 +168,8 @@ def calibrated_scenario(plant: Plant, model, *, previous: Scenario | None = None
         Where the records came from (the PAINT folder).
     settings_choice : dict, optional
         The run's ``settings_choice`` report; what :func:`storable_choice` keeps of it is stored.
+    coverage : dict, optional
+        What the run did with every heliostat (:func:`calibration_state`).
 
     Returns
     -------
@@ -152,7 +181,7 @@ def calibrated_scenario(plant: Plant, model, *, previous: Scenario | None = None
     prior = (prior["mean"], prior["sigma"]) if isinstance(prior, dict) and "mean" in prior else prior
     learned = dict(previous.learned) if previous is not None else {}
     learned[KEY] = calibration_state(model, focal_spot=focal_spot, prior=prior,
-                                     settings_choice=storable_choice(settings_choice))
+                                     settings_choice=storable_choice(settings_choice), coverage=coverage)
     step = provenance_entry("calibrate", method=str(model.method), source=str(source), records=records or {},
                             calibrated=list(learned[KEY]["heliostats"]), settings=settings or {})
     return next_scenario(previous, calibrated_plant(plant, model), learned=learned, step=step)

@@ -10,6 +10,7 @@ import csv
 import math
 import os
 import sys
+import time
 from dataclasses import fields, replace
 
 from ..errors import HeliotwinError
@@ -37,7 +38,10 @@ def _add_common(p, current: bool = False):
     p.add_argument("--paint", required=True, help="PAINT download folder")
     p.add_argument("--heliostats", help="comma-separated heliostat ids (default: every heliostat)")
     p.add_argument("--min-records", type=_COUNT, default=50,
-                   help="skip heliostats with fewer usable records (default 50)")
+                   help="fewest usable records for the full model (default 50); --split current with lm gives a "
+                        "heliostat with fewer the reduced model its records support (the plant prior of the fully "
+                        "calibrated ones, the parameter set per record count chosen by validation on them), only "
+                        "one without a usable record stays nominal; study splits skip them")
     if current:
         p.add_argument("--split", "--type", dest="split", default=None,
                        choices=("current",) + _STUDY_SPLITS + ("online",),
@@ -177,6 +181,7 @@ def cmd_calibrate(args) -> int:
     from ..io.scenario import write_scenario
     from ..workflows.calibrate import calibrate, run_config
 
+    started = time.perf_counter()
     settings = replace(_settings(args), curve=bool(args.curve and args.json and not args.no_plots))
     if args.learn_settings and not args.output:
         raise HeliotwinError("--learn-settings stores what it learns in the scenario: give -o PLANT.h5")
@@ -186,13 +191,15 @@ def cmd_calibrate(args) -> int:
     with checkpointed(args, _checkpoint(args, settings, device)), \
             output_set([("--paint", args.paint), ("--scenario", args.scenario)]) as out:
         output, json_path = out.file(args.output, "-o"), out.file(args.json, "--json")
-        result = calibrate(args.scenario, args.paint, settings, device=device, progress=_progress(args),
-                           checkpoint=args.checkpoint, stage=lambda text: stage(args, text))
+        progress = _progress(args)
+        result = calibrate(args.scenario, args.paint, settings, device=device, progress=progress,
+                           checkpoint=args.checkpoint, stage=_stages(args, progress))
         report = result.report
         if args.output and result.scenario is None:
             _print_table(report)
             raise HeliotwinError(f"no heliostat could be calibrated (see the table above); {args.output} not written")
         stage(args, "writing outputs")
+        report.setdefault("overall", {})["command_seconds"] = time.perf_counter() - started
         if output:
             write_scenario(result.scenario, output)
             report["output"] = os.fspath(args.output)
@@ -210,18 +217,47 @@ def cmd_calibrate(args) -> int:
 
 def _progress(args, stream=None):
     """How a run shows progress: nothing with ``--quiet``, tqdm bars when stderr is a terminal, else one line
-    per step of the run on stdout, with the run's summary (a log file or a pipe gets ``heliotwin calibrate: step
-    8/15 fit``; stderr stays for the one-line error)."""
+    per step of the run on stdout, with the run's summary (a log file or a pipe gets ``heliotwin calibrate:
+    current plant: step 8/15 fit``, each block of steps named by what it fits; stderr stays for the one-line
+    error)."""
     if args.quiet:
         return False
     if sys.stderr.isatty():
         return True
-    stream = sys.stdout if stream is None else stream
+    return _StepLines(sys.stdout if stream is None else stream)
 
-    def line(step: str, index: int, total: int) -> None:
-        print(f"heliotwin calibrate: step {index + 1}/{total} {step}", file=stream, flush=True)
 
-    return line
+class _StepLines:
+    """One line per step of a pipeline run, each named by its block (:meth:`block`: the stage the calibration
+    reached, e.g. ``validation candidate 2/3 'static, 10 bags'``): a calibration runs the pipeline once per
+    candidate setting and once for the plant it writes, and unnamed ``step 1/15 ... 15/15`` blocks cannot be
+    told apart."""
+
+    def __init__(self, stream):
+        self.stream, self.name = stream, ""
+
+    def block(self, text: str) -> None:
+        """A stage line: printed, and (its part before the first ':') the name of the steps that follow."""
+        if text[:1].isspace():  # a detail inside the block (a candidate's result), not a new block
+            print(f"heliotwin calibrate: {text.strip()}", file=self.stream, flush=True)
+            return
+        self.name = text.split(":")[0].strip()
+        print(f"heliotwin calibrate: {text}", file=self.stream, flush=True)
+
+    def __call__(self, step: str, index: int, total: int) -> None:
+        where = f"{self.name}: " if self.name else ""
+        print(f"heliotwin calibrate: {where}step {index + 1}/{total} {step}", file=self.stream, flush=True)
+
+
+def _stages(args, progress):
+    """The calibration's ``stage`` callback: the terminal's stage line (stderr), and the name of the block of step
+    lines that follows when progress goes to a log (:class:`_StepLines`)."""
+    def named(text: str) -> None:
+        stage(args, text)
+        if isinstance(progress, _StepLines):
+            progress.block(text)
+
+    return named
 
 
 def _checkpoint(args, settings, device):
@@ -245,26 +281,47 @@ def _fmt(x, nd=2):
 
 
 def _print_table(report: dict) -> None:
-    print(f"{'heliostat':10s} {'status':8s} {'train':>5s} {'val':>4s} {'test':>4s} {'nominal':>9s} {'calib':>8s}  note")
+    headline = (report.get("headline") or {}).get("text")
+    if headline:  # what the plant got, first; the per-heliostat table below
+        print(headline)
+    print(f"{'heliostat':10s} {'status':8s} {'model':8s} {'train':>5s} {'val':>4s} {'test':>4s} {'nominal':>9s} "
+          f"{'calib':>8s}  note")
     for hid, r in report["heliostats"].items():
         s = r.get("split", {})
         note = r.get("reason", "")
         if r.get("suspicious", {}).get("note"):
             note = (note + "; " if note else "") + r["suspicious"]["note"]
-        print(f"{hid:10s} {r['status']:8s} {s.get('train', 0):5d} {s.get('validation', 0):4d} {s.get('test', 0):4d} "
-              f"{_fmt(r.get('nominal_mean_test_mrad')):>9s} {_fmt(r.get('mean_test_mrad')):>8s}  {note}")
+        model = "reduced" if str(r.get("model", "")).startswith("reduced") else \
+            ("full" if r["status"] == "ok" else "nominal")
+        print(f"{hid:10s} {r['status']:8s} {model:8s} {s.get('train', 0):5d} {s.get('validation', 0):4d} "
+              f"{s.get('test', 0):4d} {_fmt(r.get('nominal_mean_test_mrad')):>9s} {_fmt(r.get('mean_test_mrad')):>8s}"
+              f"  {note}")
+    red = report.get("reduced")
+    if red:
+        held = red.get("held_out") or {}
+        print(f"reduced models ({len(red.get('calibrated', []))} heliostats, < --min-records {red.get('min_records')}"
+              "): "
+              f"{red['rule']['rule']}; on their own latest records (held out) {_fmt(held.get('median_mrad'))} mrad "
+              f"median against nominal {_fmt(held.get('nominal_median_mrad'))}, better than nominal for "
+              f"{held.get('better_than_nominal', 0)} of {held.get('heliostats', 0)}; 'calib' of a reduced heliostat is "
+              "its Laplace expected error")
     ov = report["overall"]
     expected = report.get("expected_error")
     if expected:
         print(f"written plant: fitted on every record ({report['written_plant']['records_fitted']} records); "
               f"expected error {_fmt(expected.get('median_of_mean_mrad'))} mrad median, "
-              f"{_fmt(expected.get('p95_of_mean_mrad'))} p95 over heliostats ({expected['protocol']})")
+              f"{_fmt(expected.get('p95_of_mean_mrad'))} p95 over the {'fully calibrated ' if red else ''}heliostats "
+              f"({expected['protocol']})")
     elif report.get("written_plant"):
         print(f"written plant: {report['written_plant']['records']} (a study protocol; --split current fits every "
               "record)")
-    print(f"overall: median over heliostats of mean test error {_fmt(ov.get('median_of_mean_test_mrad'))} mrad "
+    took = f"fit run {_fmt(ov.get('seconds'), 1)} s"
+    if ov.get("command_seconds") is not None:
+        took += f" of the command's {_fmt(ov['command_seconds'], 1)} s (after start-up)"
+    full = "fully calibrated " if red else ""
+    print(f"overall: median over {full}heliostats of mean test error {_fmt(ov.get('median_of_mean_test_mrad'))} mrad "
           f"(nominal {_fmt(ov.get('nominal_median_of_mean_test_mrad'))}), {ov.get('n_heliostats', 0)} heliostats, "
-          f"{_fmt(ov.get('seconds'), 1)} s; skipped records {ov.get('skipped_records', 0)}"
+          f"{took}; skipped records {ov.get('skipped_records', 0)}"
           + ("" if ov.get("interval_90_coverage") is None else
              f"; 90 % interval covers {ov['interval_90_coverage']:.2f} of the test records"))
 

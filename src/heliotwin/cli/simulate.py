@@ -88,7 +88,7 @@ def cmd_simulate(args) -> int:
 
 def cmd_score(args) -> int:
     from ..io.scenario import load_scenario
-    from ..workflows.score import score
+    from ..workflows.score import score, summary_lines
 
     with output_set([("--truth", args.truth), ("--scenario", args.scenario)]) as out:
         json_path = out.file(args.json, "--json")
@@ -100,6 +100,8 @@ def cmd_score(args) -> int:
         p, hp = report["pointing_mrad"], report["pointing_per_heliostat_mrad"]
         print(f"{report['heliostats']} heliostats x {report['suns']} suns: pointing error median {p['median']:.3f} "
               f"mrad, p95 {p['p95']:.3f} mrad (per heliostat median {hp['median']:.3f}, p95 {hp['p95']:.3f})")
+        for line in summary_lines(report):
+            print(line)
         if report["surface_mrad"]:
             print(f"surface normal error median {report['surface_mrad']['median']:.3f} mrad")
         if report["flux"]:

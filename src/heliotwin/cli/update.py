@@ -122,6 +122,10 @@ def print_update_summary(report: dict) -> None:
         print(f"  {c['unknown_heliostat_records']} record(s) of {c['unknown_heliostats']} heliostat(s) this plant "
               f"does not know were not used ({', '.join(c['unknown_heliostat_ids'][:5])}"
               f"{', ...' if c['unknown_heliostats'] > 5 else ''})")
+    if c.get("nominal_heliostats"):
+        print(f"  {c['nominal_heliostat_records']} record(s) of {c['nominal_heliostats']} heliostat(s) on nominal "
+              f"kinematics (known, not calibrated) were not used ({', '.join(c['nominal_heliostat_ids'][:5])}"
+              f"{', ...' if c['nominal_heliostats'] > 5 else ''}; calibrate again to include them)")
     for a in report["alarms"]:
         print(f"  step alarm: {a['heliostat']} record {a['record_id']} (step statistic {a['statistic']:.1f} over "
               f"{a['window']} record(s) > {report['threshold']['threshold']:.1f})")

@@ -22,11 +22,17 @@ from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
+import torch
 import torch.distributed as dist
 
+from ..calibrate import metrics
+from ..calibrate.inputs import fit_spots
 from ..calibrate.methods.batched import sharded
 from ..calibrate.model import Calibrated
-from ..calibrate.protocol import pipeline, selection
+from ..calibrate.params import STONE8
+from ..calibrate.priors import MIN_HELIOSTATS, plant_prior
+from ..calibrate.protocol import pipeline, reduced, selection
+from ..calibrate.protocol.archive import PriorArchive
 from ..calibrate.protocol.config import (
     EVERY_RECORD,
     RunConfig,
@@ -34,6 +40,7 @@ from ..calibrate.protocol.config import (
     validate_config,
     validation_protocol,
 )
+from ..calibrate.protocol.suspicious import check_and_correct
 from ..calibrate.scenario import calibrated_scenario
 from ..calibrate.twinstate import with_alarm_threshold, with_process_noise_choice
 from ..distributed import run_spawned
@@ -69,7 +76,8 @@ class CalibrationSettings:
         heliostat's latest records the internal validation predicts (None:
         :data:`heliotwin.calibrate.protocol.config.CURRENT_HOLDOUT`).
     min_records : int
-        Heliostats with fewer usable records are skipped.
+        Fewest usable records for the full model. A ``current`` lm run gives a heliostat with fewer the reduced
+        model its records support (:func:`with_reduced_models`); study protocols and other methods skip it.
     focal_spot : str
         Centroid source scored on (``HeliOS`` or ``UTIS``).
     seed : int
@@ -440,9 +448,9 @@ def calibrate(scenario, records_or_paint, settings: CalibrationSettings = Calibr
                           process_noise=chosen.process_noise)
         else:
             validation = _run(study_cfg, dataset, settings.nproc, device, progress, None)
-        stage(f"fitting the current plant ({cfg.method}) on every record on {device}")
+        stage(f"current plant: fitting ({cfg.method}) on every record on {device}")
     else:
-        stage(f"calibrating ({cfg.method}, {cfg.split} split) on {device}")
+        stage(f"study run: calibrating ({cfg.method}, {cfg.split} split) on {device}")
     report, model, arrays = _run(cfg, dataset, settings.nproc, device, progress, checkpoint)
     seen = seen_records(arrays)  # what the written plant saw (the update treats every other record as new)
     if validation is not None:
@@ -454,6 +462,13 @@ def calibrate(scenario, records_or_paint, settings: CalibrationSettings = Calibr
         report["written_plant"] = {"records": f"the training part of the {cfg.split} split only",
                                    "note": "a study protocol: the plant written saw only its training records; "
                                            "--split current (the default) fits every record"}
+    full_ids = [] if model is None else [h for h, ok in zip(model.heliostat_ids, model.ok.tolist()) if ok]
+    if cfg.split == "current" and cfg.method == "lm":
+        stage("reduced models: the heliostats with fewer than --min-records records (the rule chosen by validation "
+              "on the fully calibrated ones)")
+        model, extra_seen = with_reduced_models(cfg, dataset, model, report)
+        seen.update(extra_seen)
+    with_headline(report)
     if model is None or not bool(model.ok.any()):
         return Calibration(None, report, model, arrays)
     curves = None
@@ -463,14 +478,214 @@ def calibrate(scenario, records_or_paint, settings: CalibrationSettings = Calibr
     # The run's settings, method options included (half-life, drift: they shape the result).
     new = calibrated_scenario(dataset.plant, model, previous=previous, focal_spot=cfg.focal_spot,
                               records=seen, settings=dict(report["config"]),
-                              source=os.path.abspath(paint), settings_choice=report.get("settings_choice"))
+                              source=os.path.abspath(paint), settings_choice=report.get("settings_choice"),
+                              coverage=run_coverage(report, model, dataset, cfg))
     # without a drift model, the update's random walk is chosen here, where the records the fit saw are at hand
     # (an update is often given only the new ones)
-    new, choice = with_process_noise_choice(new, dataset.records)
+    # (both chosen on the fully calibrated heliostats' records: a reduced heliostat's few records cannot tell a
+    # walk from noise, and their thresholds stay those of the plant)
+    chosen_on = _rows_of(dataset.records, full_ids)
+    new, choice = with_process_noise_choice(new, chosen_on)
     if choice is not None:
         report["update_process_noise"] = choice
     # the updates' step-alarm threshold too: its leave-one-out residuals need every record the fit saw
-    new, threshold = with_alarm_threshold(new, dataset.records)
+    new, threshold = with_alarm_threshold(new, chosen_on)
     if threshold is not None:
         report["update_alarm_threshold"] = threshold
     return Calibration(new, report, model, arrays, curves)
+
+
+def _rows_of(records, ids):
+    """The rows of ``records`` on the heliostats ``ids`` (same heliostat axis)."""
+    keep = torch.tensor([records.heliostat_ids.index(h) for h in ids if h in records.heliostat_ids],
+                        dtype=torch.long, device=records.heliostat_index.device)
+    return records.subset(torch.isin(records.heliostat_index, keep))
+
+
+def with_reduced_models(cfg: RunConfig, dataset: PaintDataset, model: Calibrated | None, report: dict) -> tuple:
+    """The heliostats a ``current`` lm run left out for having fewer than ``--min-records`` usable records, each
+    with the reduced model its records support (:mod:`heliotwin.calibrate.protocol.reduced`: the rule validated on
+    the fully calibrated heliostats, the plant prior learned from them); only a heliostat without a usable record
+    (or below the rule's first step) stays nominal. Updates ``report`` in place (their entries, ``reduced``);
+    returns (the model over every calibrated heliostat, plant order; {heliostat id: record ids fitted})."""
+    wanted = list(cfg.heliostats or dataset.plant.field.ids)
+    ran = set(model.heliostat_ids) if model is not None else set()
+    left = [h for h in wanted if h not in ran]
+    if not left:
+        return model, {}
+    ok_rows = [] if model is None else model.ok.nonzero().flatten().tolist()
+    full_ids = [model.heliostat_ids[i] for i in ok_rows]
+    records = dataset.records.for_heliostats(full_ids).with_focal_spot(cfg.focal_spot)
+    prior, rule, noise = None, None, NOISE_DEFAULT
+    if full_ids:
+        kin = model.nominal.index(ok_rows)  # property corrections applied, as the full fits saw them
+        archive = PriorArchive.fit(kin, records, min_records=1)
+        if len(full_ids) >= MIN_HELIOSTATS:
+            prior = plant_prior(archive.deviations, STONE8, full_ids)
+        rule = reduced.choose_rule(kin, records, archive.deviations, cfg.min_records, cfg.seed, prior)
+        noise = reduced.plant_noise(kin, fit_spots(records), archive.deviations)
+    else:
+        rule = reduced.Rule(((1, "axis offsets"),), False, {"protocol": "not validated: no fully calibrated heliostat"})
+    mine = dataset.records.for_heliostats(left).with_focal_spot(cfg.focal_spot)
+    all_ids = list(dataset.plant.field.ids)
+    kin_left = dataset.plant.field.kinematics.index([all_ids.index(h) for h in left])
+    findings = {}
+    if cfg.correct_suspicious:  # as the full run checks its heliostats (a wrong actuator value is tens of mrad)
+        fallback = None if prior is None else (prior.mean, prior.sigma)
+        kin_left, findings = check_and_correct(kin_left, left, dataset.plant.field.kinematics, mine,
+                                               fallback_prior=fallback)
+    small, info = reduced.fit_reduced(kin_left, mine, rule, prior, noise)
+    small.corrections = {h: f for h, f in findings.items() if f.get("corrected")}
+    heliostats = _reduced_entries(small, mine, info, rule, cfg)
+    held = _reduced_held_out(kin_left, mine, rule, prior, noise)
+    for hid, entry in heliostats.items():
+        if hid in held:
+            entry["held_out"] = held[hid]
+    for hid, found in findings.items():
+        heliostats[hid]["suspicious"] = found
+    report["heliostats"].update(heliostats)
+    nominal = [h for h in left if not heliostats[h]["status"] == "ok"]
+    scored = [v for v in held.values() if v.get("mean_mrad") is not None]
+    report["reduced"] = {
+        "rule": rule.json(), "min_records": cfg.min_records,
+        "prior": ("plant prior of the fully calibrated heliostats" if prior is not None else "nominal prior"),
+        "heliostats": {h: info[h] for h in left}, "calibrated": [h for h in left if h not in nominal],
+        "nominal": nominal,
+        "held_out": {"protocol": "each reduced heliostat's latest records (a third of them, at most "
+                                 f"{reduced.HOLDOUT}) predicted by the rule's model fitted on its earlier ones",
+                     "heliostats": len(scored),
+                     "median_mrad": _quantile([v["mean_mrad"] for v in scored], 0.5),
+                     "nominal_median_mrad": _quantile([v["nominal_mean_mrad"] for v in scored], 0.5),
+                     "better_than_nominal": sum(1 for v in scored if v["mean_mrad"] < v["nominal_mean_mrad"])}}
+    combined = reduced.merged(model, small, [h for h in all_ids if h in ran or h in set(left)])
+    fitted = {h: [int(r) for r in mine.record_id[mine.heliostat_index == i].tolist()]
+              for i, h in enumerate(left) if heliostats[h]["status"] == "ok"}
+    return combined, fitted
+
+
+#: Record noise per component [rad] of a reduced fit when no fully calibrated heliostat gives the plant's.
+NOISE_DEFAULT = 1e-3
+
+
+def _reduced_entries(small: Calibrated, records, info: dict, rule, cfg: RunConfig) -> dict:
+    """Report entries of the reduced heliostats: the set fitted, the Laplace expected error over their own
+    records' sun positions (``mean_test_mrad``: what the headline counts), the nominal error on those records."""
+    err = small.pointing_error(records).double()
+    nom = metrics.pointing_error(small.nominal, records).double()
+    pred, _ = pipeline.record_intervals(small, records, err, cfg.seed)
+    h = len(small.heliostat_ids)
+    hidx = records.heliostat_index
+
+    def mean(v):
+        return metrics.per_heliostat_mean(v, hidx, h).tolist()
+
+    fit_m, nom_m = mean(err), mean(nom)
+    exp_m = mean(pred["expected"].to(err)) if pred is not None else [None] * h
+    up_m = mean(pred["upper"].to(err)) if pred is not None else [None] * h
+    out = {}
+    for i, hid in enumerate(small.heliostat_ids):
+        n = info[hid]["records"]
+        split = {"n_records": n, "train": n if bool(small.ok[i]) else 0, "validation": 0, "test": 0,
+                 "dropped_no_time": 0}
+        if not bool(small.ok[i]):
+            least = rule.fewest
+            out[hid] = {"status": "nominal", "split": split, "model": "nominal",
+                        "reason": ("no usable record" if n == 0 else f"too few usable records ({n}) for any model "
+                                   f"the validation supports (fewest {least})"),
+                        "nominal_records": n}
+            continue
+        finite = math.isfinite(nom_m[i])
+        out[hid] = {"status": "ok", "split": split, "model": f"reduced: {info[hid]['parameters']}",
+                    "reason": f"{n} usable record(s) < --min-records {cfg.min_records}: reduced model, "
+                              f"{reduced.DESCRIPTIONS[info[hid]['parameters']]}",
+                    "mean_test_mrad": 1e3 * exp_m[i] if exp_m[i] is not None else None,
+                    "expected_test_mrad": 1e3 * exp_m[i] if exp_m[i] is not None else None,
+                    "interval_90_mrad": [0.0, 1e3 * up_m[i]] if up_m[i] is not None else None,
+                    "expected_error_source": "Laplace posterior of the reduced fit (interval drift chosen on the "
+                                             "validation's held-out records)",
+                    "train": {"mean_mrad": 1e3 * fit_m[i] if finite else None},
+                    "nominal_mean_test_mrad": 1e3 * nom_m[i] if finite else None,
+                    "nominal_mean_records_mrad": 1e3 * nom_m[i] if finite else None,
+                    "parameters": {p: float(small.delta[i, j]) for j, p in enumerate(STONE8)}}
+    return out
+
+
+def _reduced_held_out(nominal, records, rule, prior, noise) -> dict:
+    """Held-out check on the reduced heliostats themselves (evidence, never used to choose anything): each one's
+    latest third of its records (at most :data:`reduced.HOLDOUT`, at least one; heliostats with >= 3 records)
+    predicted by the rule's model fitted on its earlier ones. Heliostat id -> mean errors [mrad]."""
+    counts = records.counts().cpu()
+    k = torch.clamp(counts // 3, 1, reduced.HOLDOUT)
+    rank = reduced.rank_from_latest(records).cpu()
+    scored = counts >= 3
+    row_h = records.heliostat_index.cpu()
+    test_rows = (rank < k[row_h]) & scored[row_h]
+    train = records.subset((~test_rows & scored[row_h]).to(records.heliostat_index.device))
+    test = records.subset(test_rows.to(records.heliostat_index.device))
+    if len(test) == 0:
+        return {}
+    model, info = reduced.fit_reduced(nominal, train, rule, prior, noise)
+    err = metrics.per_heliostat_mean(model.pointing_error(test).double(), test.heliostat_index, len(counts)).tolist()
+    nom = metrics.per_heliostat_mean(metrics.pointing_error(nominal, test).double(), test.heliostat_index,
+                                     len(counts)).tolist()
+    out = {}
+    for i, hid in enumerate(records.heliostat_ids):
+        if bool(scored[i]) and bool(model.ok[i]) and math.isfinite(err[i]):
+            out[hid] = {"records": int(k[i]), "fitted_on": int(counts[i] - k[i]), "parameters": info[hid]["parameters"],
+                        "mean_mrad": 1e3 * err[i], "nominal_mean_mrad": 1e3 * nom[i]}
+    return out
+
+
+def with_headline(report: dict) -> dict:
+    """``report["headline"]``: calibrated N of M heliostats, the expected error's median and p95 over every
+    calibrated one (full: the validation inside the records; reduced: their Laplace posterior), the nominal
+    ones named with why. Also the line that says it (``text``)."""
+    entries = report.get("heliostats") or {}
+    ok = {h: e for h, e in entries.items() if e.get("status") == "ok"}
+    errors = [e.get("mean_test_mrad") for e in ok.values()]
+    n_reduced = sum(1 for e in ok.values() if str(e.get("model", "")).startswith("reduced"))
+    nominal = {h: e.get("reason", "") for h, e in entries.items() if e.get("status") != "ok"}
+    med, p95 = _quantile(errors, 0.5), _quantile(errors, 0.95)
+    least = ((report.get("reduced") or {}).get("rule") or {}).get("steps")
+    first = next((n for n, s in least if s != "nominal"), None) if least else None
+    text = (f"calibrated {len(ok)} of {len(entries)} heliostats ({len(ok) - n_reduced} full model, {n_reduced} "
+            f"reduced); expected error {_fmt(med)} mrad median, {_fmt(p95)} p95 over them")
+    if nominal:
+        least = first if first else (report.get("config") or {}).get("min_records")
+        why = ("no usable record" if least == 1 else f"fewer than {least} usable records") if least else \
+            "not calibrated"
+        text += f"; {nominal_line(list(nominal), why)}"
+    report["headline"] = {"calibrated": len(ok), "heliostats": len(entries), "reduced": n_reduced,
+                          "full": len(ok) - n_reduced, "expected_median_mrad": med, "expected_p95_mrad": p95,
+                          "nominal": list(nominal), "nominal_reasons": nominal, "text": text}
+    return report
+
+
+def nominal_line(ids: list, why: str, limit: int = 12) -> str:
+    """``"3 heliostats nominal: fewer than 1 usable records: AA12, AB01, ..."`` (at most ``limit`` named)."""
+    shown = ", ".join(ids[:limit]) + (f", ... ({len(ids) - limit} more)" if len(ids) > limit else "")
+    return f"{len(ids)} heliostat{'s' if len(ids) != 1 else ''} nominal: {why}: {shown}"
+
+
+def _fmt(x) -> str:
+    return "-" if x is None else f"{x:.2f}"
+
+
+def run_coverage(report: dict, model: Calibrated, dataset: PaintDataset, cfg: RunConfig) -> dict:
+    """What the run did with every heliostat, for the scenario (:func:`heliotwin.calibrate.scenario.
+    calibration_state`): each calibrated one's expected error, the reduced ones' parameter set, the nominal ones
+    with why, and the calibrated model's residual on every usable record of its heliostats."""
+    entries = report.get("heliostats") or {}
+    red = report.get("reduced") or {}
+    ok = [h for h, o in zip(model.heliostat_ids, model.ok.tolist()) if o]
+    records = dataset.records.for_heliostats(model.heliostat_ids).with_focal_spot(cfg.focal_spot)
+    records = records.subset(model.ok.to(records.heliostat_index.device)[records.heliostat_index])
+    err = model.pointing_error(records).double().cpu() if len(records) else torch.zeros(0, dtype=torch.float64)
+    t = records.time.double().cpu() if records.time is not None else torch.full((len(records),), float("nan"))
+    return {"expected_error_mrad": {h: entries.get(h, {}).get("mean_test_mrad") for h in ok},
+            "reduced": {h: v["parameters"] for h, v in (red.get("heliostats") or {}).items() if h in set(ok)},
+            "nominal": (report.get("headline") or {}).get("nominal_reasons") or {},
+            "min_records": cfg.min_records, "rule": (red.get("rule") or {}).get("rule"),
+            "residuals": {"record_id": records.record_id.cpu().tolist(),
+                          "heliostat": [records.heliostat_ids[i] for i in records.heliostat_index.cpu().tolist()],
+                          "time": t.tolist(), "error_mrad": (1e3 * err).tolist()}}

@@ -165,6 +165,22 @@ def _interval_mrad(cal: dict, ids: list) -> np.ndarray:
     return out
 
 
+def _calibration_expected(cal: dict, ids: list) -> np.ndarray:
+    """The calibration's expected pointing error [mrad] per plant heliostat [H] (``calibrate`` stores it: the
+    validation inside the records for a fully calibrated heliostat, the Laplace posterior's for a reduced one);
+    NaN where none is stored."""
+    out = np.full(len(ids), np.nan)
+    stored = cal.get("expected_error_mrad")
+    if stored is None:
+        return out
+    values = np.asarray(torch.as_tensor(stored, dtype=torch.float64).reshape(-1))
+    where = {h: i for i, h in enumerate(ids)}
+    for h, v in zip(cal.get("heliostats") or [], values):
+        if h in where:
+            out[where[h]] = v
+    return out
+
+
 def heliostat_state(scenario: Scenario, records=None) -> dict:
     """Every heliostat's state for the field map.
 
@@ -178,8 +194,10 @@ def heliostat_state(scenario: Scenario, records=None) -> dict:
     -------
     dict
         ``ids`` [H], ``x_m``, ``y_m`` [H] (east, north [m]), one numpy array [H] per key of
-        :data:`QUANTITIES` (NaN where unknown), ``reference_time`` (POSIX s: the latest record time the plant
-        holds, or NaN) and ``threshold`` (the update's step-alarm threshold, or NaN).
+        :data:`QUANTITIES` (NaN where unknown; ``predicted_error_mrad`` is the latest update's, else the
+        calibration's expected error, flagged in ``predicted_from_calibration`` [H] bool), ``nominal`` [H] (1 =
+        the plant's calibration left it at nominal kinematics), ``reference_time`` (POSIX s: the latest record
+        time the plant holds, or NaN) and ``threshold`` (the update's step-alarm threshold, or NaN).
     """
     plant = scenario.plant
     ids = list(plant.field.ids)
@@ -200,8 +218,13 @@ def heliostat_state(scenario: Scenario, records=None) -> dict:
     reference = float(finite.max()) if len(finite) else math.nan
     calibrated = set(cal.get("heliostats") or [])
     surfaces = set((scenario.learned.get("surfaces") or {}).keys())
+    # a heliostat no update touched: its calibration's expected error (every calibrated one has a value)
+    from_cal = _calibration_expected(cal, ids)
+    predicted = np.where(np.isfinite(last_err), 1e3 * last_err, from_cal)
+    nominal = np.array([1.0 if cal and h not in calibrated else 0.0 for h in ids])
     return {"ids": ids, "x_m": pos[:, 0], "y_m": pos[:, 1],
-            "predicted_error_mrad": 1e3 * last_err, "interval_mrad": _interval_mrad(cal, ids),
+            "predicted_error_mrad": predicted, "interval_mrad": _interval_mrad(cal, ids),
+            "predicted_from_calibration": np.isfinite(from_cal) & ~np.isfinite(last_err), "nominal": nominal,
             "days_since_record": (reference - last_t) / 86400.0, "alarms": alarms, "alarms_latest": latest,
             "statistic_latest": stat,
             "surface_learned": np.array([1.0 if h in surfaces else 0.0 for h in ids]),
@@ -256,7 +279,8 @@ def heliostat_detail(scenario: Scenario, heliostat: str) -> dict:
     """
     hist = _history(scenario)
     empty = {"heliostat": heliostat, "time": [], "offsets_mrad": {}, "offsets_std_mrad": {}, "residual_mrad": [],
-             "predicted_error_mrad": [], "alarm": [], "update": []}
+             "predicted_error_mrad": [], "alarm": [], "update": [],
+             "calibration": calibration_history(scenario, heliostat)}
     if hist is None or heliostat not in hist["ids"]:
         return empty
     r = hist["rows"]
@@ -270,7 +294,55 @@ def heliostat_detail(scenario: Scenario, heliostat: str) -> dict:
                                  for n, c in cols.items()},
             "residual_mrad": (1e3 * np.linalg.norm(r["innovation"][rows], axis=-1)).tolist(),
             "predicted_error_mrad": (1e3 * r["predicted_error"][rows]).tolist(),
-            "alarm": r["alarm"][rows].astype(bool).tolist(), "update": r["update"][rows].astype(int).tolist()}
+            "alarm": r["alarm"][rows].astype(bool).tolist(), "update": r["update"][rows].astype(int).tolist(),
+            "calibration": empty["calibration"]}
+
+
+def calibration_history(scenario: Scenario, heliostat: str) -> dict:
+    """What the calibration knew of ``heliostat``: the calibrated model's residual on every record it fitted
+    (``calibrate`` stores them), and the encoder offsets it left with their posterior sigma at its latest record.
+
+    Returns
+    -------
+    dict
+        ``time`` (UTC ISO) [n], ``error_mrad`` [n] (pointing error of the calibrated kinematics on each record),
+        ``record_id`` [n], ``offsets_mrad`` {name: value}, ``offsets_std_mrad`` {name: sigma}, ``at`` (UTC ISO
+        of its latest fitted record or None), ``nominal`` (bool: the calibration left it at nominal kinematics),
+        ``expected_error_mrad`` (or None). Empty lists and dicts where nothing is stored.
+    """
+    cal = scenario.learned.get("calibration") or {}
+    ids = list(cal.get("heliostats") or [])
+    out = {"time": [], "error_mrad": [], "record_id": [], "offsets_mrad": {}, "offsets_std_mrad": {}, "at": None,
+           "nominal": bool(cal) and heliostat not in ids, "expected_error_mrad": None}
+    if heliostat not in ids:
+        return out
+    j = ids.index(heliostat)
+    res = cal.get("residuals") or {}
+    times = np.array([], dtype=np.float64)
+    if res.get("heliostat") is not None:
+        mine = np.nonzero(np.asarray(res["heliostat"]).reshape(-1) == j)[0]
+        t = np.asarray(res["time"], dtype=np.float64).reshape(-1)[mine]
+        order = mine[np.argsort(np.where(np.isfinite(t), t, -np.inf), kind="stable")]
+        times = np.asarray(res["time"], dtype=np.float64).reshape(-1)[order]
+        keep = np.isfinite(times)  # a record without a time has no place on a time axis
+        out.update(time=[_iso(x) for x in times[keep]],
+                   error_mrad=np.asarray(res["error_mrad"], dtype=np.float64).reshape(-1)[order][keep].tolist(),
+                   record_id=np.asarray(res["record_id"]).reshape(-1)[order][keep].astype(int).tolist())
+    finite = times[np.isfinite(times)]
+    out["at"] = _iso(finite.max()) if len(finite) else None
+    names = list(cal.get("parameter_names") or [])
+    delta = cal.get("deviations")
+    cov = (cal.get("posterior") or {}).get("covariance")
+    if delta is not None and cov is not None:
+        d, c = np.asarray(delta, dtype=np.float64), np.asarray(cov, dtype=np.float64)
+        for n in OFFSETS:
+            if n in names:
+                k = names.index(n)
+                out["offsets_mrad"][n] = 1e3 * float(d[j, k])
+                out["offsets_std_mrad"][n] = 1e3 * float(np.sqrt(max(c[j, k, k], 0.0)))
+    expected = _calibration_expected(cal, ids)[j]
+    out["expected_error_mrad"] = float(expected) if np.isfinite(expected) else None
+    return out
 
 
 def surface_deviation(scenario: Scenario, heliostat: str, samples: tuple = (12, 12)) -> dict:
@@ -414,7 +486,8 @@ def plant_report(scenario: Scenario, records=None, settings: ReportSettings = Re
     t0 = time.perf_counter()
     state = heliostat_state(scenario, records)
     alarms = alarm_rows(scenario)
-    with_history = np.isfinite(state["predicted_error_mrad"]) | (state["alarms"] > 0) | (state["surface_learned"] > 0)
+    with_history = np.isfinite(state["predicted_error_mrad"]) | (state["alarms"] > 0) | (state["surface_learned"] > 0) \
+        | (state["nominal"] > 0)
     detail_ids = [state["ids"][i] for i in _ranked(state, len(state["ids"])) if with_history[i]][:settings.detail]
     details = [heliostat_detail(scenario, h) for h in detail_ids]
     learned_surfaces = set((scenario.learned.get("surfaces") or {}).keys())

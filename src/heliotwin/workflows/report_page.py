@@ -114,6 +114,15 @@ def _field_map(state: dict, quantities: dict, colour: str):
         marker=dict(size=6 if len(ids) <= 3000 else 4, color=table[:, keys.index(colour)],
                     colorscale=first["marker.colorscale"][0], showscale=True,
                     colorbar=dict(title=dict(text=first["marker.colorbar.title.text"], side="right")))))
+    nominal = np.asarray(state.get("nominal", np.zeros(len(ids))), dtype=bool)
+    if nominal.any():  # their own class on every colour: a heliostat on nominal kinematics is no "missing value"
+        fig.add_trace(go.Scattergl(
+            x=np.asarray(state["x_m"], dtype=np.float32)[nominal],
+            y=np.asarray(state["y_m"], dtype=np.float32)[nominal],
+            text=ids[nominal], mode="markers", name=f"nominal kinematics, not calibrated ({int(nominal.sum())})",
+            hovertemplate="<b>%{text}</b><br>nominal kinematics (not calibrated)<extra></extra>",
+            marker=dict(symbol="x", size=9 if len(ids) <= 3000 else 6, color="#1f77b4",
+                        line=dict(width=1, color="#1f77b4"))))
     fig.add_trace(go.Scatter(x=[0.0], y=[0.0], mode="markers", name="tower", hoverinfo="name",
                              marker=dict(symbol="triangle-up", size=14, color="black")))
     buttons = [dict(label=quantities[k][0], method="restyle", args=[style(k), [0]]) for k in keys]
@@ -126,24 +135,60 @@ def _field_map(state: dict, quantities: dict, colour: str):
 
 
 # ------------------------------------------------------------------------------------------- heliostats
+#: Time axis of a heliostat's history: dates (a history of one instant otherwise reads 12:58:59.999).
+_DATE_AXIS = dict(type="date", tickformat="%Y-%m-%d", hoverformat="%Y-%m-%d %H:%M UTC")
+
+
+def _time_range(times: list) -> list | None:
+    """The x range [ISO, ISO] of a history: its span, at least a week around it (one record, or several of a
+    day, would otherwise make an axis of milliseconds); None without times."""
+    t = np.array([np.datetime64(x[:16]) for x in times if x]) if times else np.array([])
+    if not len(t):
+        return None
+    lo, hi = t.min(), t.max()
+    pad = max((hi - lo) / 20, np.timedelta64(3, "D"))
+    return [str(lo - pad), str(hi + pad)]
+
+
 def _detail_figure(d: dict):
-    """Offsets with their 2-sigma band and alarms (top), residual and predicted error (bottom)."""
-    fig = make_subplots(rows=2, cols=1, shared_xaxes=True, vertical_spacing=0.08,
-                        subplot_titles=("encoder offsets after each record [mrad] (bars: 2 sigma)",
-                                        "record residual before assimilation [mrad]"))
+    """A heliostat's whole history on one date axis: each encoder offset on its own y axis with its 2-sigma bars
+    (the calibration's value at its latest record, then after each assimilated record; alarms marked), and the
+    pointing error of every record (the calibration's records: the calibrated model's residual; the updates':
+    the miss before assimilation) with the predicted error."""
+    cal = d.get("calibration") or {}
+    names = list(dict.fromkeys(list(d["offsets_mrad"]) + list(cal.get("offsets_mrad") or {})))
+    rows = len(names) + 1
+    titles = [f"{n} [mrad] (bars: 2 sigma)" for n in names] + ["pointing error of each record [mrad]"]
+    fig = make_subplots(rows=rows, cols=1, shared_xaxes=True, vertical_spacing=0.06, subplot_titles=titles)
     t = d["time"]
     alarm = np.asarray(d["alarm"], dtype=bool)
-    for name, mean in d["offsets_mrad"].items():
-        std = 2 * np.asarray(d["offsets_std_mrad"][name])
-        fig.add_trace(go.Scatter(x=t, y=mean, mode="lines+markers", name=name,
-                                 error_y=dict(type="data", array=std, visible=True, thickness=1)), row=1, col=1)
-        if alarm.any():
-            fig.add_trace(go.Scatter(x=list(np.asarray(t)[alarm]), y=list(np.asarray(mean)[alarm]), mode="markers",
-                                     name=f"step alarm ({name})", marker=dict(symbol="x", size=12, color="red")),
-                          row=1, col=1)
-    fig.add_trace(go.Scatter(x=t, y=d["residual_mrad"], mode="markers", name="residual"), row=2, col=1)
-    fig.add_trace(go.Scatter(x=t, y=d["predicted_error_mrad"], mode="lines", name="predicted error"), row=2, col=1)
-    fig.update_layout(height=420, margin=dict(l=60, r=20, t=40, b=40))
+    for r, name in enumerate(names, 1):
+        x, y, e = [], [], []
+        if name in (cal.get("offsets_mrad") or {}) and cal.get("at"):
+            x, y, e = [cal["at"]], [cal["offsets_mrad"][name]], [2 * cal["offsets_std_mrad"][name]]
+            fig.add_trace(go.Scatter(x=x, y=y, mode="markers", name=f"{name}: calibration",
+                                     marker=dict(symbol="diamond", size=9, color="black"),
+                                     error_y=dict(type="data", array=e, visible=True, thickness=1.5)), row=r, col=1)
+        if name in d["offsets_mrad"]:
+            mean, std = d["offsets_mrad"][name], 2 * np.asarray(d["offsets_std_mrad"][name])
+            fig.add_trace(go.Scatter(x=t, y=mean, mode="lines+markers", name=f"{name}: updates",
+                                     error_y=dict(type="data", array=std, visible=True, thickness=1)), row=r, col=1)
+            if alarm.any():
+                fig.add_trace(go.Scatter(x=list(np.asarray(t)[alarm]), y=list(np.asarray(mean)[alarm]),
+                                         mode="markers", name=f"step alarm ({name})",
+                                         marker=dict(symbol="x", size=12, color="red")), row=r, col=1)
+    if cal.get("time"):
+        fig.add_trace(go.Scatter(x=cal["time"], y=cal["error_mrad"], mode="markers", name="calibration records "
+                                 "(residual of the calibrated model)", marker=dict(size=5, color="grey")),
+                      row=rows, col=1)
+    if t:
+        fig.add_trace(go.Scatter(x=t, y=d["residual_mrad"], mode="markers", name="updates' records (miss before "
+                                 "assimilation)"), row=rows, col=1)
+        fig.add_trace(go.Scatter(x=t, y=d["predicted_error_mrad"], mode="lines", name="predicted error"),
+                      row=rows, col=1)
+    span = _time_range(list(cal.get("time") or []) + list(t) + ([cal["at"]] if cal.get("at") else []))
+    fig.update_xaxes(**_DATE_AXIS, **({"range": span} if span else {}))
+    fig.update_layout(height=160 + 150 * rows, margin=dict(l=60, r=20, t=40, b=40))
     return fig
 
 
@@ -196,13 +241,20 @@ def _sections(details: list, plans: list) -> str:
     for k, d in enumerate(details):
         hid = d["heliostat"]
         parts = [f'<section class="heliostat" id="h-{_e(hid)}"><h3>{_e(hid)}</h3>']
-        if d["time"]:
+        cal = d.get("calibration") or {}
+        if cal.get("nominal"):
+            parts.append('<p class="note nominal">nominal kinematics: the calibration left it uncalibrated</p>')
+        if d["time"] or cal.get("time"):
             n_alarm = int(np.sum(d["alarm"]))
-            parts.append(f'<p>{len(d["time"])} assimilated records, {n_alarm} step alarm(s), latest '
-                         f'{_e(d["time"][-1])}</p>')
+            latest = max(list(d["time"]) + list(cal.get("time") or []))
+            expected = cal.get("expected_error_mrad")
+            parts.append(f'<p>{len(cal.get("time") or [])} calibration records'
+                         + (f" (expected error {expected:.2f} mrad)" if expected is not None else "")
+                         + f', {len(d["time"])} assimilated records, {n_alarm} step alarm(s), latest '
+                         f'{_e(latest[:16].replace("T", " "))} UTC</p>')
             parts.append(_lazy_div(_detail_figure(d), f"hist-{k}"))
         else:
-            parts.append('<p class="note">no update history (never updated since its calibration)</p>')
+            parts.append('<p class="note">no record history stored (never updated since its calibration)</p>')
         if hid in planned:
             parts.append(_lazy_div(_sky_figure(planned[hid]), f"sky-{k}"))
         if d.get("surface"):
@@ -374,6 +426,8 @@ def render_page(*, described: dict, state: dict, quantities: dict, colour: str, 
     kin = f"calibrated ({k['method']}) for {k.get('count', 0)}" if k["calibrated"] else "nominal"
     summary = (f"{p['heliostats']} heliostats; kinematics {kin}; {len(alarms)} step alarm(s) in the latest update; "
                f"{ref_text}")
+    if k.get("nominal_line"):
+        summary += f"; {k['nominal_line']}"
     facts = json.dumps({"heliostats": p["heliostats"], "alarms": len(alarms), "detail": len(details),
                         "plan": len(plans)})
     body = [

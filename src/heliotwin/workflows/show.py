@@ -9,6 +9,7 @@ sun, mirror normals from the field model); neither learns anything, so neither r
 """
 from __future__ import annotations
 
+import json
 import math
 import os
 
@@ -22,7 +23,8 @@ from ..optimise.aimstate import KEY as AIM_KEY
 from ..optimise.aimstate import stored_aimpoints
 from ..raytrace.field import FieldSettings, field_optics
 
-__all__ = ["describe_scenario", "export_plant", "format_description", "kinematics_note"]
+__all__ = ["describe_scenario", "export_plant", "format_description", "kinematics_note", "nominal_heliostats",
+           "nominal_summary"]
 
 #: The keys of a step that say how it was run (printed after the step's name).
 _STEP_KEYS = ("method", "command", "source", "paint", "heliostats", "instants", "peak_limit_w_m2", "target")
@@ -44,14 +46,61 @@ LISTED_IDS = 1000
 LISTED_INSTANTS = 100
 
 
-def _learned_summary(learned: dict) -> dict:
+def stored_coverage(cal: dict) -> dict:
+    """A calibration entry's ``coverage`` (``reduced``, ``nominal``, ``min_records``, ``rule``: what
+    :func:`heliotwin.calibrate.scenario.calibration_state` stores) as a dict; empty for a calibration written
+    before it was stored, or malformed text. Read here, not from the calibration package: ``score`` and
+    ``scenario show`` do not import the calibration methods."""
+    try:
+        out = json.loads(cal.get("coverage") or "{}")
+    except (TypeError, ValueError):
+        return {}
+    return out if isinstance(out, dict) else {}
+
+
+def nominal_heliostats(scenario: Scenario) -> dict:
+    """The heliostats of ``scenario``'s plant its calibration left nominal, id -> why (in plant order; the
+    calibration's stored reason, else "not calibrated"); empty when nothing was calibrated at all."""
+    cal = scenario.learned.get("calibration") or {}
+    if not cal:
+        return {}
+    done = set(cal.get("heliostats") or [])
+    why = stored_coverage(cal).get("nominal") or {}
+    return {h: str(why.get(h) or "not calibrated") for h in scenario.plant.field.ids if h not in done}
+
+
+def nominal_summary(nominal: dict, limit: int = 12) -> str:
+    """``"3 heliostats nominal: no usable record: AA28; fewer than 5 usable records: AB01, AB02"`` (grouped by
+    reason, at most ``limit`` ids named); "" when none."""
+    if not nominal:
+        return ""
+    groups: dict = {}
+    for h, why in nominal.items():
+        groups.setdefault(why.split(" (")[0], []).append(h)
+    shown, parts = 0, []
+    for why, ids in groups.items():
+        take = ids[:max(0, limit - shown)]
+        shown += len(take)
+        more = f", ... ({len(ids) - len(take)} more)" if len(take) < len(ids) else ""
+        parts.append(f"{why}: {', '.join(take)}{more}" if take else f"{why}: {len(ids)} heliostats")
+    n = len(nominal)
+    return f"{n} heliostat{'s' if n != 1 else ''} nominal: " + "; ".join(parts)
+
+
+def _learned_summary(learned: dict, scenario: Scenario | None = None) -> dict:
     cal = learned.get("calibration") or {}
     calibrated = sorted(cal.get("heliostats", [])) if cal else []
     surfaces = sorted(learned.get("surfaces") or {})
     aim = learned.get("aimpoints") or {}
     instants = aim.get("instants") or {}
+    coverage = stored_coverage(cal) if cal else {}
+    nominal = nominal_heliostats(scenario) if scenario is not None else {}
     return {"kinematics": {"calibrated": bool(cal), "method": cal.get("method"), "count": len(calibrated),
-                           "heliostats": calibrated[:LISTED_IDS]},
+                           "heliostats": calibrated[:LISTED_IDS],
+                           "reduced": len(coverage.get("reduced") or {}), "rule": coverage.get("rule"),
+                           "min_records": coverage.get("min_records"),
+                           "nominal_count": len(nominal), "nominal": dict(list(nominal.items())[:LISTED_IDS]),
+                           "nominal_line": nominal_summary(nominal)},
             "surfaces": {"count": len(surfaces), "learned_for": surfaces[:LISTED_IDS]},
             "aimpoints": {"instants": len(instants),
                           "labels": [str(v.get("instant", k)) for k, v in instants.items()][:LISTED_INSTANTS],
@@ -112,11 +161,17 @@ def describe_scenario(scenario: Scenario) -> dict:
                       "field_radius_m": [float(dist.min()), float(dist.max())],
                       "sun": {"sunshape": s.sunshape, "dni_w_m2": s.dni, "reflectivity": s.reflectivity,
                               "slope_error_mrad": s.slope_error * 1e3}},
-            "learned": _learned_summary(scenario.learned),
+            "learned": _learned_summary(scenario.learned, scenario),
             "learned_groups": _groups(scenario.learned),
             "extras": sorted(scenario.extras),
             "metadata": {k: v for k, v in scenario.metadata.items() if isinstance(v, (str, int, float, bool))},
             "provenance": steps}
+
+
+def _reduced_note(k: dict) -> str:
+    if not k.get("reduced"):
+        return ""
+    return f" ({k['reduced']} with a reduced model: fewer than {k.get('min_records')} usable records)"
 
 
 def _surfaces_line(s: dict) -> str:
@@ -138,9 +193,11 @@ def format_description(d: dict) -> str:
              f"{p['field_radius_m'][1]:.0f} m from the tower; targets: {targets}",
              f"sun: {sun['sunshape']}, DNI {sun['dni_w_m2']:.0f} W/m2, reflectivity {sun['reflectivity']}, "
              f"slope error {sun['slope_error_mrad']:.2f} mrad",
-             "kinematics: " + (f"calibrated ({k['method']}) for {k.get('count', len(k['heliostats']))} heliostats: "
+             "kinematics: " + (f"calibrated ({k['method']}) for {k.get('count', len(k['heliostats']))} heliostats "
+                               f"of {p['heliostats']}{_reduced_note(k)}: "
                                f"{', '.join(k['heliostats'][:10])}"
                                f"{' ...' if k.get('count', len(k['heliostats'])) > 10 else ''}"
+                               + (f"; {k['nominal_line']}" if k.get("nominal_line") else "")
                                if k["calibrated"] else "nominal (not calibrated)"),
              "surfaces: " + (_surfaces_line(lr["surfaces"]) if lr["surfaces"]["learned_for"]
                              else "ideal (none learned)"),

@@ -75,7 +75,7 @@ from ..devices import to_device
 from ..errors import HeliotwinError
 from ..field.update import select_heliostats, with_kinematics
 from ..io.lock import check_unchanged, file_stamp, plant_lock
-from ..io.paint import PaintDataset, list_heliostats, load_paint_on_plant
+from ..io.paint import PaintDataset, _record_names, list_heliostats, load_paint_on_plant
 from ..io.records import RecordTable
 from ..io.scenario import Scenario, load_scenario, next_scenario, provenance_entry, write_scenario
 
@@ -185,7 +185,26 @@ def _records(records_or_paint, scenario: Scenario, ids: list, plane_tolerance: f
         ds = load_paint_on_plant(paint, select_heliostats(scenario.plant, use), source=scenario.path or "scenario",
                                  plane_tolerance=plane_tolerance, skip_record_ids=skip,
                                  seen_owners=_seen_owners(scenario))
-    return on_axis(ds.records, ids), os.path.abspath(ds.root), {**ds.reading, **_dropped(ds.skipped)}
+    reading = {**ds.reading, **_dropped(ds.skipped)}
+    if not isinstance(records_or_paint, PaintDataset):
+        reading.update(_known_but_nominal(paint, scenario, ids, present, reading))
+    return on_axis(ds.records, ids), os.path.abspath(ds.root), reading
+
+
+def _known_but_nominal(paint: str, scenario: Scenario, ids: list, present: set, reading: dict) -> dict:
+    """The folder's records of heliostats the plant knows but its calibration left nominal: counted as such
+    (``nominal_*``), not among those of heliostats the plant does not know (``unknown_*``)."""
+    calibrated = set(ids)
+    counts = {h: len(_record_names(os.path.join(paint, h, "Calibration"))) for h in scenario.plant.field.ids
+              if h in present and h not in calibrated}
+    counts = {h: n for h, n in counts.items() if n}
+    if not counts:
+        return {}
+    return {"unknown_heliostats": max(0, reading.get("unknown_heliostats", 0) - len(counts)),
+            "unknown_records": max(0, reading.get("unknown_records", 0) - sum(counts.values())),
+            "unknown_ids": [h for h in reading.get("unknown_ids", []) if h not in counts],
+            "nominal_heliostats": len(counts), "nominal_records": sum(counts.values()),
+            "nominal_ids": sorted(counts)[:20]}
 
 
 def _seen_owners(scenario: Scenario) -> dict:
@@ -268,7 +287,10 @@ def update(scenario, records_or_paint, settings: UpdateSettings = UpdateSettings
         counts.update(dropped=reading["dropped"], dropped_by_reason=reading["dropped_by_reason"],
                       unknown_heliostats=reading.get("unknown_heliostats", 0),
                       unknown_heliostat_records=reading.get("unknown_records", 0),
-                      unknown_heliostat_ids=reading.get("unknown_ids", []))
+                      unknown_heliostat_ids=reading.get("unknown_ids", []),
+                      nominal_heliostats=reading.get("nominal_heliostats", 0),
+                      nominal_heliostat_records=reading.get("nominal_records", 0),
+                      nominal_heliostat_ids=reading.get("nominal_ids", []))
     fit_table = fit_spots(table, settings.fit_focal_spot)
     # validation under the fit's own posterior (the Laplace posterior of those records, without the walk's)
     fit_post = fit_posterior(state, cal, previous.path)

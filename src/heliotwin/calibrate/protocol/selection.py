@@ -215,8 +215,11 @@ def choose_current(cfg: RunConfig, dataset, *, runner: Runner, drift: bool = Tru
     if drift:
         cands.append(("random-walk offset", {"bags": 0}, {"drift_model": "kalman", "process_noise": "auto"}))
     runs = {}
-    for name, options, model in cands:
+    for k, (name, options, model) in enumerate(cands):
         c = replace(cfg, method_options=dict(cfg.method_options, **options), **model)
+        if log:  # names the block of steps that follows (a run of the pipeline per candidate)
+            log(f"validation candidate {k + 1}/{len(cands)} '{name}': each heliostat's latest {cfg.test} records "
+                "predicted from its earlier ones")
         runs[name] = (c, runner(c, dataset))
     chosen, tests = cands[0][0], []
     for name, _, _ in cands[1:]:
