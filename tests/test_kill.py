@@ -151,7 +151,7 @@ def test_sigterm_with_nproc_ends_the_workers_with_the_command(tmp_path, command)
                    check=True)
     sun = ["--sun-azimuth", "10", "--sun-elevation", "40", "--nproc", "2", "--resolution", "8x4", "--quiet"]
     argv = (["field", "--integrator", "mc", "--json", "f.json"] if command == "field" else
-            ["aimpoints", "--peak-limit", "200", "--iterations", "1000000", "--no-baselines", "-o", "o.h5",
+            ["aimpoints", "--peak-limit", "1000", "--iterations", "1000000", "--no-baselines", "-o", "o.h5",
              "--json", "o.json"])
     before = sorted(p.name for p in tmp_path.iterdir())
     proc = subprocess.Popen([sys.executable, "-m", "heliotwin", *argv, "--scenario", "p.h5", *sun], cwd=tmp_path,

@@ -242,7 +242,7 @@ def _edit(path, fn):
     (lambda h5: (h5["field"].__delitem__("ids"), h5["field"].create_dataset("ids", data=np.arange(12))), "/field/ids"),
     (lambda h5: (h5["field"].__delitem__("ids"),
                  h5["field"].create_dataset("ids", data=[f"AA{i:02d}" for i in range(11)], dtype=h5py.string_dtype())),
-     "/field/width"),
+     "/field/surfaces/control_points"),  # the first per-heliostat dataset, refused before it is read
     (lambda h5: (h5["field/facets"].__delitem__("canting_e"),
                  h5["field/facets"].create_group("canting_e")), "/field/facets/canting_e"),
     (lambda h5: (h5["field/facets"].__delitem__("translation"),

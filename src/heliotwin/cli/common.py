@@ -34,7 +34,8 @@ from ..errors import HeliotwinError
 
 __all__ = ["ArgumentParser", "run_command", "resolve_device", "stage", "add_resume_flags", "checkpoint_file",
            "checkpointed", "debug_requested", "Terminated", "csv_list",
-           "int_list", "positive_int", "int_range", "float_range", "finite_float", "seed_int", "frequency",
+           "int_list", "positive_int", "int_range", "float_range", "finite_float", "peak_limit", "seed_int",
+           "frequency",
            "utc_time", "check_output_folder", "EXIT_OK", "EXIT_INTERNAL", "EXIT_INPUT", "EXIT_INTERRUPTED",
            "EXIT_TERMINATED", "EXIT_NOT_MET", "check_input_files", "OUT_OF_MEMORY", "share_of_cores", "default_threads"]
 
@@ -449,6 +450,10 @@ def float_range(lo: float | None = None, hi: float | None = None, *, lo_open: bo
 
 #: argparse type: any finite float.
 finite_float = float_range(what="a finite number")
+
+#: argparse type: a receiver peak-flux limit [W/m2], 1 kW/m2 .. 100 MW/m2 (the library's
+#: ``heliotwin.optimise.aimstate.PEAK_LIMIT_RANGE_W_M2``; kept literal here so that ``--help`` stays torch-free).
+peak_limit = float_range(1e3, 1e8, what="a receiver flux limit [W/m2], 1 kW/m2 .. 100 MW/m2")
 
 _FREQ = re.compile(r"^\s*(\d+)\s*(s|sec|min|t|h|d)\s*$", re.IGNORECASE)
 _FREQ_SECONDS = {"s": 1, "sec": 1, "min": 60, "t": 60, "h": 3600, "d": 86400}

@@ -22,7 +22,7 @@ import time
 
 from ..errors import HeliotwinError
 from ..io.report import atomic_path, output_set, write_json
-from .common import EXIT_NOT_MET, float_range, int_range, positive_int, seed_int
+from .common import EXIT_NOT_MET, float_range, int_range, peak_limit, positive_int, seed_int
 
 
 # ---------------------------------------------------------------------------------- scenario from-layout
@@ -62,7 +62,7 @@ _AZIMUTH = float_range(-360.0, 360.0, what="an azimuth [deg]")
 _ELEVATION = float_range(-90.0, 90.0, what="an elevation [deg]")
 _AZIMUTH_STEP = float_range(0.0, 180.0, lo_open=True, what="an azimuth step [deg]")
 _DNI = float_range(0.0, 1500.0, what="a direct normal irradiance [W/m2]")  # the solar constant is 1361 W/m2
-_PEAK_LIMIT = float_range(0.0, 1e9, lo_open=True, what="a flux limit [W/m2]")
+_PEAK_LIMIT = peak_limit
 _YEAR = int_range(1900, 2100, "a year")
 _NPROC = int_range(1, 256, "a process count")
 
@@ -241,7 +241,8 @@ def cmd_aimpoints(args) -> int:
                                 draws=args.draws, mc=args.mc, seed=args.seed, warm_start=not args.cold,
                                 exact_equator=bool(args.flux))
     settings.check()  # before any output is staged
-    with output_set([("--scenario", args.scenario)]) as out:
+    target_file = args.target if args.target and os.path.exists(args.target) else None  # a map file, or 'uniform'
+    with output_set([("--scenario", args.scenario), ("--target", target_file)]) as out:
         out_h5, out_json = out.file(args.output, "-o"), out.file(args.json, "--json")
         out_png = out.folder(args.flux, "--flux") if args.flux else None
         show = None
@@ -391,8 +392,9 @@ def register(sub) -> None:
     p.add_argument("--confidence", type=float, help="hold the limit with this probability (e.g. 0.95) under the "
                    "plant's stored pointing posterior (calibrate --method lm); the report gives the probability of "
                    "exceeding the limit for these and for the deterministic aim points, and the power it costs")
-    p.add_argument("--draws", type=positive_int, default=200, help="with --confidence: Monte-Carlo draws of the "
-                   "pointing errors (default: %(default)s)")
+    p.add_argument("--draws", type=int_range(20, 100_000, "a draw count"), default=200,
+                   help="with --confidence: Monte-Carlo draws of the pointing errors, 20..100000 (default: "
+                        "%(default)s)")
     p.add_argument("--mc", choices=("model", "exact"), default="model", help="with --confidence: each draw's map from "
                    "the image model corrected to the exact map (fast) or from the exact model (one field evaluation "
                    "per draw; default: %(default)s)")

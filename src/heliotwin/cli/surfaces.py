@@ -46,6 +46,12 @@ from .common import (
 __all__ = ["register"]
 
 
+def _prior_inputs(args) -> list:
+    """``--surface-prior-from``'s scenario files as inputs of the output checks (an output may not replace one)."""
+    given = getattr(args, "surface_prior_from", None)
+    return [("--surface-prior-from", p.strip()) for p in str(given).split(",") if p.strip()] if given else []
+
+
 def cmd_reconstruct(args) -> int:
     """``heliotwin reconstruct``: :func:`heliotwin.workflows.reconstruct.reconstruct`, then its figures, the
     scenario (``-o``) and the report (``--json``), all staged."""
@@ -65,7 +71,8 @@ def cmd_reconstruct(args) -> int:
         min_interval_s=args.checkpoint_interval)
     if args.checkpoint is not None and args.checkpoint.resumed:
         stage(args, f"resuming from {path}")
-    inputs = [("--paint", args.paint), ("--scenario", args.scenario), ("--deflectometry", args.deflectometry)]
+    inputs = [("--paint", args.paint), ("--scenario", args.scenario), ("--deflectometry", args.deflectometry),
+              *_prior_inputs(args)]
     # The checkpoint outlives the staged outputs: removed only once they are in place.
     with checkpointed(args, args.checkpoint), output_set(inputs) as out:
         json_path = out.file(args.json, "--json")
@@ -104,7 +111,7 @@ def _reconstruct_plant(args) -> int:
     if ck is not None and ck.resumed:
         stage(args, f"resuming from {path} ({len(ck.done)} heliostats finished)")
     args.checkpoint_kept = None if ck is None else ck.path
-    with output_set([("--paint", args.paint), ("--scenario", args.scenario)]) as out:
+    with output_set([("--paint", args.paint), ("--scenario", args.scenario), *_prior_inputs(args)]) as out:
         json_path, output = out.file(args.json, "--json"), out.file(args.output, "-o")
         previous = load_scenario(args.scenario) if args.scenario else None
         stage(args, f"learning the surfaces of {args.heliostats} ({args.nproc} process(es)) on {settings.device}")

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import os
 
-from ..io.report import output_set, write_json
-from .common import float_range, int_range, stage
+from ..io.report import output_set, plant_inputs, same_file, write_json
+from .common import float_range, int_range, peak_limit, stage
 
 
 def register(subparsers) -> None:
@@ -66,7 +66,7 @@ def register(subparsers) -> None:
     d.add_argument("--slots", type=int_range(0, 100000, "a record count"), default=20,
                    help="calibration records to plan for the day (default 20)")
     d.add_argument("--every", default="30min", help="spacing of the candidate calibration times (default 30min)")
-    d.add_argument("--peak-limit", type=float_range(0.0, None, lo_open=True, what="a flux [W/m2]"), default=None,
+    d.add_argument("--peak-limit", type=peak_limit, default=None,
                    help="peak-flux limit of the aim points [W/m2] (default: the one the plant stores from an "
                         "earlier 'aimpoints')")
     d.add_argument("--aim-times", help="comma-separated UTC times of the day's aim points (default: the hour "
@@ -85,12 +85,11 @@ def cmd_update(args) -> int:
     settings = UpdateSettings(false_alarm_rate=args.false_alarm_rate, process_noise=args.process_noise,
                               reopen_mrad=args.reopen_mrad, iterations=args.iterations, window=args.window,
                               plane_tolerance=args.plane_tolerance)
-    same = all(os.path.exists(f) for f in (args.output, args.scenario)) and os.path.samefile(args.output,
-                                                                                          args.scenario)
+    same = same_file(args.output, args.scenario)
     if same and not args.in_place:
         raise HeliotwinError(f"-o {args.output} is the input scenario; add --in-place to replace it")
-    inputs = [("--paint", args.paint)] + ([] if same else [("--scenario", args.scenario)])
-    with output_set(inputs) as out:
+    with output_set(plant_inputs(args.scenario, args.output, ("--paint", args.paint), flag="--scenario")) as out:
+        out.plant(args.output, "-o")  # before the lock is taken: a refused output leaves nothing beside it
         json_path = out.file(args.json, "--json")
         stage(args, f"assimilating new records of {args.paint}")
         # the plant file is written by the workflow itself: locked, checked unchanged, atomic
@@ -136,7 +135,9 @@ def cmd_daily(args) -> int:
 
     settings = DailySettings(day=args.day, slots=args.slots, every=args.every, aim=args.aim,
                              peak_limit_w_m2=args.peak_limit, aim_times=args.aim_times)
-    with output_set([("--paint", args.paint)]) as out:
+    output = args.output or args.plant
+    with output_set(plant_inputs(args.plant, output, ("--paint", args.paint), flag="--plant")) as out:
+        out.plant(output, "-o" if args.output else "--plant")  # before the lock: nothing left beside a refused one
         json_path = out.file(args.json, "--json")
         stage(args, f"the plant's day: {args.plant} with the new records of {args.paint}")
         result = daily_plant_file(args.plant, args.paint, args.output, settings, timeout=args.wait or None)

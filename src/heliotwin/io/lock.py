@@ -24,6 +24,7 @@ import contextlib
 import errno
 import fcntl
 import os
+import stat
 import time
 from dataclasses import dataclass
 
@@ -36,7 +37,8 @@ POLL_S = 0.05
 
 
 def lock_path(path) -> str:
-    """The sidecar lock file of ``path``: ``<path>.lock`` in the same folder."""
+    """The sidecar lock file of ``path``: ``<path>.lock`` in the same folder (:func:`plant_lock` takes the one of
+    the resolved path, ``os.path.realpath``, so that a symlink and its target share one lock)."""
     return os.fspath(path) + LOCK_SUFFIX
 
 
@@ -67,12 +69,22 @@ def plant_lock(path, *, timeout: float | None = None):
     if timeout is not None and not (isinstance(timeout, (int, float)) and timeout >= 0 and timeout < float("inf")):
         raise HeliotwinError(f"lock timeout must be a finite number of seconds >= 0, got {timeout!r}")
     target = os.fspath(path)
-    lock = lock_path(target)
+    # One plant, one lock: a symlink to the plant and the plant itself are the same file (the lock lives beside
+    # the file that is replaced, the link's target).
+    lock = lock_path(os.path.realpath(target))
     try:
-        fd = os.open(lock, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o666)
+        # O_NOFOLLOW: a lock path that is a symlink (dangling or not) would make us create or lock its target
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NOFOLLOW", 0)
+                     | getattr(os, "O_NONBLOCK", 0), 0o666)
     except OSError as exc:
+        if exc.errno == errno.ELOOP or os.path.islink(lock):
+            raise InputFileError(lock, f"the lock file of {target} is a symbolic link; not followed (remove it: "
+                                       f"a lock file is a plain file heliotwin creates)") from None
         raise InputFileError(lock, f"cannot create the lock file of {target} ({exc.strerror})") from None
     try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise InputFileError(lock, f"the lock file of {target} is not a regular file (remove it: a lock file is "
+                                       f"a plain file heliotwin creates)")
         _acquire(fd, target, lock, timeout or 0.0)
         try:
             yield lock

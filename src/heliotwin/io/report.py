@@ -22,7 +22,8 @@ from contextlib import contextmanager
 
 from ..errors import HeliotwinError, InputFileError
 
-__all__ = ["atomic_path", "write_json", "save_figure", "json_safe", "OutputSet", "output_set"]
+__all__ = ["atomic_path", "write_json", "save_figure", "json_safe", "OutputSet", "output_set", "same_file",
+           "plant_inputs"]
 
 _UMASK_LOCK = threading.Lock()
 
@@ -171,8 +172,19 @@ def save_figure(fig, path, *, dpi: int = 110, tight: bool = True, make_folder: b
 
 
 # ------------------------------------------------------------------------------------------ output sets
-def _same_file(a: str, b: str) -> bool:
-    return os.path.realpath(a) == os.path.realpath(b)
+def same_file(a, b) -> bool:
+    """Whether paths ``a`` and ``b`` name one file: the same path once symlinks are resolved, or (both existing)
+    the same inode (a hard link, a bind mount)."""
+    a, b = os.fspath(a), os.fspath(b)
+    if os.path.realpath(a) == os.path.realpath(b):
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except (OSError, ValueError):
+        return False
+
+
+_same_file = same_file
 
 
 class OutputSet:
@@ -228,6 +240,16 @@ class OutputSet:
             except OSError as exc:
                 raise InputFileError(folder, f"cannot write ({_one_line(exc.strerror or exc)})") from exc
         return self._staging[folder]
+
+    def plant(self, path, flag: str) -> str | None:
+        """Declare a plant file that its own writer replaces (locked and atomic: :func:`heliotwin.workflows.update.
+        locked_plant_write`), so it is not staged; checked like every output, before the lock is taken or any work
+        is done. Returns ``path``."""
+        if path is None:
+            return None
+        path = os.fspath(path)
+        self._check(path, flag, is_folder=False)
+        return path
 
     def file(self, path, flag: str):
         """Declare output file ``path`` (given by ``flag``); return where to write it now (same name)."""
@@ -300,6 +322,14 @@ def _signals_held():
     finally:
         if blockable:
             signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def plant_inputs(plant, output, *others, flag: str = "--scenario") -> list:
+    """The inputs of a command that reads plant file ``plant`` and writes the plant to ``output``: ``others``
+    (``(flag, path)``) and ``plant`` itself unless ``output`` is the same file (the plant updated in place: its
+    own writer replaces it atomically under the lock)."""
+    same = plant is not None and output is not None and same_file(output, plant)
+    return [*others] + ([] if same or plant is None else [(flag, plant)])
 
 
 @contextmanager

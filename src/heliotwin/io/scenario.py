@@ -410,6 +410,39 @@ def provenance_entry(step: str, **fields) -> dict:
 
 
 # ============================================================================================ reading
+#: Datasets up to this size [bytes] are read without looking at their storage (a small table, an attribute-like
+#: array).
+SMALL_DATASET_BYTES = 1 << 20
+#: Largest numeric dataset a scenario may hold [bytes]: a 100,000-heliostat plant's control points are ~0.5 GiB.
+MAX_DATASET_BYTES = 8 << 30
+#: Largest ratio of a dataset's size to the bytes the file stores for it: gzip at its best packs about 1032:1, so a
+#: dataset claiming more than that over its storage (an unwritten dataset, one stored elsewhere) is not the writer's.
+MAX_COMPRESSION_RATIO = 1100
+
+
+def check_dataset_size(obj: h5py.Dataset, path) -> None:
+    """Refuse, before reading, an HDF5 dataset whose shape claims more than the file holds for it (a 69 KB file whose
+    datasets claim 22-29 GiB was allocated in full before any shape check) or more than :data:`MAX_DATASET_BYTES`.
+
+    Raises
+    ------
+    InputFileError
+        One line naming the file and the dataset, its shape, dtype and claimed and stored sizes.
+    """
+    claimed = int(obj.size) * int(obj.dtype.itemsize)
+    if claimed <= SMALL_DATASET_BYTES:
+        return
+    try:
+        stored = int(obj.id.get_storage_size())
+    except (OSError, RuntimeError, ValueError):
+        stored = 0
+    if claimed > MAX_DATASET_BYTES or claimed > MAX_COMPRESSION_RATIO * stored:
+        raise InputFileError(path, f"shape {list(obj.shape)} of {obj.dtype} claims {claimed / 2**30:.2f} GiB but the "
+                                   f"file stores {stored} bytes of it (at most {MAX_DATASET_BYTES / 2**30:.0f} GiB, "
+                                   f"{MAX_COMPRESSION_RATIO}:1 compressed); not read: a damaged or foreign file",
+                             field=obj.name)
+
+
 class _Reader:
     """Validating accessors that raise one-line :class:`InputFileError` naming the HDF5 object."""
 
@@ -428,7 +461,15 @@ class _Reader:
             self.fail(where, "expected a group, found a dataset")
         return obj
 
-    def array(self, parent: h5py.Group, name: str) -> np.ndarray:
+    def sized(self, obj: h5py.Dataset, lead: int | None = None) -> h5py.Dataset:
+        """``obj`` when its shape and storage are plausible, checked before a byte of it is read: the first dimension
+        ``lead`` when given (one row per heliostat), and a size the file actually holds (:func:`check_dataset_size`)."""
+        if lead is not None and (obj.ndim < 1 or obj.shape[0] != lead):
+            self.fail(obj.name, f"expected {lead} rows (one per heliostat), got shape {list(obj.shape)}; not read")
+        check_dataset_size(obj, self.path)
+        return obj
+
+    def array(self, parent: h5py.Group, name: str, lead: int | None = None) -> np.ndarray:
         where = f"{parent.name.rstrip('/')}/{name}"
         if name not in parent:
             self.fail(where, "missing dataset")
@@ -437,22 +478,24 @@ class _Reader:
             self.fail(where, "expected a dataset, found a group")
         if h5py.check_string_dtype(obj.dtype) is not None:
             self.fail(where, "expected a numeric dataset, found text")
-        data = np.asarray(obj[()])
+        if obj.dtype.kind not in "biufc":
+            self.fail(where, f"expected a numeric array, found dtype {obj.dtype}")
+        data = np.asarray(self.sized(obj, lead)[()])
         if data.dtype.kind not in "biufc":
             self.fail(where, f"expected a numeric array, found dtype {obj.dtype}")
         return data
 
-    def tensor(self, parent: h5py.Group, name: str) -> torch.Tensor:
-        return torch.from_numpy(np.ascontiguousarray(self.array(parent, name)))
+    def tensor(self, parent: h5py.Group, name: str, lead: int | None = None) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(self.array(parent, name, lead)))
 
-    def strings(self, parent: h5py.Group, name: str) -> list[str]:
+    def strings(self, parent: h5py.Group, name: str, lead: int | None = None) -> list[str]:
         where = f"{parent.name.rstrip('/')}/{name}"
         if name not in parent:
             self.fail(where, "missing dataset")
         obj = parent[name]
         if not isinstance(obj, h5py.Dataset) or h5py.check_string_dtype(obj.dtype) is None or obj.ndim != 1:
             self.fail(where, "expected a 1-D dataset of strings")
-        return [str(s) for s in obj.asstr()[()]]
+        return [str(s) for s in self.sized(obj, lead).asstr()[()]]
 
     def attr(self, obj, name: str, kind: type):
         where = f"{obj.name}@{name}" if obj.name != "/" else f"/@{name}"
@@ -488,14 +531,14 @@ def _scalar_kind(f: dataclasses.Field) -> type:
     return {"float": float, "int": int, "str": str, "bool": bool}.get(t.split("|")[0].strip(), object)
 
 
-def _read_dataclass(r: _Reader, group: h5py.Group, cls, optional=()):
+def _read_dataclass(r: _Reader, group: h5py.Group, cls, optional=(), lead: int | None = None):
     kwargs = {}
     for f in dataclasses.fields(cls):
         if _is_tensor_field(f):
             if f.name in optional and f.name not in group:
                 kwargs[f.name] = None
             else:
-                kwargs[f.name] = r.tensor(group, f.name)
+                kwargs[f.name] = r.tensor(group, f.name, lead)
         else:
             kwargs[f.name] = r.attr(group, f.name, _scalar_kind(f))
     return cls(**kwargs)
@@ -536,7 +579,7 @@ def _read_extras(r: _Reader, group: h5py.Group) -> dict:
         if kind == "str":
             if h5py.check_string_dtype(obj.dtype) is None:
                 r.fail(where, "expected a string dataset")
-            out[key] = obj.asstr()[()]
+            out[key] = r.sized(obj).asstr()[()]
             continue
         data = r.array(group, key)
         if kind == "torch":
@@ -565,15 +608,17 @@ def _read_plant(r: _Reader, h5: h5py.File) -> Plant:
         targets[key] = _read_dataclass(r, tg, _TARGET_CLASSES[kind])
 
     fg = r.group(h5, "field")
+    ids = r.strings(fg, "ids")
+    h = len(ids)  # every per-heliostat dataset is checked to have h rows before it is read
     sfg = r.group(fg, "surfaces")
-    surfaces = Surfaces(r.tensor(sfg, "control_points"), r.attr(sfg, "degree_u", int), r.attr(sfg, "degree_v", int),
-                        r.tensor(sfg, "weights") if "weights" in sfg else None)
-    fld = Field(ids=r.strings(fg, "ids"),
-                kinematics=_read_dataclass(r, r.group(fg, "kinematics"), Kinematics),
-                facets=_read_dataclass(r, r.group(fg, "facets"), Facets),
+    surfaces = Surfaces(r.tensor(sfg, "control_points", h), r.attr(sfg, "degree_u", int),
+                        r.attr(sfg, "degree_v", int), r.tensor(sfg, "weights", h) if "weights" in sfg else None)
+    fld = Field(ids=ids,
+                kinematics=_read_dataclass(r, r.group(fg, "kinematics"), Kinematics, lead=h),
+                facets=_read_dataclass(r, r.group(fg, "facets"), Facets, lead=h),
                 surfaces=surfaces,
-                width=r.tensor(fg, "width"), height=r.tensor(fg, "height"),
-                renovation=r.strings(fg, "renovation"))
+                width=r.tensor(fg, "width", h), height=r.tensor(fg, "height", h),
+                renovation=r.strings(fg, "renovation", h))
     sun = _read_dataclass(r, r.group(h5, "sun"), SunSettings)
     return Plant(site, targets, fld, sun)
 
@@ -604,7 +649,7 @@ def _read_provenance(r: _Reader, h5: h5py.File) -> list:
     if not isinstance(obj, h5py.Dataset) or h5py.check_string_dtype(obj.dtype) is None or obj.ndim != 0:
         r.fail("/provenance", "expected one JSON string")
     try:
-        value = json.loads(obj.asstr()[()])
+        value = json.loads(r.sized(obj).asstr()[()])
     except ValueError:
         r.fail("/provenance", "malformed JSON")
     if not isinstance(value, list) or not all(isinstance(p, dict) for p in value):

@@ -18,7 +18,29 @@ from ..errors import HeliotwinError
 from ..field.kinematics import inverse
 from ..field.plant import Plant
 
-__all__ = ["KEY", "METHOD", "instant_state", "aimpoint_state", "stored_aimpoints", "stored_peak_limit"]
+__all__ = ["KEY", "METHOD", "instant_state", "aimpoint_state", "stored_aimpoints", "stored_peak_limit",
+           "PEAK_LIMIT_RANGE_W_M2", "check_peak_limit"]
+
+#: Plausible receiver peak-flux limits [W/m^2]: below 1 kW/m^2 (the sun's own DNI) nothing is a limit the field could
+#: hold but standby, above 100 MW/m^2 (about 100 times any receiver's rating) nothing binds; a value outside is a
+#: typo or a unit slip (kW/m^2 given as W/m^2). Without the bound, 1e-300 made every ``peak / limit`` inf (the report's
+#: JSON refused it at the very end) and the optimiser's margin grow without end.
+PEAK_LIMIT_RANGE_W_M2 = (1e3, 1e8)
+
+
+def check_peak_limit(limit, where: str = "--peak-limit") -> float:
+    """``limit`` [W/m^2] as a float when it is a plausible receiver flux limit (:data:`PEAK_LIMIT_RANGE_W_M2`), else a
+    one-line :class:`~heliotwin.errors.HeliotwinError` naming ``where`` (a flag, or a file and dataset)."""
+    lo, hi = PEAK_LIMIT_RANGE_W_M2
+    try:
+        value = float(limit)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if isinstance(limit, bool) or not lo <= value <= hi:
+        raise HeliotwinError(f"{where}: expected a receiver peak-flux limit between {lo:.0f} and {hi:.0f} W/m2 "
+                             f"(1 kW/m2 .. 100 MW/m2), got {limit!r}")
+    return value
+
 
 #: Name of the learned group.
 KEY = "aimpoints"
@@ -89,7 +111,11 @@ def stored_peak_limit(scenario) -> float | None:
     state = (scenario.learned or {}).get(KEY)
     if not isinstance(state, dict) or state.get("peak_limit_w_m2") is None:
         return None
-    return float(torch.as_tensor(state["peak_limit_w_m2"], dtype=torch.float64).reshape(-1)[0])
+    value = torch.as_tensor(state["peak_limit_w_m2"], dtype=torch.float64).reshape(-1)
+    where = f"{getattr(scenario, 'path', None) or 'scenario'} [/learned/{KEY}/peak_limit_w_m2]"
+    if value.numel() != 1:
+        raise HeliotwinError(f"{where}: expected one number, got {value.numel()}")
+    return check_peak_limit(float(value[0]), where)
 
 
 def stored_aimpoints(scenario, sun_direction: torch.Tensor) -> torch.Tensor:

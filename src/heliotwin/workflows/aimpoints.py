@@ -33,12 +33,36 @@ from ..optimise.aimpoints import (
     target_mismatch,
     uniform_target,
 )
-from ..optimise.aimstate import KEY, aimpoint_state, instant_state
+from ..optimise.aimstate import KEY, aimpoint_state, check_peak_limit, instant_state
 from ..optimise.robust import require_posterior, robust_aimpoints
 from ..raytrace.field import reuse_mirror_samples
 from .field import check_map_resolution
 
-__all__ = ["AimpointSettings", "aimpoints", "day_summary"]
+__all__ = ["AimpointSettings", "aimpoints", "day_summary", "MAX_DRAWS", "check_draws_memory"]
+
+
+#: Most Monte-Carlo draws of ``--confidence``: 1e5 draws resolve an exceedance probability of 1e-4 to 30 %; more is
+#: a typo (1e8 draws of 12 heliostats: about 430 GiB of draws, allocated before any check; ``MemoryError``).
+MAX_DRAWS = 100_000
+#: Bytes per draw and heliostat of the robust check (:func:`heliotwin.optimise.robust.draw_normal_errors`' [D, H, P]
+#: and [D, H, 3] float64 draws, the errors [D, H, 3] and spot shifts [D, H, 2], and their temporaries).
+DRAW_BYTES_PER_HELIOSTAT = 8 * 48
+
+
+def check_draws_memory(draws: int, heliostats: int, memory_bytes: int | None = None) -> None:
+    """Refuse ``--draws`` whose draws would not fit in half the machine's memory (``memory_bytes``: its physical
+    memory, read from ``os.sysconf`` when not given), before anything is drawn; one line with the estimate."""
+    if memory_bytes is None:
+        try:
+            memory_bytes = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        except (AttributeError, OSError, ValueError):
+            return
+    need = int(draws) * int(heliostats) * DRAW_BYTES_PER_HELIOSTAT
+    if need > memory_bytes // 2:
+        fit = max(0, (memory_bytes // 2) // max(1, int(heliostats) * DRAW_BYTES_PER_HELIOSTAT))
+        raise HeliotwinError(f"--draws {draws}: {draws} draws of {heliostats} heliostats need about {need / 2**30:.1f} "
+                             f"GiB, more than half of this machine's {memory_bytes / 2**30:.1f} GiB; use at most "
+                             f"{fit} draws")
 
 
 @dataclass
@@ -102,9 +126,7 @@ class AimpointSettings:
     def check(self) -> None:
         """One-line :class:`HeliotwinError` for settings no run can use (a caller may check before staging
         outputs; :func:`aimpoints` checks again)."""
-        limit = self.peak_limit_w_m2
-        if isinstance(limit, bool) or not isinstance(limit, (int, float)) or not math.isfinite(limit) or limit <= 0:
-            raise HeliotwinError(f"--peak-limit: expected a finite positive flux [W/m2], got {limit!r}")
+        check_peak_limit(self.peak_limit_w_m2)
         check_map_resolution(self.resolution)
         for name, v in (("--iterations", self.iterations), ("--nproc", self.nproc)):
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
@@ -112,8 +134,8 @@ class AimpointSettings:
         c = self.confidence
         if c is not None and (isinstance(c, bool) or not isinstance(c, (int, float)) or not 0.0 < c < 1.0):
             raise HeliotwinError(f"--confidence: expected a probability strictly between 0 and 1, got {c!r}")
-        if isinstance(self.draws, bool) or not isinstance(self.draws, int) or self.draws < 20:
-            raise HeliotwinError(f"--draws: expected an integer of at least 20, got {self.draws!r}")
+        if isinstance(self.draws, bool) or not isinstance(self.draws, int) or not 20 <= self.draws <= MAX_DRAWS:
+            raise HeliotwinError(f"--draws: expected an integer in 20..{MAX_DRAWS}, got {self.draws!r}")
         if self.mc not in ("model", "exact"):
             raise HeliotwinError(f"--mc: expected 'model' or 'exact', got {self.mc!r}")
         if c is not None and (self.nproc > 1 or self.target is not None):
@@ -291,6 +313,7 @@ def aimpoints(scenario: Scenario, instants: list[tuple[str, torch.Tensor]], sett
     settings.check()
     if settings.confidence is not None:
         require_posterior(scenario.learned, scenario.path or "")  # before any optimisation
+        check_draws_memory(settings.draws, int(scenario.plant.field.kinematics.position.shape[0]))
     limit = float(settings.peak_limit_w_m2)
     t_all = time.perf_counter()
     plant = scenario.plant if settings.device is None else to_device(scenario.plant, settings.device)

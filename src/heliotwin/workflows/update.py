@@ -323,7 +323,9 @@ def locked_plant_write(output, make, timeout: float | None = None):
     """``make()`` (a workflow's result with a ``scenario``) written to the plant file ``output`` the way a
     scheduled command must: ``output`` locked for the whole read-compute-write (a second command on the same
     plant refuses at once, or waits ``timeout`` [s]), not replaced when another process changed it meanwhile,
-    and written atomically (an error leaves the old file as it was). Returns the result."""
+    and written atomically (an error leaves the old file as it was). A symlinked plant is updated through its
+    target (the link stays a link, and both names share the target's lock). Returns the result."""
+    output = os.path.realpath(output)
     with plant_lock(output, timeout=timeout):
         stamp = file_stamp(output)
         result = make()
