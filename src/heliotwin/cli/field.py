@@ -19,9 +19,10 @@ import functools
 import os
 import sys
 import time
+import types
 
 from ..errors import HeliotwinError
-from ..io.report import atomic_path, output_set, write_json
+from ..io.report import atomic_path, output_set, plant_inputs, same_file, write_json
 from .common import EXIT_NOT_MET, float_range, int_range, peak_limit, positive_int, seed_int
 
 
@@ -233,6 +234,7 @@ def cmd_aimpoints(args) -> int:
     from ..io.scenario import load_scenario, write_scenario
     from ..workflows.aimpoints import AimpointSettings, aimpoints
     from ..workflows.field import sun_instants
+    from ..workflows.update import locked_plant_write
 
     settings = AimpointSettings(peak_limit_w_m2=args.peak_limit, resolution=args.resolution,
                                 iterations=args.iterations, target=args.target, field_gradient=args.field_gradient,
@@ -242,10 +244,16 @@ def cmd_aimpoints(args) -> int:
                                 exact_equator=bool(args.flux))
     settings.check()  # before any output is staged
     target_file = args.target if args.target and os.path.exists(args.target) else None  # a map file, or 'uniform'
-    with output_set([("--scenario", args.scenario), ("--target", target_file)]) as out:
-        out_h5, out_json = out.file(args.output, "-o"), out.file(args.json, "--json")
+    in_place = same_file(args.output, args.scenario)
+    if in_place and not args.in_place:
+        raise HeliotwinError(f"-o {args.output} is the input scenario; add --in-place to replace it")
+    inputs = plant_inputs(args.scenario, args.output, ("--target", target_file), flag="--scenario")
+    with output_set(inputs) as out:
+        # in place: the plant is replaced by its own locked, atomic writer (locked_plant_write), not staged
+        out_h5 = out.plant(args.output, "-o") if in_place else out.file(args.output, "-o")
+        out_json = out.file(args.json, "--json")
         out_png = out.folder(args.flux, "--flux") if args.flux else None
-        show = None
+        show = sc = instants = None
 
         def on_instant(i, label, rep, best, equator) -> None:
             if out_png:
@@ -254,15 +262,24 @@ def cmd_aimpoints(args) -> int:
             if show:
                 show(i, label, rep, best, equator)
 
-        sc = load_scenario(args.scenario)
-        instants = sun_instants(sc.plant, times=args.time, day=args.day, every=args.every,
-                                azimuth_deg=args.sun_azimuth, elevation_deg=args.sun_elevation)
-        show = None if args.quiet else _print_instant(float(args.peak_limit), len(instants))
-        if show:  # a line before the long part; one more per instant as each finishes
-            print(f"aimpoints: {len(sc.plant.field.ids)} heliostats, {len(instants)} instant(s), limit "
-                  f"{float(args.peak_limit) / 1e3:.1f} kW/m2 ...", flush=True)
-        aimed, report = aimpoints(sc, instants, settings, on_instant=on_instant)
-        write_scenario(aimed, out_h5)
+        def run():
+            nonlocal sc, instants, show
+            sc = load_scenario(args.scenario)
+            instants = sun_instants(sc.plant, times=args.time, day=args.day, every=args.every,
+                                    azimuth_deg=args.sun_azimuth, elevation_deg=args.sun_elevation)
+            show = None if args.quiet else _print_instant(float(args.peak_limit), len(instants))
+            if show:  # a line before the long part; one more per instant as each finishes
+                print(f"aimpoints: {len(sc.plant.field.ids)} heliostats, {len(instants)} instant(s), limit "
+                      f"{float(args.peak_limit) / 1e3:.1f} kW/m2 ...", flush=True)
+            aimed, report = aimpoints(sc, instants, settings, on_instant=on_instant)
+            return types.SimpleNamespace(scenario=aimed, report=report)
+
+        if in_place:
+            result = locked_plant_write(out_h5, run)
+        else:
+            result = run()
+            write_scenario(result.scenario, out_h5)
+        report = result.report
         write_json(out_json, report)
     if show and len(instants) > 1:
         _print_summary(report["summary"])
@@ -400,6 +417,8 @@ def register(sub) -> None:
                    "per draw; default: %(default)s)")
     p.add_argument("--seed", type=seed_int, default=0, help="with --confidence: seed of the draws")
     p.add_argument("-o", "--output", required=True, help="scenario file to write (.h5)")
+    p.add_argument("--in-place", action="store_true", help="allow -o to be --scenario (replaced atomically under "
+                   "the plant's lock, as 'update --in-place')")
     p.add_argument("--json", required=True, help="JSON report")
     p.add_argument("--flux", help="folder for the receiver flux maps per instant: equator vs optimised side by side on "
                                   "one scale with the limit contour (iNNN_before_after.png), each alone on that "
