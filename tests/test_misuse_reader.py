@@ -413,3 +413,22 @@ def test_a_record_whose_heliostat_contradicts_its_folder_is_dropped_with_a_reaso
     rids = ds.records.record_id.tolist()
     assert P._record_number(by_row) not in rids and P._record_number(by_file) not in rids
     assert len(ds.records_of(ids[1])) == len(before.records)  # not moved to the heliostat the row names
+
+
+def test_report_with_a_folder_without_its_metadata_csv_is_one_line(folder, tmp_path, capsys):
+    """``report --paint`` is for the records' times (days since the last record, tomorrow's plan): without the
+    metadata CSV it refused nothing and planned nothing (exit 0); now one line naming the CSV, no page written."""
+    plant = P.load_paint(folder, with_records=False).plant
+    S.save_scenario(plant, tmp_path / "p.h5")
+    out = tmp_path / "r.html"
+    code, _, err = run_cli(capsys, "report", "--scenario", tmp_path / "p.h5", "--paint", folder, "-o", out,
+                           "--no-flux", "--quiet")
+    assert code == 0 and out.exists(), err
+    out.unlink()
+    os.remove(os.path.join(folder, META))
+    code, _, err = run_cli(capsys, "report", "--scenario", tmp_path / "p.h5", "--paint", folder, "-o", out,
+                           "--no-flux", "--quiet")
+    assert_one_line_error(code, err, os.path.join(folder, META), "missing")
+    assert not out.exists()
+    ds, _ = S.load_records(folder, str(tmp_path / "p.h5"))  # a reader that needs no times still reads the records
+    assert len(ds.records) > 0 and bool(ds.records.time.isnan().all())
