@@ -280,13 +280,12 @@ def test_an_index_segment_with_record_ids_as_text_is_ignored(folder):
         os.remove(path)
     np.savez(os.path.join(RI.index_dir(folder), "seg-00000000000000000001-1-forged.npz"),
              version=np.array(RI.INDEX_VERSION), **forged)
-    assert not RI.valid_segment(forged)
-    assert RI.read_entries(folder)[1] == []
     ds = P.load_paint(folder, cache=True)
     plain = P.load_paint(folder, cache=False)
     assert torch.equal(ds.records.record_id, plain.records.record_id)
     assert torch.equal(ds.records.time.nan_to_num(), plain.records.time.nan_to_num())
     assert ds.reading["parsed"] == ds.reading["files"]  # nothing taken from the forged segment
+    assert not RI.valid_segment(forged) and RI.read_entries(folder)[1] == []
 
 
 @pytest.mark.parametrize("column,value", [("motor_steps", np.nan), ("sun_elevation", np.inf), ("size", -5)])
@@ -413,3 +412,22 @@ def test_a_record_whose_heliostat_contradicts_its_folder_is_dropped_with_a_reaso
     rids = ds.records.record_id.tolist()
     assert P._record_number(by_row) not in rids and P._record_number(by_file) not in rids
     assert len(ds.records_of(ids[1])) == len(before.records)  # not moved to the heliostat the row names
+
+
+def test_report_with_a_folder_without_its_metadata_csv_is_one_line(folder, tmp_path, capsys):
+    """``report --paint`` is for the records' times (days since the last record, tomorrow's plan): without the
+    metadata CSV it refused nothing and planned nothing (exit 0); now one line naming the CSV, no page written."""
+    plant = P.load_paint(folder, with_records=False).plant
+    S.save_scenario(plant, tmp_path / "p.h5")
+    out = tmp_path / "r.html"
+    code, _, err = run_cli(capsys, "report", "--scenario", tmp_path / "p.h5", "--paint", folder, "-o", out,
+                           "--no-flux", "--quiet")
+    assert code == 0 and out.exists(), err
+    out.unlink()
+    os.remove(os.path.join(folder, META))
+    code, _, err = run_cli(capsys, "report", "--scenario", tmp_path / "p.h5", "--paint", folder, "-o", out,
+                           "--no-flux", "--quiet")
+    assert_one_line_error(code, err, os.path.join(folder, META), "missing")
+    assert not out.exists()
+    ds, _ = S.load_records(folder, str(tmp_path / "p.h5"))  # a reader that needs no times still reads the records
+    assert len(ds.records) > 0 and bool(ds.records.time.isnan().all())

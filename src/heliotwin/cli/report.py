@@ -53,7 +53,8 @@ def cmd_report(args) -> int:
         records = None
         if args.paint:
             stage(args, f"reading the records of {args.paint}")
-            records = load_records(args.paint, scenario)[0].records
+            # tomorrow's plan starts after the latest record: without the records' times it would silently be empty
+            records = load_records(args.paint, scenario, require_times=True)[0].records
         stage(args, "gathering the plant's state, plan and receiver")
         _, report = plant_report(scenario, records, settings)
         with open(path, "w", encoding="utf-8") as fh:  # staged: moved into place when every output is written

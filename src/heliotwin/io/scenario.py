@@ -1143,7 +1143,8 @@ def scenario_from_paint(paint_dir, heliostats=None, **kwargs) -> Plant:
     return load_paint(paint_dir, heliostats, with_records=False, **kwargs).plant
 
 
-def load_records(paint_dir, scenario=None, heliostats=None, *, plane_tolerance: float = 0.1):
+def load_records(paint_dir, scenario=None, heliostats=None, *, plane_tolerance: float = 0.1,
+                 require_times: bool = False):
     """The PAINT records of ``heliostats`` (default: all of the scenario, else all of the folder) on the
     scenario's plant (default: the folder's nominal plant): what every learner and checker starts from.
 
@@ -1156,6 +1157,10 @@ def load_records(paint_dir, scenario=None, heliostats=None, *, plane_tolerance: 
     heliostats : list of str, optional
     plane_tolerance : float
         See :func:`heliotwin.io.records.build_record_table`.
+    require_times : bool
+        A folder without ``metadata/calibration-metadata.csv`` (the records' times) is a one-line error, for a
+        caller that orders or plans by the records' times (``report --paint``); see
+        :func:`heliotwin.io.paint.load_paint`.
 
     Returns
     -------
@@ -1165,7 +1170,7 @@ def load_records(paint_dir, scenario=None, heliostats=None, *, plane_tolerance: 
     """
     sc = load_scenario(scenario) if isinstance(scenario, (str, os.PathLike)) else scenario
     if sc is None:
-        return load_paint(paint_dir, heliostats, plane_tolerance=plane_tolerance), None
+        return load_paint(paint_dir, heliostats, plane_tolerance=plane_tolerance, require_times=require_times), None
     ids = list(heliostats or sc.plant.field.ids)
     in_scenario = set(sc.plant.field.ids)
     unknown = [h for h in ids if h not in in_scenario]
@@ -1176,5 +1181,5 @@ def load_records(paint_dir, scenario=None, heliostats=None, *, plane_tolerance: 
     if absent:
         raise InputFileError(sc.path, f"heliostat(s) {', '.join(absent[:5])} not in the PAINT folder {paint_dir}",
                              field="/field/ids")
-    ds = load_paint(paint_dir, ids, plane_tolerance=plane_tolerance)
+    ds = load_paint(paint_dir, ids, plane_tolerance=plane_tolerance, require_times=require_times)
     return ds.on_plant(select_heliostats(sc.plant, ids), sc.path), sc
