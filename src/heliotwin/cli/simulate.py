@@ -35,7 +35,14 @@ def register(subparsers) -> None:
     p.add_argument("--paint-tower", help="PAINT tower file whose site and targets to use")
     p.add_argument("--prior-from", help="draw the true deviations from the plant prior of a PAINT folder (learned "
                                         "from its heliostats' records) or of a scenario that stores one")
-    p.add_argument("--out", required=True, help="PAINT folder to write (must not exist or be empty)")
+    p.add_argument("--out", help="PAINT folder to write (must not exist or be empty)")
+    p.add_argument("--until", metavar="DATE", help="write the history up to the end of this UTC day only; "
+                   "'--extend OUT --days N' appends the next days later (a folder that grows as a plant's does)")
+    p.add_argument("--extend", metavar="FOLDER", help="append the next --days days to a folder written with --until "
+                                                      "(same plant, same truth; new record files, metadata rows "
+                                                      "appended)")
+    p.add_argument("--days", type=int_range(1, 36600, "a day count"), default=1,
+                   help="with --extend: days to append (default 1)")
     p.add_argument("--truth", help="truth scenario file (default: OUT/truth.h5)")
     p.add_argument("--json", help="also write the report as JSON")
     p.set_defaults(func=cmd_simulate)
@@ -60,6 +67,14 @@ def cmd_simulate(args) -> int:
     from ..io.scenario import write_scenario
     from ..workflows.simulate import SimulationSettings, prior_from, simulate
 
+    if args.extend:
+        return _extend(args)
+    if not args.out:
+        raise InputFileError("simulate", "give --out FOLDER (a new plant) or --extend FOLDER (a grown one)",
+                             field="--out")
+    if args.truth and os.path.lexists(args.truth):
+        raise InputFileError(args.truth, "exists; the truth of a new simulated plant is written to a new file",
+                             field="--truth")
     if os.path.exists(args.out) and (not os.path.isdir(args.out) or os.listdir(args.out)):
         raise InputFileError(args.out, "exists and is not an empty folder; write a simulated plant to a new one",
                              field="--out")
@@ -73,16 +88,33 @@ def cmd_simulate(args) -> int:
                                       centroid_noise_mrad=args.noise_mrad, step_rate_per_year=args.step_rate,
                                       images=args.images, layout=args.layout, paint_tower=args.paint_tower)
         prior = prior_from(args.prior_from) if args.prior_from else None
-        truth, report = simulate(settings, folder, prior=prior)
+        truth, report = simulate(settings, folder, prior=prior, until=args.until)
         write_scenario(truth, truth_path)
         report.update(folder=os.path.abspath(args.out), truth=os.path.abspath(args.truth or
                                                                              os.path.join(args.out, "truth.h5")))
         if json_path:
             write_json(json_path, report)
     if not args.quiet:
+        if args.until:
+            print(f"until {args.until}: {report['written']} of the history's {report['records']} records written "
+                  f"(extend with 'heliotwin simulate --extend {args.out} --days N')")
         print(f"{report['heliostats']} heliostats, {report['records']} records ({report['steps']} offset steps) "
               f"-> {args.out}; truth {report['truth']} ({report['seconds_simulate']:.1f} s simulate, "
               f"{report['seconds_write']:.1f} s write)")
+    return 0
+
+
+def _extend(args) -> int:
+    from ..errors import HeliotwinError
+    from ..workflows.simulate import extend
+
+    if args.out or args.until or args.truth:
+        raise HeliotwinError("--extend FOLDER takes --days only (the folder's simulation.json holds the rest)")
+    added = extend(args.extend, args.days)
+    if args.json:
+        write_json(args.json, added)
+    if not args.quiet:
+        print(f"{args.extend}: {added['records']} record(s) appended, the history now until {added['until']}")
     return 0
 
 

@@ -18,9 +18,10 @@ from ..calibrate.protocol.archive import PriorArchive, load_prior_source
 from ..errors import InputFileError
 from ..io.scenario import Scenario
 from ..simulate import SimulationSettings, simulate_plant, truth_scenario, write_paint_folder
+from ..simulate.growth import day_end, extend_paint_folder, read_growth_state, records_until, write_growth_state
 from .score import score
 
-__all__ = ["SimulationSettings", "simulate", "score", "prior_from"]
+__all__ = ["SimulationSettings", "simulate", "extend", "score", "prior_from"]
 
 
 def prior_from(path) -> PlantPrior:
@@ -34,7 +35,8 @@ def prior_from(path) -> PlantPrior:
     return source.prior() if isinstance(source, PriorArchive) else source
 
 
-def simulate(settings: SimulationSettings, out, *, prior: PlantPrior | None = None) -> tuple[Scenario, dict]:
+def simulate(settings: SimulationSettings, out, *, prior: PlantPrior | None = None,
+             until: str | None = None) -> tuple[Scenario, dict]:
     """Simulate a plant and write its PAINT folder at ``out`` (absent or empty).
 
     Parameters
@@ -44,6 +46,9 @@ def simulate(settings: SimulationSettings, out, *, prior: PlantPrior | None = No
         The PAINT folder to write.
     prior : PlantPrior, optional
         Distribution of the true static deviations (default: the one learned from PAINT's Jülich records).
+    until : str, optional
+        Write the records up to the end of this UTC day only (ISO date); :func:`extend` appends the next days
+        later (the folder keeps its settings in ``simulation.json``). The truth is the whole history's.
 
     Returns
     -------
@@ -52,11 +57,27 @@ def simulate(settings: SimulationSettings, out, *, prior: PlantPrior | None = No
     report : dict
         Counts (heliostats, records, dropped, steps), ``seconds_simulate`` and ``seconds_write`` [s].
     """
+    if until is not None and prior is not None:
+        raise InputFileError(str(out), "--until needs the default prior (a folder that grows is simulated again "
+                                       "from its settings)", field="--prior-from")
     t0 = time.perf_counter()
     sim = simulate_plant(settings, prior=prior)
     t1 = time.perf_counter()
-    folder = write_paint_folder(sim, out)
+    written = sim if until is None else records_until(sim, -float("inf"), day_end(until))
+    folder = write_paint_folder(written, out)
+    if until is not None:
+        write_growth_state(folder, settings, until)
     t2 = time.perf_counter()
-    report = dict(sim.report, folder=os.path.abspath(folder), seed=settings.seed,
+    report = dict(sim.report, folder=os.path.abspath(folder), seed=settings.seed, written=len(written.records),
+                  until=until,
                   prior="given" if prior is not None else "default", seconds_simulate=t1 - t0, seconds_write=t2 - t1)
     return truth_scenario(sim, source=os.path.abspath(folder)), report
+
+
+def extend(folder, days: int) -> dict:
+    """Append the next ``days`` days of a grown folder's history (``simulate --until``, then ``--extend``): the
+    same plant and truth, new record files only, metadata rows appended. Returns ``records`` and ``until``."""
+    if isinstance(days, bool) or not isinstance(days, int) or not 1 <= days <= 36600:
+        raise InputFileError(str(folder), f"--days: expected 1..36600 days, got {days!r}", field="--days")
+    settings, _ = read_growth_state(folder)
+    return extend_paint_folder(folder, days, simulate_plant(settings))
