@@ -82,7 +82,8 @@ def daylight_times(year: int, every: str, latitude_deg: float, longitude_deg: fl
 def daylight_window(start, end, every: str, latitude_deg: float, longitude_deg: float, altitude_m: float = 0.0,
                     min_elevation_deg: float = 5.0):
     """:func:`daylight_times` over ``[start, end)`` (UTC pandas Timestamps) instead of a calendar year: the
-    instants of the plant's own next year, say. Same returns."""
+    instants of the plant's own next year, say. Latitude and longitude [deg], altitude [m], ``min_elevation_deg``
+    [deg]; same returns (times, azimuth and elevation [rad], shape (T,))."""
     times = pd.date_range(start, end, freq=every, inclusive="left")
     az, el = solar_position(times, latitude_deg, longitude_deg, altitude_m)
     keep = el > math.radians(min_elevation_deg)

@@ -231,9 +231,8 @@ def _keep_freed_memory() -> None:
 def cmd_aimpoints(args) -> int:
     """Optimise aim points for one or several instants under a peak-flux limit; baselines in the same report."""
     _keep_freed_memory()
-    from ..io.scenario import load_scenario, write_scenario
-    from ..workflows.aimpoints import AimpointSettings, aimpoints
-    from ..workflows.field import sun_instants
+    from ..io.scenario import write_scenario
+    from ..workflows.aimpoints import AimpointSettings
     from ..workflows.update import locked_plant_write
 
     settings = AimpointSettings(peak_limit_w_m2=args.peak_limit, resolution=args.resolution,
@@ -253,27 +252,7 @@ def cmd_aimpoints(args) -> int:
         out_h5 = out.plant(args.output, "-o") if in_place else out.file(args.output, "-o")
         out_json = out.file(args.json, "--json")
         out_png = out.folder(args.flux, "--flux") if args.flux else None
-        show = sc = instants = None
-
-        def on_instant(i, label, rep, best, equator) -> None:
-            if out_png:
-                _write_aim_maps(out_png, i, label, sc.plant.targets["receiver"], equator, best,
-                                float(args.peak_limit))
-            if show:
-                show(i, label, rep, best, equator)
-
-        def run():
-            nonlocal sc, instants, show
-            sc = load_scenario(args.scenario)
-            instants = sun_instants(sc.plant, times=args.time, day=args.day, every=args.every,
-                                    azimuth_deg=args.sun_azimuth, elevation_deg=args.sun_elevation)
-            show = None if args.quiet else _print_instant(float(args.peak_limit), len(instants))
-            if show:  # a line before the long part; one more per instant as each finishes
-                print(f"aimpoints: {len(sc.plant.field.ids)} heliostats, {len(instants)} instant(s), limit "
-                      f"{float(args.peak_limit) / 1e3:.1f} kW/m2 ...", flush=True)
-            aimed, report = aimpoints(sc, instants, settings, on_instant=on_instant)
-            return types.SimpleNamespace(scenario=aimed, report=report)
-
+        run, seen = _aimpoints_run(args, settings, out_png)
         if in_place:
             result = locked_plant_write(out_h5, run)
         else:
@@ -281,9 +260,39 @@ def cmd_aimpoints(args) -> int:
             write_scenario(result.scenario, out_h5)
         report = result.report
         write_json(out_json, report)
-    if show and len(instants) > 1:
+    if seen["show"] and len(seen["instants"]) > 1:
         _print_summary(report["summary"])
     return _limit_verdict(report, float(args.peak_limit))
+
+
+def _aimpoints_run(args, settings, out_png):
+    """``aimpoints``' read-optimise step as a function of nothing (what :func:`locked_plant_write` calls under the
+    lock when the plant is replaced in place) and the dict it fills (``sc``, ``instants``, ``show``)."""
+    from ..io.scenario import load_scenario
+    from ..workflows.aimpoints import aimpoints
+    from ..workflows.field import sun_instants
+
+    seen = {"sc": None, "instants": [], "show": None}
+
+    def on_instant(i, label, rep, best, equator) -> None:
+        if out_png:
+            _write_aim_maps(out_png, i, label, seen["sc"].plant.targets["receiver"], equator, best,
+                            float(args.peak_limit))
+        if seen["show"]:
+            seen["show"](i, label, rep, best, equator)
+
+    def run():
+        sc = seen["sc"] = load_scenario(args.scenario)
+        instants = seen["instants"] = sun_instants(sc.plant, times=args.time, day=args.day, every=args.every,
+                                                   azimuth_deg=args.sun_azimuth, elevation_deg=args.sun_elevation)
+        show = seen["show"] = None if args.quiet else _print_instant(float(args.peak_limit), len(instants))
+        if show:  # a line before the long part; one more per instant as each finishes
+            print(f"aimpoints: {len(sc.plant.field.ids)} heliostats, {len(instants)} instant(s), limit "
+                  f"{float(args.peak_limit) / 1e3:.1f} kW/m2 ...", flush=True)
+        aimed, report = aimpoints(sc, instants, settings, on_instant=on_instant)
+        return types.SimpleNamespace(scenario=aimed, report=report)
+
+    return run, seen
 
 
 def _print_summary(d: dict) -> None:

@@ -63,21 +63,12 @@ def register(subparsers) -> None:
 def cmd_simulate(args) -> int:
     import os
 
-    from ..errors import InputFileError
     from ..io.scenario import write_scenario
     from ..workflows.simulate import SimulationSettings, prior_from, simulate
 
     if args.extend:
         return _extend(args)
-    if not args.out:
-        raise InputFileError("simulate", "give --out FOLDER (a new plant) or --extend FOLDER (a grown one)",
-                             field="--out")
-    if args.truth and os.path.lexists(args.truth):
-        raise InputFileError(args.truth, "exists; the truth of a new simulated plant is written to a new file",
-                             field="--truth")
-    if os.path.exists(args.out) and (not os.path.isdir(args.out) or os.listdir(args.out)):
-        raise InputFileError(args.out, "exists and is not an empty folder; write a simulated plant to a new one",
-                             field="--out")
+    _check_new_plant(args)
     inputs = [("--layout", args.layout), ("--paint-tower", args.paint_tower), ("--prior-from", args.prior_from)]
     with output_set(inputs) as out:
         folder = out.folder(args.out, "--out")
@@ -102,6 +93,23 @@ def cmd_simulate(args) -> int:
               f"-> {args.out}; truth {report['truth']} ({report['seconds_simulate']:.1f} s simulate, "
               f"{report['seconds_write']:.1f} s write)")
     return 0
+
+
+def _check_new_plant(args) -> None:
+    """A new simulated plant goes to a new folder and, with --truth, a new truth file (refused before any work)."""
+    import os
+
+    from ..errors import InputFileError
+
+    if not args.out:
+        raise InputFileError("simulate", "give --out FOLDER (a new plant) or --extend FOLDER (a grown one)",
+                             field="--out")
+    if args.truth and os.path.lexists(args.truth):
+        raise InputFileError(args.truth, "exists; the truth of a new simulated plant is written to a new file",
+                             field="--truth")
+    if os.path.exists(args.out) and (not os.path.isdir(args.out) or os.listdir(args.out)):
+        raise InputFileError(args.out, "exists and is not an empty folder; write a simulated plant to a new one",
+                             field="--out")
 
 
 def _extend(args) -> int:

@@ -1156,10 +1156,10 @@ def load_records(paint_dir, scenario=None, heliostats=None, *, plane_tolerance: 
         Its plant (e.g. calibrated) replaces the folder's nominal plant; same site, heliostats in the folder.
     heliostats : list of str, optional
     plane_tolerance : float
-        See :func:`heliotwin.io.records.build_record_table`.
+        Largest distance [m] of a focal spot from its target plane (:func:`heliotwin.io.records.build_record_table`).
     require_times : bool
-        A folder without ``metadata/calibration-metadata.csv`` (the records' times) is a one-line error, for a
-        caller that orders or plans by the records' times (``report --paint``); see
+        A flag [-]: a folder without ``metadata/calibration-metadata.csv`` (the records' times) is a one-line
+        error, for a caller that orders or plans by the records' times (``report --paint``); see
         :func:`heliotwin.io.paint.load_paint`.
 
     Returns

@@ -148,7 +148,7 @@ def _aim(scenario: Scenario, day: str, settings: DailySettings) -> tuple[Scenari
 def day_attention(alarms: list, aim: dict) -> list[str]:
     """Why the day needs a person (empty: nothing): step alarms, a peak limit not held, heliostats on standby.
 
-    ``alarms``: the update's alarms; ``aim``: the day's aim-point summary (:func:`_aim`)."""
+    ``alarms``: the update's alarms; ``aim``: the day's aim-point summary (:func:`_aim`; its powers [W])."""
     attention = [f"{len(alarms)} step alarm(s)"] if alarms else []
     if aim.get("limit_met") is False:
         attention.append("aim points could not hold the peak limit at every instant")

@@ -228,9 +228,9 @@ def export_plant(scenario: Scenario, *, solarpilot: tuple | None = None, soltrac
     soltrace : path, optional
         SolTrace input file at ``sun`` (needed then): mirror normals of the same aim points from the field model.
     sun : torch.Tensor, [3], optional
-        Unit vector towards the sun (ENU).
+        Unit vector towards the sun (ENU) [1].
     aim : {"auto", "optimised", "equator"}
-        Which aim points go out: ``"optimised"`` the ones the plant stores (``aimpoints``; the stored instant
+        Which aim points [m] (ENU) go out: ``"optimised"`` the ones the plant stores (``aimpoints``; the stored instant
         whose sun is nearest ``sun``), ``"equator"`` equator aiming at ``sun`` (else the receiver centre);
         ``"auto"`` (default): the stored ones when the plant has them, else equator aiming -- what was learned
         goes out unless asked otherwise.
