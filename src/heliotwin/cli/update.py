@@ -124,6 +124,15 @@ def print_update_summary(report: dict) -> None:
     for a in report["alarms"]:
         print(f"  step alarm: {a['heliostat']} record {a['record_id']} (step statistic {a['statistic']:.1f} over "
               f"{a['window']} record(s) > {report['threshold']['threshold']:.1f})")
+    for a in report.get("closed_alarms") or []:
+        print(f"  alarm closed: {a['heliostat']} record {a['record_id']} (opened {a['opened_utc']}): {a['outcome']} "
+              f"(statistic {a['evidence']:.1f} of the {a['records']} record(s) after it vs "
+              f"{report['threshold'].get('confirm_threshold', float('nan')):.1f})")
+    for a in report.get("open_alarms") or []:
+        age = a.get("age_days")
+        print(f"  alarm open: {a['heliostat']} record {a['record_id']} (opened {a['opened_utc']}"
+              f"{'' if age is None else f', {age:.1f} day(s) old'}; {a['records']} of {a['records_to_settle']} "
+              "records to settle it)")
 
 
 def cmd_daily(args) -> int:
@@ -142,6 +151,7 @@ def cmd_daily(args) -> int:
     if not args.quiet:
         print_update_summary(report["update"])
         plan = report["plan"]
+        print(f"planned {report['day']}: {report.get('day_reason', '')}")
         print(f"calibration plan for {plan['day']}: {len(plan['proposals'])} record(s) on {plan['target']} "
               f"(pointing spread over the plant: median {_mrad(plan['median_spread_mrad'])}, p95 "
               f"{_mrad(plan['p95_spread_mrad'])} mrad)")
@@ -153,8 +163,11 @@ def cmd_daily(args) -> int:
             print(f"aim points: skipped, {aim['skipped']}")
         else:
             for e in aim["instants"]:
+                standby = e.get("standby_heliostats", 0)
                 print(f"aim points {e['instant']}: peak {e['peak_flux_w_m2'] / 1e3:.1f} kW/m2 (limit "
-                      f"{aim['peak_limit_w_m2'] / 1e3:.1f}{'' if e['limit_met'] else ', NOT held'})")
+                      f"{aim['peak_limit_w_m2'] / 1e3:.1f}{'' if e['limit_met'] else ', NOT held'})"
+                      + (f"; {standby} heliostat(s) on standby, {e['power_w'] / 1e3:.3g} of "
+                         f"{e['equator_power_w'] / 1e3:.3g} kW" if standby and e.get("equator_power_w") else ""))
         print(f"status {report['status']}: {'; '.join(report['attention']) or 'nothing to act on'}")
     return result.status
 

@@ -25,6 +25,7 @@ import os
 from dataclasses import dataclass, field, replace
 
 from ..calibrate.protocol.plan import plant_plan
+from ..calibrate.twinstate import open_alarms, plant_clock
 from ..errors import HeliotwinError
 from ..io.scenario import Scenario, load_scenario, provenance_entry
 from ..optimise.aimstate import stored_peak_limit
@@ -32,12 +33,14 @@ from .aimpoints import AimpointSettings, aimpoints
 from .field import sun_instants
 from .update import UpdateSettings, locked_plant_write, update
 
-__all__ = ["DailySettings", "Daily", "daily", "daily_plant_file", "OK", "ATTENTION"]
+__all__ = ["DailySettings", "Daily", "daily", "daily_plant_file", "planned_day", "PLANT_CLOCK_LAG_DAYS", "OK",
+           "ATTENTION"]
 
 #: Exit status: the day ran and nothing needs a person.
 OK = 0
-#: Exit status: the day ran (the plant is written) and something needs a person: a step alarm, or aim points
-#: that could not hold the peak limit.
+#: Exit status: the day ran (the plant is written) and something needs a person: a step alarm raised or still
+#: open (no later records have confirmed or cleared it), aim points that could not hold the peak limit, or
+#: heliostats sent to standby to hold it.
 ATTENTION = 3
 
 
@@ -50,7 +53,8 @@ class DailySettings:
     update : UpdateSettings
         The update's options.
     day : str or None
-        The planned day (UTC date); None: tomorrow by the clock.
+        The planned day (UTC date); None: tomorrow by the wall clock, or the day after the plant's latest
+        record when that is more than :data:`PLANT_CLOCK_LAG_DAYS` behind it (:func:`planned_day`).
     slots : int
         Calibration records to plan for the day.
     every : str
@@ -110,10 +114,27 @@ class Daily:
         return iter((self.scenario, self.report))
 
 
-def _planned_day(day: str | None) -> str:
+#: Days the plant's latest record may lag the wall clock before "tomorrow" means the plant's own tomorrow.
+PLANT_CLOCK_LAG_DAYS = 3.0
+
+
+def planned_day(day: str | None, clock: float | None, now: float) -> tuple[str, str]:
+    """The day to plan (UTC date) and why: ``day`` when given; else tomorrow by the wall clock ``now`` [POSIX s],
+    unless the plant's latest record ``clock`` [POSIX s] is more than :data:`PLANT_CLOCK_LAG_DAYS` behind it:
+    then the day after that record (a plant replayed from an archive, or one whose folder stopped growing)."""
     if day is not None:
-        return day
-    return (_dt.datetime.now(_dt.timezone.utc).date() + _dt.timedelta(days=1)).isoformat()
+        return day, "given (--day)"
+    today = _dt.datetime.fromtimestamp(now, _dt.timezone.utc).date()
+    if clock is None:
+        return (today + _dt.timedelta(days=1)).isoformat(), "tomorrow by the wall clock (the plant holds no record time)"
+    lag = (now - clock) / 86400.0
+    if lag <= PLANT_CLOCK_LAG_DAYS:
+        return (today + _dt.timedelta(days=1)).isoformat(), "tomorrow by the wall clock (the plant is current)"
+    last = _dt.datetime.fromtimestamp(clock, _dt.timezone.utc).date()
+    later = f"{lag / 365.25:.1f} years" if lag > 365 else f"{lag:.0f} days"
+    return ((last + _dt.timedelta(days=1)).isoformat(),
+            f"the day after the plant's latest record ({last.isoformat()}); the wall clock is {later} later -- "
+            "give --day to plan another")
 
 
 def _aim(scenario: Scenario, day: str, settings: DailySettings) -> tuple[Scenario, dict]:
@@ -135,14 +156,30 @@ def _aim(scenario: Scenario, day: str, settings: DailySettings) -> tuple[Scenari
                                     baselines=False)
     aimed, report = aimpoints(scenario, instants, aim_settings)
     met = [e["optimised"]["peak_flux_w_m2"] <= limit * (1 + 1e-6) for e in report["instants"]]
+    # standby heliostats hold the limit by delivering nothing: what the limit costs is the power the field
+    # loses against equator aiming with every heliostat on the receiver (the limit-free aim points)
     summary = {"peak_limit_w_m2": float(limit), "instants": [
         {"instant": e["instant"], "power_w": e["optimised"].get("power_w"),
-         "peak_flux_w_m2": e["optimised"]["peak_flux_w_m2"], "limit_met": ok}
-        for e, ok in zip(report["instants"], met)], "limit_met": all(met)}
+         "peak_flux_w_m2": e["optimised"]["peak_flux_w_m2"], "limit_met": ok,
+         "standby_heliostats": int(e["optimised"].get("standby_heliostats", 0)),
+         "equator_power_w": e["equator"].get("power_w"),
+         "power_lost_w": (e["equator"]["power_w"] - e["optimised"]["power_w"]
+                          if e["equator"].get("power_w") is not None and e["optimised"].get("power_w") is not None
+                          else None)}
+        for e, ok in zip(report["instants"], met)], "limit_met": all(met),
+        "power_lost_means": "equator aiming's power (every heliostat on the receiver, no limit) less the "
+                            "optimised aim points' [W]"}
+    summary["standby_heliostats"] = max((e["standby_heliostats"] for e in summary["instants"]), default=0)
     return aimed, summary
 
 
-def daily(scenario, paint, settings: DailySettings = DailySettings(), *, device: str = "cpu") -> Daily:
+def _age(alarm: dict) -> str:
+    days = alarm.get("age_days")
+    return "age unknown" if days is None else f"{days:.1f} day(s) old"
+
+
+def daily(scenario, paint, settings: DailySettings = DailySettings(), *, device: str = "cpu",
+          now: float | None = None) -> Daily:
     """The plant's day (module docstring): update with the folder's new records, plan the next calibrations,
     aim the field; one provenance step.
 
@@ -155,13 +192,21 @@ def daily(scenario, paint, settings: DailySettings = DailySettings(), *, device:
     settings : DailySettings
     device : str
         Where the update computes.
+    now : float, optional
+        The wall clock [POSIX s] (default: the system's; tests give it).
     """
     previous = load_scenario(scenario) if isinstance(scenario, (str, os.PathLike)) else scenario
     updated = update(previous, paint, settings.update, device=device)
-    day = _planned_day(settings.day)
     alarms = updated.report["alarms"]
+    now = _dt.datetime.now(_dt.timezone.utc).timestamp() if now is None else float(now)
+    clock = plant_clock(updated.scenario)
+    day, day_why = planned_day(settings.day, clock, now)
+    # an alarm is open until records settle it: its age on the plant's clock (its latest record, or now)
+    still_open = open_alarms(updated.scenario, now=clock if clock is not None else now)
+    urgent = [a["heliostat"] for a in still_open] + [a["heliostat"] for a in alarms]
     plan = plant_plan(updated.scenario, day=day, slots=settings.slots, every=settings.every,
-                      min_elevation_deg=settings.min_elevation, urgent={a["heliostat"] for a in alarms})
+                      min_elevation_deg=settings.min_elevation, urgent=list(dict.fromkeys(urgent)))
+
     final, aim = _aim(updated.scenario, day, settings)
     update_step = updated.scenario.provenance[-1]
     step = provenance_entry("daily", source=update_step.get("source"), records=update_step.get("records", {}),
@@ -172,17 +217,28 @@ def daily(scenario, paint, settings: DailySettings = DailySettings(), *, device:
                                       "every": settings.every})
     final = replace(final, provenance=list(previous.provenance or []) + [step])
     attention = [f"{len(alarms)} step alarm(s)"] if alarms else []
+    if still_open:
+        attention.append(f"{len(still_open)} open step alarm(s): " + ", ".join(
+            f"{a['heliostat']} (record {a['record_id']}, opened {a['opened_utc']}, {_age(a)}, {a['records']} of "
+            f"{a['records_to_settle']} records to settle it)" for a in still_open))
     if aim.get("limit_met") is False:
         attention.append("aim points could not hold the peak limit at every instant")
+    if aim.get("standby_heliostats"):
+        worst = max(aim["instants"], key=lambda e: e["standby_heliostats"])
+        lost = worst.get("power_lost_w")
+        attention.append(f"{worst['standby_heliostats']} heliostat(s) on standby to hold the peak limit at "
+                         f"{worst['instant']}" + (f" ({worst['power_w'] / 1e3:.3g} kW of equator aiming's "
+                                                  f"{worst['equator_power_w'] / 1e3:.3g} kW delivered)"
+                                                  if lost is not None else ""))
     status = ATTENTION if attention else OK
-    report = {"day": day, "status": status, "attention": attention, "update": updated.report, "plan": plan,
-              "aimpoints": aim}
+    report = {"day": day, "day_reason": day_why, "status": status, "attention": attention, "update": updated.report, "plan": plan,
+              "aimpoints": aim, "open_alarms": still_open}
     return Daily(final, report, status)
 
 
 def daily_plant_file(plant_path, paint, output=None, settings: DailySettings = DailySettings(), *,
-                     device: str = "cpu", timeout: float | None = None) -> Daily:
+                     device: str = "cpu", timeout: float | None = None, now: float | None = None) -> Daily:
     """:func:`daily` on files: ``output`` (default: the plant file itself) is locked for the whole day's
     read-update-write, not replaced when another process changed it meanwhile, and written atomically."""
     output = plant_path if output is None else output
-    return locked_plant_write(output, lambda: daily(plant_path, paint, settings, device=device), timeout)
+    return locked_plant_write(output, lambda: daily(plant_path, paint, settings, device=device, now=now), timeout)

@@ -1,0 +1,126 @@
+"""Open step alarms are plant state (issue 42 item 2): an alarm stays open in the plant file until the
+heliostat's next records settle it -- confirmed (a real step: the re-fitted state applied) or cleared (a one-off
+outlier) -- ``daily`` exits 3 while any is open, plans it first and says which, and a plant written before
+alarms were kept reads as having none. Also the plant's own clock for the planned day (item 3)."""
+from __future__ import annotations
+
+import datetime as dt
+
+import torch
+from helpers.learned import calibrated_scenario_of
+from test_update import _calibrated, _stream
+
+from heliotwin.calibrate.assimilate import (
+    CONFIRM_RECORDS,
+    AssimilationOptions,
+    alarm_threshold,
+    assimilate,
+    confirm_threshold,
+    leave_one_out_d2,
+)
+from heliotwin.calibrate.twinstate import closed_alarms, open_alarms, plant_clock
+from heliotwin.io.records import RecordTable
+from heliotwin.io.scenario import load_scenario, write_scenario
+from heliotwin.workflows.daily import ATTENTION, OK, DailySettings, daily, planned_day
+from heliotwin.workflows.update import update
+
+H, N = 3, 16
+STEP = (1, 6, [6e-3, -3e-3])  # heliostat S1 steps at its 7th new record
+
+
+def _state(kin, truth, post):
+    from test_update import _state as state_of
+    return state_of(kin, truth, post)
+
+
+def _options(kin, train, state):
+    thr = alarm_threshold(1e-3, leave_one_out_d2(kin, train, state), tests=3)
+    return AssimilationOptions(threshold=thr["threshold"], window=3, confirm_threshold=confirm_threshold(thr["kappa"]))
+
+
+def test_a_real_step_is_confirmed_and_a_one_off_outlier_is_cleared_by_the_next_records():
+    kin, truth, train, post = _calibrated(H)
+    state = _state(kin, truth, post)
+    opts = _options(kin, train, state)
+    for jump in ([6e-3, -3e-3], [1.5e-3, -1e-3]):  # seen by one record alone; only by two together
+        stream = _stream(kin, truth, H, N, 5e-4, seed=7, step=(1, 6, jump))
+        new, hist = assimilate(kin, stream, state, opts)
+        c = hist["closed"]
+        assert int(hist["alarm"].sum()) == 1 and c["outcome"].tolist() == [1]  # confirmed
+        assert c["heliostat"].tolist() == [1] and int(c["records"][0]) == CONFIRM_RECORDS
+        assert float(c["evidence"][0]) > 3 * opts.confirm_threshold
+        assert not bool(new.alarms["open"].any())
+    stream = _stream(kin, truth, H, N, 5e-4, seed=7)
+    stream.spot[N + 6] += torch.tensor([0.3, 0.0, 0.0], dtype=stream.spot.dtype)  # one record's centroid 0.3 m off
+    new, hist = assimilate(kin, stream, state, opts)
+    c = hist["closed"]
+    assert int(hist["alarm"].sum()) == 1 and c["outcome"].tolist() == [2]  # cleared: not confirmed by 3 records
+    assert float(c["evidence"][0]) < opts.confirm_threshold
+    torch.testing.assert_close(new.mean[1, :2], truth[1, :2], atol=1.5e-3, rtol=0)  # back where it was
+
+
+def _plant(tmp_path):
+    kin, truth, train, post = _calibrated(H)
+    sc, _ = calibrated_scenario_of(kin, truth, train, post)
+    stream = _stream(kin, truth, H, N, 5e-4, seed=7, step=STEP)
+    return sc, train, stream
+
+
+def _upto(train, stream, k):
+    """The calibration's records and each heliostat's first ``k`` new ones."""
+    return RecordTable.concatenate([train, stream.subset((stream.record_id - 10 ** 6) % N < k)])
+
+
+def test_an_alarm_stays_open_over_reruns_and_closes_when_the_records_say_so(tmp_path):
+    sc, train, stream = _plant(tmp_path)
+    first, rep = update(sc, _upto(train, stream, 7))  # up to the step's first record
+    assert [a["heliostat"] for a in rep["alarms"]] == ["S1"] and rep["closed_alarms"] == []
+    path = write_scenario(first, tmp_path / "p.h5")
+    back = load_scenario(path)
+    (a,) = open_alarms(back, now=plant_clock(back))
+    assert a["heliostat"] == "S1" and a["records"] == 0 and a["age_days"] == 0.0
+    # no new record: the alarm is still open, with its reason, on every rerun (exit 3 each time)
+    again = back
+    for _ in range(2):
+        again, rep = update(again, _upto(train, stream, 7))
+        assert rep["alarms"] == [] and [o["record_id"] for o in rep["open_alarms"]] == [a["record_id"]]
+        again = load_scenario(write_scenario(again, tmp_path / "p.h5"))
+    res = daily(again, _upto(train, stream, 7), DailySettings(aim=False, slots=2), now=1.6e9 + 10 * 86400)
+    assert res.status == ATTENTION and res.report["update"]["alarms"] == []
+    assert any("open step alarm" in why and "S1" in why for why in res.report["attention"])
+    assert res.report["plan"]["proposals"][0]["heliostat"] == "S1"  # open alarms first
+    # two records after it: still open (one short of settling)
+    part, rep = update(again, _upto(train, stream, 9))
+    assert rep["open_alarms"][0]["records"] == 2 and rep["closed_alarms"] == []
+    # the third settles it: the step is confirmed and the state follows it
+    done, rep = update(load_scenario(write_scenario(part, tmp_path / "p.h5")), _upto(train, stream, 10))
+    assert rep["open_alarms"] == []
+    (c,) = rep["closed_alarms"]
+    assert c["heliostat"] == "S1" and c["confirmed"] and c["outcome"] == "step confirmed, applied"
+    done = load_scenario(write_scenario(done, tmp_path / "p.h5"))
+    assert open_alarms(done) == [] and len(closed_alarms(done)) == 1
+    res = daily(done, _upto(train, stream, 10), DailySettings(aim=False, slots=2), now=1.6e9 + 11 * 86400)
+    assert res.status == OK and res.report["open_alarms"] == []
+
+
+def test_a_plant_written_before_alarms_were_kept_reads_as_none_open(tmp_path):
+    sc, train, stream = _plant(tmp_path)
+    first, _ = update(sc, _upto(train, stream, 7))
+    st = dict(first.learned["assimilation"])
+    st.pop("open_alarms"), st.pop("closed_alarms")
+    st["version"] = torch.tensor([1])
+    old = load_scenario(write_scenario(type(first)(**{**first.__dict__, "learned": {**first.learned,
+                                                                                    "assimilation": st}}),
+                                       tmp_path / "v1.h5"))
+    assert open_alarms(old) == [] and closed_alarms(old) == []
+    _, rep = update(old, _upto(train, stream, 10))
+    assert rep["open_alarms"] == [] and rep["alarms"] == []  # the step's alarm was raised by the older update
+
+
+def test_the_planned_day_follows_the_plants_clock_when_the_wall_clock_is_far_ahead():
+    last = dt.datetime(2022, 12, 30, 14, tzinfo=dt.timezone.utc).timestamp()
+    day, why = planned_day(None, last, last + 4 * 365.25 * 86400)
+    assert day == "2022-12-31" and "latest record" in why and "give --day" in why
+    day, why = planned_day(None, last, last + 1 * 86400)  # current plant: tomorrow by the wall clock
+    assert day == "2023-01-01" and "wall clock" in why
+    assert planned_day("2024-06-21", last, last)[0] == "2024-06-21"
