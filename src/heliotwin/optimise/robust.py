@@ -34,6 +34,7 @@ import math
 from dataclasses import dataclass
 
 import torch
+from scipy.stats import beta as beta_dist
 
 from ..calibrate.params import apply_deviations
 from ..devices import to_device
@@ -51,7 +52,8 @@ from .aimpoints import (
     optimise_aimpoints,
 )
 
-__all__ = ["PointingPosterior", "require_posterior", "pointing_posterior", "draw_normal_errors", "perturbed_aim",
+__all__ = ["PointingPosterior", "require_posterior", "walked_covariance", "exceedance_bound", "pointing_posterior",
+           "draw_normal_errors", "perturbed_aim",
            "spot_jacobian", "exceedance", "robust_aimpoints"]
 
 
@@ -93,14 +95,53 @@ def require_posterior(learned: dict, path: str = "") -> dict:
     return cal
 
 
+def walked_covariance(cal: dict, cov: torch.Tensor, names: list, time_s: float | None) -> torch.Tensor:
+    """``cov`` [H, P, P] with the stored random walk of the axis offsets grown from the state's time
+    (``/learned/calibration/drift/time`` [H]) to ``time_s`` [POSIX s] (``q`` [rad^2/day] x days, never
+    negative); unchanged without a drift state or a time."""
+    drift = cal.get("drift") or {}
+    if time_s is None or not drift or "time" not in drift or "process_noise_rad2_per_day" not in drift:
+        return cov
+    cols = [names.index(n) for n in (drift.get("names") or ()) if n in names]
+    t = torch.as_tensor(drift["time"], dtype=torch.float64).reshape(-1)
+    q = float(torch.as_tensor(drift["process_noise_rad2_per_day"], dtype=torch.float64).reshape(-1)[0])
+    if not cols or t.shape[0] != cov.shape[0]:
+        return cov
+    days = ((float(time_s) - t) / 86400.0).nan_to_num(0.0).clamp_min(0.0).to(cov)
+    cov = cov.clone()
+    idx = torch.tensor(cols, dtype=torch.long, device=cov.device)
+    cov[:, idx, idx] += (q * days)[:, None]
+    return cov
+
+
+def _walk_days(cal: dict, time_s: float | None) -> float:
+    """Median days [1] from the heliostats' state time to ``time_s`` [POSIX s] (0 without a drift state)."""
+    t = (cal.get("drift") or {}).get("time")
+    if t is None or time_s is None:
+        return 0.0
+    d = ((float(time_s) - torch.as_tensor(t, dtype=torch.float64).reshape(-1)) / 86400.0).nan_to_num(0.0)
+    return float(d.clamp_min(0.0).median()) if len(d) else 0.0
+
+
+def exceedance_bound(over: int, draws: int, level: float = 0.95) -> float:
+    """Exact (Clopper-Pearson) one-sided ``level`` upper bound on a probability seen ``over`` times in
+    ``draws`` independent draws: 0 of 50 bounds it only below 5.8 % at 95 %."""
+    k, n = int(over), int(draws)
+    if k >= n:
+        return 1.0
+    return float(beta_dist.ppf(float(level), k + 1, n - k))
+
+
 def pointing_posterior(plant: Plant, learned: dict, sun: torch.Tensor, aim: torch.Tensor,
-                       path: str = "") -> PointingPosterior:
+                       path: str = "", time_s: float | None = None) -> PointingPosterior:
     """The normal-error distribution [rad] of every heliostat aiming at ``aim`` [H, 3] ENU [m] under ``sun`` [3]
     (unit, ENU).
 
     ``learned`` is the scenario's ``/learned`` dict; its ``calibration`` must hold a ``posterior`` (``heliotwin
     calibrate --method lm``), else a one-line :class:`~heliotwin.errors.HeliotwinError`. The Jacobian is taken
     at the stored fit (nominal kinematics plus deviations) and the motor steps that aim each heliostat there.
+    ``time_s`` [POSIX s]: when the aim points are used; the offsets' stored random walk is grown to then
+    (:func:`walked_covariance`), so a spread far from the records' time is wider.
     """
     cal = require_posterior(learned, path)
     where = f"{path or 'scenario'} [/learned/calibration/posterior]"
@@ -119,6 +160,7 @@ def pointing_posterior(plant: Plant, learned: dict, sun: torch.Tensor, aim: torc
     p = len(names)
     if cov.shape != (len(ids), p, p) or noise.shape != (len(ids),):
         raise HeliotwinError(f"{where}: covariance must be [{len(ids)}, {p}, {p}] and noise [{len(ids)}]")
+    cov = walked_covariance(cal, cov, names, time_s)
     pos = plant.field.kinematics.position.to(torch.float64)
     dev = pos.device  # the stored posterior is on the host; the plant may be on a GPU
     cov, noise, delta, nominal = cov.to(dev), noise.to(dev), delta.to(dev), to_device(nominal, dev)
@@ -246,7 +288,7 @@ def exceedance(plant: Plant, sun: torch.Tensor, result: AimResult, limit: float,
 def robust_aimpoints(plant: Plant, sun: torch.Tensor, limit: float, confidence: float, learned: dict,
                      settings: AimSettings = AimSettings(), *, atmosphere=None, equator=None, model=None,
                      deterministic: AimResult | None = None, draws: int = 200, seed: int = 0, mc: str = "model",
-                     tries: int = 6, path: str = "") -> tuple[AimResult, dict]:
+                     tries: int = 6, path: str = "", time_s: float | None = None) -> tuple[AimResult, dict]:
     """Aim points whose peak stays at or below ``limit`` [W/m^2] with probability ``confidence`` under the
     stored pointing posterior (module docstring), and the report comparing them with the deterministic ones.
 
@@ -277,7 +319,10 @@ def robust_aimpoints(plant: Plant, sun: torch.Tensor, limit: float, confidence: 
         ``deterministic`` and ``robust`` (``exceedance_probability`` and its standard error, peak quantiles,
         power, internal limit), ``power_cost`` (1 - robust / deterministic power), ``decision_probability``
         (the share of draws over the limit the tightening aims at or below: ``1 - confidence`` less 1.645 binomial
-        standard errors, so that independent draws stay within ``1 - confidence``), ``met`` (reached).
+        standard errors, so that independent draws stay within ``1 - confidence``), ``exceedance_upper_95``
+        (exact Clopper-Pearson bound of the robust result's share over the limit), ``draws_needed`` (the fewest
+        draws whose bound can fall below ``1 - confidence``), ``met`` (reached *and* that bound below ``1 -
+        confidence``; else ``met_reason``), ``walked_days`` (median days the offsets' walk grew to ``time_s``).
     """
     if not 0.0 < float(confidence) < 1.0:
         raise HeliotwinError(f"--confidence: expected a probability in (0, 1), got {confidence!r}")
@@ -287,7 +332,7 @@ def robust_aimpoints(plant: Plant, sun: torch.Tensor, limit: float, confidence: 
     goal = max(alpha - 1.645 * math.sqrt(alpha * (1.0 - alpha) / int(draws)), 0.5 * alpha)
     kw = dict(atmosphere=atmosphere, equator=equator, model=model)
     det = deterministic or optimise_aimpoints(plant, sun, limit, settings, **kw)
-    post = pointing_posterior(plant, learned, sun, det.aim, path)
+    post = pointing_posterior(plant, learned, sun, det.aim, path, time_s=time_s)
     gen = torch.Generator().manual_seed(int(seed))
     dn = draw_normal_errors(post, draws, gen)
     check = dict(atmosphere=atmosphere, resolution=settings.resolution, mc=mc, model=model)
@@ -295,6 +340,7 @@ def robust_aimpoints(plant: Plant, sun: torch.Tensor, limit: float, confidence: 
     best, ex_best, internal = det, ex_det, float(limit)  # the latest tightening (each one is tighter)
     tried = []
     level = 1.0 - goal
+    # can these draws show alpha at all? 0 over the limit must bound the probability below it
     for _ in range(int(tries)):
         if ex_best["probability"] <= goal:
             break
@@ -311,10 +357,22 @@ def robust_aimpoints(plant: Plant, sun: torch.Tensor, limit: float, confidence: 
                 "peak_quantiles_w_m2": ex["quantiles_w_m2"], "power_w": r.power_w,
                 "undisturbed_peak_w_m2": r.peak_flux_w_m2, "internal_limit_w_m2": lim, "standby": int(r.standby)}
 
+    # honest about the draws: an exact upper bound on the exceedance probability, met only when it is below
+    # 1 - confidence (0 of D draws bounds it at 1 - 0.05^(1/D), about 3 / D: fewer draws cannot show more)
+    over = int(round(ex_best["probability"] * len(ex_best["peaks"])))
+    bound = exceedance_bound(over, len(ex_best["peaks"]))
+    needed = math.ceil(math.log(0.05) / math.log1p(-alpha))
     report = {"confidence": float(confidence), "draws": int(draws), "mc": mc, "seed": int(seed),
+              "exceedance_upper_95": bound, "draws_needed": needed,
+              "walked_days": _walk_days(require_posterior(learned, path), time_s),
               "calibrated_heliostats": post.calibrated,
               "pointing_sd_mrad": {"median": float(sd.median()), "max": float(sd.max())},
               "deterministic": entry(det, ex_det, float(limit)), "robust": entry(best, ex_best, internal),
               "power_cost": 1.0 - best.power_w / det.power_w if det.power_w > 0 else 0.0,
-              "decision_probability": goal, "met": ex_best["probability"] <= goal, "tightenings": tried}
+              "decision_probability": goal, "met": bound <= alpha,
+              "tightenings": tried}
+    if bound > alpha:
+        report["met_reason"] = (f"{over} of {len(ex_best['peaks'])} draws over the limit bound the exceedance "
+                                f"probability only below {bound:.3g} (exact, 95 %), not {alpha:.3g}: at least "
+                                f"{needed} draws are needed")
     return best, report

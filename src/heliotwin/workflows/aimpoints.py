@@ -123,7 +123,8 @@ class AimpointSettings:
 
 
 @reuse_mirror_samples()  # every exact check below samples the same mirror surfaces
-def _instant(plant, sun, atm, settings: AimpointSettings, learned=None, path="", warm: AimResult | None = None):
+def _instant(plant, sun, atm, settings: AimpointSettings, learned=None, path="", warm: AimResult | None = None,
+             time_s: float | None = None):
     """Equator, the two heuristics and the optimised aim points at one sun: (report entry, optimised, equator,
     deterministic optimised).
 
@@ -162,7 +163,7 @@ def _instant(plant, sun, atm, settings: AimpointSettings, learned=None, path="",
     if settings.confidence is not None:
         best, robust = robust_aimpoints(plant, sun, limit, settings.confidence, learned, knobs, atmosphere=atm,
                                         equator=eq_field, model=model, deterministic=best, draws=settings.draws,
-                                        seed=settings.seed, mc=settings.mc, path=path)
+                                        seed=settings.seed, mc=settings.mc, path=path, time_s=time_s)
     baselines = {}
     if settings.baselines:
         baselines["aiming_factor"] = aiming_factor(plant, sun, limit, atmosphere=atm, resolution=resolution,
@@ -197,6 +198,18 @@ def _instant(plant, sun, atm, settings: AimpointSettings, learned=None, path="",
         rep["robust"] = robust
     rep["seconds"] = time.perf_counter() - t0
     return rep, best, equator, deterministic
+
+
+def _label_time(label: str) -> float | None:
+    """An instant's UTC label as POSIX s (the time --confidence grows the offsets' walk to), None when the
+    label is not a time (an instant given by its sun angles)."""
+    try:
+        t = pd.Timestamp(label)
+    except (ValueError, TypeError, OverflowError):
+        return None
+    if pd.isna(t):
+        return None
+    return float((t.tz_localize("UTC") if t.tzinfo is None else t.tz_convert("UTC")).timestamp())
 
 
 def _note(best: AimResult, equator: AimResult, limit: float) -> str:
@@ -289,7 +302,7 @@ def aimpoints(scenario: Scenario, instants: list[tuple[str, torch.Tensor]], sett
     warm = settings.warm_start
     for i, (label, sun) in enumerate(instants):
         rep, best, equator, previous = _instant(plant, sun, atm, settings, scenario.learned, scenario.path or "",
-                                                previous if warm else None)
+                                                previous if warm else None, time_s=_label_time(label))
         stored[f"i{i:03d}"] = instant_state(plant, label, best.aim, sun, power_w=best.power_w,
                                             peak_flux_w_m2=best.peak_flux_w_m2)
         rep["optimised"]["motor_steps_reachable"] = int(stored[f"i{i:03d}"]["reachable"].sum())

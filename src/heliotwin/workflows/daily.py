@@ -126,7 +126,8 @@ def planned_day(day: str | None, clock: float | None, now: float) -> tuple[str, 
         return day, "given (--day)"
     today = _dt.datetime.fromtimestamp(now, _dt.timezone.utc).date()
     if clock is None:
-        return (today + _dt.timedelta(days=1)).isoformat(), "tomorrow by the wall clock (the plant holds no record time)"
+        return ((today + _dt.timedelta(days=1)).isoformat(),
+                "tomorrow by the wall clock (the plant holds no record time)")
     lag = (now - clock) / 86400.0
     if lag <= PLANT_CLOCK_LAG_DAYS:
         return (today + _dt.timedelta(days=1)).isoformat(), "tomorrow by the wall clock (the plant is current)"
@@ -231,8 +232,8 @@ def daily(scenario, paint, settings: DailySettings = DailySettings(), *, device:
                                                   f"{worst['equator_power_w'] / 1e3:.3g} kW delivered)"
                                                   if lost is not None else ""))
     status = ATTENTION if attention else OK
-    report = {"day": day, "day_reason": day_why, "status": status, "attention": attention, "update": updated.report, "plan": plan,
-              "aimpoints": aim, "open_alarms": still_open}
+    report = {"day": day, "day_reason": day_why, "status": status, "attention": attention, "update": updated.report,
+              "plan": plan, "aimpoints": aim, "open_alarms": still_open}
     return Daily(final, report, status)
 
 
