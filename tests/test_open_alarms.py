@@ -124,3 +124,32 @@ def test_the_planned_day_follows_the_plants_clock_when_the_wall_clock_is_far_ahe
     day, why = planned_day(None, last, last + 1 * 86400)  # current plant: tomorrow by the wall clock
     assert day == "2023-01-01" and "wall clock" in why
     assert planned_day("2024-06-21", last, last)[0] == "2024-06-21"
+
+
+def test_the_report_lists_every_open_alarm_with_its_age_on_the_plants_clock(tmp_path):
+    from heliotwin.workflows.report import open_alarm_rows
+    sc, train, stream = _plant(tmp_path)
+    first, _ = update(sc, _upto(train, stream, 7))
+    # records of the other heliostats go on: the alarm ages on the plant's clock while S1 has no record
+    later = stream.subset(((stream.record_id - 10 ** 6) % N < 12) & (stream.heliostat_index != 1))
+    aged, _ = update(first, RecordTable.concatenate([train, later]))
+    (row,) = open_alarm_rows(aged)
+    assert row["heliostat"] == "S1" and row["age_days"] == 5.0 and row["records"] == 0
+
+
+def test_a_limit_held_by_sending_the_light_off_the_receiver_needs_a_person(monkeypatch):
+    """issue 41 item 5: aim points delivering 3 of 63 kW (the rest spilled or on standby) exit 3, said why."""
+    import heliotwin.workflows.daily as D
+    kin, truth, train, post = _calibrated(H)
+    sc, _ = calibrated_scenario_of(kin, truth, train, post)
+    instant = {"instant": "2021-12-01T11:00:00+00:00", "power_w": 3.0e3, "peak_flux_w_m2": 873.0, "limit_met": True,
+               "standby_heliostats": 0, "equator_power_w": 63.0e3, "power_lost_w": 60.0e3}
+    monkeypatch.setattr(D, "_aim", lambda scenario, day, settings: (scenario, {
+        "peak_limit_w_m2": 1000.0, "instants": [instant], "limit_met": True, "standby_heliostats": 0}))
+    res = daily(sc, train, DailySettings(slots=0), now=1.6e9)
+    assert res.status == ATTENTION and any("off the receiver" in why for why in res.report["attention"])
+    instant.update(power_w=60.0e3, standby_heliostats=2)  # two on standby, most power delivered: still a person
+    res = daily(sc, train, DailySettings(slots=0), now=1.6e9)
+    assert res.status == ATTENTION and any("2 heliostat(s) on standby" in why for why in res.report["attention"])
+    instant.update(standby_heliostats=0)
+    assert daily(sc, train, DailySettings(slots=0), now=1.6e9).status == OK

@@ -152,12 +152,14 @@ def cmd_daily(args) -> int:
         print_update_summary(report["update"])
         plan = report["plan"]
         print(f"planned {report['day']}: {report.get('day_reason', '')}")
-        print(f"calibration plan for {plan['day']}: {len(plan['proposals'])} record(s) on {plan['target']} "
+        n_planned, n_slots = len(plan["proposals"]), plan.get("slots", len(plan["proposals"]))
+        print(f"calibration plan for {plan['day']}: {n_planned} of {n_slots} slot(s) planned"
+              f"{_fewer(plan)} on {plan['target']} "
               f"(pointing spread over the plant: median {_mrad(plan['median_spread_mrad'])}, p95 "
               f"{_mrad(plan['p95_spread_mrad'])} mrad)")
         for p in plan["proposals"][:10]:
-            print(f"  {p['time']}  {p['heliostat']}  ({p['reason']}; {p['rms_now_mrad']:.3f} -> "
-                  f"{p['rms_after_mrad']:.3f} mrad)")
+            print(f"  {p['time']}  {p['heliostat']}  ({p['reason']}: spread {p['spread_now_mrad']:.3f} mrad; RMS "
+                  f"normal error over the year {p['rms_now_mrad']:.3f} -> {p['rms_after_mrad']:.3f} mrad)")
         aim = report["aimpoints"]
         if "skipped" in aim:
             print(f"aim points: skipped, {aim['skipped']}")
@@ -197,3 +199,8 @@ def cmd_history(args) -> int:
         print(f"  {when} record {int(hist['record_id'][i])}: predicted error {1e3 * hist['predicted_error'][i]:.3f} "
               f"mrad, d2 {hist['d2'][i]:.1f}{'  STEP ALARM' if hist['alarm'][i] else ''}; axis offsets [mrad] {offs}")
     return 0
+
+
+def _fewer(plan: dict) -> str:
+    """Why fewer records were planned than slots asked for, in parentheses ('' when all were)."""
+    return f" ({plan['why_fewer']})" if plan.get("why_fewer") else ""

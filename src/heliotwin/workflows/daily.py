@@ -114,6 +114,10 @@ class Daily:
         return iter((self.scenario, self.report))
 
 
+#: Share of equator aiming's power below which aim points that hold the limit need a person: the field's light
+#: is mostly sent off the receiver (spilled or on standby), which a limit set too low (or a wrong unit) does.
+SPILL_ATTENTION = 0.5
+
 #: Days the plant's latest record may lag the wall clock before "tomorrow" means the plant's own tomorrow.
 PLANT_CLOCK_LAG_DAYS = 3.0
 
@@ -224,7 +228,16 @@ def daily(scenario, paint, settings: DailySettings = DailySettings(), *, device:
             f"{a['records_to_settle']} records to settle it)" for a in still_open))
     if aim.get("limit_met") is False:
         attention.append("aim points could not hold the peak limit at every instant")
-    if aim.get("standby_heliostats"):
+    spilled = [e for e in aim.get("instants", []) if e.get("equator_power_w") and e.get("power_w") is not None
+               and e["power_w"] < SPILL_ATTENTION * e["equator_power_w"]]
+    standby = max((e.get("standby_heliostats", 0) for e in aim.get("instants", [])), default=0)
+    if spilled and not standby:
+        worst = min(spilled, key=lambda e: e["power_w"] / e["equator_power_w"])
+        attention.append(f"aim points at {worst['instant']} deliver {worst['power_w'] / 1e3:.3g} kW of equator "
+                         f"aiming's {worst['equator_power_w'] / 1e3:.3g} kW "
+                         f"({worst['power_w'] / worst['equator_power_w']:.1%}): the peak limit is held by sending "
+                         "the field's light off the receiver")
+    if standby:
         worst = max(aim["instants"], key=lambda e: e["standby_heliostats"])
         lost = worst.get("power_lost_w")
         attention.append(f"{worst['standby_heliostats']} heliostat(s) on standby to hold the peak limit at "
