@@ -142,10 +142,16 @@ def test_fifty_draws_do_not_claim_a_one_in_ten_million_exceedance():
 
 def test_standby_heliostats_make_the_day_need_a_person():
     aim = {"limit_met": True, "standby_heliostats": 7, "instants": [
-        {"instant": TIME, "standby_heliostats": 7, "power_below_equator_w": 75500.0, "equator_power_w": 78000.0}]}
+        {"instant": TIME, "standby_heliostats": 7, "power_w": 2500.0, "power_lost_w": 75500.0,
+         "equator_power_w": 78000.0}]}
     why = day_attention([], aim)
-    assert len(why) == 1 and "7 heliostat(s) on standby" in why[0] and "75.5 kW" in why[0]
-    assert day_attention([], {"limit_met": True, "standby_heliostats": 0, "instants": []}) == []
+    assert len(why) == 1 and "7 heliostat(s) on standby" in why[0] and "2.5 kW" in why[0] and "78 kW" in why[0]
+    full = {"limit_met": True, "standby_heliostats": 0, "instants": [
+        {"instant": TIME, "standby_heliostats": 0, "power_w": 77000.0, "equator_power_w": 78000.0}]}
+    assert day_attention([], full) == []
+    spilled = {"limit_met": True, "standby_heliostats": 0, "instants": [
+        {"instant": TIME, "standby_heliostats": 0, "power_w": 3000.0, "equator_power_w": 78000.0}]}
+    assert "off the receiver" in day_attention([], spilled)[0]  # no standby, but the light is spilled
 
 
 def test_aimpoints_at_a_time_far_from_the_records_grow_the_posterior_by_the_walk():

@@ -37,6 +37,17 @@ chi-square (2 dof) under the model, so the threshold is the quantile of the rate
 tests. A jump that several records show is real: the offset is re-opened by ``max(reopen^2, |F^-1 g|^2)`` and
 the record assimilated at full weight.
 
+Open alarms. An alarm stays *open* (:class:`FilterState`'s ``alarms``) until the heliostat's next
+:data:`CONFIRM_RECORDS` records settle it: their step test against the **pre-alarm** state (the mean and
+covariance the alarming record was predicted with, the walk grown to each record; the same generalised
+likelihood ratio ``g^T F^-1 g`` of one constant jump of the drifting columns, summed over those records only,
+not the alarming ones) is chi-square (2 dof) if nothing happened. Above ``confirm_threshold`` (the
+:data:`CONFIRM_LEVEL` quantile scaled by the threshold's ``kappa``) the step is *confirmed*, and the state the
+filter has re-fitted on those records (against the re-opened offset) is the one applied; at or below it the
+alarm is *cleared* ("not confirmed by 3 records": a one-off outlier, after which the filter is back where it
+was). A new alarm of a heliostat with one open closes the old one as *superseded*. The detection itself is
+unchanged: open alarms are bookkeeping over the filter, which runs as before.
+
 Moderate outliers (``d^2`` above the chi-square's 95 % quantile, below the alarm) are down-weighted as a
 Huber M-estimate does (their noise is inflated until ``d^2`` equals that quantile), as the batch fit's robust
 loss does.
@@ -81,6 +92,27 @@ REOPEN = 2e-3
 #: Records of the step tests' longest window (:func:`assimilate`).
 WINDOW = 3
 
+#: Records after an alarm that settle it (:func:`assimilate`, module docstring: confirmed or cleared). Three: a step
+#: detected on one record shows in the next three at about three times its alarm statistic, one detected over the
+#: longest window (:data:`WINDOW`) at about its own, both far above :data:`CONFIRM_LEVEL`'s quantile; a one-off
+#: outlier leaves three clean records, confirmed with probability :data:`CONFIRM_LEVEL` only
+#: (tests/test_open_alarms.py measures both on the simulator's steps and on injected outliers).
+CONFIRM_RECORDS = 3
+
+#: Share of clean post-alarm windows that would (wrongly) confirm a step; its chi-square (2 dof) quantile times
+#: the threshold's ``kappa`` is the confirmation threshold.
+CONFIRM_LEVEL = 0.01
+
+#: Outcomes of a closed alarm (``closed["outcome"]`` of :func:`assimilate`'s history).
+ALARM_OUTCOMES = {1: "step confirmed, applied", 2: "not confirmed by {n} records", 3: "superseded by a later alarm"}
+
+
+def confirm_threshold(kappa: float = 1.0, level: float = CONFIRM_LEVEL) -> float:
+    """The statistic [1] above which the records after an alarm confirm its step: the chi-square (2 dof)
+    quantile of ``1 - level``, scaled by the alarm threshold's ``kappa`` (real residuals' wider bulk)."""
+    return max(1.0, float(kappa)) * -2.0 * math.log(float(level))
+
+
 #: q [mrad^2/day] tried by :func:`choose_process_noise`: 0.001 to 0.1, log-spaced (7 values, a third of a decade
 #: apart). 0.01 mrad^2/day is a 1 mrad standard deviation per component after 100 days.
 PROCESS_NOISE_GRID = tuple(float(f"{10 ** (-3 + k / 3):.3g}") for k in range(7))
@@ -118,6 +150,11 @@ class FilterState:
     window_g, window_f : torch.Tensor, [H, W - 1, B] and [H, W - 1, B, B], optional
         The step test's evidence of each heliostat's latest ``W - 1`` records (oldest first; B drifting
         columns): ``H_b^T S^-1 z`` and ``H_b^T S^-1 H_b`` (:func:`assimilate`); None: none yet.
+    alarms : dict of tensors, optional
+        The open alarms, one slot per heliostat (:func:`no_open_alarms`'s fields: ``open`` [H] bool,
+        ``record_id`` [H], ``time`` [H] POSIX s when opened, ``statistic`` [H], ``window`` [H], the pre-alarm
+        ``mean`` [H, P] and ``covariance`` [H, P, P], the settling evidence ``g`` [H, B], ``f`` [H, B, B] and
+        ``records`` [H]); None: none open.
     """
 
     mean: torch.Tensor
@@ -129,6 +166,7 @@ class FilterState:
     names: tuple
     window_g: torch.Tensor | None = None
     window_f: torch.Tensor | None = None
+    alarms: dict | None = None
 
     def drift_embedding(self) -> torch.Tensor:
         """``E E^T`` [P, P]: 1 on the diagonal of the drifting columns."""
@@ -137,6 +175,17 @@ class FilterState:
         cols = torch.as_tensor(list(self.drift_columns), dtype=torch.long, device=self.mean.device)
         e[cols, cols] = 1.0
         return e
+
+
+def no_open_alarms(h: int, p: int, b: int, device=None) -> dict:
+    """The open-alarm slots of ``h`` heliostats with none open (``p`` deviations, ``b`` drifting columns)."""
+    f64 = dict(dtype=torch.float64, device=device)
+    return {"open": torch.zeros(h, dtype=torch.bool, device=device),
+            "record_id": torch.full((h,), -1, dtype=torch.long, device=device),
+            "time": torch.full((h,), float("nan"), **f64), "statistic": torch.zeros(h, **f64),
+            "window": torch.zeros(h, dtype=torch.long, device=device), "mean": torch.zeros(h, p, **f64),
+            "covariance": torch.zeros(h, p, p, **f64), "g": torch.zeros(h, b, **f64), "f": torch.zeros(h, b, b, **f64),
+            "records": torch.zeros(h, dtype=torch.long, device=device)}
 
 
 def tangent_basis(normal: torch.Tensor) -> torch.Tensor:
@@ -315,6 +364,10 @@ class AssimilationOptions:
         Down-weight records above :data:`HUBER_D2` (module docstring).
     window : int
         Step tests over the latest 1..``window`` records (module docstring; 1: the single-record test only).
+    confirm_threshold : float
+        Statistic of the records after an alarm above which its step is confirmed (:func:`confirm_threshold`).
+    confirm_records : int
+        Records after an alarm that settle it (:data:`CONFIRM_RECORDS`).
     """
 
     threshold: float = float("inf")
@@ -322,6 +375,8 @@ class AssimilationOptions:
     iterations: int = 2
     robust: bool = True
     window: int = WINDOW
+    confirm_threshold: float = -2.0 * math.log(CONFIRM_LEVEL)
+    confirm_records: int = CONFIRM_RECORDS
 
 
 def rounds(records: RecordTable) -> torch.Tensor:
@@ -476,7 +531,10 @@ def assimilate(nominal: Kinematics, records: RecordTable, state: FilterState,
     eye_b = torch.eye(nb, dtype=dt_, device=dev)
     out: dict = {k: [] for k in ("row", "heliostat", "record_id", "time", "mean", "variance", "innovation", "d2",
                                  "statistic", "window", "alarm", "predicted_error")}
+    closed: dict = {k: [] for k in _CLOSED_FIELDS}
     q_walk = float(state.process_noise)
+    op = _open_slots(state, nb, dev)
+    settle_k = max(1, int(options.confirm_records))
     for rows in rounds(records):  # rounds: a handful per day (records per heliostat), not heliostats
         rows = rows[rows >= 0].to(dev)
         if len(rows) == 0:
@@ -506,6 +564,8 @@ def assimilate(nominal: Kinematics, records: RecordTable, state: FilterState,
         stat, k_best = stat_k.max(1)
         d2 = stat_k[:, 0]
         alarm = stat > float(options.threshold)
+        _settle(op, closed, h, batch.record_id, t, alarm, stat, k_best, m0, p0, z, hm, hb, s2[h], q_walk, ee, eye_b,
+                settle_k, float(options.confirm_threshold))
         single = alarm & (k_best == 0)
         several = alarm & (k_best > 0)
         size = jump[torch.arange(len(rows), device=dev), k_best].pow(2).sum(-1)
@@ -552,9 +612,80 @@ def assimilate(nominal: Kinematics, records: RecordTable, state: FilterState,
              "statistic": torch.zeros(0, dtype=dt_), "window": torch.zeros(0, dtype=torch.long),
              "alarm": torch.zeros(0, dtype=torch.bool), "predicted_error": torch.zeros(0, dtype=dt_)}
     history = {k: (torch.cat(v) if v else empty[k].to(dev)) for k, v in out.items()}
-    return replace(state, mean=mean, covariance=cov, time=time, window_g=ring_g, window_f=ring_f), history
+    history["closed"] = {k: (torch.cat(v) if v else torch.zeros(0, dtype=torch.float64 if k in _CLOSED_FLOAT
+                                                                else torch.long, device=dev))
+                         for k, v in closed.items()}
+    return replace(state, mean=mean, covariance=cov, time=time, window_g=ring_g, window_f=ring_f,
+                   alarms=op), history
 
 
-__all__ = ["FilterState", "AssimilationOptions", "tangent_basis", "linearise", "kalman_update", "alarm_threshold",
+#: Fields of the closed alarms :func:`assimilate` returns (``history["closed"]``, [C] each): the heliostat
+#: (index), the alarm's ``record_id``, ``opened`` (its time [s]), ``statistic`` and ``window``; the record that
+#: closed it (``closed_by``, ``closed_at`` [s]), ``outcome`` (:data:`ALARM_OUTCOMES`), the settling statistic
+#: ``evidence`` and the ``records`` it summed.
+_CLOSED_FIELDS = ("heliostat", "record_id", "opened", "statistic", "window", "closed_by", "closed_at", "outcome",
+                  "evidence", "records")
+_CLOSED_FLOAT = ("opened", "statistic", "closed_at", "evidence")
+
+
+def _open_slots(state: FilterState, nb: int, dev) -> dict:
+    """The state's open-alarm slots (a copy, float64, on ``dev``), or empty ones when it has none or of
+    another shape."""
+    h, p = state.mean.shape
+    fresh = no_open_alarms(h, p, nb, dev)
+    given = state.alarms
+    if not isinstance(given, dict) or any(k not in given or tuple(given[k].shape) != tuple(v.shape)
+                                          for k, v in fresh.items()):
+        return fresh
+    return {k: torch.as_tensor(given[k]).to(device=dev, dtype=v.dtype).clone() for k, v in fresh.items()}
+
+
+def _settle(op: dict, closed: dict, h, record_id, t, alarm, stat, k_best, m0, p0, z, hm, hb, s2, q_walk: float, ee,
+            eye_b, settle_k: int, confirm: float) -> None:
+    """One round's bookkeeping of the open alarms (module docstring), in place on ``op`` and ``closed``: each
+    record of a heliostat with an open alarm adds its step evidence against the pre-alarm state; the
+    ``settle_k``-th closes the alarm (confirmed above ``confirm``, else cleared); a new alarm supersedes an open
+    one and opens its own slot with this record's prior (``m0`` [B, P], ``p0`` [B, P, P]) as the pre-alarm state.
+    ``z`` [B, 2], ``hm`` [B, 2, P], ``hb`` [B, 2, nb]: the record linearised at ``m0``."""
+    is_open = op["open"][h]
+    if not bool(is_open.any()) and not bool(alarm.any()):
+        return
+    since = torch.nan_to_num((t - op["time"][h]) / _DAY, nan=0.0).clamp_min(0.0)
+    p_pre = op["covariance"][h] + q_walk * since[:, None, None] * ee
+    z_pre = z + torch.einsum("rkp,rp->rk", hm, m0 - op["mean"][h])  # the residual at the pre-alarm mean
+    eye2 = torch.eye(2, dtype=z.dtype, device=z.device)
+    s_inv = torch.linalg.inv(hm @ p_pre @ hm.transpose(1, 2) + s2[:, None, None] * eye2)
+    on = is_open.to(z.dtype)
+    g = op["g"][h] + on[:, None] * torch.einsum("rkb,rkl,rl->rb", hb, s_inv, z_pre)
+    f = op["f"][h] + on[:, None, None] * (hb.transpose(1, 2) @ s_inv @ hb)
+    n = op["records"][h] + is_open.long()
+    ridge = 1e-9 * torch.diagonal(f, dim1=-2, dim2=-1).sum(-1).clamp_min(1e-300)[:, None, None] * eye_b
+    evidence = (g * torch.linalg.solve(f + ridge, g[..., None])[..., 0]).sum(-1)
+    settle = is_open & (n >= settle_k)
+    superseded = is_open & ~settle & alarm
+    done = settle | superseded
+    if bool(done.any()):
+        outcome = torch.where(superseded, 3, torch.where(evidence > confirm, 1, 2))
+        for key, value in (("heliostat", h), ("record_id", op["record_id"][h]), ("opened", op["time"][h]),
+                           ("statistic", op["statistic"][h]), ("window", op["window"][h]), ("closed_by", record_id),
+                           ("closed_at", t), ("outcome", outcome), ("evidence", evidence), ("records", n)):
+            closed[key].append(value[done].to(torch.float64 if key in _CLOSED_FLOAT else torch.long))
+    keep = is_open & ~done
+    fresh = alarm
+    zero = torch.zeros((), dtype=z.dtype, device=z.device)
+    op["g"][h] = torch.where(keep[:, None], g, zero)
+    op["f"][h] = torch.where(keep[:, None, None], f, zero)
+    op["records"][h] = torch.where(keep, n, torch.zeros_like(n))
+    op["open"][h] = keep | fresh
+    op["record_id"][h] = torch.where(fresh, record_id.to(torch.long), op["record_id"][h])
+    op["time"][h] = torch.where(fresh, t, op["time"][h])
+    op["statistic"][h] = torch.where(fresh, stat, op["statistic"][h])
+    op["window"][h] = torch.where(fresh, k_best + 1, op["window"][h])
+    op["mean"][h] = torch.where(fresh[:, None], m0, op["mean"][h])
+    op["covariance"][h] = torch.where(fresh[:, None, None], p0, op["covariance"][h])
+
+
+__all__ = ["FilterState", "AssimilationOptions", "no_open_alarms", "confirm_threshold", "CONFIRM_RECORDS",
+           "CONFIRM_LEVEL", "ALARM_OUTCOMES", "tangent_basis", "linearise", "kalman_update", "alarm_threshold",
            "leave_one_out_d2", "rounds", "assimilate", "choose_process_noise", "HUBER_D2", "FALSE_ALARM_RATE", "REOPEN",
            "PROCESS_NOISE_GRID", "PROCESS_NOISE_TIE", "VALIDATION_SHARE"]

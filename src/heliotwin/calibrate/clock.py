@@ -97,7 +97,7 @@ def latest_record_time(learned: dict) -> float | None:
     if cal.get("posterior") is not None and cal.get("heliostats") is not None:
         t = state_times(cal, len(cal["heliostats"]))
         times += t[torch.isfinite(t)].tolist()
-    hist = ((learned or {}).get("assimilation") or {}).get("time")
+    hist = (((learned or {}).get("assimilation") or {}).get("history") or {}).get("time")
     if hist is not None:
         th = _tensor(hist)
         times += th[torch.isfinite(th)].tolist()

@@ -14,10 +14,14 @@ reused by every update is chosen here on the records the calibration saw and sto
   ``/learned/calibration/alarm_threshold``.
 
 ``/learned/assimilation`` keeps every update's per-record history (:func:`state_history`), the step tests'
-evidence window and the threshold in force.
+evidence window, the threshold in force, the **open alarms** (``open_alarms``: one row per heliostat whose alarm
+no later record has settled yet, with the pre-alarm state and the settling evidence so far; :func:`open_alarms`)
+and the **closed** ones (``closed_alarms``: confirmed, cleared or superseded, with the record that closed them).
+Heliostats are indices into ``/learned/assimilation/heliostats`` in all three tables.
 """
 from __future__ import annotations
 
+import datetime as _dt
 import math
 import os
 from dataclasses import fields, replace
@@ -30,6 +34,8 @@ from ..field.plant import Kinematics
 from ..io.records import RecordTable
 from ..io.scenario import Scenario, load_scenario
 from .assimilate import (
+    ALARM_OUTCOMES,
+    CONFIRM_RECORDS,
     FALSE_ALARMS_PER_HELIOSTAT_YEAR,
     WINDOW,
     FilterState,
@@ -37,7 +43,9 @@ from .assimilate import (
     choose_process_noise,
     false_alarm_rate_for,
     leave_one_out_d2,
+    no_open_alarms,
 )
+from .clock import latest_record_time
 from .drift import BASES, DRIFT_NAMES, smooth, with_offset
 from .inputs import FIT_FOCAL_SPOT, NOISE, fit_spots
 from .params import STONE8, check_names
@@ -46,14 +54,16 @@ __all__ = ["ASSIMILATION_KEY", "HISTORY_VERSION", "DEFAULT_PROCESS_NOISE", "CHOI
            "calibration_entry", "nominal_kinematics", "current_assimilation", "calibration_count", "seen_record_ids",
            "stored_tensor", "filter_scale", "filter_state", "fit_posterior", "on_axis", "process_noise_choice",
            "with_process_noise_choice", "process_noise_source", "alarm_threshold_choice", "with_alarm_threshold",
-           "threshold_in_force", "split_new", "merged_history", "updated_learned", "state_history"]
+           "threshold_in_force", "split_new", "merged_history", "updated_learned", "state_history", "open_alarms",
+           "closed_alarms", "plant_clock", "OPEN_FIELDS", "CLOSED_FIELDS"]
 #: Key of the calibration under ``Scenario.learned`` (:mod:`heliotwin.calibrate.scenario` writes it; defined here,
 #: with what reads it back, so that an update does not import the calibration methods to find it).
 KEY = "calibration"
 #: Key of the assimilation state under ``Scenario.learned``.
 ASSIMILATION_KEY = "assimilation"
-#: Layout version of ``/learned/assimilation``.
-HISTORY_VERSION = 1
+#: Layout version of ``/learned/assimilation``: 2 adds ``open_alarms`` and ``closed_alarms`` (version 1 reads as
+#: no open alarm and none closed).
+HISTORY_VERSION = 2
 #: q [mrad^2/day] of the drifting axis offsets when the calibration has no drift model and no choice could be
 #: made on its records (:func:`process_noise_choice`): the random-walk setting chosen on the real PAINT
 #: archive's online protocol by leave-heliostats-out CV (benchmarks/bench_carryover.py, kq0.03).
@@ -305,7 +315,103 @@ def filter_state(scenario: Scenario, records: RecordTable, process_noise: float 
             raise InputFileError(scenario.path, "malformed step-test window",
                                  field=f"/learned/{ASSIMILATION_KEY}/window") from None
         state = replace(state, window_g=g, window_f=f)
-    return state
+    return replace(state, alarms=_stored_open_alarms(current_assimilation(scenario), ids, state))
+
+
+#: Fields of ``/learned/assimilation/open_alarms`` (rows [A]; ``mean`` [A, P], ``covariance`` [A, P, P], ``g``
+#: [A, B], ``f`` [A, B, B]) and of ``closed_alarms`` (rows [C]; :func:`heliotwin.calibrate.assimilate.assimilate`'s
+#: ``closed`` plus the ``update`` that closed it).
+OPEN_FIELDS = ("heliostat", "record_id", "time", "statistic", "window", "records", "mean", "covariance", "g", "f")
+CLOSED_FIELDS = ("heliostat", "record_id", "opened", "statistic", "window", "closed_by", "closed_at", "outcome",
+                 "evidence", "records", "update")
+
+
+def _stored_open_alarms(assimilation: dict | None, ids: list, state: FilterState) -> dict:
+    """The open-alarm slots [H] over the calibration's heliostats ``ids`` from ``open_alarms`` (none: a plant
+    written before alarms were kept, or after a recalibration)."""
+    h, p = state.mean.shape
+    slots = no_open_alarms(h, p, len(state.drift_columns))
+    table = (assimilation or {}).get("open_alarms")
+    if not isinstance(table, dict) or not len(torch.as_tensor(table.get("heliostat", []))):
+        return slots
+    names = list(assimilation["heliostats"])
+    pos = {hid: i for i, hid in enumerate(ids)}
+    rows = torch.tensor([pos.get(names[int(k)], -1) for k in torch.as_tensor(table["heliostat"]).tolist()])
+    ok = rows >= 0  # a heliostat the calibration no longer has: its alarm went with it
+    for key in OPEN_FIELDS[1:]:
+        slots[key][rows[ok]] = torch.as_tensor(table[key])[ok].to(slots[key].dtype)
+    slots["open"][rows[ok]] = True
+    return slots
+
+
+def _open_table(alarms: dict | None, remap: torch.Tensor) -> dict:
+    """``open_alarms`` as stored: one row per open slot (heliostat: index into the assimilation's heliostats)."""
+    if alarms is None:
+        return {}
+    is_open = torch.as_tensor(alarms["open"]).cpu()
+    out = {"heliostat": remap[is_open.nonzero().flatten()]}
+    for key in OPEN_FIELDS[1:]:
+        out[key] = torch.as_tensor(alarms[key]).detach().cpu()[is_open]
+    return out
+
+
+def open_alarms(scenario: Scenario, now: float | None = None) -> list[dict]:
+    """The plant's open step alarms (``/learned/assimilation/open_alarms`` of the current calibration), oldest
+    first: ``heliostat``, ``record_id``, ``opened`` (POSIX s) and ``opened_utc``, ``statistic``, ``window``,
+    ``records`` (of :data:`~heliotwin.calibrate.assimilate.CONFIRM_RECORDS` that settle it) and, given ``now``
+    (POSIX s), ``age_days``. Empty for a plant written before alarms were kept."""
+    st = current_assimilation(scenario)
+    table = (st or {}).get("open_alarms")
+    if not isinstance(table, dict):
+        return []
+    names = list(st["heliostats"])
+    rows = []
+    for i, k in enumerate(torch.as_tensor(table["heliostat"]).tolist()):
+        t = float(torch.as_tensor(table["time"])[i])
+        row = {"heliostat": names[int(k)], "record_id": int(torch.as_tensor(table["record_id"])[i]), "opened": t,
+               "opened_utc": _utc(t), "statistic": float(torch.as_tensor(table["statistic"])[i]),
+               "window": int(torch.as_tensor(table["window"])[i]),
+               "records": int(torch.as_tensor(table["records"])[i]), "records_to_settle": CONFIRM_RECORDS}
+        if now is not None and math.isfinite(t):
+            row["age_days"] = (float(now) - t) / 86400.0
+        rows.append(row)
+    return sorted(rows, key=lambda r: (r["opened"], r["heliostat"]))
+
+
+def closed_alarms(scenario: Scenario, update: int | None = None) -> list[dict]:
+    """Closed step alarms (``/learned/assimilation/closed_alarms``), of one ``update`` (its number) or all: the
+    alarm's ``heliostat``, ``record_id``, ``opened``, ``statistic``; ``closed_by`` (record id), ``closed_at``,
+    ``outcome`` (text, :data:`~heliotwin.calibrate.assimilate.ALARM_OUTCOMES`), ``evidence``, ``records``."""
+    st = scenario.learned.get(ASSIMILATION_KEY)
+    table = (st or {}).get("closed_alarms") if isinstance(st, dict) else None
+    if not isinstance(table, dict):
+        return []
+    names = list(st["heliostats"])
+    col = {k: torch.as_tensor(table[k]).tolist() for k in CLOSED_FIELDS}
+    out = []
+    for i in range(len(col["heliostat"])):
+        if update is not None and int(col["update"][i]) != int(update):
+            continue
+        code, n = int(col["outcome"][i]), int(col["records"][i])
+        out.append({"heliostat": names[int(col["heliostat"][i])], "record_id": int(col["record_id"][i]),
+                    "opened": col["opened"][i], "opened_utc": _utc(col["opened"][i]),
+                    "statistic": col["statistic"][i], "closed_by": int(col["closed_by"][i]),
+                    "closed_at": col["closed_at"][i], "closed_utc": _utc(col["closed_at"][i]),
+                    "outcome": ALARM_OUTCOMES.get(code, "?").format(n=n), "confirmed": code == 1,
+                    "evidence": col["evidence"][i], "records": n, "update": int(col["update"][i])})
+    return out
+
+
+def plant_clock(scenario: Scenario) -> float | None:
+    """The plant's own clock: its latest record time [POSIX s] (:func:`heliotwin.calibrate.clock.latest_record_time`:
+    the calibration's state and fitted records, every assimilated record), None when the plant holds none."""
+    return latest_record_time(scenario.learned)
+
+
+def _utc(t: float) -> str | None:
+    if not math.isfinite(float(t)):
+        return None
+    return _dt.datetime.fromtimestamp(float(t), _dt.timezone.utc).isoformat(timespec="minutes")
 
 
 def on_axis(table: RecordTable, ids: list) -> RecordTable:
@@ -579,6 +685,10 @@ def updated_learned(previous: Scenario, cal: dict, ids: list, state: FilterState
     prev = previous.learned.get(ASSIMILATION_KEY)
     number = int(torch.as_tensor(prev.get("updates", 0)).reshape(-1)[0]) + 1 if prev else 1
     merged = merged_history(prev, ids, hist, number)
+    pos = {hid: i for i, hid in enumerate(merged["heliostats"])}
+    remap = torch.tensor([pos[hid] for hid in ids], dtype=torch.long)
+    alarms = {"open_alarms": _open_table(state.alarms, remap),
+              "closed_alarms": _closed_table(_current_closed(previous), hist.get("closed"), remap, number)}
     learned = dict(previous.learned)
     learned[KEY] = new_cal
     learned[ASSIMILATION_KEY] = {"version": torch.tensor([HISTORY_VERSION]), "updates": torch.tensor([number]),
@@ -586,11 +696,39 @@ def updated_learned(previous: Scenario, cal: dict, ids: list, state: FilterState
                                  "kappa": torch.tensor([threshold["kappa"]], dtype=torch.float64),
                                  "false_alarm_rate": torch.tensor([threshold["false_alarm_rate"]], dtype=torch.float64),
                                  "calibrations": torch.tensor([calibration_count(previous)]),
-                                 "parameter_names": names, **merged}
+                                 "parameter_names": names, **merged, **alarms}
     if state.window_g is not None:  # the step tests' evidence of each heliostat's latest records
         learned[ASSIMILATION_KEY]["window"] = {"heliostats": list(ids), "g": state.window_g.detach().cpu(),
                                                "f": state.window_f.detach().cpu()}
     return learned
+
+
+def _current_closed(previous: Scenario) -> dict | None:
+    """The stored ``closed_alarms`` (kept across recalibrations: they are the plant's record of what happened)."""
+    st = previous.learned.get(ASSIMILATION_KEY)
+    table = st.get("closed_alarms") if isinstance(st, dict) else None
+    return table if isinstance(table, dict) else None
+
+
+def _closed_table(old: dict | None, new: dict | None, remap: torch.Tensor, number: int) -> dict:
+    """``closed_alarms`` with this update's closed alarms (``new``, heliostats on the calibration's axis)
+    appended."""
+    floats = ("opened", "statistic", "closed_at", "evidence")
+    rows = {}
+    new = new or {}
+    c = len(new.get("heliostat", []))
+    for key in CLOSED_FIELDS:
+        dtype = torch.float64 if key in floats else torch.long
+        if key == "update":
+            v = torch.full((c,), number, dtype=dtype)
+        elif key == "heliostat":
+            v = remap[torch.as_tensor(new[key]).long().cpu()] if c else torch.zeros(0, dtype=dtype)
+        else:
+            v = torch.as_tensor(new[key]).detach().cpu().to(dtype) if c else torch.zeros(0, dtype=dtype)
+        if old is not None and key in old:
+            v = torch.cat([torch.as_tensor(old[key]).to(dtype), v])
+        rows[key] = v
+    return rows
 
 
 def process_noise_source(previous: Scenario, cal: dict, table: RecordTable, q_given: float | None) -> tuple:

@@ -128,6 +128,15 @@ def print_update_summary(report: dict) -> None:
     for a in report["alarms"]:
         print(f"  step alarm: {a['heliostat']} record {a['record_id']} (step statistic {a['statistic']:.1f} over "
               f"{a['window']} record(s) > {report['threshold']['threshold']:.1f})")
+    for a in report.get("closed_alarms") or []:
+        print(f"  alarm closed: {a['heliostat']} record {a['record_id']} (opened {a['opened_utc']}): {a['outcome']} "
+              f"(statistic {a['evidence']:.1f} of the {a['records']} record(s) after it vs "
+              f"{report['threshold'].get('confirm_threshold', float('nan')):.1f})")
+    for a in report.get("open_alarms") or []:
+        age = a.get("age_days")
+        print(f"  alarm open: {a['heliostat']} record {a['record_id']} (opened {a['opened_utc']}"
+              f"{'' if age is None else f', {age:.1f} day(s) old'}; {a['records']} of {a['records_to_settle']} "
+              "records to settle it)")
 
 
 def cmd_daily(args) -> int:
@@ -148,31 +157,28 @@ def cmd_daily(args) -> int:
     if not args.quiet:
         print_update_summary(report["update"])
         plan = report["plan"]
-        print(f"calibration plan for {plan['day']}: {len(plan['proposals'])} record(s) on {plan['target']} "
+        print(f"planned {report['day']}: {report.get('day_reason', '')}")
+        n_planned, n_slots = len(plan["proposals"]), plan.get("slots", len(plan["proposals"]))
+        print(f"calibration plan for {plan['day']}: {n_planned} of {n_slots} slot(s) planned"
+              f"{_fewer(plan)} on {plan['target']} "
               f"(pointing spread over the plant: median {_mrad(plan['median_spread_mrad'])}, p95 "
               f"{_mrad(plan['p95_spread_mrad'])} mrad)")
         print(f"  planned day {report['day']}: {report['day_reason']}")
         for p in plan["proposals"][:10]:
-            print(f"  {p['time']}  {p['heliostat']}  ({p['reason']}; {p['rms_now_mrad']:.3f} -> "
-                  f"{p['rms_after_mrad']:.3f} mrad)")
+            print(f"  {p['time']}  {p['heliostat']}  ({p['reason']}: spread {p['spread_now_mrad']:.3f} mrad; RMS "
+                  f"normal error over the year {p['rms_now_mrad']:.3f} -> {p['rms_after_mrad']:.3f} mrad)")
         aim = report["aimpoints"]
         if "skipped" in aim:
             print(f"aim points: skipped, {aim['skipped']}")
         else:
             for e in aim["instants"]:
+                standby = e.get("standby_heliostats", 0)
                 print(f"aim points {e['instant']}: peak {e['peak_flux_w_m2'] / 1e3:.1f} kW/m2 (limit "
-                      f"{aim['peak_limit_w_m2'] / 1e3:.1f}{'' if e['limit_met'] else ', NOT held'}"
-                      f"{_standby(e)})")
+                      f"{aim['peak_limit_w_m2'] / 1e3:.1f}{'' if e['limit_met'] else ', NOT held'})"
+                      + (f"; {standby} heliostat(s) on standby, {e['power_w'] / 1e3:.3g} of "
+                         f"{e['equator_power_w'] / 1e3:.3g} kW" if standby and e.get("equator_power_w") else ""))
         print(f"status {report['status']}: {'; '.join(report['attention']) or 'nothing to act on'}")
     return result.status
-
-
-def _standby(entry: dict) -> str:
-    n = entry.get("standby_heliostats") or 0
-    if not n:
-        return ""
-    cost = entry.get("power_below_equator_w")
-    return f"; {n} heliostat(s) ON STANDBY" + (f", {cost / 1e3:.1f} kW below equator aiming" if cost else "")
 
 
 def _mrad(x) -> str:
@@ -200,3 +206,8 @@ def cmd_history(args) -> int:
         print(f"  {when} record {int(hist['record_id'][i])}: predicted error {1e3 * hist['predicted_error'][i]:.3f} "
               f"mrad, d2 {hist['d2'][i]:.1f}{'  STEP ALARM' if hist['alarm'][i] else ''}; axis offsets [mrad] {offs}")
     return 0
+
+
+def _fewer(plan: dict) -> str:
+    """Why fewer records were planned than slots asked for, in parentheses ('' when all were)."""
+    return f" ({plan['why_fewer']})" if plan.get("why_fewer") else ""

@@ -1053,11 +1053,36 @@ def _validate_learned_assimilation(c: _LearnedCheck, st) -> None:
                                  ("d2", (), "float"), ("statistic", (), "float"), ("window", (), "int"),
                                  ("alarm", (), "bool"), ("predicted_error", (), "float")):
         c.array(hist, name, at, (n, *trailing), kind=kind)
+    _validate_alarm_tables(c, st, where, len(ids), p)
     window = c.group(st, "window", where, required=False)
     if window is not None:
         hw = len(c.names(window, "heliostats", f"{where}/window"))
         g = c.array(window, "g", f"{where}/window", (hw, None, None))
         c.array(window, "f", f"{where}/window", (hw, g.shape[1], g.shape[2], g.shape[2]))
+
+
+def _validate_alarm_tables(c: _LearnedCheck, st: dict, where: str, hs: int, p: int) -> None:
+    """``open_alarms`` and ``closed_alarms`` (layout version 2, :mod:`heliotwin.calibrate.twinstate`; optional:
+    older files have none): rows [A] / [C], heliostats indices into the assimilation's ``hs`` heliostats."""
+    for name, floats, wide in (("open_alarms", ("time", "statistic"), True),
+                               ("closed_alarms", ("opened", "statistic", "closed_at", "evidence"), False)):
+        table = c.group(st, name, where, required=False)
+        if table is None:
+            continue
+        at = f"{where}/{name}"
+        n = c.array(table, "heliostat", at, (None,), kind="int").shape[0]
+        if n and not bool(((table["heliostat"] >= 0) & (table["heliostat"] < hs)).all()):
+            c.fail(f"{at}/heliostat", f"expected indices into the {hs} heliostats")
+        ints = ("record_id", "window", "records") + (() if wide else ("closed_by", "outcome", "update"))
+        for key in ints:
+            c.array(table, key, at, (n,), kind="int")
+        for key in floats:
+            c.array(table, key, at, (n,), finite=key != "closed_at" and key != "opened" and key != "time")
+        if wide:
+            b = c.array(table, "g", at, (n, None)).shape[1]
+            c.array(table, "mean", at, (n, p))
+            c.array(table, "covariance", at, (n, p, p))
+            c.array(table, "f", at, (n, b, b))
 
 
 def _validate_learned_state(learned: dict, plant: Plant, path) -> None:

@@ -19,12 +19,14 @@ read-update-write and replaced atomically, or not at all.
 """
 from __future__ import annotations
 
+import datetime as _dt
 import math
 import os
 from dataclasses import dataclass, field, replace
 
-from ..calibrate.clock import planned_day
+from ..calibrate.clock import latest_record_time, planned_day
 from ..calibrate.protocol.plan import plant_plan
+from ..calibrate.twinstate import open_alarms
 from ..errors import HeliotwinError
 from ..io.scenario import Scenario, load_scenario, provenance_entry
 from ..optimise.aimstate import stored_peak_limit
@@ -36,8 +38,9 @@ __all__ = ["DailySettings", "Daily", "daily", "day_attention", "daily_plant_file
 
 #: Exit status: the day ran and nothing needs a person.
 OK = 0
-#: Exit status: the day ran (the plant is written) and something needs a person: a step alarm, or aim points
-#: that could not hold the peak limit.
+#: Exit status: the day ran (the plant is written) and something needs a person: a step alarm raised or still
+#: open (no later records have confirmed or cleared it), aim points that could not hold the peak limit, or
+#: heliostats sent to standby to hold it.
 ATTENTION = 3
 
 
@@ -111,6 +114,10 @@ class Daily:
         return iter((self.scenario, self.report))
 
 
+#: Share of equator aiming's power below which aim points that hold the limit need a person: the field's light
+#: is mostly sent off the receiver (spilled or on standby), which a limit set too low (or a wrong unit) does.
+SPILL_ATTENTION = 0.5
+
 def _aim(scenario: Scenario, day: str, settings: DailySettings) -> tuple[Scenario, dict]:
     """The day's aim points (or why there are none)."""
     if not settings.aim:
@@ -130,39 +137,63 @@ def _aim(scenario: Scenario, day: str, settings: DailySettings) -> tuple[Scenari
                                     baselines=False)
     aimed, report = aimpoints(scenario, instants, aim_settings)
     met = [e["optimised"]["peak_flux_w_m2"] <= limit * (1 + 1e-6) for e in report["instants"]]
-    rows = []
-    for e, ok in zip(report["instants"], met):
-        opt, eq = e["optimised"], e.get("equator") or {}
-        # what the standby heliostats cost: the optimised power against equator aiming's (all light on the
-        # receiver, no limit), the power a plant without the limit would have had at this instant
-        lost = max(float(eq["power_w"]) - float(opt["power_w"]), 0.0) if eq.get("power_w") else None
-        rows.append({"instant": e["instant"], "power_w": opt.get("power_w"), "peak_flux_w_m2": opt["peak_flux_w_m2"],
-                     "limit_met": ok, "standby_heliostats": int(opt.get("standby_heliostats", 0)),
-                     "equator_power_w": eq.get("power_w"),
-                     "power_below_equator_w": lost if opt.get("standby_heliostats") else None})
-    summary = {"peak_limit_w_m2": float(limit), "instants": rows, "limit_met": all(met),
-               "standby_heliostats": max((r["standby_heliostats"] for r in rows), default=0)}
+    # standby heliostats hold the limit by delivering nothing: what the limit costs is the power the field
+    # loses against equator aiming with every heliostat on the receiver (the limit-free aim points)
+    summary = {"peak_limit_w_m2": float(limit), "instants": [
+        {"instant": e["instant"], "power_w": e["optimised"].get("power_w"),
+         "peak_flux_w_m2": e["optimised"]["peak_flux_w_m2"], "limit_met": ok,
+         "standby_heliostats": int(e["optimised"].get("standby_heliostats", 0)),
+         "equator_power_w": e["equator"].get("power_w"),
+         "power_lost_w": (e["equator"]["power_w"] - e["optimised"]["power_w"]
+                          if e["equator"].get("power_w") is not None and e["optimised"].get("power_w") is not None
+                          else None)}
+        for e, ok in zip(report["instants"], met)], "limit_met": all(met),
+        "power_lost_means": "equator aiming's power (every heliostat on the receiver, no limit) less the "
+                            "optimised aim points' [W]"}
+    summary["standby_heliostats"] = max((e["standby_heliostats"] for e in summary["instants"]), default=0)
     return aimed, summary
 
 
-def day_attention(alarms: list, aim: dict) -> list[str]:
-    """Why the day needs a person (empty: nothing): step alarms, a peak limit not held, heliostats on standby.
+def _age(alarm: dict) -> str:
+    days = alarm.get("age_days")
+    return "age unknown" if days is None else f"{days:.1f} day(s) old"
 
-    ``alarms``: the update's alarms; ``aim``: the day's aim-point summary (:func:`_aim`; its powers [W])."""
+
+def day_attention(alarms: list, aim: dict, still_open: list = ()) -> list[str]:
+    """Why the day needs a person (empty: nothing): step alarms raised today or still open, a peak limit not
+    held, the field's light sent off the receiver (below :data:`SPILL_ATTENTION` of equator aiming's power [W]),
+    heliostats on standby.
+
+    ``alarms``: the update's new alarms; ``aim``: the day's aim-point summary (:func:`_aim`); ``still_open``:
+    :func:`heliotwin.calibrate.twinstate.open_alarms`."""
     attention = [f"{len(alarms)} step alarm(s)"] if alarms else []
+    if still_open:
+        attention.append(f"{len(still_open)} open step alarm(s): " + ", ".join(
+            f"{a['heliostat']} (record {a['record_id']}, opened {a['opened_utc']}, {_age(a)}, {a['records']} of "
+            f"{a['records_to_settle']} records to settle it)" for a in still_open))
     if aim.get("limit_met") is False:
         attention.append("aim points could not hold the peak limit at every instant")
-    if aim.get("standby_heliostats"):
-        worst = max(aim["instants"], key=lambda r: r["standby_heliostats"])
-        cost = worst.get("power_below_equator_w")
-        attention.append(f"{aim['standby_heliostats']} heliostat(s) on standby to hold the peak limit at "
-                         f"{worst['instant']}" + (f" ({cost / 1e3:.1f} kW below equator aiming's "
-                                                 f"{worst['equator_power_w'] / 1e3:.1f} kW)" if cost else ""))
+    spilled = [e for e in aim.get("instants", []) if e.get("equator_power_w") and e.get("power_w") is not None
+               and e["power_w"] < SPILL_ATTENTION * e["equator_power_w"]]
+    standby = max((e.get("standby_heliostats", 0) for e in aim.get("instants", [])), default=0)
+    if spilled and not standby:
+        worst = min(spilled, key=lambda e: e["power_w"] / e["equator_power_w"])
+        attention.append(f"aim points at {worst['instant']} deliver {worst['power_w'] / 1e3:.3g} kW of equator "
+                         f"aiming's {worst['equator_power_w'] / 1e3:.3g} kW "
+                         f"({worst['power_w'] / worst['equator_power_w']:.1%}): the peak limit is held by sending "
+                         "the field's light off the receiver")
+    if standby:
+        worst = max(aim["instants"], key=lambda e: e["standby_heliostats"])
+        lost = worst.get("power_lost_w")
+        attention.append(f"{worst['standby_heliostats']} heliostat(s) on standby to hold the peak limit at "
+                         f"{worst['instant']}" + (f" ({worst['power_w'] / 1e3:.3g} kW of equator aiming's "
+                                                  f"{worst['equator_power_w'] / 1e3:.3g} kW delivered)"
+                                                  if lost is not None else ""))
     return attention
 
 
 def daily(scenario, paint, settings: DailySettings = DailySettings(), *, device: str = "cpu",
-          now=None) -> Daily:
+          now: float | None = None) -> Daily:
     """The plant's day (module docstring): update with the folder's new records, plan the next calibrations,
     aim the field; one provenance step.
 
@@ -175,16 +206,22 @@ def daily(scenario, paint, settings: DailySettings = DailySettings(), *, device:
     settings : DailySettings
     device : str
         Where the update computes.
-    now : datetime.datetime, optional
-        The wall clock (UTC; default: now) that decides the planned day when ``settings.day`` is None
-        (:func:`heliotwin.calibrate.clock.planned_day`: the plant's own clock when it is days behind).
+    now : float, optional
+        The wall clock [POSIX s] (default: the system's; tests give it).
     """
     previous = load_scenario(scenario) if isinstance(scenario, (str, os.PathLike)) else scenario
     updated = update(previous, paint, settings.update, device=device)
-    day, day_reason = planned_day(updated.scenario.learned, settings.day, now)
     alarms = updated.report["alarms"]
+    now = _dt.datetime.now(_dt.timezone.utc).timestamp() if now is None else float(now)
+    clock = latest_record_time(updated.scenario.learned)
+    day, day_why = planned_day(updated.scenario.learned, settings.day,
+                               _dt.datetime.fromtimestamp(now, _dt.timezone.utc))
+    # an alarm is open until records settle it: its age on the plant's clock (its latest record, or now)
+    still_open = open_alarms(updated.scenario, now=clock if clock is not None else now)
+    urgent = [a["heliostat"] for a in still_open] + [a["heliostat"] for a in alarms]
     plan = plant_plan(updated.scenario, day=day, slots=settings.slots, every=settings.every,
-                      min_elevation_deg=settings.min_elevation, urgent={a["heliostat"] for a in alarms})
+                      min_elevation_deg=settings.min_elevation, urgent=list(dict.fromkeys(urgent)))
+
     final, aim = _aim(updated.scenario, day, settings)
     update_step = updated.scenario.provenance[-1]
     step = provenance_entry("daily", source=update_step.get("source"), records=update_step.get("records", {}),
@@ -194,16 +231,16 @@ def daily(scenario, paint, settings: DailySettings = DailySettings(), *, device:
                             settings={"update": update_step.get("settings"), "slots": settings.slots,
                                       "every": settings.every})
     final = replace(final, provenance=list(previous.provenance or []) + [step])
-    attention = day_attention(alarms, aim)
+    attention = day_attention(alarms, aim, still_open)
     status = ATTENTION if attention else OK
-    report = {"day": day, "day_reason": day_reason, "status": status, "attention": attention,
-              "update": updated.report, "plan": plan, "aimpoints": aim}
+    report = {"day": day, "day_reason": day_why, "status": status, "attention": attention, "update": updated.report,
+              "plan": plan, "aimpoints": aim, "open_alarms": still_open}
     return Daily(final, report, status)
 
 
 def daily_plant_file(plant_path, paint, output=None, settings: DailySettings = DailySettings(), *,
-                     device: str = "cpu", timeout: float | None = None) -> Daily:
+                     device: str = "cpu", timeout: float | None = None, now: float | None = None) -> Daily:
     """:func:`daily` on files: ``output`` (default: the plant file itself) is locked for the whole day's
     read-update-write, not replaced when another process changed it meanwhile, and written atomically."""
     output = plant_path if output is None else output
-    return locked_plant_write(output, lambda: daily(plant_path, paint, settings, device=device), timeout)
+    return locked_plant_write(output, lambda: daily(plant_path, paint, settings, device=device, now=now), timeout)

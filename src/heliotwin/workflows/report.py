@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from ..calibrate.protocol.plan import plant_plan
+from ..calibrate.twinstate import open_alarms, plant_clock
 from ..errors import HeliotwinError
 from ..field.facets import ideal_surfaces, surface_points
 from ..field.plant import Facets, Surfaces
@@ -47,7 +48,8 @@ from .report_page import render_page
 from .show import describe_scenario
 from .update import ASSIMILATION_KEY
 
-__all__ = ["ReportSettings", "QUANTITIES", "heliostat_state", "alarm_rows", "heliostat_detail", "surface_deviation",
+__all__ = ["ReportSettings", "QUANTITIES", "heliostat_state", "alarm_rows", "open_alarm_rows",
+            "heliostat_detail", "surface_deviation",
            "plant_report"]
 
 #: Colour quantities of the field map: key -> (label with unit, higher is worse).
@@ -264,6 +266,13 @@ def alarm_rows(scenario: Scenario, *, latest_only: bool = True) -> list[dict]:
                     "statistic": float(r["statistic"][i]), "threshold": thr, "innovation_mrad": size,
                     "action": action})
     return sorted(out, key=lambda a: -a["statistic"])
+
+
+def open_alarm_rows(scenario: Scenario) -> list[dict]:
+    """Every open step alarm (no later record has confirmed or cleared it yet; oldest first), with its age in
+    days on the plant's own clock (its latest record): :func:`heliotwin.calibrate.twinstate.open_alarms`.
+    Nothing here reads the wall clock."""
+    return open_alarms(scenario, now=plant_clock(scenario))
 
 
 def heliostat_detail(scenario: Scenario, heliostat: str) -> dict:

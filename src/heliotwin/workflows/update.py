@@ -31,6 +31,10 @@ overwritten, and the write is atomic.
 * ``/learned/assimilation`` keeps the threshold in force and every update's per-record history
   (:func:`state_history` reads it back); each update is one ``update`` provenance step with the records it
   assimilated and its alarms.
+* An alarm stays open there until the heliostat's next records settle it (confirmed: the state re-fitted on
+  them is applied; cleared: not confirmed by them; :mod:`heliotwin.calibrate.assimilate`); the report lists
+  the alarms this update closed (``closed_alarms``) and every one still open (``open_alarms``, with its age on
+  the plant's latest record).
 * What is not assimilated is counted by reason: seen before, older than the state, without a time, records
   the folder's reader dropped (out-of-range motor steps, a date in the future, ...: ``dropped``, by reason), and
   records of heliostats the plant does not know (``unknown_heliostats``).
@@ -45,7 +49,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 import torch
 
-from ..calibrate.assimilate import REOPEN, WINDOW, AssimilationOptions, assimilate
+from ..calibrate.assimilate import REOPEN, WINDOW, AssimilationOptions, assimilate, confirm_threshold
 from ..calibrate.inputs import FIT_FOCAL_SPOT, fit_spots
 from ..calibrate.params import apply_deviations
 from ..calibrate.twinstate import (
@@ -55,12 +59,14 @@ from ..calibrate.twinstate import (
     HISTORY_VERSION,
     THRESHOLD_KEY,
     calibration_entry,
+    closed_alarms,
     current_assimilation,
     filter_state,
     fit_posterior,
     needs_seen_records,
     nominal_kinematics,
     on_axis,
+    open_alarms,
     process_noise_choice,
     process_noise_source,
     seen_record_ids,
@@ -298,7 +304,8 @@ def update(scenario, records_or_paint, settings: UpdateSettings = UpdateSettings
                                    nominal, fit_table.subset(seen_idx), fit_post)
     options = AssimilationOptions(threshold=threshold["threshold"], reopen=1e-3 * settings.reopen_mrad,
                                   iterations=int(settings.iterations), robust=bool(settings.robust),
-                                  window=int(settings.window))
+                                  window=int(settings.window),
+                                  confirm_threshold=confirm_threshold(float(threshold.get("kappa", 1.0))))
     new = fit_table.subset(new_rows)
     on = (lambda x: x) if torch.device(device).type == "cpu" else (lambda x: to_device(x, device))
     new_state, hist = assimilate(on(nominal), on(new), on(state), options, score_spot=on(table.spot[new_rows]))
@@ -310,13 +317,21 @@ def update(scenario, records_or_paint, settings: UpdateSettings = UpdateSettings
     for j, rid in zip(hist["heliostat"].tolist(), hist["record_id"].tolist()):
         records.setdefault(ids[j], []).append(int(rid))
     report = _report(ids, counts, threshold, hist, new_state, seconds, source)
+    report["threshold"]["confirm_threshold"] = options.confirm_threshold
+    report["threshold"]["confirm_records"] = options.confirm_records
     report["process_noise"] = {"mrad2_per_day": 1e6 * float(new_state.process_noise), **noise}
     if reading:
         report["reading"] = {k: reading[k] for k in ("files", "parsed", "indexed", "skipped") if k in reading}
     step = provenance_entry("update", source=str(source), records=records, alarms=report["alarms"],
                             settings={f.name: getattr(settings, f.name) for f in fields(UpdateSettings)},
                             threshold=float(threshold["threshold"]))
-    return Update(next_scenario(previous, plant, learned=learned, step=step), report, hist)
+    scenario = next_scenario(previous, plant, learned=learned, step=step)
+    number = int(torch.as_tensor(learned[ASSIMILATION_KEY]["updates"]).reshape(-1)[0])
+    latest = [float(t) for t in new_state.time.tolist() if math.isfinite(t)]
+    # the alarms this update settled, and those still open (age on the plant's latest record)
+    report["closed_alarms"] = closed_alarms(scenario, update=number)
+    report["open_alarms"] = open_alarms(scenario, now=max(latest) if latest else None)
+    return Update(scenario, report, hist)
 
 
 def locked_plant_write(output, make, timeout: float | None = None):

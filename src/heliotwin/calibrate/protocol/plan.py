@@ -277,7 +277,10 @@ def plant_plan(scenario, *, day: str, slots: int = 20, every: str = "30min", tar
     out = {"day": start.date().isoformat(), "target": name, "candidates": int(len(stamps)), "heliostats": len(ids),
            "median_spread_mrad": 1e3 * float(spread.median()) if len(ids) else None,
            "p95_spread_mrad": 1e3 * float(torch.quantile(spread, 0.95)) if len(ids) else None, "proposals": []}
+    out["slots"] = int(slots)
     if not chosen or not len(stamps):
+        out["why_fewer"] = ("no candidate time with the sun above the minimum elevation" if not len(stamps)
+                            else "no calibrated heliostat" if not ids else "no slots asked for")
         return out
     idx = torch.tensor(chosen)
     nominal = _nominal(cal, chosen)
@@ -310,4 +313,11 @@ def plant_plan(scenario, *, day: str, slots: int = 20, every: str = "30min", tar
             "reason": "step alarm" if ids[h] in urgent else "largest predicted pointing spread",
             "spread_now_mrad": 1e3 * float(spread[h]), "rms_now_mrad": 1e3 * math.sqrt(float(now[j])),
             "rms_after_mrad": 1e3 * math.sqrt(float(after[j, c]))})
+    fewer = []
+    if len(ids) < int(slots):
+        fewer.append(f"the plant has {len(ids)} calibrated heliostat(s), one record each")
+    if len(out["proposals"]) < len(chosen):
+        fewer.append(f"{len(chosen) - len(out['proposals'])} heliostat(s) cannot reach the target at a free time")
+    if fewer:
+        out["why_fewer"] = "; ".join(fewer)
     return out
