@@ -8,6 +8,9 @@ ones the rule is validated on), two keep their first 8 and 3 records, one keeps 
 """
 from __future__ import annotations
 
+import contextlib
+import io
+import json
 import os
 from dataclasses import replace
 
@@ -15,9 +18,10 @@ import numpy as np
 import pytest
 import torch
 
+from heliotwin.cli import main
 from heliotwin.evaluation import aim_points, pointing_errors, score_suns
 from heliotwin.io.paint import load_paint
-from heliotwin.io.scenario import load_scenario, write_scenario
+from heliotwin.io.scenario import load_scenario
 from heliotwin.simulate import SimulationSettings, simulate_plant, write_paint_folder
 from heliotwin.simulate.writer import truth_scenario
 from heliotwin.workflows.calibrate import CalibrationSettings, calibrate
@@ -25,7 +29,6 @@ from heliotwin.workflows.report import ReportSettings, heliostat_detail, heliost
 from heliotwin.workflows.score import score, summary_lines
 from heliotwin.workflows.show import describe_scenario, format_description
 from heliotwin.workflows.update import update
-from tests.helpers.cli import run_cli
 
 KEEP = {5: 8, 6: 3, 7: 0}  # heliostat index -> records kept (the others keep all)
 MIN_RECORDS = 30
@@ -51,10 +54,17 @@ def plant(tmp_path_factory):
     folder = write_paint_folder(sim, root / "paint")
     ids = list(sim.plant.field.ids)
     kept = _truncate(folder, ids)
-    result = calibrate(None, folder, CalibrationSettings(min_records=MIN_RECORDS))
-    path = write_scenario(result.scenario, root / "cal.h5")
-    return {"ids": ids, "kept": kept, "folder": folder, "report": result.report, "scenario": load_scenario(path),
-            "truth": truth_scenario(sim), "path": path}
+    # the command itself (in-process, once for the module): its printed lines, report and scenario
+    path, report = root / "cal.h5", root / "cal.json"
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        code = main(["calibrate", "--paint", str(folder), "--min-records", str(MIN_RECORDS), "-o", str(path),
+                     "--json", str(report), "--no-plots"])
+    assert code == 0
+    with open(report) as f:
+        report = json.load(f)
+    return {"ids": ids, "kept": kept, "folder": folder, "report": report, "scenario": load_scenario(path),
+            "truth": truth_scenario(sim), "path": path, "stdout": out.getvalue()}
 
 
 def _true_error(truth, scenario) -> dict:
@@ -94,7 +104,7 @@ def _nominal_scenario(plant):
     return replace(sc, plant=replace(sc.plant, field=replace(sc.plant.field, kinematics=ds.plant.field.kinematics)))
 
 
-def test_the_headline_show_score_and_report_name_the_nominal_heliostat(plant, capsys):
+def test_the_headline_show_score_and_report_name_the_nominal_heliostat(plant):
     ids, rep = plant["ids"], plant["report"]
     h = ids[7]
     assert rep["headline"]["nominal"] == [h] and rep["headline"]["calibrated"] == 7
@@ -130,11 +140,8 @@ def test_the_map_has_a_value_or_the_nominal_class_for_every_heliostat_and_sectio
     assert full["calibration"]["time"] == sorted(full["calibration"]["time"])
 
 
-def test_calibrate_prints_the_headline_first_and_names_each_block_of_steps(plant, capsys, tmp_path):
-    code, out, _ = run_cli(capsys, "calibrate", "--paint", plant["folder"], "--min-records", str(MIN_RECORDS),
-                           "-o", str(tmp_path / "c.h5"))
-    assert code == 0
-    lines = out.splitlines()
+def test_calibrate_prints_the_headline_first_and_names_each_block_of_steps(plant):
+    lines = plant["stdout"].splitlines()
     steps = [ln for ln in lines if " step " in ln and "/15 " in ln]
     assert steps and all(": step " in ln and not ln.startswith("heliotwin calibrate: step") for ln in steps)
     assert any("validation candidate 1/3 'static': step 1/15 select" in ln for ln in steps)
@@ -145,6 +152,7 @@ def test_calibrate_prints_the_headline_first_and_names_each_block_of_steps(plant
     assert "of the command's" in lines[-1]
 
 
+@pytest.mark.slow  # ~35 s on a busy 2-core machine
 def test_on_the_shared_records_every_heliostat_with_five_records_is_calibrated_by_the_default_command(paint_dir,
                                                                                                      tmp_path):
     """The README's command on ``../shared/data/paint``: 19 of its 30 heliostats have 0-30 records (under the
@@ -160,7 +168,9 @@ def test_on_the_shared_records_every_heliostat_with_five_records_is_calibrated_b
     assert {h for h in n if n[h] >= 5} <= calibrated
     head = rep["headline"]
     assert head["calibrated"] == len(calibrated) and head["reduced"] >= 15
-    assert head["expected_median_mrad"] < 2.0 and head["expected_p95_mrad"] is not None
+    # p95 was 16.4 mrad while a few bad centroids set three reduced heliostats' noise (they fit their other
+    # records to ~1 mrad); the full model's own p95 is 1.6
+    assert head["expected_median_mrad"] < 2.0 and head["expected_p95_mrad"] < 5.0
     assert set(head["nominal"]) == {h for h in n if h not in calibrated} and all(n[h] == 0 for h in head["nominal"])
     # the reduced models beat nominal on each heliostat's own latest records, which their fit did not see
     held = rep["reduced"]["held_out"]

@@ -67,6 +67,13 @@ HOLDOUT = CURRENT_HOLDOUT
 #: Degrees of freedom of the plant's record noise pooled with a reduced fit's own residuals.
 NOISE_DOF = 4.0
 
+#: A record's residual counts in a reduced fit's noise up to this many plant noise sigmas (a Rayleigh residual
+#: of the plant's noise exceeds it with probability exp(-OUTLIER_SIGMAS^2 / 2), 4e-6; :func:`posterior_of`).
+OUTLIER_SIGMAS = 5.0
+
+#: Fewest records whose median residual sets a heliostat's own noise scale (:func:`robust_sigma`).
+ROBUST_MIN = 5
+
 #: Variance factor that holds a parameter at the prior mean (relative to its prior variance).
 PINNED = 1e-8
 
@@ -164,12 +171,18 @@ def posterior_of(nominal: Kinematics, records: RecordTable, delta: torch.Tensor,
     """Laplace posterior of the eight parameters around ``delta`` [H, 8] under the (unpinned) prior
     ``covariance`` [H, 8, 8]: ``{"covariance": [H, 8, 8], "noise_rad": [H], "drift_rad"}``. The record noise
     per component pools the fit's residuals (over ``2 n - n_free`` degrees of freedom, ``n_free`` [H]) with
-    ``plant_noise`` [rad] at :data:`NOISE_DOF` degrees of freedom."""
+    ``plant_noise`` [rad] at :data:`NOISE_DOF` degrees of freedom; each record's squared residual counts at most
+    (:data:`OUTLIER_SIGMAS` sigma)^2, sigma the larger of ``plant_noise`` and the heliostat's own median-based
+    noise (:func:`robust_sigma`): the robust fit gives a bad centroid (tens of mrad, a few of a real heliostat's
+    records) almost no weight, and a posterior whose noise it set would put a heliostat that fits its other
+    records to 1 mrad at a 20 mrad expected error."""
     h = nominal.num_heliostats
     hidx = records.heliostat_index
     res, jac = metrics.record_jacobian(nominal.index(hidx), records, delta.detach()[hidx], STONE8)
     f64 = dict(dtype=torch.float64, device=jac.device)
-    ss = torch.zeros(h, **f64).index_add_(0, hidx, (res ** 2).sum(-1))
+    r2 = (res ** 2).sum(-1)
+    sigma = robust_sigma(r2.sqrt(), hidx, h).clamp_min(plant_noise)
+    ss = torch.zeros(h, **f64).index_add_(0, hidx, torch.minimum(r2, (OUTLIER_SIGMAS * sigma[hidx]) ** 2))
     dof = (2.0 * torch.bincount(hidx, minlength=h).double().to(jac.device) - n_free.to(jac.device)).clamp_min(0.0)
     s2 = (ss + NOISE_DOF * plant_noise ** 2) / (dof + NOISE_DOF)
     jtj = torch.zeros(h, 8, 8, **f64).index_add_(0, hidx, torch.einsum("rci,rcj->rij", jac, jac))
@@ -177,6 +190,21 @@ def posterior_of(nominal: Kinematics, records: RecordTable, delta: torch.Tensor,
     prec = jtj / s2[:, None, None] + torch.linalg.inv(covariance.to(**f64))
     cov = torch.linalg.solve(prec + 1e-12 * eye, eye.expand(h, 8, 8))
     return {"covariance": 0.5 * (cov + cov.transpose(-1, -2)), "noise_rad": s2.sqrt(), "drift_rad": float(drift)}
+
+
+def robust_sigma(norm: torch.Tensor, heliostat_index: torch.Tensor, num_heliostats: int) -> torch.Tensor:
+    """Per heliostat [H]: the record noise per component [rad] that its median residual norm ``norm`` [R] [rad]
+    implies (a Rayleigh median is sigma sqrt(2 ln 2)); 0 for heliostats with fewer than :data:`ROBUST_MIN`
+    records (a median of fewer says nothing)."""
+    h = heliostat_index.cpu().numpy()
+    x = norm.detach().double().cpu().numpy()
+    order = np.lexsort((x, h))
+    counts = np.bincount(h, minlength=num_heliostats)
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    have = counts >= ROBUST_MIN
+    mid = x[order][np.minimum(start + counts // 2, max(len(x) - 1, 0))] if len(x) else np.zeros(num_heliostats)
+    out = np.where(have, mid / np.sqrt(2.0 * np.log(2.0)), 0.0)
+    return torch.as_tensor(out, dtype=torch.float64, device=norm.device)
 
 
 def rank_from_latest(records: RecordTable) -> torch.Tensor:
