@@ -256,6 +256,17 @@ def missing_metadata(ws, folder):
     return Verdict(ok, f"exit {r.code}: {r.err.strip()[-200:] or r.out.strip()[:160]}")
 
 
+def report_missing_metadata(ws, folder):
+    """``report --paint`` without the metadata CSV (the records' times are what ``--paint`` is for): one line naming
+    it, no page (before: exit 0, "0 records planned for -")."""
+    paint = _copy(ws, folder)
+    (paint / META).unlink()
+    r = heliotwin("report", "--scenario", ws.small["cal"], "--paint", paint, "-o", folder / "r.html", "--no-flux",
+                  cwd=folder, timeout=120)
+    ok = r.one_line_error and "calibration-metadata.csv" in r.err and not (folder / "r.html").exists()
+    return Verdict(ok, f"exit {r.code}: {r.err.strip()[-200:] or r.out.strip()[:160]}")
+
+
 def wrong_heliostat(ws, folder):
     """A new record whose metadata row names another heliostat than its folder: dropped, named (before: taken)."""
     paint = _copy(ws, folder)
@@ -308,6 +319,8 @@ CASES = [
     Case("report-paint-listing", "medium", "load_records lists the folder a fixed number of times", listing_once),
     Case("missing-metadata-csv", "medium", "update without the metadata CSV: one-line error naming it",
          missing_metadata),
+    Case("report-missing-metadata-csv", "medium", "report --paint without the metadata CSV: one-line error naming it",
+         report_missing_metadata),
     Case("heliostat-id-contradicts-folder", "medium", "a record whose HeliostatId is another: dropped, named",
          wrong_heliostat),
 ]
