@@ -16,7 +16,8 @@ from helpers.cli import assert_one_line_error, run_cli
 
 from heliotwin.cli import main
 from heliotwin.errors import HeliotwinError, InputFileError
-from heliotwin.io.scenario import load_scenario
+from heliotwin.field.update import select_heliostats
+from heliotwin.io.scenario import load_scenario, save_scenario
 from heliotwin.simulate import SimulationSettings, simulate_plant, write_paint_folder
 from heliotwin.workflows.aimpoints import check_draws_memory
 
@@ -183,3 +184,93 @@ def test_the_cli_names_the_dataset_in_one_line(work, capsys):
     _replace(work / "p.h5", "field/width", shape=(3, 2**38), dtype="float32", chunks=(1, 2**20))
     code, _, err = run_cli(capsys, "daily", "--plant", "p.h5", "--paint", "base", *DAY)
     assert_one_line_error(code, err, "p.h5", "/field/width")
+
+
+# ------------------------------------------------------------------------------- item 10: site and positions
+@pytest.mark.parametrize("attr, value, needle", [("latitude_deg", 200.0, "latitude in [-90, 90]"),
+                                                 ("longitude_deg", -181.0, "longitude in [-180, 180]"),
+                                                 ("altitude_m", 1e5, "altitude in")])
+def test_an_impossible_site_is_refused_naming_the_attribute(work, attr, value, needle):
+    with h5py.File("p.h5", "a") as h5:
+        h5["site"].attrs[attr] = value
+    with pytest.raises(InputFileError) as e:
+        load_scenario("p.h5")
+    assert e.value.field == f"/site@{attr}" and needle in str(e.value)
+
+
+def test_a_heliostat_far_off_the_tower_is_refused_naming_it(work, capsys):
+    with h5py.File("p.h5", "a") as h5:
+        pos = h5["field/kinematics/position"][()]
+        pos[1, 0] = 1e300
+        h5["field/kinematics/position"][...] = pos
+        hid = h5["field/ids"].asstr()[1]
+    code, _, err = run_cli(capsys, "field", "--scenario", "p.h5", "--sun-azimuth", "10", "--sun-elevation", "40",
+                           "--json", "f.json", "--quiet")
+    assert_one_line_error(code, err, "p.h5", "/field/kinematics/position", hid, "20000 m")
+    assert not (work / "f.json").exists()
+
+
+# ----------------------------------------------------------------------------------------------- item 12
+@pytest.mark.parametrize("flag, value, needle", [("--every", "0min", "between 1min and 31d"),
+                                                 ("--every", "5parsecs", "a time step like"),
+                                                 ("--day", "1850-06-21", "out of range"),
+                                                 ("--day", "2021-13-45", "a UTC date like")])
+def test_daily_times_are_checked_in_one_line(work, capsys, flag, value, needle):
+    before = (work / "p.h5").read_bytes()
+    code, _, err = _cli(capsys, "daily", "--plant", "p.h5", "--paint", "base", "--no-aim", "--quiet",
+                        *(() if flag == "--day" else ("--day", "2021-12-01")), f"{flag}={value}")
+    assert_one_line_error(code, err, flag, needle)
+    assert code == 2 and (work / "p.h5").read_bytes() == before
+
+
+def test_a_valid_time_out_of_range_is_said_to_be_out_of_range(work, capsys):
+    code, _, err = run_cli(capsys, "field", "--scenario", "p.h5", "--time", "1850-06-21T12:00:00Z", "--json",
+                           "f.json", "--quiet")
+    assert_one_line_error(code, err, "--time", "out of range")
+    assert "cannot be parsed" not in err and "cannot parse" not in err
+
+
+# ------------------------------------------------------------------------ plausibility and small arguments
+def test_a_site_latitude_of_200_deg_is_refused_naming_it(work):
+    with h5py.File(work / "p.h5", "r+") as h5:
+        h5["site"].attrs["latitude_deg"] = 200.0
+    with pytest.raises(InputFileError) as err:
+        load_scenario(work / "p.h5")
+    assert "/site@latitude_deg" in str(err.value) and "200" in str(err.value)
+
+
+def test_a_heliostat_1e300_m_away_is_refused_naming_it(work):
+    """It was accepted, then blamed on the atmosphere (the attenuation of a 1e300 m slant range)."""
+    plant = load_scenario(work / "p.h5").plant
+    with h5py.File(work / "p.h5", "r+") as h5:
+        pos = h5["field/kinematics/position"]
+        xyz = pos[()]
+        xyz[1, 0] = 1e300
+        pos[...] = xyz
+    with pytest.raises(InputFileError) as err:
+        load_scenario(work / "p.h5")
+    assert "/field/kinematics/position" in str(err.value) and plant.field.ids[1] in str(err.value)
+
+
+@pytest.mark.parametrize(("flag", "value", "said"), [
+    ("--every", "0min", "between 1min and 31d"), ("--every", "5parsecs", "like 30min"),
+    ("--day", "1850-06-21", "out of range"), ("--day", "2021-13-45", "expected a UTC date"),
+])
+def test_daily_refuses_a_bad_step_or_day_in_one_line(work, capsys, flag, value, said):
+    code, _, err = _cli(capsys, "daily", "--plant", "p.h5", "--paint", "base", "--no-aim", flag, value, "--quiet")
+    assert_one_line_error(code, err, flag, said)
+
+
+def test_a_valid_time_out_of_range_is_said_so(work, capsys):
+    code, _, err = _cli(capsys, "field", "--scenario", "p.h5", "--time", "2150-06-21T12:00Z", "--json", "f.json")
+    assert_one_line_error(code, err, "--time", "out of range")
+    code, _, err = _cli(capsys, "field", "--scenario", "p.h5", "--time", "2021-06-21T25:00Z", "--json", "f.json")
+    assert_one_line_error(code, err, "--time", "cannot parse")
+    assert not (work / "f.json").exists()
+
+
+def test_field_on_a_plant_without_heliostats_is_a_one_line_error(work, capsys):
+    save_scenario(select_heliostats(load_scenario(work / "p.h5").plant, []), work / "zero.h5")
+    code, _, err = _cli(capsys, "field", "--scenario", "zero.h5", "--sun-azimuth", "10", "--sun-elevation", "40",
+                        "--json", "f.json", "--resolution", "8x4", "--quiet")
+    assert_one_line_error(code, err, "zero.h5", "no heliostats")
