@@ -132,6 +132,42 @@ def _dataset(name: str, **kw):
     return run
 
 
+def _site(attr: str, value: float):
+    """The plant with ``/site@attr = value``: refused in one line naming the attribute."""
+    def run(ws, folder):
+        plant = _plant(ws, folder)
+        with h5py.File(plant, "r+") as h5:
+            h5["site"].attrs[attr] = value
+        r = heliotwin("daily", "--plant", plant, "--paint", ws.small["base"], *DAY, cwd=folder)
+        return Verdict(r.one_line_error and f"/site@{attr}" in r.err, f"exit {r.code}; {_err(r)}")
+    return run
+
+
+def far_position(ws, folder):
+    """A heliostat at 1e300 m east: refused naming it (was: blamed on the atmosphere)."""
+    plant = _plant(ws, folder)
+    with h5py.File(plant, "r+") as h5:
+        pos = h5["field/kinematics/position"][()]
+        pos[1, 0] = 1e300
+        h5["field/kinematics/position"][...] = pos
+        hid = h5["field/ids"].asstr()[1]
+    r = heliotwin("field", "--scenario", plant, *SUN, "--json", folder / "f.json", "--quiet", cwd=folder)
+    return Verdict(r.one_line_error and hid in r.err and "/field/kinematics/position" in r.err,
+                   f"exit {r.code}; {_err(r)}")
+
+
+def _daily_arg(*argv, needle: str):
+    """daily with a malformed argument: exit 2, one line naming ``needle``, the plant unchanged."""
+    def run(ws, folder):
+        plant = _plant(ws, folder)
+        before = plant.read_bytes()
+        r = heliotwin("daily", "--plant", plant, "--paint", ws.small["base"], "--no-aim", "--quiet", *argv,
+                      cwd=folder)
+        kept = plant.read_bytes() == before
+        return Verdict(r.one_line_error and needle in r.err and kept, f"exit {r.code}; {_err(r)}")
+    return run
+
+
 CASES = [
     Case("daily-json-onto-the-plant", "high", "daily --json p.h5: refused in one line, p.h5 still the plant",
          json_onto_the_plant),
@@ -158,4 +194,11 @@ CASES = [
          _dataset("field/height", shape=(12, 2**27), dtype="float32", chunks=(1, 2**20), compression="gzip")),
     Case("scenario-dataset-wrong-rows", "medium", "a per-heliostat dataset with 13 rows: refused naming it",
          _dataset("field/width", shape=(13,), dtype="float32")),
+    Case("site-latitude-200", "medium", "/site@latitude_deg = 200: refused naming it", _site("latitude_deg", 200.0)),
+    Case("position-1e300", "medium", "a heliostat at 1e300 m: refused naming it and the dataset", far_position),
+    Case("daily-every-0min", "low", "--every 0min: one-line error", _daily_arg("--every", "0min", needle="--every")),
+    Case("daily-every-5parsecs", "low", "--every 5parsecs: one-line error",
+         _daily_arg("--every", "5parsecs", needle="--every")),
+    Case("daily-day-1850", "low", "--day 1850-06-21: out of range, one line",
+         _daily_arg("--day", "1850-06-21", needle="out of range")),
 ]

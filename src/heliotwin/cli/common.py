@@ -453,7 +453,7 @@ finite_float = float_range(what="a finite number")
 
 #: argparse type: a receiver peak-flux limit [W/m2], 1 kW/m2 .. 100 MW/m2 (the library's
 #: ``heliotwin.optimise.aimstate.PEAK_LIMIT_RANGE_W_M2``; kept literal here so that ``--help`` stays torch-free).
-peak_limit = float_range(1e3, 1e8, what="a receiver flux limit [W/m2], 1 kW/m2 .. 100 MW/m2")
+peak_limit = float_range(1e3, 1e8, what="a receiver flux limit [W/m2] (1 kW/m2 .. 100 MW/m2)")
 
 _FREQ = re.compile(r"^\s*(\d+)\s*(s|sec|min|t|h|d)\s*$", re.IGNORECASE)
 _FREQ_SECONDS = {"s": 1, "sec": 1, "min": 60, "t": 60, "h": 3600, "d": 86400}
