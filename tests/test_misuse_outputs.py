@@ -230,45 +230,7 @@ def test_a_valid_time_out_of_range_is_said_to_be_out_of_range(work, capsys):
     assert "cannot be parsed" not in err and "cannot parse" not in err
 
 
-# ------------------------------------------------------------------------ plausibility and small arguments
-def test_a_site_latitude_of_200_deg_is_refused_naming_it(work):
-    with h5py.File(work / "p.h5", "r+") as h5:
-        h5["site"].attrs["latitude_deg"] = 200.0
-    with pytest.raises(InputFileError) as err:
-        load_scenario(work / "p.h5")
-    assert "/site@latitude_deg" in str(err.value) and "200" in str(err.value)
-
-
-def test_a_heliostat_1e300_m_away_is_refused_naming_it(work):
-    """It was accepted, then blamed on the atmosphere (the attenuation of a 1e300 m slant range)."""
-    plant = load_scenario(work / "p.h5").plant
-    with h5py.File(work / "p.h5", "r+") as h5:
-        pos = h5["field/kinematics/position"]
-        xyz = pos[()]
-        xyz[1, 0] = 1e300
-        pos[...] = xyz
-    with pytest.raises(InputFileError) as err:
-        load_scenario(work / "p.h5")
-    assert "/field/kinematics/position" in str(err.value) and plant.field.ids[1] in str(err.value)
-
-
-@pytest.mark.parametrize(("flag", "value", "said"), [
-    ("--every", "0min", "between 1min and 31d"), ("--every", "5parsecs", "like 30min"),
-    ("--day", "1850-06-21", "out of range"), ("--day", "2021-13-45", "expected a UTC date"),
-])
-def test_daily_refuses_a_bad_step_or_day_in_one_line(work, capsys, flag, value, said):
-    code, _, err = _cli(capsys, "daily", "--plant", "p.h5", "--paint", "base", "--no-aim", flag, value, "--quiet")
-    assert_one_line_error(code, err, flag, said)
-
-
-def test_a_valid_time_out_of_range_is_said_so(work, capsys):
-    code, _, err = _cli(capsys, "field", "--scenario", "p.h5", "--time", "2150-06-21T12:00Z", "--json", "f.json")
-    assert_one_line_error(code, err, "--time", "out of range")
-    code, _, err = _cli(capsys, "field", "--scenario", "p.h5", "--time", "2021-06-21T25:00Z", "--json", "f.json")
-    assert_one_line_error(code, err, "--time", "cannot parse")
-    assert not (work / "f.json").exists()
-
-
+# ----------------------------------------------------------------------------------- item 12: field
 def test_field_on_a_plant_without_heliostats_is_a_one_line_error(work, capsys):
     save_scenario(select_heliostats(load_scenario(work / "p.h5").plant, []), work / "zero.h5")
     code, _, err = _cli(capsys, "field", "--scenario", "zero.h5", "--sun-azimuth", "10", "--sun-elevation", "40",
