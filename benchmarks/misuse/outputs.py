@@ -8,10 +8,13 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import h5py
-from fuzz_daily import Case, Verdict, heliotwin
+from fuzz_daily import SRC, Case, Verdict, heliotwin
 
 DAY = ("--no-aim", "--day", "2021-12-01", "--quiet")
 SUN = ("--sun-azimuth", "10", "--sun-elevation", "40")
@@ -168,6 +171,40 @@ def _daily_arg(*argv, needle: str):
     return run
 
 
+def killed_runs_temporaries(ws, folder):
+    """What SIGKILLed runs leave beside the plant (a complete ``.tmp-*.h5``, a staging folder; a pid-less one 2 h
+    old): the next ``daily`` writing there sweeps them (their owner is gone)."""
+    plant = _plant(ws, folder)
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    left = [folder / f".tmp-{gone.pid}-k3x9q2ab.h5", folder / f".heliotwin-{gone.pid}-ab12cd34",
+            folder / ".tmp-zz09yy18.h5"]
+    left[0].write_bytes(plant.read_bytes())
+    left[1].mkdir()
+    (left[1] / "d.json").write_text("{}")
+    left[2].write_bytes(b"x")
+    hours_ago = time.time() - 7200
+    os.utime(left[2], (hours_ago, hours_ago))
+    r = heliotwin("daily", "--plant", plant, "--paint", ws.small["base"], *DAY, "--json", folder / "d.json",
+                  cwd=folder)
+    still = [p.name for p in left if p.exists()]
+    return Verdict(r.code in (0, 3) and not still, f"exit {r.code}; left behind: {still or 'nothing'}")
+
+
+def field_without_heliostats(ws, folder):
+    """A plant of 0 heliostats (every one removed): ``field`` ends in one line naming the file."""
+    plant = _plant(ws, folder)
+    code = ("import sys; from heliotwin.io.scenario import load_scenario, save_scenario; "
+            "from heliotwin.field.update import select_heliostats; "
+            "save_scenario(select_heliostats(load_scenario(sys.argv[1]).plant, []), sys.argv[2])")
+    subprocess.run([sys.executable, "-c", code, str(plant), str(folder / "zero.h5")], check=True,
+                   env={**os.environ, "PYTHONPATH": str(SRC)})
+    r = heliotwin("field", "--scenario", folder / "zero.h5", *SUN, "--json", folder / "f.json", "--quiet",
+                  cwd=folder)
+    return Verdict(r.one_line_error and "zero.h5" in r.err and "internal error" not in r.err,
+                   f"exit {r.code}; {_err(r)}")
+
+
 CASES = [
     Case("daily-json-onto-the-plant", "high", "daily --json p.h5: refused in one line, p.h5 still the plant",
          json_onto_the_plant),
@@ -201,4 +238,8 @@ CASES = [
          _daily_arg("--every", "5parsecs", needle="--every")),
     Case("daily-day-1850", "low", "--day 1850-06-21: out of range, one line",
          _daily_arg("--day", "1850-06-21", needle="out of range")),
+    Case("killed-runs-temporaries-swept", "low", "the next daily removes .tmp-*/.heliotwin-* of dead runs beside it",
+         killed_runs_temporaries),
+    Case("field-without-heliostats", "low", "field on a 0-heliostat plant: one line naming the file",
+         field_without_heliostats),
 ]
