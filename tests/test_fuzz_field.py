@@ -418,10 +418,10 @@ def test_library_readers_refuse_a_fifo(tmp_path):
 # ------------------------------------------------------------------------------------------- peak limit
 def test_a_limit_no_full_field_can_hold_is_held_with_heliostats_on_standby(work, capsys):
     """1 kW/m2 (the lowest plausible limit) is below what the field puts on the receiver: the best feasible answer
-    sends heliostats to standby (less power, the limit held) and says so; exit 3 is kept for a limit no aim points
-    at all hold."""
-    code, out, err = run_cli(capsys, "aimpoints", "--scenario", "p.h5", *SUN, *AIM_FAST, "--peak-limit", "1000",
-                             "-o", "o.h5", "--json", "o.json")
+    sends heliostats to standby (less power, the limit held) and says so; exit 3 is kept for a limit no aim points at
+    all hold."""
+    code, out, err = run_cli(capsys, "aimpoints", "--scenario", "p.h5", *SUN, *AIM_FAST, "--peak-limit",
+                             "1000", "-o", "o.h5", "--json", "o.json")
     assert code == 0, err
     report = json.loads((work / "o.json").read_text())
     best = report["optimised"] if "optimised" in report else report["instants"][0]["optimised"]

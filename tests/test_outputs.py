@@ -174,7 +174,7 @@ def test_api_field_and_aimpoints_call_the_workflows(layout_scenario, tmp_path, c
     sc = load_scenario(layout_scenario)
     limit = 0.8 * rep["receiver"]["peak_flux_w_m2"]
     aimed, arep, maps = api.optimise_aimpoints(sc, limit, sun_azimuth_deg=0, sun_elevation_deg=50,
-                                               settings=api.AimpointSettings(1.0, iterations=40, baselines=False),
+                                               settings=api.AimpointSettings(limit, iterations=40, baselines=False),
                                                output=tmp_path / "aimed.h5")
     assert arep["optimised"]["peak_flux_w_m2"] <= limit * 1.001 and len(maps) == 1
     # the aim points' exact check sums its map in float64, `field` in float32: the same map to ~1e-5 of the peak

@@ -138,6 +138,23 @@ def enu_to_wgs84(enu, reference=JUELICH_REFERENCE) -> torch.Tensor:
     return ecef_to_geodetic(_as64(enu) @ rot + geodetic_to_ecef(reference))
 
 
+#: Plausible ranges of a site's coordinates: (low, high) of latitude [deg], longitude [deg] and ellipsoidal altitude
+#: [m] (the Dead Sea shore is about -430 m, the highest solar plants near 5,000 m; the geoid is within about 110 m of
+#: the ellipsoid).
+SITE_RANGES = {"latitude_deg": (-90.0, 90.0), "longitude_deg": (-180.0, 180.0), "altitude_m": (-1000.0, 9000.0)}
+
+
+def site_problem(name: str, value) -> str | None:
+    """Why ``value`` is not a plausible ``name`` (a :data:`SITE_RANGES` key) of a site, or None when it is."""
+    lo, hi = SITE_RANGES[name]
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value == value:
+        return f"expected a finite number, got {value!r}"
+    if not lo <= float(value) <= hi:
+        unit = "m" if name == "altitude_m" else "deg"
+        return f"expected {name.rsplit('_', 1)[0]} in [{lo:g}, {hi:g}] {unit}, got {value!r}"
+    return None
+
+
 @dataclass(frozen=True)
 class Site:
     """The plant's geodetic reference (ENU origin).

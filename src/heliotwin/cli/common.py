@@ -36,7 +36,7 @@ __all__ = ["ArgumentParser", "run_command", "resolve_device", "stage", "add_resu
            "checkpointed", "debug_requested", "Terminated", "csv_list",
            "int_list", "positive_int", "int_range", "float_range", "finite_float", "peak_limit", "seed_int",
            "frequency",
-           "utc_time", "check_output_folder", "EXIT_OK", "EXIT_INTERNAL", "EXIT_INPUT", "EXIT_INTERRUPTED",
+           "utc_time", "utc_date", "check_output_folder", "EXIT_OK", "EXIT_INTERNAL", "EXIT_INPUT", "EXIT_INTERRUPTED",
            "EXIT_TERMINATED", "EXIT_NOT_MET", "check_input_files", "OUT_OF_MEMORY", "share_of_cores", "default_threads"]
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT = 0, 1, 2
@@ -453,7 +453,7 @@ finite_float = float_range(what="a finite number")
 
 #: argparse type: a receiver peak-flux limit [W/m2], 1 kW/m2 .. 100 MW/m2 (the library's
 #: ``heliotwin.optimise.aimstate.PEAK_LIMIT_RANGE_W_M2``; kept literal here so that ``--help`` stays torch-free).
-peak_limit = float_range(1e3, 1e8, what="a receiver flux limit [W/m2], 1 kW/m2 .. 100 MW/m2")
+peak_limit = float_range(1e3, 1e8, what="a receiver flux limit [W/m2] (1 kW/m2 .. 100 MW/m2)")
 
 _FREQ = re.compile(r"^\s*(\d+)\s*(s|sec|min|t|h|d)\s*$", re.IGNORECASE)
 _FREQ_SECONDS = {"s": 1, "sec": 1, "min": 60, "t": 60, "h": 3600, "d": 86400}
@@ -487,6 +487,25 @@ def utc_time(text: str) -> str:
     if not 1900 <= t.year <= 2100:
         raise argparse.ArgumentTypeError(f"expected a time between 1900 and 2100, got {text!r}")
     return t.isoformat()
+
+
+#: Years a planned day may fall in: the PAINT era and a plant's lifetime ahead (pvlib's solar position and the
+#: plant's clock are meaningless for 1850; pandas' nanosecond times end in 2262).
+DAY_YEARS = (1950, 2200)
+
+
+def utc_date(text: str) -> str:
+    """argparse type: a UTC date ``YYYY-MM-DD`` in :data:`DAY_YEARS`; returned as ISO text. A date that cannot be
+    read and one that reads but lies outside the years are told apart (``--day 1850-06-21`` is "out of range")."""
+    s = str(text).strip()
+    try:
+        d = _dt.date.fromisoformat(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a UTC date like 2024-06-21, got {text!r}") from None
+    lo, hi = DAY_YEARS
+    if not lo <= d.year <= hi:
+        raise argparse.ArgumentTypeError(f"{text!r} is out of range: expected a day in the years {lo}..{hi}")
+    return d.isoformat()
 
 
 def check_output_folder(path, flag: str) -> None:

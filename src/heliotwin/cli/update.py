@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 
 from ..io.report import output_set, plant_inputs, same_file, write_json
-from .common import float_range, int_range, peak_limit, stage
+from .common import float_range, frequency, int_range, peak_limit, stage, utc_date
 
 
 def register(subparsers) -> None:
@@ -61,11 +61,13 @@ def register(subparsers) -> None:
     d.add_argument("--paint", required=True, help="the plant's PAINT folder (it grows every day)")
     d.add_argument("-o", "--output", help="write the plant here instead of in place")
     d.add_argument("--json", help="also write the day's report as JSON")
-    d.add_argument("--day", help="the planned day, UTC date (default: tomorrow; the day after the plant's latest "
-                                 "record when that is more than 3 days behind the wall clock)")
+    d.add_argument("--day", type=utc_date, help="the planned day, UTC date, years 1950..2200 (default: tomorrow; "
+                                                "the day after the plant's latest record when that is more than 3 "
+                                                "days behind the wall clock)")
     d.add_argument("--slots", type=int_range(0, 100000, "a record count"), default=20,
                    help="calibration records to plan for the day (default 20)")
-    d.add_argument("--every", default="30min", help="spacing of the candidate calibration times (default 30min)")
+    d.add_argument("--every", type=frequency, default="30min",
+                   help="spacing of the candidate calibration times, 1min..31d (default 30min)")
     d.add_argument("--peak-limit", type=peak_limit, default=None,
                    help="peak-flux limit of the aim points [W/m2] (default: the one the plant stores from an "
                         "earlier 'aimpoints')")

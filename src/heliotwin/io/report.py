@@ -13,19 +13,82 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import sys
 import tempfile
 import threading
+import time
 from contextlib import contextmanager
 
 from ..errors import HeliotwinError, InputFileError
 
 __all__ = ["atomic_path", "write_json", "save_figure", "json_safe", "OutputSet", "output_set", "same_file",
-           "plant_inputs"]
+           "plant_inputs", "sweep_stale", "STALE_AGE_S"]
 
 _UMASK_LOCK = threading.Lock()
+
+#: A temporary without its owner's pid in the name (written before pids were) is stale after this long [s].
+STALE_AGE_S = 3600.0
+# Our temporaries: ``.tmp-<pid>-XXXXXXXX<ext>`` (atomic_path) and ``.heliotwin-<pid>-XXXXXXXX`` (staging folders),
+# and the older pid-less names of the same two (tempfile's 8 random characters); nothing else is touched.
+_WITH_PID = re.compile(r"^\.(?:tmp|heliotwin)-(\d+)-[a-z0-9_]{8}(?:\.[^.]*)?$")
+_WITHOUT_PID = re.compile(r"^\.(?:tmp-[a-z0-9_]{8}(?:\.[^.]*)?|heliotwin-[a-z0-9_]{8})$")
+_swept: set = set()
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError, OSError):
+        return True  # someone else's live process, or a pid we cannot ask about: never swept
+    return True
+
+
+def sweep_stale(folder, *, now: float | None = None) -> list:
+    """Remove the temporaries a killed run left in ``folder``: a ``.tmp-*`` file of :func:`atomic_path` or a
+    ``.heliotwin-*`` staging folder of :class:`OutputSet` whose owner (the pid in its name) is gone, or, named
+    without a pid, older than :data:`STALE_AGE_S`. Symlinks are removed, never followed; errors are ignored (a
+    sweep is housekeeping and never fails the command). Returns the names removed."""
+    now = time.time() if now is None else now
+    removed = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    for entry in entries:
+        m = _WITH_PID.match(entry.name)
+        try:
+            if m:
+                stale = not _alive(int(m.group(1)))
+            elif _WITHOUT_PID.match(entry.name):
+                stale = now - entry.stat(follow_symlinks=False).st_mtime > STALE_AGE_S
+            else:
+                continue
+            if not stale:
+                continue
+            if entry.is_dir(follow_symlinks=False):
+                shutil.rmtree(entry.path)
+            else:
+                os.unlink(entry.path)
+            removed.append(entry.name)
+        except OSError:
+            continue
+    return removed
+
+
+def _sweep_once(folder: str) -> None:
+    """:func:`sweep_stale` of ``folder`` the first time this process writes there."""
+    key = os.path.abspath(folder)
+    if key not in _swept:
+        _swept.add(key)
+        sweep_stale(key)
+
 
 def _one_line(text) -> str:
     return " ".join(str(text).split())
@@ -74,7 +137,9 @@ def atomic_path(path, *, make_folder: bool = False):
             folder = os.path.dirname(os.path.abspath(path))
             if make_folder:
                 os.makedirs(folder, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.splitext(path)[1], dir=folder)
+            _sweep_once(folder)
+            # the pid in the name lets a later run tell a killed run's temporary from a live one's
+            fd, tmp = tempfile.mkstemp(prefix=f".tmp-{os.getpid()}-", suffix=os.path.splitext(path)[1], dir=folder)
             os.close(fd)
         except OSError as exc:
             raise _cannot_write(path, exc, tmp) from exc
@@ -236,7 +301,8 @@ class OutputSet:
     def _stage(self, folder: str) -> str:
         if folder not in self._staging:
             try:
-                self._staging[folder] = tempfile.mkdtemp(prefix=".heliotwin-", dir=folder)
+                _sweep_once(folder)
+                self._staging[folder] = tempfile.mkdtemp(prefix=f".heliotwin-{os.getpid()}-", dir=folder)
             except OSError as exc:
                 raise InputFileError(folder, f"cannot write ({_one_line(exc.strerror or exc)})") from exc
         return self._staging[folder]

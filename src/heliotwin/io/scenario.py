@@ -83,7 +83,7 @@ from ..field.layout import MAX_DISTANCE_M, MAX_MIRROR_M, MIN_MIRROR_M, check_att
 from ..field.plant import Facets, Field, Kinematics, Plant, SunSettings, Surfaces
 from ..field.targets import CylinderTarget, PlanarTarget
 from ..field.update import select_heliostats
-from ..site import Site
+from ..site import Site, site_problem
 from .paint import list_heliostats, load_paint
 from .report import atomic_path
 
@@ -742,6 +742,9 @@ def _validate_plant(plant: Plant, path, *, writing: bool = False) -> None:
         v = getattr(s, name)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
             c.fail(f"/site@{name}", f"expected a finite number, got {v!r}")
+        problem = site_problem(name, v)
+        if problem:
+            c.fail(f"/site@{name}", problem)
     for key, t in plant.targets.items():
         for name in ("center", "normal", "right", "up"):
             c.tensor(f"/targets/{key}/{name}", getattr(t, name), (3,), finite=True)
@@ -771,7 +774,22 @@ def _validate_plant(plant: Plant, path, *, writing: bool = False) -> None:
     if len(fl.renovation) not in (0, h) or not all(isinstance(x, str) for x in fl.renovation):
         c.fail("/field/renovation", f"expected 0 or {h} strings, got {len(fl.renovation)} entries")
     _validate_kinematics(c, fl.kinematics, h)
+    _validate_positions(c, fl.kinematics.position, fl.ids)
     _validate_mirrors(c, fl, h)
+
+
+def _validate_positions(c: _PlantCheck, position: torch.Tensor, ids) -> None:
+    """Heliostat positions [H, 3] ENU [m] within :data:`~heliotwin.field.layout.MAX_DISTANCE_M` of the ENU origin
+    (the tower base), naming the first heliostat outside (1e300 m was accepted, then blamed on the atmosphere)."""
+    if not len(ids):
+        return
+    far = torch.nonzero(torch.linalg.vector_norm(position.to(torch.float64), dim=-1) > MAX_DISTANCE_M).flatten()
+    if len(far):
+        i = int(far[0])
+        xyz = ", ".join(f"{float(v):.4g}" for v in position[i])
+        more = f" (and {len(far) - 1} more)" if len(far) > 1 else ""
+        c.fail("/field/kinematics/position", f"heliostat {ids[i]} at ({xyz}) m is farther than {MAX_DISTANCE_M:g} m "
+                                             f"from the tower base{more}")
 
 
 #: Physical ranges of the sun and mirror optics: (low, high, low excluded).

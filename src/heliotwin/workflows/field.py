@@ -113,11 +113,13 @@ def sun_direction_at(plant, *, time_utc: str | None = None, azimuth_deg: float |
     if time_utc is not None:
         try:
             stamp = pd.Timestamp(time_utc)
-            if pd.isna(stamp) or not 1900 <= stamp.year <= 2100:
+            if pd.isna(stamp):
                 raise ValueError(time_utc)
         except (ValueError, TypeError, OverflowError):
             raise HeliotwinError(f"--time: cannot parse {time_utc!r} (expected ISO UTC, e.g. 2023-06-21T12:00Z)") \
                 from None
+        if not 1900 <= stamp.year <= 2100:  # read, but not a time the solar position model covers
+            raise HeliotwinError(f"--time: {time_utc!r} is out of range (expected a time in the years 1900..2100)")
         if stamp.tzinfo is None:
             stamp = stamp.tz_localize("UTC")
         s = plant.site
@@ -139,11 +141,12 @@ def sun_instants(plant, *, times: str | None = None, day: str | None = None, eve
     if day is not None:
         try:
             start = pd.Timestamp(day)
-            if pd.isna(start) or not 1900 <= start.year <= 2100:
+            if pd.isna(start):
                 raise ValueError(day)
         except (ValueError, TypeError, OverflowError):
-            raise HeliotwinError(f"--day: cannot parse {day!r} (expected a UTC date between 1900 and 2100, e.g. "
-                                 "2023-06-21)") from None
+            raise HeliotwinError(f"--day: cannot parse {day!r} (expected a UTC date, e.g. 2023-06-21)") from None
+        if not 1900 <= start.year <= 2100:
+            raise HeliotwinError(f"--day: {day!r} is out of range (expected a day in the years 1900..2100)")
         step = _step(every)
         if step > pd.Timedelta("1D"):
             raise HeliotwinError(f"--every {_text(step)}: longer than the day of --day (at most 1d: one instant)")

@@ -143,6 +143,9 @@ def field(scenario, sun: torch.Tensor, settings: FieldRunSettings | None = None)
     settings = settings or FieldRunSettings()
     plant = scenario.plant
     settings.check()
+    if not len(plant.field.ids):  # the model's [H, ...] reshapes have nothing to infer a size from
+        raise HeliotwinError(f"{getattr(scenario, 'path', None) or 'the scenario'}: the plant has no heliostats; "
+                             f"nothing to evaluate")
     if settings.dni is not None:
         plant = dataclasses.replace(plant, sun=dataclasses.replace(plant.sun, dni=float(settings.dni)))
     if settings.device is not None:
