@@ -71,3 +71,20 @@ def test_simulate_does_not_overwrite_an_existing_truth_file(tmp_path, capsys):
     code, _, err = run_cli(capsys, "simulate", *ARGS, "--out", tmp_path / "p", "--truth", truth)
     assert_one_line_error(code, err, "truth.h5", "exists")
     assert truth.read_bytes() == b"keep me" and not (tmp_path / "p").exists()
+
+
+def test_simulate_limits_are_said_in_the_users_terms(tmp_path, capsys):
+    from heliotwin.field.demo import demo_field_positions
+    from heliotwin.simulate.plant import DEMO_FIELD_MAX, check_size
+
+    assert len(demo_field_positions(DEMO_FIELD_MAX)) == DEMO_FIELD_MAX  # the demo field's real capacity
+    code, _, err = run_cli(capsys, "simulate", "--heliostats", 67600, "--out", tmp_path / "big")
+    assert_one_line_error(code, err, "demo field holds at most", "--layout")
+    assert "max_east" not in err and not (tmp_path / "big").exists()
+    from heliotwin.errors import HeliotwinError
+    from heliotwin.simulate import SimulationSettings
+
+    huge = SimulationSettings(heliostats=20000, years=40, records_per_month=500)
+    with pytest.raises(HeliotwinError, match="GiB of (memory|disk)"):
+        check_size(huge, 20000, 4, tmp_path / "p")
+    assert not any(tmp_path.iterdir())  # refused before anything was staged

@@ -39,7 +39,10 @@ Default magnitudes and where they come from (PAINT's Jülich records, ``../share
 """
 from __future__ import annotations
 
+import contextlib
 import math
+import os
+import shutil
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -59,6 +62,11 @@ from ..geometry import ray_plane, reflect
 from ..io.paint import read_tower
 from ..sun import direction_from_paint_angles, paint_angles_from_direction, solar_position
 from . import images as imaging
+
+try:  # POSIX only: the address-space limit (ulimit -v) a simulation must fit
+    import resource
+except ImportError:  # pragma: no cover
+    resource = None
 
 #: The plant prior learned from PAINT's Jülich records (``../shared/data/paint``: 25 heliostats with >= 9 records,
 #: one loose lm fit each, :class:`heliotwin.calibrate.protocol.archive.PriorArchive`, full covariance shrunk 0.2
@@ -297,6 +305,76 @@ def _paint_id(i: int) -> str:
 JUELICH_ROWS_MAX = 400
 
 
+#: The most heliostats the radial-staggered demo field places (:func:`demo_field_positions`' rings end 40 tower
+#: heights, 2200 m, from the tower; ``tests/test_simulate_grow.py`` checks the figure against it).
+DEMO_FIELD_MAX = 25213
+
+#: What a simulation costs per record while it runs [bytes] (measured: 0.40 GB more for 300,000 more records,
+#: with a margin), per heliostat, and before any record (the interpreter, torch, the plant); and on disk per
+#: record [bytes] (one small JSON file, a 4 kB block, its metadata row) and per heliostat (two folders and the
+#: properties file).
+MEMORY_PER_RECORD, MEMORY_PER_HELIOSTAT, MEMORY_BASE = 1600, 20_000, 600 * 2**20
+DISK_PER_RECORD, DISK_PER_HELIOSTAT = 4300, 12_300
+
+
+def expected_records(settings: SimulationSettings, heliostats: int, planar_targets: int) -> float:
+    """About how many records ``settings`` schedules for ``heliostats`` heliostats and ``planar_targets``
+    calibration targets: heliostats x records per month x months, at most the daytime slots of the history (half
+    of every day, an upper bound at any latitude over a year)."""
+    seconds = 365.25 * 86400 * settings.years
+    per_cell = max(SUN_GRID_SECONDS // int(settings.slot_seconds), 1)
+    capacity = 0.5 * seconds / SUN_GRID_SECONDS * per_cell * planar_targets
+    return min(heliostats * settings.records_per_month * 12 * settings.years, capacity)
+
+
+def _memory_available() -> float | None:
+    """Bytes this process may still allocate: the least of the system's available memory, the address-space
+    limit (``ulimit -v``) less what is mapped, and the cgroup's limit less its use (None where none is known)."""
+    limits = []
+    with contextlib.suppress(OSError, ValueError, IndexError):
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    limits.append(int(line.split()[1]) * 1024)
+    with contextlib.suppress(OSError, ValueError, IndexError, AttributeError):
+        soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+        if soft != resource.RLIM_INFINITY:
+            with open("/proc/self/status", encoding="ascii") as fh:
+                vm = next(int(ln.split()[1]) * 1024 for ln in fh if ln.startswith("VmSize:"))
+            limits.append(soft - vm)
+    with contextlib.suppress(OSError, ValueError):
+        with open("/sys/fs/cgroup/memory.max", encoding="ascii") as fh:
+            top = fh.read().strip()
+        if top != "max":
+            with open("/sys/fs/cgroup/memory.current", encoding="ascii") as fh:
+                limits.append(int(top) - int(fh.read().strip()))
+    return float(min(limits)) if limits else None
+
+
+def check_size(settings: SimulationSettings, heliostats: int, planar_targets: int, out=None) -> dict:
+    """Refuse, in one line and before anything is drawn, a simulation that would not fit this machine's memory
+    (:func:`_memory_available`) or the free disk of the folder ``out`` is written to; returns the estimate
+    (``records``, ``memory_bytes``, ``disk_bytes``)."""
+    r = expected_records(settings, heliostats, planar_targets)
+    memory = MEMORY_BASE + MEMORY_PER_RECORD * r + MEMORY_PER_HELIOSTAT * heliostats
+    disk = DISK_PER_RECORD * r + DISK_PER_HELIOSTAT * heliostats
+    what = (f"about {r:,.0f} records ({heliostats} heliostats x {settings.records_per_month:g} records per month "
+            f"for {settings.years:g} years)")
+    fix = "simulate fewer heliostats, years or records per month"
+    free = _memory_available()
+    if free is not None and memory > MEMORY_BASE and memory > free:
+        raise HeliotwinError(f"simulate: {what} need about {memory / 2**30:.1f} GiB of memory and this machine has "
+                             f"{max(free, 0) / 2**30:.1f} GiB available; {fix}")
+    if out is not None:
+        parent = os.path.dirname(os.path.abspath(os.fspath(out)))
+        with contextlib.suppress(OSError):
+            room = shutil.disk_usage(parent).free
+            if disk > room:
+                raise HeliotwinError(f"simulate: {what} need about {disk / 2**30:.1f} GiB of disk and {parent} has "
+                                     f"{room / 2**30:.1f} GiB free; {fix}")
+    return {"records": r, "memory_bytes": memory, "disk_bytes": disk}
+
+
 def _moved(plant: Plant, position: torch.Tensor, ids: list) -> Plant:
     """``plant``'s heliostats moved to ``position`` [H, 3] ENU [m] and renamed, facets re-canted to the new
     slant range to the receiver."""
@@ -326,6 +404,9 @@ def nominal_plant(settings: SimulationSettings) -> Plant:
         position = None
     if n > 26 * 26 * 100:
         raise HeliotwinError(f"simulate: {n} heliostats exceed PAINT's id pattern (at most 67600)")
+    if position is None and n > DEMO_FIELD_MAX:
+        raise HeliotwinError(f"simulate: --heliostats {n}: the demo field holds at most {DEMO_FIELD_MAX} heliostats "
+                             f"(its rings reach 2200 m from the tower); give the positions of more with --layout")
     plant = demo_plant(n, settings.seed) if n <= JUELICH_ROWS_MAX else _demo_variations(n, settings.seed)
     if position is None and n > JUELICH_ROWS_MAX:
         position = demo_field_positions(n, max_east=135.0 if n <= 2200 else None)
@@ -530,8 +611,8 @@ def _records_chunk(nominal: Kinematics, static: torch.Tensor, names, controller:
     return steps, spot, torch.linalg.vector_norm(spot - conc, dim=-1), reachable & hit
 
 
-def simulate_plant(settings: SimulationSettings = SimulationSettings(), *, prior: PlantPrior | None = None
-                   ) -> SimulatedPlant:
+def simulate_plant(settings: SimulationSettings = SimulationSettings(), *, prior: PlantPrior | None = None,
+                   out=None) -> SimulatedPlant:
     """Draw a plant's truth and its calibration history from ``settings.seed`` (module docstring).
 
     Parameters
@@ -539,6 +620,9 @@ def simulate_plant(settings: SimulationSettings = SimulationSettings(), *, prior
     settings : SimulationSettings
     prior : PlantPrior, optional
         Distribution of the static deviations (default: :func:`paint_prior`).
+    out : path, optional
+        Where the folder will be written: its free disk is checked with the memory (:func:`check_size`) before
+        anything is drawn.
 
     Returns
     -------
@@ -549,6 +633,7 @@ def simulate_plant(settings: SimulationSettings = SimulationSettings(), *, prior
     rng = np.random.default_rng(settings.seed)
     plant = nominal_plant(settings)
     h = len(plant.field.ids)
+    check_size(settings, h, sum(t.kind == "planar" for t in plant.targets.values()), out)
     static, names = draw_static(rng, h, prior)
     planar = [name for name, t in plant.targets.items() if t.kind == "planar"]
     grid_t, grid_el, spline = sun_grid(settings, plant.site)

@@ -61,7 +61,7 @@ def simulate(settings: SimulationSettings, out, *, prior: PlantPrior | None = No
         raise InputFileError(str(out), "--until needs the default prior (a folder that grows is simulated again "
                                        "from its settings)", field="--prior-from")
     t0 = time.perf_counter()
-    sim = simulate_plant(settings, prior=prior)
+    sim = simulate_plant(settings, prior=prior, out=out)
     t1 = time.perf_counter()
     written = sim if until is None else records_until(sim, -float("inf"), day_end(until))
     folder = write_paint_folder(written, out)
