@@ -11,6 +11,7 @@ import shutil
 
 import h5py
 import numpy as np
+import pandas as pd
 import pytest
 from helpers.cli import assert_one_line_error, run_cli
 
@@ -18,6 +19,7 @@ from heliotwin.cli import main
 from heliotwin.errors import HeliotwinError, InputFileError
 from heliotwin.field.update import select_heliostats
 from heliotwin.io.scenario import load_scenario, save_scenario
+from heliotwin.io.weather import read_dni_series, weather_for_year
 from heliotwin.simulate import SimulationSettings, simulate_plant, write_paint_folder
 from heliotwin.workflows.aimpoints import check_draws_memory
 
@@ -236,3 +238,15 @@ def test_field_on_a_plant_without_heliostats_is_a_one_line_error(work, capsys):
     code, _, err = _cli(capsys, "field", "--scenario", "zero.h5", "--sun-azimuth", "10", "--sun-elevation", "40",
                         "--json", "f.json", "--resolution", "8x4", "--quiet")
     assert_one_line_error(code, err, "zero.h5", "no heliostats")
+
+
+# ---------------------------------------------------------------------------------------- item 11: weather gaps
+def test_a_year_with_every_second_dni_missing_is_not_annual(tmp_path):
+    t = pd.date_range("2023-01-01", "2024-01-01", freq="1h", tz="UTC", inclusive="left")
+    with open(tmp_path / "w.csv", "w") as fh:
+        fh.write("time,dni\n")
+        for i, ti in enumerate(t):
+            fh.write(f"{ti.isoformat()},{'nan' if i % 2 else 700.0}\n")
+    wy = weather_for_year(read_dni_series(tmp_path / "w.csv"), 2023)
+    assert wy.annual is False and wy.coverage["annual"] is False  # was: annual, at a 2 h step read off the rows left
+    assert any("50.0 % of the rows" in a and "too many for an annual" in a for a in wy.assumptions)

@@ -310,10 +310,15 @@ def weather_for_year(series: DniSeries, year: int) -> WeatherYear:
     hours = np.minimum(step, np.append(gaps, step))
     covered = float(hours.sum())
     fraction = covered / _year_hours(year)
-    annual = fraction >= ANNUAL_FRACTION
+    # The gap rows are dropped before the step is read from the rows left, so a file with every second DNI missing
+    # looked like a complete year at twice the step: a file is annual only when its gaps are as rare as the hours
+    # ANNUAL_FRACTION lets it miss.
+    share = (series.missing + series.negative) / max(1, len(times) + series.missing + series.negative)
+    annual = fraction >= ANNUAL_FRACTION and share <= 1.0 - ANNUAL_FRACTION
     if series.missing or series.negative:
         assumptions.append(f"{series.missing} rows without a DNI and {series.negative} with a negative DNI are gaps "
-                           "(no energy in their intervals)")
+                           f"(no energy in their intervals; {100 * share:.1f} % of the rows)"
+                           + ("" if share <= 1.0 - ANNUAL_FRACTION else ": too many for an annual energy"))
     if series.repeated:
         assumptions.append(f"{series.repeated} rows repeating an instant with the same DNI counted once")
     if not annual:
