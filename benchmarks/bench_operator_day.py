@@ -152,7 +152,7 @@ def run(args) -> dict:
     checks["spread_consistent"] = {"ok": all(r == sorted(r, reverse=True) for r in ranked), "observed": spreads}
     checks["score_names_worst"] = {"ok": bool(worst), "observed": worst[:1] or "no heliostat named"}
     grown = load(plant / "simulation.json") or {}
-    reached = (pd.Timestamp(grown["until"]) - cut).days if grown.get("until") else None
+    reached = (pd.Timestamp(grown["until"], tz="UTC") - cut).days if grown.get("until") else None
     checks["folder_grows"] = {"ok": reached == args.days, "observed": f"simulation.json until {grown.get('until')}: "
                                                                         f"{reached} day(s) appended to {cut.date()}"}
     return {"settings": vars(args), "checks": checks, "days": days, "commands": log}
