@@ -375,7 +375,7 @@ class AssimilationOptions:
     iterations: int = 2
     robust: bool = True
     window: int = WINDOW
-    confirm_threshold: float = -2.0 * math.log(CONFIRM_LEVEL)
+    confirm_threshold: float = confirm_threshold()
     confirm_records: int = CONFIRM_RECORDS
 
 

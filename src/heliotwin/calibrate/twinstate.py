@@ -52,6 +52,7 @@ from .params import STONE8, check_names
 
 __all__ = ["ASSIMILATION_KEY", "HISTORY_VERSION", "DEFAULT_PROCESS_NOISE", "CHOICE_KEY", "THRESHOLD_KEY",
            "calibration_entry", "nominal_kinematics", "current_assimilation", "calibration_count", "seen_record_ids",
+           "seen_record_owners",
            "stored_tensor", "filter_scale", "filter_state", "fit_posterior", "on_axis", "process_noise_choice",
            "with_process_noise_choice", "process_noise_source", "alarm_threshold_choice", "with_alarm_threshold",
            "threshold_in_force", "split_new", "merged_history", "updated_learned", "state_history", "open_alarms",
@@ -97,16 +98,22 @@ def current_assimilation(scenario: Scenario) -> dict | None:
     return st if stamp == calibration_count(scenario) else None
 
 
-def seen_record_ids(scenario: Scenario) -> set:
-    """Record ids some provenance step lists as seen (``calibrate``'s training records, updates' records)."""
-    seen = set()
+def seen_record_owners(scenario: Scenario) -> dict:
+    """Record id -> the heliostat a provenance step lists it under (``calibrate``'s training records, updates'
+    records)."""
+    owners: dict = {}
     for step in scenario.provenance or []:
         recs = step.get("records") if isinstance(step, dict) else None
         if isinstance(recs, dict):
-            for ids in recs.values():
+            for hid, ids in recs.items():
                 if isinstance(ids, list):
-                    seen.update(int(i) for i in ids if isinstance(i, (int, float)))
-    return seen
+                    owners.update((int(i), str(hid)) for i in ids if isinstance(i, (int, float)))
+    return owners
+
+
+def seen_record_ids(scenario: Scenario) -> set:
+    """Record ids some provenance step lists as seen (:func:`seen_record_owners`' keys)."""
+    return set(seen_record_owners(scenario))
 
 
 def stored_tensor(cal: dict, where: str, path, *keys) -> torch.Tensor:

@@ -687,7 +687,7 @@ def load_paint_on_plant(root, plant: Plant, *, source: str = "scenario", focal_s
     Of the folder's heliostat properties only the positions are read, to check that the folder is this plant's
     (:func:`check_positions`). The dataset's ``properties`` are empty; ``reading`` also counts
     ``unknown_heliostats`` and ``unknown_records`` (heliostat folders with records that ``plant`` does not
-    hold, listed in ``unknown_ids``, first 20).
+    hold, listed in ``unknown_ids``, first 20; ``unknown_counts``: every such heliostat's record count).
 
     Raises
     ------
@@ -717,7 +717,7 @@ def load_paint_on_plant(root, plant: Plant, *, source: str = "scenario", focal_s
     counts = {h: len(f) for h, f in zip(unknown, (_record_names(os.path.join(root, h, "Calibration"))
                                                   for h in unknown)) if f}
     reading.update(unknown_heliostats=len(counts), unknown_records=int(sum(counts.values())),
-                   unknown_ids=sorted(counts)[:20])
+                   unknown_ids=sorted(counts)[:20], unknown_counts=counts)
     return PaintDataset(root, plant, table, skipped, {}, reading)
 
 

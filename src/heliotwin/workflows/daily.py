@@ -24,9 +24,8 @@ import math
 import os
 from dataclasses import dataclass, field, replace
 
-from ..calibrate.clock import latest_record_time, planned_day
+from ..calibrate.clock import planned_day
 from ..calibrate.protocol.plan import plant_plan
-from ..calibrate.twinstate import open_alarms
 from ..errors import HeliotwinError
 from ..io.scenario import Scenario, load_scenario, provenance_entry
 from ..optimise.aimstate import stored_peak_limit
@@ -213,11 +212,10 @@ def daily(scenario, paint, settings: DailySettings = DailySettings(), *, device:
     updated = update(previous, paint, settings.update, device=device)
     alarms = updated.report["alarms"]
     now = _dt.datetime.now(_dt.timezone.utc).timestamp() if now is None else float(now)
-    clock = latest_record_time(updated.scenario.learned)
     day, day_why = planned_day(updated.scenario.learned, settings.day,
                                _dt.datetime.fromtimestamp(now, _dt.timezone.utc))
-    # an alarm is open until records settle it: its age on the plant's clock (its latest record, or now)
-    still_open = open_alarms(updated.scenario, now=clock if clock is not None else now)
+    # an alarm is open until records settle it; the update lists them, aged on the plant's own clock
+    still_open = updated.report["open_alarms"]
     urgent = [a["heliostat"] for a in still_open] + [a["heliostat"] for a in alarms]
     plan = plant_plan(updated.scenario, day=day, slots=settings.slots, every=settings.every,
                       min_elevation_deg=settings.min_elevation, urgent=list(dict.fromkeys(urgent)))

@@ -67,9 +67,11 @@ from ..calibrate.twinstate import (
     nominal_kinematics,
     on_axis,
     open_alarms,
+    plant_clock,
     process_noise_choice,
     process_noise_source,
     seen_record_ids,
+    seen_record_owners,
     split_new,
     state_history,
     threshold_in_force,
@@ -81,7 +83,7 @@ from ..devices import to_device
 from ..errors import HeliotwinError
 from ..field.update import select_heliostats, with_kinematics
 from ..io.lock import check_unchanged, file_stamp, plant_lock
-from ..io.paint import PaintDataset, _record_names, list_heliostats, load_paint_on_plant
+from ..io.paint import PaintDataset, list_heliostats, load_paint_on_plant
 from ..io.records import RecordTable
 from ..io.scenario import Scenario, load_scenario, next_scenario, provenance_entry, write_scenario
 
@@ -190,20 +192,19 @@ def _records(records_or_paint, scenario: Scenario, ids: list, plane_tolerance: f
                                  "PAINT folder")
         ds = load_paint_on_plant(paint, select_heliostats(scenario.plant, use), source=scenario.path or "scenario",
                                  plane_tolerance=plane_tolerance, skip_record_ids=skip,
-                                 seen_owners=_seen_owners(scenario))
+                                 seen_owners=seen_record_owners(scenario))
     reading = {**ds.reading, **_dropped(ds.skipped)}
     if not isinstance(records_or_paint, PaintDataset):
-        reading.update(_known_but_nominal(paint, scenario, ids, present, reading))
+        reading.update(_known_but_nominal(scenario, ids, reading))
     return on_axis(ds.records, ids), os.path.abspath(ds.root), reading
 
 
-def _known_but_nominal(paint: str, scenario: Scenario, ids: list, present: set, reading: dict) -> dict:
+def _known_but_nominal(scenario: Scenario, ids: list, reading: dict) -> dict:
     """The folder's records of heliostats the plant knows but its calibration left nominal: counted as such
-    (``nominal_*``), not among those of heliostats the plant does not know (``unknown_*``)."""
-    calibrated = set(ids)
-    counts = {h: len(_record_names(os.path.join(paint, h, "Calibration"))) for h in scenario.plant.field.ids
-              if h in present and h not in calibrated}
-    counts = {h: n for h, n in counts.items() if n}
+    (``nominal_*``), not among those of heliostats the plant does not know (``unknown_*``); from the reader's
+    per-heliostat ``unknown_counts`` (the reader saw only the calibrated heliostats' plant)."""
+    calibrated, known = set(ids), set(scenario.plant.field.ids)
+    counts = {h: n for h, n in (reading.get("unknown_counts") or {}).items() if h in known and h not in calibrated}
     if not counts:
         return {}
     return {"unknown_heliostats": max(0, reading.get("unknown_heliostats", 0) - len(counts)),
@@ -211,19 +212,6 @@ def _known_but_nominal(paint: str, scenario: Scenario, ids: list, present: set, 
             "unknown_ids": [h for h in reading.get("unknown_ids", []) if h not in counts],
             "nominal_heliostats": len(counts), "nominal_records": sum(counts.values()),
             "nominal_ids": sorted(counts)[:20]}
-
-
-def _seen_owners(scenario: Scenario) -> dict:
-    """Record id -> the heliostat a provenance step lists it under (the reader refuses a folder that holds one of
-    them under another heliostat: another plant's folder, or records moved between heliostats)."""
-    owners: dict = {}
-    for step in scenario.provenance or []:
-        recs = step.get("records") if isinstance(step, dict) else None
-        if isinstance(recs, dict):
-            for hid, rids in recs.items():
-                if isinstance(rids, list):
-                    owners.update((int(i), str(hid)) for i in rids if isinstance(i, (int, float)))
-    return owners
 
 
 def _dropped(skipped: list) -> dict:
@@ -327,10 +315,9 @@ def update(scenario, records_or_paint, settings: UpdateSettings = UpdateSettings
                             threshold=float(threshold["threshold"]))
     scenario = next_scenario(previous, plant, learned=learned, step=step)
     number = int(torch.as_tensor(learned[ASSIMILATION_KEY]["updates"]).reshape(-1)[0])
-    latest = [float(t) for t in new_state.time.tolist() if math.isfinite(t)]
-    # the alarms this update settled, and those still open (age on the plant's latest record)
+    # the alarms this update settled, and those still open (age on the plant's own clock, its latest record)
     report["closed_alarms"] = closed_alarms(scenario, update=number)
-    report["open_alarms"] = open_alarms(scenario, now=max(latest) if latest else None)
+    report["open_alarms"] = open_alarms(scenario, now=plant_clock(scenario))
     return Update(scenario, report, hist)
 
 
