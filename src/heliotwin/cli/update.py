@@ -165,7 +165,6 @@ def cmd_daily(args) -> int:
               f"{_fewer(plan)} on {plan['target']} "
               f"(pointing spread over the plant: median {_mrad(plan['median_spread_mrad'])}, p95 "
               f"{_mrad(plan['p95_spread_mrad'])} mrad)")
-        print(f"  planned day {report['day']}: {report['day_reason']}")
         for p in plan["proposals"][:10]:
             print(f"  {p['time']}  {p['heliostat']}  ({p['reason']}: spread {p['spread_now_mrad']:.3f} mrad; RMS "
                   f"normal error over the year {p['rms_now_mrad']:.3f} -> {p['rms_after_mrad']:.3f} mrad)")

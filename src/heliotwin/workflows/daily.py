@@ -211,9 +211,8 @@ def daily(scenario, paint, settings: DailySettings = DailySettings(), *, device:
     previous = load_scenario(scenario) if isinstance(scenario, (str, os.PathLike)) else scenario
     updated = update(previous, paint, settings.update, device=device)
     alarms = updated.report["alarms"]
-    now = _dt.datetime.now(_dt.timezone.utc).timestamp() if now is None else float(now)
-    day, day_why = planned_day(updated.scenario.learned, settings.day,
-                               _dt.datetime.fromtimestamp(now, _dt.timezone.utc))
+    wall = None if now is None else _dt.datetime.fromtimestamp(float(now), _dt.timezone.utc)
+    day, day_why = planned_day(updated.scenario.learned, settings.day, wall)
     # an alarm is open until records settle it; the update lists them, aged on the plant's own clock
     still_open = updated.report["open_alarms"]
     urgent = [a["heliostat"] for a in still_open] + [a["heliostat"] for a in alarms]

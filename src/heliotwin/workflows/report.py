@@ -45,7 +45,7 @@ from ..optimise.aimstate import stored_peak_limit
 from .field import FieldRunSettings, field, sun_direction_at
 from .plan import PlanSettings, plan
 from .report_page import render_page
-from .show import describe_scenario
+from .show import describe_scenario, nominal_heliostats
 from .update import ASSIMILATION_KEY
 
 __all__ = ["ReportSettings", "QUANTITIES", "heliostat_state", "alarm_rows", "open_alarm_rows",
@@ -223,7 +223,8 @@ def heliostat_state(scenario: Scenario, records=None) -> dict:
     # a heliostat no update touched: its calibration's expected error (every calibrated one has a value)
     from_cal = _calibration_expected(cal, ids)
     predicted = np.where(np.isfinite(last_err), 1e3 * last_err, from_cal)
-    nominal = np.array([1.0 if cal and h not in calibrated else 0.0 for h in ids])
+    left = nominal_heliostats(scenario)
+    nominal = np.array([1.0 if h in left else 0.0 for h in ids])
     return {"ids": ids, "x_m": pos[:, 0], "y_m": pos[:, 1],
             "predicted_error_mrad": predicted, "interval_mrad": _interval_mrad(cal, ids),
             "predicted_from_calibration": np.isfinite(from_cal) & ~np.isfinite(last_err), "nominal": nominal,
