@@ -249,8 +249,6 @@ def same_file(a, b) -> bool:
         return False
 
 
-_same_file = same_file
-
 
 class OutputSet:
     """Every output of one command, staged and then moved into place together, only when all has succeeded.
@@ -286,11 +284,11 @@ class OutputSet:
         if is_folder and os.path.exists(path) and not os.path.isdir(path):
             raise InputFileError(path, "is a file; expected a folder", field=flag)
         for other_flag, other in self._declared:
-            if _same_file(path, other):
+            if same_file(path, other):
                 raise InputFileError(path, f"is also the output of {other_flag}; give each output its own name",
                                      field=flag)
         for in_flag, src in self.inputs:
-            if _same_file(path, src):
+            if same_file(path, src):
                 raise InputFileError(path, f"is the input {in_flag}; an output may not replace an input", field=flag)
             inside = os.path.realpath(path).startswith(os.path.realpath(src) + os.sep)
             if os.path.isdir(src) and inside and os.path.exists(path):

@@ -20,6 +20,7 @@ import pandas as pd
 import torch
 
 from ..errors import InputFileError
+from ..io.report import write_json
 from .plant import SimulatedPlant, SimulationSettings
 from .writer import write_paint_folder
 
@@ -62,10 +63,7 @@ def records_until(sim: SimulatedPlant, start_s: float, end_s: float) -> Simulate
 def write_growth_state(folder, settings: SimulationSettings, until: str) -> None:
     """Store ``settings`` and the last day written (``until``, ISO date) in ``folder/simulation.json``."""
     doc = {"settings": dataclasses.asdict(settings), "until": pd.Timestamp(until).date().isoformat()}
-    tmp = os.path.join(folder, f".{GROWTH_FILE}.tmp")
-    with open(tmp, "w", encoding="utf-8") as fh:
-        json.dump(doc, fh, indent=1)
-    os.replace(tmp, os.path.join(folder, GROWTH_FILE))
+    write_json(os.path.join(folder, GROWTH_FILE), doc, make_folder=False)  # atomic: the old state or the new
 
 
 def read_growth_state(folder) -> tuple[SimulationSettings, str]:
