@@ -706,7 +706,7 @@ def load_paint_on_plant(root, plant: Plant, *, source: str = "scenario", focal_s
     if missing:
         raise InputFileError(source, f"heliostat(s) {', '.join(missing[:5])} are not in the PAINT folder {root}",
                              field="/field/ids")
-    positions = torch.cat([_folder_position(root, h, site) for h in ids]) if ids else torch.zeros(0, 3)
+    positions = _folder_positions(root, ids, site)
     check_positions(root, ids, positions, plant.field.kinematics.position, source)
     reading: dict = {}
     raw = read_records(root, ids, site, targets, cache=cache, stats=reading, skip_record_ids=skip_record_ids,
@@ -725,10 +725,19 @@ def _properties_path(root: str, heliostat_id: str) -> str:
     return os.path.join(root, heliostat_id, "Properties", f"{heliostat_id}-heliostat-properties.json")
 
 
-def _folder_position(root: str, heliostat_id: str, site: Site) -> torch.Tensor:
-    """The ENU position [1, 3] [m] of a heliostat in its Properties file (only that field read and checked)."""
-    path = _properties_path(root, heliostat_id)
-    return _local_enu(read_json(path), "heliostat_position", path, site).reshape(1, 3)
+def _folder_positions(root: str, ids: list, site: Site) -> torch.Tensor:
+    """The ENU positions [H, 3] [m] of heliostats ``ids`` in their Properties files (only that field read and
+    checked): one file read per heliostat, the WGS84 -> ENU conversion batched over all of them."""
+    if not ids:
+        return torch.zeros(0, 3, dtype=torch.float64)
+    paths = [_properties_path(root, h) for h in ids]
+    lla = torch.tensor([_geodetic(read_json(p), "heliostat_position", p) for p in paths], dtype=torch.float64)
+    enu = wgs84_to_enu(lla, site.reference)
+    far = (torch.hypot(enu[:, 0], enu[:, 1]) > MAX_PLANT_RADIUS_M) | (enu[:, 2].abs() > MAX_PLANT_HEIGHT_M)
+    if bool(far.any()):  # the first implausible one, refused as every point the reader converts
+        i = int(far.nonzero()[0])
+        _near_plant(enu[i], paths[i], "heliostat_position")
+    return enu
 
 
 def check_positions(root, ids, folder_positions: torch.Tensor, plant_positions: torch.Tensor, source) -> None:
