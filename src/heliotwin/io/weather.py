@@ -1,15 +1,19 @@
 """Measured or typical-year direct normal irradiance (DNI) as a time series, beside pvlib's clear sky.
 
-:func:`read_dni_series` reads three kinds of CSV and returns UTC instants with their DNI [W/m^2]:
+:func:`read_dni_series` reads a weather file as sites and tools deliver it -- **TMY3**, **TMY2**, **EPW** and
+**NSRDB PSM3** through ``pvlib.iotools``, **SAM CSV** (both two-line metadata layouts, a ``DNI`` or ``Beam``
+column), **PAINT's** ``metadata/calibration-weather.csv`` and **any table** with a time column (``time``,
+``timestamp``, ``datetime``, ``date``; ISO, naive = UTC) and a ``dni`` column -- its format found from its content
+(:mod:`heliotwin.io.weather_formats`, which states each format's time convention). It returns UTC instants placed
+where the sun stood while each row's energy was collected (the middle of an hour-ending hour of local standard time,
+the stamp of an instantaneous value), their DNI [W/m^2], the convention in words (``convention``) and the file's
+site (``info``). A file that is not weather (an image, an HDF5 file, a CSV of something else) is a one-line error
+naming it; no pandas or pvlib warning reaches the user.
 
-* **SAM / typical meteorological year** (as NREL's SAM and SolarPILOT take it): two metadata lines
-  (``Source,...,Latitude,Longitude,Time Zone,Elevation`` and their values), then a header with ``Year, Month,
-  Day, Hour, Minute`` and ``DNI``; times are local standard time (``Time Zone`` hours east of UTC) and are
-  converted to UTC.
-* **PAINT's** ``metadata/calibration-weather.csv``: ``DateTime`` (UTC) and ``dni`` per calibration record
-  (measured at the tower, at the records' instants only).
-* **Any table** with a time column (``time``, ``timestamp``, ``datetime``, ``date``; ISO, naive = UTC) and a
-  ``dni`` column (case-insensitive; also ``dni_w_m2``).
+The checks a report states: :func:`site_offset_km` and :func:`site_warning` (the file's site against the plant's,
+a warning beyond :data:`SITE_WARNING_KM`), :func:`dni_share_below_horizon` (the share of the DNI energy at
+instants with the sun below the horizon: at most a few tenths of a percent for a correct time convention, tens of
+percent for a file read hours off) and :func:`weather_checks` (all three for a report).
 
 One rule for every command that takes ``--weather`` (``field --year``, ``predict``), in two steps:
 
@@ -26,10 +30,16 @@ One rule for every command that takes ``--weather`` (``field --year``, ``predict
 
 :func:`weather_for_year` (the file placed in the year asked for):
 
-* the rows in that year are used; a file with no row in it but all (or all but the rows a UTC shift moves
+* a **typical year** (a file whose (month, day, time) keys are unique but whose rows name several years, e.g.
+  months from 1977 to 2005, as TMY3, TMY2, EPW and SolarPILOT's climate files are) is always moved into the year
+  asked for, whatever its Year column says;
+* else the rows in that year are used; a file with no row in it but all (or all but the rows a UTC shift moves
   across New Year) in one other year is a typical year and is moved into it (month, day and time kept;
   29 February dropped when the year has none), which the report states; a file spanning other years only is
   an error;
+* a moved year is a cycle: the rows its UTC shift moves across New Year (the first or last hours of local time)
+  wrap to the other end of the year asked for, where the sun stands as it did; a typical year moved into a leap
+  year has no 29 February: that day has no DNI (no energy), which the report states;
 * each row stands for its interval (the file's step, the median spacing; less where the next row comes
   sooner), so the energy is that of the hours the file covers: **annual** only when they are at least
   :data:`ANNUAL_FRACTION` of the year, else the report says which part of the year it is.
@@ -38,7 +48,8 @@ Errors are one line naming the file and the field (:class:`heliotwin.errors.Inpu
 """
 from __future__ import annotations
 
-import csv
+import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -46,17 +57,20 @@ import numpy as np
 import pandas as pd
 
 from ..errors import InputFileError
+from ..sun import solar_position
+from .weather_formats import FORMATS, read_raw
 
-__all__ = ["DniSeries", "WeatherYear", "read_dni_series", "weather_for_year", "MAX_DNI_W_M2", "KW_THRESHOLD",
-           "ANNUAL_FRACTION"]
+__all__ = ["DniSeries", "WeatherYear", "read_dni_series", "weather_for_year", "site_offset_km", "site_warning",
+           "dni_share_below_horizon", "weather_checks", "MAX_DNI_W_M2", "KW_THRESHOLD", "ANNUAL_FRACTION",
+           "SITE_WARNING_KM"]
 
-_TIME_COLUMNS = ("time", "timestamp", "datetime", "date_time", "date", "time_utc")
-_DNI_COLUMNS = ("dni", "dni_w_m2", "dni [w/m2]", "dni (w/m2)")
 _MAX_BYTES = 200 * 1024 * 1024
 MAX_DNI_W_M2 = 1500.0  #: [W/m^2] above any DNI at the ground (the solar constant is 1361 W/m^2)
 KW_THRESHOLD = 2.0  #: [W/m^2] a file whose largest DNI is at most this is in kW/m^2, not W/m^2
 ANNUAL_FRACTION = 0.98  #: share of the year's hours a file must cover for its energy to be called annual
 _SAME_DNI = 0.5  #: [W/m^2] rows repeating an instant within this are one row
+SITE_WARNING_KM = 50.0  #: [km] a weather file's site farther than this from the plant's is warned about
+_EARTH_RADIUS_KM = 6371.0088  #: [km] mean Earth radius (IUGG)
 
 
 @dataclass
@@ -72,14 +86,21 @@ class DniSeries:
     step_hours : float
         The interval each instant stands for [h] (the median spacing; 1 for a single instant).
     kind : str
-        ``"sam"``, ``"paint"`` or ``"table"``.
+        ``"tmy3"``, ``"tmy2"``, ``"epw"``, ``"sam"``, ``"psm3"``, ``"paint"`` or ``"table"``.
     path : str
     dropped : int
         Rows without a usable DNI (``missing + negative``; rows without a time are among ``missing``).
     info : dict
-        The SAM file's site metadata (latitude, longitude, time zone, elevation), when there is one.
+        The file's site where it names one: ``site_name``, ``latitude_deg``, ``longitude_deg`` [deg],
+        ``elevation_m`` [m], ``time_zone_hours`` [h east of UTC].
     missing, negative, repeated : int
         Rows with no DNI (or no time), with a negative DNI (both gaps), and repeats of an instant (merged).
+    convention : str
+        The file's time convention and how it became UTC instants, in words (for the report).
+    typical : bool
+        A typical year (months of different years): always moved into the year asked for.
+    file_years : tuple of int
+        The first and last year the file's rows name (empty when it names none).
     """
 
     times: pd.DatetimeIndex
@@ -92,84 +113,39 @@ class DniSeries:
     missing: int = 0
     negative: int = 0
     repeated: int = 0
-
-
-def _lower(names) -> dict:
-    return {str(n).strip().lower(): n for n in names}
-
-
-def _sam(path: Path, lines: list[str]) -> tuple[pd.DatetimeIndex, pd.Series, dict]:
-    meta = dict(zip(next(csv.reader([lines[0]])), next(csv.reader([lines[1]]))))
-    try:
-        tz = float(meta.get("Time Zone", meta.get("Time zone", 0.0)) or 0.0)
-    except ValueError:
-        raise InputFileError(path, f"cannot read the time zone {meta.get('Time Zone')!r}", field="Time Zone") from None
-    frame = pd.read_csv(path, skiprows=2)
-    cols = _lower(frame.columns)
-    for need in ("year", "month", "day", "hour"):
-        if need not in cols:
-            raise InputFileError(path, "missing column (a SAM weather file has Year, Month, Day, Hour, Minute, DNI)",
-                                 field=need)
-    parts = {k: pd.to_numeric(frame[cols[k]], errors="coerce") for k in ("year", "month", "day", "hour")}
-    minute = pd.to_numeric(frame[cols["minute"]], errors="coerce") if "minute" in cols else 0
-    try:
-        local = pd.to_datetime(dict(year=parts["year"], month=parts["month"], day=parts["day"], hour=parts["hour"],
-                                    minute=minute))
-    except (ValueError, TypeError) as exc:
-        raise InputFileError(path, f"cannot build times from Year/Month/Day/Hour/Minute ({exc})", field="Year") \
-            from None
-    times = pd.DatetimeIndex(local - pd.Timedelta(hours=tz)).tz_localize("UTC")
-    dni_col = next((cols[c] for c in _DNI_COLUMNS if c in cols), None)
-    if dni_col is None:
-        raise InputFileError(path, "missing column", field="DNI")
-    info = {k: meta[k] for k in ("Latitude", "Longitude", "Time Zone", "Elevation") if k in meta}
-    return times, frame[dni_col], info
-
-
-def _table(path: Path) -> tuple[pd.DatetimeIndex, pd.Series, str]:
-    frame = pd.read_csv(path, comment="#")
-    cols = _lower(frame.columns)
-    tcol = next((cols[c] for c in _TIME_COLUMNS if c in cols), None)
-    dcol = next((cols[c] for c in _DNI_COLUMNS if c in cols), None)
-    if tcol is None:
-        raise InputFileError(path, f"no time column (expected one of {', '.join(_TIME_COLUMNS)}, or a SAM weather "
-                             "file)", field="time")
-    if dcol is None:
-        raise InputFileError(path, "no DNI column (expected 'dni' [W/m2])", field="dni")
-    try:
-        times = pd.DatetimeIndex(pd.to_datetime(frame[tcol], utc=True, format="mixed"))
-    except (ValueError, TypeError) as exc:
-        raise InputFileError(path, f"cannot parse the times ({exc})", field=str(tcol)) from None
-    kind = "paint" if "heliostatid" in cols else "table"
-    return times, frame[dcol], kind
+    convention: str = ""
+    typical: bool = False
+    file_years: tuple = ()
 
 
 def read_dni_series(path) -> DniSeries:
-    """Read a DNI time series (module docstring) from ``path``.
+    """Read a DNI time series (module docstring; the formats in :mod:`heliotwin.io.weather_formats`) from
+    ``path``, its format detected from its content.
 
     Raises
     ------
     InputFileError
-        Missing, unreadable or huge file; no time or DNI column; unparsable times; no usable row.
+        Missing, unreadable, binary or huge file; not a weather file (no time or DNI column); unparsable times;
+        no usable row.
     """
     path = Path(path)
     try:
         if path.stat().st_size > _MAX_BYTES:
             raise InputFileError(path, f"larger than {_MAX_BYTES // 2**20} MiB; not a weather file")
-        with open(path, encoding="utf-8-sig") as fh:
-            head = [fh.readline() for _ in range(3)]
-    except (OSError, UnicodeDecodeError) as exc:
+        with open(path, "rb") as fh:
+            head_bytes = fh.read(4096)
+        text = head_bytes.decode("utf-8-sig", errors="replace")
+        lines = [ln + "\n" for ln in text.splitlines()[:3]]
+    except OSError as exc:
         raise InputFileError(path, f"cannot read ({exc})") from None
-    info = {}
     try:
-        if head[0].lower().startswith("source") and "time zone" in head[0].lower():
-            times, dni, info = _sam(path, head)
-            kind = "sam"
-        else:
-            times, dni, kind = _table(path)
+        raw = read_raw(path, head_bytes, lines)
     except (pd.errors.ParserError, pd.errors.EmptyDataError) as exc:
-        raise InputFileError(path, f"malformed CSV ({' '.join(str(exc).split())})") from None
-    values = pd.to_numeric(dni, errors="coerce").to_numpy(dtype=np.float64)
+        raise InputFileError(path, f"malformed CSV ({' '.join(str(exc).split())[:160]}); not a weather file in "
+                             f"one of the formats read ({FORMATS})") from None
+    except UnicodeDecodeError as exc:
+        raise InputFileError(path, f"not a text file ({exc.reason}); not a weather file") from None
+    times, values = raw.times, np.asarray(raw.dni, dtype=np.float64)
     no_time = np.asarray(pd.isna(times))
     missing = ~np.isfinite(values) | no_time
     negative = ~missing & (values < 0)
@@ -182,8 +158,9 @@ def read_dni_series(path) -> DniSeries:
     t, v, repeated = _merge_repeats(path, t, v)
     _check_units(path, v)
     step = float(pd.Series(t).diff().median().total_seconds()) / 3600.0 if len(t) > 1 else 1.0
-    return DniSeries(t, v, step, kind, str(path), dropped=int((~ok).sum()), info=info, missing=int(missing.sum()),
-                     negative=int(negative.sum()), repeated=repeated)
+    return DniSeries(t, v, step, raw.kind, str(path), dropped=int((~ok).sum()), info=raw.info,
+                     missing=int(missing.sum()), negative=int(negative.sum()), repeated=repeated,
+                     convention=raw.convention, typical=raw.typical, file_years=tuple(raw.file_years))
 
 
 def _merge_repeats(path, t: pd.DatetimeIndex, v: np.ndarray):
@@ -243,7 +220,11 @@ class WeatherYear:
         What was assumed or changed to place the file in the year (one sentence each).
     source : dict
         ``file``, ``kind``, ``rows`` (used), ``rows_missing``, ``rows_negative``, ``rows_repeated``,
-        ``rows_outside_year``, ``moved_from_year`` and the SAM file's site metadata.
+        ``rows_outside_year``, ``moved_from_year`` (None when not moved or a typical year), ``typical_year``,
+        ``file_years``, ``time_convention`` and the file's site (``latitude_deg``, ``longitude_deg``,
+        ``elevation_m``, ``time_zone_hours``, ``site_name``) where it names one.
+    convention : str
+        The file's time convention (:attr:`DniSeries.convention`), for the report.
     """
 
     year: int
@@ -255,6 +236,7 @@ class WeatherYear:
     coverage: dict
     assumptions: list
     source: dict
+    convention: str = ""
 
     def dni_at(self, times) -> np.ndarray:
         """DNI [W/m^2] at UTC ``times`` (T'): the row whose interval holds the instant (the nearest row within
@@ -269,9 +251,47 @@ def _year_hours(year: int) -> float:
     return (pd.Timestamp(year + 1, 1, 1) - pd.Timestamp(year, 1, 1)).total_seconds() / 3600.0
 
 
+def _shift_years(times: pd.DatetimeIndex, years: int) -> pd.DatetimeIndex:
+    if years == 0 or len(times) == 0:
+        return times
+    with warnings.catch_warnings():  # pandas' PerformanceWarning on a non-vectorised offset: not the user's concern
+        warnings.simplefilter("ignore")
+        return pd.DatetimeIndex(times + pd.DateOffset(years=years))
+
+
+def _move_into(series: DniSeries, times, dni, year: int, main: int):
+    """``times`` (UTC, mostly in ``main``) moved into ``year``: month, day and time kept, 29 February dropped when
+    ``year`` has none, the rows the UTC shift put across New Year wrapped to the other end (a typical year is a
+    cycle). Returns (times sorted, dni, assumptions)."""
+    feb29 = np.asarray((times.month == 2) & (times.day == 29))
+    leap = pd.Timestamp(year, 1, 1).is_leap_year
+    keep = ~feb29 | leap
+    shifted = _shift_years(pd.DatetimeIndex(times[keep]), year - main)
+    dni = dni[keep]
+    before, after = np.asarray(shifted.year < year), np.asarray(shifted.year > year)
+    parts = [shifted[~before & ~after], _shift_years(shifted[before], 1), _shift_years(shifted[after], -1)]
+    values = np.concatenate([dni[~before & ~after], dni[before], dni[after]])
+    moved = parts[0].append(parts[1]).append(parts[2])
+    order = np.argsort(moved.asi8, kind="stable")
+    moved, values = moved[order], values[order]
+    what = (f"a typical year (its rows name {series.file_years[0]} to {series.file_years[-1]}: months of different "
+            f"years)" if series.typical and series.file_years else
+            "a typical year" if series.typical else f"the file holds {main}, not {year}: read as a typical year")
+    text = [f"{what}, moved into {year} (month, day and time kept, the sun of {year})"
+            + (f"; {int((~keep).sum())} rows of 29 February dropped" if (~keep).any() else "")]
+    wrapped = int(before.sum() + after.sum())
+    if wrapped:
+        text.append(f"{wrapped} rows the UTC shift moved across New Year wrapped to the other end of {year} (a "
+                    "typical year is a cycle)")
+    days = set(zip(np.asarray(moved.month), np.asarray(moved.day)))
+    if leap and (2, 29) not in days and (2, 28) in days and (3, 1) in days:
+        text.append(f"{year} is a leap year and the file has no 29 February: that day has no DNI (no energy)")
+    return moved, values, text
+
+
 def weather_for_year(series: DniSeries, year: int) -> WeatherYear:
-    """The rows of ``series`` in ``year``, or the file moved into it when it is another year's (module
-    docstring); the interval each row stands for, the coverage and the assumptions made.
+    """The rows of ``series`` in ``year``, or the file moved into it when it is a typical year or another year's
+    (module docstring); the interval each row stands for, the coverage and the assumptions made.
 
     Raises
     ------
@@ -282,22 +302,16 @@ def weather_for_year(series: DniSeries, year: int) -> WeatherYear:
     times, dni = series.times, np.asarray(series.dni, dtype=np.float64)
     assumptions, moved, outside = [], None, 0
     years = np.asarray(times.year)
-    if not (years == year).any():
+    if series.typical or not (years == year).any():
         values, counts = np.unique(years, return_counts=True)
         main = int(values[np.argmax(counts)])
         # a typical year: one year's rows (and a few a UTC shift moved across New Year)
-        if counts.max() < 0.95 * len(years) or (np.abs(values - main) > 1).any():
+        if not series.typical and (counts.max() < 0.95 * len(years) or (np.abs(values - main) > 1).any()):
             raise InputFileError(series.path, f"no row in {year} (the rows span {int(values.min())} to "
                                  f"{int(values.max())}); give that year's weather or a typical year", field="time")
-        moved = main
-        feb29 = (times.month == 2) & (times.day == 29)
-        leap = pd.Timestamp(year, 1, 1).is_leap_year
-        keep = ~feb29 | leap
-        shifted = times[keep] + pd.DateOffset(years=year - main)
-        times, dni = pd.DatetimeIndex(shifted), dni[np.asarray(keep)]
-        assumptions.append(f"the file holds {main}, not {year}: read as a typical year and moved into {year} "
-                           f"(month, day and time kept, the sun of {year})"
-                           + (f"; {int((~keep).sum())} rows of 29 February dropped" if (~keep).any() else ""))
+        moved = None if series.typical else main
+        times, dni, text = _move_into(series, times, dni, year, main)
+        assumptions.extend(text)
     inside = np.asarray(times.year) == year
     outside = int((~inside).sum())
     if outside:
@@ -329,5 +343,77 @@ def weather_for_year(series: DniSeries, year: int) -> WeatherYear:
                 "last": times[-1].isoformat(), "annual": annual}
     source = {"file": str(series.path), "kind": series.kind, "rows": int(len(times)), "rows_missing": series.missing,
               "rows_negative": series.negative, "rows_repeated": series.repeated, "rows_outside_year": outside,
-              "moved_from_year": moved, **series.info}
-    return WeatherYear(year, times, dni, hours, step, annual, coverage, assumptions, source)
+              "moved_from_year": moved, "typical_year": bool(series.typical),
+              "file_years": list(series.file_years), "time_convention": series.convention, **series.info}
+    return WeatherYear(year, times, dni, hours, step, annual, coverage, assumptions, source, series.convention)
+
+
+def site_offset_km(series, latitude_deg, longitude_deg=None) -> float | None:
+    """Great-circle distance [km] from the weather file's site to the plant's (``latitude_deg``,
+    ``longitude_deg`` [deg], or a site object with ``latitude_deg`` / ``longitude_deg`` as the one argument);
+    None when the file names no site (PAINT's CSV, a plain table).
+
+    ``series``: a :class:`DniSeries` or :class:`WeatherYear` (its ``source`` holds the site)."""
+    if longitude_deg is None and hasattr(latitude_deg, "latitude_deg"):
+        latitude_deg, longitude_deg = latitude_deg.latitude_deg, latitude_deg.longitude_deg
+    info = getattr(series, "info", None)
+    info = info if info is not None else getattr(series, "source", {})
+    lat, lon = info.get("latitude_deg"), info.get("longitude_deg")
+    if lat is None or lon is None:
+        return None
+    p1, p2 = math.radians(float(lat)), math.radians(float(latitude_deg))
+    dp, dl = p2 - p1, math.radians(float(longitude_deg) - float(lon))
+    h = math.sin(dp / 2) ** 2 + math.cos(p1) * math.cos(p2) * math.sin(dl / 2) ** 2
+    return 2.0 * _EARTH_RADIUS_KM * math.asin(min(1.0, math.sqrt(h)))
+
+
+def _where(lat: float, lon: float) -> str:
+    return f"{abs(lat):.3f} {'N' if lat >= 0 else 'S'}, {abs(lon):.3f} {'E' if lon >= 0 else 'W'}"
+
+
+def site_warning(series, latitude_deg: float, longitude_deg: float, limit_km: float = SITE_WARNING_KM) -> str | None:
+    """One line when the weather file's site is more than ``limit_km`` [km] from the plant's (its sun and its DNI
+    are another place's), naming the file and both sites; None when within it or when the file names no site."""
+    km = site_offset_km(series, latitude_deg, longitude_deg)
+    if km is None or km <= limit_km:
+        return None
+    info = getattr(series, "info", None)
+    info = info if info is not None else getattr(series, "source", {})
+    path = getattr(series, "path", None) or info.get("file", "the weather file")
+    name = f" ({info['site_name']})" if info.get("site_name") else ""
+    return (f"{path}: the weather file's site {_where(info['latitude_deg'], info['longitude_deg'])}{name} is "
+            f"{km:.0f} km from the plant at {_where(float(latitude_deg), float(longitude_deg))} (more than "
+            f"{limit_km:g} km): its DNI is another place's weather")
+
+
+def _share_below(wy: WeatherYear, elevation) -> float:
+    energy = np.asarray(wy.dni, dtype=np.float64) * np.asarray(wy.hours, dtype=np.float64)
+    total = float(energy.sum())
+    below = ~np.asarray(elevation > 0)
+    return float(energy[below].sum()) / total if total > 0 else 0.0
+
+
+def dni_share_below_horizon(weather_year: WeatherYear, latitude, longitude, altitude=0.0) -> float:
+    """Share of the file's DNI energy (DNI x hours) at instants with the sun below the horizon (apparent
+    elevation <= 0, :func:`heliotwin.sun.solar_position`) at the site ``latitude``, ``longitude`` [deg],
+    ``altitude`` [m]: at most a few tenths of a percent when the time convention was read right (the sunrise and
+    sunset hours' little DNI), tens of percent when the file is read hours off (UTC taken for local time)."""
+    _, el = solar_position(weather_year.times, float(latitude), float(longitude), float(altitude))
+    return _share_below(weather_year, el.numpy())
+
+
+def weather_checks(weather_year: WeatherYear, series, site, elevation=None) -> dict:
+    """What a report states about a weather file at the plant's ``site`` (``latitude_deg``, ``longitude_deg``,
+    ``altitude_m``): ``time_convention``, ``weather_site`` (the file's, or None), ``site_offset_km`` (or None),
+    ``dni_share_below_horizon`` and ``warnings`` (one-line texts: the site beyond :data:`SITE_WARNING_KM`).
+    ``elevation``: the sun's elevation [rad] at ``weather_year.times`` when already computed (T)."""
+    if elevation is None:
+        _, el = solar_position(weather_year.times, site.latitude_deg, site.longitude_deg, site.altitude_m)
+        elevation = el.numpy()
+    share = _share_below(weather_year, np.asarray(elevation))
+    warning = site_warning(series, site.latitude_deg, site.longitude_deg)
+    keys = ("site_name", "latitude_deg", "longitude_deg", "elevation_m", "time_zone_hours")
+    info = {k: series.info[k] for k in keys if k in series.info}
+    return {"time_convention": series.convention, "weather_site": info or None,
+            "site_offset_km": site_offset_km(series, site.latitude_deg, site.longitude_deg),
+            "dni_share_below_horizon": share, "warnings": [warning] if warning else []}
