@@ -158,6 +158,8 @@ def cmd_field(args) -> int:
         line = _year_line(args, report) if args.year is not None else _field_line(report, len(sc.plant.field.ids))
         _write_field_outputs(args, sc, report, result, paths)
         bar.step("outputs")
+    for warning in report.get("warnings", []):  # e.g. the weather file's site far from the plant's (also in JSON)
+        print(f"heliotwin: warning: {warning}", file=sys.stderr)
     if not args.quiet:
         print(line)
     return 0

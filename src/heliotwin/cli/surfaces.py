@@ -258,6 +258,8 @@ def cmd_predict(args) -> int:
         write_json(json_path, out)
         if plot_path:
             plot_prediction(out, plot_path)
+    for warning in out["energy"].get("warnings", []):  # the weather file's site far from the plant's
+        print(f"heliotwin: warning: {warning}", file=sys.stderr)
     if not args.quiet:
         st = out["statistics"]["l1_ideal_vs_learned"]
         print(f"{out['heliostat']}: {out['instants']} instants; L1(ideal, learned) median "

@@ -101,6 +101,10 @@ class DniSeries:
         A typical year (months of different years): always moved into the year asked for.
     file_years : tuple of int
         The first and last year the file's rows name (empty when it names none).
+    sun_shift_s : numpy.ndarray, [T], float64, optional
+        Each instant's shift [s] from the middle of its interval (the sunrise and sunset hours of an hour-ending
+        file are at the middle of their sunlit part); the interval each row stands for is found from the
+        middles. None: no instant shifted.
     """
 
     times: pd.DatetimeIndex
@@ -116,6 +120,7 @@ class DniSeries:
     convention: str = ""
     typical: bool = False
     file_years: tuple = ()
+    sun_shift_s: np.ndarray | None = None
 
 
 def read_dni_series(path) -> DniSeries:
@@ -155,20 +160,24 @@ def read_dni_series(path) -> DniSeries:
     order = np.argsort(times[ok].asi8, kind="stable")
     t = times[ok][order]
     v = values[ok][order]
-    t, v, repeated = _merge_repeats(path, t, v)
+    shift = None if raw.sun_shift_s is None else np.asarray(raw.sun_shift_s, dtype=np.float64)[ok][order]
+    t, v, repeated, first = _merge_repeats(path, t, v)
+    shift = None if shift is None or not shift.any() else shift[first]
     _check_units(path, v)
     step = float(pd.Series(t).diff().median().total_seconds()) / 3600.0 if len(t) > 1 else 1.0
     return DniSeries(t, v, step, raw.kind, str(path), dropped=int((~ok).sum()), info=raw.info,
                      missing=int(missing.sum()), negative=int(negative.sum()), repeated=repeated,
-                     convention=raw.convention, typical=raw.typical, file_years=tuple(raw.file_years))
+                     convention=raw.convention, typical=raw.typical, file_years=tuple(raw.file_years),
+                     sun_shift_s=shift)
 
 
 def _merge_repeats(path, t: pd.DatetimeIndex, v: np.ndarray):
-    """Sorted times and DNIs with the repeats of an instant merged (same DNI) or refused (different DNI)."""
+    """Sorted times and DNIs with the repeats of an instant merged (same DNI) or refused (different DNI); and the
+    index of each instant's first row."""
     same = np.zeros(len(t), dtype=bool)
     same[1:] = t.asi8[1:] == t.asi8[:-1]
     if not same.any():
-        return t, v, 0
+        return t, v, 0, np.arange(len(t))
     first = np.flatnonzero(~same)
     group = np.cumsum(~same) - 1
     lo, hi = np.full(len(first), np.inf), np.full(len(first), -np.inf)
@@ -180,7 +189,7 @@ def _merge_repeats(path, t: pd.DatetimeIndex, v: np.ndarray):
         raise InputFileError(path, f"the instant {t[first[k]].isoformat()} is given {int((group == k).sum())} "
                              f"different DNIs ({lo[k]:g} to {hi[k]:g} W/m2); one DNI per instant",
                              field="time")
-    return t[first], 0.5 * (lo + hi), int(same.sum())
+    return t[first], 0.5 * (lo + hi), int(same.sum()), first
 
 
 def _check_units(path, v: np.ndarray) -> None:
@@ -259,34 +268,42 @@ def _shift_years(times: pd.DatetimeIndex, years: int) -> pd.DatetimeIndex:
         return pd.DatetimeIndex(times + pd.DateOffset(years=years))
 
 
-def _move_into(series: DniSeries, times, dni, year: int, main: int):
-    """``times`` (UTC, mostly in ``main``) moved into ``year``: month, day and time kept, 29 February dropped when
-    ``year`` has none, the rows the UTC shift put across New Year wrapped to the other end (a typical year is a
-    cycle). Returns (times sorted, dni, assumptions)."""
-    feb29 = np.asarray((times.month == 2) & (times.day == 29))
+def _move_into(series: DniSeries, times, dni, year: int, shift: np.ndarray):
+    """``times`` (UTC) moved into ``year`` in the file's local standard time (``time_zone_hours``, else UTC):
+    month, day and time kept, 29 February dropped when ``year`` has none, the rows the UTC shift puts across New
+    Year wrapped to the other end (a typical year is a cycle). Returns (times sorted, dni, shift [s],
+    assumptions, the year moved from); ``shift`` (T) goes with the rows."""
+    tz = pd.Timedelta(hours=float(series.info.get("time_zone_hours") or 0.0))
+    local = pd.DatetimeIndex(times + tz)
+    values_y, counts = np.unique(np.asarray(local.year), return_counts=True)
+    main = int(values_y[np.argmax(counts)])
+    feb29 = np.asarray((local.month == 2) & (local.day == 29))
     leap = pd.Timestamp(year, 1, 1).is_leap_year
     keep = ~feb29 | leap
-    shifted = _shift_years(pd.DatetimeIndex(times[keep]), year - main)
-    dni = dni[keep]
+    shifted = _shift_years(pd.DatetimeIndex(local[keep]), year - main) - tz
+    dni, shift = dni[keep], shift[keep]
     before, after = np.asarray(shifted.year < year), np.asarray(shifted.year > year)
     parts = [shifted[~before & ~after], _shift_years(shifted[before], 1), _shift_years(shifted[after], -1)]
     values = np.concatenate([dni[~before & ~after], dni[before], dni[after]])
+    shift = np.concatenate([shift[~before & ~after], shift[before], shift[after]])
     moved = parts[0].append(parts[1]).append(parts[2])
     order = np.argsort(moved.asi8, kind="stable")
-    moved, values = moved[order], values[order]
-    what = (f"a typical year (its rows name {series.file_years[0]} to {series.file_years[-1]}: months of different "
-            f"years)" if series.typical and series.file_years else
+    moved, values, shift = moved[order], values[order], shift[order]
+    span = tuple(series.file_years)
+    what = (f"a typical year (its rows name {span[0]} to {span[-1]}: months of different years)"
+            if series.typical and len(span) == 2 and span[0] != span[-1] else
             "a typical year" if series.typical else f"the file holds {main}, not {year}: read as a typical year")
-    text = [f"{what}, moved into {year} (month, day and time kept, the sun of {year})"
+    text = [f"{what}, moved into {year} (month, day and local time kept, the sun of {year})"
             + (f"; {int((~keep).sum())} rows of 29 February dropped" if (~keep).any() else "")]
     wrapped = int(before.sum() + after.sum())
     if wrapped:
         text.append(f"{wrapped} rows the UTC shift moved across New Year wrapped to the other end of {year} (a "
                     "typical year is a cycle)")
-    days = set(zip(np.asarray(moved.month), np.asarray(moved.day)))
+    moved_local = moved + tz
+    days = set(zip(np.asarray(moved_local.month), np.asarray(moved_local.day)))
     if leap and (2, 29) not in days and (2, 28) in days and (3, 1) in days:
         text.append(f"{year} is a leap year and the file has no 29 February: that day has no DNI (no energy)")
-    return moved, values, text
+    return moved, values, shift, text, main
 
 
 def weather_for_year(series: DniSeries, year: int) -> WeatherYear:
@@ -300,6 +317,7 @@ def weather_for_year(series: DniSeries, year: int) -> WeatherYear:
     """
     year = int(year)
     times, dni = series.times, np.asarray(series.dni, dtype=np.float64)
+    shift = np.zeros(len(times)) if series.sun_shift_s is None else np.asarray(series.sun_shift_s, dtype=np.float64)
     assumptions, moved, outside = [], None, 0
     years = np.asarray(times.year)
     if series.typical or not (years == year).any():
@@ -309,18 +327,19 @@ def weather_for_year(series: DniSeries, year: int) -> WeatherYear:
         if not series.typical and (counts.max() < 0.95 * len(years) or (np.abs(values - main) > 1).any()):
             raise InputFileError(series.path, f"no row in {year} (the rows span {int(values.min())} to "
                                  f"{int(values.max())}); give that year's weather or a typical year", field="time")
+        times, dni, shift, text, main = _move_into(series, times, dni, year, shift)
         moved = None if series.typical else main
-        times, dni, text = _move_into(series, times, dni, year, main)
         assumptions.extend(text)
     inside = np.asarray(times.year) == year
     outside = int((~inside).sum())
     if outside:
         assumptions.append(f"{outside} rows outside {year} not used")
-    times, dni = times[inside], dni[inside]
+    times, dni, shift = times[inside], dni[inside], shift[inside]
     if len(times) == 0:
         raise InputFileError(series.path, f"no row in {year}", field="time")
     step = float(series.step_hours)
-    gaps = np.asarray((times[1:] - times[:-1]).total_seconds(), dtype=np.float64) / 3600.0
+    middles = times - pd.to_timedelta(shift, unit="s")  # a sunrise hour's instant moved, not its interval
+    gaps = np.asarray((middles[1:] - middles[:-1]).total_seconds(), dtype=np.float64) / 3600.0
     hours = np.minimum(step, np.append(gaps, step))
     covered = float(hours.sum())
     fraction = covered / _year_hours(year)

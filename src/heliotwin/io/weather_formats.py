@@ -44,6 +44,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import InputFileError
+from ..sun import solar_position
 
 __all__ = ["RawSeries", "read_raw", "NOMINAL_YEAR", "NOMINAL_LEAP_YEAR", "FORMATS"]
 
@@ -81,6 +82,8 @@ class RawSeries:
         A typical year (module docstring): placed in the nominal year, its Year column ignored.
     file_years : tuple of int
         The first and last year the rows name (before a typical year is placed).
+    sun_shift_s : numpy.ndarray, [N], float64, optional
+        Each instant's shift from the middle of its interval [s] (:func:`sunlit_middle`); None: no shift.
     """
 
     times: pd.DatetimeIndex
@@ -90,6 +93,7 @@ class RawSeries:
     info: dict = field(default_factory=dict)
     typical: bool = False
     file_years: tuple = ()
+    sun_shift_s: np.ndarray | None = None
 
 
 def _iotools():
@@ -145,6 +149,34 @@ def _place(local: pd.DatetimeIndex, offset_hours: float, force_typical: bool = F
     return utc, typical, file_years
 
 
+def sunlit_middle(times: pd.DatetimeIndex, hours: float, info: dict) -> tuple[pd.DatetimeIndex, np.ndarray]:
+    """Mid-interval UTC instants (T) of intervals ``hours`` [h] long moved, in the hour holding sunrise or
+    sunset at the file's site (``info``), to the middle of the interval's sunlit part (SAM's rule for hourly
+    files): the little DNI of that hour was collected with the sun up, where the middle of the hour may be below
+    the horizon. Sunrise and sunset are placed by interpolating the sun's apparent elevation linearly within the
+    interval (seconds off near the horizon). Unchanged without a site. Returns the instants and each one's
+    shift from its interval's middle [s] (T; 0 but at sunrise and sunset)."""
+    lat, lon = info.get("latitude_deg"), info.get("longitude_deg")
+    ok = ~np.asarray(times.isna())
+    if lat is None or lon is None or not ok.any():
+        return times, np.zeros(len(times))
+    half = pd.Timedelta(hours=hours / 2)
+    t = times[ok]
+    alt = info.get("elevation_m") or 0.0
+    el0 = solar_position(t - half, lat, lon, alt)[1].numpy()
+    el1 = solar_position(t + half, lat, lon, alt)[1].numpy()
+    rise, sets = (el0 <= 0) & (el1 > 0), (el0 > 0) & (el1 <= 0)
+    cross = np.where(rise | sets, el0 / np.where(el0 != el1, el0 - el1, 1.0), 0.5)  # [0, 1] of the interval
+    frac = np.where(rise, 0.5 * (cross + 1.0), np.where(sets, 0.5 * cross, 0.5))
+    shift = np.zeros(len(times))
+    shift[ok] = np.round((frac - 0.5) * 2 * half.value) / 1e9
+    moved = pd.DatetimeIndex(times + pd.to_timedelta(shift, unit="s"))
+    return moved, shift
+
+
+_SUNLIT = "; the sunrise and sunset hours at the middle of their sunlit part (SAM's rule)"
+
+
 def _library(path, what: str, reader, *args, **kwargs):
     """A pvlib/pandas reader called with its warnings silenced; its errors become one line naming the file."""
     try:
@@ -157,7 +189,7 @@ def _library(path, what: str, reader, *args, **kwargs):
 
 
 def _values(frame, column) -> np.ndarray:
-    return pd.to_numeric(frame[column], errors="coerce").to_numpy(dtype=np.float64)
+    return np.array(pd.to_numeric(frame[column], errors="coerce"), dtype=np.float64)  # a writable copy
 
 
 def _from_pvlib(path, kind: str, data, meta: dict, column: str, shift_h: float, tz: float, name, what: str,
@@ -170,15 +202,26 @@ def _from_pvlib(path, kind: str, data, meta: dict, column: str, shift_h: float, 
         dni[dni >= _MISSING_9999] = np.nan
     times, typical, years = _place(local, tz, force_typical)
     info = _site(name, meta.get("latitude"), meta.get("longitude"), meta.get("altitude"), tz)
-    return RawSeries(times, dni, kind, "", info, typical, years)
+    times, shift = sunlit_middle(times, 1.0, info)
+    return RawSeries(times, dni, kind, "", info, typical, years, shift)
 
 
 def _tmy3(path: Path) -> RawSeries:
     data, meta = _library(path, "TMY3", _iotools().read_tmy3, str(path), map_variables=True)
     tz = float(meta["TZ"])
+    # The stamps from the file's own Date and Time columns: pvlib moves a leap year's "02/28 24:00" (the hour
+    # ending at midnight, 23:00-24:00 on 28 February) to 1 March 00:00 by its 29-February rule, a day late.
+    try:
+        date = pd.to_datetime(data["Date (MM/DD/YYYY)"], format="%m/%d/%Y")
+        hh_mm = data["Time (HH:MM)"].astype(str).str.split(":", expand=True).astype(int)
+    except (KeyError, ValueError, TypeError) as exc:
+        raise InputFileError(path, f"cannot read the TMY3 Date/Time ({' '.join(str(exc).split())[:120]})",
+                             field="Time (HH:MM)") from None
+    stamp = date + pd.to_timedelta(hh_mm[0], unit="h") + pd.to_timedelta(hh_mm[1], unit="min")
+    data.index = pd.DatetimeIndex(stamp)
     raw = _from_pvlib(path, "tmy3", data, meta, "dni", -0.5, tz, meta.get("Name"), "TMY3")
     raw.convention = (f"TMY3: local standard time ({_offset_text(tz)}, no DST), hour-ending values (01:00 = "
-                      "00:00-01:00) -> UTC at the middle of each hour")
+                      "00:00-01:00) -> UTC at the middle of each hour" + _SUNLIT)
     return raw
 
 
@@ -189,7 +232,7 @@ def _tmy2(path: Path) -> RawSeries:
     raw = _from_pvlib(path, "tmy2", data, meta, "DNI", 0.5, tz, meta.get("City"), "TMY2", force_typical=True,
                       missing_9999=True)
     raw.convention = (f"TMY2: local standard time ({_offset_text(tz)}, no DST), hour-ending values (hour 1 = "
-                      "00:00-01:00) -> UTC at the middle of each hour")
+                      "00:00-01:00) -> UTC at the middle of each hour" + _SUNLIT)
     return raw
 
 
@@ -199,7 +242,7 @@ def _epw(path: Path) -> RawSeries:
     # pvlib stamps EPW's hour h at h-1 (the hour's start): the middle is 30 min later
     raw = _from_pvlib(path, "epw", data, meta, "dni", 0.5, tz, meta.get("city"), "EPW", missing_9999=True)
     raw.convention = (f"EPW: local standard time ({_offset_text(tz)}, no DST), hour-ending values (hour 1 = "
-                      "00:00-01:00) -> UTC at the middle of each hour")
+                      "00:00-01:00) -> UTC at the middle of each hour" + _SUNLIT)
     return raw
 
 
@@ -289,6 +332,9 @@ def _sam(path: Path, lines: list[str], instantaneous: bool = False) -> RawSeries
     times, typical, years = _place(local, tz)
     info = _site(meta.get("city") or meta.get("location") or meta.get("location id"), meta.get("latitude"),
                  meta.get("longitude"), meta.get("elevation"), tz)
+    if "minute" not in cols and (ending or hourly) and not instantaneous:
+        (times, shift), conv = sunlit_middle(times, 1.0, info), conv + _SUNLIT
+        return RawSeries(times, _values(frame, dni_col), "sam", conv, info, typical, years, shift)
     return RawSeries(times, _values(frame, dni_col), "sam", conv, info, typical, years)
 
 

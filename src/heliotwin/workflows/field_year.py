@@ -15,7 +15,7 @@ import pandas as pd
 from ..atmosphere import Atmosphere
 from ..errors import HeliotwinError
 from ..field.facets import surface_points
-from ..io.weather import weather_for_year
+from ..io.weather import weather_checks, weather_for_year
 from ..raytrace.yearly import DEFAULT_ELEVATIONS_DEG, annual_energy, efficiency_table, interpolate_efficiency
 from ..sun import solar_position
 from .field import _day_unit, _step, _text
@@ -38,7 +38,10 @@ def weather_energy(plant, series, table: dict, year: int | None = None) -> dict:
         ``annual_optical_energy_mwh`` / ``annual_dni_energy_on_mirrors_mwh`` when it covers the year (else
         those are None), ``annual``, ``coverage``, ``assumptions``, ``mean_efficiency`` (DNI-weighted),
         ``instants`` (sun up), ``step_hours``, ``dni_source`` (file, kind, rows used and not, year moved),
-        ``mirror_area_m2``, ``table``.
+        ``mirror_area_m2``, ``table``; and what :func:`heliotwin.io.weather.weather_checks` states:
+        ``time_convention``, ``weather_site`` (the file's site, or None), ``site_offset_km`` (from the plant's,
+        or None), ``dni_share_below_horizon`` (of the file's DNI energy; <= 0.005 for a correct reading) and
+        ``warnings`` (one-line texts, e.g. the file's site more than 50 km from the plant's; the CLI prints them).
     """
     if year is None:  # the file's own (middle) year
         year = int(series.times.year[len(series.times) // 2])
@@ -46,6 +49,7 @@ def weather_energy(plant, series, table: dict, year: int | None = None) -> dict:
     s = plant.site
     az, el = solar_position(wy.times, s.latitude_deg, s.longitude_deg, s.altitude_m)
     up = (el > 0).numpy()
+    checks = weather_checks(wy, series, s, elevation=el.numpy())
     eta = interpolate_efficiency(table, az[up], el[up]).numpy()
     area = _mirror_area(plant)
     e_mirror = float((wy.dni[up] * area * wy.hours[up]).sum()) / 1e6
@@ -57,7 +61,7 @@ def weather_energy(plant, series, table: dict, year: int | None = None) -> dict:
             "mirror_area_m2": area, "optical_energy_mwh": e_rx, "dni_energy_on_mirrors_mwh": e_mirror,
             "annual": wy.annual, "annual_dni_energy_on_mirrors_mwh": e_mirror if wy.annual else None,
             "annual_optical_energy_mwh": e_rx if wy.annual else None, "mean_efficiency": e_rx / e_mirror,
-            "coverage": wy.coverage, "assumptions": wy.assumptions,
+            "coverage": wy.coverage, "assumptions": wy.assumptions, **checks,
             "dni_source": {**wy.source, "file": os.path.abspath(series.path), "rows_dropped": series.dropped},
             "table": {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in table.items()}}
 

@@ -16,7 +16,7 @@ import pandas as pd
 from ..devices import resolve_device, to_device
 from ..errors import HeliotwinError
 from ..io.scenario import Scenario
-from ..io.weather import ANNUAL_FRACTION, read_dni_series, weather_for_year
+from ..io.weather import ANNUAL_FRACTION, read_dni_series, weather_checks, weather_for_year
 from ..raytrace.yearly import clear_sky_dni
 from ..surfaces.predict import YearSampling, summarize, yearly_flux
 from ..surfaces.state import KEY, learned_surface
@@ -57,7 +57,9 @@ def prediction_energy(series: dict, plant, dni_model: float, every: str, weather
 
     ``series``: ``time`` (ISO, UTC) and ``power_w`` per instant (T); gets ``dni_w_m2`` (NaN in a gap).
     ``year``: default the instants' year. Returns ``energy_kwh`` over the instants with a DNI, ``annual``,
-    ``coverage`` and ``assumptions`` (with a file), ``dni_source``, ``model_dni_w_m2``, ``rule``.
+    ``coverage`` and ``assumptions`` (with a file), ``dni_source``, ``model_dni_w_m2``, ``rule``; with a file also
+    :func:`heliotwin.io.weather.weather_checks`' ``time_convention``, ``weather_site``, ``site_offset_km``,
+    ``dni_share_below_horizon`` and ``warnings`` (the same as ``field --year --weather`` states).
     """
     times = pd.DatetimeIndex(pd.to_datetime(series["time"], utc=True))
     out = {}
@@ -77,7 +79,7 @@ def prediction_energy(series: dict, plant, dni_model: float, every: str, weather
         if wy.annual and not annual:
             assumptions.append(f"{int(have.sum())} of the {len(times)} instants have a DNI in the file: the energy "
                                "is theirs, not annual")
-        out = {"annual": annual, "assumptions": assumptions,
+        out = {"annual": annual, "assumptions": assumptions, **weather_checks(wy, w, plant.site),
                "coverage": {**wy.coverage, "instants_with_dni": int(have.sum()), "instants": int(len(times))}}
     step_h = pd.Timedelta(every).total_seconds() / 3600.0
     dni = np.asarray(dni, dtype=np.float64)
