@@ -18,8 +18,13 @@ from helpers.cli import assert_one_line_error, run_cli
 from heliotwin.errors import InputFileError
 from heliotwin.field.demo import demo_field_plant
 from heliotwin.io.scenario import save_scenario
-from heliotwin.io.weather import (dni_share_below_horizon, read_dni_series, site_offset_km, site_warning,
-                                  weather_for_year)
+from heliotwin.io.weather import (
+    dni_share_below_horizon,
+    read_dni_series,
+    site_offset_km,
+    site_warning,
+    weather_for_year,
+)
 from heliotwin.raytrace.yearly import efficiency_table
 from heliotwin.workflows.field_year import weather_energy
 from heliotwin.workflows.predict import prediction_energy

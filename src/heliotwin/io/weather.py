@@ -297,8 +297,8 @@ def _move_into(series: DniSeries, times, dni, year: int, shift: np.ndarray):
             + (f"; {int((~keep).sum())} rows of 29 February dropped" if (~keep).any() else "")]
     wrapped = int(before.sum() + after.sum())
     if wrapped:
-        text.append(f"{wrapped} rows the UTC shift moved across New Year wrapped to the other end of {year} (a "
-                    "typical year is a cycle)")
+        text.append(f"{wrapped} row{'s' if wrapped > 1 else ''} the UTC shift moved across New Year wrapped to the "
+                    f"other end of {year} (a typical year is a cycle)")
     moved_local = moved + tz
     days = set(zip(np.asarray(moved_local.month), np.asarray(moved_local.day)))
     if leap and (2, 29) not in days and (2, 28) in days and (3, 1) in days:

@@ -8,15 +8,17 @@ convention in words. The conventions (why each instant is where it is):
 * **TMY3** (``pvlib.iotools.read_tmy3``), **TMY2** (``read_tmy2``), **EPW** (``read_epw``): local standard time
   (the file's fixed offset, no daylight saving), each value the irradiation of the hour *ending* at its stamp
   (TMY3 ``01:00`` and TMY2/EPW hour 1 = 00:00-01:00): the instant is the middle of that hour (00:30), where the
-  sun stands at the hour's mean (to a few tenths of a degree; the sunrise and sunset hours are the only ones where
-  the middle can be below the horizon with a little DNI in the hour).
+  sun stands at the hour's mean (to a few tenths of a degree); in the hour holding sunrise or sunset the instant is
+  the middle of its sunlit part instead (SAM's rule, :func:`sunlit_middle`), where the middle of the hour may be
+  below the horizon with a little DNI in the hour. The interval each row stands for stays the hour
+  (``sun_shift_s`` records the move).
 * **SAM CSV** (both two-line metadata layouts: ``Source,Location ID,City,...,Time Zone,Elevation`` and
   ``Location,City,Region,Country,Latitude,Longitude,Time Zone,Elevation[,Source]``): local standard time, read
   as SAM reads it (SAM help, "Time Convention and Sun Position"): with a ``Minute`` column the stamp
   ``Hour:Minute`` is the instant (SAM computes the sun there; NSRDB-made files stamp ``:30``, the middle of the
   hour); hourly rows with no ``Minute`` column stand for the hour *starting* at ``Hour`` (0-23: 0 = 00:00-01:00,
   TMY3's hour 1), so the instant is ``Hour:30``; without ``Minute`` and with hours 1-24 they are hour-ending
-  (the instant ``Hour - 0:30``).
+  (the instant ``Hour - 0:30``); without ``Minute`` the sunrise and sunset hours are moved as above.
 * **NSRDB PSM3/PSM4 CSV** (``pvlib.iotools.read_nsrdb_psm4``, the installed pvlib's reader of the NSRDB's SAM-CSV
   files; pvlib >= 0.13 has no ``read_psm3``): instantaneous at the stamp in the file's ``Time Zone`` (hourly files
   are stamped at ``:30``, the middle of the hour they stand for).
@@ -269,7 +271,9 @@ def _psm3(path: Path, lines: list[str]) -> RawSeries:
             data, meta = _iotools().read_nsrdb_psm4(str(path), map_variables=True)
     except (ValueError, KeyError, IndexError, TypeError, pd.errors.ParserError):
         # pvlib's reader wants integer zones and elevation; anything else is read as SAM CSV, instantaneous
-        return _sam(path, lines, instantaneous=True)
+        raw = _sam(path, lines, instantaneous=True)
+        raw.kind = "psm3"
+        return raw
     tz = float(meta["Time Zone"])
     local = pd.DatetimeIndex(data.index).tz_localize(None)
     times, typical, years = _place(local, tz)
@@ -329,7 +333,7 @@ def _sam(path: Path, lines: list[str], instantaneous: bool = False) -> RawSeries
         local = stamp
         conv = (f"SAM CSV: local standard time ({where}), the sun at Hour:Minute (SAM's sun position; NSRDB "
                 "files stamp :30, the middle of the hour) -> UTC at the stamp")
-    times, typical, years = _place(local, tz)
+    times, typical, years = _place(local, tz, force_typical="year" not in cols)  # no Year: a typical year
     info = _site(meta.get("city") or meta.get("location") or meta.get("location id"), meta.get("latitude"),
                  meta.get("longitude"), meta.get("elevation"), tz)
     if "minute" not in cols and (ending or hourly) and not instantaneous:
