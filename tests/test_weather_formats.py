@@ -250,8 +250,17 @@ def test_files_that_are_not_weather_are_one_line_errors_naming_them(tmp_path, ca
     assert_one_line_error(code, err, "image.png", "PNG")
 
 
-def test_no_library_warning_reaches_the_user(hourly, tmp_path, recwarn):
+def test_no_library_warning_reaches_the_user(hourly, tmp_path, recwarn, monkeypatch):
     starts, dni, at30 = hourly["Tokyo"]
+    # pandas and pvlib warn as they please (a DtypeWarning on a mixed column, a deprecation): made to here
+    read_csv = pd.read_csv
+
+    def noisy(*args, **kwargs):
+        warnings.warn("Columns (2) have mixed types", pd.errors.DtypeWarning, stacklevel=2)
+        warnings.warn("a deprecated pandas thing", FutureWarning, stacklevel=2)
+        return read_csv(*args, **kwargs)
+
+    monkeypatch.setattr(pd, "read_csv", noisy)
     # a TMY3 with a mixed-type column (pandas' DtypeWarning on a plain read: the issue's first symptom)
     with open(TMY3) as fh:
         lines = fh.read().splitlines(keepends=True)
