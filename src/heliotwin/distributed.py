@@ -30,6 +30,7 @@ import time
 import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
+from tqdm import tqdm
 
 from .errors import HeliotwinError
 from .raytrace.field import FieldResult, field_optics
@@ -141,6 +142,11 @@ def _run_rank(rank: int, work, world: int, folder: str, threads: int, parent: in
     # Ctrl-C reaches the whole process group: the parent alone decides, and ends the workers itself.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _die_with_parent(parent, folder)
+    # tqdm's default write lock is a multiprocessing RLock: a named POSIX semaphore that the shared resource
+    # tracker records. A worker ended by a signal (the parent's terminate, or SIGTERM to the process group) never
+    # unlinks it, and the tracker then warns of a "leaked semaphore" as the command exits. A worker's bars only
+    # need to be safe among its own threads.
+    tqdm.set_lock(threading.RLock())
     torch.set_num_threads(threads)
     try:
         init_process_group("gloo", init_method=f"file://{folder}/store", rank=rank, world_size=world)
