@@ -79,7 +79,7 @@ def test_negative_aim_point_is_a_value_not_an_option(tmp_path, capsys):
 
 def test_non_utf8_metadata_csv(small_paint, tmp_path, capsys, paint_dir):
     meta = small_paint / "metadata"
-    meta.mkdir()
+    meta.mkdir(exist_ok=True)  # the copy has the real one: replaced
     (meta / "calibration-metadata.csv").write_bytes(b"Id,DateTime\n1,2023-01-01\xff\xfe\n")
     out = tmp_path / "v.json"
     code, _, err = run_cli(capsys, "validate", "--paint", small_paint, "--json", out, "--quiet", "--no-images")
@@ -89,7 +89,7 @@ def test_non_utf8_metadata_csv(small_paint, tmp_path, capsys, paint_dir):
 
 def test_duplicate_metadata_id(small_paint, tmp_path, capsys):
     meta = small_paint / "metadata"
-    meta.mkdir()
+    meta.mkdir(exist_ok=True)  # the copy has the real one: replaced
     (meta / "calibration-metadata.csv").write_text("Id,DateTime\n1,2023-01-01\n1,2023-01-02\n")
     code, _, err = run_cli(capsys, "validate", "--paint", small_paint, "--json", tmp_path / "v.json", "--quiet")
     assert_one_line_error(code, err, "calibration-metadata.csv", "duplicate Id 1")

@@ -17,12 +17,14 @@ one-process map up to float rounding.
 """
 from __future__ import annotations
 
+import atexit
 import contextlib
 import ctypes
 import ctypes.util
 import os
 import shutil
 import signal
+import sys
 import tempfile
 import threading
 import time
@@ -30,6 +32,7 @@ import time
 import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
+from tqdm import tqdm
 
 from .errors import HeliotwinError
 from .raytrace.field import FieldResult, field_optics
@@ -51,9 +54,9 @@ def init_process_group(backend: str = "gloo", **kwargs) -> None:
     the group exists, it holds nothing. Call this instead of torch's own under ``torchrun`` too.
 
     The import is here, not at the top of the module: it costs 1-3 s, and only a process that creates a group
-    needs it (every one of heliotwin's groups is created here; the aim-point optimiser's own Adam,
+    and then exits through the interpreter's teardown needs it (the aim-point optimiser's own Adam,
     :class:`heliotwin.optimise.aimpoints._Adam`, no longer imports it, but any other ``torch.optim`` user
-    would).
+    would). The workers of :func:`run_spawned` skip it: they end without that teardown (``_leave_worker``).
     """
     import torch._dynamo  # noqa: F401, PLC0415  (here, not at the top: for its side effect, see above)
     dist.init_process_group(backend, **kwargs)
@@ -141,9 +144,17 @@ def _run_rank(rank: int, work, world: int, folder: str, threads: int, parent: in
     # Ctrl-C reaches the whole process group: the parent alone decides, and ends the workers itself.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _die_with_parent(parent, folder)
+    # tqdm's default write lock is a multiprocessing RLock: a named POSIX semaphore that the shared resource
+    # tracker records. A worker ended by a signal (the parent's terminate, or SIGTERM to the process group) never
+    # unlinks it, and the tracker then warns of a "leaked semaphore" as the command exits. A worker's bars only
+    # need to be safe among its own threads.
+    tqdm.set_lock(threading.RLock())
     torch.set_num_threads(threads)
     try:
-        init_process_group("gloo", init_method=f"file://{folder}/store", rank=rank, world_size=world)
+        # torch's own init, not init_process_group's: its torch._dynamo import (1-3 s of a worker's start) only
+        # keeps a group that a later torch.optim optimiser holds from being torn down at interpreter exit, where
+        # gloo can abort the process; a worker never reaches that teardown (_leave_worker)
+        dist.init_process_group("gloo", init_method=f"file://{folder}/store", rank=rank, world_size=world)
         try:
             job = torch.load(f"{folder}/job.pt", weights_only=False)  # written by the parent just now
             result = work(job, dist.group.WORLD)
@@ -156,7 +167,22 @@ def _run_rank(rank: int, work, world: int, folder: str, threads: int, parent: in
         text = " ".join(str(exc).split()) or type(exc).__name__
         with open(f"{folder}/error-{rank}.txt", "w", encoding="utf-8") as fh:
             fh.write(f"{kind}\t{type(exc).__name__}\t{text}")
-        os._exit(1)
+        _leave_worker(1)
+    _leave_worker(0)
+
+
+def _leave_worker(status: int) -> None:
+    """End a worker with exit ``status`` after its exit functions (finalizers, temporary folders) and a flush of
+    its output, without the interpreter's teardown of modules and torch's C++ state: a process group that a
+    lazily imported ``torch._dynamo`` kept past ``destroy_process_group`` would be torn down there, and gloo can
+    then abort the process (SIGABRT), although its work is saved (as :func:`heliotwin.cli.common.leave`)."""
+    with contextlib.suppress(Exception):
+        atexit._run_exitfuncs()  # what the interpreter's exit runs first (CPython's own function)
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            if stream is not None:
+                stream.flush()
+    os._exit(status)
 
 
 def _worker_error(folder: str, world: int, processes) -> BaseException | None:

@@ -5,9 +5,10 @@ import shutil
 from pathlib import Path
 
 
-def copy_paint(paint_dir: Path, dest: Path, heliostats=("AA39",), *, metadata: bool = False) -> Path:
-    """A PAINT folder at ``dest / "paint"`` with the tower file and the given heliostats (copied), plus the
-    metadata CSVs (record times: a chrono split needs them) when ``metadata``."""
+def copy_paint(paint_dir: Path, dest: Path, heliostats=("AA39",), *, metadata: bool = True) -> Path:
+    """A PAINT folder at ``dest / "paint"`` with the tower file and the given heliostats (copied), and the
+    metadata CSVs (the records' times: a chrono split, ``validate`` and ``report --paint`` need them) unless
+    ``metadata`` is False (a damaged folder)."""
     root = Path(dest) / "paint"
     root.mkdir()
     shutil.copy(Path(paint_dir) / "WRI1030197-tower-measurements.json", root)

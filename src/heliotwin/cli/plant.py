@@ -223,7 +223,9 @@ def cmd_validate(args) -> int:
         json_path = out.file(args.json, "--json")
         plot_path = out.file(args.plot, "--plot")
         stage(args, f"reading {args.paint}")
-        ds, sc = load_records(args.paint, args.scenario, csv_list(args.heliostats))
+        # without metadata/calibration-metadata.csv (the records' times) the folder is not a whole PAINT folder:
+        # one line naming it, as report --paint, not a report that cannot say when any record was taken
+        ds, sc = load_records(args.paint, args.scenario, csv_list(args.heliostats), require_times=True)
         stage(args, f"tracing {len(ds.records.record_id)} records")
         settings = ValidateSettings(resolution=args.resolution, samples=args.samples, with_images=not args.no_images,
                                     progress=not args.quiet, device=getattr(args, "device", "cpu"))

@@ -13,6 +13,7 @@ PNG files in and out (:func:`read_png`, :func:`to_png`) live here too; the windo
 """
 from __future__ import annotations
 
+import io
 import warnings
 
 import numpy as np
@@ -22,10 +23,11 @@ from PIL import Image, UnidentifiedImageError
 
 from ..errors import HeliotwinError, InputFileError
 from ..raytrace.flux import CENTERED_WINDOW_M
+from .paint import read_regular
 from .report import atomic_path
 
-__all__ = ["CENTERED_WINDOW_M", "NORMALISATIONS", "MAX_IMAGE_PIXELS", "MIN_IMAGE_SIDE", "check_image_file",
-           "load_measured_image", "read_png", "subtract_background", "to_png"]
+__all__ = ["CENTERED_WINDOW_M", "NORMALISATIONS", "MAX_IMAGE_PIXELS", "MAX_IMAGE_BYTES", "MIN_IMAGE_SIDE",
+           "check_image_file", "load_measured_image", "read_png", "subtract_background", "to_png"]
 
 #: Scalings :func:`load_measured_image` offers: unit sum, unit max, or the PNG's relative scale (None).
 NORMALISATIONS = ("sum", "max", None)
@@ -35,6 +37,16 @@ MAX_IMAGE_PIXELS = 4096 * 4096
 #: Smallest side [pixels] of a measured image: below it there is no spot to compare (a 1x1 image would be a
 #: "perfect match" of any prediction after normalisation).
 MIN_IMAGE_SIDE = 8
+#: Largest image file [bytes] read: a 4096x4096 16-bit colour PNG stored without compression is 96 MiB (PAINT's
+#: are tens of kB). Checked on the open file before a byte is read (:func:`~heliotwin.io.paint.read_regular`).
+MAX_IMAGE_BYTES = 128 * 2**20
+
+
+def _file_bytes(path) -> io.BytesIO:
+    """The bytes of the image file ``path``, read only if it is a regular file (a symbolic link to one is read as
+    that file) of at most :data:`MAX_IMAGE_BYTES`: a FIFO named like a PNG would block ``open()`` forever, a
+    link to ``/dev/zero`` would never end (:class:`InputFileError` naming the file instead)."""
+    return io.BytesIO(read_regular(path, MAX_IMAGE_BYTES))
 
 
 def check_image_file(path) -> tuple[int, int]:
@@ -43,21 +55,26 @@ def check_image_file(path) -> tuple[int, int]:
     Raises
     ------
     InputFileError
-        Missing, not an image, or outside :data:`MIN_IMAGE_SIDE` .. :data:`MAX_IMAGE_PIXELS` (checked before
-        a pixel is decoded, so a crafted 14000x14000 PNG costs nothing).
+        Missing, not a regular file or larger than :data:`MAX_IMAGE_BYTES`, not an image, or outside
+        :data:`MIN_IMAGE_SIDE` .. :data:`MAX_IMAGE_PIXELS` (checked before a pixel is decoded, so a crafted
+        14000x14000 PNG costs nothing).
     """
+    return _check_header(path, _file_bytes(path))
+
+
+def _check_header(path, data: io.BytesIO) -> tuple[int, int]:
+    """``(rows, cols)`` of the image file ``path`` whose bytes are ``data`` (see :func:`check_image_file`)."""
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
-            with Image.open(path) as img:
+            with Image.open(data) as img:
                 cols, rows = img.size
-    except FileNotFoundError:
-        raise InputFileError(path, "file not found") from None
     except Image.DecompressionBombError:
         raise InputFileError(path, f"image larger than the {MAX_IMAGE_PIXELS} pixels a flux image may have") from None
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
         raise InputFileError(path, f"not a readable image ({' '.join(str(exc).split()) or type(exc).__name__})") \
             from None
+    data.seek(0)
     _check_size(path, rows, cols)
     return rows, cols
 
@@ -133,8 +150,9 @@ def load_measured_image(source, resolution=None, *, normalise: str | None = None
             raise InputFileError(where, "image holds infinite values")
     else:
         where = source
-        check_image_file(source)
-        img = read_png(source)
+        data = _file_bytes(source)  # read once: the header checked, then decoded
+        _check_header(source, data)
+        img = _decode_png(source, data)
     img = torch.nan_to_num(img, nan=0.0).clamp_min(0.0)
     if square and img.shape[0] != img.shape[1]:
         raise InputFileError(where, f"expected a square centred image, got {list(img.shape)}")
@@ -190,19 +208,30 @@ def read_png(path) -> torch.Tensor:
     Raises
     ------
     InputFileError
-        If the file is missing or not a readable image.
+        If the file is missing, not a regular file or larger than :data:`MAX_IMAGE_BYTES`, not a readable image,
+        or of more than :data:`MAX_IMAGE_PIXELS` pixels.
     """
+    return _decode_png(path, _file_bytes(path))
+
+
+def _decode_png(path, data: io.BytesIO) -> torch.Tensor:
+    """The luminance [rows, cols] of the image file ``path`` whose bytes are ``data`` (see :func:`read_png`)."""
     try:
-        with Image.open(path) as img:
-            img.load()
-            if img.mode in ("I;16", "I;16B", "I;16L", "I"):
-                arr = np.asarray(img, dtype=np.float64)
-                scale = 65535.0 if img.mode.startswith("I;16") or arr.max(initial=0) > 255 else 255.0
-                arr = arr / scale
-            else:
-                arr = np.asarray(img.convert("L"), dtype=np.float64) / 255.0
-    except FileNotFoundError:
-        raise InputFileError(path, "file not found") from None
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(data) as img:
+                cols, rows = img.size
+                if rows * cols > MAX_IMAGE_PIXELS:  # before a pixel is decoded
+                    raise Image.DecompressionBombError(f"{cols}x{rows}")
+                img.load()
+                if img.mode in ("I;16", "I;16B", "I;16L", "I"):
+                    arr = np.asarray(img, dtype=np.float64)
+                    scale = 65535.0 if img.mode.startswith("I;16") or arr.max(initial=0) > 255 else 255.0
+                    arr = arr / scale
+                else:
+                    arr = np.asarray(img.convert("L"), dtype=np.float64) / 255.0
+    except Image.DecompressionBombError:
+        raise InputFileError(path, f"image larger than the {MAX_IMAGE_PIXELS} pixels a flux image may have") from None
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
         detail = str(exc).splitlines()[0] if str(exc) else ""
         raise InputFileError(path, f"unreadable image ({type(exc).__name__}: {detail})") from None
