@@ -37,7 +37,8 @@ Training:
 4. *keep rule* (:mod:`.keep`): steps 1-3 run first without the validation records (the run's, or the latest
    20 % of the training records where it carved none), and a heliostat keeps its network only where a one-sided
    Wilcoxon signed-rank test on the paired per-record errors of those records (``lm`` on the same records vs
-   ``lm`` + network) says p < 0.05 on at least 6 records with a positive mean gain; a kept network is then
+   ``lm`` + network) says it helps (at least 6 records, a 5 % false-discovery rate over the run's heliostats,
+   positive mean gain); a kept network is then
    refitted (steps 1-3) on every record on top of ``lm`` on every record. Every other heliostat is exactly
    ``lm``.
 
@@ -528,7 +529,8 @@ def _describe(model, ok, use_net, evidence, pretrain_err, best_err, rigid_val, s
     model.extras["networks"] = networks
     model.extras["summary"] = {"pretraining_samples": samples, "hidden": s.hidden, "depth": s.depth,
                                "cycles": s.cycles, "heliostats_using_network": int((use_net & ok).sum()),
-                               "keep_rule": {"test": "one-sided Wilcoxon signed-rank on paired validation errors",
+                               "keep_rule": {"test": "one-sided Wilcoxon signed-rank on paired validation errors, "
+                                                     "Benjamini-Hochberg over the heliostats",
                                              "level": s.level, "min_check": s.min_check,
                                              "check_fraction_without_validation": keep.CHECK_FRACTION}}
 
