@@ -1,6 +1,7 @@
 """Every calibration method under every split protocol on the real PAINT records (docs/methods.md).
 
-For each method (``lm``, ``gradient``, ``hybrid``, ``mlp``; ``images`` has its own benchmark,
+For each method (``lm``, ``gradient``, ``hybrid``, ``mlp``; ``--methods hybrid_fleet``: the hybrid pretrained on
+the fleet; ``images`` has its own benchmark,
 ``benchmarks/bench_images.py``, as only one heliostat here has flux images), with and
 without the plant prior (learned from the folder's other heliostats; methods without one say ``n/a``),
 each split (chrono, online, isolation, region, random and PAINT's azimuth / solstice / balanced /
@@ -68,9 +69,17 @@ def _supports_prior(base, method: str) -> bool:
     return True
 
 
+#: Grid columns that are one method with options: ``hybrid_fleet`` = the hybrid pretrained on the fleet (every
+#: heliostat's training records) and fine-tuned per heliostat with strong shrinkage (same keep rule).
+VARIANTS = {"hybrid_fleet": ("hybrid", {"pretrain": "fleet"})}
+
+
 def _run(base, ds, **changes) -> dict:
     from heliotwin.calibrate.protocol.pipeline import run_calibration
 
+    if changes.get("method") in VARIANTS:
+        changes["method"], options = VARIANTS[changes["method"]]
+        changes["method_options"] = dict(base.method_options, **options)
     t = time.perf_counter()
     rep, model, _ = run_calibration(replace(base, **changes), ds)
     out = _row(rep, model)
@@ -408,7 +417,7 @@ def main(argv=None) -> int:
                     if key in done:
                         out["table"][key] = done[key]
                         continue
-                    if p == "plant" and not _supports_prior(base, m):
+                    if p == "plant" and not _supports_prior(base, VARIANTS.get(m, (m,))[0]):
                         out["table"][key] = {"unsupported": True}
                         continue
                     try:

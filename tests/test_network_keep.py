@@ -12,6 +12,7 @@ from heliotwin.calibrate.methods.hybrid import fit_hybrid_method
 from heliotwin.calibrate.methods.lm import fit_lm_method
 from heliotwin.calibrate.methods.mlp import fit_mlp_method
 from heliotwin.calibrate.params import STONE8, apply_deviations
+from heliotwin.errors import HeliotwinError
 
 F64 = torch.float64
 
@@ -135,3 +136,36 @@ def test_hybrid_keeps_a_network_for_a_gear_error_and_it_wins_on_later_records():
     lm = fit_lm_method(kin, tr, None, field_prior=False)
     e_net, e_lm = float(model.pointing_error(te).mean()), float(lm.pointing_error(te).mean())
     assert e_net < 0.8 * e_lm, (e_net, e_lm)
+
+
+def _gear_fleet(h=6, n=45, n_train=30, seed=7):
+    """``h`` heliostats with the same gear error (150 increments over the range), weekly records: each heliostat's
+    first ``n_train`` for training, the rest for test."""
+    kin, true = _true(h)
+    b = _gear_error(kin, simulate(true, n, seed, noise=3e-4), 150.0)
+    b.time = 1.6e9 + (torch.arange(n * h) % n).to(F64) * 7 * 86400.0
+    first = (torch.arange(n * h) % n) < n_train
+    return kin, b.subset(first), b.subset(~first)
+
+
+@pytest.mark.slow
+def test_fleet_pretraining_learns_a_shared_error_no_heliostat_shows_alone():
+    """Six heliostats with the same gear error and 30 training records each: alone, no network passes the keep
+    test (24 fit records do not learn it); pretrained on the fleet, most do, and the hybrid beats lm on later
+    records."""
+    kin, tr, te = _gear_fleet()
+    opts = dict(depth=4, hidden=4, steps=600, lr=1e-2, field_prior=False)
+    lm = fit_lm_method(kin, tr, None, field_prior=False)
+    alone = fit_hybrid_method(kin, tr, None, **opts)
+    fleet = fit_hybrid_method(kin, tr, None, pretrain="fleet", **opts)
+    assert not bool(alone.extras["use_net"].any())
+    assert torch.allclose(alone.pointing_error(te), lm.pointing_error(te), atol=1e-12)
+    assert int(fleet.extras["use_net"].sum()) >= 4 and fleet.extras["summary"]["pretrain"] == "fleet"
+    e_fleet, e_lm = float(fleet.pointing_error(te).mean()), float(lm.pointing_error(te).mean())
+    assert e_fleet < 0.8 * e_lm, (e_fleet, e_lm)
+
+
+def test_hybrid_names_an_unknown_pretraining():
+    kin, tr, _ = _gear_fleet(h=1, n=10, n_train=8)
+    with pytest.raises(HeliotwinError, match="pretrain must be one of none, fleet"):
+        fit_hybrid_method(kin, tr, None, pretrain="plant")

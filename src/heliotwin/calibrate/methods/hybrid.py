@@ -28,6 +28,7 @@ import time
 
 import torch
 
+from ...errors import HeliotwinError
 from ...field import kinematics as K
 from ...io.records import RecordTable
 from .. import metrics
@@ -42,6 +43,11 @@ from .nets import BatchedMLP
 #: Physical size of one network output unit per kind (see module docstring).
 OUTPUT_SCALE = {"angle": 0.01, "tilt": 0.01, "translation": 1.0, "actuator_length": 1.0, "increment": 0.01}
 SECONDS_PER_YEAR = 365.25 * 86400.0
+#: ``pretrain="fleet"``: weight of a network's squared weight change from the fleet's (per unit weight: one
+#: record at 1 mrad costs 1), strong enough that ~30 records move a weight by ~0.1 at most.
+FLEET_SHRINK = 1e3
+#: ``pretrain`` options of the hybrid.
+PRETRAIN = ("none", "fleet")
 
 
 def features(batch: RecordTable, kin, t0: torch.Tensor, span: torch.Tensor | None = None) -> torch.Tensor:
@@ -122,25 +128,52 @@ class _HybridFit:
 
 
 def _train_network(nominal, static, records: RecordTable, names, scale, *, seed, depth, hidden, steps, lr,
-                   weight_decay, noise, progress, desc):
+                   weight_decay, noise, progress, desc, fleet: RecordTable | None = None, shrink: float = 0.0):
     """The network on top of ``static`` [H, P] trained ``steps`` Adam steps on ``records`` (no early stopping: the
     keep rule's check records must not choose anything, :mod:`.keep`).
 
-    Returns ``(net, t0 [H] [s], span [H] [s])`` (the age feature's reference, from ``records``' times).
+    ``fleet``: pretrain one network shared by every heliostat on these records first (every heliostat's residuals
+    from its own rigid body ``static``), start each heliostat's network there and fine-tune it with
+    ``shrink`` x (squared change of its weights from the shared ones) added to its loss.
+
+    Returns ``(net, t0 [H] [s], span [H] [s])`` (the age feature's reference, from ``records``' times, or
+    ``fleet``'s).
     """
     h, like = nominal.num_heliostats, nominal.position
-    t0, span = training_times(records, h)
+    t0, span = training_times(records if fleet is None else fleet, h)
     gen = torch.Generator().manual_seed(int(seed))
     net = BatchedMLP(h, 7, len(names), hidden, depth, gen, zero_output=True, dtype=like.dtype).to(like.device)
     if not len(records) or steps <= 0:
         return net, t0, span
+    anchor = None
+    if fleet is not None and len(fleet):
+        shared = BatchedMLP(1, 7, len(names), hidden, depth, gen, zero_output=True, dtype=like.dtype).to(like.device)
+        pre = _HybridFit(nominal, static, names, scale, t0, span, fleet)
+        zeros = torch.zeros_like(fleet.heliostat_index)
+        opt = torch.optim.Adam(shared.parameters(), lr=lr)
+        n_h = max(int((fleet.counts() > 0).sum()), 1)
+        for _ in range(steps):  # one shared network: the loss per heliostat's records as in the fine-tuning
+            opt.zero_grad()
+            d = pre.static[fleet.heliostat_index] + pre.scale * shared(pre.x, zeros)
+            r = metrics.normal_residuals(apply_deviations(pre.kin, d, names), fleet, per_record=True)
+            loss = (r * r).sum() / noise ** 2 / n_h + weight_decay * shared.weight_norm().sum()
+            loss.backward()
+            opt.step()
+        with torch.no_grad():
+            for mine, theirs in zip(list(net.weights) + list(net.biases), list(shared.weights) + list(shared.biases)):
+                mine.copy_(theirs.expand_as(mine))
+        anchor = [p.detach().clone() for p in net.parameters()]
     opt = torch.optim.Adam(net.parameters(), lr=lr)
     fit = _HybridFit(nominal, static, names, scale, t0, span, records)
 
     def step():
         opt.zero_grad()
         r = fit.residuals(net)
-        loss = (r * r).sum() / noise ** 2 + weight_decay * net.weight_norm().sum()
+        loss = (r * r).sum() / noise ** 2
+        if anchor is None:
+            loss = loss + weight_decay * net.weight_norm().sum()
+        else:  # strong shrinkage of each heliostat's network towards the fleet's
+            loss = loss + shrink * sum(((p - p0) ** 2).sum() for p, p0 in zip(net.parameters(), anchor))
         loss.backward()
         opt.step()
         return loss
@@ -154,13 +187,18 @@ def _train_network(nominal, static, records: RecordTable, names, scale, *, seed,
 
 def fit_hybrid_method(nominal, train, validation, *, seed=0, progress=False, field_prior=True, depth=14, hidden=2,
                       steps=400, lr=3e-3, weight_decay=1e-3, noise=1e-3, fit_focal_spot=FIT_FOCAL_SPOT,
-                      plant_prior=None, level=keep.LEVEL, min_check=keep.MIN_CHECK) -> HybridModel:
+                      plant_prior=None, level=keep.LEVEL, min_check=keep.MIN_CHECK, pretrain="none",
+                      shrink=FLEET_SHRINK) -> HybridModel:
     """``hybrid``: ``lm``'s rigid body plus a small network per heliostat where it earns its place (module docstring).
 
     ``plant_prior`` (:class:`~heliotwin.calibrate.priors.PlantPrior`): the rigid body's prior instead of the run's
-    field prior. ``level``/``min_check``: the keep rule's (:mod:`.keep`). The network follows the nominal
-    kinematics' dtype and device; every random draw takes ``seed``.
+    field prior. ``level``/``min_check``: the keep rule's (:mod:`.keep`). ``pretrain="fleet"``: each network starts
+    from one pretrained on every heliostat's training records (residuals from its own ``lm``) and is fine-tuned
+    with ``shrink`` towards it (:func:`_train_network`); the keep rule decides as for ``"none"``. The network
+    follows the nominal kinematics' dtype and device; every random draw takes ``seed``.
     """
+    if pretrain not in PRETRAIN:
+        raise HeliotwinError(f"hybrid: pretrain must be one of {', '.join(PRETRAIN)}, got {pretrain!r}")
     h, like = nominal.num_heliostats, nominal.position
     names = STONE8
     scale = torch.tensor([OUTPUT_SCALE[k] for k in kinds(names)], dtype=like.dtype, device=like.device)
@@ -180,7 +218,9 @@ def fit_hybrid_method(nominal, train, validation, *, seed=0, progress=False, fie
         # 1. both candidates on the fit records only; 2. the paired test on the check records
         base = fit_lm_method(nominal, fit_part, None, **lm_opts).delta.to(like)
         tr = fit_spots(restrict(fit_part, testable), fit_focal_spot)
-        cand, t0, span = _train_network(nominal, base, tr, names, scale, desc="hybrid (keep check)", **net_opts)
+        fleet = fit_spots(fit_part, fit_focal_spot) if pretrain == "fleet" else None
+        cand, t0, span = _train_network(nominal, base, tr, names, scale, desc="hybrid (keep check)", fleet=fleet,
+                                        shrink=shrink, **net_opts)
         va = restrict(check, testable)
         fit_va = _HybridFit(nominal, base, names, scale, t0, span, va)
         e_rigid, e_net = fit_va.errors(None), fit_va.errors(cand)
@@ -196,8 +236,10 @@ def fit_hybrid_method(nominal, train, validation, *, seed=0, progress=False, fie
     # 3. a kept network is refitted on every record, on top of lm's rigid body of the same records
     static = rigid.delta.to(like).clone()
     static[~ok] = 0.0
+    fleet = fit_spots(restrict(seen, ok), fit_focal_spot) if pretrain == "fleet" else None
     net, t0, span = _train_network(nominal, static, fit_spots(restrict(seen, use_net), fit_focal_spot), names, scale,
-                                   desc="hybrid", **dict(net_opts, steps=steps if bool(use_net.any()) else 0))
+                                   desc="hybrid", fleet=fleet, shrink=shrink,
+                                   **dict(net_opts, steps=steps if bool(use_net.any()) else 0))
     ids = list(train.heliostat_ids)
     per_h = {hid: {"uses_network": bool(use_net[i]), "fallback_reason": evidence[i]["reason"],
                    "rigid_validation_mrad": evidence[i]["rigid_check_mrad"],
@@ -209,7 +251,7 @@ def fit_hybrid_method(nominal, train, validation, *, seed=0, progress=False, fie
     extras = {"net": net, "scale": scale, "t0": t0, "span": span, "use_net": use_net, "per_heliostat": per_h,
                    "networks": networks,
                    "summary": dict(rigid.extras.get("summary", {}), heliostats_using_network=int((use_net & ok).sum()),
-                                   depth=depth, hidden=hidden,
+                                   depth=depth, hidden=hidden, pretrain=pretrain,
                                    keep_rule={"test": "one-sided Wilcoxon signed-rank on paired validation errors, "
                                                       "Benjamini-Hochberg over the heliostats",
                                               "level": level, "min_check": min_check,
