@@ -1,10 +1,12 @@
 """The networks' keep rule (``calibrate/methods/keep.py``): a hybrid / MLP network only where records it was not
 fitted on show a significant gain; otherwise the method is exactly ``lm``; the evidence is reported."""
+import json
 import math
 
 import pytest
 import torch
 from helpers.calibrate import TRUE, jueliche_like, simulate, with_weekly_times
+from helpers.cli import run_cli
 from scipy.stats import wilcoxon
 
 from heliotwin.calibrate.methods import keep
@@ -12,7 +14,10 @@ from heliotwin.calibrate.methods.hybrid import fit_hybrid_method
 from heliotwin.calibrate.methods.lm import fit_lm_method
 from heliotwin.calibrate.methods.mlp import fit_mlp_method
 from heliotwin.calibrate.params import STONE8, apply_deviations
+from heliotwin.calibrate.protocol.pipeline import RunConfig, run_calibration
 from heliotwin.errors import HeliotwinError
+from heliotwin.io.paint import load_paint
+from heliotwin.simulate import SimulationSettings, simulate_plant, write_paint_folder
 
 F64 = torch.float64
 
@@ -169,3 +174,39 @@ def test_hybrid_names_an_unknown_pretraining():
     kin, tr, _ = _gear_fleet(h=1, n=10, n_train=8)
     with pytest.raises(HeliotwinError, match="pretrain must be one of none, fleet"):
         fit_hybrid_method(kin, tr, None, pretrain="plant")
+
+
+@pytest.mark.slow
+def test_calibrate_reports_the_keep_test_per_heliostat_in_its_json(tmp_path, capsys):
+    """A ``--split current`` run (no validation records carved): each heliostat is checked on its latest fifth,
+    and the JSON report carries the evidence per heliostat and the rule in the overall method info."""
+    sim = simulate_plant(SimulationSettings(heliostats=2, seed=3, years=0.6, records_per_month=6))
+    folder = write_paint_folder(sim, tmp_path / "paint")
+    report = tmp_path / "cal.json"
+    code, _, err = run_cli(capsys, "calibrate", "--paint", folder, "--method", "hybrid", "--min-records", 20,
+                           "-o", tmp_path / "cal.h5", "--json", report, "--no-plots")
+    assert code == 0, err
+    rep = json.loads(report.read_text())
+    assert rep["overall"]["method_info"]["keep_rule"]["level"] == keep.LEVEL
+    infos = [h["method_info"] for h in rep["heliostats"].values() if h.get("status") == "ok"]
+    assert infos
+    for info in infos:
+        ev = info["keep_test"]
+        assert ev["n_check"] >= keep.MIN_CHECK and ev["p_value"] is not None, ev
+        assert info["uses_network"] is ev["kept"] and (ev["reason"] is None) is ev["kept"]
+
+
+def test_a_study_run_reports_the_keep_test_of_its_validation_records(tmp_path):
+    """``--split chrono --train 30``: the run's 6 validation records (its latest) are the check records; the report
+    (what ``--json`` writes) carries each heliostat's evidence."""
+    sim = simulate_plant(SimulationSettings(heliostats=2, seed=3, years=0.6, records_per_month=6))
+    folder = write_paint_folder(sim, tmp_path / "paint")
+    cfg = RunConfig(paint=str(folder), method="hybrid", split="chrono", train=30, test=5, min_records=35,
+                    method_options={"depth": 2, "steps": 40})
+    rep, model, _ = run_calibration(cfg, load_paint(folder))
+    ok = [h for h in rep["heliostats"].values() if h.get("status") == "ok"]
+    assert ok and rep["overall"]["method_info"]["keep_rule"]["min_check"] == keep.MIN_CHECK
+    for h in ok:
+        ev = h["method_info"]["keep_test"]
+        assert ev["n_check"] == 6 and ev["p_value"] is not None and ev["tests"] == len(ok), ev
+        assert h["method_info"]["uses_network"] is ev["kept"]
