@@ -14,10 +14,11 @@ Per record, the deviations are ``delta_static + scale * net(features)`` where
   weight decay (a fixed count: no step is chosen on the records that decide whether the network is kept).
 
 Keep rule (:mod:`.keep`): per heliostat, ``lm`` and ``lm`` + network are both fitted on the training records
-but the check records (the run's validation records: the latest ones in a chronological run; or, without any,
-the latest 20 % of the training records), and the network is kept only where a one-sided Wilcoxon signed-rank
-test on the paired per-record errors of the check records says it helps (at least 6 check records, p-values
-held to a 5 % false-discovery rate over the run's heliostats, positive mean gain). A kept network is then
+before each of two check blocks (the run's validation records: the latest ones in a chronological run, or,
+without any, the latest 20 % of the training records; and as many records before them), and the network is
+kept only where a one-sided Wilcoxon signed-rank test on the paired per-record errors of both blocks says it
+helps (at least 6 records per block, p-values held to a 5 % false-discovery rate over the run's heliostats, a
+positive mean gain in each block). A kept network is then
 refitted on every record on top of ``lm`` fitted on every record; every other heliostat is exactly ``lm``. The report
 gives each heliostat's evidence (``keep_test``: gain, p, its threshold, n, wins and losses).
 """
@@ -209,30 +210,26 @@ def fit_hybrid_method(nominal, train, validation, *, seed=0, progress=False, fie
     rigid = fit_lm_method(nominal, train, validation, **lm_opts)
     ok = rigid.ok
     seen = RecordTable.concatenate([train, validation]) if validation is not None and len(validation) else train
-    fit_part, check = keep.check_split(train, validation)
-    fit_part, check = restrict(fit_part, ok), restrict(check, ok)
-    testable = ok & trainable(fit_part) & (check.counts() >= min_check)
-    use_net = torch.zeros(h, dtype=torch.bool, device=like.device)
-    e_rigid = e_net = like.new_zeros(0)
-    if bool(testable.any()):
-        # 1. both candidates on the fit records only; 2. the paired test on the check records
-        base = fit_lm_method(nominal, fit_part, None, **lm_opts).delta.to(like)
-        tr = fit_spots(restrict(fit_part, testable), fit_focal_spot)
-        fleet = fit_spots(fit_part, fit_focal_spot) if pretrain == "fleet" else None
-        cand, t0, span = _train_network(nominal, base, tr, names, scale, desc="hybrid (keep check)", fleet=fleet,
-                                        shrink=shrink, **net_opts)
-        va = restrict(check, testable)
+    folds = [(restrict(a, ok), restrict(v, ok)) for a, v in keep.check_folds(train, validation)]
+    testable = ok.clone()
+    for a, v in folds:
+        testable &= trainable(a) & (v.counts() >= min_check)
+    fold_errors = []
+    for a, v in folds:
+        # per block: both candidates on the records before it only, their errors on it
+        va = restrict(v, testable)
+        if not bool(testable.any()):
+            fold_errors.append((like.new_zeros(0), like.new_zeros(0), va.heliostat_index))
+            continue
+        base = fit_lm_method(nominal, a, None, **lm_opts).delta.to(like)
+        fleet = fit_spots(a, fit_focal_spot) if pretrain == "fleet" else None
+        cand, t0, span = _train_network(nominal, base, fit_spots(restrict(a, testable), fit_focal_spot), names,
+                                        scale, desc="hybrid (keep check)", fleet=fleet, shrink=shrink, **net_opts)
         fit_va = _HybridFit(nominal, base, names, scale, t0, span, va)
-        e_rigid, e_net = fit_va.errors(None), fit_va.errors(cand)
-    ch = restrict(check, testable)
-    use_net, evidence = keep.paired_gain_test(e_rigid, e_net, ch.heliostat_index, h, testable=testable, level=level,
-                                              min_check=min_check)
-    for i in range(h):  # heliostats never tested: their check-record count is the reason
-        if not bool(testable[i]):
-            n = int(check.counts()[i])
-            evidence[i].update(n_check=n, reason=(f"{n} validation records < {min_check}" if n < min_check
-                                                  else "too few fit records for a network"))
-    use_net = use_net & testable
+        fold_errors.append((fit_va.errors(None), fit_va.errors(cand), va.heliostat_index))
+    use_net, evidence = keep.fold_gain_test(fold_errors, h, testable=testable, level=level, min_check=min_check)
+    keep.explain_untested(evidence, [v for _, v in folds], testable, min_check)
+    use_net = use_net.to(like.device) & testable
     # 3. a kept network is refitted on every record, on top of lm's rigid body of the same records
     static = rigid.delta.to(like).clone()
     static[~ok] = 0.0

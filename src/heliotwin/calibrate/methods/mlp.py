@@ -35,12 +35,12 @@ Training:
    small learning rate in ``cycles`` training cycles with growing data (cycle c uses the earliest c/C of each
    heliostat's training records), a fixed number of steps;
 4. *keep rule* (:mod:`.keep`): steps 1-3 run first without the validation records (the run's, or the latest
-   20 % of the training records where it carved none), and a heliostat keeps its network only where a one-sided
-   Wilcoxon signed-rank test on the paired per-record errors of those records (``lm`` on the same records vs
-   ``lm`` + network) says it helps (at least 6 records, a 5 % false-discovery rate over the run's heliostats,
-   positive mean gain); a kept network is then
-   refitted (steps 1-3) on every record on top of ``lm`` on every record. Every other heliostat is exactly
-   ``lm``.
+   20 % of the training records where it carved none), and again without those and as many records before them;
+   a heliostat keeps its network only where a one-sided Wilcoxon signed-rank test on the paired per-record
+   errors of both blocks (``lm`` on the records before vs ``lm`` + network) says it helps (at least 6 records per
+   block, a 5 % false-discovery rate over the run's heliostats, a positive mean gain in each block); a kept
+   network is then refitted (steps 1-3) on every record on top of ``lm`` on every record. Every other heliostat
+   is exactly ``lm``.
 
 Pointing error of a record: the network predicts steps for the measured spot; the pointing error is the
 angle between the measured normal and the measured normal moved by the rigid body's normal change from the
@@ -444,33 +444,34 @@ def fit_mlp_method(nominal, train, validation, *, seed: int = 0, progress: bool 
     rigid = fit_lm_method(nominal, train, validation, **lm_opts)
     ok = rigid.ok
     seen = RecordTable.concatenate([train, validation]) if validation is not None and len(validation) else train
-    fit_part, check = keep.check_split(train, validation)
-    fit_part, check = restrict(fit_part, ok), restrict(check, ok)
-    testable = ok & trainable(fit_part) & (check.counts() >= s.min_check)
+    folds = [(restrict(a, ok), restrict(v, ok)) for a, v in keep.check_folds(train, validation)]
+    testable = ok.clone()
+    for a, v in folds:
+        testable &= trainable(a) & (v.counts() >= s.min_check)
     gen = torch.Generator().manual_seed(int(seed))
     inf = like.new_full((h,), float("inf"))
     pre_err, fin_err, rig_err = inf, inf, inf
-    va = restrict(check, testable)
-    e_rigid = e_net = like.new_zeros(0)
     pretrain_rms, samples = 0.0, 0
-    if bool(testable.any()):
-        # 1. both candidates on the fit records only; 2. the paired test on the check records
-        base_delta = fit_lm_method(nominal, fit_part, None, **lm_opts).delta.to(like)
+    fold_errors = []
+    for a, v in folds:
+        # per block: both candidates on the records before it only, their errors on it (the report's validation
+        # errors: the last block's)
+        va = restrict(v, testable)
+        if not bool(testable.any()):
+            fold_errors.append((like.new_zeros(0), like.new_zeros(0), va.heliostat_index))
+            continue
+        base_delta = fit_lm_method(nominal, a, None, **lm_opts).delta.to(like)
         base_delta[~testable] = 0.0
         cand, pretrained, pretrain_rms, samples = _candidate(
-            nominal, fit_spots(restrict(fit_part, testable), s.fit_focal_spot), base_delta, testable, s, gen,
+            nominal, fit_spots(restrict(a, testable), s.fit_focal_spot), base_delta, testable, s, gen,
             progress, "mlp finetune (keep check)", prior_mean)
         e_rigid, e_net = _check_errors(cand, va, use=False), _check_errors(cand, va)
+        fold_errors.append((e_rigid, e_net, va.heliostat_index))
         pre_err = val_err_of(_check_errors(cand, va, pretrained), va, h, like)
         fin_err, rig_err = val_err_of(e_net, va, h, like), val_err_of(e_rigid, va, h, like)
-    use_net, evidence = keep.paired_gain_test(e_rigid, e_net, va.heliostat_index, h, testable=testable,
-                                              level=s.level, min_check=s.min_check)
-    for i in range(h):  # heliostats never tested: their check-record count is the reason
-        if not bool(testable[i]):
-            n = int(check.counts()[i])
-            evidence[i].update(n_check=n, reason=(f"{n} validation records < {s.min_check}" if n < s.min_check
-                                                  else "too few fit records for a network"))
-    use_net = use_net & testable
+    use_net, evidence = keep.fold_gain_test(fold_errors, h, testable=testable, level=s.level, min_check=s.min_check)
+    keep.explain_untested(evidence, [v for _, v in folds], testable, s.min_check)
+    use_net = use_net.to(like.device) & testable
     delta = rigid.delta.to(like).clone()
     delta[~ok] = 0.0
     if bool(use_net.any()):
