@@ -278,9 +278,10 @@ def markdown(out: dict) -> str:
               "(the 'after pretraining' column equals the rigid one), fine-tuning runs in growing cycles with "
               "rehearsal of the pretraining samples.",
               "* `mlp` and `hybrid` keep a network only where it passes the keep test (calibrate/methods/keep.py): "
-              "`lm` and `lm` + network fitted without the validation records (a fixed step count, nothing chosen on "
-              "them), a one-sided Wilcoxon signed-rank test on the paired validation errors, p-values held to a 5 % "
-              "false-discovery rate over the run's heliostats, at least 6 validation records, a positive mean gain; "
+              "`lm` and `lm` + network fitted on the records before each of two check blocks (the validation "
+              "records and as many before them; a fixed step count, nothing chosen on them), a one-sided Wilcoxon "
+              "signed-rank test on the pooled paired errors, p-values held to a 5 % false-discovery rate over the "
+              "run's heliostats, at least 6 records and a positive mean gain in each block; "
               "a kept network is refitted on every record on top of `lm`. Everywhere else the method is exactly "
               "`lm` (bagged, train + validation).",
               "* Timings come from the machine named above; on a shared machine they are upper bounds.",
