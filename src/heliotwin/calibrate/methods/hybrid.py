@@ -2,23 +2,25 @@
 
 Per record, the deviations are ``delta_static + scale * net(features)`` where
 
-* ``delta_static`` is the pre-aligned rigid body (the ``lm`` Stone/Jülich fit with the field prior, on the
-  training records only, so that validation stays honest);
+* ``delta_static`` is the rigid body: ``lm``'s Stone/Jülich fit (bagged, the run's field prior or the plant
+  prior) on the same records the network trains on;
 * ``features`` (7): motor steps normalised to the actuator range and encoded as sin/cos (4), the age
   (time since the heliostat's first training record over the span of its training records, clamped to
   [0, 1]: a record after the last training record is treated like the last one -- no extrapolation in
   wear) and the month as sin/cos (season; bounded by construction);
 * ``scale`` makes one network unit ~ 10 mrad for angles/tilts, 1 m for translations, 1 % for increments;
 * the network is 14 hidden layers x 2 neurons (as published; ``depth``/``hidden`` configurable), SELU, its
-  output layer starts at zero (the hybrid starts exactly at its rigid body), trained with Adam and weight
-  decay, early-stopped on validation.
+  output layer starts at zero (the hybrid starts exactly at its rigid body), trained ``steps`` Adam steps with
+  weight decay (a fixed count: no step is chosen on the records that decide whether the network is kept).
 
-Fallback: a heliostat keeps its network only when, on its validation records (the latest of the ``--train``
-records in a chronological run), the network beats its own pre-aligned rigid body *significantly*: at
-least :data:`MIN_VALIDATION` records, a mean gain of at least ``1 - FALLBACK_MARGIN`` (10 %) of the rigid
-body's error, and a paired gain larger than :data:`SIGNIFICANCE` standard errors (per-record errors,
-rigid minus hybrid). Otherwise it uses the rigid body alone (exactly ``lm`` on train + validation);
-the report says which did and why.
+Keep rule (:mod:`.keep`): per heliostat, ``lm`` and ``lm`` + network are both fitted on the training records
+before each of two check blocks (the run's validation records: the latest ones in a chronological run, or,
+without any, the latest 20 % of the training records; and as many records before them), and the network is
+kept only where a one-sided Wilcoxon signed-rank test on the paired per-record errors of both blocks says it
+helps (at least 6 records per block, p-values held to a 5 % false-discovery rate over the run's heliostats, a
+positive mean gain in each block). A kept network is then
+refitted on every record on top of ``lm`` fitted on every record; every other heliostat is exactly ``lm``. The report
+gives each heliostat's evidence (``keep_test``: gain, p, its threshold, n, wins and losses).
 """
 from __future__ import annotations
 
@@ -27,6 +29,7 @@ import time
 
 import torch
 
+from ...errors import HeliotwinError
 from ...field import kinematics as K
 from ...io.records import RecordTable
 from .. import metrics
@@ -34,18 +37,18 @@ from ..fitloop import early_stopping_fit, net_state
 from ..inputs import FIT_FOCAL_SPOT, fit_spots, restrict, trainable
 from ..model import Calibrated
 from ..params import STONE8, apply_deviations, kinds
-from .lm import fit_lm_method, stone8_field_fit, stone8_plant_fit
+from . import keep
+from .lm import fit_lm_method
 from .nets import BatchedMLP
 
 #: Physical size of one network output unit per kind (see module docstring).
 OUTPUT_SCALE = {"angle": 0.01, "tilt": 0.01, "translation": 1.0, "actuator_length": 1.0, "increment": 0.01}
 SECONDS_PER_YEAR = 365.25 * 86400.0
-FALLBACK_MARGIN = 0.9
-#: Fewest validation records to trust a gain at all, and the paired-gain significance (standard errors).
-#: With 4 (isolation 20 + 20 on PAINT) the two networks that passed lost 0.06-0.3 mrad on test: 4 records
-#: do not even estimate the gain's standard error.
-MIN_VALIDATION = 6
-SIGNIFICANCE = 2.0
+#: ``pretrain="fleet"``: weight of a network's squared weight change from the fleet's (per unit weight: one
+#: record at 1 mrad costs 1), strong enough that ~30 records move a weight by ~0.1 at most.
+FLEET_SHRINK = 1e3
+#: ``pretrain`` options of the hybrid.
+PRETRAIN = ("none", "fleet")
 
 
 def features(batch: RecordTable, kin, t0: torch.Tensor, span: torch.Tensor | None = None) -> torch.Tensor:
@@ -125,105 +128,131 @@ class _HybridFit:
                                           per_record=True)
 
 
-def _fallback(fit_va: _HybridFit, best, best_err, rigid_val, ok) -> tuple[torch.Tensor, dict]:
-    """Which heliostats keep their network ``best`` (see module docstring), and why the others do not.
+def _train_network(nominal, static, records: RecordTable, names, scale, *, seed, depth, hidden, steps, lr,
+                   weight_decay, noise, progress, desc, fleet: RecordTable | None = None, shrink: float = 0.0):
+    """The network on top of ``static`` [H, P] trained ``steps`` Adam steps on ``records`` (no early stopping: the
+    keep rule's check records must not choose anything, :mod:`.keep`).
 
-    ``best_err``/``rigid_val``: validation error per heliostat [H] of the network and of the rigid body.
+    ``fleet``: pretrain one network shared by every heliostat on these records first (every heliostat's residuals
+    from its own rigid body ``static``), start each heliostat's network there and fine-tune it with
+    ``shrink`` x (squared change of its weights from the shared ones) added to its loss.
+
+    Returns ``(net, t0 [H] [s], span [H] [s])`` (the age feature's reference, from ``records``' times, or
+    ``fleet``'s).
     """
-    h, va = len(ok), fit_va.batch
-    use_net = torch.zeros(h, dtype=torch.bool, device=ok.device)
-    why = {}
-    if not len(va):
-        return use_net, why
-    gain = fit_va.errors(None) - fit_va.errors(best)  # per record, rigid minus hybrid
-    for i in range(h):
-        g = gain[va.heliostat_index == i]
-        n = len(g)
-        if n < MIN_VALIDATION:
-            why[i] = f"{n} validation records < {MIN_VALIDATION}"
-            continue
-        se = float(g.std()) / math.sqrt(n) if n > 1 else math.inf
-        m = float(g.mean())
-        if not best_err[i] < FALLBACK_MARGIN * rigid_val[i]:
-            why[i] = "validation gain below 10 %"
-        elif not m > SIGNIFICANCE * se:
-            why[i] = f"validation gain {m * 1e3:.2f} mrad not significant (< {SIGNIFICANCE} x {se * 1e3:.2f})"
-        else:
-            use_net[i] = True
-    return use_net, why
-
-
-def _mrad(x) -> float | None:
-    return float(x) * 1e3 if math.isfinite(x) else None
-
-
-def fit_hybrid_method(nominal, train, validation, *, seed=0, progress=False, field_prior=True, depth=14, hidden=2,
-                      steps=400, lr=3e-3, weight_decay=1e-3, noise=1e-3, fit_focal_spot=FIT_FOCAL_SPOT,
-                      plant_prior=None) -> HybridModel:
-    """``hybrid``: the pre-aligned rigid body plus a small network per heliostat (see module docstring).
-
-    ``plant_prior`` (:class:`~heliotwin.calibrate.priors.PlantPrior`): the pre-alignment's prior instead of
-    the run's field prior. The network follows the nominal kinematics' dtype and device; every random draw
-    takes ``seed``.
-    """
-    def prealign(batch):
-        if plant_prior is not None:
-            return stone8_plant_fit(nominal, batch, plant_prior), None
-        return stone8_field_fit(nominal, batch, ok, field_prior=field_prior)
-
-    h = nominal.num_heliostats
-    ok = trainable(train)
-    tr = fit_spots(restrict(train, ok), fit_focal_spot)
-    va = restrict(validation, ok) if validation is not None else train.subset([])  # never None below
-    static, _ = prealign(tr)
-    names = STONE8
-    like = nominal.position
-    static = static.to(like)
-    scale = torch.tensor([OUTPUT_SCALE[k] for k in kinds(names)], dtype=like.dtype, device=like.device)
-    t0, span = training_times(tr, h)
+    h, like = nominal.num_heliostats, nominal.position
+    t0, span = training_times(records if fleet is None else fleet, h)
     gen = torch.Generator().manual_seed(int(seed))
     net = BatchedMLP(h, 7, len(names), hidden, depth, gen, zero_output=True, dtype=like.dtype).to(like.device)
+    if not len(records) or steps <= 0:
+        return net, t0, span
+    anchor = None
+    if fleet is not None and len(fleet):
+        shared = BatchedMLP(1, 7, len(names), hidden, depth, gen, zero_output=True, dtype=like.dtype).to(like.device)
+        pre = _HybridFit(nominal, static, names, scale, t0, span, fleet)
+        zeros = torch.zeros_like(fleet.heliostat_index)
+        opt = torch.optim.Adam(shared.parameters(), lr=lr)
+        n_h = max(int((fleet.counts() > 0).sum()), 1)
+        for _ in range(steps):  # one shared network: the loss per heliostat's records as in the fine-tuning
+            opt.zero_grad()
+            d = pre.static[fleet.heliostat_index] + pre.scale * shared(pre.x, zeros)
+            r = metrics.normal_residuals(apply_deviations(pre.kin, d, names), fleet, per_record=True)
+            loss = (r * r).sum() / noise ** 2 / n_h + weight_decay * shared.weight_norm().sum()
+            loss.backward()
+            opt.step()
+        with torch.no_grad():
+            for mine, theirs in zip(list(net.weights) + list(net.biases), list(shared.weights) + list(shared.biases)):
+                mine.copy_(theirs.expand_as(mine))
+        anchor = [p.detach().clone() for p in net.parameters()]
     opt = torch.optim.Adam(net.parameters(), lr=lr)
-    fit_tr = _HybridFit(nominal, static, names, scale, t0, span, tr)
-    fit_va = _HybridFit(nominal, static, names, scale, t0, span, va)
+    fit = _HybridFit(nominal, static, names, scale, t0, span, records)
 
     def step():
         opt.zero_grad()
-        r = fit_tr.residuals(net)
-        loss = (r * r).sum() / noise ** 2 + weight_decay * net.weight_norm().sum()
+        r = fit.residuals(net)
+        loss = (r * r).sum() / noise ** 2
+        if anchor is None:
+            loss = loss + weight_decay * net.weight_norm().sum()
+        else:  # strong shrinkage of each heliostat's network towards the fleet's
+            loss = loss + shrink * sum(((p - p0) ** 2).sum() for p, p0 in zip(net.parameters(), anchor))
         loss.backward()
         opt.step()
         return loss
 
-    def val_err(model_net=net):
-        if not len(va):
-            return like.new_full((h,), float("inf"))
-        return metrics.per_heliostat_mean(fit_va.errors(model_net), va.heliostat_index, h)
+    # The shared loop (for --resume checkpoints) with nothing validated: every heliostat keeps its final state.
+    log = early_stopping_fit(step, lambda: like.new_full((h,), float("inf")), net_state(net), steps,
+                             validated=torch.zeros(h, dtype=torch.bool, device=like.device), check_every=steps,
+                             progress=progress, desc=desc)
+    return log.best, t0, span
 
-    rigid_val = val_err(None)
-    # The network starts with a zero output layer: the loop's start is exactly the rigid body.
-    log = early_stopping_fit(step, val_err, net_state(net), steps, validated=va.counts() > 0, check_every=10,
-                             progress=progress, desc="hybrid")
-    best, best_err = log.best, log.best_error
-    # Fallback unless the net beats its own rigid body on validation by a clear (10 %) AND significant
-    # paired gain on enough records: a gain on 2-6 records is mostly noise, and the net extrapolates in time.
-    use_net, why = _fallback(fit_va, best, best_err, rigid_val, ok)
-    # Fallback heliostats: exactly lm on every record they may see (bagged: at 20 records an unbagged refit
-    # alone is ~0.2 mrad worse than lm, which would make the hybrid lose where its network is not even used).
-    refit = fit_lm_method(nominal, train, validation, seed=seed, plant_prior=plant_prior, field_prior=field_prior,
-                          fit_focal_spot=fit_focal_spot).delta
-    static = torch.where(use_net.unsqueeze(-1), static, refit.to(static))
+
+def fit_hybrid_method(nominal, train, validation, *, seed=0, progress=False, field_prior=True, depth=14, hidden=2,
+                      steps=400, lr=3e-3, weight_decay=1e-3, noise=1e-3, fit_focal_spot=FIT_FOCAL_SPOT,
+                      plant_prior=None, level=keep.LEVEL, min_check=keep.MIN_CHECK, pretrain="none",
+                      shrink=FLEET_SHRINK) -> HybridModel:
+    """``hybrid``: ``lm``'s rigid body plus a small network per heliostat where it earns its place (module docstring).
+
+    ``plant_prior`` (:class:`~heliotwin.calibrate.priors.PlantPrior`): the rigid body's prior instead of the run's
+    field prior. ``level``/``min_check``: the keep rule's (:mod:`.keep`). ``pretrain="fleet"``: each network starts
+    from one pretrained on every heliostat's training records (residuals from its own ``lm``) and is fine-tuned
+    with ``shrink`` towards it (:func:`_train_network`); the keep rule decides as for ``"none"``. The network
+    follows the nominal kinematics' dtype and device; every random draw takes ``seed``.
+    """
+    if pretrain not in PRETRAIN:
+        raise HeliotwinError(f"hybrid: pretrain must be one of {', '.join(PRETRAIN)}, got {pretrain!r}")
+    h, like = nominal.num_heliostats, nominal.position
+    names = STONE8
+    scale = torch.tensor([OUTPUT_SCALE[k] for k in kinds(names)], dtype=like.dtype, device=like.device)
+    lm_opts = dict(seed=seed, plant_prior=plant_prior, field_prior=field_prior, fit_focal_spot=fit_focal_spot)
+    net_opts = dict(seed=seed, depth=depth, hidden=hidden, steps=steps, lr=lr, weight_decay=weight_decay,
+                    noise=noise, progress=progress)
+    # The fallback, and the base of a kept network: exactly lm on every record the method may see.
+    rigid = fit_lm_method(nominal, train, validation, **lm_opts)
+    ok = rigid.ok
+    seen = RecordTable.concatenate([train, validation]) if validation is not None and len(validation) else train
+    folds = [(restrict(a, ok), restrict(v, ok)) for a, v in keep.check_folds(train, validation)]
+    testable = ok.clone()
+    for a, v in folds:
+        testable &= trainable(a) & (v.counts() >= min_check)
+    fold_errors = []
+    for a, v in folds:
+        # per block: both candidates on the records before it only, their errors on it
+        va = restrict(v, testable)
+        if not bool(testable.any()):
+            fold_errors.append((like.new_zeros(0), like.new_zeros(0), va.heliostat_index))
+            continue
+        base = fit_lm_method(nominal, a, None, **lm_opts).delta.to(like)
+        fleet = fit_spots(a, fit_focal_spot) if pretrain == "fleet" else None
+        cand, t0, span = _train_network(nominal, base, fit_spots(restrict(a, testable), fit_focal_spot), names,
+                                        scale, desc="hybrid (keep check)", fleet=fleet, shrink=shrink, **net_opts)
+        fit_va = _HybridFit(nominal, base, names, scale, t0, span, va)
+        fold_errors.append((fit_va.errors(None), fit_va.errors(cand), va.heliostat_index))
+    use_net, evidence = keep.fold_gain_test(fold_errors, h, testable=testable, level=level, min_check=min_check)
+    keep.explain_untested(evidence, [v for _, v in folds], testable, min_check)
+    use_net = use_net.to(like.device) & testable
+    # 3. a kept network is refitted on every record, on top of lm's rigid body of the same records
+    static = rigid.delta.to(like).clone()
     static[~ok] = 0.0
+    fleet = fit_spots(restrict(seen, ok), fit_focal_spot) if pretrain == "fleet" else None
+    net, t0, span = _train_network(nominal, static, fit_spots(restrict(seen, use_net), fit_focal_spot), names, scale,
+                                   desc="hybrid", fleet=fleet, shrink=shrink,
+                                   **dict(net_opts, steps=steps if bool(use_net.any()) else 0))
     ids = list(train.heliostat_ids)
-    per_h = {hid: {"uses_network": bool(use_net[i]), "fallback_reason": why.get(i),
-                   "rigid_validation_mrad": _mrad(rigid_val[i]), "hybrid_validation_mrad": _mrad(best_err[i])}
+    per_h = {hid: {"uses_network": bool(use_net[i]), "fallback_reason": evidence[i]["reason"],
+                   "rigid_validation_mrad": evidence[i]["rigid_check_mrad"],
+                   "hybrid_validation_mrad": evidence[i]["network_check_mrad"], "keep_test": evidence[i]}
              for i, hid in enumerate(ids) if bool(ok[i])}
-    networks = {hid: {"config": dict(best.config, kind="hybrid", names=list(names), scale=scale.tolist(),
+    networks = {hid: {"config": dict(net.config, kind="hybrid", names=list(names), scale=scale.tolist(),
                                      t0=float(t0[i]), span=float(span[i]), use_net=bool(use_net[i])),
-                      "state": best.state_of(i)} for i, hid in enumerate(ids) if bool(ok[i])}
-    extras = {"net": best, "scale": scale, "t0": t0, "span": span, "use_net": use_net, "per_heliostat": per_h,
-              "networks": networks,
-              "summary": {"heliostats_using_network": int((use_net & ok).sum()), "depth": depth, "hidden": hidden}}
+                      "state": net.state_of(i)} for i, hid in enumerate(ids) if bool(ok[i])}
+    extras = {"net": net, "scale": scale, "t0": t0, "span": span, "use_net": use_net, "per_heliostat": per_h,
+                   "networks": networks,
+                   "summary": dict(rigid.extras.get("summary", {}), heliostats_using_network=int((use_net & ok).sum()),
+                                   depth=depth, hidden=hidden, pretrain=pretrain,
+                                   keep_rule={"test": "one-sided Wilcoxon signed-rank on paired validation errors, "
+                                                      "Benjamini-Hochberg over the heliostats",
+                                              "level": level, "min_check": min_check,
+                                              "check_fraction_without_validation": keep.CHECK_FRACTION})}
     return HybridModel("hybrid", ids, nominal, names, static, ok, extras=extras)
 
 

@@ -23,8 +23,8 @@ Per heliostat and motor axis one network (SELU, LeCun-normal initialisation, :cl
 
 Training:
 
-1. *rigid body*: the Stone/Jülich-8 LM fit on the training records (field prior of the run, or the plant
-   prior), as the hybrid's pre-alignment;
+1. *rigid body*: ``lm`` (the bagged Stone/Jülich-8 fit; field prior of the run, or the plant prior) on the
+   records the networks train on;
 2. *pretraining* on samples simulated by that rigid body over the whole sun range: a year of sun positions
    (:func:`heliotwin.sun.daylight_times`, every ``every``) with aim points spread over the heliostat's
    training spots (+-10 m in the target plane: the other targets of the tower face too), motor steps from
@@ -33,11 +33,14 @@ Training:
    body's);
 3. *fine-tuning* on the real training records (aim = fitted focal spot, target = recorded steps) with a
    small learning rate in ``cycles`` training cycles with growing data (cycle c uses the earliest c/C of each
-   heliostat's training records), early-stopped on validation;
-4. *fallback*: a heliostat keeps its network only where, on its validation records (inside ``--train``), the
-   network beats the rigid body by 10 % and significantly (paired gain per record above :data:`SIGNIFICANCE`
-   standard errors on at least :data:`MIN_VALIDATION` records); otherwise it uses exactly ``lm`` (on train +
-   validation).
+   heliostat's training records), a fixed number of steps;
+4. *keep rule* (:mod:`.keep`): steps 1-3 run first without the validation records (the run's, or the latest
+   20 % of the training records where it carved none), and again without those and as many records before them;
+   a heliostat keeps its network only where a one-sided Wilcoxon signed-rank test on the paired per-record
+   errors of both blocks (``lm`` on the records before vs ``lm`` + network) says it helps (at least 6 records per
+   block, a 5 % false-discovery rate over the run's heliostats, a positive mean gain in each block); a kept
+   network is then refitted (steps 1-3) on every record on top of ``lm`` on every record. Every other heliostat
+   is exactly ``lm``.
 
 Pointing error of a record: the network predicts steps for the measured spot; the pointing error is the
 angle between the measured normal and the measured normal moved by the rigid body's normal change from the
@@ -60,18 +63,14 @@ from ..fitloop import State, early_stopping_fit
 from ..inputs import FIT_FOCAL_SPOT, fit_spots, restrict, trainable
 from ..model import Calibrated
 from ..params import STONE8, apply_deviations, read_deviations
-from .lm import fit_lm_method, stone8_field_fit, stone8_plant_fit
+from . import keep
+from .lm import fit_lm_method
 from .nets import BatchedMLP
 
 #: Inputs per network: sun (3), base steps as a fraction of the range (2).
 N_INPUTS = 5
 #: Huber transition of the step loss [increments]: quadratic within a few increments, linear for outliers.
 HUBER_INCREMENTS = 2.0
-#: Fewest validation records to trust a gain, and the paired gain's significance [standard errors].
-MIN_VALIDATION = 4
-SIGNIFICANCE = 2.0
-#: The network must also beat the rigid body's mean validation error by 10 %.
-FALLBACK_MARGIN = 0.9
 
 
 def _inputs(sun: torch.Tensor, aim: torch.Tensor, reference: torch.Tensor, base_fraction: torch.Tensor) -> torch.Tensor:
@@ -285,6 +284,8 @@ class MLPSettings:
         Centroid source the rigid body and the fine-tuning train on.
     site : Site or None
         Where the sun positions are computed (default: :class:`~heliotwin.site.Site`'s).
+    level, min_check : float, int
+        The keep rule's one-sided level and fewest validation records (:mod:`.keep`).
     """
 
     hidden: int = 32
@@ -303,13 +304,8 @@ class MLPSettings:
     field_prior: bool = True
     fit_focal_spot: str | None = FIT_FOCAL_SPOT
     site: Site | None = None
-
-
-def _rigid_fit(nominal, batch, ok, s: MLPSettings, plant_prior):
-    """The Stone/Jülich-8 deviations [H, 8] of the rigid body on ``batch`` (plant prior or field prior)."""
-    if plant_prior is not None:
-        return stone8_plant_fit(nominal, batch, plant_prior)
-    return stone8_field_fit(nominal, batch, ok, field_prior=s.field_prior)[0]
+    level: float = keep.LEVEL
+    min_check: int = keep.MIN_CHECK
 
 
 def _growing(train: RecordTable, cycles: int) -> list[torch.Tensor]:
@@ -325,57 +321,44 @@ def _growing(train: RecordTable, cycles: int) -> list[torch.Tensor]:
     return [rank < torch.ceil(n * c / cycles) for c in range(1, cycles + 1)]
 
 
-def _keep_network(err_rigid: torch.Tensor, err_net: torch.Tensor, hidx: torch.Tensor, h: int):
-    """Which heliostats keep their network (see module docstring) and why the others do not."""
-    use = torch.zeros(h, dtype=torch.bool, device=hidx.device)
-    why = {}
-    gain = err_rigid - err_net
-    for i in range(h):  # heliostats (tens), once per fit
-        g = gain[hidx == i]
-        if len(g) < MIN_VALIDATION:
-            why[i] = f"{len(g)} validation records < {MIN_VALIDATION}"
-            continue
-        se = float(g.std()) / math.sqrt(len(g))
-        if float(g.mean()) > SIGNIFICANCE * se and float(err_net[hidx == i].mean()) < FALLBACK_MARGIN * float(
-                err_rigid[hidx == i].mean()):
-            use[i] = True
-        else:
-            why[i] = f"validation gain {float(g.mean()) * 1e3:.3f} mrad not above {SIGNIFICANCE} x {se * 1e3:.3f}"
-    return use, why
+def _zero_networks(h: int, like: torch.Tensor, s: "MLPSettings", gen: torch.Generator) -> StepNetworks:
+    """Networks that add nothing (zero output, no affine part): what a heliostat without a trained network stores
+    (its aim is then exactly its rigid body's)."""
+    net = BatchedMLP(2 * h, N_INPUTS, 1, s.hidden, s.depth, gen, zero_output=True, dtype=like.dtype).to(like.device)
+    return StepNetworks(net, like.new_zeros(h, N_INPUTS), like.new_ones(h, N_INPUTS),
+                        like.new_zeros(h, N_INPUTS + 1, 2), like.new_full((h, 2), s.output_unit))
 
 
-def fit_mlp_method(nominal, train, validation, *, seed: int = 0, progress: bool = False,
-                   settings: MLPSettings | None = None, plant_prior=None, **options) -> MLPModel:
-    """``mlp``: per-heliostat, per-axis networks from (sun, aim) to motor steps (see module docstring).
-
-    ``settings`` (:class:`MLPSettings`, default its defaults) and/or its fields by keyword (``options``,
-    replacing ``settings``'s); ``plant_prior`` (:class:`~heliotwin.calibrate.priors.PlantPrior`): the rigid
-    body's prior and the base's mean. The networks follow the nominal kinematics' dtype and device; every
-    random draw takes ``seed``.
-    """
-    s = replace(settings or MLPSettings(), **options)
-    h, like = nominal.num_heliostats, nominal.position
-    ok = trainable(train)
-    tr = fit_spots(restrict(train, ok), s.fit_focal_spot)
-    va = restrict(validation, ok) if validation is not None else train.subset([])
-    delta = _rigid_fit(nominal, tr, ok, s, plant_prior).to(like)
-    delta[~ok] = 0.0
-    rigid = apply_deviations(nominal, delta, STONE8)
+def _base_kinematics(nominal, rigid, s: "MLPSettings", prior_mean: torch.Tensor | None):
+    """What the networks' steps are added to (:attr:`MLPSettings.base`): the rigid body, or the nominal geometry
+    (moved by the plant prior's mean [8] where there is one)."""
     if s.base == "rigid":
-        base = rigid
-    elif s.base == "nominal":
-        base = nominal if plant_prior is None else apply_deviations(
-            nominal, plant_prior.mean.to(like).expand(h, len(STONE8)), STONE8)
-    else:
-        raise ValueError(f"base must be 'rigid' or 'nominal', got {s.base!r}")
-    gen = torch.Generator().manual_seed(int(seed))
+        return rigid
+    if s.base == "nominal":
+        like = nominal.position
+        return nominal if prior_mean is None else apply_deviations(
+            nominal, prior_mean.to(like).expand(nominal.num_heliostats, len(STONE8)), STONE8)
+    raise ValueError(f"base must be 'rigid' or 'nominal', got {s.base!r}")
+
+
+def _candidate(nominal, records: RecordTable, delta: torch.Tensor, ok: torch.Tensor, s: "MLPSettings",
+               gen: torch.Generator, progress: bool, desc: str, prior_mean: torch.Tensor | None = None):
+    """The networks on top of the rigid body ``delta`` [H, 8], fine-tuned on ``records`` (fit centroids) a fixed
+    number of steps (no early stopping: the keep rule's check records must not choose anything, :mod:`.keep`).
+
+    Returns ``(model, pretrained, pretrain_rms [increments], samples)``: the :class:`MLPModel` with every network
+    used, the networks as pretraining left them, and the pretraining's size.
+    """
+    h, like = nominal.num_heliostats, nominal.position
+    rigid = apply_deviations(nominal, delta, STONE8)
+    base = _base_kinematics(nominal, rigid, s, prior_mean)
     reference = like.new_zeros(h, 3)
     for i in range(h):  # heliostats (tens): the first training target's centre
-        rows = tr.of(i)
+        rows = records.of(i)
         if len(rows):
-            reference[i] = tr.plane_center[rows[0]]
+            reference[i] = records.plane_center[rows[0]]
     # 1. pretraining samples from the rigid body, standardised per heliostat
-    hidx, sun, aim, steps = _simulate(rigid, tr, s.site or Site(), s.every, s.year, gen)
+    hidx, sun, aim, steps = _simulate(rigid, records, s.site or Site(), s.every, s.year, gen)
     b_steps, frac = _base_steps(base, hidx, aim, sun)
     x_sim, y_sim = _inputs(sun, aim, reference[hidx], frac), steps - b_steps
     fine = torch.isfinite(x_sim).all(-1) & torch.isfinite(y_sim).all(-1)
@@ -387,18 +370,17 @@ def fit_mlp_method(nominal, train, validation, *, seed: int = 0, progress: bool 
     nets = StepNetworks(net, *_standardisation(x_sim, y_sim, hidx, h, s.output_unit))
     pretrain_rms = _pretrain(nets, x_sim, hidx, y_sim, 0 if on_rigid else s.pretrain_steps, s.lr,
                              0 if on_rigid else s.polish_steps)
+    pretrained = nets.with_net(_copy_net(net))
     # Rehearsal during fine-tuning: a fixed subsample of the pretraining samples keeps the network at its
     # rigid body away from the training records (with 20-30 records it would otherwise wander there).
-    keep = torch.randperm(len(hidx), generator=gen)[:min(len(hidx), 256 * h)].to(hidx.device)
-    x_anchor, h_anchor, y_anchor = x_sim[keep], hidx[keep], y_sim[keep]
-    model = MLPModel("mlp", list(train.heliostat_ids), nominal, STONE8, delta, ok,
-                     extras={"nets": nets, "reference": reference, "base": base,
-                             "use_net": torch.ones(h, dtype=torch.bool, device=like.device)})
-    # 2. fine-tuning on the training records in cycles with growing data; early stopping on validation
-    b_tr, f_tr = _base_steps(base, tr.heliostat_index, tr.spot, tr.sun)
-    x_tr, y_tr = _inputs(tr.sun, tr.spot, reference[tr.heliostat_index], f_tr), tr.motor_steps - b_tr
+    keep_rows = torch.randperm(len(hidx), generator=gen)[:min(len(hidx), 256 * h)].to(hidx.device)
+    x_anchor, h_anchor, y_anchor = x_sim[keep_rows], hidx[keep_rows], y_sim[keep_rows]
+    # 2. fine-tuning on the training records in cycles with growing data, a fixed number of steps
+    b_tr, f_tr = _base_steps(base, records.heliostat_index, records.spot, records.sun)
+    x_tr = _inputs(records.sun, records.spot, reference[records.heliostat_index], f_tr)
+    y_tr = records.motor_steps - b_tr
     good = torch.isfinite(x_tr).all(-1) & torch.isfinite(y_tr).all(-1)
-    cycles = [m & good for m in _growing(tr, max(1, s.cycles))]
+    cycles = [m & good for m in _growing(records, max(1, s.cycles))]
     per_cycle = max(1, s.finetune_steps // len(cycles))
     opt = torch.optim.Adamax(net.parameters(), lr=s.finetune_lr)
     counter = [0]
@@ -407,50 +389,102 @@ def fit_mlp_method(nominal, train, validation, *, seed: int = 0, progress: bool 
         m = cycles[min(counter[0] // per_cycle, len(cycles) - 1)]
         counter[0] += 1
         opt.zero_grad()
-        loss = _huber(nets.increments(x_tr[m], tr.heliostat_index[m]), y_tr[m])
+        loss = _huber(nets.increments(x_tr[m], records.heliostat_index[m]), y_tr[m])
         if s.rehearsal:
             loss = loss + s.rehearsal * _huber(nets.increments(x_anchor, h_anchor), y_anchor)
         loss.backward()
         opt.step()
         return loss
 
-    def errors(net_rows=None, use=True):
-        if not len(va):  # no validation records (e.g. the online split's first rounds): nothing to score
-            return like.new_zeros((0,))
-        model.extras["use_net"] = torch.full((h,), use, dtype=torch.bool, device=like.device)
-        if net_rows is not None:
-            model.extras["nets"] = nets.with_net(net_rows)
-        try:
-            return model.pointing_error(va)
-        finally:
-            model.extras["nets"] = nets
-
-    def val_err():
-        if not len(va):
-            return like.new_full((h,), float("inf"))
-        return metrics.per_heliostat_mean(errors(), va.heliostat_index, h)
-
-    rigid_val = val_err_of(errors(use=False), va, h, like)
-    pretrain_val = val_err()
+    total = len(cycles) * per_cycle
     state = State(lambda: _copy_net(net), lambda best, rows: best.copy_rows(net, rows.repeat_interleave(2)))
-    log = early_stopping_fit(step, val_err, state, len(cycles) * per_cycle, validated=va.counts() > 0,
-                             check_every=10, progress=progress, desc="mlp finetune")
-    best, best_err = log.best, log.best_error
-    nets = nets.with_net(best)
-    # 3. fallback: the network only where validation says it helps; elsewhere the rigid body refitted on
-    # every record the method may see (as lm does)
-    if len(va):
-        use_net, why = _keep_network(errors(use=False), errors(best), va.heliostat_index, h)
-    else:
-        use_net, why = torch.zeros(h, dtype=torch.bool, device=like.device), {}
-    # (exactly lm: bagged, on train + validation; an unbagged refit alone loses ~0.05-0.2 mrad to lm)
-    refit = fit_lm_method(nominal, train, validation, seed=seed, plant_prior=plant_prior, field_prior=s.field_prior,
-                          fit_focal_spot=s.fit_focal_spot).delta.to(like)
-    delta = torch.where(use_net.unsqueeze(-1), delta, refit)
+    # The shared loop (for --resume checkpoints) with nothing validated: every heliostat keeps its final state.
+    log = early_stopping_fit(step, lambda: like.new_full((h,), float("inf")), state, total,
+                             validated=torch.zeros(h, dtype=torch.bool, device=like.device), check_every=total,
+                             progress=progress, desc=desc)
+    model = MLPModel("mlp", list(records.heliostat_ids), nominal, STONE8, delta, ok,
+                     extras={"nets": nets.with_net(log.best), "reference": reference, "base": base,
+                             "use_net": ok.clone()})
+    return model, pretrained, pretrain_rms, len(hidx)
+
+
+def _check_errors(model: MLPModel, batch: RecordTable, nets: StepNetworks | None = None,
+                  use: bool = True) -> torch.Tensor:
+    """Pointing error [R] [rad] of ``batch`` under ``model`` with ``nets`` (default its own), every network used
+    (``use``) or none."""
+    h = model.nominal.num_heliostats
+    if not len(batch):
+        return batch.spot.new_zeros(0)
+    old_nets, old_use = model.extras["nets"], model.extras["use_net"]
+    model.extras["use_net"] = torch.full((h,), use, dtype=torch.bool, device=old_use.device)
+    model.extras["nets"] = old_nets if nets is None else nets
+    try:
+        return model.pointing_error(batch)
+    finally:
+        model.extras["nets"], model.extras["use_net"] = old_nets, old_use
+
+
+def fit_mlp_method(nominal, train, validation, *, seed: int = 0, progress: bool = False,
+                   settings: MLPSettings | None = None, plant_prior=None, **options) -> MLPModel:
+    """``mlp``: per-heliostat, per-axis networks from (sun, aim) to motor steps where they earn their place (module
+    docstring).
+
+    ``settings`` (:class:`MLPSettings`, default its defaults) and/or its fields by keyword (``options``,
+    replacing ``settings``'s); ``plant_prior`` (:class:`~heliotwin.calibrate.priors.PlantPrior`): the rigid
+    body's prior and the base's mean. The networks follow the nominal kinematics' dtype and device; every
+    random draw takes ``seed``.
+    """
+    s = replace(settings or MLPSettings(), **options)
+    if s.base not in ("rigid", "nominal"):
+        raise ValueError(f"base must be 'rigid' or 'nominal', got {s.base!r}")
+    prior_mean = None if plant_prior is None else plant_prior.mean
+    h, like = nominal.num_heliostats, nominal.position
+    lm_opts = dict(seed=seed, plant_prior=plant_prior, field_prior=s.field_prior, fit_focal_spot=s.fit_focal_spot)
+    # The fallback, and the rigid body under a kept network: exactly lm on every record the method may see.
+    rigid = fit_lm_method(nominal, train, validation, **lm_opts)
+    ok = rigid.ok
+    seen = RecordTable.concatenate([train, validation]) if validation is not None and len(validation) else train
+    folds = [(restrict(a, ok), restrict(v, ok)) for a, v in keep.check_folds(train, validation)]
+    testable = ok.clone()
+    for a, v in folds:
+        testable &= trainable(a) & (v.counts() >= s.min_check)
+    gen = torch.Generator().manual_seed(int(seed))
+    inf = like.new_full((h,), float("inf"))
+    pre_err, fin_err, rig_err = inf, inf, inf
+    pretrain_rms, samples = 0.0, 0
+    fold_errors = []
+    for a, v in folds:
+        # per block: both candidates on the records before it only, their errors on it (the report's validation
+        # errors: the last block's)
+        va = restrict(v, testable)
+        if not bool(testable.any()):
+            fold_errors.append((like.new_zeros(0), like.new_zeros(0), va.heliostat_index))
+            continue
+        base_delta = fit_lm_method(nominal, a, None, **lm_opts).delta.to(like)
+        base_delta[~testable] = 0.0
+        cand, pretrained, pretrain_rms, samples = _candidate(
+            nominal, fit_spots(restrict(a, testable), s.fit_focal_spot), base_delta, testable, s, gen,
+            progress, "mlp finetune (keep check)", prior_mean)
+        e_rigid, e_net = _check_errors(cand, va, use=False), _check_errors(cand, va)
+        fold_errors.append((e_rigid, e_net, va.heliostat_index))
+        pre_err = val_err_of(_check_errors(cand, va, pretrained), va, h, like)
+        fin_err, rig_err = val_err_of(e_net, va, h, like), val_err_of(e_rigid, va, h, like)
+    use_net, evidence = keep.fold_gain_test(fold_errors, h, testable=testable, level=s.level, min_check=s.min_check)
+    keep.explain_untested(evidence, [v for _, v in folds], testable, s.min_check)
+    use_net = use_net.to(like.device) & testable
+    delta = rigid.delta.to(like).clone()
     delta[~ok] = 0.0
-    model = MLPModel("mlp", list(train.heliostat_ids), nominal, STONE8, delta, ok,
-                     extras={"nets": nets, "reference": reference, "base": base, "use_net": use_net})
-    _describe(model, ok, use_net, why, pretrain_val, best_err, rigid_val, len(hidx), s)
+    if bool(use_net.any()):
+        # 3. a kept network is refitted on every record, on top of lm's rigid body of the same records
+        model, _, pretrain_rms, samples = _candidate(nominal, fit_spots(restrict(seen, use_net), s.fit_focal_spot),
+                                                     delta, ok, s, gen, progress, "mlp finetune", prior_mean)
+        model.extras["use_net"] = use_net
+    else:
+        base = _base_kinematics(nominal, apply_deviations(nominal, delta, STONE8), s, prior_mean)
+        model = MLPModel("mlp", list(train.heliostat_ids), nominal, STONE8, delta, ok,
+                         extras={"nets": _zero_networks(h, like, s, gen), "reference": like.new_zeros(h, 3),
+                                 "base": base, "use_net": use_net})
+    _describe(model, ok, use_net, evidence, pre_err, fin_err, rig_err, samples, s)
     model.extras["summary"]["pretraining_rms_increments"] = pretrain_rms
     return model
 
@@ -470,7 +504,7 @@ def _copy_net(net: BatchedMLP) -> BatchedMLP:
     return out
 
 
-def _describe(model, ok, use_net, why, pretrain_err, best_err, rigid_val, samples: int, s: MLPSettings) -> None:
+def _describe(model, ok, use_net, evidence, pretrain_err, best_err, rigid_val, samples: int, s: MLPSettings) -> None:
     """Per-heliostat report, stored networks and summary of a fitted MLP model (into ``model.extras``)."""
     def mrad(x):
         return float(x) * 1e3 if math.isfinite(x) else None
@@ -481,7 +515,8 @@ def _describe(model, ok, use_net, why, pretrain_err, best_err, rigid_val, sample
     model.extras["per_heliostat"] = {hid: {"validation_after_pretraining_mrad": mrad(pretrain_err[i]),
                                            "validation_after_finetuning_mrad": mrad(best_err[i]),
                                            "rigid_validation_mrad": mrad(rigid_val[i]),
-                                           "uses_network": bool(use_net[i]), "fallback_reason": why.get(i)}
+                                           "uses_network": bool(use_net[i]),
+                                           "fallback_reason": evidence[i]["reason"], "keep_test": evidence[i]}
                                      for i, hid in enumerate(ids) if bool(ok[i])}
     networks = {}
     for i, hid in enumerate(ids):
@@ -494,7 +529,11 @@ def _describe(model, ok, use_net, why, pretrain_err, best_err, rigid_val, sample
         networks[hid] = {"config": cfg, "state": state}
     model.extras["networks"] = networks
     model.extras["summary"] = {"pretraining_samples": samples, "hidden": s.hidden, "depth": s.depth,
-                               "cycles": s.cycles, "heliostats_using_network": int((use_net & ok).sum())}
+                               "cycles": s.cycles, "heliostats_using_network": int((use_net & ok).sum()),
+                               "keep_rule": {"test": "one-sided Wilcoxon signed-rank on paired validation errors, "
+                                                     "Benjamini-Hochberg over the heliostats",
+                                             "level": s.level, "min_check": s.min_check,
+                                             "check_fraction_without_validation": keep.CHECK_FRACTION}}
 
 
 def aim_mlp(net_entry: dict, kin, sun: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
