@@ -149,7 +149,7 @@ def test_receiver_maps_name_time_sun_limit_and_where_the_angle_axis_starts(demo)
     fig = plot_receiver_flux({"equator aiming": result.flux}, receiver, limit_w_m2=limit,
                              instant={"time_utc": "2023-03-20T11:30:00+00:00", "sun_enu": SUN})
     title = fig._suptitle.get_text()
-    assert "2023-03-20 11:30 UTC" in title and "sun azimuth" in title and "elevation 40.1°" in title
+    assert "2023-03-20T11:30Z" in title and "sun azimuth" in title and "elevation 40.1°" in title
     ax = fig.axes[0]
     assert any(type(c).__name__ in ("QuadContourSet", "ContourSet") for c in ax.collections + ax.get_children())
     assert any(f"limit {limit / 1e3:.0f} kW/m²" in t.get_text() for t in ax.get_legend().get_texts())

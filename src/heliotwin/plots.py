@@ -16,6 +16,7 @@ from .io.images import load_measured_image
 from .io.report import save_figure
 from .raytrace.field import FACTORS
 from .raytrace.flux import target_extent
+from .timefmt import paint_angles_deg, sun_text, utc_or_label
 
 __all__ = ["draw_flux", "draw_measured_image", "plot_flux", "plot_demo", "plot_field_demo", "plot_validation",
            "plot_receiver_flux", "receiver_extent", "plot_prediction", "loss_waterfall", "plot_loss_waterfall",
@@ -231,6 +232,8 @@ def plot_field_demo(folder, plant, before, aimed, rep, limit: float, time_utc: s
     """
     pos = plant.field.kinematics.position.numpy()
     sun = rep["sun"]
+    instant = {"time_utc": time_utc, "sun_enu": sun.get("direction_enu")}
+    when = instant_line(instant)  # the one time format, the sun in PAINT's convention, labelled
     e = rep["field"]["efficiency_power_weighted"]
     fig = Figure(figsize=(7, 6))
     ax = fig.add_subplot()
@@ -238,19 +241,17 @@ def plot_field_demo(folder, plant, before, aimed, rep, limit: float, time_utc: s
     ax.plot([0.0], [0.0], marker="^", color="k", markersize=8, linestyle="none", label="tower")
     fig.colorbar(sc, ax=ax, label="optical efficiency per heliostat [-]")
     ax.set(xlabel="east [m]", ylabel="north [m]", aspect="equal",
-           title=f"{len(pos)} heliostats, {time_utc[:16]} UTC (sun el {sun['elevation_deg']:.1f} deg)\n"
-                 f"field efficiency {e['total']:.3f} (power-weighted)")
+           title=f"{len(pos)} heliostats, {when}\nfield efficiency {e['total']:.3f} (power-weighted)")
     ax.legend(loc="lower right")
     save_figure(fig, folder / "field_efficiency.png")
 
     plot_loss_waterfall(rep["losses"], rep["dni_w_m2"] * rep["mirror_area_m2"], folder / "losses.png",
-                        title=f"{len(pos)} heliostats, {time_utc[:16]} UTC (sun el {sun['elevation_deg']:.1f} deg)")
+                        title=f"{len(pos)} heliostats, {when}")
 
     receiver = plant.targets["receiver"]
     maps = {"equator aiming": before.flux, "optimised aim points": aimed.flux}
     powers = {"equator aiming": rep["receiver"]["power_w"], "optimised aim points": aimed.power_w}
     vmax = max(float(before.flux.max()), float(aimed.flux.max()))
-    instant = {"time_utc": time_utc, "sun_enu": sun.get("direction_enu")}
     plot_receiver_flux(maps, receiver, folder / "flux_before_after.png", limit_w_m2=limit, powers_w=powers,
                        title=f"{len(pos)} heliostats: peak-flux limit {limit / 1e3:.0f} kW/m²", instant=instant)
     for name, label in (("flux_equator", "equator aiming"), ("flux_optimised", "optimised aim points")):
@@ -338,28 +339,27 @@ def _compass(azimuth_deg: float) -> str:
 
 def angle_origin(receiver) -> str:
     """Where 0 deg of a cylindrical receiver's angle axis points, in words: ``"0° = aperture normal, facing
-    N (azimuth 0°); + towards E"`` (azimuths clockwise from north [deg], of the horizontal parts of the
-    receiver's ``normal`` and ``right``)."""
+    N (compass bearing 0°); + towards E"`` (bearings clockwise from north [deg], of the horizontal parts of the
+    receiver's ``normal`` and ``right``: a direction on the ground, named so, never a sun azimuth)."""
     n, r = (v.detach().cpu().to(torch.float64).tolist() for v in (receiver.normal, receiver.right))
     az = float(np.degrees(np.arctan2(n[0], n[1]))) % 360.0
     az_r = float(np.degrees(np.arctan2(r[0], r[1]))) % 360.0
-    return f"0° = aperture normal, facing {_compass(az)} (azimuth {az:.0f}°); + towards {_compass(az_r)}"
+    return f"0° = aperture normal, facing {_compass(az)} (compass bearing {az:.0f}°); + towards {_compass(az_r)}"
 
 
 def instant_line(instant: dict | None) -> str:
-    """``"2023-03-20 11:30 UTC, sun azimuth 172.4° el 38.1°"`` of ``instant`` (``time_utc`` ISO text and/or
-    ``sun_enu`` [3], the unit vector towards the sun, ENU); azimuth clockwise from north [deg]."""
+    """``"2023-03-20T11:30Z, sun azimuth 7.6° (PAINT: 0 = south, +90 = east), elevation 38.1°"`` of ``instant``
+    (``time_utc`` ISO text and/or ``sun_enu`` [3], the unit vector towards the sun, ENU): the time in the one
+    format of :func:`heliotwin.timefmt.utc_text`, the sun in PAINT's convention, the convention of the flags and
+    the JSON (:func:`heliotwin.timefmt.sun_text`)."""
     if not instant:
         return ""
     parts = []
     if instant.get("time_utc"):
-        parts.append(f"{str(instant['time_utc'])[:16].replace('T', ' ')} UTC")
+        parts.append(utc_or_label(str(instant["time_utc"])))  # a label may name the sun angles instead
     sun = instant.get("sun_enu")
     if sun is not None:
-        e, n, u = (float(v) for v in (sun.tolist() if torch.is_tensor(sun) else sun))
-        az = float(np.degrees(np.arctan2(e, n))) % 360.0
-        el = float(np.degrees(np.arcsin(max(-1.0, min(1.0, u)))))
-        parts.append(f"sun azimuth {az:.1f}° elevation {el:.1f}°")
+        parts.append(sun_text(*paint_angles_deg(sun)))
     return ", ".join(parts)
 
 

@@ -15,7 +15,8 @@ from __future__ import annotations
 import datetime as _dt
 import math
 
-__all__ = ["UTC_PATTERN", "AZIMUTH_CONVENTION", "AZIMUTH_LABEL", "utc_text", "sun_text", "paint_angles_deg"]
+__all__ = ["UTC_PATTERN", "AZIMUTH_CONVENTION", "AZIMUTH_LABEL", "utc_text", "utc_or_label", "sun_text",
+           "paint_angles_deg"]
 
 #: The one time format of figures, the report and headlines (a regular expression).
 UTC_PATTERN = r"\d{4}-\d{2}-\d{2}T\d{2}:\d{2}Z"
@@ -45,6 +46,15 @@ def utc_text(when) -> str | None:
             return None
         t = _dt.datetime.fromtimestamp(seconds, _dt.timezone.utc)
     return t.strftime("%Y-%m-%dT%H:%MZ")
+
+
+def utc_or_label(label) -> str:
+    """:func:`utc_text` of a label that is a time; any other label (an instant named by its sun angles, a
+    free-text name) as it is; ``"?"`` for none."""
+    try:
+        return utc_text(label) or "?"
+    except (ValueError, TypeError):
+        return str(label)
 
 
 def paint_angles_deg(sun_enu) -> tuple[float, float]:

@@ -157,6 +157,8 @@ def cmd_daily(args) -> int:
         if json_path:
             write_json(json_path, report)
     if not args.quiet:
+        from ..timefmt import utc_or_label
+
         print_update_summary(report["update"])
         plan = report["plan"]
         print(f"planned {report['day']}: {report.get('day_reason', '')}")
@@ -167,7 +169,7 @@ def cmd_daily(args) -> int:
         else:
             for e in aim["instants"]:
                 standby = e.get("standby_heliostats", 0)
-                print(f"aim points {e['instant']}: peak {e['peak_flux_w_m2'] / 1e3:.1f} kW/m2 (limit "
+                print(f"aim points {utc_or_label(e['instant'])}: peak {e['peak_flux_w_m2'] / 1e3:.1f} kW/m2 (limit "
                       f"{aim['peak_limit_w_m2'] / 1e3:.1f}{'' if e['limit_met'] else ', NOT held'})"
                       + (f"; {standby} heliostat(s) on standby, {e['power_w'] / 1e3:.3g} of "
                          f"{e['equator_power_w'] / 1e3:.3g} kW" if standby and e.get("equator_power_w") else ""))
@@ -206,8 +208,7 @@ def _mrad(x) -> str:
 
 
 def cmd_history(args) -> int:
-    import datetime as dt
-
+    from ..timefmt import utc_text
     from ..workflows.update import state_history
 
     with output_set([("--scenario", args.scenario)]) as out:
@@ -221,7 +222,7 @@ def cmd_history(args) -> int:
     cols = [names.index(n) for n in ("initial_angle_1", "initial_angle_2") if n in names]
     print(f"{hist['heliostat']}: {len(hist['time'])} assimilated record(s)")
     for i in range(len(hist["time"])):
-        when = dt.datetime.fromtimestamp(float(hist["time"][i]), dt.timezone.utc).isoformat(timespec="minutes")
+        when = utc_text(float(hist["time"][i]))
         offs = ", ".join(f"{1e3 * hist['mean'][i][c]:+.3f}+-{1e3 * hist['variance'][i][c] ** 0.5:.3f}" for c in cols)
         print(f"  {when} record {int(hist['record_id'][i])}: predicted error {1e3 * hist['predicted_error'][i]:.3f} "
               f"mrad, d2 {hist['d2'][i]:.1f}{'  STEP ALARM' if hist['alarm'][i] else ''}; axis offsets [mrad] {offs}")

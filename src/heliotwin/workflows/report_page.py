@@ -19,7 +19,7 @@ import numpy as np
 
 from ..errors import HeliotwinError
 from ..plots import angle_origin, instant_line
-from ..timefmt import AZIMUTH_CONVENTION, AZIMUTH_LABEL, utc_text
+from ..timefmt import AZIMUTH_CONVENTION, AZIMUTH_LABEL, utc_or_label, utc_text
 
 try:  # a declared dependency; the message below says what to do where it is missing
     import plotly.graph_objects as go
@@ -333,19 +333,11 @@ def _tomorrow_table(t: dict | None, detail_ids: set) -> str:
             "after this record [mrad]</th></tr>" + "".join(rows) + "</table>")
 
 
-def _utc_or_text(text) -> str:
-    """A provenance step's time in the page's one format (its own text when that is not a time)."""
-    try:
-        return utc_text(text) or "?"
-    except (ValueError, TypeError):
-        return str(text)
-
-
 def _provenance(described: dict) -> str:
     rows = []
     for i, s in enumerate(described.get("provenance") or [], 1):
         how = ", ".join(f"{_e(k)}={_e(v)}" for k, v in s.items() if k not in ("step", "utc", "heliotwin"))
-        rows.append(f"<tr><td>{i}</td><td>{_e(_utc_or_text(s.get('utc')))}</td><td>{_e(s.get('step', '?'))}</td>"
+        rows.append(f"<tr><td>{i}</td><td>{_e(utc_or_label(s.get('utc')))}</td><td>{_e(s.get('step', '?'))}</td>"
                     f"<td>{how}</td><td>{_e(s.get('heliotwin', '?'))}</td></tr>")
     return ("<table id='provenance'><tr><th>#</th><th>UTC</th><th>step</th><th>inputs and settings</th>"
             "<th>heliotwin</th></tr>" + "".join(rows) + "</table>")
