@@ -38,14 +38,15 @@ def test_plan_proposes_sun_positions_away_from_the_training_sky(tmp_path):
     sc = scenario_round_trip(tmp_path, kin, model)
     ans = plan(sc, "S0", year=2023, every="2h", count=3, sky=True)
     assert ans["candidates"] > 100
-    rms = [ans["rms_now_mrad"]] + [p["rms_after_mrad"] for p in ans["proposals"]]
+    rms = [ans["spread_now_mrad"]] + [p["spread_after_mrad"] for p in ans["proposals"]]
     assert all(a > b for a, b in zip(rms, rms[1:])) and rms[-1] < 0.8 * rms[0], rms
     assert ans["proposals"][0]["sun_azimuth_deg"] < 0, ans["proposals"]  # west
-    # The sky map's spread per candidate: its mean square is the objective, and the unseen west is the
-    # least sure part of the sky.
+    # The sky map's error per candidate: its mean square over the year's sun positions every 2 h is the
+    # spread (the same year's, sampled every 25 h), and the unseen west is the least sure part of the sky.
     sky = ans["sky"]
     assert len(sky["std_now_mrad"]) == ans["candidates"]
-    assert math.isclose(float((sky["std_now_mrad"] ** 2).mean()), ans["rms_now_mrad"] ** 2, rel_tol=1e-9)
+    assert math.isclose(float((sky["std_now_mrad"] ** 2).mean()), ans["spread_now_mrad"] ** 2, rel_tol=0.1), (
+        float((sky["std_now_mrad"] ** 2).mean()), ans["spread_now_mrad"] ** 2)
     west, east = sky["sun_azimuth_deg"] < -30, sky["sun_azimuth_deg"] > 30
     assert np.median(sky["std_now_mrad"][west]) > 2 * np.median(sky["std_now_mrad"][east])
 
@@ -63,7 +64,7 @@ def test_plan_command(tmp_path, capsys):
             "--every", "3h", "--count", "2", "--json", str(js)]
     assert main(argv) == 0
     report = json.loads(js.read_text())
-    assert len(report["proposals"]) == 2 and "mrad now" in capsys.readouterr().out
+    assert len(report["proposals"]) == 2 and "predicted pointing spread on 2023-01-01" in capsys.readouterr().out
     assert report["plots"] == ["plan-plan.png"] and "sky" not in report
     with Image.open(tmp_path / "plan-plan.png") as im:
         assert im.size[0] > 400

@@ -14,9 +14,10 @@ from heliotwin.field.demo import (
     demo_field_plant,
     demo_field_positions,
 )
+from heliotwin.plots import loss_waterfall
 from heliotwin.raytrace.field import FACTORS, field_optics, summary
 from heliotwin.sun import direction_from_paint_angles
-from heliotwin.workflows.demo import run_field_demo
+from heliotwin.workflows.demo import CHAIN, run_field_demo
 
 
 def test_demo_field_is_a_northern_radial_staggered_field_of_julich_extent():
@@ -65,17 +66,32 @@ def test_run_field_demo_writes_figures_and_a_consistent_summary(tmp_path):
     assert a["violation"] == 0.0 and a["optimised_peak_w_m2"] <= a["peak_limit_w_m2"]  # met on the exact map
     assert a["power_vs_equator"] > 0.98
     assert rep["field"]["efficiency"]["total"] == pytest.approx(saved["field"]["efficiency"]["total"])
-    # the loss chain adds up: DNI x mirror area = receiver power + every stage's loss
-    lost = sum(saved["losses"][k]["power_w"] for k in FACTORS)
-    assert saved["dni_w_m2"] * saved["mirror_area_m2"] == pytest.approx(saved["receiver"]["power_w"] + lost, rel=1e-9)
+    # the demo's loss chain holds the tower's shadow (after the heliostats' own shading) and adds up: DNI x mirror
+    # area = the chain's power on the receiver + every stage's loss
+    chain = saved["chain"]
+    assert list(saved["losses"]) == list(CHAIN) == ["cosine", "shading", "tower_shading", *FACTORS[2:]]
+    lost = sum(saved["losses"][k]["power_w"] for k in CHAIN)
+    assert saved["dni_w_m2"] * saved["mirror_area_m2"] == pytest.approx(chain["power_w"] + lost, rel=1e-9)
+    # the 40 heliostats nearest the tower, north of it, with a noon sun in the south: its shadow takes a real share,
+    # and the chain's MW is the field model's (which leaves the shadow out, per heliostat in the CSV) times it
+    assert 0.02 < saved["losses"]["tower_shading"]["fraction"] < 0.5
     rows = list(csv.DictReader(open(tmp_path / "heliostats.csv")))
     assert len(rows) == 40 and sum(float(r["power_w"]) for r in rows) == pytest.approx(saved["receiver"]["power_w"])
+    assert chain["power_w"] == pytest.approx(chain["tower_shading_power_weighted"] * saved["receiver"]["power_w"])
+    assert chain["power_w"] < 0.98 * saved["receiver"]["power_w"]
+    assert chain["efficiency"] == pytest.approx(chain["power_w"] / (saved["dni_w_m2"] * saved["mirror_area_m2"]))
+    # the waterfall draws the shadow as its own falling bar, and what reaches the receiver is the chain's share
+    steps = loss_waterfall(saved["losses"], saved["dni_w_m2"] * saved["mirror_area_m2"])
+    assert [st["name"] for st in steps] == list(CHAIN)
+    assert 100.0 - sum(st["lost_pct"] for st in steps) == pytest.approx(100.0 * chain["efficiency"], rel=1e-9)
 
 
 def test_demo_command_runs_the_field_and_stages_its_outputs(tmp_path, capsys):
     out, js = tmp_path / "demo", tmp_path / "demo.json"
     code, stdout, _ = run_cli(capsys, "demo", "-o", out, "--heliostats", "30", "--iterations", "3", "--json", js)
     assert code == 0 and "field efficiency" in stdout
+    chain = json.loads(js.read_text())["chain"]
+    assert f"{chain['power_w'] / 1e6:.2f} MW on the receiver (the tower's shadow included" in stdout
     saved = json.loads((out / "summary.json").read_text())
     assert json.loads(js.read_text())["receiver"] == saved["receiver"] and saved["heliostats"] == 30
     assert 0.5 < saved["field"]["efficiency_power_weighted"]["total"] < 0.95

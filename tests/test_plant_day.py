@@ -248,7 +248,7 @@ def test_daily_updates_plans_and_aims_in_one_step_and_flags_an_alarm(calibrated,
     report = json.loads((tmp_path / "d.json").read_text())
     assert [a["heliostat"] for a in report["update"]["alarms"]] == [hid]
     assert report["plan"]["proposals"][0]["heliostat"] == hid and len(report["plan"]["proposals"]) == 3
-    assert report["plan"]["proposals"][0]["rms_after_mrad"] < report["plan"]["proposals"][0]["rms_now_mrad"]
+    assert report["plan"]["proposals"][0]["spread_after_mrad"] < report["plan"]["proposals"][0]["spread_now_mrad"]
     assert report["aimpoints"]["instants"][0]["peak_flux_w_m2"] <= 300000 * (1 + 1e-6)
     after = load_scenario(plant_file)
     assert len(after.provenance) == len(before.provenance) + 1 and after.provenance[-1]["step"] == "daily"

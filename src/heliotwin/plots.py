@@ -14,8 +14,8 @@ from matplotlib.figure import Figure
 from .field.targets import CylinderTarget
 from .io.images import load_measured_image
 from .io.report import save_figure
-from .raytrace.field import FACTORS
 from .raytrace.flux import target_extent
+from .timefmt import paint_angles_deg, sun_text, utc_or_label
 
 __all__ = ["draw_flux", "draw_measured_image", "plot_flux", "plot_demo", "plot_field_demo", "plot_validation",
            "plot_receiver_flux", "receiver_extent", "plot_prediction", "loss_waterfall", "plot_loss_waterfall",
@@ -223,7 +223,9 @@ def plot_field_demo(folder, plant, before, aimed, rep, limit: float, time_utc: s
     aimed : heliotwin.optimise.aimpoints.AimResult
         Optimised aim points (flux [rows, cols] [W/m^2], power [W]).
     rep : dict
-        The demo's report so far (``sun``, ``field``, ``receiver``, ``losses``).
+        The demo's report so far (``sun``, ``field``, ``receiver``, ``losses`` and ``chain``: the demo's chain
+        with the tower's shadow, in the efficiency map, its title and the waterfall; the receiver maps are the
+        field model's, without it, and say so).
     limit : float
         Peak-flux limit [W/m^2].
     time_utc : str
@@ -231,42 +233,55 @@ def plot_field_demo(folder, plant, before, aimed, rep, limit: float, time_utc: s
     """
     pos = plant.field.kinematics.position.numpy()
     sun = rep["sun"]
-    e = rep["field"]["efficiency_power_weighted"]
+    instant = {"time_utc": time_utc, "sun_enu": sun.get("direction_enu")}
+    when = instant_line(instant)  # the one time format, the sun in PAINT's convention, labelled
+    chain = rep.get("chain") or {}
     fig = Figure(figsize=(7, 6))
     ax = fig.add_subplot()
-    sc = ax.scatter(pos[:, 0], pos[:, 1], c=before.efficiency.numpy(), s=5, cmap="viridis")
+    # the demo's chain: each heliostat's efficiency with the tower's shadow (the field model's product leaves it out)
+    sc = ax.scatter(pos[:, 0], pos[:, 1], c=(before.efficiency * before.tower_shading).numpy(), s=5, cmap="viridis")
     ax.plot([0.0], [0.0], marker="^", color="k", markersize=8, linestyle="none", label="tower")
-    fig.colorbar(sc, ax=ax, label="optical efficiency per heliostat [-]")
+    fig.colorbar(sc, ax=ax, label="optical efficiency per heliostat, tower's shadow included [-]")
+    total = chain.get("efficiency", rep["field"]["efficiency_power_weighted"]["total"])
     ax.set(xlabel="east [m]", ylabel="north [m]", aspect="equal",
-           title=f"{len(pos)} heliostats, {time_utc[:16]} UTC (sun el {sun['elevation_deg']:.1f} deg)\n"
-                 f"field efficiency {e['total']:.3f} (power-weighted)")
+           title=f"{len(pos)} heliostats, {when}\nfield efficiency {total:.3f} (power-weighted, tower's shadow "
+                 "included)")
     ax.legend(loc="lower right")
     save_figure(fig, folder / "field_efficiency.png")
 
     plot_loss_waterfall(rep["losses"], rep["dni_w_m2"] * rep["mirror_area_m2"], folder / "losses.png",
-                        title=f"{len(pos)} heliostats, {time_utc[:16]} UTC (sun el {sun['elevation_deg']:.1f} deg)")
+                        title=f"{len(pos)} heliostats, {when}")
 
     receiver = plant.targets["receiver"]
     maps = {"equator aiming": before.flux, "optimised aim points": aimed.flux}
     powers = {"equator aiming": rep["receiver"]["power_w"], "optimised aim points": aimed.power_w}
     vmax = max(float(before.flux.max()), float(aimed.flux.max()))
-    instant = {"time_utc": time_utc, "sun_enu": sun.get("direction_enu")}
+    tower = chain.get("tower_shading_power_weighted")
+    without = ("" if tower is None else
+               f"\nmaps and MW without the tower's shadow ({100 * (1 - tower):.1f} % of the power: losses.png)")
     plot_receiver_flux(maps, receiver, folder / "flux_before_after.png", limit_w_m2=limit, powers_w=powers,
-                       title=f"{len(pos)} heliostats: peak-flux limit {limit / 1e3:.0f} kW/m²", instant=instant)
+                       title=f"{len(pos)} heliostats: peak-flux limit {limit / 1e3:.0f} kW/m²{without}",
+                       instant=instant)
     for name, label in (("flux_equator", "equator aiming"), ("flux_optimised", "optimised aim points")):
         plot_receiver_flux({label: maps[label]}, receiver, folder / f"{name}.png", limit_w_m2=limit,
-                           powers_w=powers, vmax_w_m2=vmax, instant=instant)
+                           powers_w=powers, vmax_w_m2=vmax, instant=instant, title=without.strip() or None)
 
 
 # ----------------------------------------------------------------------------------------- loss waterfall
+#: The waterfall's bar label of a chain stage where it is not the factor's name.
+STAGE_LABELS = {"tower_shading": "tower shadow"}
+
+
 def loss_waterfall(losses: dict, dni_area_w: float) -> list[dict]:
     """The steps of the loss waterfall: from the DNI on the mirror area down to the receiver.
 
     Parameters
     ----------
     losses : dict
-        Per factor of :data:`~heliotwin.raytrace.field.FACTORS` (in chain order) ``{"power_w": lost [W]}``:
-        the power lost at that stage of the chain (cosine first, reflectance last), as the demo's report holds it.
+        Per stage of the chain, in chain order, ``{"power_w": lost [W]}``: the power lost at that stage (cosine
+        first, reflectance last), as the demo's report holds it (:data:`~heliotwin.raytrace.field.FACTORS`, and
+        in the demo the tower's shadow, ``tower_shading``, after the heliostats' shading); entries that are not
+        such dicts are skipped.
     dni_area_w : float
         DNI x total mirror area [W]: the top of the waterfall.
 
@@ -279,7 +294,7 @@ def loss_waterfall(losses: dict, dni_area_w: float) -> list[dict]:
     """
     total = max(float(dni_area_w), 1e-30)
     remaining, steps = total, []
-    for name in FACTORS:
+    for name in [k for k, v in losses.items() if isinstance(v, dict) and "power_w" in v]:
         lost = float(losses[name]["power_w"])
         steps.append({"name": name, "lost_pct": 100.0 * lost / total, "top_pct": 100.0 * remaining / total,
                       "power_w": lost, "own_loss_pct": 100.0 * lost / max(remaining, 1e-30)})
@@ -312,7 +327,7 @@ def plot_loss_waterfall(losses: dict, dni_area_w: float, path=None, *, title: st
     left = steps[-1]["top_pct"] - steps[-1]["lost_pct"] if steps else 100.0
     fig = Figure(figsize=(8.5, 4.6), layout="constrained")
     ax = fig.add_subplot()
-    names = ["DNI x mirror area"] + [s["name"] for s in steps] + ["on the receiver"]
+    names = ["DNI x mirror area"] + [STAGE_LABELS.get(s["name"], s["name"]) for s in steps] + ["on the receiver"]
     ax.bar(names[0], 100.0, color="tab:gray")
     ax.annotate(f"100 %\n{dni_area_w / 1e6:.2f} MW", (0, 100.0), ha="center", va="bottom", fontsize=8)
     for i, s in enumerate(steps, 1):
@@ -338,28 +353,27 @@ def _compass(azimuth_deg: float) -> str:
 
 def angle_origin(receiver) -> str:
     """Where 0 deg of a cylindrical receiver's angle axis points, in words: ``"0° = aperture normal, facing
-    N (azimuth 0°); + towards E"`` (azimuths clockwise from north [deg], of the horizontal parts of the
-    receiver's ``normal`` and ``right``)."""
+    N (compass bearing 0°); + towards E"`` (bearings clockwise from north [deg], of the horizontal parts of the
+    receiver's ``normal`` and ``right``: a direction on the ground, named so, never a sun azimuth)."""
     n, r = (v.detach().cpu().to(torch.float64).tolist() for v in (receiver.normal, receiver.right))
     az = float(np.degrees(np.arctan2(n[0], n[1]))) % 360.0
     az_r = float(np.degrees(np.arctan2(r[0], r[1]))) % 360.0
-    return f"0° = aperture normal, facing {_compass(az)} (azimuth {az:.0f}°); + towards {_compass(az_r)}"
+    return f"0° = aperture normal, facing {_compass(az)} (compass bearing {az:.0f}°); + towards {_compass(az_r)}"
 
 
 def instant_line(instant: dict | None) -> str:
-    """``"2023-03-20 11:30 UTC, sun azimuth 172.4° el 38.1°"`` of ``instant`` (``time_utc`` ISO text and/or
-    ``sun_enu`` [3], the unit vector towards the sun, ENU); azimuth clockwise from north [deg]."""
+    """``"2023-03-20T11:30Z, sun azimuth 7.6° (PAINT: 0 = south, +90 = east), elevation 38.1°"`` of ``instant``
+    (``time_utc`` ISO text and/or ``sun_enu`` [3], the unit vector towards the sun, ENU): the time in the one
+    format of :func:`heliotwin.timefmt.utc_text`, the sun in PAINT's convention, the convention of the flags and
+    the JSON (:func:`heliotwin.timefmt.sun_text`)."""
     if not instant:
         return ""
     parts = []
     if instant.get("time_utc"):
-        parts.append(f"{str(instant['time_utc'])[:16].replace('T', ' ')} UTC")
+        parts.append(utc_or_label(str(instant["time_utc"])))  # a label may name the sun angles instead
     sun = instant.get("sun_enu")
     if sun is not None:
-        e, n, u = (float(v) for v in (sun.tolist() if torch.is_tensor(sun) else sun))
-        az = float(np.degrees(np.arctan2(e, n))) % 360.0
-        el = float(np.degrees(np.arcsin(max(-1.0, min(1.0, u)))))
-        parts.append(f"sun azimuth {az:.1f}° elevation {el:.1f}°")
+        parts.append(sun_text(*paint_angles_deg(sun)))
     return ", ".join(parts)
 
 

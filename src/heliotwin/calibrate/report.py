@@ -34,6 +34,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from ..io.report import save_figure
+from ..timefmt import AZIMUTH_LABEL
 
 #: Above this many heliostats the per-heliostat plots change form: one colour and legend entry per heliostat (sky),
 #: one bar pair per heliostat (heliostats) stop being readable, and a bar per heliostat of a 2,000-heliostat plant made
@@ -50,7 +51,7 @@ def plot_sky(path, arrays: dict, title: str = "") -> None:
     err = np.asarray(arrays["test_error_mrad"], dtype=float)
     few = len(ids) <= PER_HELIOSTAT_MOST
     cmap = matplotlib.colormaps["tab20"]
-    for ax, key, label in ((axes[0], "test_azimuth", "sun azimuth [deg] (0 = south, +90 = east)"),
+    for ax, key, label in ((axes[0], "test_azimuth", AZIMUTH_LABEL),
                            (axes[1], "test_elevation", "sun elevation [deg]")):
         x = np.degrees(np.asarray(arrays[key], dtype=float))
         if few:
@@ -77,25 +78,26 @@ def plot_sky(path, arrays: dict, title: str = "") -> None:
 
 def plot_plan(path, ans: dict) -> None:
     """Sky map of a :func:`heliotwin.calibrate.protocol.plan.plan` answer computed with ``sky=True``: every candidate
-    time at its sun azimuth (0 = south, + = east) and elevation [deg], coloured by the predictive spread of the
-    normal there now [mrad], and the proposed records numbered in the order they are taken."""
+    time at its sun azimuth (PAINT: 0 = south, +90 = east) and elevation [deg], coloured by the predicted error of
+    the normal there on the plan's day [mrad], and the proposed records numbered in the order they are taken; the
+    title gives the predicted pointing spread (:mod:`heliotwin.calibrate.spread`) before and after them."""
     grid = ans["sky"]
     fig = Figure(figsize=(8, 4.5))
     ax = fig.subplots()
     sc = ax.scatter(grid["sun_azimuth_deg"], grid["sun_elevation_deg"], c=grid["std_now_mrad"], s=6,
                     cmap=matplotlib.colormaps["viridis"])
-    fig.colorbar(sc, ax=ax, label="predictive spread of the normal now [mrad]")
+    fig.colorbar(sc, ax=ax, label=f"predicted error of the normal on {ans['spread_day']} [mrad]")
     for i, p in enumerate(ans["proposals"], 1):
         ax.scatter([p["sun_azimuth_deg"]], [p["sun_elevation_deg"]], s=90, facecolors="none", edgecolors="tab:red")
         ax.annotate(str(i), (p["sun_azimuth_deg"], p["sun_elevation_deg"]), xytext=(5, 5),
                     textcoords="offset points", color="tab:red")
-    after = ans["proposals"][-1]["rms_after_mrad"] if ans["proposals"] else np.nan
-    ax.set_xlabel("sun azimuth [deg] (0 = south, +90 = east)")
+    after = ans["proposals"][-1]["spread_after_mrad"] if ans["proposals"] else np.nan
+    ax.set_xlabel(AZIMUTH_LABEL)
     ax.set_ylabel("sun elevation [deg]")
     ax.invert_xaxis()  # east on the left, as a person facing south sees the sky
     ax.grid(alpha=0.3)
-    ax.set_title(f"{ans['heliostat']} ({ans['year']}, target {ans['target']}): spread {ans['rms_now_mrad']:.3f} -> "
-                 f"{after:.3f} mrad after {len(ans['proposals'])} records")
+    ax.set_title(f"{ans['heliostat']} (target {ans['target']}): predicted pointing spread on {ans['spread_day']} "
+                 f"{ans['spread_now_mrad']:.3f} -> {after:.3f} mrad after {len(ans['proposals'])} records")
     save_figure(fig, path)
 
 

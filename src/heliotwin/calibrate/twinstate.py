@@ -21,7 +21,6 @@ Heliostats are indices into ``/learned/assimilation/heliostats`` in all three ta
 """
 from __future__ import annotations
 
-import datetime as _dt
 import math
 import os
 from dataclasses import fields, replace
@@ -33,6 +32,7 @@ from ..errors import HeliotwinError, InputFileError
 from ..field.plant import Kinematics
 from ..io.records import RecordTable
 from ..io.scenario import Scenario, load_scenario
+from ..timefmt import utc_text
 from .assimilate import (
     ALARM_OUTCOMES,
     CONFIRM_RECORDS,
@@ -376,7 +376,7 @@ def open_alarms(scenario: Scenario, now: float | None = None) -> list[dict]:
     for i, k in enumerate(torch.as_tensor(table["heliostat"]).tolist()):
         t = float(torch.as_tensor(table["time"])[i])
         row = {"heliostat": names[int(k)], "record_id": int(torch.as_tensor(table["record_id"])[i]), "opened": t,
-               "opened_utc": _utc(t), "statistic": float(torch.as_tensor(table["statistic"])[i]),
+               "opened_utc": utc_text(t), "statistic": float(torch.as_tensor(table["statistic"])[i]),
                "window": int(torch.as_tensor(table["window"])[i]),
                "records": int(torch.as_tensor(table["records"])[i]), "records_to_settle": CONFIRM_RECORDS}
         if now is not None and math.isfinite(t):
@@ -401,9 +401,9 @@ def closed_alarms(scenario: Scenario, update: int | None = None) -> list[dict]:
             continue
         code, n = int(col["outcome"][i]), int(col["records"][i])
         out.append({"heliostat": names[int(col["heliostat"][i])], "record_id": int(col["record_id"][i]),
-                    "opened": col["opened"][i], "opened_utc": _utc(col["opened"][i]),
+                    "opened": col["opened"][i], "opened_utc": utc_text(col["opened"][i]),
                     "statistic": col["statistic"][i], "closed_by": int(col["closed_by"][i]),
-                    "closed_at": col["closed_at"][i], "closed_utc": _utc(col["closed_at"][i]),
+                    "closed_at": col["closed_at"][i], "closed_utc": utc_text(col["closed_at"][i]),
                     "outcome": ALARM_OUTCOMES.get(code, "?").format(n=n), "confirmed": code == 1,
                     "evidence": col["evidence"][i], "records": n, "update": int(col["update"][i])})
     return out
@@ -413,12 +413,6 @@ def plant_clock(scenario: Scenario) -> float | None:
     """The plant's own clock: its latest record time [POSIX s] (:func:`heliotwin.calibrate.clock.latest_record_time`:
     the calibration's state and fitted records, every assimilated record), None when the plant holds none."""
     return latest_record_time(scenario.learned)
-
-
-def _utc(t: float) -> str | None:
-    if not math.isfinite(float(t)):
-        return None
-    return _dt.datetime.fromtimestamp(float(t), _dt.timezone.utc).isoformat(timespec="minutes")
 
 
 def on_axis(table: RecordTable, ids: list) -> RecordTable:

@@ -200,17 +200,18 @@ def _write_aim_maps(folder, i: int, label: str, receiver, equator, optimised, li
     and both numeric maps (``iNNN_equator.csv``, ``iNNN_optimised.csv`` [W/m2])."""
     from ..io.export import write_flux_map_csv
     from ..plots import plot_receiver_flux, receiver_extent
+    from ..timefmt import utc_or_label
 
     maps = {"equator aiming": equator.flux.cpu(), "optimised aim points": optimised.flux.cpu()}
     powers = {"equator aiming": equator.power_w, "optimised aim points": optimised.power_w}
     scale = max(float(m.max()) for m in maps.values())
     stem = os.path.join(folder, f"i{i:03d}")
     plot_receiver_flux(maps, receiver, f"{stem}_before_after.png", limit_w_m2=limit, powers_w=powers,
-                       title=f"aim points at {label}: peak limit {limit / 1e3:.0f} kW/m²")
+                       title=f"aim points at {utc_or_label(label)}: peak limit {limit / 1e3:.0f} kW/m²")
     for (name, flux), short in zip(maps.items(), ("equator", "optimised")):
         # alone, but on the pair's scale: the two files compare by eye too
         plot_receiver_flux({name: flux}, receiver, f"{stem}_{short}.png", limit_w_m2=limit, powers_w=powers,
-                           vmax_w_m2=scale, title=f"{label}")
+                           vmax_w_m2=scale, title=utc_or_label(label))
         write_flux_map_csv(f"{stem}_{short}.csv", flux, receiver_extent(receiver))
 
 

@@ -6,7 +6,7 @@ command function so that ``--help`` stays torch-free.
 from __future__ import annotations
 
 from ..io.report import output_set, write_json
-from .common import float_range, frequency, int_range
+from .common import float_range, frequency, int_range, utc_date
 
 
 def register(subparsers) -> None:
@@ -21,6 +21,9 @@ def register(subparsers) -> None:
     p.add_argument("--year", type=int_range(1900, 2100, "a year"), default=None,
                    help="year of the candidate times (default: the year from the plant's next day on: tomorrow, or "
                         "the day after the plant's latest record when that is more than 3 days behind the clock)")
+    p.add_argument("--day", type=utc_date, default=None,
+                   help="the planned day (UTC date): candidates over the year from it on, the spread of that day "
+                        "(default: the plant's next day); not with --year")
     p.add_argument("--every", type=frequency, default="1h", help="spacing of candidate times (default 1h)")
     p.add_argument("--count", type=int_range(1, 1000, "a record count"), default=5,
                    help="records to propose (default 5)")
@@ -45,7 +48,7 @@ def cmd_plan(args) -> int:
         json_path = out.file(args.json, "--json")
         plot_path = None if not args.json or args.no_plots else out.file(
             f"{os.path.splitext(args.json)[0]}-plan.png", "--json")
-        settings = PlanSettings(year=args.year, every=args.every, count=args.count, target=args.target,
+        settings = PlanSettings(year=args.year, day=args.day, every=args.every, count=args.count, target=args.target,
                                 min_elevation=args.min_elevation, sky=plot_path is not None)
         bar.start("candidate sun positions and proposals")
         _, ans = plan(load_scenario(args.scenario), args.heliostat, settings)
@@ -60,11 +63,16 @@ def cmd_plan(args) -> int:
     bar.close()
     if args.quiet:
         return 0
-    print(f"{ans['heliostat']}: predictive spread of the normal over {ans['year']}'s sun positions "
-          f"{ans['rms_now_mrad']:.3f} mrad now ({ans['candidates']} candidate times, target {ans['target']})")
+    from ..calibrate.spread import DEFINITION
+    from ..timefmt import AZIMUTH_CONVENTION, utc_text
+
+    print(f"{ans['heliostat']}: predicted pointing spread on {ans['spread_day']} {ans['spread_now_mrad']:.3f} mrad "
+          f"({ans['candidates']} candidate times in {ans['year']}, target {ans['target']})")
+    print(f"  ({DEFINITION})")
     if ans.get("candidates_from"):
         print(f"  candidates from {ans['candidates_from']['day']} on: {ans['candidates_from']['why']}")
     for p in ans["proposals"]:
-        print(f"  {p['time']}  sun azimuth {p['sun_azimuth_deg']:7.2f} deg, elevation {p['sun_elevation_deg']:5.2f} deg"
-              f"  -> {p['rms_after_mrad']:.3f} mrad")
+        print(f"  {utc_text(p['time'])}  sun azimuth {p['sun_azimuth_deg']:7.2f} deg, elevation "
+              f"{p['sun_elevation_deg']:5.2f} deg  -> spread {p['spread_after_mrad']:.3f} mrad after this record")
+    print(f"  (sun azimuth: {AZIMUTH_CONVENTION})")
     return 0

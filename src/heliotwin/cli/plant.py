@@ -55,9 +55,13 @@ def cmd_demo(args) -> int:
             write_json(json_path, summary)
     if args.quiet:
         return 0
-    a, e = summary["aim_points"], summary["field"]["efficiency_power_weighted"]
-    print(f"demo: {summary['heliostats']} heliostats, sun el {summary['sun']['elevation_deg']:.1f} deg; field "
-          f"efficiency {e['total']:.3f}, {summary['receiver']['power_w'] / 1e6:.2f} MW on the receiver; peak "
+    from ..timefmt import utc_or_label
+
+    a, chain = summary["aim_points"], summary["chain"]
+    print(f"demo: {summary['heliostats']} heliostats, {utc_or_label(summary['time_utc'])}, sun elevation "
+          f"{summary['sun']['elevation_deg']:.1f} deg; field efficiency {chain['efficiency']:.3f}, "
+          f"{chain['power_w'] / 1e6:.2f} MW on the receiver (the tower's shadow included: "
+          f"-{100 * (1 - chain['tower_shading_power_weighted']):.1f} %); peak "
           f"{a['equator_peak_w_m2'] / 1e3:.0f} -> {a['optimised_peak_w_m2'] / 1e3:.0f} kW/m2 (limit "
           f"{a['peak_limit_w_m2'] / 1e3:.0f}) at {100 * a['power_vs_equator']:.1f} % of the power; "
           f"{summary['seconds']['total']:.0f} s; outputs in {args.out}")

@@ -157,24 +157,19 @@ def cmd_daily(args) -> int:
         if json_path:
             write_json(json_path, report)
     if not args.quiet:
+        from ..timefmt import utc_or_label
+
         print_update_summary(report["update"])
         plan = report["plan"]
         print(f"planned {report['day']}: {report.get('day_reason', '')}")
-        n_planned, n_slots = len(plan["proposals"]), plan.get("slots", len(plan["proposals"]))
-        print(f"calibration plan for {plan['day']}: {n_planned} of {n_slots} slot(s) planned"
-              f"{_fewer(plan)} on {plan['target']} "
-              f"(pointing spread over the plant: median {_mrad(plan['median_spread_mrad'])}, p95 "
-              f"{_mrad(plan['p95_spread_mrad'])} mrad)")
-        for p in plan["proposals"][:10]:
-            print(f"  {p['time']}  {p['heliostat']}  ({p['reason']}: spread {p['spread_now_mrad']:.3f} mrad; RMS "
-                  f"normal error over the year {p['rms_now_mrad']:.3f} -> {p['rms_after_mrad']:.3f} mrad)")
+        print_plan(plan)
         aim = report["aimpoints"]
         if "skipped" in aim:
             print(f"aim points: skipped, {aim['skipped']}")
         else:
             for e in aim["instants"]:
                 standby = e.get("standby_heliostats", 0)
-                print(f"aim points {e['instant']}: peak {e['peak_flux_w_m2'] / 1e3:.1f} kW/m2 (limit "
+                print(f"aim points {utc_or_label(e['instant'])}: peak {e['peak_flux_w_m2'] / 1e3:.1f} kW/m2 (limit "
                       f"{aim['peak_limit_w_m2'] / 1e3:.1f}{'' if e['limit_met'] else ', NOT held'})"
                       + (f"; {standby} heliostat(s) on standby, {e['power_w'] / 1e3:.3g} of "
                          f"{e['equator_power_w'] / 1e3:.3g} kW" if standby and e.get("equator_power_w") else ""))
@@ -182,13 +177,38 @@ def cmd_daily(args) -> int:
     return result.status
 
 
+#: Most plan rows a daily run prints (the JSON holds every one).
+PLAN_ROWS = 50
+
+
+def print_plan(plan: dict) -> None:
+    """The day's calibration plan: how many of the slots are planned (and why fewer), the spread's definition, the
+    ranking, and one line per planned record with the number it is ranked by."""
+    from ..timefmt import AZIMUTH_CONVENTION, utc_text
+
+    props = plan.get("proposals") or []
+    print(f"calibration plan for {plan['day']}: {len(props)} of {plan.get('slots', len(props))} slot(s) planned"
+          f"{_fewer(plan)} on {plan['target']}; ranked by {plan.get('ranked_by', 'spread')}; predicted pointing "
+          f"spread over the plant's {plan.get('heliostats', '?')} calibrated heliostat(s): median "
+          f"{_mrad(plan['median_spread_mrad'])}, p95 {_mrad(plan['p95_spread_mrad'])} mrad")
+    if plan.get("spread_definition"):
+        print(f"  ({plan['spread_definition']})")
+    for k, p in enumerate(props[:PLAN_ROWS], 1):
+        print(f"  {k:2d}. {utc_text(p['time'])}  {p['heliostat']}  sun azimuth {p['sun_azimuth_deg']:.1f}, elevation "
+              f"{p['sun_elevation_deg']:.1f} deg  ({p['reason']}: predicted pointing spread "
+              f"{p['spread_now_mrad']:.3f} -> {p['spread_after_mrad']:.3f} mrad after this record)")
+    if len(props) > PLAN_ROWS:
+        print(f"  ... and {len(props) - PLAN_ROWS} more planned record(s) (--json lists every one)")
+    if props:
+        print(f"  (sun azimuth: {AZIMUTH_CONVENTION})")
+
+
 def _mrad(x) -> str:
     return "-" if x is None else f"{x:.3f}"
 
 
 def cmd_history(args) -> int:
-    import datetime as dt
-
+    from ..timefmt import utc_text
     from ..workflows.update import state_history
 
     with output_set([("--scenario", args.scenario)]) as out:
@@ -202,7 +222,7 @@ def cmd_history(args) -> int:
     cols = [names.index(n) for n in ("initial_angle_1", "initial_angle_2") if n in names]
     print(f"{hist['heliostat']}: {len(hist['time'])} assimilated record(s)")
     for i in range(len(hist["time"])):
-        when = dt.datetime.fromtimestamp(float(hist["time"][i]), dt.timezone.utc).isoformat(timespec="minutes")
+        when = utc_text(float(hist["time"][i]))
         offs = ", ".join(f"{1e3 * hist['mean'][i][c]:+.3f}+-{1e3 * hist['variance'][i][c] ** 0.5:.3f}" for c in cols)
         print(f"  {when} record {int(hist['record_id'][i])}: predicted error {1e3 * hist['predicted_error'][i]:.3f} "
               f"mrad, d2 {hist['d2'][i]:.1f}{'  STEP ALARM' if hist['alarm'][i] else ''}; axis offsets [mrad] {offs}")

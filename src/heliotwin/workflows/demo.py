@@ -71,8 +71,10 @@ def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-
     -------
     dict
         The summary (also written as JSON): the ``field`` command's report (``field.efficiency`` unweighted as
-        SolarPILOT and power-weighted, ``receiver``), ``losses`` (per factor: power-weighted fraction and
-        [W]), ``aim_points`` (limit, peaks before/after, violation, power ratio), ``seconds`` per stage.
+        SolarPILOT and power-weighted, ``receiver``: the field model's product, without the tower's shadow),
+        ``losses`` (per stage of :data:`CHAIN`, the tower's shadow included: power-weighted fraction and [W]),
+        ``chain`` (the receiver power [W] and efficiency with the tower's shadow, :func:`_chain`), ``aim_points``
+        (limit, peaks before/after, violation, power ratio), ``seconds`` per stage.
     """
     if not 0.0 < float(peak_limit_fraction) <= 1.0:
         raise HeliotwinError(f"run_field_demo: peak_limit_fraction must be in (0, 1], got {peak_limit_fraction!r}")
@@ -104,6 +106,7 @@ def run_field_demo(out, *, num_heliostats: int = 2000, time_utc: str = "2023-03-
     bar.start("figures and plant.h5")
     folder.mkdir(parents=True, exist_ok=True)
     rep["losses"] = _loss_breakdown(before)
+    rep["chain"] = _chain(before)
     t0 = time.perf_counter()
     plot_field_demo(folder, plant_cpu, before, aimed, rep, limit, time_utc)
     _write_rows(folder / "heliostats.csv", per_heliostat_rows(before, plant_cpu))
@@ -144,21 +147,42 @@ def _demo_scenario(plant, atmosphere, aimed, sun, limit: float, time_utc: str, n
     return scenario
 
 
+#: The demo's loss chain: the field model's factors with the tower's shadow after the heliostats' own shading.
+#: The field model's product (``field.efficiency``, ``receiver.power_w``, the receiver maps) leaves the tower's
+#: shadow out and reports it apart (:mod:`heliotwin.raytrace.field`, for comparing with SolarPILOT's factors);
+#: the demo's waterfall and its MW on the receiver (``chain``) count it.
+CHAIN = FACTORS[:2] + ("tower_shading",) + FACTORS[2:]
+
+
 def _loss_breakdown(result) -> dict:
-    """Per factor of the chain (cosine, shading, blocking, attenuation, intercept, reflectance): the power [W]
-    lost at that stage and its ``fraction`` of DNI x mirror area [1] (both add up to DNI x area - power), and
-    ``own_fraction``: the factor's own loss, 1 - factor, power-weighted over what reaches the stage [1]."""
+    """Per stage of :data:`CHAIN` (cosine, shading, the tower's shadow, blocking, attenuation, intercept,
+    reflectance): the power [W] lost at that stage and its ``fraction`` of DNI x mirror area [1] (both add up to
+    DNI x area - the chain's power), and ``own_fraction``: the factor's own loss, 1 - factor, power-weighted over
+    what reaches the stage [1]."""
     stage = result.dni * result.mirror_area.to(torch.float64)
     total = max(float(stage.sum()), 1e-30)  # DNI x mirror area [W]: every fraction is of it, so they add up
     out = {}
-    for name in FACTORS:
+    for name in CHAIN:
         f = getattr(result, name).to(torch.float64)
         lost = float((stage * (1.0 - f)).sum())
         out[name] = {"fraction": lost / total, "power_w": lost,
                      "own_fraction": lost / max(float(stage.sum()), 1e-30)}
         stage = stage * f
-    out["tower_shading_unweighted_mean"] = float(result.tower_shading.mean())
     return out
+
+
+def _chain(result) -> dict:
+    """The demo's chain at equator aiming (:data:`CHAIN`): its power on the receiver [W] and efficiency [1] with the
+    tower's shadow, the tower's power-weighted unshaded fraction and what the field model's figures leave out."""
+    area = result.dni * result.mirror_area.to(torch.float64)
+    with_tower = area * result.efficiency.to(torch.float64) * result.tower_shading.to(torch.float64)
+    power = float(with_tower.sum())
+    without = float((area * result.efficiency.to(torch.float64)).sum())
+    return {"stages": list(CHAIN), "power_w": power, "efficiency": power / max(float(area.sum()), 1e-30),
+            "tower_shading_power_weighted": power / max(without, 1e-30),
+            "tower_shading_unweighted_mean": float(result.tower_shading.mean()),
+            "note": "the demo's chain counts the tower's shadow; the field model's efficiency, receiver power and "
+                    "receiver maps leave it out (reported apart as tower_shading, for comparing with SolarPILOT)"}
 
 
 def _write_rows(path, rows: list[dict]) -> None:

@@ -15,6 +15,7 @@ import pandas as pd
 from ..calibrate.clock import planned_day
 from ..calibrate.protocol.plan import plan as plan_records
 from ..calibrate.scenario import aim as aim_heliostat
+from ..calibrate.spread import day_start
 from ..errors import HeliotwinError
 from ..io.records import parse_time
 from ..io.scenario import Scenario
@@ -31,6 +32,9 @@ class PlanSettings:
     ----------
     year : int or None
         Year whose daylight sun positions are the candidates (None: the year from the plant's next day on).
+    day : str or None
+        The planned day (UTC date): the candidates are the year from it on and the predicted pointing spread is
+        that day's (None: the plant's next day, :func:`heliotwin.calibrate.clock.planned_day`). Not with ``year``.
     every : str
         Candidate spacing (pandas frequency, e.g. ``"1h"``).
     count : int
@@ -44,6 +48,7 @@ class PlanSettings:
     """
 
     year: int | None = None
+    day: str | None = None
     every: str = "1h"
     count: int = 5
     target: str | None = None
@@ -55,6 +60,10 @@ class PlanSettings:
         if self.year is not None and (isinstance(self.year, bool) or not isinstance(self.year, int)
                                       or not 1900 <= self.year <= 2100):
             raise HeliotwinError(f"--year: expected a year in 1900..2100, got {self.year!r}")
+        if self.day is not None:
+            if self.year is not None:
+                raise HeliotwinError("--day and --year: give one (the candidates are the year from --day on)")
+            day_start(self.day)  # a one-line error for an unreadable day
         try:
             step = pd.Timedelta(self.every)
         except (ValueError, TypeError, OverflowError):
@@ -84,14 +93,14 @@ def plan(scenario: Scenario, heliostat: str, settings: PlanSettings = PlanSettin
     scenario : Scenario
         Unchanged.
     report : dict
-        :func:`heliotwin.calibrate.protocol.plan.plan`'s answer (proposals with UTC times, sun angles [deg] and
-        the predictive spread after each [mrad]); without ``settings.year`` also ``candidates_from`` (the first
-        day and why).
+        :func:`heliotwin.calibrate.protocol.plan.plan`'s answer (the predicted pointing spread on the day,
+        :mod:`heliotwin.calibrate.spread`, and proposals with UTC times, sun angles [deg] and the spread after
+        each [mrad]); without ``settings.year`` also ``candidates_from`` (the first day and why).
     """
     since = clock = None
     if settings.year is None:
-        day, why = planned_day(scenario.learned, None, now)
-        since, clock = pd.Timestamp(day, tz="UTC"), {"day": day, "why": why}
+        day, why = planned_day(scenario.learned, settings.day, now)
+        since, clock = day_start(day), {"day": day, "why": why}
     site = scenario.plant.site
     if since is None:
         times, _, _ = daylight_times(settings.year, settings.every, site.latitude_deg, site.longitude_deg,

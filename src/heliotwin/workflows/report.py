@@ -10,9 +10,10 @@
   facets) for the alarmed and the least certain heliostats with an update history or a learned surface, at
   most :attr:`ReportSettings.detail` of them, so that the page stays small at any plant size;
 * tomorrow's calibration plan for the plant (:func:`heliotwin.calibrate.protocol.plan.plant_plan`, as
-  ``heliotwin daily`` makes it: the alarmed heliostats first, then the widest predicted spread, each with its
-  time and sun position on the day after the latest record), and the sun-position coverage (the ``plan``
-  workflow's sky map) of the first of them;
+  ``heliotwin daily`` makes it: the alarmed heliostats first, then the largest predicted pointing spread
+  (:mod:`heliotwin.calibrate.spread`), each with its time and sun position on the day after the latest record),
+  and the sun-position coverage (the ``plan`` workflow's sky map, on the same day: the same spread) of the
+  first of them;
 * the receiver (the ``field`` workflow): equator aiming and the stored aim points on one colour scale, with
   the stored peak-flux limit;
 * provenance (:func:`heliotwin.workflows.show.describe_scenario`).
@@ -24,7 +25,6 @@ the plant holds (``reference_time``).
 """
 from __future__ import annotations
 
-import datetime as _dt
 import math
 import time
 from dataclasses import dataclass
@@ -42,6 +42,7 @@ from ..geometry import angle_between
 from ..io.records import parse_time
 from ..io.scenario import Scenario
 from ..optimise.aimstate import stored_peak_limit
+from ..timefmt import utc_text
 from .field import FieldRunSettings, field, sun_direction_at
 from .plan import PlanSettings, plan
 from .report_page import render_page
@@ -235,10 +236,6 @@ def heliostat_state(scenario: Scenario, records=None) -> dict:
             "reference_time": reference, "threshold": hist["threshold"] if hist else math.nan}
 
 
-def _iso(t: float) -> str:
-    return _dt.datetime.fromtimestamp(float(t), _dt.timezone.utc).isoformat(timespec="minutes")
-
-
 def alarm_rows(scenario: Scenario, *, latest_only: bool = True) -> list[dict]:
     """The step alarms of the update history, largest step statistic first.
 
@@ -263,7 +260,7 @@ def alarm_rows(scenario: Scenario, *, latest_only: bool = True) -> list[dict]:
         action = ("inspect the drive and encoders (a step far above the threshold), then take a calibration record"
                   if big else "take a calibration record soon to confirm the step (the update re-opened the offset)")
         out.append({"heliostat": hist["ids"][int(r["heliostat"][i])], "record_id": int(r["record_id"][i]),
-                    "time": _iso(r["time"][i]), "update": int(r["update"][i]),
+                    "time": utc_text(r["time"][i]), "update": int(r["update"][i]),
                     "statistic": float(r["statistic"][i]), "threshold": thr, "innovation_mrad": size,
                     "action": action})
     return sorted(out, key=lambda a: -a["statistic"])
@@ -298,7 +295,7 @@ def heliostat_detail(scenario: Scenario, heliostat: str) -> dict:
     rows = rows[np.argsort(r["time"][rows], kind="stable")]
     names = hist["names"]
     cols = {n: names.index(n) for n in OFFSETS if n in names}
-    return {"heliostat": heliostat, "time": [_iso(t) for t in r["time"][rows]],
+    return {"heliostat": heliostat, "time": [utc_text(t) for t in r["time"][rows]],
             "offsets_mrad": {n: (1e3 * r["mean"][rows, c]).tolist() for n, c in cols.items()},
             "offsets_std_mrad": {n: (1e3 * np.sqrt(np.maximum(r["variance"][rows, c], 0))).tolist()
                                  for n, c in cols.items()},
@@ -335,11 +332,11 @@ def calibration_history(scenario: Scenario, heliostat: str) -> dict:
         order = mine[np.argsort(np.where(np.isfinite(t), t, -np.inf), kind="stable")]
         times = np.asarray(res["time"], dtype=np.float64).reshape(-1)[order]
         keep = np.isfinite(times)  # a record without a time has no place on a time axis
-        out.update(time=[_iso(x) for x in times[keep]],
+        out.update(time=[utc_text(x) for x in times[keep]],
                    error_mrad=np.asarray(res["error_mrad"], dtype=np.float64).reshape(-1)[order][keep].tolist(),
                    record_id=np.asarray(res["record_id"]).reshape(-1)[order][keep].astype(int).tolist())
     finite = times[np.isfinite(times)]
-    out["at"] = _iso(finite.max()) if len(finite) else None
+    out["at"] = utc_text(finite.max()) if len(finite) else None
     names = list(cal.get("parameter_names") or [])
     delta = cal.get("deviations")
     cov = (cal.get("posterior") or {}).get("covariance")
@@ -394,24 +391,38 @@ def _ranked(state: dict, count: int) -> list[int]:
     return [int(i) for i in order[:count]]
 
 
-def _plan_rows(scenario: Scenario, state: dict, settings: ReportSettings) -> list[dict]:
-    """The ``plan`` workflow for the heliostats :func:`_ranked` puts first (calibrated ones only)."""
+def _coverage_order(state: dict, tomorrow: dict) -> list[int]:
+    """The heliostats (indices into ``state["ids"]``) of the sun-position coverage section, in the order tomorrow's
+    plan ranks them (its planned heliostats first, then the others by the same predicted pointing spread), else
+    (no plan) :func:`_ranked`'s; calibrated ones only."""
+    where = {h: i for i, h in enumerate(state["ids"])}
+    spread = tomorrow.get("spread_mrad") or {}
+    if spread:
+        planned = [p["heliostat"] for p in tomorrow.get("proposals") or []]
+        rest = sorted((h for h in spread if h not in set(planned)), key=lambda h: -spread[h])
+        return [where[h] for h in planned + rest if h in where]
+    return [i for i in _ranked(state, len(state["ids"])) if state["calibrated"][i]]
+
+
+def _plan_rows(scenario: Scenario, state: dict, settings: ReportSettings, tomorrow: dict) -> list[dict]:
+    """The ``plan`` workflow for the heliostats tomorrow's plan puts first (:func:`_coverage_order`), on the plan's
+    day, so that the spread each row shows is the one the plan ranked by."""
     if not settings.plan_heliostats or not (scenario.learned.get("calibration") or {}).get("posterior"):
         return []
     ref = state["reference_time"]
-    year = _dt.datetime.fromtimestamp(ref + 86400.0, _dt.timezone.utc).year if math.isfinite(ref) else 2030
-    calibrated = [i for i in _ranked(state, len(state["ids"])) if state["calibrated"][i]]
+    day = tomorrow.get("day") or (utc_text(ref + 86400.0)[:10] if math.isfinite(ref) else None)
     out = []
-    for i in calibrated[:settings.plan_heliostats]:
+    for i in _coverage_order(state, tomorrow)[:settings.plan_heliostats]:
         hid = state["ids"][i]
         try:
-            _, ans = plan(scenario, hid, PlanSettings(year=year, every=settings.plan_every, count=settings.plan_count,
-                                                    sky=True))
+            _, ans = plan(scenario, hid, PlanSettings(day=day, year=None if day else 2030, every=settings.plan_every,
+                                                    count=settings.plan_count, sky=True))
         except HeliotwinError as exc:
             out.append({"heliostat": hid, "error": str(exc)})
             continue
-        out.append({"heliostat": hid, "rms_now_mrad": ans["rms_now_mrad"], "target": ans["target"],
-                    "proposals": ans["proposals"], "sky": {k: np.asarray(v).tolist() for k, v in ans["sky"].items()},
+        out.append({"heliostat": hid, "spread_now_mrad": ans["spread_now_mrad"], "spread_day": ans["spread_day"],
+                    "target": ans["target"], "proposals": ans["proposals"],
+                    "sky": {k: np.asarray(v).tolist() for k, v in ans["sky"].items()},
                     "interval_mrad": float(state["interval_mrad"][i]),
                     "alarms_latest": int(state["alarms_latest"][i])})
     return out
@@ -425,7 +436,7 @@ def _tomorrow(scenario: Scenario, state: dict, alarms: list, settings: ReportSet
         return {"note": "no plan asked for (--slots 0)"}
     if not math.isfinite(ref):
         return {"note": "no record times in the plant: no day to plan"}
-    day = _dt.datetime.fromtimestamp(ref + 86400.0, _dt.timezone.utc).date().isoformat()
+    day = utc_text(ref + 86400.0)[:10]
     urgent = list(dict.fromkeys(a["heliostat"] for a in alarms))
     try:
         return plant_plan(scenario, day=day, slots=settings.plan_slots, urgent=urgent)
@@ -506,8 +517,8 @@ def plant_report(scenario: Scenario, records=None, settings: ReportSettings = Re
             d["surface"] = surface_deviation(scenario, d["heliostat"])
     seconds["state"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    plans = _plan_rows(scenario, state, settings)
     tomorrow = _tomorrow(scenario, state, alarms, settings)
+    plans = _plan_rows(scenario, state, settings, tomorrow)
     seconds["plan"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     receiver = _receiver(scenario, settings)
@@ -523,7 +534,7 @@ def plant_report(scenario: Scenario, records=None, settings: ReportSettings = Re
     ref = state["reference_time"]
     return scenario, {"html": html, "heliostats": len(state["ids"]), "alarms": alarms, "detail": detail_ids,
                       "plan": [p["heliostat"] for p in plans], "receiver": bool(receiver and "maps" in receiver),
-                      "reference_time": _iso(ref) if math.isfinite(ref) else None, "seconds": seconds,
+                      "reference_time": utc_text(ref) if math.isfinite(ref) else None, "seconds": seconds,
                       "tomorrow": {"day": tomorrow.get("day"), "heliostats": [p["heliostat"] for p in
                                                                              tomorrow.get("proposals", [])],
                                    "note": tomorrow.get("note")}}

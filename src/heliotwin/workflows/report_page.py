@@ -19,6 +19,7 @@ import numpy as np
 
 from ..errors import HeliotwinError
 from ..plots import angle_origin, instant_line
+from ..timefmt import AZIMUTH_CONVENTION, AZIMUTH_LABEL, utc_or_label, utc_text
 
 try:  # a declared dependency; the message below says what to do where it is missing
     import plotly.graph_objects as go
@@ -136,7 +137,7 @@ def _field_map(state: dict, quantities: dict, colour: str):
 
 # ------------------------------------------------------------------------------------------- heliostats
 #: Time axis of a heliostat's history: dates (a history of one instant otherwise reads 12:58:59.999).
-_DATE_AXIS = dict(type="date", tickformat="%Y-%m-%d", hoverformat="%Y-%m-%d %H:%M UTC")
+_DATE_AXIS = dict(type="date", tickformat="%Y-%m-%d", hoverformat="%Y-%m-%dT%H:%MZ")
 
 
 def _time_range(times: list) -> list | None:
@@ -228,7 +229,7 @@ def _sky_figure(p: dict):
                              text=[str(i + 1) for i in range(len(p["proposals"]))], textposition="top center",
                              name="proposed records", marker=dict(symbol="star", size=14, color="red")))
     fig.update_layout(height=320, margin=dict(l=60, r=20, t=30, b=40),
-                      xaxis=dict(title="sun azimuth [deg] (PAINT: 0 = south, +90 = east)"),
+                      xaxis=dict(title=AZIMUTH_LABEL),
                       yaxis=dict(title="sun elevation [deg]"), showlegend=False,
                       title=dict(text=f"{_e(p['heliostat'])}: sun-position coverage (stars: proposed records)",
                                  font=dict(size=12)))
@@ -251,7 +252,7 @@ def _sections(details: list, plans: list) -> str:
             parts.append(f'<p>{len(cal.get("time") or [])} calibration records'
                          + (f" (expected error {expected:.2f} mrad)" if expected is not None else "")
                          + f', {len(d["time"])} assimilated records, {n_alarm} step alarm(s), latest '
-                         f'{_e(latest[:16].replace("T", " "))} UTC</p>')
+                         f'{_e(utc_text(latest))}</p>')
             parts.append(_lazy_div(_detail_figure(d), f"hist-{k}"))
         else:
             parts.append('<p class="note">no record history stored (never updated since its calibration)</p>')
@@ -276,7 +277,7 @@ def _alarm_table(alarms: list, detail_ids: set) -> str:
     for a in alarms[:ALARM_ROWS]:
         hid = _e(a["heliostat"])
         link = f'<a href="#h-{hid}">{hid}</a>' if a["heliostat"] in detail_ids else hid
-        rows.append(f"<tr><td>{link}</td><td>{_e(a['time'][:16].replace('T', ' '))}</td><td>{a['record_id']}</td>"
+        rows.append(f"<tr><td>{link}</td><td>{_e(utc_text(a['time']))}</td><td>{a['record_id']}</td>"
                     f"<td>{a['statistic']:.1f} (threshold {_fmt(a['threshold'])})</td>"
                     f"<td>{a['innovation_mrad']:.2f}</td><td>{_e(a['action'])}</td></tr>")
     return ("<table id='alarms'><tr><th>heliostat</th><th>record time (UTC)</th><th>record</th><th>step statistic"
@@ -295,16 +296,18 @@ def _plan_table(plans: list, detail_ids: set) -> str:
         if "error" in p:
             rows.append(f"<tr><td>{link}</td><td colspan=3>{_e(p['error'])}</td></tr>")
             continue
-        props = "<br>".join(f"{_e(q['time'][:16])} UTC: azimuth {q['sun_azimuth_deg']:.1f}, elevation "
-                            f"{q['sun_elevation_deg']:.1f} deg -> {q['rms_after_mrad']:.3f} mrad"
+        props = "<br>".join(f"{_e(utc_text(q['time']))}: azimuth {q['sun_azimuth_deg']:.1f}, elevation "
+                            f"{q['sun_elevation_deg']:.1f} deg -> {q['spread_after_mrad']:.3f} mrad"
                             for q in p["proposals"])
         rows.append(f"<tr><td>{link}</td><td>{_fmt(p['interval_mrad'])} / {p['alarms_latest']}</td>"
-                    f"<td>{p['rms_now_mrad']:.3f} on {_e(p['target'])}</td><td>{props}</td></tr>")
+                    f"<td>{p['spread_now_mrad']:.3f} on {_e(p['spread_day'])}, {_e(p['target'])}</td>"
+                    f"<td>{props}</td></tr>")
     skies = [_lazy_div(_sky_figure(p), f"plan-sky-{k}") for k, p in enumerate(plans)
              if "sky" in p and p["heliostat"] not in detail_ids]  # the others' sky maps are in their sections
-    return ("<table id='plan'><tr><th>heliostat</th><th>offset interval [mrad] / alarms</th><th>spread now "
-            "[mrad]</th><th>proposed sun positions (time of the year with that sun) -> spread after</th></tr>"
-            + "".join(rows) + "</table>" + "".join(skies))
+    return ("<table id='plan'><tr><th>heliostat</th><th>offset interval [mrad] / alarms</th><th>predicted pointing "
+            "spread [mrad] on the day</th><th>proposed sun positions over the year from the day on (UTC; sun "
+            f"azimuth / elevation [deg], {_e(AZIMUTH_CONVENTION)}) -> predicted pointing spread after [mrad]</th>"
+            "</tr>" + "".join(rows) + "</table>" + "".join(skies))
 
 
 def _tomorrow_table(t: dict | None, detail_ids: set) -> str:
@@ -317,23 +320,24 @@ def _tomorrow_table(t: dict | None, detail_ids: set) -> str:
     for k, q in enumerate(t["proposals"], 1):
         hid = _e(q["heliostat"])
         link = f'<a href="#h-{hid}">{hid}</a>' if q["heliostat"] in detail_ids else hid
-        rows.append(f"<tr><td>{k}</td><td>{link}</td><td>{_e(q['time'][11:16])}</td>"
+        rows.append(f"<tr><td>{k}</td><td>{link}</td><td>{_e(utc_text(q['time']))}</td>"
                     f"<td>{q['sun_azimuth_deg']:.1f} / {q['sun_elevation_deg']:.1f}</td><td>{_e(q['reason'])}</td>"
-                    f"<td>{_fmt(q.get('spread_now_mrad'))}</td>"
-                    f"<td>{_fmt(q.get('rms_now_mrad'))} -> {_fmt(q.get('rms_after_mrad'))}</td></tr>")
-    head = (f"<p>{_e(t['day'])} (UTC), target {_e(t['target'])}: {len(t['proposals'])} records; predicted spread "
-            f"over the plant: median {_fmt(t.get('median_spread_mrad'))}, p95 {_fmt(t.get('p95_spread_mrad'))} "
-            "mrad</p>")
+                    f"<td>{_fmt(q.get('spread_now_mrad'))} -> {_fmt(q.get('spread_after_mrad'))}</td></tr>")
+    fewer = f" ({_e(t['why_fewer'])})" if t.get("why_fewer") else ""
+    head = (f"<p>{_e(t['day'])} (UTC), target {_e(t['target'])}: {len(t['proposals'])} of {t.get('slots', '?')} "
+            f"slot(s) planned{fewer}; ranked by {_e(t.get('ranked_by', ''))}; predicted pointing spread over the "
+            f"plant: median {_fmt(t.get('median_spread_mrad'))}, p95 {_fmt(t.get('p95_spread_mrad'))} mrad</p>"
+            f"<p class='note' id='spread-definition'>{_e(t.get('spread_definition', ''))}</p>")
     return (head + "<table id='tomorrow'><tr><th>#</th><th>heliostat</th><th>time (UTC)</th><th>sun azimuth / "
-            "elevation [deg] (PAINT)</th><th>why</th><th>spread now [mrad]</th><th>year RMS now -> after [mrad]"
-            "</th></tr>" + "".join(rows) + "</table>")
+            f"elevation [deg] ({_e(AZIMUTH_CONVENTION)})</th><th>why</th><th>predicted pointing spread now -> "
+            "after this record [mrad]</th></tr>" + "".join(rows) + "</table>")
 
 
 def _provenance(described: dict) -> str:
     rows = []
     for i, s in enumerate(described.get("provenance") or [], 1):
         how = ", ".join(f"{_e(k)}={_e(v)}" for k, v in s.items() if k not in ("step", "utc", "heliotwin"))
-        rows.append(f"<tr><td>{i}</td><td>{_e(s.get('utc', '?'))}</td><td>{_e(s.get('step', '?'))}</td>"
+        rows.append(f"<tr><td>{i}</td><td>{_e(utc_or_label(s.get('utc')))}</td><td>{_e(s.get('step', '?'))}</td>"
                     f"<td>{how}</td><td>{_e(s.get('heliotwin', '?'))}</td></tr>")
     return ("<table id='provenance'><tr><th>#</th><th>UTC</th><th>step</th><th>inputs and settings</th>"
             "<th>heliotwin</th></tr>" + "".join(rows) + "</table>")
@@ -422,7 +426,7 @@ def render_page(*, described: dict, state: dict, quantities: dict, colour: str, 
     detail_ids = {d["heliostat"] for d in details}
     ref = state["reference_time"]
     ref_text = "no record times" if not np.isfinite(ref) else \
-        f"latest record {np.datetime_as_string(np.datetime64(int(ref), 's'), unit='m')} UTC"
+        f"latest record {utc_text(ref)}"
     kin = f"calibrated ({k['method']}) for {k.get('count', 0)}" if k["calibrated"] else "nominal"
     summary = (f"{p['heliostats']} heliostats; kinematics {kin}; {len(alarms)} step alarm(s) in the latest update; "
                f"{ref_text}")
@@ -444,9 +448,10 @@ def render_page(*, described: dict, state: dict, quantities: dict, colour: str, 
         _div(_field_map(state, quantities, colour), "fieldmap"), "<p id='clicked' class='note'></p>",
         "<h2 id='alarms-h'>Alarms since the last report</h2>", _alarm_table(alarms, detail_ids),
         "<h2 id='plan-h'>Calibration plan</h2><h3>Tomorrow</h3>", _tomorrow_table(tomorrow, detail_ids),
-        "<h3>Sun-position coverage</h3><p class='note'>the heliostats that need records most (alarmed, then the "
-        "widest offset interval), each with the sun positions over the year that would shrink its uncertainty "
-        "most (heliotwin plan)</p>", _plan_table(plans, detail_ids),
+        "<h3>Sun-position coverage</h3><p class='note'>the heliostats that need records most, as tomorrow's plan "
+        "ranks them (alarmed, then the largest predicted pointing spread on the day), each with the sun positions "
+        "over the year from the day on that would shrink that spread most (heliotwin plan --day)</p>",
+        _plan_table(plans, detail_ids),
         "<h2 id='receiver-h'>Receiver</h2>", _receiver_section(receiver),
         f"<h2 id='heliostats-h'>Heliostats ({len(details)} with a section)</h2>", _sections(details, plans),
         "<h2 id='provenance-h'>Provenance</h2>", _provenance(described),
