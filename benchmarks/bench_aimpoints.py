@@ -250,7 +250,8 @@ from heliotwin.optimise.aimpoints import (
     optimise_aimpoints,
     run_aimpoints_sharded,
 )
-from heliotwin.optimise.testbed import generated_plant
+from heliotwin.optimise.problem import FluxLimit
+from heliotwin.optimise.testbed import FLUX_MAPS, flux_limit_map, generated_plant, scaled_to_bind
 from heliotwin.sun import direction_from_time
 from heliotwin.workflows.field import sun_instants
 
@@ -371,6 +372,81 @@ def testbed(args) -> dict:
     write_json(out / "testbed.json", report)
     print("summary: " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in summary.items()
                                   if k != "load_average"), flush=True)
+    return report
+
+
+def flux_map_testbed(args) -> dict:
+    """The allowable-flux test bed (module docstring, ``--testbed --flux-maps``): per plant, sun, fraction and map
+    shape the optimised aim points under the map (scaled so that equator aiming's largest flux / limit is
+    ``1 / fraction``) and under a flat limit at the map's minimum; per map shape how many cases held every cell."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    times = [t.strip() for t in (args.times or TESTBED_TIMES).split(",")]
+    fractions = [float(f) for f in args.fractions.split(",")]
+    res = (20, 48)
+    rows, held = [], {k: torch.zeros(res, dtype=torch.long) for k in FLUX_MAPS}
+    t_all = time.perf_counter()
+    for n in (int(v) for v in str(args.heliostats_bed).split(",")):
+        for tower in (float(v) for v in args.towers.split(",")):
+            for layout, receiver in PAIRS:
+                plant, atm = generated_plant(layout, n, receiver, tower=tower)
+                label = f"{layout}/{receiver}/{n}/{tower:g}m"
+                s = plant.site
+                for text in times:
+                    sun = direction_from_time(pd.DatetimeIndex([pd.Timestamp(text)]), s.latitude_deg,
+                                              s.longitude_deg, s.altitude_m)[0]
+                    if float(torch.rad2deg(torch.asin(sun[2]))) < 5.0:
+                        continue
+                    model, eq = calibrate_images(plant, sun, atm, res)
+                    p_eq = float(eq.power_w.sum())
+                    for f in fractions:
+                        for kind in FLUX_MAPS:
+                            limit = scaled_to_bind(flux_limit_map(kind, res), eq.flux, f, kind)
+                            flat = FluxLimit.uniform(limit.minimum, res)
+                            got = optimise_aimpoints(plant, sun, limit, atmosphere=atm, equator=eq, model=model)
+                            ref = optimise_aimpoints(plant, sun, flat, atmosphere=atm, equator=eq, model=model)
+                            ok = got.flux <= limit.on(got.flux)
+                            held[kind] += ok.cpu().long()
+                            util = limit.summary(got.flux)
+                            row = {"plant": label, "time": text, "limit_fraction": f, "map": kind,
+                                   "met": bool(ok.all()), "max_utilisation": util["max_utilisation"],
+                                   "binding_cells": util["binding_cells"], "standby": int(got.standby),
+                                   "power_vs_equator": got.power_w / p_eq, "flat_met": flat.held(ref.flux),
+                                   "flat_standby": int(ref.standby), "flat_power_vs_equator": ref.power_w / p_eq,
+                                   "power_vs_flat": got.power_w / max(ref.power_w, 1e-9),
+                                   "seconds": got.seconds, "flat_seconds": ref.seconds}
+                            rows.append(row)
+                            print(f"{label:>34s} {text[:13]} {f:.2f} {kind:>9s}: {'met' if row['met'] else 'NOT MET'}"
+                                  f", flux/limit {row['max_utilisation']:.4f}, {row['binding_cells']} binding, power "
+                                  f"{row['power_vs_equator']:.4f} (flat at the min. {row['flat_power_vs_equator']:.4f}"
+                                  f"{', standby ' + str(row['flat_standby']) if row['flat_standby'] else ''})",
+                                  flush=True)
+    frame = pd.DataFrame(rows)
+    table = {}
+    for kind, g in frame.groupby("map"):
+        table[kind] = {"cases": len(g), "met": int(g["met"].sum()), "standby_cases": int((g["standby"] > 0).sum()),
+                       "cells_held_min_cases": int(held[kind].min()), "cells": int(held[kind].numel()),
+                       "cells_held_on_50_cases": int((held[kind] >= 50).sum()),
+                       "worst_max_utilisation": float(g["max_utilisation"].max()),
+                       "median_binding_cells": float(g["binding_cells"].median()),
+                       "median_power_vs_equator": float(g["power_vs_equator"].median()),
+                       "median_flat_power_vs_equator": float(g["flat_power_vs_equator"].median()),
+                       "flat_standby_cases": int((g["flat_standby"] > 0).sum()),
+                       "median_power_vs_flat": float(g["power_vs_flat"].median()),
+                       "min_power_vs_flat": float(g["power_vs_flat"].min()),
+                       "median_seconds": float(g["seconds"].median())}
+    report = {"table": table, "cases": rows, "seconds": time.perf_counter() - t_all,
+              "threads": torch.get_num_threads(), "load_average": os.getloadavg()}
+    frame.to_csv(out / "flux_maps.csv", index=False)
+    write_json(out / "flux_maps.json", report)
+    print("map        cases  met  cells held on >=50 (min cases)  worst flux/limit  median binding  "
+          "power/equator map | flat  map/flat median (min)")
+    for kind, t in table.items():
+        print(f"{kind:<10s} {t['cases']:5d}  {t['met']:3d}  {t['cells_held_on_50_cases']:4d}/{t['cells']} "
+              f"({t['cells_held_min_cases']:3d})             {t['worst_max_utilisation']:.5f}           "
+              f"{t['median_binding_cells']:5.0f}       {t['median_power_vs_equator']:.4f} | "
+              f"{t['median_flat_power_vs_equator']:.4f}     {t['median_power_vs_flat']:.4f} "
+              f"({t['min_power_vs_flat']:.4f})", flush=True)
     return report
 
 
@@ -616,6 +692,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--heliostats-bed", default="150", help="--testbed: field sizes, comma-separated")
     ap.add_argument("--towers", default="30,55,120", help="--testbed: receiver heights [m], comma-separated")
     ap.add_argument("--fractions", default="0.6,0.75,0.9", help="--testbed: limits as fractions of the equator peak")
+    ap.add_argument("--flux-maps", action="store_true", help="--testbed: the allowable-flux maps' table (a HALOS-like "
+                    "map and a flow-path derating, each scaled per case to bind, against a flat limit at its minimum)")
     ap.add_argument("--scenario", action="append", help="--testbed: also this plant file's cases (repeatable)")
     ap.add_argument("--candidates", help="--testbed: a JSON list of AimSettings overrides run on every case, "
                     "e.g. '[{}, {\"rho\": 3}]'; the table per candidate and the one choose_candidate picks")
@@ -649,6 +727,8 @@ def main(argv=None) -> dict:
         return scale(args)
     if args.confidence is not None:
         return confidence(args)
+    if args.testbed and args.flux_maps:
+        return flux_map_testbed(args)
     if args.testbed:
         return testbed(args)
     if args.day:
