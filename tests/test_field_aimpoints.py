@@ -233,7 +233,7 @@ def test_field_model_power_gradient_matches_finite_differences():
     d(one aim point's arc and height) against central differences of the field model."""
     import pandas as pd
 
-    from heliotwin.optimise.aimpoints import _field_power_gradient, _Group, _world
+    from heliotwin.optimise.aimpoints import AimProblem, _field_power_gradient, _world
     from heliotwin.raytrace.field import FieldSettings, equator_aim_points, field_optics
 
     plant, atm = demo_field_plant(24)
@@ -244,7 +244,7 @@ def test_field_model_power_gradient_matches_finite_differences():
     xy = rec.to_local(equator_aim_points(rec, plant.field.kinematics.position))
     x, y = xy[:, 0].clone(), xy[:, 1] + 2.0  # aimed high: part of the light spills over the top
     rows = torch.arange(24)
-    gx, gy = _field_power_gradient(plant, sun, atm, rec, x, y, rows, _Group(None), (20, 48), 0.05,
+    gx, gy = _field_power_gradient(AimProblem(plant, sun, 1e6, atm), (x, y), rows, (20, 48), 0.05,
                                    dtype=torch.float64)
     settings = FieldSettings(softness=0.05, flux_samples=4, flux_mode="window", dtype=torch.float64)
 

@@ -174,6 +174,8 @@ def _write_csv(path, rows: list[dict]) -> None:
 
 # ------------------------------------------------------------------------------------------- aimpoints
 def _print_instant(limit, count: int = 1):
+    """Per instant one line; ``limit`` the peak limit [W/m2], or None for an allowable-flux map (the line then gives
+    the largest flux / limit and the binding cells)."""
     def show(i, label, rep, best, equator) -> None:
         o = rep["optimised"]
         where = f" {i + 1}/{count}" if count > 1 else ""
@@ -181,7 +183,9 @@ def _print_instant(limit, count: int = 1):
                  else "")
         eq = rep["equator"]
         eq_peak = "" if eq.get("estimated") else f", equator {eq['peak_flux_w_m2'] / 1e3:.1f}"
-        print(f"aimpoints{where} {label}: peak {o['peak_flux_w_m2'] / 1e3:.1f} kW/m2 (limit {limit / 1e3:.1f}"
+        held = (f"limit {limit / 1e3:.1f}" if limit is not None else
+                f"flux/limit {o['max_utilisation']:.4f}, {o['binding_cells']} binding cells")
+        print(f"aimpoints{where} {label}: peak {o['peak_flux_w_m2'] / 1e3:.1f} kW/m2 ({held}"
               f"{eq_peak}), power {o['power_vs_equator']:.4f} of equator"
               + (" (estimated)" if eq.get("estimated") else "")
               + "".join(f", {n} {rep[n]['power_vs_equator']:.4f} (peak {rep[n]['peak_flux_w_m2'] / 1e3:.1f})"
@@ -194,11 +198,14 @@ def _print_instant(limit, count: int = 1):
     return show
 
 
-def _write_aim_maps(folder, i: int, label: str, receiver, equator, optimised, limit: float) -> None:
+def _write_aim_maps(folder, i: int, label: str, receiver, equator, optimised, limit) -> None:
     """Per instant: equator vs optimised side by side on one colour scale with the limit contour
-    (``iNNN_before_after.png``), each alone on that same scale (``iNNN_equator.png``, ``iNNN_optimised.png``)
-    and both numeric maps (``iNNN_equator.csv``, ``iNNN_optimised.csv`` [W/m2])."""
+    (``iNNN_before_after.png``; no contour for an allowable-flux map), each alone on that same scale
+    (``iNNN_equator.png``, ``iNNN_optimised.png``), both numeric maps (``iNNN_equator.csv``, ``iNNN_optimised.csv``
+    [W/m2]) and flux / limit of both with the binding cells marked (``iNNN_utilisation.png``). ``limit`` is the
+    instant's :class:`~heliotwin.optimise.problem.FluxLimit`."""
     from ..io.export import write_flux_map_csv
+    from ..optimise.fluxplots import plot_utilisation
     from ..plots import plot_receiver_flux, receiver_extent
     from ..timefmt import utc_or_label
 
@@ -206,8 +213,12 @@ def _write_aim_maps(folder, i: int, label: str, receiver, equator, optimised, li
     powers = {"equator aiming": equator.power_w, "optimised aim points": optimised.power_w}
     scale = max(float(m.max()) for m in maps.values())
     stem = os.path.join(folder, f"i{i:03d}")
+    plot_utilisation(maps, receiver, limit, f"{stem}_utilisation.png", title=f"aim points at {label}: flux / limit")
+    what = (f"peak limit {limit.minimum / 1e3:.0f} kW/m²" if limit.is_uniform else
+            f"allowable flux {limit.minimum / 1e3:.0f}..{float(limit.cells.max()) / 1e3:.0f} kW/m² ({limit.source})")
+    limit = limit.minimum if limit.is_uniform else None  # a contour of one limit only
     plot_receiver_flux(maps, receiver, f"{stem}_before_after.png", limit_w_m2=limit, powers_w=powers,
-                       title=f"aim points at {utc_or_label(label)}: peak limit {limit / 1e3:.0f} kW/m²")
+                       title=f"aim points at {utc_or_label(label)}: {what}")
     for (name, flux), short in zip(maps.items(), ("equator", "optimised")):
         # alone, but on the pair's scale: the two files compare by eye too
         plot_receiver_flux({name: flux}, receiver, f"{stem}_{short}.png", limit_w_m2=limit, powers_w=powers,
@@ -243,13 +254,14 @@ def cmd_aimpoints(args) -> int:
                                 baselines=not args.no_baselines, nproc=args.nproc,
                                 device=getattr(args, "device", None), confidence=args.confidence,
                                 draws=args.draws, mc=args.mc, seed=args.seed, warm_start=not args.cold,
-                                exact_equator=bool(args.flux))
+                                exact_equator=bool(args.flux), flux_limit=args.flux_limit)
     settings.check()  # before any output is staged
     target_file = args.target if args.target and os.path.exists(args.target) else None  # a map file, or 'uniform'
     in_place = same_file(args.output, args.scenario)
     if in_place and not args.in_place:
         raise HeliotwinError(f"-o {args.output} is the input scenario; add --in-place to replace it")
-    inputs = plant_inputs(args.scenario, args.output, ("--target", target_file), flag="--scenario")
+    inputs = plant_inputs(args.scenario, args.output, ("--target", target_file), ("--flux-limit", args.flux_limit),
+                          flag="--scenario")
     with output_set(inputs) as out:
         # in place: the plant is replaced by its own locked, atomic writer (locked_plant_write), not staged
         out_h5 = out.plant(args.output, "-o") if in_place else out.file(args.output, "-o")
@@ -265,22 +277,23 @@ def cmd_aimpoints(args) -> int:
         write_json(out_json, report)
     if seen["show"] and len(seen["instants"]) > 1:
         _print_summary(report["summary"])
-    return _limit_verdict(report, float(args.peak_limit))
+    return _limit_verdict(report)
 
 
 def _aimpoints_run(args, settings, out_png):
     """``aimpoints``' read-optimise step as a function of nothing (what :func:`locked_plant_write` calls under the
     lock when the plant is replaced in place) and the dict it fills (``sc``, ``instants``, ``show``)."""
     from ..io.scenario import load_scenario
-    from ..workflows.aimpoints import aimpoints
+    from ..workflows.aimpoints import aimpoints, limit_of
     from ..workflows.field import sun_instants
 
     seen = {"sc": None, "instants": [], "show": None}
+    limit = limit_of(settings)  # a map file read (and refused) before the plant is
+    peak = None if args.flux_limit else float(args.peak_limit)
 
     def on_instant(i, label, rep, best, equator) -> None:
         if out_png:
-            _write_aim_maps(out_png, i, label, seen["sc"].plant.targets["receiver"], equator, best,
-                            float(args.peak_limit))
+            _write_aim_maps(out_png, i, label, seen["sc"].plant.targets["receiver"], equator, best, limit)
         if seen["show"]:
             seen["show"](i, label, rep, best, equator)
 
@@ -288,10 +301,13 @@ def _aimpoints_run(args, settings, out_png):
         sc = seen["sc"] = load_scenario(args.scenario)
         instants = seen["instants"] = sun_instants(sc.plant, times=args.time, day=args.day, every=args.every,
                                                    azimuth_deg=args.sun_azimuth, elevation_deg=args.sun_elevation)
-        show = seen["show"] = None if args.quiet else _print_instant(float(args.peak_limit), len(instants))
+        show = seen["show"] = None if args.quiet else _print_instant(peak, len(instants))
         if show:  # a line before the long part; one more per instant as each finishes
-            print(f"aimpoints: {len(sc.plant.field.ids)} heliostats, {len(instants)} instant(s), limit "
-                  f"{float(args.peak_limit) / 1e3:.1f} kW/m2 ...", flush=True)
+            what = (f"limit {peak / 1e3:.1f} kW/m2" if peak is not None else
+                    f"allowable flux {limit.minimum / 1e3:.1f}..{float(limit.cells.max()) / 1e3:.1f} kW/m2 "
+                    f"({limit.source})")
+            print(f"aimpoints: {len(sc.plant.field.ids)} heliostats, {len(instants)} instant(s), {what} ...",
+                  flush=True)
         aimed, report = aimpoints(sc, instants, settings, on_instant=on_instant)
         return types.SimpleNamespace(scenario=aimed, report=report)
 
@@ -307,16 +323,20 @@ def _print_summary(d: dict) -> None:
           f"({d['seconds_per_instant']['mean']:.1f} s per instant)", flush=True)
 
 
-def _limit_verdict(report: dict, limit: float) -> int:
+def _limit_verdict(report: dict) -> int:
     """Exit status 3 with one line on stderr when the optimised aim points exceed the limit at some instant."""
-    unmet = [(e["instant"], e["optimised"]["peak_flux_w_m2"]) for e in report["instants"]
-             if not e["optimised"]["limit_met"]]
+    unmet = [(e["instant"], e["optimised"]["peak_flux_w_m2"], e["optimised"]["peak_vs_limit"])
+             for e in report["instants"] if not e["optimised"]["limit_met"]]
     if not unmet:
         return 0
-    label, peak = max(unmet, key=lambda u: u[1])
-    print(f"heliotwin: aimpoints: the peak-flux limit {limit / 1e3:.1f} kW/m2 is not met at {len(unmet)} of "
-          f"{len(report['instants'])} instants (worst: {peak / 1e3:.1f} kW/m2 at {label}); the outputs hold the "
-          f"best aim points found (exit status {EXIT_NOT_MET})", file=sys.stderr)
+    label, peak, ratio = max(unmet, key=lambda u: u[2])
+    fl = report.get("flux_limit")
+    what = (f"the peak-flux limit {report['peak_limit_w_m2'] / 1e3:.1f} kW/m2" if fl is None else
+            f"the allowable-flux map ({fl['source']})")
+    worst = f"{peak / 1e3:.1f} kW/m2" if fl is None else f"flux/limit {ratio:.4f}"
+    print(f"heliotwin: aimpoints: {what} is not met at {len(unmet)} of {len(report['instants'])} instants (worst: "
+          f"{worst} at {label}); the outputs hold the best aim points found (exit status {EXIT_NOT_MET})",
+          file=sys.stderr)
     return EXIT_NOT_MET
 
 
@@ -403,8 +423,13 @@ def register(sub) -> None:
     p.add_argument("--every", default="1h", help="with --day: time step, 1min..1d (default: "
                                                                    "%(default)s)")
     p.add_argument("--sun-elevation", type=_ELEVATION, help="[deg] (with --sun-azimuth)")
-    p.add_argument("--peak-limit", type=_PEAK_LIMIT, required=True, help="[W/m2] on every map cell; exit status 3 "
+    p.add_argument("--peak-limit", type=_PEAK_LIMIT, help="[W/m2] on every map cell; exit status 3 "
                    "when the aim points found cannot hold it at some instant (outputs still written)")
+    p.add_argument("--flux-limit", metavar="FILE", help="allowable flux per receiver cell: a CSV in NREL HALOS' "
+                   "allowable_flux.csv layout (no header; rows top to bottom, columns around/across the receiver; "
+                   "W/m2, or a '# unit: kW/m2' line), resampled onto the map taking each cell's lowest limit; or a "
+                   "TOML with [receiver.flux_limit] (panels_w_m2, flow_path, derating, top_bottom_w_m2). With "
+                   "--peak-limit too, every cell's lower limit. Stored with the aim points (daily keeps it)")
     p.add_argument("--target", help="'uniform' (flat over the height) or a CSV/NPY map on the receiver grid (rows x "
                                     "cols, row 0 = top; only its shape counts): match it under the limit")
     p.add_argument("--resolution", type=_resolution, default=(20, 48), help="COLSxROWS (default: 48x20)")

@@ -71,6 +71,9 @@ def register(subparsers) -> None:
     d.add_argument("--peak-limit", type=peak_limit, default=None,
                    help="peak-flux limit of the aim points [W/m2] (default: the one the plant stores from an "
                         "earlier 'aimpoints')")
+    d.add_argument("--flux-limit", metavar="FILE", help="allowable flux per receiver cell for the aim points: a HALOS "
+                   "allowable_flux.csv-layout CSV or a TOML with [receiver.flux_limit] (see 'aimpoints --flux-limit'; "
+                   "default: the map the plant stores from an earlier 'aimpoints', else its peak limit)")
     d.add_argument("--aim-times", help="comma-separated UTC times of the day's aim points (default: the hour "
                                        "with the highest sun)")
     d.add_argument("--no-aim", dest="aim", action="store_false", help="no aim points")
@@ -145,9 +148,10 @@ def cmd_daily(args) -> int:
     from ..workflows.daily import DailySettings, daily_plant_file
 
     settings = DailySettings(day=args.day, slots=args.slots, every=args.every, aim=args.aim,
-                             peak_limit_w_m2=args.peak_limit, aim_times=args.aim_times)
+                             peak_limit_w_m2=args.peak_limit, aim_times=args.aim_times, flux_limit=args.flux_limit)
     output = args.output or args.plant
-    with output_set(plant_inputs(args.plant, output, ("--paint", args.paint), flag="--plant")) as out:
+    with output_set(plant_inputs(args.plant, output, ("--paint", args.paint), ("--flux-limit", args.flux_limit),
+                                 flag="--plant")) as out:
         out.plant(output, "-o" if args.output else "--plant")  # before the lock: nothing left beside a refused one
         json_path = out.file(args.json, "--json")
         stage(args, f"the plant's day: {args.plant} with the new records of {args.paint}")
@@ -169,8 +173,11 @@ def cmd_daily(args) -> int:
         else:
             for e in aim["instants"]:
                 standby = e.get("standby_heliostats", 0)
-                print(f"aim points {utc_or_label(e['instant'])}: peak {e['peak_flux_w_m2'] / 1e3:.1f} kW/m2 (limit "
-                      f"{aim['peak_limit_w_m2'] / 1e3:.1f}{'' if e['limit_met'] else ', NOT held'})"
+                held = (f"limit {aim['peak_limit_w_m2'] / 1e3:.1f}" if "flux_limit" not in aim else
+                        f"flux/limit {e['max_utilisation']:.4f} of {aim['flux_limit']['source']}, "
+                        f"{e['binding_cells']} binding cells")
+                print(f"aim points {utc_or_label(e['instant'])}: peak {e['peak_flux_w_m2'] / 1e3:.1f} kW/m2 ({held}"
+                      f"{'' if e['limit_met'] else ', NOT held'})"
                       + (f"; {standby} heliostat(s) on standby, {e['power_w'] / 1e3:.3g} of "
                          f"{e['equator_power_w'] / 1e3:.3g} kW" if standby and e.get("equator_power_w") else ""))
         print(f"status {report['status']}: {'; '.join(report['attention']) or 'nothing to act on'}")

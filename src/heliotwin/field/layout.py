@@ -25,6 +25,12 @@ Plant description (TOML)
                   optional axis = [e, n, u], the cylinder's unit axis (default vertical): with it the
                   normal may tilt (a PAINT tower's receiver), perpendicular to the axis)
                   | "planar" (width, height, center, normal)
+    [receiver.flux_limit]  optional allowable flux, read by ``aimpoints``/``daily --flux-limit plant.toml``:
+                  panels_w_m2 = [...] (one limit per panel [W/m^2], equal-width panels left to right along the
+                  unrolled map), flow_path = [...] (0-based panel indices in the fluid's order; default in order),
+                  derating = [...] (factor in (0, 1] at each flow-path step, e.g. falling to 0.33 at the hot
+                  outlet; default 1), top_bottom_w_m2 (a lower limit on the map's top and bottom rows)
+                  (:mod:`heliotwin.optimise.fluxmap`)
     [sun]         shape = "limb-darkened" | "buie" (csr) | "gaussian" (sigma_mrad) | "pillbox"
                   (radius_mrad, also the limb-darkened disc), dni [W/m^2]
     [atmosphere]  model = "polynomial", coefficients = [c0, c1, c2, c3] (loss in slant range [km])
@@ -54,6 +60,7 @@ import torch
 
 from ..atmosphere import ATMOSPHERE_MODELS, Atmosphere, attenuation
 from ..errors import InputFileError
+from ..optimise.fluxmap import parse_flux_limit_table
 from ..site import Site
 from ..sunshape import SUNSHAPES
 from .actuators import ACTUATOR_NOMINAL
@@ -470,6 +477,9 @@ def _receiver_config(t: _Table) -> dict:
         out["width"] = t.number("width", lo=MIN_RECEIVER_M, hi=MAX_RECEIVER_M)
         if normal is None:
             t.fail("normal", "missing (planar receivers need their normal, towards the field)")
+    present, limits = t._lookup("flux_limit", None)
+    if present:  # the allowable flux per panel (read by aimpoints/daily --flux-limit plant.toml): checked here too
+        out["flux_limit"] = parse_flux_limit_table(limits, t.path, f"{t.section}.flux_limit")
     t.done()
     return out
 

@@ -4,6 +4,7 @@ Layout of the group (one dict in :attr:`heliotwin.io.scenario.Scenario.learned` 
 
     aim [H, 3] ENU [m], sun_direction [3], motor_steps [H, 2], reachable [H] (bool)   the first instant
     peak_limit_w_m2, method, target                                                 the run's settings
+    flux_limit_w_m2 [rows, cols], flux_limit_source        an allowable-flux map's run only: every cell's own limit
     instants/<iNNN>/{instant, aim, sun_direction, motor_steps, reachable, power_w, peak_flux_w_m2}
 
 The first instant is repeated at the top so that a reader of one instant needs no index. Motor steps come
@@ -17,8 +18,10 @@ import torch
 from ..errors import HeliotwinError
 from ..field.kinematics import inverse
 from ..field.plant import Plant
+from .problem import FluxLimit
 
 __all__ = ["KEY", "METHOD", "instant_state", "aimpoint_state", "stored_aimpoints", "stored_peak_limit",
+           "stored_flux_limit",
            "PEAK_LIMIT_RANGE_W_M2", "check_peak_limit"]
 
 #: Plausible receiver peak-flux limits [W/m^2]: below 1 kW/m^2 (the sun's own DNI) nothing is a limit the field could
@@ -80,7 +83,7 @@ def instant_state(plant: Plant, label: str, aim: torch.Tensor, sun_direction: to
 
 
 def aimpoint_state(instants: dict, *, peak_limit_w_m2: float, target: str = "max-power",
-                   method: str = METHOD) -> dict:
+                   method: str = METHOD, flux_limit=None) -> dict:
     """The ``/learned/aimpoints`` group from per-instant entries (:func:`instant_state`), keyed ``iNNN``.
 
     Parameters
@@ -92,6 +95,9 @@ def aimpoint_state(instants: dict, *, peak_limit_w_m2: float, target: str = "max
     target : str
         ``"max-power"``, ``"uniform"`` or the target map's file.
     method : str
+    flux_limit : (torch.Tensor [rows, cols], str), optional
+        The allowable-flux map every cell was held under [W/m^2] and where it came from (``peak_limit_w_m2`` is then
+        its highest cell).
 
     Returns
     -------
@@ -101,9 +107,13 @@ def aimpoint_state(instants: dict, *, peak_limit_w_m2: float, target: str = "max
     if not instants:
         raise HeliotwinError("aimpoint_state: no instant to store")
     first = next(iter(instants.values()))
-    return {"aim": first["aim"], "peak_limit_w_m2": float(peak_limit_w_m2), "sun_direction": first["sun_direction"],
-            "method": method, "motor_steps": first["motor_steps"], "reachable": first["reachable"],
-            "target": target, "instants": instants}
+    out = {"aim": first["aim"], "peak_limit_w_m2": float(peak_limit_w_m2), "sun_direction": first["sun_direction"],
+           "method": method, "motor_steps": first["motor_steps"], "reachable": first["reachable"],
+           "target": target, "instants": instants}
+    if flux_limit is not None:
+        out["flux_limit_w_m2"] = torch.as_tensor(flux_limit[0], dtype=torch.float64).cpu()
+        out["flux_limit_source"] = str(flux_limit[1])
+    return out
 
 
 def stored_peak_limit(scenario) -> float | None:
@@ -116,6 +126,25 @@ def stored_peak_limit(scenario) -> float | None:
     if value.numel() != 1:
         raise HeliotwinError(f"{where}: expected one number, got {value.numel()}")
     return check_peak_limit(float(value[0]), where)
+
+
+def stored_flux_limit(scenario):
+    """The allowable-flux map the scenario's stored aim points were optimised under, a
+    :class:`~heliotwin.optimise.problem.FluxLimit` on the stored grid (None: none stored, a peak limit alone)."""
+    state = (scenario.learned or {}).get(KEY)
+    if not isinstance(state, dict) or state.get("flux_limit_w_m2") is None:
+        return None
+    where = f"{getattr(scenario, 'path', None) or 'scenario'} [/learned/{KEY}/flux_limit_w_m2]"
+    try:
+        cells = torch.as_tensor(state["flux_limit_w_m2"], dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):
+        raise HeliotwinError(f"{where}: expected a numeric map") from None
+    if cells.ndim != 2 or not cells.numel():
+        raise HeliotwinError(f"{where}: expected a [rows, cols] map, got shape {list(cells.shape)}")
+    lo, hi = PEAK_LIMIT_RANGE_W_M2
+    if not bool(torch.isfinite(cells).all()) or float(cells.min()) < lo or float(cells.max()) > hi:
+        raise HeliotwinError(f"{where}: every cell's limit must be finite, within {lo:.0f}..{hi:.0f} W/m2")
+    return FluxLimit(cells, str(state.get("flux_limit_source") or "stored map"))
 
 
 def stored_aimpoints(scenario, sun_direction: torch.Tensor) -> torch.Tensor:

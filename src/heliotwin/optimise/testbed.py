@@ -6,7 +6,9 @@ Jülich-like tilted 60-degree cylinder segment), a tower height and a receiver s
 Jülich-size 2 x 2 facet heliostat canted on-axis at its slant range; the sun is the limb-darkened one at DNI
 900 W/m^2 with 1.53 mrad slope error. The plant is a pure function of the arguments (no random draws).
 
-Used by ``benchmarks/bench_aimpoints.py`` (the test bed's table) and the aim-point tests.
+Used by ``benchmarks/bench_aimpoints.py`` (the test bed's table) and the aim-point tests. :func:`flux_limit_map`
+gives the test bed's allowable-flux maps (a HALOS-like map and a flow-path derating), shaped on the model's grid
+and scaled per case so that they bind (``--testbed --flux-maps``).
 
 >>> plant, atmosphere = generated_plant("radial", 40, "tilted-cylinder", tower=55.0)
 >>> len(plant.field.ids), plant.targets["receiver"].kind
@@ -25,12 +27,23 @@ from ..field.demo import HELIOSTAT_HEIGHT, HELIOSTAT_WIDTH, demo_field_positions
 from ..field.layout import Layout, PlantConfig, build_plant
 from ..field.plant import Plant, SunSettings
 from ..site import Site
+from .fluxmap import panel_limit_grid, resample_min
+from .problem import FluxLimit
 
-__all__ = ["LAYOUTS", "RECEIVERS", "generated_plant", "field_positions"]
+__all__ = ["LAYOUTS", "RECEIVERS", "FLUX_MAPS", "generated_plant", "field_positions", "flux_limit_map",
+           "scaled_to_bind"]
 
 LAYOUTS = ("radial", "surround", "grid")
 RECEIVERS = ("cylinder", "flat", "tilted-flat", "tilted-cylinder")
 TILT_DEG = 25.0  #: downward tilt of the tilted receivers' normals [deg] (Jülich's receiver: ~25 deg)
+#: The test bed's allowable-flux map shapes (:func:`flux_limit_map`).
+FLUX_MAPS = ("halos", "flow-path")
+#: HALOS' middle band [W/m^2]: blocks of columns across (around) the receiver, and its top and bottom rows.
+HALOS_BAND_W_M2 = (0.6e6, 0.8e6, 1.0e6, 1.2e6, 1.0e6, 0.8e6, 0.6e6)
+HALOS_EDGE_W_M2 = 0.3e6
+#: The flow-path map: 8 panels at 1 MW/m^2, the fluid passing them left to right, derated linearly to 0.33 of the
+#: limit at the hot outlet.
+FLOW_PANELS, FLOW_OUTLET = 8, 0.33
 
 
 def field_positions(layout: str, heliostats: int, tower: float) -> torch.Tensor:
@@ -112,3 +125,31 @@ def generated_plant(layout: str = "radial", heliostats: int = 300, receiver: str
                          Atmosphere())
     ids = [f"G{i:05d}" for i in range(pos.shape[0])]
     return build_plant(Layout(ids, pos, list(range(len(ids))), f"generated-{layout}"), config), config.atmosphere
+
+
+def flux_limit_map(kind: str, resolution) -> np.ndarray:
+    """An allowable-flux map shape [rows, cols] [W/m^2] on the model's grid (row 0 = top).
+
+    ``halos``: HALOS' ``allowable_flux.csv`` shape, :data:`HALOS_EDGE_W_M2` on the top and bottom rows, the middle
+    band :data:`HALOS_BAND_W_M2` in seven equal blocks of columns (resampled conservatively: a column over two
+    blocks takes the lower). ``flow-path``: :data:`FLOW_PANELS` panels at 1 MW/m^2 derated linearly along the flow
+    (left to right) to :data:`FLOW_OUTLET` at the outlet (:func:`heliotwin.optimise.fluxmap.panel_limit_grid`).
+    """
+    rows, cols = (int(r) for r in resolution)
+    if kind == "halos":
+        out = resample_min(np.asarray([HALOS_BAND_W_M2]), (rows, cols))
+        out[[0, -1]] = HALOS_EDGE_W_M2
+        return out
+    if kind == "flow-path":
+        derating = np.linspace(1.0, FLOW_OUTLET, FLOW_PANELS)
+        return panel_limit_grid({"panels": list(1e6 * derating), "top_bottom": None}, (rows, cols))
+    raise HeliotwinError(f"unknown flux map {kind!r}; expected one of {', '.join(FLUX_MAPS)}")
+
+
+def scaled_to_bind(shape: np.ndarray, equator_flux, fraction: float, source: str = "map") -> FluxLimit:
+    """``shape`` scaled so that equator aiming's map exceeds it by ``1 / fraction``: its largest ``flux / limit`` is
+    ``1 / fraction`` (``fraction`` < 1: the limit binds), as the test bed's flat limits are ``fraction`` x the
+    equator peak."""
+    cells = torch.as_tensor(np.asarray(shape, dtype=np.float64))
+    scale = float((equator_flux.detach().cpu().to(torch.float64) / cells).max()) * float(fraction)
+    return FluxLimit(cells * scale, source)

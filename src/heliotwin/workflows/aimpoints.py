@@ -7,6 +7,7 @@ plant's kinematics, become the scenario's ``/learned/aimpoints`` (:mod:`heliotwi
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import time
@@ -34,11 +35,13 @@ from ..optimise.aimpoints import (
     uniform_target,
 )
 from ..optimise.aimstate import KEY, aimpoint_state, check_peak_limit, instant_state
+from ..optimise.fluxmap import combine, load_flux_limit, resample_min
+from ..optimise.problem import FluxLimit
 from ..optimise.robust import require_posterior, robust_aimpoints
 from ..raytrace.field import reuse_mirror_samples
 from .field import check_map_resolution
 
-__all__ = ["AimpointSettings", "aimpoints", "day_summary", "MAX_DRAWS", "check_draws_memory"]
+__all__ = ["AimpointSettings", "aimpoints", "day_summary", "MAX_DRAWS", "check_draws_memory", "limit_of"]
 
 
 #: Most Monte-Carlo draws of ``--confidence``: 1e5 draws resolve an exceedance probability of 1e-4 to 30 %; more is
@@ -71,8 +74,8 @@ class AimpointSettings:
 
     Attributes
     ----------
-    peak_limit_w_m2 : float
-        Limit on every receiver map cell [W/m^2].
+    peak_limit_w_m2 : float or None
+        Limit on every receiver map cell [W/m^2] (None: the ``flux_limit`` map's alone).
     resolution : (int, int)
         Receiver map ``(rows, cols)``.
     iterations : int
@@ -103,6 +106,11 @@ class AimpointSettings:
         With warm starts: make the exact equator check at every instant anyway (its peak and map in the report
         and the flux maps). Without it (and without baselines, a uniform target or a confidence, which need it)
         a warm instant's equator power is the corrected image model's estimate (``equator.estimated``).
+    flux_limit : str or FluxLimit, optional
+        An allowable-flux map: a ``.csv`` (HALOS layout) or ``.toml`` (``[receiver.flux_limit]``) file
+        (:func:`heliotwin.optimise.fluxmap.load_flux_limit`) or a :class:`~heliotwin.optimise.problem.FluxLimit`
+        (e.g. the one stored with the plant's aim points). With ``peak_limit_w_m2`` too, every cell is held under
+        the lower of the two.
     """
 
     peak_limit_w_m2: float
@@ -119,6 +127,7 @@ class AimpointSettings:
     seed: int = 0
     warm_start: bool = True
     exact_equator: bool = False
+    flux_limit: object = None
 
     def __post_init__(self):
         self.check()  # refused when made, before any file is read or output staged
@@ -126,7 +135,15 @@ class AimpointSettings:
     def check(self) -> None:
         """One-line :class:`HeliotwinError` for settings no run can use (a caller may check before staging
         outputs; :func:`aimpoints` checks again)."""
-        check_peak_limit(self.peak_limit_w_m2)
+        if self.peak_limit_w_m2 is None and self.flux_limit is None:
+            raise HeliotwinError("no flux limit: give --peak-limit W/m2 or --flux-limit FILE (.csv or .toml)")
+        if self.peak_limit_w_m2 is not None:
+            check_peak_limit(self.peak_limit_w_m2)
+        if self.flux_limit is not None and not isinstance(self.flux_limit, (str, os.PathLike, FluxLimit)):
+            raise HeliotwinError(f"--flux-limit: expected a .csv or .toml file, got {self.flux_limit!r}")
+        if self.flux_limit is not None and self.confidence is not None:
+            raise HeliotwinError("--confidence: holds one peak limit (--peak-limit), not an allowable-flux map "
+                                 "(--flux-limit)")
         check_map_resolution(self.resolution)
         for name, v in (("--iterations", self.iterations), ("--nproc", self.nproc)):
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
@@ -142,6 +159,24 @@ class AimpointSettings:
             raise HeliotwinError("--confidence: maximises power in one process (not with --nproc or --target)")
         if self.nproc > 1 and str(self.device or "cpu").startswith("cuda"):
             raise HeliotwinError("--nproc: the local process group is gloo on CPU; use --device cpu with --nproc")
+
+
+def limit_of(settings: AimpointSettings) -> FluxLimit:
+    """The limit per cell of ``settings`` on its resolution: the peak limit, the ``flux_limit`` map (a file is read,
+    a stored map on another grid resampled conservatively), or the lower of the two per cell."""
+    fl = settings.flux_limit
+    if isinstance(fl, (str, os.PathLike)):
+        fl = load_flux_limit(fl, settings.resolution)
+    elif isinstance(fl, FluxLimit) and tuple(fl.cells.shape) != tuple(settings.resolution):
+        fl = FluxLimit(torch.as_tensor(resample_min(fl.cells.numpy(), settings.resolution)), fl.source)
+    return combine(settings.peak_limit_w_m2, fl, settings.resolution)
+
+
+def _limit_entry(limit: FluxLimit, flux) -> dict:
+    """How a map sits under the limit: ``peak_vs_limit`` (the largest flux / limit; peak / limit for one peak
+    limit), ``max_utilisation`` (the same), ``binding_cells`` (within 1 % of their limit), ``limit_met``."""
+    util = limit.summary(flux)
+    return {"limit_met": limit.held(flux), "violation": max(0.0, util["max_utilisation"] - 1.0), **util}
 
 
 @reuse_mirror_samples()  # every exact check below samples the same mirror surfaces
@@ -167,7 +202,8 @@ def _instant(plant, sun, atm, settings: AimpointSettings, learned=None, path="",
     (:func:`heliotwin.optimise.robust.robust_aimpoints`' report). ``warm``: the previous instant's deterministic
     optimised result to start from; without the exact equator check (see :class:`AimpointSettings`) the
     equator entry holds only the image model's estimate of its power."""
-    limit, resolution = float(settings.peak_limit_w_m2), settings.resolution
+    resolution = settings.resolution
+    limit = limit_of(settings)
     t0 = time.perf_counter()
     need_equator = (warm is None or settings.exact_equator or settings.baselines or settings.target == "uniform"
                     or settings.confidence is not None)
@@ -196,7 +232,8 @@ def _instant(plant, sun, atm, settings: AimpointSettings, learned=None, path="",
     deterministic = best
     robust = None
     if settings.confidence is not None:
-        best, robust = robust_aimpoints(plant, sun, limit, settings.confidence, learned, knobs, atmosphere=atm,
+        peak = float(settings.peak_limit_w_m2)  # --confidence holds one peak limit (checked)
+        best, robust = robust_aimpoints(plant, sun, peak, settings.confidence, learned, knobs, atmosphere=atm,
                                         equator=eq_field, model=model, deterministic=best, draws=settings.draws,
                                         seed=settings.seed, mc=settings.mc, path=path, when_s=_instant_time(label))
     baselines = {}
@@ -209,9 +246,8 @@ def _instant(plant, sun, atm, settings: AimpointSettings, learned=None, path="",
     def entry(r):
         if r.flux is None:  # the estimated equator: its power only
             return {"power_w": r.power_w, "power_vs_equator": 1.0, "estimated": True}
-        e = {"power_w": r.power_w, "peak_flux_w_m2": r.peak_flux_w_m2, "violation": r.violation(limit),
-             "limit_met": r.peak_flux_w_m2 <= limit, "power_vs_equator": r.power_w / equator.power_w,
-             "seconds": r.seconds}
+        e = {"power_w": r.power_w, "peak_flux_w_m2": r.peak_flux_w_m2, **_limit_entry(limit, r.flux),
+             "power_vs_equator": r.power_w / equator.power_w, "seconds": r.seconds}
         if target is not None:
             e["target_mismatch"] = target_mismatch(r.flux, target)
         return e
@@ -224,7 +260,7 @@ def _instant(plant, sun, atm, settings: AimpointSettings, learned=None, path="",
         rep[name] = {**entry(r), "k": r.parameter}
     rep["optimised"] = {**entry(best), "iterations": best.iterations, "rounds": len(best.history),
                         "exact_checks": best.exact_checks, "warm_start": warm is not None,
-                        "peak_vs_limit": best.peak_flux_w_m2 / limit,
+                        "peak_vs_limit": limit.ratio(best.flux),
                         "final_margin": best.parameter, "standby_heliostats": int(best.standby),
                         "note": _note(best, equator, limit), "history": best.history}
     for name, r in baselines.items():
@@ -235,9 +271,9 @@ def _instant(plant, sun, atm, settings: AimpointSettings, learned=None, path="",
     return rep, best, equator, deterministic
 
 
-def _note(best: AimResult, equator: AimResult, limit: float) -> str:
+def _note(best: AimResult, equator: AimResult, limit: FluxLimit) -> str:
     """One sentence on what the optimised aim points cost, for the report and the summary line."""
-    if best.peak_flux_w_m2 > limit:
+    if not limit.held(best.flux):
         return "the limit is not held even with every heliostat on standby"
     if best.standby:
         return (f"the limit cannot be held with every heliostat's light on the receiver: {best.standby} heliostats "
@@ -261,7 +297,7 @@ def day_summary(entries: list[dict], limit: float, seconds: float) -> dict:
     opt = [e["optimised"] for e in entries]
     out = {"instants": len(entries), "warm_starts": sum(bool(o.get("warm_start")) for o in opt),
            "limit_met_at_all": all(o["limit_met"] for o in opt),
-           "worst_peak_vs_limit": max(o["peak_flux_w_m2"] for o in opt) / limit,
+           "worst_peak_vs_limit": max(o.get("peak_vs_limit", o["peak_flux_w_m2"] / limit) for o in opt),
            "exact_checks": sum(int(o.get("exact_checks", 0)) for o in opt),
            "equator_checks": sum(not e["equator"].get("estimated", False) for e in entries),
            "adam_steps": sum(int(o.get("iterations", 0)) for o in opt), "seconds": seconds,
@@ -314,7 +350,10 @@ def aimpoints(scenario: Scenario, instants: list[tuple[str, torch.Tensor]], sett
     if settings.confidence is not None:
         require_posterior(scenario.learned, scenario.path or "")  # before any optimisation
         check_draws_memory(settings.draws, int(scenario.plant.field.kinematics.position.shape[0]))
-    limit = float(settings.peak_limit_w_m2)
+    flux_limit = limit_of(settings)  # a file read once, before any optimisation
+    settings = dataclasses.replace(settings, flux_limit=None if settings.flux_limit is None else flux_limit)
+    # the report's and the stored peak limit: the given one, or no cell's limit above it (a map's highest)
+    limit = float(flux_limit.cells.max())
     t_all = time.perf_counter()
     plant = scenario.plant if settings.device is None else to_device(scenario.plant, settings.device)
     atm = Atmosphere.from_extras(scenario.extras)
@@ -322,6 +361,9 @@ def aimpoints(scenario: Scenario, instants: list[tuple[str, torch.Tensor]], sett
     report = {"scenario": os.path.abspath(scenario.path) if scenario.path else None, "peak_limit_w_m2": limit,
               "resolution": {"cols": settings.resolution[1], "rows": settings.resolution[0]},
               "target": target, "nproc": settings.nproc, "confidence": settings.confidence, "instants": []}
+    if settings.flux_limit is not None:
+        report["flux_limit"] = {"source": flux_limit.source, "min_w_m2": flux_limit.minimum, "max_w_m2": limit,
+                                "uniform": flux_limit.is_uniform, "binding_within": 0.01}
     stored, previous = {}, None
     warm = settings.warm_start
     for i, (label, sun) in enumerate(instants):
@@ -336,7 +378,9 @@ def aimpoints(scenario: Scenario, instants: list[tuple[str, torch.Tensor]], sett
     report.update({k: v for k, v in report["instants"][0].items() if k != "instant"})  # first instant at top
     report["seconds"] = time.perf_counter() - t_all
     report["summary"] = day_summary(report["instants"], limit, report["seconds"])
-    learned = {**scenario.learned, KEY: aimpoint_state(stored, peak_limit_w_m2=limit, target=target)}
+    learned = {**scenario.learned, KEY: aimpoint_state(
+        stored, peak_limit_w_m2=limit, target=target,
+        flux_limit=None if settings.flux_limit is None else (flux_limit.cells, flux_limit.source))}
     step = provenance_entry("aimpoints", peak_limit_w_m2=limit, instants=[lbl for lbl, _ in instants],
                             iterations=settings.iterations, target=target,
                             power_w=[s["power_w"] for s in stored.values()],

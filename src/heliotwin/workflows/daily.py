@@ -28,7 +28,7 @@ from ..calibrate.clock import planned_day
 from ..calibrate.protocol.plan import plant_plan
 from ..errors import HeliotwinError
 from ..io.scenario import Scenario, load_scenario, provenance_entry
-from ..optimise.aimstate import stored_peak_limit
+from ..optimise.aimstate import stored_flux_limit, stored_peak_limit
 from .aimpoints import AimpointSettings, aimpoints
 from .field import sun_instants
 from .update import UpdateSettings, locked_plant_write, update
@@ -68,6 +68,10 @@ class DailySettings:
         Comma-separated UTC times of the day's aim points; None: the hour of the day with the highest sun.
     resolution : tuple of int
         Receiver map (rows, cols) of the aim points.
+    flux_limit : str or None
+        An allowable-flux map (``.csv``/``.toml``, :func:`heliotwin.optimise.fluxmap.load_flux_limit`). Given
+        limits (this or ``peak_limit_w_m2``) replace the stored ones; none given: the map an earlier ``aimpoints``
+        stored, else its peak limit.
     """
 
     update: UpdateSettings = field(default_factory=UpdateSettings)
@@ -79,6 +83,7 @@ class DailySettings:
     peak_limit_w_m2: float | None = None
     aim_times: str | None = None
     resolution: tuple = (20, 48)
+    flux_limit: str | None = None
 
     def __post_init__(self):
         if isinstance(self.slots, bool) or not isinstance(self.slots, int) or not 0 <= self.slots <= 100000:
@@ -121,8 +126,11 @@ def _aim(scenario: Scenario, day: str, settings: DailySettings) -> tuple[Scenari
     """The day's aim points (or why there are none)."""
     if not settings.aim:
         return scenario, {"skipped": "not asked for (--no-aim)"}
-    limit = settings.peak_limit_w_m2 or stored_peak_limit(scenario)
-    if limit is None:
+    limit, flux = settings.peak_limit_w_m2, settings.flux_limit
+    if limit is None and flux is None:  # the plant's own: its map if it keeps one, else its peak limit
+        flux = stored_flux_limit(scenario)
+        limit = stored_peak_limit(scenario) if flux is None else None
+    if limit is None and flux is None:
         return scenario, {"skipped": "no peak-flux limit: give --peak-limit, or run 'heliotwin aimpoints' once "
                                      "(the plant keeps its limit)"}
     if "receiver" not in scenario.plant.targets:
@@ -132,13 +140,13 @@ def _aim(scenario: Scenario, day: str, settings: DailySettings) -> tuple[Scenari
     else:  # the hour with the highest sun: where the peak limit binds hardest
         hours = sun_instants(scenario.plant, day=day, every="1h")
         instants = [max(hours, key=lambda item: float(item[1][2]))]
-    aim_settings = AimpointSettings(peak_limit_w_m2=float(limit), resolution=tuple(settings.resolution),
-                                    baselines=False)
+    aim_settings = AimpointSettings(peak_limit_w_m2=None if limit is None else float(limit),
+                                    resolution=tuple(settings.resolution), baselines=False, flux_limit=flux)
     aimed, report = aimpoints(scenario, instants, aim_settings)
-    met = [e["optimised"]["peak_flux_w_m2"] <= limit * (1 + 1e-6) for e in report["instants"]]
+    met = [e["optimised"]["peak_vs_limit"] <= 1 + 1e-6 for e in report["instants"]]
     # standby heliostats hold the limit by delivering nothing: what the limit costs is the power the field
     # loses against equator aiming with every heliostat on the receiver (the limit-free aim points)
-    summary = {"peak_limit_w_m2": float(limit), "instants": [
+    summary = {"peak_limit_w_m2": report["peak_limit_w_m2"], "instants": [
         {"instant": e["instant"], "power_w": e["optimised"].get("power_w"),
          "peak_flux_w_m2": e["optimised"]["peak_flux_w_m2"], "limit_met": ok,
          "standby_heliostats": int(e["optimised"].get("standby_heliostats", 0)),
@@ -150,6 +158,10 @@ def _aim(scenario: Scenario, day: str, settings: DailySettings) -> tuple[Scenari
         "power_lost_means": "equator aiming's power (every heliostat on the receiver, no limit) less the "
                             "optimised aim points' [W]"}
     summary["standby_heliostats"] = max((e["standby_heliostats"] for e in summary["instants"]), default=0)
+    if "flux_limit" in report:
+        summary["flux_limit"] = report["flux_limit"]
+        for row, e in zip(summary["instants"], report["instants"]):
+            row.update(max_utilisation=e["optimised"]["max_utilisation"], binding_cells=e["optimised"]["binding_cells"])
     return aimed, summary
 
 
