@@ -201,3 +201,18 @@ def test_a_year_with_one_value_too_few_is_a_one_line_error_naming_the_field(plan
     with pytest.raises(InputFileError, match=r"energy_mwh\]: missing"):
         year_state(_scenario(year))
     assert math.isfinite(fake_year(plant)["annual_energy_mwh"])
+
+
+def test_scenario_show_gives_the_years_headline_only_when_there_is_one(plant, tmp_path, capsys):
+    year = fake_year(plant)
+    path = write_scenario(_scenario(year), tmp_path / "plant.h5")
+    code, out, err = run_cli(capsys, "scenario", "show", path)
+    assert code == 0, err
+    line = next(x for x in out.splitlines() if x.startswith("year: "))
+    track = year["heliostats"]["tracking_loss_mwh"].sum()
+    assert line.startswith(f"year: 2023 (equator aiming): {year['annual_energy_mwh']:.4g} MWh on the receiver")
+    assert f"lost to tracking {track:.4g} MWh" in line and "723170TYA.CSV (tmy3)" in line
+    assert "interpolation checked: median 0.40 %, p95 1.20 %, field 0.08 %" in line
+    bare = write_scenario(_scenario(None), tmp_path / "bare.h5")
+    code, out, _ = run_cli(capsys, "scenario", "show", bare)
+    assert code == 0 and not any(x.startswith("year: ") for x in out.splitlines())
