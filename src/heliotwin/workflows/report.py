@@ -16,6 +16,10 @@
   first of them;
 * the receiver (the ``field`` workflow): equator aiming and the stored aim points on one colour scale, with
   the stored peak-flux limit;
+* the plant's year, when ``heliotwin year`` stored one (``/learned/year``, :func:`year_state`): the field map
+  coloured by annual energy and by the energy each heliostat loses to its tracking and to its mirror, the
+  heliostats with the most energy at stake (what a crew fixes or washes first), the monthly energy, the weather
+  file with its time convention and the interpolation check the year measured;
 * provenance (:func:`heliotwin.workflows.show.describe_scenario`).
 
 The page itself is drawn by :mod:`heliotwin.workflows.report_page` (Plotly, its JavaScript inlined). Like every
@@ -34,7 +38,7 @@ import torch
 
 from ..calibrate.protocol.plan import plant_plan
 from ..calibrate.twinstate import open_alarms, plant_clock
-from ..errors import HeliotwinError
+from ..errors import HeliotwinError, InputFileError
 from ..field.facets import ideal_surfaces, surface_points
 from ..field.plant import Facets, Surfaces
 from ..field.targets import CylinderTarget
@@ -49,8 +53,8 @@ from .report_page import render_page
 from .show import describe_scenario, nominal_heliostats
 from .update import ASSIMILATION_KEY
 
-__all__ = ["ReportSettings", "QUANTITIES", "heliostat_state", "alarm_rows", "open_alarm_rows",
-            "heliostat_detail", "surface_deviation",
+__all__ = ["ReportSettings", "QUANTITIES", "YEAR_QUANTITIES", "heliostat_state", "alarm_rows", "open_alarm_rows",
+            "heliostat_detail", "surface_deviation", "year_state", "year_ranking",
            "plant_report"]
 
 #: Colour quantities of the field map: key -> (label with unit, higher is worse).
@@ -94,6 +98,9 @@ class ReportSettings:
         Draw the receiver (runs the field model twice: equator and stored aim points).
     resolution : (int, int)
         Receiver map ``(rows, cols)``.
+    year_rows : int
+        Rows of the year's table of the heliostats with the most energy at stake (each gets a section of its own,
+        beyond ``detail``); only when the plant file holds a year (``heliotwin year``).
     """
 
     colour: str = "predicted_error_mrad"
@@ -105,11 +112,12 @@ class ReportSettings:
     time_utc: str | None = None
     flux: bool = True
     resolution: tuple = (24, 64)
+    year_rows: int = 20
 
     def __post_init__(self):
         if self.colour not in QUANTITIES:
             raise HeliotwinError(f"--colour {self.colour}: expected one of {', '.join(QUANTITIES)}")
-        for name, lo in (("detail", 0), ("plan_heliostats", 0), ("plan_count", 1), ("plan_slots", 0)):
+        for name, lo in (("detail", 0), ("plan_heliostats", 0), ("plan_count", 1), ("plan_slots", 0), ("year_rows", 0)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= 10000:
                 raise HeliotwinError(f"--{name.replace('_', '-')}: expected an integer in {lo}..10000, got {v!r}")
@@ -481,6 +489,133 @@ def _receiver(scenario: Scenario, settings: ReportSettings) -> dict | None:
             "receiver": rec}
 
 
+# -------------------------------------------------------------------------------------------------- year
+#: The plant file's year (``heliotwin year`` writes it): ``/learned/year``.
+YEAR_KEY = "year"
+
+#: Colourings of the year's field map: key -> (label with unit, higher is worse).
+YEAR_QUANTITIES = {
+    "energy_mwh": ("annual energy on the receiver [MWh]", False),
+    "tracking_loss_mwh": ("energy lost to its tracking error [MWh/year]", True),
+    "surface_loss_mwh": ("energy lost to its mirror surface [MWh/year]", True),
+    "at_stake_mwh": ("energy at stake, tracking + mirror [MWh/year]", True),
+    "efficiency": ("DNI-weighted annual efficiency [-]", False),
+}
+
+#: Per-heliostat arrays the report needs (the others of the stored year are shown where present).
+_YEAR_REQUIRED = ("energy_mwh", "tracking_loss_mwh", "surface_loss_mwh")
+_YEAR_OPTIONAL = ("tracking_loss_low_mwh", "tracking_loss_high_mwh", "surface_loss_low_mwh", "surface_loss_high_mwh",
+                  "efficiency", "cosine", "shading", "blocking", "attenuation", "intercept", "reflectance")
+
+
+def _year_numbers(value, path, field: str, n: int | None) -> np.ndarray:
+    """``value`` (tensor, array, list or number) as a float64 array [n]; a one-line error naming the field."""
+    try:
+        a = np.asarray(value.detach().cpu() if torch.is_tensor(value) else value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise InputFileError(path, "expected numbers", field=field) from None
+    if n is not None and a.shape != (n,):
+        raise InputFileError(path, f"expected {n} values (one per heliostat of the plant), found {a.size}",
+                             field=field)
+    return a
+
+
+def _year_scalar(group: dict, key: str, path, where: str) -> float:
+    v = group.get(key)
+    return math.nan if v is None else float(_year_numbers(v, path, f"{where}/{key}", 1)[0])
+
+
+def year_state(scenario: Scenario) -> dict | None:
+    """The plant's year as the report shows it, from ``learned["year"]`` (written by ``heliotwin year``), or
+    None when the plant file holds no year.
+
+    Returns
+    -------
+    dict
+        ``year``, ``aim``, ``ids`` [H], ``x_m``, ``y_m`` [H] (east, north [m]), per heliostat [H] (numpy, NaN
+        where not stored): ``energy_mwh``, ``tracking_loss_mwh`` / ``_low_mwh`` / ``_high_mwh``,
+        ``surface_loss_mwh`` / ``_low_mwh`` / ``_high_mwh``, ``surface_learned`` (bool), the factors
+        (``efficiency``, ``cosine``, ..., ``reflectance`` [-]) and ``at_stake_mwh`` (tracking + mirror loss
+        [MWh/year]; a mirror that was never learned counts 0, as ideal) with ``at_stake_low_mwh`` /
+        ``at_stake_high_mwh`` (the bounds added); ``annual_energy_mwh``, ``annual_dni_energy_on_mirrors_mwh``,
+        ``rows_sum_mwh`` (the heliostats' sum), ``monthly_energy_mwh`` [12], ``weather`` (dict: ``file``,
+        ``kind``, ``annual``, ...), ``time_convention`` (str), ``dni_share_below_horizon`` [-] and
+        ``interpolation`` (``median_error``, ``p95_error``, ``field_error`` [-, relative], ``checked_hours``)
+        or None when the year was not checked.
+
+    Raises
+    ------
+    InputFileError
+        A stored array does not have one value per heliostat, or a value is not a number (the field named).
+    """
+    y = scenario.learned.get(YEAR_KEY)
+    if y is None:
+        return None
+    path, where = scenario.path or "scenario", f"/learned/{YEAR_KEY}"
+    if not isinstance(y, dict) or not isinstance(y.get("heliostats"), dict):
+        raise InputFileError(path, "expected a group with a 'heliostats' group (heliotwin year writes it)",
+                             field=where if not isinstance(y, dict) else f"{where}/heliostats")
+    plant = scenario.plant
+    n = len(plant.field.ids)
+    per = y["heliostats"]
+    out = {}
+    for key in _YEAR_REQUIRED + _YEAR_OPTIONAL:
+        v = per.get(key)
+        if v is None and key in _YEAR_REQUIRED:
+            raise InputFileError(path, "missing (heliotwin year writes it)", field=f"{where}/heliostats/{key}")
+        out[key] = np.full(n, np.nan) if v is None else _year_numbers(v, path, f"{where}/heliostats/{key}", n)
+    learned_surface = per.get("surface_learned")
+    out["surface_learned"] = np.zeros(n, dtype=bool) if learned_surface is None else \
+        _year_numbers(learned_surface, path, f"{where}/heliostats/surface_learned", n) > 0.5
+    surface = np.where(np.isfinite(out["surface_loss_mwh"]), out["surface_loss_mwh"], 0.0)
+    out["at_stake_mwh"] = out["tracking_loss_mwh"] + surface
+    for b in ("low", "high"):  # the bounds added: an interval at least as wide as the sum's
+        t, s = out[f"tracking_loss_{b}_mwh"], out[f"surface_loss_{b}_mwh"]
+        out[f"at_stake_{b}_mwh"] = np.where(np.isfinite(t), t, out["tracking_loss_mwh"]) \
+            + np.where(np.isfinite(s), s, surface)
+    monthly = y.get("monthly_energy_mwh")
+    out["monthly_energy_mwh"] = np.full(12, np.nan) if monthly is None else \
+        _year_numbers(monthly, path, f"{where}/monthly_energy_mwh", 12)
+    weather = y.get("weather") if isinstance(y.get("weather"), dict) else {}
+    share = weather.get("dni_share_below_horizon", y.get("dni_share_below_horizon"))
+    interp = y.get("interpolation")
+    if isinstance(interp, dict) and interp:
+        interp = {k: _year_scalar(interp, k, path, f"{where}/interpolation")
+                  for k in ("median_error", "p95_error", "field_error", "checked_hours")}
+    else:
+        interp = None
+    pos = plant.field.kinematics.position.detach().cpu().to(torch.float64).numpy()
+    year = y.get("year")
+    out.update(ids=list(plant.field.ids), x_m=pos[:, 0], y_m=pos[:, 1],
+               year=None if year is None else int(_year_scalar(y, "year", path, where)),
+               aim=str(y.get("aim") or "?"), weather={k: v for k, v in weather.items() if not isinstance(v, dict)},
+               time_convention=str(y.get("time_convention") or "not stated"),
+               dni_share_below_horizon=math.nan if share is None else
+               float(_year_numbers(share, path, f"{where}/weather/dni_share_below_horizon", 1)[0]),
+               annual_energy_mwh=_year_scalar(y, "annual_energy_mwh", path, where),
+               annual_dni_energy_on_mirrors_mwh=_year_scalar(y, "annual_dni_energy_on_mirrors_mwh", path, where),
+               rows_sum_mwh=float(np.nansum(out["energy_mwh"])), interpolation=interp)
+    return out
+
+
+def year_ranking(year: dict, count: int | None = None) -> list[int]:
+    """Heliostat indices by the energy at stake (tracking + mirror loss [MWh/year]), largest first (ties in plant
+    order; no value last); at most ``count``."""
+    key = np.nan_to_num(year["at_stake_mwh"], nan=-np.inf)
+    order = np.argsort(-key, kind="stable")
+    return [int(i) for i in order[:count]]
+
+
+def year_row(year: dict, i: int, rank: int | None = None) -> dict:
+    """Heliostat ``i``'s year as JSON-ready numbers (NaN -> None): energy, losses with bounds, factors, and its
+    ``rank`` by the energy at stake (1 = the most)."""
+    keys = ("energy_mwh", "at_stake_mwh", "at_stake_low_mwh", "at_stake_high_mwh") + _YEAR_REQUIRED[1:] \
+        + _YEAR_OPTIONAL
+    row = {k: (float(year[k][i]) if np.isfinite(year[k][i]) else None) for k in dict.fromkeys(keys)}
+    row.update(heliostat=year["ids"][i], surface_learned=bool(year["surface_learned"][i]), rank=rank)
+    return row
+
+
 # ---------------------------------------------------------------------------------------------- workflow
 def plant_report(scenario: Scenario, records=None, settings: ReportSettings = ReportSettings()
                  ) -> tuple[Scenario, dict]:
@@ -500,8 +635,9 @@ def plant_report(scenario: Scenario, records=None, settings: ReportSettings = Re
     report : dict
         ``html`` (the page, str), ``heliostats``, ``alarms`` (the latest update's, sorted), ``detail`` (ids
         with a section), ``plan`` (heliostat ids planned), ``receiver`` (bool), ``reference_time`` (UTC ISO or
-        None), ``tomorrow`` (the plan's day and planned heliostat ids, or its note) and ``seconds`` {state, plan,
-        receiver, page} [s].
+        None), ``tomorrow`` (the plan's day and planned heliostat ids, or its note), ``year`` (None without a
+        stored year; else ``year``, ``annual_energy_mwh``, ``top``: the table's ids, most energy at stake first,
+        and ``at_stake_mwh``: the plant's sum) and ``seconds`` {state, plan, receiver, page} [s].
     """
     seconds = {}
     t0 = time.perf_counter()
@@ -510,7 +646,17 @@ def plant_report(scenario: Scenario, records=None, settings: ReportSettings = Re
     with_history = np.isfinite(state["predicted_error_mrad"]) | (state["alarms"] > 0) | (state["surface_learned"] > 0) \
         | (state["nominal"] > 0)
     detail_ids = [state["ids"][i] for i in _ranked(state, len(state["ids"])) if with_history[i]][:settings.detail]
+    year = year_state(scenario)
+    year_top = [] if year is None else year_ranking(year, settings.year_rows)
+    # the heliostats with the most energy at stake get a section too: the year's table links to it
+    detail_ids += [year["ids"][i] for i in year_top if year["ids"][i] not in detail_ids]
     details = [heliostat_detail(scenario, h) for h in detail_ids]
+    if year is not None:
+        where = {h: i for i, h in enumerate(year["ids"])}
+        rank = {i: r for r, i in enumerate(year_ranking(year), 1)}
+        for d in details:
+            d["year"] = year_row(year, where[d["heliostat"]], rank[where[d["heliostat"]]])
+        year["top"] = [year_row(year, i, r) for r, i in enumerate(year_top, 1)]
     learned_surfaces = set((scenario.learned.get("surfaces") or {}).keys())
     for d in details:
         if d["heliostat"] in learned_surfaces:
@@ -529,7 +675,8 @@ def plant_report(scenario: Scenario, records=None, settings: ReportSettings = Re
     if not np.isfinite(state[colour]).any():
         colour = next((k for k in QUANTITIES if np.isfinite(state[k]).any() and np.nanmax(state[k]) > 0), colour)
     html = render_page(described=described, state=state, quantities=QUANTITIES, colour=colour,
-                       alarms=alarms, details=details, plans=plans, receiver=receiver, tomorrow=tomorrow)
+                       alarms=alarms, details=details, plans=plans, receiver=receiver, tomorrow=tomorrow,
+                       year=year, year_quantities=YEAR_QUANTITIES)
     seconds["page"] = time.perf_counter() - t0
     ref = state["reference_time"]
     return scenario, {"html": html, "heliostats": len(state["ids"]), "alarms": alarms, "detail": detail_ids,
@@ -537,4 +684,8 @@ def plant_report(scenario: Scenario, records=None, settings: ReportSettings = Re
                       "reference_time": utc_text(ref) if math.isfinite(ref) else None, "seconds": seconds,
                       "tomorrow": {"day": tomorrow.get("day"), "heliostats": [p["heliostat"] for p in
                                                                              tomorrow.get("proposals", [])],
-                                   "note": tomorrow.get("note")}}
+                                   "note": tomorrow.get("note")},
+                      "year": None if year is None else {
+                          "year": year["year"], "annual_energy_mwh": year["annual_energy_mwh"],
+                          "top": [r["heliostat"] for r in year["top"]],
+                          "at_stake_mwh": float(np.nansum(year["at_stake_mwh"]))}}

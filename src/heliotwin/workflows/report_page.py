@@ -4,8 +4,10 @@
 (one WebGL scatter, its colour switched by a menu, hover for every value, a click jumps to the heliostat's
 section), the alarms, the calibration plan with its sky maps, the per-heliostat sections (offsets with their
 2-sigma band across updates, alarms marked, residuals, a learned surface's tilt from the ideal facets), the
-receiver maps on one colour scale with the aim points and the peak-flux limit contour, and the provenance. It
-computes nothing physical.
+receiver maps on one colour scale with the aim points and the peak-flux limit contour, the plant's year when the
+plant file holds one (its field map by annual energy and by the energy lost to tracking and to the mirror, the
+heliostats with the most energy at stake, the monthly energy, the weather and interpolation checks), and the
+provenance. It computes nothing physical.
 
 The only hand-written JavaScript is the click handler of the field map (a few lines; Plotly has no "link"
 action). Plotly is a declared dependency; without it :func:`render_page` raises a one-line error.
@@ -61,12 +63,12 @@ els.forEach(function(el){io.observe(el);});})();
 
 _CLICK = """
 <script>
-(function(){var map=document.getElementById('fieldmap'); if(!map||!map.on){return;}
+['fieldmap','yearmap'].forEach(function(name){var map=document.getElementById(name); if(!map||!map.on){return;}
 map.on('plotly_click',function(ev){var id=ev.points[0].text; var el=document.getElementById('h-'+id);
 var note=document.getElementById('clicked');
 document.querySelectorAll('.hl').forEach(function(e){e.classList.remove('hl')});
 if(el){el.classList.add('hl'); el.scrollIntoView({behavior:'smooth'}); note.textContent='';}
-else{note.textContent=id+': no section of its own (only the heliostats that need attention most have one)';}});})();
+else{note.textContent=id+': no section of its own (only the heliostats that need attention most have one)';}});});
 </script>
 """
 
@@ -260,6 +262,8 @@ def _sections(details: list, plans: list) -> str:
             parts.append(_lazy_div(_sky_figure(planned[hid]), f"sky-{k}"))
         if d.get("surface"):
             parts.append(_lazy_div(_surface_figure(hid, d["surface"]), f"surface-{k}"))
+        if d.get("year"):
+            parts.append(_year_line(d["year"]))
         parts.append("</section>")
         out.append("".join(parts))
     return "\n".join(out)
@@ -390,9 +394,171 @@ def _receiver_section(rec: dict | None) -> str:
     return (f"<p id='receiver-note'>{_e(when)}; {_e(limit)}{_e(axis)}</p>" + _div(_receiver_figure(rec), "receiver"))
 
 
+# -------------------------------------------------------------------------------------------------- year
+_MONTHS = ("Jan", "Feb", "Mar", "Apr", "May", "Jun", "Jul", "Aug", "Sep", "Oct", "Nov", "Dec")
+#: The year's honesty targets (issue 43): share of DNI energy below the horizon, interpolation errors.
+BELOW_HORIZON_OK = 0.005
+INTERPOLATION_OK = {"median_error": 0.01, "p95_error": 0.03, "field_error": 0.003}
+
+
+def _pct(v, digits: int = 2) -> str:
+    return "-" if v is None or not np.isfinite(v) else f"{100 * v:.{digits}f} %"
+
+
+def _year_map(year: dict, quantities: dict):
+    """The field map of the year: ONE WebGL scatter, its colour switched by a menu between the year's quantities
+    (stored values, unrounded beyond 1e-6); a click jumps to the heliostat's section like the field map's."""
+    ids = np.asarray(year["ids"], dtype=object)
+    keys = [k for k in quantities if np.isfinite(year[k]).any()]
+    table = np.stack([np.asarray(year[k], dtype=np.float64) for k in keys], axis=1)
+    hover = "<b>%{text}</b><br>" + "<br>".join(f"{_e(quantities[k][0])}: %{{customdata[{j}]:.4g}}"
+                                               for j, k in enumerate(keys)) + "<extra></extra>"
+
+    def values(k):
+        v = table[:, keys.index(k)]
+        return np.where(np.isfinite(v), np.round(v, 6), None).tolist()
+
+    def style(k):
+        return {"marker.color": [values(k)], "marker.colorscale": ["YlOrRd" if quantities[k][1] else "Viridis"],
+                "marker.colorbar.title.text": _e(quantities[k][0])}
+
+    first = keys[0]
+    fig = go.Figure(go.Scattergl(
+        x=np.asarray(year["x_m"], dtype=np.float32), y=np.asarray(year["y_m"], dtype=np.float32), text=ids,
+        customdata=np.round(table, 6), mode="markers", name="heliostats (dark grey: no value)", hovertemplate=hover,
+        marker=dict(size=6 if len(ids) <= 3000 else 4, color=values(first), colorscale=style(first)[
+            "marker.colorscale"][0], showscale=True,
+            colorbar=dict(title=dict(text=style(first)["marker.colorbar.title.text"], side="right")))))
+    fig.add_trace(go.Scatter(x=[0.0], y=[0.0], mode="markers", name="tower", hoverinfo="name",
+                             marker=dict(symbol="triangle-up", size=14, color="black")))
+    fig.update_layout(
+        height=560, margin=dict(l=60, r=20, t=60, b=50), legend=dict(orientation="h", y=-0.08),
+        xaxis=dict(title="east [m]"), yaxis=dict(title="north [m]", scaleanchor="x", scaleratio=1),
+        updatemenus=[dict(buttons=[dict(label=quantities[k][0], method="restyle", args=[style(k), [0]])
+                                   for k in keys], active=0, x=0.0, xanchor="left", y=1.1, yanchor="top")],
+        title=dict(text="colour:", x=0.0, y=0.99, font=dict(size=12)))
+    return fig
+
+
+def _monthly_figure(year: dict):
+    """The monthly energy on the receiver [MWh] as bars, the stored months unchanged."""
+    m = np.asarray(year["monthly_energy_mwh"], dtype=np.float64)
+    fig = go.Figure(go.Bar(x=list(_MONTHS), y=np.where(np.isfinite(m), m, None).tolist(),
+                           hovertemplate="%{x}: %{y:.4g} MWh<extra></extra>", marker=dict(color="#e6850d")))
+    fig.update_layout(height=320, margin=dict(l=60, r=20, t=40, b=40), yaxis=dict(title="energy on the receiver "
+                      "[MWh]"), title=dict(text=f"months of {year['year'] or 'the year'}: sum {np.nansum(m):.4g} MWh",
+                                           font=dict(size=12)))
+    return fig
+
+
+def _bounds(v, lo, hi) -> str:
+    if v is None:
+        return "-"
+    inner = f" [{_fmt(lo)}, {_fmt(hi)}]" if lo is not None and hi is not None else ""
+    return f"{_fmt(v)}{inner}"
+
+
+def _year_action(r: dict) -> str:
+    """What a crew does first for one row: the larger loss names the job."""
+    track, surf = r.get("tracking_loss_mwh") or 0.0, r.get("surface_loss_mwh") or 0.0
+    if track <= 0 and surf <= 0:
+        return "nothing: no loss of its own"
+    if track >= surf:
+        return "tracking: take calibration records / check drive and encoders"
+    return "mirror: inspect the facets (canting, shape), wash if soiled"
+
+
+def _year_table(rows: list, detail_ids: set) -> str:
+    if not rows:
+        return '<p class="note">no heliostat rows asked for</p>'
+    out = []
+    for r in rows:
+        hid = _e(r["heliostat"])
+        link = f'<a href="#h-{hid}">{hid}</a>' if r["heliostat"] in detail_ids else hid
+        surface = _bounds(r["surface_loss_mwh"], r["surface_loss_low_mwh"], r["surface_loss_high_mwh"]) \
+            if r["surface_learned"] else "ideal (not learned)"
+        out.append(f"<tr><td>{r['rank']}</td><td>{link}</td><td>{_fmt(r['energy_mwh'], 4)}</td>"
+                   f"<td>{_fmt(r['efficiency'])}</td>"
+                   f"<td>{_bounds(r['tracking_loss_mwh'], r['tracking_loss_low_mwh'], r['tracking_loss_high_mwh'])}"
+                   f"</td><td>{surface}</td>"
+                   f"<td>{_bounds(r['at_stake_mwh'], r['at_stake_low_mwh'], r['at_stake_high_mwh'])}</td>"
+                   f"<td>{_e(_year_action(r))}</td></tr>")
+    return ("<table id='year-top'><tr><th>#</th><th>heliostat</th><th>energy [MWh]</th><th>efficiency [-]</th>"
+            "<th>lost to tracking [MWh] [interval]</th><th>lost to the mirror [MWh] [interval]</th>"
+            "<th>at stake [MWh]</th><th>what to do first</th></tr>" + "".join(out) + "</table>")
+
+
+def _year_checks(year: dict) -> str:
+    """The weather file, its time convention, the DNI share below the horizon and the interpolation check."""
+    w = year["weather"]
+    name = str(w.get("file") or "?").replace("\\", "/").rsplit("/", 1)[-1]
+    annual = w.get("annual")
+    cover = "" if annual is None else ("; a whole year" if bool(annual) else "; NOT a whole year (the energy is of "
+                                                                              "the hours the file covers)")
+    share = year["dni_share_below_horizon"]
+    flag = "" if not np.isfinite(share) or share <= BELOW_HORIZON_OK else \
+        f" -- above {_pct(BELOW_HORIZON_OK, 1)}: the file's times are likely read with the wrong convention"
+    lines = [f"<li id='year-weather'>weather: {_e(name)} ({_e(w.get('kind') or '?')}){_e(cover)}</li>",
+             f"<li id='year-time'>time convention: {_e(year['time_convention'])}</li>",
+             f"<li id='year-below'>DNI share below the horizon: {_pct(share)}{_e(flag)} (a correct reading keeps it "
+             f"at or below {_pct(BELOW_HORIZON_OK, 1)})</li>"]
+    it = year["interpolation"]
+    if it is None:
+        lines.append("<li id='year-interpolation'>interpolation: not checked (heliotwin year --check-hours N sums "
+                     "the field model directly over N hours of the weather file and compares)</li>")
+    else:
+        hours = f"{int(it['checked_hours'])} hours" if np.isfinite(it["checked_hours"]) else "the checked hours"
+        miss = [k for k, lim in INTERPOLATION_OK.items() if np.isfinite(it[k]) and it[k] > lim]
+        verdict = "within the targets" if not miss else "OUTSIDE the target for " + ", ".join(miss)
+        lines.append(f"<li id='year-interpolation'>interpolation against the direct sum of the field model over "
+                     f"{hours}: per heliostat median {_pct(it['median_error'])}, p95 {_pct(it['p95_error'])}; field "
+                     f"total {_pct(it['field_error'])} (targets 1 %, 3 %, 0.3 %: {verdict})</li>")
+    return "<ul>" + "".join(lines) + "</ul>"
+
+
+def _year_section(year: dict | None, quantities: dict, detail_ids: set) -> str:
+    if year is None:
+        return ""
+    ann, dni = year["annual_energy_mwh"], year["annual_dni_energy_on_mirrors_mwh"]
+    eff = f" (mean efficiency {ann / dni:.3f})" if np.isfinite(ann) and np.isfinite(dni) and dni > 0 else ""
+    track = float(np.nansum(year["tracking_loss_mwh"]))
+    surf = float(np.nansum(np.where(year["surface_learned"], year["surface_loss_mwh"], 0.0)))
+    learned = int(np.sum(year["surface_learned"]))
+    head = (f"{year['year'] or ''} ({year['aim']} aiming): {_fmt(ann, 5)} MWh on the receiver from {_fmt(dni, 5)} "
+            f"MWh of DNI on the mirrors{eff}; lost to the heliostats' own tracking {_fmt(track, 4)} MWh, to their "
+            f"mirrors {_fmt(surf, 4)} MWh ({learned} learned surfaces)")
+    notes = []
+    months = np.nansum(year["monthly_energy_mwh"])
+    for what, total in (("the months", months), ("the heliostats' rows", year["rows_sum_mwh"])):
+        if np.isfinite(ann) and ann > 0 and abs(total / ann - 1.0) > 1e-3:
+            notes.append(f"{what} add up to {total:.5g} MWh, not the stored annual {ann:.5g} MWh")
+    facts = json.dumps({"year": year["year"], "annual_energy_mwh": ann if np.isfinite(ann) else None,
+                        "top": [r["heliostat"] for r in year.get("top", [])]})
+    warn = "".join(f"<p class='note'><b>check:</b> {_e(n)}</p>" for n in notes)
+    return (f"<p id='year-headline'><b>{_e(head)}</b></p>{warn}"
+            f"<script type='application/json' id='year-facts'>{facts}</script>" + _year_checks(year)
+            + "<h3>Field map of the year</h3><p class='note'>colour by the menu; hover for every value; click a "
+            "heliostat to open its section</p>" + _div(_year_map(year, quantities), "yearmap")
+            + "<h3 id='year-stake-h'>The most energy at stake</h3><p class='note'>tracking and mirror losses of each "
+            "heliostat's own errors against a perfect heliostat at its place [MWh/year], with their intervals (at "
+            "stake: the bounds added); what a crew fixes or washes first</p>"
+            + _year_table(year.get("top", []), detail_ids)
+            + "<h3>Monthly energy</h3>" + _div(_monthly_figure(year), "yearmonths"))
+
+
+def _year_line(r: dict) -> str:
+    """A heliostat section's line of the year."""
+    surface = _bounds(r["surface_loss_mwh"], r["surface_loss_low_mwh"], r["surface_loss_high_mwh"]) + " MWh" \
+        if r["surface_learned"] else "ideal mirror (not learned)"
+    track = _bounds(r["tracking_loss_mwh"], r["tracking_loss_low_mwh"], r["tracking_loss_high_mwh"])
+    return (f"<p class='year-line'>the year: {_fmt(r['energy_mwh'], 4)} MWh, efficiency {_fmt(r['efficiency'])}; "
+            f"lost to tracking {track} MWh, to the mirror {surface}; #{r['rank']} by energy at stake</p>")
+
+
 # --------------------------------------------------------------------------------------------------- page
 def render_page(*, described: dict, state: dict, quantities: dict, colour: str, alarms: list, details: list,
-                plans: list, receiver: dict | None, tomorrow: dict | None = None) -> str:
+                plans: list, receiver: dict | None, tomorrow: dict | None = None, year: dict | None = None,
+                year_quantities: dict | None = None) -> str:
     """The whole page as one HTML string (module docstring).
 
     Parameters
@@ -413,6 +579,11 @@ def render_page(*, described: dict, state: dict, quantities: dict, colour: str, 
     tomorrow : dict, optional
         :func:`heliotwin.calibrate.protocol.plan.plant_plan`'s plan (times UTC, sun angles [deg], spreads
         [mrad]), or ``{"note": why none}``.
+    year : dict, optional
+        :func:`heliotwin.workflows.report.year_state` with ``top`` (the table's rows,
+        :func:`~heliotwin.workflows.report.year_row`): the section "The plant's year" (energies [MWh]).
+    year_quantities : dict, optional
+        Key -> (label with unit, higher is worse): the year map's colour choices (needed with ``year``).
 
     Raises
     ------
@@ -441,8 +612,8 @@ def render_page(*, described: dict, state: dict, quantities: dict, colour: str, 
         f"<h1>The plant at a glance</h1><p>{_e(described.get('file') or '')}</p><p><b>{_e(summary)}</b></p>",
         f"<script type='application/json' id='facts'>{facts}</script>",
         "<nav><a href='#map'>field map</a><a href='#alarms-h'>alarms</a><a href='#plan-h'>calibration plan</a>"
-        "<a href='#receiver-h'>receiver</a><a href='#heliostats-h'>heliostats</a><a href='#provenance-h'>provenance"
-        "</a></nav>",
+        "<a href='#receiver-h'>receiver</a>" + ("<a href='#year-h'>the year</a>" if year is not None else "")
+        + "<a href='#heliostats-h'>heliostats</a><a href='#provenance-h'>provenance</a></nav>",
         "<h2 id='map'>Field map</h2><p class='note'>colour by the menu; hover for every value; click a heliostat "
         "to open its section. Days since the last record count from the latest record the plant holds.</p>",
         _div(_field_map(state, quantities, colour), "fieldmap"), "<p id='clicked' class='note'></p>",
@@ -453,6 +624,8 @@ def render_page(*, described: dict, state: dict, quantities: dict, colour: str, 
         "over the year from the day on that would shrink that spread most (heliotwin plan --day)</p>",
         _plan_table(plans, detail_ids),
         "<h2 id='receiver-h'>Receiver</h2>", _receiver_section(receiver),
+        *(["<h2 id='year-h'>The plant's year</h2>", _year_section(year, year_quantities, detail_ids)]
+          if year is not None else []),
         f"<h2 id='heliostats-h'>Heliostats ({len(details)} with a section)</h2>", _sections(details, plans),
         "<h2 id='provenance-h'>Provenance</h2>", _provenance(described),
         _LAZY, _CLICK, "</body></html>"]

@@ -13,6 +13,7 @@ import json
 import math
 import os
 
+import numpy as np
 import torch
 
 from ..atmosphere import Atmosphere
@@ -87,6 +88,49 @@ def nominal_summary(nominal: dict, limit: int = 12) -> str:
     return f"{n} heliostat{'s' if n != 1 else ''} nominal: " + "; ".join(parts)
 
 
+def _year_summary(year) -> dict | None:
+    """The stored year's headline (``heliotwin year``: ``/learned/year``), JSON-ready; None without one. Read
+    leniently (a show must show a damaged file): what is not a number reads None."""
+    if not isinstance(year, dict):
+        return None
+
+    def total(v):
+        try:
+            a = np.asarray(v.detach().cpu() if torch.is_tensor(v) else v, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            return None
+        return float(np.nansum(a)) if a.size else None
+
+    per = year.get("heliostats") if isinstance(year.get("heliostats"), dict) else {}
+    weather = year.get("weather") if isinstance(year.get("weather"), dict) else {}
+    interp = year.get("interpolation") if isinstance(year.get("interpolation"), dict) else None
+    return {"year": total(year.get("year")), "aim": year.get("aim"),
+            "annual_energy_mwh": total(year.get("annual_energy_mwh")),
+            "annual_dni_energy_on_mirrors_mwh": total(year.get("annual_dni_energy_on_mirrors_mwh")),
+            "tracking_loss_mwh": total(per.get("tracking_loss_mwh")),
+            "surface_loss_mwh": total(per.get("surface_loss_mwh")),
+            "weather": os.path.basename(str(weather.get("file") or "")) or None, "weather_kind": weather.get("kind"),
+            "interpolation": None if not interp else {k: total(interp.get(k)) for k in
+                                                      ("median_error", "p95_error", "field_error", "checked_hours")}}
+
+
+def _year_line(y: dict) -> str:
+    """``year: 2023 (equator aiming): 1234 MWh on the receiver ...`` for ``scenario show``."""
+    def mwh(v):
+        return "?" if v is None else f"{v:.4g}"
+
+    eff = (f" (mean efficiency {y['annual_energy_mwh'] / y['annual_dni_energy_on_mirrors_mwh']:.3f})"
+           if y["annual_energy_mwh"] is not None and y["annual_dni_energy_on_mirrors_mwh"] else "")
+    it = y["interpolation"]
+    check = "interpolation not checked" if not it or it["median_error"] is None else \
+        (f"interpolation checked: median {100 * it['median_error']:.2f} %, p95 {100 * (it['p95_error'] or 0):.2f} %,"
+         f" field {100 * (it['field_error'] or 0):.2f} %")
+    year = "?" if y["year"] is None else f"{y['year']:.0f}"
+    return (f"year: {year} ({y['aim'] or '?'} aiming): {mwh(y['annual_energy_mwh'])} MWh on the receiver{eff}; lost "
+            f"to tracking {mwh(y['tracking_loss_mwh'])} MWh, to the mirrors {mwh(y['surface_loss_mwh'])} MWh; "
+            f"weather {y['weather'] or '?'} ({y['weather_kind'] or '?'}); {check}")
+
+
 def _learned_summary(learned: dict, scenario: Scenario | None = None) -> dict:
     cal = learned.get("calibration") or {}
     calibrated = sorted(cal.get("heliostats", [])) if cal else []
@@ -105,7 +149,8 @@ def _learned_summary(learned: dict, scenario: Scenario | None = None) -> dict:
             "aimpoints": {"instants": len(instants),
                           "labels": [str(v.get("instant", k)) for k, v in instants.items()][:LISTED_INSTANTS],
                           "peak_limit_w_m2": aim.get("peak_limit_w_m2")},
-            "other": sorted(k for k in learned if k not in ("calibration", "surfaces", "aimpoints"))}
+            "year": _year_summary(learned.get("year")),
+            "other": sorted(k for k in learned if k not in ("calibration", "surfaces", "aimpoints", "year"))}
 
 
 def kinematics_note(scenario: Scenario | None, heliostat: str) -> str:
@@ -131,7 +176,8 @@ def describe_scenario(scenario: Scenario) -> dict:
         ``file``, ``format_version``, ``plant`` (heliostats, ids (first 20), targets with kind and size [m],
         site [deg, m], sun and optics, field extent [m]), ``learned`` (kinematics calibrated or nominal,
         ``count`` of calibrated heliostats and their ids -- the first :data:`LISTED_IDS` --, learned surfaces
-        with ``count`` and ids capped the same way, aim-point instants, other groups), ``learned_groups``
+        with ``count`` and ids capped the same way, aim-point instants, the stored year's headline (``year``:
+        annual energy, losses, weather, interpolation check; None without one), other groups), ``learned_groups``
         (the ``/learned`` HDF5 groups), ``extras`` (names), ``metadata`` and ``provenance`` (per step:
         ``step``, ``utc``, ``heliotwin`` version and the keys that say how it ran).
     """
@@ -203,6 +249,7 @@ def format_description(d: dict) -> str:
                              else "ideal (none learned)"),
              "aim points: " + (f"{lr['aimpoints']['instants']} instants ({', '.join(lr['aimpoints']['labels'][:4])})"
                                if lr["aimpoints"]["instants"] else "none stored (equator aiming)"),
+             *([_year_line(lr["year"])] if lr.get("year") else []),
              "/learned groups: " + (", ".join(d["learned_groups"][:12]) or "none")
              + (" ..." if len(d["learned_groups"]) > 12 else ""),
              "created by: " + " ".join(str(d["metadata"].get(k)) for k in ("created_by_command", "created_by",
