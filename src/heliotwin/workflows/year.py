@@ -35,6 +35,8 @@ from ..devices import resolve_device, to_device
 from ..errors import HeliotwinError, InputFileError
 from ..io import weather as _weather
 from ..io.scenario import next_scenario, provenance_entry
+from ..optimise.aimpoints import optimise_aimpoints
+from ..optimise.aimstate import stored_peak_limit
 from ..progress import Progress
 from ..raytrace import annual as A
 from ..raytrace.field import FACTORS, equator_aim_points, field_optics, reuse_mirror_samples
@@ -167,9 +169,6 @@ def _aims(scenario, plant, settings: YearSettings, atmosphere):
             raise InputFileError(scenario.path, "--aim scenario: the plant stores no aim points (run heliotwin "
                                                 "aimpoints -o first)", field="/learned/aimpoints/aim")
         return torch.as_tensor(state["aim"], dtype=torch.float64).to(pos.device)
-    from ..optimise.aimpoints import optimise_aimpoints  # the optimiser: only for optimised aiming
-    from ..optimise.aimstate import stored_peak_limit
-
     limit = settings.peak_limit_w_m2 or stored_peak_limit(scenario)
     if not limit:
         raise InputFileError(scenario.path, "--aim optimised: the plant stores no peak-flux limit (run heliotwin "
