@@ -9,6 +9,7 @@ Layout: :mod:`.common` (error reporting, argument types), then one module per co
 * :mod:`.update` -- ``update``, ``history``
 * :mod:`.surfaces` -- ``reconstruct``, ``predict``
 * :mod:`.simulate` -- ``simulate``, ``score``
+* :mod:`.year` -- ``year`` (the plant's year heliostat by heliostat)
 * :mod:`.report` -- ``report`` (the plant at a glance, one HTML page)
 
 The groups are ordinary imports: a command whose module fails to import breaks ``heliotwin`` loudly instead
@@ -27,13 +28,13 @@ import argparse
 import sys
 
 from .. import __version__
-from . import calibrate, field, plan, plant, report, simulate, surfaces, update
+from . import calibrate, field, plan, plant, report, simulate, surfaces, update, year
 from .common import ArgumentParser, leave, run_command
 
 __all__ = ["build_parser", "console", "main", "run_command"]
 
 #: Command groups in the order of ``heliotwin --help``.
-GROUPS = (plant, calibrate, plan, update, surfaces, field, simulate, report)
+GROUPS = (plant, calibrate, plan, update, surfaces, field, year, simulate, report)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -51,7 +52,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 #: Commands that compute (and so take ``--device``); the others only read and write files.
-COMPUTE_COMMANDS = ("demo", "trace", "validate", "bench", "calibrate", "reconstruct", "predict", "field", "aimpoints")
+COMPUTE_COMMANDS = ("demo", "trace", "validate", "bench", "calibrate", "reconstruct", "predict", "field", "aimpoints",
+                    "year")
 
 
 def _add_shared_flags(sub) -> None:

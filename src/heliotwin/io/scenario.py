@@ -46,6 +46,8 @@ Layout (format ``"heliotwin-scenario"``, version 2; version 1 is version 2 witho
                             heliostats and settings
         aimpoints/          aim points and their motor steps (``heliotwin aimpoints``; see
                             :mod:`heliotwin.optimise.aimpoints`)
+        year/               the plant's year heliostat by heliostat (``heliotwin year``; see
+                            :func:`heliotwin.workflows.year.year_state`)
     /extras/atmosphere      optional: the attenuation model of a layout-built plant
                             (:mod:`heliotwin.atmosphere`)
     /provenance             optional: one UTF-8 JSON string, a list of steps, each
@@ -1120,6 +1122,47 @@ def _validate_learned_state(learned: dict, plant: Plant, path) -> None:
         c.array(prior, "covariance", where, (f * k, f * k))
     if "assimilation" in learned:
         _validate_learned_assimilation(c, learned["assimilation"])
+    if "year" in learned:
+        _validate_learned_year(c, learned["year"], len(plant.field.ids))
+
+
+#: Per-heliostat arrays of ``/learned/year/heliostats`` (:mod:`heliotwin.workflows.year`); the tracking loss may be
+#: NaN (a heliostat on nominal kinematics: unknown).
+_YEAR_ARRAYS = ("energy_mwh", "efficiency", "cosine", "shading", "blocking", "attenuation", "intercept",
+                "reflectance", "surface_loss_mwh", "surface_loss_low_mwh", "surface_loss_high_mwh")
+_YEAR_NAN = ("tracking_loss_mwh", "tracking_loss_low_mwh", "tracking_loss_high_mwh")
+
+
+def _validate_learned_year(c: _LearnedCheck, st, h: int) -> None:
+    """``/learned/year`` (:func:`heliotwin.workflows.year.year_state`): scalars, ``monthly_energy_mwh`` [12], the
+    weather group, per heliostat [H] energies, factors in [0, 1] and losses; the interpolation check if any."""
+    where = "/learned/year"
+    if not isinstance(st, dict):
+        c.fail(where, "expected a group")
+    for name in ("version", "year", "annual_energy_mwh", "annual_dni_energy_on_mirrors_mwh"):
+        v = st.get(name)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            c.fail(f"{where}/{name}", "missing dataset" if v is None else "expected a finite number")
+    c.text(st, "aim", where)
+    c.text(st, "time_convention", where)
+    c.array(st, "monthly_energy_mwh", where, (12,))
+    c.group(st, "weather", where)
+    hel = c.group(st, "heliostats", where)
+    at = f"{where}/heliostats"
+    for name in _YEAR_ARRAYS:
+        v = c.array(hel, name, at, (h,))
+        if name in ("efficiency", "cosine", "shading", "blocking", "attenuation", "intercept", "reflectance") and \
+                v.numel() and not bool(((v >= -1e-9) & (v <= 1 + 1e-9)).all()):
+            c.fail(f"{at}/{name}", "expected values in [0, 1]")
+    for name in _YEAR_NAN:
+        c.array(hel, name, at, (h,), finite=False)
+    c.array(hel, "surface_learned", at, (h,), kind="bool")
+    check = c.group(st, "interpolation", where, required=False)
+    if check is not None:
+        for name in ("median_error", "p95_error", "field_error", "checked_hours"):
+            v = check.get(name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                c.fail(f"{where}/interpolation/{name}", "expected a number")
 
 
 def _validate_kinematics(c: _PlantCheck, kin: Kinematics, h: int) -> None:

@@ -1,0 +1,431 @@
+"""The ``year`` workflow: the plant's year heliostat by heliostat (``heliotwin year``, :func:`heliotwin.api.year`).
+
+For every heliostat: its annual energy on the receiver [MWh], its DNI-weighted efficiency and factors, and the
+energy it loses to its own tracking error and to its own mirror, with intervals (method:
+:mod:`heliotwin.raytrace.annual`); the field's annual energy (the rows' sum), monthly totals, the DNI on the
+mirrors while the sun is up and the share of the file's DNI energy that falls while the sun is below the
+horizon (a time-convention check: <= 0.5 % for a correct reading). The result is stored in the plant as
+``learned["year"]`` (the layout is in :func:`year_state`) and reported as JSON and one CSV row per heliostat.
+
+Instants: the weather file's rows placed in the year (:func:`heliotwin.io.weather.weather_for_year`), or
+without a file pvlib's Ineichen clear sky at the site every ``every`` (default 1 h). Aiming: ``equator``
+(SolarPILOT's simple aiming), ``scenario`` (the plant's stored ``/learned/aimpoints``) or ``optimised`` (aim
+points optimised under the plant's peak-flux limit at each *table node*, warm-started node to node along the
+grid; the tables then interpolate the optimised field between nodes, and the limit is held at the plant's
+design DNI at each node, not at each hour's DNI).
+
+``check_hours`` N > 0: the field model is also evaluated directly at N daylight hours drawn (seeded) from the
+year, and each heliostat's energy over those hours by interpolation is compared with the direct one: median
+and p95 of the per-heliostat relative error and the field total's, stored under ``interpolation``.
+"""
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+import torch
+
+from ..atmosphere import Atmosphere
+from ..calibrate.twinstate import nominal_kinematics
+from ..devices import resolve_device, to_device
+from ..errors import HeliotwinError, InputFileError
+from ..io import weather as _weather
+from ..io.scenario import next_scenario, provenance_entry
+from ..optimise.aimpoints import optimise_aimpoints
+from ..optimise.aimstate import stored_peak_limit
+from ..progress import Progress
+from ..raytrace import annual as A
+from ..raytrace.field import FACTORS, equator_aim_points, field_optics, reuse_mirror_samples
+from ..raytrace.yearly import clear_sky_dni
+from ..sun import direction_from_paint_angles, solar_position
+
+__all__ = ["YearSettings", "YearResult", "plant_year", "year_state", "csv_rows", "AIMS", "KEY"]
+
+#: The ``Scenario.learned`` key of the stored year.
+KEY = "year"
+AIMS = ("equator", "scenario", "optimised")
+#: The interval of the tracking loss: 5 and 95 % quantiles over the posterior draws.
+LEVELS = (0.05, 0.95)
+VERSION = 1
+
+
+@dataclass
+class YearSettings:
+    """What :func:`plant_year` computes.
+
+    Attributes
+    ----------
+    year : int or None
+        Calendar year (default: the weather file's middle year; 2023 without a file).
+    aim : {"equator", "scenario", "optimised"}
+    every : str
+        Step of the clear-sky instants (no weather file).
+    grid : heliotwin.raytrace.annual.TableGrid
+        The tables' sun positions.
+    draws : int
+        Posterior draws of the tracking loss's interval (0: the point value twice).
+    seed : int
+        Seed of the draws and of the checked hours.
+    check_hours : int
+        Hours for the direct check of the interpolation (0: none).
+    peak_limit_w_m2 : float or None
+        ``aim="optimised"``: the limit (default: the plant's stored one).
+    device : str or None
+        Where the field model runs (``"auto"``: CUDA when present).
+    progress : bool
+        Progress bars / lines (:mod:`heliotwin.progress`).
+    """
+
+    year: int | None = None
+    aim: str = "equator"
+    every: str = "1h"
+    grid: A.TableGrid = field(default_factory=lambda: A.DEFAULT_GRID)
+    draws: int = 16
+    seed: int = 0
+    check_hours: int = 0
+    peak_limit_w_m2: float | None = None
+    device: str | None = None
+    progress: bool = False
+
+    def check(self) -> None:
+        """One-line errors for settings out of range (before any work)."""
+        if self.year is not None and (isinstance(self.year, bool) or not isinstance(self.year, int)
+                                      or not 1900 <= self.year <= 2100):
+            raise HeliotwinError(f"--year: expected a year in 1900..2100, got {self.year!r}")
+        if self.aim not in AIMS:
+            raise HeliotwinError(f"--aim: expected one of {', '.join(AIMS)}, got {self.aim!r}")
+        if not 0 <= int(self.draws) <= 1000:
+            raise HeliotwinError(f"--draws: expected 0..1000, got {self.draws}")
+        if not 0 <= int(self.check_hours) <= 100_000:
+            raise HeliotwinError(f"--check-hours: expected 0..100000, got {self.check_hours}")
+        step = pd.Timedelta(self.every)
+        if not pd.Timedelta("1min") <= step <= pd.Timedelta("12h"):
+            raise HeliotwinError(f"--every {self.every}: expected 1min..12h")
+
+
+@dataclass
+class YearResult:
+    """``scenario``: the plant with ``learned["year"]`` (not written); ``report``: the JSON report; ``rows``: one
+    dict per heliostat (the CSV); ``tables``: the per-heliostat tables (tensors, for scripts)."""
+
+    scenario: object
+    report: dict
+    rows: list
+    tables: dict
+
+
+# ------------------------------------------------------------------------------------------------- instants
+def _instants(scenario, weather, settings: YearSettings) -> dict:
+    """UTC instants with their DNI [W/m^2] and interval [h] and what the weather says about itself."""
+    s = scenario.plant.site
+    if weather is not None:
+        year = settings.year if settings.year is not None else int(weather.times.year[len(weather.times) // 2])
+        wy = _weather.weather_for_year(weather, int(year))
+        convention = getattr(weather, "convention", None) or getattr(wy, "convention", None) or \
+            f"{weather.kind}: times as the reader converts them to UTC instants"
+        info = {"file": os.path.abspath(weather.path), "kind": str(weather.kind), "annual": bool(wy.annual),
+                "step_hours": float(wy.step_hours), "coverage_fraction": float(wy.coverage.get("fraction_of_year",
+                                                                                              float("nan"))),
+                "assumptions": "; ".join(wy.assumptions)}
+        offset = getattr(_weather, "site_offset_km", None)
+        if offset is not None:
+            try:
+                km = offset(weather, s)
+            except (TypeError, ValueError, AttributeError):
+                km = None
+            if km is not None and math.isfinite(float(km)):
+                info["site_offset_km"] = float(km)
+        return {"year": int(year), "times": wy.times, "dni": np.asarray(wy.dni, dtype=np.float64),
+                "hours": np.asarray(wy.hours, dtype=np.float64), "annual": bool(wy.annual), "weather": info,
+                "convention": str(convention), "coverage": wy.coverage, "assumptions": list(wy.assumptions)}
+    year = 2023 if settings.year is None else int(settings.year)
+    step = pd.Timedelta(settings.every)
+    times = pd.date_range(pd.Timestamp(year, 1, 1, tz="UTC"), pd.Timestamp(year + 1, 1, 1, tz="UTC"),
+                          freq=step, inclusive="left")
+    dni = np.nan_to_num(np.asarray(clear_sky_dni(times, scenario.plant), dtype=np.float64))
+    hours = np.full(len(times), step.total_seconds() / 3600.0)
+    info = {"file": "", "kind": "pvlib ineichen clear sky", "annual": True, "step_hours": float(hours[0]),
+            "coverage_fraction": 1.0, "assumptions": "clear sky at the plant's site (pvlib Ineichen, Linke "
+                                                     "turbidity climatology)"}
+    return {"year": year, "times": times, "dni": dni, "hours": hours, "annual": True, "weather": info,
+            "convention": f"UTC instants every {settings.every} from 00:00 (each stands for the {settings.every} "
+                          "that follows it)", "coverage": {"fraction_of_year": 1.0}, "assumptions": []}
+
+
+# ------------------------------------------------------------------------------------------------- aiming
+def _aims(scenario, plant, settings: YearSettings, atmosphere):
+    """Aim points [H, 3] or a per-node callable ``(s, sun) -> [H, 3]``."""
+    target = plant.target("receiver")
+    pos = plant.field.kinematics.position.to(torch.float64)
+    if settings.aim == "equator":
+        return equator_aim_points(target, pos)
+    if settings.aim == "scenario":
+        state = scenario.learned.get("aimpoints")
+        if not isinstance(state, dict) or state.get("aim") is None:
+            raise InputFileError(scenario.path, "--aim scenario: the plant stores no aim points (run heliotwin "
+                                                "aimpoints -o first)", field="/learned/aimpoints/aim")
+        return torch.as_tensor(state["aim"], dtype=torch.float64).to(pos.device)
+    limit = settings.peak_limit_w_m2 or stored_peak_limit(scenario)
+    if not limit:
+        raise InputFileError(scenario.path, "--aim optimised: the plant stores no peak-flux limit (run heliotwin "
+                                            "aimpoints -o once, or give --peak-limit)",
+                             field="/learned/aimpoints@peak_limit_w_m2")
+    state = {"aim": None}
+
+    def aim_at(s, sun):
+        res = optimise_aimpoints(plant, sun, float(limit), atmosphere=atmosphere, start_aim=state["aim"])
+        state["aim"] = res.aim.detach()
+        return state["aim"].to(torch.float64)
+
+    return aim_at
+
+
+# ---------------------------------------------------------------------------------------------- tracking
+def _calibrated(scenario, plant):
+    """Rows [h] of the heliostats with learned kinematics, their nominal (controller's) kinematics, the learned
+    ones (the plant's), the posterior covariance [h, P, P] (or None) and parameter names; None without any."""
+    cal = scenario.learned.get("calibration")
+    if not isinstance(cal, dict) or not cal.get("heliostats") or not isinstance(cal.get("nominal"), dict):
+        return None
+    ids = list(cal["heliostats"])
+    index = {h: i for i, h in enumerate(plant.field.ids)}
+    keep = [j for j, h in enumerate(ids) if h in index]
+    if not keep:
+        return None
+    nominal = nominal_kinematics(cal, scenario.path, len(ids)).index(torch.tensor(keep))
+    rows = torch.tensor([index[ids[j]] for j in keep], dtype=torch.long)
+    learned = plant.field.kinematics.index(rows)
+    names = list(cal.get("parameter_names") or [])
+    post = cal.get("posterior")
+    cov = None
+    if isinstance(post, dict) and post.get("covariance") is not None and names and not cal.get("networks"):
+        cov = torch.as_tensor(post["covariance"], dtype=torch.float64)[torch.tensor(keep)]
+    nominal = nominal.to(dtype=torch.float64)
+    return {"rows": rows, "nominal": nominal, "learned": learned.to(dtype=torch.float64), "covariance": cov,
+            "names": names, "method": str(cal.get("method", ""))}
+
+
+# ---------------------------------------------------------------------------------------------- the year
+def _on_device(plant, device):
+    return plant if device is None else to_device(plant, resolve_device(device))
+
+
+def plant_year(scenario, weather=None, settings: YearSettings | None = None) -> YearResult:
+    """The plant's year heliostat by heliostat (module docstring).
+
+    Parameters
+    ----------
+    scenario : heliotwin.io.scenario.Scenario
+    weather : heliotwin.io.weather.DniSeries, optional
+        From :func:`heliotwin.io.weather.read_dni_series`; default: pvlib's clear sky.
+    settings : YearSettings, optional
+
+    Returns
+    -------
+    YearResult
+    """
+    t0 = time.perf_counter()
+    settings = settings or YearSettings()
+    settings.check()
+    plant = _on_device(scenario.plant, settings.device)
+    if "receiver" not in plant.targets:
+        raise InputFileError(scenario.path, "the plant has no 'receiver' target", field="/targets/receiver")
+    atm = Atmosphere.from_extras(scenario.extras)
+    inst = _instants(scenario, weather, settings)
+    s = plant.site
+    az, el = solar_position(inst["times"], s.latitude_deg, s.longitude_deg, s.altitude_m)
+    dni = torch.as_tensor(inst["dni"].copy())
+    hours = torch.as_tensor(inst["hours"].copy())
+    q = dni * hours  # [Wh/m^2] per instant
+    up = el > 0
+    total_q = float(q.sum())
+    if total_q <= 0:
+        raise HeliotwinError(f"{inst['weather']['file'] or 'clear sky'}: no direct sun in {inst['year']} (every DNI "
+                             "is 0): no energy to report")
+    below = float(q[~up].sum()) / total_q
+    az_u, el_u, q_u = az[up], el[up], q[up]
+    if float(q_u.sum()) <= 0:
+        raise HeliotwinError(f"{inst['weather']['file'] or 'clear sky'}: no direct sun in {inst['year']} while the "
+                             "sun is up: no energy to report")
+    months = torch.as_tensor(np.asarray(inst["times"].month)[up.numpy()] - 1)
+    grid = settings.grid
+    idx, w = A.bilinear_weights(grid, az_u, el_u)
+    nodes = A.needed_nodes(idx, w, q_u)
+    wn = A.node_weights(idx, w, q_u, nodes)  # [S] Wh/m^2
+    wm = A.node_weights(idx, w, q_u, nodes, months, 12)  # [12, S]
+    suns = grid.suns(nodes).to(plant.field.kinematics.position.device)
+    aims = _aims(scenario, plant, settings, atm)
+    cal = _calibrated(scenario, plant)
+    surf_ids = [h for h in (scenario.learned.get("surfaces") or {}) if h in plant.field.ids]
+    surf_rows = torch.tensor([plant.field.ids.index(h) for h in surf_ids], dtype=torch.long)
+    h_n = len(plant.field.ids)
+    variants = 0 if cal is None else 1 + (int(settings.draws) if cal["covariance"] is not None else 0)
+    work = nodes.numel() * (1 + (1 if variants else 0) + (1 if surf_ids else 0)) + int(settings.check_hours)
+    with Progress(work, "heliotwin year: tables over sun positions", unit="node", enabled=settings.progress,
+                  every=5.0) as bar:
+        tick = bar.update
+        tables = A.heliostat_tables(plant, suns, aims, atmosphere=atm, progress=tick)
+        eff = tables["efficiency"].cpu()
+        area = tables["mirror_area"].cpu()
+        # tracking: the learned point value, then the posterior draws
+        track = None
+        if cal is not None:
+            kins = [cal["learned"]]
+            if cal["covariance"] is not None and settings.draws:
+                kins += A.posterior_draws(cal["learned"], cal["names"], cal["covariance"], settings.draws,
+                                          settings.seed)
+            dev = plant.field.kinematics.position.device
+            ratio = A.tracking_tables(plant, suns, tables["aim"], cal["rows"].to(dev), cal["nominal"].to(device=dev),
+                                      [k.to(device=dev) for k in kins], progress=tick).cpu()
+            track = ratio
+        surf_eff = None
+        if surf_ids:
+            surf_eff = A.surface_tables(plant, suns, tables["aim"][0] if settings.aim != "optimised" else
+                                        (lambda k, _sun: tables["aim"][k]), surf_rows.to(suns.device),
+                                        atmosphere=atm, progress=tick).cpu()
+        check = _check(plant, atm, tables, grid, nodes, az_u, el_u, q_u, settings, tick) \
+            if settings.check_hours else None
+    # ---- sums (exactly the hourly bilinear interpolation, as one product per table)
+    energy = area * (eff @ wn) / 1e6  # [H] MWh
+    sum_q = float(wn.sum())
+    factors = {name: (tables[name].cpu() @ wn) / sum_q for name in FACTORS}
+    efficiency = (eff @ wn) / sum_q
+    monthly = (area.unsqueeze(-1) * (eff @ wm.T)).sum(0) / 1e6  # [12]
+    nan = torch.full((h_n,), float("nan"), dtype=torch.float64)
+    t_point, t_low, t_high = nan.clone(), nan.clone(), nan.clone()
+    notes = []
+    if track is not None:
+        rows = cal["rows"]
+        loss = area[rows] * ((eff[rows].unsqueeze(0) * (1.0 - track)) @ wn) / 1e6  # [V, h]
+        t_point[rows] = loss[0]
+        if loss.shape[0] > 1:
+            q_lo, q_hi = torch.quantile(loss[1:], torch.tensor(LEVELS, dtype=torch.float64), dim=0)
+            t_low[rows], t_high[rows] = torch.minimum(q_lo, loss[0]), torch.maximum(q_hi, loss[0])
+        else:
+            t_low[rows], t_high[rows] = loss[0], loss[0]
+            notes.append("tracking-loss interval: the calibration has no posterior (or --draws 0): the point value "
+                         "twice")
+    uncal = int(torch.isnan(t_point).sum())
+    if uncal:
+        notes.append(f"tracking loss unknown (NaN) for {uncal} heliostat(s) with nominal kinematics only (no "
+                     "calibration: the twin knows nothing of their errors)")
+    s_point = torch.zeros(h_n, dtype=torch.float64)
+    learned_surface = torch.zeros(h_n, dtype=torch.bool)
+    if surf_eff is not None:
+        s_point[surf_rows] = area[surf_rows] * ((surf_eff - eff[surf_rows]) @ wn) / 1e6
+        learned_surface[surf_rows] = True
+        notes.append("surface-loss interval: the learned surfaces carry no uncertainty: the point value twice")
+    e_mirror = float(area.sum()) * sum_q / 1e6
+    state = year_state(inst, settings, below, energy, efficiency, factors, monthly, e_mirror,
+                       (t_point, t_low, t_high), s_point, learned_surface, check)
+    learned = dict(scenario.learned)
+    learned[KEY] = state
+    step = provenance_entry("year", year=inst["year"], aim=settings.aim, weather=inst["weather"]["file"],
+                            draws=int(settings.draws), seed=int(settings.seed), nodes=int(nodes.numel()))
+    out = next_scenario(scenario, scenario.plant, learned=learned, step=step)
+    report = _report(scenario, inst, state, grid, nodes, below, notes, uncal, surf_ids, time.perf_counter() - t0)
+    tables_out = {"nodes": nodes, "efficiency": eff, "tracking_ratio": track, "surface_efficiency": surf_eff,
+                  "node_weights": wn, "monthly_node_weights": wm, "suns": suns.cpu()}
+    return YearResult(out, report, csv_rows(plant.field.ids, state), tables_out)
+
+
+def _check(plant, atm, tables, grid, nodes, az, el, q, settings: YearSettings, tick) -> dict:
+    """The interpolation against the field model evaluated directly at ``check_hours`` drawn daylight hours."""
+    have = torch.nonzero(q > 0).flatten()
+    n = min(int(settings.check_hours), have.numel())
+    gen = torch.Generator().manual_seed(int(settings.seed) + 1)
+    pick = have[torch.randperm(have.numel(), generator=gen)[:n]].sort().values
+    idx, w = A.bilinear_weights(grid, az[pick], el[pick])
+    pos = torch.full((grid.shape[0] * grid.shape[1],), -1, dtype=torch.long)
+    pos[nodes] = torch.arange(nodes.numel())
+    eff = tables["efficiency"].cpu()
+    interp = (eff[:, pos[idx]] * w.unsqueeze(0)).sum(-1)  # [H, n]
+    suns = direction_from_paint_angles(az[pick], el[pick]).reshape(-1, 3)
+    settings_f = A.TABLE_SETTINGS
+    direct = []
+    fixed = tables["aim"][0] if settings.aim != "optimised" else None
+    with torch.no_grad(), reuse_mirror_samples():
+        for k in range(n):
+            aim = fixed if fixed is not None else tables["aim"][int(pos[idx[k, int(w[k].argmax())]])]
+            r = field_optics(plant, suns[k].to(plant.field.kinematics.position.device), atmosphere=atm, aim=aim,
+                             settings=settings_f)
+            direct.append(r.efficiency.detach().cpu().to(torch.float64))
+            tick()
+    direct = torch.stack(direct, -1)
+    e_d, e_i = direct @ q[pick], interp @ q[pick]
+    ok = e_d > 0
+    rel = (e_i[ok] - e_d[ok]).abs() / e_d[ok]
+    return {"median_error": float(rel.median()) if rel.numel() else float("nan"),
+            "p95_error": float(torch.quantile(rel, 0.95)) if rel.numel() else float("nan"),
+            "field_error": float(abs(e_i.sum() - e_d.sum()) / e_d.sum().clamp_min(1e-30)), "checked_hours": int(n)}
+
+
+# ------------------------------------------------------------------------------------------------ storage
+def year_state(inst: dict, settings: YearSettings, below: float, energy, efficiency, factors: dict, monthly,
+               e_mirror: float, tracking: tuple, surface, surface_learned, check: dict | None) -> dict:
+    """``learned["year"]`` (the agreed layout; every array one entry per heliostat in the plant's order)::
+
+        {"version": 1, "year", "aim", "weather": {"file", "kind", "annual", "dni_share_below_horizon", ...},
+         "time_convention", "annual_energy_mwh", "annual_dni_energy_on_mirrors_mwh", "monthly_energy_mwh" [12],
+         "heliostats": {"energy_mwh", "efficiency", <factors>, "tracking_loss_mwh", "tracking_loss_low_mwh",
+                        "tracking_loss_high_mwh", "surface_loss_mwh", "surface_loss_low_mwh",
+                        "surface_loss_high_mwh", "surface_learned" (bool)},
+         "interpolation": {"median_error", "p95_error", "field_error", "checked_hours"}}   # only when checked
+
+    Arrays are float64 NumPy (the scenario writer's types); NaN marks an unknown tracking loss."""
+    t_point, t_low, t_high = tracking
+    np64 = lambda t: np.asarray(t.detach().cpu().numpy(), dtype=np.float64)  # noqa: E731
+    hel = {"energy_mwh": np64(energy), "efficiency": np64(efficiency)}
+    hel.update({name: np64(factors[name]) for name in FACTORS})
+    hel.update({"tracking_loss_mwh": np64(t_point), "tracking_loss_low_mwh": np64(t_low),
+                "tracking_loss_high_mwh": np64(t_high), "surface_loss_mwh": np64(surface),
+                "surface_loss_low_mwh": np64(surface), "surface_loss_high_mwh": np64(surface),
+                "surface_learned": np.asarray(surface_learned.numpy(), dtype=bool)})
+    weather = {k: v for k, v in inst["weather"].items() if v is not None}
+    weather["dni_share_below_horizon"] = float(below)
+    state = {"version": VERSION, "year": int(inst["year"]), "aim": settings.aim, "weather": weather,
+             "time_convention": inst["convention"], "annual_energy_mwh": float(energy.sum()),
+             "annual_dni_energy_on_mirrors_mwh": float(e_mirror), "monthly_energy_mwh": np64(monthly),
+             "heliostats": hel}
+    if check is not None:
+        state["interpolation"] = {k: (int(v) if k == "checked_hours" else float(v)) for k, v in check.items()}
+    return state
+
+
+CSV_COLUMNS = ("id", "energy_mwh", "efficiency") + FACTORS + (
+    "tracking_loss_mwh", "surface_loss_mwh", "tracking_loss_low_mwh", "tracking_loss_high_mwh",
+    "surface_loss_low_mwh", "surface_loss_high_mwh", "surface_learned")
+
+
+def csv_rows(ids, state: dict) -> list[dict]:
+    """One dict per heliostat with :data:`CSV_COLUMNS` (NaN: unknown)."""
+    hel = state["heliostats"]
+    cols = {k: np.asarray(hel[k]).tolist() for k in CSV_COLUMNS[1:]}
+    return [{"id": hid, **{k: v[i] for k, v in cols.items()}} for i, hid in enumerate(ids)]
+
+
+def _report(scenario, inst, state, grid, nodes, below, notes, uncal, surf_ids, seconds) -> dict:
+    """The JSON report: the stored year plus where it came from (site, convention, the grid, notes)."""
+    s = scenario.plant.site
+    hel = state["heliostats"]
+    track = np.asarray(hel["tracking_loss_mwh"])
+    rep = {"scenario": os.path.abspath(scenario.path) if scenario.path else None, "year": state["year"],
+           "aim": state["aim"], "heliostats": len(scenario.plant.field.ids),
+           "site": {"latitude_deg": s.latitude_deg, "longitude_deg": s.longitude_deg, "altitude_m": s.altitude_m},
+           "time_convention": state["time_convention"], "weather": state["weather"],
+           "annual": bool(inst["annual"]), "annual_energy_mwh": state["annual_energy_mwh"],
+           "annual_dni_energy_on_mirrors_mwh": state["annual_dni_energy_on_mirrors_mwh"],
+           "dni_share_below_horizon": float(below),
+           "field_efficiency": state["annual_energy_mwh"] / max(state["annual_dni_energy_on_mirrors_mwh"], 1e-30),
+           "monthly_energy_mwh": np.asarray(state["monthly_energy_mwh"]).tolist(),
+           "tracking_loss_mwh": float(np.nansum(track)), "tracking_loss_unknown_heliostats": int(uncal),
+           "surface_loss_mwh": float(np.sum(hel["surface_loss_mwh"])), "surface_learned_heliostats": len(surf_ids),
+           "table": {"nodes": int(nodes.numel()), "azimuth_step_deg": float(360.0 / grid.shape[1]),
+                     "elevations_deg": [float(e) for e in grid.elevations_deg]},
+           "interpolation": state.get("interpolation"), "coverage": inst["coverage"], "notes": notes,
+           "seconds": seconds}
+    return rep
