@@ -97,7 +97,8 @@ def test_cli_outputs_stored_and_never_over_the_input(tmp_path, capsys):
     save_scenario(plant, src, extras=atm.to_extras(), learned=learned_posterior(plant, sd_mrad=1.0))
     before = src.read_bytes()
     code, _, err = run_cli(capsys, "year", "--scenario", str(src), "--every", "4h", "--draws", "2",
-                           "-o", str(tmp_path / "y.h5"), "--csv", str(tmp_path / "h.csv"), "--json", str(tmp_path / "y.json"), "--quiet")
+                           "-o", str(tmp_path / "y.h5"), "--csv", str(tmp_path / "h.csv"),
+                           "--json", str(tmp_path / "y.json"), "--quiet")
     assert code == 0, err
     assert src.read_bytes() == before
     rep = json.loads((tmp_path / "y.json").read_text())
