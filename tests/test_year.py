@@ -1,0 +1,118 @@
+"""The plant's year heliostat by heliostat (workflows.year, raytrace.annual, ``heliotwin year``)."""
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+import torch
+from helpers.cli import run_cli
+from helpers.field import learned_posterior
+
+from heliotwin.calibrate.params import apply_deviations
+from heliotwin.io.scenario import Scenario, load_scenario, save_scenario
+from heliotwin.optimise.testbed import generated_plant
+from heliotwin.raytrace import annual as A
+from heliotwin.raytrace.field import FACTORS, equator_aim_points
+from heliotwin.workflows.year import YearSettings, plant_year
+
+NAMES = ["initial_angle_1", "initial_angle_2"]
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    plant, atm = generated_plant("radial", 6, "cylinder")
+    sc = Scenario(plant=plant, extras=atm.to_extras(), learned=learned_posterior(plant, sd_mrad=1.0), path="")
+    res = plant_year(sc, settings=YearSettings(every="3h", draws=4, check_hours=60))
+    return plant, atm, sc, res
+
+
+def test_rows_and_months_sum_to_the_field(tiny):
+    _, _, _, res = tiny
+    y = res.scenario.learned["year"]
+    e = np.asarray(y["heliostats"]["energy_mwh"])
+    assert e.min() > 0
+    assert e.sum() == pytest.approx(y["annual_energy_mwh"], rel=1e-12)
+    assert np.sum(y["monthly_energy_mwh"]) == pytest.approx(y["annual_energy_mwh"], rel=1e-10)
+    # efficiency = energy / (DNI energy on the mirrors), field and rows alike
+    assert y["annual_energy_mwh"] / y["annual_dni_energy_on_mirrors_mwh"] == pytest.approx(
+        res.report["field_efficiency"])
+    assert 0 < res.report["field_efficiency"] < 1
+
+
+def test_interpolation_against_the_direct_sum(tiny):
+    check = tiny[3].report["interpolation"]
+    assert check["checked_hours"] == 60
+    assert check["median_error"] <= 0.01 and check["p95_error"] <= 0.03 and check["field_error"] <= 0.003
+
+
+def test_factors_product_is_efficiency_at_one_node(tiny):
+    plant, atm, _, _ = tiny
+    suns = A.DEFAULT_GRID.suns(torch.tensor([10 * 24 + 12]))  # one sun: the DNI-weighted means are its values
+    aim = equator_aim_points(plant.targets["receiver"], plant.field.kinematics.position.double())
+    t = A.heliostat_tables(plant, suns, aim, atmosphere=atm)
+    prod = torch.ones_like(t["efficiency"])
+    for name in FACTORS:
+        prod = prod * t[name]
+    torch.testing.assert_close(prod, t["efficiency"], rtol=1e-6, atol=1e-9)
+
+
+def test_tracking_loss_zero_for_perfect_kinematics_and_grows_with_an_offset(tiny):
+    plant, atm, _, res = tiny
+    loss = np.asarray(res.scenario.learned["year"]["heliostats"]["tracking_loss_mwh"])
+    assert np.abs(loss).max() < 1e-9  # learned == nominal: the controller is perfect
+    suns = A.DEFAULT_GRID.suns(torch.tensor([9 * 24 + 12, 11 * 24 + 10]))
+    aim = equator_aim_points(plant.targets["receiver"], plant.field.kinematics.position.double())
+    kin = plant.field.kinematics.to(dtype=torch.float64)
+    rows = torch.arange(len(plant.field.ids))
+    out = []
+    for mrad in (3.0, 10.0, 30.0):  # (1 mrad can gain: the tiny receiver is smaller than the image)
+        d = torch.zeros(rows.numel(), 2, dtype=torch.float64)
+        d[:, 0] = mrad * 1e-3
+        ratio = A.tracking_tables(plant, suns, aim.expand(2, -1, -1), rows, kin, [apply_deviations(kin, d, NAMES)])
+        out.append(float((1 - ratio).mean()))
+    assert 0 < out[0] < out[1] < out[2]
+
+
+def test_intervals_ordered(tiny):
+    hel = tiny[3].scenario.learned["year"]["heliostats"]
+    lo, mid, hi = (np.asarray(hel[k]) for k in ("tracking_loss_low_mwh", "tracking_loss_mwh",
+                                                 "tracking_loss_high_mwh"))
+    assert np.all(lo <= mid) and np.all(mid <= hi) and np.any(hi > lo)
+
+
+def test_uncalibrated_heliostats_have_unknown_tracking_loss():
+    plant, atm = generated_plant("radial", 3, "flat")
+    sc = Scenario(plant=plant, extras=atm.to_extras(), path="")
+    res = plant_year(sc, settings=YearSettings(every="4h", draws=0))
+    hel = res.scenario.learned["year"]["heliostats"]
+    assert np.isnan(hel["tracking_loss_mwh"]).all()
+    assert res.report["tracking_loss_unknown_heliostats"] == 3 and res.report["notes"]
+
+
+def test_cli_outputs_stored_and_never_over_the_input(tmp_path, capsys):
+    plant, atm = generated_plant("radial", 4, "tilted-flat")
+    src = tmp_path / "p.h5"
+    save_scenario(plant, src, extras=atm.to_extras(), learned=learned_posterior(plant, sd_mrad=1.0))
+    before = src.read_bytes()
+    code, _, err = run_cli(capsys, "year", "--scenario", str(src), "--every", "4h", "--draws", "2",
+                           "-o", str(tmp_path / "y.h5"), "--csv", str(tmp_path / "h.csv"),
+                           "--json", str(tmp_path / "y.json"), "--quiet")
+    assert code == 0, err
+    assert src.read_bytes() == before
+    rep = json.loads((tmp_path / "y.json").read_text())
+    for key in ("annual_energy_mwh", "annual_dni_energy_on_mirrors_mwh", "dni_share_below_horizon", "site",
+                "time_convention", "monthly_energy_mwh"):
+        assert key in rep
+    rows = list(csv.DictReader(open(tmp_path / "h.csv")))
+    assert list(rows[0])[:11] == ["id", "energy_mwh", "efficiency", *FACTORS, "tracking_loss_mwh",
+                                  "surface_loss_mwh"]
+    assert sum(float(x["energy_mwh"]) for x in rows) == pytest.approx(rep["annual_energy_mwh"], rel=1e-9)
+    y = load_scenario(tmp_path / "y.h5").learned["year"]
+    assert y["annual_energy_mwh"] == pytest.approx(rep["annual_energy_mwh"])
+    assert y["heliostats"]["energy_mwh"].shape == (4,)
+    code, _, err = run_cli(capsys, "year", "--scenario", str(src), "-o", str(src), "--json",
+                           str(tmp_path / "z.json"))
+    assert code == 2 and "--in-place" in err
+    assert src.read_bytes() == before and not (tmp_path / "z.json").exists()
