@@ -14,14 +14,18 @@ read from its HTML). ``ok`` says whether the target was seen; exit status 1 when
 
 Findings checked (issue 42's list):
 
-* ``nominal_named`` -- no heliostat silently left nominal: calibrate's JSON names every nominal heliostat;
+* ``nominal_named`` -- no heliostat silently left nominal: calibrate's headline names every nominal heliostat
+  with its reason (JSON and its line), and calibrated + nominal = every heliostat;
 * ``alarms_persist`` -- an alarm stays open over a rerun of ``daily`` with no new record (exit 3 while open);
 * ``planned_day`` -- ``daily`` without ``--day`` plans the day after the plant's latest record, not the wall
   clock's tomorrow; with ``--day`` it plans that day;
-* ``map_values`` -- every calibrated heliostat has a value on the report's map ("no value" only for nominal ones);
+* ``map_values`` -- every calibrated heliostat has a value on the report's map ("no value" only for nominal ones),
+  read from the plant as the page draws it (the page's legend says "no value" whatever the values);
 * ``export_aim`` -- ``scenario export --solarpilot`` writes the stored optimised aim points;
-* ``spread_consistent`` -- the plan's spread is the one the report prints, the ranking by what is printed;
-* ``folder_grows`` -- the folder grew a day at a time (``simulation.json`` says how far it reaches).
+* ``spread_consistent`` -- ``daily`` ranks by the predicted pointing spread it prints (alarms first), announces
+  what it plans, and the report prints the same spread for the same heliostat and day;
+* ``folder_grows`` -- the folder grew a day at a time: ``simulation.json`` reaches ``--days`` further than when
+  this run began (a reused ``--work`` folder was grown by earlier runs too).
 """
 from __future__ import annotations
 
@@ -29,11 +33,13 @@ import argparse
 import csv
 import json
 import os
+import re
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 HERE = Path(__file__).resolve().parent
@@ -87,6 +93,66 @@ def export_aims(path: Path) -> list:
     return [[float(r[f"{a}_aimpoint"]) for a in "xyz"] for r in rows]
 
 
+def nominal_named(cal_json: dict, code: int) -> dict:
+    """Every heliostat calibrated or named nominal with its reason in calibrate's headline (and its line)."""
+    head = cal_json.get("headline") or {}
+    entries = cal_json.get("heliostats") or {}
+    left = [h for h, e in entries.items() if e.get("status") != "ok"]
+    named = list(head.get("nominal") or [])
+    reasons = head.get("nominal_reasons") or {}
+    text = str(head.get("text", ""))
+    ok = (bool(head) and sorted(named) == sorted(left) and all(reasons.get(h) for h in named)
+          and head.get("calibrated", -1) + len(named) == head.get("heliostats", -2)
+          and all(h in text for h in named[:3]))
+    return {"ok": ok, "observed": f"calibrate exit {code}; {text[:160] or 'no headline'}"}
+
+
+def spread_consistent(plan: dict, html: str, stdout: str) -> dict:
+    """daily's plan ranks by the predicted pointing spread it prints (alarmed heliostats first), announces what it
+    plans, and the report prints the same spread for the same heliostat and day."""
+    props = plan.get("proposals") or []
+    spread = plan.get("spread_mrad") or {}
+    rest = [q for q in props if q.get("reason") != "step alarm"]
+    values = [q.get("spread_now_mrad") for q in rest]
+    ranked = values == sorted(values, reverse=True) and all(
+        q.get("spread_now_mrad") == spread.get(q["heliostat"]) for q in props)
+    # nothing with a larger spread was left out of the plan (it would have been ranked before the last planned)
+    planned = {q["heliostat"] for q in props}
+    floor = min(values) if values else float("inf")
+    skipped = [h for h, v in spread.items() if h not in planned and v > floor]
+    announced = f"{len(props)} of {plan.get('slots')} slot(s) planned" in stdout
+    printed = all(f"{q['spread_now_mrad']:.3f} -> " in stdout for q in props)
+    # the report's tomorrow table (its own run of the plan, on the same day): the same spread for each heliostat
+    # in both (the report puts the latest update's alarms first, daily every open one: the sets may differ)
+    table = html[html.find("<table id='tomorrow'>"):] if "<table id='tomorrow'>" in html else ""
+    table = table[:table.find("</table>")]
+    rows = re.findall(r"<tr><td>\d+</td><td>(?:<a [^>]*>)?([^<]+)(?:</a>)?</td>.*?<td>([\d.]+) -> [\d.]+</td></tr>",
+                      table)
+    both = [(h, v) for h, v in rows if h in spread]
+    in_report = bool(both) and all(v == f"{spread[h]:.3f}" for h, v in both)
+    ok = bool(props) and ranked and not skipped and announced and printed and in_report
+    return {"ok": ok, "day": plan.get("day"), "planned": len(props), "slots": plan.get("slots"),
+            "ranked": ranked, "larger_left_out": skipped[:3], "announced": announced, "printed": printed,
+            "same_in_report": in_report, "report_rows": len(rows),
+            "first": [(q["heliostat"], round(q["spread_now_mrad"], 3)) for q in props[:3]]}
+
+
+def map_values(plant_file: Path) -> dict:
+    """The report's map as it draws it (workflows.report.heliostat_state on the plant file): every calibrated
+    heliostat has a value of the default colour; only nominal ones have none."""
+    sys.path.insert(0, str(SRC))
+    from heliotwin.io.scenario import load_scenario  # noqa: PLC0415 (the checkout under test, once the path is set)
+    from heliotwin.workflows.report import heliostat_state  # noqa: PLC0415
+
+    state = heliostat_state(load_scenario(plant_file))
+    value = np.isfinite(state["predicted_error_mrad"])
+    calibrated, nominal = state["calibrated"] > 0, state["nominal"] > 0
+    missing = [state["ids"][i] for i in np.nonzero(calibrated & ~value)[0]]
+    return {"ok": not missing and not bool((value & nominal & ~calibrated).any()),
+            "calibrated": int(calibrated.sum()), "with_value": int(value.sum()), "nominal": int(nominal.sum()),
+            "calibrated_without_value": missing[:5]}
+
+
 def run(args) -> dict:
     work = Path(args.work).resolve()
     work.mkdir(parents=True, exist_ok=True)
@@ -100,16 +166,13 @@ def run(args) -> dict:
                   "--seed", args.seed, "--until", cut.date(), "--out", plant, cwd=work, log=log, ok=(0,))
     cal = heliotwin("calibrate", "--paint", plant, "-o", "a.h5", "--json", "cal.json", cwd=work, log=log)
     cal_json = load(work / "cal.json") or {}
-    nominal = find(cal_json, "nominal_heliostats") + find(cal_json, "uncalibrated")
-    named = [v for v in nominal if isinstance(v, list) and v and all(isinstance(x, str) for x in v)]
-    checks["nominal_named"] = {"ok": bool(named) or "nominal" not in cal.stdout + cal.stderr,
-                               "observed": f"calibrate exit {cal.returncode}; nominal heliostats named in JSON: "
-                                           f"{named[0][:5] if named else 'none'}"}
+    checks["nominal_named"] = nominal_named(cal_json, cal.returncode)
     # the plant keeps its aim points and their limit: 'aimpoints --in-place' once, as daily's advice says
     noon = f"{(cut + pd.Timedelta(days=1)).date()}T11:30:00Z"
     heliotwin("aimpoints", "--scenario", "a.h5", "-o", "a.h5", "--in-place", "--time", noon, "--peak-limit",
               args.peak_limit, "--no-baselines", "--json", "aim.json", cwd=work, log=log)
     days, alarm_runs, planned, aims_ok, spreads, maps = [], [], [], [], [], []
+    until_before = (load(plant / "simulation.json") or {}).get("until")
     for d in range(args.days):
         grow = heliotwin("simulate", "--extend", plant, "--days", 1, cwd=work, log=log, ok=(0,))
         next_day = (pd.Timestamp(latest_record_day(plant)) + pd.Timedelta(days=1)).date()
@@ -129,10 +192,10 @@ def run(args) -> dict:
         n_open2 = [len(v) for v in find(rep2, "open_alarms") if isinstance(v, list)]
         alarm_runs.append({"open": n_open, "open_on_rerun": n_open2, "rerun_code": again.returncode,
                            "ok": (not n_open or not n_open[0]) or (n_open2 == n_open and again.returncode == 3)})
-        spreads.append(find(rep, "spread")[:10])
         heliotwin("report", "--scenario", "a.h5", "--paint", plant, "-o", f"report{d}.html", cwd=work, log=log)
         html = (work / f"report{d}.html").read_text(errors="replace") if (work / f"report{d}.html").exists() else ""
-        maps.append({"no_value": html.count("no value"), "nominal": html.count("nominal")})
+        spreads.append(spread_consistent(rep.get("plan") or {}, html, p.stdout))
+        maps.append(map_values(work / "a.h5"))
         heliotwin("score", "--truth", plant / "truth.h5", "--scenario", "a.h5", "--no-flux", "--json",
                   f"score{d}.json", cwd=work, log=log)
         ex = heliotwin("scenario", "export", "a.h5", "--solarpilot", f"export{d}.csv", cwd=work, log=log)
@@ -145,16 +208,16 @@ def run(args) -> dict:
     worst = find(score, "worst")
     checks["alarms_persist"] = {"ok": all(a["ok"] for a in alarm_runs), "observed": alarm_runs}
     checks["planned_day"] = {"ok": all(p["ok"] for p in planned), "observed": planned}
-    checks["map_values"] = {"ok": all(m["no_value"] == 0 for m in maps), "observed": maps}
+    checks["map_values"] = {"ok": bool(maps) and all(m["ok"] for m in maps), "observed": maps}
     checks["export_aim"] = {"ok": bool(aims_ok) and all(a["ok"] for a in aims_ok), "observed": aims_ok}
-    # the ranking by what is printed: the plan's spreads, in its order, do not increase
-    ranked = [[float(x) for x in sp if isinstance(x, (int, float))] for sp in spreads]
-    checks["spread_consistent"] = {"ok": all(r == sorted(r, reverse=True) for r in ranked), "observed": spreads}
+    checks["spread_consistent"] = {"ok": bool(spreads) and all(sp["ok"] for sp in spreads), "observed": spreads}
     checks["score_names_worst"] = {"ok": bool(worst), "observed": worst[:1] or "no heliostat named"}
+    # a reused --work folder was grown by earlier runs too: what this run appended is counted from its own start
     grown = load(plant / "simulation.json") or {}
-    reached = (pd.Timestamp(grown["until"], tz="UTC") - cut).days if grown.get("until") else None
+    reached = ((pd.Timestamp(grown["until"]) - pd.Timestamp(until_before)).days
+               if grown.get("until") and until_before else None)
     checks["folder_grows"] = {"ok": reached == args.days, "observed": f"simulation.json until {grown.get('until')}: "
-                                                                        f"{reached} day(s) appended to {cut.date()}"}
+                                                                        f"{reached} day(s) appended to {until_before}"}
     return {"settings": vars(args), "checks": checks, "days": days, "commands": log}
 
 
