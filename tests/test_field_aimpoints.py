@@ -166,7 +166,7 @@ def test_aimpoints_command_instants_scenario_and_field(tmp_path, capsys):
         assert inst["optimised"]["limit_met"] and inst["optimised"]["violation"] == 0.0
     assert rep["instants"][0]["equator"]["violation"] == pytest.approx(EXCESS - 1, rel=0.02)
     assert sorted(p.name for p in flux.iterdir()) == [f"i00{i}_{k}" for i in (0, 1) for k in (
-        "before_after.png", "equator.csv", "equator.png", "optimised.csv", "optimised.png")]
+        "before_after.png", "equator.csv", "equator.png", "optimised.csv", "optimised.png", "utilisation.png")]
     from heliotwin.field import kinematics as kin_ops
     from heliotwin.geometry import angle_between, reflect
     from heliotwin.io.scenario import load_scenario

@@ -89,7 +89,7 @@ def test_aimpoints_flux_folder_has_before_after_and_numeric_maps(layout_scenario
     assert code == 0, err
     names = sorted(p.name for p in (tmp_path / "maps").iterdir())
     assert names == ["i000_before_after.png", "i000_equator.csv", "i000_equator.png", "i000_optimised.csv",
-                     "i000_optimised.png"]
+                     "i000_optimised.png", "i000_utilisation.png"]
     rep = json.loads((tmp_path / "a.json").read_text())
     eq, _, _ = read_flux_map_csv(tmp_path / "maps" / "i000_equator.csv")
     opt, _, _ = read_flux_map_csv(tmp_path / "maps" / "i000_optimised.csv")
