@@ -15,7 +15,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "heliotwin"
 
 #: Floors, lowest first: (name, module prefixes). A module belongs to the floor of its longest prefix.
 FLOORS = (
-    ("building blocks", ("errors", "devices", "geometry", "site", "sun", "sunangles", "sunspa", "sunshape", "nurbs",
+    ("building blocks", ("errors", "devices", "geometry", "site", "sun", "sunangles", "sunspa", "sunshape", "timefmt", "nurbs",
                          "atmosphere", "shrinkage", "examples", "progress")),
     ("plant as data", ("field",)),
     ("optics", ("raytrace", "scene", "evaluation")),
