@@ -15,15 +15,16 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "heliotwin"
 
 #: Floors, lowest first: (name, module prefixes). A module belongs to the floor of its longest prefix.
 FLOORS = (
-    ("building blocks", ("errors", "devices", "geometry", "site", "sun", "sunangles", "sunspa", "sunshape", "timefmt", "nurbs",
-                         "atmosphere", "shrinkage", "examples", "progress")),
+    ("building blocks", ("errors", "devices", "geometry", "site", "sun", "sunangles", "sunspa", "sunshape", "timefmt",
+                         "nurbs", "atmosphere", "shrinkage", "examples", "progress")),
     ("plant as data", ("field",)),
     ("optics", ("raytrace", "scene", "evaluation")),
     ("data edge", ("io",)),
     ("figures", ("plots",)),
     # calibration by role: shared parts < methods (and what reads their results) < protocol
     ("calibration's shared parts", ("calibrate",)),
-    ("calibration methods", ("calibrate.methods", "calibrate.scenario", "calibrate.report", "calibrate.twinstate")),
+    ("calibration methods", ("calibrate.methods", "calibrate.scenario", "calibrate.report", "calibrate.twinstate",
+                                 "calibrate.spread")),
     ("calibration protocol", ("calibrate.protocol",)),
     ("learning and acting", ("surfaces", "optimise", "distributed", "validate", "simulate")),
     ("workflows", ("workflows",)),

@@ -26,7 +26,8 @@ def test_every_compute_command_takes_device():
                 "predict": ["--scenario", "s.h5", "--json", "p.json"],
                 "field": ["--scenario", "s.h5", "--time", "2023-03-20T12:00:00Z", "--json", "f.json"],
                 "aimpoints": ["--scenario", "s.h5", "--time", "2023-03-20T12:00:00Z", "--peak-limit", "1e6",
-                              "-o", "a.h5", "--json", "a.json"]}[command]
+                              "-o", "a.h5", "--json", "a.json"],
+                "year": ["--scenario", "s.h5", "--json", "y.json"]}[command]
         assert p.parse_args([command, *argv]).device == "auto"
         assert p.parse_args([command, *argv, "--device", "cpu"]).device == "cpu"
 

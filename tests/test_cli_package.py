@@ -23,7 +23,7 @@ SRC = Path(heliotwin.__file__).resolve().parent
 COMMANDS = {("demo",), ("scenario", "from-paint"), ("scenario", "from-layout"), ("trace",), ("validate",), ("bench",),
             ("calibrate",), ("split",), ("aim",), ("plan",), ("reconstruct",), ("predict",), ("field",),
             ("aimpoints",), ("scenario", "show"), ("scenario", "export"), ("examples",), ("update",), ("history",),
-            ("simulate",), ("score",), ("report",), ("daily",)}
+            ("simulate",), ("score",), ("report",), ("daily",), ("year",)}
 
 
 def _leaf_commands(parser, prefix=()):

@@ -28,6 +28,9 @@ from __future__ import annotations
 
 import torch
 
+from ..field.plant import Kinematics
+from .params import apply_deviations
+
 #: Draws per record of the predictive distribution (quantiles of |e| to ~1 %).
 SAMPLES = 4000
 
@@ -156,3 +159,19 @@ def _quantile(x: torch.Tensor, q: float, samples: int | None = None) -> torch.Te
     if lo + 1 >= n or pos == lo:
         return a.clone()  # not a view: ``x`` may be a reused buffer
     return a + (pos - lo) * (x[:, lo + 1 - skip] - a)
+
+
+def posterior_draws(kin: Kinematics, names, covariance: torch.Tensor, draws: int, seed: int) -> list[Kinematics]:
+    """``draws`` kinematics of heliostats ``kin`` (Hc), each ``kin`` plus a draw ``L z`` of the Laplace posterior
+    ``covariance`` [Hc, P, P] of the deviations ``names`` (seeded ``torch.Generator``, ``z ~ N(0, I)``)."""
+    gen = torch.Generator().manual_seed(int(seed))
+    cov = covariance.to(torch.float64)
+    p = cov.shape[-1]
+    jitter = 1e-18 * torch.eye(p, dtype=torch.float64)
+    chol = torch.linalg.cholesky(0.5 * (cov + cov.transpose(-1, -2)) + jitter)
+    out = []
+    for _ in range(int(draws)):  # a handful of draws, each batched over heliostats
+        z = torch.randn(cov.shape[0], p, 1, generator=gen, dtype=torch.float64)
+        delta = (chol @ z).squeeze(-1)
+        out.append(apply_deviations(kin, delta.to(kin.position.dtype), list(names)))
+    return out

@@ -508,6 +508,21 @@ def utc_date(text: str) -> str:
     return d.isoformat()
 
 
+def run_plant_step(run, out_h5, in_place: bool):
+    """``run()`` (a read-compute step returning an object with ``.scenario``) and its plant written to ``out_h5``:
+    in place under the plant's lock by its own atomic writer (:func:`heliotwin.workflows.update.locked_plant_write`),
+    else staged to ``out_h5`` (none: no plant is written). Returns what ``run`` returned."""
+    from ..io.scenario import write_scenario
+    from ..workflows.update import locked_plant_write
+
+    if in_place:
+        return locked_plant_write(out_h5, run)
+    result = run()
+    if out_h5:
+        write_scenario(result.scenario, out_h5)
+    return result
+
+
 def check_output_folder(path, flag: str) -> None:
     """Fail before a long run, not after it, when the folder of an output file does not exist.
 

@@ -23,7 +23,7 @@ import types
 
 from ..errors import HeliotwinError
 from ..io.report import atomic_path, output_set, plant_inputs, same_file, write_json
-from .common import EXIT_NOT_MET, float_range, int_range, peak_limit, positive_int, seed_int
+from .common import EXIT_NOT_MET, float_range, int_range, peak_limit, positive_int, run_plant_step, seed_int
 
 
 # ---------------------------------------------------------------------------------- scenario from-layout
@@ -245,9 +245,7 @@ def _keep_freed_memory() -> None:
 def cmd_aimpoints(args) -> int:
     """Optimise aim points for one or several instants under a peak-flux limit; baselines in the same report."""
     _keep_freed_memory()
-    from ..io.scenario import write_scenario
     from ..workflows.aimpoints import AimpointSettings
-    from ..workflows.update import locked_plant_write
 
     settings = AimpointSettings(peak_limit_w_m2=args.peak_limit, resolution=args.resolution,
                                 iterations=args.iterations, target=args.target, field_gradient=args.field_gradient,
@@ -268,12 +266,7 @@ def cmd_aimpoints(args) -> int:
         out_json = out.file(args.json, "--json")
         out_png = out.folder(args.flux, "--flux") if args.flux else None
         run, seen = _aimpoints_run(args, settings, out_png)
-        if in_place:
-            result = locked_plant_write(out_h5, run)
-        else:
-            result = run()
-            write_scenario(result.scenario, out_h5)
-        report = result.report
+        report = run_plant_step(run, out_h5, in_place).report
         write_json(out_json, report)
     if seen["show"] and len(seen["instants"]) > 1:
         _print_summary(report["summary"])

@@ -61,8 +61,13 @@ def cmd_plan(args) -> int:
             write_json(json_path, ans)
         bar.step("outputs")
     bar.close()
-    if args.quiet:
-        return 0
+    if not args.quiet:
+        _print_plan(ans)
+    return 0
+
+
+def _print_plan(ans: dict) -> None:
+    """The heliostat's spread and its proposed records, one line each."""
     from ..calibrate.spread import DEFINITION
     from ..timefmt import AZIMUTH_CONVENTION, utc_text
 
@@ -75,4 +80,3 @@ def cmd_plan(args) -> int:
         print(f"  {utc_text(p['time'])}  sun azimuth {p['sun_azimuth_deg']:7.2f} deg, elevation "
               f"{p['sun_elevation_deg']:5.2f} deg  -> spread {p['spread_after_mrad']:.3f} mrad after this record")
     print(f"  (sun azimuth: {AZIMUTH_CONVENTION})")
-    return 0

@@ -13,7 +13,7 @@ import math
 
 from ..errors import HeliotwinError
 from ..io.report import atomic_path, output_set, plant_inputs, same_file, write_json
-from .common import float_range, int_range, peak_limit, seed_int
+from .common import float_range, int_range, peak_limit, run_plant_step, seed_int
 
 _AZIMUTH_STEP = float_range(1.0, 90.0, what="an azimuth step [deg]")
 
@@ -68,51 +68,25 @@ def _write_csv(path, rows: list[dict]) -> None:
 
 
 def cmd_year(args) -> int:
-    import dataclasses
-    import types
-
-    from ..io.scenario import load_scenario, write_scenario
-    from ..raytrace.annual import DEFAULT_GRID
-    from ..workflows.update import locked_plant_write
-    from ..workflows.year import YearSettings, plant_year
     from .field import _keep_freed_memory
 
     _keep_freed_memory()  # the tables re-allocate the field model's large tensors at every node
     if not (args.output or args.csv or args.json):
         raise HeliotwinError("year: nothing to write; give -o, --csv and/or --json")
-    grid = DEFAULT_GRID if args.table_azimuth_step is None else \
-        dataclasses.replace(DEFAULT_GRID, azimuth_step_deg=float(args.table_azimuth_step))
-    settings = YearSettings(year=args.year, aim=args.aim, every=args.every, grid=grid, draws=args.draws,
-                            seed=args.seed, check_hours=args.check_hours, peak_limit_w_m2=args.peak_limit,
-                            device=getattr(args, "device", None), progress=not args.quiet)
+    settings = _settings(args)
     settings.check()  # before any output is staged
     in_place = bool(args.output) and same_file(args.output, args.scenario)
     if in_place and not args.in_place:
         raise HeliotwinError(f"-o {args.output} is the input scenario; add --in-place to replace it")
-    inputs = plant_inputs(args.scenario, args.output, ("--weather", args.weather), flag="--scenario")
-    if args.output is None:
-        inputs = [("--scenario", args.scenario), ("--weather", args.weather)]
+    inputs = plant_inputs(args.scenario, args.output, ("--weather", args.weather), flag="--scenario") \
+        if args.output else [("--scenario", args.scenario), ("--weather", args.weather)]
     with output_set(inputs) as out:
         out_h5 = None
         if args.output:
             out_h5 = out.plant(args.output, "-o") if in_place else out.file(args.output, "-o")
         out_csv, out_json = out.file(args.csv, "--csv"), out.file(args.json, "--json")
 
-        def run():
-            from ..io.weather import read_dni_series
-
-            sc = load_scenario(args.scenario)
-            weather = read_dni_series(args.weather) if args.weather else None
-            res = plant_year(sc, weather, settings)
-            return types.SimpleNamespace(scenario=res.scenario, result=res)
-
-        if in_place:
-            done = locked_plant_write(out_h5, run)
-        else:
-            done = run()
-            if out_h5:
-                write_scenario(done.scenario, out_h5)
-        res = done.result
+        res = run_plant_step(lambda: _year_run(args, settings), out_h5, in_place).result
         report = res.report
         report["output"] = args.output
         if out_csv:
@@ -120,21 +94,54 @@ def cmd_year(args) -> int:
         if out_json:
             write_json(out_json, report)
     if not args.quiet:
-        r = report
-        track = (f"tracking loss {r['tracking_loss_mwh']:.1f} MWh"
-                 + (f" ({r['tracking_loss_unknown_heliostats']} heliostat(s) unknown: nominal only)"
-                    if r["tracking_loss_unknown_heliostats"] else ""))
-        check = r.get("interpolation")
-        checked = (f"; interpolation vs direct on {check['checked_hours']} h: per heliostat median "
-                   f"{100 * check['median_error']:.2f} %, p95 {100 * check['p95_error']:.2f} %, field "
-                   f"{100 * check['field_error']:.3f} %" if check else "")
-        print(f"year {r['year']}: {r['heliostats']} heliostats, {r['aim']} aiming, {r['weather']['kind']}; "
-              f"{'annual' if r['annual'] else 'NOT annual (partial coverage):'} energy {r['annual_energy_mwh']:.1f} "
-              f"MWh of {r['annual_dni_energy_on_mirrors_mwh']:.1f} MWh DNI on the mirrors (efficiency "
-              f"{r['field_efficiency']:.4f}); {track}, mirror loss {r['surface_loss_mwh']:.2f} MWh; DNI below the "
-              f"horizon {100 * r['dni_share_below_horizon']:.2f} %; {r['table']['nodes']} table nodes{checked}; "
-              f"{r['seconds']:.1f} s")
+        _print_year(report)
     return 0
+
+
+def _settings(args):
+    """The command's :class:`~heliotwin.workflows.year.YearSettings`."""
+    import dataclasses
+
+    from ..raytrace.annual import DEFAULT_GRID
+    from ..workflows.year import YearSettings
+
+    grid = DEFAULT_GRID if args.table_azimuth_step is None else \
+        dataclasses.replace(DEFAULT_GRID, azimuth_step_deg=float(args.table_azimuth_step))
+    return YearSettings(year=args.year, aim=args.aim, every=args.every, grid=grid, draws=args.draws,
+                        seed=args.seed, check_hours=args.check_hours, peak_limit_w_m2=args.peak_limit,
+                        device=getattr(args, "device", None), progress=not args.quiet)
+
+
+def _year_run(args, settings):
+    """The read-compute step (what :func:`~heliotwin.cli.common.run_plant_step` runs, under the plant's lock when it
+    is replaced in place): the year's result with its plant as ``.scenario``."""
+    import types
+
+    from ..io.scenario import load_scenario
+    from ..io.weather import read_dni_series
+    from ..workflows.year import plant_year
+
+    sc = load_scenario(args.scenario)
+    weather = read_dni_series(args.weather) if args.weather else None
+    res = plant_year(sc, weather, settings)
+    return types.SimpleNamespace(scenario=res.scenario, result=res)
+
+
+def _print_year(r: dict) -> None:
+    """The year's one-line headline."""
+    track = (f"tracking loss {r['tracking_loss_mwh']:.1f} MWh"
+             + (f" ({r['tracking_loss_unknown_heliostats']} heliostat(s) unknown: nominal only)"
+                if r["tracking_loss_unknown_heliostats"] else ""))
+    check = r.get("interpolation")
+    checked = (f"; interpolation vs direct on {check['checked_hours']} h: per heliostat median "
+               f"{100 * check['median_error']:.2f} %, p95 {100 * check['p95_error']:.2f} %, field "
+               f"{100 * check['field_error']:.3f} %" if check else "")
+    print(f"year {r['year']}: {r['heliostats']} heliostats, {r['aim']} aiming, {r['weather']['kind']}; "
+          f"{'annual' if r['annual'] else 'NOT annual (partial coverage):'} energy {r['annual_energy_mwh']:.1f} "
+          f"MWh of {r['annual_dni_energy_on_mirrors_mwh']:.1f} MWh DNI on the mirrors (efficiency "
+          f"{r['field_efficiency']:.4f}); {track}, mirror loss {r['surface_loss_mwh']:.2f} MWh; DNI below the "
+          f"horizon {100 * r['dni_share_below_horizon']:.2f} %; {r['table']['nodes']} table nodes{checked}; "
+          f"{r['seconds']:.1f} s")
 
 
 cmd_year.supports_cuda = True

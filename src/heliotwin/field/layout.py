@@ -30,7 +30,7 @@ Plant description (TOML)
                   unrolled map), flow_path = [...] (0-based panel indices in the fluid's order; default in order),
                   derating = [...] (factor in (0, 1] at each flow-path step, e.g. falling to 0.33 at the hot
                   outlet; default 1), top_bottom_w_m2 (a lower limit on the map's top and bottom rows)
-                  (:mod:`heliotwin.optimise.fluxmap`)
+                  (:mod:`heliotwin.field.flux_limit`, :mod:`heliotwin.optimise.fluxmap`)
     [sun]         shape = "limb-darkened" | "buie" (csr) | "gaussian" (sigma_mrad) | "pillbox"
                   (radius_mrad, also the limb-darkened disc), dni [W/m^2]
     [atmosphere]  model = "polynomial", coefficients = [c0, c1, c2, c3] (loss in slant range [km])
@@ -60,11 +60,11 @@ import torch
 
 from ..atmosphere import ATMOSPHERE_MODELS, Atmosphere, attenuation
 from ..errors import InputFileError
-from ..optimise.fluxmap import parse_flux_limit_table
 from ..site import Site
 from ..sunshape import SUNSHAPES
 from .actuators import ACTUATOR_NOMINAL
 from .facets import ideal_surfaces, receiver_canting
+from .flux_limit import parse_flux_limit_table
 from .plant import Facets, Field, Kinematics, Plant, SunSettings
 from .targets import CylinderTarget, PlanarTarget
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 import torch
 
 from ..errors import HeliotwinError
+from ..field.flux_limit import RANGE_W_M2
 from ..field.kinematics import inverse
 from ..field.plant import Plant
 from .problem import FluxLimit
@@ -28,7 +29,7 @@ __all__ = ["KEY", "METHOD", "instant_state", "aimpoint_state", "stored_aimpoints
 #: hold but standby, above 100 MW/m^2 (about 100 times any receiver's rating) nothing binds; a value outside is a
 #: typo or a unit slip (kW/m^2 given as W/m^2). Without the bound, 1e-300 made every ``peak / limit`` inf (the report's
 #: JSON refused it at the very end) and the optimiser's margin grow without end.
-PEAK_LIMIT_RANGE_W_M2 = (1e3, 1e8)
+PEAK_LIMIT_RANGE_W_M2 = RANGE_W_M2  # one range for a peak limit and every cell of an allowable-flux map
 
 
 def check_peak_limit(limit, where: str = "--peak-limit") -> float:

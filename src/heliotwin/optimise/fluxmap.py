@@ -44,6 +44,7 @@ import numpy as np
 import torch
 
 from ..errors import InputFileError
+from ..field.flux_limit import RANGE_W_M2, parse_flux_limit_table
 from .problem import FluxLimit
 
 if sys.version_info >= (3, 11):
@@ -56,10 +57,6 @@ __all__ = ["UNITS", "read_flux_limit_csv", "panel_limit_grid", "parse_flux_limit
 
 #: Units a flux-limit CSV may state (``# unit: ...``), with their factor to W/m^2.
 UNITS = {"w/m2": 1.0, "kw/m2": 1e3, "mw/m2": 1e6}
-#: Plausible limits on one cell [W/m^2] (as for ``--peak-limit``).
-RANGE_W_M2 = (1e3, 1e8)
-#: Keys of the TOML's ``[receiver.flux_limit]`` table.
-TOML_KEYS = ("panels_w_m2", "flow_path", "derating", "top_bottom_w_m2")
 
 
 def _unit_line(line: str):
@@ -147,55 +144,6 @@ def resample_min(grid: np.ndarray, resolution) -> np.ndarray:
     g = np.asarray(grid, dtype=np.float64)
     by_row = np.stack([g[a:b].min(0) for a, b in _spans(g.shape[0], rows)])  # [rows, C]
     return np.stack([by_row[:, a:b].min(1) for a, b in _spans(g.shape[1], cols)], axis=1)
-
-
-def parse_flux_limit_table(table, path, where: str = "receiver.flux_limit") -> dict:
-    """The checked ``[receiver.flux_limit]`` table: ``{"panels": [N] W/m^2 (derated along the flow path),
-    "top_bottom": W/m^2 or None}``; one-line :class:`InputFileError` naming the file and key otherwise."""
-    if not isinstance(table, dict):
-        raise InputFileError(path, "expected a table", field=where)
-    unknown = sorted(set(table) - set(TOML_KEYS))
-    if unknown:
-        raise InputFileError(path, f"unknown key (expected {', '.join(TOML_KEYS)})", field=f"{where}.{unknown[0]}")
-
-    def numbers(key, n=None):
-        v = table.get(key)
-        if not isinstance(v, list) or not v or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
-                                                       for x in v):
-            raise InputFileError(path, "expected a non-empty list of numbers", field=f"{where}.{key}")
-        if n is not None and len(v) != n:
-            raise InputFileError(path, f"expected {n} entries (one per panel), got {len(v)}", field=f"{where}.{key}")
-        return [float(x) for x in v]
-
-    if "panels_w_m2" not in table:
-        raise InputFileError(path, "missing key (one limit per panel [W/m2])", field=f"{where}.panels_w_m2")
-    panels = numbers("panels_w_m2")
-    n = len(panels)
-    lo, hi = RANGE_W_M2
-    for i, v in enumerate(panels):
-        if not lo <= v <= hi:
-            raise InputFileError(path, f"limit {v:g} W/m2 out of 1 kW/m2 .. 100 MW/m2 (W/m2, not kW/m2?)",
-                                 field=f"{where}.panels_w_m2[{i}]")
-    flow = list(range(n))
-    if "flow_path" in table:
-        v = table["flow_path"]
-        if not isinstance(v, list) or sorted(x if isinstance(x, int) and not isinstance(x, bool) else -1
-                                             for x in v) != list(range(n)):
-            raise InputFileError(path, f"expected each panel index 0..{n - 1} once", field=f"{where}.flow_path")
-        flow = list(v)
-    derating = numbers("derating", n) if "derating" in table else [1.0] * n
-    for i, d in enumerate(derating):
-        if not 0.0 < d <= 1.0:
-            raise InputFileError(path, f"expected a factor in (0, 1], got {d:g}", field=f"{where}.derating[{i}]")
-    derated = [0.0] * n
-    for step, panel in enumerate(flow):
-        derated[panel] = panels[panel] * derating[step]
-    if min(derated) < lo:
-        raise InputFileError(path, f"a derated limit {min(derated):g} W/m2 is below 1 kW/m2", field=f"{where}.derating")
-    top = table.get("top_bottom_w_m2")
-    if top is not None and (isinstance(top, bool) or not isinstance(top, (int, float)) or not lo <= top <= hi):
-        raise InputFileError(path, "expected a limit [W/m2] in 1 kW/m2 .. 100 MW/m2", field=f"{where}.top_bottom_w_m2")
-    return {"panels": derated, "top_bottom": None if top is None else float(top)}
 
 
 def panel_limit_grid(parsed: dict, resolution) -> np.ndarray:

@@ -59,7 +59,6 @@ import torch
 
 from .. import sunshape as _sunshape
 from ..atmosphere import Atmosphere
-from ..calibrate.params import apply_deviations
 from ..field import facets as facet_ops
 from ..field import kinematics as K
 from ..field.plant import Kinematics, Plant
@@ -77,7 +76,7 @@ from .field import (
 from .flux import target_extent
 
 __all__ = ["TableGrid", "DEFAULT_GRID", "bilinear_weights", "node_weights", "heliostat_tables", "tracking_tables",
-           "surface_tables", "posterior_draws"]
+           "surface_tables"]
 
 
 @dataclass(frozen=True)
@@ -215,22 +214,6 @@ def heliostat_tables(plant: Plant, suns: torch.Tensor, aims, *, atmosphere: Atmo
     tables["mirror_area"] = area if s_n else torch.zeros(0, dtype=torch.float64)
     tables["aim"] = torch.stack(aim_used) if s_n else torch.zeros(0, 0, 3, dtype=torch.float64)
     return tables
-
-
-def posterior_draws(kin: Kinematics, names, covariance: torch.Tensor, draws: int, seed: int) -> list[Kinematics]:
-    """``draws`` kinematics of heliostats ``kin`` (Hc), each ``kin`` plus a draw ``L z`` of the Laplace posterior
-    ``covariance`` [Hc, P, P] of the deviations ``names`` (seeded ``torch.Generator``, ``z ~ N(0, I)``)."""
-    gen = torch.Generator().manual_seed(int(seed))
-    cov = covariance.to(torch.float64)
-    p = cov.shape[-1]
-    jitter = 1e-18 * torch.eye(p, dtype=torch.float64)
-    chol = torch.linalg.cholesky(0.5 * (cov + cov.transpose(-1, -2)) + jitter)
-    out = []
-    for _ in range(int(draws)):  # a handful of draws, each batched over heliostats
-        z = torch.randn(cov.shape[0], p, 1, generator=gen, dtype=torch.float64)
-        delta = (chol @ z).squeeze(-1)
-        out.append(apply_deviations(kin, delta.to(kin.position.dtype), list(names)))
-    return out
 
 
 def _central_pixels(target, origin: torch.Tensor, direction: torch.Tensor, resolution) -> tuple[torch.Tensor,

@@ -31,6 +31,7 @@ import torch
 
 from ..atmosphere import Atmosphere
 from ..calibrate.twinstate import nominal_kinematics
+from ..calibrate.uncertainty import posterior_draws
 from ..devices import resolve_device, to_device
 from ..errors import HeliotwinError, InputFileError
 from ..io import weather as _weather
@@ -276,8 +277,7 @@ def plant_year(scenario, weather=None, settings: YearSettings | None = None) -> 
         if cal is not None:
             kins = [cal["learned"]]
             if cal["covariance"] is not None and settings.draws:
-                kins += A.posterior_draws(cal["learned"], cal["names"], cal["covariance"], settings.draws,
-                                          settings.seed)
+                kins += posterior_draws(cal["learned"], cal["names"], cal["covariance"], settings.draws, settings.seed)
             dev = plant.field.kinematics.position.device
             ratio = A.tracking_tables(plant, suns, tables["aim"], cal["rows"].to(dev), cal["nominal"].to(device=dev),
                                       [k.to(device=dev) for k in kins], progress=tick).cpu()
