@@ -130,7 +130,9 @@ def calibration_target(scenario, cal: dict, target: str | None) -> str:
 
 def spread_metric(cal: dict, rows: list, aim_point: torch.Tensor, sun: torch.Tensor) -> torch.Tensor:
     """``M = mean_t J_t^T J_t`` [K, P, P] of the calibrated heliostats ``rows`` over the sun positions ``sun``
-    [T, 3] they can reach (zero for one that reaches none), in chunks of :data:`CHUNK_ROWS` rows."""
+    [T, 3] (unit vectors) they can reach (zero for one that reaches none), in chunks of :data:`CHUNK_ROWS` rows;
+    ``aim_point`` [3] ENU [m] (the calibration target's centre); ``J_t`` [3, P] the mirror normal's Jacobian
+    [rad per unit of each deviation]."""
     names = list(cal["parameter_names"])
     delta = torch.as_tensor(cal["deviations"], dtype=torch.float64)
     p = delta.shape[-1]

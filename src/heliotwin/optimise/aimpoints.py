@@ -177,15 +177,16 @@ def _baseline_args(kwargs: dict, where: str):
 
 
 def aiming_factor(plant, sun: torch.Tensor, peak_limit, **kwargs) -> AimResult:
-    """:func:`heliotwin.optimise.baselines.aiming_factor` of this plant, sun and limit (a float [W/m^2] or a
-    :class:`FluxLimit`); keywords ``atmosphere``, ``resolution``, ``steps``, ``model``."""
+    """:func:`heliotwin.optimise.baselines.aiming_factor` of this plant, sun [3] (unit vector, ENU) and limit (a
+    float [W/m^2] or a :class:`FluxLimit`); keywords ``atmosphere``, ``resolution``, ``steps``, ``model``."""
     options, model = _baseline_args(kwargs, "aiming_factor")
     problem = AimProblem(plant, sun, peak_limit, kwargs.get("atmosphere"))
     return _baselines.aiming_factor(problem, options, model=model)
 
 
 def image_size_priority(plant, sun: torch.Tensor, peak_limit, **kwargs) -> AimResult:
-    """:func:`heliotwin.optimise.baselines.image_size_priority` of this plant, sun and limit; keywords
+    """:func:`heliotwin.optimise.baselines.image_size_priority` of this plant, sun [3] (unit vector, ENU) and limit
+    (a float [W/m^2] or a :class:`FluxLimit`); keywords
     ``atmosphere``, ``resolution``, ``model``, ``steps``, ``groups``, ``candidates``, ``k_max``."""
     options, model = _baseline_args(kwargs, "image_size_priority")
     problem = AimProblem(plant, sun, peak_limit, kwargs.get("atmosphere"))

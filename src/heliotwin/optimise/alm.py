@@ -152,7 +152,7 @@ def alm_round(model: ImageModel, start: RoundStart, steps: Steps, frame: Frame):
 
     Returns
     -------
-    x, y : torch.Tensor, [h] each
+    x, y : torch.Tensor, shape (h,) each
         The new aim points' map coordinates [m].
     predicted : float
         The corrected model's objective key at them: ``P / p0`` (maximising power) or ``-mismatch`` (with a

@@ -90,24 +90,27 @@ class FluxLimit:
         return flux / self.on(flux)
 
     def ratio(self, flux: torch.Tensor) -> float:
-        """The largest ``flux / limit`` over the cells [-] (``peak / limit`` for a uniform limit, exactly)."""
+        """The largest ``flux / limit`` over the cells [-] of ``flux`` [rows, cols] [W/m^2] (``peak / limit`` for a
+        uniform limit, exactly)."""
         return float(self.utilisation(flux).max())
 
     def held(self, flux: torch.Tensor) -> bool:
-        """Whether every cell is at or below its limit."""
+        """Whether every cell of ``flux`` [rows, cols] [W/m^2] is at or below its limit."""
         return bool((flux <= self.on(flux)).all())
 
     def binding(self, flux: torch.Tensor, within: float = BINDING_WITHIN) -> torch.Tensor:
-        """Cells [rows, cols] (bool) whose flux is within ``within`` of their limit (or over it)."""
+        """Cells [rows, cols] (bool) whose flux (``flux`` [rows, cols] [W/m^2]) is within ``within`` [-] (a share of
+        the limit) of their limit (or over it)."""
         return self.utilisation(flux) >= 1.0 - float(within)
 
     def key(self, flux: torch.Tensor) -> tuple[float, float]:
-        """Order of violation (smaller: less violating): the largest utilisation, then the peak (for a uniform
-        limit the same order as the peak's alone)."""
+        """Order of violation of ``flux`` [rows, cols] [W/m^2] (smaller: less violating): the largest utilisation
+        [-], then the peak [W/m^2] (for a uniform limit the same order as the peak's alone)."""
         return self.ratio(flux), float(flux.max())
 
     def summary(self, flux: torch.Tensor) -> dict:
-        """``max_utilisation`` [-] and ``binding_cells`` (within :data:`BINDING_WITHIN` of their limit) of a map."""
+        """``max_utilisation`` [-] and ``binding_cells`` (within :data:`BINDING_WITHIN` of their limit) of a map
+        ``flux`` [rows, cols] [W/m^2]."""
         return {"max_utilisation": self.ratio(flux), "binding_cells": int(self.binding(flux).sum())}
 
 

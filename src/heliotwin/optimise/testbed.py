@@ -147,9 +147,9 @@ def flux_limit_map(kind: str, resolution) -> np.ndarray:
 
 
 def scaled_to_bind(shape: np.ndarray, equator_flux, fraction: float, source: str = "map") -> FluxLimit:
-    """``shape`` scaled so that equator aiming's map exceeds it by ``1 / fraction``: its largest ``flux / limit`` is
-    ``1 / fraction`` (``fraction`` < 1: the limit binds), as the test bed's flat limits are ``fraction`` x the
-    equator peak."""
+    """``shape`` [rows, cols] scaled so that equator aiming's map ``equator_flux`` [rows, cols] [W/m^2] exceeds it by
+    ``1 / fraction``: its largest ``flux / limit`` is ``1 / fraction`` (``fraction`` [-] < 1: the limit binds), as
+    the test bed's flat limits are ``fraction`` x the equator peak. The limit's cells are in [W/m^2]."""
     cells = torch.as_tensor(np.asarray(shape, dtype=np.float64))
     scale = float((equator_flux.detach().cpu().to(torch.float64) / cells).max()) * float(fraction)
     return FluxLimit(cells * scale, source)

@@ -90,11 +90,13 @@ class TableGrid:
 
     @property
     def azimuths_deg(self) -> np.ndarray:
+        """The Z node azimuths [deg] (PAINT), shape (Z,): ``360 / azimuth_step_deg`` rounded, evenly from -180."""
         z = int(round(360.0 / float(self.azimuth_step_deg)))
         return -180.0 + np.arange(z) * (360.0 / z)
 
     @property
     def shape(self) -> tuple[int, int]:
+        """``(E, Z)``: elevation rows by azimuth columns of the node grid."""
         return len(self.elevations_deg), len(self.azimuths_deg)
 
     def suns(self, nodes: torch.Tensor) -> torch.Tensor:
@@ -166,7 +168,8 @@ def node_weights(idx: torch.Tensor, w: torch.Tensor, energy: torch.Tensor, nodes
 
 
 def needed_nodes(idx: torch.Tensor, w: torch.Tensor, energy: torch.Tensor) -> torch.Tensor:
-    """The flat node indices [S] (sorted) that carry weight for some instant with energy."""
+    """The flat node indices [S] (sorted) that carry weight for some instant with energy: ``idx``, ``w`` [T, 4]
+    (:func:`bilinear_weights`), ``energy`` [T] (DNI x hours [Wh/m^2])."""
     use = (w > 0) & (energy > 0).unsqueeze(-1)
     return torch.unique(idx[use])
 
@@ -185,7 +188,7 @@ def heliostat_tables(plant: Plant, suns: torch.Tensor, aims, *, atmosphere: Atmo
         Aim points ENU [m] for every sun, or ``aims(s, sun) -> [H, 3]`` per node (optimised aiming).
     settings : FieldSettings, optional
         Default: the field model with a 4 x 8 map (the intercept does not depend on the map).
-    rows : torch.Tensor [h], optional
+    rows : torch.Tensor, shape (h,), optional
         Trace only these heliostats (every heliostat still shades and blocks them).
     progress : callable, optional
         Called with no argument after each node.
@@ -274,8 +277,8 @@ def tracking_tables(plant: Plant, suns: torch.Tensor, aim: torch.Tensor, rows: t
     plant : Plant
     suns : torch.Tensor, [S, 3]
     aim : torch.Tensor, [S, H, 3]
-        Each node's aim points (all heliostats).
-    rows : torch.Tensor, [h]
+        Each node's aim points ENU [m] (all heliostats).
+    rows : torch.Tensor, shape (h,)
         The heliostats with learned kinematics (indices into the plant).
     nominal : Kinematics
         The controller's kinematics of those h heliostats.

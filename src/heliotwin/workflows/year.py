@@ -376,6 +376,9 @@ def year_state(inst: dict, settings: YearSettings, below: float, energy, efficie
                         "surface_loss_high_mwh", "surface_learned" (bool)},
          "interpolation": {"median_error", "p95_error", "field_error", "checked_hours"}}   # only when checked
 
+    Inputs: ``energy`` [H] [MWh] and ``efficiency`` [H] [-] per heliostat, ``factors`` name -> [H] [-],
+    ``monthly`` [12] [MWh], ``e_mirror`` the DNI on the mirrors [MWh], ``below`` the DNI share below the horizon
+    [-], ``tracking`` (point, low, high) [H] each [MWh], ``surface`` [H] [MWh], ``surface_learned`` [H] bool.
     Arrays are float64 NumPy (the scenario writer's types); NaN marks an unknown tracking loss."""
     t_point, t_low, t_high = tracking
     np64 = lambda t: np.asarray(t.detach().cpu().numpy(), dtype=np.float64)  # noqa: E731

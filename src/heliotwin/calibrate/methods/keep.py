@@ -143,7 +143,8 @@ def fold_gain_test(folds: list, h: int, *, testable: torch.Tensor | None = None,
 
 def explain_untested(evidence: dict, checks: list, testable: torch.Tensor, min_check: int = MIN_CHECK) -> None:
     """The reason of every heliostat no network was trained for, from the folds' check records ``checks`` (one
-    :class:`RecordTable` per fold; ``evidence`` changed in place)."""
+    :class:`RecordTable` per fold; ``evidence`` changed in place); ``testable`` [H] bool: the heliostats that were
+    tested."""
     counts = [c.counts().cpu() for c in checks]
     for i, ev in evidence.items():
         if bool(testable[i]):
