@@ -34,7 +34,7 @@ from ...field import kinematics as K
 from ...io.records import RecordTable
 from .. import metrics
 from ..fitloop import early_stopping_fit, net_state
-from ..inputs import FIT_FOCAL_SPOT, fit_spots, restrict, trainable
+from ..inputs import FIT_FOCAL_SPOT, fit_spots, restrict
 from ..model import Calibrated
 from ..params import STONE8, apply_deviations, kinds
 from . import keep
@@ -200,20 +200,15 @@ def fit_hybrid_method(nominal, train, validation, *, seed=0, progress=False, fie
     """
     if pretrain not in PRETRAIN:
         raise HeliotwinError(f"hybrid: pretrain must be one of {', '.join(PRETRAIN)}, got {pretrain!r}")
-    h, like = nominal.num_heliostats, nominal.position
+    like = nominal.position
     names = STONE8
     scale = torch.tensor([OUTPUT_SCALE[k] for k in kinds(names)], dtype=like.dtype, device=like.device)
     lm_opts = dict(seed=seed, plant_prior=plant_prior, field_prior=field_prior, fit_focal_spot=fit_focal_spot)
     net_opts = dict(seed=seed, depth=depth, hidden=hidden, steps=steps, lr=lr, weight_decay=weight_decay,
                     noise=noise, progress=progress)
     # The fallback, and the base of a kept network: exactly lm on every record the method may see.
-    rigid = fit_lm_method(nominal, train, validation, **lm_opts)
+    rigid, seen, folds, testable = keep.rigid_and_folds(nominal, train, validation, lm_opts, min_check)
     ok = rigid.ok
-    seen = RecordTable.concatenate([train, validation]) if validation is not None and len(validation) else train
-    folds = [(restrict(a, ok), restrict(v, ok)) for a, v in keep.check_folds(train, validation)]
-    testable = ok.clone()
-    for a, v in folds:
-        testable &= trainable(a) & (v.counts() >= min_check)
     fold_errors = []
     for a, v in folds:
         # per block: both candidates on the records before it only, their errors on it
@@ -227,9 +222,7 @@ def fit_hybrid_method(nominal, train, validation, *, seed=0, progress=False, fie
                                         scale, desc="hybrid (keep check)", fleet=fleet, shrink=shrink, **net_opts)
         fit_va = _HybridFit(nominal, base, names, scale, t0, span, va)
         fold_errors.append((fit_va.errors(None), fit_va.errors(cand), va.heliostat_index))
-    use_net, evidence = keep.fold_gain_test(fold_errors, h, testable=testable, level=level, min_check=min_check)
-    keep.explain_untested(evidence, [v for _, v in folds], testable, min_check)
-    use_net = use_net.to(like.device) & testable
+    use_net, evidence = keep.keep_decision(fold_errors, folds, testable, level=level, min_check=min_check)
     # 3. a kept network is refitted on every record, on top of lm's rigid body of the same records
     static = rigid.delta.to(like).clone()
     static[~ok] = 0.0

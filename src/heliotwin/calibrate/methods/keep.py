@@ -45,7 +45,10 @@ import numpy as np
 import torch
 from scipy.stats import wilcoxon
 
+from ...field.plant import Kinematics
 from ...io.records import RecordTable
+from ..inputs import restrict, trainable
+from .lm import fit_lm_method
 
 #: One-sided significance level of the paired gain.
 LEVEL = 0.05
@@ -101,6 +104,44 @@ def check_folds(train: RecordTable, validation: RecordTable | None,
     a2, v2 = check_split(train, validation, fraction)
     a1, v1 = check_split(a2, None, counts=v2.counts())
     return [(a1, v1), (a2, v2)]
+
+
+def rigid_and_folds(nominal: Kinematics, train: RecordTable, validation: RecordTable | None, lm_opts: dict,
+                    min_check: int = MIN_CHECK) -> tuple:
+    """What both network methods start from: lm on every record the method may see (the fallback, and the rigid
+    body under a kept network), those records, the keep test's folds (:func:`check_folds`, restricted to the
+    heliostats lm calibrated) and which heliostats can be tested.
+
+    Returns
+    -------
+    rigid : Calibrated
+        ``fit_lm_method(nominal, train, validation, **lm_opts)``.
+    seen : RecordTable
+        ``train`` and ``validation`` together.
+    folds : list of (RecordTable, RecordTable)
+        (records before the block, the block) per check block.
+    testable : torch.Tensor, [H] bool
+        Calibrated by lm, trainable before every block and with at least ``min_check`` records in each.
+    """
+    rigid = fit_lm_method(nominal, train, validation, **lm_opts)
+    ok = rigid.ok
+    seen = RecordTable.concatenate([train, validation]) if validation is not None and len(validation) else train
+    folds = [(restrict(a, ok), restrict(v, ok)) for a, v in check_folds(train, validation)]
+    testable = ok.clone()
+    for a, v in folds:
+        testable &= trainable(a) & (v.counts() >= min_check)
+    return rigid, seen, folds, testable
+
+
+def keep_decision(fold_errors: list, folds: list, testable: torch.Tensor, *, level: float = LEVEL,
+                  min_check: int = MIN_CHECK) -> tuple[torch.Tensor, dict]:
+    """Which heliostats keep their network (``use_net`` [H] bool, only testable ones) and the evidence per heliostat:
+    :func:`fold_gain_test` over the folds' paired errors, the untested heliostats' reasons
+    (:func:`explain_untested`)."""
+    use_net, evidence = fold_gain_test(fold_errors, testable.shape[0], testable=testable, level=level,
+                                       min_check=min_check)
+    explain_untested(evidence, [v for _, v in folds], testable, min_check)
+    return use_net.to(testable.device) & testable, evidence
 
 
 def fold_gain_test(folds: list, h: int, *, testable: torch.Tensor | None = None, level: float = LEVEL,

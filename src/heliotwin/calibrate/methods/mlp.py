@@ -60,7 +60,7 @@ from ...site import Site
 from ...sun import daylight_times, direction_from_paint_angles
 from .. import metrics
 from ..fitloop import State, early_stopping_fit
-from ..inputs import FIT_FOCAL_SPOT, fit_spots, restrict, trainable
+from ..inputs import FIT_FOCAL_SPOT, fit_spots, restrict
 from ..model import Calibrated
 from ..params import STONE8, apply_deviations, read_deviations
 from . import keep
@@ -441,13 +441,8 @@ def fit_mlp_method(nominal, train, validation, *, seed: int = 0, progress: bool 
     h, like = nominal.num_heliostats, nominal.position
     lm_opts = dict(seed=seed, plant_prior=plant_prior, field_prior=s.field_prior, fit_focal_spot=s.fit_focal_spot)
     # The fallback, and the rigid body under a kept network: exactly lm on every record the method may see.
-    rigid = fit_lm_method(nominal, train, validation, **lm_opts)
+    rigid, seen, folds, testable = keep.rigid_and_folds(nominal, train, validation, lm_opts, s.min_check)
     ok = rigid.ok
-    seen = RecordTable.concatenate([train, validation]) if validation is not None and len(validation) else train
-    folds = [(restrict(a, ok), restrict(v, ok)) for a, v in keep.check_folds(train, validation)]
-    testable = ok.clone()
-    for a, v in folds:
-        testable &= trainable(a) & (v.counts() >= s.min_check)
     gen = torch.Generator().manual_seed(int(seed))
     inf = like.new_full((h,), float("inf"))
     pre_err, fin_err, rig_err = inf, inf, inf
@@ -469,9 +464,7 @@ def fit_mlp_method(nominal, train, validation, *, seed: int = 0, progress: bool 
         fold_errors.append((e_rigid, e_net, va.heliostat_index))
         pre_err = val_err_of(_check_errors(cand, va, pretrained), va, h, like)
         fin_err, rig_err = val_err_of(e_net, va, h, like), val_err_of(e_rigid, va, h, like)
-    use_net, evidence = keep.fold_gain_test(fold_errors, h, testable=testable, level=s.level, min_check=s.min_check)
-    keep.explain_untested(evidence, [v for _, v in folds], testable, s.min_check)
-    use_net = use_net.to(like.device) & testable
+    use_net, evidence = keep.keep_decision(fold_errors, folds, testable, level=s.level, min_check=s.min_check)
     delta = rigid.delta.to(like).clone()
     delta[~ok] = 0.0
     if bool(use_net.any()):
