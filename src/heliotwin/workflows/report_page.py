@@ -77,6 +77,12 @@ def _e(x) -> str:
     return html.escape(str(x))
 
 
+def _heliostat_link(heliostat, detail_ids: set) -> str:
+    """The heliostat's id (escaped), a link to its section where it has one."""
+    hid = _e(heliostat)
+    return f'<a href="#h-{hid}">{hid}</a>' if heliostat in detail_ids else hid
+
+
 def _div(fig, div_id: str) -> str:
     return pio.to_html(fig, full_html=False, include_plotlyjs=False, div_id=div_id,
                        config={"displaylogo": False, "responsive": True})
@@ -279,8 +285,7 @@ def _alarm_table(alarms: list, detail_ids: set) -> str:
         return '<p class="note">no step alarm in the latest update</p>'
     rows = []
     for a in alarms[:ALARM_ROWS]:
-        hid = _e(a["heliostat"])
-        link = f'<a href="#h-{hid}">{hid}</a>' if a["heliostat"] in detail_ids else hid
+        link = _heliostat_link(a["heliostat"], detail_ids)
         rows.append(f"<tr><td>{link}</td><td>{_e(utc_text(a['time']))}</td><td>{a['record_id']}</td>"
                     f"<td>{a['statistic']:.1f} (threshold {_fmt(a['threshold'])})</td>"
                     f"<td>{a['innovation_mrad']:.2f}</td><td>{_e(a['action'])}</td></tr>")
@@ -295,8 +300,7 @@ def _plan_table(plans: list, detail_ids: set) -> str:
         return '<p class="note">no plan: the scenario stores no posterior (calibrate --method lm)</p>'
     rows = []
     for p in plans:
-        hid = _e(p["heliostat"])
-        link = f'<a href="#h-{hid}">{hid}</a>' if p["heliostat"] in detail_ids else hid
+        link = _heliostat_link(p["heliostat"], detail_ids)
         if "error" in p:
             rows.append(f"<tr><td>{link}</td><td colspan=3>{_e(p['error'])}</td></tr>")
             continue
@@ -322,8 +326,7 @@ def _tomorrow_table(t: dict | None, detail_ids: set) -> str:
         return f'<p class="note">{_e(t["day"])}: nothing to record ({t["candidates"]} candidate times)</p>'
     rows = []
     for k, q in enumerate(t["proposals"], 1):
-        hid = _e(q["heliostat"])
-        link = f'<a href="#h-{hid}">{hid}</a>' if q["heliostat"] in detail_ids else hid
+        link = _heliostat_link(q["heliostat"], detail_ids)
         rows.append(f"<tr><td>{k}</td><td>{link}</td><td>{_e(utc_text(q['time']))}</td>"
                     f"<td>{q['sun_azimuth_deg']:.1f} / {q['sun_elevation_deg']:.1f}</td><td>{_e(q['reason'])}</td>"
                     f"<td>{_fmt(q.get('spread_now_mrad'))} -> {_fmt(q.get('spread_after_mrad'))}</td></tr>")
@@ -473,8 +476,7 @@ def _year_table(rows: list, detail_ids: set) -> str:
         return '<p class="note">no heliostat rows asked for</p>'
     out = []
     for r in rows:
-        hid = _e(r["heliostat"])
-        link = f'<a href="#h-{hid}">{hid}</a>' if r["heliostat"] in detail_ids else hid
+        link = _heliostat_link(r["heliostat"], detail_ids)
         surface = _bounds(r["surface_loss_mwh"], r["surface_loss_low_mwh"], r["surface_loss_high_mwh"]) \
             if r["surface_learned"] else "ideal (not learned)"
         out.append(f"<tr><td>{r['rank']}</td><td>{link}</td><td>{_fmt(r['energy_mwh'], 4)}</td>"
