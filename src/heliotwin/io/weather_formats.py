@@ -222,9 +222,15 @@ def _tmy3(path: Path) -> RawSeries:
     stamp = date + pd.to_timedelta(hh_mm[0], unit="h") + pd.to_timedelta(hh_mm[1], unit="min")
     data.index = pd.DatetimeIndex(stamp)
     raw = _from_pvlib(path, "tmy3", data, meta, "dni", -0.5, tz, meta.get("Name"), "TMY3")
-    raw.convention = (f"TMY3: local standard time ({_offset_text(tz)}, no DST), hour-ending values (01:00 = "
-                      "00:00-01:00) -> UTC at the middle of each hour" + _SUNLIT)
+    raw.convention = _hour_ending("TMY3", tz, "01:00")
     return raw
+
+
+def _hour_ending(name: str, tz: float, first: str) -> str:
+    """The convention of an hourly local-standard-time file of hour-ending values (``first``: how the file names
+    its first hour), as the reading turns it into UTC instants."""
+    return (f"{name}: local standard time ({_offset_text(tz)}, no DST), hour-ending values ({first} = 00:00-01:00) "
+            "-> UTC at the middle of each hour" + _SUNLIT)
 
 
 def _tmy2(path: Path) -> RawSeries:
@@ -233,8 +239,7 @@ def _tmy2(path: Path) -> RawSeries:
     # pvlib stamps TMY2's hour h at h-1 (the hour's start): the middle is 30 min later
     raw = _from_pvlib(path, "tmy2", data, meta, "DNI", 0.5, tz, meta.get("City"), "TMY2", force_typical=True,
                       missing_9999=True)
-    raw.convention = (f"TMY2: local standard time ({_offset_text(tz)}, no DST), hour-ending values (hour 1 = "
-                      "00:00-01:00) -> UTC at the middle of each hour" + _SUNLIT)
+    raw.convention = _hour_ending("TMY2", tz, "hour 1")
     return raw
 
 
@@ -243,8 +248,7 @@ def _epw(path: Path) -> RawSeries:
     tz = float(meta["TZ"])
     # pvlib stamps EPW's hour h at h-1 (the hour's start): the middle is 30 min later
     raw = _from_pvlib(path, "epw", data, meta, "dni", 0.5, tz, meta.get("city"), "EPW", missing_9999=True)
-    raw.convention = (f"EPW: local standard time ({_offset_text(tz)}, no DST), hour-ending values (hour 1 = "
-                      "00:00-01:00) -> UTC at the middle of each hour" + _SUNLIT)
+    raw.convention = _hour_ending("EPW", tz, "hour 1")
     return raw
 
 
