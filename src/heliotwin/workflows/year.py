@@ -20,7 +20,6 @@ and p95 of the per-heliostat relative error and the field total's, stored under 
 """
 from __future__ import annotations
 
-import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -126,20 +125,15 @@ def _instants(scenario, weather, settings: YearSettings) -> dict:
     if weather is not None:
         year = settings.year if settings.year is not None else int(weather.times.year[len(weather.times) // 2])
         wy = _weather.weather_for_year(weather, int(year))
-        convention = getattr(weather, "convention", None) or getattr(wy, "convention", None) or \
-            f"{weather.kind}: times as the reader converts them to UTC instants"
+        # a series built in code may state no convention (DniSeries.convention defaults to "")
+        convention = wy.convention or f"{weather.kind}: times as the reader converts them to UTC instants"
         info = {"file": os.path.abspath(weather.path), "kind": str(weather.kind), "annual": bool(wy.annual),
                 "step_hours": float(wy.step_hours), "coverage_fraction": float(wy.coverage.get("fraction_of_year",
                                                                                               float("nan"))),
                 "assumptions": "; ".join(wy.assumptions)}
-        offset = getattr(_weather, "site_offset_km", None)
-        if offset is not None:
-            try:
-                km = offset(weather, s)
-            except (TypeError, ValueError, AttributeError):
-                km = None
-            if km is not None and math.isfinite(float(km)):
-                info["site_offset_km"] = float(km)
+        km = _weather.site_offset_km(weather, s)  # None when the file names no site
+        if km is not None:
+            info["site_offset_km"] = float(km)
         return {"year": int(year), "times": wy.times, "dni": np.asarray(wy.dni, dtype=np.float64),
                 "hours": np.asarray(wy.hours, dtype=np.float64), "annual": bool(wy.annual), "weather": info,
                 "convention": str(convention), "coverage": wy.coverage, "assumptions": list(wy.assumptions)}
@@ -261,8 +255,9 @@ def plant_year(scenario, weather=None, settings: YearSettings | None = None) -> 
     suns = grid.suns(nodes).to(plant.field.kinematics.position.device)
     aims = _aims(scenario, plant, settings, atm)
     cal = _calibrated(scenario, plant)
-    surf_ids = [h for h in (scenario.learned.get("surfaces") or {}) if h in plant.field.ids]
-    surf_rows = torch.tensor([plant.field.ids.index(h) for h in surf_ids], dtype=torch.long)
+    index = {h: i for i, h in enumerate(plant.field.ids)}
+    surf_ids = [h for h in (scenario.learned.get("surfaces") or {}) if h in index]
+    surf_rows = torch.tensor([index[h] for h in surf_ids], dtype=torch.long)
     h_n = len(plant.field.ids)
     variants = 0 if cal is None else 1 + (int(settings.draws) if cal["covariance"] is not None else 0)
     work = nodes.numel() * (1 + (1 if variants else 0) + (1 if surf_ids else 0)) + int(settings.check_hours)
@@ -279,9 +274,8 @@ def plant_year(scenario, weather=None, settings: YearSettings | None = None) -> 
             if cal["covariance"] is not None and settings.draws:
                 kins += posterior_draws(cal["learned"], cal["names"], cal["covariance"], settings.draws, settings.seed)
             dev = plant.field.kinematics.position.device
-            ratio = A.tracking_tables(plant, suns, tables["aim"], cal["rows"].to(dev), cal["nominal"].to(device=dev),
+            track = A.tracking_tables(plant, suns, tables["aim"], cal["rows"].to(dev), cal["nominal"].to(device=dev),
                                       [k.to(device=dev) for k in kins], progress=tick).cpu()
-            track = ratio
         surf_eff = None
         if surf_ids:
             surf_eff = A.surface_tables(plant, suns, tables["aim"][0] if settings.aim != "optimised" else
