@@ -17,7 +17,8 @@ from heliotwin.calibrate.report import plot_plan
 from heliotwin.field.demo import demo_field_plant
 from heliotwin.plots import instant_line, plot_receiver_flux
 from heliotwin.sun import direction_from_paint_angles
-from heliotwin.timefmt import AZIMUTH_CONVENTION, UTC_PATTERN, paint_angles_deg, utc_text
+from heliotwin.sunangles import paint_angles_from_direction
+from heliotwin.timefmt import AZIMUTH_CONVENTION, UTC_PATTERN, utc_text
 from heliotwin.workflows.report_page import _alarm_table, _tomorrow_table
 
 ONE = re.compile(UTC_PATTERN)
@@ -43,7 +44,7 @@ def test_one_time_format_from_every_kind_of_input():
 def test_flux_map_titles_give_paints_azimuth_labelled_not_solarpilots():
     """A sun 30 deg east of south: PAINT's azimuth +30, SolarPILOT's (from north, clockwise) 150."""
     sun = _sun(30.0, 40.0)
-    assert paint_angles_deg(sun) == pytest.approx((30.0, 40.0))
+    assert [float(torch.rad2deg(a)) for a in paint_angles_from_direction(sun)] == pytest.approx([30.0, 40.0])
     line = instant_line({"time_utc": "2023-03-20T11:30:00+00:00", "sun_enu": sun})
     assert line == f"2023-03-20T11:30Z, sun azimuth 30.0° ({AZIMUTH_CONVENTION}), elevation 40.0°"
     west = instant_line({"sun_enu": _sun(-75.0, 20.0)})

@@ -15,7 +15,8 @@ from .field.targets import CylinderTarget
 from .io.images import load_measured_image
 from .io.report import save_figure
 from .raytrace.flux import target_extent
-from .timefmt import paint_angles_deg, sun_text, utc_or_label
+from .sunangles import paint_angles_from_direction
+from .timefmt import sun_text, utc_or_label
 
 __all__ = ["draw_flux", "draw_measured_image", "plot_flux", "plot_demo", "plot_field_demo", "plot_validation",
            "plot_receiver_flux", "receiver_extent", "plot_prediction", "loss_waterfall", "plot_loss_waterfall",
@@ -373,7 +374,7 @@ def instant_line(instant: dict | None) -> str:
         parts.append(utc_or_label(str(instant["time_utc"])))  # a label may name the sun angles instead
     sun = instant.get("sun_enu")
     if sun is not None:
-        parts.append(sun_text(*paint_angles_deg(sun)))
+        parts.append(sun_text(*(float(torch.rad2deg(a)) for a in paint_angles_from_direction(sun))))
     return ", ".join(parts)
 
 

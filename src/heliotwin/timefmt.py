@@ -6,7 +6,6 @@ headlines, one format each.
   0 = south, +90 = east), elevation 38.1°``. PAINT's is the convention of the command-line flags
   (``--sun-azimuth``) and of every JSON field ``sun_azimuth_deg``; SolarPILOT's (0 = north, clockwise) is never
   printed, so a number read off a figure can be typed back into a flag;
-* :func:`paint_angles_deg` -- PAINT's azimuth and elevation [deg] of a sun vector (ENU).
 
 Machine-readable outputs (JSON, CSV, HDF5) keep their own full-precision ISO times.
 """
@@ -15,8 +14,7 @@ from __future__ import annotations
 import datetime as _dt
 import math
 
-__all__ = ["UTC_PATTERN", "AZIMUTH_CONVENTION", "AZIMUTH_LABEL", "utc_text", "utc_or_label", "sun_text",
-           "paint_angles_deg"]
+__all__ = ["UTC_PATTERN", "AZIMUTH_CONVENTION", "AZIMUTH_LABEL", "utc_text", "utc_or_label", "sun_text"]
 
 #: The one time format of figures, the report and headlines (a regular expression).
 UTC_PATTERN = r"\d{4}-\d{2}-\d{2}T\d{2}:\d{2}Z"
@@ -55,13 +53,6 @@ def utc_or_label(label) -> str:
         return utc_text(label) or "?"
     except (ValueError, TypeError):
         return str(label)
-
-
-def paint_angles_deg(sun_enu) -> tuple[float, float]:
-    """PAINT's sun azimuth (0 = south, +90 = east, in (-180, 180]) and elevation [deg] of the unit vector
-    towards the sun ``sun_enu`` [3] (east, north, up; a sequence or a tensor)."""
-    e, n, u = (float(v) for v in (sun_enu.tolist() if hasattr(sun_enu, "tolist") else sun_enu))
-    return math.degrees(math.atan2(e, -n)), math.degrees(math.asin(max(-1.0, min(1.0, u))))
 
 
 def sun_text(azimuth_deg: float, elevation_deg: float) -> str:
