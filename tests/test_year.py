@@ -14,7 +14,7 @@ from heliotwin.calibrate.params import apply_deviations
 from heliotwin.io.scenario import Scenario, load_scenario, save_scenario
 from heliotwin.optimise.testbed import generated_plant
 from heliotwin.raytrace import annual as A
-from heliotwin.raytrace.field import FACTORS, equator_aim_points
+from heliotwin.raytrace.field import FACTORS, equator_aim_points, field_optics
 from heliotwin.workflows.year import YearSettings, plant_year
 
 NAMES = ["initial_angle_1", "initial_angle_2"]
@@ -49,7 +49,8 @@ def test_interpolation_against_the_direct_sum(tiny):
 
 def test_factors_product_is_efficiency_at_one_node(tiny):
     plant, atm, _, _ = tiny
-    suns = A.DEFAULT_GRID.suns(torch.tensor([10 * 24 + 12]))  # one sun: the DNI-weighted means are its values
+    z = A.DEFAULT_GRID.shape[1]
+    suns = A.DEFAULT_GRID.suns(torch.tensor([10 * z + z // 2]))  # one sun: the DNI-weighted means are its values
     aim = equator_aim_points(plant.targets["receiver"], plant.field.kinematics.position.double())
     t = A.heliostat_tables(plant, suns, aim, atmosphere=atm)
     prod = torch.ones_like(t["efficiency"])
@@ -58,14 +59,24 @@ def test_factors_product_is_efficiency_at_one_node(tiny):
     torch.testing.assert_close(prod, t["efficiency"], rtol=1e-6, atol=1e-9)
 
 
-def test_tracking_loss_zero_for_perfect_kinematics_and_grows_with_an_offset(tiny):
-    plant, atm, _, res = tiny
-    loss = np.asarray(res.scenario.learned["year"]["heliostats"]["tracking_loss_mwh"])
-    assert np.abs(loss).max() < 1e-9  # learned == nominal: the controller is perfect
-    suns = A.DEFAULT_GRID.suns(torch.tensor([9 * 24 + 12, 11 * 24 + 10]))
+def test_tracking_loss_is_the_posteriors_and_shrinks_with_it():
+    """The controller aims with the learned kinematics; the loss is the expected loss over the posterior, so a
+    tighter calibration loses less, and a heliostat that moves exactly as learned loses nothing."""
+    plant, atm = generated_plant("radial", 6, "cylinder")
+    losses = []
+    for sd in (3.0, 1.0, 0.3):
+        sc = Scenario(plant=plant, extras=atm.to_extras(), learned=learned_posterior(plant, sd_mrad=sd), path="")
+        y = plant_year(sc, settings=YearSettings(every="3h", draws=8)).scenario.learned["year"]["heliostats"]
+        losses.append(np.asarray(y["tracking_loss_mwh"]))
+    assert np.all(losses[0] > 0)
+    assert losses[0].sum() > losses[1].sum() > losses[2].sum() > 0
+    z = A.DEFAULT_GRID.shape[1]
+    suns = A.DEFAULT_GRID.suns(torch.tensor([9 * z + z // 2, 11 * z + z // 2 - 1]))
     aim = equator_aim_points(plant.targets["receiver"], plant.field.kinematics.position.double())
     kin = plant.field.kinematics.to(dtype=torch.float64)
     rows = torch.arange(len(plant.field.ids))
+    same = A.tracking_tables(plant, suns, aim.expand(2, -1, -1), rows, kin, [kin])
+    torch.testing.assert_close(same, torch.ones_like(same), rtol=0, atol=1e-9)
     out = []
     for mrad in (3.0, 10.0, 30.0):  # (1 mrad can gain: the tiny receiver is smaller than the image)
         d = torch.zeros(rows.numel(), 2, dtype=torch.float64)
@@ -73,6 +84,37 @@ def test_tracking_loss_zero_for_perfect_kinematics_and_grows_with_an_offset(tiny
         ratio = A.tracking_tables(plant, suns, aim.expand(2, -1, -1), rows, kin, [apply_deviations(kin, d, NAMES)])
         out.append(float((1 - ratio).mean()))
     assert 0 < out[0] < out[1] < out[2]
+
+
+def test_hourly_sums_are_the_interpolated_hours():
+    """hourly_sums equals an explicit loop over instants of (bilinear interpolation x exact cosine x DNI)."""
+    gen = torch.Generator().manual_seed(3)
+    grid = A.DEFAULT_GRID
+    az = (torch.rand(40, generator=gen, dtype=torch.float64) - 0.5) * 2 * np.pi
+    el = torch.rand(40, generator=gen, dtype=torch.float64) * 1.4 + 0.01
+    q = torch.rand(40, generator=gen, dtype=torch.float64) * 900
+    idx, w = A.bilinear_weights(grid, az, el)
+    nodes = A.needed_nodes(idx, w, q)
+    col = A.node_columns(nodes, idx, w)
+    table = torch.rand(3, nodes.numel(), generator=gen, dtype=torch.float64)
+    cos = torch.rand(3, 40, generator=gen, dtype=torch.float64)
+    months = torch.randint(0, 12, (40,), generator=gen)
+    want = torch.zeros(3, 12, dtype=torch.float64)
+    for t in range(40):
+        for k in range(4):
+            if w[t, k] > 0:
+                want[:, months[t]] += table[:, int((nodes == idx[t, k]).nonzero())] * w[t, k] * cos[:, t] * q[t]
+    torch.testing.assert_close(A.hourly_sums(table, cos, col, w, q, months, 12), want)
+    torch.testing.assert_close(A.hourly_sums(table, cos, col, w, q), want.sum(-1))
+
+
+def test_hourly_cosine_is_the_field_models():
+    plant, atm = generated_plant("radial", 5, "flat")
+    pos = plant.field.kinematics.position.double()
+    aim = equator_aim_points(plant.targets["receiver"], pos)
+    suns = A.DEFAULT_GRID.suns(torch.tensor([100, 120, 150]))
+    want = torch.stack([field_optics(plant, s, atmosphere=atm, aim=aim).cosine.double() for s in suns], -1)
+    torch.testing.assert_close(A.hourly_cosine(pos, aim, suns), want, rtol=1e-6, atol=1e-9)
 
 
 def test_intervals_ordered(tiny):

@@ -6,22 +6,29 @@ Tables
 The field model (:func:`heliotwin.raytrace.field.field_optics`) is evaluated once per *node* of a grid of sun
 positions (PAINT azimuth x elevation): per heliostat its efficiency and each factor, ``[H, S]`` over the S
 nodes the year's sun visits (the corners of the grid cells holding a daylight hour with DNI; the others are
-never needed). The value at an instant is the bilinear interpolation between the four corners of its cell
-(periodic in azimuth, clamped in elevation), and since the interpolation is linear in the table, the DNI-weighted
-sum over the year is one matrix product: per node the weight ``W_s = sum_t DNI_t dt_t w_ts`` (``w_ts``: the
-instant's bilinear weight of that node), and ``E_h = A_h sum_s eta_hs W_s`` exactly equals the sum of the
-interpolated hourly energies, without a loop over hours or heliostats. Monthly totals use the same with
-monthly weights ``W_ms``.
+never needed). An instant's value is the bilinear interpolation between the four corners of its cell (periodic
+in azimuth, clamped in elevation) of the efficiency *over the cosine* (shading x blocking x attenuation x
+intercept x reflectance), times the instant's exact cosine (:func:`hourly_cosine`: the mirror normal bisecting
+the sun and the aim, as the field model tracks): the cosine is the factor that varies most over the sky and
+costs nothing to take hour by hour, and taking it exactly let the grid be twice as coarse in azimuth for the
+same error (``benchmarks/year_grid_choice.py``). The year is the sum over instants (:func:`hourly_sums`), in
+chunks of heliostats, without a loop over hours.
 
 Tracking loss
 -------------
-The plant's controller aims with the **nominal** kinematics (``/learned/calibration/nominal``: the camera-target
-records show it -- motor steps from the controller, the focal spot off the target by the pointing error), so at
-each sun a heliostat stands where the nominal inverse kinematics put its motors, and its mirror, moving as the
-twin's learned kinematics say, reflects the sun's centre along a direction off its aim
-(:func:`heliotwin.evaluation.pointing_errors` with the learned kinematics as the truth and the nominal as the
-controller's). A perfectly calibrated heliostat at its place hits its aim point. The tracking loss is
-``E(perfect) - E(learned)``: the energy a perfect calibration of this heliostat's controller would gain.
+The energy a heliostat loses because it does not point where the twin aims it. The plant's controller aims
+with the twin's **learned** kinematics (what ``calibrate`` and ``update`` write: the motor steps of an aim come
+from the learned inverse kinematics), and the heliostat moves as its true kinematics say, which the twin knows
+only through the calibration's Laplace posterior (``/learned/calibration/posterior/covariance``). Each of
+``draws`` posterior draws (a seeded ``torch.Generator``) is a kinematics the heliostat may truly have: at each
+sun its motors stand where the learned inverse kinematics put them, and its mirror, moving as the draw says,
+reflects the sun's centre along a direction off the aim (:func:`tracking_tables`). A perfectly calibrated
+heliostat at its place hits its aim point. The tracking loss of a draw is ``E(perfect) - E(draw)``; the
+reported value is its mean over draws (the expected loss: what the remaining uncertainty of this heliostat's
+calibration costs a year) and the interval the 5 and 95 % quantiles over draws. A heliostat the calibration did
+not reach (nominal kinematics only), or a calibration without a posterior (the network methods), has an unknown
+tracking loss: NaN, counted in the report. The same function with the simulator's true kinematics as the
+"draw" gives the truth's figure (``benchmarks/bench_year.py``).
 
 The mispointed heliostat's power is ``P_perfect x (cos / cos_perfect) x (I(d) / I(0))``: the cosine of the
 actual mirror normal, and the intercept of the heliostat's own image shifted on the receiver by ``d``, the
@@ -33,12 +40,6 @@ error of milliradians turns the mirror by half that: the occlusion does not chan
 that misses the receiver loses all the heliostat's light. This is evaluated on the same table nodes (per
 heliostat and node), so the loss is a table too.
 
-The interval: ``draws`` draws of the calibration's Laplace posterior (``/learned/calibration/posterior/
-covariance``, a seeded ``torch.Generator``) applied to the learned kinematics, each its own table; the 5 and
-95 % quantiles over draws of each heliostat's annual loss. A heliostat the calibration did not reach (nominal
-kinematics only) has an unknown tracking loss: NaN (its twin knows nothing of its errors), counted in the
-report. A calibration without a posterior (the network methods) gives the point value twice.
-
 Surface loss
 ------------
 ``E(ideal facets) - E(learned mirror)`` for each heliostat with a learned surface (``/learned/surfaces``): the
@@ -46,8 +47,8 @@ field model with that heliostat's ideal facets (flat or canted, :func:`heliotwin
 against the learned control points the plant holds, traced for those heliostats only (every heliostat still
 shades and blocks them). The surface state carries no uncertainty, so the interval is the point value twice.
 
-Shapes: ``[H]`` per heliostat, ``[H, S]`` tables over S nodes, ``[T]`` instants; angles in radians inside, degrees
-in ``*_deg`` names; energies in MWh.
+Shapes: ``(h,)`` per heliostat, ``[h, S]`` tables over S nodes, ``(T,)`` instants; angles in radians inside,
+degrees in ``*_deg`` names; energies in MWh, sums of DNI x hours in [Wh/m^2].
 """
 from __future__ import annotations
 
@@ -63,6 +64,7 @@ from ..field import facets as facet_ops
 from ..field import kinematics as K
 from ..field.plant import Kinematics, Plant
 from ..field.targets import CylinderTarget
+from ..geometry import safe_normalize
 from ..sun import direction_from_paint_angles
 from .field import (
     FACTORS,
@@ -75,8 +77,8 @@ from .field import (
 )
 from .flux import target_extent
 
-__all__ = ["TableGrid", "DEFAULT_GRID", "bilinear_weights", "node_weights", "heliostat_tables", "tracking_tables",
-           "surface_tables"]
+__all__ = ["TableGrid", "DEFAULT_GRID", "bilinear_weights", "node_weights", "node_columns", "interpolate",
+           "hourly_cosine", "hourly_sums", "heliostat_tables", "tracking_tables", "surface_tables"]
 
 
 @dataclass(frozen=True)
@@ -107,16 +109,16 @@ class TableGrid:
         return direction_from_paint_angles(torch.deg2rad(az), torch.deg2rad(el)).reshape(-1, 3)
 
 
-#: The field model of the tables: a 4 x 8 map (the intercept does not depend on the map) drawn by footprint
-#: classes (``grouped``): ``auto`` takes every sample's own window there, up to 129 x 129 pixels each around a
-#: 4 x 8 map, which was 85 % of a 12-heliostat year's time (cProfile: gaussian.py chunk, 78 of 91 s).
-TABLE_SETTINGS = FieldSettings(resolution=(4, 8), flux_mode="grouped")
+#: The field model of the tables: the factors without a receiver map (``flux_mode="none"``: the intercept comes
+#: from the footprints, not the map; drawing a map was half of a node's time at 2,000 heliostats).
+TABLE_SETTINGS = FieldSettings(resolution=(4, 8), flux_mode="none")
 
-#: The grid chosen on generated fields (benchmarks/year_grid_choice.py, 60 heliostats, radial field, every clear-sky
-#: daylight hour of 2023 against the direct sum): 15 deg x these 17 elevations gave per-heliostat median 0.17-0.23 %,
-#: p95 0.41-0.43 %, field 0.20-0.23 % (cylinder, flat, tilted flat); SolarPILOT-like 15 deg x 5..89 deg (11 rows)
-#: missed the field limit (0.35-0.39 %); 10 deg took 42 % more nodes for 0.01-0.04 % less error.
-DEFAULT_GRID = TableGrid()
+#: The grid chosen on generated fields (benchmarks/year_grid_choice.py, 60 heliostats, radial field, every
+#: clear-sky daylight hour of 2023 against the direct sum, the cosine taken hour by hour): 30 deg x these 17
+#: elevations gave per-heliostat median 0.25-0.33 %, p95 0.91-1.08 %, field 0.11-0.17 % (cylinder, flat, tilted
+#: flat; limits 1 %, 3 %, 0.3 %) with 125 nodes; 15 deg took 203 nodes for 0.10-0.17 % / 0.36-0.37 % / 0.14-0.16
+#: %; 11 rows from 1 deg missed the field limit at any azimuth step (0.53-0.60 %): the low sun needs its rows.
+DEFAULT_GRID = TableGrid(azimuth_step_deg=30.0)
 
 
 def bilinear_weights(grid: TableGrid, azimuth: torch.Tensor, elevation: torch.Tensor) -> tuple[torch.Tensor,
@@ -165,6 +167,48 @@ def node_weights(idx: torch.Tensor, w: torch.Tensor, energy: torch.Tensor, nodes
     out = torch.zeros(n_groups * nodes.numel(), dtype=torch.float64).index_add_(0, flat, val[keep])
     out = out.reshape(n_groups, nodes.numel())
     return out[0] if groups is None else out
+
+
+def node_columns(nodes: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """Columns [T, 4] of the tables (positions in ``nodes`` [S]) of each instant's interpolation nodes ``idx``
+    [T, 4] (:func:`bilinear_weights`); a node without weight that the tables do not hold gets column 0 (its
+    weight ``w`` [T, 4] is 0). Raises ValueError when an instant needs a node the tables do not hold."""
+    pos = torch.full((max(int(idx.max()) if idx.numel() else 0, int(nodes.max()) if nodes.numel() else 0) + 1,),
+                     -1, dtype=torch.long)
+    pos[nodes] = torch.arange(nodes.numel())
+    col = pos[idx]
+    if bool((col[w > 0] < 0).any()):
+        raise ValueError("an instant interpolates from a node the tables do not hold")
+    return col.clamp_min(0)
+
+
+def interpolate(table: torch.Tensor, col: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """Bilinear interpolation of ``table`` [..., S] at T instants: columns ``col`` and weights ``w`` [T, 4]
+    (:func:`node_columns`, :func:`bilinear_weights`) -> [..., T]."""
+    return (table[..., col] * w.to(table.dtype)).sum(-1)
+
+
+def hourly_cosine(position: torch.Tensor, aim: torch.Tensor, suns: torch.Tensor) -> torch.Tensor:
+    """Cosine [h, T] [-] of each heliostat at each instant: the sun ``suns`` [T, 3] (unit, ENU) on the mirror
+    normal that bisects the sun and the aim (:func:`heliotwin.raytrace.field.tracking_normals`, broadcast over
+    instants); ``position`` [h, 3] and ``aim`` [h, 3] (one aim a year) or [h, T, 3] (each instant's) ENU [m]."""
+    s = suns.to(position).unsqueeze(0)  # [1, T, 3]
+    to_aim = safe_normalize(aim.to(position) - position.unsqueeze(1)) if aim.dim() == 3 else \
+        safe_normalize(aim.to(position) - position).unsqueeze(1)
+    return (safe_normalize(s + to_aim) * s).sum(-1)
+
+
+def hourly_sums(over_cosine: torch.Tensor, cosine: torch.Tensor, col: torch.Tensor, w: torch.Tensor,
+                energy: torch.Tensor, groups: torch.Tensor | None = None, n_groups: int = 1) -> torch.Tensor:
+    """The year of tables of the efficiency over the cosine ``over_cosine`` [..., h, S]: per heliostat
+    ``sum_t q_t cos_ht x interp_t`` [Wh/m^2] -> [..., h]; with ``groups`` (T,) (e.g. the month 0..11) the sums
+    per group [..., h, n_groups]. ``cosine`` [h, T] (:func:`hourly_cosine`), ``col``, ``w`` [T, 4],
+    ``energy`` (T,) DNI x hours [Wh/m^2]."""
+    e = interpolate(over_cosine, col, w) * (cosine * energy.to(cosine)).to(over_cosine)  # [..., h, T]
+    if groups is None:
+        return e.sum(-1)
+    out = e.new_zeros(*e.shape[:-1], int(n_groups))
+    return out.index_add_(e.dim() - 1, groups.to(e.device).long(), e)
 
 
 def needed_nodes(idx: torch.Tensor, w: torch.Tensor, energy: torch.Tensor) -> torch.Tensor:
@@ -268,7 +312,7 @@ def _shifted_intercept(images, shift: torch.Tensor, target, resolution) -> torch
 _MISS_PX = 1.0e4
 
 
-def tracking_tables(plant: Plant, suns: torch.Tensor, aim: torch.Tensor, rows: torch.Tensor, nominal: Kinematics,
+def tracking_tables(plant: Plant, suns: torch.Tensor, aim: torch.Tensor, rows: torch.Tensor, controller: Kinematics,
                     variants: list[Kinematics], *, resolution=(4, 8), samples: int = 4, progress=None) -> torch.Tensor:
     """Power of mispointed heliostats relative to a perfectly aimed one, per node: ``[V, h, S]`` in [0, ~1].
 
@@ -280,10 +324,10 @@ def tracking_tables(plant: Plant, suns: torch.Tensor, aim: torch.Tensor, rows: t
         Each node's aim points ENU [m] (all heliostats).
     rows : torch.Tensor, shape (h,)
         The heliostats with learned kinematics (indices into the plant).
-    nominal : Kinematics
-        The controller's kinematics of those h heliostats.
+    controller : Kinematics
+        The kinematics the controller aims those h heliostats with (the twin's learned ones).
     variants : list of Kinematics
-        V kinematics of those h heliostats as they move (the learned point value, posterior draws).
+        V kinematics of those h heliostats as they may truly move (posterior draws; the simulator's truth).
     resolution, samples
         The pixel grid the offsets are measured on and the mirror samples per facet and direction of the
         image (the ratio ``I(d) / I(0)`` needs few).
@@ -302,9 +346,9 @@ def tracking_tables(plant: Plant, suns: torch.Tensor, aim: torch.Tensor, rows: t
     a = aim[:, rows].to(torch.float64)  # [S, h, 3]
     with torch.no_grad():
         sun_sh = suns.to(torch.float64).unsqueeze(1).expand(s_n, h, 3)
-        # the controller's motor steps (nominal inverse kinematics), once for every variant: the same steps as
+        # the controller's motor steps (its inverse kinematics), once for every variant: the same steps as
         # heliotwin.evaluation.pointing_errors takes, the variants only move differently on them
-        steps, reach = K.inverse(nominal, a, sun_sh, strict=False)
+        steps, reach = K.inverse(controller, a, sun_sh, strict=False)
         shifts, cos_ratio = [], []
         for kin in variants:  # the point value and a handful of draws, each batched over nodes and heliostats
             rot, conc = K.forward(kin, steps)

@@ -250,67 +250,72 @@ def plant_year(scenario, weather=None, settings: YearSettings | None = None) -> 
     grid = settings.grid
     idx, w = A.bilinear_weights(grid, az_u, el_u)
     nodes = A.needed_nodes(idx, w, q_u)
-    wn = A.node_weights(idx, w, q_u, nodes)  # [S] Wh/m^2
-    wm = A.node_weights(idx, w, q_u, nodes, months, 12)  # [12, S]
-    suns = grid.suns(nodes).to(plant.field.kinematics.position.device)
+    col = A.node_columns(nodes, idx, w)  # [T, 4]
+    dev = plant.field.kinematics.position.device
+    suns = grid.suns(nodes).to(dev)
     aims = _aims(scenario, plant, settings, atm)
     cal = _calibrated(scenario, plant)
     index = {h: i for i, h in enumerate(plant.field.ids)}
     surf_ids = [h for h in (scenario.learned.get("surfaces") or {}) if h in index]
     surf_rows = torch.tensor([index[h] for h in surf_ids], dtype=torch.long)
     h_n = len(plant.field.ids)
-    variants = 0 if cal is None else 1 + (int(settings.draws) if cal["covariance"] is not None else 0)
-    work = nodes.numel() * (1 + (1 if variants else 0) + (1 if surf_ids else 0)) + int(settings.check_hours)
+    draws = int(settings.draws) if cal is not None and cal["covariance"] is not None else 0
+    work = nodes.numel() * (1 + (1 if draws else 0) + (1 if surf_ids else 0)) + int(settings.check_hours)
     with Progress(work, "heliotwin year: tables over sun positions", unit="node", enabled=settings.progress,
                   every=5.0) as bar:
         tick = bar.update
         tables = A.heliostat_tables(plant, suns, aims, atmosphere=atm, progress=tick)
         eff = tables["efficiency"].cpu()
         area = tables["mirror_area"].cpu()
-        # tracking: the learned point value, then the posterior draws
+        # tracking: the posterior draws moving on the learned kinematics' motor steps
         track = None
-        if cal is not None:
-            kins = [cal["learned"]]
-            if cal["covariance"] is not None and settings.draws:
-                kins += posterior_draws(cal["learned"], cal["names"], cal["covariance"], settings.draws, settings.seed)
-            dev = plant.field.kinematics.position.device
-            track = A.tracking_tables(plant, suns, tables["aim"], cal["rows"].to(dev), cal["nominal"].to(device=dev),
+        if draws:
+            kins = posterior_draws(cal["learned"], cal["names"], cal["covariance"], draws, settings.seed)
+            track = A.tracking_tables(plant, suns, tables["aim"], cal["rows"].to(dev), cal["learned"].to(device=dev),
                                       [k.to(device=dev) for k in kins], progress=tick).cpu()
         surf_eff = None
         if surf_ids:
             surf_eff = A.surface_tables(plant, suns, tables["aim"][0] if settings.aim != "optimised" else
                                         (lambda k, _sun: tables["aim"][k]), surf_rows.to(suns.device),
                                         atmosphere=atm, progress=tick).cpu()
+        year = _Hours(plant, tables, col, w, q_u, direction_from_paint_angles(az_u, el_u).reshape(-1, 3), months)
         check = _check(plant, atm, tables, grid, nodes, az_u, el_u, q_u, settings, tick) \
             if settings.check_hours else None
-    # ---- sums (exactly the hourly bilinear interpolation, as one product per table)
-    energy = area * (eff @ wn) / 1e6  # [H] MWh
-    sum_q = float(wn.sum())
-    factors = {name: (tables[name].cpu() @ wn) / sum_q for name in FACTORS}
-    efficiency = (eff @ wn) / sum_q
-    monthly = (area.unsqueeze(-1) * (eff @ wm.T)).sum(0) / 1e6  # [12]
+    # ---- sums over the year's instants: the exact cosine of each hour times the interpolated rest
+    over_cos = eff / tables["cosine"].cpu().clamp_min(1e-12)  # [H, S]
+    all_rows = torch.arange(h_n)
+    by_month = year.sums(all_rows, over_cos, monthly=True)  # [H, 12] Wh/m^2
+    energy = area * by_month.sum(-1) / 1e6  # [H] MWh
+    monthly = (area.unsqueeze(-1) * by_month).sum(0) / 1e6  # [12]
+    sum_q = float(q_u.sum())
+    efficiency = energy * 1e6 / (area * sum_q).clamp_min(1e-30)
+    factors = {name: (A.interpolate(tables[name].cpu(), col, w) @ q_u.to(torch.float64)) / sum_q
+               for name in FACTORS if name != "cosine"}
+    factors["cosine"] = year.cosine_means(all_rows) / sum_q
+    factors = {name: factors[name] for name in FACTORS}
     nan = torch.full((h_n,), float("nan"), dtype=torch.float64)
     t_point, t_low, t_high = nan.clone(), nan.clone(), nan.clone()
     notes = []
     if track is not None:
         rows = cal["rows"]
-        loss = area[rows] * ((eff[rows].unsqueeze(0) * (1.0 - track)) @ wn) / 1e6  # [V, h]
-        t_point[rows] = loss[0]
-        if loss.shape[0] > 1:
-            q_lo, q_hi = torch.quantile(loss[1:], torch.tensor(LEVELS, dtype=torch.float64), dim=0)
-            t_low[rows], t_high[rows] = torch.minimum(q_lo, loss[0]), torch.maximum(q_hi, loss[0])
-        else:
-            t_low[rows], t_high[rows] = loss[0], loss[0]
-            notes.append("tracking-loss interval: the calibration has no posterior (or --draws 0): the point value "
-                         "twice")
+        lost = over_cos[rows].unsqueeze(0) * (1.0 - track)  # [V, h, S]
+        loss = area[rows] * year.sums(rows, lost) / 1e6  # [V, h] MWh
+        t_point[rows] = loss.mean(0)
+        q_lo, q_hi = torch.quantile(loss, torch.tensor(LEVELS, dtype=torch.float64), dim=0)
+        t_low[rows], t_high[rows] = q_lo, q_hi
+    elif cal is not None:
+        notes.append("tracking loss unknown (NaN): " + ("--draws 0" if cal["covariance"] is not None else
+                     f"the {cal['method'] or 'stored'} calibration has no posterior") + " (the loss is the "
+                     "expected loss over the posterior of the learned kinematics)")
     uncal = int(torch.isnan(t_point).sum())
-    if uncal:
+    if uncal and (cal is None or track is not None):
         notes.append(f"tracking loss unknown (NaN) for {uncal} heliostat(s) with nominal kinematics only (no "
                      "calibration: the twin knows nothing of their errors)")
     s_point = torch.zeros(h_n, dtype=torch.float64)
     learned_surface = torch.zeros(h_n, dtype=torch.bool)
     if surf_eff is not None:
-        s_point[surf_rows] = area[surf_rows] * ((surf_eff - eff[surf_rows]) @ wn) / 1e6
+        gain = (surf_eff - eff[surf_rows]) / tables["cosine"].cpu()[surf_rows].clamp_min(1e-12)
+        s_point[surf_rows] = area[surf_rows] * year.sums(surf_rows, gain) / 1e6
         learned_surface[surf_rows] = True
         notes.append("surface-loss interval: the learned surfaces carry no uncertainty: the point value twice")
     e_mirror = float(area.sum()) * sum_q / 1e6
@@ -322,9 +327,50 @@ def plant_year(scenario, weather=None, settings: YearSettings | None = None) -> 
                             draws=int(settings.draws), seed=int(settings.seed), nodes=int(nodes.numel()))
     out = next_scenario(scenario, scenario.plant, learned=learned, step=step)
     report = _report(scenario, inst, state, grid, nodes, below, notes, uncal, surf_ids, time.perf_counter() - t0)
-    tables_out = {"nodes": nodes, "efficiency": eff, "tracking_ratio": track, "surface_efficiency": surf_eff,
-                  "node_weights": wn, "monthly_node_weights": wm, "suns": suns.cpu()}
+    tables_out = {"nodes": nodes, "efficiency": eff, "cosine": tables["cosine"].cpu(), "tracking_ratio": track,
+                  "surface_efficiency": surf_eff, "aim": tables["aim"].cpu(), "suns": suns.cpu(), "hours": year}
     return YearResult(out, report, csv_rows(plant.field.ids, state), tables_out)
+
+
+class _Hours:
+    """The year's daylight instants for the sums (:func:`heliotwin.raytrace.annual.hourly_sums`), in chunks of
+    heliostats: columns ``col`` and weights ``w`` [T, 4], energies ``q`` (T,) [Wh/m^2], suns [T, 3], months (T,)
+    0..11; each instant's aim is the tables' (one a year, or with optimised aiming the node of its largest
+    weight)."""
+
+    def __init__(self, plant, tables, col, w, q, suns, months):
+        self.pos = plant.field.kinematics.position.detach().cpu().to(torch.float64)
+        aim = tables["aim"].detach().cpu().to(torch.float64)  # [S, H, 3]
+        self.fixed = aim[0] if bool((aim == aim[:1]).all()) else None
+        self.aim, self.node = aim, col.gather(1, w.argmax(1, keepdim=True)).squeeze(1)  # (T,)
+        self.col, self.w, self.q, self.suns, self.months = col, w, q.to(torch.float64), suns.to(torch.float64), months
+
+    def cosine(self, rows: torch.Tensor) -> torch.Tensor:
+        """[h, T] exact cosine of heliostats ``rows`` at every instant."""
+        aim = self.fixed[rows] if self.fixed is not None else self.aim[self.node][:, rows].transpose(0, 1)
+        return A.hourly_cosine(self.pos[rows], aim, self.suns)
+
+    def _chunks(self, rows: torch.Tensor, per_row: int):
+        step = max(1, HOURLY_BUDGET // max(1, per_row * self.q.numel()))
+        for k in range(0, rows.numel(), step):
+            yield slice(k, k + step), rows[k:k + step]
+
+    def sums(self, rows: torch.Tensor, over_cos: torch.Tensor, monthly: bool = False) -> torch.Tensor:
+        """:func:`~heliotwin.raytrace.annual.hourly_sums` of tables ``over_cos`` [..., h, S] (rows ``rows``) ->
+        [..., h] or [..., h, 12] [Wh/m^2]."""
+        lead = int(np.prod(over_cos.shape[:-2])) if over_cos.dim() > 2 else 1
+        parts = [A.hourly_sums(over_cos[..., sl, :], self.cosine(r), self.col, self.w, self.q,
+                               self.months if monthly else None, 12) for sl, r in self._chunks(rows, lead)]
+        return torch.cat(parts, dim=over_cos.dim() - 2) if parts else over_cos.new_zeros(
+            *over_cos.shape[:-1], *((12,) if monthly else ()))
+
+    def cosine_means(self, rows: torch.Tensor) -> torch.Tensor:
+        """(h,) ``sum_t q_t cos_ht`` [Wh/m^2]."""
+        return torch.cat([self.cosine(r) @ self.q for _, r in self._chunks(rows, 1)])
+
+
+#: Elements of one chunk's [..., h, T] hourly tensors (float64): a memory bound (~130 MB), not a tuning knob.
+HOURLY_BUDGET = 1 << 24
 
 
 def _check(plant, atm, tables, grid, nodes, az, el, q, settings: YearSettings, tick) -> dict:
@@ -334,17 +380,19 @@ def _check(plant, atm, tables, grid, nodes, az, el, q, settings: YearSettings, t
     gen = torch.Generator().manual_seed(int(settings.seed) + 1)
     pick = have[torch.randperm(have.numel(), generator=gen)[:n]].sort().values
     idx, w = A.bilinear_weights(grid, az[pick], el[pick])
-    pos = torch.full((grid.shape[0] * grid.shape[1],), -1, dtype=torch.long)
-    pos[nodes] = torch.arange(nodes.numel())
+    col = A.node_columns(nodes, idx, w)
     eff = tables["efficiency"].cpu()
-    interp = (eff[:, pos[idx]] * w.unsqueeze(0)).sum(-1)  # [H, n]
-    suns = direction_from_paint_angles(az[pick], el[pick]).reshape(-1, 3)
+    hours = _Hours(plant, tables, col, w, q[pick], direction_from_paint_angles(az[pick], el[pick]).reshape(-1, 3),
+                   torch.zeros(n, dtype=torch.long))
+    all_rows = torch.arange(eff.shape[0])
+    interp = A.interpolate(eff / tables["cosine"].cpu().clamp_min(1e-12), col, w) * hours.cosine(all_rows)  # [H, n]
+    suns = hours.suns
     settings_f = A.TABLE_SETTINGS
     direct = []
     fixed = tables["aim"][0] if settings.aim != "optimised" else None
     with torch.no_grad(), reuse_mirror_samples():
         for k in range(n):
-            aim = fixed if fixed is not None else tables["aim"][int(pos[idx[k, int(w[k].argmax())]])]
+            aim = fixed if fixed is not None else tables["aim"][int(col[k, int(w[k].argmax())])]
             r = field_optics(plant, suns[k].to(plant.field.kinematics.position.device), atmosphere=atm, aim=aim,
                              settings=settings_f)
             direct.append(r.efficiency.detach().cpu().to(torch.float64))
