@@ -158,3 +158,16 @@ def test_cli_outputs_stored_and_never_over_the_input(tmp_path, capsys):
                            str(tmp_path / "z.json"))
     assert code == 2 and "--in-place" in err
     assert src.read_bytes() == before and not (tmp_path / "z.json").exists()
+
+
+def test_tables_dealt_over_processes_are_the_one_process_tables(tiny):
+    """Two worker processes (nodes dealt alternately, gathered on rank 0) give the one-process year."""
+    _, _, sc, res = tiny
+    two = plant_year(sc, settings=YearSettings(every="3h", draws=4, nproc=2))
+    for name in ("efficiency", "cosine", "tracking_ratio", "aim"):
+        torch.testing.assert_close(two.tables[name], res.tables[name], rtol=1e-12, atol=1e-12)
+    one = res.scenario.learned["year"]["heliostats"]
+    got = two.scenario.learned["year"]["heliostats"]
+    for name in ("energy_mwh", "tracking_loss_mwh", "efficiency"):
+        np.testing.assert_allclose(got[name], one[name], rtol=1e-12)
+    assert two.report["tables_processes"] == 2 and res.report["tables_processes"] == 1

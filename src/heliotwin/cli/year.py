@@ -25,8 +25,8 @@ def register(subparsers) -> None:
         description="For every heliostat: annual energy on the receiver [MWh], DNI-weighted efficiency and "
                     "factors (cosine, shading, blocking, attenuation, intercept, reflectance), the energy lost to "
                     "its own tracking error (the twin's learned kinematics against a perfectly calibrated "
-                    "heliostat, the controller aiming with the nominal kinematics; interval from the calibration's "
-                    "posterior) and to its own mirror (learned surface against ideal facets). Per-heliostat tables "
+                    "heliostat, the controller aiming with the learned kinematics; the expected loss and its interval "
+                    "over the calibration's posterior) and to its own mirror (learned surface against ideal facets). Per-heliostat tables "
                     "over sun positions, interpolated bilinearly over the weather's daylight hours.")
     p.add_argument("--scenario", required=True, help="plant file (.h5)")
     p.add_argument("--weather", metavar="FILE", help="DNI time series (SAM/TMY weather file, PAINT's "
@@ -48,7 +48,10 @@ def register(subparsers) -> None:
                    help="also evaluate the field model directly at N drawn daylight hours and report the "
                         "interpolation's per-heliostat error (median, p95) and the field total's")
     p.add_argument("--table-azimuth-step", type=_AZIMUTH_STEP, default=None,
-                   help="azimuth step [deg] of the tables (default: the grid chosen on generated fields, 15)")
+                   help="azimuth step [deg] of the tables (default: the grid chosen on generated fields, 30)")
+    p.add_argument("--nproc", type=int_range(1, 256, "a process count"), default=None,
+                   help="worker processes the tables' sun positions are dealt over (default: the cores this "
+                        "command may use, when the plant is large enough to pay for starting them)")
     p.add_argument("-o", "--output", help="plant file to write with the year stored (/learned/year)")
     p.add_argument("--in-place", action="store_true", help="allow -o to be --scenario (replaced atomically under "
                    "the plant's lock)")
@@ -108,7 +111,7 @@ def _settings(args):
     grid = DEFAULT_GRID if args.table_azimuth_step is None else \
         dataclasses.replace(DEFAULT_GRID, azimuth_step_deg=float(args.table_azimuth_step))
     return YearSettings(year=args.year, aim=args.aim, every=args.every, grid=grid, draws=args.draws,
-                        seed=args.seed, check_hours=args.check_hours, peak_limit_w_m2=args.peak_limit,
+                        seed=args.seed, check_hours=args.check_hours, peak_limit_w_m2=args.peak_limit, nproc=args.nproc,
                         device=getattr(args, "device", None), progress=not args.quiet)
 
 

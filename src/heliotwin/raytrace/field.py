@@ -328,12 +328,36 @@ def _reused_blocks(points, normals, facets: int, per_direction: int):
 
 
 def _pool(x: torch.Tensor, weight: torch.Tensor, facets: int, m: int, k: int) -> torch.Tensor:
-    """Weighted mean of fine-grid values [H, F*(m k)^2] over each k x k block -> [H, F*m^2]."""
-    h = x.shape[0]
-    shape = (h, facets, m, k, m, k)
-    num = (x * weight).reshape(shape).sum((3, 5))
-    den = weight.reshape(shape).sum((3, 5))
+    """Weighted mean of fine-grid values [H, F*(m k)^2] over each k x k block -> [H, F*m^2].
+
+    As two average pools (the 1/k^2 cancels): 5x faster than summing a [H, F, m, k, m, k] view over its
+    strided axes (77 -> 14 ms on 1,773 heliostats' occluded mirrors, one node of a 2,000-heliostat year)."""
+    h, side = x.shape[0], m * k
+    num = torch.nn.functional.avg_pool2d((x * weight).reshape(h * facets, 1, side, side), k)
+    den = torch.nn.functional.avg_pool2d(weight.reshape(h * facets, 1, side, side), k)
     return (num / den.clamp_min(1e-30)).reshape(h, -1)
+
+
+def _blocking_candidates(plant: Plant, occ: OccluderSet, aim: torch.Tensor, rows: torch.Tensor):
+    """:func:`~heliotwin.raytrace.occlusion.occluder_candidates` along each heliostat's line to its aim point,
+    reused within :func:`reuse_mirror_samples` while the aim points and the field are the same tensors (the
+    year's tables: one aim for every sun, so the blocking corridors are the same at every node; ~45 ms of a
+    2,000-heliostat node). Only the latest is kept, so an optimiser moving its aim points holds one."""
+    pos = occ.center
+    direction = safe_normalize(aim[rows] - pos[rows])
+    cache = _REUSED_SAMPLES.get()
+    if cache is None:
+        return occluder_candidates(occ, direction, queries=rows)
+    fl = plant.field
+    sources = (aim, fl.kinematics.position, fl.width, fl.height)
+    key = (tuple((id(t), t._version) for t in sources), str(pos.dtype),
+           hash(rows.detach().cpu().numpy().tobytes()))
+    hit = cache.get("blocking-candidates")
+    if hit is not None and hit[0] == key and all(r() is t for r, t in zip(hit[1], sources)):
+        return hit[2]
+    out = occluder_candidates(occ, direction, queries=rows)
+    cache["blocking-candidates"] = (key, [weakref.ref(t) for t in sources], out)
+    return out
 
 
 def _occlusion(plant: Plant, normal, aim, sun, settings: FieldSettings, rows: torch.Tensor):
@@ -361,7 +385,7 @@ def _occlusion(plant: Plant, normal, aim, sun, settings: FieldSettings, rows: to
     if settings.occlusion_model == "solarpilot":
         return _occlusion_solarpilot(plant, occ, normal, aim, s, lit, tower, nf, m, rows)
     idx, valid = occluder_candidates(occ, s, queries=rows)
-    idx_b, valid_b = occluder_candidates(occ, safe_normalize(aim[rows] - pos[rows]), queries=rows)
+    idx_b, valid_b = _blocking_candidates(plant, occ, aim, rows)
     if settings.softness is None:
         blocks = _reused_blocks(pts, nrm, nf, m * k)
         free_sun = unoccluded_tracked(blocks, rot, occ, idx, valid, s, reflected=False, owners=rows)

@@ -27,11 +27,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 import torch
+import torch.distributed as dist
 
 from ..atmosphere import Atmosphere
 from ..calibrate.twinstate import nominal_kinematics
 from ..calibrate.uncertainty import posterior_draws
 from ..devices import resolve_device, to_device
+from ..distributed import run_spawned
 from ..errors import HeliotwinError, InputFileError
 from ..io import weather as _weather
 from ..io.scenario import next_scenario, provenance_entry
@@ -76,6 +78,9 @@ class YearSettings:
         ``aim="optimised"``: the limit (default: the plant's stored one).
     device : str or None
         Where the field model runs (``"auto"``: CUDA when present).
+    nproc : int or None
+        Worker processes the table nodes are dealt over (None: the threads this command may use, when the
+        work pays for their start; :func:`_processes`).
     progress : bool
         Progress bars / lines (:mod:`heliotwin.progress`).
     """
@@ -89,6 +94,7 @@ class YearSettings:
     check_hours: int = 0
     peak_limit_w_m2: float | None = None
     device: str | None = None
+    nproc: int | None = None
     progress: bool = False
 
     def check(self) -> None:
@@ -100,6 +106,8 @@ class YearSettings:
             raise HeliotwinError(f"--aim: expected one of {', '.join(AIMS)}, got {self.aim!r}")
         if not 0 <= int(self.draws) <= 1000:
             raise HeliotwinError(f"--draws: expected 0..1000, got {self.draws}")
+        if self.nproc is not None and not 1 <= int(self.nproc) <= 256:
+            raise HeliotwinError(f"--nproc: expected 1..256, got {self.nproc}")
         if not 0 <= int(self.check_hours) <= 100_000:
             raise HeliotwinError(f"--check-hours: expected 0..100000, got {self.check_hours}")
         step = pd.Timedelta(self.every)
@@ -260,24 +268,31 @@ def plant_year(scenario, weather=None, settings: YearSettings | None = None) -> 
     surf_rows = torch.tensor([index[h] for h in surf_ids], dtype=torch.long)
     h_n = len(plant.field.ids)
     draws = int(settings.draws) if cal is not None and cal["covariance"] is not None else 0
-    work = nodes.numel() * (1 + (1 if draws else 0) + (1 if surf_ids else 0)) + int(settings.check_hours)
-    with Progress(work, "heliotwin year: tables over sun positions", unit="node", enabled=settings.progress,
+    track_job = None
+    if draws:
+        kins = posterior_draws(cal["learned"], cal["names"], cal["covariance"], draws, settings.seed)
+        track_job = (cal["rows"].to(dev), cal["learned"].to(device=dev), [k.to(device=dev) for k in kins])
+    job = {"plant": plant, "suns": suns, "aims": aims, "atmosphere": atm, "tracking": track_job,
+           "surface_rows": surf_rows.to(dev) if surf_ids else None}
+    nproc = _processes(settings, plant, nodes.numel(), callable(aims))
+    per_node = 1 + (1 if draws else 0) + (1 if surf_ids else 0)
+    label = "heliotwin year: tables over sun positions"
+    if nproc > 1:  # the nodes dealt over worker processes; rank 0 reports the progress of its share
+        tables = run_spawned(_tables_rank, {**job, "progress": settings.progress, "per_node": per_node,
+                                            "label": f"{label} ({nproc} processes)"}, nproc)
+    serial = nodes.numel() * per_node if nproc == 1 else 0
+    with Progress(serial + int(settings.check_hours), label if serial else "heliotwin year: direct check",
+                  unit="node" if serial else "hour", enabled=settings.progress and serial + settings.check_hours > 0,
                   every=5.0) as bar:
         tick = bar.update
-        tables = A.heliostat_tables(plant, suns, aims, atmosphere=atm, progress=tick)
+        if nproc == 1:
+            tables = _node_tables(job, torch.arange(nodes.numel()), tick)
         eff = tables["efficiency"].cpu()
         area = tables["mirror_area"].cpu()
-        # tracking: the posterior draws moving on the learned kinematics' motor steps
-        track = None
-        if draws:
-            kins = posterior_draws(cal["learned"], cal["names"], cal["covariance"], draws, settings.seed)
-            track = A.tracking_tables(plant, suns, tables["aim"], cal["rows"].to(dev), cal["learned"].to(device=dev),
-                                      [k.to(device=dev) for k in kins], progress=tick).cpu()
-        surf_eff = None
-        if surf_ids:
-            surf_eff = A.surface_tables(plant, suns, tables["aim"][0] if settings.aim != "optimised" else
-                                        (lambda k, _sun: tables["aim"][k]), surf_rows.to(suns.device),
-                                        atmosphere=atm, progress=tick).cpu()
+        track = tables.get("tracking_ratio")
+        track = None if track is None else track.cpu()
+        surf_eff = tables.get("surface_efficiency")
+        surf_eff = None if surf_eff is None else surf_eff.cpu()
         year = _Hours(plant, tables, col, w, q_u, direction_from_paint_angles(az_u, el_u).reshape(-1, 3), months)
         check = _check(plant, atm, tables, grid, nodes, az_u, el_u, q_u, settings, tick) \
             if settings.check_hours else None
@@ -327,9 +342,74 @@ def plant_year(scenario, weather=None, settings: YearSettings | None = None) -> 
                             draws=int(settings.draws), seed=int(settings.seed), nodes=int(nodes.numel()))
     out = next_scenario(scenario, scenario.plant, learned=learned, step=step)
     report = _report(scenario, inst, state, grid, nodes, below, notes, uncal, surf_ids, time.perf_counter() - t0)
+    report["tables_processes"] = nproc
     tables_out = {"nodes": nodes, "efficiency": eff, "cosine": tables["cosine"].cpu(), "tracking_ratio": track,
                   "surface_efficiency": surf_eff, "aim": tables["aim"].cpu(), "suns": suns.cpu(), "hours": year}
     return YearResult(out, report, csv_rows(plant.field.ids, state), tables_out)
+
+
+def _processes(settings: YearSettings, plant, nodes: int, chained: bool) -> int:
+    """Worker processes for the tables: ``settings.nproc``, or by default the threads this command may use
+    (:func:`heliotwin.cli.common.default_threads`: the cores others leave idle) when the work is large enough
+    to pay for starting them (:data:`SPAWN_WORK`). One for optimised aiming (each node warm-starts from the
+    previous one) and off the CPU."""
+    if chained or plant.field.kinematics.position.device.type != "cpu" or nodes < 2:
+        return 1
+    if settings.nproc is not None:
+        return max(1, min(int(settings.nproc), nodes))
+    if len(plant.field.ids) * nodes < SPAWN_WORK:
+        return 1
+    return max(1, min(torch.get_num_threads(), nodes))
+
+
+#: Heliostat-nodes below which the tables stay in this process: a worker's start (importing torch and the
+#: package, loading the job) costs 2-4 s, about 40,000 heliostat-nodes of the field model on one core.
+SPAWN_WORK = 100_000
+
+
+def _node_tables(job: dict, nodes: torch.Tensor, progress) -> dict:
+    """The tables of nodes ``nodes`` (indices into ``job["suns"]``): the field model's efficiency and factors
+    [H, s], the mirror area [H], the aim points [s, H, 3], and where asked the tracking ratio [V, h, s]
+    (:func:`~heliotwin.raytrace.annual.tracking_tables`) and the ideal-mirror efficiency [h, s]."""
+    plant, suns, aims = job["plant"], job["suns"][nodes], job["aims"]
+    tables = A.heliostat_tables(plant, suns, aims, atmosphere=job["atmosphere"], progress=progress)
+    if job["tracking"] is not None:
+        rows, controller, variants = job["tracking"]
+        tables["tracking_ratio"] = A.tracking_tables(plant, suns, tables["aim"], rows, controller, variants,
+                                                     progress=progress)
+    if job["surface_rows"] is not None:
+        per_node = (lambda k, _sun: tables["aim"][k]) if callable(aims) else aims
+        tables["surface_efficiency"] = A.surface_tables(plant, suns, per_node, job["surface_rows"],
+                                                        atmosphere=job["atmosphere"], progress=progress)
+    return tables
+
+
+def _tables_rank(job: dict, group):
+    """One worker of the tables: nodes ``rank, rank + world, ...`` (neighbouring nodes on different workers, so
+    the shares cost alike), gathered on rank 0 into the one-process layout."""
+    rank, world = dist.get_rank(group), dist.get_world_size(group)
+    s_n = job["suns"].shape[0]
+    mine = torch.arange(rank, s_n, world)
+    with Progress(s_n * job["per_node"], job["label"], unit="node", enabled=bool(job["progress"]) and rank == 0,
+                  every=5.0) as bar:
+        part = _node_tables(job, mine, lambda: bar.update(world))
+    parts = [None] * world if rank == 0 else None
+    dist.gather_object(part, parts, dst=0, group=group)
+    if rank:
+        return None
+    out = {}
+    for name, first in parts[0].items():
+        if name == "mirror_area":
+            out[name] = first
+            continue
+        axis = 0 if name == "aim" else first.dim() - 1  # the node axis
+        shape = list(first.shape)
+        shape[axis] = s_n
+        full = first.new_zeros(shape)
+        for r, p in enumerate(parts):
+            full.index_copy_(axis, torch.arange(r, s_n, world), p[name])
+        out[name] = full
+    return out
 
 
 class _Hours:
