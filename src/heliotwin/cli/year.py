@@ -24,10 +24,11 @@ def register(subparsers) -> None:
         "year", help="the plant's year heliostat by heliostat: energy, factors, tracking and mirror losses",
         description="For every heliostat: annual energy on the receiver [MWh], DNI-weighted efficiency and "
                     "factors (cosine, shading, blocking, attenuation, intercept, reflectance), the energy lost to "
-                    "its own tracking error (the twin's learned kinematics against a perfectly calibrated "
-                    "heliostat, the controller aiming with the learned kinematics; the expected loss and its interval "
-                    "over the calibration's posterior) and to its own mirror (learned surface against ideal facets). Per-heliostat tables "
-                    "over sun positions, interpolated bilinearly over the weather's daylight hours.")
+                    "its own tracking error (a perfectly calibrated heliostat against one that moves as the "
+                    "calibration's posterior says while the controller aims with the learned kinematics: the "
+                    "expected loss and its 5-95 % interval) and to its own mirror (learned surface against ideal "
+                    "facets). Per-heliostat tables over sun positions, interpolated bilinearly over the weather's "
+                    "daylight hours with each hour's exact cosine.")
     p.add_argument("--scenario", required=True, help="plant file (.h5)")
     p.add_argument("--weather", metavar="FILE", help="DNI time series (SAM/TMY weather file, PAINT's "
                    "calibration-weather.csv, or a CSV with time and dni columns); default: pvlib clear sky at the "
