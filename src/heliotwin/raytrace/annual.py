@@ -78,7 +78,7 @@ from .field import (
 from .flux import target_extent
 
 __all__ = ["TableGrid", "DEFAULT_GRID", "bilinear_weights", "node_weights", "node_columns", "interpolate",
-           "hourly_cosine", "hourly_sums", "heliostat_tables", "tracking_tables", "surface_tables"]
+           "hour_weights", "hourly_cosine", "hourly_sums", "heliostat_tables", "tracking_tables", "surface_tables"]
 
 
 @dataclass(frozen=True)
@@ -150,21 +150,14 @@ def bilinear_weights(grid: TableGrid, azimuth: torch.Tensor, elevation: torch.Te
 
 def node_weights(idx: torch.Tensor, w: torch.Tensor, energy: torch.Tensor, nodes: torch.Tensor,
                  groups: torch.Tensor | None = None, n_groups: int = 1) -> torch.Tensor:
-    """Per node the sum of ``energy`` [T] (DNI x hours [Wh/m^2]) times the instants' bilinear weights.
+    """Per node the sum of ``energy`` [T] (DNI x hours [Wh/m^2]) times the instants' bilinear weights: a table
+    [..., S] times this is the year's sum of its interpolation (a factor's DNI-weighted sum).
 
-    ``nodes`` [S]: the flat node indices the tables hold (every index in ``idx`` with a weight must be among
-    them). ``groups`` [T] (e.g. the month, 0..11) splits the sum: result [n_groups, S]; without it [S].
+    ``idx``, ``w`` [T, 4] (:func:`bilinear_weights`), ``nodes`` [S]: the flat node indices the tables hold
+    (every index in ``idx`` with a weight must be among them). ``groups`` [T] (e.g. the month, 0..11) splits
+    the sum: result [n_groups, S]; without it [S].
     """
-    pos = torch.full((int(idx.max()) + 1 if idx.numel() else 1,), -1, dtype=torch.long)
-    pos[nodes] = torch.arange(nodes.numel())
-    col = pos[idx]  # [T, 4]
-    val = (w * energy.unsqueeze(-1)).to(torch.float64)
-    keep = val != 0
-    if bool((col[keep] < 0).any()):
-        raise ValueError("an instant interpolates from a node the tables do not hold")
-    g = torch.zeros_like(idx) if groups is None else groups.long().unsqueeze(-1).expand_as(idx)
-    flat = (g * nodes.numel() + col.clamp_min(0))[keep]
-    out = torch.zeros(n_groups * nodes.numel(), dtype=torch.float64).index_add_(0, flat, val[keep])
+    out = hour_weights(node_columns(nodes, idx, w), w, energy, nodes.numel(), groups, n_groups).sum(0)
     out = out.reshape(n_groups, nodes.numel())
     return out[0] if groups is None else out
 
@@ -198,17 +191,35 @@ def hourly_cosine(position: torch.Tensor, aim: torch.Tensor, suns: torch.Tensor)
     return (safe_normalize(s + to_aim) * s).sum(-1)
 
 
+def hour_weights(col: torch.Tensor, w: torch.Tensor, energy: torch.Tensor, n_nodes: int,
+                 groups: torch.Tensor | None = None, n_groups: int = 1) -> torch.Tensor:
+    """The interpolation as a matrix [T, G*S] float64: row t holds ``energy[t] x w[t, c]`` [Wh/m^2] in column
+    ``g_t S + col[t, c]`` (``col``, ``w`` [T, 4]: :func:`node_columns`, :func:`bilinear_weights`; ``groups``
+    (T,) the instants' group 0..G-1, e.g. the month; G = ``n_groups``, 1 without groups)."""
+    t_n = col.shape[0]
+    g = torch.zeros_like(col) if groups is None else groups.long().to(col.device).unsqueeze(-1).expand_as(col)
+    val = (w.to(torch.float64) * energy.to(torch.float64).unsqueeze(-1))
+    a = torch.zeros(t_n, int(n_groups) * int(n_nodes), dtype=torch.float64, device=col.device)
+    return a.scatter_add_(1, g * int(n_nodes) + col, val)
+
+
 def hourly_sums(over_cosine: torch.Tensor, cosine: torch.Tensor, col: torch.Tensor, w: torch.Tensor,
-                energy: torch.Tensor, groups: torch.Tensor | None = None, n_groups: int = 1) -> torch.Tensor:
+                energy: torch.Tensor, groups: torch.Tensor | None = None, n_groups: int = 1, *,
+                weights: torch.Tensor | None = None) -> torch.Tensor:
     """The year of tables of the efficiency over the cosine ``over_cosine`` [..., h, S]: per heliostat
     ``sum_t q_t cos_ht x interp_t`` [Wh/m^2] -> [..., h]; with ``groups`` (T,) (e.g. the month 0..11) the sums
     per group [..., h, n_groups]. ``cosine`` [h, T] (:func:`hourly_cosine`), ``col``, ``w`` [T, 4],
-    ``energy`` (T,) DNI x hours [Wh/m^2]."""
-    e = interpolate(over_cosine, col, w) * (cosine * energy.to(cosine)).to(over_cosine)  # [..., h, T]
-    if groups is None:
-        return e.sum(-1)
-    out = e.new_zeros(*e.shape[:-1], int(n_groups))
-    return out.index_add_(e.dim() - 1, groups.to(e.device).long(), e)
+    ``energy`` (T,) DNI x hours [Wh/m^2]; ``weights``: :func:`hour_weights` of them, when already at hand.
+
+    The sum is reordered, ``sum_s table_hs (sum_t cos_ht A_ts)`` with ``A`` = :func:`hour_weights`: one
+    [h, T] x [T, G S] product shared by every leading index (the posterior draws), never a [..., h, T]
+    tensor of interpolated hours."""
+    s_n = over_cosine.shape[-1]
+    g_n = 1 if groups is None else int(n_groups)
+    a = hour_weights(col, w, energy, s_n, groups, g_n) if weights is None else weights
+    m = (cosine.to(torch.float64) @ a).reshape(cosine.shape[0], g_n, s_n)  # [h, G, S]
+    out = (over_cosine.to(torch.float64).unsqueeze(-2) * m).sum(-1)  # [..., h, G]
+    return out[..., 0] if groups is None else out
 
 
 def needed_nodes(idx: torch.Tensor, w: torch.Tensor, energy: torch.Tensor) -> torch.Tensor:

@@ -304,8 +304,8 @@ def plant_year(scenario, weather=None, settings: YearSettings | None = None) -> 
     monthly = (area.unsqueeze(-1) * by_month).sum(0) / 1e6  # [12]
     sum_q = float(q_u.sum())
     efficiency = energy * 1e6 / (area * sum_q).clamp_min(1e-30)
-    factors = {name: (A.interpolate(tables[name].cpu(), col, w) @ q_u.to(torch.float64)) / sum_q
-               for name in FACTORS if name != "cosine"}
+    node_q = year.weights[False].sum(0)  # [S] the year's DNI x hours on each node [Wh/m^2]
+    factors = {name: (tables[name].cpu() @ node_q) / sum_q for name in FACTORS if name != "cosine"}
     factors["cosine"] = year.cosine_means(all_rows) / sum_q
     factors = {name: factors[name] for name in FACTORS}
     nan = torch.full((h_n,), float("nan"), dtype=torch.float64)
@@ -424,33 +424,37 @@ class _Hours:
         self.fixed = aim[0] if bool((aim == aim[:1]).all()) else None
         self.aim, self.node = aim, col.gather(1, w.argmax(1, keepdim=True)).squeeze(1)  # (T,)
         self.col, self.w, self.q, self.suns, self.months = col, w, q.to(torch.float64), suns.to(torch.float64), months
+        s_n = aim.shape[0]
+        self.weights = {False: A.hour_weights(col, w, self.q, s_n),
+                        True: A.hour_weights(col, w, self.q, s_n, months, 12)}
 
     def cosine(self, rows: torch.Tensor) -> torch.Tensor:
         """[h, T] exact cosine of heliostats ``rows`` at every instant."""
         aim = self.fixed[rows] if self.fixed is not None else self.aim[self.node][:, rows].transpose(0, 1)
         return A.hourly_cosine(self.pos[rows], aim, self.suns)
 
-    def _chunks(self, rows: torch.Tensor, per_row: int):
-        step = max(1, HOURLY_BUDGET // max(1, per_row * self.q.numel()))
+    def _chunks(self, rows: torch.Tensor):
+        step = max(1, HOURLY_BUDGET // max(1, self.q.numel()))
         for k in range(0, rows.numel(), step):
             yield slice(k, k + step), rows[k:k + step]
 
     def sums(self, rows: torch.Tensor, over_cos: torch.Tensor, monthly: bool = False) -> torch.Tensor:
         """:func:`~heliotwin.raytrace.annual.hourly_sums` of tables ``over_cos`` [..., h, S] (rows ``rows``) ->
         [..., h] or [..., h, 12] [Wh/m^2]."""
-        lead = int(np.prod(over_cos.shape[:-2])) if over_cos.dim() > 2 else 1
         parts = [A.hourly_sums(over_cos[..., sl, :], self.cosine(r), self.col, self.w, self.q,
-                               self.months if monthly else None, 12) for sl, r in self._chunks(rows, lead)]
+                               self.months if monthly else None, 12, weights=self.weights[monthly])
+                 for sl, r in self._chunks(rows)]
         return torch.cat(parts, dim=over_cos.dim() - 2) if parts else over_cos.new_zeros(
             *over_cos.shape[:-1], *((12,) if monthly else ()))
 
     def cosine_means(self, rows: torch.Tensor) -> torch.Tensor:
         """(h,) ``sum_t q_t cos_ht`` [Wh/m^2]."""
-        return torch.cat([self.cosine(r) @ self.q for _, r in self._chunks(rows, 1)])
+        return torch.cat([self.cosine(r) @ self.q for _, r in self._chunks(rows)])
 
 
-#: Elements of one chunk's [..., h, T] hourly tensors (float64): a memory bound (~130 MB), not a tuning knob.
-HOURLY_BUDGET = 1 << 24
+#: Elements of one chunk's [h, T] hourly cosines (float64, with a few temporaries of the same size: ~100 MB):
+#: a memory bound, not a tuning knob.
+HOURLY_BUDGET = 1 << 22
 
 
 def _check(plant, atm, tables, grid, nodes, az, el, q, settings: YearSettings, tick) -> dict:
