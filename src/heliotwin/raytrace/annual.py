@@ -348,12 +348,30 @@ def tracking_tables(plant: Plant, suns: torch.Tensor, aim: torch.Tensor, rows: t
     torch.Tensor, [V, h, S], float64
         ``(cos / cos_perfect) x I(d) / I(0)`` (module docstring); multiply the perfect heliostat's power.
     """
-    target = plant.target("receiver")
-    full = isinstance(target, CylinderTarget) and target.opening_angle >= 2 * math.pi - 1e-9
     s_n, h = suns.shape[0], rows.numel()
     out = torch.ones(len(variants), h, s_n, dtype=torch.float64)
     if h == 0 or s_n == 0:
         return out
+    # nodes a few at a time: the variants' poses are [V, S, h, ...] tensors (16 draws at 10,000 heliostats and
+    # 63 nodes: ~1 GB in one piece)
+    step = max(1, TRACKING_BUDGET // max(1, len(variants) * h))
+    for s0 in range(0, s_n, step):
+        sl = slice(s0, s0 + step)
+        out[:, :, sl] = _tracking_chunk(plant, suns[sl], aim[sl], rows, controller, variants, resolution, samples,
+                                        progress)
+    return out
+
+
+#: Variant-heliostat-nodes of one chunk of :func:`tracking_tables` (a memory bound, not a tuning knob).
+TRACKING_BUDGET = 1 << 21
+
+
+def _tracking_chunk(plant: Plant, suns, aim, rows, controller, variants, resolution, samples, progress):
+    """:func:`tracking_tables` of the nodes ``suns`` [s, 3] (``aim`` [s, H, 3]) -> [V, h, s]."""
+    target = plant.target("receiver")
+    full = isinstance(target, CylinderTarget) and target.opening_angle >= 2 * math.pi - 1e-9
+    s_n, h = suns.shape[0], rows.numel()
+    out = torch.ones(len(variants), h, s_n, dtype=torch.float64)
     a = aim[:, rows].to(torch.float64)  # [S, h, 3]
     with torch.no_grad():
         sun_sh = suns.to(torch.float64).unsqueeze(1).expand(s_n, h, 3)

@@ -275,10 +275,10 @@ def reuse_mirror_samples():
         _REUSED_SAMPLES.reset(token)
 
 
-def _local_mirror_samples(sf, per_direction: int, rows: torch.Tensor | None):
+def _local_mirror_samples(sf, per_direction: int, rows: torch.Tensor | None, reuse: bool = True):
     """:func:`heliotwin.field.facets.surface_points` of heliostats ``rows`` on a ``per_direction`` grid, reused
-    within :func:`reuse_mirror_samples`."""
-    cache = _REUSED_SAMPLES.get()
+    within :func:`reuse_mirror_samples` (unless ``reuse`` is False)."""
+    cache = _REUSED_SAMPLES.get() if reuse else None
     tensors = [sf.control_points] + ([] if sf.weights is None else [sf.weights])
     if cache is not None and not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors)):
         key = (tuple((id(t), t._version) for t in tensors), int(per_direction),
@@ -312,19 +312,40 @@ def _block_side(per_direction: int) -> int:
     return max(2, int(per_direction) // 2)
 
 
-def _reused_blocks(points, normals, facets: int, per_direction: int):
-    """:func:`heliotwin.raytrace.occlusion.mirror_blocks` of the local samples ``points``, ``normals``, reused
-    within :func:`reuse_mirror_samples` while they are the same tensors (the reused samples themselves)."""
+def _in_dtype(t: torch.Tensor, dtype) -> torch.Tensor:
+    """``t`` in ``dtype``; a tensor expanded over its first axis (one mirror shape for the field) stays one."""
+    if t.shape[0] > 1 and t.stride(0) == 0:
+        return t[:1].to(dtype).expand_as(t)
+    return t.to(dtype)
+
+
+def _occlusion_samples(sf, facets: int, per_direction: int, rows: torch.Tensor, hard: bool):
+    """The occlusion's mirror samples of heliostats ``rows`` in the heliostat frame: points and normals
+    [h, N, 3] float64, areas [h, N], and for the hard test their blocks
+    (:func:`heliotwin.raytrace.occlusion.mirror_blocks`; None for the smooth test).
+
+    Within :func:`reuse_mirror_samples` they are kept between evaluations as float32 with their blocks (built on
+    the float32 samples, which the hard test rays from: its ray tests are float32 anyway) and handed out as
+    float64 copies: 10,000 heliostats' oversampled mirrors held 1.1 GB in float64 in every process of the
+    year's tables."""
     cache = _REUSED_SAMPLES.get()
-    if cache is None or points.requires_grad or normals.requires_grad:
-        return mirror_blocks(points, normals, facets, per_direction, _block_side(per_direction))
-    key = ("blocks", id(points), points._version, id(normals), normals._version, int(facets), int(per_direction))
+    tensors = [sf.control_points] + ([] if sf.weights is None else [sf.weights])
+    grad = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+    if cache is None or grad:
+        pts, nrm, area = _local_mirror_samples(sf, per_direction, rows)
+        blocks = mirror_blocks(pts, nrm, facets, per_direction, _block_side(per_direction)) if hard else None
+        return pts, nrm, area, blocks
+    key = ("occlusion", tuple((id(t), t._version) for t in tensors), int(per_direction), bool(hard),
+           hash(rows.detach().cpu().numpy().tobytes()))
     hit = cache.get(key)
-    if hit is not None and hit[0]() is points and hit[1]() is normals:
-        return hit[2]
-    blocks = mirror_blocks(points, normals, facets, per_direction, _block_side(per_direction))
-    cache[key] = (weakref.ref(points), weakref.ref(normals), blocks)
-    return blocks
+    if hit is None or not all(r() is t for r, t in zip(hit[0], tensors)):
+        pts, nrm, area = _local_mirror_samples(sf, per_direction, rows, reuse=False)
+        pts, nrm = _in_dtype(pts, torch.float32), _in_dtype(nrm, torch.float32)
+        blocks = mirror_blocks(pts, nrm, facets, per_direction, _block_side(per_direction)) if hard else None
+        hit = ([weakref.ref(t) for t in tensors], (pts, nrm, area, blocks))
+        cache[key] = hit
+    pts, nrm, area, blocks = hit[1]
+    return _in_dtype(pts, torch.float64), _in_dtype(nrm, torch.float64), area, blocks
 
 
 def _pool(x: torch.Tensor, weight: torch.Tensor, facets: int, m: int, k: int) -> torch.Tensor:
@@ -371,7 +392,8 @@ def _occlusion(plant: Plant, normal, aim, sun, settings: FieldSettings, rows: to
     nf = fl.facets.translation.shape[1]
     h = rows.shape[0]
     m, k = int(settings.flux_samples), int(settings.occlusion_oversampling)
-    pts, nrm, area = _local_mirror_samples(fl.surfaces, m * k, rows)
+    hard = settings.softness is None and settings.occlusion_model == "exact"
+    pts, nrm, area, blocks = _occlusion_samples(fl.surfaces, nf, m * k, rows, hard)
     pts, nrm, area = pts.to(normal), nrm.to(normal), area.to(normal)
     nr = normal[rows]
     ew, eh = mirror_frame(nr)
@@ -387,9 +409,9 @@ def _occlusion(plant: Plant, normal, aim, sun, settings: FieldSettings, rows: to
     idx, valid = occluder_candidates(occ, s, queries=rows)
     idx_b, valid_b = _blocking_candidates(plant, occ, aim, rows)
     if settings.softness is None:
-        blocks = _reused_blocks(pts, nrm, nf, m * k)
         free_sun = unoccluded_tracked(blocks, rot, occ, idx, valid, s, reflected=False, owners=rows)
         free_rx = unoccluded_tracked(blocks, rot, occ, idx_b, valid_b, s, reflected=True, owners=rows)
+        free_sun, free_rx = free_sun.to(normal), free_rx.to(normal)  # 0/1 in the samples' dtype (float32 reused)
     else:
         pw = pos[rows].unsqueeze(1) + pts @ rot.transpose(-1, -2)
         nw = nrm @ rot.transpose(-1, -2)
