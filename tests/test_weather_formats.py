@@ -14,6 +14,7 @@ import pandas as pd
 import pvlib
 import pytest
 from helpers.cli import assert_one_line_error, run_cli
+from helpers.weather import YEARS, hour_means, write_epw, write_psm3, write_sam
 
 from heliotwin.errors import InputFileError
 from heliotwin.field.demo import demo_field_plant
@@ -34,15 +35,7 @@ TMY3, TMY2 = os.path.join(DATA, "723170TYA.CSV"), os.path.join(DATA, "12839.tm2"
 #: far east and far west of their time zones' meridians is not needed: UTC read as local is 9-10 h off here
 EAST = {"name": "Tokyo", "lat": 35.69, "lon": 139.69, "alt": 40.0, "tz": 9}
 WEST = {"name": "Honolulu", "lat": 21.31, "lon": -157.86, "alt": 5.0, "tz": -10}
-YEARS = [1977, 1985, 1990, 2005, 1999, 1988, 1996, 2001, 1983, 1979, 2003, 1994]  # one per month, a TMY's way
 LIMIT = 0.005  # share of the DNI energy below the horizon for a correct reading
-
-
-def _clear(site, utc) -> np.ndarray:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        loc = pvlib.location.Location(site["lat"], site["lon"], altitude=site["alt"])
-        return loc.get_clearsky(pd.DatetimeIndex(utc), model="ineichen")["dni"].to_numpy()
 
 
 @pytest.fixture(scope="module")
@@ -52,56 +45,8 @@ def hourly():
     out = {}
     starts = pd.date_range("2001-01-01", periods=8760, freq="1h")
     for site in (EAST, WEST):
-        utc = (starts - pd.Timedelta(hours=site["tz"])).tz_localize("UTC")
-        samples = np.stack([_clear(site, utc + pd.Timedelta(minutes=m)) for m in (5, 15, 25, 35, 45, 55)])
-        out[site["name"]] = (starts, samples.mean(axis=0).round(1), _clear(site, utc + pd.Timedelta(minutes=30)))
+        out[site["name"]] = (starts, *hour_means(site, starts))
     return out
-
-
-def _epw(path, site, starts, dni):
-    head = [f"LOCATION,{site['name']},-,XXX,TMY,000000,{site['lat']},{site['lon']},{site['tz']:.1f},{site['alt']}",
-            "DESIGN CONDITIONS,0", "TYPICAL/EXTREME PERIODS,0", "GROUND TEMPERATURES,0",
-            "HOLIDAYS/DAYLIGHT SAVINGS,No,0,0,0", "COMMENTS 1,generated", "COMMENTS 2,clear sky",
-            "DATA PERIODS,1,1,Data,Sunday, 1/ 1,12/31"]
-    with open(path, "w") as fh:
-        fh.write("\n".join(head) + "\n")
-        for t, v in zip(starts, dni):  # hour h (1-24) = the hour ending at h:00, local standard time
-            row = [YEARS[t.month - 1], t.month, t.day, t.hour + 1, 60, "?9?9?9?9E0?9?9?9*9*9?9*9*9?9*9*9?9*9*9*9",
-                   20.0, 10.0, 50, 101325, 0, 1415, 300, 0, v, 0, 0, 0, 0, 0, 180, 2.0, 0, 0, 20.0, 77777, 9,
-                   999999999, 10, 0.1, 0, 88, 0.2, 0, 0]
-            fh.write(",".join(str(x) for x in row) + "\n")
-    return path
-
-
-def _sam(path, site, starts, dni, layout="source", column="DNI", minute=False):
-    """A SAM CSV: ``layout`` "source" (``Source,Location ID,City,State,...``) or "location" (SolarPILOT's
-    ``Location,City,Region,...,Source``); Hour 0-23 = the hour starting there; months of different years."""
-    with open(path, "w") as fh:
-        if layout == "source":
-            fh.write("Source,Location ID,City,State,Country,Latitude,Longitude,Time Zone,Elevation\n")
-            fh.write(f"test,0,{site['name']},-,XXX,{site['lat']},{site['lon']},{site['tz']},{site['alt']}\n")
-        else:
-            fh.write("Location,City,Region,Country,Latitude,Longitude,Time Zone,Elevation,Source\n")
-            fh.write(f"000,{site['name']},-,XXX,{site['lat']},{site['lon']},{site['tz']},{site['alt']},test\n")
-        fh.write("Year,Month,Day,Hour," + ("Minute," if minute else "") + f"GHI,{column},DHI\n")
-        for t, v in zip(starts, dni):
-            stamp = f"{t.hour},30," if minute else f"{t.hour},"
-            fh.write(f"{YEARS[t.month - 1]},{t.month},{t.day},{stamp}0,{v},0\n")
-    return path
-
-
-def _psm3(path, site, starts, dni):
-    """An NSRDB PSM3 CSV as the API writes it (utc=false): stamps at :30 local standard time, instantaneous."""
-    fields = ["Source", "Location ID", "City", "State", "Country", "Latitude", "Longitude", "Time Zone", "Elevation",
-              "Local Time Zone", "DNI Units", "Version"]
-    values = ["NSRDB", "1", "-", "-", "-", site["lat"], site["lon"], site["tz"], int(site["alt"]), site["tz"],
-              "w/m2", "3.2.2"]
-    with open(path, "w") as fh:
-        fh.write(",".join(fields) + "\n" + ",".join(str(v) for v in values) + "\n")
-        fh.write("Year,Month,Day,Hour,Minute,DHI,DNI,GHI,Temperature\n")
-        for t, v in zip(starts, dni):
-            fh.write(f"2001,{t.month},{t.day},{t.hour},30,0,{v:.1f},0,20\n")
-    return path
 
 
 def _share(series, year=2023, site=None):
@@ -144,7 +89,7 @@ def test_tmy3_leap_february_hour_ending_at_midnight_stays_on_28_february():
 @pytest.mark.parametrize("site", [EAST, WEST], ids=["east", "west"])
 def test_generated_epw_is_read_with_the_sun_up_and_read_as_utc_it_is_not(hourly, tmp_path, site):
     starts, dni, _ = hourly[site["name"]]
-    s = read_dni_series(_epw(tmp_path / "w.epw", site, starts, dni))
+    s = read_dni_series(write_epw(tmp_path / "w.epw", site, starts, dni))
     assert s.kind == "epw" and s.typical and s.file_years == (1977, 2005) and "EPW" in s.convention
     assert s.info["latitude_deg"] == site["lat"] and s.info["time_zone_hours"] == site["tz"]
     wy, share = _share(s)
@@ -161,7 +106,7 @@ def test_sam_csv_in_both_layouts_with_months_of_different_years_is_a_typical_yea
     starts, mean, at30 = hourly["Tokyo"]
     # no Minute column: the hour starting at Hour (its mean); Minute 30: the sun at :30 (the instant's value)
     dni = at30.round(1) if minute else mean
-    s = read_dni_series(_sam(tmp_path / "w.csv", EAST, starts, dni, layout, column, minute))
+    s = read_dni_series(write_sam(tmp_path / "w.csv", EAST, starts, dni, layout, column, minute))
     assert s.kind == "sam" and s.typical and s.file_years == (1977, 2005)
     assert s.info["site_name"] == "Tokyo" and s.info["longitude_deg"] == EAST["lon"]
     wy, share = _share(s)  # was "no row in 2023 (the rows span 1977 to 2005)"
@@ -174,7 +119,7 @@ def test_sam_csv_in_both_layouts_with_months_of_different_years_is_a_typical_yea
 @pytest.mark.parametrize("site", [EAST, WEST], ids=["east", "west"])
 def test_nsrdb_psm3_is_instantaneous_at_its_stamp(hourly, tmp_path, site):
     starts, _, at30 = hourly[site["name"]]
-    s = read_dni_series(_psm3(tmp_path / "psm.csv", site, starts, at30))
+    s = read_dni_series(write_psm3(tmp_path / "psm.csv", site, starts, at30))
     assert s.kind == "psm3" and "instantaneous" in s.convention and s.info["elevation_m"] == int(site["alt"])
     assert s.times[0] == pd.Timestamp("2001-01-01 00:30", tz="UTC") - pd.Timedelta(hours=site["tz"])
     wy, share = _share(s)
@@ -184,7 +129,7 @@ def test_nsrdb_psm3_is_instantaneous_at_its_stamp(hourly, tmp_path, site):
 
 def test_the_files_site_against_the_plants_with_a_warning_beyond_50_km(hourly, tmp_path):
     starts, dni, _ = hourly["Honolulu"]
-    s = read_dni_series(_epw(tmp_path / "hnl.epw", WEST, starts, dni))
+    s = read_dni_series(write_epw(tmp_path / "hnl.epw", WEST, starts, dni))
     assert site_offset_km(s, WEST["lat"], WEST["lon"]) == pytest.approx(0.0, abs=1e-9)
     # 0.3 deg of latitude is 33 km: no warning; 0.6 deg (67 km) is one, naming the file and both sites
     assert site_offset_km(s, WEST["lat"] + 0.3, WEST["lon"]) == pytest.approx(33.4, abs=0.2)
@@ -207,7 +152,7 @@ def test_the_files_site_against_the_plants_with_a_warning_beyond_50_km(hourly, t
 
 def test_leap_days_of_a_typical_year(hourly, tmp_path):
     starts, dni, _ = hourly["Tokyo"]
-    s = read_dni_series(_sam(tmp_path / "w.csv", EAST, starts, dni))
+    s = read_dni_series(write_sam(tmp_path / "w.csv", EAST, starts, dni))
     wy = weather_for_year(s, 2024)  # a typical year in a leap year: 8760 h, no 29 February, stated
     assert len(wy.times) == 8760 and wy.annual
     local = wy.times + pd.Timedelta(hours=9)
@@ -266,9 +211,9 @@ def test_no_library_warning_reaches_the_user(hourly, tmp_path, recwarn, monkeypa
         lines = fh.read().splitlines(keepends=True)
     lines[5000] = lines[5000].replace(",A,7,", ",x,7,", 1)
     (tmp_path / "mixed.csv").write_text("".join(lines))
-    files = [TMY3, TMY2, tmp_path / "mixed.csv", _epw(tmp_path / "w.epw", EAST, starts, dni),
-             _sam(tmp_path / "s.csv", EAST, starts, dni, "location", "Beam"), _psm3(tmp_path / "p.csv", EAST, starts,
-                                                                                   at30)]
+    files = [TMY3, TMY2, tmp_path / "mixed.csv", write_epw(tmp_path / "w.epw", EAST, starts, dni),
+             write_sam(tmp_path / "s.csv", EAST, starts, dni, "location", "Beam"),
+             write_psm3(tmp_path / "p.csv", EAST, starts, at30)]
     for path in files:
         weather_for_year(read_dni_series(path), 2024)
     assert [str(w.message) for w in recwarn] == []
