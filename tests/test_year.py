@@ -171,3 +171,34 @@ def test_tables_dealt_over_processes_are_the_one_process_tables(tiny):
     for name in ("energy_mwh", "tracking_loss_mwh", "efficiency"):
         np.testing.assert_allclose(got[name], one[name], rtol=1e-12)
     assert two.report["tables_processes"] == 2 and res.report["tables_processes"] == 1
+
+
+def test_a_far_weather_file_and_dni_below_the_horizon_are_warned(tiny):
+    """pvlib's Greensboro TMY3 on a plant at Juelich: its site is ~6,900 km away and much of its DNI falls while
+    the sun is down at the plant; both are one-line warnings in the report (printed by the CLI)."""
+    import os
+
+    import pvlib
+
+    from heliotwin.io.weather import read_dni_series
+
+    _, _, sc, _ = tiny
+    tmy3 = os.path.join(os.path.dirname(pvlib.__file__), "data", "723170TYA.CSV")
+    res = plant_year(sc, read_dni_series(tmy3), YearSettings(draws=0))
+    warnings = res.report["warnings"]
+    assert any("km from the plant" in w for w in warnings)
+    assert res.report["dni_share_below_horizon"] > 0.005
+    assert any("below the horizon" in w and tmy3 in w for w in warnings)
+    assert tiny[3].report["warnings"] == []  # clear sky at the plant: nothing to warn
+
+
+def test_api_year_is_the_workflow_and_writes_the_plant(tiny, tmp_path):
+    from heliotwin import api
+
+    _, _, sc, res = tiny
+    out = tmp_path / "year.h5"
+    got = api.year(sc, every="3h", draws=4, output=out)
+    np.testing.assert_allclose(got.scenario.learned["year"]["heliostats"]["energy_mwh"],
+                               res.scenario.learned["year"]["heliostats"]["energy_mwh"], rtol=1e-12)
+    stored = load_scenario(out).learned["year"]
+    assert stored["annual_energy_mwh"] == pytest.approx(got.report["annual_energy_mwh"], rel=1e-12)

@@ -55,12 +55,14 @@ from .workflows.trace import TraceSettings
 from .workflows.trace import trace_record as trace_workflow
 from .workflows.update import UpdateSettings
 from .workflows.update import update as update_workflow
+from .workflows.year import YearSettings
+from .workflows.year import plant_year as year_workflow
 
 __all__ = ["load", "field", "trace_record", "plot_flux", "calibrate", "reconstruct", "reconstruct_plant",
            "ReconstructionSettings",
            "to_device", "field_efficiency", "FieldRunSettings", "optimise_aimpoints", "AimpointSettings",
            "plot_receiver_flux", "export_plant", "read_weather", "update",
-           "simulate", "score", "SimulationSettings"]
+           "simulate", "score", "SimulationSettings", "year", "YearSettings"]
 
 
 def load(paint, heliostats=None, *, scenario=None, plane_tolerance: float = 0.1):
@@ -265,6 +267,35 @@ def update(scenario, paint, config: UpdateSettings | None = None, *, output=None
     if output is not None:
         write_scenario(result.scenario, output)
     return result.report, result.scenario, None if output is None else os.fspath(output)
+
+
+def year(scenario, weather=None, settings: YearSettings | None = None, *, output=None, **options):
+    """The plant's year heliostat by heliostat (``heliotwin year``'s defaults).
+
+    Parameters
+    ----------
+    scenario : str, os.PathLike or heliotwin.io.scenario.Scenario
+    weather : str, os.PathLike or heliotwin.io.weather.DniSeries, optional
+        A weather file (TMY3, TMY2, EPW, PSM3, SAM CSV, PAINT's weather CSV, ``time,dni`` CSV) or a series read by
+        :func:`read_weather`; default: pvlib's clear sky at the plant's site.
+    settings : heliotwin.workflows.year.YearSettings, optional
+        One setting per ``heliotwin year`` flag (year, aim, draws, seed, check_hours, nproc, ...).
+    output : str or os.PathLike, optional
+        Write the plant with the year stored (``/learned/year``) there.
+    **options
+        Any of those settings by keyword (e.g. ``aim="scenario"``).
+
+    Returns
+    -------
+    heliotwin.workflows.year.YearResult
+        ``report`` (the JSON), ``rows`` (one dict per heliostat: the CSV), ``scenario`` (the plant with the
+        year), ``tables`` (the per-heliostat tables over the sun positions).
+    """
+    series = read_dni_series(os.fspath(weather)) if isinstance(weather, (str, os.PathLike)) else weather
+    result = year_workflow(_scenario(scenario), series, replace(settings or YearSettings(), **options))
+    if output is not None:
+        write_scenario(result.scenario, output)
+    return result
 
 
 def reconstruct(paint, heliostat: str, settings: ReconstructionSettings | None = None, *, scenario=None,

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import math
+import sys
 
 from ..errors import HeliotwinError
 from ..io.report import atomic_path, output_set, plant_inputs, same_file, write_json
@@ -97,6 +98,8 @@ def cmd_year(args) -> int:
             _write_csv(out_csv, res.rows)
         if out_json:
             write_json(out_json, report)
+    for warning in report.get("warnings", []):  # the weather file's site or times (also in the JSON)
+        print(f"heliotwin: warning: {warning}", file=sys.stderr)
     if not args.quiet:
         _print_year(report)
     return 0

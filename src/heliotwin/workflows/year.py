@@ -250,6 +250,7 @@ def plant_year(scenario, weather=None, settings: YearSettings | None = None) -> 
         raise HeliotwinError(f"{inst['weather']['file'] or 'clear sky'}: no direct sun in {inst['year']} (every DNI "
                              "is 0): no energy to report")
     below = float(q[~up].sum()) / total_q
+    up = up & (q > 0)  # the daylight instants with direct sun: the others add nothing (and need no table node)
     az_u, el_u, q_u = az[up], el[up], q[up]
     if float(q_u.sum()) <= 0:
         raise HeliotwinError(f"{inst['weather']['file'] or 'clear sky'}: no direct sun in {inst['year']} while the "
@@ -343,8 +344,10 @@ def plant_year(scenario, weather=None, settings: YearSettings | None = None) -> 
     out = next_scenario(scenario, scenario.plant, learned=learned, step=step)
     report = _report(scenario, inst, state, grid, nodes, below, notes, uncal, surf_ids, time.perf_counter() - t0)
     report["tables_processes"] = nproc
+    report["warnings"] = _warnings(weather, plant.site, below)
     tables_out = {"nodes": nodes, "efficiency": eff, "cosine": tables["cosine"].cpu(), "tracking_ratio": track,
-                  "surface_efficiency": surf_eff, "aim": tables["aim"].cpu(), "suns": suns.cpu(), "hours": year}
+                  "surface_efficiency": surf_eff, "aim": tables["aim"].cpu(), "suns": suns.cpu(), "hours": year,
+                  "mirror_area": area, "calibrated_rows": None if cal is None else cal["rows"]}
     return YearResult(out, report, csv_rows(plant.field.ids, state), tables_out)
 
 
@@ -410,6 +413,25 @@ def _tables_rank(job: dict, group):
             full.index_copy_(axis, torch.arange(r, s_n, world), p[name])
         out[name] = full
     return out
+
+
+def _warnings(weather, site, below: float) -> list[str]:
+    """One-line warnings for the report (the CLI prints them): the weather file's site beyond 50 km of the
+    plant's, and DNI energy while the sun is below the horizon beyond :data:`BELOW_HORIZON_LIMIT`."""
+    out = []
+    far = _weather.site_warning(weather, site.latitude_deg, site.longitude_deg) if weather is not None else None
+    if far:
+        out.append(far)
+    if below > BELOW_HORIZON_LIMIT:
+        name = getattr(weather, "path", None) or "the weather"
+        out.append(f"{name}: {100 * below:.1f} % of its DNI energy falls while the sun is below the horizon at the "
+                   f"plant (more than {100 * BELOW_HORIZON_LIMIT:.1f} %): its times are likely read in the wrong "
+                   "convention or zone, or the file is another place's")
+    return out
+
+
+#: Share of the DNI energy below the horizon beyond which the report warns (a correct reading: <= 0.5 %).
+BELOW_HORIZON_LIMIT = 0.005
 
 
 class _Hours:
