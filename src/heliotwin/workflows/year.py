@@ -180,7 +180,8 @@ def _aims(scenario, plant, settings: YearSettings, atmosphere):
     state = {"aim": None}
 
     def aim_at(s, sun):
-        res = optimise_aimpoints(plant, sun, float(limit), atmosphere=atmosphere, start_aim=state["aim"])
+        with torch.enable_grad():  # the tables run without gradients; the aim-point optimiser needs them
+            res = optimise_aimpoints(plant, sun, float(limit), atmosphere=atmosphere, start_aim=state["aim"])
         state["aim"] = res.aim.detach()
         return state["aim"].to(torch.float64)
 
