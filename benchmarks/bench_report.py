@@ -13,7 +13,8 @@ Usage::
 
     python benchmarks/bench_report.py PAGE.html [PAGE2.html ...] --out docs/report-screens [--runs 3]
 
-Writes ``<out>/<stem>_map.png``, ``<stem>_alarm.png``, ``<stem>_receiver.png`` and ``<out>/bench_report.json``;
+Writes ``<out>/<stem>_map.png``, ``<stem>_alarm.png``, ``<stem>_receiver.png`` (and ``<stem>_year.png`` for a plant
+with its year stored: ``heliotwin year -o``) and ``<out>/bench_report.json``;
 exits 1 when a page logs a console error, fails to render a Plotly graph, or has no field map. The per-heliostat
 figures are drawn when scrolled to (``lazy-plot``): the load draws the map, the receiver and what is in view.
 
@@ -149,6 +150,8 @@ def main() -> int:
                 shots["alarm"] = [alarm, "alarms"]
             shots["receiver"] = ["receiver-h", "receiver-note", "receiver"]
             shots["plan"] = ["plan-h", "tomorrow"]
+            if "id='year-h'" in open(page, encoding="utf-8").read():  # a plant with its year stored
+                shots["year"] = ["year-h", "yearmap", "yearmonths"]
             for name, elements in shots.items():
                 screenshot(page, elements, os.path.join(args.out, f"{stem}_{name}.png"), tmp)
         p = runs[-1][0]
